@@ -1,0 +1,81 @@
+# batchrt -- Makefile.  Plain GNU make, no configure step.
+#
+#   make              library build/libbatchrt.a and the programs in build/
+#   make test         build and run the test suite (last line: "N passed, N failed")
+#   make debug        the same with -O0 -g and the library's internal checks
+#   make sanitize     the test suite under AddressSanitizer + UBSan
+#   make bench        benchmarks (figures printed, never pass/fail)
+#   make clean
+#
+# == SETTINGS =============================================================
+CC      ?= cc
+OPT     ?= -O2
+# The floating-point policy of batchrt.h: no FMA contraction, no fast-math,
+# so every traversal order computes the same bits.
+STD     = -std=c99 -D_POSIX_C_SOURCE=200809L -ffp-contract=off
+# A curated warning list in the spirit of Lua's makefile.
+WARN    = -Wall -Wextra -pedantic -Werror \
+          -Wshadow -Wstrict-prototypes -Wmissing-prototypes -Wpointer-arith \
+          -Wwrite-strings -Wundef -Wformat=2 -Wvla -Wcast-align \
+          -Wold-style-definition -Wredundant-decls -Wnested-externs
+CFLAGS  ?=
+CFLAGS  += $(STD) $(WARN) $(OPT) $(XCFLAGS)
+LDLIBS  = -lm
+BUILD   ?= build
+# == END OF SETTINGS ======================================================
+
+LIB_SRC  = batchrt.c bvh.c svdag.c
+LIB_OBJ  = $(LIB_SRC:%.c=$(BUILD)/%.o)
+LIB      = $(BUILD)/libbatchrt.a
+# Every examples/*.c is a program, except the shared helpers and the
+# optional Embree tracer (built by "make embree" only).
+EX_COMMON = $(BUILD)/examples/common.o
+EX_SRC   = $(filter-out examples/common.c examples/embree_trace.c, $(wildcard examples/*.c))
+PROGRAMS = $(EX_SRC:examples/%.c=$(BUILD)/%)
+TEST_SRC = $(wildcard tests/*.c)
+TEST_OBJ = $(TEST_SRC:%.c=$(BUILD)/%.o)
+TEST_BIN = $(BUILD)/run_tests
+
+.PHONY: all test debug sanitize bench clean
+all: $(LIB) $(PROGRAMS)
+
+$(BUILD)/%.o: %.c batchrt.h | $(BUILD)/examples $(BUILD)/tests
+	$(CC) $(CFLAGS) -I. -c $< -o $@
+
+$(BUILD)/examples/%.o: examples/%.c batchrt.h $(wildcard examples/*.h) | $(BUILD)/examples
+	$(CC) $(CFLAGS) -I. -c $< -o $@
+
+$(BUILD)/tests/%.o: tests/%.c tests/test.h batchrt.h | $(BUILD)/tests
+	$(CC) $(CFLAGS) -I. -c $< -o $@
+
+$(BUILD)/examples $(BUILD)/tests:
+	mkdir -p $@
+
+$(LIB): $(LIB_OBJ)
+	rm -f $@
+	ar rcs $@ $^
+
+$(BUILD)/%: $(BUILD)/examples/%.o $(EX_COMMON) $(LIB)
+	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
+
+$(TEST_BIN): $(TEST_OBJ) $(LIB)
+	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
+
+# The tests run programs from $(BUILD) too (command-line contracts).
+test: all $(TEST_BIN)
+	BRT_BUILD=$(BUILD) ./$(TEST_BIN) $(T)
+
+debug:
+	$(MAKE) test BUILD=build/debug OPT="-O0 -g" XCFLAGS="-DBRT_DEBUG"
+
+sanitize:
+	$(MAKE) test BUILD=build/sanitize OPT="-O1 -g -fno-omit-frame-pointer" \
+	  XCFLAGS="-DBRT_DEBUG -fsanitize=address,undefined -fno-sanitize-recover=all"
+
+bench: all
+	./$(BUILD)/bench_bvh
+
+clean:
+	rm -rf build
+
+.SECONDARY:

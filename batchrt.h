@@ -1,0 +1,343 @@
+/*
+** batchrt.h -- the one public header of batchrt.
+**
+** batchrt is a small, dependency-free C99 reference implementation of
+** "Conservative Ray Batching using Geometry Proxies" (Molenaar and Eisemann,
+** Eurographics 2020), on top of the batched ray traversal of Pharr et al.
+** (1997).  Rays wait at large clusters of triangles (batching points) whose
+** geometry lives on disk; before a ray is queued it is cast against a small
+** in-memory voxel proxy of the cluster, and only rays that hit the proxy
+** cause a disk load.  A proxy never misses a ray that hits real geometry.
+**
+** DATA FLOW
+**   mesh (OBJ/PLY) -> triangle BVH (bvh.c)            direct mode
+**   mesh -> batching points -> scene file + proxies   batched mode
+**        (batchrt.c)           (svdag.c: voxelize -> SVO -> shared DAG)
+**   rays -> top-level walk -> proxy test -> queues -> page cache -> hits
+**
+** USAGE (see examples/minimal.c for a complete program)
+**
+**   brt_mesh mesh; brt_error err; brt_bvh *bvh;
+**   if (brt_mesh_load("bunny.obj", &mesh, &err) != BRT_OK)
+**       { fprintf(stderr, "%s\n", err.message); return 1; }
+**   brt_bvh_build(mesh.positions, mesh.indices, mesh.triangle_count, NULL, &bvh);
+**   brt_ray ray = {{0,0,5}, {0,0,-1}, 0, INFINITY};
+**   brt_hit hit; brt_hit_clear(&hit);
+**   brt_bvh_intersect(bvh, &ray, &hit);   // hit.prim == BRT_NO_PRIM on a miss
+**   brt_bvh_free(bvh); brt_mesh_free(&mesh);
+**
+** ERRORS
+**   Every fallible function returns a brt_result (BRT_OK is 0) and, when
+**   given a non-NULL brt_error, writes a one-line message there that names
+**   the file and the place ("mesh.obj:12: face index 9 out of range").
+**   The library never prints and never calls exit().
+**
+** FLOATING-POINT POLICY
+**   Build with -std=c99 -ffp-contract=off and never -ffast-math: results
+**   are compared byte for byte between traversal orders, and contraction of
+**   a*b+c into an FMA would make the same expression round differently in
+**   two places.  Bit casts go through memcpy.  Traversal loops have
+**   iteration caps and treat NaN as "miss", never as "hang".
+**
+** RAY AND HIT RECORDS (the file formats; see README.md)
+**   ray: float ox,oy,oz, dx,dy,dz, tnear,tfar         (32 bytes)
+**   hit: float t; uint32 prim; float u,v               (16 bytes)
+**   A hit counts when tnear <= t <= tfar.  The closest hit wins; among
+**   equal t the lowest prim wins, so every traversal order writes the same
+**   bytes.  A miss is t=+inf, prim=0xFFFFFFFF, u=v=0.  Barycentrics follow
+**   Embree: hit point = (1-u-v)*v0 + u*v1 + v*v2.
+*/
+#ifndef BATCHRT_H
+#define BATCHRT_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* ===================================================================== */
+/* Results and errors                                                    */
+/* ===================================================================== */
+
+typedef enum brt_result {
+    BRT_OK = 0,
+    BRT_ENOMEM,   /* an allocation failed */
+    BRT_EIO,      /* open/read/write/rename failed (errno text in message) */
+    BRT_EPARSE,   /* malformed mesh, ray or hit file */
+    BRT_EFORMAT,  /* scene file: bad magic, version, checksum or truncation */
+    BRT_EARG,     /* an impossible argument or option value */
+    BRT_ECHECK    /* a structural checker found a violated invariant */
+} brt_result;
+
+/* A one-line human-readable message; message[0] == 0 when there is none. */
+typedef struct brt_error {
+    char message[512];
+} brt_error;
+
+/* Static name of a result code, e.g. "parse error". Never NULL. */
+const char *brt_result_string(brt_result r);
+
+/* Sets err->message with printf formatting (err may be NULL) and returns r.
+** Used by the library itself; public so examples report errors the same way. */
+brt_result brt_fail(brt_error *err, brt_result r, const char *fmt, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 3, 4)))
+#endif
+    ;
+
+/* ===================================================================== */
+/* Small utilities shared by the library, the programs and the tests     */
+/* ===================================================================== */
+
+/* Parses a size such as "512", "64K", "512M", "2G" (powers of 1024).
+** Rejects empty, negative, zero, overflowing and trailing-garbage text. */
+brt_result brt_parse_size(const char *text, uint64_t *bytes);
+
+/* SplitMix64: a tiny deterministic generator for raygen and the tests.
+** brt_random_float returns a float uniformly in [0, 1). */
+uint64_t brt_random_u64(uint64_t *state);
+float brt_random_float(uint64_t *state);
+
+/* Seconds from a monotonic clock, for statistics only. */
+double brt_seconds(void);
+
+/* Writes size bytes to path through "path.tmp.<pid>" and rename(), so a
+** failure never leaves a half-written file under the final name. */
+brt_result brt_write_file_atomic(const char *path, const void *data,
+                                 size_t size, brt_error *err);
+
+/* ===================================================================== */
+/* Meshes (batchrt.c)                                                    */
+/* ===================================================================== */
+
+/* An indexed triangle mesh.  Triangles are numbered from 0 in file order;
+** an OBJ polygon "f a b c d" becomes the fan (a,b,c), (a,c,d).  Degenerate
+** triangles keep their number (they never report a hit). */
+typedef struct brt_mesh {
+    float *positions;         /* 3 floats per vertex */
+    uint32_t *indices;        /* 3 vertex indices per triangle */
+    uint32_t vertex_count;
+    uint32_t triangle_count;
+} brt_mesh;
+
+/* Loads a Wavefront OBJ ("v", "f" with i, i/t, i//n, i/t/n, negative
+** indices) or a PLY (ascii, binary_little_endian, binary_big_endian; float
+** or double x y z; face lists of any integer types), chosen by content.
+** Streams the file: the text is never held in memory as a whole.
+** Errors name the file and line (OBJ) or element (PLY). */
+brt_result brt_mesh_load(const char *path, brt_mesh *mesh, brt_error *err);
+
+/* The same parsers on a memory buffer; name is used in messages.
+** Entry points for tests and fuzzers. */
+brt_result brt_mesh_parse_obj(const char *name, const void *data, size_t size,
+                              brt_mesh *mesh, brt_error *err);
+brt_result brt_mesh_parse_ply(const char *name, const void *data, size_t size,
+                              brt_mesh *mesh, brt_error *err);
+
+void brt_mesh_free(brt_mesh *mesh);
+
+/* Axis-aligned bounds of the referenced vertices; an empty mesh gives
+** bmin = +inf, bmax = -inf. */
+void brt_mesh_bounds(const brt_mesh *mesh, float bmin[3], float bmax[3]);
+
+/* ===================================================================== */
+/* Rays and hits (batchrt.c)                                             */
+/* ===================================================================== */
+
+typedef struct brt_ray {
+    float org[3];
+    float dir[3];   /* need not be normalised; t is in units of dir */
+    float tnear;
+    float tfar;
+} brt_ray;
+
+typedef struct brt_hit {
+    float t;        /* +inf on a miss */
+    uint32_t prim;  /* BRT_NO_PRIM on a miss */
+    float u, v;     /* 0 on a miss */
+} brt_hit;
+
+#define BRT_NO_PRIM 0xFFFFFFFFu
+#define BRT_RAY_BYTES 32
+#define BRT_HIT_BYTES 16
+
+/* Sets a hit to the miss record. */
+void brt_hit_clear(brt_hit *hit);
+
+/* The one ordering rule of closest hits: nonzero when a hit at (t, prim)
+** beats the current one (smaller t; equal t and lower prim). */
+int brt_hit_is_closer(float t, uint32_t prim, const brt_hit *current);
+
+/* Little-endian files of records with no header.  Reading a file whose
+** size is not a multiple of the record size is BRT_EPARSE.  Writing goes
+** through brt_write_file_atomic.  *rays / *hits are malloc'd (free()). */
+brt_result brt_rays_read(const char *path, brt_ray **rays, size_t *count,
+                         brt_error *err);
+brt_result brt_rays_write(const char *path, const brt_ray *rays, size_t count,
+                          brt_error *err);
+brt_result brt_hits_read(const char *path, brt_hit **hits, size_t *count,
+                         brt_error *err);
+brt_result brt_hits_write(const char *path, const brt_hit *hits, size_t count,
+                          brt_error *err);
+
+/* ===================================================================== */
+/* Ray/triangle test and triangle BVH (bvh.c)                            */
+/* ===================================================================== */
+
+/* Watertight ray/triangle test of Woop, Benthin and Wald (2013).  On a hit
+** with tnear <= t <= tfar returns 1 and sets *t, *u, *v (Embree's
+** barycentrics).  Rays with a NaN, an all-zero direction or tnear > tfar
+** never hit.  The BVH uses bit-for-bit the same arithmetic, so a brute-force
+** loop over this function is an exact oracle for the BVH. */
+int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
+                           const float v1[3], const float v2[3],
+                           float *t, float *u, float *v);
+
+typedef struct brt_bvh brt_bvh;   /* opaque; layout documented in bvh.c */
+
+/* Builds a BVH over tri_count triangles given by indices into positions.
+** prim_ids[i] is the number reported for triangle i (NULL: i itself).
+** tri_count may be 0 (every ray misses). */
+brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
+                         uint32_t tri_count, const uint32_t *prim_ids,
+                         brt_bvh **out);
+void brt_bvh_free(brt_bvh *bvh);
+
+/* Closest hit.  hit is in/out: it is replaced only by a closer hit (in the
+** sense of brt_hit_is_closer) within [ray->tnear, min(ray->tfar, hit->t)],
+** so one hit record can be carried across several BVHs (batching points)
+** and the final bytes do not depend on their order. */
+void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit);
+
+/* Any hit in [tnear, tfar]: 1 if occluded. */
+int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
+
+/* Structural checker: every triangle in exactly one leaf, child boxes
+** inside parent boxes, every triangle inside its leaf box, indices in
+** range.  BRT_ECHECK with a message naming the first violation. */
+brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
+
+uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
+size_t brt_bvh_memory_bytes(const brt_bvh *bvh);   /* nodes + triangles */
+void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
+
+/* A BVH as one relocatable blob (indices, no pointers) for the scene file.
+** brt_bvh_blob_open makes a BVH that refers to the blob's memory (which
+** must stay alive and be 16-byte aligned) after validating its sizes and
+** indices; a corrupt blob is BRT_EFORMAT, never a crash later. */
+size_t brt_bvh_blob_size(const brt_bvh *bvh);
+void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
+brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
+                             brt_error *err);
+
+/* ===================================================================== */
+/* Conservative voxel proxies: voxelizer, shared SVDAG, ray cast (svdag.c) */
+/* ===================================================================== */
+
+/* A dense binary voxel grid with cubic cells, fitted to a box.
+** Voxel (x,y,z) covers origin + cell*[x,x+1] x [y,y+1] x [z,z+1]; its bit is
+** bits[i >> 6] >> (i & 63) with i = x + res*(y + res*z). */
+typedef struct brt_grid {
+    uint32_t res;       /* 2^k, k = 1..10 */
+    float origin[3];
+    float cell;         /* edge length of a voxel */
+    uint64_t *bits;
+} brt_grid;
+
+/* Allocates an empty grid of res^3 voxels whose cubic cells cover the box
+** [bmin, bmax] (the grid is as long as the longest side). */
+brt_result brt_grid_init(brt_grid *grid, const float bmin[3],
+                         const float bmax[3], uint32_t res);
+void brt_grid_free(brt_grid *grid);
+int brt_grid_get(const brt_grid *grid, uint32_t x, uint32_t y, uint32_t z);
+void brt_grid_set(brt_grid *grid, uint32_t x, uint32_t y, uint32_t z);
+uint64_t brt_grid_count(const brt_grid *grid);   /* voxels set */
+
+/* Conservative voxelization: marks every voxel whose closed box a triangle
+** touches (under rounding: never misses one; may add a few neighbours).
+** Degenerate triangles mark the voxels they touch.  Visits only voxels in
+** each triangle's bounding box. */
+brt_result brt_voxelize(brt_grid *grid, const float *positions,
+                        const uint32_t *indices, uint32_t tri_count);
+
+typedef struct brt_svdag brt_svdag;  /* a node pool shared by many proxies */
+
+/* One proxy: a root in the shared pool plus the grid frame it came from. */
+typedef struct brt_proxy {
+    uint32_t root;      /* node index, or BRT_EMPTY_ROOT for an empty grid */
+    uint32_t res;
+    float origin[3];
+    float cell;
+} brt_proxy;
+#define BRT_EMPTY_ROOT 0xFFFFFFFFu
+
+brt_result brt_svdag_create(brt_svdag **out);
+void brt_svdag_free(brt_svdag *dag);
+
+/* Adds a grid as a proxy: SVO built bottom-up, every node deduplicated
+** against the whole pool (hash plus full comparison), so identical
+** sub-blocks -- also across proxies -- are stored once. */
+brt_result brt_svdag_add(brt_svdag *dag, const brt_grid *grid,
+                         brt_proxy *proxy);
+
+/* Decodes a proxy back into a dense grid (allocated here). */
+brt_result brt_svdag_decode(const brt_svdag *dag, const brt_proxy *proxy,
+                            brt_grid *grid);
+
+/* Laine-Karras ray cast adapted to the DAG, on the world-space segment
+** [tnear, tfar] along ray (ray->tnear/tfar are ignored).  Returns 1 when the
+** segment touches the closed box of a set voxel, with *t_entry no greater
+** than where it first touches one (clamped to tnear).  Conservative under
+** rounding; NaN rays return 1 with *t_entry = tnear (a proxy may only err
+** towards "hit"). */
+int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
+                      const brt_ray *ray, float tnear, float tfar,
+                      float *t_entry);
+
+/* Pool checker: child indices in range and pointing to earlier nodes,
+** masks consistent, no two identical nodes. */
+brt_result brt_svdag_check(const brt_svdag *dag, brt_error *err);
+
+uint32_t brt_svdag_node_count(const brt_svdag *dag);
+size_t brt_svdag_memory_bytes(const brt_svdag *dag);
+
+/* The pool as one relocatable blob, for the scene file. */
+size_t brt_svdag_blob_size(const brt_svdag *dag);
+void brt_svdag_blob_write(const brt_svdag *dag, void *dst);
+brt_result brt_svdag_blob_open(const void *blob, size_t size,
+                               brt_svdag **out, brt_error *err);
+
+/* ===================================================================== */
+/* Statistics (batchrt.c)                                                */
+/* ===================================================================== */
+
+/* The fields of design.md's statistics contract; fields that do not apply
+** to a mode are 0. */
+typedef struct brt_stats {
+    uint64_t rays;
+    uint64_t batching_points;
+    uint64_t geometry_bytes;    /* all batching-point blobs, as stored */
+    uint64_t disk_bytes_read;
+    uint64_t batch_loads;
+    uint64_t cache_peak_bytes;
+    uint64_t memory_limit;
+    uint64_t proxy_bytes;
+    uint64_t proxy_tests;
+    uint64_t proxy_culled;
+    uint64_t queued_visits;
+    double seconds;             /* tracing */
+    double build_seconds;       /* BVH or scene build */
+    double bvh_bytes_per_triangle;
+    double mrays_per_second;
+} brt_stats;
+
+/* Writes the statistics as one JSON object (atomically). */
+brt_result brt_stats_write_json(const char *path, const brt_stats *stats,
+                                brt_error *err);
+
+#ifdef __cplusplus
+}
+#endif
+#endif /* BATCHRT_H */

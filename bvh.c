@@ -1,0 +1,2 @@
+/* bvh.c -- placeholder */
+#include "batchrt.h"

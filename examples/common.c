@@ -1,0 +1,2 @@
+/* examples/common.c -- placeholder */
+#include "common.h"

@@ -1,0 +1,47 @@
+/*
+** examples/common.h -- helpers shared by the programs in examples/ (not part
+** of the library): error exits, option parsing with range checks, a
+** progress line, and a minimal PNG writer (stored deflate blocks).
+*/
+#ifndef BRT_EXAMPLES_COMMON_H
+#define BRT_EXAMPLES_COMMON_H
+
+#include "batchrt.h"
+
+#include <stddef.h>
+#include <stdint.h>
+
+/* Prints "PROG: message" on stderr and exits with status 1 (usage errors
+** and bad input alike).  Programs, unlike the library, may exit. */
+void ex_die(const char *prog, const char *fmt, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 2, 3), noreturn))
+#endif
+    ;
+
+/* Option values with range checks; a bad value dies with a message naming
+** the option, e.g. "trace: --res: expected an integer in 2..1024, got 'x'". */
+uint64_t ex_parse_u64(const char *prog, const char *option, const char *text,
+                      uint64_t min, uint64_t max);
+double ex_parse_double(const char *prog, const char *option, const char *text,
+                       double min, double max);
+uint64_t ex_parse_size(const char *prog, const char *option, const char *text);
+
+/* The value after option argv[*i] (advancing *i), or dies when missing. */
+const char *ex_option_value(const char *prog, int argc, char **argv, int *i);
+
+/* A progress line on stderr, shown only when stderr is a terminal (or
+** BRT_PROGRESS=1): "label  42% ...".  done <= total. */
+void ex_progress(const char *label, uint64_t done, uint64_t total);
+void ex_progress_end(void);
+
+/* PNG of 8-bit RGB pixels (row-major, top row first), encoded with stored
+** deflate blocks, CRC-32 and Adler-32.  encode: *png is malloc'd. */
+brt_result ex_png_encode_rgb(int width, int height, const unsigned char *rgb,
+                             unsigned char **png, size_t *size);
+brt_result ex_png_write_rgb(const char *path, int width, int height,
+                            const unsigned char *rgb, brt_error *err);
+uint32_t ex_crc32(const unsigned char *data, size_t size);
+uint32_t ex_adler32(const unsigned char *data, size_t size);
+
+#endif

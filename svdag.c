@@ -1,0 +1,2 @@
+/* svdag.c -- placeholder */
+#include "batchrt.h"
