@@ -27,10 +27,12 @@ BUILD   ?= build
 LIB_SRC  = batchrt.c bvh.c svdag.c
 LIB_OBJ  = $(LIB_SRC:%.c=$(BUILD)/%.o)
 LIB      = $(BUILD)/libbatchrt.a
-# Every examples/*.c is a program, except the shared helpers and the
+# Every examples/*.c is a program, except the shared helpers (common.c:
+# options, errors, PNG; scenes.c: the built-in procedural scenes) and the
 # optional Embree tracer (built by "make embree" only).
-EX_COMMON = $(BUILD)/examples/common.o
-EX_SRC   = $(filter-out examples/common.c examples/embree_trace.c, $(wildcard examples/*.c))
+EX_SHARED = examples/common.c examples/scenes.c
+EX_COMMON = $(EX_SHARED:%.c=$(BUILD)/%.o)
+EX_SRC   = $(filter-out $(EX_SHARED) examples/embree_trace.c, $(wildcard examples/*.c))
 PROGRAMS = $(EX_SRC:examples/%.c=$(BUILD)/%)
 TEST_SRC = $(wildcard tests/*.c)
 TEST_OBJ = $(TEST_SRC:%.c=$(BUILD)/%.o)
@@ -45,7 +47,7 @@ $(BUILD)/%.o: %.c batchrt.h | $(BUILD)/examples $(BUILD)/tests
 $(BUILD)/examples/%.o: examples/%.c batchrt.h $(wildcard examples/*.h) | $(BUILD)/examples
 	$(CC) $(CFLAGS) -I. -c $< -o $@
 
-$(BUILD)/tests/%.o: tests/%.c tests/test.h batchrt.h | $(BUILD)/tests
+$(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) batchrt.h | $(BUILD)/tests
 	$(CC) $(CFLAGS) -I. -c $< -o $@
 
 $(BUILD)/examples $(BUILD)/tests:
@@ -58,7 +60,7 @@ $(LIB): $(LIB_OBJ)
 $(BUILD)/%: $(BUILD)/examples/%.o $(EX_COMMON) $(LIB)
 	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
-$(TEST_BIN): $(TEST_OBJ) $(LIB)
+$(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(LIB)
 	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 # The tests run programs from $(BUILD) too (command-line contracts).

@@ -8,6 +8,7 @@
 
 #include <errno.h>
 #include <fcntl.h>
+#include <float.h>
 #include <math.h>
 #include <stdarg.h>
 #include <stdio.h>
@@ -15,6 +16,7 @@
 #include <string.h>
 #include <time.h>
 #include <unistd.h>
+#include <sys/stat.h>
 
 /* ===================================================================== */
 /* Results and errors                                                    */
@@ -120,6 +122,924 @@ fail:
 }
 
 /* ===================================================================== */
+/* Meshes: shared machinery of the OBJ and PLY loaders                   */
+/* ===================================================================== */
+/*
+** Both loaders read through one byte source (struct reader) that is either
+** a memory buffer or a file read in 1 MiB chunks; the unread tail of a chunk
+** (a partial line or record) is carried over to the front of the buffer
+** before the next read.  So brt_mesh_load and brt_mesh_parse_* run the same
+** code, and a 10-million-triangle file never has its text in memory twice:
+** only the chunk, the vertex array and the index array.
+**
+** Limits and decisions, written down because users depend on them:
+**  - Zero triangles is an error ("no triangles"): every program needs some.
+**  - OBJ indices refer to vertices defined earlier in the file (positive
+**    ones too), so every bad index is reported at the line that uses it.
+**  - An OBJ "v" line may carry up to 4 more numbers (w, or r g b [a]
+**    vertex colours); they are read and ignored.
+**  - OBJ statements of the OBJ specification other than v and f are
+**    ignored; an unknown statement is garbage and an error.  '#' starts
+**    a comment anywhere on a line.
+**  - ASCII PLY has one element per line (as every writer does); integer
+**    values must fit their declared type.
+**  - Vertex and triangle counts stay below 2^32 - 1 (0xFFFFFFFF is the
+**    miss record's prim).  Header counts are never trusted for
+**    allocation: arrays grow with the data actually read.
+**  - Numbers parse exactly as strtof does in the C locale (decimal only,
+**    at most 127 characters); decimals of up to 15 digits, which is what
+**    exporters write, take exact fast paths (parse_float).
+*/
+
+#define READ_CHUNK ((size_t)1 << 20)
+#define MAX_COUNT 0xFFFFFFFEu   /* largest vertex or triangle count */
+
+typedef struct reader {
+    int fd;                     /* -1: the whole input is already in data */
+    const unsigned char *data;  /* unread bytes are data[pos .. end) */
+    unsigned char *owned;       /* data's buffer when reading a file */
+    size_t pos, end, cap;
+    int eof;
+} reader;
+
+enum { WHERE_NONE, WHERE_LINE, WHERE_ELEMENT };
+
+typedef struct parser {
+    reader in;
+    const char *name;           /* file name for messages */
+    brt_error *err;
+    int where;                  /* which location messages give */
+    uint64_t line;              /* current line (text) */
+    const char *element;        /* current element and record (binary PLY) */
+    uint64_t record;
+    /* the mesh under construction */
+    float *positions;
+    size_t vertex_count, vertex_cap;
+    uint32_t *indices;
+    size_t triangle_count, triangle_cap;
+    /* the polygon being read, as 0-based vertex indices */
+    uint32_t *polygon;
+    size_t polygon_count, polygon_cap;
+} parser;
+
+/* Formats "NAME:LINE: reason", "NAME: element E R: reason" or "NAME: reason". */
+static brt_result parse_fail(parser *p, brt_result code, const char *fmt, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 3, 4)))
+#endif
+    ;
+static brt_result parse_fail(parser *p, brt_result code, const char *fmt, ...)
+{
+    char reason[400];
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(reason, sizeof reason, fmt, ap);
+    va_end(ap);
+    if (p->where == WHERE_LINE)
+        return brt_fail(p->err, code, "%s:%llu: %s", p->name,
+                        (unsigned long long)p->line, reason);
+    if (p->where == WHERE_ELEMENT)
+        return brt_fail(p->err, code, "%s: element %s %llu: %s", p->name,
+                        p->element, (unsigned long long)p->record, reason);
+    return brt_fail(p->err, code, "%s: %s", p->name, reason);
+}
+
+/* Returns items with room for need elements of size bytes, or NULL (items
+** untouched).  Doubling makes n appends cost O(n) copies in total. */
+static void *grow(void *items, size_t *cap, size_t need, size_t size)
+{
+    size_t n = *cap ? *cap : 256;
+    void *bigger;
+    while (n < need) {
+        if (n > SIZE_MAX / 2) return NULL;
+        n *= 2;
+    }
+    if (n > SIZE_MAX / size) return NULL;
+    bigger = realloc(items, n * size);
+    if (bigger) *cap = n;
+    return bigger;
+}
+
+/* ---- byte source ------------------------------------------------------ */
+
+/* Makes at least need unread bytes available unless the input ends first:
+** the unread tail moves to the front of the buffer, which grows only when
+** one line or record is longer than it, and read() appends after it. */
+static brt_result reader_fill(parser *p, size_t need)
+{
+    reader *r = &p->in;
+    if (r->end - r->pos >= need || r->eof) return BRT_OK;
+    memmove(r->owned, r->owned + r->pos, r->end - r->pos);
+    r->end -= r->pos;
+    r->pos = 0;
+    if (need > r->cap) {
+        void *bigger = grow(r->owned, &r->cap, need, 1);
+        if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
+        r->owned = bigger;
+    }
+    r->data = r->owned;
+    while (r->end < need && !r->eof) {
+        ssize_t n = read(r->fd, r->owned + r->end, r->cap - r->end);
+        if (n < 0 && errno == EINTR) continue;
+        if (n < 0)
+            return brt_fail(p->err, BRT_EIO, "%s: read error: %s", p->name, strerror(errno));
+        if (n == 0) r->eof = 1;
+        r->end += (size_t)n;
+    }
+    return BRT_OK;
+}
+
+/* The next line without its '\n' (*got = 0 at the end of the input). */
+static brt_result reader_line(parser *p, const char **line, const char **line_end, int *got)
+{
+    reader *r = &p->in;
+    size_t scanned = 0;
+    for (;;) {
+        const unsigned char *start = r->data + r->pos;
+        const unsigned char *nl = memchr(start + scanned, '\n', r->end - r->pos - scanned);
+        brt_result rc;
+        if (nl || r->eof) {
+            const unsigned char *stop = nl ? nl : r->data + r->end;
+            *got = nl != NULL || stop > start;
+            *line = (const char *)start;
+            *line_end = (const char *)stop;
+            r->pos = nl ? (size_t)(nl + 1 - r->data) : r->end;
+            p->line += (uint64_t)*got;
+            return BRT_OK;
+        }
+        scanned = r->end - r->pos;   /* no '\n' yet: read on, keep the part */
+        rc = reader_fill(p, scanned + 1);
+        if (rc) return rc;
+    }
+}
+
+/* The next n bytes (binary PLY), or a "truncated" error. */
+static brt_result reader_bytes(parser *p, size_t n, const unsigned char **bytes)
+{
+    brt_result rc = reader_fill(p, n);
+    if (rc) return rc;
+    if (p->in.end - p->in.pos < n) return parse_fail(p, BRT_EPARSE, "file truncated");
+    *bytes = p->in.data + p->in.pos;
+    p->in.pos += n;
+    return BRT_OK;
+}
+
+/* ---- the mesh under construction -------------------------------------- */
+
+static brt_result add_vertex(parser *p, const float xyz[3])
+{
+    if (p->vertex_count == p->vertex_cap) {
+        void *bigger;
+        if (p->vertex_count >= MAX_COUNT) return parse_fail(p, BRT_EPARSE, "too many vertices");
+        bigger = grow(p->positions, &p->vertex_cap, p->vertex_count + 1, 3 * sizeof(float));
+        if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
+        p->positions = bigger;
+    }
+    memcpy(p->positions + 3 * p->vertex_count++, xyz, 3 * sizeof(float));
+    return BRT_OK;
+}
+
+/* Appends a vertex index to the polygon being read. */
+static brt_result add_corner(parser *p, uint32_t vertex)
+{
+    if (p->polygon_count == p->polygon_cap) {
+        void *bigger = grow(p->polygon, &p->polygon_cap, p->polygon_count + 1, sizeof(uint32_t));
+        if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
+        p->polygon = bigger;
+    }
+    p->polygon[p->polygon_count++] = vertex;
+    return BRT_OK;
+}
+
+/* Ends the polygon being read: the fan (a,b,c), (a,c,d), ... of design.md. */
+static brt_result end_polygon(parser *p)
+{
+    size_t n = p->polygon_count, k;
+    p->polygon_count = 0;
+    if (n < 3) return parse_fail(p, BRT_EPARSE, "face with fewer than 3 vertices (%zu)", n);
+    if (n - 2 > MAX_COUNT - p->triangle_count)
+        return parse_fail(p, BRT_EPARSE, "too many triangles");
+    if (p->triangle_count + n - 2 > p->triangle_cap) {
+        void *bigger = grow(p->indices, &p->triangle_cap, p->triangle_count + n - 2,
+                            3 * sizeof(uint32_t));
+        if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
+        p->indices = bigger;
+    }
+    for (k = 1; k + 1 < n; k++) {
+        uint32_t *tri = p->indices + 3 * p->triangle_count++;
+        tri[0] = p->polygon[0];
+        tri[1] = p->polygon[k];
+        tri[2] = p->polygon[k + 1];
+    }
+    return BRT_OK;
+}
+
+/* ---- tokens and numbers ----------------------------------------------- */
+
+static int is_blank(char c)
+{
+    return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f';
+}
+
+/* The next blank-separated token of [*cur, end); empty (s == e) at the end. */
+typedef struct token { const char *s, *e; } token;
+
+static token next_token(const char **cur, const char *end)
+{
+    token t;
+    const char *c = *cur;
+    while (c < end && is_blank(*c)) c++;
+    t.s = c;
+    while (c < end && !is_blank(*c)) c++;
+    t.e = c;
+    *cur = c;
+    return t;
+}
+
+static int token_is(token t, const char *word)
+{
+    size_t n = strlen(word);
+    return (size_t)(t.e - t.s) == n && memcmp(t.s, word, n) == 0;
+}
+
+/* A token for a message: at most 24 characters, non-printable bytes as '?'. */
+static const char *shown(token t, char buf[32])
+{
+    size_t i, n = (size_t)(t.e - t.s) < 24 ? (size_t)(t.e - t.s) : 24;
+    for (i = 0; i < n; i++) buf[i] = (t.s[i] >= 32 && t.s[i] < 127) ? t.s[i] : '?';
+    strcpy(buf + n, (size_t)(t.e - t.s) > n ? "..." : "");
+    return buf;
+}
+
+enum { NUMBER_OK, NUMBER_BAD, NUMBER_NOT_FINITE };
+
+/* Reads an optionally signed decimal integer at *c, saturating at about
+** 2^62 (callers reject such values as out of range).  0 without digits. */
+static int scan_integer(const char **c, const char *end, int64_t *value)
+{
+    const char *p = *c;
+    int negative = 0;
+    int64_t v = 0;
+    if (p < end && (*p == '+' || *p == '-')) negative = *p++ == '-';
+    if (p >= end || *p < '0' || *p > '9') return 0;
+    for (; p < end && *p >= '0' && *p <= '9'; p++)
+        if (v < ((int64_t)1 << 58)) v = v * 10 + (*p - '0');
+    *value = negative ? -v : v;
+    *c = p;
+    return 1;
+}
+
+/* A whole token as an integer. */
+static int parse_integer(token t, int64_t *value)
+{
+    const char *c = t.s;
+    return scan_integer(&c, t.e, value) && c == t.e;
+}
+
+/* Do the 3 characters at c spell word, ignoring case ("NaN", "Inf")? */
+static int spells(const char *c, const char *word)
+{
+    return (c[0] | 32) == word[0] && (c[1] | 32) == word[1] && (c[2] | 32) == word[2];
+}
+
+#if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD == 0
+/* Is d, which rounds to the float f, exactly halfway between f and its
+** neighbour on d's side?  (Both differences are exact in double.) */
+static int is_float_midpoint(double d, float f)
+{
+    float g = nextafterf(f, d > f ? INFINITY : -INFINITY);
+    return d - (double)f == (double)g - d;
+}
+#endif
+
+/* A whole token as a float, equal to strtof's result for the same text.
+** Two exact fast paths after Clinger (1990), valid when arithmetic is
+** evaluated in its own type (FLT_EVAL_METHOD 0) and rounds to nearest:
+**  1. m <= 2^24 and |p| <= 10, with value m * 10^p: m and 10^p are exact
+**     floats, so one float multiply or divide rounds correctly.
+**  2. m <= 2^53 and |p| <= 22: one double operation gives the correctly
+**     rounded double d; rounding d to float is then correct unless d lies
+**     exactly halfway between two floats (double rounding), and that rare
+**     case, like everything else, goes to strtof on a NUL-terminated copy. */
+static int parse_float(token t, float *value)
+{
+    static const float powers[11] = {1e0f, 1e1f, 1e2f, 1e3f, 1e4f, 1e5f,
+                                     1e6f, 1e7f, 1e8f, 1e9f, 1e10f};
+    static const double double_powers[23] = {
+        1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11,
+        1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22};
+    const char *c = t.s;
+    uint64_t m = 0;           /* the value is m * 10^(k + e) */
+    int64_t k = 0, e = 0;
+    int negative = 0, any_digit = 0, seen_point = 0;
+    char copy[128];
+    if (c < t.e && (*c == '+' || *c == '-')) negative = *c++ == '-';
+    if (t.e - c >= 3 && (spells(c, "inf") || spells(c, "nan"))) return NUMBER_NOT_FINITE;
+    for (; c < t.e; c++) {
+        if (*c == '.' && !seen_point) { seen_point = 1; continue; }
+        if (*c < '0' || *c > '9') break;
+        any_digit = 1;
+        if (m < 100000000000000000ull) {
+            m = m * 10 + (uint64_t)(*c - '0');
+            k -= seen_point;
+        } else {
+            k += !seen_point;   /* a dropped digit; m is then too big for the fast path */
+        }
+    }
+    if (!any_digit) return NUMBER_BAD;
+    if (c < t.e && (*c == 'e' || *c == 'E')) {
+        c++;
+        if (!scan_integer(&c, t.e, &e)) return NUMBER_BAD;
+    }
+    if (c != t.e) return NUMBER_BAD;
+#if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD == 0
+    if (m <= (1u << 24) && k + e >= -10 && k + e <= 10) {
+        float f = (float)m;
+        f = k + e < 0 ? f / powers[-(k + e)] : f * powers[k + e];
+        *value = negative ? -f : f;
+        return NUMBER_OK;
+    }
+    if (m <= ((uint64_t)1 << 53) && k + e >= -22 && k + e <= 22) {
+        double d = k + e < 0 ? (double)m / double_powers[-(k + e)]
+                             : (double)m * double_powers[k + e];
+        float f = (float)d;
+        if (d > 1e-30 && d < 1e30 && ((double)f == d || !is_float_midpoint(d, f))) {
+            *value = negative ? -f : f;
+            return NUMBER_OK;
+        }
+    }
+#else
+    (void)powers;
+    (void)double_powers;
+#endif
+    if ((size_t)(t.e - t.s) >= sizeof copy) return NUMBER_BAD;
+    memcpy(copy, t.s, (size_t)(t.e - t.s));
+    copy[t.e - t.s] = 0;
+    *value = strtof(copy, NULL);
+    return isfinite(*value) ? NUMBER_OK : NUMBER_NOT_FINITE;
+}
+
+/* ===================================================================== */
+/* Meshes: Wavefront OBJ                                                 */
+/* ===================================================================== */
+
+/* Statements of the OBJ specification that carry no triangle geometry. */
+static int obj_ignored_statement(token keyword)
+{
+    static const char *const ignored[] = {
+        "vt", "vn", "vp", "o", "g", "s", "usemtl", "mtllib", "l", "p",
+        "cstype", "deg", "bmat", "step", "curv", "curv2", "surf", "parm",
+        "trim", "hole", "scrv", "sp", "end", "con", "mg", "bevel",
+        "c_interp", "d_interp", "lod", "maplib", "usemap", "shadow_obj",
+        "trace_obj", "ctech", "stech", "call", "csh"};
+    size_t i;
+    for (i = 0; i < sizeof ignored / sizeof ignored[0]; i++)
+        if (token_is(keyword, ignored[i])) return 1;
+    return 0;
+}
+
+/* "v x y z" plus at most 4 numbers that are ignored (w, or a colour). */
+static brt_result obj_vertex(parser *p, const char *c, const char *end)
+{
+    float xyz[3], ignored;
+    char buf[32];
+    int i;
+    for (i = 0; i < 7; i++) {
+        token t = next_token(&c, end);
+        int status;
+        if (t.s == t.e) {
+            if (i < 3) return parse_fail(p, BRT_EPARSE, "vertex needs 3 coordinates, has %d", i);
+            return add_vertex(p, xyz);
+        }
+        status = parse_float(t, i < 3 ? &xyz[i] : &ignored);
+        if (status == NUMBER_BAD)
+            return parse_fail(p, BRT_EPARSE, "bad number '%s'", shown(t, buf));
+        if (status == NUMBER_NOT_FINITE && i < 3)
+            return parse_fail(p, BRT_EPARSE, "coordinate '%s' is not finite", shown(t, buf));
+    }
+    return parse_fail(p, BRT_EPARSE, "too many values in vertex");
+}
+
+/* One corner "i", "i/t", "i//n" or "i/t/n"; only i is used.  Positive
+** indices count from 1, negative ones back from the last vertex so far. */
+static brt_result obj_corner(parser *p, token t)
+{
+    const char *c = t.s;
+    int64_t i, unused;
+    char buf[32];
+    int slashes;
+    if (!scan_integer(&c, t.e, &i)) goto bad;
+    for (slashes = 0; slashes < 2 && c < t.e && *c == '/'; slashes++) {
+        c++;
+        if (c < t.e && *c != '/' && !scan_integer(&c, t.e, &unused)) goto bad;
+    }
+    if (c != t.e) goto bad;
+    if (i == 0 || i > (int64_t)p->vertex_count || -i > (int64_t)p->vertex_count)
+        return parse_fail(p, BRT_EPARSE, "vertex index %lld out of range (%zu vertices so far)",
+                          (long long)i, p->vertex_count);
+    return add_corner(p, (uint32_t)(i > 0 ? i - 1 : (int64_t)p->vertex_count + i));
+bad:
+    return parse_fail(p, BRT_EPARSE, "bad face vertex '%s'", shown(t, buf));
+}
+
+static brt_result obj_face(parser *p, const char *c, const char *end)
+{
+    for (;;) {
+        token t = next_token(&c, end);
+        brt_result rc;
+        if (t.s == t.e) return end_polygon(p);
+        rc = obj_corner(p, t);
+        if (rc) { p->polygon_count = 0; return rc; }
+    }
+}
+
+static brt_result obj_line(parser *p, const char *c, const char *end)
+{
+    const char *comment = memchr(c, '#', (size_t)(end - c));
+    token keyword;
+    char buf[32];
+    if (comment) end = comment;   /* "f 1 2 3 # note": a comment ends any line */
+    keyword = next_token(&c, end);
+    if (keyword.s == keyword.e) return BRT_OK;
+    if (token_is(keyword, "v")) return obj_vertex(p, c, end);
+    if (token_is(keyword, "f")) return obj_face(p, c, end);
+    if (obj_ignored_statement(keyword)) return BRT_OK;
+    return parse_fail(p, BRT_EPARSE, "unknown statement '%s'", shown(keyword, buf));
+}
+
+static brt_result obj_parse(parser *p)
+{
+    p->where = WHERE_LINE;
+    for (;;) {
+        const char *line, *end;
+        int got;
+        brt_result rc = reader_line(p, &line, &end, &got);
+        if (rc || !got) return rc;
+        rc = obj_line(p, line, end);
+        if (rc) return rc;
+    }
+}
+
+/* ===================================================================== */
+/* Meshes: PLY (ascii, binary_little_endian, binary_big_endian)          */
+/* ===================================================================== */
+/*
+** The header is read into a table of elements and properties, each
+** property tagged with its role (x, y, z, the face's index list, or
+** skipped).  One record reader then walks every element in header order
+** and takes its values from either the text of a line or the binary bytes,
+** so the three flavours share all of the logic above the single number.
+*/
+
+typedef enum ply_type {
+    PLY_NONE, PLY_INT8, PLY_UINT8, PLY_INT16, PLY_UINT16,
+    PLY_INT32, PLY_UINT32, PLY_FLOAT32, PLY_FLOAT64
+} ply_type;
+
+typedef enum ply_role { ROLE_X, ROLE_Y, ROLE_Z, ROLE_INDICES, ROLE_SKIP } ply_role;
+
+enum { PLY_ASCII, PLY_LITTLE, PLY_BIG };
+enum { ELEMENT_OTHER, ELEMENT_VERTEX, ELEMENT_FACE };
+
+#define PLY_MAX_ELEMENTS 16
+#define PLY_MAX_PROPERTIES 64
+
+typedef struct ply_property {
+    ply_type type;        /* a scalar's type, or a list's item type */
+    ply_type count_type;  /* a list's count type; PLY_NONE for a scalar */
+    ply_role role;
+} ply_property;
+
+typedef struct ply_element {
+    char name[32];
+    int kind;
+    uint64_t count;
+    int property_count;
+    ply_property properties[PLY_MAX_PROPERTIES];
+} ply_element;
+
+typedef struct ply_header {
+    int format;
+    int element_count;
+    ply_element elements[PLY_MAX_ELEMENTS];
+    uint64_t vertex_count;
+} ply_header;
+
+/* A value as read: integer types in i, float types in f. */
+typedef struct ply_value { int64_t i; float f; } ply_value;
+
+static const struct { const char *name; ply_type type; } ply_type_names[] = {
+    {"char", PLY_INT8}, {"int8", PLY_INT8}, {"uchar", PLY_UINT8}, {"uint8", PLY_UINT8},
+    {"short", PLY_INT16}, {"int16", PLY_INT16}, {"ushort", PLY_UINT16}, {"uint16", PLY_UINT16},
+    {"int", PLY_INT32}, {"int32", PLY_INT32}, {"uint", PLY_UINT32}, {"uint32", PLY_UINT32},
+    {"float", PLY_FLOAT32}, {"float32", PLY_FLOAT32},
+    {"double", PLY_FLOAT64}, {"float64", PLY_FLOAT64}};
+
+static ply_type ply_type_named(token t)
+{
+    size_t i;
+    for (i = 0; i < sizeof ply_type_names / sizeof ply_type_names[0]; i++)
+        if (token_is(t, ply_type_names[i].name)) return ply_type_names[i].type;
+    return PLY_NONE;
+}
+
+static int ply_is_integer(ply_type t) { return t >= PLY_INT8 && t <= PLY_UINT32; }
+
+static size_t ply_type_size(ply_type t)
+{
+    static const size_t sizes[] = {0, 1, 1, 2, 2, 4, 4, 4, 8};
+    return sizes[t];
+}
+
+/* The range of an integer type, to check ascii values against. */
+static int ply_fits(ply_type t, int64_t v)
+{
+    static const int64_t lo[] = {0, -128, 0, -32768, 0, -2147483647 - 1, 0};
+    static const int64_t hi[] = {0, 127, 255, 32767, 65535, 2147483647, 4294967295};
+    return v >= lo[t] && v <= hi[t];
+}
+
+#define BAD_HEADER "bad PLY header: "
+
+/* What a property is for: x, y, z of the vertex element must be float or
+** double; the face element's vertex_indices (or vertex_index) list must be
+** of integers; anything else is read and skipped. */
+static brt_result ply_property_role(parser *p, const ply_element *e, ply_property *prop, token name)
+{
+    int is_coordinate = name.e - name.s == 1 && *name.s >= 'x' && *name.s <= 'z';
+    int is_indices = token_is(name, "vertex_indices") || token_is(name, "vertex_index");
+    prop->role = ROLE_SKIP;
+    if (e->kind == ELEMENT_VERTEX && prop->count_type == PLY_NONE && is_coordinate) {
+        if (prop->type != PLY_FLOAT32 && prop->type != PLY_FLOAT64)
+            return parse_fail(p, BRT_EPARSE,
+                              BAD_HEADER "vertex property %c must be float or double", *name.s);
+        prop->role = (ply_role)(ROLE_X + (*name.s - 'x'));
+    }
+    if (e->kind == ELEMENT_FACE && prop->count_type != PLY_NONE && is_indices) {
+        if (!ply_is_integer(prop->type))
+            return parse_fail(p, BRT_EPARSE, BAD_HEADER "vertex indices must have an integer type");
+        prop->role = ROLE_INDICES;
+    }
+    return BRT_OK;
+}
+
+/* "property TYPE NAME" or "property list COUNT_TYPE ITEM_TYPE NAME". */
+static brt_result ply_header_property(parser *p, ply_header *h, const char *c, const char *end)
+{
+    ply_element *e;
+    ply_property *prop;
+    token type = next_token(&c, end), name;
+    char buf[32];
+    if (h->element_count == 0)
+        return parse_fail(p, BRT_EPARSE, BAD_HEADER "property before any element");
+    e = &h->elements[h->element_count - 1];
+    if (e->property_count == PLY_MAX_PROPERTIES)
+        return parse_fail(p, BRT_EPARSE, BAD_HEADER "more than %d properties", PLY_MAX_PROPERTIES);
+    prop = &e->properties[e->property_count];
+    prop->count_type = PLY_NONE;
+    if (token_is(type, "list")) {
+        prop->count_type = ply_type_named(next_token(&c, end));
+        if (!ply_is_integer(prop->count_type))
+            return parse_fail(p, BRT_EPARSE, BAD_HEADER "list count type must be an integer type");
+        type = next_token(&c, end);
+    }
+    prop->type = ply_type_named(type);
+    name = next_token(&c, end);
+    if (prop->type == PLY_NONE)
+        return parse_fail(p, BRT_EPARSE, BAD_HEADER "unknown type '%s'", shown(type, buf));
+    if (name.s == name.e || next_token(&c, end).s != end)
+        return parse_fail(p, BRT_EPARSE, BAD_HEADER "property needs a type and a name");
+    e->property_count++;
+    return ply_property_role(p, e, prop, name);
+}
+
+/* "element NAME COUNT". */
+static brt_result ply_header_element(parser *p, ply_header *h, const char *c, const char *end)
+{
+    ply_element *e = &h->elements[h->element_count];
+    token name = next_token(&c, end), count = next_token(&c, end);
+    int64_t n;
+    if (h->element_count == PLY_MAX_ELEMENTS)
+        return parse_fail(p, BRT_EPARSE, BAD_HEADER "more than %d elements", PLY_MAX_ELEMENTS);
+    if (name.s == name.e || !parse_integer(count, &n) || n < 0 || next_token(&c, end).s != end)
+        return parse_fail(p, BRT_EPARSE, BAD_HEADER "element needs a name and a count");
+    memset(e, 0, sizeof *e);
+    shown(name, e->name);
+    e->count = (uint64_t)n;
+    e->kind = token_is(name, "vertex") ? ELEMENT_VERTEX
+            : token_is(name, "face") ? ELEMENT_FACE : ELEMENT_OTHER;
+    if (e->kind == ELEMENT_VERTEX) {
+        if (h->vertex_count || n > MAX_COUNT)
+            return parse_fail(p, BRT_EPARSE,
+                              BAD_HEADER "a second vertex element or too many vertices");
+        h->vertex_count = (uint64_t)n;
+    }
+    h->element_count++;
+    return BRT_OK;
+}
+
+/* After end_header: the roles every mesh needs are present. */
+static brt_result ply_header_complete(parser *p, const ply_header *h)
+{
+    int i, j, vertex_roles = 0, face_lists = 0;
+    for (i = 0; i < h->element_count; i++)
+        for (j = 0; j < h->elements[i].property_count; j++) {
+            ply_role role = h->elements[i].properties[j].role;
+            if (role == ROLE_INDICES) face_lists++;
+            else if (role != ROLE_SKIP) vertex_roles |= 1 << role;
+        }
+    if (vertex_roles != 7)
+        return parse_fail(p, BRT_EPARSE, BAD_HEADER "vertex element needs properties x, y and z");
+    if (face_lists != 1)
+        return parse_fail(p, BRT_EPARSE, BAD_HEADER "face element needs one list vertex_indices");
+    return BRT_OK;
+}
+
+static brt_result ply_header_read(parser *p, ply_header *h)
+{
+    static const char *const formats[] = {"ascii", "binary_little_endian", "binary_big_endian"};
+    int have_format = 0;
+    memset(h, 0, sizeof *h);
+    p->where = WHERE_LINE;
+    for (;;) {
+        const char *c, *end;
+        token keyword;
+        int got, f;
+        brt_result rc = reader_line(p, &c, &end, &got);
+        if (rc) return rc;
+        if (!got) return parse_fail(p, BRT_EPARSE, BAD_HEADER "no end_header");
+        keyword = next_token(&c, end);
+        if (p->line == 1) {
+            if (!token_is(keyword, "ply") || next_token(&c, end).s != end)
+                return parse_fail(p, BRT_EPARSE, "not a PLY file");
+        } else if (token_is(keyword, "format")) {
+            token name = next_token(&c, end), version = next_token(&c, end);
+            for (f = 0; f < 3 && !token_is(name, formats[f]); f++) continue;
+            if (f == 3 || !token_is(version, "1.0"))
+                return parse_fail(p, BRT_EPARSE, BAD_HEADER "unknown format");
+            h->format = f;
+            have_format = 1;
+        } else if (token_is(keyword, "element")) {
+            if ((rc = ply_header_element(p, h, c, end))) return rc;
+        } else if (token_is(keyword, "property")) {
+            if ((rc = ply_header_property(p, h, c, end))) return rc;
+        } else if (token_is(keyword, "end_header")) {
+            if (!have_format) return parse_fail(p, BRT_EPARSE, BAD_HEADER "no format line");
+            return ply_header_complete(p, h);
+        } else if (!token_is(keyword, "comment") && !token_is(keyword, "obj_info")) {
+            return parse_fail(p, BRT_EPARSE, BAD_HEADER "unknown line");
+        }
+    }
+}
+
+/* The next value of a record: the next token of the current line (ascii)
+** or the next bytes in the file's byte order (binary). */
+static brt_result ply_read_value(parser *p, int format, ply_type type,
+                                 const char **c, const char *end, ply_value *value)
+{
+    char buf[32];
+    if (format == PLY_ASCII) {
+        token t = next_token(c, end);
+        if (t.s == t.e) return parse_fail(p, BRT_EPARSE, "too few values");
+        if (ply_is_integer(type)) {
+            if (parse_integer(t, &value->i) && ply_fits(type, value->i)) return BRT_OK;
+        } else {
+            int status = parse_float(t, &value->f);
+            if (status == NUMBER_NOT_FINITE) value->f = NAN;
+            if (status != NUMBER_BAD) return BRT_OK;
+        }
+        return parse_fail(p, BRT_EPARSE, "bad value '%s'", shown(t, buf));
+    } else {
+        size_t size = ply_type_size(type), i;
+        const unsigned char *bytes = NULL;
+        uint64_t u = 0;
+        brt_result rc = reader_bytes(p, size, &bytes);
+        if (rc) return rc;
+        for (i = 0; i < size; i++)
+            u |= (uint64_t)bytes[format == PLY_LITTLE ? i : size - 1 - i] << (8 * i);
+        if (type == PLY_FLOAT64) {
+            double d;
+            memcpy(&d, &u, sizeof d);
+            value->f = (float)d;
+        } else if (type == PLY_FLOAT32) {
+            uint32_t u32 = (uint32_t)u;
+            memcpy(&value->f, &u32, sizeof value->f);
+        } else {
+            int negative = (type == PLY_INT8 || type == PLY_INT16 || type == PLY_INT32) &&
+                           (u >> (8 * size - 1));
+            value->i = negative ? (int64_t)u - ((int64_t)1 << (8 * size)) : (int64_t)u;
+        }
+        return BRT_OK;
+    }
+}
+
+/* A list: the count, then the items; a vertex index list becomes a polygon. */
+static brt_result ply_read_list(parser *p, int format, const ply_property *prop,
+                                uint64_t vertex_count, const char **c, const char *end)
+{
+    ply_value count, item;
+    int64_t k;
+    brt_result rc = ply_read_value(p, format, prop->count_type, c, end, &count);
+    if (rc) return rc;
+    if (count.i < 0)
+        return parse_fail(p, BRT_EPARSE, "negative list count %lld", (long long)count.i);
+    if (prop->role == ROLE_INDICES && count.i < 3)
+        return parse_fail(p, BRT_EPARSE, "face with fewer than 3 vertices (%lld)",
+                          (long long)count.i);
+    for (k = 0; k < count.i; k++) {
+        if ((rc = ply_read_value(p, format, prop->type, c, end, &item))) break;
+        if (prop->role != ROLE_INDICES) continue;
+        if (item.i < 0 || (uint64_t)item.i >= vertex_count) {
+            rc = parse_fail(p, BRT_EPARSE, "vertex index %lld out of range (%llu vertices)",
+                            (long long)item.i, (unsigned long long)vertex_count);
+            break;
+        }
+        if ((rc = add_corner(p, (uint32_t)item.i))) break;
+    }
+    if (rc) { p->polygon_count = 0; return rc; }
+    return prop->role == ROLE_INDICES ? end_polygon(p) : BRT_OK;
+}
+
+/* The next line that holds a value (ascii records; blank lines carry none). */
+static brt_result ply_ascii_line(parser *p, const ply_element *e, const char **c, const char **end)
+{
+    for (;;) {
+        const char *probe;
+        int got;
+        brt_result rc = reader_line(p, c, end, &got);
+        if (rc) return rc;
+        if (!got) return parse_fail(p, BRT_EPARSE, "file truncated in element %s", e->name);
+        probe = *c;
+        if (next_token(&probe, *end).s != *end) return BRT_OK;
+    }
+}
+
+/* One record of an element: one line in ascii, a run of bytes in binary. */
+static brt_result ply_read_record(parser *p, const ply_header *h, const ply_element *e)
+{
+    const char *c = NULL, *end = NULL;
+    float xyz[3] = {0, 0, 0};
+    int i;
+    brt_result rc = BRT_OK;
+    if (h->format == PLY_ASCII && (rc = ply_ascii_line(p, e, &c, &end))) return rc;
+    for (i = 0; i < e->property_count; i++) {
+        const ply_property *prop = &e->properties[i];
+        ply_value value = {0, 0.0f};
+        if (prop->count_type != PLY_NONE)
+            rc = ply_read_list(p, h->format, prop, h->vertex_count, &c, end);
+        else
+            rc = ply_read_value(p, h->format, prop->type, &c, end, &value);
+        if (rc) return rc;
+        if (prop->role <= ROLE_Z) {
+            if (!isfinite(value.f))
+                return parse_fail(p, BRT_EPARSE, "coordinate %c is not finite", 'x' + prop->role);
+            xyz[prop->role] = value.f;
+        }
+    }
+    if (h->format == PLY_ASCII && next_token(&c, end).s != end)
+        return parse_fail(p, BRT_EPARSE, "too many values");
+    return e->kind == ELEMENT_VERTEX ? add_vertex(p, xyz) : BRT_OK;
+}
+
+static brt_result ply_parse(parser *p)
+{
+    ply_header h;
+    int i;
+    brt_result rc = ply_header_read(p, &h);
+    if (rc) return rc;
+    if (h.format != PLY_ASCII) p->where = WHERE_ELEMENT;
+    for (i = 0; i < h.element_count; i++) {
+        p->element = h.elements[i].name;
+        for (p->record = 0; p->record < h.elements[i].count; p->record++)
+            if ((rc = ply_read_record(p, &h, &h.elements[i]))) return rc;
+    }
+    return BRT_OK;
+}
+
+/* ===================================================================== */
+/* Meshes: entry points                                                  */
+/* ===================================================================== */
+
+enum { FORMAT_BY_CONTENT, FORMAT_OBJ, FORMAT_PLY };
+
+static void parser_init(parser *p, const char *name, brt_error *err)
+{
+    memset(p, 0, sizeof *p);
+    p->name = name;
+    p->err = err;
+    p->in.fd = -1;
+}
+
+/* "ply" on a line of its own opens every PLY file and no OBJ file. */
+static int has_ply_magic(const reader *r)
+{
+    const unsigned char *d = r->data + r->pos;
+    size_t n = r->end - r->pos;
+    return n >= 4 && memcmp(d, "ply", 3) == 0 &&
+           (d[3] == '\n' || (n >= 5 && d[3] == '\r' && d[4] == '\n'));
+}
+
+/* Gives back the unused part of a doubled array (keeps it if that fails). */
+static void *shrink(void *items, size_t bytes)
+{
+    void *smaller = realloc(items, bytes);
+    return smaller ? smaller : items;
+}
+
+static brt_result parse_mesh(parser *p, int format, brt_mesh *mesh)
+{
+    brt_result rc = reader_fill(p, 5);
+    memset(mesh, 0, sizeof *mesh);
+    if (rc == BRT_OK) {
+        if (format == FORMAT_BY_CONTENT) format = has_ply_magic(&p->in) ? FORMAT_PLY : FORMAT_OBJ;
+        rc = format == FORMAT_PLY ? ply_parse(p) : obj_parse(p);
+    }
+    if (rc == BRT_OK && p->triangle_count == 0) {
+        p->where = WHERE_NONE;
+        rc = parse_fail(p, BRT_EPARSE, "no triangles");
+    }
+    free(p->polygon);
+    if (rc != BRT_OK) {
+        free(p->positions);
+        free(p->indices);
+        return rc;
+    }
+    mesh->positions = shrink(p->positions, p->vertex_count * 3 * sizeof(float));
+    mesh->indices = shrink(p->indices, p->triangle_count * 3 * sizeof(uint32_t));
+    mesh->vertex_count = (uint32_t)p->vertex_count;
+    mesh->triangle_count = (uint32_t)p->triangle_count;
+    return BRT_OK;
+}
+
+static brt_result parse_memory(const char *name, const void *data, size_t size,
+                               int format, brt_mesh *mesh, brt_error *err)
+{
+    parser p;
+    parser_init(&p, name, err);
+    p.in.data = data ? data : (const void *)"";
+    p.in.end = data ? size : 0;
+    p.in.eof = 1;
+    return parse_mesh(&p, format, mesh);
+}
+
+brt_result brt_mesh_parse_obj(const char *name, const void *data, size_t size,
+                              brt_mesh *mesh, brt_error *err)
+{
+    return parse_memory(name, data, size, FORMAT_OBJ, mesh, err);
+}
+
+brt_result brt_mesh_parse_ply(const char *name, const void *data, size_t size,
+                              brt_mesh *mesh, brt_error *err)
+{
+    return parse_memory(name, data, size, FORMAT_PLY, mesh, err);
+}
+
+brt_result brt_mesh_load(const char *path, brt_mesh *mesh, brt_error *err)
+{
+    parser p;
+    brt_result rc;
+    memset(mesh, 0, sizeof *mesh);
+    parser_init(&p, path, err);
+    p.in.fd = open(path, O_RDONLY);
+    if (p.in.fd < 0) return brt_fail(err, BRT_EIO, "%s: cannot open: %s", path, strerror(errno));
+    p.in.owned = malloc(READ_CHUNK);
+    if (!p.in.owned) {
+        close(p.in.fd);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", path);
+    }
+    p.in.data = p.in.owned;
+    p.in.cap = READ_CHUNK;
+    rc = parse_mesh(&p, FORMAT_BY_CONTENT, mesh);
+    free(p.in.owned);
+    close(p.in.fd);
+    return rc;
+}
+
+void brt_mesh_free(brt_mesh *mesh)
+{
+    free(mesh->positions);
+    free(mesh->indices);
+    memset(mesh, 0, sizeof *mesh);
+}
+
+void brt_mesh_bounds(const brt_mesh *mesh, float bmin[3], float bmax[3])
+{
+    size_t i;
+    int axis;
+    for (axis = 0; axis < 3; axis++) {
+        bmin[axis] = INFINITY;
+        bmax[axis] = -INFINITY;
+    }
+    for (i = 0; i < 3 * (size_t)mesh->triangle_count; i++) {
+        const float *v = mesh->positions + 3 * (size_t)mesh->indices[i];
+        for (axis = 0; axis < 3; axis++) {
+            if (v[axis] < bmin[axis]) bmin[axis] = v[axis];
+            if (v[axis] > bmax[axis]) bmax[axis] = v[axis];
+        }
+    }
+}
+
+/* ===================================================================== */
 /* Rays and hits                                                         */
 /* ===================================================================== */
 
@@ -133,4 +1053,1704 @@ void brt_hit_clear(brt_hit *hit)
 int brt_hit_is_closer(float t, uint32_t prim, const brt_hit *current)
 {
     return t < current->t || (t == current->t && prim < current->prim);
+}
+
+/*
+** Ray and hit files are arrays of little-endian 32-bit words (floats as
+** their IEEE bit patterns, prim as an integer), so one pair of word
+** converters serves both record types on any host byte order.  Both
+** structs are exactly their records, with no padding:
+*/
+typedef char brt_ray_is_its_record[sizeof(brt_ray) == BRT_RAY_BYTES ? 1 : -1];
+typedef char brt_hit_is_its_record[sizeof(brt_hit) == BRT_HIT_BYTES ? 1 : -1];
+
+/* Little-endian words to host words, in place. */
+static void words_from_le(void *buffer, size_t words)
+{
+    unsigned char *b = buffer;
+    size_t i;
+    for (i = 0; i < words; i++, b += 4) {
+        uint32_t w = (uint32_t)b[0] | (uint32_t)b[1] << 8 |
+                     (uint32_t)b[2] << 16 | (uint32_t)b[3] << 24;
+        memcpy(b, &w, 4);
+    }
+}
+
+static void words_to_le(const void *source, unsigned char *le, size_t words)
+{
+    const unsigned char *s = source;
+    size_t i;
+    for (i = 0; i < words; i++, s += 4, le += 4) {
+        uint32_t w;
+        memcpy(&w, s, 4);
+        le[0] = (unsigned char)w;
+        le[1] = (unsigned char)(w >> 8);
+        le[2] = (unsigned char)(w >> 16);
+        le[3] = (unsigned char)(w >> 24);
+    }
+}
+
+static brt_result read_records(const char *path, size_t record_bytes, const char *what,
+                               void **records, size_t *count, brt_error *err)
+{
+    struct stat st;
+    unsigned char *buffer;
+    size_t size, done = 0;
+    int fd = open(path, O_RDONLY);
+    *records = NULL;
+    *count = 0;
+    if (fd < 0) return brt_fail(err, BRT_EIO, "%s: cannot open: %s", path, strerror(errno));
+    if (fstat(fd, &st) != 0) {
+        int saved = errno;
+        close(fd);
+        return brt_fail(err, BRT_EIO, "%s: cannot stat: %s", path, strerror(saved));
+    }
+    if ((uint64_t)st.st_size % record_bytes != 0) {
+        close(fd);
+        return brt_fail(err, BRT_EPARSE,
+                        "%s: size %llu is not a multiple of the %zu-byte %s record",
+                        path, (unsigned long long)st.st_size, record_bytes, what);
+    }
+    size = (size_t)st.st_size;
+    buffer = ((uint64_t)st.st_size == size) ? malloc(size ? size : 1) : NULL;
+    if (!buffer) {
+        close(fd);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory for %llu bytes", path,
+                        (unsigned long long)st.st_size);
+    }
+    while (done < size) {
+        ssize_t n = read(fd, buffer + done, size - done);
+        if (n < 0 && errno == EINTR) continue;
+        if (n <= 0) {
+            int saved = n < 0 ? errno : EIO;
+            free(buffer);
+            close(fd);
+            return brt_fail(err, BRT_EIO, "%s: read error: %s", path,
+                            n < 0 ? strerror(saved) : "file shrank while reading");
+        }
+        done += (size_t)n;
+    }
+    close(fd);
+    words_from_le(buffer, size / 4);
+    *records = buffer;
+    *count = size / record_bytes;
+    return BRT_OK;
+}
+
+static brt_result write_records(const char *path, const void *records, size_t count,
+                                size_t record_bytes, brt_error *err)
+{
+    unsigned char *le;
+    brt_result rc;
+    if (count > SIZE_MAX / record_bytes)
+        return brt_fail(err, BRT_EARG, "%s: too many records", path);
+    le = malloc(count ? count * record_bytes : 1);
+    if (!le) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", path);
+    words_to_le(records, le, count * record_bytes / 4);
+    rc = brt_write_file_atomic(path, le, count * record_bytes, err);
+    free(le);
+    return rc;
+}
+
+brt_result brt_rays_read(const char *path, brt_ray **rays, size_t *count, brt_error *err)
+{
+    void *records;
+    brt_result rc = read_records(path, BRT_RAY_BYTES, "ray", &records, count, err);
+    *rays = records;
+    return rc;
+}
+
+brt_result brt_rays_write(const char *path, const brt_ray *rays, size_t count, brt_error *err)
+{
+    return write_records(path, rays, count, BRT_RAY_BYTES, err);
+}
+
+brt_result brt_hits_read(const char *path, brt_hit **hits, size_t *count, brt_error *err)
+{
+    void *records;
+    brt_result rc = read_records(path, BRT_HIT_BYTES, "hit", &records, count, err);
+    *hits = records;
+    return rc;
+}
+
+brt_result brt_hits_write(const char *path, const brt_hit *hits, size_t count, brt_error *err)
+{
+    return write_records(path, hits, count, BRT_HIT_BYTES, err);
+}
+
+/* ===================================================================== */
+/* Statistics                                                            */
+/* ===================================================================== */
+
+/* One JSON object, one field per line.  Counters print as exact integers;
+** JSON has no inf or NaN, so a non-finite measurement prints as null. */
+brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error *err)
+{
+    const struct { const char *name; uint64_t value; } counters[] = {
+        {"rays", s->rays}, {"batching_points", s->batching_points},
+        {"geometry_bytes", s->geometry_bytes}, {"disk_bytes_read", s->disk_bytes_read},
+        {"batch_loads", s->batch_loads}, {"cache_peak_bytes", s->cache_peak_bytes},
+        {"memory_limit", s->memory_limit}, {"proxy_bytes", s->proxy_bytes},
+        {"proxy_tests", s->proxy_tests}, {"proxy_culled", s->proxy_culled},
+        {"queued_visits", s->queued_visits}, {"oversized_loads", s->oversized_loads}};
+    const struct { const char *name; double value; } measures[] = {
+        {"seconds", s->seconds}, {"build_seconds", s->build_seconds},
+        {"bvh_bytes_per_triangle", s->bvh_bytes_per_triangle},
+        {"mrays_per_second", s->mrays_per_second}};
+    const size_t n_counters = sizeof counters / sizeof counters[0];
+    const size_t n_measures = sizeof measures / sizeof measures[0];
+    char text[2048];
+    size_t used = 0, i;
+    used += (size_t)snprintf(text + used, sizeof text - used, "{\n");
+    for (i = 0; i < n_counters; i++)
+        used += (size_t)snprintf(text + used, sizeof text - used, "  \"%s\": %llu,\n",
+                                 counters[i].name, (unsigned long long)counters[i].value);
+    for (i = 0; i < n_measures; i++) {
+        const char *comma = i + 1 < n_measures ? "," : "";
+        if (isfinite(measures[i].value))
+            used += (size_t)snprintf(text + used, sizeof text - used, "  \"%s\": %.17g%s\n",
+                                     measures[i].name, measures[i].value, comma);
+        else
+            used += (size_t)snprintf(text + used, sizeof text - used, "  \"%s\": null%s\n",
+                                     measures[i].name, comma);
+    }
+    used += (size_t)snprintf(text + used, sizeof text - used, "}\n");
+    return brt_write_file_atomic(path, text, used, err);
+}
+
+/* -- to move into bvh.c: the one box test shared by everything -- */
+void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
+{
+    int a, finite = 1, nonzero = 0;
+    for (a = 0; a < 3; a++) {
+        prep->org[a] = ray->org[a];
+        prep->dir[a] = ray->dir[a];
+        prep->inv[a] = ray->dir[a] != 0.0f ? 1.0f / ray->dir[a] : 0.0f;
+        finite &= isfinite(ray->org[a]) && isfinite(ray->dir[a]);
+        nonzero |= ray->dir[a] != 0.0f;
+    }
+    prep->tnear = ray->tnear;
+    prep->tfar = ray->tfar;
+    prep->valid = finite && nonzero && !isnan(ray->tnear) && !isnan(ray->tfar) &&
+                  ray->tnear <= ray->tfar;
+}
+
+/* Widening by a bound on the rounding of (b - o) * inv (three roundings,
+** relative error below 3 * 2^-24) plus a tiny absolute term for
+** underflow.  Both are monotone, so widening keeps nested boxes nested. */
+static float widen_down(float t) { return t - (fabsf(t) * 0x1p-21f + 0x1p-120f); }
+static float widen_up(float t) { return t + (fabsf(t) * 0x1p-21f + 0x1p-120f); }
+
+int brt_box_span(const brt_ray_prep *r, const float lo[3], const float hi[3],
+                 float tmin, float tmax, float *entry, float *exit)
+{
+    float e = tmin, x = tmax;
+    int a;
+    for (a = 0; a < 3; a++) {
+        float t0, t1;
+        if (r->dir[a] == 0.0f) {
+            /* Parallel to the slab: inside (closed) or never. */
+            if (!(lo[a] <= r->org[a] && r->org[a] <= hi[a])) return 0;
+            continue;
+        }
+        t0 = (lo[a] - r->org[a]) * r->inv[a];
+        t1 = (hi[a] - r->org[a]) * r->inv[a];
+        if (r->inv[a] < 0.0f) { float t = t0; t0 = t1; t1 = t; }
+        if (t0 > e) e = t0;
+        if (t1 < x) x = t1;
+    }
+    *entry = widen_down(e);
+    *exit = widen_up(x);
+    return *entry <= *exit;   /* false for NaN (inf - inf) as well */
+}
+
+/* ===================================================================== */
+/* Out-of-core batched traversal                                         */
+/* ===================================================================== */
+/*
+** The data flow of Pharr et al. 1997 with the proxies of Molenaar and
+** Eisemann 2020:
+**
+**   mesh --partition--> batching points --build--> scene file
+**        (median splits)  (BVH blob + box + proxy each)
+**   rays --top-level walk--> proxy test --> queue at a batching point
+**   scheduler: fullest queue first --> page cache (pread, LRU) --> BVH
+**        --> the ray resumes its walk, or finishes.
+*/
+
+/* ---- checksums and host-order packing --------------------------------- */
+
+/* Word-wise multiply-xorshift hash (in the style of MurmurHash's
+** finaliser): fast enough to verify every blob on every load, and a random
+** corruption goes unnoticed with probability about 2^-64.  Not a
+** cryptographic hash. */
+static uint64_t checksum64(const void *data, size_t size)
+{
+    const unsigned char *p = data;
+    uint64_t h = 0x9E3779B97F4A7C15ull ^ (uint64_t)size, w;
+    for (; size >= 8; p += 8, size -= 8) {
+        memcpy(&w, p, 8);
+        h = (h ^ w) * 0xFF51AFD7ED558CCDull;
+        h ^= h >> 32;
+    }
+    w = 0;
+    memcpy(&w, p, size);
+    h = (h ^ w) * 0xC4CEB9FE1A85EC53ull;
+    return h ^ (h >> 29);
+}
+
+/* Scene files are written in host byte order; the header's endianness
+** mark makes a file from a machine of the other order a clear error
+** instead of garbage.  (BVH blobs are host-order arrays, read in place.) */
+static void put_u32(unsigned char *p, uint32_t v) { memcpy(p, &v, 4); }
+static void put_u64(unsigned char *p, uint64_t v) { memcpy(p, &v, 8); }
+static void put_f32(unsigned char *p, float v) { memcpy(p, &v, 4); }
+static uint32_t get_u32(const unsigned char *p) { uint32_t v; memcpy(&v, p, 4); return v; }
+static uint64_t get_u64(const unsigned char *p) { uint64_t v; memcpy(&v, p, 8); return v; }
+static float get_f32(const unsigned char *p) { float v; memcpy(&v, p, 4); return v; }
+
+/* ---- median splits (the partition and the top-level build share them) -- */
+
+/* Longest axis of the bounds of the points centres[3*ids[i]]. */
+static int longest_axis(const float *centres, const uint32_t *ids, uint32_t n)
+{
+    float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    uint32_t i;
+    int a, axis = 0;
+    for (i = 0; i < n; i++)
+        for (a = 0; a < 3; a++) {
+            float c = centres[3 * (size_t)ids[i] + a];
+            if (c < lo[a]) lo[a] = c;
+            if (c > hi[a]) hi[a] = c;
+        }
+    for (a = 1; a < 3; a++)
+        if (hi[a] - lo[a] > hi[axis] - lo[axis]) axis = a;
+    return axis;
+}
+
+/* Orders ids by (centre on axis, id): a total order, so the split and
+** hence the scene file are the same on every run and every libc. */
+static int centre_before(const float *centres, int axis, uint32_t a, uint32_t b)
+{
+    float ca = centres[3 * (size_t)a + axis], cb = centres[3 * (size_t)b + axis];
+    return ca < cb || (ca == cb && a < b);
+}
+
+/* Quickselect (Hoare 1961): afterwards ids[0..k) come before ids[k..n) in
+** the order above.  Expected linear time; the pivot is a median of three. */
+static void select_kth(const float *centres, int axis, uint32_t *ids, uint32_t n, uint32_t k)
+{
+    uint32_t lo = 0, hi = n;            /* the k-th lies in ids[lo..hi) */
+    while (hi - lo > 1) {
+        uint32_t a = ids[lo], b = ids[lo + (hi - lo) / 2], c = ids[hi - 1], pivot, i, store;
+        pivot = centre_before(centres, axis, a, b)
+                    ? (centre_before(centres, axis, b, c) ? b : (centre_before(centres, axis, a, c) ? c : a))
+                    : (centre_before(centres, axis, a, c) ? a : (centre_before(centres, axis, b, c) ? c : b));
+        /* Lomuto partition around the pivot id (moved to the end). */
+        for (i = lo; ids[i] != pivot; i++) {}
+        ids[i] = ids[hi - 1];
+        ids[hi - 1] = pivot;
+        for (store = lo, i = lo; i < hi - 1; i++)
+            if (centre_before(centres, axis, ids[i], pivot)) {
+                uint32_t t = ids[i]; ids[i] = ids[store]; ids[store] = t;
+                store++;
+            }
+        ids[hi - 1] = ids[store];
+        ids[store] = pivot;
+        if (store == k) return;
+        if (store < k) lo = store + 1;
+        else hi = store;
+    }
+}
+
+/* Splits ids[0..n) spatially: the first k go to one side (k in 1..n-1). */
+static void median_split(const float *centres, uint32_t *ids, uint32_t n, uint32_t k)
+{
+    select_kth(centres, longest_axis(centres, ids, n), ids, n, k);
+}
+
+/* ---- the partition into batching points ------------------------------ */
+
+typedef struct batch_range {
+    uint32_t first, count;        /* into the triangle order */
+} batch_range;
+
+typedef struct partition {
+    uint32_t *order;              /* triangle ids, batching point by batching point */
+    batch_range *ranges;
+    uint32_t count, capacity;
+} partition;
+
+static brt_result partition_push(partition *p, uint32_t first, uint32_t count)
+{
+    if (p->count == p->capacity) {
+        uint32_t cap = p->capacity ? 2 * p->capacity : 64;
+        batch_range *r = realloc(p->ranges, cap * sizeof *r);
+        if (!r) return BRT_ENOMEM;
+        p->ranges = r;
+        p->capacity = cap;
+    }
+    p->ranges[p->count].first = first;
+    p->ranges[p->count].count = count;
+    p->count++;
+    return BRT_OK;
+}
+
+/* Top-down: split on the longest axis of the centroid bounds until each part
+** holds at most batch_tris triangles.  The split point is a multiple of
+** batch_tris near the middle, so parts are full and there are few of them
+** (ceil(n / batch_tris) when the counts allow). */
+static brt_result partition_split(partition *p, const float *centroids, uint32_t first,
+                                  uint32_t count, uint32_t batch_tris)
+{
+    uint32_t parts, k;
+    brt_result r;
+    if (count <= batch_tris) return partition_push(p, first, count);
+    parts = (uint32_t)(((uint64_t)count + batch_tris - 1) / batch_tris);
+    k = (uint32_t)(((uint64_t)parts / 2) * batch_tris);
+    median_split(centroids, p->order + first, count, k);
+    /* Both sides are smaller and k is near the middle: depth O(log n). */
+    r = partition_split(p, centroids, first, k, batch_tris);
+    if (r == BRT_OK) r = partition_split(p, centroids, first + k, count - k, batch_tris);
+    return r;
+}
+
+static void triangle_vertex(const brt_mesh *m, uint32_t tri, int corner, float out[3])
+{
+    memcpy(out, m->positions + 3 * (size_t)m->indices[3 * (size_t)tri + corner], 3 * sizeof(float));
+}
+
+static brt_result partition_mesh(const brt_mesh *mesh, uint32_t batch_tris, partition *p)
+{
+    uint32_t n = mesh->triangle_count, t;
+    float *centroids = malloc(3 * (size_t)n * sizeof *centroids);
+    brt_result r;
+    memset(p, 0, sizeof *p);
+    p->order = malloc((size_t)n * sizeof *p->order);
+    if (!centroids || !p->order) {
+        free(centroids);
+        return BRT_ENOMEM;
+    }
+    for (t = 0; t < n; t++) {
+        float v[3][3];
+        int a;
+        triangle_vertex(mesh, t, 0, v[0]);
+        triangle_vertex(mesh, t, 1, v[1]);
+        triangle_vertex(mesh, t, 2, v[2]);
+        for (a = 0; a < 3; a++) centroids[3 * (size_t)t + a] = (v[0][a] + v[1][a] + v[2][a]) / 3.0f;
+        p->order[t] = t;
+    }
+    r = partition_split(p, centroids, 0, n, batch_tris);
+    free(centroids);
+    return r;
+}
+
+static void partition_free(partition *p)
+{
+    free(p->order);
+    free(p->ranges);
+}
+
+/* ---- the top-level BVH over batching points and its restartable walk -- */
+/*
+** A 4-wide BVH over the batching points' boxes (the paper's top level is
+** 4-wide too).  It lives here, beside the partition whose median split it
+** shares, and tests boxes with bvh.c's brt_box_span so that its distances
+** agree bit for bit with the triangle BVHs.
+**
+** A ray's place in its walk is one 8-byte key (t_entry, id): the entry
+** distance into the last batching point it was queued at, and that
+** point's id.  top_next finds the smallest key after it among the
+** batching points the ray enters no later than tlimit, by a fresh descent
+** from the root that prunes
+**  (a) subtrees the ray leaves before the last key's t: every box inside is
+**      entered no later than it is left, so its key would be smaller;
+**  (b) subtrees entered after the best candidate found so far.
+** Both are exact because brt_box_span is monotone in the box bounds.
+*/
+#define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
+#define TOP_LEAF 0x80000000u    /* child code of batching point (code & ~TOP_LEAF) */
+#define TOP_MAX_DEPTH 48        /* median splits give depth log4(n) + 1 */
+#define TOP_NODE_BYTES 112
+
+typedef struct top_node {
+    float lo[3][4], hi[3][4];   /* child boxes, one lane per child */
+    uint32_t child[4];          /* node index (> own index), TOP_LEAF|id, TOP_EMPTY */
+} top_node;
+
+typedef struct walk_key {
+    float t;
+    uint32_t id;                /* TOP_EMPTY before the first batching point */
+} walk_key;
+
+static int key_after(float t, uint32_t id, walk_key last)
+{
+    return last.id == TOP_EMPTY || t > last.t || (t == last.t && id > last.id);
+}
+
+typedef struct top_builder {
+    const float *boxes;         /* 6 floats per batching point: lo, hi */
+    const float *centres;       /* 3 floats per batching point */
+    top_node *nodes;
+    uint32_t count;
+} top_builder;
+
+static void top_lane_clear(top_node *node, int lane)
+{
+    int a;
+    node->child[lane] = TOP_EMPTY;
+    for (a = 0; a < 3; a++) {
+        node->lo[a][lane] = INFINITY;
+        node->hi[a][lane] = -INFINITY;
+    }
+}
+
+static void top_lane_grow(top_node *node, int lane, const float *box)
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        if (box[a] < node->lo[a][lane]) node->lo[a][lane] = box[a];
+        if (box[3 + a] > node->hi[a][lane]) node->hi[a][lane] = box[3 + a];
+    }
+}
+
+static uint32_t top_build_node(top_builder *b, uint32_t *ids, uint32_t n)
+{
+    uint32_t index = b->count++, first[5], groups = 1, g, i;
+    first[0] = 0;
+    first[1] = n;
+    /* Split the largest group at its median until there are four: two
+    ** levels of a binary median split collapsed into one node. */
+    while (groups < 4) {
+        uint32_t big = 0, size;
+        for (g = 1; g < groups; g++)
+            if (first[g + 1] - first[g] > first[big + 1] - first[big]) big = g;
+        size = first[big + 1] - first[big];
+        if (size < 2) break;
+        median_split(b->centres, ids + first[big], size, size / 2);
+        memmove(first + big + 2, first + big + 1, (groups - big) * sizeof *first);
+        first[big + 1] = first[big] + size / 2;
+        groups++;
+    }
+    for (g = 0; g < 4; g++) top_lane_clear(&b->nodes[index], (int)g);
+    for (g = 0; g < groups; g++) {
+        uint32_t size = first[g + 1] - first[g];
+        uint32_t child = size == 1 ? (TOP_LEAF | ids[first[g]])
+                                   : top_build_node(b, ids + first[g], size);
+        b->nodes[index].child[g] = child;
+        for (i = first[g]; i < first[g + 1]; i++)
+            top_lane_grow(&b->nodes[index], (int)g, b->boxes + 6 * (size_t)ids[i]);
+    }
+    return index;
+}
+
+/* Builds the nodes (at most count of them: every node has two or more
+** children, except a root over a single batching point). */
+static brt_result top_build(const float *boxes, uint32_t count, top_node **nodes,
+                            uint32_t *node_count)
+{
+    top_builder b;
+    uint32_t *ids = malloc((size_t)count * sizeof *ids), i;
+    float *centres = malloc(3 * (size_t)count * sizeof *centres);
+    b.nodes = malloc((size_t)count * sizeof *b.nodes);
+    if (!ids || !centres || !b.nodes) {
+        free(ids); free(centres); free(b.nodes);
+        return BRT_ENOMEM;
+    }
+    for (i = 0; i < count; i++) {
+        int a;
+        ids[i] = i;
+        for (a = 0; a < 3; a++)
+            centres[3 * (size_t)i + a] = 0.5f * boxes[6 * (size_t)i + a] + 0.5f * boxes[6 * (size_t)i + 3 + a];
+    }
+    b.boxes = boxes;
+    b.centres = centres;
+    b.count = 0;
+    top_build_node(&b, ids, count);
+    free(ids);
+    free(centres);
+    *nodes = b.nodes;
+    *node_count = b.count;
+    return BRT_OK;
+}
+
+static int top_lane_span(const top_node *node, int lane, const brt_ray_prep *ray,
+                         float tlimit, float *entry, float *exit)
+{
+    float lo[3], hi[3];
+    int a;
+    for (a = 0; a < 3; a++) {
+        lo[a] = node->lo[a][lane];
+        hi[a] = node->hi[a][lane];
+    }
+    return brt_box_span(ray, lo, hi, ray->tnear, tlimit, entry, exit);
+}
+
+/* The next batching point after *key that the ray enters no later than
+** tlimit: 1 and *key updated, or 0 when there is none. */
+static int top_next(const top_node *nodes, const brt_ray_prep *ray, float tlimit,
+                    walk_key *key)
+{
+    uint32_t stack[3 * TOP_MAX_DEPTH + 1];
+    int sp = 0;
+    walk_key best;
+    best.t = INFINITY;
+    best.id = TOP_EMPTY;
+    stack[sp++] = 0;
+    while (sp > 0) {
+        const top_node *node = &nodes[stack[--sp]];
+        int lane;
+        for (lane = 0; lane < 4; lane++) {
+            uint32_t child = node->child[lane];
+            float entry, exit;
+            if (child == TOP_EMPTY) continue;
+            if (!top_lane_span(node, lane, ray, tlimit, &entry, &exit)) continue;
+            if (key->id != TOP_EMPTY && exit < key->t) continue;      /* (a) */
+            if (best.id != TOP_EMPTY && entry > best.t) continue;     /* (b) */
+            if (child & TOP_LEAF) {
+                uint32_t id = child & ~TOP_LEAF;
+                if (key_after(entry, id, *key) &&
+                    (best.id == TOP_EMPTY || entry < best.t || (entry == best.t && id < best.id))) {
+                    best.t = entry;
+                    best.id = id;
+                }
+            } else {
+                stack[sp++] = child;
+            }
+        }
+    }
+    if (best.id == TOP_EMPTY) return 0;
+    *key = best;
+    return 1;
+}
+
+/* ---- the scene file --------------------------------------------------- */
+/*
+** Layout (all numbers in host byte order, see the endianness mark):
+**   header, 256 bytes:
+**     0 "BRTSCENE"  8 u32 version  12 u32 endianness mark 0x01020304
+**     16 u64 source stamp  24 u32 batch_tris  28 u32 proxy_res
+**     32 u32 batching points  36 u32 triangles  40 u32 top-level nodes
+**     44 u32 0  48 u64 geometry bytes (all blobs)
+**     56 three sections {u64 offset, u64 size, u64 checksum}:
+**        batch table, top-level nodes, DAG pool
+**     248 u64 checksum of bytes 0..247
+**   blobs: one triangle BVH per batching point (brt_bvh_blob_write), each
+**     at a multiple of SCENE_PAGE, so the cache reads whole aligned pages
+**   batch table: BATCH_ENTRY_BYTES per batching point: f32 lo[3] hi[3],
+**     u64 blob offset, u64 blob size, u64 blob checksum, u32 triangles,
+**     u32 proxy root, u32 proxy res, f32 proxy origin[3], f32 cell, u32 0
+**   top-level nodes: TOP_NODE_BYTES each (f32 lo[3][4] hi[3][4], u32 child[4])
+**   DAG pool: brt_svdag_blob_write
+** The file is padded to a multiple of SCENE_PAGE.
+*/
+#define SCENE_MAGIC "BRTSCENE"
+#define SCENE_VERSION 1u
+#define SCENE_ENDIAN_MARK 0x01020304u
+#define SCENE_HEADER_BYTES 256
+#define SCENE_PAGE 4096u
+#define BATCH_ENTRY_BYTES 80
+#define SECTION_BATCHES 0
+#define SECTION_TOP 1
+#define SECTION_DAG 2
+
+typedef struct batch_entry {
+    float lo[3], hi[3];
+    uint64_t offset, size, checksum;
+    uint32_t triangles;
+    brt_proxy proxy;
+} batch_entry;
+
+typedef struct section {
+    uint64_t offset, size, checksum;
+} section;
+
+static uint64_t round_up_page(uint64_t n)
+{
+    return (n + SCENE_PAGE - 1) / SCENE_PAGE * SCENE_PAGE;
+}
+
+static void batch_entry_pack(const batch_entry *b, unsigned char *p)
+{
+    int a;
+    memset(p, 0, BATCH_ENTRY_BYTES);
+    for (a = 0; a < 3; a++) {
+        put_f32(p + 4 * a, b->lo[a]);
+        put_f32(p + 12 + 4 * a, b->hi[a]);
+        put_f32(p + 60 + 4 * a, b->proxy.origin[a]);
+    }
+    put_u64(p + 24, b->offset);
+    put_u64(p + 32, b->size);
+    put_u64(p + 40, b->checksum);
+    put_u32(p + 48, b->triangles);
+    put_u32(p + 52, b->proxy.root);
+    put_u32(p + 56, b->proxy.res);
+    put_f32(p + 72, b->proxy.cell);
+}
+
+static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        b->lo[a] = get_f32(p + 4 * a);
+        b->hi[a] = get_f32(p + 12 + 4 * a);
+        b->proxy.origin[a] = get_f32(p + 60 + 4 * a);
+    }
+    b->offset = get_u64(p + 24);
+    b->size = get_u64(p + 32);
+    b->checksum = get_u64(p + 40);
+    b->triangles = get_u32(p + 48);
+    b->proxy.root = get_u32(p + 52);
+    b->proxy.res = get_u32(p + 56);
+    b->proxy.cell = get_f32(p + 72);
+}
+
+static void top_node_pack(const top_node *n, unsigned char *p)
+{
+    int a, lane;
+    for (a = 0; a < 3; a++)
+        for (lane = 0; lane < 4; lane++) {
+            put_f32(p + 16 * a + 4 * lane, n->lo[a][lane]);
+            put_f32(p + 48 + 16 * a + 4 * lane, n->hi[a][lane]);
+        }
+    for (lane = 0; lane < 4; lane++) put_u32(p + 96 + 4 * lane, n->child[lane]);
+}
+
+static void top_node_unpack(const unsigned char *p, top_node *n)
+{
+    int a, lane;
+    for (a = 0; a < 3; a++)
+        for (lane = 0; lane < 4; lane++) {
+            n->lo[a][lane] = get_f32(p + 16 * a + 4 * lane);
+            n->hi[a][lane] = get_f32(p + 48 + 16 * a + 4 * lane);
+        }
+    for (lane = 0; lane < 4; lane++) n->child[lane] = get_u32(p + 96 + 4 * lane);
+}
+
+/* What the header says, unpacked. */
+typedef struct scene_header {
+    uint64_t stamp, geometry_bytes;
+    uint32_t batch_tris, proxy_res, batch_count, triangle_count, top_node_count;
+    section sections[3];
+} scene_header;
+
+static void header_pack(const scene_header *h, unsigned char *p)
+{
+    int s;
+    memset(p, 0, SCENE_HEADER_BYTES);
+    memcpy(p, SCENE_MAGIC, 8);
+    put_u32(p + 8, SCENE_VERSION);
+    put_u32(p + 12, SCENE_ENDIAN_MARK);
+    put_u64(p + 16, h->stamp);
+    put_u32(p + 24, h->batch_tris);
+    put_u32(p + 28, h->proxy_res);
+    put_u32(p + 32, h->batch_count);
+    put_u32(p + 36, h->triangle_count);
+    put_u32(p + 40, h->top_node_count);
+    put_u64(p + 48, h->geometry_bytes);
+    for (s = 0; s < 3; s++) {
+        put_u64(p + 56 + 24 * s, h->sections[s].offset);
+        put_u64(p + 64 + 24 * s, h->sections[s].size);
+        put_u64(p + 72 + 24 * s, h->sections[s].checksum);
+    }
+    put_u64(p + 248, checksum64(p, 248));
+}
+
+/* Checks magic, endianness, version and checksum, in that order, so the
+** message names the first thing that is wrong. */
+static brt_result header_unpack(const char *path, const unsigned char *p, scene_header *h,
+                                brt_error *err)
+{
+    uint32_t mark = get_u32(p + 12);
+    int s;
+    if (memcmp(p, SCENE_MAGIC, 8) != 0)
+        return brt_fail(err, BRT_EFORMAT, "%s: not a batchrt scene file (bad magic)", path);
+    if (mark != SCENE_ENDIAN_MARK)
+        return brt_fail(err, BRT_EFORMAT, "%s: written on a machine of the other byte order", path);
+    if (get_u32(p + 8) != SCENE_VERSION)
+        return brt_fail(err, BRT_EFORMAT, "%s: scene file version %u, this build reads version %u"
+                        " (delete the file to rebuild it)", path, get_u32(p + 8), SCENE_VERSION);
+    if (get_u64(p + 248) != checksum64(p, 248))
+        return brt_fail(err, BRT_EFORMAT, "%s: header checksum mismatch (corrupt file)", path);
+    h->stamp = get_u64(p + 16);
+    h->batch_tris = get_u32(p + 24);
+    h->proxy_res = get_u32(p + 28);
+    h->batch_count = get_u32(p + 32);
+    h->triangle_count = get_u32(p + 36);
+    h->top_node_count = get_u32(p + 40);
+    h->geometry_bytes = get_u64(p + 48);
+    for (s = 0; s < 3; s++) {
+        h->sections[s].offset = get_u64(p + 56 + 24 * s);
+        h->sections[s].size = get_u64(p + 64 + 24 * s);
+        h->sections[s].checksum = get_u64(p + 72 + 24 * s);
+    }
+    return BRT_OK;
+}
+
+/* pwrite until done; EINTR and short writes are retried. */
+static brt_result write_at(int fd, const void *data, size_t size, uint64_t offset,
+                           const char *path, brt_error *err)
+{
+    const unsigned char *p = data;
+    while (size > 0) {
+        ssize_t n = pwrite(fd, p, size, (off_t)offset);
+        if (n < 0 && errno == EINTR) continue;
+        if (n <= 0)
+            return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path,
+                            strerror(n < 0 ? errno : ENOSPC));
+        p += n;
+        size -= (size_t)n;
+        offset += (uint64_t)n;
+    }
+    return BRT_OK;
+}
+
+/* ---- building a scene file ------------------------------------------ */
+
+static void scene_options_resolve(const brt_scene_options *opt, uint32_t *batch_tris,
+                                  uint32_t *res)
+{
+    *batch_tris = opt && opt->batch_tris ? opt->batch_tris : 100000;
+    *res = opt && opt->proxy_res ? opt->proxy_res : 128;
+}
+
+/* Everything written while a scene file is built. */
+typedef struct scene_writer {
+    const brt_mesh *mesh;
+    const char *path;           /* final name, for messages */
+    int fd;
+    uint64_t offset;            /* next free, page-aligned */
+    uint32_t res;
+    brt_svdag *dag;
+    batch_entry *batches;
+    float *boxes;               /* 6 floats per batching point */
+    uint32_t *indices;          /* scratch: one batching point's triangles */
+} scene_writer;
+
+static void batch_bounds(const brt_mesh *mesh, const uint32_t *tris, uint32_t count,
+                         float lo[3], float hi[3])
+{
+    uint32_t i;
+    int c, a;
+    for (a = 0; a < 3; a++) {
+        lo[a] = INFINITY;
+        hi[a] = -INFINITY;
+    }
+    for (i = 0; i < count; i++)
+        for (c = 0; c < 3; c++) {
+            float v[3];
+            triangle_vertex(mesh, tris[i], c, v);
+            for (a = 0; a < 3; a++) {
+                if (v[a] < lo[a]) lo[a] = v[a];
+                if (v[a] > hi[a]) hi[a] = v[a];
+            }
+        }
+}
+
+/* The proxy of one batching point: its triangles voxelized in a grid
+** fitted to its box, added to the shared pool. */
+static brt_result batch_proxy(scene_writer *w, batch_entry *b, uint32_t count)
+{
+    brt_grid grid;
+    brt_result r = brt_grid_init(&grid, b->lo, b->hi, w->res);
+    if (r != BRT_OK) return r;
+    r = brt_voxelize(&grid, w->mesh->positions, w->indices, count);
+    if (r == BRT_OK) r = brt_svdag_add(w->dag, &grid, &b->proxy);
+    brt_grid_free(&grid);
+    return r;
+}
+
+/* One batching point: its BVH as a blob at the next page, and its proxy. */
+static brt_result write_batch(scene_writer *w, const uint32_t *tris, uint32_t count,
+                              batch_entry *b, brt_error *err)
+{
+    brt_bvh *bvh = NULL;
+    void *blob = NULL;
+    uint32_t i;
+    brt_result r;
+    for (i = 0; i < count; i++)
+        memcpy(w->indices + 3 * (size_t)i, w->mesh->indices + 3 * (size_t)tris[i], 3 * sizeof *w->indices);
+    batch_bounds(w->mesh, tris, count, b->lo, b->hi);
+    b->triangles = count;
+    r = brt_bvh_build(w->mesh->positions, w->indices, count, tris, &bvh);
+    if (r != BRT_OK) return brt_fail(err, r, "%s: building a batching point's BVH: %s",
+                                     w->path, brt_result_string(r));
+    b->size = brt_bvh_blob_size(bvh);
+    blob = calloc(1, b->size ? b->size : 1);
+    if (!blob) {
+        brt_bvh_free(bvh);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    }
+    brt_bvh_blob_write(bvh, blob);
+    brt_bvh_free(bvh);
+    b->checksum = checksum64(blob, b->size);
+    b->offset = w->offset;
+    r = write_at(w->fd, blob, b->size, b->offset, w->path, err);
+    free(blob);
+    if (r != BRT_OK) return r;
+    w->offset = round_up_page(b->offset + b->size);
+    r = batch_proxy(w, b, count);
+    if (r != BRT_OK) return brt_fail(err, r, "%s: building a proxy: %s", w->path, brt_result_string(r));
+    return BRT_OK;
+}
+
+/* Writes a section at the next page and fills in its table entry. */
+static brt_result write_section(scene_writer *w, const void *data, size_t size, section *s,
+                                brt_error *err)
+{
+    s->offset = w->offset;
+    s->size = size;
+    s->checksum = checksum64(data, size);
+    w->offset = round_up_page(w->offset + size);
+    return write_at(w->fd, data, size, s->offset, w->path, err);
+}
+
+/* The batch table, the top-level nodes and the DAG pool, then the header. */
+static brt_result write_tables(scene_writer *w, scene_header *h, brt_error *err)
+{
+    size_t top_bytes, dag_bytes, table_bytes = (size_t)h->batch_count * BATCH_ENTRY_BYTES;
+    top_node *nodes = NULL;
+    unsigned char *buf, header[SCENE_HEADER_BYTES];
+    uint32_t i;
+    brt_result r = top_build(w->boxes, h->batch_count, &nodes, &h->top_node_count);
+    if (r != BRT_OK) return brt_fail(err, r, "%s: out of memory", w->path);
+    top_bytes = (size_t)h->top_node_count * TOP_NODE_BYTES;
+    dag_bytes = brt_svdag_blob_size(w->dag);
+    buf = malloc(table_bytes + top_bytes + dag_bytes + 1);
+    if (!buf) {
+        free(nodes);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    }
+    for (i = 0; i < h->batch_count; i++) batch_entry_pack(&w->batches[i], buf + (size_t)i * BATCH_ENTRY_BYTES);
+    for (i = 0; i < h->top_node_count; i++) top_node_pack(&nodes[i], buf + table_bytes + (size_t)i * TOP_NODE_BYTES);
+    brt_svdag_blob_write(w->dag, buf + table_bytes + top_bytes);
+    free(nodes);
+    r = write_section(w, buf, table_bytes, &h->sections[SECTION_BATCHES], err);
+    if (r == BRT_OK) r = write_section(w, buf + table_bytes, top_bytes, &h->sections[SECTION_TOP], err);
+    if (r == BRT_OK) r = write_section(w, buf + table_bytes + top_bytes, dag_bytes, &h->sections[SECTION_DAG], err);
+    free(buf);
+    if (r != BRT_OK) return r;
+    /* Pad to whole pages so the cache's page-rounded reads stay in the file. */
+    if (ftruncate(w->fd, (off_t)w->offset) != 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", w->path, strerror(errno));
+    header_pack(h, header);
+    return write_at(w->fd, header, sizeof header, 0, w->path, err);
+}
+
+static brt_result write_scene(scene_writer *w, const partition *p, scene_header *h,
+                              brt_error *err)
+{
+    uint32_t i, largest = 1;
+    brt_result r;
+    for (i = 0; i < p->count; i++)
+        if (p->ranges[i].count > largest) largest = p->ranges[i].count;
+    w->batches = calloc(p->count, sizeof *w->batches);
+    w->boxes = malloc(6 * (size_t)p->count * sizeof *w->boxes);
+    w->indices = malloc(3 * (size_t)largest * sizeof *w->indices);
+    if (!w->batches || !w->boxes || !w->indices)
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    r = brt_svdag_create(&w->dag);
+    if (r != BRT_OK) return brt_fail(err, r, "%s: out of memory", w->path);
+    w->offset = SCENE_PAGE;
+    for (i = 0; i < p->count && r == BRT_OK; i++) {
+        batch_entry *b = &w->batches[i];
+        r = write_batch(w, p->order + p->ranges[i].first, p->ranges[i].count, b, err);
+        memcpy(w->boxes + 6 * (size_t)i, b->lo, 3 * sizeof(float));
+        memcpy(w->boxes + 6 * (size_t)i + 3, b->hi, 3 * sizeof(float));
+        h->geometry_bytes += b->size;
+    }
+    return r == BRT_OK ? write_tables(w, h, err) : r;
+}
+
+brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
+                           uint64_t source_stamp, const char *scene_path,
+                           brt_error *err)
+{
+    scene_writer w;
+    scene_header h;
+    partition p;
+    char tmp[4096];
+    brt_result r;
+    memset(&w, 0, sizeof w);
+    memset(&h, 0, sizeof h);
+    scene_options_resolve(opt, &h.batch_tris, &w.res);
+    if (w.res < 2 || w.res > 1024 || (w.res & (w.res - 1)) != 0)
+        return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", w.res);
+    if (mesh->triangle_count == 0)
+        return brt_fail(err, BRT_EARG, "%s: the mesh has no triangles", scene_path);
+    if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", scene_path, (long)getpid()) >= (int)sizeof tmp)
+        return brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
+    h.proxy_res = w.res;
+    h.stamp = source_stamp;
+    h.triangle_count = mesh->triangle_count;
+    w.mesh = mesh;
+    w.path = scene_path;
+    r = partition_mesh(mesh, h.batch_tris, &p);
+    if (r != BRT_OK) {
+        partition_free(&p);
+        return brt_fail(err, r, "%s: out of memory", scene_path);
+    }
+    h.batch_count = p.count;
+    w.fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    if (w.fd < 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
+    else
+        r = write_scene(&w, &p, &h, err);
+    if (w.fd >= 0 && close(w.fd) != 0 && r == BRT_OK)
+        r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", scene_path, strerror(errno));
+    if (r == BRT_OK && rename(tmp, scene_path) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", scene_path, strerror(errno));
+    if (r != BRT_OK && w.fd >= 0) unlink(tmp);
+    partition_free(&p);
+    brt_svdag_free(w.dag);
+    free(w.batches);
+    free(w.boxes);
+    free(w.indices);
+    return r;
+}
+
+brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp, brt_error *err)
+{
+    struct stat st;
+    uint64_t parts[4];
+    if (stat(mesh_path, &st) != 0)
+        return brt_fail(err, BRT_EIO, "%s: %s", mesh_path, strerror(errno));
+    /* Size, modification time to the nanosecond (POSIX.1-2008) and inode,
+    ** hashed into one number: what make trusts, plus a replaced file. */
+    parts[0] = (uint64_t)st.st_size;
+    parts[1] = (uint64_t)st.st_mtim.tv_sec;
+    parts[2] = (uint64_t)st.st_mtim.tv_nsec;
+    parts[3] = (uint64_t)st.st_ino;
+    *stamp = checksum64(parts, sizeof parts);
+    return BRT_OK;
+}
+
+/* ---- opening a scene file ------------------------------------------- */
+
+/* One batching point while a trace runs: where its blob is, and the page
+** cache's state for it (SQLite's pcache shape: fetch pins, release
+** unpins, only unpinned entries are evicted, least recently used first). */
+typedef struct cache_entry {
+    void *data;                 /* page-aligned copy of the blob, or NULL */
+    brt_bvh *bvh;               /* a view into data */
+    uint64_t bytes;             /* what data holds (page-rounded) */
+    uint32_t pins;
+    uint32_t lru_prev, lru_next;   /* unpinned resident entries; NO_ENTRY ends */
+} cache_entry;
+
+#define NO_ENTRY 0xFFFFFFFFu
+
+struct brt_scene {
+    char *path;
+    int fd;
+    scene_header header;
+    batch_entry *batches;
+    top_node *top;
+    brt_svdag *dag;
+    void *dag_blob;             /* the pool refers to it */
+    uint64_t file_size;
+};
+
+/* pread until done, through the given reader: short reads and EINTR are
+** retried; an error or an early end of file is reported, never ignored. */
+static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
+                             brt_read_fn read_fn, void *user, uint64_t *bytes_read,
+                             const char *path, brt_error *err)
+{
+    unsigned char *p = buf;
+    while (size > 0) {
+        long n;
+        errno = 0;
+        n = read_fn(fd, p, size, offset, user);
+        if (n < 0 && errno == EINTR) continue;
+        if (n < 0)
+            return brt_fail(err, BRT_EIO, "%s: read at byte %llu failed: %s", path,
+                            (unsigned long long)offset, strerror(errno ? errno : EIO));
+        if (n == 0)
+            return brt_fail(err, BRT_EFORMAT, "%s: truncated (end of file at byte %llu)",
+                            path, (unsigned long long)offset);
+        if ((size_t)n > size) n = (long)size;
+        p += n;
+        size -= (size_t)n;
+        offset += (uint64_t)n;
+        if (bytes_read) *bytes_read += (uint64_t)n;
+    }
+    return BRT_OK;
+}
+
+static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    (void)user;
+    return (long)pread(fd, buf, size, (off_t)offset);
+}
+
+/* Reads a section into a fresh buffer and checks its checksum. */
+static brt_result read_section(brt_scene *s, int which, const char *what, void **out,
+                               brt_error *err)
+{
+    const section *sec = &s->header.sections[which];
+    void *buf;
+    brt_result r;
+    *out = NULL;
+    if (sec->offset > s->file_size || sec->size > s->file_size - sec->offset)
+        return brt_fail(err, BRT_EFORMAT, "%s: %s lies outside the file (truncated?)", s->path, what);
+    buf = malloc(sec->size ? sec->size : 1);
+    if (!buf) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    r = read_fully(s->fd, buf, sec->size, sec->offset, pread_reader, NULL, NULL, s->path, err);
+    if (r == BRT_OK && checksum64(buf, sec->size) != sec->checksum)
+        r = brt_fail(err, BRT_EFORMAT, "%s: %s checksum mismatch (corrupt file)", s->path, what);
+    if (r != BRT_OK) {
+        free(buf);
+        return r;
+    }
+    *out = buf;
+    return BRT_OK;
+}
+
+static int proxy_valid(const brt_scene *s, const brt_proxy *p)
+{
+    if (p->res != s->header.proxy_res || !(p->cell > 0.0f) || !isfinite(p->cell)) return 0;
+    if (!isfinite(p->origin[0]) || !isfinite(p->origin[1]) || !isfinite(p->origin[2])) return 0;
+    return brt_proxy_check(s->dag, p, NULL) == BRT_OK;
+}
+
+static brt_result load_batches(brt_scene *s, brt_error *err)
+{
+    unsigned char *table;
+    uint32_t i;
+    uint64_t triangles = 0;
+    brt_result r;
+    if (s->header.sections[SECTION_BATCHES].size != (uint64_t)s->header.batch_count * BATCH_ENTRY_BYTES)
+        return brt_fail(err, BRT_EFORMAT, "%s: batch table has the wrong size", s->path);
+    r = read_section(s, SECTION_BATCHES, "batch table", (void **)&table, err);
+    if (r != BRT_OK) return r;
+    s->batches = malloc(((size_t)s->header.batch_count + 1) * sizeof *s->batches);
+    if (!s->batches) {
+        free(table);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    }
+    for (i = 0; i < s->header.batch_count && r == BRT_OK; i++) {
+        batch_entry *b = &s->batches[i];
+        batch_entry_unpack(table + (size_t)i * BATCH_ENTRY_BYTES, b);
+        triangles += b->triangles;
+        if (b->offset % SCENE_PAGE != 0 || b->offset > s->file_size ||
+            round_up_page(b->size) > s->file_size - b->offset)
+            r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob outside the file", s->path, i);
+        else if (!proxy_valid(s, &b->proxy))
+            r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid proxy", s->path, i);
+    }
+    free(table);
+    if (r == BRT_OK && triangles != s->header.triangle_count)
+        r = brt_fail(err, BRT_EFORMAT, "%s: batching points hold %llu triangles, header says %u",
+                     s->path, (unsigned long long)triangles, s->header.triangle_count);
+    return r;
+}
+
+/* Every child index points forward and every batching point is a leaf
+** exactly once, so the walk terminates and never indexes out of range;
+** depth is bounded for its fixed stack. */
+static brt_result check_top(brt_scene *s, brt_error *err)
+{
+    uint32_t n = s->header.top_node_count, count = s->header.batch_count, i;
+    unsigned char *depth = calloc((size_t)n + 1, 1), *seen = calloc((size_t)count + 1, 1);
+    brt_result r = BRT_OK;
+    if (!depth || !seen) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    if (r == BRT_OK && (n == 0 || n > count))
+        r = brt_fail(err, BRT_EFORMAT, "%s: %u top-level nodes for %u batching points", s->path, n, count);
+    for (i = 0; i < n && r == BRT_OK; i++) {
+        int lane;
+        for (lane = 0; lane < 4 && r == BRT_OK; lane++) {
+            uint32_t c = s->top[i].child[lane];
+            if (c == TOP_EMPTY) continue;
+            if (c & TOP_LEAF) {
+                c &= ~TOP_LEAF;
+                if (c >= count || seen[c]++)
+                    r = brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad leaf", s->path, i);
+            } else if (c <= i || c >= n || depth[i] + 1 >= TOP_MAX_DEPTH) {
+                r = brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad child", s->path, i);
+            } else {
+                depth[c] = (unsigned char)(depth[i] + 1);
+            }
+        }
+    }
+    for (i = 0; i < count && r == BRT_OK; i++)
+        if (!seen[i]) r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u not in the top level", s->path, i);
+    free(depth);
+    free(seen);
+    return r;
+}
+
+static brt_result load_top(brt_scene *s, brt_error *err)
+{
+    unsigned char *raw;
+    uint32_t i;
+    brt_result r;
+    if (s->header.sections[SECTION_TOP].size != (uint64_t)s->header.top_node_count * TOP_NODE_BYTES)
+        return brt_fail(err, BRT_EFORMAT, "%s: top-level section has the wrong size", s->path);
+    r = read_section(s, SECTION_TOP, "top-level BVH", (void **)&raw, err);
+    if (r != BRT_OK) return r;
+    s->top = malloc(((size_t)s->header.top_node_count + 1) * sizeof *s->top);
+    if (!s->top) {
+        free(raw);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    }
+    for (i = 0; i < s->header.top_node_count; i++)
+        top_node_unpack(raw + (size_t)i * TOP_NODE_BYTES, &s->top[i]);
+    free(raw);
+    return check_top(s, err);
+}
+
+static brt_result load_dag(brt_scene *s, brt_error *err)
+{
+    brt_error why;
+    brt_result r = read_section(s, SECTION_DAG, "proxy pool", &s->dag_blob, err);
+    if (r != BRT_OK) return r;
+    r = brt_svdag_blob_open(s->dag_blob, s->header.sections[SECTION_DAG].size, &s->dag, &why);
+    if (r != BRT_OK) return brt_fail(err, BRT_EFORMAT, "%s: proxy pool: %s", s->path, why.message);
+    return BRT_OK;
+}
+
+brt_result brt_scene_open(const char *scene_path, brt_scene **out, brt_error *err)
+{
+    unsigned char header[SCENE_HEADER_BYTES];
+    struct stat st;
+    brt_scene *s = calloc(1, sizeof *s);
+    brt_result r = BRT_OK;
+    *out = NULL;
+    if (!s || !(s->path = malloc(strlen(scene_path) + 1))) {
+        free(s);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
+    }
+    strcpy(s->path, scene_path);
+    s->fd = open(scene_path, O_RDONLY);
+    if (s->fd < 0 || fstat(s->fd, &st) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot open: %s", scene_path, strerror(errno));
+    else if ((s->file_size = (uint64_t)st.st_size) < SCENE_HEADER_BYTES)
+        r = brt_fail(err, BRT_EFORMAT, "%s: truncated (%llu bytes, no header)", scene_path,
+                     (unsigned long long)s->file_size);
+    if (r == BRT_OK)
+        r = read_fully(s->fd, header, sizeof header, 0, pread_reader, NULL, NULL, scene_path, err);
+    if (r == BRT_OK) r = header_unpack(scene_path, header, &s->header, err);
+    if (r == BRT_OK && s->header.batch_count == 0)
+        r = brt_fail(err, BRT_EFORMAT, "%s: no batching points", scene_path);
+    if (r == BRT_OK) r = load_dag(s, err);
+    if (r == BRT_OK) r = load_batches(s, err);
+    if (r == BRT_OK) r = load_top(s, err);
+    if (r != BRT_OK) {
+        brt_scene_close(s);
+        return r;
+    }
+    *out = s;
+    return BRT_OK;
+}
+
+void brt_scene_close(brt_scene *s)
+{
+    if (!s) return;
+    if (s->fd >= 0) close(s->fd);
+    brt_svdag_free(s->dag);
+    free(s->dag_blob);
+    free(s->batches);
+    free(s->top);
+    free(s->path);
+    free(s);
+}
+
+int brt_scene_matches(const brt_scene *s, uint64_t stamp, const brt_scene_options *opt)
+{
+    uint32_t batch_tris, res;
+    scene_options_resolve(opt, &batch_tris, &res);
+    return s->header.stamp == stamp && s->header.batch_tris == batch_tris &&
+           s->header.proxy_res == res;
+}
+
+uint32_t brt_scene_batch_count(const brt_scene *s) { return s->header.batch_count; }
+uint32_t brt_scene_triangle_count(const brt_scene *s) { return s->header.triangle_count; }
+
+brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
+                             const brt_scene_options *opt, brt_scene **out,
+                             int *rebuilt, brt_error *err)
+{
+    uint64_t stamp;
+    brt_mesh mesh;
+    struct stat st;
+    brt_result r = brt_scene_source_stamp(mesh_path, &stamp, err);
+    *out = NULL;
+    if (rebuilt) *rebuilt = 0;
+    if (r != BRT_OK) return r;
+    if (stat(scene_path, &st) == 0) {
+        r = brt_scene_open(scene_path, out, err);
+        if (r != BRT_OK || brt_scene_matches(*out, stamp, opt)) return r;
+        brt_scene_close(*out);   /* stale: the mesh or the settings changed */
+        *out = NULL;
+    }
+    r = brt_mesh_load(mesh_path, &mesh, err);
+    if (r != BRT_OK) return r;
+    r = brt_scene_build(&mesh, opt, stamp, scene_path, err);
+    brt_mesh_free(&mesh);
+    if (r != BRT_OK) return r;
+    if (rebuilt) *rebuilt = 1;
+    return brt_scene_open(scene_path, out, err);
+}
+
+/* ---- the page cache ---------------------------------------------------- */
+/*
+** Blobs are read whole, with pread, into page-aligned buffers, in requests
+** of at most CACHE_READ_CHUNK bytes.  The budget counts the page-rounded
+** bytes held.  A blob larger than the budget is allowed when it is the
+** only one held (it is counted in stats->oversized_loads).
+*/
+#define CACHE_READ_CHUNK ((size_t)8 << 20)
+
+typedef struct page_cache {
+    brt_scene *scene;
+    cache_entry *entries;       /* one per batching point */
+    uint64_t budget, held;
+    uint32_t lru_head, lru_tail;   /* least recently used first */
+    brt_read_fn read_fn;
+    void *read_user;
+    brt_stats *stats;
+} page_cache;
+
+static void lru_unlink(page_cache *c, uint32_t id)
+{
+    cache_entry *e = &c->entries[id];
+    if (e->lru_prev != NO_ENTRY) c->entries[e->lru_prev].lru_next = e->lru_next;
+    else c->lru_head = e->lru_next;
+    if (e->lru_next != NO_ENTRY) c->entries[e->lru_next].lru_prev = e->lru_prev;
+    else c->lru_tail = e->lru_prev;
+    e->lru_prev = e->lru_next = NO_ENTRY;
+}
+
+static void lru_append(page_cache *c, uint32_t id)
+{
+    cache_entry *e = &c->entries[id];
+    e->lru_prev = c->lru_tail;
+    e->lru_next = NO_ENTRY;
+    if (c->lru_tail != NO_ENTRY) c->entries[c->lru_tail].lru_next = id;
+    else c->lru_head = id;
+    c->lru_tail = id;
+}
+
+static void cache_evict(page_cache *c, uint32_t id)
+{
+    cache_entry *e = &c->entries[id];
+    lru_unlink(c, id);
+    brt_bvh_free(e->bvh);
+    free(e->data);
+    c->held -= e->bytes;
+    e->data = NULL;
+    e->bvh = NULL;
+    e->bytes = 0;
+}
+
+static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
+                             const brt_trace_options *opt, brt_stats *stats)
+{
+    uint32_t i, n = scene->header.batch_count;
+    memset(c, 0, sizeof *c);
+    c->entries = calloc(n, sizeof *c->entries);
+    if (!c->entries) return BRT_ENOMEM;
+    for (i = 0; i < n; i++) c->entries[i].lru_prev = c->entries[i].lru_next = NO_ENTRY;
+    c->scene = scene;
+    c->budget = budget;
+    c->lru_head = c->lru_tail = NO_ENTRY;
+    c->read_fn = opt && opt->read_fn ? opt->read_fn : pread_reader;
+    c->read_user = opt ? opt->read_user : NULL;
+    c->stats = stats;
+    return BRT_OK;
+}
+
+static void cache_free(page_cache *c)
+{
+    uint32_t i;
+    for (i = 0; c->entries && i < c->scene->header.batch_count; i++) {
+        brt_bvh_free(c->entries[i].bvh);
+        free(c->entries[i].data);
+    }
+    free(c->entries);
+}
+
+/* The cache's own sanity check (SQLite's pcache has one too): the held
+** bytes add up, the LRU list holds exactly the unpinned resident entries,
+** and the budget holds unless one entry alone is larger. */
+static brt_result cache_check(const page_cache *c, brt_error *err)
+{
+    uint64_t held = 0, resident = 0, listed = 0;
+    uint32_t i, id;
+    for (i = 0; i < c->scene->header.batch_count; i++) {
+        const cache_entry *e = &c->entries[i];
+        held += e->bytes;
+        resident += e->data != NULL;
+        listed += e->data && e->pins == 0;
+    }
+    for (id = c->lru_head; id != NO_ENTRY; id = c->entries[id].lru_next) {
+        if (!c->entries[id].data || c->entries[id].pins) break;
+        listed--;
+    }
+    if (held != c->held || listed != 0)
+        return brt_fail(err, BRT_ECHECK, "page cache: bookkeeping broken");
+    if (held > c->budget && resident > 1)
+        return brt_fail(err, BRT_ECHECK, "page cache: holds %llu bytes over a budget of %llu",
+                        (unsigned long long)held, (unsigned long long)c->budget);
+    return BRT_OK;
+}
+
+/* Reads a blob, checks its checksum and opens it as a BVH. */
+static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
+{
+    const batch_entry *b = &c->scene->batches[id];
+    cache_entry *e = &c->entries[id];
+    uint64_t bytes = round_up_page(b->size), done = 0;
+    void *data = NULL;
+    brt_result r = BRT_OK;
+    if (posix_memalign(&data, SCENE_PAGE, bytes ? (size_t)bytes : SCENE_PAGE) != 0)
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory for batching point %u", c->scene->path, id);
+    while (done < bytes && r == BRT_OK) {
+        size_t chunk = bytes - done < CACHE_READ_CHUNK ? (size_t)(bytes - done) : CACHE_READ_CHUNK;
+        r = read_fully(c->scene->fd, (unsigned char *)data + done, chunk, b->offset + done,
+                       c->read_fn, c->read_user, &c->stats->disk_bytes_read, c->scene->path, err);
+        done += chunk;
+    }
+    if (r == BRT_OK && checksum64(data, b->size) != b->checksum)
+        r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: checksum mismatch (corrupt file)",
+                     c->scene->path, id);
+    if (r == BRT_OK && brt_bvh_blob_open(data, b->size, &e->bvh, NULL) != BRT_OK)
+        r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid BVH blob", c->scene->path, id);
+    if (r != BRT_OK) {
+        free(data);
+        return r;
+    }
+    e->data = data;
+    e->bytes = bytes;
+    c->held += bytes;
+    c->stats->batch_loads++;
+    if (bytes > c->budget) c->stats->oversized_loads++;
+    if (c->held > c->stats->cache_peak_bytes) c->stats->cache_peak_bytes = c->held;
+    return BRT_OK;
+}
+
+/* Fetch pins: makes batching point id resident (evicting least recently
+** used unpinned entries to make room) and returns its BVH. */
+static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err)
+{
+    cache_entry *e = &c->entries[id];
+    if (!e->data) {
+        uint64_t bytes = round_up_page(c->scene->batches[id].size);
+        brt_result r;
+        while (c->lru_head != NO_ENTRY && c->held + bytes > c->budget) cache_evict(c, c->lru_head);
+        r = cache_load(c, id, err);
+        if (r != BRT_OK) return r;
+    } else if (e->pins == 0) {
+        lru_unlink(c, id);
+    }
+    e->pins++;
+    *bvh = e->bvh;
+#ifdef BRT_DEBUG
+    return cache_check(c, err);
+#else
+    return BRT_OK;
+#endif
+}
+
+/* Release unpins: the entry becomes the most recently used evictable one. */
+static void cache_release(page_cache *c, uint32_t id)
+{
+    if (--c->entries[id].pins == 0) lru_append(c, id);
+}
+
+/* ---- ray queues and the scheduler ------------------------------------ */
+/*
+** Rays in flight live in slots; a queue per batching point holds slot
+** numbers.  An indexed binary max-heap orders the non-empty queues by
+** length (ties: lowest id), so the scheduler takes the fullest queue
+** first -- the paper's rule: each disk read serves as many rays as it can.
+**
+** Per-ray state while queued: the ray (32 bytes), its closest hit so far
+** (16), its walk key (8) and the caller's tag (8): 64 bytes.
+*/
+typedef struct ray_slot {
+    brt_ray ray;
+    brt_hit hit;
+    walk_key key;
+    uint64_t tag;
+} ray_slot;
+
+typedef struct ray_queue {
+    uint32_t *slots;
+    uint32_t count, capacity;
+} ray_queue;
+
+typedef struct scheduler {
+    brt_scene *scene;
+    const brt_ray_source *source;
+    int use_proxies;
+    brt_stats *stats;
+    page_cache cache;
+    ray_slot *slots;
+    uint32_t *free_slots, free_count, capacity;
+    ray_queue *queues;
+    uint32_t *heap, *heap_pos, heap_size;   /* heap_pos[id] = NO_ENTRY when absent */
+    brt_ray *incoming;
+    uint64_t *incoming_tags;
+} scheduler;
+
+static int queue_fuller(const scheduler *s, uint32_t a, uint32_t b)
+{
+    return s->queues[a].count > s->queues[b].count ||
+           (s->queues[a].count == s->queues[b].count && a < b);
+}
+
+static void heap_swap(scheduler *s, uint32_t i, uint32_t j)
+{
+    uint32_t t = s->heap[i];
+    s->heap[i] = s->heap[j];
+    s->heap[j] = t;
+    s->heap_pos[s->heap[i]] = i;
+    s->heap_pos[s->heap[j]] = j;
+}
+
+static void heap_up(scheduler *s, uint32_t i)
+{
+    while (i > 0 && queue_fuller(s, s->heap[i], s->heap[(i - 1) / 2])) {
+        heap_swap(s, i, (i - 1) / 2);
+        i = (i - 1) / 2;
+    }
+}
+
+static void heap_down(scheduler *s, uint32_t i)
+{
+    for (;;) {
+        uint32_t best = i, l = 2 * i + 1, r = 2 * i + 2;
+        if (l < s->heap_size && queue_fuller(s, s->heap[l], s->heap[best])) best = l;
+        if (r < s->heap_size && queue_fuller(s, s->heap[r], s->heap[best])) best = r;
+        if (best == i) return;
+        heap_swap(s, i, best);
+        i = best;
+    }
+}
+
+/* Removes and returns the batching point with the fullest queue. */
+static uint32_t heap_pop(scheduler *s)
+{
+    uint32_t top = s->heap[0];
+    heap_swap(s, 0, --s->heap_size);
+    s->heap_pos[top] = NO_ENTRY;
+    heap_down(s, 0);
+    return top;
+}
+
+static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
+{
+    ray_queue *q = &s->queues[id];
+    if (q->count == q->capacity) {
+        uint32_t cap = q->capacity ? 2 * q->capacity : 16;
+        uint32_t *grown = realloc(q->slots, cap * sizeof *grown);
+        if (!grown) return BRT_ENOMEM;
+        q->slots = grown;
+        q->capacity = cap;
+    }
+    q->slots[q->count++] = slot;
+    if (s->heap_pos[id] == NO_ENTRY) {
+        s->heap[s->heap_size] = id;
+        s->heap_pos[id] = s->heap_size++;
+    }
+    heap_up(s, s->heap_pos[id]);
+    s->stats->queued_visits++;
+    return BRT_OK;
+}
+
+/* Continues a ray's top-level walk: queues it at the next batching point it
+** enters before its closest hit and whose proxy it hits, or finishes it.
+** tlimit is the closest hit (a box entered exactly there may still hold an
+** equal-t hit with a lower prim, so the compare is inclusive). */
+static brt_result advance(scheduler *s, uint32_t slot)
+{
+    ray_slot *r = &s->slots[slot];
+    brt_ray_prep prep;
+    brt_ray_prepare(&r->ray, &prep);
+    if (prep.valid) {
+        float tlimit = r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
+        while (top_next(s->scene->top, &prep, tlimit, &r->key)) {
+            const batch_entry *b = &s->scene->batches[r->key.id];
+            float t_entry;
+            if (s->use_proxies) {
+                s->stats->proxy_tests++;
+                if (!brt_proxy_raycast(s->scene->dag, &b->proxy, &r->ray, r->ray.tnear, tlimit, &t_entry)) {
+                    s->stats->proxy_culled++;
+                    continue;
+                }
+            }
+            return enqueue(s, r->key.id, slot);
+        }
+    }
+    s->source->finished(s->source->user, &r->ray, &r->hit, r->tag);
+    s->free_slots[s->free_count++] = slot;
+    return BRT_OK;
+}
+
+/* Takes new rays from the source while there are free slots. */
+static brt_result refill(scheduler *s)
+{
+    while (s->free_count > 0) {
+        size_t n = s->source->next_rays(s->source->user, s->incoming, s->incoming_tags, s->free_count), i;
+        if (n == 0) return BRT_OK;
+        if (n > s->free_count) n = s->free_count;
+        for (i = 0; i < n; i++) {
+            uint32_t slot = s->free_slots[--s->free_count];
+            ray_slot *r = &s->slots[slot];
+            brt_result res;
+            r->ray = s->incoming[i];
+            r->tag = s->incoming_tags[i];
+            brt_hit_clear(&r->hit);
+            r->key.t = -INFINITY;
+            r->key.id = TOP_EMPTY;
+            s->stats->rays++;
+            res = advance(s, slot);
+            if (res != BRT_OK) return res;
+        }
+    }
+    return BRT_OK;
+}
+
+/* Intersects every ray queued at batching point id, then moves each on. */
+static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
+{
+    ray_queue q = s->queues[id];
+    const brt_bvh *bvh;
+    uint32_t i;
+    brt_result r = cache_fetch(&s->cache, id, &bvh, err);
+    if (r != BRT_OK) return r;
+    /* Take the queue out first: no ray is queued here again (keys only
+    ** grow), but the walk may queue rays elsewhere while we iterate. */
+    memset(&s->queues[id], 0, sizeof s->queues[id]);
+    for (i = 0; i < q.count; i++) {
+        ray_slot *slot = &s->slots[q.slots[i]];
+        brt_bvh_intersect(bvh, &slot->ray, &slot->hit);
+    }
+    cache_release(&s->cache, id);
+    for (i = 0; i < q.count && r == BRT_OK; i++) r = advance(s, q.slots[i]);
+    free(q.slots);
+    return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
+}
+
+static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace_options *opt,
+                                 const brt_ray_source *source, brt_stats *stats)
+{
+    uint32_t n = scene->header.batch_count, i;
+    uint64_t budget = opt && opt->memory_limit ? opt->memory_limit : UINT64_MAX;
+    memset(s, 0, sizeof *s);
+    s->scene = scene;
+    s->source = source;
+    s->stats = stats;
+    s->use_proxies = !(opt && opt->no_proxy);
+    s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
+    /* With proxies on, they take their bytes from the same budget (the
+    ** paper's Fig. 3 lowers the geometry limit by the proxies' memory). */
+    stats->proxy_bytes = s->use_proxies ? brt_svdag_memory_bytes(scene->dag) : 0;
+    if (budget != UINT64_MAX) budget = budget > stats->proxy_bytes ? budget - stats->proxy_bytes : 0;
+    stats->memory_limit = opt ? opt->memory_limit : 0;
+    stats->batching_points = n;
+    stats->geometry_bytes = scene->header.geometry_bytes;
+    s->slots = malloc((size_t)s->capacity * sizeof *s->slots);
+    s->free_slots = malloc((size_t)s->capacity * sizeof *s->free_slots);
+    s->queues = calloc(n, sizeof *s->queues);
+    s->heap = malloc((size_t)n * sizeof *s->heap);
+    s->heap_pos = malloc((size_t)n * sizeof *s->heap_pos);
+    s->incoming = malloc((size_t)s->capacity * sizeof *s->incoming);
+    s->incoming_tags = malloc((size_t)s->capacity * sizeof *s->incoming_tags);
+    if (!s->slots || !s->free_slots || !s->queues || !s->heap || !s->heap_pos || !s->incoming ||
+        !s->incoming_tags)
+        return BRT_ENOMEM;
+    for (i = 0; i < n; i++) s->heap_pos[i] = NO_ENTRY;
+    for (i = 0; i < s->capacity; i++) s->free_slots[i] = s->capacity - 1 - i;
+    s->free_count = s->capacity;
+    return cache_init(&s->cache, scene, budget, opt, stats);
+}
+
+static void scheduler_free(scheduler *s)
+{
+    uint32_t i;
+    for (i = 0; s->queues && i < s->scene->header.batch_count; i++) free(s->queues[i].slots);
+    cache_free(&s->cache);
+    free(s->slots);
+    free(s->free_slots);
+    free(s->queues);
+    free(s->heap);
+    free(s->heap_pos);
+    free(s->incoming);
+    free(s->incoming_tags);
+}
+
+static brt_result schedule(scheduler *s, brt_error *err)
+{
+    brt_result r = refill(s);
+    while (r == BRT_OK && s->heap_size > 0) {
+        r = process_batch(s, heap_pop(s), err);
+        if (r == BRT_OK) r = refill(s);
+    }
+    if (r == BRT_ENOMEM) return brt_fail(err, r, "out of memory in the ray queues");
+    return r == BRT_OK ? cache_check(&s->cache, err) : r;
+}
+
+brt_result brt_scene_trace_stream(brt_scene *scene, const brt_trace_options *opt,
+                                  const brt_ray_source *source, brt_stats *stats,
+                                  brt_error *err)
+{
+    scheduler s;
+    brt_stats local;
+    double start = brt_seconds();
+    brt_result r;
+    if (!stats) stats = &local;
+    memset(stats, 0, sizeof *stats);
+    if (opt && opt->drop_os_cache) posix_fadvise(scene->fd, 0, 0, POSIX_FADV_DONTNEED);
+    r = scheduler_init(&s, scene, opt, source, stats);
+    if (r != BRT_OK) r = brt_fail(err, r, "out of memory for %u rays in flight", s.capacity);
+    else r = schedule(&s, err);
+    scheduler_free(&s);
+    stats->seconds = brt_seconds() - start;
+    if (stats->seconds > 0) stats->mrays_per_second = (double)stats->rays / stats->seconds * 1e-6;
+    return r;
+}
+
+/* brt_scene_trace on top of the stream: rays are handed out in order and
+** the tag is the index of the hit to write. */
+typedef struct array_source {
+    const brt_ray *rays;
+    brt_hit *hits;
+    size_t count, next;
+} array_source;
+
+static size_t array_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+{
+    array_source *a = user;
+    size_t n = a->count - a->next < max ? a->count - a->next : max, i;
+    for (i = 0; i < n; i++) {
+        rays[i] = a->rays[a->next];
+        tags[i] = a->next++;
+    }
+    return n;
+}
+
+static void array_finished(void *user, const brt_ray *ray, const brt_hit *hit, uint64_t tag)
+{
+    array_source *a = user;
+    (void)ray;
+    a->hits[tag] = *hit;
+}
+
+brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
+                           const brt_ray *rays, size_t count, brt_hit *hits,
+                           brt_stats *stats, brt_error *err)
+{
+    array_source a;
+    brt_ray_source source;
+    a.rays = rays;
+    a.hits = hits;
+    a.count = count;
+    a.next = 0;
+    source.next_rays = array_next;
+    source.finished = array_finished;
+    source.user = &a;
+    return brt_scene_trace_stream(scene, opt, &source, stats, err);
 }

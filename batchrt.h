@@ -126,7 +126,10 @@ typedef struct brt_mesh {
 ** indices) or a PLY (ascii, binary_little_endian, binary_big_endian; float
 ** or double x y z; face lists of any integer types), chosen by content.
 ** Streams the file: the text is never held in memory as a whole.
-** Errors name the file and line (OBJ) or element (PLY). */
+** Errors name the file and line (OBJ, ascii PLY) or element and record
+** (binary PLY).  A file without triangles is an error (BRT_EPARSE, "no
+** triangles"): every program needs some.  A missing file is BRT_EIO.
+** On error *mesh is zeroed; otherwise free it with brt_mesh_free. */
 brt_result brt_mesh_load(const char *path, brt_mesh *mesh, brt_error *err);
 
 /* The same parsers on a memory buffer; name is used in messages.
@@ -194,6 +197,28 @@ brt_result brt_hits_write(const char *path, const brt_hit *hits, size_t count,
 int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
                            const float v1[3], const float v2[3],
                            float *t, float *u, float *v);
+
+/* The one ray/box test of batchrt, used by the triangle BVH, the
+** triangle clamp of brt_intersect_triangle and the top-level walk.
+** Per axis t = (b - org) * inv (a zero direction component: the origin
+** must lie in the closed slab); entry = max(tmin, near planes) and
+** exit = min(tmax, far planes), then widened outwards by a bound on their
+** rounding.  Every step is monotone in the box bounds, so a box inside
+** another is entered no earlier and left no later, bit for bit: this is
+** what makes pruning by "entry > closest t" exact. */
+typedef struct brt_ray_prep {
+    float org[3], dir[3], inv[3];   /* inv[a] = 1/dir[a], 0 where dir[a] == 0 */
+    float tnear, tfar;
+    int valid;     /* 0: NaN or inf in org/dir, zero dir, NaN t, tnear > tfar */
+} brt_ray_prep;
+
+void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep);
+
+/* 1 when the ray's segment [tmin, tmax] meets the closed box, with the
+** widened entry and exit distances. */
+int brt_box_span(const brt_ray_prep *prep, const float lo[3],
+                 const float hi[3], float tmin, float tmax, float *entry,
+                 float *exit);
 
 typedef struct brt_bvh brt_bvh;   /* opaque; layout documented in bvh.c */
 
@@ -300,6 +325,19 @@ int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
 ** masks consistent, no two identical nodes. */
 brt_result brt_svdag_check(const brt_svdag *dag, brt_error *err);
 
+/* Checks a proxy against a pool (e.g. one read from a scene file): res a
+** power of two in 2..1024, finite origin, finite positive cell, and root
+** an empty root or a node of the pool of the depth res needs.
+** brt_proxy_raycast does the same check and answers "hit" (at tnear) for
+** a proxy that fails it. BRT_ECHECK with a message. */
+brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
+                           brt_error *err);
+
+/* Nodes of the proxy's tree before deduplication (the SVO: interior nodes
+** plus 4x4x4 leaves), counted through the DAG; 0 for an empty or invalid
+** proxy or when memory runs out. */
+uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy);
+
 uint32_t brt_svdag_node_count(const brt_svdag *dag);
 size_t brt_svdag_memory_bytes(const brt_svdag *dag);
 
@@ -327,6 +365,7 @@ typedef struct brt_stats {
     uint64_t proxy_tests;
     uint64_t proxy_culled;
     uint64_t queued_visits;
+    uint64_t oversized_loads;   /* loads of a blob larger than the budget */
     double seconds;             /* tracing */
     double build_seconds;       /* BVH or scene build */
     double bvh_bytes_per_triangle;
@@ -336,6 +375,98 @@ typedef struct brt_stats {
 /* Writes the statistics as one JSON object (atomically). */
 brt_result brt_stats_write_json(const char *path, const brt_stats *stats,
                                 brt_error *err);
+
+/* ===================================================================== */
+/* Out-of-core batched traversal (batchrt.c)                             */
+/* ===================================================================== */
+/*
+** A scene file holds a mesh split into batching points.  Each batching
+** point has a triangle BVH stored as one blob on disk, a box, and a
+** conservative proxy in a DAG pool shared by all of them.  The boxes (in a
+** 4-wide top-level BVH), the blob table and the DAG pool are read at open;
+** blobs are read on demand through the page cache.  See README.md for the
+** byte layout.
+*/
+
+typedef struct brt_scene brt_scene;
+
+/* How a scene is built; a zeroed struct means the defaults. */
+typedef struct brt_scene_options {
+    uint32_t batch_tris;   /* max triangles per batching point (0: 100000) */
+    uint32_t proxy_res;    /* proxy grid resolution, 2^k (0: 128) */
+} brt_scene_options;
+
+/* Builds the scene file for mesh at scene_path (written under a temporary
+** name and renamed).  source_stamp identifies the mesh file (see
+** brt_scene_source_stamp) so that a stale scene file can be recognised. */
+brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
+                           uint64_t source_stamp, const char *scene_path,
+                           brt_error *err);
+
+/* A stamp of a mesh file (size and modification time), as make uses them. */
+brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp,
+                                  brt_error *err);
+
+/* Opens a scene file: checks magic, version, endianness and every
+** checksum of what it reads.  BRT_EFORMAT names the file and the part. */
+brt_result brt_scene_open(const char *scene_path, brt_scene **out,
+                          brt_error *err);
+void brt_scene_close(brt_scene *scene);
+
+/* Nonzero when an open scene was built from this stamp and these options
+** (so a caller can reuse it instead of rebuilding). */
+int brt_scene_matches(const brt_scene *scene, uint64_t source_stamp,
+                      const brt_scene_options *opt);
+
+/* Opens scene_path when it matches mesh_path and opt; otherwise (missing
+** or stale) loads the mesh, builds the scene file and opens it.  A corrupt
+** or wrong-version file is an error, not silently replaced.  *rebuilt
+** tells which happened (may be NULL). */
+brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
+                             const brt_scene_options *opt, brt_scene **out,
+                             int *rebuilt, brt_error *err);
+
+uint32_t brt_scene_batch_count(const brt_scene *scene);
+uint32_t brt_scene_triangle_count(const brt_scene *scene);
+
+/* The reader behind the page cache: pread's contract (it may return short
+** counts or fail with errno EINTR; the cache retries both).  Replaceable
+** so that tests can inject faults. */
+typedef long (*brt_read_fn)(int fd, void *buf, size_t size, uint64_t offset,
+                            void *user);
+
+/* How a trace runs; a zeroed struct means the defaults. */
+typedef struct brt_trace_options {
+    uint64_t memory_limit;   /* bytes for geometry (+ proxies); 0: no limit */
+    int no_proxy;            /* queue at every box entered, as Pharr et al. */
+    int drop_os_cache;       /* posix_fadvise(DONTNEED) on the file first */
+    uint32_t rays_in_flight; /* stream mode: 0 means 1 << 20 */
+    brt_read_fn read_fn;     /* NULL: pread */
+    void *read_user;
+} brt_trace_options;
+
+/* Stream mode, so a path tracer keeps a constant number of rays in flight:
+** the scheduler calls next_rays when it has room (return 0 when there are
+** no more for now) and finished for every completed ray, in an order that
+** depends on the schedule; tag is the caller's, passed through. */
+typedef struct brt_ray_source {
+    size_t (*next_rays)(void *user, brt_ray *rays, uint64_t *tags, size_t max);
+    void (*finished)(void *user, const brt_ray *ray, const brt_hit *hit,
+                     uint64_t tag);
+    void *user;
+} brt_ray_source;
+
+/* Batched traversal: every hit equals brt_bvh_intersect over the whole
+** mesh byte for byte, whatever the options.  stats may be NULL. */
+brt_result brt_scene_trace_stream(brt_scene *scene,
+                                  const brt_trace_options *opt,
+                                  const brt_ray_source *source,
+                                  brt_stats *stats, brt_error *err);
+
+/* The same for an array of rays (hits[i] for rays[i]). */
+brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
+                           const brt_ray *rays, size_t count, brt_hit *hits,
+                           brt_stats *stats, brt_error *err);
 
 #ifdef __cplusplus
 }

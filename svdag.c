@@ -1,2 +1,1200 @@
-/* svdag.c -- placeholder */
+/*
+** svdag.c -- conservative voxel proxies: the paper's contribution
+** (Molenaar and Eisemann 2020, section 3).
+**
+**   1. brt_voxelize: conservative triangle/box overlap with the 13-axis
+**      separating-axis test of Akenine-Moller (2001), evaluated per voxel
+**      of each triangle's bounding box, in double precision in grid-local
+**      coordinates with every box grown by a bound on the rounding error.
+**   2. brt_svdag_add: the grid becomes a sparse voxel octree, built bottom
+**      up, whose nodes are deduplicated against one pool shared by every
+**      proxy -- the sparse voxel DAG of Kampe, Sintorn and Assarsson (2013).
+**   3. brt_proxy_raycast: the ray cast of Laine and Karras (2010) -- octant
+**      mirroring, the [1,2] coordinate frame, a parent stack per scale --
+**      adapted to the DAG and made conservative for closed, grown boxes.
+**
+** NODE LAYOUT (the pool; also the blob, see brt_svdag_blob_write)
+**   leaves[]  uint64 per leaf: a 4x4x4 block of voxels, bit x+4*(y+4*z).
+**             The two lowest octree levels are bit masks, as Kampe et al.
+**             suggest: a pointer per 2x2x2 block would cost more than it.
+**   words[]   interior nodes, one after another, children before parents:
+**             word 0  child mask in bits 0..7 (bit c: child c = x+2y+4z
+**                     is not empty), bit 8 set when the children are
+**                     leaves (the node covers 8^3 voxels), bits 9.. zero;
+**             then one uint32 per child, in child order: a word offset
+**             of an interior node, or a leaf index when bit 8 is set.
+**   A node's id is its word offset (leaf index for a leaf).  Bytes: 8 per
+**   leaf, 4 + 4 * children per interior node.  Every path from a node to
+**   a leaf has the same length, so a node's level (log2 of the voxels it
+**   spans per side) is a property of the node: 2 for leaves, 3 for nodes
+**   with leaf children, one more per step up.  A grid of res < 4 is
+**   stored as one leaf whose block is only partly used.
+**
+** DEDUPLICATION keeps two open-addressing hash tables (node offsets, leaf
+** indices) that live with the pool while proxies are added; a hit in a
+** table is confirmed by comparing the whole node, since a hash is not
+** equality.  A pool opened from a blob rebuilds them on its first add.
+*/
 #include "batchrt.h"
+
+#include <float.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define LEAF_CHILDREN 0x100u   /* header bit: the children are leaves */
+#define MAX_LEVEL 10           /* res 1024 */
+
+/* ===================================================================== */
+/* Bits                                                                   */
+/* ===================================================================== */
+
+static unsigned popcount8(unsigned m)
+{
+    m = (m & 0x55u) + ((m >> 1) & 0x55u);
+    m = (m & 0x33u) + ((m >> 2) & 0x33u);
+    return (m & 0x0Fu) + (m >> 4);
+}
+
+static unsigned popcount64(uint64_t m)
+{
+    m = m - ((m >> 1) & 0x5555555555555555ull);
+    m = (m & 0x3333333333333333ull) + ((m >> 2) & 0x3333333333333333ull);
+    m = (m + (m >> 4)) & 0x0F0F0F0F0F0F0F0Full;
+    return (unsigned)((m * 0x0101010101010101ull) >> 56);
+}
+
+/* Index of the lowest set bit (de Bruijn multiplication); m != 0. */
+static unsigned lowest_bit64(uint64_t m)
+{
+    static const unsigned char table[64] = {
+        0, 1, 48, 2, 57, 49, 28, 3, 61, 58, 50, 42, 38, 29, 17, 4,
+        62, 55, 59, 36, 53, 51, 43, 22, 45, 39, 33, 30, 24, 18, 12, 5,
+        63, 47, 56, 27, 60, 41, 37, 16, 54, 35, 52, 21, 44, 32, 23, 11,
+        46, 26, 40, 15, 34, 20, 31, 10, 25, 14, 19, 9, 13, 8, 7, 6};
+    return table[((m & (0 - m)) * 0x03F79D71B4CB0A89ull) >> 58];
+}
+
+/* Index of the highest set bit of an 8-bit mask m != 0. */
+static unsigned highest_bit8(unsigned m)
+{
+    unsigned j = 0;
+    if (m & 0xF0u) { m >>= 4; j += 4; }
+    if (m & 0x0Cu) { m >>= 2; j += 2; }
+    return j + (m >> 1);
+}
+
+/* min and max without libm's NaN rules (a call each with -std=c99); the
+** callers never pass NaN. */
+static double min2(double a, double b) { return a < b ? a : b; }
+static double max2(double a, double b) { return a > b ? a : b; }
+
+/* log2 of a resolution 2^k with k = 1..10, or -1 for anything else. */
+static int resolution_log2(uint32_t res)
+{
+    int k;
+    for (k = 1; k <= MAX_LEVEL; k++)
+        if (res == (1u << k)) return k;
+    return -1;
+}
+
+/* ===================================================================== */
+/* Dense grids                                                            */
+/* ===================================================================== */
+
+static size_t grid_words(uint32_t res)
+{
+    return ((size_t)res * res * res + 63) / 64;
+}
+
+static brt_result grid_alloc(brt_grid *grid, uint32_t res,
+                             const float origin[3], float cell)
+{
+    grid->bits = NULL;
+    if (resolution_log2(res) < 0) return BRT_EARG;
+    grid->bits = (uint64_t *)calloc(grid_words(res), sizeof(uint64_t));
+    if (!grid->bits) return BRT_ENOMEM;
+    grid->res = res;
+    memcpy(grid->origin, origin, sizeof grid->origin);
+    grid->cell = cell;
+    return BRT_OK;
+}
+
+/*
+** The frame: origin = bmin exactly (a float already, nothing to round) and
+** the smallest float cell with cell * res >= every side.  The side is
+** computed in double, where the difference of two floats is exact unless
+** their exponents are far apart, and then wrong by at most a relative
+** 2^-53; the factor (1 + 2^-50) covers that, and rounding the cell up to a
+** float keeps cell * res >= side for the real numbers, so the closed grid
+** covers the box exactly.  A box with no extent (a point, a flat axis is
+** fine) gets a tiny cell relative to its coordinates so the grid is real.
+*/
+brt_result brt_grid_init(brt_grid *grid, const float bmin[3],
+                         const float bmax[3], uint32_t res)
+{
+    double side = 0, magnitude = 0, cell_d;
+    float cell;
+    int i;
+    grid->bits = NULL;
+    if (resolution_log2(res) < 0) return BRT_EARG;
+    for (i = 0; i < 3; i++) {
+        if (!isfinite(bmin[i]) || !isfinite(bmax[i]) || !(bmin[i] <= bmax[i]))
+            return BRT_EARG;
+        side = max2(side, (double)bmax[i] - (double)bmin[i]);
+        magnitude = max2(magnitude, max2(fabs(bmin[i]), fabs(bmax[i])));
+    }
+    if (side == 0) side = max2(magnitude * 0x1p-20, 0x1p-100);
+    cell_d = side * (1 + 0x1p-50) / res;
+    cell = (float)cell_d;
+    if ((double)cell < cell_d) cell = nextafterf(cell, INFINITY);
+    if (!isfinite(cell)) return BRT_EARG;
+    return grid_alloc(grid, res, bmin, cell);
+}
+
+void brt_grid_free(brt_grid *grid)
+{
+    free(grid->bits);
+    grid->bits = NULL;
+}
+
+static size_t voxel_index(const brt_grid *grid, uint32_t x, uint32_t y,
+                          uint32_t z)
+{
+    return x + (size_t)grid->res * (y + (size_t)grid->res * z);
+}
+
+int brt_grid_get(const brt_grid *grid, uint32_t x, uint32_t y, uint32_t z)
+{
+    size_t i;
+    if (x >= grid->res || y >= grid->res || z >= grid->res) return 0;
+    i = voxel_index(grid, x, y, z);
+    return (int)((grid->bits[i >> 6] >> (i & 63)) & 1);
+}
+
+void brt_grid_set(brt_grid *grid, uint32_t x, uint32_t y, uint32_t z)
+{
+    size_t i;
+    if (x >= grid->res || y >= grid->res || z >= grid->res) return;
+    i = voxel_index(grid, x, y, z);
+    grid->bits[i >> 6] |= 1ull << (i & 63);
+}
+
+uint64_t brt_grid_count(const brt_grid *grid)
+{
+    uint64_t n = 0;
+    size_t i, words = grid_words(grid->res);
+    for (i = 0; i < words; i++) n += popcount64(grid->bits[i]);
+    return n;
+}
+
+/* ===================================================================== */
+/* Conservative voxelization (Akenine-Moller 2001)                        */
+/* ===================================================================== */
+
+/*
+** One separating axis a of a triangle, precomputed: the closed box of
+** voxel v (center c) lies on one side when a.c < lo or a.c > hi, where
+** [lo, hi] is the triangle's projection widened by the box's radius.
+*/
+typedef struct sat_axis {
+    double a[3];
+    double lo, hi;
+} sat_axis;
+
+/*
+** ROUNDING.  Let L bound every |coordinate| in grid-local units (vertices
+** and voxel centres).  (1) A local vertex q = (v - origin) / cell is
+** computed from floats with two roundings: |q~ - q| <= 2^-52 L.  Moving
+** the vertices by e moves every point of the triangle by at most e per
+** coordinate, so testing the computed triangle against boxes grown by
+** 2^-52 L keeps every box the exact one touches.  (2) Any axis separates
+** correctly if its arithmetic does, so errors in computing a (from q~)
+** are harmless; what must hold is the comparison.  a.q (3 products, 2
+** sums), a.c, |a|_1 and lo/hi each err by at most 2^-51 |a|_1 (L + 1).
+** Adding grow = 2^-44 (L + 1) to the box half-size (radius |a|_1 * grow)
+** exceeds the sum of these bounds more than 16 times over, so an axis
+** only reports "separated" when the exact triangle and exact closed box
+** are separated.  The same grow widens the bounding-box (box-normal) test.
+*/
+static double triangle_grow(double q[3][3], uint32_t res)
+{
+    double l = res;
+    int k, i;
+    for (k = 0; k < 3; k++)
+        for (i = 0; i < 3; i++) l = max2(l, fabs(q[k][i]));
+    return 0x1p-44 * (l + 1);
+}
+
+static void axis_setup(sat_axis *s, double ax, double ay, double az,
+                       double q[3][3], double grow)
+{
+    double p, lo = INFINITY, hi = -INFINITY, radius;
+    int k;
+    s->a[0] = ax; s->a[1] = ay; s->a[2] = az;
+    for (k = 0; k < 3; k++) {
+        p = ax * q[k][0] + ay * q[k][1] + az * q[k][2];
+        lo = min2(lo, p);
+        hi = max2(hi, p);
+    }
+    radius = (fabs(ax) + fabs(ay) + fabs(az)) * (0.5 + grow);
+    s->lo = lo - radius;
+    s->hi = hi + radius;
+}
+
+/* The triangle normal and the 9 cross products edge x box axis.  Zero
+** axes (degenerate triangles) never separate, which is what the SAT
+** needs: a segment or a point is still tested against the others. */
+static void triangle_axes(double q[3][3], double grow, sat_axis axes[10])
+{
+    double e[3][3];
+    int k, i;
+    for (k = 0; k < 3; k++)
+        for (i = 0; i < 3; i++) e[k][i] = q[(k + 1) % 3][i] - q[k][i];
+    axis_setup(&axes[0], e[0][1] * e[1][2] - e[0][2] * e[1][1],
+               e[0][2] * e[1][0] - e[0][0] * e[1][2],
+               e[0][0] * e[1][1] - e[0][1] * e[1][0], q, grow);
+    for (k = 0; k < 3; k++) {
+        axis_setup(&axes[1 + 3 * k], 0, e[k][2], -e[k][1], q, grow);
+        axis_setup(&axes[2 + 3 * k], -e[k][2], 0, e[k][0], q, grow);
+        axis_setup(&axes[3 + 3 * k], e[k][1], -e[k][0], 0, q, grow);
+    }
+}
+
+/* Voxel range [*first, *last] on one axis touched by [lo, hi] grown; 0
+** when it misses the grid.  Clamped in double before converting. */
+static int voxel_range(double lo, double hi, double grow, uint32_t res,
+                       uint32_t *first, uint32_t *last)
+{
+    double a = ceil(lo - grow) - 1, b = floor(hi + grow);
+    if (!(b >= 0) || !(a <= res - 1.0)) return 0;
+    *first = (uint32_t)max2(a, 0);
+    *last = (uint32_t)min2(b, res - 1.0);
+    return 1;
+}
+
+static int box_touches_triangle(const sat_axis axes[10], double cx,
+                                double cy, double cz)
+{
+    int k;
+    for (k = 0; k < 10; k++) {
+        double d = axes[k].a[0] * cx + axes[k].a[1] * cy + axes[k].a[2] * cz;
+        if (d < axes[k].lo || d > axes[k].hi) return 0;
+    }
+    return 1;
+}
+
+static void voxelize_triangle(brt_grid *grid, double q[3][3])
+{
+    uint32_t first[3], last[3], x, y, z;
+    double grow = triangle_grow(q, grid->res);
+    sat_axis axes[10];
+    int i;
+    for (i = 0; i < 3; i++) {
+        double lo = min2(q[0][i], min2(q[1][i], q[2][i]));
+        double hi = max2(q[0][i], max2(q[1][i], q[2][i]));
+        if (!voxel_range(lo, hi, grow, grid->res, &first[i], &last[i])) return;
+    }
+    /* A box of one voxel needs no more test than its bounding box. */
+    if (first[0] == last[0] && first[1] == last[1] && first[2] == last[2]) {
+        brt_grid_set(grid, first[0], first[1], first[2]);
+        return;
+    }
+    triangle_axes(q, grow, axes);
+    for (z = first[2]; z <= last[2]; z++)
+        for (y = first[1]; y <= last[1]; y++)
+            for (x = first[0]; x <= last[0]; x++)
+                if (box_touches_triangle(axes, x + 0.5, y + 0.5, z + 0.5))
+                    brt_grid_set(grid, x, y, z);
+}
+
+static int grid_frame_valid(const brt_grid *grid)
+{
+    return resolution_log2(grid->res) > 0 && grid->bits &&
+           isfinite(grid->origin[0]) && isfinite(grid->origin[1]) &&
+           isfinite(grid->origin[2]) && isfinite(grid->cell) && grid->cell > 0;
+}
+
+brt_result brt_voxelize(brt_grid *grid, const float *positions,
+                        const uint32_t *indices, uint32_t tri_count)
+{
+    uint32_t t;
+    int k, i;
+    if (!grid_frame_valid(grid)) return BRT_EARG;
+    for (t = 0; t < tri_count; t++) {
+        double q[3][3];
+        for (k = 0; k < 3; k++) {
+            const float *v = positions + 3 * (size_t)indices[3 * (size_t)t + k];
+            for (i = 0; i < 3; i++) {
+                if (!isfinite(v[i])) return BRT_EARG;
+                q[k][i] = ((double)v[i] - grid->origin[i]) / grid->cell;
+            }
+        }
+        voxelize_triangle(grid, q);
+    }
+    return BRT_OK;
+}
+
+/* ===================================================================== */
+/* The node pool and its hash index                                       */
+/* ===================================================================== */
+
+typedef struct hash_table {
+    uint32_t *slots;    /* item + 1; 0 is empty */
+    uint32_t cap;       /* power of two */
+    uint32_t count;
+} hash_table;
+
+struct brt_svdag {
+    uint32_t *words;       /* interior nodes (layout at the top) */
+    uint32_t word_count, word_cap;
+    uint64_t *leaves;
+    uint32_t leaf_count, leaf_cap;
+    uint32_t *starts;      /* bit per word: a node starts here */
+    uint32_t node_count;   /* interior nodes */
+    hash_table nodes, leaf_set;   /* dedup index; empty until needed */
+};
+
+static uint32_t node_length(const uint32_t *node)
+{
+    return 1 + popcount8(node[0] & 0xFFu);
+}
+
+static uint64_t mix64(uint64_t h)
+{
+    h ^= h >> 33;
+    h *= 0xff51afd7ed558ccdull;
+    h ^= h >> 33;
+    h *= 0xc4ceb9fe1a85ec53ull;
+    return h ^ (h >> 33);
+}
+
+static uint64_t node_hash(const uint32_t *node)
+{
+    uint64_t h = 0x9E3779B97F4A7C15ull;
+    uint32_t i, n = node_length(node);
+    for (i = 0; i < n; i++) h = mix64(h ^ node[i]);
+    return h;
+}
+
+/* What a table holds: items of one kind (nodes or leaves) of one pool. */
+typedef struct table_kind {
+    uint64_t (*hash)(const brt_svdag *dag, uint32_t item);
+    int (*same)(const brt_svdag *dag, uint32_t item, const void *key);
+} table_kind;
+
+static uint64_t node_item_hash(const brt_svdag *dag, uint32_t item)
+{
+    return node_hash(dag->words + item);
+}
+
+static int node_item_same(const brt_svdag *dag, uint32_t item, const void *key)
+{
+    const uint32_t *node = (const uint32_t *)key;
+    return dag->words[item] == node[0] &&
+           memcmp(dag->words + item + 1, node + 1,
+                  (node_length(node) - 1) * sizeof(uint32_t)) == 0;
+}
+
+static uint64_t leaf_item_hash(const brt_svdag *dag, uint32_t item)
+{
+    return mix64(dag->leaves[item]);
+}
+
+static int leaf_item_same(const brt_svdag *dag, uint32_t item, const void *key)
+{
+    return dag->leaves[item] == *(const uint64_t *)key;
+}
+
+static const table_kind node_kind = {node_item_hash, node_item_same};
+static const table_kind leaf_kind = {leaf_item_hash, leaf_item_same};
+
+/* The slot holding an item equal to key, or the empty slot where it
+** would go (linear probing; the table is never more than half full). */
+static uint32_t *table_probe(const brt_svdag *dag, const hash_table *t,
+                             const table_kind *kind, uint64_t hash,
+                             const void *key)
+{
+    uint32_t i = (uint32_t)hash & (t->cap - 1);
+    while (t->slots[i] && !kind->same(dag, t->slots[i] - 1, key))
+        i = (i + 1) & (t->cap - 1);
+    return &t->slots[i];
+}
+
+/* Makes room for one more item, doubling and rehashing past half full. */
+static brt_result table_reserve(const brt_svdag *dag, hash_table *t,
+                                const table_kind *kind)
+{
+    hash_table bigger;
+    uint32_t i;
+    if ((uint64_t)(t->count + 1) * 2 <= t->cap) return BRT_OK;
+    if (t->cap >= 0x80000000u) return BRT_ENOMEM;
+    bigger.cap = t->cap ? t->cap * 2 : 1024;
+    bigger.count = t->count;
+    bigger.slots = (uint32_t *)calloc(bigger.cap, sizeof(uint32_t));
+    if (!bigger.slots) return BRT_ENOMEM;
+    for (i = 0; i < t->cap; i++) {
+        uint32_t item = t->slots[i];
+        if (item) {
+            uint32_t j = (uint32_t)kind->hash(dag, item - 1) & (bigger.cap - 1);
+            while (bigger.slots[j]) j = (j + 1) & (bigger.cap - 1);
+            bigger.slots[j] = item;
+        }
+    }
+    free(t->slots);
+    *t = bigger;
+    return BRT_OK;
+}
+
+static void table_free(hash_table *t)
+{
+    free(t->slots);
+    memset(t, 0, sizeof *t);
+}
+
+/* Inserts an existing item; *duplicate is set when an equal one is there. */
+static brt_result table_insert(const brt_svdag *dag, hash_table *t,
+                               const table_kind *kind, uint32_t item,
+                               const void *key, int *duplicate)
+{
+    uint32_t *slot;
+    brt_result r = table_reserve(dag, t, kind);
+    if (r != BRT_OK) return r;
+    slot = table_probe(dag, t, kind, kind->hash(dag, item), key);
+    if (*slot) *duplicate = 1;
+    else { *slot = item + 1; t->count++; }
+    return BRT_OK;
+}
+
+/* Indexes every node and leaf of a structurally valid pool; *duplicate
+** tells whether two equal items were found (only the first is indexed). */
+static brt_result index_build(const brt_svdag *dag, hash_table *nodes,
+                              hash_table *leaves, int *duplicate)
+{
+    uint32_t o, i;
+    brt_result r = BRT_OK;
+    *duplicate = 0;
+    for (i = 0; i < dag->leaf_count && r == BRT_OK; i++)
+        r = table_insert(dag, leaves, &leaf_kind, i, &dag->leaves[i], duplicate);
+    for (o = 0; o < dag->word_count && r == BRT_OK; o += node_length(dag->words + o))
+        r = table_insert(dag, nodes, &node_kind, o, dag->words + o, duplicate);
+    return r;
+}
+
+static brt_result ensure_index(brt_svdag *dag)
+{
+    int duplicate;
+    if (dag->nodes.slots || dag->leaf_set.slots) return BRT_OK;
+    return index_build(dag, &dag->nodes, &dag->leaf_set, &duplicate);
+}
+
+brt_result brt_svdag_create(brt_svdag **out)
+{
+    *out = (brt_svdag *)calloc(1, sizeof(brt_svdag));
+    return *out ? BRT_OK : BRT_ENOMEM;
+}
+
+void brt_svdag_free(brt_svdag *dag)
+{
+    if (!dag) return;
+    free(dag->words);
+    free(dag->leaves);
+    free(dag->starts);
+    table_free(&dag->nodes);
+    table_free(&dag->leaf_set);
+    free(dag);
+}
+
+uint32_t brt_svdag_node_count(const brt_svdag *dag)
+{
+    return dag->node_count + dag->leaf_count;
+}
+
+/* The pool itself (nodes, leaves and the node-start bitmap that lets a
+** proxy be checked in O(depth)), without the dedup index. */
+size_t brt_svdag_memory_bytes(const brt_svdag *dag)
+{
+    return (size_t)dag->word_count * 4 + (size_t)dag->leaf_count * 8 +
+           ((size_t)dag->word_count + 31) / 32 * 4;
+}
+
+static int is_node_start(const brt_svdag *dag, uint32_t o)
+{
+    return o < dag->word_count && ((dag->starts[o >> 5] >> (o & 31)) & 1);
+}
+
+/* Grows words (and the start bitmap with it) to hold extra more words. */
+static brt_result reserve_words(brt_svdag *dag, uint32_t extra)
+{
+    uint32_t *words, *starts;
+    uint64_t cap = dag->word_cap;
+    if ((uint64_t)dag->word_count + extra <= cap) return BRT_OK;
+    while (cap < (uint64_t)dag->word_count + extra) cap = cap ? cap * 2 : 4096;
+    if (cap > 0xFFFFFFF0u) return BRT_ENOMEM;
+    words = (uint32_t *)realloc(dag->words, cap * sizeof(uint32_t));
+    if (!words) return BRT_ENOMEM;
+    dag->words = words;
+    starts = (uint32_t *)realloc(dag->starts, (cap / 32 + 1) * sizeof(uint32_t));
+    if (!starts) return BRT_ENOMEM;
+    memset(starts + dag->word_cap / 32 + (dag->word_cap ? 1 : 0), 0,
+           (cap / 32 + 1 - dag->word_cap / 32 - (dag->word_cap ? 1 : 0)) *
+               sizeof(uint32_t));
+    dag->starts = starts;
+    dag->word_cap = (uint32_t)cap;
+    return BRT_OK;
+}
+
+/* The id of a leaf equal to mask, appended when the pool has none. */
+static brt_result intern_leaf(brt_svdag *dag, uint64_t mask, uint32_t *id)
+{
+    uint32_t *slot;
+    brt_result r = table_reserve(dag, &dag->leaf_set, &leaf_kind);
+    if (r != BRT_OK) return r;
+    slot = table_probe(dag, &dag->leaf_set, &leaf_kind, mix64(mask), &mask);
+    if (!*slot) {
+        if (dag->leaf_count == dag->leaf_cap) {
+            uint32_t cap = dag->leaf_cap ? dag->leaf_cap * 2 : 1024;
+            uint64_t *leaves;
+            if (cap > 0x7FFFFFFFu) return BRT_ENOMEM;
+            leaves = (uint64_t *)realloc(dag->leaves, cap * sizeof(uint64_t));
+            if (!leaves) return BRT_ENOMEM;
+            dag->leaves = leaves;
+            dag->leaf_cap = cap;
+        }
+        dag->leaves[dag->leaf_count] = mask;
+        *slot = ++dag->leaf_count;
+        dag->leaf_set.count++;
+    }
+    *id = *slot - 1;
+    return BRT_OK;
+}
+
+/* The offset of a node equal to node[], appended when the pool has none. */
+static brt_result intern_node(brt_svdag *dag, const uint32_t *node, uint32_t *id)
+{
+    uint32_t *slot, n = node_length(node);
+    brt_result r = table_reserve(dag, &dag->nodes, &node_kind);
+    if (r == BRT_OK) r = reserve_words(dag, n);
+    if (r != BRT_OK) return r;
+    slot = table_probe(dag, &dag->nodes, &node_kind, node_hash(node), node);
+    if (!*slot) {
+        uint32_t o = dag->word_count;
+        memcpy(dag->words + o, node, n * sizeof(uint32_t));
+        dag->starts[o >> 5] |= 1u << (o & 31);
+        dag->word_count += n;
+        dag->node_count++;
+        *slot = o + 1;
+        dag->nodes.count++;
+    }
+    *id = *slot - 1;
+    return BRT_OK;
+}
+
+/* ===================================================================== */
+/* SVO build, bottom up, straight into the DAG                             */
+/* ===================================================================== */
+
+/* Levels of a proxy's tree: the root spans 2^levels voxels per side. */
+static int tree_levels(uint32_t res)
+{
+    int k = resolution_log2(res);
+    return k < 2 ? 2 : k;
+}
+
+/* The 4x4x4 block at (x,y,z) as a leaf mask; each row of 4 voxels is one
+** aligned nibble of the grid's bits when res >= 4. */
+static uint64_t block_mask(const brt_grid *grid, uint32_t x, uint32_t y,
+                           uint32_t z)
+{
+    uint64_t mask = 0;
+    uint32_t dx, dy, dz;
+    for (dz = 0; dz < 4; dz++)
+        for (dy = 0; dy < 4; dy++) {
+            uint64_t row = 0;
+            if (grid->res >= 4) {
+                size_t i = voxel_index(grid, x, y + dy, z + dz);
+                row = (grid->bits[i >> 6] >> (i & 63)) & 15u;
+            } else {
+                for (dx = 0; dx < 4; dx++)
+                    row |= (uint64_t)brt_grid_get(grid, x + dx, y + dy, z + dz) << dx;
+            }
+            mask |= row << (4 * dy + 16 * dz);
+        }
+    return mask;
+}
+
+/* Builds the subtree of the given level at voxel (x,y,z); *id is
+** BRT_EMPTY_ROOT when it holds no voxel. */
+static brt_result build_subtree(brt_svdag *dag, const brt_grid *grid,
+                                int level, uint32_t x, uint32_t y, uint32_t z,
+                                uint32_t *id)
+{
+    uint32_t node[9], half = 1u << (level - 1), mask = 0, c;
+    *id = BRT_EMPTY_ROOT;
+    if (level == 2) {
+        uint64_t leaf = block_mask(grid, x, y, z);
+        return leaf ? intern_leaf(dag, leaf, id) : BRT_OK;
+    }
+    for (c = 0; c < 8; c++) {
+        uint32_t child;
+        brt_result r = build_subtree(dag, grid, level - 1, x + (c & 1) * half,
+                                     y + ((c >> 1) & 1) * half,
+                                     z + (c >> 2) * half, &child);
+        if (r != BRT_OK) return r;
+        if (child != BRT_EMPTY_ROOT) {
+            node[1 + popcount8(mask)] = child;
+            mask |= 1u << c;
+        }
+    }
+    if (!mask) return BRT_OK;
+    node[0] = mask | (level == 3 ? LEAF_CHILDREN : 0);
+    return intern_node(dag, node, id);
+}
+
+brt_result brt_svdag_add(brt_svdag *dag, const brt_grid *grid,
+                         brt_proxy *proxy)
+{
+    brt_result r;
+    if (!grid_frame_valid(grid)) return BRT_EARG;
+    r = ensure_index(dag);
+    if (r == BRT_OK)
+        r = build_subtree(dag, grid, tree_levels(grid->res), 0, 0, 0, &proxy->root);
+    if (r != BRT_OK) return r;
+    proxy->res = grid->res;
+    memcpy(proxy->origin, grid->origin, sizeof proxy->origin);
+    proxy->cell = grid->cell;
+    return BRT_OK;
+}
+
+/* ===================================================================== */
+/* Checks, decode, statistics                                              */
+/* ===================================================================== */
+
+/* Level of a node of a checked pool: 3 + steps down to leaf children. */
+static int node_level(const brt_svdag *dag, uint32_t o)
+{
+    int level = 3;
+    while (!(dag->words[o] & LEAF_CHILDREN) && level <= MAX_LEVEL) {
+        o = dag->words[o + 1];
+        level++;
+    }
+    return level;
+}
+
+/* A res-2 grid uses only the low 2x2x2 corner of its leaf. */
+#define RES2_LEAF_BITS 0x0000000000330033ull
+
+brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
+                           brt_error *err)
+{
+    int k = resolution_log2(proxy->res), i;
+    if (k < 0)
+        return brt_fail(err, BRT_ECHECK, "svdag: proxy res %u is not 2^k, k=1..10", proxy->res);
+    for (i = 0; i < 3; i++)
+        if (!isfinite(proxy->origin[i]))
+            return brt_fail(err, BRT_ECHECK, "svdag: proxy origin not finite");
+    if (!isfinite(proxy->cell) || !(proxy->cell > 0))
+        return brt_fail(err, BRT_ECHECK, "svdag: proxy cell not finite and positive");
+    if (proxy->root == BRT_EMPTY_ROOT) return BRT_OK;
+    if (k <= 2) {
+        if (proxy->root >= dag->leaf_count)
+            return brt_fail(err, BRT_ECHECK, "svdag: proxy root leaf %u out of range", proxy->root);
+        if (k == 1 && (dag->leaves[proxy->root] & ~RES2_LEAF_BITS))
+            return brt_fail(err, BRT_ECHECK, "svdag: res-2 proxy root leaf has voxels outside the grid");
+        return BRT_OK;
+    }
+    if (!is_node_start(dag, proxy->root) || node_level(dag, proxy->root) != k)
+        return brt_fail(err, BRT_ECHECK, "svdag: proxy root %u is not a node of level %d", proxy->root, k);
+    return BRT_OK;
+}
+
+/* Checks one interior node at offset o whose children are before it;
+** records its level. */
+static brt_result check_node(const brt_svdag *dag, uint32_t o,
+                             unsigned char *levels, brt_error *err)
+{
+    uint32_t h = dag->words[o], n = popcount8(h & 0xFFu), i;
+    int child_level = -1;
+    if ((h >> 9) || !(h & 0xFFu))
+        return brt_fail(err, BRT_ECHECK, "svdag: node %u: bad header 0x%x", o, h);
+    if ((uint64_t)o + 1 + n > dag->word_count)
+        return brt_fail(err, BRT_ECHECK, "svdag: node %u runs past the pool", o);
+    for (i = 0; i < n; i++) {
+        uint32_t c = dag->words[o + 1 + i];
+        int level;
+        if (h & LEAF_CHILDREN) {
+            if (c >= dag->leaf_count)
+                return brt_fail(err, BRT_ECHECK, "svdag: node %u: leaf %u out of range", o, c);
+            level = 2;
+        } else {
+            if (c >= o || !levels[c])
+                return brt_fail(err, BRT_ECHECK, "svdag: node %u: child %u is not an earlier node", o, c);
+            level = levels[c];
+        }
+        if (child_level >= 0 && level != child_level)
+            return brt_fail(err, BRT_ECHECK, "svdag: node %u: children of different depths", o);
+        child_level = level;
+    }
+    if (child_level + 1 > MAX_LEVEL)
+        return brt_fail(err, BRT_ECHECK, "svdag: node %u deeper than level %d", o, MAX_LEVEL);
+    levels[o] = (unsigned char)(child_level + 1);
+    return BRT_OK;
+}
+
+static brt_result check_structure(const brt_svdag *dag, unsigned char *levels,
+                                  brt_error *err)
+{
+    uint32_t o, i, nodes = 0;
+    brt_result r;
+    for (i = 0; i < dag->leaf_count; i++)
+        if (!dag->leaves[i])
+            return brt_fail(err, BRT_ECHECK, "svdag: leaf %u is empty", i);
+    for (o = 0; o < dag->word_count; o += node_length(dag->words + o), nodes++) {
+        r = check_node(dag, o, levels, err);
+        if (r != BRT_OK) return r;
+    }
+    if (nodes != dag->node_count)
+        return brt_fail(err, BRT_ECHECK, "svdag: %u nodes, %u counted", nodes, dag->node_count);
+    for (o = 0; o < dag->word_count; o++)
+        if (!levels[o] != !is_node_start(dag, o))
+            return brt_fail(err, BRT_ECHECK, "svdag: node-start bitmap wrong at %u", o);
+    return BRT_OK;
+}
+
+brt_result brt_svdag_check(const brt_svdag *dag, brt_error *err)
+{
+    hash_table nodes = {NULL, 0, 0}, leaves = {NULL, 0, 0};
+    unsigned char *levels = (unsigned char *)calloc((size_t)dag->word_count + 1, 1);
+    int duplicate = 0;
+    brt_result r;
+    if (!levels) return brt_fail(err, BRT_ENOMEM, "svdag: out of memory");
+    r = check_structure(dag, levels, err);
+    free(levels);
+    if (r != BRT_OK) return r;
+    r = index_build(dag, &nodes, &leaves, &duplicate);
+    table_free(&nodes);
+    table_free(&leaves);
+    if (r != BRT_OK) return brt_fail(err, r, "svdag: out of memory");
+    if (duplicate) return brt_fail(err, BRT_ECHECK, "svdag: two identical nodes");
+    return BRT_OK;
+}
+
+static void decode_subtree(const brt_svdag *dag, uint32_t id, int level,
+                           uint32_t x, uint32_t y, uint32_t z, brt_grid *grid)
+{
+    uint32_t half = 1u << (level - 1), c, slot = 1;
+    if (level == 2) {
+        uint64_t mask = dag->leaves[id];
+        while (mask) {
+            unsigned b = lowest_bit64(mask);
+            mask &= mask - 1;
+            brt_grid_set(grid, x + (b & 3), y + ((b >> 2) & 3), z + (b >> 4));
+        }
+        return;
+    }
+    for (c = 0; c < 8; c++)
+        if (dag->words[id] & (1u << c))
+            decode_subtree(dag, dag->words[id + slot++], level - 1,
+                           x + (c & 1) * half, y + ((c >> 1) & 1) * half,
+                           z + (c >> 2) * half, grid);
+}
+
+brt_result brt_svdag_decode(const brt_svdag *dag, const brt_proxy *proxy,
+                            brt_grid *grid)
+{
+    brt_result r = brt_proxy_check(dag, proxy, NULL);
+    if (r == BRT_OK) r = grid_alloc(grid, proxy->res, proxy->origin, proxy->cell);
+    if (r == BRT_OK && proxy->root != BRT_EMPTY_ROOT)
+        decode_subtree(dag, proxy->root, tree_levels(proxy->res), 0, 0, 0, grid);
+    return r;
+}
+
+/* Tree nodes below every pool node, children first (they come earlier). */
+uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy)
+{
+    uint64_t *below, n;
+    uint32_t o, i;
+    if (brt_proxy_check(dag, proxy, NULL) != BRT_OK || proxy->root == BRT_EMPTY_ROOT)
+        return 0;
+    if (tree_levels(proxy->res) == 2) return 1;
+    below = (uint64_t *)malloc(((size_t)dag->word_count + 1) * sizeof(uint64_t));
+    if (!below) return 0;
+    for (o = 0; o < dag->word_count; o += node_length(dag->words + o)) {
+        uint32_t h = dag->words[o];
+        below[o] = 1;
+        for (i = 0; i < popcount8(h & 0xFFu); i++)
+            below[o] += (h & LEAF_CHILDREN) ? 1 : below[dag->words[o + 1 + i]];
+    }
+    n = below[proxy->root];
+    free(below);
+    return n;
+}
+
+/* ===================================================================== */
+/* Blob: the pool for the scene file                                       */
+/* ===================================================================== */
+
+/*
+** Little-endian, no pointers:
+**   0  "BRTSVDAG"   8  u32 version (1)   12  u32 word count
+**   16 u32 leaf count   20 u32 zero   24 leaves (u64 each)   then words (u32)
+** The dedup index is not stored; it is rebuilt if proxies are added later.
+*/
+#define BLOB_HEADER 24
+static const char blob_magic[8] = {'B', 'R', 'T', 'S', 'V', 'D', 'A', 'G'};
+
+static void put_le(unsigned char *p, uint64_t v, int bytes)
+{
+    int i;
+    for (i = 0; i < bytes; i++) p[i] = (unsigned char)(v >> (8 * i));
+}
+
+static uint64_t get_le(const unsigned char *p, int bytes)
+{
+    uint64_t v = 0;
+    int i;
+    for (i = bytes - 1; i >= 0; i--) v = (v << 8) | p[i];
+    return v;
+}
+
+size_t brt_svdag_blob_size(const brt_svdag *dag)
+{
+    return BLOB_HEADER + (size_t)dag->leaf_count * 8 + (size_t)dag->word_count * 4;
+}
+
+void brt_svdag_blob_write(const brt_svdag *dag, void *dst)
+{
+    unsigned char *p = (unsigned char *)dst;
+    uint32_t i;
+    memcpy(p, blob_magic, 8);
+    put_le(p + 8, 1, 4);
+    put_le(p + 12, dag->word_count, 4);
+    put_le(p + 16, dag->leaf_count, 4);
+    put_le(p + 20, 0, 4);
+    p += BLOB_HEADER;
+    for (i = 0; i < dag->leaf_count; i++, p += 8) put_le(p, dag->leaves[i], 8);
+    for (i = 0; i < dag->word_count; i++, p += 4) put_le(p, dag->words[i], 4);
+}
+
+/* Copies the blob's arrays into a new pool and marks node starts by
+** walking headers (a corrupt header is caught by the check that follows;
+** until then the walk only needs to stay inside the array). */
+static brt_result blob_load(const unsigned char *p, uint32_t words,
+                            uint32_t leaves, brt_svdag *dag)
+{
+    uint32_t i, o;
+    dag->leaves = (uint64_t *)malloc(((size_t)leaves + 1) * sizeof(uint64_t));
+    if (!dag->leaves || reserve_words(dag, words + 1) != BRT_OK) return BRT_ENOMEM;
+    dag->leaf_count = dag->leaf_cap = leaves;
+    for (i = 0; i < leaves; i++, p += 8) dag->leaves[i] = get_le(p, 8);
+    for (i = 0; i < words; i++, p += 4) dag->words[i] = (uint32_t)get_le(p, 4);
+    dag->word_count = words;
+    for (o = 0; o < words; o += node_length(dag->words + o)) {
+        dag->starts[o >> 5] |= 1u << (o & 31);
+        dag->node_count++;
+    }
+    return BRT_OK;
+}
+
+brt_result brt_svdag_blob_open(const void *blob, size_t size,
+                               brt_svdag **out, brt_error *err)
+{
+    const unsigned char *p = (const unsigned char *)blob;
+    uint64_t words, leaves;
+    brt_svdag *dag;
+    brt_result r;
+    *out = NULL;
+    if (size < BLOB_HEADER || memcmp(p, blob_magic, 8) != 0)
+        return brt_fail(err, BRT_EFORMAT, "svdag blob: bad magic or too short");
+    if (get_le(p + 8, 4) != 1 || get_le(p + 20, 4) != 0)
+        return brt_fail(err, BRT_EFORMAT, "svdag blob: unknown version");
+    words = get_le(p + 12, 4);
+    leaves = get_le(p + 16, 4);
+    if (words >= 0xFFFFFFF0u || leaves > 0x7FFFFFFFu ||
+        size != BLOB_HEADER + leaves * 8 + words * 4)
+        return brt_fail(err, BRT_EFORMAT, "svdag blob: size %lu does not match its counts",
+                        (unsigned long)size);
+    r = brt_svdag_create(&dag);
+    if (r == BRT_OK) r = blob_load(p + BLOB_HEADER, (uint32_t)words, (uint32_t)leaves, dag);
+    if (r != BRT_OK) {
+        brt_svdag_free(dag);
+        return brt_fail(err, r, "svdag blob: out of memory");
+    }
+    r = brt_svdag_check(dag, err);
+    if (r != BRT_OK) {
+        brt_svdag_free(dag);
+        return r == BRT_ECHECK ? BRT_EFORMAT : r;
+    }
+    *out = dag;
+    return BRT_OK;
+}
+
+/* ===================================================================== */
+/* Ray cast (Laine and Karras 2010), conservative                          */
+/* ===================================================================== */
+
+/*
+** THE FRAME.  As in Laine and Karras, the root cube is mapped to [1,2]^3
+** and the ray is mirrored so that every direction component is negative
+** (octant_mask); the cube's children are then met in decreasing mirrored
+** index order.  Where ESVO reads cube positions out of float mantissas,
+** we keep them as the integers those mantissas hold (leaf-voxel units,
+** x = 1 + u / N), which is exact in double.  As in ESVO a plane's t is
+** a bias minus u times a per-voxel step (tx_bias - x * tx_coef), in
+** double; the bias folds in the box growth g of the entry or exit side.
+**
+** WHY NOT ESVO'S ADVANCE STEP.  ESVO steps from a cube to its neighbour
+** through the face the ray leaves by.  When the ray leaves through an edge
+** or a corner it steps diagonally and never visits the cubes that it only
+** touches there -- but a proxy must report closed boxes it touches.  So
+** each level tests the ray against every child's box (grown, see below)
+** with slab intervals, visits the children that overlap the segment in
+** ray order (ADVANCE is "next child in mirrored order"), PUSHes into
+** interior children, keeps the parent for each scale on a stack (POP),
+** and tests the set voxels of a 4x4x4 leaf with the same slabs.  The
+** first hit does not end the walk: the result is the minimum entry, and
+** the segment end shrinks to it, which prunes everything behind.
+**
+** CONSERVATIVE IN FLOAT.  Every box is grown by g on each side, in frame
+** units (the root cube has side 1):  g = 2^-18 (P + 3), P = max |p_i|.
+** - rounding: the world->frame transform errs by a few 2^-53 (P + 1);
+**   a plane's t = bias - u * step errs by a few 2^-53 (|bias| + |u step|),
+**   which is the t error of moving the plane along its axis by a few
+**   2^-53 (P + 3) (divide by |d_i|, the t-per-unit of that axis) < g.
+**   A computed slab entry is therefore the exact entry of a plane outside
+**   the true box, and max/min are exact: the computed interval is the
+**   exact interval of a box containing the true one.
+** - near-parallel rays: components below 2^-40 of the largest are replaced
+**   by 2^-40 of it (ESVO's epsilon trick, which also handles 0).  Within the
+**   root cube |t| <= (P + 2) / max|d|, so the tilted ray stays within
+**   2^-40 (P + 2) < g of the true one.
+** - the margin beyond these 2^-40-sized terms (g is about 2^22 times
+**   larger) is meant for callers that compare with a float ray/triangle
+**   test, whose hit point is off by some float ulps of the distance from
+**   the ray origin -- a few 2^-24 (P + 3) at most, still well inside g.
+** The entry is rounded down to float and clamped to tnear.  Rays with a NaN
+** or an infinity, zero directions, invalid proxies, and a walk that hits
+** the iteration cap all answer "hit at tnear", the conservative answer.
+*/
+typedef struct ray_frame {
+    double enter_bias[3];   /* t of plane x = 1 grown by +g (entry side) */
+    double leave_bias[3];   /* t of plane x = 1 grown by -g (exit side) */
+    double step[3];         /* t per voxel along each axis: (1/N) / |d_i| */
+    unsigned mirror;    /* bit i: axis i mirrored (ESVO's octant_mask) */
+    int levels;         /* root spans N = 2^levels voxels */
+    double lo, hi;      /* the live segment: hi shrinks to the best hit */
+    int found;
+} ray_frame;
+
+/* One scale of the parent stack: a node, its mirrored corner in voxels,
+** each child's entry distance (clamped to the segment start) and the
+** children still to visit. */
+typedef struct scale_entry {
+    uint32_t node;
+    uint32_t corner[3];
+    double entry[8];    /* by mirrored child index */
+    unsigned pending;   /* mirrored child indices not yet visited */
+} scale_entry;
+
+/* t where the ray enters / leaves the grown slab face at voxel plane u
+** (mirrored frame: the ray runs towards smaller u). */
+static double enter_t(const ray_frame *r, int axis, uint32_t u)
+{
+    return r->enter_bias[axis] - u * r->step[axis];
+}
+
+static double leave_t(const ray_frame *r, int axis, uint32_t u)
+{
+    return r->leave_bias[axis] - u * r->step[axis];
+}
+
+static int ray_is_degenerate(const brt_ray *ray, float tnear, float tfar)
+{
+    int i, zero = 1;
+    if (isnan(tnear) || isnan(tfar)) return 1;
+    for (i = 0; i < 3; i++) {
+        if (!isfinite(ray->org[i]) || !isfinite(ray->dir[i])) return 1;
+        if (ray->dir[i] != 0) zero = 0;
+    }
+    return zero;
+}
+
+static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray)
+{
+    double size, p[3], d[3], inv[3], dmax = 0, pmax = 0, g;
+    int i;
+    r->levels = tree_levels(proxy->res);
+    size = (double)proxy->cell * (1u << r->levels);
+    r->mirror = 0;
+    for (i = 0; i < 3; i++) {
+        p[i] = 1.0 + ((double)ray->org[i] - proxy->origin[i]) / size;
+        d[i] = ray->dir[i] / size;
+        dmax = max2(dmax, fabs(d[i]));
+    }
+    for (i = 0; i < 3; i++) {
+        if (d[i] > 0) { p[i] = 3.0 - p[i]; r->mirror |= 1u << i; }
+        inv[i] = 1.0 / max2(fabs(d[i]), dmax * 0x1p-40);
+        pmax = max2(pmax, fabs(p[i]));
+    }
+    g = 0x1p-18 * (pmax + 3);
+    for (i = 0; i < 3; i++) {
+        r->enter_bias[i] = (p[i] - (1.0 + g)) * inv[i];
+        r->leave_bias[i] = (p[i] - (1.0 - g)) * inv[i];
+        r->step[i] = inv[i] / (1u << r->levels);
+    }
+    r->found = 0;
+}
+
+/* The mirrored child mask of a node's (world) child mask. */
+static unsigned mirror_mask(unsigned m, unsigned mirror)
+{
+    if (mirror & 1) m = ((m & 0x55u) << 1) | ((m & 0xAAu) >> 1);
+    if (mirror & 2) m = ((m & 0x33u) << 2) | ((m & 0xCCu) >> 2);
+    if (mirror & 4) m = ((m & 0x0Fu) << 4) | ((m & 0xF0u) >> 4);
+    return m;
+}
+
+/* PUSH: the node spanning 2^level voxels at the mirrored corner.  All
+** eight children are tested at once, without branches: per axis the two
+** half-slabs give entry and exit distances, a child's interval is the
+** intersection of its three half-slabs (Laine and Karras compute the same
+** from tx_center), and the children that exist and overlap the live
+** segment become pending. */
+static void push_node(const ray_frame *r, scale_entry *s, uint32_t node,
+                      const uint32_t corner[3], int level, unsigned mask)
+{
+    double enter[3][2], leave[3][2], in_xy[4], out_xy[4], lo = r->lo, hi = r->hi;
+    uint32_t half = 1u << (level - 1);
+    unsigned live = 0, j;
+    int a;
+    s->node = node;
+    for (a = 0; a < 3; a++) {
+        uint32_t c = corner[a];
+        s->corner[a] = c;
+        enter[a][0] = enter_t(r, a, c + half);
+        leave[a][0] = leave_t(r, a, c);
+        enter[a][1] = enter_t(r, a, c + 2 * half);
+        leave[a][1] = leave_t(r, a, c + half);
+    }
+    for (j = 0; j < 4; j++) {          /* the four x,y quarter columns */
+        in_xy[j] = max2(enter[0][j & 1], enter[1][j >> 1]);
+        out_xy[j] = min2(leave[0][j & 1], leave[1][j >> 1]);
+    }
+    for (j = 0; j < 8; j++) {
+        double in = max2(in_xy[j & 3], enter[2][j >> 2]);
+        double out = min2(out_xy[j & 3], leave[2][j >> 2]);
+        s->entry[j] = max2(in, lo);
+        live |= (unsigned)((in <= out) & (in <= hi) & (out >= lo)) << j;   /* no branch */
+    }
+    s->pending = mirror_mask(mask, r->mirror) & live;
+}
+
+/* Leaf bits whose voxel lies in allowed slabs on every axis (4-bit masks
+** of world voxel columns). */
+static uint64_t slab_voxels(const unsigned ok[3])
+{
+    uint64_t x = ok[0] * 0x1111111111111111ull, y = 0, z = 0;
+    unsigned i;
+    for (i = 0; i < 4; i++) {
+        if (ok[1] & (1u << i)) y |= 0x000F000F000F000Full << (4 * i);
+        if (ok[2] & (1u << i)) z |= 0xFFFFull << (16 * i);
+    }
+    return x & y & z;
+}
+
+/* Tests the set voxels of a leaf at a mirrored corner; a touched voxel
+** lowers r->hi to its entry (clamped to lo). */
+static void cast_leaf(ray_frame *r, uint64_t mask, const uint32_t corner[3])
+{
+    double enter[3][4], leave[3][4];
+    unsigned ok[3] = {0, 0, 0};
+    int a;
+    uint32_t u;
+    for (a = 0; a < 3; a++)
+        for (u = 0; u < 4; u++) {
+            uint32_t w = (r->mirror >> a) & 1 ? 3 - u : u;   /* world column */
+            enter[a][w] = enter_t(r, a, corner[a] + u + 1);
+            leave[a][w] = leave_t(r, a, corner[a] + u);
+            if (enter[a][w] <= r->hi && leave[a][w] >= r->lo) ok[a] |= 1u << w;
+        }
+    mask &= slab_voxels(ok);
+    while (mask) {
+        unsigned b = lowest_bit64(mask), x = b & 3, y = (b >> 2) & 3, z = b >> 4;
+        double in = max2(enter[0][x], max2(enter[1][y], enter[2][z]));
+        double out = min2(leave[0][x], min2(leave[1][y], leave[2][z]));
+        mask &= mask - 1;
+        if (in <= out && in <= r->hi && out >= r->lo) {
+            r->hi = max2(in, r->lo);
+            r->found = 1;
+        }
+    }
+}
+
+/* The root cube's grown interval, intersected with the segment. */
+static void clip_to_root(ray_frame *r, float tnear, float tfar)
+{
+    int a;
+    r->lo = tnear;
+    r->hi = tfar;
+    for (a = 0; a < 3; a++) {
+        r->lo = max2(r->lo, enter_t(r, a, 1u << r->levels));
+        r->hi = min2(r->hi, leave_t(r, a, 0));
+    }
+}
+
+/* The walk below the root; returns 0 when it hit the iteration cap. */
+static int walk(const brt_svdag *dag, ray_frame *r, uint32_t root)
+{
+    scale_entry stack[MAX_LEVEL + 1];
+    uint32_t zero[3] = {0, 0, 0};
+    long budget = 64L * (1L << r->levels) + 4096;
+    int level = r->levels;
+    push_node(r, &stack[level], root, zero, level, dag->words[root] & 0xFFu);
+    while (level <= r->levels) {
+        scale_entry *s = &stack[level];
+        uint32_t child, corner[3], half = 1u << (level - 1);
+        unsigned j, w;
+        if (!s->pending) { level++; continue; }                /* POP */
+        if (--budget < 0) return 0;
+        j = highest_bit8(s->pending);                           /* ADVANCE */
+        s->pending &= ~(1u << j);
+        if (s->entry[j] > r->hi) continue;    /* behind the best hit so far */
+        w = j ^ r->mirror;
+        child = dag->words[s->node + 1 + popcount8(dag->words[s->node] & ((1u << w) - 1))];
+        corner[0] = s->corner[0] + (j & 1) * half;
+        corner[1] = s->corner[1] + ((j >> 1) & 1) * half;
+        corner[2] = s->corner[2] + (j >> 2) * half;
+        if (level > 3) {
+            level--;                                            /* PUSH */
+            push_node(r, &stack[level], child, corner, level, dag->words[child] & 0xFFu);
+        } else {
+            cast_leaf(r, dag->leaves[child], corner);
+            if (r->found && r->hi <= r->lo) return 1;   /* nothing can be earlier */
+        }
+    }
+    return 1;
+}
+
+int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
+                      const brt_ray *ray, float tnear, float tfar,
+                      float *t_entry)
+{
+    ray_frame r;
+    uint32_t zero[3] = {0, 0, 0};
+    float t;
+    *t_entry = tnear;
+    if (ray_is_degenerate(ray, tnear, tfar)) return 1;
+    if (tnear > tfar) return 0;
+    if (brt_proxy_check(dag, proxy, NULL) != BRT_OK) return 1;
+    if (proxy->root == BRT_EMPTY_ROOT) return 0;
+    frame_setup(&r, proxy, ray);
+    clip_to_root(&r, tnear, tfar);
+    if (!(r.lo <= r.hi)) return 0;
+    if (r.levels == 2) cast_leaf(&r, dag->leaves[proxy->root], zero);
+    else if (!walk(dag, &r, proxy->root)) return 1;
+    if (!r.found) return 0;
+    t = (float)r.hi;
+    if ((double)t > r.hi) t = nextafterf(t, -INFINITY);
+    *t_entry = t > tnear ? t : tnear;
+    return 1;
+}

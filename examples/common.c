@@ -1,2 +1,281 @@
-/* examples/common.c -- placeholder */
+/*
+** examples/common.c -- helpers shared by the programs in examples/: error
+** exits, option values with range checks, a throttled progress line, and a
+** minimal PNG writer.
+**
+** The PNG writer follows the PNG specification (ISO/IEC 15948) and RFC 1950
+** (zlib) / RFC 1951 (deflate) in their simplest legal form: the image data
+** is one zlib stream of STORED (uncompressed) deflate blocks.  Files are a
+** little larger than compressed ones, but the writer is short enough to be
+** checked by eye, and any PNG reader accepts it.
+*/
 #include "common.h"
+
+#include <errno.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+/* ===================================================================== */
+/* Errors and options                                                    */
+/* ===================================================================== */
+
+void ex_die(const char *prog, const char *fmt, ...)
+{
+    va_list ap;
+    ex_progress_end();
+    fprintf(stderr, "%s: ", prog);
+    va_start(ap, fmt);
+    vfprintf(stderr, fmt, ap);
+    va_end(ap);
+    fputc('\n', stderr);
+    exit(1);
+}
+
+void ex_check(const char *prog, brt_result r, const brt_error *err)
+{
+    if (r == BRT_OK) return;
+    ex_die(prog, "%s", err && err->message[0] ? err->message : brt_result_string(r));
+}
+
+int ex_wants_help(int argc, char **argv)
+{
+    int i;
+    for (i = 1; i < argc; i++)
+        if (strcmp(argv[i], "--help") == 0 || strcmp(argv[i], "-h") == 0) return 1;
+    return 0;
+}
+
+uint64_t ex_parse_u64(const char *prog, const char *option, const char *text,
+                      uint64_t min, uint64_t max)
+{
+    char *end;
+    unsigned long long value;
+    errno = 0;
+    /* strtoull accepts "-5" (as a huge value) and leading blanks: refuse
+    ** both by demanding a digit first. */
+    if (text[0] >= '0' && text[0] <= '9') {
+        value = strtoull(text, &end, 10);
+        if (errno == 0 && *end == 0 && value >= min && value <= max) return value;
+    }
+    ex_die(prog, "%s: expected an integer in %llu..%llu, got '%s'", option,
+           (unsigned long long)min, (unsigned long long)max, text);
+}
+
+double ex_parse_double(const char *prog, const char *option, const char *text,
+                       double min, double max)
+{
+    char *end;
+    double value;
+    errno = 0;
+    value = strtod(text, &end);
+    /* "!(a <= b)" rather than "a > b" so that NaN is rejected too. */
+    if (end == text || *end != 0 || errno == ERANGE || !(value >= min && value <= max))
+        ex_die(prog, "%s: expected a number in %g..%g, got '%s'", option, min, max, text);
+    return value;
+}
+
+uint64_t ex_parse_size(const char *prog, const char *option, const char *text)
+{
+    uint64_t bytes;
+    if (brt_parse_size(text, &bytes) != BRT_OK)
+        ex_die(prog, "%s: expected a size above 0 such as 512M (suffix K, M or G), got '%s'",
+               option, text);
+    return bytes;
+}
+
+const char *ex_option_value(const char *prog, int argc, char **argv, int *i)
+{
+    if (*i + 1 >= argc) ex_die(prog, "%s needs a value (see --help)", argv[*i]);
+    return argv[++*i];
+}
+
+/* ===================================================================== */
+/* Progress line                                                         */
+/* ===================================================================== */
+
+static int progress_state = -1;      /* -1 undecided, 0 off, 1 on */
+static int progress_drawn;           /* a line is on screen, unterminated */
+static double progress_last;         /* time of the last redraw */
+
+static int progress_enabled(void)
+{
+    if (progress_state < 0) {
+        const char *env = getenv("BRT_PROGRESS");
+        progress_state = isatty(2) || (env && strcmp(env, "1") == 0);
+    }
+    return progress_state;
+}
+
+void ex_progress(const char *label, uint64_t done, uint64_t total)
+{
+    double now;
+    if (!progress_enabled()) return;
+    now = brt_seconds();
+    /* Redraw at most ten times a second (and always at the end): a
+    ** terminal that redraws per ray would dominate the run time. */
+    if (progress_drawn && done < total && now - progress_last < 0.1) return;
+    progress_last = now;
+    progress_drawn = 1;
+    /* Padded so that a shorter label overwrites a longer one. */
+    fprintf(stderr, "\r%-16s %3d%%", label,
+            total ? (int)(100.0 * (double)done / (double)total) : 100);
+    fflush(stderr);
+}
+
+void ex_progress_end(void)
+{
+    if (!progress_drawn) return;
+    fputc('\n', stderr);
+    progress_drawn = 0;
+}
+
+/* ===================================================================== */
+/* Checksums                                                             */
+/* ===================================================================== */
+
+uint32_t ex_crc32(const unsigned char *data, size_t size)
+{
+    /* CRC-32 of ISO 3309 / PNG, reflected polynomial 0xEDB88320, with a
+    ** table built on first use. */
+    static uint32_t table[256];
+    static int ready;
+    uint32_t crc = 0xFFFFFFFFu;
+    size_t i;
+    if (!ready) {
+        uint32_t n, c;
+        int k;
+        for (n = 0; n < 256; n++) {
+            for (c = n, k = 0; k < 8; k++) c = (c & 1) ? 0xEDB88320u ^ (c >> 1) : c >> 1;
+            table[n] = c;
+        }
+        ready = 1;
+    }
+    for (i = 0; i < size; i++) crc = table[(crc ^ data[i]) & 0xFF] ^ (crc >> 8);
+    return crc ^ 0xFFFFFFFFu;
+}
+
+uint32_t ex_adler32(const unsigned char *data, size_t size)
+{
+    /* RFC 1950: two sums modulo 65521; reducing every 5552 bytes is the
+    ** longest run that cannot overflow 32 bits. */
+    uint32_t a = 1, b = 0;
+    while (size > 0) {
+        size_t n = size < 5552 ? size : 5552;
+        size -= n;
+        while (n--) { a += *data++; b += a; }
+        a %= 65521u;
+        b %= 65521u;
+    }
+    return (b << 16) | a;
+}
+
+/* ===================================================================== */
+/* PNG writer                                                            */
+/* ===================================================================== */
+
+#define STORED_BLOCK_MAX 65535u   /* LEN is a 16-bit field (RFC 1951 3.2.4) */
+
+static unsigned char *put_be32(unsigned char *p, uint32_t x)
+{
+    p[0] = (unsigned char)(x >> 24); p[1] = (unsigned char)(x >> 16);
+    p[2] = (unsigned char)(x >> 8);  p[3] = (unsigned char)x;
+    return p + 4;
+}
+
+/* Writes one chunk: length, type, data (already at p + 8), CRC of type
+** and data.  Returns the end of the chunk. */
+static unsigned char *finish_chunk(unsigned char *p, const char *type, uint32_t length)
+{
+    put_be32(p, length);
+    memcpy(p + 4, type, 4);
+    return put_be32(p + 8 + length, ex_crc32(p + 4, 4 + (size_t)length));
+}
+
+/* zlib stream of the raw scanlines (each prefixed by filter type 0, "None")
+** in stored deflate blocks, written at p; returns its end. */
+static unsigned char *write_zlib_stored(unsigned char *p, const unsigned char *raw, size_t size)
+{
+    size_t done = 0;
+    *p++ = 0x78;   /* CMF: deflate, 32K window */
+    *p++ = 0x01;   /* FLG: no dictionary; 0x7801 is a multiple of 31 */
+    do {
+        size_t n = size - done < STORED_BLOCK_MAX ? size - done : STORED_BLOCK_MAX;
+        /* Block header: BFINAL in bit 0, BTYPE 00 (stored) in bits 1-2; a
+        ** stored block then skips to the byte boundary, so the header is
+        ** one whole byte followed by LEN and NLEN, little endian. */
+        *p++ = (unsigned char)(done + n == size);
+        *p++ = (unsigned char)(n & 0xFF);
+        *p++ = (unsigned char)(n >> 8);
+        *p++ = (unsigned char)(~n & 0xFF);
+        *p++ = (unsigned char)((~n >> 8) & 0xFF);
+        memcpy(p, raw + done, n);
+        p += n;
+        done += n;
+    } while (done < size);
+    return put_be32(p, ex_adler32(raw, size));
+}
+
+brt_result ex_png_encode_rgb(int width, int height, const unsigned char *rgb,
+                             unsigned char **png, size_t *size)
+{
+    static const unsigned char signature[8] = {137, 'P', 'N', 'G', '\r', '\n', 26, '\n'};
+    size_t row, rows, raw_size, blocks, zlib_size;
+    unsigned char *raw, *out, *p;
+
+    *png = NULL;
+    *size = 0;
+    /* PNG limits width and height to 2^31-1; the 2^24 cap also keeps the
+    ** size arithmetic below far from overflow. */
+    if (width < 1 || height < 1 || width > (1 << 24) || height > (1 << 24)
+        || (double)width * 3.0 * (double)height > 1e12)
+        return BRT_EARG;
+    row = 3 * (size_t)width;
+    rows = (size_t)height;
+    raw_size = (row + 1) * rows;
+    blocks = (raw_size + STORED_BLOCK_MAX - 1) / STORED_BLOCK_MAX;
+    zlib_size = 2 + 5 * blocks + raw_size + 4;
+    if (zlib_size > 0x7FFFFFFFu) return BRT_EARG;   /* one IDAT chunk */
+
+    raw = malloc(raw_size);
+    out = malloc(8 + (12 + 13) + (12 + zlib_size) + 12);
+    if (!raw || !out) { free(raw); free(out); return BRT_ENOMEM; }
+    for (p = raw; p < raw + raw_size; p += row + 1, rgb += row) {
+        p[0] = 0;
+        memcpy(p + 1, rgb, row);
+    }
+
+    memcpy(out, signature, 8);
+    p = out + 8;
+    put_be32(p + 8, (uint32_t)width);
+    put_be32(p + 12, (uint32_t)height);
+    p[16] = 8;    /* bit depth */
+    p[17] = 2;    /* colour type: RGB */
+    p[18] = 0;    /* compression: deflate */
+    p[19] = 0;    /* filter method 0 */
+    p[20] = 0;    /* no interlace */
+    p = finish_chunk(p, "IHDR", 13);
+    write_zlib_stored(p + 8, raw, raw_size);
+    p = finish_chunk(p, "IDAT", (uint32_t)zlib_size);
+    p = finish_chunk(p, "IEND", 0);
+    free(raw);
+    *png = out;
+    *size = (size_t)(p - out);
+    return BRT_OK;
+}
+
+brt_result ex_png_write_rgb(const char *path, int width, int height,
+                            const unsigned char *rgb, brt_error *err)
+{
+    unsigned char *png;
+    size_t size;
+    brt_result r = ex_png_encode_rgb(width, height, rgb, &png, &size);
+    if (r != BRT_OK)
+        return brt_fail(err, r, "%s: cannot encode a %dx%d PNG: %s", path, width, height,
+                        brt_result_string(r));
+    r = brt_write_file_atomic(path, png, size, err);
+    free(png);
+    return r;
+}

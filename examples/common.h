@@ -19,6 +19,13 @@ void ex_die(const char *prog, const char *fmt, ...)
 #endif
     ;
 
+/* Dies with err's message (or the result's name) unless r is BRT_OK. */
+void ex_check(const char *prog, brt_result r, const brt_error *err);
+
+/* Nonzero when any argument is --help or -h: programs then print their
+** usage on stdout and exit 0 before looking at anything else. */
+int ex_wants_help(int argc, char **argv);
+
 /* Option values with range checks; a bad value dies with a message naming
 ** the option, e.g. "trace: --res: expected an integer in 2..1024, got 'x'". */
 uint64_t ex_parse_u64(const char *prog, const char *option, const char *text,

@@ -1,2 +1,551 @@
+/*
+** tests/test_batched.c -- the out-of-core batched traversal against the
+** direct mode (one BVH over the whole mesh in memory), hit by hit, byte
+** for byte: across batch sizes down to one triangle per batching point,
+** memory limits down to less than one batching point, proxies on and off,
+** proxy resolutions 2 to 256, and rays in flight from 1 up.  Also: the
+** page cache's budget, what proxies may and may not change, the scene
+** file's reuse and its errors, and injected read faults.
+*/
 #include "test.h"
-void suite_batched(void) {}
+#include "util.h"
+
+#include <errno.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+/* ---- fixtures ------------------------------------------------------------ */
+
+typedef struct fixture {
+    tu_scene scene;
+    brt_ray *rays;
+    brt_hit *direct;          /* the reference hits */
+    size_t count;
+} fixture;
+
+/* The reference: direct-mode hits of the fixture's rays. */
+static int fixture_direct(fixture *f)
+{
+    brt_bvh *bvh = NULL;
+    size_t i;
+    if (brt_bvh_build(f->scene.pos, f->scene.idx, f->scene.tcount, NULL, &bvh) != BRT_OK) return 0;
+    for (i = 0; i < f->count; i++) {
+        brt_hit_clear(&f->direct[i]);
+        brt_bvh_intersect(bvh, &f->rays[i], &f->direct[i]);
+    }
+    brt_bvh_free(bvh);
+    return 1;
+}
+
+/* Rays of all four kinds, and their direct-mode hits. */
+static int fixture_rays(fixture *f, size_t per_kind, uint64_t seed)
+{
+    float lo[3], hi[3];
+    uint64_t st = seed;
+    size_t i;
+    int kind;
+    tu_scene_bounds(&f->scene, lo, hi);
+    f->count = per_kind * TU_RAY_KINDS;
+    f->rays = malloc(f->count * sizeof *f->rays);
+    f->direct = malloc(f->count * sizeof *f->direct);
+    for (kind = 0; kind < TU_RAY_KINDS; kind++)
+        for (i = 0; i < per_kind; i++)
+            tu_make_ray(&f->scene, lo, hi, kind, &st, &f->rays[(size_t)kind * per_kind + i]);
+    return fixture_direct(f);
+}
+
+static void fixture_free(fixture *f)
+{
+    tu_scene_free(&f->scene);
+    free(f->rays);
+    free(f->direct);
+}
+
+static const char *scene_path(const char *name)
+{
+    static char path[512];
+    snprintf(path, sizeof path, "%s/%s", test_tmpdir(), name);
+    return path;
+}
+
+static brt_scene *build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, const char *path)
+{
+    brt_scene_options opt;
+    brt_mesh mesh = tu_mesh_view(s);
+    brt_scene *scene = NULL;
+    brt_error err;
+    brt_result r;
+    opt.batch_tris = batch_tris;
+    opt.proxy_res = res;
+    r = brt_scene_build(&mesh, &opt, 1, path, &err);
+    if (r == BRT_OK) r = brt_scene_open(path, &scene, &err);
+    if (r != BRT_OK) test_fail_at(__FILE__, __LINE__, "scene: %s", err.message);
+    return scene;
+}
+
+/* Traces the fixture's rays in batched mode and compares every hit. */
+static int trace_matches(const fixture *f, brt_scene *scene, const brt_trace_options *opt,
+                         brt_stats *stats, const char *what)
+{
+    brt_hit *hits = malloc(f->count * sizeof *hits);
+    brt_error err;
+    size_t i;
+    int ok = 1;
+    brt_result r = brt_scene_trace(scene, opt, f->rays, f->count, hits, stats, &err);
+    if (r != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "%s: trace: %s", what, err.message);
+        ok = 0;
+    }
+    for (i = 0; ok && i < f->count; i++)
+        if (memcmp(&hits[i], &f->direct[i], sizeof *hits) != 0) {
+            const brt_ray *ray = &f->rays[i];
+            test_fail_at(__FILE__, __LINE__, "%s: ray %zu (%s, o %a %a %a d %a %a %a): batched t=%a "
+                         "prim=%u, direct t=%a prim=%u", what, i, tu_kind_name[i * TU_RAY_KINDS / f->count],
+                         ray->org[0], ray->org[1], ray->org[2], ray->dir[0], ray->dir[1], ray->dir[2],
+                         hits[i].t, (unsigned)hits[i].prim, f->direct[i].t, (unsigned)f->direct[i].prim);
+            ok = 0;
+        }
+    free(hits);
+    return ok;
+}
+
+/* ---- batched == direct --------------------------------------------------- */
+
+/* One scene, every memory limit and proxy setting; checks the budget and
+** that proxies only ever remove work. */
+static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, const char *name)
+{
+    brt_scene *scene = build_scene(&f->scene, batch_tris, res, scene_path(name));
+    brt_trace_options opt;
+    brt_stats all, none, stats;
+    char what[160];
+    int proxy;
+    uint64_t limits[3];
+    int l;
+    if (!scene) return;
+    memset(&opt, 0, sizeof opt);
+    opt.no_proxy = 1;
+    snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, no proxy", name, batch_tris, res);
+    if (!trace_matches(f, scene, &opt, &none, what)) goto done;
+    opt.no_proxy = 0;
+    snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, proxies", name, batch_tris, res);
+    if (!trace_matches(f, scene, &opt, &all, what)) goto done;
+    /* Proxies only cull: never more queued visits, nor (with every blob
+    ** kept) more loads.  (Under a tight limit the schedule changes, so
+    ** loads are compared only without one.) */
+    EXPECT(all.queued_visits <= none.queued_visits, "%s: proxies increased queued visits %llu > %llu",
+           what, (unsigned long long)all.queued_visits, (unsigned long long)none.queued_visits);
+    EXPECT(all.batch_loads <= none.batch_loads, "%s: proxies increased loads", what);
+    EXPECT(all.proxy_tests >= all.proxy_culled, "%s: more culls than tests", what);
+    EXPECT(none.proxy_tests == 0 && none.proxy_bytes == 0, "%s: --no-proxy ran proxy tests", what);
+    EXPECT(none.rays == f->count && all.batching_points == brt_scene_batch_count(scene),
+           "%s: statistics count %llu rays", what, (unsigned long long)none.rays);
+    limits[0] = 1;                                   /* less than one batching point */
+    limits[1] = none.geometry_bytes / 2 + 1;          /* half */
+    limits[2] = none.cache_peak_bytes + all.proxy_bytes; /* everything (page-rounded) + proxies */
+    for (l = 0; l < 3 && !test_failed(); l++)
+        for (proxy = 0; proxy < 2 && !test_failed(); proxy++) {
+            uint64_t budget;
+            opt.memory_limit = limits[l];
+            opt.no_proxy = !proxy;
+            snprintf(what, sizeof what, "%s, batch %u, res %u, limit %llu, proxies %s", name, batch_tris,
+                     res, (unsigned long long)limits[l], proxy ? "on" : "off");
+            if (!trace_matches(f, scene, &opt, &stats, what)) break;
+            budget = limits[l] > stats.proxy_bytes ? limits[l] - stats.proxy_bytes : 0;
+            /* Never over budget, except one blob alone that is larger (the
+            ** cache checks that itself; here the statistics say it too). */
+            EXPECT(stats.cache_peak_bytes <= budget || stats.oversized_loads > 0,
+                   "%s: cache peak %llu over budget %llu", what,
+                   (unsigned long long)stats.cache_peak_bytes, (unsigned long long)budget);
+            EXPECT(l != 0 || stats.oversized_loads == stats.batch_loads,
+                   "%s: a 1-byte budget must make every load oversized", what);
+            EXPECT(l != 2 || stats.batch_loads == (proxy ? all : none).batch_loads,
+                   "%s: with room for everything, each batching point loads once", what);
+            EXPECT(stats.disk_bytes_read >= stats.batch_loads, "%s: loads without reads", what);
+        }
+done:
+    brt_scene_close(scene);
+}
+
+static void test_soup_batch_sizes(void)
+{
+    static const uint32_t batch[] = {1, 7, 1000, 100000};
+    fixture f;
+    size_t b;
+    uint64_t st = test_seed();
+    memset(&f, 0, sizeof f);
+    tu_random_soup(&f.scene, &st, 3000, 0.03f);
+    CHECK(fixture_rays(&f, 500, st), "direct BVH build failed");
+    for (b = 0; b < sizeof batch / sizeof batch[0] && !test_failed(); b++)
+        sweep_settings(&f, batch[b], 16, "soup");
+    fixture_free(&f);
+}
+
+static void test_soup_resolutions(void)
+{
+    fixture f;
+    uint32_t res;
+    uint64_t st = test_seed() + 1;
+    memset(&f, 0, sizeof f);
+    tu_random_soup(&f.scene, &st, 2000, 0.05f);
+    CHECK(fixture_rays(&f, 400, st), "direct BVH build failed");
+    for (res = 2; res <= 256 && !test_failed(); res *= 2) sweep_settings(&f, 150, res, "soup-res");
+    fixture_free(&f);
+}
+
+/* Scales from 1e-3 to 1e5 and an offset far from the origin. */
+static void test_soup_scales(void)
+{
+    static const float scale[] = {1e-3f, 1e5f}, offset[] = {0.0f, 3e4f};
+    size_t i;
+    for (i = 0; i < 2 && !test_failed(); i++) {
+        fixture f;
+        uint64_t st = test_seed() + 2 + i;
+        memset(&f, 0, sizeof f);
+        tu_random_soup(&f.scene, &st, 1500, 0.04f);
+        tu_scene_transform(&f.scene, scale[i], offset[i] * scale[i]);
+        CHECK(fixture_rays(&f, 300, st), "direct BVH build failed");
+        sweep_settings(&f, 40, 64, "soup-scaled");
+        fixture_free(&f);
+    }
+}
+
+/* Axis-aligned triangles: batching points of one triangle have flat
+** boxes (zero thickness), which the walk must still enter. */
+static void test_flat_boxes(void)
+{
+    fixture f;
+    uint64_t st = test_seed() + 8;
+    int i, j, axis;
+    memset(&f, 0, sizeof f);
+    for (axis = 0; axis < 3; axis++)
+        for (i = 0; i < 6; i++)
+            for (j = 0; j < 6; j++) {
+                float p[3][3];
+                uint32_t v[3];
+                int c;
+                for (c = 0; c < 3; c++) {
+                    p[c][axis] = 0.125f * (float)(i + 1);
+                    p[c][(axis + 1) % 3] = 0.125f * (float)j + (c == 1 ? 0.125f : 0.0f);
+                    p[c][(axis + 2) % 3] = 0.125f * (float)i + (c == 2 ? 0.125f : 0.0f);
+                    v[c] = tu_add_vertex(&f.scene, p[c][0], p[c][1], p[c][2]);
+                }
+                tu_add_triangle(&f.scene, v[0], v[1], v[2]);
+            }
+    CHECK(fixture_rays(&f, 500, st), "direct BVH build failed");
+    sweep_settings(&f, 1, 8, "flat");
+    if (!test_failed()) sweep_settings(&f, 3, 4, "flat");
+    fixture_free(&f);
+}
+
+/* A shared mesh loaded from disk. */
+static void compare_shared_mesh(const char *name, uint32_t batch_tris, size_t per_kind)
+{
+    const char *path = test_shared_mesh(name);
+    brt_mesh mesh;
+    brt_error err;
+    fixture f;
+    if (!path) {
+        test_skip("../shared/data/meshes/%s not present", name);
+        return;
+    }
+    CHECK(brt_mesh_load(path, &mesh, &err) == BRT_OK, "%s", err.message);
+    memset(&f, 0, sizeof f);
+    f.scene.pos = mesh.positions;
+    f.scene.idx = mesh.indices;
+    f.scene.vcount = f.scene.vcap = mesh.vertex_count;
+    f.scene.tcount = f.scene.tcap = mesh.triangle_count;
+    CHECK(fixture_rays(&f, per_kind, test_seed()), "direct BVH build failed");
+    sweep_settings(&f, batch_tris, 64, name);
+    fixture_free(&f);
+}
+
+static void test_bunny_tiny(void) { compare_shared_mesh("bunny_tiny.obj", 100, 2000); }
+static void test_bunny(void) { compare_shared_mesh("bunny.obj.gz", 5000, 5000); }
+
+/* ---- the stream: any number of rays in flight ---------------------------- */
+
+typedef struct stream_state {
+    const fixture *f;
+    brt_hit *hits;
+    size_t next, finished;
+    size_t batch;              /* rays handed out per call at most */
+} stream_state;
+
+static size_t stream_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+{
+    stream_state *s = user;
+    size_t n = 0;
+    while (n < max && n < s->batch && s->next < s->f->count) {
+        rays[n] = s->f->rays[s->next];
+        tags[n++] = s->next++;
+    }
+    return n;
+}
+
+static void stream_finished(void *user, const brt_ray *ray, const brt_hit *hit, uint64_t tag)
+{
+    stream_state *s = user;
+    (void)ray;
+    s->hits[tag] = *hit;
+    s->finished++;
+}
+
+static void test_rays_in_flight(void)
+{
+    static const uint32_t in_flight[] = {1, 7, 64};
+    fixture f;
+    brt_scene *scene;
+    uint64_t st = test_seed() + 7;
+    size_t i;
+    memset(&f, 0, sizeof f);
+    tu_random_soup(&f.scene, &st, 800, 0.05f);
+    CHECK(fixture_rays(&f, 100, st), "direct BVH build failed");
+    scene = build_scene(&f.scene, 50, 32, scene_path("stream.brs"));
+    for (i = 0; scene && i < 3 && !test_failed(); i++) {
+        brt_trace_options opt;
+        brt_ray_source source;
+        stream_state s;
+        brt_error err;
+        memset(&opt, 0, sizeof opt);
+        opt.rays_in_flight = in_flight[i];
+        opt.memory_limit = 64 << 10;
+        s.f = &f;
+        s.hits = malloc(f.count * sizeof *s.hits);
+        s.next = s.finished = 0;
+        s.batch = 3;
+        source.next_rays = stream_next;
+        source.finished = stream_finished;
+        source.user = &s;
+        EXPECT(brt_scene_trace_stream(scene, &opt, &source, NULL, &err) == BRT_OK, "%s", err.message);
+        EXPECT(s.finished == f.count, "%zu of %zu rays finished", s.finished, f.count);
+        EXPECT(memcmp(s.hits, f.direct, f.count * sizeof *s.hits) == 0,
+               "%u rays in flight: hits differ from direct", in_flight[i]);
+        free(s.hits);
+    }
+    brt_scene_close(scene);
+    fixture_free(&f);
+}
+
+/* Rays with NaN, inf, zero directions and empty segments miss in both modes. */
+static void test_degenerate_rays(void)
+{
+    fixture f;
+    brt_scene *scene;
+    uint64_t st = test_seed() + 9;
+    size_t i;
+    memset(&f, 0, sizeof f);
+    tu_random_soup(&f.scene, &st, 300, 0.1f);
+    CHECK(fixture_rays(&f, 50, st), "direct BVH build failed");
+    for (i = 0; i < f.count; i += 5) {
+        brt_ray *r = &f.rays[i];
+        switch (i / 5 % 6) {
+        case 0: r->org[1] = NAN; break;
+        case 1: r->dir[0] = r->dir[1] = r->dir[2] = 0.0f; break;
+        case 2: r->tnear = 2.0f; r->tfar = 1.0f; break;
+        case 3: r->dir[2] = INFINITY; break;
+        case 4: r->tfar = NAN; break;
+        default: r->org[0] = -INFINITY; break;
+        }
+    }
+    CHECK(fixture_direct(&f), "direct BVH build failed");
+    for (i = 0; i < f.count; i += 5)
+        EXPECT(f.direct[i].prim == BRT_NO_PRIM, "degenerate ray %zu hit in direct mode", i);
+    scene = build_scene(&f.scene, 20, 16, scene_path("degenerate.brs"));
+    if (scene) trace_matches(&f, scene, NULL, NULL, "degenerate rays");
+    brt_scene_close(scene);
+    fixture_free(&f);
+}
+
+/* ---- the scene file ------------------------------------------------------ */
+
+static void write_obj(const tu_scene *s, const char *path)
+{
+    FILE *fp = fopen(path, "w");
+    uint32_t i;
+    if (!fp) return;
+    for (i = 0; i < s->vcount; i++)
+        fprintf(fp, "v %.9g %.9g %.9g\n", s->pos[3 * i], s->pos[3 * i + 1], s->pos[3 * i + 2]);
+    for (i = 0; i < s->tcount; i++)
+        fprintf(fp, "f %u %u %u\n", s->idx[3 * i] + 1, s->idx[3 * i + 1] + 1, s->idx[3 * i + 2] + 1);
+    fclose(fp);
+}
+
+static int prepare(const char *mesh, const char *path, uint32_t batch_tris, int *rebuilt,
+                   brt_error *err)
+{
+    brt_scene_options opt;
+    brt_scene *scene = NULL;
+    brt_result r;
+    opt.batch_tris = batch_tris;
+    opt.proxy_res = 16;
+    r = brt_scene_prepare(mesh, path, &opt, &scene, rebuilt, err);
+    brt_scene_close(scene);
+    return r;
+}
+
+static void test_scene_reuse(void)
+{
+    tu_scene s;
+    char mesh[512], path[512];
+    brt_error err;
+    int rebuilt = -1;
+    uint64_t st = test_seed() + 3;
+    memset(&s, 0, sizeof s);
+    tu_random_soup(&s, &st, 200, 0.1f);
+    snprintf(mesh, sizeof mesh, "%s/reuse.obj", test_tmpdir());
+    snprintf(path, sizeof path, "%s/reuse.brs", test_tmpdir());
+    write_obj(&s, mesh);
+    CHECK(prepare(mesh, path, 20, &rebuilt, &err) == BRT_OK, "%s", err.message);
+    EXPECT(rebuilt == 1, "a missing scene file was not built");
+    CHECK(prepare(mesh, path, 20, &rebuilt, &err) == BRT_OK, "%s", err.message);
+    EXPECT(rebuilt == 0, "an up-to-date scene file was rebuilt");
+    CHECK(prepare(mesh, path, 30, &rebuilt, &err) == BRT_OK, "%s", err.message);
+    EXPECT(rebuilt == 1, "a changed setting did not rebuild");
+    tu_random_soup(&s, &st, 1, 0.1f);
+    write_obj(&s, mesh);
+    CHECK(prepare(mesh, path, 30, &rebuilt, &err) == BRT_OK, "%s", err.message);
+    EXPECT(rebuilt == 1, "a changed mesh did not rebuild");
+    tu_scene_free(&s);
+}
+
+/* Damages a copy of a good scene file at byte `at` (or truncates it to
+** `at` bytes) and expects `words` in the error of open or trace. */
+static void expect_damaged(const char *good, long at, int truncate_it, const char *words)
+{
+    char path[512], cmd[1200];
+    brt_scene *scene = NULL;
+    brt_error err;
+    brt_result r;
+    snprintf(path, sizeof path, "%s/damaged.brs", test_tmpdir());
+    snprintf(cmd, sizeof cmd, "cp '%s' '%s'", good, path);
+    if (system(cmd) != 0) {
+        test_fail_at(__FILE__, __LINE__, "cannot copy %s", good);
+        return;
+    }
+    if (truncate_it) {
+        EXPECT(truncate(path, at) == 0, "truncate: %s", strerror(errno));
+    } else {
+        FILE *fp = fopen(path, "r+b");
+        int c;
+        if (!fp) return;
+        fseek(fp, at, SEEK_SET);
+        c = fgetc(fp);
+        fseek(fp, at, SEEK_SET);
+        fputc(c ^ 0x5A, fp);
+        fclose(fp);
+    }
+    err.message[0] = 0;
+    r = brt_scene_open(path, &scene, &err);
+    if (r == BRT_OK) {
+        /* The damage is in a blob: found when the blob is loaded. */
+        brt_ray ray = {{0.5f, 0.5f, -1.0f}, {0.0f, 0.0f, 1.0f}, 0.0f, INFINITY};
+        brt_hit hit;
+        r = brt_scene_trace(scene, NULL, &ray, 1, &hit, NULL, &err);
+        brt_scene_close(scene);
+    }
+    EXPECT(r == BRT_EFORMAT, "damage at %ld: result %s, expected a format error", at, brt_result_string(r));
+    EXPECT(strstr(err.message, "damaged.brs") && strstr(err.message, words),
+           "damage at %ld: message '%s' lacks '%s'", at, err.message, words);
+}
+
+static void test_scene_errors(void)
+{
+    tu_scene s;
+    brt_scene *scene;
+    const char *good = scene_path("good.brs");
+    brt_error err;
+    uint64_t st = test_seed() + 4;
+    struct stat info;
+    memset(&s, 0, sizeof s);
+    /* One big triangle across the unit square, so the probe ray loads it. */
+    tu_add_triangle(&s, tu_add_vertex(&s, -1, -1, 0), tu_add_vertex(&s, 3, -1, 0), tu_add_vertex(&s, -1, 3, 0));
+    tu_random_soup(&s, &st, 50, 0.1f);
+    scene = build_scene(&s, 1000, 8, good);
+    CHECK(scene, "build failed");
+    brt_scene_close(scene);
+    CHECK(stat(good, &info) == 0, "no scene file");
+    expect_damaged(good, 0, 0, "magic");
+    expect_damaged(good, 8, 0, "version");
+    expect_damaged(good, 12, 0, "byte order");
+    expect_damaged(good, 100, 0, "header checksum");
+    expect_damaged(good, 4096 + 10, 0, "checksum");           /* inside the first blob */
+    expect_damaged(good, (long)info.st_size - 4096 - 1, 1, "outside the file");
+    expect_damaged(good, 100, 1, "truncated");
+    EXPECT(brt_scene_open(scene_path("missing.brs"), &scene, &err) == BRT_EIO &&
+           strstr(err.message, "missing.brs"), "missing file: '%s'", err.message);
+    tu_scene_free(&s);
+}
+
+/* ---- read faults ----------------------------------------------------------- */
+
+typedef struct fault_plan {
+    long calls;
+    long fail_at;              /* call number that fails with EIO; -1 never */
+} fault_plan;
+
+/* Every call returns at most 1000 bytes; every third fails with EINTR. */
+static long faulty_read(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    fault_plan *plan = user;
+    long call = plan->calls++;
+    if (call == plan->fail_at) {
+        errno = EIO;
+        return -1;
+    }
+    if (call % 3 == 1) {
+        errno = EINTR;
+        return -1;
+    }
+    return (long)pread(fd, buf, size < 1000 ? size : 1000, (off_t)offset);
+}
+
+static void test_read_faults(void)
+{
+    fixture f;
+    brt_scene *scene;
+    brt_trace_options opt;
+    fault_plan plan = {0, -1};
+    brt_hit *hits;
+    brt_error err;
+    uint64_t st = test_seed() + 5;
+    memset(&f, 0, sizeof f);
+    tu_random_soup(&f.scene, &st, 1000, 0.05f);
+    CHECK(fixture_rays(&f, 200, st), "direct BVH build failed");
+    scene = build_scene(&f.scene, 100, 16, scene_path("faults.brs"));
+    CHECK(scene, "build failed");
+    memset(&opt, 0, sizeof opt);
+    opt.read_fn = faulty_read;
+    opt.read_user = &plan;
+    opt.memory_limit = 32 << 10;
+    EXPECT(trace_matches(&f, scene, &opt, NULL, "short reads and EINTR"), "results changed");
+    EXPECT(plan.calls > 10, "the injected reader was not used (%ld calls)", plan.calls);
+    hits = malloc(f.count * sizeof *hits);
+    plan.calls = 0;
+    plan.fail_at = 25;
+    EXPECT(brt_scene_trace(scene, &opt, f.rays, f.count, hits, NULL, &err) == BRT_EIO &&
+           strstr(err.message, "faults.brs") && strstr(err.message, "read"),
+           "EIO: '%s'", err.message);
+    free(hits);
+    brt_scene_close(scene);
+    fixture_free(&f);
+}
+
+void suite_batched(void)
+{
+    test_run("batched: == direct, soups, batch sizes 1..100000", test_soup_batch_sizes);
+    test_run("batched: == direct, proxy resolutions 2..256", test_soup_resolutions);
+    test_run("batched: == direct, scales 1e-3 and 1e5", test_soup_scales);
+    test_run("batched: == direct, flat batching-point boxes", test_flat_boxes);
+    test_run("batched: == direct, bunny_tiny", test_bunny_tiny);
+    test_run("batched: == direct, bunny", test_bunny);
+    test_run("batched: constant rays in flight", test_rays_in_flight);
+    test_run("batched: degenerate rays", test_degenerate_rays);
+    test_run("batched: scene file reused, rebuilt when stale", test_scene_reuse);
+    test_run("batched: corrupt, truncated, wrong-version scene files", test_scene_errors);
+    test_run("batched: injected short reads, EINTR, EIO", test_read_faults);
+}

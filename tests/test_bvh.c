@@ -1,2 +1,862 @@
+/*
+** tests/test_bvh.c -- the triangle BVH against its exact oracle.
+**
+** The oracle is a brute-force loop over brt_intersect_triangle with the
+** tie-break of brt_hit_is_closer; the BVH shares the test's arithmetic, so
+** every ray must give the same hit record byte for byte (memcmp), also
+** when the hit record carries a previous hit in.  Scenes: random soups,
+** the shared real meshes, and adversarial sets (coplanar, grids,
+** duplicates, slivers, zero-area, tiny and huge coordinates).  Rays:
+** camera, random, bounce (from surface points), axis-parallel.  Plus
+** watertightness on closed meshes, degenerate rays, the blob format under
+** corruption, and the empty BVH.  brt_bvh_check runs after every build.
+*/
 #include "test.h"
-void suite_bvh(void) {}
+#include "batchrt.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* ===================================================================== */
+/* Scenes                                                                */
+/* ===================================================================== */
+
+typedef struct scene {
+    float *pos;
+    uint32_t *idx;
+    uint32_t vcount, tcount, vcap, tcap;
+} scene;
+
+static uint32_t add_vertex(scene *s, float x, float y, float z)
+{
+    if (s->vcount == s->vcap) {
+        s->vcap = s->vcap ? 2 * s->vcap : 64;
+        s->pos = realloc(s->pos, 3 * (size_t)s->vcap * sizeof *s->pos);
+    }
+    s->pos[3 * s->vcount] = x;
+    s->pos[3 * s->vcount + 1] = y;
+    s->pos[3 * s->vcount + 2] = z;
+    return s->vcount++;
+}
+
+static void add_triangle(scene *s, uint32_t a, uint32_t b, uint32_t c)
+{
+    if (s->tcount == s->tcap) {
+        s->tcap = s->tcap ? 2 * s->tcap : 64;
+        s->idx = realloc(s->idx, 3 * (size_t)s->tcap * sizeof *s->idx);
+    }
+    s->idx[3 * s->tcount] = a;
+    s->idx[3 * s->tcount + 1] = b;
+    s->idx[3 * s->tcount + 2] = c;
+    s->tcount++;
+}
+
+static void scene_free(scene *s)
+{
+    free(s->pos);
+    free(s->idx);
+    memset(s, 0, sizeof *s);
+}
+
+static float rnd(uint64_t *st, float lo, float hi)
+{
+    return lo + (hi - lo) * brt_random_float(st);
+}
+
+/* n random triangles of size about `size` in the cube [0,1]^3. */
+static void random_soup(scene *s, uint64_t *st, uint32_t n, float size)
+{
+    uint32_t i;
+    int j;
+    for (i = 0; i < n; i++) {
+        const float cx = rnd(st, 0, 1), cy = rnd(st, 0, 1), cz = rnd(st, 0, 1);
+        uint32_t v[3];
+        for (j = 0; j < 3; j++)
+            v[j] = add_vertex(s, cx + rnd(st, -size, size), cy + rnd(st, -size, size),
+                              cz + rnd(st, -size, size));
+        add_triangle(s, v[0], v[1], v[2]);
+    }
+}
+
+/* Affine map of every vertex: p * scale + offset. */
+static void scene_transform(scene *s, float scale, float offset)
+{
+    uint32_t i;
+    for (i = 0; i < 3 * s->vcount; i++) s->pos[i] = s->pos[i] * scale + offset;
+}
+
+static void scene_bounds(const scene *s, float lo[3], float hi[3])
+{
+    uint32_t i;
+    int a;
+    for (a = 0; a < 3; a++) { lo[a] = INFINITY; hi[a] = -INFINITY; }
+    for (i = 0; i < s->vcount; i++)
+        for (a = 0; a < 3; a++) {
+            if (s->pos[3 * i + a] < lo[a]) lo[a] = s->pos[3 * i + a];
+            if (s->pos[3 * i + a] > hi[a]) hi[a] = s->pos[3 * i + a];
+        }
+}
+
+static const float *vertex(const scene *s, uint32_t tri, int j)
+{
+    return s->pos + 3 * (size_t)s->idx[3 * (size_t)tri + j];
+}
+
+/* ===================================================================== */
+/* Rays                                                                  */
+/* ===================================================================== */
+
+enum ray_kind { RAY_CAMERA, RAY_RANDOM, RAY_BOUNCE, RAY_AXIS, RAY_KINDS };
+static const char *const kind_name[RAY_KINDS] = {"camera", "random", "bounce", "axis"};
+
+static void random_unit(uint64_t *st, float d[3])
+{
+    float len;
+    do {
+        d[0] = rnd(st, -1, 1); d[1] = rnd(st, -1, 1); d[2] = rnd(st, -1, 1);
+        len = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    } while (len > 1.0f || len < 1e-4f);
+}
+
+static void make_ray(const scene *s, const float lo[3], const float hi[3],
+                     int kind, uint64_t *st, brt_ray *r)
+{
+    float c[3], ext = 0;
+    int a;
+    for (a = 0; a < 3; a++) {
+        c[a] = 0.5f * (lo[a] + hi[a]);
+        if (hi[a] - lo[a] > ext) ext = hi[a] - lo[a];
+    }
+    r->tnear = 0.0f;
+    r->tfar = INFINITY;
+    random_unit(st, r->dir);
+    if (kind == RAY_CAMERA) {
+        /* from a point outside the box towards a point inside it */
+        for (a = 0; a < 3; a++) r->org[a] = c[a] + 1.5f * ext * r->dir[a];
+        for (a = 0; a < 3; a++) r->dir[a] = rnd(st, lo[a], hi[a]) - r->org[a];
+    } else if (kind == RAY_RANDOM) {
+        for (a = 0; a < 3; a++) r->org[a] = rnd(st, lo[a], hi[a]);
+    } else if (kind == RAY_BOUNCE && s->tcount > 0) {
+        const uint32_t t = (uint32_t)(brt_random_u64(st) % s->tcount);
+        float u = brt_random_float(st), v = brt_random_float(st);
+        if (u + v > 1.0f) { u = 1.0f - u; v = 1.0f - v; }
+        for (a = 0; a < 3; a++)
+            r->org[a] = (1 - u - v) * vertex(s, t, 0)[a] + u * vertex(s, t, 1)[a] + v * vertex(s, t, 2)[a];
+    } else {
+        const int axis = (int)(brt_random_u64(st) % 3);
+        for (a = 0; a < 3; a++) { r->org[a] = rnd(st, lo[a], hi[a]); r->dir[a] = 0.0f; }
+        r->dir[axis] = brt_random_float(st) < 0.5f ? -1.0f : 1.0f;
+        r->org[axis] = r->dir[axis] > 0 ? lo[axis] - ext : hi[axis] + ext;
+    }
+    /* some rays get a finite segment, ending inside the scene */
+    if (brt_random_float(st) < 0.25f) r->tfar = rnd(st, 0.0f, 2.0f * ext);
+}
+
+/* ===================================================================== */
+/* The oracle and the comparison                                         */
+/* ===================================================================== */
+
+static void brute_force(const scene *s, const uint32_t *prim_ids,
+                        const brt_ray *ray, brt_hit *hit)
+{
+    uint32_t i;
+    for (i = 0; i < s->tcount; i++) {
+        float t, u, v;
+        const uint32_t prim = prim_ids ? prim_ids[i] : i;
+        if (!brt_intersect_triangle(ray, vertex(s, i, 0), vertex(s, i, 1), vertex(s, i, 2), &t, &u, &v))
+            continue;
+        if (brt_hit_is_closer(t, prim, hit)) {
+            hit->t = t; hit->prim = prim; hit->u = u; hit->v = v;
+        }
+    }
+}
+
+/* One ray against the oracle: from a miss, from a carried-in hit that is
+** the answer itself with a higher prim (so ties must go to the lower), and
+** any-hit.  Returns 0 (after recording a failure) on a mismatch. */
+static int compare_ray(const scene *s, const uint32_t *prim_ids,
+                       const brt_bvh *bvh, const brt_ray *ray, const char *what,
+                       size_t n)
+{
+    brt_hit want, got, carried;
+    brt_hit_clear(&want);
+    brt_hit_clear(&got);
+    brute_force(s, prim_ids, ray, &want);
+    brt_bvh_intersect(bvh, ray, &got);
+    if (memcmp(&want, &got, sizeof want) != 0) {
+        test_fail_at(__FILE__, __LINE__, "%s ray %zu (o %a %a %a d %a %a %a [%a,%a]): "
+                     "bvh t=%a prim=%u u=%a v=%a, brute force t=%a prim=%u u=%a v=%a",
+                     what, n, ray->org[0], ray->org[1], ray->org[2], ray->dir[0], ray->dir[1],
+                     ray->dir[2], ray->tnear, ray->tfar, got.t, (unsigned)got.prim, got.u, got.v,
+                     want.t, (unsigned)want.prim, want.u, want.v);
+        return 0;
+    }
+    if (brt_bvh_occluded(bvh, ray) != (want.prim != BRT_NO_PRIM)) {
+        test_fail_at(__FILE__, __LINE__, "%s ray %zu: occluded disagrees with closest hit", what, n);
+        return 0;
+    }
+    if (want.prim == BRT_NO_PRIM || want.prim == BRT_NO_PRIM - 1) return 1;
+    /* The oracle's answer is the least hit of a set; adding a worse one
+    ** (same t, higher prim) as the carried-in hit leaves it unchanged. */
+    carried = want;
+    carried.prim++;
+    carried.u = carried.v = 0.5f;
+    brt_bvh_intersect(bvh, ray, &carried);
+    if (memcmp(&carried, &want, sizeof want) != 0) {
+        test_fail_at(__FILE__, __LINE__, "%s ray %zu: carried-in hit: bvh prim %u, brute force %u",
+                     what, n, (unsigned)carried.prim, (unsigned)want.prim);
+        return 0;
+    }
+    return 1;
+}
+
+static brt_bvh *build_checked(const scene *s, const uint32_t *prim_ids)
+{
+    brt_bvh *bvh = NULL;
+    brt_error err;
+    brt_result r = brt_bvh_build(s->pos, s->idx, s->tcount, prim_ids, &bvh);
+    err.message[0] = 0;
+    if (r != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "build: %s", brt_result_string(r));
+        return NULL;
+    }
+    r = brt_bvh_check(bvh, &err);
+    if (r != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "check: %s", err.message);
+        brt_bvh_free(bvh);
+        return NULL;
+    }
+    if (brt_bvh_triangle_count(bvh) != s->tcount) {
+        test_fail_at(__FILE__, __LINE__, "triangle count %u, expected %u",
+                     (unsigned)brt_bvh_triangle_count(bvh), (unsigned)s->tcount);
+        brt_bvh_free(bvh);
+        return NULL;
+    }
+    return bvh;
+}
+
+/* Builds and compares rays_per_kind rays of every kind; stops at the
+** first mismatch. */
+static void compare_scene(const scene *s, const uint32_t *prim_ids,
+                          size_t rays_per_kind, uint64_t seed, const char *what)
+{
+    brt_bvh *bvh = build_checked(s, prim_ids);
+    float lo[3], hi[3];
+    uint64_t st = seed;
+    char label[128];
+    int kind;
+    size_t n;
+    if (!bvh) return;
+    scene_bounds(s, lo, hi);
+    for (kind = 0; kind < RAY_KINDS; kind++) {
+        snprintf(label, sizeof label, "%s, %s", what, kind_name[kind]);
+        for (n = 0; n < rays_per_kind; n++) {
+            brt_ray ray;
+            make_ray(s, lo, hi, kind, &st, &ray);
+            if (!compare_ray(s, prim_ids, bvh, &ray, label, n)) goto done;
+        }
+    }
+done:
+    brt_bvh_free(bvh);
+}
+
+/* ===================================================================== */
+/* Soups and adversarial sets                                            */
+/* ===================================================================== */
+
+static void test_random_soups(void)
+{
+    uint64_t st = test_seed();
+    static const uint32_t sizes[] = {1, 2, 5, 9, 33, 200, 3000};
+    size_t i;
+    for (i = 0; i < sizeof sizes / sizeof *sizes && !test_failed(); i++) {
+        scene s = {0};
+        random_soup(&s, &st, sizes[i], 0.05f + 0.2f * brt_random_float(&st));
+        compare_scene(&s, NULL, 300, brt_random_u64(&st), "soup");
+        scene_free(&s);
+    }
+}
+
+/* prim_ids other than the identity must be reported (and tie-broken). */
+static void test_prim_ids(void)
+{
+    uint64_t st = test_seed() ^ 7;
+    scene s = {0};
+    uint32_t *ids, i;
+    random_soup(&s, &st, 500, 0.1f);
+    ids = malloc(s.tcount * sizeof *ids);
+    for (i = 0; i < s.tcount; i++) ids[i] = 1000000u + 3u * (s.tcount - i);
+    compare_scene(&s, ids, 300, st, "prim ids");
+    free(ids);
+    scene_free(&s);
+}
+
+static void test_coplanar(void)
+{
+    uint64_t st = test_seed() ^ 11;
+    scene s = {0};
+    uint32_t i;
+    for (i = 0; i < 2000; i++) {
+        const float x = rnd(&st, 0, 1), y = rnd(&st, 0, 1);
+        add_triangle(&s, add_vertex(&s, x, y, 0.5f), add_vertex(&s, x + rnd(&st, 0, 0.1f), y, 0.5f),
+                     add_vertex(&s, x, y + rnd(&st, 0, 0.1f), 0.5f));
+    }
+    compare_scene(&s, NULL, 400, st, "coplanar");
+    scene_free(&s);
+}
+
+/* Unit squares on integer coordinates in the three axis planes: axis rays
+** through grid lines and vertices hit shared edges exactly. */
+static void axis_grid(scene *s, int n)
+{
+    int i, j, a;
+    for (a = 0; a < 3; a++)
+        for (i = 0; i < n; i++)
+            for (j = 0; j < n; j++) {
+                float p[4][3];
+                uint32_t v[4];
+                int k;
+                for (k = 0; k < 4; k++) {
+                    p[k][a] = (float)(n / 2);
+                    p[k][(a + 1) % 3] = (float)(i + (k == 1 || k == 2));
+                    p[k][(a + 2) % 3] = (float)(j + (k >= 2));
+                    v[k] = add_vertex(s, p[k][0], p[k][1], p[k][2]);
+                }
+                add_triangle(s, v[0], v[1], v[2]);
+                add_triangle(s, v[0], v[2], v[3]);
+            }
+}
+
+static void test_axis_grid(void)
+{
+    uint64_t st = test_seed() ^ 13;
+    scene s = {0};
+    brt_bvh *bvh;
+    int x, y, a;
+    size_t n = 0;
+    axis_grid(&s, 12);
+    compare_scene(&s, NULL, 300, st, "grid");
+    bvh = build_checked(&s, NULL);
+    if (!bvh) { scene_free(&s); return; }
+    /* axis rays through every lattice point and half-lattice point */
+    for (a = 0; a < 3 && !test_failed(); a++)
+        for (x = 0; x <= 24; x++)
+            for (y = 0; y <= 24; y++) {
+                brt_ray r = {{0, 0, 0}, {0, 0, 0}, 0.0f, INFINITY};
+                r.org[a] = -5.0f;
+                r.org[(a + 1) % 3] = 0.5f * (float)x;
+                r.org[(a + 2) % 3] = 0.5f * (float)y;
+                r.dir[a] = 1.0f;
+                if (!compare_ray(&s, NULL, bvh, &r, "grid lattice", n++)) goto done;
+            }
+done:
+    brt_bvh_free(bvh);
+    scene_free(&s);
+}
+
+static void test_duplicates(void)
+{
+    uint64_t st = test_seed() ^ 17;
+    scene s = {0};
+    uint32_t i, n;
+    random_soup(&s, &st, 300, 0.1f);
+    n = s.tcount;
+    for (i = 0; i < 2 * n; i++)   /* the same triangles twice more */
+        add_triangle(&s, s.idx[3 * (i % n)], s.idx[3 * (i % n) + 1], s.idx[3 * (i % n) + 2]);
+    compare_scene(&s, NULL, 300, st, "duplicates");
+    scene_free(&s);
+}
+
+/* Slivers (third vertex within 1e-4..1e-7 of the opposite edge) and
+** zero-area triangles (collinear or repeated vertices). */
+static void test_slivers_and_zero_area(void)
+{
+    uint64_t st = test_seed() ^ 19;
+    scene s = {0};
+    uint32_t i;
+    for (i = 0; i < 3000; i++) {
+        float a[3], b[3], m[3];
+        const float eps = (i % 3 == 2) ? 0.0f : (i % 3 ? 1e-4f : 1e-7f);
+        int k;
+        for (k = 0; k < 3; k++) { a[k] = rnd(&st, 0, 1); b[k] = a[k] + rnd(&st, -0.2f, 0.2f); }
+        for (k = 0; k < 3; k++) m[k] = 0.5f * (a[k] + b[k]) + rnd(&st, -eps, eps);
+        if (i % 7 == 0) memcpy(m, a, sizeof m);
+        add_triangle(&s, add_vertex(&s, a[0], a[1], a[2]), add_vertex(&s, b[0], b[1], b[2]),
+                     add_vertex(&s, m[0], m[1], m[2]));
+    }
+    compare_scene(&s, NULL, 400, st, "slivers");
+    scene_free(&s);
+}
+
+static void test_scales(void)
+{
+    static const float scale[] = {1e-6f, 1e6f, 1.0f, 1e-6f};
+    static const float offset[] = {0.0f, 0.0f, 1e6f, 1.0f};
+    uint64_t st = test_seed() ^ 23;
+    int i;
+    for (i = 0; i < 4 && !test_failed(); i++) {
+        scene s = {0};
+        char what[64];
+        random_soup(&s, &st, 1500, 0.05f);
+        axis_grid(&s, 4);
+        scene_transform(&s, scale[i], offset[i]);
+        snprintf(what, sizeof what, "scale %g offset %g", scale[i], offset[i]);
+        compare_scene(&s, NULL, 300, st, what);
+        scene_free(&s);
+    }
+}
+
+/* ===================================================================== */
+/* Shared real meshes                                                    */
+/* ===================================================================== */
+
+static void compare_shared_mesh(const char *name, size_t rays_per_kind)
+{
+    const char *path = test_shared_mesh(name);
+    brt_mesh mesh;
+    brt_error err;
+    scene s = {0};
+    if (!path) { test_skip("%s: ../shared not found", name); return; }
+    if (brt_mesh_load(path, &mesh, &err) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
+        return;
+    }
+    s.pos = mesh.positions;
+    s.idx = mesh.indices;
+    s.vcount = mesh.vertex_count;
+    s.tcount = mesh.triangle_count;
+    compare_scene(&s, NULL, rays_per_kind, test_seed(), name);
+    brt_mesh_free(&mesh);
+}
+
+static void test_mesh_bunny_tiny(void) { compare_shared_mesh("bunny_tiny.obj", 500); }
+static void test_mesh_bunny(void) { compare_shared_mesh("bunny.obj.gz", 200); }
+static void test_mesh_dragon(void) { compare_shared_mesh("dragon.obj.gz", 40); }
+static void test_mesh_bmw(void) { compare_shared_mesh("bmw_m6.obj.gz", 40); }
+static void test_mesh_crown(void) { compare_shared_mesh("crown.obj.gz", 12); }
+static void test_mesh_oahu(void) { compare_shared_mesh("fg_oahu.obj.gz", 20); }
+
+/* ===================================================================== */
+/* Watertightness                                                        */
+/* ===================================================================== */
+
+/* Icosahedron subdivided `levels` times, vertices pushed to the unit
+** sphere and shared between faces (midpoints cached per edge). */
+static uint32_t midpoint(scene *s, uint32_t *cache, uint32_t *keys, size_t cap,
+                         uint32_t a, uint32_t b)
+{
+    const uint32_t lo = a < b ? a : b, hi = a < b ? b : a;
+    size_t h = ((size_t)lo * 2654435761u ^ hi) % cap;
+    float p[3], len;
+    int k;
+    while (cache[h] != BRT_NO_PRIM) {
+        if (keys[2 * h] == lo && keys[2 * h + 1] == hi) return cache[h];
+        h = (h + 1) % cap;
+    }
+    for (k = 0; k < 3; k++) p[k] = s->pos[3 * a + k] + s->pos[3 * b + k];
+    len = sqrtf(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+    keys[2 * h] = lo;
+    keys[2 * h + 1] = hi;
+    cache[h] = add_vertex(s, p[0] / len, p[1] / len, p[2] / len);
+    return cache[h];
+}
+
+static void icosphere(scene *s, int levels)
+{
+    static const uint32_t faces[20][3] = {
+        {0, 11, 5}, {0, 5, 1}, {0, 1, 7}, {0, 7, 10}, {0, 10, 11}, {1, 5, 9}, {5, 11, 4},
+        {11, 10, 2}, {10, 7, 6}, {7, 1, 8}, {3, 9, 4}, {3, 4, 2}, {3, 2, 6}, {3, 6, 8},
+        {3, 8, 9}, {4, 9, 5}, {2, 4, 11}, {6, 2, 10}, {8, 6, 7}, {9, 8, 1}};
+    const float g = 1.6180339887f, n = sqrtf(1.0f + g * g);
+    const float base[12][3] = {{-1, g, 0}, {1, g, 0}, {-1, -g, 0}, {1, -g, 0}, {0, -1, g}, {0, 1, g},
+                               {0, -1, -g}, {0, 1, -g}, {g, 0, -1}, {g, 0, 1}, {-g, 0, -1}, {-g, 0, 1}};
+    int i, l;
+    for (i = 0; i < 12; i++) add_vertex(s, base[i][0] / n, base[i][1] / n, base[i][2] / n);
+    for (i = 0; i < 20; i++) add_triangle(s, faces[i][0], faces[i][1], faces[i][2]);
+    for (l = 0; l < levels; l++) {
+        const size_t cap = 8 * (size_t)s->tcount;
+        uint32_t *cache = malloc(cap * sizeof *cache), *keys = malloc(2 * cap * sizeof *keys);
+        uint32_t *old = s->idx, count = s->tcount, t;
+        memset(cache, 0xFF, cap * sizeof *cache);
+        s->idx = NULL;
+        s->tcount = s->tcap = 0;
+        for (t = 0; t < count; t++) {
+            const uint32_t a = old[3 * t], b = old[3 * t + 1], c = old[3 * t + 2];
+            const uint32_t ab = midpoint(s, cache, keys, cap, a, b);
+            const uint32_t bc = midpoint(s, cache, keys, cap, b, c);
+            const uint32_t ca = midpoint(s, cache, keys, cap, c, a);
+            add_triangle(s, a, ab, ca);
+            add_triangle(s, b, bc, ab);
+            add_triangle(s, c, ca, bc);
+            add_triangle(s, ab, bc, ca);
+        }
+        free(old); free(cache); free(keys);
+    }
+}
+
+/* n^3 closed cubes of side `cell` from `origin`; neighbours share faces
+** (each shared face is in the mesh twice, with different diagonals). */
+static void cube_grid(scene *s, int n, float origin, float cell)
+{
+    static const int quads[6][4] = {{0, 2, 3, 1}, {4, 5, 7, 6}, {0, 1, 5, 4},
+                                    {2, 6, 7, 3}, {0, 4, 6, 2}, {1, 3, 7, 5}};
+    int x, y, z, q, k;
+    for (x = 0; x < n; x++)
+        for (y = 0; y < n; y++)
+            for (z = 0; z < n; z++) {
+                uint32_t v[8];
+                for (k = 0; k < 8; k++)
+                    v[k] = add_vertex(s, origin + cell * (float)(x + (k & 1)),
+                                      origin + cell * (float)(y + (k >> 1 & 1)),
+                                      origin + cell * (float)(z + (k >> 2 & 1)));
+                for (q = 0; q < 6; q++) {
+                    const int flip = (x + y + z + q) & 1;
+                    const int *f = quads[q];
+                    if (flip) {
+                        add_triangle(s, v[f[0]], v[f[1]], v[f[2]]);
+                        add_triangle(s, v[f[0]], v[f[2]], v[f[3]]);
+                    } else {
+                        add_triangle(s, v[f[1]], v[f[2]], v[f[3]]);
+                        add_triangle(s, v[f[1]], v[f[3]], v[f[0]]);
+                    }
+                }
+            }
+}
+
+/* A ray from `from` aimed exactly at `target` on a closed surface enclosing
+** `from` (or, from outside, crossing into it) must hit.  Counts leaks and
+** reports the first. */
+static void aim(const scene *s, const brt_bvh *bvh, const float from[3],
+                const float target[3], size_t *rays, size_t *leaks)
+{
+    brt_ray r;
+    brt_hit h, want;
+    int a;
+    for (a = 0; a < 3; a++) { r.org[a] = from[a]; r.dir[a] = target[a] - from[a]; }
+    r.tnear = 0.0f;
+    r.tfar = INFINITY;
+    brt_hit_clear(&h);
+    brt_hit_clear(&want);
+    brt_bvh_intersect(bvh, &r, &h);
+    brute_force(s, NULL, &r, &want);
+    (*rays)++;
+    if (h.prim != BRT_NO_PRIM && want.prim != BRT_NO_PRIM) return;
+    if ((*leaks)++ == 0)
+        test_fail_at(__FILE__, __LINE__, "leak: ray from (%a %a %a) at (%a %a %a): bvh prim %u, "
+                     "brute force prim %u", from[0], from[1], from[2], target[0], target[1],
+                     target[2], (unsigned)h.prim, (unsigned)want.prim);
+}
+
+/* Aims at every vertex and every edge midpoint of every triangle, from an
+** inside point and from an outside point beyond the target. */
+static void aim_at_features(const scene *s, const brt_bvh *bvh, const float inside[3],
+                            uint64_t *st, size_t *rays, size_t *leaks)
+{
+    uint32_t t;
+    int j, a;
+    for (t = 0; t < s->tcount; t++)
+        for (j = 0; j < 6; j++) {
+            const float *p = vertex(s, t, j % 3), *q = vertex(s, t, (j + 1) % 3);
+            float target[3], outside[3], jitter[3], w = 0.0f;
+            random_unit(st, jitter);
+            for (a = 0; a < 3; a++) {
+                target[a] = j < 3 ? p[a] : 0.5f * (p[a] + q[a]);
+                w += (target[a] - inside[a]) * (target[a] - inside[a]);
+            }
+            /* beyond the target the ray passes within 0.05*|w| of inside */
+            for (a = 0; a < 3; a++)
+                outside[a] = inside[a] + 3.0f * (target[a] - inside[a]) + 0.1f * sqrtf(w) * jitter[a];
+            aim(s, bvh, inside, target, rays, leaks);
+            aim(s, bvh, outside, target, rays, leaks);
+        }
+}
+
+static void test_watertight_icosphere(void)
+{
+    uint64_t st = test_seed() ^ 29;
+    scene s = {0};
+    brt_bvh *bvh;
+    size_t rays = 0, leaks = 0;
+    int i;
+    icosphere(&s, 4);
+    bvh = build_checked(&s, NULL);
+    for (i = 0; bvh && i < 3; i++) {
+        float inside[3];
+        random_unit(&st, inside);
+        inside[0] *= 0.3f; inside[1] *= 0.3f; inside[2] *= 0.3f;
+        aim_at_features(&s, bvh, inside, &st, &rays, &leaks);
+    }
+    EXPECT(leaks == 0, "%zu of %zu rays leaked", leaks, rays);
+    brt_bvh_free(bvh);
+    scene_free(&s);
+}
+
+static void test_watertight_cubes(void)
+{
+    uint64_t st = test_seed() ^ 31;
+    scene s = {0};
+    brt_bvh *bvh;
+    size_t rays = 0, leaks = 0;
+    const int n = 5;
+    const float origin = 0.3f, cell = 0.1f;
+    int x, y, z;
+    cube_grid(&s, n, origin, cell);
+    bvh = build_checked(&s, NULL);
+    /* from inside every cube at its own vertices and edge midpoints */
+    for (x = 0; bvh && x < n; x++)
+        for (y = 0; y < n; y++)
+            for (z = 0; z < n; z++) {
+                const uint32_t first = (uint32_t)(12 * ((x * n + y) * n + z));
+                scene cube = s;
+                float inside[3];
+                inside[0] = origin + cell * ((float)x + rnd(&st, 0.1f, 0.9f));
+                inside[1] = origin + cell * ((float)y + rnd(&st, 0.1f, 0.9f));
+                inside[2] = origin + cell * ((float)z + rnd(&st, 0.1f, 0.9f));
+                cube.idx = s.idx + 3 * first;   /* this cube's 12 triangles */
+                cube.tcount = 12;
+                aim_at_features(&cube, bvh, inside, &st, &rays, &leaks);
+            }
+    EXPECT(leaks == 0, "%zu of %zu rays leaked", leaks, rays);
+    brt_bvh_free(bvh);
+    scene_free(&s);
+}
+
+/* ===================================================================== */
+/* Degenerate rays, empty BVH, blobs                                     */
+/* ===================================================================== */
+
+static void test_degenerate_rays(void)
+{
+    uint64_t st = test_seed() ^ 37;
+    scene s = {0};
+    brt_bvh *bvh;
+    const float bad[] = {NAN, INFINITY, -INFINITY};
+    const brt_ray good = {{0.5f, 0.5f, -3.0f}, {0.01f, 0.02f, 1.0f}, 0.0f, INFINITY};
+    size_t n = 0;
+    int c, b;
+    random_soup(&s, &st, 400, 0.2f);
+    axis_grid(&s, 2);   /* a square at z = 1 covering [0,2]^2: `good` hits */
+    bvh = build_checked(&s, NULL);
+    if (!bvh) { scene_free(&s); return; }
+    for (c = 0; c < 8; c++)
+        for (b = 0; b < 3; b++) {
+            brt_ray r = good;
+            float *field = c < 3 ? &r.org[c] : c < 6 ? &r.dir[c - 3] : c == 6 ? &r.tnear : &r.tfar;
+            brt_hit h;
+            *field = bad[b];
+            if ((c == 7 && b == 1) || (c == 6 && b == 2))
+                continue;   /* tfar = +inf, tnear = -inf: ordinary rays */
+            if (!compare_ray(&s, NULL, bvh, &r, "bad component", n++)) goto done;
+            brt_hit_clear(&h);
+            brt_bvh_intersect(bvh, &r, &h);
+            CHECK(h.prim == BRT_NO_PRIM, "ray with component %d = %g hit prim %u", c, bad[b],
+                  (unsigned)h.prim);
+        }
+    {
+        brt_ray zero = good, reversed = good;
+        brt_hit h;
+        float t, u, v;
+        zero.dir[0] = zero.dir[1] = zero.dir[2] = 0.0f;
+        reversed.tnear = 2.0f;
+        reversed.tfar = 1.0f;
+        CHECK(compare_ray(&s, NULL, bvh, &zero, "zero direction", 0), "zero direction");
+        CHECK(compare_ray(&s, NULL, bvh, &reversed, "tnear > tfar", 0), "tnear > tfar");
+        brt_hit_clear(&h);
+        brt_bvh_intersect(bvh, &good, &h);
+        CHECK(h.prim != BRT_NO_PRIM, "the reference ray should hit");
+        CHECK(!brt_intersect_triangle(&zero, vertex(&s, h.prim, 0), vertex(&s, h.prim, 1),
+                                      vertex(&s, h.prim, 2), &t, &u, &v), "zero direction hit");
+        CHECK(!brt_intersect_triangle(&reversed, vertex(&s, h.prim, 0), vertex(&s, h.prim, 1),
+                                      vertex(&s, h.prim, 2), &t, &u, &v), "tnear > tfar hit");
+    }
+done:
+    brt_bvh_free(bvh);
+    scene_free(&s);
+}
+
+/* Exact values on one triangle: Embree's barycentrics, inclusive range. */
+static void test_triangle_exact(void)
+{
+    const float v0[3] = {0, 0, 0}, v1[3] = {4, 0, 0}, v2[3] = {0, 4, 0};
+    brt_ray r = {{1, 2, 5}, {0, 0, -1}, 0.0f, INFINITY};
+    float t, u, v;
+    CHECK(brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v), "should hit");
+    CHECK(t == 5.0f && u == 0.25f && v == 0.5f, "t %g u %g v %g, expected 5 0.25 0.5", t, u, v);
+    r.tfar = 5.0f;
+    CHECK(brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v), "t == tfar must count");
+    r.tnear = 5.0f;
+    CHECK(brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v), "t == tnear must count");
+    r.tfar = nextafterf(5.0f, 0.0f);
+    r.tnear = 0.0f;
+    CHECK(!brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v), "t > tfar must not count");
+    r.tfar = INFINITY;
+    r.dir[2] = 1.0f;
+    CHECK(!brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v), "behind the origin");
+}
+
+static void test_empty(void)
+{
+    brt_bvh *bvh = NULL, *opened = NULL;
+    brt_error err;
+    brt_ray r = {{0, 0, 0}, {1, 0, 0}, -INFINITY, INFINITY};
+    brt_hit h;
+    float lo[3], hi[3];
+    void *blob;
+    CHECK(brt_bvh_build(NULL, NULL, 0, NULL, &bvh) == BRT_OK, "empty build");
+    CHECK(brt_bvh_check(bvh, &err) == BRT_OK, "check: %s", err.message);
+    brt_hit_clear(&h);
+    brt_bvh_intersect(bvh, &r, &h);
+    EXPECT(h.prim == BRT_NO_PRIM && h.t == INFINITY, "empty bvh hit");
+    EXPECT(!brt_bvh_occluded(bvh, &r), "empty bvh occluded");
+    brt_bvh_bounds(bvh, lo, hi);
+    EXPECT(lo[0] == INFINITY && hi[0] == -INFINITY, "empty bounds");
+    blob = malloc(brt_bvh_blob_size(bvh));
+    brt_bvh_blob_write(bvh, blob);
+    EXPECT(brt_bvh_blob_open(blob, brt_bvh_blob_size(bvh), &opened, &err) == BRT_OK,
+           "empty blob: %s", err.message);
+    if (opened) {
+        brt_bvh_intersect(opened, &r, &h);
+        EXPECT(h.prim == BRT_NO_PRIM, "empty blob hit");
+    }
+    brt_bvh_free(opened);
+    free(blob);
+    brt_bvh_free(bvh);
+}
+
+/* The blob's layout (see bvh.c): 16-byte header, 128-byte nodes. */
+#define HEADER_BYTES 16
+#define NODE_BYTES 128
+
+static void expect_eformat(const void *blob, size_t size, const char *what)
+{
+    brt_bvh *b = NULL;
+    brt_error err;
+    brt_result r = brt_bvh_blob_open(blob, size, &b, &err);
+    EXPECT(r == BRT_EFORMAT, "%s: got %s, expected a format error", what, brt_result_string(r));
+    brt_bvh_free(b);
+}
+
+static void put_u32(unsigned char *p, size_t offset, uint32_t value)
+{
+    memcpy(p + offset, &value, 4);
+}
+
+static void test_blob(void)
+{
+    uint64_t st = test_seed() ^ 41;
+    scene s = {0};
+    brt_bvh *bvh, *opened = NULL;
+    brt_error err;
+    unsigned char *blob, *bad;
+    size_t size, n, i;
+    float lo[3], hi[3];
+    random_soup(&s, &st, 2000, 0.05f);
+    bvh = build_checked(&s, NULL);
+    if (!bvh) { scene_free(&s); return; }
+    size = brt_bvh_blob_size(bvh);
+    blob = malloc(size);
+    bad = malloc(size);
+    brt_bvh_blob_write(bvh, blob);
+    CHECK(brt_bvh_blob_open(blob, size, &opened, &err) == BRT_OK, "open: %s", err.message);
+    CHECK(brt_bvh_check(opened, &err) == BRT_OK, "check opened: %s", err.message);
+    scene_bounds(&s, lo, hi);
+    for (n = 0; n < 1000 && !test_failed(); n++) {
+        brt_ray r;
+        brt_hit a, b;
+        make_ray(&s, lo, hi, (int)(n % RAY_KINDS), &st, &r);
+        brt_hit_clear(&a);
+        brt_hit_clear(&b);
+        brt_bvh_intersect(bvh, &r, &a);
+        brt_bvh_intersect(opened, &r, &b);
+        EXPECT(memcmp(&a, &b, sizeof a) == 0, "ray %zu: opened blob differs", n);
+    }
+    brt_bvh_free(opened);
+
+    expect_eformat(blob, size - 1, "truncated by one byte");
+    expect_eformat(blob, size - 40, "one triangle short");
+    expect_eformat(blob, 8, "shorter than a header");
+    memcpy(bad, blob, size); put_u32(bad, 0, 0x12345678u);
+    expect_eformat(bad, size, "bad magic");
+    memcpy(bad, blob, size); put_u32(bad, 4, ((uint32_t *)(void *)blob)[1] + 1);
+    expect_eformat(bad, size, "node count one too many");
+    memcpy(bad, blob, size); put_u32(bad, 8, 0xFFFFFFF0u);
+    expect_eformat(bad, size, "huge triangle count");
+    /* child slots: root slot 0 at header + 96 (child) and + 112 (count) */
+    memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 0);
+    put_u32(bad, HEADER_BYTES + 96, 1000000u);
+    expect_eformat(bad, size, "child node out of range");
+    memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 0);
+    put_u32(bad, HEADER_BYTES + 96, 0);
+    expect_eformat(bad, size, "child pointing at the root (a cycle)");
+    memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 3);
+    put_u32(bad, HEADER_BYTES + 96, s.tcount - 1);
+    expect_eformat(bad, size, "leaf range past the end");
+    /* random damage to the nodes: a format error or a working BVH */
+    for (i = 0; i < 300 && !test_failed(); i++) {
+        const size_t nodes = (size - HEADER_BYTES - 40 * (size_t)s.tcount) / NODE_BYTES;
+        const size_t at = HEADER_BYTES + NODE_BYTES * (brt_random_u64(&st) % nodes)
+                          + 96 + brt_random_u64(&st) % 32;
+        brt_result r;
+        memcpy(bad, blob, size);
+        bad[at] = (unsigned char)brt_random_u64(&st);
+        r = brt_bvh_blob_open(bad, size, &opened, &err);
+        EXPECT(r == BRT_OK || r == BRT_EFORMAT, "damaged byte %zu: %s", at, brt_result_string(r));
+        if (r == BRT_OK) {
+            brt_ray ray;
+            brt_hit h;
+            make_ray(&s, lo, hi, RAY_RANDOM, &st, &ray);
+            brt_hit_clear(&h);
+            brt_bvh_intersect(opened, &ray, &h);
+            brt_bvh_free(opened);
+        }
+    }
+    free(bad);
+    free(blob);
+    brt_bvh_free(bvh);
+    scene_free(&s);
+}
+
+static void test_bounds_and_memory(void)
+{
+    uint64_t st = test_seed() ^ 43;
+    scene s = {0};
+    brt_bvh *bvh;
+    float lo[3], hi[3], blo[3], bhi[3];
+    int a;
+    random_soup(&s, &st, 100, 0.1f);
+    bvh = build_checked(&s, NULL);
+    if (!bvh) { scene_free(&s); return; }
+    scene_bounds(&s, lo, hi);
+    brt_bvh_bounds(bvh, blo, bhi);
+    for (a = 0; a < 3; a++)
+        EXPECT(blo[a] <= lo[a] && bhi[a] >= hi[a] && hi[a] - bhi[a] > -1e-4f && blo[a] - lo[a] > -1e-4f,
+               "axis %d: bvh bounds [%g,%g] vs mesh [%g,%g]", a, blo[a], bhi[a], lo[a], hi[a]);
+    EXPECT(brt_bvh_memory_bytes(bvh) >= 36u * s.tcount, "memory bytes %zu", brt_bvh_memory_bytes(bvh));
+    brt_bvh_free(bvh);
+    scene_free(&s);
+}
+
+void suite_bvh(void)
+{
+    test_run("bvh: triangle exact values", test_triangle_exact);
+    test_run("bvh: random soups == brute force", test_random_soups);
+    test_run("bvh: prim ids == brute force", test_prim_ids);
+    test_run("bvh: coplanar == brute force", test_coplanar);
+    test_run("bvh: axis grid == brute force", test_axis_grid);
+    test_run("bvh: duplicates == brute force", test_duplicates);
+    test_run("bvh: slivers, zero area == brute force", test_slivers_and_zero_area);
+    test_run("bvh: tiny and huge scales == brute force", test_scales);
+    test_run("bvh: bunny_tiny == brute force", test_mesh_bunny_tiny);
+    test_run("bvh: bunny == brute force", test_mesh_bunny);
+    test_run("bvh: dragon == brute force", test_mesh_dragon);
+    test_run("bvh: bmw_m6 == brute force", test_mesh_bmw);
+    test_run("bvh: crown == brute force", test_mesh_crown);
+    test_run("bvh: fg_oahu == brute force", test_mesh_oahu);
+    test_run("bvh: watertight icosphere", test_watertight_icosphere);
+    test_run("bvh: watertight cube grid", test_watertight_cubes);
+    test_run("bvh: degenerate rays miss", test_degenerate_rays);
+    test_run("bvh: empty", test_empty);
+    test_run("bvh: blob round trip and corruption", test_blob);
+    test_run("bvh: bounds and memory", test_bounds_and_memory);
+}

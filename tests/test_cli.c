@@ -1,2 +1,918 @@
+/*
+** tests/test_cli.c -- the command-line contracts of design.md, checked from
+** outside: the programs in $BRT_BUILD (default "build") run through
+** system() on small meshes generated into the scratch directory, and their
+** files are compared with independent oracles written here (a brute-force
+** loop over brt_intersect_triangle for hits, geometry for rays, a
+** self-written PNG decoder for the PNG writer of examples/common.c).
+*/
 #include "test.h"
-void suite_cli(void) {}
+#include "batchrt.h"
+#include "util.h"
+#include "../examples/common.h"
+
+#include <dirent.h>
+#include <math.h>
+#include <stdarg.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
+
+/* ===================================================================== */
+/* Files and processes                                                   */
+/* ===================================================================== */
+
+/* NAME inside the scratch directory (a few rotating buffers). */
+static const char *scratch(const char *name)
+{
+    static char paths[8][512];
+    static int next;
+    char *out = paths[next++ % 8];
+    snprintf(out, 512, "%s/%s", test_tmpdir(), name);
+    return out;
+}
+
+static int file_exists(const char *path)
+{
+    struct stat st;
+    return stat(path, &st) == 0;
+}
+
+/* The whole file, NUL-terminated (malloc'd), or NULL. */
+static unsigned char *slurp(const char *path, size_t *size)
+{
+    FILE *f = fopen(path, "rb");
+    unsigned char *data = NULL;
+    long n;
+    if (!f) return NULL;
+    if (fseek(f, 0, SEEK_END) == 0 && (n = ftell(f)) >= 0 && fseek(f, 0, SEEK_SET) == 0
+        && (data = malloc((size_t)n + 1)) != NULL) {
+        if (fread(data, 1, (size_t)n, f) == (size_t)n) {
+            data[n] = 0;
+            if (size) *size = (size_t)n;
+        } else {
+            free(data);
+            data = NULL;
+        }
+    }
+    fclose(f);
+    return data;
+}
+
+static int spill(const char *path, const void *data, size_t size)
+{
+    FILE *f = fopen(path, "wb");
+    int ok = f && fwrite(data, 1, size, f) == size;
+    if (f && fclose(f) != 0) ok = 0;
+    return ok;
+}
+
+/* Runs "$BRT_BUILD/ARGS" with '@' in ARGS standing for the scratch
+** directory; stdout and stderr go to cli.out and cli.err there.  Returns
+** the exit status, or -1 when the program died from a signal. */
+static int run(const char *fmt, ...)
+{
+    char args[2048], expanded[4096], cmd[8192];
+    const char *build = getenv("BRT_BUILD"), *dir = test_tmpdir(), *p;
+    size_t n = 0;
+    int status;
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(args, sizeof args, fmt, ap);
+    va_end(ap);
+    for (p = args; *p && n + strlen(dir) + 1 < sizeof expanded; p++) {
+        if (*p == '@') { memcpy(expanded + n, dir, strlen(dir)); n += strlen(dir); }
+        else expanded[n++] = *p;
+    }
+    expanded[n] = 0;
+    snprintf(cmd, sizeof cmd, "%s/%s > '%s/cli.out' 2> '%s/cli.err'",
+             build ? build : "build", expanded, dir, dir);
+    status = system(cmd);
+    if (status == -1 || !WIFEXITED(status)) return -1;
+    return WEXITSTATUS(status);
+}
+
+static char *last_stdout(void) { return (char *)slurp(scratch("cli.out"), NULL); }
+static char *last_stderr(void) { return (char *)slurp(scratch("cli.err"), NULL); }
+
+/* Nonzero when the scratch directory holds a "*.tmp.*" file, the trace an
+** interrupted atomic write would leave. */
+static int temporary_file_left(void)
+{
+    DIR *d = opendir(test_tmpdir());
+    struct dirent *e;
+    int found = 0;
+    if (!d) return 1;
+    while ((e = readdir(d)) != NULL)
+        if (strstr(e->d_name, ".tmp.")) found = 1;
+    closedir(d);
+    return found;
+}
+
+/* ===================================================================== */
+/* Test meshes and record codecs                                         */
+/* ===================================================================== */
+
+/* "%.9g" round-trips every float, so the loader sees exactly m's values. */
+static int write_obj(const char *path, const tu_scene *m)
+{
+    FILE *f = fopen(path, "w");
+    uint32_t i;
+    if (!f) return 0;
+    for (i = 0; i < m->vcount; i++)
+        fprintf(f, "v %.9g %.9g %.9g\n", m->pos[3 * i], m->pos[3 * i + 1], m->pos[3 * i + 2]);
+    for (i = 0; i < m->tcount; i++)
+        fprintf(f, "f %u %u %u\n", (unsigned)m->idx[3 * i] + 1, (unsigned)m->idx[3 * i + 1] + 1,
+                (unsigned)m->idx[3 * i + 2] + 1);
+    return fclose(f) == 0;
+}
+
+/* A lumpy closed sphere (random radii per vertex) plus a random soup of
+** triangles through it, an exact duplicate (equal t: the tie-break decides)
+** and a degenerate triangle: every kind of ray finds something to hit. */
+static void make_lumpy_mesh(tu_scene *m, uint64_t *rng)
+{
+    const int stacks = 12, slices = 24;
+    const double pi = 3.14159265358979323846;
+    uint32_t north, south;
+    int i, j;
+    north = tu_add_vertex(m, 0, 1, 0);
+    for (i = 1; i < stacks; i++)
+        for (j = 0; j < slices; j++) {
+            double th = pi * i / stacks, ph = 2 * pi * j / slices;
+            double r = 1.0 + 0.2 * brt_random_float(rng);
+            tu_add_vertex(m, (float)(r * sin(th) * cos(ph)), (float)(r * cos(th)),
+                          (float)(r * sin(th) * sin(ph)));
+        }
+    south = tu_add_vertex(m, 0, -1, 0);
+    for (j = 0; j < slices; j++) {
+        uint32_t j1 = (uint32_t)((j + 1) % slices);
+        tu_add_triangle(m, north, 1 + j1, 1 + (uint32_t)j);
+        tu_add_triangle(m, south, 1 + (uint32_t)((stacks - 2) * slices + j),
+                        1 + (uint32_t)((stacks - 2) * slices) + j1);
+        for (i = 0; i + 2 < stacks; i++) {
+            uint32_t a = 1 + (uint32_t)(i * slices + j), b = 1 + (uint32_t)(i * slices) + j1;
+            tu_add_triangle(m, a, b, b + (uint32_t)slices);
+            tu_add_triangle(m, a, b + (uint32_t)slices, a + (uint32_t)slices);
+        }
+    }
+    for (i = 0; i < 60; i++) {
+        float x = tu_rnd(rng, -1.2f, 1.2f), y = tu_rnd(rng, -1.2f, 1.2f);
+        float z = tu_rnd(rng, -1.2f, 1.2f);
+        uint32_t a = tu_add_vertex(m, x, y, z);
+        tu_add_vertex(m, x + tu_rnd(rng, 0, 0.5f), y + tu_rnd(rng, 0, 0.5f), z);
+        tu_add_vertex(m, x, y + tu_rnd(rng, 0, 0.5f), z + tu_rnd(rng, 0, 0.5f));
+        tu_add_triangle(m, a, a + 1, a + 2);
+    }
+    tu_add_triangle(m, m->idx[3 * 5], m->idx[3 * 5 + 1], m->idx[3 * 5 + 2]);
+    tu_add_triangle(m, north, north, south);
+}
+
+/* The cube [-1,1]^3, 12 triangles, outward winding irrelevant. */
+static void make_cube(tu_scene *m)
+{
+    static const int quads[6][4] = {{0, 1, 3, 2}, {4, 6, 7, 5}, {0, 4, 5, 1},
+                                    {2, 3, 7, 6}, {0, 2, 6, 4}, {1, 5, 7, 3}};
+    int i;
+    for (i = 0; i < 8; i++)
+        tu_add_vertex(m, i & 1 ? 1.0f : -1.0f, i & 2 ? 1.0f : -1.0f, i & 4 ? 1.0f : -1.0f);
+    for (i = 0; i < 6; i++) {
+        tu_add_triangle(m, (uint32_t)quads[i][0], (uint32_t)quads[i][1], (uint32_t)quads[i][2]);
+        tu_add_triangle(m, (uint32_t)quads[i][0], (uint32_t)quads[i][2], (uint32_t)quads[i][3]);
+    }
+}
+
+/* Writes the cube as an OBJ file NAME in the scratch directory. */
+static int write_cube(const char *name)
+{
+    tu_scene cube = {0};
+    int ok;
+    make_cube(&cube);
+    ok = write_obj(scratch(name), &cube);
+    tu_scene_free(&cube);
+    return ok;
+}
+
+static uint32_t get_le32(const unsigned char *p)
+{
+    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
+}
+
+static void put_le32(unsigned char *p, uint32_t x)
+{
+    p[0] = (unsigned char)x; p[1] = (unsigned char)(x >> 8);
+    p[2] = (unsigned char)(x >> 16); p[3] = (unsigned char)(x >> 24);
+}
+
+static float get_f32(const unsigned char *p)
+{
+    uint32_t bits = get_le32(p);
+    float f;
+    memcpy(&f, &bits, 4);
+    return f;
+}
+
+static void put_f32(unsigned char *p, float f)
+{
+    uint32_t bits;
+    memcpy(&bits, &f, 4);
+    put_le32(p, bits);
+}
+
+/* Decodes a ray file by hand (32-byte little-endian records). */
+static brt_ray *load_rays(const char *path, size_t *count)
+{
+    size_t size, i;
+    int k;
+    unsigned char *data = slurp(path, &size);
+    brt_ray *rays;
+    if (!data || size % 32 != 0 || !(rays = malloc(size / 32 * sizeof *rays + 1))) {
+        free(data);
+        return NULL;
+    }
+    for (i = 0; i < size / 32; i++) {
+        for (k = 0; k < 3; k++) {
+            rays[i].org[k] = get_f32(data + 32 * i + 4 * k);
+            rays[i].dir[k] = get_f32(data + 32 * i + 12 + 4 * k);
+        }
+        rays[i].tnear = get_f32(data + 32 * i + 24);
+        rays[i].tfar = get_f32(data + 32 * i + 28);
+    }
+    free(data);
+    *count = size / 32;
+    return rays;
+}
+
+/* The oracle: every triangle in turn, closest hit, lowest prim on ties. */
+static brt_hit brute_force_hit(const tu_scene *m, const brt_ray *ray)
+{
+    brt_hit hit;
+    uint32_t i;
+    brt_hit_clear(&hit);
+    for (i = 0; i < m->tcount; i++) {
+        float t, u, v;
+        if (brt_intersect_triangle(ray, m->pos + 3 * m->idx[3 * i], m->pos + 3 * m->idx[3 * i + 1],
+                                   m->pos + 3 * m->idx[3 * i + 2], &t, &u, &v)
+            && brt_hit_is_closer(t, i, &hit)) {
+            hit.t = t;
+            hit.prim = i;
+            hit.u = u;
+            hit.v = v;
+        }
+    }
+    return hit;
+}
+
+static double length3f(const float v[3])
+{
+    return sqrt((double)v[0] * v[0] + (double)v[1] * v[1] + (double)v[2] * v[2]);
+}
+
+/* Common checks of every raygen kind: unit directions, tnear 0, tfar +inf.
+** Records a failure for the first bad ray and returns 0 then. */
+static int rays_are_unit_and_unbounded(const brt_ray *rays, size_t count)
+{
+    size_t i;
+    for (i = 0; i < count; i++) {
+        const brt_ray *r = &rays[i];
+        if (fabs(length3f(r->dir) - 1.0) > 1e-6 || r->tnear != 0.0f || !(r->tfar == INFINITY)) {
+            test_fail_at(__FILE__, __LINE__, "ray %lu: |dir| = %.9g, tnear %g, tfar %g",
+                         (unsigned long)i, length3f(r->dir), r->tnear, r->tfar);
+            return 0;
+        }
+    }
+    return 1;
+}
+
+/* Writes the test meshes and returns nonzero on success. */
+static int write_lumpy_mesh(tu_scene *m, const char *name)
+{
+    uint64_t rng = test_seed();
+    make_lumpy_mesh(m, &rng);
+    return write_obj(scratch(name), m);
+}
+
+/* ===================================================================== */
+/* Tests                                                                 */
+/* ===================================================================== */
+
+static void test_help(void)
+{
+    static const char *const programs[] = {"trace", "raygen", "hitdiff", "minimal"};
+    size_t i;
+    for (i = 0; i < sizeof programs / sizeof *programs; i++) {
+        char *out;
+        int status = run("%s --help", programs[i]);
+        out = last_stdout();
+        EXPECT(status == 0, "%s --help: exit status %d", programs[i], status);
+        EXPECT(out && strstr(out, "usage:"), "%s --help: no usage on stdout", programs[i]);
+        free(out);
+    }
+}
+
+static void test_minimal(void)
+{
+    char *out;
+    int status = run("minimal");
+    out = last_stdout();
+    /* Five rays down the quad's anti-diagonal all hit it. */
+    EXPECT(status == 0, "minimal: exit status %d", status);
+    EXPECT(out && strstr(out, "ray 4 ") && !strstr(out, "miss"), "minimal printed: %s",
+           out ? out : "(nothing)");
+    free(out);
+}
+
+static void test_raygen_deterministic(void)
+{
+    static const char *const kinds[] = {"camera", "random", "bounce"};
+    tu_scene m = {0};
+    size_t i;
+    CHECK(write_lumpy_mesh(&m, "lumpy.obj"), "cannot write the test mesh");
+    tu_scene_free(&m);
+    for (i = 0; i < 3; i++) {
+        unsigned char *a, *b, *c;
+        size_t na = 0, nb = 0, nc = 0;
+        int sa = run("raygen @/lumpy.obj @/det_a.rays --kind %s --count 321 --seed 7", kinds[i]);
+        int sb = run("raygen @/lumpy.obj @/det_b.rays --seed 7 --count 321 --kind %s", kinds[i]);
+        int sc = run("raygen @/lumpy.obj @/det_c.rays --kind %s --count 321 --seed 8", kinds[i]);
+        a = slurp(scratch("det_a.rays"), &na);
+        b = slurp(scratch("det_b.rays"), &nb);
+        c = slurp(scratch("det_c.rays"), &nc);
+        EXPECT(sa == 0 && sb == 0 && sc == 0, "%s: exit status %d %d %d", kinds[i], sa, sb, sc);
+        EXPECT(a && b && c && na == 321 * 32 && nb == na && nc == na,
+               "%s: sizes %lu %lu %lu, expected %d", kinds[i], (unsigned long)na,
+               (unsigned long)nb, (unsigned long)nc, 321 * 32);
+        EXPECT(a && b && na == nb && memcmp(a, b, na) == 0, "%s: same seed, different bytes",
+               kinds[i]);
+        EXPECT(a && c && na == nc && memcmp(a, c, na) != 0, "%s: seeds 7 and 8 give the same rays",
+               kinds[i]);
+        free(a);
+        free(b);
+        free(c);
+    }
+}
+
+/* The documented camera: one eye on the +z side of the box and above its
+** centre, looking at the centre with a 45 degree field of view; ray i goes
+** through pixel (i mod w, i div w) of a w x h grid, w = ceil(sqrt(count)),
+** top row first, at a jittered point inside that pixel. */
+static void test_raygen_camera(void)
+{
+    const double half = tan(22.5 * 3.14159265358979323846 / 180.0), eps = 1e-5;
+    const int w = 32, h = 32;   /* for 1000 rays */
+    tu_scene m = {0};
+    brt_ray *rays = NULL;
+    size_t count = 0, i;
+    float bmin[3], bmax[3];
+    double fwd[3], right[3], up[3], len;
+    int k, status;
+    CHECK(write_lumpy_mesh(&m, "lumpy.obj"), "cannot write the test mesh");
+    tu_scene_bounds(&m, bmin, bmax);
+    tu_scene_free(&m);
+    status = run("raygen @/lumpy.obj @/cam.rays --kind camera --count 1000");
+    CHECK(status == 0, "raygen camera: exit status %d", status);
+    rays = load_rays(scratch("cam.rays"), &count);
+    CHECK(rays && count == 1000, "expected 1000 camera rays, read %lu", (unsigned long)count);
+    if (!rays_are_unit_and_unbounded(rays, count)) { free(rays); return; }
+    EXPECT(rays[0].org[2] > bmax[2] && rays[0].org[1] > 0.5f * (bmin[1] + bmax[1]),
+           "eye (%g, %g, %g) not in front of the box and above its centre", rays[0].org[0],
+           rays[0].org[1], rays[0].org[2]);
+    /* The camera frame: forward to the centre, right = forward x (0,1,0). */
+    for (k = 0; k < 3; k++) fwd[k] = 0.5 * ((double)bmin[k] + bmax[k]) - rays[0].org[k];
+    len = sqrt(fwd[0] * fwd[0] + fwd[1] * fwd[1] + fwd[2] * fwd[2]);
+    for (k = 0; k < 3; k++) fwd[k] /= len;
+    len = sqrt(fwd[0] * fwd[0] + fwd[2] * fwd[2]);
+    right[0] = -fwd[2] / len; right[1] = 0; right[2] = fwd[0] / len;
+    up[0] = right[1] * fwd[2] - right[2] * fwd[1];
+    up[1] = right[2] * fwd[0] - right[0] * fwd[2];
+    up[2] = right[0] * fwd[1] - right[1] * fwd[0];
+    for (i = 0; i < count && !test_failed(); i++) {
+        const float *d = rays[i].dir;
+        double z = d[0] * fwd[0] + d[1] * fwd[1] + d[2] * fwd[2];
+        double x = (d[0] * right[0] + d[1] * right[1] + d[2] * right[2]) / z / half;
+        double y = (d[0] * up[0] + d[1] * up[1] + d[2] * up[2]) / z / half;
+        double col = (x + 1) / 2 * w, row = (1 - y) / 2 * h;   /* pixel units */
+        EXPECT(memcmp(rays[i].org, rays[0].org, sizeof rays[0].org) == 0,
+               "ray %lu: a second eye", (unsigned long)i);
+        EXPECT(col >= (double)(i % w) - eps && col <= (double)(i % w + 1) + eps
+               && row >= (double)(i / w) - eps && row <= (double)(i / w + 1) + eps,
+               "ray %lu goes through pixel (%.4f, %.4f), not (%lu, %lu)", (unsigned long)i, col,
+               row, (unsigned long)(i % w), (unsigned long)(i / w));
+        EXPECT(i == 0 || memcmp(rays[i].dir, rays[i - 1].dir, sizeof rays[i].dir) != 0,
+               "rays %lu and %lu share a direction", (unsigned long)i - 1, (unsigned long)i);
+    }
+    free(rays);
+}
+
+static void test_raygen_random(void)
+{
+    brt_ray *rays;
+    size_t count = 0, i;
+    int k, status, negative[3] = {0, 0, 0}, positive[3] = {0, 0, 0};
+    CHECK(write_cube("cube.obj"), "cannot write the cube");
+    status = run("raygen @/cube.obj @/random.rays --kind random --count 2000 --seed 3");
+    CHECK(status == 0, "raygen random: exit status %d", status);
+    rays = load_rays(scratch("random.rays"), &count);
+    CHECK(rays && count == 2000, "expected 2000 random rays, read %lu", (unsigned long)count);
+    if (!rays_are_unit_and_unbounded(rays, count)) { free(rays); return; }
+    for (i = 0; i < count; i++)
+        for (k = 0; k < 3; k++) {
+            /* The cube [-1,1]^3 grown by 10 %: [-1.1, 1.1]^3. */
+            EXPECT(fabsf(rays[i].org[k]) <= 1.1f, "ray %lu: origin %g outside the grown box",
+                   (unsigned long)i, rays[i].org[k]);
+            negative[k] += rays[i].dir[k] < 0;
+            positive[k] += rays[i].dir[k] > 0;
+        }
+    /* Uniform on the sphere: each half-space gets about half the rays
+    ** (binomial sd 22; 300 rays off is 13 sd). */
+    for (k = 0; k < 3; k++)
+        EXPECT(abs(negative[k] - 1000) < 300 && abs(positive[k] - 1000) < 300,
+               "axis %d: %d negative, %d positive directions", k, negative[k], positive[k]);
+    free(rays);
+}
+
+/* Bounce rays on a convex body: each starts just outside a face and points
+** away from it, so none may hit the cube again; the cosine weighting shows
+** as a mean cosine of 2/3 to the face normal (a uniform hemisphere: 1/2). */
+static void test_raygen_bounce(void)
+{
+    tu_scene cube = {0};
+    brt_ray *rays;
+    size_t count = 0, i;
+    double cos_sum = 0;
+    int status;
+    make_cube(&cube);
+    CHECK(write_obj(scratch("cube.obj"), &cube), "cannot write the cube");
+    status = run("raygen @/cube.obj @/bounce.rays --kind bounce --count 4000 --seed 5");
+    CHECK(status == 0, "raygen bounce: exit status %d", status);
+    rays = load_rays(scratch("bounce.rays"), &count);
+    CHECK(rays && count == 4000, "expected 4000 bounce rays, read %lu", (unsigned long)count);
+    if (!rays_are_unit_and_unbounded(rays, count)) { free(rays); return; }
+    for (i = 0; i < count && !test_failed(); i++) {
+        const brt_ray *r = &rays[i];
+        brt_hit hit = brute_force_hit(&cube, r);
+        int k, face = 0;
+        for (k = 1; k < 3; k++)
+            if (fabsf(r->org[k]) > fabsf(r->org[face])) face = k;
+        /* Outside by a small relative epsilon (1e-5 of the scale here). */
+        EXPECT(fabsf(r->org[face]) > 1.0f && fabsf(r->org[face]) < 1.0f + 1e-3f,
+               "ray %lu: origin (%g, %g, %g) not just outside a face", (unsigned long)i,
+               r->org[0], r->org[1], r->org[2]);
+        EXPECT(r->dir[face] * r->org[face] > 0, "ray %lu: points into its face", (unsigned long)i);
+        EXPECT(hit.prim == BRT_NO_PRIM, "ray %lu hits the cube again (prim %u, t %g)",
+               (unsigned long)i, (unsigned)hit.prim, hit.t);
+        cos_sum += fabsf(r->dir[face]);
+    }
+    EXPECT(fabs(cos_sum / (double)count - 2.0 / 3.0) < 0.03,
+           "mean cosine to the normal %g, expected 2/3", cos_sum / (double)count);
+    free(rays);
+    tu_scene_free(&cube);
+}
+
+/* Rays of the test's own making that stress the ray interval: from a
+** random point towards a random point near the centre (reached at t = 1,
+** directions not normalised), with random tnear and tfar around 1, so
+** that many hits lie just inside or outside [tnear, tfar] (some empty). */
+static int write_interval_rays(const char *path, size_t count)
+{
+    uint64_t rng = test_seed() ^ 0x1234u;
+    unsigned char *data = malloc(32 * count);
+    size_t i;
+    int k, ok;
+    if (!data) return 0;
+    for (i = 0; i < count; i++) {
+        unsigned char *r = data + 32 * i;
+        for (k = 0; k < 3; k++) {
+            float from = tu_rnd(&rng, -2.5f, 2.5f), to = tu_rnd(&rng, -0.5f, 0.5f);
+            put_f32(r + 4 * k, from);
+            put_f32(r + 12 + 4 * k, to - from);
+        }
+        put_f32(r + 24, tu_rnd(&rng, 0.0f, 0.7f));
+        put_f32(r + 28, tu_rnd(&rng, 0.3f, 1.3f));
+    }
+    ok = spill(path, data, 32 * count);
+    free(data);
+    return ok;
+}
+
+/* Traces RAYS with build/trace and compares the hit file byte for byte
+** with the brute-force oracle. */
+static void expect_trace_matches_oracle(const tu_scene *m, const char *rays_name)
+{
+    brt_ray *rays;
+    unsigned char *got, expected[16];
+    size_t count = 0, size = 0, i, hits = 0;
+    int status = run("trace @/lumpy.obj @/%s @/trace.hits", rays_name);
+    rays = load_rays(scratch(rays_name), &count);
+    got = slurp(scratch("trace.hits"), &size);
+    EXPECT(status == 0, "%s: trace exit status %d", rays_name, status);
+    EXPECT(rays && got && size == 16 * count, "%s: %lu hit bytes for %lu rays", rays_name,
+           (unsigned long)size, (unsigned long)count);
+    for (i = 0; rays && got && size == 16 * count && i < count; i++) {
+        brt_hit hit = brute_force_hit(m, &rays[i]);
+        put_f32(expected, hit.t);
+        put_le32(expected + 4, hit.prim);
+        put_f32(expected + 8, hit.u);
+        put_f32(expected + 12, hit.v);
+        hits += hit.prim != BRT_NO_PRIM;
+        if (memcmp(got + 16 * i, expected, 16) != 0) {
+            test_fail_at(__FILE__, __LINE__,
+                         "%s ray %lu: trace t %.9g prim %u, oracle t %.9g prim %u",
+                         rays_name, (unsigned long)i, get_f32(got + 16 * i),
+                         (unsigned)get_le32(got + 16 * i + 4), hit.t, (unsigned)hit.prim);
+            break;
+        }
+    }
+    /* A comparison of misses alone would prove little (bounce rays leave
+    ** the lumpy sphere mostly outwards: about 12 % hit). */
+    EXPECT(hits > count / 20, "%s: only %lu of %lu rays hit", rays_name, (unsigned long)hits,
+           (unsigned long)count);
+    free(rays);
+    free(got);
+}
+
+static void test_trace_equals_brute_force(void)
+{
+    static const char *const kinds[] = {"camera", "random", "bounce"};
+    tu_scene m = {0};
+    size_t i;
+    CHECK(write_lumpy_mesh(&m, "lumpy.obj"), "cannot write the test mesh");
+    for (i = 0; i < 3; i++) {
+        char name[32];
+        int status;
+        snprintf(name, sizeof name, "%s.rays", kinds[i]);
+        status = run("raygen @/lumpy.obj @/%s --kind %s --count 1500 --seed %llu", name,
+                     kinds[i], (unsigned long long)test_seed());
+        EXPECT(status == 0, "raygen %s: exit status %d", kinds[i], status);
+        expect_trace_matches_oracle(&m, name);
+    }
+    EXPECT(write_interval_rays(scratch("interval.rays"), 1500), "cannot write rays");
+    expect_trace_matches_oracle(&m, "interval.rays");
+    tu_scene_free(&m);
+}
+
+/* The number after "NAME": in a flat JSON object, or NaN when absent. */
+static double json_number(const char *json, const char *name)
+{
+    char key[64];
+    const char *p;
+    snprintf(key, sizeof key, "\"%s\"", name);
+    p = strstr(json, key);
+    if (!p) return NAN;
+    p += strlen(key);
+    while (*p == ' ') p++;
+    return *p == ':' ? strtod(p + 1, NULL) : NAN;
+}
+
+/* The statistics of direct mode, and the summary line on stderr only when
+** asked for (stderr is not a terminal under system()). */
+static void test_trace_stats(void)
+{
+    char *json, *err;
+    int status;
+    CHECK(write_cube("cube.obj"), "cannot write the cube");
+    status = run("raygen @/cube.obj @/stats.rays --kind camera --count 777");
+    CHECK(status == 0, "raygen: exit status %d", status);
+    status = run("trace @/cube.obj @/stats.rays @/stats.hits --stats @/stats.json");
+    err = last_stderr();
+    EXPECT(status == 0 && err && err[0] == 0, "trace --stats: exit status %d, stderr '%s'",
+           status, err ? err : "(none)");
+    free(err);
+    json = (char *)slurp(scratch("stats.json"), NULL);
+    CHECK(json, "no statistics file");
+    EXPECT(json_number(json, "rays") == 777 && json_number(json, "bvh_bytes_per_triangle") > 0
+           && json_number(json, "seconds") >= 0 && json_number(json, "build_seconds") >= 0
+           && json_number(json, "mrays_per_second") >= 0
+           && json_number(json, "memory_limit") == 0 && json_number(json, "batch_loads") == 0,
+           "statistics of direct mode: %s", json);
+    free(json);
+    status = run("trace @/cube.obj @/stats.rays @/stats.hits --verbose");
+    err = last_stderr();
+    EXPECT(status == 0 && err && !strncmp(err, "trace: 777 rays, ", 17)
+           && strstr(err, "Mrays/s\n") && strchr(err, '\n') == err + strlen(err) - 1,
+           "--verbose: exit status %d, stderr '%s'", status, err ? err : "(none)");
+    free(err);
+}
+
+/* Rewrites record i of a hit file: prim and t as given. */
+static int patch_hit(const char *path, size_t i, uint32_t prim, float t)
+{
+    size_t size;
+    unsigned char *data = slurp(path, &size);
+    int ok = data && 16 * i + 16 <= size;
+    if (ok) {
+        put_f32(data + 16 * i, t);
+        put_le32(data + 16 * i + 4, prim);
+        ok = spill(path, data, size);
+    }
+    free(data);
+    return ok;
+}
+
+/* The first hit record of a hit file that is a hit, or -1. */
+static long first_hit(const char *path, float *t, uint32_t *prim)
+{
+    size_t size, i;
+    unsigned char *data = slurp(path, &size);
+    long found = -1;
+    for (i = 0; data && found < 0 && 16 * i + 16 <= size; i++)
+        if (get_le32(data + 16 * i + 4) != BRT_NO_PRIM) {
+            found = (long)i;
+            *t = get_f32(data + 16 * i);
+            *prim = get_le32(data + 16 * i + 4);
+        }
+    free(data);
+    return found;
+}
+
+static void expect_hitdiff(int expected_status, const char *expected_text, const char *options)
+{
+    int status = run("hitdiff @/diff_a.hits @/diff_b.hits %s", options);
+    char *out = last_stdout();
+    EXPECT(status == expected_status, "hitdiff %s: exit status %d, expected %d", options,
+           status, expected_status);
+    EXPECT(out && strstr(out, expected_text), "hitdiff %s: no '%s' in:\n%s", options,
+           expected_text, out ? out : "(nothing)");
+    free(out);
+}
+
+static void test_hitdiff(void)
+{
+    tu_scene m = {0};
+    unsigned char *hits;
+    size_t size = 0;
+    float t = 0;
+    uint32_t prim = 0;
+    long i;
+    int status;
+    CHECK(write_lumpy_mesh(&m, "lumpy.obj"), "cannot write the test mesh");
+    tu_scene_free(&m);
+    status = run("raygen @/lumpy.obj @/diff.rays --kind camera --count 1000");
+    CHECK(status == 0, "raygen: exit status %d", status);
+    status = run("trace @/lumpy.obj @/diff.rays @/diff_a.hits");
+    CHECK(status == 0, "trace: exit status %d", status);
+    hits = slurp(scratch("diff_a.hits"), &size);
+    CHECK(hits && size == 16000 && spill(scratch("diff_b.hits"), hits, size), "cannot copy hits");
+    free(hits);
+    expect_hitdiff(0, "AGREE: 0 of 1000 rays disagree", "");
+
+    i = first_hit(scratch("diff_a.hits"), &t, &prim);
+    CHECK(i >= 0, "no camera ray hits the test mesh");
+    /* The same prim, t off by 1e-3 relative: past the default --t-rel. */
+    CHECK(patch_hit(scratch("diff_b.hits"), (size_t)i, prim, t * 1.001f), "cannot patch");
+    expect_hitdiff(1, "DISAGREE: 1 of 1000 rays disagree", "");
+    expect_hitdiff(0, "AGREE: 0 of 1000", "--t-rel 0.01");
+    /* Another prim: one disagreement whatever --t-rel, 0.1 % of the rays. */
+    CHECK(patch_hit(scratch("diff_b.hits"), (size_t)i, prim + 1, t), "cannot patch");
+    expect_hitdiff(1, "DISAGREE: 1 of 1000", "--t-rel 0.5");
+    expect_hitdiff(1, "DISAGREE: 1 of 1000", "--max-disagree 0.0009");
+    expect_hitdiff(0, "AGREE: 1 of 1000", "--max-disagree 0.001");
+    /* A miss in B where A hits. */
+    CHECK(patch_hit(scratch("diff_b.hits"), (size_t)i, BRT_NO_PRIM, INFINITY), "cannot patch");
+    expect_hitdiff(1, "hit in A only                                 1", "");
+
+    hits = slurp(scratch("diff_a.hits"), &size);
+    CHECK(hits && spill(scratch("diff_b.hits"), hits, size - 16), "cannot shorten hits");
+    free(hits);
+    status = run("hitdiff @/diff_a.hits @/diff_b.hits");
+    hits = (unsigned char *)last_stderr();
+    EXPECT(status == 2, "lengths 1000 and 999: exit status %d, expected 2", status);
+    EXPECT(hits && strstr((char *)hits, "hitdiff: ") && strstr((char *)hits, "999"),
+           "no clear message on different lengths: %s", hits ? (char *)hits : "(nothing)");
+    free(hits);
+}
+
+/* One bad invocation: the words its stderr line must contain and the
+** output file it must not leave behind ('@' is the scratch directory). */
+typedef struct bad_case {
+    const char *args;
+    const char *words;   /* program prefix and the place, e.g. "trace: ... --res" */
+    const char *output;  /* NULL when the command names no output */
+} bad_case;
+
+static const bad_case bad_cases[] = {
+    {"trace @/missing.obj @/good.rays @/bad1.hits", "missing.obj", "bad1.hits"},
+    {"trace @/malformed.obj @/good.rays @/bad2.hits", "malformed.obj:4", "bad2.hits"},
+    {"trace @/good.obj @/odd.rays @/bad3.hits", "odd.rays", "bad3.hits"},
+    {"trace @/good.obj @/missing.rays @/bad4.hits", "missing.rays", "bad4.hits"},
+    {"trace @/good.obj @/good.rays @/bad5.hits --frobnicate", "--frobnicate", "bad5.hits"},
+    {"trace @/good.obj @/good.rays @/bad6.hits --res 3", "--res", "bad6.hits"},
+    {"trace @/good.obj @/good.rays @/bad7.hits --res 2048", "--res", "bad7.hits"},
+    {"trace @/good.obj @/good.rays @/bad8.hits --memory 0", "--memory", "bad8.hits"},
+    {"trace @/good.obj @/good.rays @/bad9.hits --memory 12X", "--memory", "bad9.hits"},
+    {"trace @/good.obj @/good.rays @/bad10.hits --batch-tris 0", "--batch-tris", "bad10.hits"},
+    {"trace @/good.obj @/good.rays @/bad11.hits --res", "--res", "bad11.hits"},
+    {"trace @/good.obj @/good.rays", "HITS", NULL},
+    {"trace @/good.obj @/good.rays @/no_such_dir/bad12.hits", "no_such_dir/bad12.hits", NULL},
+    {"raygen @/missing.obj @/bad13.rays --kind camera", "missing.obj", "bad13.rays"},
+    {"raygen @/malformed.obj @/bad14.rays --kind random", "malformed.obj:4", "bad14.rays"},
+    {"raygen @/good.obj @/bad15.rays --kind camera --count 0", "--count", "bad15.rays"},
+    {"raygen @/good.obj @/bad16.rays --kind camera --count -5", "--count", "bad16.rays"},
+    {"raygen @/good.obj @/bad17.rays --kind sideways", "--kind", "bad17.rays"},
+    {"raygen @/good.obj @/bad18.rays", "--kind", "bad18.rays"},
+    {"raygen @/good.obj @/bad19.rays --kind", "--kind", "bad19.rays"},
+    {"raygen @/good.obj @/bad20.rays --kind random --seed x1", "--seed", "bad20.rays"},
+    {"raygen @/good.obj @/bad21.rays --kind random --fast", "--fast", "bad21.rays"},
+    {"raygen @/empty.obj @/bad22.rays --kind camera", "empty.obj", "bad22.rays"},
+    {"raygen @/edge_on.obj @/bad23.rays --kind bounce", "edge_on.obj", "bad23.rays"},
+    {"hitdiff @/missing.hits @/good.hits", "missing.hits", NULL},
+    {"hitdiff @/good.hits @/odd.hits", "odd.hits", NULL},
+    {"hitdiff @/good.hits @/good.hits --max-disagree 2", "--max-disagree", NULL},
+    {"hitdiff @/good.hits @/good.hits --t-rel nan", "--t-rel", NULL},
+    {"hitdiff @/good.hits --quiet @/good.hits", "--quiet", NULL},
+    {"hitdiff @/good.hits", "B.hits", NULL},
+};
+
+static void test_bad_input(void)
+{
+    static const char malformed[] = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n";
+    /* In the plane x = 0, which holds the camera: seen edge-on, never hit. */
+    static const char edge_on[] = "v 0 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n";
+    unsigned char zeros[33];
+    size_t i;
+    int status;
+    memset(zeros, 0, sizeof zeros);
+    CHECK(write_cube("good.obj") && spill(scratch("malformed.obj"), malformed,
+          sizeof malformed - 1) && spill(scratch("empty.obj"), "", 0)
+          && spill(scratch("edge_on.obj"), edge_on, sizeof edge_on - 1)
+          && spill(scratch("odd.rays"), zeros, 33) && spill(scratch("odd.hits"), zeros, 17),
+          "cannot write the inputs");
+    status = run("raygen @/good.obj @/good.rays --kind random --count 10");
+    CHECK(status == 0, "raygen: exit status %d", status);
+    status = run("trace @/good.obj @/good.rays @/good.hits");
+    CHECK(status == 0, "trace: exit status %d", status);
+    for (i = 0; i < sizeof bad_cases / sizeof *bad_cases; i++) {
+        const bad_case *c = &bad_cases[i];
+        char prefix[16], *err;
+        size_t len;
+        status = run("%s", c->args);
+        err = last_stderr();
+        len = err ? strlen(err) : 0;
+        snprintf(prefix, sizeof prefix, "%.*s: ", (int)strcspn(c->args, " "), c->args);
+        EXPECT(status == 1, "'%s': exit status %d, expected 1", c->args, status);
+        EXPECT(err && strncmp(err, prefix, strlen(prefix)) == 0 && strstr(err, c->words)
+               && len > 0 && err[len - 1] == '\n' && strchr(err, '\n') == err + len - 1,
+               "'%s': expected one line '%s...%s...', got '%s'", c->args, prefix, c->words,
+               err ? err : "(nothing)");
+        EXPECT(!c->output || !file_exists(scratch(c->output)), "'%s' left %s behind", c->args,
+               c->output);
+        EXPECT(!temporary_file_left(), "'%s' left a temporary file behind", c->args);
+        free(err);
+    }
+}
+
+/* ===================================================================== */
+/* PNG: an independent decoder for the stored-block subset               */
+/* ===================================================================== */
+
+static uint32_t get_be32(const unsigned char *p)
+{
+    return (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | (uint32_t)p[3];
+}
+
+/* CRC-32 bit by bit (no table), the definition of ISO 3309. */
+static uint32_t bitwise_crc32(const unsigned char *data, size_t size)
+{
+    uint32_t crc = 0xFFFFFFFFu;
+    size_t i;
+    int k;
+    for (i = 0; i < size; i++) {
+        crc ^= data[i];
+        for (k = 0; k < 8; k++) crc = (crc >> 1) ^ (0xEDB88320u & (0u - (crc & 1u)));
+    }
+    return ~crc;
+}
+
+/* Adler-32 with a modulo per byte (the definition, not the fast form). */
+static uint32_t slow_adler32(const unsigned char *data, size_t size)
+{
+    uint32_t a = 1, b = 0;
+    size_t i;
+    for (i = 0; i < size; i++) {
+        a = (a + data[i]) % 65521u;
+        b = (b + a) % 65521u;
+    }
+    return b << 16 | a;
+}
+
+/* Inflates a zlib stream made only of stored blocks into out (capacity
+** cap); returns the inflated size or -1 on any violation of RFC 1950/1951. */
+static long inflate_stored(const unsigned char *z, size_t size, unsigned char *out, size_t cap)
+{
+    size_t pos = 2, n = 0;
+    int final = 0;
+    if (size < 6 || (z[0] & 0x0F) != 8 || ((unsigned)z[0] << 8 | z[1]) % 31 != 0 || (z[1] & 0x20))
+        return -1;
+    while (!final) {
+        uint32_t len, nlen;
+        if (pos + 5 > size || (z[pos] >> 1 & 3) != 0) return -1;   /* BTYPE 00 only */
+        final = z[pos] & 1;
+        len = (uint32_t)z[pos + 1] | (uint32_t)z[pos + 2] << 8;
+        nlen = (uint32_t)z[pos + 3] | (uint32_t)z[pos + 4] << 8;
+        pos += 5;
+        if ((len ^ 0xFFFFu) != nlen || pos + len > size || n + len > cap) return -1;
+        memcpy(out + n, z + pos, len);
+        pos += len;
+        n += len;
+    }
+    if (pos + 4 != size || get_be32(z + pos) != slow_adler32(out, n)) return -1;
+    return (long)n;
+}
+
+/* Decodes png and compares it with the w x h RGB image; 1 when equal. */
+static int png_decodes_to(const unsigned char *png, size_t size, int w, int h,
+                          const unsigned char *rgb)
+{
+    static const unsigned char signature[8] = {137, 80, 78, 71, 13, 10, 26, 10};
+    size_t pos = 8, idat_size = 0, row = 3 * (size_t)w, raw_size = (row + 1) * (size_t)h, y;
+    unsigned char *idat = malloc(size), *raw = malloc(raw_size + 1);
+    int seen_ihdr = 0, seen_iend = 0, ok = idat && raw && size > 8 && !memcmp(png, signature, 8);
+    while (ok && !seen_iend && pos + 12 <= size) {
+        uint32_t len = get_be32(png + pos);
+        const unsigned char *type = png + pos + 4, *data = png + pos + 8;
+        if (len > size - pos - 12 || get_be32(data + len) != bitwise_crc32(type, len + 4)) {
+            ok = 0;
+        } else if (!memcmp(type, "IHDR", 4)) {
+            ok = !seen_ihdr && pos == 8 && len == 13 && get_be32(data) == (uint32_t)w
+                 && get_be32(data + 4) == (uint32_t)h && data[8] == 8 && data[9] == 2
+                 && data[10] == 0 && data[11] == 0 && data[12] == 0;
+            seen_ihdr = 1;
+        } else if (!memcmp(type, "IDAT", 4)) {
+            memcpy(idat + idat_size, data, len);
+            idat_size += len;
+        } else if (!memcmp(type, "IEND", 4)) {
+            seen_iend = 1;
+            ok = len == 0 && pos + 12 == size;
+        }
+        pos += 12 + len;
+    }
+    ok = ok && seen_ihdr && seen_iend
+         && inflate_stored(idat, idat_size, raw, raw_size + 1) == (long)raw_size;
+    for (y = 0; ok && y < (size_t)h; y++)
+        ok = raw[y * (row + 1)] == 0 && !memcmp(raw + y * (row + 1) + 1, rgb + y * row, row);
+    free(idat);
+    free(raw);
+    return ok;
+}
+
+static void test_png(void)
+{
+    /* 1x1, scanlines that fill one stored block exactly (15 x 4369 bytes
+    ** = 65535), one byte more, and an image over several blocks. */
+    static const int sizes[][2] = {{1, 1}, {17, 5}, {1456, 15}, {21845, 1}, {300, 200}};
+    uint64_t rng = test_seed();
+    size_t i, j;
+    EXPECT(ex_crc32((const unsigned char *)"123456789", 9) == 0xCBF43926u, "CRC-32 check value");
+    EXPECT(ex_adler32((const unsigned char *)"Wikipedia", 9) == 0x11E60398u,
+           "Adler-32 check value");
+    for (i = 0; i < sizeof sizes / sizeof *sizes; i++) {
+        int w = sizes[i][0], h = sizes[i][1];
+        size_t n = 3 * (size_t)w * (size_t)h, png_size = 0;
+        unsigned char *rgb = malloc(n), *png = NULL;
+        CHECK(rgb, "out of memory");
+        for (j = 0; j < n; j++) rgb[j] = (unsigned char)brt_random_u64(&rng);
+        EXPECT(ex_png_encode_rgb(w, h, rgb, &png, &png_size) == BRT_OK, "%dx%d: encode failed",
+               w, h);
+        EXPECT(png && png_decodes_to(png, png_size, w, h, rgb), "%dx%d: the PNG does not decode "
+               "to the image", w, h);
+        EXPECT(ex_crc32(rgb, n) == bitwise_crc32(rgb, n)
+               && ex_adler32(rgb, n) == slow_adler32(rgb, n),
+               "%dx%d: checksums differ from the definitions", w, h);
+        free(rgb);
+        free(png);
+    }
+}
+
+static void test_png_write(void)
+{
+    static const unsigned char rgb[2 * 2 * 3] = {255, 0, 0, 0, 255, 0, 0, 0, 255, 9, 9, 9};
+    brt_error err;
+    unsigned char *png;
+    size_t size = 0;
+    EXPECT(ex_png_write_rgb(scratch("tiny.png"), 2, 2, rgb, &err) == BRT_OK, "%s", err.message);
+    png = slurp(scratch("tiny.png"), &size);
+    EXPECT(png && png_decodes_to(png, size, 2, 2, rgb), "tiny.png does not decode");
+    EXPECT(ex_png_write_rgb(scratch("no_such_dir/x.png"), 2, 2, rgb, &err) != BRT_OK
+           && strstr(err.message, "no_such_dir/x.png"), "writing into a missing folder: '%s'",
+           err.message);
+    free(png);
+    EXPECT(ex_png_encode_rgb(0, 5, rgb, &png, &size) == BRT_EARG && !png,
+           "a 0x5 image was accepted");
+}
+
+void suite_cli(void)
+{
+    test_run("cli: --help of every program", test_help);
+    test_run("cli: minimal runs", test_minimal);
+    test_run("cli: raygen is deterministic from --seed", test_raygen_deterministic);
+    test_run("cli: raygen camera rays", test_raygen_camera);
+    test_run("cli: raygen random rays", test_raygen_random);
+    test_run("cli: raygen bounce rays leave a convex surface", test_raygen_bounce);
+    test_run("cli: trace equals brute force byte for byte", test_trace_equals_brute_force);
+    test_run("cli: trace --stats and --verbose", test_trace_stats);
+    test_run("cli: hitdiff table and exit status", test_hitdiff);
+    test_run("cli: bad input exits 1 and writes nothing", test_bad_input);
+    test_run("cli: PNG decodes with an independent decoder", test_png);
+    test_run("cli: PNG write", test_png_write);
+}

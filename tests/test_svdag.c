@@ -1,2 +1,928 @@
+/*
+** tests/test_svdag.c -- conservative voxel proxies (svdag.c) against
+** independent oracles:
+**   - the voxelizer against an exact separating-axis test in integers, on
+**     triangles whose vertices lie on a quarter-cell lattice;
+**   - DAG decode against the dense grid, and SVO node counts against a
+**     count of non-empty blocks, at every resolution 2..1024;
+**   - the ray cast against a brute-force slab test over all set voxels;
+**   - END TO END: every ray that hits a triangle (BVH or brute force over
+**     brt_intersect_triangle) hits the proxy no later than the triangle;
+**   - dedup across proxies, blob round trip, corrupt blobs.
+** Conservativeness is one-sided: a false miss (or a late entry) fails; a
+** false hit is only counted and printed.
+*/
 #include "test.h"
-void suite_svdag(void) {}
+#include "batchrt.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* ===================================================================== */
+/* Helpers                                                               */
+/* ===================================================================== */
+
+static uint32_t rand_below(uint64_t *rng, uint32_t n)
+{
+    return (uint32_t)(brt_random_u64(rng) % n);
+}
+
+static float rand_range(uint64_t *rng, float lo, float hi)
+{
+    return lo + (hi - lo) * brt_random_float(rng);
+}
+
+/* An empty grid with an exact frame (origin, cell) chosen by the test. */
+static void grid_exact(brt_grid *grid, uint32_t res, const float origin[3],
+                       float cell)
+{
+    float bmin[3] = {0, 0, 0}, bmax[3] = {1, 1, 1};
+    brt_grid_init(grid, bmin, bmax, res);
+    memcpy(grid->origin, origin, sizeof grid->origin);
+    grid->cell = cell;
+}
+
+static void grid_clear(brt_grid *grid)
+{
+    size_t n = ((size_t)grid->res * grid->res * grid->res + 63) / 64;
+    memset(grid->bits, 0, n * sizeof(uint64_t));
+}
+
+static void mesh_bounds(const float *pos, uint32_t vertex_count, float bmin[3],
+                        float bmax[3])
+{
+    uint32_t v;
+    int i;
+    for (i = 0; i < 3; i++) { bmin[i] = INFINITY; bmax[i] = -INFINITY; }
+    for (v = 0; v < vertex_count; v++)
+        for (i = 0; i < 3; i++) {
+            bmin[i] = fminf(bmin[i], pos[3 * v + i]);
+            bmax[i] = fmaxf(bmax[i], pos[3 * v + i]);
+        }
+}
+
+/* ===================================================================== */
+/* Grid frame                                                            */
+/* ===================================================================== */
+
+static void test_grid_frame(void)
+{
+    static const float boxes[][6] = {
+        {0, 0, 0, 1, 1, 1}, {-3, 2, 7, 5, 2.5f, 7}, {1e5f, 1e5f, 1e5f, 100001, 100000.5f, 100002},
+        {-1e-3f, 0, 0, 1e-3f, 1e-7f, 3e-4f}, {5, 5, 5, 5, 5, 5}, {0, 0, 0, 0, 0, 0},
+        {-3e38f, 0, 0, 3e38f, 1, 1}};
+    size_t b;
+    uint32_t res;
+    brt_grid grid;
+    float lo[3] = {0, 0, 0}, hi[3] = {1, 1, 1}, nan_box[3] = {0, NAN, 0};
+    for (b = 0; b < sizeof boxes / sizeof boxes[0]; b++)
+        for (res = 2; res <= 1024; res *= 2) {
+            const float *bmin = boxes[b], *bmax = boxes[b] + 3;
+            int i;
+            if (brt_grid_init(&grid, bmin, bmax, res) != BRT_OK) {
+                EXPECT(b == 6, "box %d res %u refused", (int)b, res);
+                continue;
+            }
+            for (i = 0; i < 3; i++) {
+                /* The closed grid covers the box, in exact arithmetic. */
+                EXPECT(grid.origin[i] <= bmin[i], "box %d origin", (int)b);
+                EXPECT((long double)grid.origin[i] + (long double)grid.cell * res >= bmax[i],
+                       "box %d res %u axis %d not covered", (int)b, res, i);
+            }
+            EXPECT(grid.cell > 0 && brt_grid_count(&grid) == 0, "box %d cell", (int)b);
+            brt_grid_free(&grid);
+        }
+    EXPECT(brt_grid_init(&grid, lo, hi, 3) == BRT_EARG, "res 3 accepted");
+    EXPECT(brt_grid_init(&grid, lo, hi, 1) == BRT_EARG, "res 1 accepted");
+    EXPECT(brt_grid_init(&grid, lo, hi, 2048) == BRT_EARG, "res 2048 accepted");
+    EXPECT(brt_grid_init(&grid, hi, lo, 8) == BRT_EARG, "inverted box accepted");
+    EXPECT(brt_grid_init(&grid, lo, nan_box, 8) == BRT_EARG, "NaN box accepted");
+}
+
+/* ===================================================================== */
+/* Voxelizer against an exact integer SAT                                */
+/* ===================================================================== */
+
+/* Exact closed triangle/box overlap; coordinates in quarter cells, the
+** box is [4x, 4x+4] per axis.  Separating-axis test of Akenine-Moller, but
+** projecting all 8 box corners instead of using a radius. */
+static int oracle_axis_separates(int64_t v[3][3], const int64_t box[3],
+                                 const int64_t a[3])
+{
+    int64_t tmin = INT64_MAX, tmax = INT64_MIN, bmin = INT64_MAX, bmax = INT64_MIN;
+    int k;
+    for (k = 0; k < 3; k++) {
+        int64_t p = a[0] * v[k][0] + a[1] * v[k][1] + a[2] * v[k][2];
+        if (p < tmin) tmin = p;
+        if (p > tmax) tmax = p;
+    }
+    for (k = 0; k < 8; k++) {
+        int64_t p = a[0] * (box[0] + 4 * (k & 1)) + a[1] * (box[1] + 4 * ((k >> 1) & 1)) +
+                    a[2] * (box[2] + 4 * (k >> 2));
+        if (p < bmin) bmin = p;
+        if (p > bmax) bmax = p;
+    }
+    return tmax < bmin || bmax < tmin;
+}
+
+static int oracle_overlap(int64_t v[3][3], uint32_t x, uint32_t y, uint32_t z)
+{
+    int64_t box[3], e[3][3], a[3];
+    int k, i, j;
+    box[0] = 4 * (int64_t)x; box[1] = 4 * (int64_t)y; box[2] = 4 * (int64_t)z;
+    for (k = 0; k < 3; k++)
+        for (i = 0; i < 3; i++) e[k][i] = v[(k + 1) % 3][i] - v[k][i];
+    for (i = 0; i < 3; i++) {             /* box normals */
+        a[0] = i == 0; a[1] = i == 1; a[2] = i == 2;
+        if (oracle_axis_separates(v, box, a)) return 0;
+    }
+    a[0] = e[0][1] * e[1][2] - e[0][2] * e[1][1];   /* triangle normal */
+    a[1] = e[0][2] * e[1][0] - e[0][0] * e[1][2];
+    a[2] = e[0][0] * e[1][1] - e[0][1] * e[1][0];
+    if (oracle_axis_separates(v, box, a)) return 0;
+    for (k = 0; k < 3; k++)                           /* edge x box axis */
+        for (j = 0; j < 3; j++) {
+            int64_t u[3] = {0, 0, 0};
+            u[j] = 1;
+            a[0] = e[k][1] * u[2] - e[k][2] * u[1];
+            a[1] = e[k][2] * u[0] - e[k][0] * u[2];
+            a[2] = e[k][0] * u[1] - e[k][1] * u[0];
+            if (oracle_axis_separates(v, box, a)) return 0;
+        }
+    return 1;
+}
+
+/* A lattice coordinate in quarter cells over [-4, 4 res + 4]. */
+static int64_t lattice(uint64_t *rng, uint32_t res, int snap)
+{
+    int64_t q = (int64_t)rand_below(rng, 4 * res + 9) - 4;
+    return snap ? q / snap * snap : q;
+}
+
+/* Random and adversarial lattice triangles: corners, faces, axis-aligned,
+** slivers, collinear, points, tiny ones inside one voxel. */
+static void lattice_triangle(uint64_t *rng, uint32_t res, int64_t v[3][3])
+{
+    int kind = (int)rand_below(rng, 8), k, i, axis = (int)rand_below(rng, 3);
+    int snap = kind == 1 ? 4 : kind == 2 ? 2 : 0;
+    for (k = 0; k < 3; k++)
+        for (i = 0; i < 3; i++) v[k][i] = lattice(rng, res, snap);
+    switch (kind) {
+    case 3:   /* axis-aligned, on a voxel face plane */
+        for (k = 0; k < 3; k++) v[k][axis] = v[0][axis] / 4 * 4;
+        break;
+    case 4:   /* collinear: v2 = v0 + m (v1 - v0), or a sliver off it */
+        for (i = 0; i < 3; i++) {
+            int64_t d = (v[1][i] - v[0][i]) / 4;
+            v[1][i] = v[0][i] + d;
+            v[2][i] = v[0][i] + 3 * d + (i == axis ? (int64_t)rand_below(rng, 3) - 1 : 0);
+        }
+        break;
+    case 5:   /* two or three equal vertices */
+        memcpy(v[1], v[0], sizeof v[0]);
+        if (rand_below(rng, 2)) memcpy(v[2], v[0], sizeof v[0]);
+        break;
+    case 6:   /* small, near one voxel corner */
+        for (k = 1; k < 3; k++)
+            for (i = 0; i < 3; i++) v[k][i] = v[0][i] + (int64_t)rand_below(rng, 5) - 2;
+        break;
+    case 7:   /* an edge lying along a voxel edge */
+        for (i = 0; i < 3; i++) v[0][i] = v[0][i] / 4 * 4;
+        memcpy(v[1], v[0], sizeof v[0]);
+        v[1][axis] += 4 * (int64_t)rand_below(rng, 3) + 4;
+        break;
+    default:
+        break;
+    }
+}
+
+static void check_voxelizer_frame(const float origin[3], float cell, uint32_t res,
+                                  int triangles, uint64_t *rng, uint64_t *extra,
+                                  uint64_t *set)
+{
+    brt_grid grid;
+    uint32_t idx[3] = {0, 1, 2}, x, y, z;
+    int t, k, i;
+    grid_exact(&grid, res, origin, cell);
+    for (t = 0; t < triangles && !test_failed(); t++) {
+        int64_t v[3][3];
+        float pos[9];
+        lattice_triangle(rng, res, v);
+        for (k = 0; k < 3; k++)
+            for (i = 0; i < 3; i++) pos[3 * k + i] = origin[i] + cell * (float)v[k][i] * 0.25f;
+        grid_clear(&grid);
+        CHECK(brt_voxelize(&grid, pos, idx, 1) == BRT_OK, "voxelize failed");
+        for (z = 0; z < res; z++)
+            for (y = 0; y < res; y++)
+                for (x = 0; x < res; x++) {
+                    int want = oracle_overlap(v, x, y, z), got = brt_grid_get(&grid, x, y, z);
+                    if (want && !got)
+                        test_fail_at(__FILE__, __LINE__,
+                                     "frame origin %g cell %g: missed voxel (%u,%u,%u) of triangle (%lld,%lld,%lld) "
+                                     "(%lld,%lld,%lld) (%lld,%lld,%lld) /4 cells",
+                                     origin[0], cell, x, y, z, (long long)v[0][0], (long long)v[0][1],
+                                     (long long)v[0][2], (long long)v[1][0], (long long)v[1][1],
+                                     (long long)v[1][2], (long long)v[2][0], (long long)v[2][1],
+                                     (long long)v[2][2]);
+                    *extra += got && !want;
+                    *set += want;
+                }
+    }
+    brt_grid_free(&grid);
+}
+
+static void test_voxelizer_exact(void)
+{
+    /* Frames where origin + cell * (k/4) is exact in float. */
+    static const float origins[3][3] = {{0, 0, 0}, {-1024, 96, 4096}, {1e5f, -2e5f, 0.5f}};
+    static const float cells[3] = {1, 0.5f, 0.125f};
+    uint64_t rng = test_seed(), extra = 0, set = 0;
+    int f;
+    for (f = 0; f < 3 && !test_failed(); f++)
+        check_voxelizer_frame(origins[f], cells[f], 8, 6000, &rng, &extra, &set);
+    printf("  svdag: voxelizer: %llu voxels set by the oracle, %llu extra (%.3f%%)\n",
+           (unsigned long long)set, (unsigned long long)extra, set ? 100.0 * extra / set : 0.0);
+}
+
+static void test_voxelizer_input(void)
+{
+    brt_grid grid;
+    float pos[9] = {0, 0, 0, 1, 0, 0, NAN, 1, 0}, origin[3] = {0, 0, 0};
+    uint32_t idx[3] = {0, 1, 2};
+    grid_exact(&grid, 4, origin, 1);
+    EXPECT(brt_voxelize(&grid, pos, idx, 1) == BRT_EARG, "NaN vertex accepted");
+    pos[6] = 100; pos[7] = 100; pos[8] = 100;   /* a triangle crossing the grid */
+    EXPECT(brt_voxelize(&grid, pos, idx, 1) == BRT_OK && brt_grid_get(&grid, 0, 0, 0) &&
+               brt_grid_get(&grid, 3, 3, 3),
+           "triangle reaching outside the grid not clipped");
+    grid.cell = 0;
+    EXPECT(brt_voxelize(&grid, pos, idx, 1) == BRT_EARG, "zero cell accepted");
+    brt_grid_free(&grid);
+}
+
+/* ===================================================================== */
+/* DAG decode and node counts                                             */
+/* ===================================================================== */
+
+/* Random voxels: dense for small grids, sparse clusters and a slab for
+** large ones (so that 1024^3 stays quick). */
+static void fill_random(brt_grid *grid, uint64_t *rng)
+{
+    uint32_t res = grid->res, n, i, x, y;
+    if (res <= 32) {
+        uint32_t density = 1 + rand_below(rng, 40);
+        for (i = 0; i < res * res * res; i++)
+            if (rand_below(rng, 100) < density)
+                brt_grid_set(grid, i % res, (i / res) % res, i / (res * res));
+        return;
+    }
+    n = 2000 + rand_below(rng, 2000);
+    for (i = 0; i < n; i++) {
+        uint32_t cx = rand_below(rng, res), cy = rand_below(rng, res), cz = rand_below(rng, res);
+        brt_grid_set(grid, cx, cy, cz);
+        brt_grid_set(grid, cx + 1, cy, cz);
+        brt_grid_set(grid, cx, cy + 1, cz + 1);
+    }
+    for (y = 0; y < res; y += 3)                      /* a plane with holes */
+        for (x = 0; x < res; x += 1 + (x & 1)) brt_grid_set(grid, x, y, res / 3);
+}
+
+/* Non-empty blocks of 2^l voxels for l = 2..levels (the grid padded to
+** 4^3 when res is 2): the SVO's node count, counted on the dense grid. */
+static uint64_t count_blocks(const brt_grid *grid)
+{
+    uint32_t n = grid->res < 4 ? 4 : grid->res, l, x, y, z, i;
+    unsigned char *marks[12] = {NULL};
+    uint64_t total = 0;
+    for (l = 2; (1u << l) <= n; l++) {
+        uint32_t m = n >> l;
+        marks[l] = (unsigned char *)calloc((size_t)m * m * m, 1);
+        if (!marks[l]) return 0;
+    }
+    for (z = 0; z < grid->res; z++)
+        for (y = 0; y < grid->res; y++)
+            for (x = 0; x < grid->res; x++)
+                if (brt_grid_get(grid, x, y, z))
+                    for (l = 2; marks[l]; l++) {
+                        uint32_t m = n >> l;
+                        marks[l][(x >> l) + m * ((y >> l) + (size_t)m * (z >> l))] = 1;
+                    }
+    for (l = 2; marks[l]; l++) {
+        uint32_t m = n >> l;
+        for (i = 0; i < m * m * m; i++) total += marks[l][i];
+        free(marks[l]);
+    }
+    return total;
+}
+
+static void test_decode_every_resolution(void)
+{
+    brt_svdag *dag;
+    brt_error err;
+    uint64_t rng = test_seed() + 1;
+    uint32_t res;
+    int round;
+    CHECK(brt_svdag_create(&dag) == BRT_OK, "create");
+    for (round = 0; round < 2; round++)
+        for (res = 2; res <= 1024; res *= 2) {
+            brt_grid grid, back;
+            brt_proxy proxy;
+            float origin[3] = {1, 2, 3};
+            size_t words = ((size_t)res * res * res + 63) / 64;
+            grid_exact(&grid, res, origin, 0.5f);
+            if (round == 1 || res <= 256) fill_random(&grid, &rng);
+            EXPECT(brt_svdag_add(dag, &grid, &proxy) == BRT_OK, "add res %u", res);
+            EXPECT(brt_svdag_check(dag, &err) == BRT_OK, "check res %u: %s", res, err.message);
+            EXPECT(brt_proxy_check(dag, &proxy, &err) == BRT_OK, "proxy res %u: %s", res, err.message);
+            EXPECT((proxy.root == BRT_EMPTY_ROOT) == (brt_grid_count(&grid) == 0), "empty root res %u", res);
+            EXPECT(brt_svdag_decode(dag, &proxy, &back) == BRT_OK &&
+                       memcmp(grid.bits, back.bits, words * 8) == 0 && back.res == res &&
+                       back.cell == grid.cell && back.origin[2] == grid.origin[2],
+                   "decode differs at res %u", res);
+            if (res <= 256)
+                EXPECT(brt_svdag_svo_nodes(dag, &proxy) == count_blocks(&grid),
+                       "svo nodes at res %u: %llu, blocks %llu", res,
+                       (unsigned long long)brt_svdag_svo_nodes(dag, &proxy),
+                       (unsigned long long)count_blocks(&grid));
+            brt_grid_free(&back);
+            brt_grid_free(&grid);
+        }
+    brt_svdag_free(dag);
+}
+
+/* ===================================================================== */
+/* Ray cast against brute force                                           */
+/* ===================================================================== */
+
+/* Entry of a ray into a closed box, in double; 0 when it misses. */
+static int oracle_box(const brt_ray *ray, const double lo[3], const double hi[3],
+                      double tnear, double tfar, double *t)
+{
+    double enter = tnear, leave = tfar;
+    int i;
+    for (i = 0; i < 3; i++) {
+        double o = ray->org[i], d = ray->dir[i];
+        if (d == 0) {
+            if (o < lo[i] || o > hi[i]) return 0;
+        } else {
+            double a = (lo[i] - o) / d, b = (hi[i] - o) / d;
+            enter = fmax(enter, fmin(a, b));
+            leave = fmin(leave, fmax(a, b));
+        }
+    }
+    *t = enter;
+    return enter <= leave;
+}
+
+/* First touched set voxel over all voxels of the grid. */
+static int oracle_grid(const brt_grid *grid, const brt_ray *ray, double *t_best)
+{
+    uint32_t x, y, z, c[3];
+    int hit = 0, i;
+    for (z = 0; z < grid->res; z++)
+        for (y = 0; y < grid->res; y++)
+            for (x = 0; x < grid->res; x++) {
+                double lo[3], hi[3], t;
+                if (!brt_grid_get(grid, x, y, z)) continue;
+                c[0] = x; c[1] = y; c[2] = z;
+                for (i = 0; i < 3; i++) {
+                    lo[i] = grid->origin[i] + (double)grid->cell * c[i];
+                    hi[i] = lo[i] + grid->cell;
+                }
+                if (oracle_box(ray, lo, hi, ray->tnear, ray->tfar, &t) && (!hit || t < *t_best)) {
+                    *t_best = t;
+                    hit = 1;
+                }
+            }
+    return hit;
+}
+
+/* Oracle-friendly rays in cell units: random, axis-parallel, grazing along
+** voxel faces, through lattice corners, from far away. */
+static void lattice_ray(uint64_t *rng, const brt_grid *grid, brt_ray *ray)
+{
+    float res = (float)grid->res;
+    int kind = (int)rand_below(rng, 5), i, axis = (int)rand_below(rng, 3);
+    float o[3], d[3];
+    for (i = 0; i < 3; i++) {
+        o[i] = rand_range(rng, -1, res + 1);
+        d[i] = rand_range(rng, -1, 1);
+    }
+    switch (kind) {
+    case 1:   /* axis-parallel, origin on quarter points */
+        for (i = 0; i < 3; i++) { o[i] = floorf(o[i] * 4) / 4; d[i] = 0; }
+        d[axis] = rand_below(rng, 2) ? 1.5f : -0.75f;
+        break;
+    case 2:   /* grazing: in a voxel face plane */
+        o[axis] = floorf(o[axis]);
+        d[axis] = 0;
+        break;
+    case 3:   /* through lattice corners */
+        for (i = 0; i < 3; i++) {
+            o[i] = floorf(o[i]);
+            d[i] = (float)((int)rand_below(rng, 5) - 2);
+        }
+        if (d[0] == 0 && d[1] == 0 && d[2] == 0) d[axis] = 1;
+        break;
+    case 4:   /* from far away, aimed at the grid */
+        for (i = 0; i < 3; i++) {
+            d[i] = rand_range(rng, 0, res) - o[i] * 1e5f;
+            o[i] *= 1e5f;
+        }
+        break;
+    default:
+        break;
+    }
+    for (i = 0; i < 3; i++) {
+        ray->org[i] = grid->origin[i] + grid->cell * o[i];
+        ray->dir[i] = grid->cell * d[i];
+    }
+    ray->tnear = rand_below(rng, 3) ? 0 : rand_range(rng, 0, 2);
+    ray->tfar = rand_below(rng, 3) ? INFINITY : ray->tnear + (float)rand_below(rng, 8) * 0.5f;
+}
+
+static void test_raycast_oracle(void)
+{
+    static const float origins[2][3] = {{0, 0, 0}, {-3.5f, 100, 1e4f}};
+    static const float cells[2] = {1, 0.125f};
+    brt_svdag *dag;
+    uint64_t rng = test_seed() + 2, hits = 0, false_hits = 0, rays = 0;
+    uint32_t res;
+    int f, n;
+    CHECK(brt_svdag_create(&dag) == BRT_OK, "create");
+    for (f = 0; f < 2; f++)
+        for (res = 2; res <= 16 && !test_failed(); res *= 2) {
+            brt_grid grid;
+            brt_proxy proxy;
+            grid_exact(&grid, res, origins[f], cells[f]);
+            fill_random(&grid, &rng);
+            CHECK(brt_svdag_add(dag, &grid, &proxy) == BRT_OK, "add");
+            for (n = 0; n < 6000 && !test_failed(); n++) {
+                brt_ray ray;
+                double t_oracle = 0;
+                float t_entry;
+                int want, got;
+                lattice_ray(&rng, &grid, &ray);
+                want = oracle_grid(&grid, &ray, &t_oracle);
+                got = brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, &t_entry);
+                rays++;
+                hits += want;
+                false_hits += got && !want;
+                EXPECT(!want || (got && t_entry <= t_oracle && t_entry >= ray.tnear),
+                       "res %u ray (%a %a %a) dir (%a %a %a) [%a %a]: oracle t %a, proxy %d t %a",
+                       res, ray.org[0], ray.org[1], ray.org[2], ray.dir[0], ray.dir[1],
+                       ray.dir[2], ray.tnear, ray.tfar, t_oracle, got, t_entry);
+            }
+            brt_grid_free(&grid);
+        }
+    printf("  svdag: raycast: %llu rays, %llu oracle hits, %llu false hits\n",
+           (unsigned long long)rays, (unsigned long long)hits, (unsigned long long)false_hits);
+    brt_svdag_free(dag);
+}
+
+static void test_raycast_special(void)
+{
+    brt_svdag *dag;
+    brt_grid grid;
+    brt_proxy proxy, empty, bad;
+    float origin[3] = {0, 0, 0}, t;
+    brt_ray ray = {{-5, 0.5f, 0.5f}, {1, 0, 0}, 0, INFINITY};
+    CHECK(brt_svdag_create(&dag) == BRT_OK, "create");
+    grid_exact(&grid, 8, origin, 1);
+    brt_grid_set(&grid, 3, 0, 0);
+    CHECK(brt_svdag_add(dag, &grid, &proxy) == BRT_OK, "add");
+    grid_clear(&grid);
+    CHECK(brt_svdag_add(dag, &grid, &empty) == BRT_OK && empty.root == BRT_EMPTY_ROOT, "empty");
+    EXPECT(brt_proxy_raycast(dag, &proxy, &ray, 0, INFINITY, &t) && t <= 8 && t > 7.9f,
+           "axis ray: t %g", t);
+    EXPECT(brt_proxy_raycast(dag, &proxy, &ray, 1, 7.5f, &t) == 0, "segment before the voxel hit");
+    EXPECT(brt_proxy_raycast(dag, &proxy, &ray, 8.5f, 8.6f, &t) && t == 8.5f, "start inside: t %g", t);
+    EXPECT(brt_proxy_raycast(dag, &proxy, &ray, 3, 2, &t) == 0, "empty segment hit");
+    EXPECT(brt_proxy_raycast(dag, &empty, &ray, 0, INFINITY, &t) == 0, "empty proxy hit");
+    ray.dir[1] = NAN;
+    EXPECT(brt_proxy_raycast(dag, &proxy, &ray, 0.25f, 1, &t) == 1 && t == 0.25f, "NaN ray");
+    ray.dir[1] = 0;
+    EXPECT(brt_proxy_raycast(dag, &proxy, &ray, NAN, 1, &t) == 1, "NaN tnear");
+    bad = proxy;
+    bad.root = 12345;
+    EXPECT(brt_proxy_check(dag, &bad, NULL) == BRT_ECHECK, "bad root passes the check");
+    EXPECT(brt_proxy_raycast(dag, &bad, &ray, 0.5f, 1, &t) == 1 && t == 0.5f, "bad proxy not a hit");
+    bad = proxy;
+    bad.res = 16;
+    EXPECT(brt_proxy_check(dag, &bad, NULL) == BRT_ECHECK, "wrong depth passes the check");
+    bad.res = 12;
+    EXPECT(brt_proxy_check(dag, &bad, NULL) == BRT_ECHECK, "res 12 passes the check");
+    brt_grid_free(&grid);
+    brt_svdag_free(dag);
+}
+
+/* ===================================================================== */
+/* End to end: triangles hit => proxy hit, no later                       */
+/* ===================================================================== */
+
+typedef struct soup {
+    float *pos;
+    uint32_t *idx;
+    uint32_t vertex_count, tri_count;
+} soup;
+
+static void soup_free(soup *s)
+{
+    free(s->pos);
+    free(s->idx);
+    memset(s, 0, sizeof *s);
+}
+
+/* A mesh from the shared data, scaled and moved; 0 when absent. */
+static int soup_load(const char *name, float scale, float offset, soup *s)
+{
+    const char *path = test_shared_mesh(name);
+    brt_mesh mesh;
+    brt_error err;
+    uint32_t i;
+    if (!path || brt_mesh_load(path, &mesh, &err) != BRT_OK) return 0;
+    for (i = 0; i < 3 * mesh.vertex_count; i++)
+        mesh.positions[i] = mesh.positions[i] * scale + offset;
+    s->pos = mesh.positions;
+    s->idx = mesh.indices;
+    s->vertex_count = mesh.vertex_count;
+    s->tri_count = mesh.triangle_count;
+    return 1;
+}
+
+/* Adversarial: axis-aligned triangles lying in voxel face planes of a
+** res^3 grid over [0,res]^3 (cell 1), edges along voxel edges, slivers,
+** degenerate ones; corner vertices pin the bounds to the whole grid. */
+static void soup_on_faces(uint64_t *rng, uint32_t res, uint32_t count, soup *s)
+{
+    uint32_t t, k;
+    s->vertex_count = 3 * count;
+    s->tri_count = count;
+    s->pos = (float *)malloc(9 * (size_t)count * sizeof(float));
+    s->idx = (uint32_t *)malloc(3 * (size_t)count * sizeof(uint32_t));
+    for (t = 0; t < count; t++) {
+        int axis = (int)rand_below(rng, 3), i;
+        float plane = (float)rand_below(rng, res + 1);
+        float *v = s->pos + 9 * t;
+        for (k = 0; k < 3; k++) {
+            for (i = 0; i < 3; i++) v[3 * k + i] = (float)rand_below(rng, 2 * res + 1) * 0.5f;
+            v[3 * k + axis] = plane;
+            s->idx[3 * t + k] = 3 * t + k;
+        }
+        if (t % 5 == 1) memcpy(v + 6, v + 3, 3 * sizeof(float));   /* a segment */
+        if (t % 7 == 2) v[3 + (axis + 1) % 3] = v[(axis + 1) % 3];   /* edge along an axis */
+    }
+    for (k = 0; k < 9; k++) s->pos[k] = k < 3 ? 0 : (float)res;    /* triangle 0 spans the box */
+}
+
+/* A ray aimed at a point of a random triangle (a vertex, an edge, inside),
+** from a random distance, sometimes axis-parallel, sometimes cut short. */
+static void aimed_ray(uint64_t *rng, const soup *s, float size, brt_ray *ray)
+{
+    uint32_t t = rand_below(rng, s->tri_count);
+    const float *v[3];
+    float b1 = brt_random_float(rng), b2 = brt_random_float(rng), p[3], scale;
+    int i, kind = (int)rand_below(rng, 8);
+    if (b1 + b2 > 1) { b1 = 1 - b1; b2 = 1 - b2; }
+    if (kind == 1) b1 = b2 = 0;                  /* a vertex */
+    if (kind == 2) b2 = 0;                       /* an edge */
+    for (i = 0; i < 3; i++) v[i] = s->pos + 3 * (size_t)s->idx[3 * (size_t)t + i];
+    for (i = 0; i < 3; i++)
+        p[i] = v[0][i] + b1 * (v[1][i] - v[0][i]) + b2 * (v[2][i] - v[0][i]);
+    for (i = 0; i < 3; i++)
+        ray->org[i] = p[i] + size * rand_range(rng, -3, 3) * (kind == 0 ? 0.001f : 1);
+    if (kind == 3) {                              /* axis-parallel */
+        int axis = (int)rand_below(rng, 3);
+        for (i = 0; i < 3; i++) if (i != axis) ray->org[i] = p[i];
+    }
+    scale = rand_range(rng, 0.1f, 10);
+    for (i = 0; i < 3; i++) ray->dir[i] = (p[i] - ray->org[i]) * scale;
+    ray->tnear = kind == 4 ? rand_range(rng, 0, 1) / scale : 0;
+    ray->tfar = kind == 5 ? 1 / scale : INFINITY;
+    if (kind == 6)      /* random direction from inside the bounds */
+        for (i = 0; i < 3; i++) ray->dir[i] = rand_range(rng, -1, 1);
+}
+
+/* Closest hit by brute force over brt_intersect_triangle (small soups). */
+static int brute_hit(const soup *s, const brt_ray *ray, float *t_best)
+{
+    uint32_t t;
+    int hit = 0;
+    for (t = 0; t < s->tri_count; t++) {
+        float tt, u, v;
+        const uint32_t *x = s->idx + 3 * (size_t)t;
+        if (brt_intersect_triangle(ray, s->pos + 3 * (size_t)x[0], s->pos + 3 * (size_t)x[1],
+                                   s->pos + 3 * (size_t)x[2], &tt, &u, &v) &&
+            (!hit || tt < *t_best)) {
+            *t_best = tt;
+            hit = 1;
+        }
+    }
+    return hit;
+}
+
+/* Casts rays at the soup and its proxy; a triangle hit the proxy misses,
+** or enters later than, fails.  exact_cell > 0 overrides the frame to
+** origin bmin, that cell (adversarial soups on voxel faces). */
+static void end_to_end(const char *label, const soup *s, uint32_t res, float exact_cell,
+                       uint32_t rays, int use_bvh)
+{
+    brt_grid grid;
+    brt_svdag *dag = NULL;
+    brt_bvh *bvh = NULL;
+    brt_proxy proxy;
+    brt_error err;
+    float bmin[3], bmax[3], size = 0;
+    uint64_t rng = test_seed() ^ (res * 7919u + s->tri_count), hits = 0, proxy_hits = 0, fails = 0;
+    uint32_t n;
+    int i;
+    mesh_bounds(s->pos, s->vertex_count, bmin, bmax);
+    for (i = 0; i < 3; i++) size = fmaxf(size, bmax[i] - bmin[i]);
+    CHECK(brt_grid_init(&grid, bmin, bmax, res) == BRT_OK, "%s: grid", label);
+    if (exact_cell > 0) grid.cell = exact_cell;
+    CHECK(brt_voxelize(&grid, s->pos, s->idx, s->tri_count) == BRT_OK, "%s: voxelize", label);
+    CHECK(brt_svdag_create(&dag) == BRT_OK && brt_svdag_add(dag, &grid, &proxy) == BRT_OK,
+          "%s: add", label);
+    EXPECT(brt_svdag_check(dag, &err) == BRT_OK, "%s: %s", label, err.message);
+    if (use_bvh && brt_bvh_build(s->pos, s->idx, s->tri_count, NULL, &bvh) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "%s: bvh build", label);
+        rays = 0;
+    }
+    for (n = 0; n < rays; n++) {
+        brt_ray ray;
+        brt_hit hit;
+        float t_entry, t_hit = 0;
+        int want, got;
+        aimed_ray(&rng, s, size, &ray);
+        if (use_bvh) {
+            brt_hit_clear(&hit);
+            brt_bvh_intersect(bvh, &ray, &hit);
+            want = hit.prim != BRT_NO_PRIM;
+            t_hit = hit.t;
+        } else {
+            want = brute_hit(s, &ray, &t_hit);
+        }
+        got = brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, &t_entry);
+        hits += want;
+        proxy_hits += got;
+        if (want && !(got && t_entry <= t_hit)) {
+            if (++fails <= 5)
+                test_fail_at(__FILE__, __LINE__,
+                             "%s: ray (%a %a %a) dir (%a %a %a) [%a %a] hits at t %a, proxy %d t %a",
+                             label, ray.org[0], ray.org[1], ray.org[2], ray.dir[0], ray.dir[1],
+                             ray.dir[2], ray.tnear, ray.tfar, t_hit, got, t_entry);
+        }
+    }
+    printf("  svdag: %-34s res %4u: %u rays, %llu hit triangles, %llu hit the proxy, %llu failures\n",
+           label, res, rays, (unsigned long long)hits, (unsigned long long)proxy_hits,
+           (unsigned long long)fails);
+    brt_bvh_free(bvh);
+    brt_svdag_free(dag);
+    brt_grid_free(&grid);
+}
+
+static void test_end_to_end_shared(void)
+{
+    static const struct { const char *mesh; float scale, offset; uint32_t res, rays; } cases[] = {
+        {"bunny_tiny.obj", 1, 0, 128, 1000000}, {"bunny_tiny.obj", 1e-3f, 7, 2, 100000},
+        {"bunny_tiny.obj", 1e5f, -3e5f, 16, 200000}, {"bunny.obj.gz", 1e5f, 0, 512, 1000000},
+        {"bunny.obj.gz", 1e-3f, 0, 4, 100000}, {"dragon.obj.gz", 1, 0, 256, 1000000}};
+    size_t c;
+    for (c = 0; c < sizeof cases / sizeof cases[0]; c++) {
+        soup s;
+        char label[128];
+        if (!soup_load(cases[c].mesh, cases[c].scale, cases[c].offset, &s)) {
+            test_skip("%s not available (or not loadable)", cases[c].mesh);
+            continue;
+        }
+        snprintf(label, sizeof label, "%s x%g %+g", cases[c].mesh, cases[c].scale, cases[c].offset);
+        end_to_end(label, &s, cases[c].res, 0, cases[c].rays, 1);
+        soup_free(&s);
+    }
+}
+
+static void test_end_to_end_adversarial(void)
+{
+    uint64_t rng = test_seed() + 3;
+    uint32_t res;
+    for (res = 2; res <= 64; res *= 4) {
+        soup s;
+        char label[64];
+        soup_on_faces(&rng, res, 60, &s);
+        snprintf(label, sizeof label, "triangles on voxel faces");
+        end_to_end(label, &s, res, 1, 150000, 0);
+        soup_free(&s);
+    }
+}
+
+/* The same soups moved far from the origin and scaled to extremes. */
+static void test_end_to_end_scales(void)
+{
+    static const float scales[] = {1e-3f, 1e5f}, offsets[] = {1e3f, -1e5f};
+    uint64_t rng = test_seed() + 4;
+    int c;
+    for (c = 0; c < 4; c++) {
+        soup s;
+        uint32_t i, res = c & 1 ? 512 : 32;
+        char label[64];
+        soup_on_faces(&rng, 16, 60, &s);
+        for (i = 0; i < 9 * s.tri_count; i++)
+            s.pos[i] = s.pos[i] * scales[c >> 1] + offsets[c & 1] * scales[c >> 1];
+        snprintf(label, sizeof label, "faces soup x%g %+g", scales[c >> 1], offsets[c & 1] * scales[c >> 1]);
+        end_to_end(label, &s, res, 0, 100000, 0);
+        soup_free(&s);
+    }
+}
+
+/* ===================================================================== */
+/* Dedup, blobs                                                          */
+/* ===================================================================== */
+
+static void test_dedup(void)
+{
+    brt_svdag *dag;
+    brt_grid grid;
+    brt_proxy a, b, c;
+    brt_error err;
+    uint64_t rng = test_seed() + 5;
+    uint32_t before, x, y, z;
+    float origin[3] = {0, 0, 0};
+    CHECK(brt_svdag_create(&dag) == BRT_OK, "create");
+    grid_exact(&grid, 64, origin, 1);
+    fill_random(&grid, &rng);
+    CHECK(brt_svdag_add(dag, &grid, &a) == BRT_OK, "add a");
+    CHECK(brt_svdag_check(dag, &err) == BRT_OK, "%s", err.message);
+    before = brt_svdag_node_count(dag);
+    CHECK(brt_svdag_add(dag, &grid, &b) == BRT_OK, "add b");
+    CHECK(brt_svdag_check(dag, &err) == BRT_OK, "%s", err.message);
+    EXPECT(a.root == b.root && brt_svdag_node_count(dag) == before,
+           "identical grids: roots %u %u, nodes %u -> %u", a.root, b.root, before,
+           brt_svdag_node_count(dag));
+    do {   /* one voxel that is not set yet */
+        x = rand_below(&rng, 64); y = rand_below(&rng, 64); z = rand_below(&rng, 64);
+    } while (brt_grid_get(&grid, x, y, z));
+    brt_grid_set(&grid, x, y, z);
+    CHECK(brt_svdag_add(dag, &grid, &c) == BRT_OK, "add c");
+    CHECK(brt_svdag_check(dag, &err) == BRT_OK, "%s", err.message);
+    /* A 64^3 tree has 5 levels of nodes (4 interior + the leaf) on a path. */
+    EXPECT(c.root != a.root && brt_svdag_node_count(dag) <= before + 5,
+           "one voxel more: nodes %u -> %u", before, brt_svdag_node_count(dag));
+    brt_grid_free(&grid);
+    brt_svdag_free(dag);
+}
+
+/* A pool of a few proxies, its blob, and the proxies. */
+static brt_svdag *small_pool(brt_proxy proxies[3], uint64_t *rng)
+{
+    brt_svdag *dag;
+    uint32_t res[3] = {2, 16, 32};
+    float origin[3] = {0, 0, 0};
+    int i;
+    if (brt_svdag_create(&dag) != BRT_OK) return NULL;
+    for (i = 0; i < 3; i++) {
+        brt_grid grid;
+        grid_exact(&grid, res[i], origin, 1);
+        fill_random(&grid, rng);
+        brt_svdag_add(dag, &grid, &proxies[i]);
+        brt_grid_free(&grid);
+    }
+    return dag;
+}
+
+static void test_blob_round_trip(void)
+{
+    brt_proxy proxies[3];
+    uint64_t rng = test_seed() + 6;
+    brt_svdag *dag = small_pool(proxies, &rng), *back = NULL;
+    brt_error err;
+    unsigned char *blob;
+    size_t size;
+    int i, n;
+    CHECK(dag, "pool");
+    size = brt_svdag_blob_size(dag);
+    blob = (unsigned char *)malloc(size);
+    brt_svdag_blob_write(dag, blob);
+    CHECK(brt_svdag_blob_open(blob, size, &back, &err) == BRT_OK, "open: %s", err.message);
+    EXPECT(brt_svdag_node_count(back) == brt_svdag_node_count(dag), "node count");
+    for (i = 0; i < 3; i++) {
+        brt_grid g1, g2;
+        size_t words = ((size_t)proxies[i].res * proxies[i].res * proxies[i].res + 63) / 64;
+        EXPECT(brt_svdag_decode(dag, &proxies[i], &g1) == BRT_OK &&
+                   brt_svdag_decode(back, &proxies[i], &g2) == BRT_OK &&
+                   memcmp(g1.bits, g2.bits, words * 8) == 0,
+               "proxy %d decodes differently", i);
+        for (n = 0; n < 500; n++) {
+            brt_ray ray;
+            float t1, t2;
+            int h1, h2;
+            lattice_ray(&rng, &g1, &ray);
+            h1 = brt_proxy_raycast(dag, &proxies[i], &ray, ray.tnear, ray.tfar, &t1);
+            h2 = brt_proxy_raycast(back, &proxies[i], &ray, ray.tnear, ray.tfar, &t2);
+            EXPECT(h1 == h2 && (!h1 || t1 == t2), "proxy %d casts differently", i);
+        }
+        brt_grid_free(&g1);
+        brt_grid_free(&g2);
+    }
+    {   /* an opened pool accepts more proxies and dedups against the old ones */
+        brt_grid grid;
+        brt_proxy again;
+        uint32_t nodes = brt_svdag_node_count(back);
+        EXPECT(brt_svdag_decode(dag, &proxies[2], &grid) == BRT_OK &&
+                   brt_svdag_add(back, &grid, &again) == BRT_OK && again.root == proxies[2].root &&
+                   brt_svdag_node_count(back) == nodes && brt_svdag_check(back, &err) == BRT_OK,
+               "re-adding a proxy to an opened pool");
+        brt_grid_free(&grid);
+    }
+    free(blob);
+    brt_svdag_free(back);
+    brt_svdag_free(dag);
+}
+
+static void try_corrupt(const unsigned char *blob, size_t size, const brt_proxy proxies[3],
+                        uint64_t *rng, uint32_t *opened)
+{
+    brt_svdag *back = NULL;
+    brt_error err;
+    brt_result r = brt_svdag_blob_open(blob, size, &back, &err);
+    int i, n;
+    EXPECT(r == BRT_OK || r == BRT_EFORMAT, "corrupt blob gave %s", brt_result_string(r));
+    if (r != BRT_OK) {
+        EXPECT(back == NULL && err.message[0], "no message or a pool left");
+        return;
+    }
+    ++*opened;
+    EXPECT(brt_svdag_check(back, &err) == BRT_OK, "opened a pool that fails its check");
+    for (i = 0; i < 3; i++) {   /* whatever the proxies point at now: no crash */
+        brt_grid grid;
+        grid.res = proxies[i].res;
+        for (n = 0; n < 20; n++) {
+            brt_ray ray;
+            float t;
+            memcpy(grid.origin, proxies[i].origin, sizeof grid.origin);
+            grid.cell = proxies[i].cell;
+            lattice_ray(rng, &grid, &ray);
+            brt_proxy_raycast(back, &proxies[i], &ray, ray.tnear, ray.tfar, &t);
+        }
+        if (brt_svdag_decode(back, &proxies[i], &grid) == BRT_OK) brt_grid_free(&grid);
+    }
+    brt_svdag_free(back);
+}
+
+static void test_blob_corrupt(void)
+{
+    brt_proxy proxies[3];
+    uint64_t rng = test_seed() + 7;
+    brt_svdag *dag = small_pool(proxies, &rng);
+    unsigned char *blob, *copy;
+    size_t size, cut, n;
+    uint32_t opened = 0;
+    CHECK(dag, "pool");
+    size = brt_svdag_blob_size(dag);
+    blob = (unsigned char *)malloc(size);
+    copy = (unsigned char *)malloc(size);
+    brt_svdag_blob_write(dag, blob);
+    for (cut = 0; cut < size && !test_failed(); cut += 1 + cut / 64)   /* truncations */
+        try_corrupt(blob, cut, proxies, &rng, &opened);
+    EXPECT(opened == 0, "a truncated blob opened");
+    for (n = 0; n < 3000 && !test_failed(); n++) {    /* byte and bit flips */
+        size_t k, flips = 1 + rand_below(&rng, 3);
+        memcpy(copy, blob, size);
+        for (k = 0; k < flips; k++) {
+            size_t at = rand_below(&rng, (uint32_t)size);
+            copy[at] ^= rand_below(&rng, 2) ? (unsigned char)(1u << rand_below(&rng, 8))
+                                            : (unsigned char)rand_below(&rng, 256);
+        }
+        try_corrupt(copy, size, proxies, &rng, &opened);
+    }
+    {   /* a duplicated leaf: the dedup invariant is checked too */
+        unsigned char dup[24 + 16];
+        brt_svdag *none = NULL;
+        memcpy(dup, blob, 24);
+        dup[12] = dup[13] = dup[14] = dup[15] = 0;            /* no words */
+        dup[16] = 2; dup[17] = dup[18] = dup[19] = 0;         /* two leaves */
+        memset(dup + 24, 0x11, 16);
+        EXPECT(brt_svdag_blob_open(dup, sizeof dup, &none, NULL) == BRT_EFORMAT && !none,
+               "duplicate leaves accepted");
+    }
+    printf("  svdag: corrupt blobs: %u of the flipped ones still valid pools\n", opened);
+    free(copy);
+    free(blob);
+    brt_svdag_free(dag);
+}
+
+void suite_svdag(void)
+{
+    test_run("svdag: grid frame covers the box", test_grid_frame);
+    test_run("svdag: voxelizer vs exact lattice SAT", test_voxelizer_exact);
+    test_run("svdag: voxelizer input", test_voxelizer_input);
+    test_run("svdag: decode equals grid, res 2..1024", test_decode_every_resolution);
+    test_run("svdag: raycast vs brute-force slabs", test_raycast_oracle);
+    test_run("svdag: raycast special rays and proxies", test_raycast_special);
+    test_run("svdag: end to end, shared meshes", test_end_to_end_shared);
+    test_run("svdag: end to end, triangles on voxel faces", test_end_to_end_adversarial);
+    test_run("svdag: end to end, tiny and huge scales", test_end_to_end_scales);
+    test_run("svdag: dedup across proxies", test_dedup);
+    test_run("svdag: blob round trip", test_blob_round_trip);
+    test_run("svdag: corrupt blobs", test_blob_corrupt);
+}

@@ -1,0 +1,263 @@
+/*
+** examples/bench_bvh.c -- build time, size and single-thread throughput of
+** the triangle BVH (bvh.c).  Prints figures, never pass/fail.
+**
+** Usage: build/bench_bvh [MESH] [--rays N] [--seed S]
+**   MESH defaults to ../shared/data/meshes/dragon.obj.gz (unpacked with
+**   gzip into /tmp), or a procedural subdivided sphere of ~1M triangles
+**   when ../shared is absent.  Rays are generated here, deterministically
+**   from the seed: camera (a pinhole looking at the mesh), random (origin
+**   in the box, uniform direction) and bounce (from the camera's hit
+**   points, or random surface points where the camera missed, in a
+**   uniform direction, tnear = 1e-5 of the box size).
+*/
+#include "batchrt.h"
+#include "common.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+static const char *prog = "bench_bvh";
+
+/* A UV sphere of 4*rings^2 triangles (vertices shared): a stand-in for a
+** scanned mesh when ../shared is absent. */
+static void sphere_mesh(brt_mesh *m, uint32_t rings)
+{
+    const uint32_t seg = 2 * rings;
+    uint32_t i, j, t = 0;
+    m->vertex_count = (rings + 1) * seg;
+    m->triangle_count = 2 * rings * seg;
+    m->positions = malloc(3 * (size_t)m->vertex_count * sizeof(float));
+    m->indices = malloc(3 * (size_t)m->triangle_count * sizeof(uint32_t));
+    if (!m->positions || !m->indices) ex_die(prog, "out of memory");
+    for (i = 0; i <= rings; i++)
+        for (j = 0; j < seg; j++) {
+            const double pi = 3.14159265358979323846;
+            const double th = pi * i / rings, ph = 2 * pi * j / seg;
+            float *p = m->positions + 3 * (size_t)(i * seg + j);
+            p[0] = (float)(sin(th) * cos(ph));
+            p[1] = (float)cos(th);
+            p[2] = (float)(sin(th) * sin(ph));
+        }
+    for (i = 0; i < rings; i++)
+        for (j = 0; j < seg; j++) {
+            const uint32_t a = i * seg + j, b = i * seg + (j + 1) % seg;
+            uint32_t *q = m->indices + 6 * (size_t)t++;
+            q[0] = a; q[1] = a + seg; q[2] = b;
+            q[3] = b; q[4] = a + seg; q[5] = b + seg;
+        }
+}
+
+static void load_mesh(const char *path, brt_mesh *m)
+{
+    static const char *shared = "../shared/data/meshes/dragon.obj.gz";
+    static const char *unpacked = "/tmp/batchrt_bench_dragon.obj";
+    brt_error err;
+    struct stat st;
+    if (!path && stat(shared, &st) == 0) {
+        if (stat(unpacked, &st) != 0 &&
+            system("gzip -dc ../shared/data/meshes/dragon.obj.gz > /tmp/batchrt_bench_dragon.obj") != 0)
+            ex_die(prog, "cannot unpack %s", shared);
+        path = unpacked;
+    }
+    if (!path) {
+        printf("mesh: procedural sphere\n");
+        sphere_mesh(m, 512);
+        return;
+    }
+    printf("mesh: %s\n", path);
+    if (brt_mesh_load(path, m, &err) != BRT_OK) ex_die(prog, "%s", err.message);
+}
+
+/* A uniform direction (rejection sampling in the unit ball). */
+static void random_dir(uint64_t *st, float d[3])
+{
+    float len;
+    do {
+        d[0] = 2 * brt_random_float(st) - 1;
+        d[1] = 2 * brt_random_float(st) - 1;
+        d[2] = 2 * brt_random_float(st) - 1;
+        len = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    } while (len > 1.0f || len < 1e-4f);
+}
+
+typedef struct frame {
+    float lo[3], hi[3], c[3], radius;   /* box, centre, half diagonal */
+} frame;
+
+static void set_ray(brt_ray *r, const float org[3], const float dir[3], float tnear)
+{
+    memcpy(r->org, org, sizeof r->org);
+    memcpy(r->dir, dir, sizeof r->dir);
+    r->tnear = tnear;
+    r->tfar = INFINITY;
+}
+
+/* As build/raygen: a 45 degree pinhole from +z and a little above, with
+** the bounding sphere in view; one ray per pixel of a square image. */
+static void camera_ray(const frame *f, float sx, float sy, brt_ray *r)
+{
+    const float back[3] = {0.0f, 0.330f, 0.944f}, right[3] = {1, 0, 0};
+    const float up[3] = {0.0f, 0.944f, -0.330f};
+    const float half = 0.4142f, dist = 1.05f * f->radius / 0.3827f;   /* tan, sin 22.5 */
+    float eye[3], dir[3];
+    int a;
+    for (a = 0; a < 3; a++) {
+        eye[a] = f->c[a] + dist * back[a];
+        dir[a] = -back[a] + half * ((2 * sx - 1) * right[a] + (1 - 2 * sy) * up[a]);
+    }
+    set_ray(r, eye, dir, 0.0f);
+}
+
+static void camera_rays(const frame *f, brt_ray *rays, size_t n)
+{
+    const size_t side = (size_t)ceil(sqrt((double)n));
+    size_t i;
+    for (i = 0; i < n; i++)
+        camera_ray(f, ((float)(i % side) + 0.5f) / (float)side,
+                   ((float)(i / side) + 0.5f) / (float)side, &rays[i]);
+}
+
+/* Origins in the box grown by 5 % of its longest side, uniform directions. */
+static void random_rays(const frame *f, uint64_t *st, brt_ray *rays, size_t n)
+{
+    float grow = 0, org[3], dir[3];
+    size_t i;
+    int a;
+    for (a = 0; a < 3; a++)
+        if (0.05f * (f->hi[a] - f->lo[a]) > grow) grow = 0.05f * (f->hi[a] - f->lo[a]);
+    for (i = 0; i < n; i++) {
+        for (a = 0; a < 3; a++)
+            org[a] = f->lo[a] - grow + (f->hi[a] - f->lo[a] + 2 * grow) * brt_random_float(st);
+        random_dir(st, dir);
+        set_ray(&rays[i], org, dir, 0.0f);
+    }
+}
+
+/* From each camera ray's hit (a random image point's where it missed),
+** nudged off the surface towards the camera, in a uniform direction of
+** that hemisphere.  Coherent origins, incoherent directions. */
+static void bounce_rays(const brt_mesh *m, const frame *f, const brt_bvh *bvh,
+                        const brt_ray *cam, uint64_t *st, brt_ray *rays, size_t n)
+{
+    size_t i;
+    int a, attempt;
+    for (i = 0; i < n; i++) {
+        brt_ray in = cam[i];
+        brt_hit h;
+        const float *p[3];
+        float e1[3], e2[3], nrm[3], org[3], dir[3], side = 0, facing = 0;
+        brt_hit_clear(&h);
+        brt_bvh_intersect(bvh, &in, &h);
+        for (attempt = 0; h.prim == BRT_NO_PRIM && attempt < 1000; attempt++) {
+            camera_ray(f, brt_random_float(st), brt_random_float(st), &in);
+            brt_bvh_intersect(bvh, &in, &h);
+        }
+        if (h.prim == BRT_NO_PRIM) { rays[i] = in; continue; }
+        for (a = 0; a < 3; a++) p[a] = m->positions + 3 * (size_t)m->indices[3 * (size_t)h.prim + a];
+        for (a = 0; a < 3; a++) {
+            e1[a] = p[1][a] - p[0][a];
+            e2[a] = p[2][a] - p[0][a];
+        }
+        for (a = 0; a < 3; a++) {
+            nrm[a] = e1[(a + 1) % 3] * e2[(a + 2) % 3] - e1[(a + 2) % 3] * e2[(a + 1) % 3];
+            facing += nrm[a] * in.dir[a];
+        }
+        if (facing > 0) for (a = 0; a < 3; a++) nrm[a] = -nrm[a];
+        random_dir(st, dir);
+        for (a = 0; a < 3; a++) side += dir[a] * nrm[a];
+        for (a = 0; a < 3; a++) {
+            if (side < 0) dir[a] = -dir[a];
+            org[a] = in.org[a] + h.t * in.dir[a];
+        }
+        set_ray(&rays[i], org, dir, 1e-5f * f->radius);
+    }
+}
+
+static double trace(const brt_bvh *bvh, const brt_ray *rays, brt_hit *hits,
+                    size_t n, size_t *hit_count)
+{
+    const double t0 = brt_seconds();
+    size_t i;
+    *hit_count = 0;
+    for (i = 0; i < n; i++) {
+        brt_hit_clear(&hits[i]);
+        brt_bvh_intersect(bvh, &rays[i], &hits[i]);
+        *hit_count += hits[i].prim != BRT_NO_PRIM;
+    }
+    return brt_seconds() - t0;
+}
+
+static void report(const char *kind, double seconds, size_t n, size_t hit_count)
+{
+    printf("%-7s %8zu rays  %6.3f s  %6.2f Mrays/s  (%.1f%% hit)\n", kind, n, seconds,
+           (double)n / seconds * 1e-6, 100.0 * (double)hit_count / (double)n);
+}
+
+int main(int argc, char **argv)
+{
+    const char *path = NULL;
+    size_t n = 1u << 20, hit_count;
+    uint64_t seed = 1;
+    brt_mesh mesh;
+    brt_bvh *bvh;
+    brt_ray *rays, *cam;
+    brt_hit *hits;
+    frame f;
+    double t0, seconds;
+    int i, a;
+    for (i = 1; i < argc; i++) {
+        if (!strcmp(argv[i], "--help") || !strcmp(argv[i], "-h")) {
+            printf("usage: %s [MESH] [--rays N] [--seed S]\n"
+                   "Builds a BVH over MESH (default: the shared dragon, or a procedural\n"
+                   "sphere) and traces N camera, random and bounce rays on one thread.\n", prog);
+            return 0;
+        } else if (!strcmp(argv[i], "--rays")) {
+            n = (size_t)ex_parse_u64(prog, "--rays", ex_option_value(prog, argc, argv, &i), 1, 1u << 28);
+        } else if (!strcmp(argv[i], "--seed")) {
+            seed = ex_parse_u64(prog, "--seed", ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX);
+        } else if (argv[i][0] == '-') {
+            ex_die(prog, "unknown option %s (see --help)", argv[i]);
+        } else {
+            path = argv[i];
+        }
+    }
+    load_mesh(path, &mesh);
+    if (mesh.triangle_count == 0) ex_die(prog, "the mesh has no triangles");
+    brt_mesh_bounds(&mesh, f.lo, f.hi);
+    f.radius = 0;
+    for (a = 0; a < 3; a++) {
+        f.c[a] = 0.5f * (f.lo[a] + f.hi[a]);
+        f.radius += 0.25f * (f.hi[a] - f.lo[a]) * (f.hi[a] - f.lo[a]);
+    }
+    f.radius = sqrtf(f.radius);
+    t0 = brt_seconds();
+    if (brt_bvh_build(mesh.positions, mesh.indices, mesh.triangle_count, NULL, &bvh) != BRT_OK)
+        ex_die(prog, "BVH build failed");
+    seconds = brt_seconds() - t0;
+    printf("triangles %u  build %.3f s (%.3f s per million)  %.1f bytes/triangle\n",
+           (unsigned)mesh.triangle_count, seconds, seconds * 1e6 / mesh.triangle_count,
+           (double)brt_bvh_memory_bytes(bvh) / mesh.triangle_count);
+
+    rays = malloc(n * sizeof *rays);
+    cam = malloc(n * sizeof *cam);
+    hits = malloc(n * sizeof *hits);
+    if (!rays || !cam || !hits) ex_die(prog, "out of memory");
+    camera_rays(&f, cam, n);
+    seconds = trace(bvh, cam, hits, n, &hit_count);
+    report("camera", seconds, n, hit_count);
+    random_rays(&f, &seed, rays, n);
+    seconds = trace(bvh, rays, hits, n, &hit_count);
+    report("random", seconds, n, hit_count);
+    bounce_rays(&mesh, &f, bvh, cam, &seed, rays, n);
+    seconds = trace(bvh, rays, hits, n, &hit_count);
+    report("bounce", seconds, n, hit_count);
+    free(rays); free(cam); free(hits);
+    brt_bvh_free(bvh);
+    brt_mesh_free(&mesh);
+    return 0;
+}

@@ -1,0 +1,1156 @@
+/*
+** examples/scenes.c -- the built-in procedural scenes: stand-ins for the
+** crown, landscape and island scenes of Molenaar and Eisemann (2020),
+** "Conservative Ray Batching using Geometry Proxies".
+**
+** HOW A SCENE IS MADE
+** Every piece of geometry is one parametric surface sampled on a grid of
+** "segments" (u) by "rings" (v), with a topology given by flags: u and v
+** may wrap around (a tube, a torus), and a single pole vertex may close
+** either end of v (a sphere, a cone, an island with its peak).  Grids are
+** indexed meshes, so a closed surface is closed by construction, whatever
+** its shape: the crown's watertightness does not depend on floating point.
+** A surface is placed by an affine transform (rotation, uniform scale,
+** translation); instances (trees, rocks, plants) are baked in world space.
+**
+** MEMORY
+** A scene generator runs twice with the same seed: a counting pass that
+** only adds up vertex and triangle counts, then, after one exact
+** allocation of the two arrays, an emitting pass that writes them.  So
+** there are no per-triangle temporaries and no reallocation, and the
+** counts cannot disagree with the contents.  Random numbers are only drawn
+** while placing instances, never inside a surface function, so both passes
+** draw the same sequence.
+**
+** SIZE
+** A scene gets a triangle budget of 100000 * scale, shared out between
+** its parts; a part turns its share into instance counts (landscape,
+** island: more instances as the scale grows, and a larger world so that
+** their density stays natural) or into finer grids (crown, terrain).
+*/
+#include "scenes.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define PI 3.14159265358979323846
+#define TRIANGLES_PER_SCALE 100000.0
+
+/* ===================================================================== */
+/* Small vector helpers and placements                                   */
+/* ===================================================================== */
+
+/* p' = m p + t, with m a rotation times a uniform positive scale (so a
+** placement never flips the orientation of triangles). */
+typedef struct xform {
+    double m[3][3];
+    double t[3];
+} xform;
+
+static void cross3(const double a[3], const double b[3], double out[3])
+{
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static void normalize3(double v[3])
+{
+    double len = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    v[0] /= len;
+    v[1] /= len;
+    v[2] /= len;
+}
+
+/* Local x goes to x_axis, local y to y_axis (orthonormal), local z to their
+** cross product; then scale and move to `at`. */
+static xform xform_frame(const double x_axis[3], const double y_axis[3],
+                         double scale, const double at[3])
+{
+    xform x;
+    double z_axis[3];
+    int r;
+    cross3(x_axis, y_axis, z_axis);
+    for (r = 0; r < 3; r++) {
+        x.m[r][0] = scale * x_axis[r];
+        x.m[r][1] = scale * y_axis[r];
+        x.m[r][2] = scale * z_axis[r];
+        x.t[r] = at[r];
+    }
+    return x;
+}
+
+/* Points local y along `axis`, turned by `roll` about it.  With roll 0 and
+** a non-vertical axis, local z points as far down as it can: leaves and
+** fronds that bend along +z droop. */
+static xform xform_along(const double axis[3], double roll, double scale,
+                         const double at[3])
+{
+    double y[3], x[3], side[3], helper[3] = {0, 1, 0};
+    int k;
+    memcpy(y, axis, sizeof y);
+    normalize3(y);
+    if (fabs(y[1]) > 0.99) { helper[0] = 1; helper[1] = 0; }
+    cross3(helper, y, x);
+    normalize3(x);
+    cross3(y, x, side);
+    for (k = 0; k < 3; k++) x[k] = x[k] * cos(roll) + side[k] * sin(roll);
+    return xform_frame(x, y, scale, at);
+}
+
+/* outer after inner. */
+static xform xform_then(const xform *inner, const xform *outer)
+{
+    xform x;
+    int r, c;
+    for (r = 0; r < 3; r++) {
+        for (c = 0; c < 3; c++)
+            x.m[r][c] = outer->m[r][0] * inner->m[0][c] + outer->m[r][1] * inner->m[1][c]
+                      + outer->m[r][2] * inner->m[2][c];
+        x.t[r] = outer->m[r][0] * inner->t[0] + outer->m[r][1] * inner->t[1]
+               + outer->m[r][2] * inner->t[2] + outer->t[r];
+    }
+    return x;
+}
+
+static double rnd(uint64_t *rng, double lo, double hi)
+{
+    return lo + (hi - lo) * (double)brt_random_float(rng);
+}
+
+/* A direction around +y, at most max_tilt radians away from it. */
+static void random_up(uint64_t *rng, double max_tilt, double out[3])
+{
+    double tilt = rnd(rng, 0, max_tilt), azimuth = rnd(rng, 0, 2 * PI);
+    out[0] = sin(tilt) * cos(azimuth);
+    out[1] = cos(tilt);
+    out[2] = sin(tilt) * sin(azimuth);
+}
+
+/* ===================================================================== */
+/* Gridded surfaces and the two-pass builder                             */
+/* ===================================================================== */
+
+enum { WRAP_U = 1, WRAP_V = 2, POLE_START = 4, POLE_END = 8 };
+#define SPHERE_LIKE (WRAP_U | POLE_START | POLE_END)
+
+typedef struct grid {
+    uint32_t segs;    /* vertices per ring (u) */
+    uint32_t rings;   /* rings of vertices (v), poles not counted */
+    unsigned flags;
+} grid;
+
+/* A surface point for u, v in [0, 1]; the poles are at v = 0 and v = 1. */
+typedef void (*surface_fn)(const void *shape, double u, double v, double p[3]);
+
+typedef struct builder {
+    brt_mesh *mesh;        /* NULL in the counting pass */
+    uint64_t vertices;     /* counted or written so far */
+    uint64_t triangles;
+    int overflow;          /* the emitting pass outgrew the counting pass */
+} builder;
+
+static uint32_t grid_poles(const grid *g)
+{
+    return ((g->flags & POLE_START) != 0) + ((g->flags & POLE_END) != 0);
+}
+
+static uint64_t grid_vertices(const grid *g)
+{
+    return (uint64_t)g->segs * g->rings + grid_poles(g);
+}
+
+static uint64_t grid_triangles(const grid *g)
+{
+    uint64_t cols = (g->flags & WRAP_U) ? g->segs : g->segs - 1;
+    uint64_t bands = (g->flags & WRAP_V) ? g->rings : g->rings - 1;
+    return 2 * cols * bands + (uint64_t)g->segs * grid_poles(g);
+}
+
+/* The segments and rings of a sphere-like grid of about `triangles`
+** triangles whose segments outnumber its rings `aspect` times (chosen
+** per shape so that its triangles come out roughly equilateral). */
+static grid grid_for_budget(double triangles, double aspect, unsigned flags)
+{
+    grid g;
+    double rings = sqrt(triangles / (2 * aspect));
+    g.rings = rings < 2 ? 2 : (uint32_t)rings;
+    g.segs = aspect * rings < 3 ? 3 : (uint32_t)(aspect * rings);
+    g.flags = flags;
+    return g;
+}
+
+static double grid_v(const grid *g, uint32_t ring)
+{
+    uint32_t start = (g->flags & POLE_START) != 0;
+    if (g->flags & WRAP_V) return (double)ring / g->rings;
+    return (double)(ring + start) / (double)(g->rings - 1 + grid_poles(g));
+}
+
+static void put_vertex(float *out, const xform *x, const double p[3])
+{
+    int r;
+    for (r = 0; r < 3; r++)
+        out[r] = (float)(x->m[r][0] * p[0] + x->m[r][1] * p[1] + x->m[r][2] * p[2] + x->t[r]);
+}
+
+static void put_triangle(builder *b, uint64_t a, uint64_t c, uint64_t d)
+{
+    uint32_t *t = b->mesh->indices + 3 * b->triangles++;
+    t[0] = (uint32_t)a;
+    t[1] = (uint32_t)c;
+    t[2] = (uint32_t)d;
+}
+
+/*
+** Adds one surface.  Vertex (ring i, segment j) is base + i*segs + j, the
+** poles follow the rings.  Each quad (i,j)-(i,j+1)-(i+1,j+1)-(i+1,j) is
+** split along the same diagonal, and the pole fans run against the ring
+** edges they share, so every surface is consistently oriented: a closed
+** one has each edge once in each direction.
+*/
+static void emit_surface(builder *b, const grid *g, surface_fn fn,
+                         const void *shape, const xform *x)
+{
+    uint64_t base = b->vertices, pole = base + (uint64_t)g->segs * g->rings;
+    uint32_t segs = g->segs, i, j;
+    uint32_t cols = (g->flags & WRAP_U) ? segs : segs - 1;
+    uint32_t bands = (g->flags & WRAP_V) ? g->rings : g->rings - 1;
+    double p[3], du = 1.0 / ((g->flags & WRAP_U) ? segs : segs - 1);
+
+    if (!b->mesh) {
+        b->vertices += grid_vertices(g);
+        b->triangles += grid_triangles(g);
+        return;
+    }
+    if (b->vertices + grid_vertices(g) > b->mesh->vertex_count
+        || b->triangles + grid_triangles(g) > b->mesh->triangle_count) {
+        b->overflow = 1;
+        return;
+    }
+    for (i = 0; i < g->rings; i++) {
+        double v = grid_v(g, i);
+        for (j = 0; j < segs; j++) {
+            fn(shape, j * du, v, p);
+            put_vertex(b->mesh->positions + 3 * (base + (uint64_t)i * segs + j), x, p);
+        }
+    }
+    for (i = 0; i < grid_poles(g); i++) {
+        fn(shape, 0, (i == 0 && (g->flags & POLE_START)) ? 0 : 1, p);
+        put_vertex(b->mesh->positions + 3 * (pole + i), x, p);
+    }
+    b->vertices += grid_vertices(g);
+
+    for (i = 0; i < bands; i++) {
+        uint64_t lo = base + (uint64_t)i * segs, hi = base + (uint64_t)((i + 1) % g->rings) * segs;
+        for (j = 0; j < cols; j++) {
+            uint32_t j2 = (j + 1) % segs;
+            put_triangle(b, lo + j, lo + j2, hi + j2);
+            put_triangle(b, lo + j, hi + j2, hi + j);
+        }
+    }
+    if (g->flags & POLE_START)
+        for (j = 0; j < segs; j++) put_triangle(b, pole, base + (j + 1) % segs, base + j);
+    if (g->flags & POLE_END) {
+        uint64_t last = base + (uint64_t)(g->rings - 1) * segs;
+        uint64_t end_pole = pole + ((g->flags & POLE_START) != 0);
+        for (j = 0; j < segs; j++) put_triangle(b, end_pole, last + j, last + (j + 1) % segs);
+    }
+}
+
+/* ===================================================================== */
+/* Shapes                                                                */
+/* ===================================================================== */
+
+/* ---- lathe: a surface of revolution about local y, from y = 0 up ---- */
+
+enum { LATHE_ELLIPSOID, LATHE_SPIKE, LATHE_CAPPED };
+
+typedef struct lathe {
+    int profile;
+    double radius, height;
+    double taper;          /* CAPPED: top radius is radius * (1 - taper) */
+    double bend;           /* the axis curves to x = bend * height at the top */
+    double rough;          /* radial noise amplitude (rocks), 0 for smooth */
+    double lobes[3][4];    /* rough: unit direction and phase of each lobe */
+} lathe;
+
+/* Radius and height at v.  CAPPED spends the first and last fifth of v on
+** flat caps, so a grid of 4 rings gives a cylinder with sharp rims. */
+static void lathe_profile(const lathe *l, double v, double *r, double *y)
+{
+    double side, cap;
+    switch (l->profile) {
+    case LATHE_ELLIPSOID:
+        *y = l->height * 0.5 * (1 - cos(PI * v));
+        *r = l->radius * sin(PI * v);
+        break;
+    case LATHE_SPIKE:   /* a teardrop: round base, sharp tip */
+        *y = l->height * 0.5 * (1 - cos(PI * v));
+        *r = l->radius * 1.6 * sin(PI * v) * (1 - v);
+        break;
+    default:
+        side = v < 0.2 ? 0 : v > 0.8 ? 1 : (v - 0.2) / 0.6;
+        cap = v < 0.2 ? v / 0.2 : v > 0.8 ? (1 - v) / 0.2 : 1;
+        *y = l->height * side;
+        *r = l->radius * (1 - l->taper * side) * cap;
+        break;
+    }
+}
+
+static void lathe_point(const void *shape, double u, double v, double p[3])
+{
+    const lathe *l = shape;
+    double r, y, a = -2 * PI * u, t;   /* -u: outward normals */
+    lathe_profile(l, v, &r, &y);
+    p[0] = r * cos(a);
+    p[1] = y;
+    p[2] = r * sin(a);
+    if (l->rough > 0) {
+        /* Radial noise about the centre: a sum of three plane waves over
+        ** the direction, smooth and cheap, never shrinking r below 0. */
+        double d[3], noise = 0, scale;
+        int k;
+        d[0] = p[0];
+        d[1] = y - 0.5 * l->height;
+        d[2] = p[2];
+        for (k = 0; k < 3; k++)
+            noise += cos(4 * (d[0] * l->lobes[k][0] + d[1] * l->lobes[k][1] + d[2] * l->lobes[k][2])
+                         / l->radius + l->lobes[k][3]) / 3;
+        scale = 1 + l->rough * noise;
+        p[0] *= scale;
+        p[1] = 0.5 * l->height + d[1] * scale;
+        p[2] *= scale;
+    }
+    t = y / l->height;
+    p[0] += l->bend * l->height * t * t;
+}
+
+/* ---- tube: a thick curve along an elliptic arc in the local xy plane -- */
+
+typedef struct tube {
+    double ax, ay;            /* semi-axes of the centre line */
+    double a0, a1;            /* arc angles (a full turn: a ring, WRAP_V) */
+    double width, depth;      /* cross-section half sizes: in-plane, along z */
+    double boxiness;          /* superellipse exponent: 1 round, < 1 boxy */
+    int capped;               /* the section shrinks to a point at both ends */
+    double scallops, swell;   /* the section swells `scallops` times */
+} tube;
+
+static double signed_pow(double x, double e)
+{
+    return x < 0 ? -pow(-x, e) : pow(x, e);
+}
+
+static void tube_point(const void *shape, double u, double v, double p[3])
+{
+    const tube *t = shape;
+    double theta = t->a0 + (t->a1 - t->a0) * v, phi = -2 * PI * u;  /* -u: outward */
+    double n[3], f = 1 + t->swell * cos(t->scallops * theta);
+    double cx = signed_pow(cos(phi), t->boxiness), cz = signed_pow(sin(phi), t->boxiness);
+    n[0] = t->ay * cos(theta);
+    n[1] = t->ax * sin(theta);
+    n[2] = 0;
+    normalize3(n);
+    if (t->capped) f *= pow(sin(PI * v), 0.3);
+    p[0] = t->ax * cos(theta) + n[0] * t->width * f * cx;
+    p[1] = t->ay * sin(theta) + n[1] * t->width * f * cx;
+    p[2] = t->depth * f * cz;
+}
+
+/* ---- card: a flat, tapering, drooping strip (leaf, blade, frond) ---- */
+
+typedef struct card {
+    double width, length;
+    double taper;   /* the tip is (1 - taper) as wide as the base; < 1 */
+    double bend;    /* the tip droops bend * length along local z */
+} card;
+
+static void card_point(const void *shape, double u, double v, double p[3])
+{
+    const card *c = shape;
+    p[0] = (u - 0.5) * c->width * (1 - c->taper * v);
+    p[1] = c->length * v;
+    p[2] = c->bend * c->length * v * v;
+}
+
+static const grid leaf_grid = {2, 2, 0};      /* 2 triangles */
+static const grid blade_grid = {2, 4, 0};     /* 6 triangles */
+static const grid frond_grid = {2, 6, 0};     /* 10 triangles */
+
+/* ---- terrain: value noise, sampled on square or radial grids ---- */
+
+/* A lattice value in [-1, 1] from a hash of its integer coordinates. */
+static double lattice(uint64_t seed, int64_t ix, int64_t iz)
+{
+    uint64_t state = seed ^ ((uint64_t)ix * 0x9E3779B97F4A7C15ull)
+                          ^ ((uint64_t)iz * 0xC2B2AE3D27D4EB4Full);
+    return 2.0 * brt_random_float(&state) - 1.0;
+}
+
+/* Value noise with smoothstep interpolation, then octaves of it (fBm). */
+static double value_noise(uint64_t seed, double x, double z)
+{
+    double fx = floor(x), fz = floor(z), tx = x - fx, tz = z - fz;
+    int64_t ix = (int64_t)fx, iz = (int64_t)fz;
+    double a = lattice(seed, ix, iz), b = lattice(seed, ix + 1, iz);
+    double c = lattice(seed, ix, iz + 1), d = lattice(seed, ix + 1, iz + 1);
+    tx = tx * tx * (3 - 2 * tx);
+    tz = tz * tz * (3 - 2 * tz);
+    return (a + (b - a) * tx) * (1 - tz) + (c + (d - c) * tx) * tz;
+}
+
+static double fbm(uint64_t seed, double x, double z, int octaves)
+{
+    double sum = 0, amplitude = 1;
+    int k;
+    for (k = 0; k < octaves; k++) {
+        sum += amplitude * value_noise(seed + (uint64_t)k, x, z);
+        x *= 2.03;   /* not exactly 2, so octaves do not line up */
+        z *= 2.03;
+        amplitude *= 0.5;
+    }
+    return sum;
+}
+
+/* Rolling hills plus mountain ranges on the landscape (y = 0 when flat). */
+typedef struct terrain {
+    uint64_t seed;
+    double hills, mountains;    /* amplitudes in metres (0: flat) */
+} terrain;
+
+static double terrain_height(const terrain *t, double x, double z)
+{
+    double ridge;
+    if (t->hills == 0 && t->mountains == 0) return 0;
+    ridge = fbm(t->seed + 100, x / 1500, z / 1500, 3);
+    return t->hills * fbm(t->seed, x / 300, z / 300, 5) + t->mountains * (ridge > 0 ? ridge * ridge : 0);
+}
+
+typedef struct patch {          /* a square [x0, x0+size] x [z0, z0+size] */
+    double x0, z0, size;
+    const terrain *ground;
+} patch;
+
+static void patch_point(const void *shape, double u, double v, double p[3])
+{
+    const patch *s = shape;
+    p[0] = s->x0 + v * s->size;   /* u along z, v along x: normals up */
+    p[2] = s->z0 + u * s->size;
+    p[1] = terrain_height(s->ground, p[0], p[2]);
+}
+
+/* An island: a dome whose rim lies under the sea, with a noisy coast. */
+typedef struct island {
+    double cx, cz, radius, peak;
+    uint64_t seed;
+} island;
+
+#define ISLAND_RIM 1.35   /* the grid reaches this many radii out */
+
+static double island_height(const island *s, double x, double z)
+{
+    double dx = (x - s->cx) / s->radius, dz = (z - s->cz) / s->radius;
+    double d2 = dx * dx + dz * dz;
+    return s->peak * (1 - d2) + 0.35 * s->peak * fbm(s->seed, x / 60, z / 60, 4) * (d2 < 1 ? 1 : 1 / d2);
+}
+
+static void island_point(const void *shape, double u, double v, double p[3])
+{
+    const island *s = shape;
+    double a = 2 * PI * u, r = v * ISLAND_RIM * s->radius;   /* +u: normals up */
+    p[0] = s->cx + r * cos(a);
+    p[2] = s->cz + r * sin(a);
+    p[1] = island_height(s, p[0], p[2]);
+}
+
+/* ===================================================================== */
+/* Composite instances: trees, rocks, plants                             */
+/* ===================================================================== */
+
+static const double up[3] = {0, 1, 0};
+static const double origin[3] = {0, 0, 0};
+
+static lathe capped_lathe(double radius, double height, double taper, double bend)
+{
+    lathe l;
+    memset(&l, 0, sizeof l);
+    l.profile = LATHE_CAPPED;
+    l.radius = radius;
+    l.height = height;
+    l.taper = taper;
+    l.bend = bend;
+    return l;
+}
+
+static lathe ellipsoid(double radius, double height)
+{
+    lathe l;
+    memset(&l, 0, sizeof l);
+    l.profile = LATHE_ELLIPSOID;
+    l.radius = radius;
+    l.height = height;
+    return l;
+}
+
+/* A card whose base is at a random point of the ellipsoid (centre c, radii
+** r), pointing anywhere: the foliage of trees and bushes. */
+static void emit_leaf(builder *b, uint64_t *rng, const double c[3], const double r[3],
+                      double size, const xform *place)
+{
+    double at[3], dir[3], s;
+    card leaf;
+    xform x;
+    int k;
+    do {
+        for (k = 0; k < 3; k++) dir[k] = rnd(rng, -1, 1);
+        s = dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2];
+    } while (s > 1 || s < 1e-4);
+    for (k = 0; k < 3; k++) at[k] = c[k] + r[k] * dir[k];
+    for (k = 0; k < 3; k++) dir[k] = rnd(rng, -1, 1);
+    dir[1] += 0.3;   /* leaves lean upwards rather than down */
+    if (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2] < 1e-4) dir[1] = 1;
+    leaf.width = 0.6 * size;
+    leaf.length = size;
+    leaf.taper = 0.5;
+    leaf.bend = 0;
+    x = xform_along(dir, rnd(rng, 0, 2 * PI), 1, at);
+    x = xform_then(&x, place);
+    emit_surface(b, &leaf_grid, card_point, &leaf, &x);
+}
+
+static const grid trunk_grid = {6, 4, SPHERE_LIKE};
+static const grid tier_grid = {10, 4, SPHERE_LIKE};
+#define CONIFER_TIERS 3
+#define BROADLEAF_BRANCHES 3
+#define BROADLEAF_LEAVES 48
+
+static uint64_t conifer_triangles(void)
+{
+    return grid_triangles(&trunk_grid) + CONIFER_TIERS * grid_triangles(&tier_grid);
+}
+
+static uint64_t broadleaf_triangles(void)
+{
+    return (1 + BROADLEAF_BRANCHES) * grid_triangles(&trunk_grid)
+         + BROADLEAF_LEAVES * grid_triangles(&leaf_grid);
+}
+
+/* A spruce of unit height: a trunk and stacked cones. */
+static void emit_conifer(builder *b, const xform *place)
+{
+    lathe trunk = capped_lathe(0.03, 0.35, 0.3, 0);
+    int k;
+    emit_surface(b, &trunk_grid, lathe_point, &trunk, place);
+    for (k = 0; k < CONIFER_TIERS; k++) {
+        double at[3] = {0, 0, 0};
+        lathe tier = capped_lathe(0.32 - 0.07 * k, 0.45, 0.9, 0);
+        xform x;
+        at[1] = 0.2 + 0.24 * k;
+        x = xform_along(up, 0.7 * k, 1, at);
+        x = xform_then(&x, place);
+        emit_surface(b, &tier_grid, lathe_point, &tier, &x);
+    }
+}
+
+/* A leafy tree of unit height: a trunk, branches, and a crown of leaves. */
+static void emit_broadleaf(builder *b, uint64_t *rng, const xform *place)
+{
+    static const double crown_radii[3] = {0.32, 0.22, 0.32};
+    double crown_centre[3] = {0, 0.68, 0};
+    lathe trunk = capped_lathe(0.04, 0.5, 0.3, 0);
+    lathe branch = capped_lathe(0.02, 0.3, 0.4, 0);
+    int k;
+    emit_surface(b, &trunk_grid, lathe_point, &trunk, place);
+    for (k = 0; k < BROADLEAF_BRANCHES; k++) {
+        double a = 2 * PI * k / BROADLEAF_BRANCHES + rnd(rng, 0, 1), dir[3], at[3] = {0, 0.45, 0};
+        xform x;
+        dir[0] = 0.7 * cos(a);
+        dir[1] = 1;
+        dir[2] = 0.7 * sin(a);
+        x = xform_along(dir, 0, 1, at);
+        x = xform_then(&x, place);
+        emit_surface(b, &trunk_grid, lathe_point, &branch, &x);
+    }
+    for (k = 0; k < BROADLEAF_LEAVES; k++)
+        emit_leaf(b, rng, crown_centre, crown_radii, 0.09, place);
+}
+
+static const grid rock_grid = {12, 7, SPHERE_LIKE};
+
+/* A boulder: a rough, squashed ellipsoid of the given radius. */
+static void emit_rock(builder *b, uint64_t *rng, double radius, const double at[3])
+{
+    lathe rock = ellipsoid(radius, radius * rnd(rng, 1.0, 1.8));
+    double axis[3];
+    xform x;
+    int k;
+    rock.rough = rnd(rng, 0.15, 0.3);
+    for (k = 0; k < 3; k++) {
+        random_up(rng, PI, rock.lobes[k]);
+        rock.lobes[k][3] = rnd(rng, 0, 2 * PI);
+    }
+    random_up(rng, 0.3, axis);
+    x = xform_along(axis, rnd(rng, 0, 2 * PI), 1, at);
+    emit_surface(b, &rock_grid, lathe_point, &rock, &x);
+}
+
+#define PALM_FRONDS 7
+#define BUSH_LEAVES 16
+#define TUFT_BLADES 6
+
+static uint64_t palm_triangles(void)
+{
+    return grid_triangles(&trunk_grid) + PALM_FRONDS * grid_triangles(&frond_grid);
+}
+
+/* A palm of unit height: a curved trunk and drooping fronds. */
+static void emit_palm(builder *b, uint64_t *rng, const xform *place)
+{
+    double bend = rnd(rng, 0.05, 0.2), top[3];
+    lathe trunk = capped_lathe(0.025, 1, 0.35, bend);
+    card frond;
+    int k;
+    emit_surface(b, &trunk_grid, lathe_point, &trunk, place);
+    top[0] = bend;
+    top[1] = 0.98;
+    top[2] = 0;
+    frond.width = 0.07;
+    frond.length = 0.4;
+    frond.taper = 0.9;
+    frond.bend = 0.5;
+    for (k = 0; k < PALM_FRONDS; k++) {
+        double a = 2 * PI * k / PALM_FRONDS + rnd(rng, 0, 0.5), dir[3];
+        xform x;
+        dir[0] = cos(a);
+        dir[1] = rnd(rng, 0.2, 0.8);
+        dir[2] = sin(a);
+        x = xform_along(dir, 0, 1, top);
+        x = xform_then(&x, place);
+        emit_surface(b, &frond_grid, card_point, &frond, &x);
+    }
+}
+
+/* A bush of unit height: a ball of leaves. */
+static void emit_bush(builder *b, uint64_t *rng, const xform *place)
+{
+    static const double radii[3] = {0.55, 0.4, 0.55}, centre[3] = {0, 0.5, 0};
+    int k;
+    for (k = 0; k < BUSH_LEAVES; k++) emit_leaf(b, rng, centre, radii, 0.35, place);
+}
+
+/* A grass tuft of unit height: blades fanning out from one point. */
+static void emit_tuft(builder *b, uint64_t *rng, const xform *place)
+{
+    int k;
+    for (k = 0; k < TUFT_BLADES; k++) {
+        double dir[3];
+        card blade;
+        xform x;
+        blade.width = 0.06;
+        blade.length = rnd(rng, 0.6, 1.0);
+        blade.taper = 0.85;
+        blade.bend = rnd(rng, 0.1, 0.5);
+        random_up(rng, 0.6, dir);
+        x = xform_along(dir, 0, 1, origin);
+        x = xform_then(&x, place);
+        emit_surface(b, &blade_grid, card_point, &blade, &x);
+    }
+}
+
+/* A random upright placement of an instance of the given height. */
+static xform upright(uint64_t *rng, double height, double max_tilt, const double at[3])
+{
+    double axis[3];
+    random_up(rng, max_tilt, axis);
+    return xform_along(axis, rnd(rng, 0, 2 * PI), height, at);
+}
+
+/* ===================================================================== */
+/* The crown                                                             */
+/* ===================================================================== */
+/*
+** A band of radius 1 (y from 0 to 0.32) with scalloped, boxy section; four
+** arches crossing over the top; spikes between the arches' feet; gems on
+** the band; pearls on the band's rims and along the arches; an orb and a
+** cross on top.  Every part is a closed grid, so the whole is closed.
+** Budget shares: band 30 %, arches 15 %, spikes 10 %, gems 15 %, pearls
+** 25 %, orb and cross 5 %.  The number of pearls grows with sqrt(scale),
+** everything else gets finer.
+*/
+
+#define CROWN_ARCHES 4
+#define CROWN_SPIKES 8
+#define CROWN_GEMS 16
+#define ARCH_CENTRE_Y 0.28
+#define ARCH_HEIGHT 0.75
+
+static void crown_band(builder *b, double budget, uint64_t *rng)
+{
+    static const double x_axis[3] = {1, 0, 0}, y_axis[3] = {0, 0, -1}, at[3] = {0, 0.16, 0};
+    tube band;
+    grid g = grid_for_budget(budget, 1 / 7.5, WRAP_U | WRAP_V);
+    xform x = xform_frame(x_axis, y_axis, 1, at);
+    band.ax = band.ay = 1;
+    band.a0 = rnd(rng, 0, 1);
+    band.a1 = band.a0 + 2 * PI;
+    band.width = 0.05;
+    band.depth = 0.16;
+    band.boxiness = 0.4;
+    band.capped = 0;
+    band.scallops = 2 * CROWN_GEMS;
+    band.swell = 0.12;
+    emit_surface(b, &g, tube_point, &band, &x);
+}
+
+/* The centre line of arch k at angle theta (0..pi), in world space. */
+static void arch_point(int k, double theta, double p[3])
+{
+    double phi = PI * k / CROWN_ARCHES;
+    p[0] = cos(theta) * cos(phi);
+    p[1] = ARCH_CENTRE_Y + ARCH_HEIGHT * sin(theta);
+    p[2] = cos(theta) * sin(phi);
+}
+
+static void crown_arches(builder *b, double budget)
+{
+    static const double at[3] = {0, ARCH_CENTRE_Y, 0};
+    grid g = grid_for_budget(budget / CROWN_ARCHES, 1 / 12.5, WRAP_U | POLE_START | POLE_END);
+    tube arch;
+    int k;
+    arch.ax = 1;
+    arch.ay = ARCH_HEIGHT;
+    arch.a0 = 0;
+    arch.a1 = PI;
+    arch.width = arch.depth = 0.035;
+    arch.boxiness = 1;
+    arch.capped = 1;
+    arch.scallops = 0;
+    arch.swell = 0;
+    for (k = 0; k < CROWN_ARCHES; k++) {
+        double phi = PI * k / CROWN_ARCHES;
+        double x_axis[3], y_axis[3] = {0, 1, 0};
+        xform x;
+        x_axis[0] = cos(phi);
+        x_axis[1] = 0;
+        x_axis[2] = sin(phi);
+        x = xform_frame(x_axis, y_axis, 1, at);
+        emit_surface(b, &g, tube_point, &arch, &x);
+    }
+}
+
+static void crown_spikes(builder *b, double budget, uint64_t *rng)
+{
+    grid g = grid_for_budget(budget / CROWN_SPIKES, 1.0, SPHERE_LIKE);
+    int k;
+    for (k = 0; k < CROWN_SPIKES; k++) {
+        double a = 2 * PI * (k + 0.5) / CROWN_SPIKES, at[3], axis[3];
+        lathe spike;
+        xform x;
+        memset(&spike, 0, sizeof spike);
+        spike.profile = LATHE_SPIKE;
+        spike.radius = 0.05;
+        spike.height = rnd(rng, 0.3, 0.4);
+        at[0] = cos(a);
+        at[1] = 0.24;
+        at[2] = sin(a);
+        axis[0] = 0.15 * cos(a);
+        axis[1] = 1;
+        axis[2] = 0.15 * sin(a);
+        x = xform_along(axis, 0, 1, at);
+        emit_surface(b, &g, lathe_point, &spike, &x);
+    }
+}
+
+/* An upright sphere of radius r centred at c. */
+static void emit_ball(builder *b, const grid *g, double r, const double c[3])
+{
+    lathe ball = ellipsoid(r, 2 * r);
+    double at[3];
+    xform x;
+    at[0] = c[0];
+    at[1] = c[1] - r;
+    at[2] = c[2];
+    x = xform_along(up, 0, 1, at);
+    emit_surface(b, g, lathe_point, &ball, &x);
+}
+
+static void crown_gems(builder *b, double budget, uint64_t *rng)
+{
+    grid g = grid_for_budget(budget / CROWN_GEMS, 2.0, SPHERE_LIKE);
+    int k;
+    for (k = 0; k < CROWN_GEMS; k++) {
+        double a = 2 * PI * k / CROWN_GEMS, radial[3], at[3];
+        lathe gem = ellipsoid(rnd(rng, 0.035, 0.05), 0.05);
+        xform x;
+        radial[0] = cos(a);
+        radial[1] = 0;
+        radial[2] = sin(a);
+        at[0] = 1.02 * cos(a);
+        at[1] = 0.16;
+        at[2] = 1.02 * sin(a);
+        x = xform_along(radial, 0, 1, at);
+        emit_surface(b, &g, lathe_point, &gem, &x);
+    }
+}
+
+/* Pearls: a quarter on each rim of the band, half along the arches. */
+static void crown_pearls(builder *b, double budget, double scale, uint64_t *rng)
+{
+    uint32_t count = (uint32_t)(200 * sqrt(scale)), per_rim, per_arch, i;
+    grid g;
+    int rim, k;
+    if (count < 40) count = 40;
+    per_rim = count / 4;
+    per_arch = (count - 2 * per_rim) / CROWN_ARCHES;
+    g = grid_for_budget(budget / (2 * per_rim + CROWN_ARCHES * per_arch), 2.0, SPHERE_LIKE);
+    for (rim = 0; rim < 2; rim++) {
+        double r = fmin(0.03, 0.45 * 2 * PI / per_rim);
+        for (i = 0; i < per_rim; i++) {
+            double a = 2 * PI * (i + 0.5) / per_rim, c[3];
+            c[0] = 1.05 * cos(a);
+            c[1] = rim ? 0.31 : 0.01;
+            c[2] = 1.05 * sin(a);
+            emit_ball(b, &g, r * rnd(rng, 0.9, 1.1), c);
+        }
+    }
+    for (k = 0; k < CROWN_ARCHES; k++) {
+        double r = fmin(0.045, 0.45 * 2.6 / per_arch);
+        for (i = 0; i < per_arch; i++) {
+            double c[3];
+            arch_point(k, 0.15 + (PI - 0.3) * (i + 0.5) / per_arch, c);
+            emit_ball(b, &g, r * rnd(rng, 0.9, 1.1), c);
+        }
+    }
+}
+
+static void crown_top(builder *b, double budget)
+{
+    static const double side[3] = {1, 0, 0};
+    double apex = ARCH_CENTRE_Y + ARCH_HEIGHT, orb_c[3] = {0, 0, 0}, bar_at[3] = {0, 0, 0};
+    grid g = grid_for_budget(budget / 3, 2.0, SPHERE_LIKE);
+    lathe bar = ellipsoid(0.025, 0.32);
+    xform x;
+    orb_c[1] = apex + 0.08;
+    emit_ball(b, &g, 0.11, orb_c);
+    bar_at[1] = apex + 0.15;
+    x = xform_along(up, 0, 1, bar_at);
+    emit_surface(b, &g, lathe_point, &bar, &x);
+    bar.height = 0.22;
+    bar_at[0] = -0.11;
+    bar_at[1] = apex + 0.36;
+    x = xform_along(side, 0, 1, bar_at);
+    emit_surface(b, &g, lathe_point, &bar, &x);
+}
+
+static void build_crown(builder *b, double scale, uint64_t seed)
+{
+    double budget = TRIANGLES_PER_SCALE * scale;
+    uint64_t rng = seed;
+    crown_band(b, 0.30 * budget, &rng);
+    crown_arches(b, 0.15 * budget);
+    crown_spikes(b, 0.10 * budget, &rng);
+    crown_gems(b, 0.15 * budget, &rng);
+    crown_pearls(b, 0.25 * budget, scale, &rng);
+    crown_top(b, 0.05 * budget);
+}
+
+/* ===================================================================== */
+/* The landscape                                                         */
+/* ===================================================================== */
+/*
+** A square of 1000 * sqrt(scale) metres (so instance density stays the
+** same at every scale), 25 % of the budget in the terrain grid, 65 % in
+** trees (forests of about 40, each forest with its own mix of conifers
+** and leafy trees), 10 % in rocks (groups of up to 6).
+*/
+
+static uint64_t per_instance(double budget, uint64_t triangles_each)
+{
+    return (uint64_t)(budget / (double)triangles_each);
+}
+
+static void landscape_trees(builder *b, uint64_t *rng, const terrain *ground,
+                            double side, double budget)
+{
+    double each = 0.5 * (double)(conifer_triangles() + broadleaf_triangles());
+    uint32_t trees = (uint32_t)floor(budget / each), forests, i;
+    double centre[3] = {0, 0, 0}, conifer_share = 0, radius = 0;
+    forests = trees / 40 + 1;
+    for (i = 0; i < trees; i++) {
+        double at[3], a, r, height;
+        xform place;
+        if (i % (trees / forests + 1) == 0) {   /* start the next forest */
+            centre[0] = rnd(rng, -0.45, 0.45) * side;
+            centre[2] = rnd(rng, -0.45, 0.45) * side;
+            conifer_share = rnd(rng, 0, 1);
+            radius = rnd(rng, 30, 80);
+        }
+        a = rnd(rng, 0, 2 * PI);
+        r = radius * sqrt(rnd(rng, 0, 1));
+        at[0] = centre[0] + r * cos(a);
+        at[2] = centre[2] + r * sin(a);
+        at[1] = terrain_height(ground, at[0], at[2]) - 0.3;
+        if (rnd(rng, 0, 1) < conifer_share) {
+            height = rnd(rng, 8, 22);
+            place = upright(rng, height, 0.05, at);
+            emit_conifer(b, &place);
+        } else {
+            height = rnd(rng, 6, 15);
+            place = upright(rng, height, 0.1, at);
+            emit_broadleaf(b, rng, &place);
+        }
+    }
+}
+
+static void landscape_rocks(builder *b, uint64_t *rng, const terrain *ground,
+                            double side, double budget)
+{
+    uint64_t rocks = per_instance(budget, grid_triangles(&rock_grid)), done = 0;
+    while (done < rocks) {
+        double cx = rnd(rng, -0.48, 0.48) * side, cz = rnd(rng, -0.48, 0.48) * side;
+        int group = 1 + (int)rnd(rng, 0, 6), k;
+        for (k = 0; k < group && done < rocks; k++, done++) {
+            double at[3], radius = rnd(rng, 0.4, 3);
+            at[0] = cx + rnd(rng, -8, 8);
+            at[2] = cz + rnd(rng, -8, 8);
+            at[1] = terrain_height(ground, at[0], at[2]) - 0.4 * radius;
+            emit_rock(b, rng, radius, at);
+        }
+    }
+}
+
+static void build_landscape(builder *b, double scale, uint64_t seed)
+{
+    double budget = TRIANGLES_PER_SCALE * scale, side = 1000 * sqrt(scale);
+    uint64_t rng = seed;
+    terrain ground;
+    patch land;
+    grid g;
+    xform identity = xform_along(up, 0, 1, origin);
+    ground.seed = brt_random_u64(&rng);
+    ground.hills = 40;
+    ground.mountains = 150;
+    land.x0 = land.z0 = -0.5 * side;
+    land.size = side;
+    land.ground = &ground;
+    g.segs = g.rings = (uint32_t)sqrt(0.25 * budget / 2) + 2;
+    g.flags = 0;
+    emit_surface(b, &g, patch_point, &land, &identity);
+    landscape_trees(b, &rng, &ground, side, 0.65 * budget);
+    landscape_rocks(b, &rng, &ground, side, 0.10 * budget);
+}
+
+/* ===================================================================== */
+/* The islands                                                           */
+/* ===================================================================== */
+/*
+** 5 * sqrt(scale) islands (at least 3) of radius 120-220 m, in a sea of
+** two triangles; each island gets an equal budget: 20 % in its radial
+** terrain grid, 80 % in plants on dry land (palms 35 %, bushes 25 %,
+** grass tufts 40 %), so the vegetation gets denser as sqrt(scale).
+*/
+
+#define ISLAND_SPACING 600.0
+#define DRY_LAND 1.5          /* plants grow this far above the sea */
+
+static void emit_sea(builder *b, double half_side)
+{
+    static const terrain flat = {0, 0, 0};
+    static const grid two_triangles = {2, 2, 0};
+    patch sea;
+    xform identity = xform_along(up, 0, 1, origin);
+    sea.x0 = sea.z0 = -half_side;
+    sea.size = 2 * half_side;
+    sea.ground = &flat;
+    emit_surface(b, &two_triangles, patch_point, &sea, &identity);
+}
+
+/* Places island i away from the earlier ones (a few tries, then anywhere). */
+static void place_island(uint64_t *rng, island *all, uint32_t i, double half_side)
+{
+    int attempt;
+    all[i].radius = rnd(rng, 120, 220);
+    all[i].peak = rnd(rng, 25, 60);
+    all[i].seed = brt_random_u64(rng);
+    for (attempt = 0; attempt < 50; attempt++) {
+        uint32_t j;
+        all[i].cx = rnd(rng, -half_side, half_side);
+        all[i].cz = rnd(rng, -half_side, half_side);
+        for (j = 0; j < i; j++) {
+            double dx = all[i].cx - all[j].cx, dz = all[i].cz - all[j].cz;
+            double gap = 1.2 * (all[i].radius + all[j].radius);
+            if (dx * dx + dz * dz < gap * gap) break;
+        }
+        if (j == i) return;
+    }
+}
+
+/* A random spot on dry land of the island, or 0 after a few misses. */
+static int dry_spot(uint64_t *rng, const island *s, double at[3])
+{
+    int attempt;
+    for (attempt = 0; attempt < 8; attempt++) {
+        double a = rnd(rng, 0, 2 * PI), r = 1.2 * s->radius * sqrt(rnd(rng, 0, 1));
+        at[0] = s->cx + r * cos(a);
+        at[2] = s->cz + r * sin(a);
+        at[1] = island_height(s, at[0], at[2]);
+        if (at[1] > DRY_LAND) return 1;
+    }
+    return 0;
+}
+
+static void island_plants(builder *b, uint64_t *rng, const island *s, double budget)
+{
+    uint64_t palms = per_instance(0.35 * budget, palm_triangles());
+    uint64_t bushes = per_instance(0.25 * budget, BUSH_LEAVES * grid_triangles(&leaf_grid));
+    uint64_t tufts = per_instance(0.40 * budget, TUFT_BLADES * grid_triangles(&blade_grid));
+    uint64_t total = palms + bushes + tufts, i;
+    for (i = 0; i < total; i++) {
+        double at[3];
+        xform place;
+        if (!dry_spot(rng, s, at)) continue;
+        at[1] -= 0.1;
+        if (i < palms) {
+            place = upright(rng, rnd(rng, 6, 12), 0.25, at);
+            emit_palm(b, rng, &place);
+        } else if (i < palms + bushes) {
+            place = upright(rng, rnd(rng, 0.6, 2), 0.2, at);
+            emit_bush(b, rng, &place);
+        } else {
+            place = upright(rng, rnd(rng, 0.3, 0.8), 0.2, at);
+            emit_tuft(b, rng, &place);
+        }
+    }
+}
+
+static void build_island(builder *b, double scale, uint64_t seed)
+{
+    double budget = TRIANGLES_PER_SCALE * scale;
+    uint32_t count = (uint32_t)(5 * sqrt(scale) + 0.5), i;
+    double half_side;
+    uint64_t rng = seed;
+    island *all;
+    xform identity = xform_along(up, 0, 1, origin);
+    if (count < 3) count = 3;
+    half_side = 0.5 * ISLAND_SPACING * sqrt((double)count);
+    all = malloc(count * sizeof *all);
+    if (!all) { b->overflow = 1; return; }
+    emit_sea(b, half_side + 400);
+    for (i = 0; i < count; i++) {
+        grid g = grid_for_budget(0.2 * budget / count, 2 * PI, WRAP_U | POLE_START);
+        place_island(&rng, all, i, half_side);
+        emit_surface(b, &g, island_point, &all[i], &identity);
+        island_plants(b, &rng, &all[i], 0.8 * budget / count);
+    }
+    free(all);
+}
+
+/* ===================================================================== */
+/* Public entry points                                                   */
+/* ===================================================================== */
+
+typedef void (*scene_builder)(builder *b, double scale, uint64_t seed);
+
+static const char *const scene_names[] = {"crown", "landscape", "island", NULL};
+static const scene_builder scene_builders[] = {build_crown, build_landscape, build_island};
+
+const char *const *ex_scene_names(void)
+{
+    return scene_names;
+}
+
+static int scene_index(const char *name)
+{
+    int i;
+    for (i = 0; name && scene_names[i]; i++)
+        if (strcmp(name, scene_names[i]) == 0) return i;
+    return -1;
+}
+
+int ex_scene_is_builtin(const char *name)
+{
+    return scene_index(name) >= 0;
+}
+
+brt_result ex_scene_generate(const char *name, double scale, uint64_t seed,
+                             brt_mesh *mesh, brt_error *err)
+{
+    int index = scene_index(name);
+    builder count, emit;
+    memset(mesh, 0, sizeof *mesh);
+    if (index < 0)
+        return brt_fail(err, BRT_EARG, "unknown scene '%s' (built-in: crown, landscape, island)",
+                        name ? name : "(null)");
+    if (!(scale > 0 && scale <= EX_SCENE_MAX_SCALE))
+        return brt_fail(err, BRT_EARG, "%s: scale %g outside (0, %g]", name, scale,
+                        EX_SCENE_MAX_SCALE);
+    memset(&count, 0, sizeof count);
+    scene_builders[index](&count, scale, seed);
+    if (count.overflow)
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory while planning", name);
+    if (count.vertices > UINT32_MAX || count.triangles > UINT32_MAX
+        || count.triangles > SIZE_MAX / (3 * sizeof(uint32_t)))
+        return brt_fail(err, BRT_EARG, "%s: scale %g needs more than 2^32 triangles", name, scale);
+    mesh->vertex_count = (uint32_t)count.vertices;
+    mesh->triangle_count = (uint32_t)count.triangles;
+    mesh->positions = malloc(3 * sizeof(float) * (size_t)count.vertices);
+    mesh->indices = malloc(3 * sizeof(uint32_t) * (size_t)count.triangles);
+    if (!mesh->positions || !mesh->indices) {
+        brt_mesh_free(mesh);
+        return brt_fail(err, BRT_ENOMEM, "%s: cannot allocate %llu triangles", name,
+                        (unsigned long long)count.triangles);
+    }
+    memset(&emit, 0, sizeof emit);
+    emit.mesh = mesh;
+    scene_builders[index](&emit, scale, seed);
+    if (emit.overflow || emit.vertices != count.vertices || emit.triangles != count.triangles) {
+        brt_mesh_free(mesh);   /* the two passes disagree: a bug, not bad input */
+        return brt_fail(err, emit.overflow ? BRT_ENOMEM : BRT_ECHECK,
+                        "%s: emitting pass does not match the counting pass", name);
+    }
+    return BRT_OK;
+}
+
+/* ===================================================================== */
+/* Default views                                                         */
+/* ===================================================================== */
+
+static void set3(float out[3], double x, double y, double z)
+{
+    out[0] = (float)x;
+    out[1] = (float)y;
+    out[2] = (float)z;
+}
+
+void ex_scene_camera(const char *name, const float bmin[3], const float bmax[3],
+                     float eye[3], float target[3], float *fov_degrees)
+{
+    double c[3], d[3], radius, span, dist;
+    int k;
+    for (k = 0; k < 3; k++) {
+        c[k] = 0.5 * ((double)bmin[k] + bmax[k]);
+        d[k] = (double)bmax[k] - bmin[k];
+    }
+    radius = 0.5 * sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+    span = d[0] > d[2] ? d[0] : d[2];
+    switch (scene_index(name)) {
+    case 1:   /* landscape: just above the south edge, across its length */
+        *fov_degrees = 60;
+        set3(eye, c[0], bmax[1] + 0.02 * span, bmin[2] + 0.02 * d[2]);
+        set3(target, c[0], bmin[1] + 0.3 * d[1], bmin[2] + 0.5 * d[2]);
+        break;
+    case 2:   /* island: from high above the sea, south of the middle */
+        *fov_degrees = 50;
+        set3(eye, c[0], 0.3 * span, bmin[2] + 0.1 * d[2]);
+        set3(target, c[0], 0, c[2] + 0.05 * d[2]);
+        break;
+    default:  /* the crown and any mesh: the whole box, from +z and above */
+        *fov_degrees = scene_index(name) == 0 ? 40 : 45;
+        dist = 1.1 * radius / sin(0.5 * *fov_degrees * PI / 180);
+        set3(target, c[0], c[1], c[2]);
+        set3(eye, c[0], c[1] + 0.4 * dist, c[2] + 0.92 * dist);
+        break;
+    }
+}

@@ -1,0 +1,313 @@
+/*
+** tests/test_scenes.c -- the built-in procedural scenes (examples/scenes.c)
+** and build/mkscene: determinism from the seed (hashes of the arrays),
+** size proportional to the scale, well-formed meshes (finite coordinates,
+** indices in range, every vertex used, no zero-area triangles), the
+** crown's closedness checked with sorted directed edges (each edge once in
+** each direction) and its outward orientation with the divergence theorem
+** (signed volume > 0), default views whose central ray hits the scene
+** (brute force over brt_intersect_triangle), and mkscene's files read back
+** by brt_mesh_load to the same floats and indices.
+*/
+#include "test.h"
+#include "batchrt.h"
+#include "../examples/scenes.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+#define SCENES 3
+
+static const char *const scene_list[SCENES] = {"crown", "landscape", "island"};
+
+static int generate(const char *name, double scale, uint64_t seed, brt_mesh *mesh)
+{
+    brt_error err;
+    brt_result r = ex_scene_generate(name, scale, seed, mesh, &err);
+    if (r != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "%s at scale %g: %s", name, scale, err.message);
+        return 0;
+    }
+    return 1;
+}
+
+/* FNV-1a over both arrays: a change of any byte changes it (practically). */
+static uint64_t mesh_hash(const brt_mesh *m)
+{
+    const unsigned char *parts[2];
+    size_t sizes[2], i;
+    uint64_t h = 14695981039346656037ull;
+    int p;
+    parts[0] = (const unsigned char *)m->positions;
+    sizes[0] = 3 * sizeof(float) * (size_t)m->vertex_count;
+    parts[1] = (const unsigned char *)m->indices;
+    sizes[1] = 3 * sizeof(uint32_t) * (size_t)m->triangle_count;
+    for (p = 0; p < 2; p++)
+        for (i = 0; i < sizes[p]; i++) h = (h ^ parts[p][i]) * 1099511628211ull;
+    return h;
+}
+
+static void test_same_seed_same_bytes(void)
+{
+    uint64_t seed = test_seed();
+    int s;
+    for (s = 0; s < SCENES; s++) {
+        brt_mesh a, b, c;
+        if (!generate(scene_list[s], 0.3, seed, &a)) return;
+        if (!generate(scene_list[s], 0.3, seed, &b)) return;
+        if (!generate(scene_list[s], 0.3, seed + 1, &c)) return;
+        EXPECT(a.vertex_count == b.vertex_count && a.triangle_count == b.triangle_count
+               && mesh_hash(&a) == mesh_hash(&b),
+               "%s: seed %llu gave different meshes twice", scene_list[s], (unsigned long long)seed);
+        EXPECT(mesh_hash(&a) != mesh_hash(&c), "%s: seeds %llu and %llu gave the same mesh",
+               scene_list[s], (unsigned long long)seed, (unsigned long long)seed + 1);
+        brt_mesh_free(&a);
+        brt_mesh_free(&b);
+        brt_mesh_free(&c);
+    }
+}
+
+static void test_size_follows_scale(void)
+{
+    int s;
+    for (s = 0; s < SCENES; s++) {
+        brt_mesh one, four;
+        double ratio;
+        if (!generate(scene_list[s], 1, test_seed(), &one)) return;
+        if (!generate(scene_list[s], 4, test_seed(), &four)) return;
+        ratio = (double)four.triangle_count / one.triangle_count;
+        EXPECT(one.triangle_count >= 50000 && one.triangle_count <= 200000,
+               "%s: %lu triangles at scale 1", scene_list[s], (unsigned long)one.triangle_count);
+        EXPECT(ratio >= 4 / 1.5 && ratio <= 4 * 1.5, "%s: scale 4 has %.2f times the triangles",
+               scene_list[s], ratio);
+        brt_mesh_free(&one);
+        brt_mesh_free(&four);
+    }
+}
+
+static int zero_area(const brt_mesh *m, uint32_t t)
+{
+    const float *a = m->positions + 3 * (size_t)m->indices[3 * (size_t)t];
+    const float *b = m->positions + 3 * (size_t)m->indices[3 * (size_t)t + 1];
+    const float *c = m->positions + 3 * (size_t)m->indices[3 * (size_t)t + 2];
+    /* Edges of floats are exact in double; their cross product too up to
+    ** rounding that cannot turn a nonzero component into zero. */
+    double e[3], f[3];
+    int k;
+    for (k = 0; k < 3; k++) {
+        e[k] = (double)b[k] - a[k];
+        f[k] = (double)c[k] - a[k];
+    }
+    return e[1] * f[2] == e[2] * f[1] && e[2] * f[0] == e[0] * f[2] && e[0] * f[1] == e[1] * f[0];
+}
+
+/* Finite coordinates, indices in range, every vertex used, at most one
+** zero-area triangle in 10000. */
+static void check_well_formed(const char *name, const brt_mesh *m)
+{
+    unsigned char *used = calloc(m->vertex_count ? m->vertex_count : 1, 1);
+    uint32_t i, degenerate = 0;
+    CHECK(used != NULL, "out of memory");
+    for (i = 0; i < 3 * m->vertex_count; i++)
+        if (!isfinite(m->positions[i])) break;
+    EXPECT(i == 3 * m->vertex_count, "%s: coordinate %lu is not finite", name, (unsigned long)i);
+    for (i = 0; i < 3 * m->triangle_count; i++) {
+        if (m->indices[i] >= m->vertex_count) break;
+        used[m->indices[i]] = 1;
+    }
+    if (i < 3 * m->triangle_count) {
+        test_fail_at(__FILE__, __LINE__, "%s: index %lu out of range", name, (unsigned long)i);
+        free(used);
+        return;
+    }
+    for (i = 0; i < m->vertex_count && used[i]; i++) {}
+    EXPECT(i == m->vertex_count, "%s: vertex %lu is never used", name, (unsigned long)i);
+    for (i = 0; i < m->triangle_count; i++) degenerate += zero_area(m, i);
+    EXPECT(degenerate <= m->triangle_count / 10000, "%s: %lu zero-area triangles of %lu", name,
+           (unsigned long)degenerate, (unsigned long)m->triangle_count);
+    free(used);
+}
+
+static void test_well_formed(void)
+{
+    static const double scales[] = {0.01, 1, 3};
+    int s, k;
+    for (s = 0; s < SCENES; s++)
+        for (k = 0; k < 3; k++) {
+            brt_mesh m;
+            if (!generate(scene_list[s], scales[k], test_seed() + (uint64_t)k, &m)) return;
+            check_well_formed(scene_list[s], &m);
+            brt_mesh_free(&m);
+        }
+}
+
+static int compare_u64(const void *a, const void *b)
+{
+    uint64_t x = *(const uint64_t *)a, y = *(const uint64_t *)b;
+    return x < y ? -1 : x > y;
+}
+
+/* Closed and consistently oriented: each directed edge a->b occurs exactly
+** once and so does b->a (so each edge has exactly two triangles, which
+** traverse it in opposite directions). */
+static void test_crown_closed_and_outward(void)
+{
+    brt_mesh m;
+    uint64_t *edges;
+    size_t n, i;
+    double volume = 0;
+    if (!generate("crown", 1, test_seed(), &m)) return;
+    n = 3 * (size_t)m.triangle_count;
+    edges = malloc(n * sizeof *edges);
+    CHECK(edges != NULL, "out of memory");
+    for (i = 0; i < n; i++) {
+        uint64_t a = m.indices[i], b = m.indices[i % 3 == 2 ? i - 2 : i + 1];
+        edges[i] = a << 32 | b;
+    }
+    qsort(edges, n, sizeof *edges, compare_u64);
+    for (i = 0; i < n && !test_failed(); i++) {
+        uint64_t reverse = edges[i] << 32 | edges[i] >> 32;
+        EXPECT(i + 1 == n || edges[i + 1] != edges[i], "edge %lu->%lu occurs twice",
+               (unsigned long)(edges[i] >> 32), (unsigned long)(edges[i] & 0xFFFFFFFFu));
+        EXPECT(bsearch(&reverse, edges, n, sizeof *edges, compare_u64) != NULL,
+               "edge %lu->%lu has no opposite", (unsigned long)(edges[i] >> 32),
+               (unsigned long)(edges[i] & 0xFFFFFFFFu));
+    }
+    /* Divergence theorem: the signed volume of a closed mesh is positive
+    ** when its triangles face outwards. */
+    for (i = 0; i < m.triangle_count; i++) {
+        const float *a = m.positions + 3 * (size_t)m.indices[3 * i];
+        const float *b = m.positions + 3 * (size_t)m.indices[3 * i + 1];
+        const float *c = m.positions + 3 * (size_t)m.indices[3 * i + 2];
+        volume += ((double)a[0] * ((double)b[1] * c[2] - (double)b[2] * c[1])
+                 - (double)a[1] * ((double)b[0] * c[2] - (double)b[2] * c[0])
+                 + (double)a[2] * ((double)b[0] * c[1] - (double)b[1] * c[0])) / 6;
+    }
+    EXPECT(volume > 0.05, "crown encloses a signed volume of %g (inward normals?)", volume);
+    free(edges);
+    brt_mesh_free(&m);
+}
+
+static void test_names_and_errors(void)
+{
+    const char *const *names = ex_scene_names();
+    brt_mesh m;
+    brt_error err;
+    static const double bad_scales[] = {0, -1, EX_SCENE_MAX_SCALE * 2};
+    int s;
+    for (s = 0; s < SCENES; s++) {
+        CHECK(names[s] && strcmp(names[s], scene_list[s]) == 0, "name %d", s);
+        EXPECT(ex_scene_is_builtin(names[s]), "%s not built in", names[s]);
+    }
+    EXPECT(names[SCENES] == NULL, "names not NULL-terminated after %d", SCENES);
+    EXPECT(!ex_scene_is_builtin("crowns") && !ex_scene_is_builtin("") && !ex_scene_is_builtin(NULL),
+           "unknown names reported as built in");
+    EXPECT(ex_scene_generate("teapot", 1, 1, &m, &err) == BRT_EARG && m.positions == NULL
+           && strstr(err.message, "teapot"), "unknown scene: %s", err.message);
+    for (s = 0; s < 3; s++)
+        EXPECT(ex_scene_generate("crown", bad_scales[s], 1, &m, &err) == BRT_EARG
+               && m.positions == NULL, "scale %g accepted", bad_scales[s]);
+    EXPECT(ex_scene_generate("crown", nan(""), 1, &m, &err) == BRT_EARG, "NaN scale accepted");
+}
+
+/* The ray from the default eye through the target hits the scene (brute
+** force), and the eye looks from outside the scene's box. */
+static void test_default_view_sees_the_scene(void)
+{
+    int s, k;
+    for (s = 0; s < SCENES; s++) {
+        brt_mesh m;
+        brt_ray ray;
+        float lo[3], hi[3], target[3], fov, t, u, v;
+        uint32_t i;
+        int hit = 0, outside = 0;
+        if (!generate(scene_list[s], 0.2, test_seed(), &m)) return;
+        brt_mesh_bounds(&m, lo, hi);
+        ex_scene_camera(scene_list[s], lo, hi, ray.org, target, &fov);
+        for (k = 0; k < 3; k++) {
+            ray.dir[k] = target[k] - ray.org[k];
+            outside |= ray.org[k] < lo[k] || ray.org[k] > hi[k];
+        }
+        ray.tnear = 0;
+        ray.tfar = INFINITY;
+        for (i = 0; i < m.triangle_count && !hit; i++)
+            hit = brt_intersect_triangle(&ray, m.positions + 3 * (size_t)m.indices[3 * i],
+                                         m.positions + 3 * (size_t)m.indices[3 * i + 1],
+                                         m.positions + 3 * (size_t)m.indices[3 * i + 2], &t, &u, &v);
+        EXPECT(hit, "%s: the central ray of the default view misses", scene_list[s]);
+        EXPECT(outside, "%s: the default eye is inside the scene's box", scene_list[s]);
+        EXPECT(fov > 10 && fov < 120, "%s: field of view %g", scene_list[s], fov);
+        brt_mesh_free(&m);
+    }
+}
+
+/* Runs build/mkscene with the arguments; returns its exit status. */
+static int run_mkscene(const char *args, const char *stderr_path)
+{
+    char cmd[2048];
+    const char *build = getenv("BRT_BUILD");
+    snprintf(cmd, sizeof cmd, "'%s/mkscene' %s > /dev/null 2> '%s'", build ? build : "build",
+             args, stderr_path);
+    return system(cmd);
+}
+
+static void check_file_equals_scene(const char *path, const char *name, double scale,
+                                    uint64_t seed)
+{
+    brt_mesh loaded, made;
+    brt_error err;
+    CHECK(brt_mesh_load(path, &loaded, &err) == BRT_OK, "%s: %s", path, err.message);
+    if (generate(name, scale, seed, &made)) {
+        EXPECT(loaded.vertex_count == made.vertex_count && loaded.triangle_count == made.triangle_count
+               && memcmp(loaded.positions, made.positions, 12 * (size_t)made.vertex_count) == 0
+               && memcmp(loaded.indices, made.indices, 12 * (size_t)made.triangle_count) == 0,
+               "%s does not read back as %s (scale %g, seed %llu)", path, name, scale,
+               (unsigned long long)seed);
+        brt_mesh_free(&made);
+    }
+    brt_mesh_free(&loaded);
+}
+
+static void test_mkscene_files_read_back(void)
+{
+    char args[1024], out[512], err_path[512], message[64] = {0};
+    uint64_t seed = test_seed() % 1000000;
+    struct stat st;
+    FILE *f;
+    snprintf(err_path, sizeof err_path, "%s/mkscene.err", test_tmpdir());
+    snprintf(out, sizeof out, "%s/crown.ply", test_tmpdir());
+    snprintf(args, sizeof args, "crown '%s' --scale 0.2 --seed %llu", out, (unsigned long long)seed);
+    CHECK(run_mkscene(args, err_path) == 0, "mkscene %s failed", args);
+    check_file_equals_scene(out, "crown", 0.2, seed);
+
+    snprintf(out, sizeof out, "%s/island.obj", test_tmpdir());
+    snprintf(args, sizeof args, "island '%s' --scale 0.05 --seed %llu", out, (unsigned long long)seed);
+    CHECK(run_mkscene(args, err_path) == 0, "mkscene %s failed", args);
+    check_file_equals_scene(out, "island", 0.05, seed);
+
+    snprintf(out, sizeof out, "%s/none.ply", test_tmpdir());
+    snprintf(args, sizeof args, "teapot '%s'", out);
+    EXPECT(run_mkscene(args, err_path) != 0, "mkscene accepted an unknown scene");
+    EXPECT(stat(out, &st) != 0, "mkscene left %s behind after an error", out);
+    f = fopen(err_path, "r");
+    CHECK(f != NULL, "no stderr file");
+    EXPECT(fgets(message, sizeof message, f) && strncmp(message, "mkscene: ", 9) == 0,
+           "stderr was '%s'", message);
+    fclose(f);
+}
+
+/* Declared here until tests/test.h declares it (then delete this line). */
+void suite_scenes(void);
+
+void suite_scenes(void)
+{
+    test_run("scenes_same_seed_same_bytes", test_same_seed_same_bytes);
+    test_run("scenes_size_follows_scale", test_size_follows_scale);
+    test_run("scenes_well_formed", test_well_formed);
+    test_run("scenes_crown_closed_and_outward", test_crown_closed_and_outward);
+    test_run("scenes_names_and_errors", test_names_and_errors);
+    test_run("scenes_default_view_sees_the_scene", test_default_view_sees_the_scene);
+    test_run("scenes_mkscene_files_read_back", test_mkscene_files_read_back);
+}

@@ -1,0 +1,136 @@
+/*
+** tests/util.c -- scenes and rays shared by the test suites (util.h).
+*/
+#include "util.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+uint32_t tu_add_vertex(tu_scene *s, float x, float y, float z)
+{
+    if (s->vcount == s->vcap) {
+        s->vcap = s->vcap ? 2 * s->vcap : 64;
+        s->pos = realloc(s->pos, 3 * (size_t)s->vcap * sizeof *s->pos);
+    }
+    s->pos[3 * (size_t)s->vcount] = x;
+    s->pos[3 * (size_t)s->vcount + 1] = y;
+    s->pos[3 * (size_t)s->vcount + 2] = z;
+    return s->vcount++;
+}
+
+void tu_add_triangle(tu_scene *s, uint32_t a, uint32_t b, uint32_t c)
+{
+    if (s->tcount == s->tcap) {
+        s->tcap = s->tcap ? 2 * s->tcap : 64;
+        s->idx = realloc(s->idx, 3 * (size_t)s->tcap * sizeof *s->idx);
+    }
+    s->idx[3 * (size_t)s->tcount] = a;
+    s->idx[3 * (size_t)s->tcount + 1] = b;
+    s->idx[3 * (size_t)s->tcount + 2] = c;
+    s->tcount++;
+}
+
+void tu_scene_free(tu_scene *s)
+{
+    free(s->pos);
+    free(s->idx);
+    memset(s, 0, sizeof *s);
+}
+
+float tu_rnd(uint64_t *st, float lo, float hi)
+{
+    return lo + (hi - lo) * brt_random_float(st);
+}
+
+void tu_random_soup(tu_scene *s, uint64_t *st, uint32_t n, float size)
+{
+    uint32_t i;
+    int j;
+    for (i = 0; i < n; i++) {
+        const float cx = tu_rnd(st, 0, 1), cy = tu_rnd(st, 0, 1), cz = tu_rnd(st, 0, 1);
+        uint32_t v[3];
+        for (j = 0; j < 3; j++)
+            v[j] = tu_add_vertex(s, cx + tu_rnd(st, -size, size), cy + tu_rnd(st, -size, size),
+                                 cz + tu_rnd(st, -size, size));
+        tu_add_triangle(s, v[0], v[1], v[2]);
+    }
+}
+
+void tu_scene_transform(tu_scene *s, float scale, float offset)
+{
+    uint32_t i;
+    for (i = 0; i < 3 * s->vcount; i++) s->pos[i] = s->pos[i] * scale + offset;
+}
+
+void tu_scene_bounds(const tu_scene *s, float lo[3], float hi[3])
+{
+    uint32_t i;
+    int a;
+    for (a = 0; a < 3; a++) { lo[a] = INFINITY; hi[a] = -INFINITY; }
+    for (i = 0; i < s->vcount; i++)
+        for (a = 0; a < 3; a++) {
+            if (s->pos[3 * (size_t)i + a] < lo[a]) lo[a] = s->pos[3 * (size_t)i + a];
+            if (s->pos[3 * (size_t)i + a] > hi[a]) hi[a] = s->pos[3 * (size_t)i + a];
+        }
+}
+
+const float *tu_vertex(const tu_scene *s, uint32_t tri, int corner)
+{
+    return s->pos + 3 * (size_t)s->idx[3 * (size_t)tri + corner];
+}
+
+brt_mesh tu_mesh_view(const tu_scene *s)
+{
+    brt_mesh m;
+    m.positions = s->pos;
+    m.indices = s->idx;
+    m.vertex_count = s->vcount;
+    m.triangle_count = s->tcount;
+    return m;
+}
+
+const char *const tu_kind_name[TU_RAY_KINDS] = {"camera", "random", "bounce", "axis"};
+
+void tu_random_unit(uint64_t *st, float d[3])
+{
+    float len;
+    do {
+        d[0] = tu_rnd(st, -1, 1); d[1] = tu_rnd(st, -1, 1); d[2] = tu_rnd(st, -1, 1);
+        len = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    } while (len > 1.0f || len < 1e-4f);
+}
+
+void tu_make_ray(const tu_scene *s, const float lo[3], const float hi[3], int kind,
+                 uint64_t *st, brt_ray *r)
+{
+    float c[3], ext = 0;
+    int a;
+    for (a = 0; a < 3; a++) {
+        c[a] = 0.5f * (lo[a] + hi[a]);
+        if (hi[a] - lo[a] > ext) ext = hi[a] - lo[a];
+    }
+    r->tnear = 0.0f;
+    r->tfar = INFINITY;
+    tu_random_unit(st, r->dir);
+    if (kind == TU_CAMERA) {
+        /* from a point outside the box towards a point inside it */
+        for (a = 0; a < 3; a++) r->org[a] = c[a] + 1.5f * ext * r->dir[a];
+        for (a = 0; a < 3; a++) r->dir[a] = tu_rnd(st, lo[a], hi[a]) - r->org[a];
+    } else if (kind == TU_RANDOM) {
+        for (a = 0; a < 3; a++) r->org[a] = tu_rnd(st, lo[a], hi[a]);
+    } else if (kind == TU_BOUNCE && s->tcount > 0) {
+        const uint32_t t = (uint32_t)(brt_random_u64(st) % s->tcount);
+        float u = brt_random_float(st), v = brt_random_float(st);
+        if (u + v > 1.0f) { u = 1.0f - u; v = 1.0f - v; }
+        for (a = 0; a < 3; a++)
+            r->org[a] = (1 - u - v) * tu_vertex(s, t, 0)[a] + u * tu_vertex(s, t, 1)[a] +
+                        v * tu_vertex(s, t, 2)[a];
+    } else {
+        const int axis = (int)(brt_random_u64(st) % 3);
+        for (a = 0; a < 3; a++) { r->org[a] = tu_rnd(st, lo[a], hi[a]); r->dir[a] = 0.0f; }
+        r->dir[axis] = brt_random_float(st) < 0.5f ? -1.0f : 1.0f;
+        r->org[axis] = r->dir[axis] > 0 ? lo[axis] - ext : hi[axis] + ext;
+    }
+    if (brt_random_float(st) < 0.25f) r->tfar = tu_rnd(st, 0.0f, 2.0f * ext);
+}

@@ -1,0 +1,37 @@
+/*
+** tests/util.h -- scenes and rays shared by the test suites: triangle
+** soups and meshes built in memory, and the four ray kinds (camera,
+** random, bounce from surface points, axis-parallel) drawn from a seed.
+*/
+#ifndef BRT_TEST_UTIL_H
+#define BRT_TEST_UTIL_H
+
+#include "batchrt.h"
+
+typedef struct tu_scene {
+    float *pos;
+    uint32_t *idx;
+    uint32_t vcount, tcount, vcap, tcap;
+} tu_scene;
+
+uint32_t tu_add_vertex(tu_scene *s, float x, float y, float z);
+void tu_add_triangle(tu_scene *s, uint32_t a, uint32_t b, uint32_t c);
+void tu_scene_free(tu_scene *s);
+float tu_rnd(uint64_t *st, float lo, float hi);
+/* n random triangles of size about `size` in the cube [0,1]^3. */
+void tu_random_soup(tu_scene *s, uint64_t *st, uint32_t n, float size);
+void tu_scene_transform(tu_scene *s, float scale, float offset);
+void tu_scene_bounds(const tu_scene *s, float lo[3], float hi[3]);
+const float *tu_vertex(const tu_scene *s, uint32_t tri, int corner);
+/* A brt_mesh that refers to the scene's arrays (do not brt_mesh_free it). */
+brt_mesh tu_mesh_view(const tu_scene *s);
+
+enum tu_ray_kind { TU_CAMERA, TU_RANDOM, TU_BOUNCE, TU_AXIS, TU_RAY_KINDS };
+extern const char *const tu_kind_name[TU_RAY_KINDS];
+void tu_random_unit(uint64_t *st, float d[3]);
+/* A ray of the given kind around the box [lo, hi]; a quarter of them get a
+** finite tfar inside the scene. */
+void tu_make_ray(const tu_scene *s, const float lo[3], const float hi[3], int kind,
+                 uint64_t *st, brt_ray *r);
+
+#endif
