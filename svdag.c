@@ -1021,14 +1021,15 @@ static int ray_is_degenerate(const brt_ray *ray, float tnear, float tfar)
 
 static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray)
 {
-    double size, p[3], d[3], inv[3], dmax = 0, pmax = 0, g;
+    double unit, scale, p[3], d[3], inv[3], dmax = 0, pmax = 0, g;
     int i;
     r->levels = tree_levels(proxy->res);
-    size = (double)proxy->cell * (1u << r->levels);
+    unit = 1.0 / (1u << r->levels);                     /* exact */
+    scale = unit / proxy->cell;     /* world -> frame; one rounding */
     r->mirror = 0;
     for (i = 0; i < 3; i++) {
-        p[i] = 1.0 + ((double)ray->org[i] - proxy->origin[i]) / size;
-        d[i] = ray->dir[i] / size;
+        p[i] = 1.0 + ((double)ray->org[i] - proxy->origin[i]) * scale;
+        d[i] = ray->dir[i] * scale;
         dmax = max2(dmax, fabs(d[i]));
     }
     for (i = 0; i < 3; i++) {
@@ -1040,7 +1041,7 @@ static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray
     for (i = 0; i < 3; i++) {
         r->enter_bias[i] = (p[i] - (1.0 + g)) * inv[i];
         r->leave_bias[i] = (p[i] - (1.0 - g)) * inv[i];
-        r->step[i] = inv[i] / (1u << r->levels);
+        r->step[i] = inv[i] * unit;
     }
     r->found = 0;
 }

@@ -9,6 +9,8 @@
 ** little larger than compressed ones, but the writer is short enough to be
 ** checked by eye, and any PNG reader accepts it.
 */
+/* realpath() is in POSIX.1-2008 with the XSI option. */
+#define _XOPEN_SOURCE 700
 #include "common.h"
 
 #include <errno.h>
@@ -16,6 +18,8 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <limits.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 /* ===================================================================== */
@@ -278,4 +282,46 @@ brt_result ex_png_write_rgb(const char *path, int width, int height,
     r = brt_write_file_atomic(path, png, size, err);
     free(png);
     return r;
+}
+
+/* ===================================================================== */
+/* The default place of scene files                                      */
+/* ===================================================================== */
+
+/* mkdir -p: creates every missing folder of path. */
+static int make_folders(char *path)
+{
+    char *p;
+    for (p = path + 1; *p; p++) {
+        if (*p != '/') continue;
+        *p = 0;
+        if (mkdir(path, 0755) != 0 && errno != EEXIST) return -1;
+        *p = '/';
+    }
+    return mkdir(path, 0755) != 0 && errno != EEXIST ? -1 : 0;
+}
+
+static void scene_folder(char *dir, size_t size)
+{
+    const char *env = getenv("BRT_SCENE_DIR"), *xdg = getenv("XDG_CACHE_HOME"), *home = getenv("HOME");
+    if (env && *env) snprintf(dir, size, "%s", env);
+    else if (xdg && *xdg) snprintf(dir, size, "%s/batchrt", xdg);
+    else if (home && *home) snprintf(dir, size, "%s/.cache/batchrt", home);
+    else snprintf(dir, size, "/tmp/batchrt-%ld", (long)getuid());
+}
+
+void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tris,
+                           uint32_t res, char *path, size_t size)
+{
+    char dir[2048], absolute[PATH_MAX];
+    const char *base = strrchr(mesh, '/'), *p;
+    uint32_t hash = 2166136261u;   /* FNV-1a of the absolute path */
+    scene_folder(dir, sizeof dir);
+    if (make_folders(dir) != 0) ex_die(prog, "%s: cannot create the scene folder: %s", dir, strerror(errno));
+    if (!realpath(mesh, absolute)) ex_die(prog, "%s: %s", mesh, strerror(errno));
+    for (p = absolute; *p; p++) hash = (hash ^ (unsigned char)*p) * 16777619u;
+    base = base ? base + 1 : mesh;
+    if (snprintf(path, size, "%s/%s-%08x-b%u-r%u.brs", dir, base, (unsigned)hash, (unsigned)batch_tris,
+                 (unsigned)res) >= (int)size)
+        ex_die(prog, "%s: scene path too long", dir);
 }

@@ -37,6 +37,14 @@ uint64_t ex_parse_size(const char *prog, const char *option, const char *text);
 /* The value after option argv[*i] (advancing *i), or dies when missing. */
 const char *ex_option_value(const char *prog, int argc, char **argv, int *i);
 
+/* Where the batched mode keeps the scene file of a mesh when --scene is
+** not given: $BRT_SCENE_DIR, else $XDG_CACHE_HOME/batchrt, else
+** $HOME/.cache/batchrt, else /tmp/batchrt-<uid>; the name is the mesh's
+** base name, a hash of its absolute path and the settings, e.g.
+** "bunny.obj-1f3a9c2e-b100000-r128.brs".  Creates the folder. */
+void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tris,
+                           uint32_t res, char *path, size_t size);
+
 /* A progress line on stderr, shown only when stderr is a terminal (or
 ** BRT_PROGRESS=1): "label  42% ...".  done <= total. */
 void ex_progress(const char *label, uint64_t done, uint64_t total);

@@ -6,9 +6,11 @@
 **
 ** --direct (the default) builds one triangle BVH over the whole mesh in
 ** memory and traces ray by ray: the reference every other mode of batchrt
-** must match byte for byte.  --batched (batching points, voxel proxies, page
-** cache and scheduler after Pharr et al. 1997 and Molenaar and Eisemann
-** 2020) is parsed and validated here but not yet available.
+** must match byte for byte.  --batched splits the mesh into batching points
+** stored in a scene file (built once, reused while the mesh and settings
+** are unchanged), casts each ray against the voxel proxies before queueing
+** it, and reads geometry through the page cache (Pharr et al. 1997;
+** Molenaar and Eisemann 2020).
 **
 ** Everything is validated (options, mesh, ray file) before any output file
 ** is written, and outputs are written atomically, so a failed run never
@@ -16,6 +18,7 @@
 */
 #include "common.h"
 
+#include <errno.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -31,6 +34,8 @@ typedef struct trace_options {
     int no_proxy;                    /* batched without proxies */
     uint64_t memory;                 /* page-cache budget in bytes */
     const char *scene;               /* scene file of the batched mode */
+    int rebuild;                     /* rebuild the scene file even if current */
+    int drop_os_cache;               /* posix_fadvise(DONTNEED) before tracing */
     const char *stats;               /* --stats FILE.json, or NULL */
     int verbose;                     /* summary line even when not a tty */
 } trace_options;
@@ -42,12 +47,15 @@ static void usage(void)
            "(OBJ or PLY) and writes the closest hits to HITS (16-byte records).\n"
            "\n"
            "  --direct          one BVH over the whole mesh in memory (default)\n"
-           "  --batched         batching points, proxies and page cache (not available yet)\n"
-           "  --batch-tris N    triangles per batching point, N >= 1 (batched; default 1048576)\n"
+           "  --batched         batching points, proxies and page cache\n"
+           "  --batch-tris N    triangles per batching point, N >= 1 (batched; default 100000)\n"
            "  --res R           proxy voxel resolution, a power of two in 2..1024 (default 128)\n"
            "  --no-proxy        batched mode without voxel proxies\n"
            "  --memory SIZE     page-cache budget, e.g. 512M (suffix K, M, G; default 1G)\n"
-           "  --scene FILE      scene file for the batched mode\n"
+           "  --scene FILE      scene file for the batched mode (default: in $BRT_SCENE_DIR,\n"
+           "                    $XDG_CACHE_HOME/batchrt or ~/.cache/batchrt)\n"
+           "  --rebuild         rebuild the scene file even when it is up to date\n"
+           "  --drop-os-cache   evict the scene file from the OS cache first (cold reads)\n"
            "  --stats FILE      write statistics as JSON\n"
            "  --verbose         print the summary line even when stderr is not a terminal\n"
            "  --help            this text\n"
@@ -69,7 +77,7 @@ static void parse_options(int argc, char **argv, trace_options *o)
     const char **positional[3];
     int i, npos = 0;
     memset(o, 0, sizeof *o);
-    o->batch_tris = 1u << 20;
+    o->batch_tris = 100000;
     o->res = 128;
     o->memory = (uint64_t)1 << 30;
     positional[0] = &o->mesh;
@@ -81,6 +89,8 @@ static void parse_options(int argc, char **argv, trace_options *o)
         else if (strcmp(a, "--batched") == 0) o->batched = 1;
         else if (strcmp(a, "--no-proxy") == 0) o->no_proxy = 1;
         else if (strcmp(a, "--verbose") == 0) o->verbose = 1;
+        else if (strcmp(a, "--rebuild") == 0) o->rebuild = 1;
+        else if (strcmp(a, "--drop-os-cache") == 0) o->drop_os_cache = 1;
         else if (strcmp(a, "--batch-tris") == 0)
             o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i),
                                          1, UINT32_MAX);
@@ -129,6 +139,44 @@ static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count
     brt_bvh_free(bvh);
 }
 
+/* Batched mode: the scene file (reused or rebuilt), then the scheduler. */
+static void trace_batched(const trace_options *o, const brt_ray *rays, size_t count,
+                          brt_hit *hits, brt_stats *stats)
+{
+    brt_scene_options scene_opt;
+    brt_trace_options trace_opt;
+    brt_scene *scene;
+    brt_error err;
+    char default_path[4096];
+    const char *path = o->scene;
+    double start = brt_seconds();
+    int rebuilt;
+    memset(&scene_opt, 0, sizeof scene_opt);
+    scene_opt.batch_tris = (uint32_t)o->batch_tris;
+    scene_opt.proxy_res = (uint32_t)o->res;
+    if (!path) {
+        ex_default_scene_path(prog, o->mesh, scene_opt.batch_tris, scene_opt.proxy_res,
+                              default_path, sizeof default_path);
+        path = default_path;
+    }
+    if (o->rebuild && unlink(path) != 0 && errno != ENOENT)
+        ex_die(prog, "%s: cannot remove: %s", path, strerror(errno));
+    ex_progress("preparing scene", 0, 1);
+    ex_check(prog, brt_scene_prepare(o->mesh, path, &scene_opt, &scene, &rebuilt, &err), &err);
+    memset(&trace_opt, 0, sizeof trace_opt);
+    trace_opt.memory_limit = o->memory;
+    trace_opt.no_proxy = o->no_proxy;
+    trace_opt.drop_os_cache = o->drop_os_cache;
+    ex_progress("tracing", 0, 1);
+    ex_check(prog, brt_scene_trace(scene, &trace_opt, rays, count, hits, stats, &err), &err);
+    ex_progress_end();
+    stats->build_seconds = rebuilt ? brt_seconds() - start - stats->seconds : 0.0;
+    if (o->verbose || isatty(2))
+        fprintf(stderr, "trace: scene %s (%s), %llu batching points\n", path,
+                rebuilt ? "built" : "reused", (unsigned long long)stats->batching_points);
+    brt_scene_close(scene);
+}
+
 static void print_summary(const brt_hit *hits, const brt_stats *stats)
 {
     uint64_t i, hit_count = 0;
@@ -150,22 +198,25 @@ int main(int argc, char **argv)
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
-    if (o.batched) ex_die(prog, "--batched is not available yet");
-    ex_check(prog, brt_mesh_load(o.mesh, &mesh, &err), &err);
     ex_check(prog, brt_rays_read(o.rays, &rays, &count, &err), &err);
     hits = malloc((count ? count : 1) * sizeof *hits);
     if (!hits) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
 
     memset(&stats, 0, sizeof stats);
-    stats.rays = count;
-    trace_direct(&mesh, rays, count, hits, &stats);
-    if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
+    if (o.batched) {
+        trace_batched(&o, rays, count, hits, &stats);
+    } else {
+        ex_check(prog, brt_mesh_load(o.mesh, &mesh, &err), &err);
+        stats.rays = count;
+        trace_direct(&mesh, rays, count, hits, &stats);
+        brt_mesh_free(&mesh);
+        if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
+    }
 
     ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
     if (o.stats) ex_check(prog, brt_stats_write_json(o.stats, &stats, &err), &err);
     if (o.verbose || isatty(2)) print_summary(hits, &stats);
     free(hits);
     free(rays);
-    brt_mesh_free(&mesh);
     return 0;
 }

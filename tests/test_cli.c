@@ -595,6 +595,58 @@ static void test_trace_stats(void)
     free(err);
 }
 
+/* trace --batched writes the bytes of --direct for any settings; the
+** scene file is built once, reused, and rebuilt when a setting changes. */
+static void test_trace_batched(void)
+{
+    static const char *const settings[] = {
+        "--batch-tris 1 --res 2 --memory 1K", "--batch-tris 7 --res 16 --no-proxy",
+        "--batch-tris 1000 --res 256 --memory 64K", "--batch-tris 40 --res 64 --memory 20K"};
+    tu_scene m = {0};
+    unsigned char *direct, *batched;
+    size_t i, n_direct = 0, n_batched = 0;
+    char *err, *json;
+    int status;
+    CHECK(write_lumpy_mesh(&m, "lumpy.obj"), "cannot write the test mesh");
+    status = run("raygen @/lumpy.obj @/batched.rays --kind bounce --count 3000");
+    CHECK(status == 0, "raygen: exit status %d", status);
+    CHECK(run("trace @/lumpy.obj @/batched.rays @/direct.hits") == 0, "trace --direct failed");
+    direct = slurp(scratch("direct.hits"), &n_direct);
+    for (i = 0; i < sizeof settings / sizeof *settings; i++) {
+        status = run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --scene @/b.brs "
+                     "--verbose --stats @/batched.json %s", settings[i]);
+        err = last_stderr();
+        EXPECT(status == 0 && err && strstr(err, "(built)"), "'%s': exit %d, stderr '%s'",
+               settings[i], status, err ? err : "");
+        free(err);
+        batched = slurp(scratch("batched.hits"), &n_batched);
+        EXPECT(direct && batched && n_direct == n_batched && !memcmp(direct, batched, n_direct),
+               "'%s': the batched hit file differs from the direct one", settings[i]);
+        free(batched);
+    }
+    json = (char *)slurp(scratch("batched.json"), NULL);
+    EXPECT(json && json_number(json, "rays") == 3000 && json_number(json, "batch_loads") > 0 &&
+           json_number(json, "disk_bytes_read") > 0 && json_number(json, "queued_visits") > 0 &&
+           json_number(json, "proxy_tests") > 0 && json_number(json, "memory_limit") == 20480 &&
+           json_number(json, "geometry_bytes") > 0 && json_number(json, "proxy_bytes") > 0 &&
+           json_number(json, "cache_peak_bytes") > 0 && json_number(json, "proxy_culled") >= 0 &&
+           json_number(json, "batching_points") >= (double)m.tcount / 40.0,
+           "batched statistics: %s", json ? json : "(none)");
+    free(json);
+    status = run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --scene @/b.brs "
+                 "--verbose %s", settings[3]);
+    err = last_stderr();
+    EXPECT(status == 0 && err && strstr(err, "(reused)"), "same settings: stderr '%s'", err ? err : "");
+    free(err);
+    /* Without --scene the file goes to $BRT_SCENE_DIR. */
+    setenv("BRT_SCENE_DIR", scratch("scenes"), 1);
+    status = run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --batch-tris 100");
+    EXPECT(status == 0 && file_exists(scratch("scenes")), "default scene folder: exit %d", status);
+    unsetenv("BRT_SCENE_DIR");
+    free(direct);
+    tu_scene_free(&m);
+}
+
 /* Rewrites record i of a hit file: prim and t as given. */
 static int patch_hit(const char *path, size_t i, uint32_t prim, float t)
 {
@@ -716,6 +768,9 @@ static const bad_case bad_cases[] = {
     {"raygen @/good.obj @/bad21.rays --kind random --fast", "--fast", "bad21.rays"},
     {"raygen @/empty.obj @/bad22.rays --kind camera", "empty.obj", "bad22.rays"},
     {"raygen @/edge_on.obj @/bad23.rays --kind bounce", "edge_on.obj", "bad23.rays"},
+    {"trace @/good.obj @/good.rays @/bad24.hits --batched --scene @/corrupt.brs", "corrupt.brs: not a batchrt scene file", "bad24.hits"},
+    {"trace @/good.obj @/good.rays @/bad25.hits --batched --scene @/short.brs", "short.brs: truncated", "bad25.hits"},
+    {"trace @/missing.obj @/good.rays @/bad26.hits --batched --scene @/s26.brs", "missing.obj", "bad26.hits"},
     {"hitdiff @/missing.hits @/good.hits", "missing.hits", NULL},
     {"hitdiff @/good.hits @/odd.hits", "odd.hits", NULL},
     {"hitdiff @/good.hits @/good.hits --max-disagree 2", "--max-disagree", NULL},
@@ -729,14 +784,17 @@ static void test_bad_input(void)
     static const char malformed[] = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n";
     /* In the plane x = 0, which holds the camera: seen edge-on, never hit. */
     static const char edge_on[] = "v 0 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n";
-    unsigned char zeros[33];
+    unsigned char zeros[33], garbage[300];
     size_t i;
     int status;
     memset(zeros, 0, sizeof zeros);
+    memset(garbage, 'x', sizeof garbage);
     CHECK(write_cube("good.obj") && spill(scratch("malformed.obj"), malformed,
           sizeof malformed - 1) && spill(scratch("empty.obj"), "", 0)
           && spill(scratch("edge_on.obj"), edge_on, sizeof edge_on - 1)
-          && spill(scratch("odd.rays"), zeros, 33) && spill(scratch("odd.hits"), zeros, 17),
+          && spill(scratch("odd.rays"), zeros, 33) && spill(scratch("odd.hits"), zeros, 17)
+          && spill(scratch("corrupt.brs"), garbage, sizeof garbage)
+          && spill(scratch("short.brs"), garbage, 100),
           "cannot write the inputs");
     status = run("raygen @/good.obj @/good.rays --kind random --count 10");
     CHECK(status == 0, "raygen: exit status %d", status);
@@ -911,6 +969,7 @@ void suite_cli(void)
     test_run("cli: raygen bounce rays leave a convex surface", test_raygen_bounce);
     test_run("cli: trace equals brute force byte for byte", test_trace_equals_brute_force);
     test_run("cli: trace --stats and --verbose", test_trace_stats);
+    test_run("cli: trace --batched writes the bytes of --direct", test_trace_batched);
     test_run("cli: hitdiff table and exit status", test_hitdiff);
     test_run("cli: bad input exits 1 and writes nothing", test_bad_input);
     test_run("cli: PNG decodes with an independent decoder", test_png);
