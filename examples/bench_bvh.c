@@ -189,9 +189,27 @@ static void random_rays(const frame *f, uint64_t *st, brt_ray *rays, size_t n)
     }
 }
 
+/* A cosine-weighted direction about the normal n (Malley's method, with
+** the tangent frame of Duff et al. 2017), as build/raygen draws them. */
+static void cosine_dir(uint64_t *st, const float n_in[3], float dir[3])
+{
+    const float r = sqrtf(brt_random_float(st)), phi = 6.2831853f * brt_random_float(st);
+    const float x = r * cosf(phi), y = r * sinf(phi), z = sqrtf(1.0f - r * r > 0 ? 1.0f - r * r : 0);
+    float n[3], t[3], b[3], len, sg, a_, c;
+    int k;
+    len = sqrtf(n_in[0] * n_in[0] + n_in[1] * n_in[1] + n_in[2] * n_in[2]);
+    for (k = 0; k < 3; k++) n[k] = len > 0 ? n_in[k] / len : (k == 2);
+    sg = n[2] >= 0 ? 1.0f : -1.0f;
+    a_ = -1.0f / (sg + n[2]);
+    c = n[0] * n[1] * a_;
+    t[0] = 1.0f + sg * n[0] * n[0] * a_; t[1] = sg * c; t[2] = -sg * n[0];
+    b[0] = c; b[1] = sg + n[1] * n[1] * a_; b[2] = -n[1];
+    for (k = 0; k < 3; k++) dir[k] = x * t[k] + y * b[k] + z * n[k];
+}
+
 /* From each camera ray's hit (a random image point's where it missed),
-** nudged off the surface towards the camera, in a uniform direction of
-** that hemisphere.  Coherent origins, incoherent directions. */
+** in a cosine-weighted direction of the hemisphere facing the camera,
+** tnear a hair above 0.  Coherent origins, incoherent directions. */
 static void bounce_rays(const brt_mesh *m, const frame *f, const brt_bvh *bvh,
                         const brt_ray *cam, uint64_t *st, brt_ray *rays, size_t n)
 {
@@ -201,7 +219,7 @@ static void bounce_rays(const brt_mesh *m, const frame *f, const brt_bvh *bvh,
         brt_ray in = cam[i];
         brt_hit h;
         const float *p[3];
-        float e1[3], e2[3], nrm[3], org[3], dir[3], side = 0, facing = 0;
+        float e1[3], e2[3], nrm[3], org[3], dir[3], facing = 0;
         brt_hit_clear(&h);
         brt_bvh_intersect(bvh, &in, &h);
         for (attempt = 0; h.prim == BRT_NO_PRIM && attempt < 1000; attempt++) {
@@ -219,12 +237,8 @@ static void bounce_rays(const brt_mesh *m, const frame *f, const brt_bvh *bvh,
             facing += nrm[a] * in.dir[a];
         }
         if (facing > 0) for (a = 0; a < 3; a++) nrm[a] = -nrm[a];
-        random_dir(st, dir);
-        for (a = 0; a < 3; a++) side += dir[a] * nrm[a];
-        for (a = 0; a < 3; a++) {
-            if (side < 0) dir[a] = -dir[a];
-            org[a] = in.org[a] + h.t * in.dir[a];
-        }
+        cosine_dir(st, nrm, dir);
+        for (a = 0; a < 3; a++) org[a] = in.org[a] + h.t * in.dir[a];
         set_ray(&rays[i], org, dir, 1e-5f * f->radius);
     }
 }

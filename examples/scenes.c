@@ -14,13 +14,12 @@
 ** translation); instances (trees, rocks, plants) are baked in world space.
 **
 ** MEMORY
-** A scene generator runs twice with the same seed: a counting pass that
-** only adds up vertex and triangle counts, then, after one exact
-** allocation of the two arrays, an emitting pass that writes them.  So
-** there are no per-triangle temporaries and no reallocation, and the
-** counts cannot disagree with the contents.  Random numbers are only drawn
-** while placing instances, never inside a surface function, so both passes
-** draw the same sequence.
+** The two arrays are reserved once from the triangle budget (a little
+** more than it) and grown by half when a scene overshoots; pages that are
+** never written cost no memory, and realloc of a large block moves pages
+** rather than bytes on common systems.  They are trimmed to size at the
+** end.  No per-triangle temporaries: each surface is written straight
+** into them.
 **
 ** SIZE
 ** A scene gets a triangle budget of 100000 * scale, shared out between
@@ -129,7 +128,7 @@ static void random_up(uint64_t *rng, double max_tilt, double out[3])
 }
 
 /* ===================================================================== */
-/* Gridded surfaces and the two-pass builder                             */
+/* Gridded surfaces and the builder                                      */
 /* ===================================================================== */
 
 enum { WRAP_U = 1, WRAP_V = 2, POLE_START = 4, POLE_END = 8 };
@@ -145,11 +144,46 @@ typedef struct grid {
 typedef void (*surface_fn)(const void *shape, double u, double v, double p[3]);
 
 typedef struct builder {
-    brt_mesh *mesh;        /* NULL in the counting pass */
-    uint64_t vertices;     /* counted or written so far */
-    uint64_t triangles;
-    int overflow;          /* the emitting pass outgrew the counting pass */
+    float *positions;      /* 3 per vertex, vertex_cap of them */
+    uint32_t *indices;     /* 3 per triangle, triangle_cap of them */
+    uint64_t vertices, triangles;         /* written so far */
+    uint64_t vertex_cap, triangle_cap;
+    brt_result failed;     /* BRT_ENOMEM, or BRT_EARG past 2^32 - 1 */
 } builder;
+
+/* Grows one array (by half, or to `need`) unless it has room for `need`. */
+static int grow(void **array, uint64_t *cap, uint64_t need, size_t item_bytes)
+{
+    uint64_t next = *cap + *cap / 2;
+    void *bigger;
+    if (need <= *cap) return 1;
+    if (next < need) next = need;
+    if (next > UINT32_MAX) next = UINT32_MAX;
+    if (next > SIZE_MAX / item_bytes) return 0;
+    bigger = realloc(*array, (size_t)next * item_bytes);
+    if (!bigger) return 0;
+    *array = bigger;
+    *cap = next;
+    return 1;
+}
+
+/* Room for nv more vertices and nt more triangles, or b->failed set. */
+static int reserve(builder *b, uint64_t nv, uint64_t nt)
+{
+    void *p;
+    if (b->failed) return 0;
+    if (b->vertices + nv > UINT32_MAX || b->triangles + nt > UINT32_MAX) {
+        b->failed = BRT_EARG;
+        return 0;
+    }
+    p = b->positions;
+    if (!grow(&p, &b->vertex_cap, b->vertices + nv, 3 * sizeof(float))) b->failed = BRT_ENOMEM;
+    b->positions = p;
+    p = b->indices;
+    if (!grow(&p, &b->triangle_cap, b->triangles + nt, 3 * sizeof(uint32_t))) b->failed = BRT_ENOMEM;
+    b->indices = p;
+    return !b->failed;
+}
 
 static uint32_t grid_poles(const grid *g)
 {
@@ -197,7 +231,7 @@ static void put_vertex(float *out, const xform *x, const double p[3])
 
 static void put_triangle(builder *b, uint64_t a, uint64_t c, uint64_t d)
 {
-    uint32_t *t = b->mesh->indices + 3 * b->triangles++;
+    uint32_t *t = b->indices + 3 * b->triangles++;
     t[0] = (uint32_t)a;
     t[1] = (uint32_t)c;
     t[2] = (uint32_t)d;
@@ -219,26 +253,17 @@ static void emit_surface(builder *b, const grid *g, surface_fn fn,
     uint32_t bands = (g->flags & WRAP_V) ? g->rings : g->rings - 1;
     double p[3], du = 1.0 / ((g->flags & WRAP_U) ? segs : segs - 1);
 
-    if (!b->mesh) {
-        b->vertices += grid_vertices(g);
-        b->triangles += grid_triangles(g);
-        return;
-    }
-    if (b->vertices + grid_vertices(g) > b->mesh->vertex_count
-        || b->triangles + grid_triangles(g) > b->mesh->triangle_count) {
-        b->overflow = 1;
-        return;
-    }
+    if (!reserve(b, grid_vertices(g), grid_triangles(g))) return;
     for (i = 0; i < g->rings; i++) {
         double v = grid_v(g, i);
         for (j = 0; j < segs; j++) {
             fn(shape, j * du, v, p);
-            put_vertex(b->mesh->positions + 3 * (base + (uint64_t)i * segs + j), x, p);
+            put_vertex(b->positions + 3 * (base + (uint64_t)i * segs + j), x, p);
         }
     }
     for (i = 0; i < grid_poles(g); i++) {
         fn(shape, 0, (i == 0 && (g->flags & POLE_START)) ? 0 : 1, p);
-        put_vertex(b->mesh->positions + 3 * (pole + i), x, p);
+        put_vertex(b->positions + 3 * (pole + i), x, p);
     }
     b->vertices += grid_vertices(g);
 
@@ -375,7 +400,7 @@ static void card_point(const void *shape, double u, double v, double p[3])
     p[2] = c->bend * c->length * v * v;
 }
 
-static const grid leaf_grid = {2, 2, 0};      /* 2 triangles */
+static const grid leaf_grid = {3, 3, 0};      /* 8 triangles: a curled leaf */
 static const grid blade_grid = {2, 4, 0};     /* 6 triangles */
 static const grid frond_grid = {2, 6, 0};     /* 10 triangles */
 
@@ -514,7 +539,7 @@ static void emit_leaf(builder *b, uint64_t *rng, const double c[3], const double
     leaf.width = 0.6 * size;
     leaf.length = size;
     leaf.taper = 0.5;
-    leaf.bend = 0;
+    leaf.bend = 0.25;
     x = xform_along(dir, rnd(rng, 0, 2 * PI), 1, at);
     x = xform_then(&x, place);
     emit_surface(b, &leaf_grid, card_point, &leaf, &x);
@@ -524,7 +549,7 @@ static const grid trunk_grid = {6, 4, SPHERE_LIKE};
 static const grid tier_grid = {10, 4, SPHERE_LIKE};
 #define CONIFER_TIERS 3
 #define BROADLEAF_BRANCHES 3
-#define BROADLEAF_LEAVES 48
+#define BROADLEAF_LEAVES 16
 
 static uint64_t conifer_triangles(void)
 {
@@ -574,7 +599,7 @@ static void emit_broadleaf(builder *b, uint64_t *rng, const xform *place)
         emit_surface(b, &trunk_grid, lathe_point, &branch, &x);
     }
     for (k = 0; k < BROADLEAF_LEAVES; k++)
-        emit_leaf(b, rng, crown_centre, crown_radii, 0.09, place);
+        emit_leaf(b, rng, crown_centre, crown_radii, 0.16, place);
 }
 
 static const grid rock_grid = {12, 7, SPHERE_LIKE};
@@ -597,7 +622,7 @@ static void emit_rock(builder *b, uint64_t *rng, double radius, const double at[
 }
 
 #define PALM_FRONDS 7
-#define BUSH_LEAVES 16
+#define BUSH_LEAVES 7
 #define TUFT_BLADES 6
 
 static uint64_t palm_triangles(void)
@@ -637,7 +662,7 @@ static void emit_bush(builder *b, uint64_t *rng, const xform *place)
 {
     static const double radii[3] = {0.55, 0.4, 0.55}, centre[3] = {0, 0.5, 0};
     int k;
-    for (k = 0; k < BUSH_LEAVES; k++) emit_leaf(b, rng, centre, radii, 0.35, place);
+    for (k = 0; k < BUSH_LEAVES; k++) emit_leaf(b, rng, centre, radii, 0.5, place);
 }
 
 /* A grass tuft of unit height: blades fanning out from one point. */
@@ -1036,7 +1061,7 @@ static void build_island(builder *b, double scale, uint64_t seed)
     if (count < 3) count = 3;
     half_side = 0.5 * ISLAND_SPACING * sqrt((double)count);
     all = malloc(count * sizeof *all);
-    if (!all) { b->overflow = 1; return; }
+    if (!all) { b->failed = BRT_ENOMEM; return; }
     emit_sea(b, half_side + 400);
     for (i = 0; i < count; i++) {
         grid g = grid_for_budget(0.2 * budget / count, 2 * PI, WRAP_U | POLE_START);
@@ -1078,7 +1103,7 @@ brt_result ex_scene_generate(const char *name, double scale, uint64_t seed,
                              brt_mesh *mesh, brt_error *err)
 {
     int index = scene_index(name);
-    builder count, emit;
+    builder b;
     memset(mesh, 0, sizeof *mesh);
     if (index < 0)
         return brt_fail(err, BRT_EARG, "unknown scene '%s' (built-in: crown, landscape, island)",
@@ -1086,30 +1111,26 @@ brt_result ex_scene_generate(const char *name, double scale, uint64_t seed,
     if (!(scale > 0 && scale <= EX_SCENE_MAX_SCALE))
         return brt_fail(err, BRT_EARG, "%s: scale %g outside (0, %g]", name, scale,
                         EX_SCENE_MAX_SCALE);
-    memset(&count, 0, sizeof count);
-    scene_builders[index](&count, scale, seed);
-    if (count.overflow)
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory while planning", name);
-    if (count.vertices > UINT32_MAX || count.triangles > UINT32_MAX
-        || count.triangles > SIZE_MAX / (3 * sizeof(uint32_t)))
-        return brt_fail(err, BRT_EARG, "%s: scale %g needs more than 2^32 triangles", name, scale);
-    mesh->vertex_count = (uint32_t)count.vertices;
-    mesh->triangle_count = (uint32_t)count.triangles;
-    mesh->positions = malloc(3 * sizeof(float) * (size_t)count.vertices);
-    mesh->indices = malloc(3 * sizeof(uint32_t) * (size_t)count.triangles);
-    if (!mesh->positions || !mesh->indices) {
-        brt_mesh_free(mesh);
-        return brt_fail(err, BRT_ENOMEM, "%s: cannot allocate %llu triangles", name,
-                        (unsigned long long)count.triangles);
+    memset(&b, 0, sizeof b);
+    /* Every scene stays near its budget and has fewer than 1.25 vertices
+    ** per triangle, so this reservation is rarely grown. */
+    if (reserve(&b, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * scale) + 4096,
+                (uint64_t)(1.05 * TRIANGLES_PER_SCALE * scale) + 4096))
+        scene_builders[index](&b, scale, seed);
+    if (b.failed) {
+        free(b.positions);
+        free(b.indices);
+        return brt_fail(err, b.failed, b.failed == BRT_EARG
+                        ? "%s: scale %g needs more than 2^32 - 1 vertices or triangles"
+                        : "%s: out of memory at scale %g", name, scale);
     }
-    memset(&emit, 0, sizeof emit);
-    emit.mesh = mesh;
-    scene_builders[index](&emit, scale, seed);
-    if (emit.overflow || emit.vertices != count.vertices || emit.triangles != count.triangles) {
-        brt_mesh_free(mesh);   /* the two passes disagree: a bug, not bad input */
-        return brt_fail(err, emit.overflow ? BRT_ENOMEM : BRT_ECHECK,
-                        "%s: emitting pass does not match the counting pass", name);
-    }
+    /* Trim to size; a failed shrink leaves the larger block, still valid. */
+    mesh->positions = realloc(b.positions, 3 * sizeof(float) * (size_t)b.vertices);
+    mesh->indices = realloc(b.indices, 3 * sizeof(uint32_t) * (size_t)b.triangles);
+    if (!mesh->positions) mesh->positions = b.positions;
+    if (!mesh->indices) mesh->indices = b.indices;
+    mesh->vertex_count = (uint32_t)b.vertices;
+    mesh->triangle_count = (uint32_t)b.triangles;
     return BRT_OK;
 }
 
