@@ -39,7 +39,7 @@ TEST_SRC = $(wildcard tests/*.c)
 TEST_OBJ = $(TEST_SRC:%.c=$(BUILD)/%.o)
 TEST_BIN = $(BUILD)/run_tests
 
-.PHONY: all test debug sanitize bench clean
+.PHONY: all test debug sanitize bench bench-batched clean
 all: $(LIB) $(PROGRAMS)
 
 $(BUILD)/%.o: %.c batchrt.h | $(BUILD)/examples $(BUILD)/tests
@@ -77,6 +77,10 @@ sanitize:
 
 bench: all
 	./$(BUILD)/bench_bvh
+
+# Out of core: proxies on and off at 25 % of the geometry bytes (issue 4).
+bench-batched: all
+	./$(BUILD)/bench_batched landscape --scale 50
 
 clean:
 	rm -rf build

@@ -75,13 +75,13 @@ static unsigned lowest_bit64(uint64_t m)
     return table[((m & (0 - m)) * 0x03F79D71B4CB0A89ull) >> 58];
 }
 
-/* Index of the highest set bit of an 8-bit mask m != 0. */
+/* Index of the highest set bit of an 8-bit mask m != 0 (a table per
+** nibble; the choice compiles to a conditional move, not a branch). */
 static unsigned highest_bit8(unsigned m)
 {
-    unsigned j = 0;
-    if (m & 0xF0u) { m >>= 4; j += 4; }
-    if (m & 0x0Cu) { m >>= 2; j += 2; }
-    return j + (m >> 1);
+    static const unsigned char nibble[16] = {0, 0, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3, 3, 3};
+    unsigned high = m >> 4;
+    return high ? 4u + nibble[high] : nibble[m];
 }
 
 /* min and max without libm's NaN rules (a call each with -std=c99); the
@@ -1091,16 +1091,20 @@ static void push_node(const ray_frame *r, scale_entry *s, uint32_t node,
 }
 
 /* Leaf bits whose voxel lies in allowed slabs on every axis (4-bit masks
-** of world voxel columns). */
+** of world voxel columns x, y, z; bit x + 4y + 16z). */
 static uint64_t slab_voxels(const unsigned ok[3])
 {
-    uint64_t x = ok[0] * 0x1111111111111111ull, y = 0, z = 0;
-    unsigned i;
-    for (i = 0; i < 4; i++) {
-        if (ok[1] & (1u << i)) y |= 0x000F000F000F000Full << (4 * i);
-        if (ok[2] & (1u << i)) z |= 0xFFFFull << (16 * i);
-    }
-    return x & y & z;
+    static const uint64_t rows[16] = {   /* y slabs within a z slice, times 4 slices */
+        0x0000000000000000ull, 0x000F000F000F000Full, 0x00F000F000F000F0ull, 0x00FF00FF00FF00FFull,
+        0x0F000F000F000F00ull, 0x0F0F0F0F0F0F0F0Full, 0x0FF00FF00FF00FF0ull, 0x0FFF0FFF0FFF0FFFull,
+        0xF000F000F000F000ull, 0xF00FF00FF00FF00Full, 0xF0F0F0F0F0F0F0F0ull, 0xF0FFF0FFF0FFF0FFull,
+        0xFF00FF00FF00FF00ull, 0xFF0FFF0FFF0FFF0Full, 0xFFF0FFF0FFF0FFF0ull, 0xFFFFFFFFFFFFFFFFull};
+    static const uint64_t slices[16] = {
+        0x0000000000000000ull, 0x000000000000FFFFull, 0x00000000FFFF0000ull, 0x00000000FFFFFFFFull,
+        0x0000FFFF00000000ull, 0x0000FFFF0000FFFFull, 0x0000FFFFFFFF0000ull, 0x0000FFFFFFFFFFFFull,
+        0xFFFF000000000000ull, 0xFFFF00000000FFFFull, 0xFFFF0000FFFF0000ull, 0xFFFF0000FFFFFFFFull,
+        0xFFFFFFFF00000000ull, 0xFFFFFFFF0000FFFFull, 0xFFFFFFFFFFFF0000ull, 0xFFFFFFFFFFFFFFFFull};
+    return (ok[0] * 0x1111111111111111ull) & rows[ok[1]] & slices[ok[2]];
 }
 
 /* Tests the set voxels of a leaf at a mirrored corner; a touched voxel
@@ -1116,7 +1120,7 @@ static void cast_leaf(ray_frame *r, uint64_t mask, const uint32_t corner[3])
             uint32_t w = (r->mirror >> a) & 1 ? 3 - u : u;   /* world column */
             enter[a][w] = enter_t(r, a, corner[a] + u + 1);
             leave[a][w] = leave_t(r, a, corner[a] + u);
-            if (enter[a][w] <= r->hi && leave[a][w] >= r->lo) ok[a] |= 1u << w;
+            ok[a] |= (unsigned)((enter[a][w] <= r->hi) & (leave[a][w] >= r->lo)) << w;
         }
     mask &= slab_voxels(ok);
     while (mask) {
