@@ -77,6 +77,7 @@ sanitize:
 
 bench: all
 	./$(BUILD)/bench_bvh
+	./$(BUILD)/bench_svdag
 
 # Out of core: proxies on and off at 25 % of the geometry bytes (issue 4).
 bench-batched: all

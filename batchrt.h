@@ -341,7 +341,10 @@ uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy);
 uint32_t brt_svdag_node_count(const brt_svdag *dag);
 size_t brt_svdag_memory_bytes(const brt_svdag *dag);
 
-/* The pool as one relocatable blob, for the scene file. */
+/* The pool as one relocatable blob, for the scene file (little-endian,
+** layout in svdag.c).  brt_svdag_blob_open copies the blob (any alignment)
+** and runs brt_svdag_check: a corrupt blob is BRT_EFORMAT.  Proxies read
+** from the same file are then validated with brt_proxy_check. */
 size_t brt_svdag_blob_size(const brt_svdag *dag);
 void brt_svdag_blob_write(const brt_svdag *dag, void *dst);
 brt_result brt_svdag_blob_open(const void *blob, size_t size,

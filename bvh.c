@@ -81,7 +81,7 @@
 
 #define BINS 16
 #define MAX_LEAF 8
-#define C_TRAV 1.0f
+#define C_TRAV 2.0f
 #define C_ISECT 1.0f
 #define SAH_DEPTH 64
 #define MAX_DEPTH (SAH_DEPTH + 32)
@@ -274,35 +274,52 @@ typedef struct stack_entry {
     float lo;         /* entry distance, for pruning when popped */
 } stack_entry;
 
-/* Pushes the hit slots of a node, farthest first, so the nearest pops
-** first.  Returns the new stack size. */
-static int push_children(const wnode *n, unsigned mask, const float lo[4],
-                         stack_entry *stack, int sp)
+/* The lowest set bit of a 4-bit mask (C99 has no ctz). */
+static const unsigned char lowest_bit[16] = {0, 0, 1, 0, 2, 0, 1, 0, 3, 0, 1, 0, 2, 0, 1, 0};
+
+static stack_entry slot_entry(const wnode *n, unsigned i, const float lo[4])
+{
+    stack_entry e;
+    e.child = n->child[i];
+    e.count = n->count[i];
+    e.lo = lo[i];
+    return e;
+}
+
+/* Chooses the next entry among the hit slots of a node (mask != 0): the
+** nearest, pushing the others farthest first.  One and two hits -- most
+** nodes -- take the short paths.  Returns the new stack size. */
+static int next_child(const wnode *n, unsigned mask, const float lo[4],
+                      stack_entry *stack, int sp, stack_entry *next)
 {
     stack_entry e[4];
     int k = 0, i, j;
-    for (i = 0; i < 4; i++) {
-        if (!(mask >> i & 1u) || (n->count[i] == 0 && n->child[i] == EMPTY_SLOT))
-            continue;
-        e[k].child = n->child[i];
-        e[k].count = n->count[i];
-        e[k].lo = lo[i];
+    const unsigned first = lowest_bit[mask];
+    mask &= mask - 1;
+    *next = slot_entry(n, first, lo);
+    if (mask == 0) return sp;
+    e[0] = *next;
+    for (k = 1; mask != 0; k++, mask &= mask - 1) {
+        e[k] = slot_entry(n, lowest_bit[mask], lo);
         /* insertion sort by descending entry distance */
-        for (j = k++; j > 0 && e[j - 1].lo < e[j].lo; j--) {
+        for (j = k; j > 0 && e[j - 1].lo < e[j].lo; j--) {
             stack_entry s = e[j]; e[j] = e[j - 1]; e[j - 1] = s;
         }
     }
-    for (i = 0; i < k; i++) stack[sp++] = e[i];
+    for (i = 0; i < k - 1; i++) stack[sp++] = e[i];
+    *next = e[k - 1];
     return sp;
 }
 
 /* Closest hit into *hit, or (any != 0) returns 1 at the first hit.
-** The tree is checked acyclic with depth <= MAX_DEPTH at build/open time,
-** so each node pops at most once and the stack never overflows. */
+** Empty slots have inverted boxes, so they never hit.  The tree is checked
+** acyclic with depth <= MAX_DEPTH at build/open time, so each node is
+** entered at most once and the stack (3 entries per level) never
+** overflows. */
 static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
                     int any)
 {
-    stack_entry stack[STACK_SIZE];
+    stack_entry stack[STACK_SIZE], cur;
     tri_ray tr;
     box_ray br;
     float tfar = ray->tfar, lo[4];
@@ -313,20 +330,18 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
     if (!(ray->tnear <= tfar)) return 0;
     tri_ray_setup(ray, &tr);
     box_ray_setup(ray, &br);
-    stack[sp].child = 0;
-    stack[sp].count = 0;
-    stack[sp++].lo = ray->tnear;
-    while (sp > 0) {
-        const stack_entry e = stack[--sp];
+    cur.child = 0;
+    cur.count = 0;
+    cur.lo = ray->tnear;
+    for (;;) {
         uint32_t k;
-        if (e.lo > tfar) continue;
-        if (e.count == 0) {
-            const wnode *n = &bvh->nodes[e.child];
-            unsigned mask = box_test4(&br, n, ray->tnear, tfar, lo);
-            sp = push_children(n, mask, lo, stack, sp);
-            continue;
+        while (cur.count == 0) {
+            const wnode *n = &bvh->nodes[cur.child];
+            const unsigned mask = box_test4(&br, n, ray->tnear, tfar, lo);
+            if (mask == 0) goto pop;
+            sp = next_child(n, mask, lo, stack, sp, &cur);
         }
-        for (k = e.child; k < e.child + e.count; k++) {
+        for (k = cur.child; k < cur.child + cur.count; k++) {
             const float *p = bvh->tris + 9 * (size_t)k;
             float t, u, v;
             if (!tri_intersect(&tr, p, p + 3, p + 6, ray->tnear, tfar, &t, &u, &v))
@@ -340,8 +355,12 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
                 tfar = t;
             }
         }
+    pop:
+        do {
+            if (sp == 0) return 0;
+            cur = stack[--sp];
+        } while (cur.lo > tfar);
     }
-    return 0;
 }
 
 void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit)
@@ -615,18 +634,18 @@ static void set_slot(wnode *w, int i, const aabb *box, uint32_t child, uint32_t 
     w->count[i] = count;
 }
 
-/* Emits the wide node whose slots are the binary node bi's descendants
-** found by opening the largest-area inner child until there are four.
-** Nodes are emitted in preorder, so children follow their parent. */
-static uint32_t emit_wide(const builder *b, wnode *out, uint32_t *out_count,
-                          uint32_t bi)
+/* Fills wide node w with the descendants of binary node bi found by
+** opening the largest-area inner child until there are four.  The inner
+** children get consecutive indices after everything emitted so far (so
+** they follow their parent and sit together in memory, where one fetch
+** brings in the next sibling too), then are filled in turn. */
+static void emit_wide(const builder *b, wnode *out, uint32_t *out_count,
+                      uint32_t bi, uint32_t w)
 {
-    const uint32_t w = (*out_count)++;
     const bnode *root = &b->nodes[bi];
-    uint32_t slot[4];
-    int n = 0, i;
+    uint32_t slot[4], child[4];
     aabb empty;
-    aabb_empty(&empty);
+    int n = 0, i;
     if (root->count > 0) slot[n++] = bi;
     else { slot[n++] = root->left; slot[n++] = root->right; }
     while (n < 4) {
@@ -640,14 +659,16 @@ static uint32_t emit_wide(const builder *b, wnode *out, uint32_t *out_count,
         slot[n++] = b->nodes[slot[open]].right;
         slot[open] = b->nodes[slot[open]].left;
     }
+    aabb_empty(&empty);
     for (i = 0; i < 4; i++) set_slot(&out[w], i, &empty, EMPTY_SLOT, 0);
     for (i = 0; i < n; i++) {
         const bnode *c = &b->nodes[slot[i]];
         const aabb box = aabb_padded(&c->box);
-        const uint32_t child = c->count > 0 ? c->first : emit_wide(b, out, out_count, slot[i]);
-        set_slot(&out[w], i, &box, child, c->count);
+        child[i] = c->count > 0 ? c->first : (*out_count)++;
+        set_slot(&out[w], i, &box, child[i], c->count);
     }
-    return w;
+    for (i = 0; i < n; i++)
+        if (b->nodes[slot[i]].count == 0) emit_wide(b, out, out_count, slot[i], child[i]);
 }
 
 /* ===================================================================== */
@@ -733,7 +754,8 @@ brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
     if (!setup_refs(&b, positions, indices, tri_count)) { r = BRT_EARG; goto done; }
     range_bounds(&b, 0, tri_count, &box, &cbox);
     build_node(&b, 0, tri_count, &box, &cbox, 0);
-    emit_wide(&b, wide, &wide_count, 0);
+    wide_count = 1;
+    emit_wide(&b, wide, &wide_count, 0, 0);
     *out = bvh_alloc(wide_count, tri_count);
     if (!*out) goto done;
     memcpy((*out)->owned, wide, (size_t)wide_count * sizeof *wide);
@@ -781,9 +803,19 @@ static int slot_is_empty(const wnode *n, int i)
     return n->count[i] == 0 && n->child[i] == EMPTY_SLOT;
 }
 
+/* Traversal relies on empty slots never passing the box test. */
+static int slot_box_is_inverted(const wnode *n, int s)
+{
+    int a;
+    for (a = 0; a < 3; a++)
+        if (n->box[a][s] != INFINITY || n->box[a + 3][s] != -INFINITY) return 0;
+    return 1;
+}
+
 /* Indices in range, children after parents and referenced once (so the
 ** nodes form one tree), depth <= MAX_DEPTH, every triangle in exactly one
-** leaf.  Everything traversal relies on to stay in bounds and terminate. */
+** leaf, empty slots with inverted boxes.  Everything traversal relies on
+** to stay in bounds and terminate. */
 static brt_result validate_structure(const brt_bvh *bvh, brt_result code,
                                      brt_error *err)
 {
@@ -804,7 +836,13 @@ static brt_result validate_structure(const brt_bvh *bvh, brt_result code,
         if (depth[i] == 0) { brt_fail(err, code, "bvh: node %u is never referenced", (unsigned)i); goto done; }
         for (s = 0; s < 4; s++) {
             const uint32_t c = n->child[s];
-            if (slot_is_empty(n, s)) continue;
+            if (slot_is_empty(n, s)) {
+                if (!slot_box_is_inverted(n, s)) {
+                    brt_fail(err, code, "bvh: node %u slot %d: empty slot with a box", (unsigned)i, s);
+                    goto done;
+                }
+                continue;
+            }
             if (n->count[s] == 0) {
                 if (c <= i || c >= bvh->node_count || depth[c] != 0 || depth[i] >= MAX_DEPTH) {
                     brt_fail(err, code, "bvh: node %u slot %d: bad child node %u", (unsigned)i, s, (unsigned)c);

@@ -92,10 +92,8 @@ static double max2(double a, double b) { return a > b ? a : b; }
 /* log2 of a resolution 2^k with k = 1..10, or -1 for anything else. */
 static int resolution_log2(uint32_t res)
 {
-    int k;
-    for (k = 1; k <= MAX_LEVEL; k++)
-        if (res == (1u << k)) return k;
-    return -1;
+    if (res < 2 || res > (1u << MAX_LEVEL) || (res & (res - 1))) return -1;
+    return (int)popcount64(res - 1);
 }
 
 /* ===================================================================== */
@@ -980,10 +978,10 @@ typedef struct ray_frame {
     double enter_bias[3];   /* t of plane x = 1 grown by +g (entry side) */
     double leave_bias[3];   /* t of plane x = 1 grown by -g (exit side) */
     double step[3];         /* t per voxel along each axis: (1/N) / |d_i| */
-    unsigned mirror;    /* bit i: axis i mirrored (ESVO's octant_mask) */
-    int levels;         /* root spans N = 2^levels voxels */
-    double lo, hi;      /* the live segment: hi shrinks to the best hit */
-    int found;
+    unsigned mirror;        /* bit i: axis i mirrored (ESVO's octant_mask) */
+    int levels;             /* root spans N = 2^levels voxels */
+    double lo, hi;          /* the live segment: hi shrinks to the best hit */
+    int found;              /* a set voxel was touched; its entry is hi */
 } ray_frame;
 
 /* One scale of the parent stack: a node, its mirrored corner in voxels,

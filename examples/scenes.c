@@ -311,9 +311,11 @@ static void lathe_profile(const lathe *l, double v, double *r, double *y)
         *y = l->height * 0.5 * (1 - cos(PI * v));
         *r = l->radius * sin(PI * v);
         break;
-    case LATHE_SPIKE:   /* a teardrop: round base, sharp tip */
-        *y = l->height * 0.5 * (1 - cos(PI * v));
-        *r = l->radius * 1.6 * sin(PI * v) * (1 - v);
+    case LATHE_SPIKE:   /* a swelling spike; r and y are linear in v at
+                        ** the tip, so the last ring never shrinks to
+                        ** nothing under float rounding at high res */
+        *y = l->height * v;
+        *r = l->radius * 1.4 * sin(PI * v) * (1 - 0.5 * v);
         break;
     default:
         side = v < 0.2 ? 0 : v > 0.8 ? 1 : (v - 0.2) / 0.6;
@@ -449,8 +451,8 @@ static double terrain_height(const terrain *t, double x, double z)
 {
     double ridge;
     if (t->hills == 0 && t->mountains == 0) return 0;
-    ridge = fbm(t->seed + 100, x / 1500, z / 1500, 3);
-    return t->hills * fbm(t->seed, x / 300, z / 300, 5) + t->mountains * (ridge > 0 ? ridge * ridge : 0);
+    ridge = fbm(t->seed + 100, x / 2000, z / 2000, 3);
+    return t->hills * fbm(t->seed, x / 250, z / 250, 5) + t->mountains * (ridge > 0 ? ridge * ridge : 0);
 }
 
 typedef struct patch {          /* a square [x0, x0+size] x [z0, z0+size] */
@@ -495,6 +497,7 @@ static void island_point(const void *shape, double u, double v, double p[3])
 /* ===================================================================== */
 
 static const double up[3] = {0, 1, 0};
+static const xform world = {{{1, 0, 0}, {0, 1, 0}, {0, 0, 1}}, {0, 0, 0}};   /* identity */
 static const double origin[3] = {0, 0, 0};
 
 static lathe capped_lathe(double radius, double height, double taper, double bend)
@@ -675,7 +678,7 @@ static void emit_tuft(builder *b, uint64_t *rng, const xform *place)
         xform x;
         blade.width = 0.06;
         blade.length = rnd(rng, 0.6, 1.0);
-        blade.taper = 0.85;
+        blade.taper = 0.7;
         blade.bend = rnd(rng, 0.1, 0.5);
         random_up(rng, 0.6, dir);
         x = xform_along(dir, 0, 1, origin);
@@ -885,11 +888,15 @@ static void build_crown(builder *b, double scale, uint64_t seed)
 /* The landscape                                                         */
 /* ===================================================================== */
 /*
-** A square of 1000 * sqrt(scale) metres (so instance density stays the
-** same at every scale), 25 % of the budget in the terrain grid, 65 % in
-** trees (forests of about 40, each forest with its own mix of conifers
-** and leafy trees), 10 % in rocks (groups of up to 6).
+** A square of 600 * sqrt(scale) metres (so instance density stays the
+** same at every scale; mountain ranges 2 km across appear from scale 10
+** on), 20 % of the budget in the terrain grid, 70 % in trees (forests of
+** 40, each with its own mix of conifers and leafy trees), 10 % in rocks
+** (groups of up to 6).
 */
+
+#define TREES_PER_FOREST 40
+#define LANDSCAPE_SIDE 600.0   /* metres at scale 1 */
 
 static uint64_t per_instance(double budget, uint64_t triangles_each)
 {
@@ -899,14 +906,12 @@ static uint64_t per_instance(double budget, uint64_t triangles_each)
 static void landscape_trees(builder *b, uint64_t *rng, const terrain *ground,
                             double side, double budget)
 {
-    double each = 0.5 * (double)(conifer_triangles() + broadleaf_triangles());
-    uint32_t trees = (uint32_t)floor(budget / each), forests, i;
+    uint64_t trees = per_instance(budget, (conifer_triangles() + broadleaf_triangles()) / 2), i;
     double centre[3] = {0, 0, 0}, conifer_share = 0, radius = 0;
-    forests = trees / 40 + 1;
     for (i = 0; i < trees; i++) {
         double at[3], a, r, height;
         xform place;
-        if (i % (trees / forests + 1) == 0) {   /* start the next forest */
+        if (i % TREES_PER_FOREST == 0) {   /* start the next forest */
             centre[0] = rnd(rng, -0.45, 0.45) * side;
             centre[2] = rnd(rng, -0.45, 0.45) * side;
             conifer_share = rnd(rng, 0, 1);
@@ -948,22 +953,21 @@ static void landscape_rocks(builder *b, uint64_t *rng, const terrain *ground,
 
 static void build_landscape(builder *b, double scale, uint64_t seed)
 {
-    double budget = TRIANGLES_PER_SCALE * scale, side = 1000 * sqrt(scale);
+    double budget = TRIANGLES_PER_SCALE * scale, side = LANDSCAPE_SIDE * sqrt(scale);
     uint64_t rng = seed;
     terrain ground;
     patch land;
     grid g;
-    xform identity = xform_along(up, 0, 1, origin);
     ground.seed = brt_random_u64(&rng);
-    ground.hills = 40;
-    ground.mountains = 150;
+    ground.hills = 20;
+    ground.mountains = 250;
     land.x0 = land.z0 = -0.5 * side;
     land.size = side;
     land.ground = &ground;
-    g.segs = g.rings = (uint32_t)sqrt(0.25 * budget / 2) + 2;
+    g.segs = g.rings = (uint32_t)sqrt(0.20 * budget / 2) + 2;
     g.flags = 0;
-    emit_surface(b, &g, patch_point, &land, &identity);
-    landscape_trees(b, &rng, &ground, side, 0.65 * budget);
+    emit_surface(b, &g, patch_point, &land, &world);
+    landscape_trees(b, &rng, &ground, side, 0.70 * budget);
     landscape_rocks(b, &rng, &ground, side, 0.10 * budget);
 }
 
@@ -971,13 +975,13 @@ static void build_landscape(builder *b, double scale, uint64_t seed)
 /* The islands                                                           */
 /* ===================================================================== */
 /*
-** 5 * sqrt(scale) islands (at least 3) of radius 120-220 m, in a sea of
+** 3 * sqrt(scale) islands (at least 3) of radius 60-110 m, in a sea of
 ** two triangles; each island gets an equal budget: 20 % in its radial
-** terrain grid, 80 % in plants on dry land (palms 35 %, bushes 25 %,
-** grass tufts 40 %), so the vegetation gets denser as sqrt(scale).
+** terrain grid, 80 % in plants on dry land (palms 45 %, bushes 35 %,
+** grass tufts 20 %), so the vegetation gets denser as sqrt(scale).
 */
 
-#define ISLAND_SPACING 600.0
+#define ISLAND_SPACING 320.0
 #define DRY_LAND 1.5          /* plants grow this far above the sea */
 
 static void emit_sea(builder *b, double half_side)
@@ -985,19 +989,18 @@ static void emit_sea(builder *b, double half_side)
     static const terrain flat = {0, 0, 0};
     static const grid two_triangles = {2, 2, 0};
     patch sea;
-    xform identity = xform_along(up, 0, 1, origin);
     sea.x0 = sea.z0 = -half_side;
     sea.size = 2 * half_side;
     sea.ground = &flat;
-    emit_surface(b, &two_triangles, patch_point, &sea, &identity);
+    emit_surface(b, &two_triangles, patch_point, &sea, &world);
 }
 
 /* Places island i away from the earlier ones (a few tries, then anywhere). */
 static void place_island(uint64_t *rng, island *all, uint32_t i, double half_side)
 {
     int attempt;
-    all[i].radius = rnd(rng, 120, 220);
-    all[i].peak = rnd(rng, 25, 60);
+    all[i].radius = rnd(rng, 60, 110);
+    all[i].peak = rnd(rng, 15, 35);
     all[i].seed = brt_random_u64(rng);
     for (attempt = 0; attempt < 50; attempt++) {
         uint32_t j;
@@ -1028,9 +1031,9 @@ static int dry_spot(uint64_t *rng, const island *s, double at[3])
 
 static void island_plants(builder *b, uint64_t *rng, const island *s, double budget)
 {
-    uint64_t palms = per_instance(0.35 * budget, palm_triangles());
-    uint64_t bushes = per_instance(0.25 * budget, BUSH_LEAVES * grid_triangles(&leaf_grid));
-    uint64_t tufts = per_instance(0.40 * budget, TUFT_BLADES * grid_triangles(&blade_grid));
+    uint64_t palms = per_instance(0.45 * budget, palm_triangles());
+    uint64_t bushes = per_instance(0.35 * budget, BUSH_LEAVES * grid_triangles(&leaf_grid));
+    uint64_t tufts = per_instance(0.20 * budget, TUFT_BLADES * grid_triangles(&blade_grid));
     uint64_t total = palms + bushes + tufts, i;
     for (i = 0; i < total; i++) {
         double at[3];
@@ -1041,7 +1044,7 @@ static void island_plants(builder *b, uint64_t *rng, const island *s, double bud
             place = upright(rng, rnd(rng, 6, 12), 0.25, at);
             emit_palm(b, rng, &place);
         } else if (i < palms + bushes) {
-            place = upright(rng, rnd(rng, 0.6, 2), 0.2, at);
+            place = upright(rng, rnd(rng, 1, 3), 0.2, at);
             emit_bush(b, rng, &place);
         } else {
             place = upright(rng, rnd(rng, 0.3, 0.8), 0.2, at);
@@ -1053,20 +1056,19 @@ static void island_plants(builder *b, uint64_t *rng, const island *s, double bud
 static void build_island(builder *b, double scale, uint64_t seed)
 {
     double budget = TRIANGLES_PER_SCALE * scale;
-    uint32_t count = (uint32_t)(5 * sqrt(scale) + 0.5), i;
+    uint32_t count = (uint32_t)(3 * sqrt(scale) + 0.5), i;
     double half_side;
     uint64_t rng = seed;
     island *all;
-    xform identity = xform_along(up, 0, 1, origin);
     if (count < 3) count = 3;
     half_side = 0.5 * ISLAND_SPACING * sqrt((double)count);
     all = malloc(count * sizeof *all);
     if (!all) { b->failed = BRT_ENOMEM; return; }
-    emit_sea(b, half_side + 400);
+    emit_sea(b, half_side + 150);
     for (i = 0; i < count; i++) {
         grid g = grid_for_budget(0.2 * budget / count, 2 * PI, WRAP_U | POLE_START);
         place_island(&rng, all, i, half_side);
-        emit_surface(b, &g, island_point, &all[i], &identity);
+        emit_surface(b, &g, island_point, &all[i], &world);
         island_plants(b, &rng, &all[i], 0.8 * budget / count);
     }
     free(all);
@@ -1159,17 +1161,17 @@ void ex_scene_camera(const char *name, const float bmin[3], const float bmax[3],
     switch (scene_index(name)) {
     case 1:   /* landscape: just above the south edge, across its length */
         *fov_degrees = 60;
-        set3(eye, c[0], bmax[1] + 0.02 * span, bmin[2] + 0.02 * d[2]);
+        set3(eye, c[0], bmax[1] + 0.04 * span, bmin[2] + 0.02 * d[2]);
         set3(target, c[0], bmin[1] + 0.3 * d[1], bmin[2] + 0.5 * d[2]);
         break;
     case 2:   /* island: from high above the sea, south of the middle */
         *fov_degrees = 50;
-        set3(eye, c[0], 0.3 * span, bmin[2] + 0.1 * d[2]);
+        set3(eye, c[0], 0.3 * span, bmin[2] + 0.05 * d[2]);
         set3(target, c[0], 0, c[2] + 0.05 * d[2]);
         break;
     default:  /* the crown and any mesh: the whole box, from +z and above */
         *fov_degrees = scene_index(name) == 0 ? 40 : 45;
-        dist = 1.1 * radius / sin(0.5 * *fov_degrees * PI / 180);
+        dist = 0.85 * radius / sin(0.5 * *fov_degrees * PI / 180);
         set3(target, c[0], c[1], c[2]);
         set3(eye, c[0], c[1] + 0.4 * dist, c[2] + 0.92 * dist);
         break;

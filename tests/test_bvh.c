@@ -525,27 +525,26 @@ static void cube_grid(scene *s, int n, float origin, float cell)
 }
 
 /* A ray from `from` aimed exactly at `target` on a closed surface enclosing
-** `from` (or, from outside, crossing into it) must hit.  Counts leaks and
-** reports the first. */
-static void aim(const scene *s, const brt_bvh *bvh, const float from[3],
-                const float target[3], size_t *rays, size_t *leaks)
+** `from` (or, from outside, crossing into it) must hit.  The BVH alone is
+** asked: its hits are hits of the shared triangle test, and agreement with
+** brute force is the other tests' business.  Counts leaks, reports the
+** first. */
+static void aim(const brt_bvh *bvh, const float from[3], const float target[3],
+                size_t *rays, size_t *leaks)
 {
     brt_ray r;
-    brt_hit h, want;
+    brt_hit h;
     int a;
     for (a = 0; a < 3; a++) { r.org[a] = from[a]; r.dir[a] = target[a] - from[a]; }
     r.tnear = 0.0f;
     r.tfar = INFINITY;
     brt_hit_clear(&h);
-    brt_hit_clear(&want);
     brt_bvh_intersect(bvh, &r, &h);
-    brute_force(s, NULL, &r, &want);
     (*rays)++;
-    if (h.prim != BRT_NO_PRIM && want.prim != BRT_NO_PRIM) return;
+    if (h.prim != BRT_NO_PRIM) return;
     if ((*leaks)++ == 0)
-        test_fail_at(__FILE__, __LINE__, "leak: ray from (%a %a %a) at (%a %a %a): bvh prim %u, "
-                     "brute force prim %u", from[0], from[1], from[2], target[0], target[1],
-                     target[2], (unsigned)h.prim, (unsigned)want.prim);
+        test_fail_at(__FILE__, __LINE__, "leak: ray from (%a %a %a) at (%a %a %a) hit nothing",
+                     from[0], from[1], from[2], target[0], target[1], target[2]);
 }
 
 /* Aims at every vertex and every edge midpoint of every triangle, from an
@@ -567,8 +566,8 @@ static void aim_at_features(const scene *s, const brt_bvh *bvh, const float insi
             /* beyond the target the ray passes within 0.05*|w| of inside */
             for (a = 0; a < 3; a++)
                 outside[a] = inside[a] + 3.0f * (target[a] - inside[a]) + 0.1f * sqrtf(w) * jitter[a];
-            aim(s, bvh, inside, target, rays, leaks);
-            aim(s, bvh, outside, target, rays, leaks);
+            aim(bvh, inside, target, rays, leaks);
+            aim(bvh, outside, target, rays, leaks);
         }
 }
 

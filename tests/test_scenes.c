@@ -130,9 +130,11 @@ static void check_well_formed(const char *name, const brt_mesh *m)
     free(used);
 }
 
+/* Scale 20 (2 million triangles) makes the finest grids fine enough for
+** float rounding to flatten thin triangles near poles and tips. */
 static void test_well_formed(void)
 {
-    static const double scales[] = {0.01, 1, 3};
+    static const double scales[] = {0.01, 1, 20};
     int s, k;
     for (s = 0; s < SCENES; s++)
         for (k = 0; k < 3; k++) {

@@ -18,6 +18,7 @@
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/wait.h>
 
 /* ===================================================================== */
 /* Helpers                                                               */
@@ -605,7 +606,7 @@ static void aimed_ray(uint64_t *rng, const soup *s, float size, brt_ray *ray)
 }
 
 /* Closest hit by brute force over brt_intersect_triangle (small soups). */
-static int brute_hit(const soup *s, const brt_ray *ray, float *t_best)
+static int brute_hit(const soup *s, const brt_ray *ray, float *t_best, uint32_t *prim)
 {
     uint32_t t;
     int hit = 0;
@@ -616,10 +617,28 @@ static int brute_hit(const soup *s, const brt_ray *ray, float *t_best)
                                    s->pos + 3 * (size_t)x[2], &tt, &u, &v) &&
             (!hit || tt < *t_best)) {
             *t_best = tt;
+            *prim = t;
             hit = 1;
         }
     }
     return hit;
+}
+
+/* For failure messages: a triangle with zero area (edge cross product 0,
+** exact in double for the lattice soups) must never report a hit. */
+static int zero_area(const soup *s, uint32_t prim)
+{
+    const uint32_t *x = s->idx + 3 * (size_t)prim;
+    double e[2][3], c[3];
+    int i;
+    for (i = 0; i < 3; i++) {
+        e[0][i] = (double)s->pos[3 * (size_t)x[1] + i] - s->pos[3 * (size_t)x[0] + i];
+        e[1][i] = (double)s->pos[3 * (size_t)x[2] + i] - s->pos[3 * (size_t)x[0] + i];
+    }
+    c[0] = e[0][1] * e[1][2] - e[0][2] * e[1][1];
+    c[1] = e[0][2] * e[1][0] - e[0][0] * e[1][2];
+    c[2] = e[0][0] * e[1][1] - e[0][1] * e[1][0];
+    return c[0] == 0 && c[1] == 0 && c[2] == 0;
 }
 
 /* Casts rays at the soup and its proxy; a triangle hit the proxy misses,
@@ -653,6 +672,7 @@ static void end_to_end(const char *label, const soup *s, uint32_t res, float exa
         brt_ray ray;
         brt_hit hit;
         float t_entry, t_hit = 0;
+        uint32_t prim = 0;
         int want, got;
         aimed_ray(&rng, s, size, &ray);
         if (use_bvh) {
@@ -660,8 +680,9 @@ static void end_to_end(const char *label, const soup *s, uint32_t res, float exa
             brt_bvh_intersect(bvh, &ray, &hit);
             want = hit.prim != BRT_NO_PRIM;
             t_hit = hit.t;
+            prim = hit.prim;
         } else {
-            want = brute_hit(s, &ray, &t_hit);
+            want = brute_hit(s, &ray, &t_hit, &prim);
         }
         got = brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, &t_entry);
         hits += want;
@@ -669,9 +690,12 @@ static void end_to_end(const char *label, const soup *s, uint32_t res, float exa
         if (want && !(got && t_entry <= t_hit)) {
             if (++fails <= 5)
                 test_fail_at(__FILE__, __LINE__,
-                             "%s: ray (%a %a %a) dir (%a %a %a) [%a %a] hits at t %a, proxy %d t %a",
+                             "%s: ray (%a %a %a) dir (%a %a %a) [%a %a] hits triangle %u at t %a, "
+                             "proxy %d t %a%s",
                              label, ray.org[0], ray.org[1], ray.org[2], ray.dir[0], ray.dir[1],
-                             ray.dir[2], ray.tnear, ray.tfar, t_hit, got, t_entry);
+                             ray.dir[2], ray.tnear, ray.tfar, prim, t_hit, got, t_entry,
+                             zero_area(s, prim) ? " (a zero-area triangle reported a hit: a defect "
+                                                  "of brt_intersect_triangle, not of the proxy)" : "");
         }
     }
     printf("  svdag: %-34s res %4u: %u rays, %llu hit triangles, %llu hit the proxy, %llu failures\n",
@@ -739,25 +763,35 @@ static void test_end_to_end_scales(void)
 /* Dedup, blobs                                                          */
 /* ===================================================================== */
 
+/* The proxy grid of a soup: voxelized into a frame fitted to its bounds. */
+static int soup_grid(const soup *s, uint32_t res, brt_grid *grid)
+{
+    float bmin[3], bmax[3];
+    mesh_bounds(s->pos, s->vertex_count, bmin, bmax);
+    return brt_grid_init(grid, bmin, bmax, res) == BRT_OK &&
+           brt_voxelize(grid, s->pos, s->idx, s->tri_count) == BRT_OK;
+}
+
 static void test_dedup(void)
 {
     brt_svdag *dag;
-    brt_grid grid;
+    brt_grid grid, again;
     brt_proxy a, b, c;
     brt_error err;
+    soup s;
     uint64_t rng = test_seed() + 5;
     uint32_t before, x, y, z;
-    float origin[3] = {0, 0, 0};
     CHECK(brt_svdag_create(&dag) == BRT_OK, "create");
-    grid_exact(&grid, 64, origin, 1);
-    fill_random(&grid, &rng);
+    soup_on_faces(&rng, 64, 200, &s);
+    CHECK(soup_grid(&s, 64, &grid) && soup_grid(&s, 64, &again), "voxelize");
+    soup_free(&s);
     CHECK(brt_svdag_add(dag, &grid, &a) == BRT_OK, "add a");
     CHECK(brt_svdag_check(dag, &err) == BRT_OK, "%s", err.message);
     before = brt_svdag_node_count(dag);
-    CHECK(brt_svdag_add(dag, &grid, &b) == BRT_OK, "add b");
+    CHECK(brt_svdag_add(dag, &again, &b) == BRT_OK, "add b");
     CHECK(brt_svdag_check(dag, &err) == BRT_OK, "%s", err.message);
     EXPECT(a.root == b.root && brt_svdag_node_count(dag) == before,
-           "identical grids: roots %u %u, nodes %u -> %u", a.root, b.root, before,
+           "identical meshes: roots %u %u, nodes %u -> %u", a.root, b.root, before,
            brt_svdag_node_count(dag));
     do {   /* one voxel that is not set yet */
         x = rand_below(&rng, 64); y = rand_below(&rng, 64); z = rand_below(&rng, 64);
@@ -769,6 +803,7 @@ static void test_dedup(void)
     EXPECT(c.root != a.root && brt_svdag_node_count(dag) <= before + 5,
            "one voxel more: nodes %u -> %u", before, brt_svdag_node_count(dag));
     brt_grid_free(&grid);
+    brt_grid_free(&again);
     brt_svdag_free(dag);
 }
 
@@ -911,6 +946,98 @@ static void test_blob_corrupt(void)
     brt_svdag_free(dag);
 }
 
+/* ===================================================================== */
+/* build/voxelize                                                        */
+/* ===================================================================== */
+
+/* Runs a shell command line; its exit status (-1 when it did not run). */
+static int run_status(const char *command)
+{
+    int status = system(command);
+    return status != -1 && WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+static char *read_text(const char *path)
+{
+    FILE *f = fopen(path, "rb");
+    char *text;
+    long n;
+    if (!f) return NULL;
+    fseek(f, 0, SEEK_END);
+    n = ftell(f);
+    rewind(f);
+    text = (char *)calloc((size_t)n + 1, 1);
+    if (text && fread(text, 1, (size_t)n, f) != (size_t)n) { free(text); text = NULL; }
+    fclose(f);
+    return text;
+}
+
+/* The integer after "name": in a JSON text, or -1. */
+static long long json_integer(const char *json, const char *name)
+{
+    char key[64];
+    const char *at;
+    snprintf(key, sizeof key, "\"%s\":", name);
+    at = json ? strstr(json, key) : NULL;
+    return at ? strtoll(at + strlen(key), NULL, 10) : -1;
+}
+
+static void test_voxelize_program(void)
+{
+    static const char obj[] = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 2 3 4\n";
+    static const float pos[12] = {0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1};
+    static const uint32_t idx[9] = {0, 1, 2, 0, 1, 3, 1, 2, 3};
+    const char *build = getenv("BRT_BUILD") ? getenv("BRT_BUILD") : "build", *dir = test_tmpdir();
+    char cmd[2048], path[512];
+    char *json, *err;
+    float bmin[3] = {0, 0, 0}, bmax[3] = {1, 1, 1};
+    brt_grid grid;
+    FILE *f;
+    snprintf(path, sizeof path, "%s/svdag_tet.obj", dir);
+    f = fopen(path, "wb");
+    CHECK(f && fwrite(obj, 1, sizeof obj - 1, f) == sizeof obj - 1 && fclose(f) == 0, "write %s", path);
+    snprintf(cmd, sizeof cmd, "%s/voxelize %s --res 16 --stats %s/svdag_s.json --out %s/svdag_p.png "
+             "--size 32 > %s/svdag_out.txt 2>&1", build, path, dir, dir, dir);
+    if (run_status(cmd) != 0) {
+        test_skip("%s/voxelize did not run (not built?)", build);
+        return;
+    }
+    snprintf(path, sizeof path, "%s/svdag_s.json", dir);
+    json = read_text(path);
+    CHECK(brt_grid_init(&grid, bmin, bmax, 16) == BRT_OK && brt_voxelize(&grid, pos, idx, 3) == BRT_OK,
+          "library voxelize");
+    EXPECT(json_integer(json, "triangles") == 3 && json_integer(json, "resolution") == 16 &&
+               json_integer(json, "voxels") == (long long)brt_grid_count(&grid) &&
+               json_integer(json, "svo_nodes") > 0 && json_integer(json, "dag_nodes") > 0 &&
+               json_integer(json, "dag_bytes") > 0 && json && strstr(json, "\"seconds\":"),
+           "stats JSON: %s", json ? json : "(missing)");
+    free(json);
+    brt_grid_free(&grid);
+    snprintf(path, sizeof path, "%s/svdag_p.png", dir);
+    json = read_text(path);
+    EXPECT(json && memcmp(json, "\x89PNG", 4) == 0, "no PNG written");
+    free(json);
+    /* Bad input: exit 1, one line "voxelize: file:line: reason", no output. */
+    snprintf(path, sizeof path, "%s/svdag_bad.obj", dir);
+    f = fopen(path, "wb");
+    CHECK(f && fputs("v 0 0 0\nv 1 0 0\nf 1 2 7\n", f) >= 0 && fclose(f) == 0, "write %s", path);
+    snprintf(cmd, sizeof cmd, "%s/voxelize %s --stats %s/svdag_bad.json --out %s/svdag_bad.png "
+             "2> %s/svdag_err.txt", build, path, dir, dir, dir);
+    EXPECT(run_status(cmd) == 1, "bad mesh: exit status not 1");
+    snprintf(path, sizeof path, "%s/svdag_err.txt", dir);
+    err = read_text(path);
+    EXPECT(err && strncmp(err, "voxelize: ", 10) == 0 && strstr(err, "svdag_bad.obj:3") &&
+               strchr(err, '\n') == err + strlen(err) - 1,
+           "bad mesh: stderr '%s'", err ? err : "(none)");
+    free(err);
+    snprintf(path, sizeof path, "%s/svdag_bad.json", dir);
+    f = fopen(path, "rb");
+    EXPECT(f == NULL, "bad mesh: stats written");
+    if (f) fclose(f);
+    snprintf(cmd, sizeof cmd, "%s/voxelize %s/svdag_tet.obj --res 24 2>/dev/null >/dev/null", build, dir);
+    EXPECT(run_status(cmd) == 1, "--res 24 accepted");
+}
+
 void suite_svdag(void)
 {
     test_run("svdag: grid frame covers the box", test_grid_frame);
@@ -925,4 +1052,5 @@ void suite_svdag(void)
     test_run("svdag: dedup across proxies", test_dedup);
     test_run("svdag: blob round trip", test_blob_round_trip);
     test_run("svdag: corrupt blobs", test_blob_corrupt);
+    test_run("svdag: voxelize program", test_voxelize_program);
 }
