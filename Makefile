@@ -83,6 +83,15 @@ bench: all
 bench-batched: all
 	./$(BUILD)/bench_batched landscape --scale 50
 
+# == EMBREE (optional, cross-checking only; see README) ===================
+# == END EMBREE ===========================================================
+
+# == HARDENING (valgrind, fuzzing) ========================================
+# == END HARDENING ========================================================
+
+# == RENDER (demo, figures) ===============================================
+# == END RENDER ===========================================================
+
 clean:
 	rm -rf build
 

@@ -123,6 +123,10 @@ int main(int argc, char **argv)
     suite_svdag();
     suite_batched();
     suite_cli();
+    suite_scenes();
+    suite_render();
+    suite_embree();
+    suite_hardening();
     if (failed == 0) remove_tmpdir();
     else if (tmpdir[0]) printf("scratch files kept in %s\n", tmpdir);
     if (skipped) printf("(%d skipped, see SKIP lines above)\n", skipped);

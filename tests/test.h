@@ -58,5 +58,9 @@ void suite_bvh(void);
 void suite_svdag(void);
 void suite_batched(void);
 void suite_cli(void);
+void suite_scenes(void);
+void suite_render(void);
+void suite_embree(void);
+void suite_hardening(void);
 
 #endif

@@ -333,9 +333,6 @@ static void test_mkscene_files_read_back(void)
     fclose(f);
 }
 
-/* Declared here until tests/test.h declares it (then delete this line). */
-void suite_scenes(void);
-
 void suite_scenes(void)
 {
     test_run("scenes_same_seed_same_bytes", test_same_seed_same_bytes);
