@@ -694,6 +694,22 @@ static void test_triangle_exact(void)
     CHECK(!brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v), "behind the origin");
 }
 
+/* Float edge functions U = V = 0 here although exactly (and in double,
+** where products of floats are exact) U > 0 > V: the ray passes just
+** outside the needle A,B,C.  Only the paper's double-precision recheck
+** of zero edge functions gets the miss right (found by a search over
+** vertices a few ulps apart). */
+static void test_double_fallback(void)
+{
+    const float v0[3] = {0x1.ffffep+0f, 0x1.ffffe4p+0f, 1.0f};
+    const float v1[3] = {0x1.fffff8p-1f, 0x1.fffffep-1f, 1.0f};
+    const float v2[3] = {0x1.000002p+0f, 0x1.000004p+0f, 1.0f};
+    const brt_ray r = {{0, 0, 0}, {0, 0, 1}, 0.0f, INFINITY};
+    float t, u, v;
+    CHECK(!brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v),
+          "reported a hit at t=%g u=%g v=%g for a ray that misses", t, u, v);
+}
+
 static void test_empty(void)
 {
     brt_bvh *bvh = NULL, *opened = NULL;
@@ -839,6 +855,7 @@ static void test_bounds_and_memory(void)
 void suite_bvh(void)
 {
     test_run("bvh: triangle exact values", test_triangle_exact);
+    test_run("bvh: double-precision fallback", test_double_fallback);
     test_run("bvh: random soups == brute force", test_random_soups);
     test_run("bvh: prim ids == brute force", test_prim_ids);
     test_run("bvh: coplanar == brute force", test_coplanar);
