@@ -2467,11 +2467,13 @@ static void cache_release(page_cache *c, uint32_t id)
 ** first -- the paper's rule: each disk read serves as many rays as it can.
 **
 ** Per-ray state while queued: the ray (32 bytes), its closest hit so far
-** (16), its walk key (8) and the caller's tag (8): 64 bytes.
+** (16) and that triangle's normal (12), its walk key (8) and the caller's
+** tag (8): 76 bytes.
 */
 typedef struct ray_slot {
     brt_ray ray;
     brt_hit hit;
+    float normal[3];
     walk_key key;
     uint64_t tag;
 } ray_slot;
@@ -2584,7 +2586,7 @@ static brt_result advance(scheduler *s, uint32_t slot)
             return enqueue(s, r->key.id, slot);
         }
     }
-    s->source->finished(s->source->user, &r->ray, &r->hit, r->tag);
+    s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->tag);
     s->free_slots[s->free_count++] = slot;
     return BRT_OK;
 }
@@ -2603,6 +2605,7 @@ static brt_result refill(scheduler *s)
             r->ray = s->incoming[i];
             r->tag = s->incoming_tags[i];
             brt_hit_clear(&r->hit);
+            r->normal[0] = r->normal[1] = r->normal[2] = 0.0f;
             r->key.t = -INFINITY;
             r->key.id = TOP_EMPTY;
             s->stats->rays++;
@@ -2626,7 +2629,7 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     memset(&s->queues[id], 0, sizeof s->queues[id]);
     for (i = 0; i < q.count; i++) {
         ray_slot *slot = &s->slots[q.slots[i]];
-        brt_bvh_intersect(bvh, &slot->ray, &slot->hit);
+        brt_bvh_intersect(bvh, &slot->ray, &slot->hit); /* PENDING: brt_bvh_intersect_normal */
     }
     cache_release(&s->cache, id);
     for (i = 0; i < q.count && r == BRT_OK; i++) r = advance(s, q.slots[i]);
@@ -2732,10 +2735,12 @@ static size_t array_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
     return n;
 }
 
-static void array_finished(void *user, const brt_ray *ray, const brt_hit *hit, uint64_t tag)
+static void array_finished(void *user, const brt_ray *ray, const brt_hit *hit,
+                           const float normal[3], uint64_t tag)
 {
     array_source *a = user;
     (void)ray;
+    (void)normal;
     a->hits[tag] = *hit;
 }
 

@@ -236,6 +236,13 @@ void brt_bvh_free(brt_bvh *bvh);
 ** and the final bytes do not depend on their order. */
 void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit);
 
+/* The same, and whenever the hit changes, normal becomes the geometric
+** normal (v1-v0) x (v2-v0) of the new hit's triangle (not normalised;
+** its direction follows the triangle's winding).  Shading needs it, and in
+** batched mode the triangle is only in memory while its batching point is. */
+void brt_bvh_intersect_normal(const brt_bvh *bvh, const brt_ray *ray,
+                              brt_hit *hit, float normal[3]);
+
 /* Any hit in [tnear, tfar]: 1 if occluded. */
 int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
 
@@ -451,11 +458,14 @@ typedef struct brt_trace_options {
 /* Stream mode, so a path tracer keeps a constant number of rays in flight:
 ** the scheduler calls next_rays when it has room (return 0 when there are
 ** no more for now) and finished for every completed ray, in an order that
-** depends on the schedule; tag is the caller's, passed through. */
+** depends on the schedule, with the hit triangle's geometric normal (as
+** brt_bvh_intersect_normal; zero on a miss); tag is the caller's, passed
+** through.  finished may hand rays to the next next_rays call (a path
+** tracer's bounce), so the number in flight stays constant. */
 typedef struct brt_ray_source {
     size_t (*next_rays)(void *user, brt_ray *rays, uint64_t *tags, size_t max);
     void (*finished)(void *user, const brt_ray *ray, const brt_hit *hit,
-                     uint64_t tag);
+                     const float normal[3], uint64_t tag);
     void *user;
 } brt_ray_source;
 

@@ -272,7 +272,7 @@ static void test_bunny(void) { compare_shared_mesh("bunny.obj.gz", 5000, 5000); 
 typedef struct stream_state {
     const fixture *f;
     brt_hit *hits;
-    size_t next, finished;
+    size_t next, finished, bad_normals;
     size_t batch;              /* rays handed out per call at most */
 } stream_state;
 
@@ -287,12 +287,29 @@ static size_t stream_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
     return n;
 }
 
-static void stream_finished(void *user, const brt_ray *ray, const brt_hit *hit, uint64_t tag)
+/* Records the hit, and checks the normal against the mesh's triangle. */
+static void stream_finished(void *user, const brt_ray *ray, const brt_hit *hit,
+                            const float normal[3], uint64_t tag)
 {
     stream_state *s = user;
+    float want[3] = {0, 0, 0};
     (void)ray;
     s->hits[tag] = *hit;
     s->finished++;
+    if (hit->prim != BRT_NO_PRIM) {
+        const float *v0 = tu_vertex(&s->f->scene, hit->prim, 0), *v1 = tu_vertex(&s->f->scene, hit->prim, 1),
+                    *v2 = tu_vertex(&s->f->scene, hit->prim, 2);
+        float e1[3], e2[3];
+        int a;
+        for (a = 0; a < 3; a++) {
+            e1[a] = v1[a] - v0[a];
+            e2[a] = v2[a] - v0[a];
+        }
+        want[0] = e1[1] * e2[2] - e1[2] * e2[1];
+        want[1] = e1[2] * e2[0] - e1[0] * e2[2];
+        want[2] = e1[0] * e2[1] - e1[1] * e2[0];
+    }
+    if (memcmp(want, normal, sizeof want) != 0) s->bad_normals++;
 }
 
 static void test_rays_in_flight(void)
@@ -316,13 +333,14 @@ static void test_rays_in_flight(void)
         opt.memory_limit = 64 << 10;
         s.f = &f;
         s.hits = malloc(f.count * sizeof *s.hits);
-        s.next = s.finished = 0;
+        s.next = s.finished = s.bad_normals = 0;
         s.batch = 3;
         source.next_rays = stream_next;
         source.finished = stream_finished;
         source.user = &s;
         EXPECT(brt_scene_trace_stream(scene, &opt, &source, NULL, &err) == BRT_OK, "%s", err.message);
         EXPECT(s.finished == f.count, "%zu of %zu rays finished", s.finished, f.count);
+        EXPECT(s.bad_normals == 0, "%zu hits came with a wrong normal", s.bad_normals);
         EXPECT(memcmp(s.hits, f.direct, f.count * sizeof *s.hits) == 0,
                "%u rays in flight: hits differ from direct", in_flight[i]);
         free(s.hits);

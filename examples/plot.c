@@ -1,0 +1,2 @@
+/* examples/plot.c -- placeholder: the SVG plot writer of make figures. */
+#include "plot.h"
