@@ -224,7 +224,8 @@ typedef struct brt_bvh brt_bvh;   /* opaque; layout documented in bvh.c */
 
 /* Builds a BVH over tri_count triangles given by indices into positions.
 ** prim_ids[i] is the number reported for triangle i (NULL: i itself).
-** tri_count may be 0 (every ray misses). */
+** tri_count may be 0 (every ray misses).  A NaN or inf coordinate of a
+** triangle is BRT_EARG. */
 brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
                          uint32_t tri_count, const uint32_t *prim_ids,
                          brt_bvh **out);
@@ -253,6 +254,9 @@ brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
 
 uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
 size_t brt_bvh_memory_bytes(const brt_bvh *bvh);   /* nodes + triangles */
+/* Bounds of the root's boxes: the triangles' bounds grown by a few ulps
+** of their magnitude (bvh.c: the pad that makes box tests conservative
+** for the rounding of the triangle test); +inf/-inf when empty. */
 void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
 
 /* A BVH as one relocatable blob (indices, no pointers) for the scene file.

@@ -171,6 +171,10 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     ex_check(prog, brt_scene_trace(scene, &trace_opt, rays, count, hits, stats, &err), &err);
     ex_progress_end();
     stats->build_seconds = rebuilt ? brt_seconds() - start - stats->seconds : 0.0;
+    if (stats->oversized_loads > 0)
+        fprintf(stderr, "trace: note: %llu loads of a batching point larger than the memory "
+                "budget%s (each held alone)\n", (unsigned long long)stats->oversized_loads,
+                o->no_proxy ? "" : " left after the proxies");
     if (o->verbose || isatty(2))
         fprintf(stderr, "trace: scene %s (%s), %llu batching points\n", path,
                 rebuilt ? "built" : "reused", (unsigned long long)stats->batching_points);
