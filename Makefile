@@ -84,12 +84,132 @@ bench-batched: all
 	./$(BUILD)/bench_batched landscape --scale 50
 
 # == EMBREE (optional, cross-checking only; see README) ===================
+# "make embree" builds $(BUILD)/embree_trace against Embree 3 (Debian:
+# libembree-dev) and fails with a plain message when Embree is missing;
+# "all" and "test" never need it (tests/test_embree.c skips without it).
+EMBREE_LIBS ?= -lembree3
+EMBREE_PROBE = printf '\#include <embree3/rtcore.h>\n' | $(CC) -E -x c - >/dev/null 2>&1
+.PHONY: embree bench-embree
+embree: $(LIB) $(EX_COMMON)
+	@$(EMBREE_PROBE) || { echo "embree: Embree 3 not found (no <embree3/rtcore.h>);" \
+	  "install libembree-dev (Debian) to build $(BUILD)/embree_trace"; exit 1; }
+	@$(MAKE) --no-print-directory $(BUILD)/embree_trace
+
+$(BUILD)/embree_trace: $(BUILD)/examples/embree_trace.o $(EX_COMMON) $(LIB)
+	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS) $(EMBREE_LIBS)
+
+# Speed side by side: single-thread Mrays/s of trace --direct and
+# embree_trace (default and --robust) on the same ray files (camera,
+# random, bounce; 1M each) of the shared dragon (871K triangles), the best
+# of EMBREE_REPEAT runs each (the machine may be shared), then their
+# agreement from build/hitdiff.  Figures only, never pass/fail.
+EMBREE_MESH   ?= ../shared/data/meshes/dragon.obj.gz
+EMBREE_RAYS   ?= 1000000
+EMBREE_REPEAT ?= 3
+EMBREE_BENCH  ?= /tmp/batchrt-bench-embree
+bench-embree: all embree
+	@mkdir -p $(EMBREE_BENCH)
+	@m=$(EMBREE_BENCH)/$$(basename $(EMBREE_MESH) .gz); \
+	test -s $$m || gzip -dc $(EMBREE_MESH) > $$m || exit 1; \
+	best() { out=$$1; shift; for i in $$(seq $(EMBREE_REPEAT)); do \
+	    "$$@" --stats $$out.json || exit 1; \
+	    sed -n 's/.*"mrays_per_second": *\([0-9.eE+-]*\).*/\1/p' $$out.json; \
+	  done | sort -g | tail -1; }; \
+	echo "$$m, $(EMBREE_RAYS) rays per kind, one thread, best of $(EMBREE_REPEAT)"; \
+	printf '%-7s %15s %15s %15s %7s %7s\n' kind "batchrt Mr/s" "Embree Mr/s" "robust Mr/s" ratio "ratio r"; \
+	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
+	  ./$(BUILD)/raygen $$m $$d.rays --kind $$k --count $(EMBREE_RAYS) || exit 1; \
+	  b=$$(best $$d.brt ./$(BUILD)/trace $$m $$d.rays $$d.brt.hits); \
+	  e=$$(best $$d.emb ./$(BUILD)/embree_trace $$m $$d.rays $$d.emb.hits); \
+	  r=$$(best $$d.rob ./$(BUILD)/embree_trace $$m $$d.rays $$d.rob.hits --robust); \
+	  awk -v k=$$k -v b=$$b -v e=$$e -v r=$$r 'BEGIN { \
+	    printf "%-7s %15.2f %15.2f %15.2f %7.2f %7.2f\n", k, b, e, r, e / b, r / b }'; \
+	done; \
+	echo "ratio: Embree Mrays/s over batchrt's (ratio r: Embree --robust)"; \
+	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
+	  for x in emb rob; do printf '%s vs %s: ' $$k $$x; \
+	    ./$(BUILD)/hitdiff $$d.brt.hits $$d.$$x.hits --max-disagree 1e-4 | tail -1; \
+	  done; \
+	done
+
 # == END EMBREE ===========================================================
 
 # == HARDENING (valgrind, fuzzing) ========================================
+#   make valgrind      the test suite, and the programs it runs, under
+#                      memcheck: any error or leak fails (T=... filters)
+#   make fuzz          libFuzzer + ASan + UBSan builds of the four readers
+#                      (tests/fuzz/fuzz_*.c) in $(BUILD)/fuzz, each run for
+#                      FUZZ_SECONDS from tests/corpus/NAME; new inputs go to
+#                      $(BUILD)/fuzz/corpus/NAME, crashes to $(BUILD)/fuzz/
+#   make fuzz-replay   tests/corpus through the same targets, plain build
+# The targets (tests/fuzz/targets.c) are also linked into run_tests, whose
+# "hardening:" tests replay tests/corpus on every "make test".
+FUZZ_TARGETS = obj ply scene rays
+FUZZ_SECONDS ?= 600
+FUZZ_CC ?= clang
+FUZZ_FLAGS = $(STD) $(WARN) -O1 -g -fno-omit-frame-pointer \
+             -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=all
+FUZZ_BINS = $(FUZZ_TARGETS:%=$(BUILD)/fuzz/fuzz_%)
+VALGRIND = valgrind -q --error-exitcode=99 --leak-check=full \
+           --errors-for-leak-kinds=definite,indirect,possible \
+           --trace-children=yes --trace-children-skip='*/gzip,*/cp,*/rm,*/mv' \
+           --log-file=build/valgrind/memcheck.%p.log
+
+.PHONY: valgrind fuzz fuzz-replay
+$(TEST_BIN): $(BUILD)/tests/fuzz/targets.o
+$(BUILD)/tests/fuzz/targets.o $(BUILD)/tests/fuzz/replay.o: tests/fuzz/targets.h | $(BUILD)/tests/fuzz
+$(BUILD)/tests/fuzz:
+	mkdir -p $@
+
+$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(LIB)
+	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
+
+fuzz-replay: $(BUILD)/tests/fuzz/replay
+	for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
+
+$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h $(LIB_SRC) batchrt.h
+	mkdir -p $(BUILD)/fuzz/corpus/$*
+	$(FUZZ_CC) $(FUZZ_FLAGS) -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
+
+fuzz: $(FUZZ_BINS)
+	for t in $(FUZZ_TARGETS); do \
+	  ./$(BUILD)/fuzz/fuzz_$$t -max_total_time=$(FUZZ_SECONDS) -timeout=10 \
+	    -artifact_prefix=$(BUILD)/fuzz/crash-$$t- \
+	    $$(test -f tests/fuzz/$$t.dict && echo -dict=tests/fuzz/$$t.dict) \
+	    $(BUILD)/fuzz/corpus/$$t tests/corpus/$$t || exit 1; done
+
+# Children (the programs run by the CLI tests) log to their own files; a
+# memcheck error in one makes it exit 99, which its test reports.
+valgrind:
+	$(MAKE) all build/valgrind/run_tests BUILD=build/valgrind OPT="-O1 -g"
+	rm -f build/valgrind/memcheck.*.log
+	BRT_BUILD=build/valgrind $(VALGRIND) ./build/valgrind/run_tests $(T); status=$$?; \
+	  if grep -l "ERROR SUMMARY: [1-9]" build/valgrind/memcheck.*.log; then exit 1; fi; \
+	  exit $$status
 # == END HARDENING ========================================================
 
 # == RENDER (demo, figures) ===============================================
+# demo: the README's "run" command.  The default landscape, out of core at
+# 25 % of its geometry bytes, without and with proxies (and direct, the
+# reference): one table, the image and the two heatmaps in $(BUILD)/demo.
+# figures: the paper's Figs. 1-3 (PNG, CSV, SVG) in $(BUILD)/figures.
+# bench-render: the landscape at 20M+ triangles, 16 spp at 640x360, proxies
+# off and on, at 25 % of the geometry bytes and in core.
+.PHONY: demo figures bench-render
+demo: all
+	mkdir -p $(BUILD)/demo
+	./$(BUILD)/render landscape --scale 2 --batch-tris 5000 --memory 25% --compare \
+	  --out $(BUILD)/demo/landscape.png --heatmap $(BUILD)/demo/heatmap.png \
+	  --stats $(BUILD)/demo/stats.json
+
+figures: all
+	./$(BUILD)/figures --out $(BUILD)/figures
+
+bench-render: all
+	./$(BUILD)/render landscape --scale 200 --batch-tris 100000 --spp 16 --width 640 --height 360 \
+	  --memory 25% --compare --drop-os-cache --out $(BUILD)/bench-render.png
+	./$(BUILD)/render landscape --scale 200 --batch-tris 100000 --spp 16 --width 640 --height 360 \
+	  --compare --out $(BUILD)/bench-render.png
 # == END RENDER ===========================================================
 
 clean:

@@ -3,7 +3,7 @@
 ** after Molenaar and Eisemann 2020) cost and how fast they answer.
 ** Prints figures, never pass/fail.
 **
-** Usage: build/bench_svdag [MESH...] [--rays N] [--res R] [--seed S]
+** Usage: build/bench_svdag [MESH...] [--rays N] [--res R] [--seed S] [--no-table]
 **   MESH defaults to bunny_tiny, bunny and dragon from ../shared/data/meshes
 **   (the .gz ones unpacked with gzip into /tmp), whichever are present.
 ** For each mesh:
@@ -29,6 +29,7 @@ typedef struct options {
     int mesh_count;
     uint64_t rays, seed;
     uint32_t res;
+    int no_table;
 } options;
 
 static void usage(void)
@@ -41,6 +42,7 @@ static void usage(void)
            "  --rays N    rays per throughput run (default 1000000)\n"
            "  --res R     proxy resolution of the throughput run (default 128)\n"
            "  --seed S    ray generator seed (default 1)\n"
+           "  --no-table  throughput only, no build/memory table\n"
            "  --help      this text\n");
 }
 
@@ -57,6 +59,7 @@ static void parse_options(int argc, char **argv, options *o)
             o->rays = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, 100000000);
         else if (strcmp(a, "--seed") == 0)
             o->seed = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX);
+        else if (strcmp(a, "--no-table") == 0) o->no_table = 1;
         else if (strcmp(a, "--res") == 0) {
             const char *text = ex_option_value(prog, argc, argv, &i);
             o->res = (uint32_t)ex_parse_u64(prog, a, text, 2, 1024);
@@ -250,7 +253,7 @@ static void bench_mesh(const char *path, const options *o)
            mesh.triangle_count, mesh.vertex_count, brt_seconds() - start);
     if (mesh.triangle_count == 0) ex_die(prog, "%s: the mesh has no triangles", path);
     throughput(&mesh, o);
-    memory_table(&mesh);
+    if (!o->no_table) memory_table(&mesh);
     brt_mesh_free(&mesh);
 }
 

@@ -172,9 +172,34 @@ static void brute_force(const scene *s, const uint32_t *prim_ids,
     }
 }
 
-/* One ray against the oracle: from a miss, from a carried-in hit that is
-** the answer itself with a higher prim (so ties must go to the lower), and
-** any-hit.  Returns 0 (after recording a failure) on a mismatch. */
+/* brt_bvh_intersect_normal: the same hit, and the header's normal
+** (v1-v0) x (v2-v0) of that triangle; untouched on a miss. */
+static int compare_normal(const scene *s, const uint32_t *prim_ids, const brt_bvh *bvh,
+                          const brt_ray *ray, const brt_hit *want)
+{
+    float got[3] = {7, 7, 7}, expect[3] = {7, 7, 7};
+    brt_hit h;
+    int a;
+    brt_hit_clear(&h);
+    brt_bvh_intersect_normal(bvh, ray, &h, got);
+    if (memcmp(&h, want, sizeof h) != 0) return 0;
+    if (want->prim != BRT_NO_PRIM) {
+        const float *v0, *v1, *v2;
+        if (prim_ids) return 1;   /* the triangle's index is not at hand */
+        v0 = vertex(s, want->prim, 0);
+        v1 = vertex(s, want->prim, 1);
+        v2 = vertex(s, want->prim, 2);
+        for (a = 0; a < 3; a++) {
+            const int b = (a + 1) % 3, c = (a + 2) % 3;
+            expect[a] = (v1[b] - v0[b]) * (v2[c] - v0[c]) - (v1[c] - v0[c]) * (v2[b] - v0[b]);
+        }
+    }
+    return memcmp(got, expect, sizeof got) == 0;
+}
+
+/* One ray against the oracle: from a miss, with the normal, from a
+** carried-in hit that is the answer itself with a higher prim (so ties
+** must go to the lower), and any-hit.  Returns 0 (after recording a failure) on a mismatch. */
 static int compare_ray(const scene *s, const uint32_t *prim_ids,
                        const brt_bvh *bvh, const brt_ray *ray, const char *what,
                        size_t n)
@@ -194,6 +219,10 @@ static int compare_ray(const scene *s, const uint32_t *prim_ids,
     }
     if (brt_bvh_occluded(bvh, ray) != (want.prim != BRT_NO_PRIM)) {
         test_fail_at(__FILE__, __LINE__, "%s ray %zu: occluded disagrees with closest hit", what, n);
+        return 0;
+    }
+    if (!compare_normal(s, prim_ids, bvh, ray, &want)) {
+        test_fail_at(__FILE__, __LINE__, "%s ray %zu: brt_bvh_intersect_normal disagrees", what, n);
         return 0;
     }
     if (want.prim == BRT_NO_PRIM || want.prim == BRT_NO_PRIM - 1) return 1;
@@ -710,6 +739,25 @@ static void test_double_fallback(void)
           "reported a hit at t=%g u=%g v=%g for a ray that misses", t, u, v);
 }
 
+static void test_nonfinite_vertices(void)
+{
+    const float bad[] = {NAN, INFINITY, -INFINITY};
+    float pos[9] = {0, 0, 0, 1, 0, 0, 0, 1, 0};
+    const uint32_t idx[3] = {0, 1, 2};
+    brt_bvh *bvh = NULL;
+    int i, k;
+    for (i = 0; i < 9; i++)
+        for (k = 0; k < 3; k++) {
+            const float keep = pos[i];
+            brt_result r;
+            pos[i] = bad[k];
+            r = brt_bvh_build(pos, idx, 1, NULL, &bvh);
+            pos[i] = keep;
+            CHECK(r == BRT_EARG && bvh == NULL, "coordinate %d = %g: got %s", i, bad[k],
+                  brt_result_string(r));
+        }
+}
+
 static void test_empty(void)
 {
     brt_bvh *bvh = NULL, *opened = NULL;
@@ -739,8 +787,8 @@ static void test_empty(void)
     brt_bvh_free(bvh);
 }
 
-/* The blob's layout (see bvh.c): 16-byte header, 128-byte nodes. */
-#define HEADER_BYTES 16
+/* The blob's layout (see bvh.c): 64-byte header, 128-byte nodes. */
+#define HEADER_BYTES 64
 #define NODE_BYTES 128
 
 static void expect_eformat(const void *blob, size_t size, const char *what)
@@ -797,6 +845,8 @@ static void test_blob(void)
     expect_eformat(bad, size, "node count one too many");
     memcpy(bad, blob, size); put_u32(bad, 8, 0xFFFFFFF0u);
     expect_eformat(bad, size, "huge triangle count");
+    memcpy(bad, blob, size); put_u32(bad, 60, 1);
+    expect_eformat(bad, size, "nonzero header padding");
     /* child slots: root slot 0 at header + 96 (child) and + 112 (count) */
     memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 0);
     put_u32(bad, HEADER_BYTES + 96, 1000000u);
@@ -872,6 +922,7 @@ void suite_bvh(void)
     test_run("bvh: watertight icosphere", test_watertight_icosphere);
     test_run("bvh: watertight cube grid", test_watertight_cubes);
     test_run("bvh: degenerate rays miss", test_degenerate_rays);
+    test_run("bvh: non-finite vertices rejected", test_nonfinite_vertices);
     test_run("bvh: empty", test_empty);
     test_run("bvh: blob round trip and corruption", test_blob);
     test_run("bvh: bounds and memory", test_bounds_and_memory);

@@ -1,3 +1,301 @@
-/* tests/test_render.c -- placeholder until its issue lands. */
+/*
+** tests/test_render.c -- the renderer (examples/render.c) checked from
+** outside, and the SVG plot writer (examples/plot.c) from inside.
+**
+** The renderer's central promise is design.md's determinism: --direct,
+** batched with or without proxies, any memory limit and any number of
+** rays in flight write byte-identical PNGs.  The tests render a small
+** built-in scene and a mesh file under many settings and compare the
+** files byte for byte; they also check that paths really bounce (more
+** rays than paths), so that identical images are not identically empty.
+** Programs run from $BRT_BUILD (default build) through system().
+*/
 #include "test.h"
-void suite_render(void) {}
+#include "batchrt.h"
+#include "../examples/plot.h"
+
+#include <math.h>
+#include <stdarg.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
+
+/* The small scene of these tests: about 5000 triangles in ~17 batching
+** points, a tiny image, a few samples. */
+#define SMALL "landscape --scale 0.05 --batch-tris 300 --width 40 --height 24 --spp 3"
+
+/* ---- running build/render ---- */
+
+/* NAME inside the scratch directory (a few rotating buffers). */
+static const char *scratch(const char *name)
+{
+    static char paths[8][512];
+    static int next;
+    char *out = paths[next++ % 8];
+    snprintf(out, 512, "%s/%s", test_tmpdir(), name);
+    return out;
+}
+
+/* Runs "$BRT_BUILD/PROGRAM ARGS" with '@' in ARGS standing for the scratch
+** directory, stdout and stderr into render.out and render.err there.
+** Returns the exit status, or -1 when the program died from a signal. */
+static int run(const char *fmt, ...)
+{
+    char args[2048], expanded[4096], cmd[8192];
+    const char *build = getenv("BRT_BUILD"), *dir = test_tmpdir(), *p;
+    size_t n = 0;
+    int status;
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(args, sizeof args, fmt, ap);
+    va_end(ap);
+    for (p = args; *p && n + strlen(dir) + 1 < sizeof expanded; p++) {
+        if (*p == '@') { memcpy(expanded + n, dir, strlen(dir)); n += strlen(dir); }
+        else expanded[n++] = *p;
+    }
+    expanded[n] = 0;
+    snprintf(cmd, sizeof cmd, "%s/%s > '%s/render.out' 2> '%s/render.err'",
+             build ? build : "build", expanded, dir, dir);
+    status = system(cmd);
+    if (status == -1 || !WIFEXITED(status)) return -1;
+    return WEXITSTATUS(status);
+}
+
+/* The whole file, NUL-terminated (malloc'd), or NULL. */
+static char *slurp(const char *path, size_t *size)
+{
+    FILE *f = fopen(path, "rb");
+    char *data = NULL;
+    long n;
+    if (!f) return NULL;
+    if (fseek(f, 0, SEEK_END) == 0 && (n = ftell(f)) >= 0 && fseek(f, 0, SEEK_SET) == 0
+        && (data = malloc((size_t)n + 1)) != NULL) {
+        if (fread(data, 1, (size_t)n, f) == (size_t)n) {
+            data[n] = 0;
+            if (size) *size = (size_t)n;
+        } else {
+            free(data);
+            data = NULL;
+        }
+    }
+    fclose(f);
+    return data;
+}
+
+static int file_exists(const char *path)
+{
+    struct stat st;
+    return stat(path, &st) == 0;
+}
+
+/* A number field of a statistics JSON file, NAN when absent. */
+static double json_number(const char *path, const char *name)
+{
+    char *json = slurp(path, NULL), key[128], *p;
+    double value = NAN;
+    snprintf(key, sizeof key, "\"%s\":", name);
+    if (json && (p = strstr(json, key)) != NULL) value = strtod(p + strlen(key), NULL);
+    free(json);
+    return value;
+}
+
+/* 1 when the two files exist and hold the same bytes. */
+static int same_bytes(const char *a, const char *b)
+{
+    size_t na = 0, nb = 0;
+    char *x = slurp(a, &na), *y = slurp(b, &nb);
+    int same = x && y && na == nb && memcmp(x, y, na) == 0;
+    free(x);
+    free(y);
+    return same;
+}
+
+/* ---- the tests ---- */
+
+static void test_help(void)
+{
+    char *out;
+    CHECK(run("render --help") == 0, "render --help did not exit 0");
+    out = slurp(scratch("render.out"), NULL);
+    EXPECT(out && strstr(out, "usage: build/render") && strstr(out, "--rays-in-flight"),
+           "--help does not print the usage");
+    free(out);
+    CHECK(run("figures --help") == 0, "figures --help did not exit 0");
+    out = slurp(scratch("render.out"), NULL);
+    EXPECT(out && strstr(out, "usage: build/figures"), "figures --help does not print the usage");
+    free(out);
+}
+
+/* Settings that change the schedule (and the scene file) but must not
+** change one byte of the image. */
+static const char *const batched_settings[] = {
+    "",                                    /* proxies, no limit, many rays in flight */
+    "--no-proxy",
+    "--memory 10%",                        /* out of core: reloads */
+    "--memory 10% --no-proxy --rays-in-flight 7",
+    "--memory 1K --rays-in-flight 1",      /* smaller than any batching point */
+    "--rays-in-flight 33 --res 16",
+};
+
+static void test_same_image_every_mode(void)
+{
+    size_t i;
+    double rays, paths;
+    CHECK(run("render " SMALL " --direct --out @/direct.png --stats @/direct.json") == 0,
+          "render --direct failed");
+    rays = json_number(scratch("direct.json"), "rays");
+    paths = json_number(scratch("direct.json"), "paths");
+    CHECK(paths == 40 * 24 * 3 && rays > 1.5 * paths,
+          "direct: %g rays for %g paths: the paths do not bounce", rays, paths);
+    for (i = 0; i < sizeof batched_settings / sizeof *batched_settings; i++) {
+        CHECK(run("render " SMALL " %s --scene @/small-%zu.brs --out @/batched.png --stats @/b.json",
+                  batched_settings[i], i) == 0, "render %s failed", batched_settings[i]);
+        EXPECT(same_bytes(scratch("direct.png"), scratch("batched.png")),
+               "'%s': the image differs from --direct", batched_settings[i]);
+        EXPECT(json_number(scratch("b.json"), "rays") == rays,
+               "'%s': %g rays traced, --direct traced %g", batched_settings[i],
+               json_number(scratch("b.json"), "rays"), rays);
+    }
+}
+
+/* A mesh file and an explicit camera take the other input path. */
+static void test_same_image_mesh_file(void)
+{
+    const char *camera = "--camera 0.3,1.2,3:0,0.4,0:50 --width 36 --height 20 --spp 2";
+    CHECK(run("mkscene crown @/crown.ply --scale 0.05") == 0, "mkscene failed");
+    CHECK(run("render @/crown.ply %s --direct --out @/crown-direct.png", camera) == 0,
+          "render --direct on a PLY failed");
+    CHECK(run("render @/crown.ply %s --batch-tris 200 --memory 20%% --scene @/crown.brs "
+              "--out @/crown-batched.png", camera) == 0, "render on a PLY failed");
+    EXPECT(same_bytes(scratch("crown-direct.png"), scratch("crown-batched.png")),
+           "crown.ply: batched and direct images differ");
+}
+
+static uint32_t be32(const unsigned char *p)
+{
+    return (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | p[3];
+}
+
+/* The heatmap pass counts every queued visit of the render exactly once,
+** and proxies only ever remove visits (design.md, invariant 7). */
+static void test_heatmap(void)
+{
+    double with, without;
+    size_t size = 0;
+    unsigned char *png;
+    CHECK(run("render " SMALL " --scene @/heat.brs --heatmap @/heat.png --stats @/heat.json "
+              "--out @/img.png") == 0, "render --heatmap failed");
+    with = json_number(scratch("heat.json"), "heatmap_visits");
+    EXPECT(with > 0 && with == json_number(scratch("heat.json"), "queued_visits"),
+           "heatmap total %g, queued_visits %g", with, json_number(scratch("heat.json"), "queued_visits"));
+    png = (unsigned char *)slurp(scratch("heat.png"), &size);
+    /* IHDR right after the signature: the map plus a 24-row legend. */
+    EXPECT(png && size > 33 && memcmp(png + 12, "IHDR", 4) == 0 && be32(png + 16) == 40
+           && be32(png + 20) == 24 + 24, "heat.png is not a 40x48 PNG");
+    free(png);
+    CHECK(run("render " SMALL " --no-proxy --scene @/heat.brs --heatmap @/heat0.png "
+              "--stats @/heat0.json --out @/img.png") == 0, "render --no-proxy --heatmap failed");
+    without = json_number(scratch("heat0.json"), "heatmap_visits");
+    EXPECT(without == json_number(scratch("heat0.json"), "queued_visits") && with <= without,
+           "visits: %g with proxies, %g without", with, without);
+}
+
+static void test_compare(void)
+{
+    char *out;
+    CHECK(run("render " SMALL " --compare --memory 20%% --scene @/cmp.brs --out @/cmp.png "
+              "--heatmap @/cmp-heat.png --stats @/cmp.json") == 0, "render --compare failed");
+    out = slurp(scratch("render.out"), NULL);
+    CHECK(out, "no output");
+    EXPECT(strstr(out, "| batched, no proxies") && strstr(out, "| batched, proxies")
+           && !strstr(out, " NO |"), "--compare table:\n%s", out);
+    free(out);
+    EXPECT(file_exists(scratch("cmp-heat-noproxy.png")) && file_exists(scratch("cmp-heat-proxy.png"))
+           && file_exists(scratch("cmp-noproxy.json")) && file_exists(scratch("cmp.png")),
+           "--compare did not write its files");
+}
+
+/* Each bad command exits 1 with one line "render: ..." and writes nothing. */
+static void test_bad_options(void)
+{
+    static const char *const bad[] = {
+        "--spp 0", "--spp x", "--width -3", "--res 48", "--memory 0", "--memory 5%x",
+        "--camera 1,2,3:1,2,3:40", "--camera 1,2:0,0,0:40", "--camera 0,0,1:0,0,0:180",
+        "--bogus", "--direct --heatmap @/never-heat.png", "@/no-such-mesh.obj", "--scale 0",
+        "--out",
+    };
+    size_t i;
+    for (i = 0; i < sizeof bad / sizeof *bad; i++) {
+        char *err;
+        int status = run(bad[i][0] == '@' ? "render %s --out @/never.png"
+                                          : "render " SMALL " --out @/never.png %s", bad[i]);
+        err = slurp(scratch("render.err"), NULL);
+        EXPECT(status == 1, "'%s': exit status %d, expected 1", bad[i], status);
+        EXPECT(err && strncmp(err, "render: ", 8) == 0 && strchr(err, '\n') == err + strlen(err) - 1,
+               "'%s': expected one line 'render: ...', got '%s'", bad[i], err ? err : "");
+        EXPECT(!file_exists(scratch("never.png")) && !file_exists(scratch("never-heat.png")),
+               "'%s': an output file was written", bad[i]);
+        free(err);
+    }
+}
+
+/* ---- the plot writer ---- */
+
+/* The centre of the k-th circle of an SVG; 0 when there is none. */
+static int circle(const char *svg, int k, double *cx, double *cy)
+{
+    const char *p = svg;
+    while ((p = strstr(p, "<circle ")) != NULL && k-- > 0) p++;
+    return p && sscanf(p, "<circle cx=\"%lf\" cy=\"%lf\"", cx, cy) == 2;
+}
+
+static void test_plot_svg(void)
+{
+    /* Linear axes: x 0..10 and y 0..100 are already whole tick steps, so
+    ** the plot area (80..560 by 360..40) maps them exactly; a log2 axis
+    ** from 16 to 512 puts 128 at 3/5 of the width. */
+    static const double x[] = {0, 5, 10}, y[] = {0, 50, 100}, rx[] = {16, 128, 512};
+    static const double ry[] = {1, 10, 100}, bad[] = {0, -1, NAN};
+    ex_plot_series series = {"a<b & c", x, y, 3, 0};
+    ex_plot plot;
+    brt_error err;
+    char *svg = NULL;
+    double cx, cy;
+    int k;
+    memset(&plot, 0, sizeof plot);
+    plot.title = "t";
+    plot.x_label = "x";
+    plot.y_label = "y";
+    plot.series = &series;
+    plot.series_count = 1;
+    CHECK(ex_plot_svg(&plot, &svg, &err) == BRT_OK, "%s", err.message);
+    for (k = 0; k < 3; k++)
+        EXPECT(circle(svg, k, &cx, &cy) && fabs(cx - (80 + 48 * x[k])) < 0.06
+               && fabs(cy - (360 - 3.2 * y[k])) < 0.06, "linear point %d at (%g, %g)", k, cx, cy);
+    EXPECT(strstr(svg, "a&lt;b &amp; c") && !strstr(svg, "a<b"), "the label is not escaped");
+    free(svg);
+    series.x = rx;
+    series.y = ry;
+    plot.x_log_base = 2;
+    plot.y_log_base = 10;
+    CHECK(ex_plot_svg(&plot, &svg, &err) == BRT_OK, "%s", err.message);
+    EXPECT(circle(svg, 1, &cx, &cy) && fabs(cx - (80 + 480 * 0.6)) < 0.06 && fabs(cy - 200) < 0.06,
+           "log point at (%g, %g), expected (368, 200)", cx, cy);
+    EXPECT(!circle(svg, 3, &cx, &cy), "more circles than points");
+    free(svg);
+    series.y = bad;
+    EXPECT(ex_plot_svg(&plot, &svg, &err) == BRT_EARG && !svg,
+           "no positive y on a log axis: not refused");
+}
+
+void suite_render(void)
+{
+    test_run("render: help", test_help);
+    test_run("render: same image in every mode", test_same_image_every_mode);
+    test_run("render: same image from a mesh file", test_same_image_mesh_file);
+    test_run("render: heatmap counts every queued visit", test_heatmap);
+    test_run("render: compare table", test_compare);
+    test_run("render: bad options exit 1 and write nothing", test_bad_options);
+    test_run("render: plot svg", test_plot_svg);
+}

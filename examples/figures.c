@@ -1,0 +1,328 @@
+/*
+** examples/figures.c -- the figures of Molenaar and Eisemann (2020),
+** "Conservative Ray Batching using Geometry Proxies", on the built-in
+** scenes (`make figures`):
+**
+**   Fig. 1  batching points visited per sample, without and with proxies:
+**           heatmaps (PNG) and their means (fig1.csv);
+**   Fig. 2  proxy memory and effectiveness (share of top-level visits
+**           culled) against proxy resolution 16..512 (fig2.csv, SVG);
+**   Fig. 3  total disk bytes read against the memory limit, 10 %..100 % of
+**           the geometry bytes, without and with proxies (fig3.csv, SVG).
+**
+**   build/figures [--out DIR] [--scale S] [--batch-tris N] [--spp N]
+**                 [--width W] [--height H] [--rays-in-flight N]
+**
+** Every number comes from build/render (the program next to this one) and
+** its statistics JSON, so the figures measure exactly what a user runs.
+** Its output goes to DIR/render.log.  As in the paper (Sec. 4), with
+** proxies on the memory limit also pays for the proxies.  Scene files are
+** built once per resolution in the default scene folder and reused.
+*/
+#include "plot.h"
+#include "scenes.h"
+
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <errno.h>
+
+static const char *const prog = "figures";
+
+#define RES_COUNT 6
+#define LIMIT_COUNT 10
+#define SCENE_COUNT 3
+
+static const char *const scene_names[SCENE_COUNT] = {"crown", "landscape", "island"};
+static const double resolutions[RES_COUNT] = {16, 32, 64, 128, 256, 512};
+
+typedef struct settings {
+    const char *out;
+    double scale;
+    uint64_t batch_tris, spp, width, height, rays_in_flight;
+    char render[4096];        /* path of build/render */
+} settings;
+
+static void usage(void)
+{
+    printf("usage: build/figures [options]\n"
+           "The paper's Figs. 1-3 on the built-in scenes (crown, landscape, island),\n"
+           "measured with build/render: PNG heatmaps, CSV tables and SVG plots.\n"
+           "\n"
+           "  --out DIR            output folder (default figures)\n"
+           "  --scale S            scene size, about 100000*S triangles (default 4)\n"
+           "  --batch-tris N       triangles per batching point (default 5000)\n"
+           "  --spp N              samples per pixel (default 4)\n"
+           "  --width W            image width (default 160)\n"
+           "  --height H           image height (default 90)\n"
+           "  --rays-in-flight N   paths traced at once (default 16384)\n"
+           "  --help               this text\n");
+}
+
+/* build/render sits next to this program. */
+static void find_render(const char *argv0, settings *s)
+{
+    const char *slash = strrchr(argv0, '/');
+    int dir = slash ? (int)(slash - argv0) : 1;
+    snprintf(s->render, sizeof s->render, "%.*s/render", dir, slash ? argv0 : ".");
+}
+
+static void parse_options(int argc, char **argv, settings *s)
+{
+    int i;
+    memset(s, 0, sizeof *s);
+    s->out = "figures";
+    s->scale = 4;
+    s->batch_tris = 5000;
+    s->spp = 4;
+    s->width = 160;
+    s->height = 90;
+    s->rays_in_flight = 16384;
+    for (i = 1; i < argc; i++) {
+        const char *a = argv[i];
+#define VALUE ex_option_value(prog, argc, argv, &i)
+        if (strcmp(a, "--out") == 0) s->out = VALUE;
+        else if (strcmp(a, "--scale") == 0) s->scale = ex_parse_double(prog, a, VALUE, 0.001, EX_SCENE_MAX_SCALE);
+        else if (strcmp(a, "--batch-tris") == 0) s->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
+        else if (strcmp(a, "--spp") == 0) s->spp = ex_parse_u64(prog, a, VALUE, 1, 65536);
+        else if (strcmp(a, "--width") == 0) s->width = ex_parse_u64(prog, a, VALUE, 1, 16384);
+        else if (strcmp(a, "--height") == 0) s->height = ex_parse_u64(prog, a, VALUE, 1, 16384);
+        else if (strcmp(a, "--rays-in-flight") == 0)
+            s->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
+        else ex_die(prog, "unknown argument '%s' (see --help)", a);
+#undef VALUE
+    }
+    /* The folder goes into shell commands inside single quotes. */
+    if (strchr(s->out, '\'')) ex_die(prog, "--out: a folder name with a quote is not supported");
+    if (mkdir(s->out, 0755) != 0 && errno != EEXIST)
+        ex_die(prog, "%s: cannot create: %s", s->out, strerror(errno));
+    find_render(argv[0], s);
+}
+
+/* DIR/name, in one of a few rotating buffers: copy it to keep it. */
+static const char *out_path(const settings *s, const char *name)
+{
+    static char paths[4][4096];
+    static int next;
+    char *p = paths[next++ % 4];
+    snprintf(p, sizeof paths[0], "%s/%s", s->out, name);
+    return p;
+}
+
+/* Runs build/render on a built-in scene with the common settings and the
+** given extra arguments, its output appended to DIR/render.log. */
+static void run_render(const settings *s, const char *scene, const char *extra)
+{
+    char command[32768];
+    snprintf(command, sizeof command,
+             "'%s' %s --scale %g --batch-tris %llu --spp %llu --width %llu --height %llu "
+             "--rays-in-flight %llu %s >>'%s' 2>&1",
+             s->render, scene, s->scale, (unsigned long long)s->batch_tris,
+             (unsigned long long)s->spp, (unsigned long long)s->width,
+             (unsigned long long)s->height, (unsigned long long)s->rays_in_flight, extra,
+             out_path(s, "render.log"));
+    if (system(command) != 0)
+        ex_die(prog, "build/render failed on %s (see %s)", scene, out_path(s, "render.log"));
+}
+
+/* A number field of a statistics JSON file ("name": value). */
+static double json_number(const char *path, const char *name)
+{
+    char line[512], key[128];
+    FILE *f = fopen(path, "r");
+    double value = 0;
+    int found = 0;
+    if (!f) ex_die(prog, "%s: %s", path, strerror(errno));
+    snprintf(key, sizeof key, "\"%s\":", name);
+    while (!found && fgets(line, sizeof line, f)) {
+        const char *p = strstr(line, key);
+        if (p) found = sscanf(p + strlen(key), "%lf", &value) == 1;
+    }
+    fclose(f);
+    if (!found) ex_die(prog, "%s: no number \"%s\"", path, name);
+    return value;
+}
+
+static FILE *open_csv(const settings *s, const char *name, const char *header)
+{
+    FILE *f = fopen(out_path(s, name), "w");
+    if (!f) ex_die(prog, "%s: %s", out_path(s, name), strerror(errno));
+    fprintf(f, "%s\n", header);
+    return f;
+}
+
+static void close_csv(const settings *s, FILE *f, const char *name)
+{
+    if (fclose(f) != 0) ex_die(prog, "%s: write error", out_path(s, name));
+}
+
+static void write_plot(const settings *s, const char *name, const ex_plot *plot)
+{
+    brt_error err;
+    ex_check(prog, ex_plot_write_svg(out_path(s, name), plot, &err), &err);
+}
+
+/* ---- Fig. 1 ---- */
+
+/* Heatmaps without and with proxies (one colour scale; render --compare). */
+static void figure1(const settings *s)
+{
+    FILE *csv = open_csv(s, "fig1.csv", "scene,visits_per_sample_no_proxy,visits_per_sample_proxy,ratio");
+    char extra[16384], name[64];
+    int i;
+    for (i = 0; i < SCENE_COUNT; i++) {
+        double without, with;
+        /* Twice the width and height of the other figures: these are pictures. */
+        snprintf(extra, sizeof extra, "--width %llu --height %llu --compare --out '%s/fig1_%s.png' "
+                 "--heatmap '%s/fig1_%s_heat.png' --stats '%s/fig1_%s.json'",
+                 2 * (unsigned long long)s->width, 2 * (unsigned long long)s->height, s->out,
+                 scene_names[i], s->out, scene_names[i], s->out, scene_names[i]);
+        printf("Fig. 1: %s\n", scene_names[i]);
+        fflush(stdout);
+        run_render(s, scene_names[i], extra);
+        snprintf(name, sizeof name, "fig1_%s-noproxy.json", scene_names[i]);
+        without = json_number(out_path(s, name), "visits_per_sample");
+        snprintf(name, sizeof name, "fig1_%s.json", scene_names[i]);
+        with = json_number(out_path(s, name), "visits_per_sample");
+        fprintf(csv, "%s,%.4f,%.4f,%.4f\n", scene_names[i], without, with, with / without);
+        printf("  batching points visited per sample: %.3f without proxies, %.3f with (x%.2f)\n",
+               without, with, with / without);
+    }
+    close_csv(s, csv, "fig1.csv");
+}
+
+/* ---- Fig. 2 ---- */
+
+static void figure2(const settings *s)
+{
+    FILE *csv = open_csv(s, "fig2.csv", "scene,resolution,proxy_bytes,proxy_tests,proxy_culled,"
+                                        "culled_share,visits_per_sample");
+    static double memory[SCENE_COUNT][RES_COUNT], culled[SCENE_COUNT][RES_COUNT];
+    ex_plot_series mem_series[SCENE_COUNT], cull_series[SCENE_COUNT];
+    ex_plot plot;
+    char extra[12288], stats[4096];
+    int i, r;
+    snprintf(stats, sizeof stats, "%s", out_path(s, "fig2_run.json"));
+    for (i = 0; i < SCENE_COUNT; i++) {
+        printf("Fig. 2: %s, resolution", scene_names[i]);
+        for (r = 0; r < RES_COUNT; r++) {
+            double bytes, tests, culls;
+            printf(" %g", resolutions[r]);
+            fflush(stdout);
+            snprintf(extra, sizeof extra, "--res %g --out /dev/null --stats '%s'", resolutions[r], stats);
+            run_render(s, scene_names[i], extra);
+            bytes = json_number(stats, "proxy_bytes");
+            tests = json_number(stats, "proxy_tests");
+            culls = json_number(stats, "proxy_culled");
+            memory[i][r] = bytes / 1048576.0;
+            culled[i][r] = tests > 0 ? 100.0 * culls / tests : 0;
+            fprintf(csv, "%s,%g,%.0f,%.0f,%.0f,%.4f,%.4f\n", scene_names[i], resolutions[r], bytes,
+                    tests, culls, culled[i][r] / 100.0, json_number(stats, "visits_per_sample"));
+        }
+        printf("\n  proxy MiB %.3f .. %.3f, culled %.1f %% .. %.1f %%\n", memory[i][0],
+               memory[i][RES_COUNT - 1], culled[i][0], culled[i][RES_COUNT - 1]);
+        mem_series[i].label = cull_series[i].label = scene_names[i];
+        mem_series[i].x = cull_series[i].x = resolutions;
+        mem_series[i].y = memory[i];
+        cull_series[i].y = culled[i];
+        mem_series[i].count = cull_series[i].count = RES_COUNT;
+        mem_series[i].dashed = cull_series[i].dashed = 0;
+    }
+    close_csv(s, csv, "fig2.csv");
+    remove(stats);
+    memset(&plot, 0, sizeof plot);
+    plot.title = "Fig. 2a: proxy memory (shared DAG) against resolution";
+    plot.x_label = "proxy resolution (voxels per side)";
+    plot.y_label = "proxy memory (MiB)";
+    plot.x_log_base = 2;
+    plot.y_log_base = 10;
+    plot.series = mem_series;
+    plot.series_count = SCENE_COUNT;
+    write_plot(s, "fig2_memory.svg", &plot);
+    plot.title = "Fig. 2b: share of top-level visits culled by the proxy";
+    plot.y_label = "culled (% of proxy tests)";
+    plot.y_log_base = 0;
+    plot.y_from_zero = 1;
+    plot.series = cull_series;
+    write_plot(s, "fig2_culled.svg", &plot);
+}
+
+/* ---- Fig. 3 ---- */
+
+/* Disk MiB at limit[l] % without (proxies 0) and with proxies (1). */
+static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIMIT_COUNT],
+                          double disk[2][LIMIT_COUNT])
+{
+    char extra[12288], stats[4096];
+    int l, proxies;
+    snprintf(stats, sizeof stats, "%s", out_path(s, "fig3_run.json"));
+    printf("Fig. 3: %s, limit %%", scene_names[i]);
+    for (l = 0; l < LIMIT_COUNT; l++) {
+        limits[l] = 10.0 * (l + 1);
+        printf(" %g", limits[l]);
+        fflush(stdout);
+        for (proxies = 0; proxies < 2; proxies++) {
+            snprintf(extra, sizeof extra, "--memory %g%% %s --out /dev/null --stats '%s'", limits[l],
+                     proxies ? "" : "--no-proxy", stats);
+            run_render(s, scene_names[i], extra);
+            disk[proxies][l] = json_number(stats, "disk_bytes_read") / 1048576.0;
+            fprintf(csv, "%s,%g,%d,%.0f,%.0f,%.0f,%.0f,%.4f\n", scene_names[i], limits[l], proxies,
+                    json_number(stats, "disk_bytes_read"), json_number(stats, "batch_loads"),
+                    json_number(stats, "geometry_bytes"), json_number(stats, "proxy_bytes"),
+                    json_number(stats, "seconds"));
+        }
+    }
+    printf("\n  disk bytes with proxies / without:");
+    for (l = 5; l < 9; l++)   /* 60..90 %, the paper's range */
+        printf(" %g%%: x%.2f", limits[l], disk[1][l] / disk[0][l]);
+    printf("\n");
+    remove(stats);
+}
+
+static void figure3(const settings *s)
+{
+    FILE *csv = open_csv(s, "fig3.csv", "scene,limit_percent,proxies,disk_bytes_read,batch_loads,"
+                                        "geometry_bytes,proxy_bytes,seconds");
+    double limits[LIMIT_COUNT], disk[2][LIMIT_COUNT];
+    ex_plot_series series[2];
+    ex_plot plot;
+    char title[128], name[64];
+    int i;
+    for (i = 0; i < SCENE_COUNT; i++) {
+        figure3_scene(s, csv, i, limits, disk);
+        memset(series, 0, sizeof series);
+        series[0].label = "without proxies";
+        series[0].dashed = 1;
+        series[1].label = "with proxies";
+        series[0].x = series[1].x = limits;
+        series[0].y = disk[0];
+        series[1].y = disk[1];
+        series[0].count = series[1].count = LIMIT_COUNT;
+        memset(&plot, 0, sizeof plot);
+        snprintf(title, sizeof title, "Fig. 3: disk bytes read, %s", scene_names[i]);
+        plot.title = title;
+        plot.x_label = "memory limit (% of geometry bytes)";
+        plot.y_label = "disk bytes read (MiB)";
+        plot.y_from_zero = 1;
+        plot.series = series;
+        plot.series_count = 2;
+        snprintf(name, sizeof name, "fig3_%s.svg", scene_names[i]);
+        write_plot(s, name, &plot);
+    }
+    close_csv(s, csv, "fig3.csv");
+}
+
+int main(int argc, char **argv)
+{
+    settings s;
+    double start = brt_seconds();
+    if (ex_wants_help(argc, argv)) { usage(); return 0; }
+    parse_options(argc, argv, &s);
+    remove(out_path(&s, "render.log"));
+    figure1(&s);
+    figure2(&s);
+    figure3(&s);
+    printf("figures: done in %.0f s; PNG, CSV and SVG in %s\n", brt_seconds() - start, s.out);
+    return 0;
+}

@@ -1,0 +1,979 @@
+/*
+** examples/render.c -- a unidirectional path tracer on batchrt's batched
+** traversal: the program of Molenaar and Eisemann (2020), "Conservative Ray
+** Batching using Geometry Proxies", on the scheduler of Pharr et al.
+** (1997), "Rendering complex scenes with memory-coherent ray tracing".
+**
+**   build/render [SCENE] [--scale S] [--spp N] [--width W] [--height H]
+**                [--memory SIZE|P%] [--no-proxy] [--direct] [--compare] ...
+**
+** SCENE is an OBJ/PLY file or a built-in scene (crown, landscape, island;
+** default: the landscape at scale 1, about 100 thousand triangles).
+**
+** THE RENDERER
+** Homogeneous Lambert material (albedo 0.8) lit by a sky with a sun that
+** only escaping rays see (no light sampling: every ray is a plain closest-
+** hit ray, which is what the batched traversal serves).  A path ends when
+** it escapes, after MAX_DEPTH bounces, or by Russian roulette.  The rays go
+** to the scheduler as a stream (brt_scene_trace_stream): the scheduler asks
+** for rays when it has free slots and hands back each finished one with
+** its hit and geometric normal; a path that bounces gives its next ray on
+** the next request, so the number of paths in flight stays constant (the
+** paper's setting, Sec. 3).  --direct traces the same paths against one
+** in-memory BVH (brt_bvh_intersect_normal), the reference.
+**
+** DETERMINISM (design.md)
+** Rays finish in an order that depends on the schedule, so nothing may
+** depend on that order:
+**   - every random number is a hash of (pixel, sample, bounce, dimension),
+**     never the next value of a shared stream;
+**   - each pixel sums its samples in 64-bit fixed point, and integer
+**     addition is associative.
+** Each hit is the same bytes in every mode (batchrt's contract), so every
+** path makes the same decisions, and --direct, batched with or without
+** proxies, any memory limit and any number of rays in flight write
+** byte-identical images.  tests/test_render.c checks that.
+**
+** THE HEATMAP (the paper's Fig. 1)
+** Batching points visited (queued) per sample in each pixel.  The stream
+** API reports visits only as a total (brt_stats.queued_visits), so the
+** heatmap is counted in a second pass with ONE ray in flight: between two
+** finished() calls the total then grows by exactly the visits of the ray
+** that finished.  A ray's visits do not depend on the schedule (its walk
+** goes front to back whatever else is in flight), so the count is that of
+** the main render; the second pass runs in core and must produce the same
+** image, which is checked.
+**
+** BUILT-IN SCENES ON DISK
+** A built-in scene is generated in memory (fast: about 10 M triangles/s);
+** its scene file goes to the default scene folder (ex_default_scene_path)
+** under a name made of the scene name, scale, seed and the build options,
+** and carries a stamp of them (brt_scene_matches), so it is built once
+** and reused.
+*/
+#include "rays.h"
+#include "scenes.h"
+
+#include <errno.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+static const char *const prog = "render";
+
+#define PI 3.14159265358979323846
+#define ALBEDO 0.8
+#define MAX_DEPTH 8           /* bounces; a path ends at its 8th hit */
+#define ROULETTE_DEPTH 3      /* Russian roulette from the 3rd hit on */
+#define FIXED_ONE 4294967296.0 /* 2^32: the fixed-point unit of a pixel sum */
+#define SAMPLE_CLAMP 64.0     /* caps one sample's radiance: no overflow, fewer fireflies */
+#define MAX_SPP 65536         /* 2^16 samples * 64 * 2^32 < 2^64 */
+#define DIRECT_CHUNK 4096     /* rays per batch in --direct mode */
+#define LEGEND_ROWS 24        /* the heatmap's colour bar and its labels */
+#define EXPOSURE 0.6          /* the sky is bright: a lit surface is about 1 */
+
+/* ===================================================================== */
+/* Options                                                               */
+/* ===================================================================== */
+
+typedef struct options {
+    const char *input;            /* mesh file or built-in scene name */
+    double scale;
+    uint64_t seed, spp, width, height, batch_tris, res, rays_in_flight;
+    uint64_t memory;              /* bytes; 0: no limit */
+    double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
+    int no_proxy, direct, compare, have_camera, drop_os_cache;
+    float eye[3], target[3], fov;
+    double heat_max;              /* colour scale maximum; 0: the image's maximum */
+    const char *out, *heatmap, *stats, *scene;
+} options;
+
+static void usage(void)
+{
+    printf("usage: build/render [SCENE] [options]\n"
+           "Path traces a mesh file (OBJ/PLY) or a built-in scene (crown, landscape,\n"
+           "island; default landscape) on the out-of-core batched traversal.\n"
+           "\n"
+           "  --scale S            size of a built-in scene: about 100000*S triangles (default 1)\n"
+           "  --seed N             seed of a built-in scene (default 1)\n"
+           "  --spp N              samples per pixel (default 8)\n"
+           "  --width W            image width (default 320)\n"
+           "  --height H           image height (default 180)\n"
+           "  --camera E:T:F       eye ex,ey,ez : target tx,ty,tz : field of view in degrees\n"
+           "  --memory SIZE|P%%     geometry memory limit, e.g. 64M, or P %% of the geometry\n"
+           "                       bytes (default: no limit); proxies count against it\n"
+           "  --batch-tris N       triangles per batching point (default 10000)\n"
+           "  --res R              proxy resolution, a power of two (default 128)\n"
+           "  --no-proxy           queue rays at every box they enter (Pharr et al.)\n"
+           "  --rays-in-flight N   paths traced at once (default 262144)\n"
+           "  --drop-os-cache      evict the scene file from the OS cache first (cold reads)\n"
+           "  --batched            batched traversal (the default)\n"
+           "  --direct             one in-memory BVH instead: the reference\n"
+           "  --compare            batched without and with proxies (and direct): prints a\n"
+           "                       table; --heatmap X.png then writes X-noproxy.png and\n"
+           "                       X-proxy.png, --stats X.json writes X.json and X-noproxy.json\n"
+           "  --out FILE.png       the image (default render.png)\n"
+           "  --heatmap FILE.png   batching points visited per sample (paper's Fig. 1)\n"
+           "  --heat-max V         top of the heatmap's colour scale (default: 99.5th percentile)\n"
+           "  --stats FILE.json    statistics (design.md fields plus spp, paths, ...)\n"
+           "  --scene FILE         the scene file (default: in the scene folder, reused)\n"
+           "  --help               this text\n"
+           "\n"
+           "Every mode and setting writes the same image, byte for byte.\n");
+}
+
+/* "x,y,z" into v; returns the text after it, or NULL. */
+static const char *parse_vector(const char *text, float v[3])
+{
+    int used = 0;
+    if (sscanf(text, "%f,%f,%f%n", &v[0], &v[1], &v[2], &used) != 3 || used == 0) return NULL;
+    if (!isfinite(v[0]) || !isfinite(v[1]) || !isfinite(v[2])) return NULL;
+    return text + used;
+}
+
+static void parse_camera(const char *text, options *o)
+{
+    const char *p = parse_vector(text, o->eye);
+    int used = 0;
+    if (p && *p == ':') p = parse_vector(p + 1, o->target);
+    else p = NULL;
+    if (!p || *p != ':' || sscanf(p + 1, "%f%n", &o->fov, &used) != 1 || p[1 + used] != 0
+        || !(o->fov > 0 && o->fov < 180)
+        || (o->eye[0] == o->target[0] && o->eye[1] == o->target[1] && o->eye[2] == o->target[2]))
+        ex_die(prog, "--camera: expected ex,ey,ez:tx,ty,tz:fov with eye != target and "
+               "0 < fov < 180, got '%s'", text);
+    o->have_camera = 1;
+}
+
+static void parse_memory(const char *text, options *o)
+{
+    size_t n = strlen(text);
+    if (n > 1 && text[n - 1] == '%') {
+        char number[64];
+        if (n >= sizeof number) ex_die(prog, "--memory: bad percentage '%s'", text);
+        memcpy(number, text, n - 1);
+        number[n - 1] = 0;
+        o->memory_percent = ex_parse_double(prog, "--memory", number, 0.001, 100000);
+    } else {
+        o->memory = ex_parse_size(prog, "--memory", text);
+    }
+}
+
+static int is_option(const char *arg, const char *name) { return strcmp(arg, name) == 0; }
+
+static void parse_options(int argc, char **argv, options *o)
+{
+    int i;
+    memset(o, 0, sizeof *o);
+    o->input = "landscape";
+    o->scale = 1;
+    o->seed = 1;
+    o->spp = 8;
+    o->width = 320;
+    o->height = 180;
+    o->batch_tris = 10000;
+    o->res = 128;
+    o->rays_in_flight = 1u << 18;
+    o->out = "render.png";
+    for (i = 1; i < argc; i++) {
+        const char *a = argv[i];
+#define VALUE ex_option_value(prog, argc, argv, &i)
+        if (is_option(a, "--scale")) o->scale = ex_parse_double(prog, a, VALUE, 0.001, EX_SCENE_MAX_SCALE);
+        else if (is_option(a, "--seed")) o->seed = ex_parse_u64(prog, a, VALUE, 0, UINT64_MAX);
+        else if (is_option(a, "--spp")) o->spp = ex_parse_u64(prog, a, VALUE, 1, MAX_SPP);
+        else if (is_option(a, "--width")) o->width = ex_parse_u64(prog, a, VALUE, 1, 16384);
+        else if (is_option(a, "--height")) o->height = ex_parse_u64(prog, a, VALUE, 1, 16384);
+        else if (is_option(a, "--camera")) parse_camera(VALUE, o);
+        else if (is_option(a, "--memory")) parse_memory(VALUE, o);
+        else if (is_option(a, "--batch-tris")) o->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
+        else if (is_option(a, "--res")) o->res = ex_parse_u64(prog, a, VALUE, 2, 1024);
+        else if (is_option(a, "--rays-in-flight"))
+            o->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
+        else if (is_option(a, "--heat-max")) o->heat_max = ex_parse_double(prog, a, VALUE, 1e-9, 1e9);
+        else if (is_option(a, "--out")) o->out = VALUE;
+        else if (is_option(a, "--heatmap")) o->heatmap = VALUE;
+        else if (is_option(a, "--stats")) o->stats = VALUE;
+        else if (is_option(a, "--scene")) o->scene = VALUE;
+        else if (is_option(a, "--no-proxy")) o->no_proxy = 1;
+        else if (is_option(a, "--direct")) o->direct = 1;
+        else if (is_option(a, "--batched")) o->direct = 0;
+        else if (is_option(a, "--compare")) o->compare = 1;
+        else if (is_option(a, "--drop-os-cache")) o->drop_os_cache = 1;
+        else if (a[0] == '-') ex_die(prog, "unknown option '%s' (see --help)", a);
+        else o->input = a;
+#undef VALUE
+    }
+    if (o->res & (o->res - 1)) ex_die(prog, "--res: expected a power of two, got %llu",
+                                      (unsigned long long)o->res);
+    if (o->direct && (o->heatmap || o->compare))
+        ex_die(prog, "--direct has no batching points: no --heatmap or --compare with it");
+}
+
+/* ===================================================================== */
+/* Deterministic random numbers                                          */
+/* ===================================================================== */
+
+/* The SplitMix64 finaliser (Steele, Lea, Flood 2014): a bijection of 64-bit
+** integers whose outputs for neighbouring inputs look independent. */
+static uint64_t mix64(uint64_t z)
+{
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9u;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBu;
+    return z ^ (z >> 31);
+}
+
+/* Random dimensions of one bounce. */
+enum { DIM_PIXEL_X, DIM_PIXEL_Y, DIM_DIRECTION_R, DIM_DIRECTION_PHI, DIM_ROULETTE };
+
+/* A counter-based generator: the number of (pixel, sample, bounce,
+** dimension) is a hash of that key alone, uniform in [0, 1) with 24 bits,
+** so it is the same whatever order the paths are traced in.  Chained
+** mixing keeps keys that differ in one field apart. */
+static double random_at(uint32_t pixel, uint32_t sample, uint32_t bounce, uint32_t dim)
+{
+    uint64_t h = mix64(((uint64_t)pixel << 32 | sample) + 0x9E3779B97F4A7C15u);
+    h = mix64(h ^ ((uint64_t)bounce << 32 | dim));
+    return (double)(h >> 40) * (1.0 / 16777216.0);
+}
+
+/* ===================================================================== */
+/* Light and surfaces                                                    */
+/* ===================================================================== */
+
+/* The sky seen along unit direction d: a gradient from a bright horizon to
+** a blue zenith, a dark ground below the horizon (the world beyond the
+** scene, dark so that surfaces stand out against it), and a sun.  The sun is a broad lobe, cos^4 about its direction,
+** rather than a small disc: only escaping rays can find it (there are no
+** shadow rays), and a broad lobe keeps that noise low. */
+static void sky_radiance(const float d[3], double rgb[3])
+{
+    static const double sun_dir[3] = {0.48, 0.62, 0.62};   /* unit: 0.48^2+2*0.62^2 = 1.0 */
+    static const double sun[3] = {1.6, 1.45, 1.2};
+    static const double zenith[3] = {0.25, 0.40, 0.80}, horizon[3] = {0.70, 0.72, 0.78};
+    static const double ground[3] = {0.10, 0.09, 0.08};
+    double up = d[1], a = sqrt(fabs(up));
+    double cos_sun = fmax(0.0, sun_dir[0] * d[0] + sun_dir[1] * d[1] + sun_dir[2] * d[2]);
+    double lobe = pow(cos_sun, 4.0);
+    int k;
+    for (k = 0; k < 3; k++)
+        rgb[k] = (1 - a) * horizon[k] + a * (up >= 0 ? zenith[k] : ground[k]) + lobe * sun[k];
+}
+
+static double dot3(const double a[3], const double b[3])
+{
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+}
+
+/* Orthonormal basis (t, b) around the unit normal n (Duff et al. 2017). */
+static void tangent_frame(const double n[3], double t[3], double b[3])
+{
+    double s = n[2] >= 0 ? 1.0 : -1.0, a = -1.0 / (s + n[2]), c = n[0] * n[1] * a;
+    t[0] = 1.0 + s * n[0] * n[0] * a; t[1] = s * c;           t[2] = -s * n[0];
+    b[0] = c;                         b[1] = s + n[1] * n[1] * a; b[2] = -n[1];
+}
+
+/* The Lambert bounce from the hit of ray `in`: a cosine-weighted direction
+** (u1, u2) about the geometric normal turned to face the incoming ray, from
+** the hit point nudged off the surface along it by the offset rule of
+** ex_bounce_ray (examples/rays.c): 1e-5 of the scene diagonal plus the
+** point's largest coordinate, so it clears the surface by many float ulps
+** at any scale.  Returns 0 for a zero normal (nothing to bounce from). */
+static int lambert_bounce(const brt_ray *in, const brt_hit *hit, const float normal[3],
+                          double diagonal, double u1, double u2, brt_ray *out)
+{
+    double n[3], t[3], b[3], p[3], dir[3], len, scale = 0;
+    double r = sqrt(u1), phi = 2.0 * PI * u2, x = r * cos(phi), y = r * sin(phi);
+    double z = sqrt(fmax(0.0, 1.0 - u1));
+    int k;
+    for (k = 0; k < 3; k++) n[k] = normal[k];
+    len = sqrt(dot3(n, n));
+    if (!(len > 0)) return 0;
+    if (n[0] * in->dir[0] + n[1] * in->dir[1] + n[2] * in->dir[2] > 0) len = -len;
+    for (k = 0; k < 3; k++) {
+        n[k] /= len;
+        p[k] = (double)in->org[k] + (double)hit->t * in->dir[k];
+        scale = fmax(scale, fabs(p[k]));
+    }
+    tangent_frame(n, t, b);
+    scale = 1e-5 * (scale + diagonal);
+    for (k = 0; k < 3; k++) dir[k] = x * t[k] + y * b[k] + z * n[k];
+    len = sqrt(dot3(dir, dir));
+    for (k = 0; k < 3; k++) {
+        out->org[k] = (float)(p[k] + scale * n[k]);
+        out->dir[k] = (float)(dir[k] / len);
+    }
+    out->tnear = 0.0f;
+    out->tfar = INFINITY;
+    return 1;
+}
+
+/* ===================================================================== */
+/* Paths: the ray source of the scheduler                                */
+/* ===================================================================== */
+
+typedef struct path_state {
+    uint32_t pixel, sample, bounce;   /* the random key; bounce = hits so far */
+    double weight;                    /* throughput: albedo^bounce / roulette survival */
+    brt_ray ray;                      /* the next ray, while the path is pending */
+} path_state;
+
+/* What one render needs to know. */
+typedef struct render_job {
+    ex_camera camera;
+    uint32_t spp;
+    double diagonal;                  /* of the scene's bounds: the offset scale */
+    uint32_t paths_in_flight;
+    double scene_seconds;             /* building the scene file (0: reused) */
+} render_job;
+
+typedef struct renderer {
+    const render_job *job;
+    path_state *paths;                 /* paths_in_flight of them; tag = index */
+    uint32_t *idle, idle_count;        /* path slots without a path */
+    uint32_t *pending, pending_count;  /* paths whose next ray awaits next_rays */
+    uint64_t started, finished, total; /* path number = sample * pixels + pixel */
+    uint64_t *sums;                    /* 3 per pixel, fixed point (FIXED_ONE) */
+    uint64_t *visits;                  /* per pixel, or NULL: the heatmap pass */
+    const brt_stats *live;             /* the heatmap pass reads its running total */
+    uint64_t visits_seen;
+} renderer;
+
+static void renderer_init(renderer *r, const render_job *job, int count_visits)
+{
+    size_t pixels = (size_t)job->camera.width * job->camera.height;
+    uint32_t i, n = job->paths_in_flight;
+    memset(r, 0, sizeof *r);
+    r->job = job;
+    r->total = (uint64_t)pixels * job->spp;
+    r->paths = malloc((size_t)n * sizeof *r->paths);
+    r->idle = malloc((size_t)n * sizeof *r->idle);
+    r->pending = malloc((size_t)n * sizeof *r->pending);
+    r->sums = calloc(3 * pixels, sizeof *r->sums);
+    if (count_visits) r->visits = calloc(pixels, sizeof *r->visits);
+    if (!r->paths || !r->idle || !r->pending || !r->sums || (count_visits && !r->visits))
+        ex_die(prog, "out of memory for %u paths in flight and %zu pixels", n, pixels);
+    for (i = 0; i < n; i++) r->idle[i] = n - 1 - i;
+    r->idle_count = n;
+}
+
+static void renderer_free(renderer *r)
+{
+    free(r->paths);
+    free(r->idle);
+    free(r->pending);
+    free(r->sums);
+    free(r->visits);
+}
+
+/* Path number `number` starts with a camera ray jittered in its pixel. */
+static void start_path(const render_job *job, uint64_t number, path_state *p)
+{
+    uint64_t pixels = (uint64_t)job->camera.width * job->camera.height;
+    uint32_t px;
+    p->pixel = (uint32_t)(number % pixels);
+    p->sample = (uint32_t)(number / pixels);
+    p->bounce = 0;
+    p->weight = 1.0;
+    px = p->pixel % job->camera.width;
+    ex_camera_ray(&job->camera,
+                  (px + random_at(p->pixel, p->sample, 0, DIM_PIXEL_X)) / job->camera.width,
+                  (p->pixel / job->camera.width + random_at(p->pixel, p->sample, 0, DIM_PIXEL_Y))
+                      / job->camera.height,
+                  &p->ray);
+}
+
+/* brt_ray_source.next_rays: bounce rays first (their paths are already
+** started), then new paths while there are idle slots. */
+static size_t next_rays(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+{
+    renderer *r = user;
+    size_t n = 0;
+    while (n < max && r->pending_count > 0) {
+        uint32_t id = r->pending[--r->pending_count];
+        rays[n] = r->paths[id].ray;
+        tags[n++] = id;
+    }
+    while (n < max && r->idle_count > 0 && r->started < r->total) {
+        uint32_t id = r->idle[--r->idle_count];
+        start_path(r->job, r->started++, &r->paths[id]);
+        rays[n] = r->paths[id].ray;
+        tags[n++] = id;
+    }
+    return n;
+}
+
+/* Adds weight * radiance to the path's pixel, in fixed point. */
+static void add_radiance(renderer *r, const path_state *p, const double radiance[3])
+{
+    int k;
+    for (k = 0; k < 3; k++) {
+        double v = fmin(p->weight * radiance[k], SAMPLE_CLAMP);
+        r->sums[3 * (size_t)p->pixel + k] += (uint64_t)(v * FIXED_ONE + 0.5);
+    }
+}
+
+/* One more hit: absorb, end by depth or roulette, or bounce.  Returns 1
+** when the path goes on with p->ray. */
+static int scatter(const render_job *job, path_state *p, const brt_ray *ray, const brt_hit *hit,
+                   const float normal[3])
+{
+    p->bounce++;
+    if (p->bounce >= MAX_DEPTH) return 0;
+    p->weight *= ALBEDO;   /* Lambert, cosine sampled: f cos / pdf = albedo */
+    if (p->bounce >= ROULETTE_DEPTH) {
+        double survive = fmin(0.95, p->weight);
+        if (random_at(p->pixel, p->sample, p->bounce, DIM_ROULETTE) >= survive) return 0;
+        p->weight /= survive;
+    }
+    return lambert_bounce(ray, hit, normal, job->diagonal,
+                          random_at(p->pixel, p->sample, p->bounce, DIM_DIRECTION_R),
+                          random_at(p->pixel, p->sample, p->bounce, DIM_DIRECTION_PHI), &p->ray);
+}
+
+/* brt_ray_source.finished: the path escapes to the sky, ends, or waits
+** with its bounce ray for the next next_rays call. */
+static void finished(void *user, const brt_ray *ray, const brt_hit *hit, const float normal[3],
+                     uint64_t tag)
+{
+    renderer *r = user;
+    path_state *p = &r->paths[tag];
+    if (r->visits) {
+        r->visits[p->pixel] += r->live->queued_visits - r->visits_seen;
+        r->visits_seen = r->live->queued_visits;
+    }
+    if (hit->prim == BRT_NO_PRIM) {
+        double sky[3];
+        sky_radiance(ray->dir, sky);
+        add_radiance(r, p, sky);
+    } else if (scatter(r->job, p, ray, hit, normal)) {
+        r->pending[r->pending_count++] = (uint32_t)tag;
+        return;
+    }
+    r->idle[r->idle_count++] = (uint32_t)tag;
+    r->finished++;
+    if ((r->finished & 0xFFF) == 0) ex_progress("rendering", r->finished, r->total);
+}
+
+/* ===================================================================== */
+/* The two tracers                                                       */
+/* ===================================================================== */
+
+/* The reference: the same paths against one BVH in memory. */
+static void render_direct(const brt_bvh *bvh, renderer *r, brt_stats *stats)
+{
+    static brt_ray rays[DIRECT_CHUNK];
+    static uint64_t tags[DIRECT_CHUNK];
+    double start = brt_seconds();
+    size_t n, i;
+    while ((n = next_rays(r, rays, tags, DIRECT_CHUNK)) > 0) {
+        for (i = 0; i < n; i++) {
+            brt_hit hit;
+            float normal[3] = {0, 0, 0};
+            brt_hit_clear(&hit);
+            brt_bvh_intersect_normal(bvh, &rays[i], &hit, normal);
+            finished(r, &rays[i], &hit, normal, tags[i]);
+        }
+        stats->rays += n;
+    }
+    stats->seconds = brt_seconds() - start;
+}
+
+static void render_batched(brt_scene *scene, const brt_trace_options *topt, renderer *r,
+                           brt_stats *stats)
+{
+    brt_ray_source source;
+    brt_error err;
+    source.next_rays = next_rays;
+    source.finished = finished;
+    source.user = r;
+    r->live = stats;
+    ex_check(prog, brt_scene_trace_stream(scene, topt, &source, stats, &err), &err);
+}
+
+/* ===================================================================== */
+/* The scene                                                             */
+/* ===================================================================== */
+
+static void load_mesh(const options *o, brt_mesh *mesh)
+{
+    brt_error err;
+    if (ex_scene_is_builtin(o->input))
+        ex_check(prog, ex_scene_generate(o->input, o->scale, o->seed, mesh, &err), &err);
+    else
+        ex_check(prog, brt_mesh_load(o->input, mesh, &err), &err);
+}
+
+/* The camera (given, or the scene's default view) and the offset scale. */
+static void make_job(const options *o, const brt_mesh *mesh, render_job *job)
+{
+    float bmin[3], bmax[3], eye[3], target[3], fov;
+    memset(job, 0, sizeof *job);
+    brt_mesh_bounds(mesh, bmin, bmax);
+    if (o->have_camera) {
+        memcpy(eye, o->eye, sizeof eye);
+        memcpy(target, o->target, sizeof target);
+        fov = o->fov;
+    } else {
+        ex_scene_camera(o->input, bmin, bmax, eye, target, &fov);
+    }
+    ex_camera_look(&job->camera, eye, target, fov, (uint32_t)o->width, (uint32_t)o->height);
+    job->spp = (uint32_t)o->spp;
+    job->diagonal = ex_mesh_diagonal(mesh);
+    job->paths_in_flight = (uint32_t)o->rays_in_flight;
+}
+
+/* A stamp of a built-in scene's recipe (FNV-1a of its name, scale, seed). */
+static uint64_t builtin_stamp(const options *o, char *recipe, size_t size)
+{
+    uint64_t h = 14695981039346656037u;
+    const char *p;
+    snprintf(recipe, size, "%s-s%g-seed%llu", o->input, o->scale, (unsigned long long)o->seed);
+    for (p = recipe; *p; p++) h = (h ^ (unsigned char)*p) * 1099511628211u;
+    return h;
+}
+
+/* DIR/RECIPE-bBATCH-rRES.brs in the scene folder of ex_default_scene_path.
+** That function names files after mesh files that exist; asked about "."
+** it names one in the folder (creating it), and only the folder is kept. */
+static void builtin_scene_path(const options *o, const char *recipe, char *path, size_t size)
+{
+    char probe[4096], *slash;
+    ex_default_scene_path(prog, ".", (uint32_t)o->batch_tris, (uint32_t)o->res, probe, sizeof probe);
+    slash = strrchr(probe, '/');
+    *slash = 0;
+    if (snprintf(path, size, "%s/%s-b%llu-r%llu.brs", probe, recipe,
+                 (unsigned long long)o->batch_tris, (unsigned long long)o->res) >= (int)size)
+        ex_die(prog, "%s: scene path too long", probe);
+}
+
+/* Opens the scene file when it matches the built-in recipe, else builds it
+** from the mesh (already generated: it also gave the camera). */
+static brt_scene *prepare_builtin(const options *o, const brt_scene_options *sopt,
+                                  const brt_mesh *mesh, const char *path, int *rebuilt)
+{
+    char recipe[256];
+    uint64_t stamp = builtin_stamp(o, recipe, sizeof recipe);
+    brt_scene *scene = NULL;
+    brt_error err;
+    *rebuilt = 0;
+    if (brt_scene_open(path, &scene, &err) == BRT_OK) {
+        if (brt_scene_matches(scene, stamp, sopt)) return scene;
+        brt_scene_close(scene);
+    }
+    *rebuilt = 1;
+    ex_progress("building scene", 0, 1);
+    ex_check(prog, brt_scene_build(mesh, sopt, stamp, path, &err), &err);
+    ex_check(prog, brt_scene_open(path, &scene, &err), &err);
+    ex_progress_end();
+    return scene;
+}
+
+static brt_scene *open_scene(const options *o, const brt_mesh *mesh, double *build_seconds)
+{
+    brt_scene_options sopt;
+    brt_scene *scene;
+    brt_error err;
+    char path[4096], recipe[256];
+    double start = brt_seconds();
+    int rebuilt;
+    memset(&sopt, 0, sizeof sopt);
+    sopt.batch_tris = (uint32_t)o->batch_tris;
+    sopt.proxy_res = (uint32_t)o->res;
+    if (ex_scene_is_builtin(o->input)) {
+        builtin_stamp(o, recipe, sizeof recipe);
+        if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
+        else builtin_scene_path(o, recipe, path, sizeof path);
+        scene = prepare_builtin(o, &sopt, mesh, path, &rebuilt);
+    } else {
+        if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
+        else ex_default_scene_path(prog, o->input, sopt.batch_tris, sopt.proxy_res, path, sizeof path);
+        ex_check(prog, brt_scene_prepare(o->input, path, &sopt, &scene, &rebuilt, &err), &err);
+    }
+    *build_seconds = rebuilt ? brt_seconds() - start : 0.0;
+    return scene;
+}
+
+
+/* The geometry bytes of a scene, from a trace of no rays (the statistics
+** say it; a percentage limit needs it before the real trace). */
+static uint64_t scene_geometry_bytes(brt_scene *scene)
+{
+    brt_trace_options topt;
+    brt_stats stats;
+    brt_error err;
+    memset(&topt, 0, sizeof topt);
+    topt.rays_in_flight = 1;
+    ex_check(prog, brt_scene_trace(scene, &topt, NULL, 0, NULL, &stats, &err), &err);
+    return stats.geometry_bytes;
+}
+
+/* ===================================================================== */
+/* Images                                                                */
+/* ===================================================================== */
+
+/* Tone mapping of the pixel sums: mean, exposure, Reinhard's x/(1+x),
+** gamma 2.2.  Only integer sums go in, so equal sums give equal bytes. */
+static unsigned char *tone_map(const render_job *job, const uint64_t *sums)
+{
+    size_t i, n = 3 * (size_t)job->camera.width * job->camera.height;
+    unsigned char *rgb = malloc(n);
+    if (!rgb) ex_die(prog, "out of memory for the image");
+    for (i = 0; i < n; i++) {
+        double v = EXPOSURE * (double)sums[i] / FIXED_ONE / job->spp;
+        rgb[i] = (unsigned char)(255.0 * pow(v / (1.0 + v), 1.0 / 2.2) + 0.5);
+    }
+    return rgb;
+}
+
+/* A 5-stop approximation of the "inferno" colour map, for x in [0, 1]. */
+static void heat_colour(double x, unsigned char rgb[3])
+{
+    static const unsigned char stops[5][3] = {
+        {0, 0, 4}, {87, 16, 110}, {188, 55, 84}, {249, 142, 9}, {252, 255, 164}};
+    double f = fmin(fmax(x, 0.0), 1.0) * 4.0;
+    int i = f >= 4.0 ? 3 : (int)f, k;
+    f -= i;
+    for (k = 0; k < 3; k++)
+        rgb[k] = (unsigned char)(stops[i][k] + f * (stops[i + 1][k] - stops[i][k]) + 0.5);
+}
+
+/* Digits and the point in a 3x5 bitmap font, rows top first, 3 bits each. */
+static int glyph_bits(char c)
+{
+    static const int digits[10] = {075557, 026227, 071747, 071717, 055711,
+                                   074717, 074757, 071111, 075757, 075717};
+    return c == '.' ? 000002 : c >= '0' && c <= '9' ? digits[c - '0'] : 0;
+}
+
+/* Draws text with 2x2-pixel font dots, its left edge at x (clipped). */
+static void draw_text(unsigned char *rgb, int width, int height, int x, int y, const char *text)
+{
+    int row, col, dy, dx;
+    for (; *text; text++, x += 8) {
+        int bits = glyph_bits(*text);
+        for (row = 0; row < 5; row++)
+            for (col = 0; col < 3; col++) {
+                if (!(bits >> (3 * (4 - row) + (2 - col)) & 1)) continue;
+                for (dy = 0; dy < 2; dy++)
+                    for (dx = 0; dx < 2; dx++) {
+                        int px = x + 2 * col + dx, py = y + 2 * row + dy;
+                        if (px >= 0 && px < width && py >= 0 && py < height)
+                            memset(rgb + 3 * ((size_t)py * width + px), 255, 3);
+                    }
+            }
+    }
+}
+
+/* The colour bar under the map and its labels 0, max/2 and max. */
+static void draw_legend(unsigned char *rgb, int width, int height, double max)
+{
+    int top = height - LEGEND_ROWS, x, y, i;
+    char label[32];
+    for (y = top + 2; y < top + 10; y++)
+        for (x = 0; x < width; x++)
+            heat_colour(width > 1 ? (double)x / (width - 1) : 0, rgb + 3 * ((size_t)y * width + x));
+    for (i = 0; i <= 2; i++) {
+        int len;
+        snprintf(label, sizeof label, "%.1f", max * i / 2.0);
+        len = (int)strlen(label) * 8 - 2;
+        x = i == 0 ? 2 : i == 1 ? (width - len) / 2 : width - len - 2;
+        draw_text(rgb, width, height, x, top + 12, label);
+    }
+}
+
+/* The heatmap of visits per sample, with the colour bar below it. */
+static void write_heatmap(const char *path, const render_job *job, const uint64_t *visits,
+                          double max)
+{
+    int width = (int)job->camera.width, height = (int)job->camera.height + LEGEND_ROWS;
+    size_t i, pixels = (size_t)job->camera.width * job->camera.height;
+    unsigned char *rgb = calloc(3 * (size_t)width * height, 1);
+    brt_error err;
+    if (!rgb) ex_die(prog, "out of memory for the heatmap");
+    for (i = 0; i < pixels; i++)
+        heat_colour((double)visits[i] / job->spp / max, rgb + 3 * i);
+    draw_legend(rgb, width, height, max);
+    ex_check(prog, ex_png_write_rgb(path, width, height, rgb, &err), &err);
+    free(rgb);
+}
+
+static int compare_u64(const void *a, const void *b)
+{
+    uint64_t x = *(const uint64_t *)a, y = *(const uint64_t *)b;
+    return x < y ? -1 : x > y;
+}
+
+/* The top of the colour scale: the 99.5th percentile of the pixels'
+** visits per sample, so that a few extreme pixels (rays grazing many
+** boxes) do not darken the rest; pixels above it get the top colour. */
+static double heat_scale(const render_job *job, const uint64_t *visits)
+{
+    size_t pixels = (size_t)job->camera.width * job->camera.height;
+    uint64_t *sorted = malloc(pixels * sizeof *sorted), top;
+    if (!sorted) ex_die(prog, "out of memory for the heatmap");
+    memcpy(sorted, visits, pixels * sizeof *sorted);
+    qsort(sorted, pixels, sizeof *sorted, compare_u64);
+    top = sorted[(size_t)(0.995 * (double)(pixels - 1))];
+    free(sorted);
+    return top > 0 ? (double)top / job->spp : 1.0;
+}
+
+/* ===================================================================== */
+/* Runs, statistics and the comparison table                             */
+/* ===================================================================== */
+
+/* One render's outcome. */
+typedef struct run {
+    const char *label;
+    brt_stats stats;
+    uint64_t *sums;            /* pixel sums (owned) */
+    uint64_t *visits;          /* the heatmap pass, or NULL (owned) */
+    uint64_t heat_visits;      /* their total */
+} run;
+
+/* The heatmap pass: the same paths one at a time, in core (see the top). */
+static void count_visits(brt_scene *scene, const render_job *job, int no_proxy, run *x)
+{
+    render_job single = *job;
+    renderer r;
+    brt_trace_options topt;
+    brt_stats stats;
+    size_t pixels = (size_t)job->camera.width * job->camera.height, i;
+    single.paths_in_flight = 1;
+    renderer_init(&r, &single, 1);
+    memset(&topt, 0, sizeof topt);
+    topt.no_proxy = no_proxy;
+    topt.rays_in_flight = 1;
+    render_batched(scene, &topt, &r, &stats);
+    ex_progress_end();
+    if (memcmp(r.sums, x->sums, 3 * pixels * sizeof *r.sums) != 0)
+        ex_die(prog, "internal error: the heatmap pass rendered a different image");
+    for (i = 0; i < pixels; i++) x->heat_visits += r.visits[i];
+    x->visits = r.visits;
+    r.visits = NULL;
+    renderer_free(&r);
+}
+
+static void run_batched(brt_scene *scene, const render_job *job, const brt_trace_options *topt,
+                        int heatmap, run *out)
+{
+    renderer r;
+    renderer_init(&r, job, 0);
+    render_batched(scene, topt, &r, &out->stats);
+    out->stats.build_seconds = job->scene_seconds;
+    ex_progress_end();
+    out->sums = r.sums;
+    r.sums = NULL;
+    renderer_free(&r);
+    if (heatmap) count_visits(scene, job, topt->no_proxy, out);
+}
+
+static void run_direct(const brt_mesh *mesh, const render_job *job, run *out)
+{
+    renderer r;
+    brt_bvh *bvh;
+    double start = brt_seconds();
+    ex_check(prog, brt_bvh_build(mesh->positions, mesh->indices, mesh->triangle_count, NULL, &bvh),
+             NULL);
+    out->stats.build_seconds = brt_seconds() - start;
+    renderer_init(&r, job, 0);
+    render_direct(bvh, &r, &out->stats);
+    ex_progress_end();
+    if (out->stats.seconds > 0) out->stats.mrays_per_second = out->stats.rays / out->stats.seconds * 1e-6;
+    out->sums = r.sums;
+    r.sums = NULL;
+    renderer_free(&r);
+    brt_bvh_free(bvh);
+}
+
+static double visits_per_sample(const render_job *job, const brt_stats *s)
+{
+    return (double)s->queued_visits / ((double)job->camera.width * job->camera.height * job->spp);
+}
+
+/* The library's statistics plus the renderer's, as one JSON object: the
+** library writes its object, and the renderer's fields go before its "}". */
+static void write_stats(const char *path, const render_job *job, const run *x, int direct,
+                        int proxies)
+{
+    char extra[1024], *text;
+    FILE *f;
+    long size;
+    brt_error err;
+    ex_check(prog, brt_stats_write_json(path, &x->stats, &err), &err);
+    snprintf(extra, sizeof extra,
+             ",\n  \"mode\": \"%s\",\n  \"proxies\": %d,\n  \"width\": %u,\n  \"height\": %u,\n"
+             "  \"spp\": %u,\n  \"max_depth\": %d,\n  \"paths\": %llu,\n"
+             "  \"paths_in_flight\": %u,\n  \"visits_per_sample\": %.17g,\n"
+             "  \"heatmap_visits\": %llu\n}\n",
+             direct ? "direct" : "batched", proxies, job->camera.width, job->camera.height, job->spp,
+             MAX_DEPTH, (unsigned long long)job->camera.width * job->camera.height * job->spp,
+             job->paths_in_flight, visits_per_sample(job, &x->stats),
+             (unsigned long long)x->heat_visits);
+    f = fopen(path, "rb");
+    if (!f || fseek(f, 0, SEEK_END) != 0 || (size = ftell(f)) < 3)
+        ex_die(prog, "%s: cannot read back: %s", path, strerror(errno));
+    text = malloc((size_t)size + strlen(extra) + 1);
+    if (!text || fseek(f, 0, SEEK_SET) != 0 || fread(text, 1, (size_t)size, f) != (size_t)size)
+        ex_die(prog, "%s: cannot read back", path);
+    fclose(f);
+    /* Drop the closing "\n}\n" and append. */
+    strcpy(text + size - 3, extra);
+    ex_check(prog, brt_write_file_atomic(path, text, strlen(text), &err), &err);
+    free(text);
+}
+
+static void print_header(void)
+{
+    printf("| %-22s | %10s | %7s | %10s | %8s | %8s | %8s | %9s |\n", "run", "disk MiB", "loads",
+           "visits/spp", "culled", "time s", "Mrays/s", "same image");
+    printf("|---|---:|---:|---:|---:|---:|---:|---|\n");
+}
+
+static void print_row(const render_job *job, const run *x, const run *reference)
+{
+    const brt_stats *s = &x->stats;
+    size_t n = 3 * (size_t)job->camera.width * job->camera.height * sizeof *x->sums;
+    printf("| %-22s | %10.2f | %7llu | %10.2f | %7.1f%% | %8.2f | %8.3f | %9s |\n", x->label,
+           s->disk_bytes_read / 1048576.0, (unsigned long long)s->batch_loads,
+           visits_per_sample(job, s),
+           s->proxy_tests ? 100.0 * s->proxy_culled / s->proxy_tests : 0.0, s->seconds,
+           s->mrays_per_second, memcmp(x->sums, reference->sums, n) == 0 ? "yes" : "NO");
+}
+
+/* "x.png" -> "x-suffix.png". */
+static void suffixed(const char *path, const char *suffix, char *out, size_t size)
+{
+    const char *dot = strrchr(path, '.'), *slash = strrchr(path, '/');
+    int stem = dot && (!slash || dot > slash) ? (int)(dot - path) : (int)strlen(path);
+    snprintf(out, size, "%.*s-%s%s", stem, path, suffix, path + stem);
+}
+
+static void free_run(run *x)
+{
+    free(x->sums);
+    free(x->visits);
+}
+
+/* ===================================================================== */
+/* main                                                                  */
+/* ===================================================================== */
+
+static void write_image(const options *o, const render_job *job, const run *x)
+{
+    unsigned char *rgb = tone_map(job, x->sums);
+    brt_error err;
+    ex_check(prog, ex_png_write_rgb(o->out, (int)job->camera.width, (int)job->camera.height, rgb,
+                                    &err), &err);
+    free(rgb);
+}
+
+static void describe(const options *o, uint32_t triangles, brt_scene *scene, uint64_t limit)
+{
+    printf("%s: %u triangles", o->input, triangles);
+    if (scene)
+        printf(", %u batching points of <= %llu, proxies %llu^3, memory limit %s%.1f MiB",
+               brt_scene_batch_count(scene), (unsigned long long)o->batch_tris,
+               (unsigned long long)o->res, limit ? "" : "none ", limit / 1048576.0);
+    printf("; %llux%llu, %llu spp\n", (unsigned long long)o->width, (unsigned long long)o->height,
+           (unsigned long long)o->spp);
+}
+
+/* --compare: batched without and with proxies at the same limit, and the
+** direct reference; one table, the image, the two heatmaps. */
+static void compare(const options *o, const render_job *job, brt_scene *scene,
+                    const brt_mesh *mesh, const brt_trace_options *topt)
+{
+    run runs[3];
+    brt_trace_options without = *topt, with = *topt;
+    char path[4096];
+    double max;
+    int i;
+    memset(runs, 0, sizeof runs);
+    runs[0].label = "direct (in memory)";
+    runs[1].label = "batched, no proxies";
+    runs[2].label = "batched, proxies";
+    without.no_proxy = 1;
+    with.no_proxy = 0;
+    run_direct(mesh, job, &runs[0]);
+    run_batched(scene, job, &without, o->heatmap != NULL, &runs[1]);
+    run_batched(scene, job, &with, o->heatmap != NULL, &runs[2]);
+    print_header();
+    for (i = 0; i < 3; i++) print_row(job, &runs[i], &runs[0]);
+    printf("proxies: disk bytes x%.2f, loads x%.2f, visits per sample x%.2f, time x%.2f\n",
+           (double)runs[2].stats.disk_bytes_read / fmax(1.0, (double)runs[1].stats.disk_bytes_read),
+           (double)runs[2].stats.batch_loads / fmax(1.0, (double)runs[1].stats.batch_loads),
+           (double)runs[2].stats.queued_visits / fmax(1.0, (double)runs[1].stats.queued_visits),
+           runs[2].stats.seconds / runs[1].stats.seconds);
+    write_image(o, job, &runs[2]);
+    if (o->heatmap) {
+        /* One colour scale for both, so that they can be compared. */
+        max = o->heat_max > 0 ? o->heat_max : fmax(heat_scale(job, runs[1].visits),
+                                                   heat_scale(job, runs[2].visits));
+        suffixed(o->heatmap, "noproxy", path, sizeof path);
+        write_heatmap(path, job, runs[1].visits, max);
+        suffixed(o->heatmap, "proxy", path, sizeof path);
+        write_heatmap(path, job, runs[2].visits, max);
+    }
+    if (o->stats) {
+        write_stats(o->stats, job, &runs[2], 0, 1);
+        suffixed(o->stats, "noproxy", path, sizeof path);
+        write_stats(path, job, &runs[1], 0, 0);
+    }
+    for (i = 0; i < 3; i++) free_run(&runs[i]);
+}
+
+static void render_once(const options *o, const render_job *job, brt_scene *scene,
+                        const brt_mesh *mesh, const brt_trace_options *topt)
+{
+    run x;
+    memset(&x, 0, sizeof x);
+    if (o->direct) run_direct(mesh, job, &x);
+    else run_batched(scene, job, topt, o->heatmap != NULL, &x);
+    printf("%s: %.2f s, %.3f Mrays/s, %llu rays; read %.2f MiB in %llu loads; "
+           "%.2f batching points visited per sample\n", o->direct ? "direct" : "batched",
+           x.stats.seconds, x.stats.mrays_per_second, (unsigned long long)x.stats.rays,
+           x.stats.disk_bytes_read / 1048576.0, (unsigned long long)x.stats.batch_loads,
+           visits_per_sample(job, &x.stats));
+    write_image(o, job, &x);
+    if (o->heatmap)
+        write_heatmap(o->heatmap, job, x.visits,
+                      o->heat_max > 0 ? o->heat_max : heat_scale(job, x.visits));
+    if (o->stats) write_stats(o->stats, job, &x, o->direct, !o->direct && !o->no_proxy);
+    free_run(&x);
+}
+
+int main(int argc, char **argv)
+{
+    options o;
+    brt_mesh mesh;
+    brt_scene *scene = NULL;
+    brt_trace_options topt;
+    render_job job;
+
+    if (ex_wants_help(argc, argv)) { usage(); return 0; }
+    parse_options(argc, argv, &o);
+    load_mesh(&o, &mesh);
+    make_job(&o, &mesh, &job);
+    memset(&topt, 0, sizeof topt);
+    topt.no_proxy = o.no_proxy;
+    topt.rays_in_flight = job.paths_in_flight;
+    topt.drop_os_cache = o.drop_os_cache;
+    if (!o.direct) {
+        scene = open_scene(&o, &mesh, &job.scene_seconds);
+        topt.memory_limit = o.memory_percent > 0
+            ? (uint64_t)(o.memory_percent / 100.0 * (double)scene_geometry_bytes(scene)) + 1
+            : o.memory;
+    }
+    describe(&o, mesh.triangle_count, scene, topt.memory_limit);
+    fflush(stdout);
+    /* Out of core, the mesh is on disk now; only --direct and --compare
+    ** (which renders the direct reference too) still need it. */
+    if (!o.direct && !o.compare) brt_mesh_free(&mesh);
+    if (o.compare) compare(&o, &job, scene, &mesh, &topt);
+    else render_once(&o, &job, scene, &mesh, &topt);
+    if (scene) brt_scene_close(scene);
+    brt_mesh_free(&mesh);
+    return 0;
+}

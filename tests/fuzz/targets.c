@@ -1,0 +1,516 @@
+/*
+** tests/fuzz/targets.c -- the fuzz targets declared in targets.h: OBJ and
+** PLY from memory, scene files and ray files through temporary files.
+**
+** Every target checks properties, not just survival.  The oracles are the
+** ones of the test suite: a brute-force loop over brt_intersect_triangle
+** (the exact oracle of the BVH, batchrt.h) and the direct mode (which the
+** batched mode must match byte for byte).  The scene target first repairs
+** the checksums of the mutated file, as a forger would: without that,
+** nearly every mutation would stop at a checksum and the validation of
+** the blobs, boxes and proxies behind it would never be reached.
+*/
+#include "targets.h"
+
+#include <dirent.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+/* ===================================================================== */
+/* Helpers                                                               */
+/* ===================================================================== */
+
+/* A per-process scratch name, so that parallel fuzzers never share one. */
+static void temp_path(char *out, size_t size, const char *suffix)
+{
+    const char *dir = getenv("TMPDIR");
+    snprintf(out, size, "%s/batchrt-fuzz-%ld%s", dir && dir[0] ? dir : "/tmp",
+             (long)getpid(), suffix);
+}
+
+static int write_file(const char *path, const void *data, size_t size)
+{
+    FILE *f = fopen(path, "wb");
+    int ok = f != NULL && (size == 0 || fwrite(data, 1, size, f) == size);
+    if (f && fclose(f) != 0) ok = 0;
+    return ok;
+}
+
+/* Failure messages are one line that starts with the input's name. */
+static const char *check_message(const brt_error *err, const char *name)
+{
+    if (strncmp(err->message, name, strlen(name)) != 0)
+        return "an error message does not start with the input's name";
+    if (strchr(err->message, '\n')) return "an error message is not one line";
+    return NULL;
+}
+
+/* The closest hit by brute force: the exact oracle of the BVH. */
+static brt_hit brute_force_hit(const brt_mesh *m, const brt_ray *ray)
+{
+    brt_hit hit;
+    uint32_t i;
+    brt_hit_clear(&hit);
+    for (i = 0; i < m->triangle_count; i++) {
+        const uint32_t *t = m->indices + 3 * (size_t)i;
+        float d, u, v;
+        if (brt_intersect_triangle(ray, m->positions + 3 * (size_t)t[0],
+                                   m->positions + 3 * (size_t)t[1],
+                                   m->positions + 3 * (size_t)t[2], &d, &u, &v)
+            && brt_hit_is_closer(d, i, &hit)) {
+            hit.t = d;
+            hit.prim = i;
+            hit.u = u;
+            hit.v = v;
+        }
+    }
+    return hit;
+}
+
+/* The BVH's hits, byte for byte those of the brute-force loop. */
+static const char *bvh_matches_oracle(const brt_mesh *m, const brt_bvh *bvh,
+                                      const brt_ray *rays, size_t count)
+{
+    size_t i;
+    for (i = 0; i < count; i++) {
+        brt_hit hit, expected = brute_force_hit(m, &rays[i]);
+        brt_hit_clear(&hit);
+        brt_bvh_intersect(bvh, &rays[i], &hit);
+        if (memcmp(&hit, &expected, sizeof hit) != 0)
+            return "a BVH hit differs from the brute-force oracle";
+    }
+    return NULL;
+}
+
+/* ===================================================================== */
+/* OBJ and PLY                                                           */
+/* ===================================================================== */
+
+/* Rays from the middle of the mesh's box along the 6 axes and 8 diagonals:
+** every one starts inside the geometry, whatever its scale. */
+static const char *accepted_mesh_traces(const brt_mesh *m)
+{
+    brt_ray rays[14];
+    brt_bvh *bvh = NULL;
+    brt_error err;
+    float lo[3], hi[3];
+    const char *problem = NULL;
+    int i, a;
+    brt_mesh_bounds(m, lo, hi);
+    for (i = 0; i < 14; i++) {
+        for (a = 0; a < 3; a++) {
+            /* Halves first: lo + hi may overflow near FLT_MAX. */
+            rays[i].org[a] = 0.5f * lo[a] + 0.5f * hi[a];
+            rays[i].dir[a] = i < 6 ? (float)(a == i / 2) * (i % 2 ? -1.0f : 1.0f)
+                                   : ((i - 6) >> a & 1) ? 1.0f : -1.0f;
+        }
+        rays[i].tnear = 0.0f;
+        rays[i].tfar = INFINITY;
+    }
+    if (brt_bvh_build(m->positions, m->indices, m->triangle_count, NULL, &bvh) != BRT_OK)
+        return NULL;   /* out of memory is not a finding */
+    if (brt_bvh_check(bvh, &err) != BRT_OK) problem = "the BVH of an accepted mesh fails its checker";
+    if (!problem) problem = bvh_matches_oracle(m, bvh, rays, 14);
+    brt_bvh_free(bvh);
+    return problem;
+}
+
+static const char *check_mesh(brt_result r, const brt_mesh *m, const brt_error *err,
+                              const char *name)
+{
+    uint64_t i;
+    if (r != BRT_OK) {
+        if (r != BRT_EPARSE && r != BRT_ENOMEM)
+            return "a mesh reader returned a code other than EPARSE or ENOMEM";
+        if (m->positions || m->indices || m->vertex_count || m->triangle_count)
+            return "the mesh is not zeroed after an error";
+        return check_message(err, name);
+    }
+    if (m->triangle_count == 0) return "a mesh without triangles was accepted";
+    for (i = 0; i < 3 * (uint64_t)m->triangle_count; i++)
+        if (m->indices[i] >= m->vertex_count) return "an accepted mesh has an index out of range";
+    for (i = 0; i < 3 * (uint64_t)m->vertex_count; i++)
+        if (!isfinite(m->positions[i])) return "an accepted mesh has a non-finite coordinate";
+    return accepted_mesh_traces(m);
+}
+
+static const char *run_obj(const uint8_t *data, size_t size)
+{
+    brt_mesh mesh;
+    brt_error err;
+    brt_result r = brt_mesh_parse_obj("fuzz.obj", data, size, &mesh, &err);
+    const char *problem = check_mesh(r, &mesh, &err, "fuzz.obj");
+    if (r == BRT_OK) brt_mesh_free(&mesh);
+    return problem;
+}
+
+static const char *run_ply(const uint8_t *data, size_t size)
+{
+    brt_mesh mesh;
+    brt_error err;
+    brt_result r = brt_mesh_parse_ply("fuzz.ply", data, size, &mesh, &err);
+    const char *problem = check_mesh(r, &mesh, &err, "fuzz.ply");
+    if (r == BRT_OK) brt_mesh_free(&mesh);
+    return problem;
+}
+
+/* ===================================================================== */
+/* The fixed mesh and its scene                                          */
+/* ===================================================================== */
+
+enum { FIXED_RANDOM = 22, FIXED_TRIS = FIXED_RANDOM + 3, FIXED_VERTS = 3 * FIXED_RANDOM + 3 };
+
+/* 22 random triangles of size about 0.6, an exact duplicate of triangle 0
+** (equal t: the tie-break decides), a degenerate one, and a large one in
+** the plane z = 0. */
+void fuzz_fixed_mesh(brt_mesh *mesh)
+{
+    static float pos[3 * FIXED_VERTS];
+    static uint32_t idx[3 * FIXED_TRIS];
+    static const float big[9] = {-1, -1, 0, 3, -1, 0, -1, 3, 0};
+    uint64_t rng = 7;
+    float centre[3];
+    int i;
+    for (i = 0; i < 3 * 3 * FIXED_RANDOM; i++) {
+        if (i % 9 == 0) {   /* a new triangle: a new centre */
+            int a;
+            for (a = 0; a < 3; a++) centre[a] = 1.4f * brt_random_float(&rng) - 0.7f;
+        }
+        pos[i] = centre[i % 3] + 0.6f * brt_random_float(&rng) - 0.3f;
+    }
+    memcpy(pos + 3 * 3 * FIXED_RANDOM, big, sizeof big);
+    for (i = 0; i < 3 * FIXED_RANDOM; i++) idx[i] = (uint32_t)i;
+    idx[3 * FIXED_RANDOM] = 0; idx[3 * FIXED_RANDOM + 1] = 1; idx[3 * FIXED_RANDOM + 2] = 2;
+    idx[3 * FIXED_RANDOM + 3] = 3; idx[3 * FIXED_RANDOM + 4] = 3; idx[3 * FIXED_RANDOM + 5] = 4;
+    for (i = 0; i < 3; i++) idx[3 * FIXED_RANDOM + 6 + i] = 3 * FIXED_RANDOM + (uint32_t)i;
+    mesh->positions = pos;
+    mesh->indices = idx;
+    mesh->vertex_count = FIXED_VERTS;
+    mesh->triangle_count = FIXED_TRIS;
+}
+
+brt_result fuzz_fixed_scene_build(const char *path, brt_error *err)
+{
+    brt_scene_options opt;
+    brt_mesh mesh;
+    fuzz_fixed_mesh(&mesh);
+    memset(&opt, 0, sizeof opt);   /* fields added later mean defaults */
+    opt.batch_tris = 8;   /* 4 batching points */
+    opt.proxy_res = 4;
+    return brt_scene_build(&mesh, &opt, 0, path, err);
+}
+
+/* Built once per process: the mesh, its BVH and its open scene (whose
+** file is unlinked at once; the open descriptor keeps it readable). */
+static struct {
+    int state;   /* 0 not yet, 1 ready, -1 failed */
+    brt_mesh mesh;
+    brt_bvh *bvh;
+    brt_scene *scene;
+} fixed;
+
+static int fixed_ready(void)
+{
+    char path[512];
+    brt_error err;
+    if (fixed.state != 0) return fixed.state > 0;
+    fixed.state = -1;
+    fuzz_fixed_mesh(&fixed.mesh);
+    temp_path(path, sizeof path, ".fixed.brs");
+    if (brt_bvh_build(fixed.mesh.positions, fixed.mesh.indices, fixed.mesh.triangle_count,
+                      NULL, &fixed.bvh) != BRT_OK
+        || fuzz_fixed_scene_build(path, &err) != BRT_OK)
+        return 0;
+    if (brt_scene_open(path, &fixed.scene, &err) == BRT_OK) fixed.state = 1;
+    unlink(path);
+    return fixed.state > 0;
+}
+
+/* ===================================================================== */
+/* Ray files                                                             */
+/* ===================================================================== */
+
+enum { MAX_TRACED = 256 };   /* rays per input, to keep inputs fast */
+
+/* Each ray holds exactly the little-endian floats of its 32 bytes. */
+static int rays_equal_bytes(const brt_ray *rays, const uint8_t *data, size_t count)
+{
+    size_t i;
+    int k;
+    for (i = 0; i < count; i++) {
+        float f[8];
+        for (k = 0; k < 8; k++) {
+            const uint8_t *p = data + 32 * i + 4 * k;
+            uint32_t bits = (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16
+                            | (uint32_t)p[3] << 24;
+            memcpy(&f[k], &bits, 4);
+        }
+        if (memcmp(rays[i].org, f, 12) || memcmp(rays[i].dir, f + 3, 12)
+            || memcmp(&rays[i].tnear, f + 6, 4) || memcmp(&rays[i].tfar, f + 7, 4))
+            return 0;
+    }
+    return 1;
+}
+
+/* The rays through the fixed mesh: BVH == brute force, batched == direct. */
+static const char *rays_trace_exactly(const brt_ray *rays, size_t count)
+{
+    brt_hit direct[MAX_TRACED], batched[MAX_TRACED];
+    brt_trace_options opt;
+    brt_error err;
+    const char *problem;
+    size_t i;
+    if (count > MAX_TRACED) count = MAX_TRACED;
+    if (!fixed_ready()) return "cannot build the fixed mesh's BVH and scene";
+    problem = bvh_matches_oracle(&fixed.mesh, fixed.bvh, rays, count);
+    if (problem || count == 0) return problem;
+    for (i = 0; i < count; i++) {
+        brt_hit_clear(&direct[i]);
+        brt_bvh_intersect(fixed.bvh, &rays[i], &direct[i]);
+    }
+    memset(&opt, 0, sizeof opt);
+    opt.memory_limit = 1;   /* every load evicts the last one */
+    /* 1 to 5 rays in flight (the default of 2^20 slots would cost more
+    ** than the trace): the schedule changes, the hits may not. */
+    opt.rays_in_flight = 1 + (uint32_t)(count % 5);
+    if (brt_scene_trace(fixed.scene, &opt, rays, count, batched, NULL, &err) != BRT_OK)
+        return "the batched trace of the fixed scene failed";
+    if (memcmp(direct, batched, count * sizeof *direct) != 0)
+        return "a batched hit differs from the direct one";
+    return NULL;
+}
+
+static const char *run_rays(const uint8_t *data, size_t size)
+{
+    char path[512];
+    brt_ray *rays = NULL;
+    size_t count = 0;
+    brt_error err;
+    brt_result r;
+    const char *problem = NULL;
+    temp_path(path, sizeof path, ".rays");
+    if (!write_file(path, data, size)) return "cannot write a temporary file";
+    r = brt_rays_read(path, &rays, &count, &err);
+    unlink(path);
+    if (size % BRT_RAY_BYTES != 0) {
+        if (r != BRT_EPARSE) problem = "a ray file of a size not a multiple of 32 was not EPARSE";
+        else problem = check_message(&err, path);
+    } else if (r != BRT_OK) {
+        problem = "a ray file of a multiple of 32 bytes was refused";
+    } else if (count != size / BRT_RAY_BYTES || !rays_equal_bytes(rays, data, count)) {
+        problem = "the rays read differ from the file's bytes";
+    } else {
+        problem = rays_trace_exactly(rays, count);
+    }
+    if (r == BRT_OK) free(rays);
+    return problem;
+}
+
+/* ===================================================================== */
+/* Scene files                                                           */
+/* ===================================================================== */
+
+/* Must equal checksum64 of batchrt.c.  Should the two drift apart, the
+** fuzzer would only meet checksum errors; "hardening: scene fuzz seed"
+** in tests/test_hardening.c notices, since the seed must then trace. */
+static uint64_t checksum64(const uint8_t *p, size_t size)
+{
+    uint64_t h = 0x9E3779B97F4A7C15ull ^ (uint64_t)size, w;
+    for (; size >= 8; p += 8, size -= 8) {
+        memcpy(&w, p, 8);
+        h = (h ^ w) * 0xFF51AFD7ED558CCDull;
+        h ^= h >> 32;
+    }
+    w = 0;
+    memcpy(&w, p, size);
+    h = (h ^ w) * 0xC4CEB9FE1A85EC53ull;
+    return h ^ (h >> 29);
+}
+
+static uint64_t get64(const uint8_t *p) { uint64_t v; memcpy(&v, p, 8); return v; }
+static uint32_t get32(const uint8_t *p) { uint32_t v; memcpy(&v, p, 4); return v; }
+
+/* Recomputes the checksum stored at p[at] over file[offset, offset+size)
+** when that range lies inside the file; returns 1 when it did. */
+static int repair(uint8_t *file, size_t file_size, uint64_t offset, uint64_t size, uint8_t *at)
+{
+    uint64_t sum;
+    if (offset > file_size || size > file_size - offset) return 0;
+    sum = checksum64(file + offset, (size_t)size);
+    memcpy(at, &sum, 8);
+    return 1;
+}
+
+/* The layout of batchrt.c's scene file: a 256-byte header with three
+** sections {offset, size, checksum} at 56 (the first is the table of
+** 80-byte batch entries: blob offset, size, checksum at 24, 32, 40) and
+** the header checksum at 248.  Inner checksums first, the header last. */
+static void repair_scene_checksums(uint8_t *file, size_t size)
+{
+    uint64_t table, entries, i;
+    int s;
+    if (size < 256 || memcmp(file, "BRTSCENE", 8) != 0) return;
+    table = get64(file + 56);
+    entries = get32(file + 32);
+    for (i = 0; table <= size && i < entries && 80 * (i + 1) <= size - table; i++) {
+        uint8_t *entry = file + table + 80 * i;
+        repair(file, size, get64(entry + 24), get64(entry + 32), entry + 40);
+    }
+    for (s = 0; s < 3; s++)
+        repair(file, size, get64(file + 56 + 24 * s), get64(file + 64 + 24 * s),
+               file + 72 + 24 * s);
+    repair(file, size, 0, 248, file + 248);
+}
+
+/* A 4 x 4 grid of rays down the z axis over the fixed mesh, and four
+** diagonals, with a few finite segments. */
+static void scene_probe_rays(brt_ray rays[20])
+{
+    int i;
+    for (i = 0; i < 20; i++) {
+        brt_ray *r = &rays[i];
+        r->org[0] = i < 16 ? -0.75f + 0.5f * (float)(i % 4) : (i & 1 ? -2.0f : 2.0f);
+        r->org[1] = i < 16 ? -0.75f + 0.5f * (float)(i / 4) : (i & 2 ? -2.0f : 2.0f);
+        r->org[2] = 3.0f;
+        r->dir[0] = i < 16 ? 0.0f : -0.5f * r->org[0];
+        r->dir[1] = i < 16 ? 0.0f : -0.5f * r->org[1];
+        r->dir[2] = -1.0f;
+        r->tnear = i % 5 == 1 ? 2.5f : 0.0f;
+        r->tfar = i % 5 == 2 ? 3.0f : INFINITY;
+    }
+}
+
+/* Hits of a scene that opened: misses, or a triangle of the scene within
+** the ray's segment. */
+static const char *scene_hits_valid(const brt_scene *scene, const brt_ray *rays,
+                                    const brt_hit *hits, size_t count)
+{
+    size_t i;
+    for (i = 0; i < count; i++) {
+        const brt_hit *h = &hits[i];
+        if (h->prim == BRT_NO_PRIM) {
+            if (!(h->t == INFINITY) || h->u != 0 || h->v != 0)
+                return "a miss record is not t=inf, u=v=0";
+        } else if (h->prim >= brt_scene_triangle_count(scene)) {
+            return "a hit names a triangle beyond the scene's count";
+        } else if (!(rays[i].tnear <= h->t && h->t <= rays[i].tfar)) {
+            return "a hit lies outside the ray's segment";
+        }
+    }
+    return NULL;
+}
+
+static const char *run_scene(const uint8_t *data, size_t size)
+{
+    char path[512];
+    uint8_t *file = malloc(size ? size : 1);
+    brt_scene *scene = NULL;
+    brt_ray rays[20];
+    brt_hit hits[20];
+    brt_trace_options opt;
+    brt_error err;
+    brt_result r;
+    const char *problem = NULL;
+    if (!file) return NULL;
+    memcpy(file, data, size);
+    repair_scene_checksums(file, size);
+    temp_path(path, sizeof path, ".brs");
+    if (!write_file(path, file, size)) problem = "cannot write a temporary file";
+    free(file);
+    if (problem) return problem;
+    r = brt_scene_open(path, &scene, &err);
+    if (r == BRT_OK) {
+        scene_probe_rays(rays);
+        memset(&opt, 0, sizeof opt);
+        opt.memory_limit = 8192;
+        opt.rays_in_flight = 8;
+        r = brt_scene_trace(scene, &opt, rays, 20, hits, NULL, &err);
+        if (r == BRT_OK) problem = scene_hits_valid(scene, rays, hits, 20);
+        brt_scene_close(scene);
+    }
+    if (r != BRT_OK && r != BRT_EFORMAT && r != BRT_ENOMEM)
+        problem = "a damaged scene file gave a code other than EFORMAT or ENOMEM";
+    else if (r != BRT_OK)
+        problem = check_message(&err, path);
+    unlink(path);
+    return problem;
+}
+
+/* ===================================================================== */
+/* Drivers                                                               */
+/* ===================================================================== */
+
+const fuzz_target fuzz_targets[] = {
+    {"obj", run_obj}, {"ply", run_ply}, {"scene", run_scene}, {"rays", run_rays}, {NULL, NULL}};
+
+const fuzz_target *fuzz_find(const char *name)
+{
+    const fuzz_target *t;
+    for (t = fuzz_targets; t->name; t++)
+        if (strcmp(t->name, name) == 0) return t;
+    return NULL;
+}
+
+/* The whole file, malloc'd (at least 1 byte), or NULL. */
+static uint8_t *read_file(const char *path, size_t *size)
+{
+    FILE *f = fopen(path, "rb");
+    uint8_t *data = NULL;
+    struct stat st;
+    if (!f) return NULL;
+    if (fstat(fileno(f), &st) == 0 && (data = malloc((size_t)st.st_size + 1)) != NULL
+        && fread(data, 1, (size_t)st.st_size, f) != (size_t)st.st_size) {
+        free(data);
+        data = NULL;
+    }
+    *size = (size_t)st.st_size;
+    fclose(f);
+    return data;
+}
+
+static long replay_file(const fuzz_target *target, const char *path,
+                        void (*report)(const char *, const char *, void *), void *user)
+{
+    size_t size = 0;
+    uint8_t *data = read_file(path, &size);
+    const char *problem = data ? target->run(data, size) : "cannot read the input";
+    if (problem) report(path, problem, user);
+    free(data);
+    return 1;
+}
+
+long fuzz_replay(const fuzz_target *target, const char *dir,
+                 void (*report)(const char *file, const char *problem, void *user), void *user)
+{
+    DIR *d;
+    struct dirent *e;
+    struct stat st;
+    long count = 0;
+    if (stat(dir, &st) != 0) return -1;
+    if (S_ISREG(st.st_mode)) return replay_file(target, dir, report, user);
+    if ((d = opendir(dir)) == NULL) return -1;
+    while ((e = readdir(d)) != NULL) {
+        char path[4096];
+        if (e->d_name[0] == '.') continue;   /* ".", ".." and hidden files */
+        snprintf(path, sizeof path, "%s/%s", dir, e->d_name);
+        if (stat(path, &st) == 0 && S_ISREG(st.st_mode))
+            count += replay_file(target, path, report, user);
+    }
+    closedir(d);
+    return count;
+}
+
+int fuzz_entry(const char *name, const uint8_t *data, size_t size)
+{
+    const fuzz_target *target = fuzz_find(name);
+    const char *problem = target ? target->run(data, size) : "no such fuzz target";
+    if (problem) {
+        fprintf(stderr, "fuzz target %s: %s\n", name, problem);
+        abort();
+    }
+    return 0;
+}
