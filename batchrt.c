@@ -1218,52 +1218,6 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
     return brt_write_file_atomic(path, text, used, err);
 }
 
-/* -- to move into bvh.c: the one box test shared by everything -- */
-void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
-{
-    int a, finite = 1, nonzero = 0;
-    for (a = 0; a < 3; a++) {
-        prep->org[a] = ray->org[a];
-        prep->dir[a] = ray->dir[a];
-        prep->inv[a] = ray->dir[a] != 0.0f ? 1.0f / ray->dir[a] : 0.0f;
-        finite &= isfinite(ray->org[a]) && isfinite(ray->dir[a]);
-        nonzero |= ray->dir[a] != 0.0f;
-    }
-    prep->tnear = ray->tnear;
-    prep->tfar = ray->tfar;
-    prep->valid = finite && nonzero && !isnan(ray->tnear) && !isnan(ray->tfar) &&
-                  ray->tnear <= ray->tfar;
-}
-
-/* Widening by a bound on the rounding of (b - o) * inv (three roundings,
-** relative error below 3 * 2^-24) plus a tiny absolute term for
-** underflow.  Both are monotone, so widening keeps nested boxes nested. */
-static float widen_down(float t) { return t - (fabsf(t) * 0x1p-21f + 0x1p-120f); }
-static float widen_up(float t) { return t + (fabsf(t) * 0x1p-21f + 0x1p-120f); }
-
-int brt_box_span(const brt_ray_prep *r, const float lo[3], const float hi[3],
-                 float tmin, float tmax, float *entry, float *exit)
-{
-    float e = tmin, x = tmax;
-    int a;
-    for (a = 0; a < 3; a++) {
-        float t0, t1;
-        if (r->dir[a] == 0.0f) {
-            /* Parallel to the slab: inside (closed) or never. */
-            if (!(lo[a] <= r->org[a] && r->org[a] <= hi[a])) return 0;
-            continue;
-        }
-        t0 = (lo[a] - r->org[a]) * r->inv[a];
-        t1 = (hi[a] - r->org[a]) * r->inv[a];
-        if (r->inv[a] < 0.0f) { float t = t0; t0 = t1; t1 = t; }
-        if (t0 > e) e = t0;
-        if (t1 < x) x = t1;
-    }
-    *entry = widen_down(e);
-    *exit = widen_up(x);
-    return *entry <= *exit;   /* false for NaN (inf - inf) as well */
-}
-
 /* ===================================================================== */
 /* Out-of-core batched traversal                                         */
 /* ===================================================================== */
@@ -2629,7 +2583,7 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     memset(&s->queues[id], 0, sizeof s->queues[id]);
     for (i = 0; i < q.count; i++) {
         ray_slot *slot = &s->slots[q.slots[i]];
-        brt_bvh_intersect(bvh, &slot->ray, &slot->hit); /* PENDING: brt_bvh_intersect_normal */
+        brt_bvh_intersect_normal(bvh, &slot->ray, &slot->hit, slot->normal);
     }
     cache_release(&s->cache, id);
     for (i = 0; i < q.count && r == BRT_OK; i++) r = advance(s, q.slots[i]);

@@ -199,23 +199,29 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
                            float *t, float *u, float *v);
 
 /* The one ray/box test of batchrt, used by the triangle BVH, the
-** triangle clamp of brt_intersect_triangle and the top-level walk.
-** Per axis t = (b - org) * inv (a zero direction component: the origin
-** must lie in the closed slab); entry = max(tmin, near planes) and
-** exit = min(tmax, far planes), then widened outwards by a bound on their
-** rounding.  Every step is monotone in the box bounds, so a box inside
-** another is entered no earlier and left no later, bit for bit: this is
-** what makes pruning by "entry > closest t" exact. */
+** triangle clamp of brt_intersect_triangle and the top-level walk.  The
+** box is grown by 16 * FLT_EPSILON of its largest |coordinate| and the
+** origin moved by the same share of its own (towards the box for near
+** planes, away for far planes); then per axis t = (plane - origin) * inv,
+** entry = max(tmin, near planes), exit = min(tmax, far planes).  (A zero
+** direction component gives inf * 0 = NaN on a slab plane, which never
+** narrows the interval: a ray in the plane of a closed slab is inside.)
+** Every step rounds monotonically in the box bounds, so a box inside
+** another is entered no earlier and left no later, bit for bit: with the
+** triangle clamp this makes pruning by "entry > closest t" exact. */
 typedef struct brt_ray_prep {
-    float org[3], dir[3], inv[3];   /* inv[a] = 1/dir[a], 0 where dir[a] == 0 */
+    float inv[3];        /* 1/dir (+-inf for a zero component) */
+    float org_near[3];   /* origin for near planes, moved towards them */
+    float org_far[3];    /* origin for far planes, moved away from them */
+    int negative[3];     /* dir[a] has its sign bit set: near plane is hi */
     float tnear, tfar;
     int valid;     /* 0: NaN or inf in org/dir, zero dir, NaN t, tnear > tfar */
 } brt_ray_prep;
 
 void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep);
 
-/* 1 when the ray's segment [tmin, tmax] meets the closed box, with the
-** widened entry and exit distances. */
+/* 1 when the ray's segment [tmin, tmax] meets the closed box [lo, hi]
+** (grown as above), with the entry and exit distances. */
 int brt_box_span(const brt_ray_prep *prep, const float lo[3],
                  const float hi[3], float tmin, float tmax, float *entry,
                  float *exit);

@@ -113,15 +113,11 @@ struct brt_bvh {
 };
 
 /* ===================================================================== */
-/* Per-ray constants and the shared ray/triangle core                    */
+/* Conservative ray/box test of four slots at once                       */
 /* ===================================================================== */
 
-typedef struct tri_ray {
-    float org[3];
-    int kx, ky, kz;
-    float sx, sy, sz;
-} tri_ray;
-
+/* Rays with a NaN, an inf in org or dir, a zero dir, or tnear > tfar
+** never hit (tnear <= tfar is false for NaN too). */
 static int ray_is_valid(const brt_ray *ray)
 {
     int a;
@@ -131,6 +127,101 @@ static int ray_is_valid(const brt_ray *ray)
         return 0;
     return ray->tnear <= ray->tfar;   /* false for NaN too */
 }
+
+/* The per-ray constants of the box test: the public brt_ray_prep (1/dir
+** and the padded origins) plus, for the node layout, the row of box[]
+** that holds each axis's near and far plane. */
+typedef struct box_ray {
+    brt_ray_prep p;
+    int near_row[3];
+    int far_row[3];
+} box_ray;
+
+static float max_abs3(const float p[3])
+{
+    float m = fabsf(p[0]);
+    if (fabsf(p[1]) > m) m = fabsf(p[1]);
+    if (fabsf(p[2]) > m) m = fabsf(p[2]);
+    return m;
+}
+
+void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
+{
+    const float pad = PAD_REL * max_abs3(ray->org);
+    int a;
+    for (a = 0; a < 3; a++) {
+        const int neg = signbit(ray->dir[a]) != 0;
+        prep->inv[a] = 1.0f / ray->dir[a];
+        prep->negative[a] = neg;
+        prep->org_near[a] = neg ? ray->org[a] - pad : ray->org[a] + pad;
+        prep->org_far[a] = neg ? ray->org[a] + pad : ray->org[a] - pad;
+    }
+    prep->tnear = ray->tnear;
+    prep->tfar = ray->tfar;
+    prep->valid = ray_is_valid(ray);
+}
+
+static void box_ray_setup(const brt_ray *ray, box_ray *b)
+{
+    int a;
+    brt_ray_prepare(ray, &b->p);
+    for (a = 0; a < 3; a++) {
+        b->near_row[a] = b->p.negative[a] ? a + 3 : a;
+        b->far_row[a] = b->p.negative[a] ? a : a + 3;
+    }
+}
+
+/* The slab test of one box that is already padded: entry and exit of the
+** segment [tl, th] (NaN from a zero direction on a slab plane never
+** narrows it).  box_test4 below is the same arithmetic on four boxes. */
+static inline int slab_span(const brt_ray_prep *r, const float lo[3], const float hi[3],
+                            float tl, float th, float *entry, float *exit)
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        const float t0 = ((r->negative[a] ? hi[a] : lo[a]) - r->org_near[a]) * r->inv[a];
+        const float t1 = ((r->negative[a] ? lo[a] : hi[a]) - r->org_far[a]) * r->inv[a];
+        tl = t0 > tl ? t0 : tl;
+        th = t1 < th ? t1 : th;
+    }
+    *entry = tl;
+    *exit = th;
+    return tl <= th;
+}
+
+/* Grows a box by PAD_REL of its largest |coordinate| (see the header). */
+static void pad_box(const float lo[3], const float hi[3], float plo[3], float phi[3])
+{
+    float m = 0.0f, pad;
+    int a;
+    for (a = 0; a < 3; a++) {
+        if (fabsf(lo[a]) > m) m = fabsf(lo[a]);
+        if (fabsf(hi[a]) > m) m = fabsf(hi[a]);
+    }
+    pad = PAD_REL * m;
+    for (a = 0; a < 3; a++) {
+        plo[a] = lo[a] - pad;
+        phi[a] = hi[a] + pad;
+    }
+}
+
+int brt_box_span(const brt_ray_prep *prep, const float lo[3], const float hi[3],
+                 float tmin, float tmax, float *entry, float *exit)
+{
+    float plo[3], phi[3];
+    pad_box(lo, hi, plo, phi);
+    return slab_span(prep, plo, phi, tmin, tmax, entry, exit);
+}
+
+/* ===================================================================== */
+/* Per-ray constants and the shared ray/triangle core                    */
+/* ===================================================================== */
+
+typedef struct tri_ray {
+    float org[3], dir[3];
+    int kx, ky, kz;
+    float sx, sy, sz;
+} tri_ray;
 
 /* Section 3 of Woop et al.: the axis permutation and shear constants. */
 static void tri_ray_setup(const brt_ray *ray, tri_ray *r)
@@ -147,11 +238,52 @@ static void tri_ray_setup(const brt_ray *ray, tri_ray *r)
     r->sy = d[r->ky] / d[kz];
     r->sz = 1.0f / d[kz];
     memcpy(r->org, ray->org, sizeof r->org);
+    memcpy(r->dir, ray->dir, sizeof r->dir);
+}
+
+/* The hit distance, once the ray is known to pass through the triangle:
+** from the plane equation in double, since Woop's T/det loses accuracy for
+** rays that graze the triangle (its weights are then tiny differences),
+** then clamped into the interval in which the ray is inside the
+** triangle's padded bounding box under the one box test (slab_span).  So
+** every box that contains the triangle is entered no later than t and left
+** no earlier: pruning by the closest t so far is exact, in the BVH and in
+** the top-level walk over batching points.  The true distance lies in that
+** interval, so the clamp only removes rounding.  Returns 0 for a
+** degenerate triangle (cross product exactly 0 in double: it never hits)
+** or an empty interval (the ray misses the box, so the "hit" was
+** rounding). */
+static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p0,
+                        const float *p1, const float *p2, float woop_t, float *t)
+{
+    double e1[3], e2[3], w[3], n[3], td;
+    float lo[3], hi[3], plo[3], phi[3], entry, exit, tt;
+    int a;
+    for (a = 0; a < 3; a++) {
+        e1[a] = (double)p1[a] - p0[a];
+        e2[a] = (double)p2[a] - p0[a];
+        w[a] = (double)p0[a] - r->org[a];
+        lo[a] = p0[a] < p1[a] ? p0[a] : p1[a];
+        lo[a] = p2[a] < lo[a] ? p2[a] : lo[a];
+        hi[a] = p0[a] > p1[a] ? p0[a] : p1[a];
+        hi[a] = p2[a] > hi[a] ? p2[a] : hi[a];
+    }
+    n[0] = e1[1] * e2[2] - e1[2] * e2[1];
+    n[1] = e1[2] * e2[0] - e1[0] * e2[2];
+    n[2] = e1[0] * e2[1] - e1[1] * e2[0];
+    if (n[0] == 0.0 && n[1] == 0.0 && n[2] == 0.0) return 0;
+    td = (n[0] * w[0] + n[1] * w[1] + n[2] * w[2]) /
+         (n[0] * r->dir[0] + n[1] * r->dir[1] + n[2] * r->dir[2]);
+    tt = isfinite(td) ? (float)td : woop_t;
+    pad_box(lo, hi, plo, phi);
+    if (!slab_span(bp, plo, phi, -INFINITY, INFINITY, &entry, &exit)) return 0;
+    *t = tt < entry ? entry : (tt > exit ? exit : tt);
+    return 1;
 }
 
 /* The watertight test proper (Woop et al., Fig. 4 with culling off). */
-static inline int tri_intersect(const tri_ray *r, const float *p0,
-                                const float *p1, const float *p2,
+static inline int tri_intersect(const tri_ray *r, const brt_ray_prep *bp,
+                                const float *p0, const float *p1, const float *p2,
                                 float tnear, float tfar,
                                 float *t, float *u, float *v)
 {
@@ -183,7 +315,7 @@ static inline int tri_intersect(const tri_ray *r, const float *p0,
     if (det == 0.0f) return 0;
     tt = eu * (r->sz * az) + ev * (r->sz * bz) + ew * (r->sz * cz);
     rcp = 1.0f / det;
-    tt = tt * rcp;
+    if (!hit_distance(r, bp, p0, p1, p2, tt * rcp, &tt)) return 0;
     if (!(tt >= tnear && tt <= tfar)) return 0;   /* NaN fails too */
     *t = tt;
     *u = ev * rcp;
@@ -196,44 +328,14 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
                            float *t, float *u, float *v)
 {
     tri_ray r;
+    brt_ray_prep bp;
     if (!ray_is_valid(ray)) return 0;
     tri_ray_setup(ray, &r);
-    return tri_intersect(&r, v0, v1, v2, ray->tnear, ray->tfar, t, u, v);
+    brt_ray_prepare(ray, &bp);
+    return tri_intersect(&r, &bp, v0, v1, v2, ray->tnear, ray->tfar, t, u, v);
 }
 
-/* ===================================================================== */
-/* Conservative ray/box test of four slots at once                       */
-/* ===================================================================== */
-
-typedef struct box_ray {
-    float inv[3];         /* 1/dir, +-inf for a zero component */
-    float org_near[3];    /* origin for the near planes, moved forward */
-    float org_far[3];     /* origin for the far planes, moved backward */
-    int near_row[3];      /* row of box[] holding the near plane per axis */
-    int far_row[3];
-} box_ray;
-
-static float max_abs3(const float p[3])
-{
-    float m = fabsf(p[0]);
-    if (fabsf(p[1]) > m) m = fabsf(p[1]);
-    if (fabsf(p[2]) > m) m = fabsf(p[2]);
-    return m;
-}
-
-static void box_ray_setup(const brt_ray *ray, box_ray *b)
-{
-    const float pad = PAD_REL * max_abs3(ray->org);
-    int a;
-    for (a = 0; a < 3; a++) {
-        const int neg = signbit(ray->dir[a]) != 0;
-        b->inv[a] = 1.0f / ray->dir[a];
-        b->near_row[a] = neg ? a + 3 : a;
-        b->far_row[a] = neg ? a : a + 3;
-        b->org_near[a] = neg ? ray->org[a] - pad : ray->org[a] + pad;
-        b->org_far[a] = neg ? ray->org[a] + pad : ray->org[a] - pad;
-    }
-}
+/* ---- four slots at once ---- */
 
 /* Entry distance of each slot in lo[]; returns a mask of slots whose
 ** interval meets [tnear, tfar] (inclusive).  NaN never narrows. */
@@ -248,12 +350,12 @@ static inline unsigned box_test4(const box_ray *b, const wnode *n,
     int i;
     for (i = 0; i < 4; i++) {
         float tl = tnear, th = tfar;
-        const float x0 = (nx[i] - b->org_near[0]) * b->inv[0];
-        const float y0 = (ny[i] - b->org_near[1]) * b->inv[1];
-        const float z0 = (nz[i] - b->org_near[2]) * b->inv[2];
-        const float x1 = (fx[i] - b->org_far[0]) * b->inv[0];
-        const float y1 = (fy[i] - b->org_far[1]) * b->inv[1];
-        const float z1 = (fz[i] - b->org_far[2]) * b->inv[2];
+        const float x0 = (nx[i] - b->p.org_near[0]) * b->p.inv[0];
+        const float y0 = (ny[i] - b->p.org_near[1]) * b->p.inv[1];
+        const float z0 = (nz[i] - b->p.org_near[2]) * b->p.inv[2];
+        const float x1 = (fx[i] - b->p.org_far[0]) * b->p.inv[0];
+        const float y1 = (fy[i] - b->p.org_far[1]) * b->p.inv[1];
+        const float z1 = (fz[i] - b->p.org_far[2]) * b->p.inv[2];
         tl = x0 > tl ? x0 : tl;
         tl = y0 > tl ? y0 : tl;
         tl = z0 > tl ? z0 : tl;
@@ -361,7 +463,7 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
         for (k = cur.child; k < cur.child + cur.count; k++) {
             const float *p = bvh->tris + 9 * (size_t)k;
             float t, u, v;
-            if (!tri_intersect(&tr, p, p + 3, p + 6, ray->tnear, tfar, &t, &u, &v))
+            if (!tri_intersect(&tr, &br.p, p, p + 3, p + 6, ray->tnear, tfar, &t, &u, &v))
                 continue;
             if (any) return 1;
             if (brt_hit_is_closer(t, bvh->prim[k], hit)) {
@@ -632,18 +734,11 @@ static uint32_t build_node(builder *b, uint32_t begin, uint32_t end,
 /* Collapse into the 4-wide layout                                       */
 /* ===================================================================== */
 
-/* Grows a box by PAD_REL of its largest |coordinate| (see the header). */
+/* The stored boxes are padded with pad_box, like every box tested. */
 static aabb aabb_padded(const aabb *box)
 {
     aabb p = *box;
-    float m = 0.0f, pad;
-    int a;
-    for (a = 0; a < 3; a++) {
-        if (fabsf(box->lo[a]) > m) m = fabsf(box->lo[a]);
-        if (fabsf(box->hi[a]) > m) m = fabsf(box->hi[a]);
-    }
-    pad = PAD_REL * m;
-    for (a = 0; a < 3; a++) { p.lo[a] -= pad; p.hi[a] += pad; }
+    pad_box(box->lo, box->hi, p.lo, p.hi);
     return p;
 }
 
