@@ -13,158 +13,24 @@
 */
 #include "test.h"
 #include "batchrt.h"
+#include "util.h"
 
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
 
 /* ===================================================================== */
-/* Scenes                                                                */
-/* ===================================================================== */
-
-typedef struct scene {
-    float *pos;
-    uint32_t *idx;
-    uint32_t vcount, tcount, vcap, tcap;
-} scene;
-
-static uint32_t add_vertex(scene *s, float x, float y, float z)
-{
-    if (s->vcount == s->vcap) {
-        s->vcap = s->vcap ? 2 * s->vcap : 64;
-        s->pos = realloc(s->pos, 3 * (size_t)s->vcap * sizeof *s->pos);
-    }
-    s->pos[3 * s->vcount] = x;
-    s->pos[3 * s->vcount + 1] = y;
-    s->pos[3 * s->vcount + 2] = z;
-    return s->vcount++;
-}
-
-static void add_triangle(scene *s, uint32_t a, uint32_t b, uint32_t c)
-{
-    if (s->tcount == s->tcap) {
-        s->tcap = s->tcap ? 2 * s->tcap : 64;
-        s->idx = realloc(s->idx, 3 * (size_t)s->tcap * sizeof *s->idx);
-    }
-    s->idx[3 * s->tcount] = a;
-    s->idx[3 * s->tcount + 1] = b;
-    s->idx[3 * s->tcount + 2] = c;
-    s->tcount++;
-}
-
-static void scene_free(scene *s)
-{
-    free(s->pos);
-    free(s->idx);
-    memset(s, 0, sizeof *s);
-}
-
-static float rnd(uint64_t *st, float lo, float hi)
-{
-    return lo + (hi - lo) * brt_random_float(st);
-}
-
-/* n random triangles of size about `size` in the cube [0,1]^3. */
-static void random_soup(scene *s, uint64_t *st, uint32_t n, float size)
-{
-    uint32_t i;
-    int j;
-    for (i = 0; i < n; i++) {
-        const float cx = rnd(st, 0, 1), cy = rnd(st, 0, 1), cz = rnd(st, 0, 1);
-        uint32_t v[3];
-        for (j = 0; j < 3; j++)
-            v[j] = add_vertex(s, cx + rnd(st, -size, size), cy + rnd(st, -size, size),
-                              cz + rnd(st, -size, size));
-        add_triangle(s, v[0], v[1], v[2]);
-    }
-}
-
-/* Affine map of every vertex: p * scale + offset. */
-static void scene_transform(scene *s, float scale, float offset)
-{
-    uint32_t i;
-    for (i = 0; i < 3 * s->vcount; i++) s->pos[i] = s->pos[i] * scale + offset;
-}
-
-static void scene_bounds(const scene *s, float lo[3], float hi[3])
-{
-    uint32_t i;
-    int a;
-    for (a = 0; a < 3; a++) { lo[a] = INFINITY; hi[a] = -INFINITY; }
-    for (i = 0; i < s->vcount; i++)
-        for (a = 0; a < 3; a++) {
-            if (s->pos[3 * i + a] < lo[a]) lo[a] = s->pos[3 * i + a];
-            if (s->pos[3 * i + a] > hi[a]) hi[a] = s->pos[3 * i + a];
-        }
-}
-
-static const float *vertex(const scene *s, uint32_t tri, int j)
-{
-    return s->pos + 3 * (size_t)s->idx[3 * (size_t)tri + j];
-}
-
-/* ===================================================================== */
-/* Rays                                                                  */
-/* ===================================================================== */
-
-enum ray_kind { RAY_CAMERA, RAY_RANDOM, RAY_BOUNCE, RAY_AXIS, RAY_KINDS };
-static const char *const kind_name[RAY_KINDS] = {"camera", "random", "bounce", "axis"};
-
-static void random_unit(uint64_t *st, float d[3])
-{
-    float len;
-    do {
-        d[0] = rnd(st, -1, 1); d[1] = rnd(st, -1, 1); d[2] = rnd(st, -1, 1);
-        len = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-    } while (len > 1.0f || len < 1e-4f);
-}
-
-static void make_ray(const scene *s, const float lo[3], const float hi[3],
-                     int kind, uint64_t *st, brt_ray *r)
-{
-    float c[3], ext = 0;
-    int a;
-    for (a = 0; a < 3; a++) {
-        c[a] = 0.5f * (lo[a] + hi[a]);
-        if (hi[a] - lo[a] > ext) ext = hi[a] - lo[a];
-    }
-    r->tnear = 0.0f;
-    r->tfar = INFINITY;
-    random_unit(st, r->dir);
-    if (kind == RAY_CAMERA) {
-        /* from a point outside the box towards a point inside it */
-        for (a = 0; a < 3; a++) r->org[a] = c[a] + 1.5f * ext * r->dir[a];
-        for (a = 0; a < 3; a++) r->dir[a] = rnd(st, lo[a], hi[a]) - r->org[a];
-    } else if (kind == RAY_RANDOM) {
-        for (a = 0; a < 3; a++) r->org[a] = rnd(st, lo[a], hi[a]);
-    } else if (kind == RAY_BOUNCE && s->tcount > 0) {
-        const uint32_t t = (uint32_t)(brt_random_u64(st) % s->tcount);
-        float u = brt_random_float(st), v = brt_random_float(st);
-        if (u + v > 1.0f) { u = 1.0f - u; v = 1.0f - v; }
-        for (a = 0; a < 3; a++)
-            r->org[a] = (1 - u - v) * vertex(s, t, 0)[a] + u * vertex(s, t, 1)[a] + v * vertex(s, t, 2)[a];
-    } else {
-        const int axis = (int)(brt_random_u64(st) % 3);
-        for (a = 0; a < 3; a++) { r->org[a] = rnd(st, lo[a], hi[a]); r->dir[a] = 0.0f; }
-        r->dir[axis] = brt_random_float(st) < 0.5f ? -1.0f : 1.0f;
-        r->org[axis] = r->dir[axis] > 0 ? lo[axis] - ext : hi[axis] + ext;
-    }
-    /* some rays get a finite segment, ending inside the scene */
-    if (brt_random_float(st) < 0.25f) r->tfar = rnd(st, 0.0f, 2.0f * ext);
-}
-
-/* ===================================================================== */
 /* The oracle and the comparison                                         */
 /* ===================================================================== */
 
-static void brute_force(const scene *s, const uint32_t *prim_ids,
+static void brute_force(const tu_scene *s, const uint32_t *prim_ids,
                         const brt_ray *ray, brt_hit *hit)
 {
     uint32_t i;
     for (i = 0; i < s->tcount; i++) {
         float t, u, v;
         const uint32_t prim = prim_ids ? prim_ids[i] : i;
-        if (!brt_intersect_triangle(ray, vertex(s, i, 0), vertex(s, i, 1), vertex(s, i, 2), &t, &u, &v))
+        if (!brt_intersect_triangle(ray, tu_vertex(s, i, 0), tu_vertex(s, i, 1), tu_vertex(s, i, 2), &t, &u, &v))
             continue;
         if (brt_hit_is_closer(t, prim, hit)) {
             hit->t = t; hit->prim = prim; hit->u = u; hit->v = v;
@@ -174,7 +40,7 @@ static void brute_force(const scene *s, const uint32_t *prim_ids,
 
 /* brt_bvh_intersect_normal: the same hit, and the header's normal
 ** (v1-v0) x (v2-v0) of that triangle; untouched on a miss. */
-static int compare_normal(const scene *s, const uint32_t *prim_ids, const brt_bvh *bvh,
+static int compare_normal(const tu_scene *s, const uint32_t *prim_ids, const brt_bvh *bvh,
                           const brt_ray *ray, const brt_hit *want)
 {
     float got[3] = {7, 7, 7}, expect[3] = {7, 7, 7};
@@ -186,9 +52,9 @@ static int compare_normal(const scene *s, const uint32_t *prim_ids, const brt_bv
     if (want->prim != BRT_NO_PRIM) {
         const float *v0, *v1, *v2;
         if (prim_ids) return 1;   /* the triangle's index is not at hand */
-        v0 = vertex(s, want->prim, 0);
-        v1 = vertex(s, want->prim, 1);
-        v2 = vertex(s, want->prim, 2);
+        v0 = tu_vertex(s, want->prim, 0);
+        v1 = tu_vertex(s, want->prim, 1);
+        v2 = tu_vertex(s, want->prim, 2);
         for (a = 0; a < 3; a++) {
             const int b = (a + 1) % 3, c = (a + 2) % 3;
             expect[a] = (v1[b] - v0[b]) * (v2[c] - v0[c]) - (v1[c] - v0[c]) * (v2[b] - v0[b]);
@@ -200,7 +66,7 @@ static int compare_normal(const scene *s, const uint32_t *prim_ids, const brt_bv
 /* One ray against the oracle: from a miss, with the normal, from a
 ** carried-in hit that is the answer itself with a higher prim (so ties
 ** must go to the lower), and any-hit.  Returns 0 (after recording a failure) on a mismatch. */
-static int compare_ray(const scene *s, const uint32_t *prim_ids,
+static int compare_ray(const tu_scene *s, const uint32_t *prim_ids,
                        const brt_bvh *bvh, const brt_ray *ray, const char *what,
                        size_t n)
 {
@@ -240,7 +106,7 @@ static int compare_ray(const scene *s, const uint32_t *prim_ids,
     return 1;
 }
 
-static brt_bvh *build_checked(const scene *s, const uint32_t *prim_ids)
+static brt_bvh *build_checked(const tu_scene *s, const uint32_t *prim_ids)
 {
     brt_bvh *bvh = NULL;
     brt_error err;
@@ -267,7 +133,7 @@ static brt_bvh *build_checked(const scene *s, const uint32_t *prim_ids)
 
 /* Builds and compares rays_per_kind rays of every kind; stops at the
 ** first mismatch. */
-static void compare_scene(const scene *s, const uint32_t *prim_ids,
+static void compare_scene(const tu_scene *s, const uint32_t *prim_ids,
                           size_t rays_per_kind, uint64_t seed, const char *what)
 {
     brt_bvh *bvh = build_checked(s, prim_ids);
@@ -277,12 +143,12 @@ static void compare_scene(const scene *s, const uint32_t *prim_ids,
     int kind;
     size_t n;
     if (!bvh) return;
-    scene_bounds(s, lo, hi);
-    for (kind = 0; kind < RAY_KINDS; kind++) {
-        snprintf(label, sizeof label, "%s, %s", what, kind_name[kind]);
+    tu_scene_bounds(s, lo, hi);
+    for (kind = 0; kind < TU_RAY_KINDS; kind++) {
+        snprintf(label, sizeof label, "%s, %s", what, tu_kind_name[kind]);
         for (n = 0; n < rays_per_kind; n++) {
             brt_ray ray;
-            make_ray(s, lo, hi, kind, &st, &ray);
+            tu_make_ray(s, lo, hi, kind, &st, &ray);
             if (!compare_ray(s, prim_ids, bvh, &ray, label, n)) goto done;
         }
     }
@@ -300,10 +166,10 @@ static void test_random_soups(void)
     static const uint32_t sizes[] = {1, 2, 5, 9, 33, 200, 3000};
     size_t i;
     for (i = 0; i < sizeof sizes / sizeof *sizes && !test_failed(); i++) {
-        scene s = {0};
-        random_soup(&s, &st, sizes[i], 0.05f + 0.2f * brt_random_float(&st));
+        tu_scene s = {0};
+        tu_random_soup(&s, &st, sizes[i], 0.05f + 0.2f * brt_random_float(&st));
         compare_scene(&s, NULL, 300, brt_random_u64(&st), "soup");
-        scene_free(&s);
+        tu_scene_free(&s);
     }
 }
 
@@ -311,33 +177,33 @@ static void test_random_soups(void)
 static void test_prim_ids(void)
 {
     uint64_t st = test_seed() ^ 7;
-    scene s = {0};
+    tu_scene s = {0};
     uint32_t *ids, i;
-    random_soup(&s, &st, 500, 0.1f);
+    tu_random_soup(&s, &st, 500, 0.1f);
     ids = malloc(s.tcount * sizeof *ids);
     for (i = 0; i < s.tcount; i++) ids[i] = 1000000u + 3u * (s.tcount - i);
     compare_scene(&s, ids, 300, st, "prim ids");
     free(ids);
-    scene_free(&s);
+    tu_scene_free(&s);
 }
 
 static void test_coplanar(void)
 {
     uint64_t st = test_seed() ^ 11;
-    scene s = {0};
+    tu_scene s = {0};
     uint32_t i;
     for (i = 0; i < 2000; i++) {
-        const float x = rnd(&st, 0, 1), y = rnd(&st, 0, 1);
-        add_triangle(&s, add_vertex(&s, x, y, 0.5f), add_vertex(&s, x + rnd(&st, 0, 0.1f), y, 0.5f),
-                     add_vertex(&s, x, y + rnd(&st, 0, 0.1f), 0.5f));
+        const float x = tu_rnd(&st, 0, 1), y = tu_rnd(&st, 0, 1);
+        tu_add_triangle(&s, tu_add_vertex(&s, x, y, 0.5f), tu_add_vertex(&s, x + tu_rnd(&st, 0, 0.1f), y, 0.5f),
+                     tu_add_vertex(&s, x, y + tu_rnd(&st, 0, 0.1f), 0.5f));
     }
     compare_scene(&s, NULL, 400, st, "coplanar");
-    scene_free(&s);
+    tu_scene_free(&s);
 }
 
 /* Unit squares on integer coordinates in the three axis planes: axis rays
 ** through grid lines and vertices hit shared edges exactly. */
-static void axis_grid(scene *s, int n)
+static void axis_grid(tu_scene *s, int n)
 {
     int i, j, a;
     for (a = 0; a < 3; a++)
@@ -350,24 +216,24 @@ static void axis_grid(scene *s, int n)
                     p[k][a] = (float)(n / 2);
                     p[k][(a + 1) % 3] = (float)(i + (k == 1 || k == 2));
                     p[k][(a + 2) % 3] = (float)(j + (k >= 2));
-                    v[k] = add_vertex(s, p[k][0], p[k][1], p[k][2]);
+                    v[k] = tu_add_vertex(s, p[k][0], p[k][1], p[k][2]);
                 }
-                add_triangle(s, v[0], v[1], v[2]);
-                add_triangle(s, v[0], v[2], v[3]);
+                tu_add_triangle(s, v[0], v[1], v[2]);
+                tu_add_triangle(s, v[0], v[2], v[3]);
             }
 }
 
 static void test_axis_grid(void)
 {
     uint64_t st = test_seed() ^ 13;
-    scene s = {0};
+    tu_scene s = {0};
     brt_bvh *bvh;
     int x, y, a;
     size_t n = 0;
     axis_grid(&s, 12);
     compare_scene(&s, NULL, 300, st, "grid");
     bvh = build_checked(&s, NULL);
-    if (!bvh) { scene_free(&s); return; }
+    if (!bvh) { tu_scene_free(&s); return; }
     /* axis rays through every lattice point and half-lattice point */
     for (a = 0; a < 3 && !test_failed(); a++)
         for (x = 0; x <= 24; x++)
@@ -381,20 +247,20 @@ static void test_axis_grid(void)
             }
 done:
     brt_bvh_free(bvh);
-    scene_free(&s);
+    tu_scene_free(&s);
 }
 
 static void test_duplicates(void)
 {
     uint64_t st = test_seed() ^ 17;
-    scene s = {0};
+    tu_scene s = {0};
     uint32_t i, n;
-    random_soup(&s, &st, 300, 0.1f);
+    tu_random_soup(&s, &st, 300, 0.1f);
     n = s.tcount;
     for (i = 0; i < 2 * n; i++)   /* the same triangles twice more */
-        add_triangle(&s, s.idx[3 * (i % n)], s.idx[3 * (i % n) + 1], s.idx[3 * (i % n) + 2]);
+        tu_add_triangle(&s, s.idx[3 * (i % n)], s.idx[3 * (i % n) + 1], s.idx[3 * (i % n) + 2]);
     compare_scene(&s, NULL, 300, st, "duplicates");
-    scene_free(&s);
+    tu_scene_free(&s);
 }
 
 /* Slivers (third vertex within 1e-4..1e-7 of the opposite edge) and
@@ -402,20 +268,92 @@ static void test_duplicates(void)
 static void test_slivers_and_zero_area(void)
 {
     uint64_t st = test_seed() ^ 19;
-    scene s = {0};
+    tu_scene s = {0};
     uint32_t i;
     for (i = 0; i < 3000; i++) {
         float a[3], b[3], m[3];
         const float eps = (i % 3 == 2) ? 0.0f : (i % 3 ? 1e-4f : 1e-7f);
         int k;
-        for (k = 0; k < 3; k++) { a[k] = rnd(&st, 0, 1); b[k] = a[k] + rnd(&st, -0.2f, 0.2f); }
-        for (k = 0; k < 3; k++) m[k] = 0.5f * (a[k] + b[k]) + rnd(&st, -eps, eps);
+        for (k = 0; k < 3; k++) { a[k] = tu_rnd(&st, 0, 1); b[k] = a[k] + tu_rnd(&st, -0.2f, 0.2f); }
+        for (k = 0; k < 3; k++) m[k] = 0.5f * (a[k] + b[k]) + tu_rnd(&st, -eps, eps);
         if (i % 7 == 0) memcpy(m, a, sizeof m);
-        add_triangle(&s, add_vertex(&s, a[0], a[1], a[2]), add_vertex(&s, b[0], b[1], b[2]),
-                     add_vertex(&s, m[0], m[1], m[2]));
+        tu_add_triangle(&s, tu_add_vertex(&s, a[0], a[1], a[2]), tu_add_vertex(&s, b[0], b[1], b[2]),
+                     tu_add_vertex(&s, m[0], m[1], m[2]));
     }
     compare_scene(&s, NULL, 400, st, "slivers");
-    scene_free(&s);
+    tu_scene_free(&s);
+}
+
+/* Rays that graze triangles (nearly in their plane), where Woop's T/det
+** is least accurate: the BVH still equals brute force, every hit lies in
+** the box span of its own triangle (so every enclosing box is entered no
+** later -- what makes pruning exact), and its t is close to the exact
+** distance to the plane computed in long double. */
+static void test_grazing(void)
+{
+    uint64_t st = test_seed() ^ 23;
+    tu_scene s = {0};
+    brt_bvh *bvh;
+    uint32_t i, hits = 0;
+    tu_random_soup(&s, &st, 2000, 0.1f);
+    bvh = build_checked(&s, NULL);
+    CHECK(bvh, "build failed");
+    for (i = 0; i < 20000 && !test_failed(); i++) {
+        const uint32_t tri = (uint32_t)(brt_random_u64(&st) % s.tcount);
+        const float *v0 = tu_vertex(&s, tri, 0), *v1 = tu_vertex(&s, tri, 1), *v2 = tu_vertex(&s, tri, 2);
+        const float tilt = powf(10.0f, -tu_rnd(&st, 1.0f, 7.0f));
+        float e1[3], e2[3], n[3], lo[3], hi[3], u = tu_rnd(&st, 0, 1), v = tu_rnd(&st, 0, 1 - u), len = 0;
+        long double ld_num = 0, ld_den = 0;
+        brt_ray ray;
+        brt_ray_prep prep;
+        brt_hit hit;
+        float entry, exit;
+        int a;
+        for (a = 0; a < 3; a++) { e1[a] = v1[a] - v0[a]; e2[a] = v2[a] - v0[a]; }
+        n[0] = e1[1] * e2[2] - e1[2] * e2[1];
+        n[1] = e1[2] * e2[0] - e1[0] * e2[2];
+        n[2] = e1[0] * e2[1] - e1[1] * e2[0];
+        for (a = 0; a < 3; a++) len += n[a] * n[a];
+        if (!(len > 0)) continue;
+        len = sqrtf(len);
+        /* Along edge 1, tilted out of the plane by `tilt`, from outside. */
+        for (a = 0; a < 3; a++) {
+            ray.dir[a] = e1[a] + tilt * n[a] / len;
+            ray.org[a] = v0[a] + u * e1[a] + v * e2[a] - 2.0f * ray.dir[a];
+        }
+        ray.tnear = 0.0f;
+        ray.tfar = INFINITY;
+        if (!compare_ray(&s, NULL, bvh, &ray, "grazing", i)) break;
+        brt_hit_clear(&hit);
+        if (!brt_intersect_triangle(&ray, v0, v1, v2, &hit.t, &hit.u, &hit.v)) continue;
+        hits++;
+        for (a = 0; a < 3; a++) {
+            /* The exact normal: products of float differences are exact
+            ** in long double's 64-bit mantissa (x87) or at least close. */
+            const int b = (a + 1) % 3, c = (a + 2) % 3;
+            const long double nl = ((long double)v1[b] - v0[b]) * ((long double)v2[c] - v0[c]) -
+                                   ((long double)v1[c] - v0[c]) * ((long double)v2[b] - v0[b]);
+            lo[a] = fminf(v0[a], fminf(v1[a], v2[a]));
+            hi[a] = fmaxf(v0[a], fmaxf(v1[a], v2[a]));
+            ld_num += nl * ((long double)v0[a] - ray.org[a]);
+            ld_den += nl * ray.dir[a];
+        }
+        brt_ray_prepare(&ray, &prep);
+        EXPECT(brt_box_span(&prep, lo, hi, ray.tnear, ray.tfar, &entry, &exit) && entry <= hit.t &&
+               hit.t <= exit, "grazing ray %u: t %a outside its triangle's box span [%a, %a]",
+               i, hit.t, entry, exit);
+        /* Where the exact plane point lies in the triangle's box span (else
+        ** the float ray misses the exact triangle and the "hit" is
+        ** rounding, clamped to the box): a few float ulps of the distance,
+        ** whatever the tilt. */
+        EXPECT(ld_num / ld_den < entry || ld_num / ld_den > exit ||
+               fabsl(hit.t - ld_num / ld_den) <= 1e-6L * fabsl(ld_num / ld_den),
+               "grazing ray %u (tilt %g): t %.9g, plane distance %.9Lg", i, tilt, hit.t,
+               ld_num / ld_den);
+    }
+    EXPECT(hits > 1000, "only %u grazing rays hit their triangle", hits);
+    brt_bvh_free(bvh);
+    tu_scene_free(&s);
 }
 
 static void test_scales(void)
@@ -425,14 +363,14 @@ static void test_scales(void)
     uint64_t st = test_seed() ^ 23;
     int i;
     for (i = 0; i < 4 && !test_failed(); i++) {
-        scene s = {0};
+        tu_scene s = {0};
         char what[64];
-        random_soup(&s, &st, 1500, 0.05f);
+        tu_random_soup(&s, &st, 1500, 0.05f);
         axis_grid(&s, 4);
-        scene_transform(&s, scale[i], offset[i]);
+        tu_scene_transform(&s, scale[i], offset[i]);
         snprintf(what, sizeof what, "scale %g offset %g", scale[i], offset[i]);
         compare_scene(&s, NULL, 300, st, what);
-        scene_free(&s);
+        tu_scene_free(&s);
     }
 }
 
@@ -445,7 +383,7 @@ static void compare_shared_mesh(const char *name, size_t rays_per_kind)
     const char *path = test_shared_mesh(name);
     brt_mesh mesh;
     brt_error err;
-    scene s = {0};
+    tu_scene s = {0};
     if (!path) { test_skip("%s: ../shared not found", name); return; }
     if (brt_mesh_load(path, &mesh, &err) != BRT_OK) {
         test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
@@ -472,7 +410,7 @@ static void test_mesh_oahu(void) { compare_shared_mesh("fg_oahu.obj.gz", 20); }
 
 /* Icosahedron subdivided `levels` times, vertices pushed to the unit
 ** sphere and shared between faces (midpoints cached per edge). */
-static uint32_t midpoint(scene *s, uint32_t *cache, uint32_t *keys, size_t cap,
+static uint32_t midpoint(tu_scene *s, uint32_t *cache, uint32_t *keys, size_t cap,
                          uint32_t a, uint32_t b)
 {
     const uint32_t lo = a < b ? a : b, hi = a < b ? b : a;
@@ -487,11 +425,11 @@ static uint32_t midpoint(scene *s, uint32_t *cache, uint32_t *keys, size_t cap,
     len = sqrtf(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
     keys[2 * h] = lo;
     keys[2 * h + 1] = hi;
-    cache[h] = add_vertex(s, p[0] / len, p[1] / len, p[2] / len);
+    cache[h] = tu_add_vertex(s, p[0] / len, p[1] / len, p[2] / len);
     return cache[h];
 }
 
-static void icosphere(scene *s, int levels)
+static void icosphere(tu_scene *s, int levels)
 {
     static const uint32_t faces[20][3] = {
         {0, 11, 5}, {0, 5, 1}, {0, 1, 7}, {0, 7, 10}, {0, 10, 11}, {1, 5, 9}, {5, 11, 4},
@@ -501,8 +439,8 @@ static void icosphere(scene *s, int levels)
     const float base[12][3] = {{-1, g, 0}, {1, g, 0}, {-1, -g, 0}, {1, -g, 0}, {0, -1, g}, {0, 1, g},
                                {0, -1, -g}, {0, 1, -g}, {g, 0, -1}, {g, 0, 1}, {-g, 0, -1}, {-g, 0, 1}};
     int i, l;
-    for (i = 0; i < 12; i++) add_vertex(s, base[i][0] / n, base[i][1] / n, base[i][2] / n);
-    for (i = 0; i < 20; i++) add_triangle(s, faces[i][0], faces[i][1], faces[i][2]);
+    for (i = 0; i < 12; i++) tu_add_vertex(s, base[i][0] / n, base[i][1] / n, base[i][2] / n);
+    for (i = 0; i < 20; i++) tu_add_triangle(s, faces[i][0], faces[i][1], faces[i][2]);
     for (l = 0; l < levels; l++) {
         const size_t cap = 8 * (size_t)s->tcount;
         uint32_t *cache = malloc(cap * sizeof *cache), *keys = malloc(2 * cap * sizeof *keys);
@@ -515,10 +453,10 @@ static void icosphere(scene *s, int levels)
             const uint32_t ab = midpoint(s, cache, keys, cap, a, b);
             const uint32_t bc = midpoint(s, cache, keys, cap, b, c);
             const uint32_t ca = midpoint(s, cache, keys, cap, c, a);
-            add_triangle(s, a, ab, ca);
-            add_triangle(s, b, bc, ab);
-            add_triangle(s, c, ca, bc);
-            add_triangle(s, ab, bc, ca);
+            tu_add_triangle(s, a, ab, ca);
+            tu_add_triangle(s, b, bc, ab);
+            tu_add_triangle(s, c, ca, bc);
+            tu_add_triangle(s, ab, bc, ca);
         }
         free(old); free(cache); free(keys);
     }
@@ -526,7 +464,7 @@ static void icosphere(scene *s, int levels)
 
 /* n^3 closed cubes of side `cell` from `origin`; neighbours share faces
 ** (each shared face is in the mesh twice, with different diagonals). */
-static void cube_grid(scene *s, int n, float origin, float cell)
+static void cube_grid(tu_scene *s, int n, float origin, float cell)
 {
     static const int quads[6][4] = {{0, 2, 3, 1}, {4, 5, 7, 6}, {0, 1, 5, 4},
                                     {2, 6, 7, 3}, {0, 4, 6, 2}, {1, 3, 7, 5}};
@@ -536,18 +474,18 @@ static void cube_grid(scene *s, int n, float origin, float cell)
             for (z = 0; z < n; z++) {
                 uint32_t v[8];
                 for (k = 0; k < 8; k++)
-                    v[k] = add_vertex(s, origin + cell * (float)(x + (k & 1)),
+                    v[k] = tu_add_vertex(s, origin + cell * (float)(x + (k & 1)),
                                       origin + cell * (float)(y + (k >> 1 & 1)),
                                       origin + cell * (float)(z + (k >> 2 & 1)));
                 for (q = 0; q < 6; q++) {
                     const int flip = (x + y + z + q) & 1;
                     const int *f = quads[q];
                     if (flip) {
-                        add_triangle(s, v[f[0]], v[f[1]], v[f[2]]);
-                        add_triangle(s, v[f[0]], v[f[2]], v[f[3]]);
+                        tu_add_triangle(s, v[f[0]], v[f[1]], v[f[2]]);
+                        tu_add_triangle(s, v[f[0]], v[f[2]], v[f[3]]);
                     } else {
-                        add_triangle(s, v[f[1]], v[f[2]], v[f[3]]);
-                        add_triangle(s, v[f[1]], v[f[3]], v[f[0]]);
+                        tu_add_triangle(s, v[f[1]], v[f[2]], v[f[3]]);
+                        tu_add_triangle(s, v[f[1]], v[f[3]], v[f[0]]);
                     }
                 }
             }
@@ -578,16 +516,16 @@ static void aim(const brt_bvh *bvh, const float from[3], const float target[3],
 
 /* Aims at every vertex and every edge midpoint of every triangle, from an
 ** inside point and from an outside point beyond the target. */
-static void aim_at_features(const scene *s, const brt_bvh *bvh, const float inside[3],
+static void aim_at_features(const tu_scene *s, const brt_bvh *bvh, const float inside[3],
                             uint64_t *st, size_t *rays, size_t *leaks)
 {
     uint32_t t;
     int j, a;
     for (t = 0; t < s->tcount; t++)
         for (j = 0; j < 6; j++) {
-            const float *p = vertex(s, t, j % 3), *q = vertex(s, t, (j + 1) % 3);
+            const float *p = tu_vertex(s, t, j % 3), *q = tu_vertex(s, t, (j + 1) % 3);
             float target[3], outside[3], jitter[3], w = 0.0f;
-            random_unit(st, jitter);
+            tu_random_unit(st, jitter);
             for (a = 0; a < 3; a++) {
                 target[a] = j < 3 ? p[a] : 0.5f * (p[a] + q[a]);
                 w += (target[a] - inside[a]) * (target[a] - inside[a]);
@@ -603,7 +541,7 @@ static void aim_at_features(const scene *s, const brt_bvh *bvh, const float insi
 static void test_watertight_icosphere(void)
 {
     uint64_t st = test_seed() ^ 29;
-    scene s = {0};
+    tu_scene s = {0};
     brt_bvh *bvh;
     size_t rays = 0, leaks = 0;
     int i;
@@ -611,19 +549,19 @@ static void test_watertight_icosphere(void)
     bvh = build_checked(&s, NULL);
     for (i = 0; bvh && i < 3; i++) {
         float inside[3];
-        random_unit(&st, inside);
+        tu_random_unit(&st, inside);
         inside[0] *= 0.3f; inside[1] *= 0.3f; inside[2] *= 0.3f;
         aim_at_features(&s, bvh, inside, &st, &rays, &leaks);
     }
     EXPECT(leaks == 0, "%zu of %zu rays leaked", leaks, rays);
     brt_bvh_free(bvh);
-    scene_free(&s);
+    tu_scene_free(&s);
 }
 
 static void test_watertight_cubes(void)
 {
     uint64_t st = test_seed() ^ 31;
-    scene s = {0};
+    tu_scene s = {0};
     brt_bvh *bvh;
     size_t rays = 0, leaks = 0;
     const int n = 5;
@@ -636,18 +574,18 @@ static void test_watertight_cubes(void)
         for (y = 0; y < n; y++)
             for (z = 0; z < n; z++) {
                 const uint32_t first = (uint32_t)(12 * ((x * n + y) * n + z));
-                scene cube = s;
+                tu_scene cube = s;
                 float inside[3];
-                inside[0] = origin + cell * ((float)x + rnd(&st, 0.1f, 0.9f));
-                inside[1] = origin + cell * ((float)y + rnd(&st, 0.1f, 0.9f));
-                inside[2] = origin + cell * ((float)z + rnd(&st, 0.1f, 0.9f));
+                inside[0] = origin + cell * ((float)x + tu_rnd(&st, 0.1f, 0.9f));
+                inside[1] = origin + cell * ((float)y + tu_rnd(&st, 0.1f, 0.9f));
+                inside[2] = origin + cell * ((float)z + tu_rnd(&st, 0.1f, 0.9f));
                 cube.idx = s.idx + 3 * first;   /* this cube's 12 triangles */
                 cube.tcount = 12;
                 aim_at_features(&cube, bvh, inside, &st, &rays, &leaks);
             }
     EXPECT(leaks == 0, "%zu of %zu rays leaked", leaks, rays);
     brt_bvh_free(bvh);
-    scene_free(&s);
+    tu_scene_free(&s);
 }
 
 /* ===================================================================== */
@@ -657,16 +595,16 @@ static void test_watertight_cubes(void)
 static void test_degenerate_rays(void)
 {
     uint64_t st = test_seed() ^ 37;
-    scene s = {0};
+    tu_scene s = {0};
     brt_bvh *bvh;
     const float bad[] = {NAN, INFINITY, -INFINITY};
     const brt_ray good = {{0.5f, 0.5f, -3.0f}, {0.01f, 0.02f, 1.0f}, 0.0f, INFINITY};
     size_t n = 0;
     int c, b;
-    random_soup(&s, &st, 400, 0.2f);
+    tu_random_soup(&s, &st, 400, 0.2f);
     axis_grid(&s, 2);   /* a square at z = 1 covering [0,2]^2: `good` hits */
     bvh = build_checked(&s, NULL);
-    if (!bvh) { scene_free(&s); return; }
+    if (!bvh) { tu_scene_free(&s); return; }
     for (c = 0; c < 8; c++)
         for (b = 0; b < 3; b++) {
             brt_ray r = good;
@@ -693,14 +631,14 @@ static void test_degenerate_rays(void)
         brt_hit_clear(&h);
         brt_bvh_intersect(bvh, &good, &h);
         CHECK(h.prim != BRT_NO_PRIM, "the reference ray should hit");
-        CHECK(!brt_intersect_triangle(&zero, vertex(&s, h.prim, 0), vertex(&s, h.prim, 1),
-                                      vertex(&s, h.prim, 2), &t, &u, &v), "zero direction hit");
-        CHECK(!brt_intersect_triangle(&reversed, vertex(&s, h.prim, 0), vertex(&s, h.prim, 1),
-                                      vertex(&s, h.prim, 2), &t, &u, &v), "tnear > tfar hit");
+        CHECK(!brt_intersect_triangle(&zero, tu_vertex(&s, h.prim, 0), tu_vertex(&s, h.prim, 1),
+                                      tu_vertex(&s, h.prim, 2), &t, &u, &v), "zero direction hit");
+        CHECK(!brt_intersect_triangle(&reversed, tu_vertex(&s, h.prim, 0), tu_vertex(&s, h.prim, 1),
+                                      tu_vertex(&s, h.prim, 2), &t, &u, &v), "tnear > tfar hit");
     }
 done:
     brt_bvh_free(bvh);
-    scene_free(&s);
+    tu_scene_free(&s);
 }
 
 /* Exact values on one triangle: Embree's barycentrics, inclusive range. */
@@ -808,26 +746,26 @@ static void put_u32(unsigned char *p, size_t offset, uint32_t value)
 static void test_blob(void)
 {
     uint64_t st = test_seed() ^ 41;
-    scene s = {0};
+    tu_scene s = {0};
     brt_bvh *bvh, *opened = NULL;
     brt_error err;
     unsigned char *blob, *bad;
     size_t size, n, i;
     float lo[3], hi[3];
-    random_soup(&s, &st, 2000, 0.05f);
+    tu_random_soup(&s, &st, 2000, 0.05f);
     bvh = build_checked(&s, NULL);
-    if (!bvh) { scene_free(&s); return; }
+    if (!bvh) { tu_scene_free(&s); return; }
     size = brt_bvh_blob_size(bvh);
     blob = malloc(size);
     bad = malloc(size);
     brt_bvh_blob_write(bvh, blob);
     CHECK(brt_bvh_blob_open(blob, size, &opened, &err) == BRT_OK, "open: %s", err.message);
     CHECK(brt_bvh_check(opened, &err) == BRT_OK, "check opened: %s", err.message);
-    scene_bounds(&s, lo, hi);
+    tu_scene_bounds(&s, lo, hi);
     for (n = 0; n < 1000 && !test_failed(); n++) {
         brt_ray r;
         brt_hit a, b;
-        make_ray(&s, lo, hi, (int)(n % RAY_KINDS), &st, &r);
+        tu_make_ray(&s, lo, hi, (int)(n % TU_RAY_KINDS), &st, &r);
         brt_hit_clear(&a);
         brt_hit_clear(&b);
         brt_bvh_intersect(bvh, &r, &a);
@@ -870,7 +808,7 @@ static void test_blob(void)
         if (r == BRT_OK) {
             brt_ray ray;
             brt_hit h;
-            make_ray(&s, lo, hi, RAY_RANDOM, &st, &ray);
+            tu_make_ray(&s, lo, hi, TU_RANDOM, &st, &ray);
             brt_hit_clear(&h);
             brt_bvh_intersect(opened, &ray, &h);
             brt_bvh_free(opened);
@@ -879,27 +817,27 @@ static void test_blob(void)
     free(bad);
     free(blob);
     brt_bvh_free(bvh);
-    scene_free(&s);
+    tu_scene_free(&s);
 }
 
 static void test_bounds_and_memory(void)
 {
     uint64_t st = test_seed() ^ 43;
-    scene s = {0};
+    tu_scene s = {0};
     brt_bvh *bvh;
     float lo[3], hi[3], blo[3], bhi[3];
     int a;
-    random_soup(&s, &st, 100, 0.1f);
+    tu_random_soup(&s, &st, 100, 0.1f);
     bvh = build_checked(&s, NULL);
-    if (!bvh) { scene_free(&s); return; }
-    scene_bounds(&s, lo, hi);
+    if (!bvh) { tu_scene_free(&s); return; }
+    tu_scene_bounds(&s, lo, hi);
     brt_bvh_bounds(bvh, blo, bhi);
     for (a = 0; a < 3; a++)
         EXPECT(blo[a] <= lo[a] && bhi[a] >= hi[a] && hi[a] - bhi[a] > -1e-4f && blo[a] - lo[a] > -1e-4f,
                "axis %d: bvh bounds [%g,%g] vs mesh [%g,%g]", a, blo[a], bhi[a], lo[a], hi[a]);
     EXPECT(brt_bvh_memory_bytes(bvh) >= 36u * s.tcount, "memory bytes %zu", brt_bvh_memory_bytes(bvh));
     brt_bvh_free(bvh);
-    scene_free(&s);
+    tu_scene_free(&s);
 }
 
 void suite_bvh(void)
@@ -912,6 +850,7 @@ void suite_bvh(void)
     test_run("bvh: axis grid == brute force", test_axis_grid);
     test_run("bvh: duplicates == brute force", test_duplicates);
     test_run("bvh: slivers, zero area == brute force", test_slivers_and_zero_area);
+    test_run("bvh: grazing rays: exact, inside the box span, accurate t", test_grazing);
     test_run("bvh: tiny and huge scales == brute force", test_scales);
     test_run("bvh: bunny_tiny == brute force", test_mesh_bunny_tiny);
     test_run("bvh: bunny == brute force", test_mesh_bunny);
