@@ -218,7 +218,12 @@ int main(int argc, char **argv)
     }
 
     ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
-    if (o.stats) ex_check(prog, brt_stats_write_json(o.stats, &stats, &err), &err);
+    /* A run that fails leaves no output at all: the hits go if the
+    ** statistics cannot be written. */
+    if (o.stats && brt_stats_write_json(o.stats, &stats, &err) != BRT_OK) {
+        unlink(o.hits);
+        ex_die(prog, "%s", err.message);
+    }
     if (o.verbose || isatty(2)) print_summary(hits, &stats);
     free(hits);
     free(rays);
