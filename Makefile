@@ -6,6 +6,7 @@
 #   make sanitize     the test suite under AddressSanitizer + UBSan
 #   make bench        benchmarks (figures printed, never pass/fail)
 #   make clean
+#   make V=1 ...      show the full command lines
 #
 # == SETTINGS =============================================================
 CC      ?= cc
@@ -22,7 +23,17 @@ CFLAGS  ?=
 CFLAGS  += $(STD) $(WARN) $(OPT) $(XCFLAGS)
 LDLIBS  = -lm
 BUILD   ?= build
+# "make V=1" shows the full command lines.
+V       ?= 0
 # == END OF SETTINGS ======================================================
+
+ifeq ($(V),0)
+Q   = @
+SAY = @printf '  %-6s %s\n'
+else
+Q   =
+SAY = @true
+endif
 
 LIB_SRC  = batchrt.c bvh.c svdag.c
 LIB_OBJ  = $(LIB_SRC:%.c=$(BUILD)/%.o)
@@ -43,26 +54,32 @@ TEST_BIN = $(BUILD)/run_tests
 all: $(LIB) $(PROGRAMS)
 
 $(BUILD)/%.o: %.c batchrt.h | $(BUILD)/examples $(BUILD)/tests
-	$(CC) $(CFLAGS) -I. -c $< -o $@
+	$(SAY) CC $<
+	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
 
 $(BUILD)/examples/%.o: examples/%.c batchrt.h $(wildcard examples/*.h) | $(BUILD)/examples
-	$(CC) $(CFLAGS) -I. -c $< -o $@
+	$(SAY) CC $<
+	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
 
 $(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) batchrt.h | $(BUILD)/tests
-	$(CC) $(CFLAGS) -I. -c $< -o $@
+	$(SAY) CC $<
+	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
 
 $(BUILD)/examples $(BUILD)/tests:
-	mkdir -p $@
+	$(Q)mkdir -p $@
 
 $(LIB): $(LIB_OBJ)
-	rm -f $@
-	ar rcs $@ $^
+	$(SAY) AR $@
+	$(Q)rm -f $@
+	$(Q)ar rcs $@ $^
 
 $(BUILD)/%: $(BUILD)/examples/%.o $(EX_COMMON) $(LIB)
-	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
+	$(SAY) LINK $@
+	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 $(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(LIB)
-	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
+	$(SAY) LINK $@
+	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 # The tests run programs from $(BUILD) too (command-line contracts).
 test: all $(TEST_BIN)
@@ -192,18 +209,18 @@ valgrind:
 # demo: the README's "run" command.  The default landscape, out of core at
 # 25 % of its geometry bytes, without and with proxies (and direct, the
 # reference): one table, the image and the two heatmaps in $(BUILD)/demo.
-# figures: the paper's Figs. 1-3 (PNG, CSV, SVG) in $(BUILD)/figures.
+# figures: the paper's Figs. 1-3 (PNG, CSV, SVG) in $(BUILD)/fig.
 # bench-render: the landscape at 20M+ triangles, 16 spp at 640x360, proxies
 # off and on, at 25 % of the geometry bytes and in core.
 .PHONY: demo figures bench-render
 demo: all
 	mkdir -p $(BUILD)/demo
-	./$(BUILD)/render landscape --scale 2 --batch-tris 5000 --memory 25% --compare \
+	./$(BUILD)/render landscape --scale 2 --batch-tris 5000 --memory 25% --rays-in-flight 32768 --compare \
 	  --out $(BUILD)/demo/landscape.png --heatmap $(BUILD)/demo/heatmap.png \
 	  --stats $(BUILD)/demo/stats.json
 
 figures: all
-	./$(BUILD)/figures --out $(BUILD)/figures
+	./$(BUILD)/figures --out $(BUILD)/fig
 
 bench-render: all
 	./$(BUILD)/render landscape --scale 200 --batch-tris 100000 --spp 16 --width 640 --height 360 \
