@@ -101,7 +101,7 @@ static double max2(double a, double b) { return a > b ? a : b; }
 static int resolution_log2(uint32_t res)
 {
     if (res < 2 || res > (1u << MAX_LEVEL) || (res & (res - 1))) return -1;
-    return (int)popcount64(res - 1);
+    return (int)(popcount8(res - 1) + popcount8((res - 1) >> 8));
 }
 
 /* ===================================================================== */
@@ -964,25 +964,27 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 ** only visits siblings (of the hit and of its ancestors) that the segment
 ** enters sooner, because a grown sibling may start before the hit.
 **
-** COST (bench_svdag rays and a mix with axis-parallel ones, res 128, one
-** core of a loaded 2-core VM, so cycles are +-20%; instructions are
-** exact).  The previous walk tested the 8 children's slabs at each node
-** (12 plane distances, 8 intervals), visited them in mirrored index
-** order and tested the set voxels of a leaf one by one: ~3500
-** instructions, ~1200-1300 cycles per ray on bunny.  Rank order with the
-** bit-mask levels as tree levels, 6 plane distances per node, branch-free
-** liveness: 2500 instructions but ~1250 cycles -- the liveness read the
-** rank-sorted values back from the stack entry just written, a chain of
-** store-forwarding stalls; computing it in world child space from the
-** unsorted values (6 pair tests instead of 3) gave ~920 cycles.  Exits
-** selected without branches: branch misses 10.7 -> 7.9 per ray.  A byte
-** popcount table and an unrolled rank gather (GCC -O2 does not unroll)
-** saved 500 instructions.  Tried and dropped: a special case for the
-** voxel level (more code, +190 instructions), per-ray pair masks (+180),
-** axis bits in registers instead of the stack entry (+180, no gain).
-** Every variant returned bit for bit the same hits and entries as the
-** previous walk on 3M rays (bunny_tiny, bunny, dragon): same intervals,
-** same false hits.
+** COST (res 128, bunny, 1M rays of bench_svdag's kinds plus axis-parallel
+** ones; one core of a loaded 2-core VM, so cycles are +-20%, instruction
+** counts are exact).  The previous walk tested all 8 children's slabs at
+** each node (12 plane distances, 8 intervals), visited them in mirrored
+** index order and tested a leaf's set voxels one by one: 3510
+** instructions, 1170-1460 cycles, 12 branch misses per ray.  Rank order
+** with the bit-mask levels walked as tree levels and 6 plane distances
+** per node: 2520 instructions but still ~1250 cycles -- the liveness
+** tests read the rank-sorted values back from the stack entry just
+** written, a chain of store-to-load stalls; testing in world child space
+** on the unsorted values (6 pairs instead of 3) gave ~920 cycles.
+** Branch-free child exits: 10.7 -> 7.7 branch misses.  A byte popcount
+** table and an unrolled rank gather (GCC -O2 does not unroll) saved 500
+** instructions, branch-free mirroring 30 more (the set-up alone, for a
+** ray that misses the root: 529 -> 485, of which brt_proxy_check ~110).
+** Now 2450 instructions, 875-1170 cycles.  Tried and dropped: a special
+** case for the voxel level, per-ray pair masks, axis bits kept in
+** registers, a bit set of open scales to skip exhausted ones on POP (each
+** +50..190 instructions, no measurable gain).  Every variant returned bit
+** for bit the same hits and entries as the previous walk on 3M rays
+** (bunny_tiny, bunny, dragon): same intervals, so the same false hits.
 **
 ** CONSERVATIVE IN FLOAT.  Every box is grown by g on each side, in frame
 ** units (the root cube has side 1):  g = 2^-18 (P + 3), P = max |p_i|.
@@ -1072,8 +1074,10 @@ static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray
         dmax = max2(dmax, fabs(d[i]));
     }
     for (i = 0; i < 3; i++) {
-        if (d[i] > 0) { p[i] = 3.0 - p[i]; r->mirror |= 1u << i; }
-        r->near[i] = (r->mirror >> i) & 1 ? 0xFFu & ~high_half[i] : high_half[i];
+        unsigned mirrored = d[i] > 0;     /* selects, not branches */
+        p[i] = mirrored ? 3.0 - p[i] : p[i];
+        r->mirror |= mirrored << i;
+        r->near[i] = high_half[i] ^ (0xFFu & (0u - mirrored));
         inv[i] = 1.0 / max2(fabs(d[i]), dmax * 0x1p-40);
         pmax = max2(pmax, fabs(p[i]));
     }
@@ -1144,7 +1148,7 @@ static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
                       unsigned m, const uint32_t corner[3], int level,
                       double tin, double tout)
 {
-    uint32_t half = 1u << (level - 1);
+    uint32_t half = 1u << (level - 1);    /* centre plane entries e, exits l */
     double e0 = enter_t(r, 0, corner[0] + half), e1 = enter_t(r, 1, corner[1] + half);
     double e2 = enter_t(r, 2, corner[2] + half);
     unsigned r0 = (unsigned)(e1 < e0) + (unsigned)(e2 < e0);   /* ties: lower axis first */
@@ -1167,6 +1171,8 @@ static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
     s->axis_bit[r0] = 1;
     s->axis_bit[r1] = 2;
     s->axis_bit[r2] = 4;
+    /* LIVE: far side reached in time, near side not left before tin, no
+    ** far side entered after a near side is left (n: near, ~n: far) */
     live = all_or(e0 <= tout, n0) & all_or(e1 <= tout, n1) & all_or(e2 <= tout, n2) &
            all_or(l0 >= tin, ~n0) & all_or(l1 >= tin, ~n1) & all_or(l2 >= tin, ~n2) &
            all_or(e1 <= l0, ~(n0 & ~n1)) & all_or(e2 <= l0, ~(n0 & ~n2)) &

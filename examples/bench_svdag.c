@@ -9,8 +9,9 @@
 ** For each mesh:
 **   - throughput on the same rays (half camera rays, half rays from a
 **     sphere around the mesh aimed into its box): the proxy ray cast at
-**     --res beside the BVH's closest hit, single thread, and how many BVH
-**     hits the proxy missed (must be 0) or added (false hits);
+**     --res beside the BVH's closest hit, single thread, in CPU time (the
+**     process's own, so that other jobs on a shared machine do not count),
+**     and how many BVH hits the proxy missed (must be 0) or added (false hits);
 **   - voxelization and DAG build time, and DAG bytes, at res 16..512
 **     (the paper's Fig. 2, left), as a Markdown table.
 */
@@ -21,6 +22,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
+#include <time.h>
 
 static const char *const prog = "bench_svdag";
 
@@ -149,6 +151,12 @@ static brt_ray *make_rays(const brt_mesh *mesh, uint64_t count, uint64_t seed)
 /* Measurements                                                          */
 /* ===================================================================== */
 
+/* Seconds of CPU time used by this process. */
+static double cpu_seconds(void)
+{
+    return (double)clock() / CLOCKS_PER_SEC;
+}
+
 typedef struct build_figures {
     double voxelize_seconds, dag_seconds;
     uint64_t voxels;
@@ -189,13 +197,13 @@ static void throughput(const brt_mesh *mesh, const options *o)
     if (!hits) ex_die(prog, "out of memory for hits");
     ex_check(prog, brt_bvh_build(mesh->positions, mesh->indices, mesh->triangle_count, NULL, &bvh), NULL);
     build_proxy(mesh, o->res, &dag, &proxy, &f);
-    start = brt_seconds();
+    start = cpu_seconds();
     for (n = 0; n < o->rays; n++) {
         brt_hit_clear(&hits[n]);
         brt_bvh_intersect(bvh, &rays[n], &hits[n]);
     }
-    bvh_seconds = brt_seconds() - start;
-    start = brt_seconds();
+    bvh_seconds = cpu_seconds() - start;
+    start = cpu_seconds();
     for (n = 0; n < o->rays; n++) {
         float t;
         int got = brt_proxy_raycast(dag, &proxy, &rays[n], 0, INFINITY, &t);
@@ -203,7 +211,7 @@ static void throughput(const brt_mesh *mesh, const options *o)
         /* Stored in the ray's tnear slot so the check below is outside the timing. */
         rays[n].tnear = got ? t : -INFINITY;
     }
-    proxy_seconds = brt_seconds() - start;
+    proxy_seconds = cpu_seconds() - start;
     for (n = 0; n < o->rays; n++)
         if (hits[n].prim != BRT_NO_PRIM) {
             bvh_hits++;

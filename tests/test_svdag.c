@@ -5,7 +5,10 @@
 **     triangles whose vertices lie on a quarter-cell lattice;
 **   - DAG decode against the dense grid, and SVO node counts against a
 **     count of non-empty blocks, at every resolution 2..1024;
-**   - the ray cast against a brute-force slab test over all set voxels;
+**   - the ray cast against a brute-force slab test over all set voxels,
+**     and (the other side) against the same test on voxels grown by twice
+**     the growth svdag.c documents: a proxy hit must be near a set voxel,
+**     and its entry not before the grown voxels' entry;
 **   - END TO END: every ray that hits a triangle (BVH or brute force over
 **     brt_intersect_triangle) hits the proxy no later than the triangle;
 **   - dedup across proxies, blob round trip, corrupt blobs.
@@ -376,8 +379,10 @@ static int oracle_box(const brt_ray *ray, const double lo[3], const double hi[3]
     return enter <= leave;
 }
 
-/* First touched set voxel over all voxels of the grid. */
-static int oracle_grid(const brt_grid *grid, const brt_ray *ray, double *t_best)
+/* First touched set voxel over all voxels of the grid, each grown by grow
+** cells on every side. */
+static int oracle_grid(const brt_grid *grid, const brt_ray *ray, double grow,
+                       double *t_best)
 {
     uint32_t x, y, z, c[3];
     int hit = 0, i;
@@ -388,8 +393,8 @@ static int oracle_grid(const brt_grid *grid, const brt_ray *ray, double *t_best)
                 if (!brt_grid_get(grid, x, y, z)) continue;
                 c[0] = x; c[1] = y; c[2] = z;
                 for (i = 0; i < 3; i++) {
-                    lo[i] = grid->origin[i] + (double)grid->cell * c[i];
-                    hi[i] = lo[i] + grid->cell;
+                    lo[i] = grid->origin[i] + (double)grid->cell * (c[i] - grow);
+                    hi[i] = grid->origin[i] + (double)grid->cell * (c[i] + 1 + grow);
                 }
                 if (oracle_box(ray, lo, hi, ray->tnear, ray->tfar, &t) && (!hit || t < *t_best)) {
                     *t_best = t;
@@ -397,6 +402,19 @@ static int oracle_grid(const brt_grid *grid, const brt_ray *ray, double *t_best)
                 }
             }
     return hit;
+}
+
+/* Twice the box growth of brt_proxy_raycast, in cells: g = 2^-18 (P + 3)
+** in units of the root cube (N = 2^levels cells, levels >= 2), where P is
+** the largest |coordinate| of the (mirrored) origin in the [1,2] frame,
+** at most |1 + (o - origin) / (N cell)| + 3. */
+static double documented_grow(const brt_grid *grid, const brt_ray *ray)
+{
+    double n = grid->res < 4 ? 4 : grid->res, p = 0;
+    int i;
+    for (i = 0; i < 3; i++)
+        p = fmax(p, fabs(1 + (ray->org[i] - (double)grid->origin[i]) / (n * grid->cell)) + 3);
+    return 2 * 0x1p-18 * (p + 3) * n;
 }
 
 /* Oracle-friendly rays in cell units: random, axis-parallel, grazing along
@@ -461,11 +479,12 @@ static void test_raycast_oracle(void)
             CHECK(brt_svdag_add(dag, &grid, &proxy) == BRT_OK, "add");
             for (n = 0; n < 6000 && !test_failed(); n++) {
                 brt_ray ray;
-                double t_oracle = 0;
+                double t_oracle = 0, t_grown = 0;
                 float t_entry;
-                int want, got;
+                int want, near, got;
                 lattice_ray(&rng, &grid, &ray);
-                want = oracle_grid(&grid, &ray, &t_oracle);
+                want = oracle_grid(&grid, &ray, 0, &t_oracle);
+                near = oracle_grid(&grid, &ray, documented_grow(&grid, &ray), &t_grown);
                 got = brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, &t_entry);
                 rays++;
                 hits += want;
@@ -474,6 +493,13 @@ static void test_raycast_oracle(void)
                        "res %u ray (%a %a %a) dir (%a %a %a) [%a %a]: oracle t %a, proxy %d t %a",
                        res, ray.org[0], ray.org[1], ray.org[2], ray.dir[0], ray.dir[1],
                        ray.dir[2], ray.tnear, ray.tfar, t_oracle, got, t_entry);
+                /* the other side: float rounding of the entry allowed */
+                EXPECT(!got || (near && t_entry >= nextafterf((float)t_grown, -INFINITY)),
+                       "res %u ray (%a %a %a) dir (%a %a %a) [%a %a]: proxy t %a, no set voxel "
+                       "grown by %g cells touched before (%d, t %a)",
+                       res, ray.org[0], ray.org[1], ray.org[2], ray.dir[0], ray.dir[1],
+                       ray.dir[2], ray.tnear, ray.tfar, t_entry,
+                       documented_grow(&grid, &ray), near, t_grown);
             }
             brt_grid_free(&grid);
         }
