@@ -113,7 +113,8 @@ embree: $(LIB) $(EX_COMMON)
 	@$(MAKE) --no-print-directory $(BUILD)/embree_trace
 
 $(BUILD)/embree_trace: $(BUILD)/examples/embree_trace.o $(EX_COMMON) $(LIB)
-	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS) $(EMBREE_LIBS)
+	$(SAY) LINK $@
+	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS) $(EMBREE_LIBS)
 
 # Speed side by side: single-thread Mrays/s of trace --direct and
 # embree_trace (default and --robust) on the same ray files (camera,
@@ -176,20 +177,22 @@ VALGRIND = valgrind -q --error-exitcode=99 --leak-check=full \
 $(TEST_BIN): $(BUILD)/tests/fuzz/targets.o
 $(BUILD)/tests/fuzz/targets.o $(BUILD)/tests/fuzz/replay.o: tests/fuzz/targets.h | $(BUILD)/tests/fuzz
 $(BUILD)/tests/fuzz:
-	mkdir -p $@
+	$(Q)mkdir -p $@
 
 $(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(LIB)
-	$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
+	$(SAY) LINK $@
+	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 fuzz-replay: $(BUILD)/tests/fuzz/replay
-	for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
+	$(Q)for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
 
 $(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h $(LIB_SRC) batchrt.h
-	mkdir -p $(BUILD)/fuzz/corpus/$*
-	$(FUZZ_CC) $(FUZZ_FLAGS) -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
+	$(SAY) FUZZ $@
+	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
+	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
 
 fuzz: $(FUZZ_BINS)
-	for t in $(FUZZ_TARGETS); do \
+	$(Q)for t in $(FUZZ_TARGETS); do \
 	  ./$(BUILD)/fuzz/fuzz_$$t -max_total_time=$(FUZZ_SECONDS) -timeout=10 \
 	    -artifact_prefix=$(BUILD)/fuzz/crash-$$t- \
 	    $$(test -f tests/fuzz/$$t.dict && echo -dict=tests/fuzz/$$t.dict) \
@@ -199,8 +202,8 @@ fuzz: $(FUZZ_BINS)
 # memcheck error in one makes it exit 99, which its test reports.
 valgrind:
 	$(MAKE) all build/valgrind/run_tests BUILD=build/valgrind OPT="-O1 -g"
-	rm -f build/valgrind/memcheck.*.log
-	BRT_BUILD=build/valgrind $(VALGRIND) ./build/valgrind/run_tests $(T); status=$$?; \
+	$(Q)rm -f build/valgrind/memcheck.*.log
+	$(Q)BRT_BUILD=build/valgrind $(VALGRIND) ./build/valgrind/run_tests $(T); status=$$?; \
 	  if grep -l "ERROR SUMMARY: [1-9]" build/valgrind/memcheck.*.log; then exit 1; fi; \
 	  exit $$status
 # == END HARDENING ========================================================

@@ -229,6 +229,7 @@ static enum verdict classify(const brt_mesh *mesh, const brt_ray *ray, const brt
                              const brt_hit *theirs)
 {
     const int hit_ours = ours->prim != BRT_NO_PRIM, hit_theirs = theirs->prim != BRT_NO_PRIM;
+    if (hit_theirs && theirs->prim >= mesh->triangle_count) return UNEXPLAINED;
     if (!hit_ours && !hit_theirs) return SAME;
     if (hit_ours && hit_theirs && ours->prim == theirs->prim) {
         if (relative_difference(ours->t, theirs->t) <= T_REL) return SAME;
@@ -582,6 +583,8 @@ static void test_classifier(void)
     theirs.prim = 2;
     theirs.u = theirs.v = 0.3f;
     EXPECT(classify(&mesh, &inside, &ours[1], &theirs) == UNEXPLAINED, "invented hit");
+    theirs.prim = 3;
+    EXPECT(classify(&mesh, &inside, &ours[1], &theirs) == UNEXPLAINED, "prim out of range");
     /* Just outside the square's open edge x == 1: Embree's hit there is
     ** rounding, a hit a little farther out is invented. */
     theirs = miss;
