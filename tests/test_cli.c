@@ -20,97 +20,6 @@
 #include <sys/wait.h>
 
 /* ===================================================================== */
-/* Files and processes                                                   */
-/* ===================================================================== */
-
-/* NAME inside the scratch directory (a few rotating buffers). */
-static const char *scratch(const char *name)
-{
-    static char paths[8][512];
-    static int next;
-    char *out = paths[next++ % 8];
-    snprintf(out, 512, "%s/%s", test_tmpdir(), name);
-    return out;
-}
-
-static int file_exists(const char *path)
-{
-    struct stat st;
-    return stat(path, &st) == 0;
-}
-
-/* The whole file, NUL-terminated (malloc'd), or NULL. */
-static unsigned char *slurp(const char *path, size_t *size)
-{
-    FILE *f = fopen(path, "rb");
-    unsigned char *data = NULL;
-    long n;
-    if (!f) return NULL;
-    if (fseek(f, 0, SEEK_END) == 0 && (n = ftell(f)) >= 0 && fseek(f, 0, SEEK_SET) == 0
-        && (data = malloc((size_t)n + 1)) != NULL) {
-        if (fread(data, 1, (size_t)n, f) == (size_t)n) {
-            data[n] = 0;
-            if (size) *size = (size_t)n;
-        } else {
-            free(data);
-            data = NULL;
-        }
-    }
-    fclose(f);
-    return data;
-}
-
-static int spill(const char *path, const void *data, size_t size)
-{
-    FILE *f = fopen(path, "wb");
-    int ok = f && fwrite(data, 1, size, f) == size;
-    if (f && fclose(f) != 0) ok = 0;
-    return ok;
-}
-
-/* Runs "$BRT_BUILD/ARGS" with '@' in ARGS standing for the scratch
-** directory; stdout and stderr go to cli.out and cli.err there.  Returns
-** the exit status, or -1 when the program died from a signal. */
-static int run(const char *fmt, ...)
-{
-    char args[2048], expanded[4096], cmd[8192];
-    const char *build = getenv("BRT_BUILD"), *dir = test_tmpdir(), *p;
-    size_t n = 0;
-    int status;
-    va_list ap;
-    va_start(ap, fmt);
-    vsnprintf(args, sizeof args, fmt, ap);
-    va_end(ap);
-    for (p = args; *p && n + strlen(dir) + 1 < sizeof expanded; p++) {
-        if (*p == '@') { memcpy(expanded + n, dir, strlen(dir)); n += strlen(dir); }
-        else expanded[n++] = *p;
-    }
-    expanded[n] = 0;
-    snprintf(cmd, sizeof cmd, "%s/%s > '%s/cli.out' 2> '%s/cli.err'",
-             build ? build : "build", expanded, dir, dir);
-    status = system(cmd);
-    if (status == -1 || !WIFEXITED(status)) return -1;
-    return WEXITSTATUS(status);
-}
-
-static char *last_stdout(void) { return (char *)slurp(scratch("cli.out"), NULL); }
-static char *last_stderr(void) { return (char *)slurp(scratch("cli.err"), NULL); }
-
-/* Nonzero when the scratch directory holds a "*.tmp.*" file, the trace an
-** interrupted atomic write would leave. */
-static int temporary_file_left(void)
-{
-    DIR *d = opendir(test_tmpdir());
-    struct dirent *e;
-    int found = 0;
-    if (!d) return 1;
-    while ((e = readdir(d)) != NULL)
-        if (strstr(e->d_name, ".tmp.")) found = 1;
-    closedir(d);
-    return found;
-}
-
-/* ===================================================================== */
 /* Test meshes and record codecs                                         */
 /* ===================================================================== */
 
@@ -189,7 +98,7 @@ static int write_cube(const char *name)
     tu_scene cube = {0};
     int ok;
     make_cube(&cube);
-    ok = write_obj(scratch(name), &cube);
+    ok = write_obj(tu_scratch(name), &cube);
     tu_scene_free(&cube);
     return ok;
 }
@@ -225,7 +134,7 @@ static brt_ray *load_rays(const char *path, size_t *count)
 {
     size_t size, i;
     int k;
-    unsigned char *data = slurp(path, &size);
+    unsigned char *data = tu_slurp(path, &size);
     brt_ray *rays;
     if (!data || size % 32 != 0 || !(rays = malloc(size / 32 * sizeof *rays + 1))) {
         free(data);
@@ -290,7 +199,7 @@ static int write_lumpy_mesh(tu_scene *m, const char *name)
 {
     uint64_t rng = test_seed();
     make_lumpy_mesh(m, &rng);
-    return write_obj(scratch(name), m);
+    return write_obj(tu_scratch(name), m);
 }
 
 /* ===================================================================== */
@@ -303,8 +212,8 @@ static void test_help(void)
     size_t i;
     for (i = 0; i < sizeof programs / sizeof *programs; i++) {
         char *out;
-        int status = run("%s --help", programs[i]);
-        out = last_stdout();
+        int status = tu_run("%s --help", programs[i]);
+        out = tu_last_stdout();
         EXPECT(status == 0, "%s --help: exit status %d", programs[i], status);
         EXPECT(out && strstr(out, "usage:"), "%s --help: no usage on stdout", programs[i]);
         free(out);
@@ -314,8 +223,8 @@ static void test_help(void)
 static void test_minimal(void)
 {
     char *out;
-    int status = run("minimal");
-    out = last_stdout();
+    int status = tu_run("minimal");
+    out = tu_last_stdout();
     /* Five rays down the quad's anti-diagonal all hit it. */
     EXPECT(status == 0, "minimal: exit status %d", status);
     EXPECT(out && strstr(out, "ray 4 ") && !strstr(out, "miss"), "minimal printed: %s",
@@ -333,12 +242,12 @@ static void test_raygen_deterministic(void)
     for (i = 0; i < 3; i++) {
         unsigned char *a, *b, *c;
         size_t na = 0, nb = 0, nc = 0;
-        int sa = run("raygen @/lumpy.obj @/det_a.rays --kind %s --count 321 --seed 7", kinds[i]);
-        int sb = run("raygen @/lumpy.obj @/det_b.rays --seed 7 --count 321 --kind %s", kinds[i]);
-        int sc = run("raygen @/lumpy.obj @/det_c.rays --kind %s --count 321 --seed 8", kinds[i]);
-        a = slurp(scratch("det_a.rays"), &na);
-        b = slurp(scratch("det_b.rays"), &nb);
-        c = slurp(scratch("det_c.rays"), &nc);
+        int sa = tu_run("raygen @/lumpy.obj @/det_a.rays --kind %s --count 321 --seed 7", kinds[i]);
+        int sb = tu_run("raygen @/lumpy.obj @/det_b.rays --seed 7 --count 321 --kind %s", kinds[i]);
+        int sc = tu_run("raygen @/lumpy.obj @/det_c.rays --kind %s --count 321 --seed 8", kinds[i]);
+        a = tu_slurp(tu_scratch("det_a.rays"), &na);
+        b = tu_slurp(tu_scratch("det_b.rays"), &nb);
+        c = tu_slurp(tu_scratch("det_c.rays"), &nc);
         EXPECT(sa == 0 && sb == 0 && sc == 0, "%s: exit status %d %d %d", kinds[i], sa, sb, sc);
         EXPECT(a && b && c && na == 321 * 32 && nb == na && nc == na,
                "%s: sizes %lu %lu %lu, expected %d", kinds[i], (unsigned long)na,
@@ -370,9 +279,9 @@ static void test_raygen_camera(void)
     CHECK(write_lumpy_mesh(&m, "lumpy.obj"), "cannot write the test mesh");
     tu_scene_bounds(&m, bmin, bmax);
     tu_scene_free(&m);
-    status = run("raygen @/lumpy.obj @/cam.rays --kind camera --count 1000");
+    status = tu_run("raygen @/lumpy.obj @/cam.rays --kind camera --count 1000");
     CHECK(status == 0, "raygen camera: exit status %d", status);
-    rays = load_rays(scratch("cam.rays"), &count);
+    rays = load_rays(tu_scratch("cam.rays"), &count);
     CHECK(rays && count == 1000, "expected 1000 camera rays, read %lu", (unsigned long)count);
     if (!rays_are_unit_and_unbounded(rays, count)) { free(rays); return; }
     EXPECT(rays[0].org[2] > bmax[2] && rays[0].org[1] > 0.5f * (bmin[1] + bmax[1]),
@@ -411,9 +320,9 @@ static void test_raygen_random(void)
     size_t count = 0, i;
     int k, status, negative[3] = {0, 0, 0}, positive[3] = {0, 0, 0};
     CHECK(write_cube("cube.obj"), "cannot write the cube");
-    status = run("raygen @/cube.obj @/random.rays --kind random --count 2000 --seed 3");
+    status = tu_run("raygen @/cube.obj @/random.rays --kind random --count 2000 --seed 3");
     CHECK(status == 0, "raygen random: exit status %d", status);
-    rays = load_rays(scratch("random.rays"), &count);
+    rays = load_rays(tu_scratch("random.rays"), &count);
     CHECK(rays && count == 2000, "expected 2000 random rays, read %lu", (unsigned long)count);
     if (!rays_are_unit_and_unbounded(rays, count)) { free(rays); return; }
     for (i = 0; i < count; i++)
@@ -443,10 +352,10 @@ static void test_raygen_bounce(void)
     double cos_sum = 0;
     int status;
     make_cube(&cube);
-    CHECK(write_obj(scratch("cube.obj"), &cube), "cannot write the cube");
-    status = run("raygen @/cube.obj @/bounce.rays --kind bounce --count 4000 --seed 5");
+    CHECK(write_obj(tu_scratch("cube.obj"), &cube), "cannot write the cube");
+    status = tu_run("raygen @/cube.obj @/bounce.rays --kind bounce --count 4000 --seed 5");
     CHECK(status == 0, "raygen bounce: exit status %d", status);
-    rays = load_rays(scratch("bounce.rays"), &count);
+    rays = load_rays(tu_scratch("bounce.rays"), &count);
     CHECK(rays && count == 4000, "expected 4000 bounce rays, read %lu", (unsigned long)count);
     if (!rays_are_unit_and_unbounded(rays, count)) { free(rays); return; }
     for (i = 0; i < count && !test_failed(); i++) {
@@ -491,7 +400,7 @@ static int write_interval_rays(const char *path, size_t count)
         put_f32(r + 24, tu_rnd(&rng, 0.0f, 0.7f));
         put_f32(r + 28, tu_rnd(&rng, 0.3f, 1.3f));
     }
-    ok = spill(path, data, 32 * count);
+    ok = tu_spill(path, data, 32 * count);
     free(data);
     return ok;
 }
@@ -503,9 +412,9 @@ static void expect_trace_matches_oracle(const tu_scene *m, const char *rays_name
     brt_ray *rays;
     unsigned char *got, expected[16];
     size_t count = 0, size = 0, i, hits = 0;
-    int status = run("trace @/lumpy.obj @/%s @/trace.hits", rays_name);
-    rays = load_rays(scratch(rays_name), &count);
-    got = slurp(scratch("trace.hits"), &size);
+    int status = tu_run("trace @/lumpy.obj @/%s @/trace.hits", rays_name);
+    rays = load_rays(tu_scratch(rays_name), &count);
+    got = tu_slurp(tu_scratch("trace.hits"), &size);
     EXPECT(status == 0, "%s: trace exit status %d", rays_name, status);
     EXPECT(rays && got && size == 16 * count, "%s: %lu hit bytes for %lu rays", rays_name,
            (unsigned long)size, (unsigned long)count);
@@ -542,12 +451,12 @@ static void test_trace_equals_brute_force(void)
         char name[32];
         int status;
         snprintf(name, sizeof name, "%s.rays", kinds[i]);
-        status = run("raygen @/lumpy.obj @/%s --kind %s --count 1500 --seed %llu", name,
+        status = tu_run("raygen @/lumpy.obj @/%s --kind %s --count 1500 --seed %llu", name,
                      kinds[i], (unsigned long long)test_seed());
         EXPECT(status == 0, "raygen %s: exit status %d", kinds[i], status);
         expect_trace_matches_oracle(&m, name);
     }
-    EXPECT(write_interval_rays(scratch("interval.rays"), 1500), "cannot write rays");
+    EXPECT(write_interval_rays(tu_scratch("interval.rays"), 1500), "cannot write rays");
     expect_trace_matches_oracle(&m, "interval.rays");
     tu_scene_free(&m);
 }
@@ -572,14 +481,14 @@ static void test_trace_stats(void)
     char *json, *err;
     int status;
     CHECK(write_cube("cube.obj"), "cannot write the cube");
-    status = run("raygen @/cube.obj @/stats.rays --kind camera --count 777");
+    status = tu_run("raygen @/cube.obj @/stats.rays --kind camera --count 777");
     CHECK(status == 0, "raygen: exit status %d", status);
-    status = run("trace @/cube.obj @/stats.rays @/stats.hits --stats @/stats.json");
-    err = last_stderr();
+    status = tu_run("trace @/cube.obj @/stats.rays @/stats.hits --stats @/stats.json");
+    err = tu_last_stderr();
     EXPECT(status == 0 && err && err[0] == 0, "trace --stats: exit status %d, stderr '%s'",
            status, err ? err : "(none)");
     free(err);
-    json = (char *)slurp(scratch("stats.json"), NULL);
+    json = (char *)tu_slurp(tu_scratch("stats.json"), NULL);
     CHECK(json, "no statistics file");
     EXPECT(json_number(json, "rays") == 777 && json_number(json, "bvh_bytes_per_triangle") > 0
            && json_number(json, "seconds") >= 0 && json_number(json, "build_seconds") >= 0
@@ -587,8 +496,8 @@ static void test_trace_stats(void)
            && json_number(json, "memory_limit") == 0 && json_number(json, "batch_loads") == 0,
            "statistics of direct mode: %s", json);
     free(json);
-    status = run("trace @/cube.obj @/stats.rays @/stats.hits --verbose");
-    err = last_stderr();
+    status = tu_run("trace @/cube.obj @/stats.rays @/stats.hits --verbose");
+    err = tu_last_stderr();
     EXPECT(status == 0 && err && !strncmp(err, "trace: 777 rays, ", 17)
            && strstr(err, "Mrays/s\n") && strchr(err, '\n') == err + strlen(err) - 1,
            "--verbose: exit status %d, stderr '%s'", status, err ? err : "(none)");
@@ -608,23 +517,23 @@ static void test_trace_batched(void)
     char *err, *json;
     int status;
     CHECK(write_lumpy_mesh(&m, "lumpy.obj"), "cannot write the test mesh");
-    status = run("raygen @/lumpy.obj @/batched.rays --kind bounce --count 3000");
+    status = tu_run("raygen @/lumpy.obj @/batched.rays --kind bounce --count 3000");
     CHECK(status == 0, "raygen: exit status %d", status);
-    CHECK(run("trace @/lumpy.obj @/batched.rays @/direct.hits") == 0, "trace --direct failed");
-    direct = slurp(scratch("direct.hits"), &n_direct);
+    CHECK(tu_run("trace @/lumpy.obj @/batched.rays @/direct.hits") == 0, "trace --direct failed");
+    direct = tu_slurp(tu_scratch("direct.hits"), &n_direct);
     for (i = 0; i < sizeof settings / sizeof *settings; i++) {
-        status = run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --scene @/b.brs "
+        status = tu_run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --scene @/b.brs "
                      "--verbose --stats @/batched.json %s", settings[i]);
-        err = last_stderr();
+        err = tu_last_stderr();
         EXPECT(status == 0 && err && strstr(err, "(built)"), "'%s': exit %d, stderr '%s'",
                settings[i], status, err ? err : "");
         free(err);
-        batched = slurp(scratch("batched.hits"), &n_batched);
+        batched = tu_slurp(tu_scratch("batched.hits"), &n_batched);
         EXPECT(direct && batched && n_direct == n_batched && !memcmp(direct, batched, n_direct),
                "'%s': the batched hit file differs from the direct one", settings[i]);
         free(batched);
     }
-    json = (char *)slurp(scratch("batched.json"), NULL);
+    json = (char *)tu_slurp(tu_scratch("batched.json"), NULL);
     EXPECT(json && json_number(json, "rays") == 3000 && json_number(json, "batch_loads") > 0 &&
            json_number(json, "disk_bytes_read") > 0 && json_number(json, "queued_visits") > 0 &&
            json_number(json, "proxy_tests") > 0 && json_number(json, "memory_limit") == 20480 &&
@@ -633,15 +542,15 @@ static void test_trace_batched(void)
            json_number(json, "batching_points") >= (double)m.tcount / 40.0,
            "batched statistics: %s", json ? json : "(none)");
     free(json);
-    status = run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --scene @/b.brs "
+    status = tu_run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --scene @/b.brs "
                  "--verbose %s", settings[3]);
-    err = last_stderr();
+    err = tu_last_stderr();
     EXPECT(status == 0 && err && strstr(err, "(reused)"), "same settings: stderr '%s'", err ? err : "");
     free(err);
     /* Without --scene the file goes to $BRT_SCENE_DIR. */
-    setenv("BRT_SCENE_DIR", scratch("scenes"), 1);
-    status = run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --batch-tris 100");
-    EXPECT(status == 0 && file_exists(scratch("scenes")), "default scene folder: exit %d", status);
+    setenv("BRT_SCENE_DIR", tu_scratch("scenes"), 1);
+    status = tu_run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --batch-tris 100");
+    EXPECT(status == 0 && tu_file_exists(tu_scratch("scenes")), "default scene folder: exit %d", status);
     unsetenv("BRT_SCENE_DIR");
     free(direct);
     tu_scene_free(&m);
@@ -651,12 +560,12 @@ static void test_trace_batched(void)
 static int patch_hit(const char *path, size_t i, uint32_t prim, float t)
 {
     size_t size;
-    unsigned char *data = slurp(path, &size);
+    unsigned char *data = tu_slurp(path, &size);
     int ok = data && 16 * i + 16 <= size;
     if (ok) {
         put_f32(data + 16 * i, t);
         put_le32(data + 16 * i + 4, prim);
-        ok = spill(path, data, size);
+        ok = tu_spill(path, data, size);
     }
     free(data);
     return ok;
@@ -666,7 +575,7 @@ static int patch_hit(const char *path, size_t i, uint32_t prim, float t)
 static long first_hit(const char *path, float *t, uint32_t *prim)
 {
     size_t size, i;
-    unsigned char *data = slurp(path, &size);
+    unsigned char *data = tu_slurp(path, &size);
     long found = -1;
     for (i = 0; data && found < 0 && 16 * i + 16 <= size; i++)
         if (get_le32(data + 16 * i + 4) != BRT_NO_PRIM) {
@@ -680,8 +589,8 @@ static long first_hit(const char *path, float *t, uint32_t *prim)
 
 static void expect_hitdiff(int expected_status, const char *expected_text, const char *options)
 {
-    int status = run("hitdiff @/diff_a.hits @/diff_b.hits %s", options);
-    char *out = last_stdout();
+    int status = tu_run("hitdiff @/diff_a.hits @/diff_b.hits %s", options);
+    char *out = tu_last_stdout();
     EXPECT(status == expected_status, "hitdiff %s: exit status %d, expected %d", options,
            status, expected_status);
     EXPECT(out && strstr(out, expected_text), "hitdiff %s: no '%s' in:\n%s", options,
@@ -700,35 +609,35 @@ static void test_hitdiff(void)
     int status;
     CHECK(write_lumpy_mesh(&m, "lumpy.obj"), "cannot write the test mesh");
     tu_scene_free(&m);
-    status = run("raygen @/lumpy.obj @/diff.rays --kind camera --count 1000");
+    status = tu_run("raygen @/lumpy.obj @/diff.rays --kind camera --count 1000");
     CHECK(status == 0, "raygen: exit status %d", status);
-    status = run("trace @/lumpy.obj @/diff.rays @/diff_a.hits");
+    status = tu_run("trace @/lumpy.obj @/diff.rays @/diff_a.hits");
     CHECK(status == 0, "trace: exit status %d", status);
-    hits = slurp(scratch("diff_a.hits"), &size);
-    CHECK(hits && size == 16000 && spill(scratch("diff_b.hits"), hits, size), "cannot copy hits");
+    hits = tu_slurp(tu_scratch("diff_a.hits"), &size);
+    CHECK(hits && size == 16000 && tu_spill(tu_scratch("diff_b.hits"), hits, size), "cannot copy hits");
     free(hits);
     expect_hitdiff(0, "AGREE: 0 of 1000 rays disagree", "");
 
-    i = first_hit(scratch("diff_a.hits"), &t, &prim);
+    i = first_hit(tu_scratch("diff_a.hits"), &t, &prim);
     CHECK(i >= 0, "no camera ray hits the test mesh");
     /* The same prim, t off by 1e-3 relative: past the default --t-rel. */
-    CHECK(patch_hit(scratch("diff_b.hits"), (size_t)i, prim, t * 1.001f), "cannot patch");
+    CHECK(patch_hit(tu_scratch("diff_b.hits"), (size_t)i, prim, t * 1.001f), "cannot patch");
     expect_hitdiff(1, "DISAGREE: 1 of 1000 rays disagree", "");
     expect_hitdiff(0, "AGREE: 0 of 1000", "--t-rel 0.01");
     /* Another prim: one disagreement whatever --t-rel, 0.1 % of the rays. */
-    CHECK(patch_hit(scratch("diff_b.hits"), (size_t)i, prim + 1, t), "cannot patch");
+    CHECK(patch_hit(tu_scratch("diff_b.hits"), (size_t)i, prim + 1, t), "cannot patch");
     expect_hitdiff(1, "DISAGREE: 1 of 1000", "--t-rel 0.5");
     expect_hitdiff(1, "DISAGREE: 1 of 1000", "--max-disagree 0.0009");
     expect_hitdiff(0, "AGREE: 1 of 1000", "--max-disagree 0.001");
     /* A miss in B where A hits. */
-    CHECK(patch_hit(scratch("diff_b.hits"), (size_t)i, BRT_NO_PRIM, INFINITY), "cannot patch");
+    CHECK(patch_hit(tu_scratch("diff_b.hits"), (size_t)i, BRT_NO_PRIM, INFINITY), "cannot patch");
     expect_hitdiff(1, "hit in A only                                 1", "");
 
-    hits = slurp(scratch("diff_a.hits"), &size);
-    CHECK(hits && spill(scratch("diff_b.hits"), hits, size - 16), "cannot shorten hits");
+    hits = tu_slurp(tu_scratch("diff_a.hits"), &size);
+    CHECK(hits && tu_spill(tu_scratch("diff_b.hits"), hits, size - 16), "cannot shorten hits");
     free(hits);
-    status = run("hitdiff @/diff_a.hits @/diff_b.hits");
-    hits = (unsigned char *)last_stderr();
+    status = tu_run("hitdiff @/diff_a.hits @/diff_b.hits");
+    hits = (unsigned char *)tu_last_stderr();
     EXPECT(status == 2, "lengths 1000 and 999: exit status %d, expected 2", status);
     EXPECT(hits && strstr((char *)hits, "hitdiff: ") && strstr((char *)hits, "999"),
            "no clear message on different lengths: %s", hits ? (char *)hits : "(nothing)");
@@ -789,23 +698,23 @@ static void test_bad_input(void)
     int status;
     memset(zeros, 0, sizeof zeros);
     memset(garbage, 'x', sizeof garbage);
-    CHECK(write_cube("good.obj") && spill(scratch("malformed.obj"), malformed,
-          sizeof malformed - 1) && spill(scratch("empty.obj"), "", 0)
-          && spill(scratch("edge_on.obj"), edge_on, sizeof edge_on - 1)
-          && spill(scratch("odd.rays"), zeros, 33) && spill(scratch("odd.hits"), zeros, 17)
-          && spill(scratch("corrupt.brs"), garbage, sizeof garbage)
-          && spill(scratch("short.brs"), garbage, 100),
+    CHECK(write_cube("good.obj") && tu_spill(tu_scratch("malformed.obj"), malformed,
+          sizeof malformed - 1) && tu_spill(tu_scratch("empty.obj"), "", 0)
+          && tu_spill(tu_scratch("edge_on.obj"), edge_on, sizeof edge_on - 1)
+          && tu_spill(tu_scratch("odd.rays"), zeros, 33) && tu_spill(tu_scratch("odd.hits"), zeros, 17)
+          && tu_spill(tu_scratch("corrupt.brs"), garbage, sizeof garbage)
+          && tu_spill(tu_scratch("short.brs"), garbage, 100),
           "cannot write the inputs");
-    status = run("raygen @/good.obj @/good.rays --kind random --count 10");
+    status = tu_run("raygen @/good.obj @/good.rays --kind random --count 10");
     CHECK(status == 0, "raygen: exit status %d", status);
-    status = run("trace @/good.obj @/good.rays @/good.hits");
+    status = tu_run("trace @/good.obj @/good.rays @/good.hits");
     CHECK(status == 0, "trace: exit status %d", status);
     for (i = 0; i < sizeof bad_cases / sizeof *bad_cases; i++) {
         const bad_case *c = &bad_cases[i];
         char prefix[16], *err;
         size_t len;
-        status = run("%s", c->args);
-        err = last_stderr();
+        status = tu_run("%s", c->args);
+        err = tu_last_stderr();
         len = err ? strlen(err) : 0;
         snprintf(prefix, sizeof prefix, "%.*s: ", (int)strcspn(c->args, " "), c->args);
         EXPECT(status == 1, "'%s': exit status %d, expected 1", c->args, status);
@@ -813,9 +722,9 @@ static void test_bad_input(void)
                && len > 0 && err[len - 1] == '\n' && strchr(err, '\n') == err + len - 1,
                "'%s': expected one line '%s...%s...', got '%s'", c->args, prefix, c->words,
                err ? err : "(nothing)");
-        EXPECT(!c->output || !file_exists(scratch(c->output)), "'%s' left %s behind", c->args,
+        EXPECT(!c->output || !tu_file_exists(tu_scratch(c->output)), "'%s' left %s behind", c->args,
                c->output);
-        EXPECT(!temporary_file_left(), "'%s' left a temporary file behind", c->args);
+        EXPECT(!tu_temporary_file_left(), "'%s' left a temporary file behind", c->args);
         free(err);
     }
 }
@@ -948,10 +857,10 @@ static void test_png_write(void)
     brt_error err;
     unsigned char *png;
     size_t size = 0;
-    EXPECT(ex_png_write_rgb(scratch("tiny.png"), 2, 2, rgb, &err) == BRT_OK, "%s", err.message);
-    png = slurp(scratch("tiny.png"), &size);
+    EXPECT(ex_png_write_rgb(tu_scratch("tiny.png"), 2, 2, rgb, &err) == BRT_OK, "%s", err.message);
+    png = tu_slurp(tu_scratch("tiny.png"), &size);
     EXPECT(png && png_decodes_to(png, size, 2, 2, rgb), "tiny.png does not decode");
-    EXPECT(ex_png_write_rgb(scratch("no_such_dir/x.png"), 2, 2, rgb, &err) != BRT_OK
+    EXPECT(ex_png_write_rgb(tu_scratch("no_such_dir/x.png"), 2, 2, rgb, &err) != BRT_OK
            && strstr(err.message, "no_such_dir/x.png"), "writing into a missing folder: '%s'",
            err.message);
     free(png);

@@ -10,6 +10,7 @@
 ** runs both the memory parser and the streaming file loader.
 */
 #include "test.h"
+#include "util.h"
 #include "batchrt.h"
 
 #include <errno.h>
@@ -41,25 +42,6 @@ static const char *write_scratch(const char *name, const void *data, size_t size
     if (size && fwrite(data, 1, size, f) != size) path = NULL;
     if (fclose(f) != 0) path = NULL;
     return path;
-}
-
-/* The whole file, malloc'd (NULL if it cannot be read). */
-static unsigned char *slurp(const char *path, size_t *size)
-{
-    FILE *f = fopen(path, "rb");
-    unsigned char *data = NULL;
-    long n;
-    if (!f) return NULL;
-    if (fseek(f, 0, SEEK_END) == 0 && (n = ftell(f)) >= 0 && fseek(f, 0, SEEK_SET) == 0) {
-        data = malloc((size_t)n + 1);
-        if (data && fread(data, 1, (size_t)n, f) != (size_t)n) {
-            free(data);
-            data = NULL;
-        }
-        *size = (size_t)n;
-    }
-    fclose(f);
-    return data;
 }
 
 /* A growable byte buffer for building test inputs. */
@@ -1010,7 +992,7 @@ static void test_io_rays_round_trip(void)
     for (i = 0; i < N; i++) memcpy(&rays[i], words + 8 * i, 32);
     le_words(words, N * 8, expected);
     CHECK(brt_rays_write(path, rays, N, &err) == BRT_OK, "%s", err.message);
-    bytes = slurp(path, &size);
+    bytes = tu_slurp(path, &size);
     EXPECT(bytes && size == N * 32 && memcmp(bytes, expected, size) == 0, "ray file bytes differ");
     free(bytes);
     CHECK(brt_rays_read(path, &back, &count, &err) == BRT_OK, "%s", err.message);
@@ -1041,7 +1023,7 @@ static void test_io_hits_round_trip(void)
     EXPECT(memcmp(expected, "\x00\x00\x80\x7f\xff\xff\xff\xff\0\0\0\0\0\0\0\0", 16) == 0,
            "miss record bytes");
     CHECK(brt_hits_write(path, hits, N, &err) == BRT_OK, "%s", err.message);
-    bytes = slurp(path, &size);
+    bytes = tu_slurp(path, &size);
     EXPECT(bytes && size == N * 16 && memcmp(bytes, expected, size) == 0, "hit file bytes differ");
     free(bytes);
     CHECK(brt_hits_read(path, &back, &count, &err) == BRT_OK, "%s", err.message);
@@ -1169,7 +1151,7 @@ static void test_io_stats_json(void)
     size_t size = 0, i;
     char *text;
     CHECK(brt_stats_write_json(path, &s, &err) == BRT_OK, "%s", err.message);
-    text = (char *)slurp(path, &size);
+    text = (char *)tu_slurp(path, &size);
     CHECK(text, "cannot read %s", path);
     text[size] = 0;
     EXPECT(text[0] == '{', "not an object: %s", text);

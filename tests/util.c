@@ -2,10 +2,16 @@
 ** tests/util.c -- scenes and rays shared by the test suites (util.h).
 */
 #include "util.h"
+#include "test.h"
 
+#include <dirent.h>
 #include <math.h>
+#include <stdarg.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
 
 uint32_t tu_add_vertex(tu_scene *s, float x, float y, float z)
 {
@@ -134,3 +140,94 @@ void tu_make_ray(const tu_scene *s, const float lo[3], const float hi[3], int ki
     }
     if (brt_random_float(st) < 0.25f) r->tfar = tu_rnd(st, 0.0f, 2.0f * ext);
 }
+
+/* ---- files and processes ---- */
+
+/* NAME inside the scratch directory (a few rotating buffers). */
+const char *tu_scratch(const char *name)
+{
+    static char paths[8][512];
+    static int next;
+    char *out = paths[next++ % 8];
+    snprintf(out, 512, "%s/%s", test_tmpdir(), name);
+    return out;
+}
+
+int tu_file_exists(const char *path)
+{
+    struct stat st;
+    return stat(path, &st) == 0;
+}
+
+/* The whole file, NUL-terminated (malloc'd), or NULL. */
+unsigned char *tu_slurp(const char *path, size_t *size)
+{
+    FILE *f = fopen(path, "rb");
+    unsigned char *data = NULL;
+    long n;
+    if (!f) return NULL;
+    if (fseek(f, 0, SEEK_END) == 0 && (n = ftell(f)) >= 0 && fseek(f, 0, SEEK_SET) == 0
+        && (data = malloc((size_t)n + 1)) != NULL) {
+        if (fread(data, 1, (size_t)n, f) == (size_t)n) {
+            data[n] = 0;
+            if (size) *size = (size_t)n;
+        } else {
+            free(data);
+            data = NULL;
+        }
+    }
+    fclose(f);
+    return data;
+}
+
+int tu_spill(const char *path, const void *data, size_t size)
+{
+    FILE *f = fopen(path, "wb");
+    int ok = f && fwrite(data, 1, size, f) == size;
+    if (f && fclose(f) != 0) ok = 0;
+    return ok;
+}
+
+/* Runs "$BRT_BUILD/ARGS" with '@' in ARGS standing for the scratch
+** directory; stdout and stderr go to cli.out and cli.err there.  Returns
+** the exit status, or -1 when the program died from a signal. */
+int tu_run(const char *fmt, ...)
+{
+    char args[2048], expanded[4096], cmd[8192];
+    const char *build = getenv("BRT_BUILD"), *dir = test_tmpdir(), *p;
+    size_t n = 0;
+    int status;
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(args, sizeof args, fmt, ap);
+    va_end(ap);
+    for (p = args; *p && n + strlen(dir) + 1 < sizeof expanded; p++) {
+        if (*p == '@') { memcpy(expanded + n, dir, strlen(dir)); n += strlen(dir); }
+        else expanded[n++] = *p;
+    }
+    expanded[n] = 0;
+    snprintf(cmd, sizeof cmd, "%s/%s > '%s/cli.out' 2> '%s/cli.err'",
+             build ? build : "build", expanded, dir, dir);
+    status = system(cmd);
+    if (status == -1 || !WIFEXITED(status)) return -1;
+    return WEXITSTATUS(status);
+}
+
+char *tu_last_stdout(void) { return (char *)tu_slurp(tu_scratch("cli.out"), NULL); }
+
+char *tu_last_stderr(void) { return (char *)tu_slurp(tu_scratch("cli.err"), NULL); }
+
+/* Nonzero when the scratch directory holds a "*.tmp.*" file, the trace an
+** interrupted atomic write would leave. */
+int tu_temporary_file_left(void)
+{
+    DIR *d = opendir(test_tmpdir());
+    struct dirent *e;
+    int found = 0;
+    if (!d) return 1;
+    while ((e = readdir(d)) != NULL)
+        if (strstr(e->d_name, ".tmp.")) found = 1;
+    closedir(d);
+    return found;
+}
+

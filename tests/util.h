@@ -34,4 +34,26 @@ void tu_random_unit(uint64_t *st, float d[3]);
 void tu_make_ray(const tu_scene *s, const float lo[3], const float hi[3], int kind,
                  uint64_t *st, brt_ray *r);
 
+/* ---- files and processes (for the command-line tests) ---- */
+
+/* NAME inside the scratch directory (a few rotating buffers). */
+const char *tu_scratch(const char *name);
+int tu_file_exists(const char *path);
+/* The whole file, NUL-terminated (malloc'd), or NULL; size may be NULL. */
+unsigned char *tu_slurp(const char *path, size_t *size);
+int tu_spill(const char *path, const void *data, size_t size);
+/* Runs "$BRT_BUILD/ARGS" (printf-formatted) with '@' in ARGS standing for
+** the scratch directory; stdout and stderr go to cli.out and cli.err
+** there.  Returns the exit status, or -1 when the program died. */
+int tu_run(const char *fmt, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 1, 2)))
+#endif
+    ;
+char *tu_last_stdout(void);   /* cli.out / cli.err of the last tu_run */
+char *tu_last_stderr(void);
+/* Nonzero when the scratch directory holds a "*.tmp.*" file, the trace an
+** interrupted atomic write would leave. */
+int tu_temporary_file_left(void);
+
 #endif
