@@ -93,32 +93,59 @@ double brt_seconds(void)
     return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
 }
 
+/* Writes all of data at offset (pwrite), or at the file position when
+** offset is negative (write: also pipes and devices).  Short writes and
+** EINTR are retried; a write of 0 bytes counts as a full disk. */
+static int write_fully(int fd, const void *data, size_t size, int64_t offset)
+{
+    const unsigned char *p = data;
+    while (size > 0) {
+        ssize_t n = offset < 0 ? write(fd, p, size) : pwrite(fd, p, size, (off_t)offset);
+        if (n < 0 && errno == EINTR) continue;
+        if (n <= 0) {
+            if (n == 0) errno = ENOSPC;
+            return -1;
+        }
+        p += n;
+        size -= (size_t)n;
+        if (offset >= 0) offset += n;
+    }
+    return 0;
+}
+
+/* Nonzero when path exists and is not a regular file (a device such as
+** /dev/null, a pipe): renaming a file over it would replace it. */
+static int is_special_file(const char *path)
+{
+    struct stat st;
+    return stat(path, &st) == 0 && !S_ISREG(st.st_mode);
+}
+
 brt_result brt_write_file_atomic(const char *path, const void *data,
                                  size_t size, brt_error *err)
 {
     char tmp[4096];
-    const unsigned char *p = data;
-    int fd, saved;
+    int fd, failed;
+    if (is_special_file(path)) {
+        fd = open(path, O_WRONLY);
+        failed = fd < 0 || write_fully(fd, data, size, -1) != 0;
+        if (fd >= 0 && close(fd) != 0) failed = 1;
+        return failed ? brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno)) : BRT_OK;
+    }
     if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", path, (long)getpid()) >= (int)sizeof tmp)
         return brt_fail(err, BRT_EARG, "%s: path too long", path);
     fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644);
     if (fd < 0)
         return brt_fail(err, BRT_EIO, "%s: cannot create: %s", path, strerror(errno));
-    while (size > 0) {
-        ssize_t n = write(fd, p, size);
-        if (n < 0 && errno == EINTR) continue;
-        if (n <= 0) goto fail;
-        p += n;
-        size -= (size_t)n;
+    failed = write_fully(fd, data, size, 0) != 0;
+    if (close(fd) != 0) failed = 1;
+    if (!failed && rename(tmp, path) != 0) failed = 1;
+    if (failed) {
+        int saved = errno ? errno : EIO;
+        unlink(tmp);
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(saved));
     }
-    if (close(fd) != 0) { fd = -1; goto fail; }
-    if (rename(tmp, path) != 0) { fd = -1; goto fail; }
     return BRT_OK;
-fail:
-    saved = errno;
-    if (fd >= 0) close(fd);
-    unlink(tmp);
-    return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(saved ? saved : EIO));
 }
 
 /* ===================================================================== */
@@ -1741,21 +1768,11 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
     return BRT_OK;
 }
 
-/* pwrite until done; EINTR and short writes are retried. */
 static brt_result write_at(int fd, const void *data, size_t size, uint64_t offset,
                            const char *path, brt_error *err)
 {
-    const unsigned char *p = data;
-    while (size > 0) {
-        ssize_t n = pwrite(fd, p, size, (off_t)offset);
-        if (n < 0 && errno == EINTR) continue;
-        if (n <= 0)
-            return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path,
-                            strerror(n < 0 ? errno : ENOSPC));
-        p += n;
-        size -= (size_t)n;
-        offset += (uint64_t)n;
-    }
+    if (write_fully(fd, data, size, (int64_t)offset) != 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno));
     return BRT_OK;
 }
 
@@ -1932,6 +1949,8 @@ brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
         return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", w.res);
     if (mesh->triangle_count == 0)
         return brt_fail(err, BRT_EARG, "%s: the mesh has no triangles", scene_path);
+    if (is_special_file(scene_path))
+        return brt_fail(err, BRT_EARG, "%s: not a regular file", scene_path);
     if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", scene_path, (long)getpid()) >= (int)sizeof tmp)
         return brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
     h.proxy_res = w.res;

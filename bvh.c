@@ -316,7 +316,9 @@ static inline int tri_intersect(const tri_ray *r, const brt_ray_prep *bp,
     tt = eu * (r->sz * az) + ev * (r->sz * bz) + ew * (r->sz * cz);
     rcp = 1.0f / det;
     if (!hit_distance(r, bp, p0, p1, p2, tt * rcp, &tt)) return 0;
-    if (!(tt >= tnear && tt <= tfar)) return 0;   /* NaN fails too */
+    /* A hit has a finite t in the segment (NaN fails the compares too;
+    ** an infinite t is the plane equation overflowing float). */
+    if (!(tt >= tnear && tt <= tfar) || isinf(tt)) return 0;
     *t = tt;
     *u = ev * rcp;
     *v = ew * rcp;
