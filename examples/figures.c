@@ -15,8 +15,8 @@
 **
 ** Every number comes from build/render (the program next to this one) and
 ** its statistics JSON, so the figures measure exactly what a user runs.
-** Its output goes to DIR/render.log.  As in the paper (Sec. 4), with
-** proxies on the memory limit also pays for the proxies.  Scene files are
+** Its output goes to DIR/render.log.  As in the paper, with proxies
+** on the memory limit also pays for the proxies.  Scene files are
 ** built once per resolution in the default scene folder and reused.
 */
 #include "plot.h"
@@ -210,7 +210,8 @@ static void figure2(const settings *s)
             double bytes, tests, culls;
             printf(" %g", resolutions[r]);
             fflush(stdout);
-            snprintf(extra, sizeof extra, "--res %g --out /dev/null --stats '%s'", resolutions[r], stats);
+            snprintf(extra, sizeof extra, "--res %g --out '%s/run.png' --stats '%s'", resolutions[r], s->out,
+                     stats);
             run_render(s, scene_names[i], extra);
             bytes = json_number(stats, "proxy_bytes");
             tests = json_number(stats, "proxy_tests");
@@ -231,6 +232,7 @@ static void figure2(const settings *s)
     }
     close_csv(s, csv, "fig2.csv");
     remove(stats);
+    remove(out_path(s, "run.png"));
     memset(&plot, 0, sizeof plot);
     plot.title = "Fig. 2a: proxy memory (shared DAG) against resolution";
     plot.x_label = "proxy resolution (voxels per side)";
@@ -263,8 +265,8 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
         printf(" %g", limits[l]);
         fflush(stdout);
         for (proxies = 0; proxies < 2; proxies++) {
-            snprintf(extra, sizeof extra, "--memory %g%% %s --out /dev/null --stats '%s'", limits[l],
-                     proxies ? "" : "--no-proxy", stats);
+            snprintf(extra, sizeof extra, "--memory %g%% %s --out '%s/run.png' --stats '%s'",
+                     limits[l], proxies ? "" : "--no-proxy", s->out, stats);
             run_render(s, scene_names[i], extra);
             disk[proxies][l] = json_number(stats, "disk_bytes_read") / 1048576.0;
             fprintf(csv, "%s,%g,%d,%.0f,%.0f,%.0f,%.0f,%.4f\n", scene_names[i], limits[l], proxies,
@@ -278,6 +280,7 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
         printf(" %g%%: x%.2f", limits[l], disk[1][l] / disk[0][l]);
     printf("\n");
     remove(stats);
+    remove(out_path(s, "run.png"));
 }
 
 static void figure3(const settings *s)

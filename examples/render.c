@@ -18,8 +18,8 @@
 ** to the scheduler as a stream (brt_scene_trace_stream): the scheduler asks
 ** for rays when it has free slots and hands back each finished one with
 ** its hit and geometric normal; a path that bounces gives its next ray on
-** the next request, so the number of paths in flight stays constant (the
-** paper's setting, Sec. 3).  --direct traces the same paths against one
+** the next request, so the number of paths in flight stays constant (as
+** in Pharr et al. and the paper).  --direct traces the same paths against one
 ** in-memory BVH (brt_bvh_intersect_normal), the reference.
 **
 ** DETERMINISM (design.md)
@@ -36,10 +36,11 @@
 **
 ** THE HEATMAP (the paper's Fig. 1)
 ** Batching points visited (queued) per sample in each pixel.  The stream
-** API reports visits only as a total (brt_stats.queued_visits), so the
-** heatmap is counted in a second pass with ONE ray in flight: between two
-** finished() calls the total then grows by exactly the visits of the ray
-** that finished.  A ray's visits do not depend on the schedule (its walk
+** API reports visits only as a total, brt_stats.queued_visits, which the
+** scheduler counts into the caller's struct as it goes; so the heatmap is
+** counted in a second pass with ONE ray in flight, where between two
+** finished() calls the total grows by exactly the visits of the ray that
+** finished.  A ray's visits do not depend on the schedule (its walk
 ** goes front to back whatever else is in flight), so the count is that of
 ** the main render; the second pass runs in core and must produce the same
 ** image, which is checked.
@@ -59,6 +60,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
 
 static const char *const prog = "render";
 
@@ -162,6 +164,16 @@ static void parse_memory(const char *text, options *o)
 
 static int is_option(const char *arg, const char *name) { return strcmp(arg, name) == 0; }
 
+/* Outputs are written under a temporary name and renamed over the target
+** (brt_write_file_atomic): that would replace a device such as /dev/null
+** by a plain file, so only plain files (or new names) are accepted. */
+static void check_output(const char *path)
+{
+    struct stat st;
+    if (path && stat(path, &st) == 0 && !S_ISREG(st.st_mode))
+        ex_die(prog, "%s: not a regular file; outputs replace their target", path);
+}
+
 static void parse_options(int argc, char **argv, options *o)
 {
     int i;
@@ -208,6 +220,9 @@ static void parse_options(int argc, char **argv, options *o)
                                       (unsigned long long)o->res);
     if (o->direct && (o->heatmap || o->compare))
         ex_die(prog, "--direct has no batching points: no --heatmap or --compare with it");
+    check_output(o->out);
+    check_output(o->heatmap);
+    check_output(o->stats);
 }
 
 /* ===================================================================== */
@@ -452,7 +467,15 @@ static void finished(void *user, const brt_ray *ray, const brt_hit *hit, const f
     }
     r->idle[r->idle_count++] = (uint32_t)tag;
     r->finished++;
-    if ((r->finished & 0xFFF) == 0) ex_progress("rendering", r->finished, r->total);
+    if ((r->finished & 0xFFF) == 0) ex_progress(r->visits ? "counting visits" : "rendering",
+                                                r->finished, r->total);
+}
+
+/* The progress line at 100 % and done. */
+static void end_progress(const renderer *r)
+{
+    ex_progress(r->visits ? "counting visits" : "rendering", r->total, r->total);
+    ex_progress_end();
 }
 
 /* ===================================================================== */
@@ -746,7 +769,7 @@ static void count_visits(brt_scene *scene, const render_job *job, int no_proxy, 
     topt.no_proxy = no_proxy;
     topt.rays_in_flight = 1;
     render_batched(scene, &topt, &r, &stats);
-    ex_progress_end();
+    end_progress(&r);
     if (memcmp(r.sums, x->sums, 3 * pixels * sizeof *r.sums) != 0)
         ex_die(prog, "internal error: the heatmap pass rendered a different image");
     for (i = 0; i < pixels; i++) x->heat_visits += r.visits[i];
@@ -762,7 +785,7 @@ static void run_batched(brt_scene *scene, const render_job *job, const brt_trace
     renderer_init(&r, job, 0);
     render_batched(scene, topt, &r, &out->stats);
     out->stats.build_seconds = job->scene_seconds;
-    ex_progress_end();
+    end_progress(&r);
     out->sums = r.sums;
     r.sums = NULL;
     renderer_free(&r);
@@ -779,7 +802,7 @@ static void run_direct(const brt_mesh *mesh, const render_job *job, run *out)
     out->stats.build_seconds = brt_seconds() - start;
     renderer_init(&r, job, 0);
     render_direct(bvh, &r, &out->stats);
-    ex_progress_end();
+    end_progress(&r);
     if (out->stats.seconds > 0) out->stats.mrays_per_second = out->stats.rays / out->stats.seconds * 1e-6;
     out->sums = r.sums;
     r.sums = NULL;

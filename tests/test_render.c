@@ -142,8 +142,12 @@ static void test_same_image_every_mode(void)
 {
     size_t i;
     double rays, paths;
+    char *err;
     CHECK(run("render " SMALL " --direct --out @/direct.png --stats @/direct.json") == 0,
           "render --direct failed");
+    err = slurp(scratch("render.err"), NULL);
+    EXPECT(err && err[0] == 0, "stderr is not a terminal, yet render wrote '%s' there", err ? err : "");
+    free(err);
     rays = json_number(scratch("direct.json"), "rays");
     paths = json_number(scratch("direct.json"), "paths");
     CHECK(paths == 40 * 24 * 3 && rays > 1.5 * paths,
@@ -225,9 +229,9 @@ static void test_bad_options(void)
         "--bogus", "--direct --heatmap @/never-heat.png", "@/no-such-mesh.obj", "--scale 0",
         "--out",
     };
+    char *err = NULL;
     size_t i;
     for (i = 0; i < sizeof bad / sizeof *bad; i++) {
-        char *err;
         int status = run(bad[i][0] == '@' ? "render %s --out @/never.png"
                                           : "render " SMALL " --out @/never.png %s", bad[i]);
         err = slurp(scratch("render.err"), NULL);
@@ -238,6 +242,12 @@ static void test_bad_options(void)
                "'%s': an output file was written", bad[i]);
         free(err);
     }
+    /* Outputs are renamed over their target: a device or a folder there
+    ** is refused up front (a folder stands in for /dev/null, which a
+    ** broken guard would replace). */
+    EXPECT(run("render " SMALL " --out @") == 1 && (err = slurp(scratch("render.err"), NULL)) != NULL
+           && strstr(err, "not a regular file"), "--out FOLDER was not refused up front");
+    free(err);
 }
 
 /* ---- the plot writer ---- */
