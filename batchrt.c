@@ -2440,14 +2440,15 @@ static void cache_release(page_cache *c, uint32_t id)
 ** first -- the paper's rule: each disk read serves as many rays as it can.
 **
 ** Per-ray state while queued: the ray (32 bytes), its closest hit so far
-** (16) and that triangle's normal (12), its walk key (8) and the caller's
-** tag (8): 76 bytes.
+** (16) and that triangle's normal (12), its walk key (8), the number of
+** batching points it was queued at (4) and the caller's tag (8): 80 bytes.
 */
 typedef struct ray_slot {
     brt_ray ray;
     brt_hit hit;
     float normal[3];
     walk_key key;
+    uint32_t visits;
     uint64_t tag;
 } ray_slot;
 
@@ -2556,10 +2557,11 @@ static brt_result advance(scheduler *s, uint32_t slot)
                     continue;
                 }
             }
+            r->visits++;
             return enqueue(s, r->key.id, slot);
         }
     }
-    s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->tag);
+    s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
     s->free_slots[s->free_count++] = slot;
     return BRT_OK;
 }
@@ -2579,6 +2581,7 @@ static brt_result refill(scheduler *s)
             r->tag = s->incoming_tags[i];
             brt_hit_clear(&r->hit);
             r->normal[0] = r->normal[1] = r->normal[2] = 0.0f;
+            r->visits = 0;
             r->key.t = -INFINITY;
             r->key.id = TOP_EMPTY;
             s->stats->rays++;
@@ -2709,11 +2712,12 @@ static size_t array_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
 }
 
 static void array_finished(void *user, const brt_ray *ray, const brt_hit *hit,
-                           const float normal[3], uint64_t tag)
+                           const float normal[3], uint32_t visits, uint64_t tag)
 {
     array_source *a = user;
     (void)ray;
     (void)normal;
+    (void)visits;
     a->hits[tag] = *hit;
 }
 

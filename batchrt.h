@@ -469,13 +469,14 @@ typedef struct brt_trace_options {
 ** the scheduler calls next_rays when it has room (return 0 when there are
 ** no more for now) and finished for every completed ray, in an order that
 ** depends on the schedule, with the hit triangle's geometric normal (as
-** brt_bvh_intersect_normal; zero on a miss); tag is the caller's, passed
-** through.  finished may hand rays to the next next_rays call (a path
+** brt_bvh_intersect_normal; zero on a miss) and the number of batching
+** points the ray was queued at (the paper's Fig. 1 counts these); tag is
+** the caller's, passed through.  finished may hand rays to the next next_rays call (a path
 ** tracer's bounce), so the number in flight stays constant. */
 typedef struct brt_ray_source {
     size_t (*next_rays)(void *user, brt_ray *rays, uint64_t *tags, size_t max);
     void (*finished)(void *user, const brt_ray *ray, const brt_hit *hit,
-                     const float normal[3], uint64_t tag);
+                     const float normal[3], uint32_t visits, uint64_t tag);
     void *user;
 } brt_ray_source;
 

@@ -35,15 +35,9 @@
 ** byte-identical images.  tests/test_render.c checks that.
 **
 ** THE HEATMAP (the paper's Fig. 1)
-** Batching points visited (queued) per sample in each pixel.  The stream
-** API reports visits only as a total, brt_stats.queued_visits, which the
-** scheduler counts into the caller's struct as it goes; so the heatmap is
-** counted in a second pass with ONE ray in flight, where between two
-** finished() calls the total grows by exactly the visits of the ray that
-** finished.  A ray's visits do not depend on the schedule (its walk
-** goes front to back whatever else is in flight), so the count is that of
-** the main render; the second pass runs in core and must produce the same
-** image, which is checked.
+** Batching points visited (queued) per sample in each pixel: the scheduler
+** reports with each finished ray how many batching points it was queued
+** at, and each path adds its rays' counts to its pixel.
 **
 ** BUILT-IN SCENES ON DISK
 ** A built-in scene is generated in memory (fast: about 10 M triangles/s);
@@ -349,9 +343,7 @@ typedef struct renderer {
     uint32_t *pending, pending_count;  /* paths whose next ray awaits next_rays */
     uint64_t started, finished, total; /* path number = sample * pixels + pixel */
     uint64_t *sums;                    /* 3 per pixel, fixed point (FIXED_ONE) */
-    uint64_t *visits;                  /* per pixel, or NULL: the heatmap pass */
-    const brt_stats *live;             /* the heatmap pass reads its running total */
-    uint64_t visits_seen;
+    uint64_t *visits;                  /* queued visits per pixel, or NULL */
 } renderer;
 
 static void renderer_init(renderer *r, const render_job *job, int count_visits)
@@ -449,14 +441,11 @@ static int scatter(const render_job *job, path_state *p, const brt_ray *ray, con
 /* brt_ray_source.finished: the path escapes to the sky, ends, or waits
 ** with its bounce ray for the next next_rays call. */
 static void finished(void *user, const brt_ray *ray, const brt_hit *hit, const float normal[3],
-                     uint64_t tag)
+                     uint32_t visits, uint64_t tag)
 {
     renderer *r = user;
     path_state *p = &r->paths[tag];
-    if (r->visits) {
-        r->visits[p->pixel] += r->live->queued_visits - r->visits_seen;
-        r->visits_seen = r->live->queued_visits;
-    }
+    if (r->visits) r->visits[p->pixel] += visits;
     if (hit->prim == BRT_NO_PRIM) {
         double sky[3];
         sky_radiance(ray->dir, sky);
@@ -467,14 +456,13 @@ static void finished(void *user, const brt_ray *ray, const brt_hit *hit, const f
     }
     r->idle[r->idle_count++] = (uint32_t)tag;
     r->finished++;
-    if ((r->finished & 0xFFF) == 0) ex_progress(r->visits ? "counting visits" : "rendering",
-                                                r->finished, r->total);
+    if ((r->finished & 0xFFF) == 0) ex_progress("rendering", r->finished, r->total);
 }
 
 /* The progress line at 100 % and done. */
 static void end_progress(const renderer *r)
 {
-    ex_progress(r->visits ? "counting visits" : "rendering", r->total, r->total);
+    ex_progress("rendering", r->total, r->total);
     ex_progress_end();
 }
 
@@ -495,7 +483,7 @@ static void render_direct(const brt_bvh *bvh, renderer *r, brt_stats *stats)
             float normal[3] = {0, 0, 0};
             brt_hit_clear(&hit);
             brt_bvh_intersect_normal(bvh, &rays[i], &hit, normal);
-            finished(r, &rays[i], &hit, normal, tags[i]);
+            finished(r, &rays[i], &hit, normal, 0, tags[i]);
         }
         stats->rays += n;
     }
@@ -510,7 +498,6 @@ static void render_batched(brt_scene *scene, const brt_trace_options *topt, rend
     source.next_rays = next_rays;
     source.finished = finished;
     source.user = r;
-    r->live = stats;
     ex_check(prog, brt_scene_trace_stream(scene, topt, &source, stats, &err), &err);
 }
 
@@ -751,45 +738,25 @@ typedef struct run {
     const char *label;
     brt_stats stats;
     uint64_t *sums;            /* pixel sums (owned) */
-    uint64_t *visits;          /* the heatmap pass, or NULL (owned) */
+    uint64_t *visits;          /* queued visits per pixel, or NULL (owned) */
     uint64_t heat_visits;      /* their total */
 } run;
-
-/* The heatmap pass: the same paths one at a time, in core (see the top). */
-static void count_visits(brt_scene *scene, const render_job *job, int no_proxy, run *x)
-{
-    render_job single = *job;
-    renderer r;
-    brt_trace_options topt;
-    brt_stats stats;
-    size_t pixels = (size_t)job->camera.width * job->camera.height, i;
-    single.paths_in_flight = 1;
-    renderer_init(&r, &single, 1);
-    memset(&topt, 0, sizeof topt);
-    topt.no_proxy = no_proxy;
-    topt.rays_in_flight = 1;
-    render_batched(scene, &topt, &r, &stats);
-    end_progress(&r);
-    if (memcmp(r.sums, x->sums, 3 * pixels * sizeof *r.sums) != 0)
-        ex_die(prog, "internal error: the heatmap pass rendered a different image");
-    for (i = 0; i < pixels; i++) x->heat_visits += r.visits[i];
-    x->visits = r.visits;
-    r.visits = NULL;
-    renderer_free(&r);
-}
 
 static void run_batched(brt_scene *scene, const render_job *job, const brt_trace_options *topt,
                         int heatmap, run *out)
 {
     renderer r;
-    renderer_init(&r, job, 0);
+    size_t pixels = (size_t)job->camera.width * job->camera.height, i;
+    renderer_init(&r, job, heatmap);
     render_batched(scene, topt, &r, &out->stats);
     out->stats.build_seconds = job->scene_seconds;
     end_progress(&r);
     out->sums = r.sums;
+    out->visits = r.visits;
+    for (i = 0; r.visits && i < pixels; i++) out->heat_visits += r.visits[i];
     r.sums = NULL;
+    r.visits = NULL;
     renderer_free(&r);
-    if (heatmap) count_visits(scene, job, topt->no_proxy, out);
 }
 
 static void run_direct(const brt_mesh *mesh, const render_job *job, run *out)

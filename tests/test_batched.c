@@ -273,6 +273,7 @@ typedef struct stream_state {
     const fixture *f;
     brt_hit *hits;
     size_t next, finished, bad_normals;
+    uint64_t visits;           /* the per-ray counts, added up */
     size_t batch;              /* rays handed out per call at most */
 } stream_state;
 
@@ -289,13 +290,14 @@ static size_t stream_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
 
 /* Records the hit, and checks the normal against the mesh's triangle. */
 static void stream_finished(void *user, const brt_ray *ray, const brt_hit *hit,
-                            const float normal[3], uint64_t tag)
+                            const float normal[3], uint32_t visits, uint64_t tag)
 {
     stream_state *s = user;
     float want[3] = {0, 0, 0};
     (void)ray;
     s->hits[tag] = *hit;
     s->finished++;
+    s->visits += visits;
     if (hit->prim != BRT_NO_PRIM) {
         const float *v0 = tu_vertex(&s->f->scene, hit->prim, 0), *v1 = tu_vertex(&s->f->scene, hit->prim, 1),
                     *v2 = tu_vertex(&s->f->scene, hit->prim, 2);
@@ -327,6 +329,7 @@ static void test_rays_in_flight(void)
         brt_trace_options opt;
         brt_ray_source source;
         stream_state s;
+        brt_stats stats;
         brt_error err;
         memset(&opt, 0, sizeof opt);
         opt.rays_in_flight = in_flight[i];
@@ -334,11 +337,15 @@ static void test_rays_in_flight(void)
         s.f = &f;
         s.hits = malloc(f.count * sizeof *s.hits);
         s.next = s.finished = s.bad_normals = 0;
+        s.visits = 0;
         s.batch = 3;
         source.next_rays = stream_next;
         source.finished = stream_finished;
         source.user = &s;
-        EXPECT(brt_scene_trace_stream(scene, &opt, &source, NULL, &err) == BRT_OK, "%s", err.message);
+        EXPECT(brt_scene_trace_stream(scene, &opt, &source, &stats, &err) == BRT_OK, "%s", err.message);
+        EXPECT(s.visits == stats.queued_visits && s.visits > 0,
+               "per-ray visits add up to %llu, statistics say %llu", (unsigned long long)s.visits,
+               (unsigned long long)stats.queued_visits);
         EXPECT(s.finished == f.count, "%zu of %zu rays finished", s.finished, f.count);
         EXPECT(s.bad_normals == 0, "%zu hits came with a wrong normal", s.bad_normals);
         EXPECT(memcmp(s.hits, f.direct, f.count * sizeof *s.hits) == 0,

@@ -9,7 +9,7 @@
 **    programs, each with its exact exit status and stderr line, and no
 **    output or "*.tmp.*" file left behind (tests/test_cli.c covers the
 **    first cases; this table adds the rest: NaN and huge values, index
-**    overflow, binary garbage, truncation, voxelize and mkscene);
+**    overflow, binary garbage, truncation, voxelize, mkscene and render);
 **  - read faults injected through brt_trace_options.read_fn: EIO and end
 **    of file at every call, short reads of every size, EINTR; the rays
 **    finished before a fault must carry exactly the direct-mode hit;
@@ -17,7 +17,7 @@
 **    ignored makes write() fail with EFBIG, as a full disk fails with
 **    ENOSPC): the library and the programs must leave no partial file;
 **  - limits: one triangle, all triangles identical, a memory limit below
-**    one batching point, one ray in flight, no rays at all.
+**    one batching point, one ray in flight, no rays at all, a 1x1 image.
 ** Oracles: the direct mode and brute force over brt_intersect_triangle.
 */
 #include "test.h"
@@ -287,6 +287,16 @@ static const bad_run bad_runs[] = {
      "mkscene: @/no_such_dir/b39.ply: cannot create: No such file or directory", NULL},
     {"mkscene crown @/b40.ply --seed", 1, "mkscene: --seed needs a value (see --help)", "b40.ply"},
     {"mkscene crown", 1, "mkscene: expected NAME and OUT.ply|OUT.obj (see --help)", NULL},
+    {"render crown --scale 0.01 --spp 0 --out @/b41.png", 1,
+     "render: --spp: expected an integer in 1..65536, got '0'", "b41.png"},
+    {"render crown --scale 0.01 --width 0 --out @/b42.png", 1,
+     "render: --width: expected an integer in 1..16384, got '0'", "b42.png"},
+    {"render crown --scale 0.01 --height -3 --out @/b43.png", 1,
+     "render: --height: expected an integer in 1..16384, got '-3'", "b43.png"},
+    {"render crown --scale 0.01 --rays-in-flight 0 --out @/b44.png", 1,
+     "render: --rays-in-flight: expected an integer in 1..67108864, got '0'", "b44.png"},
+    {"render @/nan.obj --scene @/b45.brs --out @/b45.png", 1,
+     "render: @/nan.obj:2: coordinate 'nan' is not finite", "b45.png"},
 };
 
 /* A binary PLY (one triangle) cut inside its face record. */
@@ -387,6 +397,37 @@ static void test_empty_ray_file(void)
     }
 }
 
+/* A 1x1 image: the direct mode, and the batched one at its limits (one
+** triangle per batching point, 2^3 proxies, 1 byte of memory, one path in
+** flight), write the same PNG bytes. */
+static void test_one_pixel_render(void)
+{
+    static const char *const modes[] = {
+        "--direct", "--batch-tris 1 --res 2 --memory 1 --rays-in-flight 1 --scene @/px1.brs",
+        "--no-proxy --scene @/px2.brs"};
+    char *first = NULL, *png = NULL;
+    int i;
+    for (i = 0; i < 3 && !test_failed(); i++) {
+        char args[256], path[600];
+        FILE *f;
+        long n = 0;
+        snprintf(args, sizeof args, "render crown --scale 0.01 --width 1 --height 1 --spp 16 "
+                 "%s --out @/px.png", modes[i]);
+        EXPECT(run(-1, args) == 0, "'%s' failed", args);
+        expand("@/px.png", path, sizeof path);
+        png = calloc(4096, 1);
+        if (png && (f = fopen(path, "rb")) != NULL) {
+            n = (long)fread(png, 1, 4096, f);
+            fclose(f);
+        }
+        EXPECT(n > 8 && (!first || memcmp(first, png, 4096) == 0), "'%s': a PNG of %ld bytes, "
+               "%s", args, n, first ? "unlike the direct one" : "too short");
+        if (!first) first = png;
+        else free(png);
+    }
+    free(first);
+}
+
 /* ===================================================================== */
 /* Scenes and rays for the fault and limit tests                         */
 /* ===================================================================== */
@@ -470,11 +511,12 @@ static size_t stream_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
 }
 
 static void stream_finished(void *user, const brt_ray *ray, const brt_hit *hit,
-                            const float normal[3], uint64_t tag)
+                            const float normal[3], uint32_t visits, uint64_t tag)
 {
     stream *s = user;
     (void)ray;
     (void)normal;
+    (void)visits;
     s->hits[tag] = *hit;
     s->done[tag]++;
     s->finished++;
@@ -504,12 +546,13 @@ static void stream_free(stream *s)
 }
 
 /* Traces all rays with opt and compares every hit with the direct mode. */
-static int trace_equals_direct(const bench *b, const brt_trace_options *opt, const char *what)
+static int trace_equals_direct(const bench *b, const brt_trace_options *opt, brt_stats *stats,
+                               const char *what)
 {
     brt_hit *hits = malloc((b->count ? b->count : 1) * sizeof *hits);
     brt_error err;
     size_t i;
-    brt_result r = hits ? brt_scene_trace(b->scene, opt, b->rays, b->count, hits, NULL, &err)
+    brt_result r = hits ? brt_scene_trace(b->scene, opt, b->rays, b->count, hits, stats, &err)
                         : BRT_ENOMEM;
     int ok = r == BRT_OK;
     if (!ok) test_fail_at(__FILE__, __LINE__, "%s: %s", what, err.message);
@@ -636,7 +679,7 @@ static void test_short_reads_every_size(void)
         plan.eintr = chunk % 2;
         snprintf(what, sizeof what, "reads of at most %zu bytes%s", plan.chunk,
                  plan.eintr ? ", EINTR" : "");
-        trace_equals_direct(&b, &opt, what);
+        trace_equals_direct(&b, &opt, NULL, what);
     }
     bench_free(&b);
 }
@@ -743,6 +786,12 @@ static const bad_run full_disk_runs[] = {
      "trace: @/f4.brs: cannot write: File too large", "f4.brs"},
     {"raygen @/tri.obj @/f5.rays --kind random --count 1000", 1,
      "raygen: @/f5.rays: cannot write: File too large", "f5.rays"},
+    {"voxelize @/tri.obj --res 4 --out @/f6.png", 1,
+     "voxelize: @/f6.png: cannot write: File too large", "f6.png"},
+    {"render crown --scale 0.01 --width 64 --height 64 --spp 1 --direct --out @/f7.png", 1,
+     "render: @/f7.png: cannot write: File too large", "f7.png"},
+    {"render crown --scale 0.01 --width 64 --height 64 --spp 1 --scene @/f8.brs --out @/f8.png",
+     1, "render: @/f8.brs: cannot write: File too large", "f8.brs"},
 };
 
 static void test_full_disk_programs(void)
@@ -777,7 +826,7 @@ static void sweep_limits(bench *b, const uint32_t *batch, int nbatch, const char
                     snprintf(what, sizeof what, "%s: batch %u, memory %llu, %u in flight, "
                              "proxies %s", name, batch[i], (unsigned long long)memory[m],
                              in_flight[f], proxy ? "on" : "off");
-                    trace_equals_direct(b, &opt, what);
+                    trace_equals_direct(b, &opt, NULL, what);
                 }
     }
 }
@@ -814,7 +863,7 @@ static void test_single_triangle(void)
     bench_free(&b);
 }
 
-/* 300 copies of one triangle, sharing vertices or not: every hit is the
+/* 100 copies of one triangle, sharing vertices or not: every hit is the
 ** lowest prim, 0, at the distance of triangle 0. */
 static void test_identical_triangles(void)
 {
@@ -827,7 +876,7 @@ static void test_identical_triangles(void)
     first[0] = tu_add_vertex(&b.mesh, -0.5f, -0.4f, 0.1f);
     first[1] = tu_add_vertex(&b.mesh, 0.6f, -0.3f, -0.2f);
     first[2] = tu_add_vertex(&b.mesh, 0.0f, 0.7f, 0.3f);
-    for (i = 0; i < 300; i++) {
+    for (i = 0; i < 100; i++) {
         uint32_t v[3];
         for (c = 0; c < 3; c++)
             v[c] = i % 2 ? first[c] : tu_add_vertex(&b.mesh, b.mesh.pos[3 * first[c]],
@@ -835,7 +884,7 @@ static void test_identical_triangles(void)
                                                     b.mesh.pos[3 * first[c] + 2]);
         tu_add_triangle(&b.mesh, v[0], v[1], v[2]);
     }
-    CHECK(bench_rays(&b, 60, test_seed() + 74), "out of memory");
+    CHECK(bench_rays(&b, 30, test_seed() + 74), "out of memory");
     for (r = 0; r < b.count; r++) {
         float t, u, v;
         int hit = brt_intersect_triangle(&b.rays[r], b.mesh.pos, b.mesh.pos + 3, b.mesh.pos + 6,
@@ -855,26 +904,26 @@ static void test_budget_below_one_batching_point(void)
     bench b;
     brt_trace_options opt;
     brt_stats stats;
+    brt_hit none;
     brt_error err;
     uint64_t st = test_seed() + 75;
     memset(&b, 0, sizeof b);
     tu_random_soup(&b.mesh, &st, 2000, 0.03f);
-    CHECK(bench_rays(&b, 100, st) && bench_scene(&b, 100000, 16, "one_point.brs"), "no bench");
     memset(&opt, 0, sizeof opt);
     opt.no_proxy = 1;
-    CHECK(trace_equals_direct(&b, &opt, "no limit"), "no limit");
-    CHECK(brt_scene_trace(b.scene, &opt, b.rays, 1, b.direct, &stats, &err) == BRT_OK
-          && stats.batching_points == 1 && stats.geometry_bytes > 1, "%s", err.message);
-    opt.memory_limit = stats.geometry_bytes - 1;
-    opt.rays_in_flight = 1;
-    CHECK(trace_equals_direct(&b, &opt, "a budget below the batching point"), "failed");
-    CHECK(brt_scene_trace(b.scene, &opt, b.rays, b.count, b.direct, &stats, &err) == BRT_OK,
-          "%s", err.message);
-    EXPECT(stats.batch_loads > 0 && stats.oversized_loads == stats.batch_loads,
-           "%llu loads, %llu oversized", (unsigned long long)stats.batch_loads,
-           (unsigned long long)stats.oversized_loads);
-    EXPECT(brt_scene_trace(b.scene, &opt, b.rays, 0, b.direct, &stats, &err) == BRT_OK
-           && stats.rays == 0, "a trace of no rays: %s", err.message);
+    if (bench_rays(&b, 100, st) && bench_scene(&b, 100000, 16, "one_point.brs")
+        && trace_equals_direct(&b, &opt, &stats, "no limit")) {
+        EXPECT(stats.batching_points == 1 && stats.geometry_bytes > 1, "%llu batching points",
+               (unsigned long long)stats.batching_points);
+        opt.memory_limit = stats.geometry_bytes - 1;
+        opt.rays_in_flight = 1;
+        if (trace_equals_direct(&b, &opt, &stats, "a budget below the batching point"))
+            EXPECT(stats.batch_loads > 0 && stats.oversized_loads == stats.batch_loads,
+                   "%llu loads, %llu oversized", (unsigned long long)stats.batch_loads,
+                   (unsigned long long)stats.oversized_loads);
+        EXPECT(brt_scene_trace(b.scene, &opt, b.rays, 0, &none, &stats, &err) == BRT_OK
+               && stats.rays == 0, "a trace of no rays: %s", err.message);
+    }
     bench_free(&b);
 }
 
@@ -889,6 +938,7 @@ void suite_hardening(void)
     test_run("hardening: file-size limit, no partial scene or ray file", test_write_faults);
     test_run("hardening: programs on a full disk leave nothing", test_full_disk_programs);
     test_run("hardening: one triangle, every limit", test_single_triangle);
+    test_run("hardening: a 1x1 render, direct == batched at its limits", test_one_pixel_render);
     test_run("hardening: identical triangles, every limit", test_identical_triangles);
     test_run("hardening: budget below one batching point, no rays",
              test_budget_below_one_batching_point);
