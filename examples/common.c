@@ -301,13 +301,14 @@ static int make_folders(char *path)
     return mkdir(path, 0755) != 0 && errno != EEXIST ? -1 : 0;
 }
 
-static void scene_folder(char *dir, size_t size)
+void ex_scene_folder(const char *prog, char *dir, size_t size)
 {
     const char *env = getenv("BRT_SCENE_DIR"), *xdg = getenv("XDG_CACHE_HOME"), *home = getenv("HOME");
     if (env && *env) snprintf(dir, size, "%s", env);
     else if (xdg && *xdg) snprintf(dir, size, "%s/batchrt", xdg);
     else if (home && *home) snprintf(dir, size, "%s/.cache/batchrt", home);
     else snprintf(dir, size, "/tmp/batchrt-%ld", (long)getuid());
+    if (make_folders(dir) != 0) ex_die(prog, "%s: cannot create the scene folder: %s", dir, strerror(errno));
 }
 
 void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tris,
@@ -316,8 +317,7 @@ void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tr
     char dir[2048], absolute[PATH_MAX];
     const char *base = strrchr(mesh, '/'), *p;
     uint32_t hash = 2166136261u;   /* FNV-1a of the absolute path */
-    scene_folder(dir, sizeof dir);
-    if (make_folders(dir) != 0) ex_die(prog, "%s: cannot create the scene folder: %s", dir, strerror(errno));
+    ex_scene_folder(prog, dir, sizeof dir);
     if (!realpath(mesh, absolute)) ex_die(prog, "%s: %s", mesh, strerror(errno));
     for (p = absolute; *p; p++) hash = (hash ^ (unsigned char)*p) * 16777619u;
     base = base ? base + 1 : mesh;

@@ -37,11 +37,14 @@ uint64_t ex_parse_size(const char *prog, const char *option, const char *text);
 /* The value after option argv[*i] (advancing *i), or dies when missing. */
 const char *ex_option_value(const char *prog, int argc, char **argv, int *i);
 
-/* Where the batched mode keeps the scene file of a mesh when --scene is
-** not given: $BRT_SCENE_DIR, else $XDG_CACHE_HOME/batchrt, else
-** $HOME/.cache/batchrt, else /tmp/batchrt-<uid>; the name is the mesh's
-** base name, a hash of its absolute path and the settings, e.g.
-** "bunny.obj-1f3a9c2e-b100000-r128.brs".  Creates the folder. */
+/* The folder of scene files when --scene is not given: $BRT_SCENE_DIR,
+** else $XDG_CACHE_HOME/batchrt, else $HOME/.cache/batchrt, else
+** /tmp/batchrt-<uid>.  Creates it (or dies). */
+void ex_scene_folder(const char *prog, char *dir, size_t size);
+
+/* The default scene file of a mesh, in that folder: the mesh's base name,
+** a hash of its absolute path and the settings, e.g.
+** "bunny.obj-1f3a9c2e-b100000-r128.brs". */
 void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tris,
                            uint32_t res, char *path, size_t size);
 

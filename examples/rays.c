@@ -200,13 +200,37 @@ static void tangent_frame(const double n[3], double t[3], double b[3])
     b[0] = c;                         b[1] = s + n[1] * n[1] * a; b[2] = -n[1];
 }
 
+int ex_lambert_bounce(const double point[3], const double normal[3], const float incoming[3],
+                      double diagonal, double u1, double u2, brt_ray *out)
+{
+    double n[3], t[3], b[3], p[3], dir[3], len = sqrt(dot3(normal, normal)), scale = 0;
+    double r = sqrt(u1), phi = 2.0 * PI * u2;
+    double x = r * cos(phi), y = r * sin(phi), z = sqrt(fmax(0.0, 1.0 - u1));
+    int k;
+    if (!(len > 0)) return 0;
+    if (normal[0] * incoming[0] + normal[1] * incoming[1] + normal[2] * incoming[2] > 0) len = -len;
+    for (k = 0; k < 3; k++) {
+        n[k] = normal[k] / len;
+        scale = fmax(scale, fabs(point[k]));
+    }
+    tangent_frame(n, t, b);
+    /* The offset is relative to the scene size and to the coordinates'
+    ** magnitude, so the nudged origin clears the surface by many float ulps
+    ** at any scale and any distance from the origin. */
+    scale = 1e-5 * (scale + diagonal);
+    for (k = 0; k < 3; k++) {
+        p[k] = point[k] + scale * n[k];
+        dir[k] = x * t[k] + y * b[k] + z * n[k];
+    }
+    set_ray(out, p, dir);
+    return 1;
+}
+
 void ex_bounce_ray(const brt_mesh *mesh, double diagonal, const brt_ray *in,
                    const brt_hit *hit, uint64_t *rng, brt_ray *out)
 {
     const uint32_t *tri = mesh->indices + 3 * (size_t)hit->prim;
-    double v[3][3], e1[3], e2[3], n[3], t[3], b[3], p[3], dir[3], scale = 0;
-    double r = sqrt(brt_random_float(rng)), phi = 2.0 * PI * brt_random_float(rng);
-    double x = r * cos(phi), y = r * sin(phi), z = sqrt(fmax(0.0, 1.0 - r * r));
+    double v[3][3], e1[3], e2[3], n[3], p[3], u1 = brt_random_float(rng), u2 = brt_random_float(rng);
     int j, k;
     for (j = 0; j < 3; j++)
         for (k = 0; k < 3; k++) v[j][k] = mesh->positions[3 * (size_t)tri[j] + k];
@@ -214,22 +238,9 @@ void ex_bounce_ray(const brt_mesh *mesh, double diagonal, const brt_ray *in,
         e1[k] = v[1][k] - v[0][k];
         e2[k] = v[2][k] - v[0][k];
         p[k] = (1.0 - hit->u - hit->v) * v[0][k] + hit->u * v[1][k] + hit->v * v[2][k];
-        scale = fmax(scale, fabs(p[k]));
     }
     cross3(e1, e2, n);
-    normalize3(n);
-    if (n[0] * in->dir[0] + n[1] * in->dir[1] + n[2] * in->dir[2] > 0)
-        for (k = 0; k < 3; k++) n[k] = -n[k];
-    tangent_frame(n, t, b);
-    /* The offset is relative to the mesh size and to the coordinates'
-    ** magnitude, so the nudged origin clears the surface by many float ulps
-    ** at any scale and any distance from the origin. */
-    scale = 1e-5 * (scale + diagonal);
-    for (k = 0; k < 3; k++) {
-        p[k] += scale * n[k];
-        dir[k] = x * t[k] + y * b[k] + z * n[k];
-    }
-    set_ray(out, p, dir);
+    ex_lambert_bounce(p, n, in->dir, diagonal, u1, u2, out);
 }
 
 double ex_mesh_diagonal(const brt_mesh *mesh)

@@ -39,8 +39,15 @@ void ex_rays_random(const float bmin[3], const float bmax[3], brt_ray *rays, siz
                     uint64_t *rng);
 /* Length of the diagonal of the mesh's bounding box. */
 double ex_mesh_diagonal(const brt_mesh *mesh);
-/* From the hit of ray in, nudged off the surface along the geometric
-** normal facing in, a cosine-weighted direction about that normal. */
+/* A Lambert bounce: from point nudged off the surface along the normal
+** (any length, either side) turned to face the incoming direction, a
+** cosine-weighted direction about it from the uniform numbers (u1, u2)
+** (Malley's method).  The nudge is 1e-5 of the scene diagonal plus the
+** point's largest |coordinate|.  Returns 0 for a zero normal. */
+int ex_lambert_bounce(const double point[3], const double normal[3], const float incoming[3],
+                      double diagonal, double u1, double u2, brt_ray *out);
+/* ex_lambert_bounce at the hit of ray in, with the triangle's normal and
+** two numbers drawn from rng. */
 void ex_bounce_ray(const brt_mesh *mesh, double diagonal, const brt_ray *in,
                    const brt_hit *hit, uint64_t *rng, brt_ray *out);
 /* count bounce rays from camera rays that hit (pixel i first, then random

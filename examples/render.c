@@ -41,7 +41,7 @@
 **
 ** BUILT-IN SCENES ON DISK
 ** A built-in scene is generated in memory (fast: about 10 M triangles/s);
-** its scene file goes to the default scene folder (ex_default_scene_path)
+** its scene file goes to the default scene folder (ex_scene_folder)
 ** under a name made of the scene name, scale, seed and the build options,
 ** and carries a stamp of them (brt_scene_matches), so it is built once
 ** and reused.
@@ -58,7 +58,6 @@
 
 static const char *const prog = "render";
 
-#define PI 3.14159265358979323846
 #define ALBEDO 0.8
 #define MAX_DEPTH 8           /* bounces; a path ends at its 8th hit */
 #define ROULETTE_DEPTH 3      /* Russian roulette from the 3rd hit on */
@@ -269,52 +268,18 @@ static void sky_radiance(const float d[3], double rgb[3])
         rgb[k] = (1 - a) * horizon[k] + a * (up >= 0 ? zenith[k] : ground[k]) + lobe * sun[k];
 }
 
-static double dot3(const double a[3], const double b[3])
-{
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-}
-
-/* Orthonormal basis (t, b) around the unit normal n (Duff et al. 2017). */
-static void tangent_frame(const double n[3], double t[3], double b[3])
-{
-    double s = n[2] >= 0 ? 1.0 : -1.0, a = -1.0 / (s + n[2]), c = n[0] * n[1] * a;
-    t[0] = 1.0 + s * n[0] * n[0] * a; t[1] = s * c;           t[2] = -s * n[0];
-    b[0] = c;                         b[1] = s + n[1] * n[1] * a; b[2] = -n[1];
-}
-
-/* The Lambert bounce from the hit of ray `in`: a cosine-weighted direction
-** (u1, u2) about the geometric normal turned to face the incoming ray, from
-** the hit point nudged off the surface along it by the offset rule of
-** ex_bounce_ray (examples/rays.c): 1e-5 of the scene diagonal plus the
-** point's largest coordinate, so it clears the surface by many float ulps
-** at any scale.  Returns 0 for a zero normal (nothing to bounce from). */
+/* The Lambert bounce from the hit of ray `in` (ex_lambert_bounce); the
+** hit point comes from t, as batched mode has no mesh in memory. */
 static int lambert_bounce(const brt_ray *in, const brt_hit *hit, const float normal[3],
                           double diagonal, double u1, double u2, brt_ray *out)
 {
-    double n[3], t[3], b[3], p[3], dir[3], len, scale = 0;
-    double r = sqrt(u1), phi = 2.0 * PI * u2, x = r * cos(phi), y = r * sin(phi);
-    double z = sqrt(fmax(0.0, 1.0 - u1));
+    double n[3], p[3];
     int k;
-    for (k = 0; k < 3; k++) n[k] = normal[k];
-    len = sqrt(dot3(n, n));
-    if (!(len > 0)) return 0;
-    if (n[0] * in->dir[0] + n[1] * in->dir[1] + n[2] * in->dir[2] > 0) len = -len;
     for (k = 0; k < 3; k++) {
-        n[k] /= len;
+        n[k] = normal[k];
         p[k] = (double)in->org[k] + (double)hit->t * in->dir[k];
-        scale = fmax(scale, fabs(p[k]));
     }
-    tangent_frame(n, t, b);
-    scale = 1e-5 * (scale + diagonal);
-    for (k = 0; k < 3; k++) dir[k] = x * t[k] + y * b[k] + z * n[k];
-    len = sqrt(dot3(dir, dir));
-    for (k = 0; k < 3; k++) {
-        out->org[k] = (float)(p[k] + scale * n[k]);
-        out->dir[k] = (float)(dir[k] / len);
-    }
-    out->tnear = 0.0f;
-    out->tfar = INFINITY;
-    return 1;
+    return ex_lambert_bounce(p, n, in->dir, diagonal, u1, u2, out);
 }
 
 /* ===================================================================== */
@@ -543,18 +508,14 @@ static uint64_t builtin_stamp(const options *o, char *recipe, size_t size)
     return h;
 }
 
-/* DIR/RECIPE-bBATCH-rRES.brs in the scene folder of ex_default_scene_path.
-** That function names files after mesh files that exist; asked about "."
-** it names one in the folder (creating it), and only the folder is kept. */
+/* DIR/RECIPE-bBATCH-rRES.brs in the scene folder (ex_scene_folder). */
 static void builtin_scene_path(const options *o, const char *recipe, char *path, size_t size)
 {
-    char probe[4096], *slash;
-    ex_default_scene_path(prog, ".", (uint32_t)o->batch_tris, (uint32_t)o->res, probe, sizeof probe);
-    slash = strrchr(probe, '/');
-    *slash = 0;
-    if (snprintf(path, size, "%s/%s-b%llu-r%llu.brs", probe, recipe,
+    char dir[4096];
+    ex_scene_folder(prog, dir, sizeof dir);
+    if (snprintf(path, size, "%s/%s-b%llu-r%llu.brs", dir, recipe,
                  (unsigned long long)o->batch_tris, (unsigned long long)o->res) >= (int)size)
-        ex_die(prog, "%s: scene path too long", probe);
+        ex_die(prog, "%s: scene path too long", dir);
 }
 
 /* Opens the scene file when it matches the built-in recipe, else builds it
