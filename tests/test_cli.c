@@ -733,93 +733,14 @@ static void test_bad_input(void)
 /* PNG: an independent decoder for the stored-block subset               */
 /* ===================================================================== */
 
-static uint32_t get_be32(const unsigned char *p)
-{
-    return (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | (uint32_t)p[3];
-}
-
-/* CRC-32 bit by bit (no table), the definition of ISO 3309. */
-static uint32_t bitwise_crc32(const unsigned char *data, size_t size)
-{
-    uint32_t crc = 0xFFFFFFFFu;
-    size_t i;
-    int k;
-    for (i = 0; i < size; i++) {
-        crc ^= data[i];
-        for (k = 0; k < 8; k++) crc = (crc >> 1) ^ (0xEDB88320u & (0u - (crc & 1u)));
-    }
-    return ~crc;
-}
-
-/* Adler-32 with a modulo per byte (the definition, not the fast form). */
-static uint32_t slow_adler32(const unsigned char *data, size_t size)
-{
-    uint32_t a = 1, b = 0;
-    size_t i;
-    for (i = 0; i < size; i++) {
-        a = (a + data[i]) % 65521u;
-        b = (b + a) % 65521u;
-    }
-    return b << 16 | a;
-}
-
-/* Inflates a zlib stream made only of stored blocks into out (capacity
-** cap); returns the inflated size or -1 on any violation of RFC 1950/1951. */
-static long inflate_stored(const unsigned char *z, size_t size, unsigned char *out, size_t cap)
-{
-    size_t pos = 2, n = 0;
-    int final = 0;
-    if (size < 6 || (z[0] & 0x0F) != 8 || ((unsigned)z[0] << 8 | z[1]) % 31 != 0 || (z[1] & 0x20))
-        return -1;
-    while (!final) {
-        uint32_t len, nlen;
-        if (pos + 5 > size || (z[pos] >> 1 & 3) != 0) return -1;   /* BTYPE 00 only */
-        final = z[pos] & 1;
-        len = (uint32_t)z[pos + 1] | (uint32_t)z[pos + 2] << 8;
-        nlen = (uint32_t)z[pos + 3] | (uint32_t)z[pos + 4] << 8;
-        pos += 5;
-        if ((len ^ 0xFFFFu) != nlen || pos + len > size || n + len > cap) return -1;
-        memcpy(out + n, z + pos, len);
-        pos += len;
-        n += len;
-    }
-    if (pos + 4 != size || get_be32(z + pos) != slow_adler32(out, n)) return -1;
-    return (long)n;
-}
-
 /* Decodes png and compares it with the w x h RGB image; 1 when equal. */
 static int png_decodes_to(const unsigned char *png, size_t size, int w, int h,
                           const unsigned char *rgb)
 {
-    static const unsigned char signature[8] = {137, 80, 78, 71, 13, 10, 26, 10};
-    size_t pos = 8, idat_size = 0, row = 3 * (size_t)w, raw_size = (row + 1) * (size_t)h, y;
-    unsigned char *idat = malloc(size), *raw = malloc(raw_size + 1);
-    int seen_ihdr = 0, seen_iend = 0, ok = idat && raw && size > 8 && !memcmp(png, signature, 8);
-    while (ok && !seen_iend && pos + 12 <= size) {
-        uint32_t len = get_be32(png + pos);
-        const unsigned char *type = png + pos + 4, *data = png + pos + 8;
-        if (len > size - pos - 12 || get_be32(data + len) != bitwise_crc32(type, len + 4)) {
-            ok = 0;
-        } else if (!memcmp(type, "IHDR", 4)) {
-            ok = !seen_ihdr && pos == 8 && len == 13 && get_be32(data) == (uint32_t)w
-                 && get_be32(data + 4) == (uint32_t)h && data[8] == 8 && data[9] == 2
-                 && data[10] == 0 && data[11] == 0 && data[12] == 0;
-            seen_ihdr = 1;
-        } else if (!memcmp(type, "IDAT", 4)) {
-            memcpy(idat + idat_size, data, len);
-            idat_size += len;
-        } else if (!memcmp(type, "IEND", 4)) {
-            seen_iend = 1;
-            ok = len == 0 && pos + 12 == size;
-        }
-        pos += 12 + len;
-    }
-    ok = ok && seen_ihdr && seen_iend
-         && inflate_stored(idat, idat_size, raw, raw_size + 1) == (long)raw_size;
-    for (y = 0; ok && y < (size_t)h; y++)
-        ok = raw[y * (row + 1)] == 0 && !memcmp(raw + y * (row + 1) + 1, rgb + y * row, row);
-    free(idat);
-    free(raw);
+    int dw = 0, dh = 0;
+    unsigned char *pixels = tu_png_decode(png, size, &dw, &dh);
+    int ok = pixels && dw == w && dh == h && !memcmp(pixels, rgb, 3 * (size_t)w * (size_t)h);
+    free(pixels);
     return ok;
 }
 
@@ -843,8 +764,8 @@ static void test_png(void)
                w, h);
         EXPECT(png && png_decodes_to(png, png_size, w, h, rgb), "%dx%d: the PNG does not decode "
                "to the image", w, h);
-        EXPECT(ex_crc32(rgb, n) == bitwise_crc32(rgb, n)
-               && ex_adler32(rgb, n) == slow_adler32(rgb, n),
+        EXPECT(ex_crc32(rgb, n) == tu_crc32_bitwise(rgb, n)
+               && ex_adler32(rgb, n) == tu_adler32_slow(rgb, n),
                "%dx%d: checksums differ from the definitions", w, h);
         free(rgb);
         free(png);

@@ -11,6 +11,7 @@
 ** Programs run from $BRT_BUILD (default build) through system().
 */
 #include "test.h"
+#include "util.h"
 #include "batchrt.h"
 #include "../examples/plot.h"
 
@@ -27,72 +28,10 @@
 
 /* ---- running build/render ---- */
 
-/* NAME inside the scratch directory (a few rotating buffers). */
-static const char *scratch(const char *name)
-{
-    static char paths[8][512];
-    static int next;
-    char *out = paths[next++ % 8];
-    snprintf(out, 512, "%s/%s", test_tmpdir(), name);
-    return out;
-}
-
-/* Runs "$BRT_BUILD/PROGRAM ARGS" with '@' in ARGS standing for the scratch
-** directory, stdout and stderr into render.out and render.err there.
-** Returns the exit status, or -1 when the program died from a signal. */
-static int run(const char *fmt, ...)
-{
-    char args[2048], expanded[4096], cmd[8192];
-    const char *build = getenv("BRT_BUILD"), *dir = test_tmpdir(), *p;
-    size_t n = 0;
-    int status;
-    va_list ap;
-    va_start(ap, fmt);
-    vsnprintf(args, sizeof args, fmt, ap);
-    va_end(ap);
-    for (p = args; *p && n + strlen(dir) + 1 < sizeof expanded; p++) {
-        if (*p == '@') { memcpy(expanded + n, dir, strlen(dir)); n += strlen(dir); }
-        else expanded[n++] = *p;
-    }
-    expanded[n] = 0;
-    snprintf(cmd, sizeof cmd, "%s/%s > '%s/render.out' 2> '%s/render.err'",
-             build ? build : "build", expanded, dir, dir);
-    status = system(cmd);
-    if (status == -1 || !WIFEXITED(status)) return -1;
-    return WEXITSTATUS(status);
-}
-
-/* The whole file, NUL-terminated (malloc'd), or NULL. */
-static char *slurp(const char *path, size_t *size)
-{
-    FILE *f = fopen(path, "rb");
-    char *data = NULL;
-    long n;
-    if (!f) return NULL;
-    if (fseek(f, 0, SEEK_END) == 0 && (n = ftell(f)) >= 0 && fseek(f, 0, SEEK_SET) == 0
-        && (data = malloc((size_t)n + 1)) != NULL) {
-        if (fread(data, 1, (size_t)n, f) == (size_t)n) {
-            data[n] = 0;
-            if (size) *size = (size_t)n;
-        } else {
-            free(data);
-            data = NULL;
-        }
-    }
-    fclose(f);
-    return data;
-}
-
-static int file_exists(const char *path)
-{
-    struct stat st;
-    return stat(path, &st) == 0;
-}
-
 /* A number field of a statistics JSON file, NAN when absent. */
 static double json_number(const char *path, const char *name)
 {
-    char *json = slurp(path, NULL), key[128], *p;
+    char *json = (char *)tu_slurp(path, NULL), key[128], *p;
     double value = NAN;
     snprintf(key, sizeof key, "\"%s\":", name);
     if (json && (p = strstr(json, key)) != NULL) value = strtod(p + strlen(key), NULL);
@@ -104,7 +43,7 @@ static double json_number(const char *path, const char *name)
 static int same_bytes(const char *a, const char *b)
 {
     size_t na = 0, nb = 0;
-    char *x = slurp(a, &na), *y = slurp(b, &nb);
+    char *x = (char *)tu_slurp(a, &na), *y = (char *)tu_slurp(b, &nb);
     int same = x && y && na == nb && memcmp(x, y, na) == 0;
     free(x);
     free(y);
@@ -116,13 +55,13 @@ static int same_bytes(const char *a, const char *b)
 static void test_help(void)
 {
     char *out;
-    CHECK(run("render --help") == 0, "render --help did not exit 0");
-    out = slurp(scratch("render.out"), NULL);
+    CHECK(tu_run("render --help") == 0, "render --help did not exit 0");
+    out = (char *)tu_slurp(tu_scratch("cli.out"), NULL);
     EXPECT(out && strstr(out, "usage: build/render") && strstr(out, "--rays-in-flight"),
            "--help does not print the usage");
     free(out);
-    CHECK(run("figures --help") == 0, "figures --help did not exit 0");
-    out = slurp(scratch("render.out"), NULL);
+    CHECK(tu_run("figures --help") == 0, "figures --help did not exit 0");
+    out = (char *)tu_slurp(tu_scratch("cli.out"), NULL);
     EXPECT(out && strstr(out, "usage: build/figures"), "figures --help does not print the usage");
     free(out);
 }
@@ -143,23 +82,23 @@ static void test_same_image_every_mode(void)
     size_t i;
     double rays, paths;
     char *err;
-    CHECK(run("render " SMALL " --direct --out @/direct.png --stats @/direct.json") == 0,
+    CHECK(tu_run("render " SMALL " --direct --out @/direct.png --stats @/direct.json") == 0,
           "render --direct failed");
-    err = slurp(scratch("render.err"), NULL);
+    err = (char *)tu_slurp(tu_scratch("cli.err"), NULL);
     EXPECT(err && err[0] == 0, "stderr is not a terminal, yet render wrote '%s' there", err ? err : "");
     free(err);
-    rays = json_number(scratch("direct.json"), "rays");
-    paths = json_number(scratch("direct.json"), "paths");
+    rays = json_number(tu_scratch("direct.json"), "rays");
+    paths = json_number(tu_scratch("direct.json"), "paths");
     CHECK(paths == 40 * 24 * 3 && rays > 1.5 * paths,
           "direct: %g rays for %g paths: the paths do not bounce", rays, paths);
     for (i = 0; i < sizeof batched_settings / sizeof *batched_settings; i++) {
-        CHECK(run("render " SMALL " %s --scene @/small-%zu.brs --out @/batched.png --stats @/b.json",
+        CHECK(tu_run("render " SMALL " %s --scene @/small-%zu.brs --out @/batched.png --stats @/b.json",
                   batched_settings[i], i) == 0, "render %s failed", batched_settings[i]);
-        EXPECT(same_bytes(scratch("direct.png"), scratch("batched.png")),
+        EXPECT(same_bytes(tu_scratch("direct.png"), tu_scratch("batched.png")),
                "'%s': the image differs from --direct", batched_settings[i]);
-        EXPECT(json_number(scratch("b.json"), "rays") == rays,
+        EXPECT(json_number(tu_scratch("b.json"), "rays") == rays,
                "'%s': %g rays traced, --direct traced %g", batched_settings[i],
-               json_number(scratch("b.json"), "rays"), rays);
+               json_number(tu_scratch("b.json"), "rays"), rays);
     }
 }
 
@@ -167,56 +106,56 @@ static void test_same_image_every_mode(void)
 static void test_same_image_mesh_file(void)
 {
     const char *camera = "--camera 0.3,1.2,3:0,0.4,0:50 --width 36 --height 20 --spp 2";
-    CHECK(run("mkscene crown @/crown.ply --scale 0.05") == 0, "mkscene failed");
-    CHECK(run("render @/crown.ply %s --direct --out @/crown-direct.png", camera) == 0,
+    CHECK(tu_run("mkscene crown @/crown.ply --scale 0.05") == 0, "mkscene failed");
+    CHECK(tu_run("render @/crown.ply %s --direct --out @/crown-direct.png", camera) == 0,
           "render --direct on a PLY failed");
-    CHECK(run("render @/crown.ply %s --batch-tris 200 --memory 20%% --scene @/crown.brs "
+    CHECK(tu_run("render @/crown.ply %s --batch-tris 200 --memory 20%% --scene @/crown.brs "
               "--out @/crown-batched.png", camera) == 0, "render on a PLY failed");
-    EXPECT(same_bytes(scratch("crown-direct.png"), scratch("crown-batched.png")),
+    EXPECT(same_bytes(tu_scratch("crown-direct.png"), tu_scratch("crown-batched.png")),
            "crown.ply: batched and direct images differ");
 }
 
-static uint32_t be32(const unsigned char *p)
-{
-    return (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | p[3];
-}
-
-/* The heatmap pass counts every queued visit of the render exactly once,
-** and proxies only ever remove visits (design.md, invariant 7). */
+/* The heatmap counts every queued visit of the render exactly once, it
+** decodes (an independent decoder, tests/util.c) to the map plus a 24-row
+** legend, the map is not flat, and proxies only ever remove visits
+** (design.md, invariant 7). */
 static void test_heatmap(void)
 {
     double with, without;
-    size_t size = 0;
-    unsigned char *png;
-    CHECK(run("render " SMALL " --scene @/heat.brs --heatmap @/heat.png --stats @/heat.json "
+    size_t size = 0, i, distinct = 0;
+    int w = 0, h = 0;
+    unsigned char *png, *rgb;
+    CHECK(tu_run("render " SMALL " --scene @/heat.brs --heatmap @/heat.png --stats @/heat.json "
               "--out @/img.png") == 0, "render --heatmap failed");
-    with = json_number(scratch("heat.json"), "heatmap_visits");
-    EXPECT(with > 0 && with == json_number(scratch("heat.json"), "queued_visits"),
-           "heatmap total %g, queued_visits %g", with, json_number(scratch("heat.json"), "queued_visits"));
-    png = (unsigned char *)slurp(scratch("heat.png"), &size);
-    /* IHDR right after the signature: the map plus a 24-row legend. */
-    EXPECT(png && size > 33 && memcmp(png + 12, "IHDR", 4) == 0 && be32(png + 16) == 40
-           && be32(png + 20) == 24 + 24, "heat.png is not a 40x48 PNG");
+    with = json_number(tu_scratch("heat.json"), "heatmap_visits");
+    EXPECT(with > 0 && with == json_number(tu_scratch("heat.json"), "queued_visits"),
+           "heatmap total %g, queued_visits %g", with, json_number(tu_scratch("heat.json"), "queued_visits"));
+    png = tu_slurp(tu_scratch("heat.png"), &size);
+    rgb = png ? tu_png_decode(png, size, &w, &h) : NULL;
+    EXPECT(rgb && w == 40 && h == 24 + 24, "heat.png does not decode to 40x48 pixels");
+    for (i = 1; rgb && i < (size_t)40 * 24; i++) distinct += memcmp(rgb + 3 * i, rgb, 3) != 0;
+    EXPECT(distinct > 0, "the heatmap is one flat colour");
+    free(rgb);
     free(png);
-    CHECK(run("render " SMALL " --no-proxy --scene @/heat.brs --heatmap @/heat0.png "
+    CHECK(tu_run("render " SMALL " --no-proxy --scene @/heat.brs --heatmap @/heat0.png "
               "--stats @/heat0.json --out @/img.png") == 0, "render --no-proxy --heatmap failed");
-    without = json_number(scratch("heat0.json"), "heatmap_visits");
-    EXPECT(without == json_number(scratch("heat0.json"), "queued_visits") && with <= without,
+    without = json_number(tu_scratch("heat0.json"), "heatmap_visits");
+    EXPECT(without == json_number(tu_scratch("heat0.json"), "queued_visits") && with <= without,
            "visits: %g with proxies, %g without", with, without);
 }
 
 static void test_compare(void)
 {
     char *out;
-    CHECK(run("render " SMALL " --compare --memory 20%% --scene @/cmp.brs --out @/cmp.png "
+    CHECK(tu_run("render " SMALL " --compare --memory 20%% --scene @/cmp.brs --out @/cmp.png "
               "--heatmap @/cmp-heat.png --stats @/cmp.json") == 0, "render --compare failed");
-    out = slurp(scratch("render.out"), NULL);
+    out = (char *)tu_slurp(tu_scratch("cli.out"), NULL);
     CHECK(out, "no output");
     EXPECT(strstr(out, "| batched, no proxies") && strstr(out, "| batched, proxies")
            && !strstr(out, " NO |"), "--compare table:\n%s", out);
     free(out);
-    EXPECT(file_exists(scratch("cmp-heat-noproxy.png")) && file_exists(scratch("cmp-heat-proxy.png"))
-           && file_exists(scratch("cmp-noproxy.json")) && file_exists(scratch("cmp.png")),
+    EXPECT(tu_file_exists(tu_scratch("cmp-heat-noproxy.png")) && tu_file_exists(tu_scratch("cmp-heat-proxy.png"))
+           && tu_file_exists(tu_scratch("cmp-noproxy.json")) && tu_file_exists(tu_scratch("cmp.png")),
            "--compare did not write its files");
 }
 
@@ -232,20 +171,20 @@ static void test_bad_options(void)
     char *err = NULL;
     size_t i;
     for (i = 0; i < sizeof bad / sizeof *bad; i++) {
-        int status = run(bad[i][0] == '@' ? "render %s --out @/never.png"
+        int status = tu_run(bad[i][0] == '@' ? "render %s --out @/never.png"
                                           : "render " SMALL " --out @/never.png %s", bad[i]);
-        err = slurp(scratch("render.err"), NULL);
+        err = (char *)tu_slurp(tu_scratch("cli.err"), NULL);
         EXPECT(status == 1, "'%s': exit status %d, expected 1", bad[i], status);
         EXPECT(err && strncmp(err, "render: ", 8) == 0 && strchr(err, '\n') == err + strlen(err) - 1,
                "'%s': expected one line 'render: ...', got '%s'", bad[i], err ? err : "");
-        EXPECT(!file_exists(scratch("never.png")) && !file_exists(scratch("never-heat.png")),
+        EXPECT(!tu_file_exists(tu_scratch("never.png")) && !tu_file_exists(tu_scratch("never-heat.png")),
                "'%s': an output file was written", bad[i]);
         free(err);
     }
     /* Outputs are renamed over their target: a device or a folder there
     ** is refused up front (a folder stands in for /dev/null, which a
     ** broken guard would replace). */
-    EXPECT(run("render " SMALL " --out @") == 1 && (err = slurp(scratch("render.err"), NULL)) != NULL
+    EXPECT(tu_run("render " SMALL " --out @") == 1 && (err = (char *)tu_slurp(tu_scratch("cli.err"), NULL)) != NULL
            && strstr(err, "not a regular file"), "--out FOLDER was not refused up front");
     free(err);
 }

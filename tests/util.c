@@ -231,3 +231,108 @@ int tu_temporary_file_left(void)
     return found;
 }
 
+
+/* ---- an independent PNG decoder for the stored-block subset ---- */
+
+static uint32_t get_be32(const unsigned char *p)
+{
+    return (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | (uint32_t)p[3];
+}
+
+/* CRC-32 bit by bit (no table), the definition of ISO 3309. */
+uint32_t tu_crc32_bitwise(const unsigned char *data, size_t size)
+{
+    uint32_t crc = 0xFFFFFFFFu;
+    size_t i;
+    int k;
+    for (i = 0; i < size; i++) {
+        crc ^= data[i];
+        for (k = 0; k < 8; k++) crc = (crc >> 1) ^ (0xEDB88320u & (0u - (crc & 1u)));
+    }
+    return ~crc;
+}
+
+/* Adler-32 with a modulo per byte (the definition, not the fast form). */
+uint32_t tu_adler32_slow(const unsigned char *data, size_t size)
+{
+    uint32_t a = 1, b = 0;
+    size_t i;
+    for (i = 0; i < size; i++) {
+        a = (a + data[i]) % 65521u;
+        b = (b + a) % 65521u;
+    }
+    return b << 16 | a;
+}
+
+/* Inflates a zlib stream made only of stored blocks into out (capacity
+** cap); returns the inflated size or -1 on any violation of RFC 1950/1951. */
+static long inflate_stored(const unsigned char *z, size_t size, unsigned char *out, size_t cap)
+{
+    size_t pos = 2, n = 0;
+    int final = 0;
+    if (size < 6 || (z[0] & 0x0F) != 8 || ((unsigned)z[0] << 8 | z[1]) % 31 != 0 || (z[1] & 0x20))
+        return -1;
+    while (!final) {
+        uint32_t len, nlen;
+        if (pos + 5 > size || (z[pos] >> 1 & 3) != 0) return -1;   /* BTYPE 00 only */
+        final = z[pos] & 1;
+        len = (uint32_t)z[pos + 1] | (uint32_t)z[pos + 2] << 8;
+        nlen = (uint32_t)z[pos + 3] | (uint32_t)z[pos + 4] << 8;
+        pos += 5;
+        if ((len ^ 0xFFFFu) != nlen || pos + len > size || n + len > cap) return -1;
+        memcpy(out + n, z + pos, len);
+        pos += len;
+        n += len;
+    }
+    if (pos + 4 != size || get_be32(z + pos) != tu_adler32_slow(out, n)) return -1;
+    return (long)n;
+}
+
+unsigned char *tu_png_decode(const unsigned char *png, size_t size, int *w, int *h)
+{
+    static const unsigned char signature[8] = {137, 80, 78, 71, 13, 10, 26, 10};
+    size_t pos = 8, idat_size = 0, row = 0, raw_size = 0, y;
+    unsigned char *idat = malloc(size ? size : 1), *raw = NULL, *rgb = NULL;
+    int seen_ihdr = 0, seen_iend = 0, ok = idat && size > 8 && !memcmp(png, signature, 8);
+    while (ok && !seen_iend && pos + 12 <= size) {
+        uint32_t len = get_be32(png + pos);
+        const unsigned char *type = png + pos + 4, *data = png + pos + 8;
+        if (len > size - pos - 12 || get_be32(data + len) != tu_crc32_bitwise(type, len + 4)) {
+            ok = 0;
+        } else if (!memcmp(type, "IHDR", 4)) {
+            ok = !seen_ihdr && pos == 8 && len == 13 && get_be32(data) > 0 && get_be32(data) < 65536
+                 && get_be32(data + 4) > 0 && get_be32(data + 4) < 65536 && data[8] == 8
+                 && data[9] == 2 && data[10] == 0 && data[11] == 0 && data[12] == 0;
+            *w = (int)get_be32(data);
+            *h = (int)get_be32(data + 4);
+            seen_ihdr = 1;
+        } else if (!memcmp(type, "IDAT", 4)) {
+            memcpy(idat + idat_size, data, len);
+            idat_size += len;
+        } else if (!memcmp(type, "IEND", 4)) {
+            seen_iend = 1;
+            ok = len == 0 && pos + 12 == size;
+        }
+        pos += 12 + len;
+    }
+    if (ok && seen_ihdr && seen_iend) {
+        row = 3 * (size_t)*w;
+        raw_size = (row + 1) * (size_t)*h;
+        raw = malloc(raw_size + 1);
+        rgb = malloc(row * (size_t)*h);
+        ok = raw && rgb && inflate_stored(idat, idat_size, raw, raw_size + 1) == (long)raw_size;
+        for (y = 0; ok && y < (size_t)*h; y++) {
+            ok = raw[y * (row + 1)] == 0;   /* filter type None, as our writer uses */
+            memcpy(rgb + y * row, raw + y * (row + 1) + 1, row);
+        }
+    } else {
+        ok = 0;
+    }
+    free(idat);
+    free(raw);
+    if (!ok) {
+        free(rgb);
+        return NULL;
+    }
+    return rgb;
+}

@@ -56,4 +56,13 @@ char *tu_last_stderr(void);
 ** interrupted atomic write would leave. */
 int tu_temporary_file_left(void);
 
+/* Decodes an 8-bit RGB PNG made of stored deflate blocks and filter type
+** None (what examples/common.c writes), checking every CRC-32 and the
+** Adler-32 with definitions written independently of the writer: the
+** pixels (malloc'd) and size, or NULL on any violation. */
+unsigned char *tu_png_decode(const unsigned char *png, size_t size, int *w, int *h);
+/* CRC-32 bit by bit and Adler-32 with a modulo per byte: the definitions. */
+uint32_t tu_crc32_bitwise(const unsigned char *data, size_t size);
+uint32_t tu_adler32_slow(const unsigned char *data, size_t size);
+
 #endif

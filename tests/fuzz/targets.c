@@ -71,17 +71,42 @@ static brt_hit brute_force_hit(const brt_mesh *m, const brt_ray *ray)
     return hit;
 }
 
-/* The BVH's hits, byte for byte those of the brute-force loop. */
+/* Every record a miss (t = +inf, prim = BRT_NO_PRIM, u = v = 0) or a hit
+** on one of tri_count triangles at a finite t inside the ray's segment
+** (a t that overflowed to infinity would look like a miss's). */
+static const char *hits_valid(const brt_ray *rays, const brt_hit *hits, size_t count,
+                              uint32_t tri_count)
+{
+    size_t i;
+    for (i = 0; i < count; i++) {
+        const brt_hit *h = &hits[i];
+        if (h->prim == BRT_NO_PRIM) {
+            if (!(h->t == INFINITY) || h->u != 0 || h->v != 0)
+                return "a miss record is not t=inf, u=v=0";
+        } else if (h->prim >= tri_count) {
+            return "a hit names a triangle beyond the mesh";
+        } else if (!(rays[i].tnear <= h->t && h->t <= rays[i].tfar)) {
+            return "a hit lies outside the ray's segment";
+        } else if (!isfinite(h->t)) {
+            return "a hit at an infinite distance";
+        }
+    }
+    return NULL;
+}
+
+/* The BVH's hits: valid, and byte for byte those of the brute-force loop. */
 static const char *bvh_matches_oracle(const brt_mesh *m, const brt_bvh *bvh,
                                       const brt_ray *rays, size_t count)
 {
     size_t i;
     for (i = 0; i < count; i++) {
         brt_hit hit, expected = brute_force_hit(m, &rays[i]);
+        const char *problem;
         brt_hit_clear(&hit);
         brt_bvh_intersect(bvh, &rays[i], &hit);
         if (memcmp(&hit, &expected, sizeof hit) != 0)
             return "a BVH hit differs from the brute-force oracle";
+        if ((problem = hits_valid(&rays[i], &hit, 1, m->triangle_count)) != NULL) return problem;
     }
     return NULL;
 }
@@ -384,26 +409,6 @@ static void scene_probe_rays(brt_ray rays[20])
     }
 }
 
-/* Hits of a scene that opened: misses, or a triangle of the scene within
-** the ray's segment. */
-static const char *scene_hits_valid(const brt_scene *scene, const brt_ray *rays,
-                                    const brt_hit *hits, size_t count)
-{
-    size_t i;
-    for (i = 0; i < count; i++) {
-        const brt_hit *h = &hits[i];
-        if (h->prim == BRT_NO_PRIM) {
-            if (!(h->t == INFINITY) || h->u != 0 || h->v != 0)
-                return "a miss record is not t=inf, u=v=0";
-        } else if (h->prim >= brt_scene_triangle_count(scene)) {
-            return "a hit names a triangle beyond the scene's count";
-        } else if (!(rays[i].tnear <= h->t && h->t <= rays[i].tfar)) {
-            return "a hit lies outside the ray's segment";
-        }
-    }
-    return NULL;
-}
-
 static const char *run_scene(const uint8_t *data, size_t size)
 {
     char path[512];
@@ -429,7 +434,8 @@ static const char *run_scene(const uint8_t *data, size_t size)
         opt.memory_limit = 8192;
         opt.rays_in_flight = 8;
         r = brt_scene_trace(scene, &opt, rays, 20, hits, NULL, &err);
-        if (r == BRT_OK) problem = scene_hits_valid(scene, rays, hits, 20);
+        if (r == BRT_OK)
+            problem = hits_valid(rays, hits, 20, brt_scene_triangle_count(scene));
         brt_scene_close(scene);
     }
     if (r != BRT_OK && r != BRT_EFORMAT && r != BRT_ENOMEM)
