@@ -1455,7 +1455,7 @@ static void partition_free(partition *p)
 #define TOP_NODE_BYTES 112
 
 typedef struct top_node {
-    float lo[3][4], hi[3][4];   /* child boxes, one lane per child */
+    float lo[3][4], hi[3][4];   /* child boxes, one lane per child (grown in memory) */
     uint32_t child[4];          /* node index (> own index), TOP_LEAF|id, TOP_EMPTY */
 } top_node;
 
@@ -1695,6 +1695,26 @@ static void top_node_pack(const top_node *n, unsigned char *p)
             put_f32(p + 48 + 16 * a + 4 * lane, n->hi[a][lane]);
         }
     for (lane = 0; lane < 4; lane++) put_u32(p + 96 + 4 * lane, n->child[lane]);
+}
+
+/* In memory the boxes are kept grown for brt_box_span (once, at open,
+** instead of at every test); the file holds them exact. */
+static void top_node_pad(top_node *n)
+{
+    int lane, a;
+    for (lane = 0; lane < 4; lane++) {
+        float lo[3], hi[3];
+        if (n->child[lane] == TOP_EMPTY) continue;
+        for (a = 0; a < 3; a++) {
+            lo[a] = n->lo[a][lane];
+            hi[a] = n->hi[a][lane];
+        }
+        brt_box_pad(lo, hi, lo, hi);
+        for (a = 0; a < 3; a++) {
+            n->lo[a][lane] = lo[a];
+            n->hi[a][lane] = hi[a];
+        }
+    }
 }
 
 static void top_node_unpack(const unsigned char *p, top_node *n)
@@ -2167,8 +2187,10 @@ static brt_result load_top(brt_scene *s, brt_error *err)
         free(raw);
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
     }
-    for (i = 0; i < s->header.top_node_count; i++)
+    for (i = 0; i < s->header.top_node_count; i++) {
         top_node_unpack(raw + (size_t)i * TOP_NODE_BYTES, &s->top[i]);
+        top_node_pad(&s->top[i]);
+    }
     free(raw);
     return check_top(s, err);
 }

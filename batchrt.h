@@ -220,8 +220,14 @@ typedef struct brt_ray_prep {
 
 void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep);
 
-/* 1 when the ray's segment [tmin, tmax] meets the closed box [lo, hi]
-** (grown as above), with the entry and exit distances. */
+/* Grows the box [lo, hi] as above (by 16 * FLT_EPSILON of its largest
+** |coordinate|, every bound rounded outwards by the same float ops);
+** plo/phi may be lo/hi themselves. */
+void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3]);
+
+/* 1 when the ray's segment [tmin, tmax] meets the closed box [lo, hi],
+** which must already be grown with brt_box_pad (so that a caller testing
+** one box many times grows it once), with the entry and exit distances. */
 int brt_box_span(const brt_ray_prep *prep, const float lo[3],
                  const float hi[3], float tmin, float tmax, float *entry,
                  float *exit);

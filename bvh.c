@@ -198,7 +198,7 @@ static inline int slab_span(const brt_ray_prep *r, const float lo[3], const floa
 }
 
 /* Grows a box by PAD_REL of its largest |coordinate| (see the header). */
-static void pad_box(const float lo[3], const float hi[3], float plo[3], float phi[3])
+void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3])
 {
     float m = 0.0f, pad;
     int a;
@@ -216,9 +216,7 @@ static void pad_box(const float lo[3], const float hi[3], float plo[3], float ph
 int brt_box_span(const brt_ray_prep *prep, const float lo[3], const float hi[3],
                  float tmin, float tmax, float *entry, float *exit)
 {
-    float plo[3], phi[3];
-    pad_box(lo, hi, plo, phi);
-    return slab_span(prep, plo, phi, tmin, tmax, entry, exit);
+    return slab_span(prep, lo, hi, tmin, tmax, entry, exit);
 }
 
 /* ===================================================================== */
@@ -283,7 +281,7 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
     td = (n[0] * w[0] + n[1] * w[1] + n[2] * w[2]) /
          (n[0] * r->dir[0] + n[1] * r->dir[1] + n[2] * r->dir[2]);
     tt = isfinite(td) ? (float)td : woop_t;
-    pad_box(lo, hi, plo, phi);
+    brt_box_pad(lo, hi, plo, phi);
     if (!slab_span(bp, plo, phi, -INFINITY, INFINITY, &entry, &exit)) return 0;
     *t = tt < entry ? entry : (tt > exit ? exit : tt);
     return 1;
@@ -775,7 +773,7 @@ static uint32_t build_node(builder *b, uint32_t begin, uint32_t end,
 static aabb aabb_padded(const aabb *box)
 {
     aabb p = *box;
-    pad_box(box->lo, box->hi, p.lo, p.hi);
+    brt_box_pad(box->lo, box->hi, p.lo, p.hi);
     return p;
 }
 
