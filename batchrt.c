@@ -561,9 +561,13 @@ static brt_result obj_corner(parser *p, token t)
         if (c < t.e && *c != '/' && !scan_integer(&c, t.e, &unused)) goto bad;
     }
     if (c != t.e) goto bad;
-    if (i == 0 || i > (int64_t)p->vertex_count || -i > (int64_t)p->vertex_count)
-        return parse_fail(p, BRT_EPARSE, "vertex index %lld out of range (%zu vertices so far)",
-                          (long long)i, p->vertex_count);
+    if (i == 0 || i > (int64_t)p->vertex_count || -i > (int64_t)p->vertex_count) {
+        /* The corner as written: a huge index was capped while scanning. */
+        token index = t;
+        for (index.e = t.s; index.e < t.e && *index.e != '/'; index.e++) {}
+        return parse_fail(p, BRT_EPARSE, "vertex index %s out of range (%zu vertices so far)",
+                          shown(index, buf), p->vertex_count);
+    }
     return add_corner(p, (uint32_t)(i > 0 ? i - 1 : (int64_t)p->vertex_count + i));
 bad:
     return parse_fail(p, BRT_EPARSE, "bad face vertex '%s'", shown(t, buf));
@@ -937,6 +941,9 @@ static brt_result ply_parse(parser *p)
     if (h.format != PLY_ASCII) p->where = WHERE_ELEMENT;
     for (i = 0; i < h.element_count; i++) {
         p->element = h.elements[i].name;
+        /* A binary record without properties is 0 bytes: nothing to read,
+        ** however large its count (a loop over 2^32 of them would hang). */
+        if (h.format != PLY_ASCII && h.elements[i].property_count == 0) continue;
         for (p->record = 0; p->record < h.elements[i].count; p->record++)
             if ((rc = ply_read_record(p, &h, &h.elements[i]))) return rc;
     }
@@ -2635,8 +2642,11 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
 }
 
+/* capacity_hint: the number of rays there will be, when known (0: not),
+** so that 20 rays do not get a million slots. */
 static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace_options *opt,
-                                 const brt_ray_source *source, brt_stats *stats)
+                                 const brt_ray_source *source, size_t capacity_hint,
+                                 brt_stats *stats)
 {
     uint32_t n = scene->header.batch_count, i;
     uint64_t budget = opt && opt->memory_limit ? opt->memory_limit : UINT64_MAX;
@@ -2646,6 +2656,7 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->stats = stats;
     s->use_proxies = !(opt && opt->no_proxy);
     s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
+    if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
     /* With proxies on, they take their bytes from the same budget (the
     ** paper's Fig. 3 lowers the geometry limit by the proxies' memory). */
     stats->proxy_bytes = s->use_proxies ? brt_svdag_memory_bytes(scene->dag) : 0;
@@ -2694,9 +2705,9 @@ static brt_result schedule(scheduler *s, brt_error *err)
     return r == BRT_OK ? cache_check(&s->cache, err) : r;
 }
 
-brt_result brt_scene_trace_stream(brt_scene *scene, const brt_trace_options *opt,
-                                  const brt_ray_source *source, brt_stats *stats,
-                                  brt_error *err)
+static brt_result trace_source(brt_scene *scene, const brt_trace_options *opt,
+                               const brt_ray_source *source, size_t capacity_hint,
+                               brt_stats *stats, brt_error *err)
 {
     scheduler s;
     brt_stats local;
@@ -2705,13 +2716,20 @@ brt_result brt_scene_trace_stream(brt_scene *scene, const brt_trace_options *opt
     if (!stats) stats = &local;
     memset(stats, 0, sizeof *stats);
     if (opt && opt->drop_os_cache) posix_fadvise(scene->fd, 0, 0, POSIX_FADV_DONTNEED);
-    r = scheduler_init(&s, scene, opt, source, stats);
+    r = scheduler_init(&s, scene, opt, source, capacity_hint, stats);
     if (r != BRT_OK) r = brt_fail(err, r, "out of memory for %u rays in flight", s.capacity);
     else r = schedule(&s, err);
     scheduler_free(&s);
     stats->seconds = brt_seconds() - start;
     if (stats->seconds > 0) stats->mrays_per_second = (double)stats->rays / stats->seconds * 1e-6;
     return r;
+}
+
+brt_result brt_scene_trace_stream(brt_scene *scene, const brt_trace_options *opt,
+                                  const brt_ray_source *source, brt_stats *stats,
+                                  brt_error *err)
+{
+    return trace_source(scene, opt, source, 0, stats, err);
 }
 
 /* brt_scene_trace on top of the stream: rays are handed out in order and
@@ -2756,5 +2774,5 @@ brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
     source.next_rays = array_next;
     source.finished = array_finished;
     source.user = &a;
-    return brt_scene_trace_stream(scene, opt, &source, stats, err);
+    return trace_source(scene, opt, &source, count > 0 ? count : 1, stats, err);
 }
