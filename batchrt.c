@@ -1272,7 +1272,7 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
 ** finaliser): fast enough to verify every blob on every load, and a random
 ** corruption goes unnoticed with probability about 2^-64.  Not a
 ** cryptographic hash. */
-static uint64_t checksum64(const void *data, size_t size)
+uint64_t brt_checksum64(const void *data, size_t size)
 {
     const unsigned char *p = data;
     uint64_t h = 0x9E3779B97F4A7C15ull ^ (uint64_t)size, w;
@@ -1761,7 +1761,7 @@ static void header_pack(const scene_header *h, unsigned char *p)
         put_u64(p + 64 + 24 * s, h->sections[s].size);
         put_u64(p + 72 + 24 * s, h->sections[s].checksum);
     }
-    put_u64(p + 248, checksum64(p, 248));
+    put_u64(p + 248, brt_checksum64(p, 248));
 }
 
 /* Checks magic, endianness, version and checksum, in that order, so the
@@ -1778,7 +1778,7 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
     if (get_u32(p + 8) != SCENE_VERSION)
         return brt_fail(err, BRT_EFORMAT, "%s: scene file version %u, this build reads version %u"
                         " (delete the file to rebuild it)", path, get_u32(p + 8), SCENE_VERSION);
-    if (get_u64(p + 248) != checksum64(p, 248))
+    if (get_u64(p + 248) != brt_checksum64(p, 248))
         return brt_fail(err, BRT_EFORMAT, "%s: header checksum mismatch (corrupt file)", path);
     h->stamp = get_u64(p + 16);
     h->batch_tris = get_u32(p + 24);
@@ -1881,7 +1881,7 @@ static brt_result write_batch(scene_writer *w, const uint32_t *tris, uint32_t co
     }
     brt_bvh_blob_write(bvh, blob);
     brt_bvh_free(bvh);
-    b->checksum = checksum64(blob, b->size);
+    b->checksum = brt_checksum64(blob, b->size);
     b->offset = w->offset;
     r = write_at(w->fd, blob, b->size, b->offset, w->path, err);
     free(blob);
@@ -1898,7 +1898,7 @@ static brt_result write_section(scene_writer *w, const void *data, size_t size, 
 {
     s->offset = w->offset;
     s->size = size;
-    s->checksum = checksum64(data, size);
+    s->checksum = brt_checksum64(data, size);
     w->offset = round_up_page(w->offset + size);
     return write_at(w->fd, data, size, s->offset, w->path, err);
 }
@@ -2021,7 +2021,7 @@ brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp, brt_er
     parts[1] = (uint64_t)st.st_mtim.tv_sec;
     parts[2] = (uint64_t)st.st_mtim.tv_nsec;
     parts[3] = (uint64_t)st.st_ino;
-    *stamp = checksum64(parts, sizeof parts);
+    *stamp = brt_checksum64(parts, sizeof parts);
     return BRT_OK;
 }
 
@@ -2097,7 +2097,7 @@ static brt_result read_section(brt_scene *s, int which, const char *what, void *
     buf = malloc(sec->size ? sec->size : 1);
     if (!buf) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
     r = read_fully(s->fd, buf, sec->size, sec->offset, pread_reader, NULL, NULL, s->path, err);
-    if (r == BRT_OK && checksum64(buf, sec->size) != sec->checksum)
+    if (r == BRT_OK && brt_checksum64(buf, sec->size) != sec->checksum)
         r = brt_fail(err, BRT_EFORMAT, "%s: %s checksum mismatch (corrupt file)", s->path, what);
     if (r != BRT_OK) {
         free(buf);
@@ -2414,7 +2414,7 @@ static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
                        c->read_fn, c->read_user, &c->stats->disk_bytes_read, c->scene->path, err);
         done += chunk;
     }
-    if (r == BRT_OK && checksum64(data, b->size) != b->checksum)
+    if (r == BRT_OK && brt_checksum64(data, b->size) != b->checksum)
         r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: checksum mismatch (corrupt file)",
                      c->scene->path, id);
     if (r == BRT_OK && brt_bvh_blob_open(data, b->size, &e->bvh, NULL) != BRT_OK)

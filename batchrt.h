@@ -100,6 +100,10 @@ brt_result brt_parse_size(const char *text, uint64_t *bytes);
 uint64_t brt_random_u64(uint64_t *state);
 float brt_random_float(uint64_t *state);
 
+/* The 64-bit checksum of scene files (header, sections, blobs): a
+** word-wise multiply-xorshift hash, not cryptographic. */
+uint64_t brt_checksum64(const void *data, size_t size);
+
 /* Seconds from a monotonic clock, for statistics only. */
 double brt_seconds(void);
 

@@ -69,19 +69,6 @@ static int spill_text(const char *name, const char *text)
     return spill(name, text, strlen(text));
 }
 
-/* Nonzero when the scratch directory holds a "*.tmp.*" file: what an
-** interrupted atomic write would leave. */
-static int temporary_file_left(void)
-{
-    DIR *d = opendir(test_tmpdir());
-    struct dirent *e;
-    int found = 0;
-    if (!d) return 1;
-    while ((e = readdir(d)) != NULL)
-        if (strstr(e->d_name, ".tmp.")) found = 1;
-    closedir(d);
-    return found;
-}
 
 /* "@" in text replaced by the scratch directory, into out. */
 static void expand(const char *text, char *out, size_t size)
@@ -368,7 +355,7 @@ static void expect_run(const bad_run *c, long fsize_blocks)
         strcat(output, c->output);
         EXPECT(!file_exists(output), "'%s' left %s behind", c->args, c->output);
     }
-    EXPECT(!temporary_file_left(), "'%s' left a *.tmp.* file behind", c->args);
+    EXPECT(!tu_temporary_file_left(), "'%s' left a *.tmp.* file behind", c->args);
 }
 
 static void test_bad_runs(void)
@@ -761,7 +748,7 @@ static void test_write_faults(void)
                "scene file (%llu bytes) under a limit of %llu: result %s, '%s'",
                (unsigned long long)size, (unsigned long long)limits[i], brt_result_string(r),
                job.err.message);
-        EXPECT(!file_exists(job.path) && !temporary_file_left(),
+        EXPECT(!file_exists(job.path) && !tu_temporary_file_left(),
                "a limit of %llu bytes left a file behind", (unsigned long long)limits[i]);
     }
     EXPECT(with_file_limit(size, build_scene, &job) == BRT_OK, "exactly %llu bytes: %s",
@@ -769,7 +756,7 @@ static void test_write_faults(void)
     job.path = scratch("full.rays");
     r = with_file_limit(1000, write_rays, &job);
     EXPECT(r == BRT_EIO && strstr(job.err.message, strerror(EFBIG)) && !file_exists(job.path)
-           && !temporary_file_left(), "3200 bytes of rays under a limit of 1000: '%s'",
+           && !tu_temporary_file_left(), "3200 bytes of rays under a limit of 1000: '%s'",
            job.err.message);
     tu_scene_free(&soup);
 }

@@ -339,22 +339,6 @@ static const char *run_rays(const uint8_t *data, size_t size)
 /* Scene files                                                           */
 /* ===================================================================== */
 
-/* Must equal checksum64 of batchrt.c.  Should the two drift apart, the
-** fuzzer would only meet checksum errors; "hardening: scene fuzz seed"
-** in tests/test_hardening.c notices, since the seed must then trace. */
-static uint64_t checksum64(const uint8_t *p, size_t size)
-{
-    uint64_t h = 0x9E3779B97F4A7C15ull ^ (uint64_t)size, w;
-    for (; size >= 8; p += 8, size -= 8) {
-        memcpy(&w, p, 8);
-        h = (h ^ w) * 0xFF51AFD7ED558CCDull;
-        h ^= h >> 32;
-    }
-    w = 0;
-    memcpy(&w, p, size);
-    h = (h ^ w) * 0xC4CEB9FE1A85EC53ull;
-    return h ^ (h >> 29);
-}
 
 static uint64_t get64(const uint8_t *p) { uint64_t v; memcpy(&v, p, 8); return v; }
 static uint32_t get32(const uint8_t *p) { uint32_t v; memcpy(&v, p, 4); return v; }
@@ -365,7 +349,7 @@ static int repair(uint8_t *file, size_t file_size, uint64_t offset, uint64_t siz
 {
     uint64_t sum;
     if (offset > file_size || size > file_size - offset) return 0;
-    sum = checksum64(file + offset, (size_t)size);
+    sum = brt_checksum64(file + offset, (size_t)size);
     memcpy(at, &sum, 8);
     return 1;
 }
