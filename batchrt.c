@@ -1,8 +1,14 @@
 /*
 ** batchrt.c -- everything of batchrt that is neither a BVH nor a voxel proxy:
-** results and errors, small utilities, mesh loading (OBJ, PLY), ray and hit
-** files, statistics, and (later) the out-of-core batched traversal of
-** Pharr et al. 1997 with the proxies of Molenaar and Eisemann 2020.
+**   - results, errors and small utilities (sizes, SplitMix64, atomic writes);
+**   - mesh loading: Wavefront OBJ and PLY (ascii, binary both endians),
+**     streamed in chunks through one byte reader;
+**   - ray and hit files (little-endian records) and statistics JSON;
+**   - the out-of-core batched traversal of Pharr et al. 1997 with the
+**     conservative proxies of Molenaar and Eisemann 2020: partition into
+**     batching points, the scene file, the top-level BVH and its restartable
+**     walk, the pread page cache (SQLite's pcache shape) and the scheduler.
+** The sections follow that order; each opens with a comment on its design.
 */
 #include "batchrt.h"
 
