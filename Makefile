@@ -86,10 +86,10 @@ test: all $(TEST_BIN)
 	BRT_BUILD=$(BUILD) ./$(TEST_BIN) $(T)
 
 debug:
-	$(MAKE) test BUILD=build/debug OPT="-O0 -g" XCFLAGS="-DBRT_DEBUG"
+	$(MAKE) --no-print-directory test BUILD=build/debug OPT="-O0 -g" XCFLAGS="-DBRT_DEBUG"
 
 sanitize:
-	$(MAKE) test BUILD=build/sanitize OPT="-O1 -g -fno-omit-frame-pointer" \
+	$(MAKE) --no-print-directory test BUILD=build/sanitize OPT="-O1 -g -fno-omit-frame-pointer" \
 	  XCFLAGS="-DBRT_DEBUG -fsanitize=address,undefined -fno-sanitize-recover=all"
 
 bench: all
