@@ -23,20 +23,6 @@
 /* The oracle and the comparison                                         */
 /* ===================================================================== */
 
-static void brute_force(const tu_scene *s, const uint32_t *prim_ids,
-                        const brt_ray *ray, brt_hit *hit)
-{
-    uint32_t i;
-    for (i = 0; i < s->tcount; i++) {
-        float t, u, v;
-        const uint32_t prim = prim_ids ? prim_ids[i] : i;
-        if (!brt_intersect_triangle(ray, tu_vertex(s, i, 0), tu_vertex(s, i, 1), tu_vertex(s, i, 2), &t, &u, &v))
-            continue;
-        if (brt_hit_is_closer(t, prim, hit)) {
-            hit->t = t; hit->prim = prim; hit->u = u; hit->v = v;
-        }
-    }
-}
 
 /* brt_bvh_intersect_normal: the same hit, and the header's normal
 ** (v1-v0) x (v2-v0) of that triangle; untouched on a miss. */
@@ -73,7 +59,7 @@ static int compare_ray(const tu_scene *s, const uint32_t *prim_ids,
     brt_hit want, got, carried;
     brt_hit_clear(&want);
     brt_hit_clear(&got);
-    brute_force(s, prim_ids, ray, &want);
+    tu_brute_force(s, prim_ids, ray, &want);
     brt_bvh_intersect(bvh, ray, &got);
     if (memcmp(&want, &got, sizeof want) != 0) {
         test_fail_at(__FILE__, __LINE__, "%s ray %zu (o %a %a %a d %a %a %a [%a,%a]): "

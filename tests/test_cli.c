@@ -157,19 +157,8 @@ static brt_ray *load_rays(const char *path, size_t *count)
 static brt_hit brute_force_hit(const tu_scene *m, const brt_ray *ray)
 {
     brt_hit hit;
-    uint32_t i;
     brt_hit_clear(&hit);
-    for (i = 0; i < m->tcount; i++) {
-        float t, u, v;
-        if (brt_intersect_triangle(ray, m->pos + 3 * m->idx[3 * i], m->pos + 3 * m->idx[3 * i + 1],
-                                   m->pos + 3 * m->idx[3 * i + 2], &t, &u, &v)
-            && brt_hit_is_closer(t, i, &hit)) {
-            hit.t = t;
-            hit.prim = i;
-            hit.u = u;
-            hit.v = v;
-        }
-    }
+    tu_brute_force(m, NULL, ray, &hit);
     return hit;
 }
 

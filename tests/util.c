@@ -141,6 +141,23 @@ void tu_make_ray(const tu_scene *s, const float lo[3], const float hi[3], int ki
     if (brt_random_float(st) < 0.25f) r->tfar = tu_rnd(st, 0.0f, 2.0f * ext);
 }
 
+/* The oracle of the BVH: every triangle through brt_intersect_triangle,
+** the closest by brt_hit_is_closer. */
+void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids,
+                        const brt_ray *ray, brt_hit *hit)
+{
+    uint32_t i;
+    for (i = 0; i < s->tcount; i++) {
+        float t, u, v;
+        const uint32_t prim = prim_ids ? prim_ids[i] : i;
+        if (!brt_intersect_triangle(ray, tu_vertex(s, i, 0), tu_vertex(s, i, 1), tu_vertex(s, i, 2), &t, &u, &v))
+            continue;
+        if (brt_hit_is_closer(t, prim, hit)) {
+            hit->t = t; hit->prim = prim; hit->u = u; hit->v = v;
+        }
+    }
+}
+
 /* ---- files and processes ---- */
 
 /* NAME inside the scratch directory (a few rotating buffers). */

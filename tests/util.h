@@ -34,6 +34,12 @@ void tu_random_unit(uint64_t *st, float d[3]);
 void tu_make_ray(const tu_scene *s, const float lo[3], const float hi[3], int kind,
                  uint64_t *st, brt_ray *r);
 
+/* The brute-force closest hit: every triangle of s through
+** brt_intersect_triangle (numbered prim_ids[i], or i when NULL), kept when
+** brt_hit_is_closer than *hit (in/out, like brt_bvh_intersect). */
+void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids, const brt_ray *ray,
+                    brt_hit *hit);
+
 /* ---- files and processes (for the command-line tests) ---- */
 
 /* NAME inside the scratch directory (a few rotating buffers). */
