@@ -70,7 +70,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (strcmp(a, "--batch-tris") == 0)
             o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, UINT32_MAX);
         else if (strcmp(a, "--res") == 0)
-            o->res = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 2, 1024);
+            o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
         else if (strcmp(a, "--scene") == 0) o->scene = ex_option_value(prog, argc, argv, &i);
         else if (a[0] == '-') ex_die(prog, "unknown option '%s' (see --help)", a);
         else o->input = a;

@@ -62,12 +62,9 @@ static void parse_options(int argc, char **argv, options *o)
         else if (strcmp(a, "--seed") == 0)
             o->seed = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX);
         else if (strcmp(a, "--no-table") == 0) o->no_table = 1;
-        else if (strcmp(a, "--res") == 0) {
-            const char *text = ex_option_value(prog, argc, argv, &i);
-            o->res = (uint32_t)ex_parse_u64(prog, a, text, 2, 1024);
-            if (o->res & (o->res - 1))
-                ex_die(prog, "--res: expected a power of two in 2..1024, got '%s'", text);
-        } else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
+        else if (strcmp(a, "--res") == 0)
+            o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
+        else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
         else if (o->mesh_count < 16) o->meshes[o->mesh_count++] = a;
         else ex_die(prog, "too many meshes (at most 16)");
     }

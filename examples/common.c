@@ -90,6 +90,14 @@ uint64_t ex_parse_size(const char *prog, const char *option, const char *text)
     return bytes;
 }
 
+uint32_t ex_parse_resolution(const char *prog, const char *option, const char *text)
+{
+    uint64_t res = ex_parse_u64(prog, option, text, 2, 1024);
+    if (res & (res - 1))
+        ex_die(prog, "%s: expected a power of two in 2..1024, got '%s'", option, text);
+    return (uint32_t)res;
+}
+
 const char *ex_option_value(const char *prog, int argc, char **argv, int *i)
 {
     if (*i + 1 >= argc) ex_die(prog, "%s needs a value (see --help)", argv[*i]);

@@ -33,6 +33,8 @@ uint64_t ex_parse_u64(const char *prog, const char *option, const char *text,
 double ex_parse_double(const char *prog, const char *option, const char *text,
                        double min, double max);
 uint64_t ex_parse_size(const char *prog, const char *option, const char *text);
+/* A proxy resolution: a power of two in 2..1024 (else dies naming option). */
+uint32_t ex_parse_resolution(const char *prog, const char *option, const char *text);
 
 /* The value after option argv[*i] (advancing *i), or dies when missing. */
 const char *ex_option_value(const char *prog, int argc, char **argv, int *i);

@@ -192,7 +192,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--camera")) parse_camera(VALUE, o);
         else if (is_option(a, "--memory")) parse_memory(VALUE, o);
         else if (is_option(a, "--batch-tris")) o->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
-        else if (is_option(a, "--res")) o->res = ex_parse_u64(prog, a, VALUE, 2, 1024);
+        else if (is_option(a, "--res")) o->res = ex_parse_resolution(prog, a, VALUE);
         else if (is_option(a, "--rays-in-flight"))
             o->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
         else if (is_option(a, "--heat-max")) o->heat_max = ex_parse_double(prog, a, VALUE, 1e-9, 1e9);
@@ -209,8 +209,6 @@ static void parse_options(int argc, char **argv, options *o)
         else o->input = a;
 #undef VALUE
     }
-    if (o->res & (o->res - 1)) ex_die(prog, "--res: expected a power of two, got %llu",
-                                      (unsigned long long)o->res);
     if (o->direct && (o->heatmap || o->compare))
         ex_die(prog, "--direct has no batching points: no --heatmap or --compare with it");
     check_output(o->out);

@@ -64,14 +64,6 @@ static void usage(void)
            "bad input (nothing is written then).\n");
 }
 
-static uint64_t parse_resolution(const char *text)
-{
-    uint64_t res = ex_parse_u64(prog, "--res", text, 2, 1024);
-    if (res & (res - 1))
-        ex_die(prog, "--res: expected a power of two in 2..1024, got '%s'", text);
-    return res;
-}
-
 static void parse_options(int argc, char **argv, trace_options *o)
 {
     const char **positional[3];
@@ -95,7 +87,7 @@ static void parse_options(int argc, char **argv, trace_options *o)
             o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i),
                                          1, UINT32_MAX);
         else if (strcmp(a, "--res") == 0)
-            o->res = parse_resolution(ex_option_value(prog, argc, argv, &i));
+            o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
         else if (strcmp(a, "--memory") == 0)
             o->memory = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
         else if (strcmp(a, "--scene") == 0) o->scene = ex_option_value(prog, argc, argv, &i);

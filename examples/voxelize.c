@@ -64,12 +64,9 @@ static void parse_options(int argc, char **argv, options *o)
     o->image = 384;
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
-        if (strcmp(a, "--res") == 0) {
-            const char *text = ex_option_value(prog, argc, argv, &i);
-            o->res = (uint32_t)ex_parse_u64(prog, a, text, 2, 1024);
-            if (o->res & (o->res - 1))
-                ex_die(prog, "--res: expected a power of two in 2..1024, got '%s'", text);
-        } else if (strcmp(a, "--size") == 0)
+        if (strcmp(a, "--res") == 0)
+            o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
+        else if (strcmp(a, "--size") == 0)
             o->image = (uint32_t)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 16, 4096);
         else if (strcmp(a, "--stats") == 0) o->stats = ex_option_value(prog, argc, argv, &i);
         else if (strcmp(a, "--out") == 0) o->out = ex_option_value(prog, argc, argv, &i);
