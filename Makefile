@@ -226,9 +226,9 @@ figures: all
 	./$(BUILD)/figures --out $(BUILD)/fig
 
 bench-render: all
-	./$(BUILD)/render landscape --scale 200 --batch-tris 100000 --spp 16 --width 640 --height 360 \
+	./$(BUILD)/render landscape --scale 200 --batch-tris 10000 --spp 16 --width 640 --height 360 \
 	  --memory 25% --compare --drop-os-cache --out $(BUILD)/bench-render.png
-	./$(BUILD)/render landscape --scale 200 --batch-tris 100000 --spp 16 --width 640 --height 360 \
+	./$(BUILD)/render landscape --scale 200 --batch-tris 10000 --spp 16 --width 640 --height 360 \
 	  --compare --out $(BUILD)/bench-render.png
 # == END RENDER ===========================================================
 

@@ -1449,7 +1449,7 @@ static void partition_free(partition *p)
 /*
 ** A 4-wide BVH over the batching points' boxes (the paper's top level is
 ** 4-wide too).  It lives here, beside the partition whose median split it
-** shares, and tests boxes with bvh.c's brt_box_span so that its distances
+** shares, and tests boxes with bvh.c's brt_box_span4 so that its distances
 ** agree bit for bit with the triangle BVHs.
 **
 ** A ray's place in its walk is one 8-byte key (t_entry, id): the entry
@@ -1460,7 +1460,7 @@ static void partition_free(partition *p)
 **  (a) subtrees the ray leaves before the last key's t: every box inside is
 **      entered no later than it is left, so its key would be smaller;
 **  (b) subtrees entered after the best candidate found so far.
-** Both are exact because brt_box_span is monotone in the box bounds.
+** Both are exact because the box test is monotone in the box bounds.
 */
 #define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
 #define TOP_LEAF 0x80000000u    /* child code of batching point (code & ~TOP_LEAF) */
@@ -1468,7 +1468,8 @@ static void partition_free(partition *p)
 #define TOP_NODE_BYTES 112
 
 typedef struct top_node {
-    float lo[3][4], hi[3][4];   /* child boxes, one lane per child (grown in memory) */
+    float box[6][4];            /* child boxes: rows min x, y, z, max x, y, z; one lane
+                                ** per child (grown in memory; brt_box_span4's layout) */
     uint32_t child[4];          /* node index (> own index), TOP_LEAF|id, TOP_EMPTY */
 } top_node;
 
@@ -1494,8 +1495,8 @@ static void top_lane_clear(top_node *node, int lane)
     int a;
     node->child[lane] = TOP_EMPTY;
     for (a = 0; a < 3; a++) {
-        node->lo[a][lane] = INFINITY;
-        node->hi[a][lane] = -INFINITY;
+        node->box[a][lane] = INFINITY;
+        node->box[3 + a][lane] = -INFINITY;
     }
 }
 
@@ -1503,8 +1504,8 @@ static void top_lane_grow(top_node *node, int lane, const float *box)
 {
     int a;
     for (a = 0; a < 3; a++) {
-        if (box[a] < node->lo[a][lane]) node->lo[a][lane] = box[a];
-        if (box[3 + a] > node->hi[a][lane]) node->hi[a][lane] = box[3 + a];
+        if (box[a] < node->box[a][lane]) node->box[a][lane] = box[a];
+        if (box[3 + a] > node->box[3 + a][lane]) node->box[3 + a][lane] = box[3 + a];
     }
 }
 
@@ -1568,39 +1569,42 @@ static brt_result top_build(const float *boxes, uint32_t count, top_node **nodes
     return BRT_OK;
 }
 
-static int top_lane_span(const top_node *node, int lane, const brt_ray_prep *ray,
-                         float tlimit, float *entry, float *exit)
-{
-    float lo[3], hi[3];
-    int a;
-    for (a = 0; a < 3; a++) {
-        lo[a] = node->lo[a][lane];
-        hi[a] = node->hi[a][lane];
-    }
-    return brt_box_span(ray, lo, hi, ray->tnear, tlimit, entry, exit);
-}
+/* A subtree waiting in top_next's stack, with the distance the ray
+** enters its box (so that a better candidate found meanwhile prunes it). */
+typedef struct top_pending {
+    uint32_t node;
+    float entry;
+} top_pending;
 
 /* The next batching point after *key that the ray enters no later than
-** tlimit: 1 and *key updated, or 0 when there is none. */
+** tlimit: 1 and *key updated, or 0 when there is none.  Subtrees are
+** visited nearest entry first, so that a close candidate is found early
+** and prunes the rest by (b). */
 static int top_next(const top_node *nodes, const brt_ray_prep *ray, float tlimit,
                     walk_key *key)
 {
-    uint32_t stack[3 * TOP_MAX_DEPTH + 1];
+    top_pending stack[3 * TOP_MAX_DEPTH + 1];
     int sp = 0;
     walk_key best;
     best.t = INFINITY;
     best.id = TOP_EMPTY;
-    stack[sp++] = 0;
+    stack[sp].node = 0;
+    stack[sp++].entry = -INFINITY;
     while (sp > 0) {
-        const top_node *node = &nodes[stack[--sp]];
-        int lane;
+        const top_pending next = stack[--sp];
+        const top_node *node = &nodes[next.node];
+        float entries[4], exits[4];
+        unsigned lanes;
+        int lane, first = sp, i;
+        if (best.id != TOP_EMPTY && next.entry > best.t) continue;           /* (b) */
+        lanes = brt_box_span4(ray, (const float (*)[4])node->box, ray->tnear, tlimit,
+                              entries, exits);
         for (lane = 0; lane < 4; lane++) {
             uint32_t child = node->child[lane];
-            float entry, exit;
-            if (child == TOP_EMPTY) continue;
-            if (!top_lane_span(node, lane, ray, tlimit, &entry, &exit)) continue;
-            if (key->id != TOP_EMPTY && exit < key->t) continue;      /* (a) */
-            if (best.id != TOP_EMPTY && entry > best.t) continue;     /* (b) */
+            float entry = entries[lane];
+            if (child == TOP_EMPTY || !(lanes & (1u << lane))) continue;
+            if (key->id != TOP_EMPTY && exits[lane] < key->t) continue;    /* (a) */
+            if (best.id != TOP_EMPTY && entry > best.t) continue;           /* (b) */
             if (child & TOP_LEAF) {
                 uint32_t id = child & ~TOP_LEAF;
                 if (key_after(entry, id, *key) &&
@@ -1608,9 +1612,12 @@ static int top_next(const top_node *nodes, const brt_ray_prep *ray, float tlimit
                     best.t = entry;
                     best.id = id;
                 }
-            } else {
-                stack[sp++] = child;
+                continue;
             }
+            /* insert, keeping this node's children farthest first */
+            for (i = sp++; i > first && stack[i - 1].entry < entry; i--) stack[i] = stack[i - 1];
+            stack[i].node = child;
+            stack[i].entry = entry;
         }
     }
     if (best.id == TOP_EMPTY) return 0;
@@ -1704,13 +1711,13 @@ static void top_node_pack(const top_node *n, unsigned char *p)
     int a, lane;
     for (a = 0; a < 3; a++)
         for (lane = 0; lane < 4; lane++) {
-            put_f32(p + 16 * a + 4 * lane, n->lo[a][lane]);
-            put_f32(p + 48 + 16 * a + 4 * lane, n->hi[a][lane]);
+            put_f32(p + 16 * a + 4 * lane, n->box[a][lane]);
+            put_f32(p + 48 + 16 * a + 4 * lane, n->box[3 + a][lane]);
         }
     for (lane = 0; lane < 4; lane++) put_u32(p + 96 + 4 * lane, n->child[lane]);
 }
 
-/* In memory the boxes are kept grown for brt_box_span (once, at open,
+/* In memory the boxes are kept grown for brt_box_span4 (once, at open,
 ** instead of at every test); the file holds them exact. */
 static void top_node_pad(top_node *n)
 {
@@ -1719,13 +1726,13 @@ static void top_node_pad(top_node *n)
         float lo[3], hi[3];
         if (n->child[lane] == TOP_EMPTY) continue;
         for (a = 0; a < 3; a++) {
-            lo[a] = n->lo[a][lane];
-            hi[a] = n->hi[a][lane];
+            lo[a] = n->box[a][lane];
+            hi[a] = n->box[3 + a][lane];
         }
         brt_box_pad(lo, hi, lo, hi);
         for (a = 0; a < 3; a++) {
-            n->lo[a][lane] = lo[a];
-            n->hi[a][lane] = hi[a];
+            n->box[a][lane] = lo[a];
+            n->box[3 + a][lane] = hi[a];
         }
     }
 }
@@ -1735,8 +1742,8 @@ static void top_node_unpack(const unsigned char *p, top_node *n)
     int a, lane;
     for (a = 0; a < 3; a++)
         for (lane = 0; lane < 4; lane++) {
-            n->lo[a][lane] = get_f32(p + 16 * a + 4 * lane);
-            n->hi[a][lane] = get_f32(p + 48 + 16 * a + 4 * lane);
+            n->box[a][lane] = get_f32(p + 16 * a + 4 * lane);
+            n->box[3 + a][lane] = get_f32(p + 48 + 16 * a + 4 * lane);
         }
     for (lane = 0; lane < 4; lane++) n->child[lane] = get_u32(p + 96 + 4 * lane);
 }
@@ -2584,10 +2591,9 @@ static brt_result advance(scheduler *s, uint32_t slot)
         float tlimit = r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
         while (top_next(s->scene->top, &prep, tlimit, &r->key)) {
             const batch_entry *b = &s->scene->batches[r->key.id];
-            float t_entry;
             if (s->use_proxies) {
                 s->stats->proxy_tests++;
-                if (!brt_proxy_raycast(s->scene->dag, &b->proxy, &r->ray, r->ray.tnear, tlimit, &t_entry)) {
+                if (!brt_proxy_raycast(s->scene->dag, &b->proxy, &r->ray, r->ray.tnear, tlimit, NULL)) {
                     s->stats->proxy_culled++;
                     continue;
                 }

@@ -236,6 +236,13 @@ int brt_box_span(const brt_ray_prep *prep, const float lo[3],
                  const float hi[3], float tmin, float tmax, float *entry,
                  float *exit);
 
+/* brt_box_span on four padded boxes at once, laid out as rows of four
+** lanes: box[0..2] the minimum x, y, z and box[3..5] the maximum x, y, z
+** of lanes 0..3 (a 4-wide BVH node).  Bit i of the result is lane i's
+** answer; entry[i] and exit[i] are bit for bit brt_box_span's. */
+unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4],
+                       float tmin, float tmax, float entry[4], float exit[4]);
+
 typedef struct brt_bvh brt_bvh;   /* opaque; layout documented in bvh.c */
 
 /* Builds a BVH over tri_count triangles given by indices into positions.
@@ -343,7 +350,8 @@ brt_result brt_svdag_decode(const brt_svdag *dag, const brt_proxy *proxy,
 ** segment touches the closed box of a set voxel, with *t_entry no greater
 ** than where it first touches one (clamped to tnear).  Conservative under
 ** rounding; NaN rays return 1 with *t_entry = tnear (a proxy may only err
-** towards "hit"). */
+** towards "hit").  t_entry may be NULL: the cast then stops at the first
+** set voxel it touches (the yes/no question the batched traversal asks). */
 int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
                       const brt_ray *ray, float tnear, float tfar,
                       float *t_entry);

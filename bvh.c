@@ -164,19 +164,27 @@ void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
     prep->valid = ray_is_valid(ray);
 }
 
-static void box_ray_setup(const brt_ray *ray, box_ray *b)
+/* The four-lane copy of an already prepared ray. */
+static void box_ray_from_prep(const brt_ray_prep *prep, box_ray *b)
 {
     int a, i;
-    brt_ray_prepare(ray, &b->p);
+    b->p = *prep;
     for (a = 0; a < 3; a++) {
         for (i = 0; i < 4; i++) {
-            b->org_near[a][i] = b->p.org_near[a];
-            b->org_far[a][i] = b->p.org_far[a];
-            b->inv[a][i] = b->p.inv[a];
+            b->org_near[a][i] = prep->org_near[a];
+            b->org_far[a][i] = prep->org_far[a];
+            b->inv[a][i] = prep->inv[a];
         }
-        b->near_row[a] = b->p.negative[a] ? a + 3 : a;
-        b->far_row[a] = b->p.negative[a] ? a : a + 3;
+        b->near_row[a] = prep->negative[a] ? a + 3 : a;
+        b->far_row[a] = prep->negative[a] ? a : a + 3;
     }
+}
+
+static void box_ray_setup(const brt_ray *ray, box_ray *b)
+{
+    brt_ray_prep prep;
+    brt_ray_prepare(ray, &prep);
+    box_ray_from_prep(&prep, b);
 }
 
 /* The slab test of one box that is already padded: entry and exit of the
@@ -345,19 +353,29 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
 
 /* ---- four slots at once ---- */
 
-/* Entry distance of each slot in lo[]; returns a mask of slots whose
-** interval meets [tnear, tfar] (inclusive).  NaN never narrows.  Each
-** lane is slab_span's arithmetic in slab_span's order; written lane-wise
-** with the mask bits as a select of constants, so that GCC -O2 turns the
-** whole test into vector instructions (a per-lane shift loop cost a
-** quarter of the node's instructions). */
-static inline unsigned box_test4(const box_ray *b, const wnode *n,
-                                 float tnear, float tfar, float lo[4])
+/* Entry and exit distance of four boxes given as rows (min x, y, z, max
+** x, y, z) of four lanes; returns a mask of lanes whose interval meets
+** [tnear, tfar] (inclusive).  NaN never narrows.  Each lane is slab_span's
+** arithmetic in slab_span's order, so every caller -- the triangle BVHs
+** here, the top level in batchrt.c -- gets the same bits for the same box.
+** Written lane-wise with the mask bits as a select of constants, so that
+** GCC -O2 turns the whole test into vector instructions (a per-lane shift
+** loop cost a quarter of the node's instructions). */
+/* GCC's -O2 would call box_span4 rather than inline it into traverse(),
+** which cost the BVH walk a sixth of its speed; other compilers decide. */
+#if defined(__GNUC__)
+#define ALWAYS_INLINE __attribute__((always_inline))
+#else
+#define ALWAYS_INLINE
+#endif
+
+static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float box[6][4],
+                                 float tnear, float tfar, float lo[4], float hi[4])
 {
     static const unsigned lane_bit[4] = {1u, 2u, 4u, 8u};
-    const float *nx = n->box[b->near_row[0]], *fx = n->box[b->far_row[0]];
-    const float *ny = n->box[b->near_row[1]], *fy = n->box[b->far_row[1]];
-    const float *nz = n->box[b->near_row[2]], *fz = n->box[b->far_row[2]];
+    const float *nx = box[b->near_row[0]], *fx = box[b->far_row[0]];
+    const float *ny = box[b->near_row[1]], *fy = box[b->far_row[1]];
+    const float *nz = box[b->near_row[2]], *fz = box[b->far_row[2]];
     unsigned bit[4];
     int i;
     for (i = 0; i < 4; i++) {
@@ -375,9 +393,27 @@ static inline unsigned box_test4(const box_ray *b, const wnode *n,
         th = y1 < th ? y1 : th;
         th = z1 < th ? z1 : th;
         lo[i] = tl;
+        hi[i] = th;
         bit[i] = tl <= th ? lane_bit[i] : 0u;
     }
     return bit[0] | bit[1] | bit[2] | bit[3];
+}
+
+/* A node's slots: only the entries are wanted (the exits are dead stores
+** the compiler drops). */
+static inline unsigned box_test4(const box_ray *b, const wnode *n,
+                                 float tnear, float tfar, float lo[4])
+{
+    float hi[4];
+    return box_span4(b, (const float (*)[4])n->box, tnear, tfar, lo, hi);
+}
+
+unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tmin,
+                       float tmax, float entry[4], float exit[4])
+{
+    box_ray b;
+    box_ray_from_prep(prep, &b);
+    return box_span4(&b, box, tmin, tmax, entry, exit);
 }
 
 /* ===================================================================== */

@@ -1016,6 +1016,7 @@ typedef struct ray_frame {
     int levels;             /* root spans N = 2^levels voxels */
     double lo, hi;          /* the live segment: hi shrinks to the best hit */
     int found;              /* a set voxel was touched; its entry is hi */
+    int any;                /* stop at the first set voxel: no entry wanted */
 } ray_frame;
 
 /* One scale of the parent stack: a node, its mirrored corner in voxels,
@@ -1268,6 +1269,7 @@ static int walk(const brt_svdag *dag, ray_frame *r, uint64_t node, unsigned m)
             if (level == 1) {                   /* the nearest voxel here */
                 r->hi = in;
                 r->found = 1;
+                if (r->any) return 1;
                 s->pending = 0;
                 continue;
             }
@@ -1295,13 +1297,15 @@ int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
                       float *t_entry)
 {
     ray_frame r;
-    float t;
+    float t, unused;
+    if (!t_entry) t_entry = &unused;
     *t_entry = tnear;
     if (ray_is_degenerate(ray, tnear, tfar)) return 1;
     if (tnear > tfar) return 0;
     if (brt_proxy_check(dag, proxy, NULL) != BRT_OK) return 1;
     if (proxy->root == BRT_EMPTY_ROOT) return 0;
     frame_setup(&r, proxy, ray);
+    r.any = t_entry == &unused;
     clip_to_root(&r, tnear, tfar);
     if (!(r.lo <= r.hi)) return 0;
     if (r.levels == 2) {

@@ -113,6 +113,11 @@ static xform xform_then(const xform *inner, const xform *outer)
     return x;
 }
 
+static double clamp(double x, double lo, double hi)
+{
+    return x < lo ? lo : x > hi ? hi : x;
+}
+
 static double rnd(uint64_t *rng, double lo, double hi)
 {
     return lo + (hi - lo) * (double)brt_random_float(rng);
@@ -919,8 +924,9 @@ static void landscape_trees(builder *b, uint64_t *rng, const terrain *ground,
         }
         a = rnd(rng, 0, 2 * PI);
         r = radius * sqrt(rnd(rng, 0, 1));
-        at[0] = centre[0] + r * cos(a);
-        at[2] = centre[2] + r * sin(a);
+        /* on the terrain: a forest at the edge is cut off there */
+        at[0] = clamp(centre[0] + r * cos(a), -0.49 * side, 0.49 * side);
+        at[2] = clamp(centre[2] + r * sin(a), -0.49 * side, 0.49 * side);
         at[1] = terrain_height(ground, at[0], at[2]) - 0.3;
         if (rnd(rng, 0, 1) < conifer_share) {
             height = rnd(rng, 8, 22);
@@ -1159,10 +1165,13 @@ void ex_scene_camera(const char *name, const float bmin[3], const float bmax[3],
     radius = 0.5 * sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
     span = d[0] > d[2] ? d[0] : d[2];
     switch (scene_index(name)) {
-    case 1:   /* landscape: just above the south edge, across its length */
+    case 1:   /* landscape: just above the highest peak, over one corner,
+              ** along the diagonal to the horizon -- the paper's kind of
+              ** view, where rays skim over many batching points before
+              ** they hit (Fig. 1); above the box, the eye is in the open */
         *fov_degrees = 60;
-        set3(eye, c[0], bmax[1] + 0.04 * span, bmin[2] + 0.02 * d[2]);
-        set3(target, c[0], bmin[1] + 0.3 * d[1], bmin[2] + 0.5 * d[2]);
+        set3(eye, bmin[0] + 0.02 * d[0], bmax[1] + 0.005 * span, bmin[2] + 0.02 * d[2]);
+        set3(target, bmax[0], bmin[1] - 0.1 * d[1], bmax[2]);
         break;
     case 2:   /* island: from high above the sea, south of the middle */
         *fov_degrees = 50;

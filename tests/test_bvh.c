@@ -343,6 +343,71 @@ static void test_grazing(void)
     tu_scene_free(&s);
 }
 
+/* brt_box_span4 is the top level's box test and must give the same bits
+** as brt_box_span lane by lane (the batched walk's keys depend on it):
+** random padded boxes, flat boxes, empty lanes (+inf..-inf), coordinates
+** from 1e-30 to 1e30, axis-parallel rays with +0 and -0 components, and
+** random segments. */
+static float random_coordinate(uint64_t *st)
+{
+    static const float scales[4] = {1.0f, 1e-30f, 1e30f, 1e3f};
+    return (2.0f * brt_random_float(st) - 1.0f) * scales[brt_random_u64(st) % 4];
+}
+
+static void test_box_span4(void)
+{
+    uint64_t st = test_seed() + 11;
+    unsigned i, lanes_hit = 0;
+    for (i = 0; i < 200000 && !test_failed(); i++) {
+        float box[6][4], entry4[4], exit4[4];
+        brt_ray ray;
+        brt_ray_prep prep;
+        float tmin = brt_random_u64(&st) % 2 ? 0.0f : brt_random_float(&st);
+        float tmax = brt_random_u64(&st) % 2 ? INFINITY : tmin + 10.0f * brt_random_float(&st);
+        unsigned mask;
+        int a, lane;
+        for (a = 0; a < 3; a++) {
+            ray.org[a] = random_coordinate(&st);
+            ray.dir[a] = brt_random_u64(&st) % 4 ? random_coordinate(&st)
+                                                  : (brt_random_u64(&st) % 2 ? 0.0f : -0.0f);
+        }
+        ray.tnear = tmin;
+        ray.tfar = tmax;
+        brt_ray_prepare(&ray, &prep);
+        for (lane = 0; lane < 4; lane++) {
+            float lo[3], hi[3];
+            for (a = 0; a < 3; a++) {
+                float x = random_coordinate(&st), y = brt_random_u64(&st) % 4 ? random_coordinate(&st) : x;
+                lo[a] = fminf(x, y);
+                hi[a] = fmaxf(x, y);
+            }
+            brt_box_pad(lo, hi, lo, hi);
+            if (brt_random_u64(&st) % 8 == 0)
+                for (a = 0; a < 3; a++) { lo[a] = INFINITY; hi[a] = -INFINITY; }
+            for (a = 0; a < 3; a++) {
+                box[a][lane] = lo[a];
+                box[3 + a][lane] = hi[a];
+            }
+        }
+        mask = brt_box_span4(&prep, (const float (*)[4])box, tmin, tmax, entry4, exit4);
+        for (lane = 0; lane < 4; lane++) {
+            float lo[3], hi[3], entry, exit;
+            int one;
+            for (a = 0; a < 3; a++) {
+                lo[a] = box[a][lane];
+                hi[a] = box[3 + a][lane];
+            }
+            one = brt_box_span(&prep, lo, hi, tmin, tmax, &entry, &exit);
+            lanes_hit += (unsigned)one;
+            EXPECT(one == (int)((mask >> lane) & 1u) && memcmp(&entry, &entry4[lane], 4) == 0 &&
+                   memcmp(&exit, &exit4[lane], 4) == 0,
+                   "ray %u lane %d: brt_box_span %d [%a, %a], brt_box_span4 %u [%a, %a]", i, lane,
+                   one, entry, exit, (mask >> lane) & 1u, entry4[lane], exit4[lane]);
+        }
+    }
+    EXPECT(lanes_hit > 1000, "only %u lanes entered: the test covers too few boxes", lanes_hit);
+}
+
 static void test_scales(void)
 {
     static const float scale[] = {1e-6f, 1e6f, 1.0f, 1e-6f};
@@ -830,6 +895,7 @@ static void test_bounds_and_memory(void)
 void suite_bvh(void)
 {
     test_run("bvh: triangle exact values", test_triangle_exact);
+    test_run("bvh: 4-wide box test == one-box test", test_box_span4);
     test_run("bvh: double-precision fallback", test_double_fallback);
     test_run("bvh: random soups == brute force", test_random_soups);
     test_run("bvh: prim ids == brute force", test_prim_ids);

@@ -247,17 +247,33 @@ static void test_names_and_errors(void)
     EXPECT(ex_scene_generate("crown", nan(""), 1, &m, &err) == BRT_EARG, "NaN scale accepted");
 }
 
+/* Does the ray hit any triangle of the mesh?  (Brute force.) */
+static int mesh_hit(const brt_mesh *m, const brt_ray *ray)
+{
+    uint32_t i;
+    float t, u, v;
+    for (i = 0; i < m->triangle_count; i++)
+        if (brt_intersect_triangle(ray, m->positions + 3 * (size_t)m->indices[3 * i],
+                                   m->positions + 3 * (size_t)m->indices[3 * i + 1],
+                                   m->positions + 3 * (size_t)m->indices[3 * i + 2], &t, &u, &v))
+            return 1;
+    return 0;
+}
+
 /* The ray from the default eye through the target hits the scene (brute
-** force), and the eye looks from outside the scene's box. */
+** force), and the eye is in the open: nothing above it (so it is not
+** inside an object, under the terrain or under a tree), and either
+** outside the scene's box or above some geometry (the landscape's low
+** view looks from inside the box, over the terrain). */
 static void test_default_view_sees_the_scene(void)
 {
+    static const float up[3] = {0, 1, 0}, down[3] = {0, -1, 0};
     int s, k;
     for (s = 0; s < SCENES; s++) {
         brt_mesh m;
-        brt_ray ray;
-        float lo[3], hi[3], target[3], fov, t, u, v;
-        uint32_t i;
-        int hit = 0, outside = 0;
+        brt_ray ray, vertical;
+        float lo[3], hi[3], target[3], fov;
+        int outside = 0, covered, grounded;
         if (!generate(scene_list[s], 0.2, test_seed(), &m)) return;
         brt_mesh_bounds(&m, lo, hi);
         ex_scene_camera(scene_list[s], lo, hi, ray.org, target, &fov);
@@ -267,12 +283,15 @@ static void test_default_view_sees_the_scene(void)
         }
         ray.tnear = 0;
         ray.tfar = INFINITY;
-        for (i = 0; i < m.triangle_count && !hit; i++)
-            hit = brt_intersect_triangle(&ray, m.positions + 3 * (size_t)m.indices[3 * i],
-                                         m.positions + 3 * (size_t)m.indices[3 * i + 1],
-                                         m.positions + 3 * (size_t)m.indices[3 * i + 2], &t, &u, &v);
-        EXPECT(hit, "%s: the central ray of the default view misses", scene_list[s]);
-        EXPECT(outside, "%s: the default eye is inside the scene's box", scene_list[s]);
+        vertical = ray;
+        memcpy(vertical.dir, up, sizeof up);
+        covered = mesh_hit(&m, &vertical);
+        memcpy(vertical.dir, down, sizeof down);
+        grounded = mesh_hit(&m, &vertical);
+        EXPECT(mesh_hit(&m, &ray), "%s: the central ray of the default view misses", scene_list[s]);
+        EXPECT(!covered, "%s: the default eye is under or inside geometry", scene_list[s]);
+        EXPECT(outside || grounded, "%s: the default eye is in the box but over no ground",
+               scene_list[s]);
         EXPECT(fov > 10 && fov < 120, "%s: field of view %g", scene_list[s], fov);
         brt_mesh_free(&m);
     }

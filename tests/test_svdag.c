@@ -487,6 +487,10 @@ static void test_raycast_oracle(void)
                 near = oracle_grid(&grid, &ray, documented_grow(&grid, &ray), &t_grown);
                 got = brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, &t_entry);
                 rays++;
+                /* the yes/no cast (no entry wanted) stops early, same answer */
+                EXPECT(brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, NULL) == got,
+                       "res %u ray (%a %a %a) dir (%a %a %a): cast without entry disagrees",
+                       res, ray.org[0], ray.org[1], ray.org[2], ray.dir[0], ray.dir[1], ray.dir[2]);
                 hits += want;
                 false_hits += got && !want;
                 EXPECT(!want || (got && t_entry <= t_oracle && t_entry >= ray.tnear),
