@@ -43,8 +43,9 @@
 ** A built-in scene is generated in memory (fast: about 10 M triangles/s);
 ** its scene file goes to the default scene folder (ex_scene_folder)
 ** under a name made of the scene name, scale, seed and the build options,
-** and carries a stamp of them (brt_scene_matches), so it is built once
-** and reused.
+** and carries a checksum of the generated triangles as its stamp
+** (brt_scene_matches), so it is built once and reused -- until the
+** generator changes what those triangles are.
 */
 #include "rays.h"
 #include "scenes.h"
@@ -496,14 +497,20 @@ static void make_job(const options *o, const brt_mesh *mesh, render_job *job)
     job->paths_in_flight = (uint32_t)o->rays_in_flight;
 }
 
-/* A stamp of a built-in scene's recipe (FNV-1a of its name, scale, seed). */
-static uint64_t builtin_stamp(const options *o, char *recipe, size_t size)
+/* A built-in scene's recipe (name, scale, seed: its file name). */
+static void builtin_recipe(const options *o, char *recipe, size_t size)
 {
-    uint64_t h = 14695981039346656037u;
-    const char *p;
     snprintf(recipe, size, "%s-s%g-seed%llu", o->input, o->scale, (unsigned long long)o->seed);
-    for (p = recipe; *p; p++) h = (h ^ (unsigned char)*p) * 1099511628211u;
-    return h;
+}
+
+/* The stamp of a built-in scene: a checksum of the generated triangles
+** themselves, not of the recipe, so that a file left by an older
+** generator (same name, other geometry) is rebuilt, never reused. */
+static uint64_t builtin_stamp(const brt_mesh *mesh)
+{
+    uint64_t positions = brt_checksum64(mesh->positions, 12 * (size_t)mesh->vertex_count);
+    uint64_t indices = brt_checksum64(mesh->indices, 12 * (size_t)mesh->triangle_count);
+    return positions ^ (indices * 0x9E3779B97F4A7C15u);
 }
 
 /* DIR/RECIPE-bBATCH-rRES.brs in the scene folder (ex_scene_folder). */
@@ -518,11 +525,10 @@ static void builtin_scene_path(const options *o, const char *recipe, char *path,
 
 /* Opens the scene file when it matches the built-in recipe, else builds it
 ** from the mesh (already generated: it also gave the camera). */
-static brt_scene *prepare_builtin(const options *o, const brt_scene_options *sopt,
-                                  const brt_mesh *mesh, const char *path, int *rebuilt)
+static brt_scene *prepare_builtin(const brt_scene_options *sopt, const brt_mesh *mesh,
+                                  const char *path, int *rebuilt)
 {
-    char recipe[256];
-    uint64_t stamp = builtin_stamp(o, recipe, sizeof recipe);
+    uint64_t stamp = builtin_stamp(mesh);
     brt_scene *scene = NULL;
     brt_error err;
     *rebuilt = 0;
@@ -550,10 +556,10 @@ static brt_scene *open_scene(const options *o, const brt_mesh *mesh, double *bui
     sopt.batch_tris = (uint32_t)o->batch_tris;
     sopt.proxy_res = (uint32_t)o->res;
     if (ex_scene_is_builtin(o->input)) {
-        builtin_stamp(o, recipe, sizeof recipe);
+        builtin_recipe(o, recipe, sizeof recipe);
         if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
         else builtin_scene_path(o, recipe, path, sizeof path);
-        scene = prepare_builtin(o, &sopt, mesh, path, &rebuilt);
+        scene = prepare_builtin(&sopt, mesh, path, &rebuilt);
     } else {
         if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
         else ex_default_scene_path(prog, o->input, sopt.batch_tris, sopt.proxy_res, path, sizeof path);
@@ -821,10 +827,12 @@ static void write_image(const options *o, const render_job *job, const run *x)
 static void describe(const options *o, uint32_t triangles, brt_scene *scene, uint64_t limit)
 {
     printf("%s: %u triangles", o->input, triangles);
-    if (scene)
-        printf(", %u batching points of <= %llu, proxies %llu^3, memory limit %s%.1f MiB",
-               brt_scene_batch_count(scene), (unsigned long long)o->batch_tris,
-               (unsigned long long)o->res, limit ? "" : "none ", limit / 1048576.0);
+    if (scene) {
+        printf(", %u batching points of <= %llu, proxies %llu^3, ", brt_scene_batch_count(scene),
+               (unsigned long long)o->batch_tris, (unsigned long long)o->res);
+        if (limit) printf("memory limit %.1f MiB", limit / 1048576.0);
+        else printf("no memory limit");
+    }
     printf("; %llux%llu, %llu spp\n", (unsigned long long)o->width, (unsigned long long)o->height,
            (unsigned long long)o->spp);
 }
