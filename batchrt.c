@@ -1579,10 +1579,8 @@ typedef struct top_pending {
 /* The next batching point after *key that the ray enters no later than
 ** tlimit: 1 and *key updated, or 0 when there is none.  Subtrees are
 ** visited nearest entry first, so that a close candidate is found early
-** and prunes the rest by (b).  (Measured on build/render landscape
-** --scale 20 --batch-tris 5000 --spp 16 in core: with the 4-wide box test
-** and this order the whole render took 9.2 G cycles instead of 11.8 G;
-** the walk had been a third of the time.) */
+** and prunes the rest by (b).  (With brt_box_span4 and this order, a
+** batched render went from 10.0 G to 9.4 G cycles; README, bench-render.) */
 static int top_next(const top_node *nodes, const brt_ray_prep *ray, float tlimit,
                     walk_key *key)
 {

@@ -1269,8 +1269,8 @@ static int walk(const brt_svdag *dag, ray_frame *r, uint64_t node, unsigned m)
             if (level == 1) {                   /* the nearest voxel here */
                 r->hi = in;
                 r->found = 1;
-                if (r->any) return 1;   /* yes/no: the rest cost the batched
-                                         ** render above a fifth of its time */
+                if (r->any) return 1;   /* yes/no: no need to finish the
+                                         ** siblings entered sooner */
                 s->pending = 0;
                 continue;
             }
