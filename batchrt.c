@@ -1598,8 +1598,7 @@ static int top_next(const top_node *nodes, const brt_ray_prep *ray, float tlimit
         unsigned lanes;
         int lane, first = sp, i;
         if (best.id != TOP_EMPTY && next.entry > best.t) continue;           /* (b) */
-        lanes = brt_box_span4(ray, (const float (*)[4])node->box, ray->tnear, tlimit,
-                              entries, exits);
+        lanes = brt_box_span4(ray, node->box, ray->tnear, tlimit, entries, exits);
         for (lane = 0; lane < 4; lane++) {
             uint32_t child = node->child[lane];
             float entry = entries[lane];
@@ -1709,12 +1708,9 @@ static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
 
 static void top_node_pack(const top_node *n, unsigned char *p)
 {
-    int a, lane;
-    for (a = 0; a < 3; a++)
-        for (lane = 0; lane < 4; lane++) {
-            put_f32(p + 16 * a + 4 * lane, n->box[a][lane]);
-            put_f32(p + 48 + 16 * a + 4 * lane, n->box[3 + a][lane]);
-        }
+    int row, lane;
+    for (row = 0; row < 6; row++)
+        for (lane = 0; lane < 4; lane++) put_f32(p + 16 * row + 4 * lane, n->box[row][lane]);
     for (lane = 0; lane < 4; lane++) put_u32(p + 96 + 4 * lane, n->child[lane]);
 }
 
@@ -1740,12 +1736,9 @@ static void top_node_pad(top_node *n)
 
 static void top_node_unpack(const unsigned char *p, top_node *n)
 {
-    int a, lane;
-    for (a = 0; a < 3; a++)
-        for (lane = 0; lane < 4; lane++) {
-            n->box[a][lane] = get_f32(p + 16 * a + 4 * lane);
-            n->box[3 + a][lane] = get_f32(p + 48 + 16 * a + 4 * lane);
-        }
+    int row, lane;
+    for (row = 0; row < 6; row++)
+        for (lane = 0; lane < 4; lane++) n->box[row][lane] = get_f32(p + 16 * row + 4 * lane);
     for (lane = 0; lane < 4; lane++) n->child[lane] = get_u32(p + 96 + 4 * lane);
 }
 

@@ -405,7 +405,7 @@ static inline unsigned box_test4(const box_ray *b, const wnode *n,
                                  float tnear, float tfar, float lo[4])
 {
     float hi[4];
-    return box_span4(b, (const float (*)[4])n->box, tnear, tfar, lo, hi);
+    return box_span4(b, n->box, tnear, tfar, lo, hi);
 }
 
 unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tmin,
