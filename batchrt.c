@@ -1232,7 +1232,8 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
         {"batch_loads", s->batch_loads}, {"cache_peak_bytes", s->cache_peak_bytes},
         {"memory_limit", s->memory_limit}, {"proxy_bytes", s->proxy_bytes},
         {"proxy_tests", s->proxy_tests}, {"proxy_culled", s->proxy_culled},
-        {"queued_visits", s->queued_visits}, {"oversized_loads", s->oversized_loads}};
+        {"queued_visits", s->queued_visits}, {"resident_visits", s->resident_visits},
+        {"oversized_loads", s->oversized_loads}};
     const struct { const char *name; double value; } measures[] = {
         {"seconds", s->seconds}, {"build_seconds", s->build_seconds},
         {"bvh_bytes_per_triangle", s->bvh_bytes_per_triangle},
@@ -1267,7 +1268,8 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
 **
 **   mesh --partition--> batching points --build--> scene file
 **        (median splits)  (BVH blob + box + proxy each)
-**   rays --top-level walk--> proxy test --> queue at a batching point
+**   rays --top-level walk--> geometry in memory? intersect at once;
+**        else proxy test --> queue at a batching point
 **   scheduler: fullest queue first --> page cache (pread, LRU) --> BVH
 **        --> the ray resumes its walk, or finishes.
 */
@@ -2462,6 +2464,19 @@ static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, b
 #endif
 }
 
+/* The BVH of batching point id if it is in memory (then it counts as just
+** used), or NULL.  Never loads. */
+static const brt_bvh *cache_resident(page_cache *c, uint32_t id)
+{
+    cache_entry *e = &c->entries[id];
+    if (!e->data) return NULL;
+    if (e->pins == 0) {
+        lru_unlink(c, id);
+        lru_append(c, id);
+    }
+    return e->bvh;
+}
+
 /* Release unpins: the entry becomes the most recently used evictable one. */
 static void cache_release(page_cache *c, uint32_t id)
 {
@@ -2496,7 +2511,7 @@ typedef struct ray_queue {
 typedef struct scheduler {
     brt_scene *scene;
     const brt_ray_source *source;
-    int use_proxies;
+    int use_proxies, queue_resident;
     brt_stats *stats;
     page_cache cache;
     ray_slot *slots;
@@ -2572,19 +2587,41 @@ static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
     return BRT_OK;
 }
 
+static float walk_limit(const ray_slot *r)
+{
+    return r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
+}
+
 /* Continues a ray's top-level walk: queues it at the next batching point it
 ** enters before its closest hit and whose proxy it hits, or finishes it.
 ** tlimit is the closest hit (a box entered exactly there may still hold an
-** equal-t hit with a lower prim, so the compare is inclusive). */
+** equal-t hit with a lower prim, so the compare is inclusive).
+**
+** A batching point whose geometry is in memory needs no queue: the ray is
+** intersected there at once and walks on (unless queue_resident asks for
+** the paper's plain scheduler).  Its proxy is not consulted: the BVH
+** answers exactly at about the cost of a proxy cast.  Why it matters: a
+** bounce ray starts inside the batching point just processed, which is
+** still in memory; queued, it would wait there until that point might be
+** evicted and read again.  (Landscape, 2 M triangles, 25 % limit: loads
+** 4,309 -> 1,358 without proxies, 3,104 -> 929 with them; README.) */
 static brt_result advance(scheduler *s, uint32_t slot)
 {
     ray_slot *r = &s->slots[slot];
     brt_ray_prep prep;
     brt_ray_prepare(&r->ray, &prep);
     if (prep.valid) {
-        float tlimit = r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
+        float tlimit = walk_limit(r);
         while (top_next(s->scene->top, &prep, tlimit, &r->key)) {
             const batch_entry *b = &s->scene->batches[r->key.id];
+            const brt_bvh *resident = s->queue_resident ? NULL : cache_resident(&s->cache, r->key.id);
+            if (resident) {
+                brt_bvh_intersect_normal(resident, &r->ray, &r->hit, r->normal);
+                r->visits++;
+                s->stats->resident_visits++;
+                tlimit = walk_limit(r);
+                continue;
+            }
             if (s->use_proxies) {
                 s->stats->proxy_tests++;
                 if (!brt_proxy_raycast(s->scene->dag, &b->proxy, &r->ray, r->ray.tnear, tlimit, NULL)) {
@@ -2661,6 +2698,7 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->source = source;
     s->stats = stats;
     s->use_proxies = !(opt && opt->no_proxy);
+    s->queue_resident = opt && opt->queue_resident;
     s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
     if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
     /* With proxies on, they take their bytes from the same budget (the

@@ -402,7 +402,8 @@ typedef struct brt_stats {
     uint64_t proxy_bytes;
     uint64_t proxy_tests;
     uint64_t proxy_culled;
-    uint64_t queued_visits;
+    uint64_t queued_visits;     /* rays queued at a batching point */
+    uint64_t resident_visits;   /* rays intersected at once: the geometry was in memory */
     uint64_t oversized_loads;   /* loads of a blob larger than the budget */
     double seconds;             /* tracing */
     double build_seconds;       /* BVH or scene build */
@@ -478,6 +479,8 @@ typedef struct brt_trace_options {
     uint64_t memory_limit;   /* bytes for geometry (+ proxies); 0: no limit */
     int no_proxy;            /* queue at every box entered, as Pharr et al. */
     int drop_os_cache;       /* posix_fadvise(DONTNEED) on the file first */
+    int queue_resident;      /* queue at batching points in memory too (the
+                             ** paper's scheduler); 0: intersect there at once */
     uint32_t rays_in_flight; /* stream mode: 0 means 1 << 20 */
     brt_read_fn read_fn;     /* NULL: pread */
     void *read_user;
@@ -488,7 +491,8 @@ typedef struct brt_trace_options {
 ** no more for now) and finished for every completed ray, in an order that
 ** depends on the schedule, with the hit triangle's geometric normal (as
 ** brt_bvh_intersect_normal; zero on a miss) and the number of batching
-** points the ray was queued at (the paper's Fig. 1 counts these); tag is
+** points the ray visited: queued at, or intersected at once because their
+** geometry was in memory (the paper's Fig. 1 counts these); tag is
 ** the caller's, passed through.  finished may hand rays to the next next_rays call (a path
 ** tracer's bounce), so the number in flight stays constant. */
 typedef struct brt_ray_source {

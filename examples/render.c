@@ -35,9 +35,10 @@
 ** byte-identical images.  tests/test_render.c checks that.
 **
 ** THE HEATMAP (the paper's Fig. 1)
-** Batching points visited (queued) per sample in each pixel: the scheduler
-** reports with each finished ray how many batching points it was queued
-** at, and each path adds its rays' counts to its pixel.
+** Batching points visited per sample in each pixel: the scheduler reports
+** with each finished ray how many batching points it visited (queued at,
+** or intersected at once because their geometry was in memory), and each
+** path adds its rays' counts to its pixel.
 **
 ** BUILT-IN SCENES ON DISK
 ** A built-in scene is generated in memory (fast: about 10 M triangles/s);
@@ -79,7 +80,7 @@ typedef struct options {
     uint64_t seed, spp, width, height, batch_tris, res, rays_in_flight;
     uint64_t memory;              /* bytes; 0: no limit */
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
-    int no_proxy, direct, compare, have_camera, drop_os_cache;
+    int no_proxy, queue_resident, direct, compare, have_camera, drop_os_cache;
     float eye[3], target[3], fov;
     double heat_max;              /* colour scale maximum; 0: the image's maximum */
     const char *out, *heatmap, *stats, *scene;
@@ -102,6 +103,8 @@ static void usage(void)
            "  --batch-tris N       triangles per batching point (default 10000)\n"
            "  --res R              proxy resolution, a power of two (default 128)\n"
            "  --no-proxy           queue rays at every box they enter (Pharr et al.)\n"
+           "  --queue-resident     queue rays at batching points in memory too (the paper's\n"
+           "                       scheduler; default: intersect there at once)\n"
            "  --rays-in-flight N   paths traced at once (default 262144)\n"
            "  --drop-os-cache      evict the scene file from the OS cache first (cold reads)\n"
            "  --batched            batched traversal (the default)\n"
@@ -202,6 +205,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--stats")) o->stats = VALUE;
         else if (is_option(a, "--scene")) o->scene = VALUE;
         else if (is_option(a, "--no-proxy")) o->no_proxy = 1;
+        else if (is_option(a, "--queue-resident")) o->queue_resident = 1;
         else if (is_option(a, "--direct")) o->direct = 1;
         else if (is_option(a, "--batched")) o->direct = 0;
         else if (is_option(a, "--compare")) o->compare = 1;
@@ -307,7 +311,7 @@ typedef struct renderer {
     uint32_t *pending, pending_count;  /* paths whose next ray awaits next_rays */
     uint64_t started, finished, total; /* path number = sample * pixels + pixel */
     uint64_t *sums;                    /* 3 per pixel, fixed point (FIXED_ONE) */
-    uint64_t *visits;                  /* queued visits per pixel, or NULL */
+    uint64_t *visits;                  /* batching points visited per pixel, or NULL */
 } renderer;
 
 static void renderer_init(renderer *r, const render_job *job, int count_visits)
@@ -703,7 +707,7 @@ typedef struct run {
     const char *label;
     brt_stats stats;
     uint64_t *sums;            /* pixel sums (owned) */
-    uint64_t *visits;          /* queued visits per pixel, or NULL (owned) */
+    uint64_t *visits;          /* batching points visited per pixel, or NULL (owned) */
     uint64_t heat_visits;      /* their total */
 } run;
 
@@ -742,9 +746,15 @@ static void run_direct(const brt_mesh *mesh, const render_job *job, run *out)
     brt_bvh_free(bvh);
 }
 
+/* Batching points visited: queued at, or intersected at once in memory. */
+static uint64_t visit_count(const brt_stats *s)
+{
+    return s->queued_visits + s->resident_visits;
+}
+
 static double visits_per_sample(const render_job *job, const brt_stats *s)
 {
-    return (double)s->queued_visits / ((double)job->camera.width * job->camera.height * job->spp);
+    return (double)visit_count(s) / ((double)job->camera.width * job->camera.height * job->spp);
 }
 
 /* The library's statistics plus the renderer's, as one JSON object: the
@@ -861,7 +871,7 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
     printf("proxies: disk bytes x%.2f, loads x%.2f, visits per sample x%.2f, time x%.2f\n",
            (double)runs[2].stats.disk_bytes_read / fmax(1.0, (double)runs[1].stats.disk_bytes_read),
            (double)runs[2].stats.batch_loads / fmax(1.0, (double)runs[1].stats.batch_loads),
-           (double)runs[2].stats.queued_visits / fmax(1.0, (double)runs[1].stats.queued_visits),
+           (double)visit_count(&runs[2].stats) / fmax(1.0, (double)visit_count(&runs[1].stats)),
            runs[2].stats.seconds / runs[1].stats.seconds);
     write_image(o, job, &runs[2]);
     if (o->heatmap) {
@@ -915,6 +925,7 @@ int main(int argc, char **argv)
     make_job(&o, &mesh, &job);
     memset(&topt, 0, sizeof topt);
     topt.no_proxy = o.no_proxy;
+    topt.queue_resident = o.queue_resident;
     topt.rays_in_flight = job.paths_in_flight;
     topt.drop_os_cache = o.drop_os_cache;
     if (!o.direct) {

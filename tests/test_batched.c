@@ -115,30 +115,67 @@ static int trace_matches(const fixture *f, brt_scene *scene, const brt_trace_opt
 
 /* ---- batched == direct --------------------------------------------------- */
 
-/* One scene, every memory limit and proxy setting; checks the budget and
-** that proxies only ever remove work. */
+static uint64_t visit_count(const brt_stats *s)
+{
+    return s->queued_visits + s->resident_visits;
+}
+
+/* Which batching points a ray visits does not depend on the schedule: its
+** walk goes in key order, and a point the proxy culls holds no hit that
+** would change the closest hit so far.  So without proxies, or with them
+** and every ray queued (queue_resident), the visits are the same under
+** every limit; intersecting at once in memory (the default) skips the
+** proxy there, so it visits at least what the proxies leave and at most
+** what no proxy culls. */
+static void check_visits(const brt_stats *stats, const brt_trace_options *opt,
+                         const uint64_t paper[2], const char *what)
+{
+    uint64_t v = visit_count(stats);
+    int proxy = !opt->no_proxy;
+    EXPECT(!opt->queue_resident || stats->resident_visits == 0,
+           "%s: %llu resident visits while queueing them all", what,
+           (unsigned long long)stats->resident_visits);
+    if (!proxy || opt->queue_resident)
+        EXPECT(v == paper[proxy], "%s: %llu visits, not %llu", what, (unsigned long long)v,
+               (unsigned long long)paper[proxy]);
+    else
+        EXPECT(paper[1] <= v && v <= paper[0], "%s: %llu visits, outside %llu..%llu", what,
+               (unsigned long long)v, (unsigned long long)paper[1], (unsigned long long)paper[0]);
+}
+
+/* One scene, every memory limit, proxy setting and queueing policy; checks
+** the budget and that proxies only ever remove work. */
 static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, const char *name)
 {
     brt_scene *scene = build_scene(&f->scene, batch_tris, res, scene_path(name));
     brt_trace_options opt;
     brt_stats all, none, stats;
-    char what[160];
-    int proxy;
-    uint64_t limits[3];
+    char what[200];
+    int proxy, setting;
+    uint64_t limits[3], paper[2];
     int l;
     if (!scene) return;
     memset(&opt, 0, sizeof opt);
+    opt.queue_resident = 1;
+    for (proxy = 0; proxy < 2; proxy++) {
+        opt.no_proxy = !proxy;
+        snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, proxies %s, all queued", name,
+                 batch_tris, res, proxy ? "on" : "off");
+        if (!trace_matches(f, scene, &opt, &stats, what)) goto done;
+        paper[proxy] = visit_count(&stats);
+    }
+    opt.queue_resident = 0;
     opt.no_proxy = 1;
     snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, no proxy", name, batch_tris, res);
     if (!trace_matches(f, scene, &opt, &none, what)) goto done;
     opt.no_proxy = 0;
     snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, proxies", name, batch_tris, res);
     if (!trace_matches(f, scene, &opt, &all, what)) goto done;
-    /* Proxies only cull: never more queued visits, nor (with every blob
-    ** kept) more loads.  (Under a tight limit the schedule changes, so
-    ** loads are compared only without one.) */
-    EXPECT(all.queued_visits <= none.queued_visits, "%s: proxies increased queued visits %llu > %llu",
-           what, (unsigned long long)all.queued_visits, (unsigned long long)none.queued_visits);
+    /* Proxies only cull: never more visits, nor (with every blob kept)
+    ** more loads.  (Under a tight limit the schedule changes, so loads are
+    ** compared only without one.) */
+    EXPECT(paper[1] <= paper[0], "%s: proxies increased visits %llu > %llu", what,
+           (unsigned long long)paper[1], (unsigned long long)paper[0]);
     EXPECT(all.batch_loads <= none.batch_loads, "%s: proxies increased loads", what);
     EXPECT(all.proxy_tests >= all.proxy_culled, "%s: more culls than tests", what);
     EXPECT(none.proxy_tests == 0 && none.proxy_bytes == 0, "%s: --no-proxy ran proxy tests", what);
@@ -148,13 +185,17 @@ static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, 
     limits[1] = none.geometry_bytes / 2 + 1;          /* half */
     limits[2] = none.cache_peak_bytes + all.proxy_bytes; /* everything (page-rounded) + proxies */
     for (l = 0; l < 3 && !test_failed(); l++)
-        for (proxy = 0; proxy < 2 && !test_failed(); proxy++) {
+        for (setting = 0; setting < 4 && !test_failed(); setting++) {
             uint64_t budget;
+            proxy = setting & 1;
             opt.memory_limit = limits[l];
             opt.no_proxy = !proxy;
-            snprintf(what, sizeof what, "%s, batch %u, res %u, limit %llu, proxies %s", name, batch_tris,
-                     res, (unsigned long long)limits[l], proxy ? "on" : "off");
+            opt.queue_resident = setting >> 1;
+            snprintf(what, sizeof what, "%s, batch %u, res %u, limit %llu, proxies %s%s", name,
+                     batch_tris, res, (unsigned long long)limits[l], proxy ? "on" : "off",
+                     opt.queue_resident ? ", all queued" : "");
             if (!trace_matches(f, scene, &opt, &stats, what)) break;
+            check_visits(&stats, &opt, paper, what);
             budget = limits[l] > stats.proxy_bytes ? limits[l] - stats.proxy_bytes : 0;
             /* Never over budget, except one blob alone that is larger (the
             ** cache checks that itself; here the statistics say it too). */
@@ -343,9 +384,9 @@ static void test_rays_in_flight(void)
         source.finished = stream_finished;
         source.user = &s;
         EXPECT(brt_scene_trace_stream(scene, &opt, &source, &stats, &err) == BRT_OK, "%s", err.message);
-        EXPECT(s.visits == stats.queued_visits && s.visits > 0,
+        EXPECT(s.visits == visit_count(&stats) && s.visits > 0,
                "per-ray visits add up to %llu, statistics say %llu", (unsigned long long)s.visits,
-               (unsigned long long)stats.queued_visits);
+               (unsigned long long)visit_count(&stats));
         EXPECT(s.finished == f.count, "%zu of %zu rays finished", s.finished, f.count);
         EXPECT(s.bad_normals == 0, "%zu hits came with a wrong normal", s.bad_normals);
         EXPECT(memcmp(s.hits, f.direct, f.count * sizeof *s.hits) == 0,
