@@ -2320,6 +2320,7 @@ typedef struct page_cache {
     uint32_t lru_head, lru_tail;   /* least recently used first */
     brt_read_fn read_fn;
     void *read_user;
+    int drop_os_cache;          /* brt_trace_options.drop_os_cache */
     brt_stats *stats;
 } page_cache;
 
@@ -2368,6 +2369,7 @@ static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
     c->lru_head = c->lru_tail = NO_ENTRY;
     c->read_fn = opt && opt->read_fn ? opt->read_fn : pread_reader;
     c->read_user = opt ? opt->read_user : NULL;
+    c->drop_os_cache = opt && opt->drop_os_cache;
     c->stats = stats;
     return BRT_OK;
 }
@@ -2423,6 +2425,7 @@ static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
                        c->read_fn, c->read_user, &c->stats->disk_bytes_read, c->scene->path, err);
         done += chunk;
     }
+    if (c->drop_os_cache) posix_fadvise(c->scene->fd, (off_t)b->offset, (off_t)bytes, POSIX_FADV_DONTNEED);
     if (r == BRT_OK && brt_checksum64(data, b->size) != b->checksum)
         r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: checksum mismatch (corrupt file)",
                      c->scene->path, id);

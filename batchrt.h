@@ -478,7 +478,11 @@ typedef long (*brt_read_fn)(int fd, void *buf, size_t size, uint64_t offset,
 typedef struct brt_trace_options {
     uint64_t memory_limit;   /* bytes for geometry (+ proxies); 0: no limit */
     int no_proxy;            /* queue at every box entered, as Pharr et al. */
-    int drop_os_cache;       /* posix_fadvise(DONTNEED) on the file first */
+    int drop_os_cache;       /* cold reads: posix_fadvise(DONTNEED) on the file
+                             ** first and on each blob once read, so that a
+                             ** blob read again comes from the device, as when
+                             ** the file is larger than RAM (otherwise the OS
+                             ** keeps the file and hides the memory limit) */
     int queue_resident;      /* queue at batching points in memory too (the
                              ** paper's scheduler); 0: intersect there at once */
     uint32_t rays_in_flight; /* stream mode: 0 means 1 << 20 */

@@ -35,7 +35,7 @@ typedef struct trace_options {
     uint64_t memory;                 /* page-cache budget in bytes */
     const char *scene;               /* scene file of the batched mode */
     int rebuild;                     /* rebuild the scene file even if current */
-    int drop_os_cache;               /* posix_fadvise(DONTNEED) before tracing */
+    int drop_os_cache;               /* cold reads (brt_trace_options) */
     const char *stats;               /* --stats FILE.json, or NULL */
     int verbose;                     /* summary line even when not a tty */
 } trace_options;
@@ -55,7 +55,8 @@ static void usage(void)
            "  --scene FILE      scene file for the batched mode (default: in $BRT_SCENE_DIR,\n"
            "                    $XDG_CACHE_HOME/batchrt or ~/.cache/batchrt)\n"
            "  --rebuild         rebuild the scene file even when it is up to date\n"
-           "  --drop-os-cache   evict the scene file from the OS cache first (cold reads)\n"
+           "  --drop-os-cache   cold reads: keep the scene file out of the OS cache, so\n"
+           "                    every load reads the device\n"
            "  --stats FILE      write statistics as JSON\n"
            "  --verbose         print the summary line even when stderr is not a terminal\n"
            "  --help            this text\n"
