@@ -1232,7 +1232,8 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
         {"batch_loads", s->batch_loads}, {"cache_peak_bytes", s->cache_peak_bytes},
         {"memory_limit", s->memory_limit}, {"proxy_bytes", s->proxy_bytes},
         {"proxy_tests", s->proxy_tests}, {"proxy_culled", s->proxy_culled},
-        {"queued_visits", s->queued_visits}, {"resident_visits", s->resident_visits},
+        {"visits", s->visits}, {"queued_visits", s->queued_visits},
+        {"resident_visits", s->resident_visits},
         {"oversized_loads", s->oversized_loads}};
     const struct { const char *name; double value; } measures[] = {
         {"seconds", s->seconds}, {"build_seconds", s->build_seconds},
@@ -2586,6 +2587,7 @@ static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
         s->heap_pos[id] = s->heap_size++;
     }
     heap_up(s, s->heap_pos[id]);
+    s->stats->visits++;
     s->stats->queued_visits++;
     return BRT_OK;
 }
@@ -2621,6 +2623,7 @@ static brt_result advance(scheduler *s, uint32_t slot)
             if (resident) {
                 brt_bvh_intersect_normal(resident, &r->ray, &r->hit, r->normal);
                 r->visits++;
+                s->stats->visits++;
                 s->stats->resident_visits++;
                 tlimit = walk_limit(r);
                 continue;

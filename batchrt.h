@@ -402,6 +402,7 @@ typedef struct brt_stats {
     uint64_t proxy_bytes;
     uint64_t proxy_tests;
     uint64_t proxy_culled;
+    uint64_t visits;            /* batching points visited by rays: the two below */
     uint64_t queued_visits;     /* rays queued at a batching point */
     uint64_t resident_visits;   /* rays intersected at once: the geometry was in memory */
     uint64_t oversized_loads;   /* loads of a blob larger than the budget */

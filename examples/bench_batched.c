@@ -125,7 +125,7 @@ static void print_row(const char *label, const brt_stats *s, double direct_secon
 {
     printf("| %-26s | %8.2f | %7.3f | %9.1f | %6llu | %9llu | %9llu | %5.2fx | %s |\n", label,
            s->seconds, (double)s->rays / s->seconds * 1e-6, (double)s->disk_bytes_read / 1048576.0,
-           (unsigned long long)s->batch_loads, (unsigned long long)s->queued_visits,
+           (unsigned long long)s->batch_loads, (unsigned long long)s->visits,
            (unsigned long long)s->proxy_culled, direct_seconds / s->seconds,
            identical ? "yes" : "NO");
 }
@@ -196,7 +196,7 @@ int main(int argc, char **argv)
            mesh.triangle_count / build_seconds * 1e-6, bvh_seconds);
     printf("direct, in memory: %zu rays in %.2f s, %.3f Mrays/s\n\n", n, direct_seconds,
            n / direct_seconds * 1e-6);
-    printf("| run                        | time (s) | Mrays/s | read (MiB) |  loads | queued    | culled    | vs direct | same hits |\n");
+    printf("| run                        | time (s) | Mrays/s | read (MiB) |  loads | visits    | culled    | vs direct | same hits |\n");
     printf("|---|---:|---:|---:|---:|---:|---:|---:|---|\n");
     run_batched(scene, "in core, no proxies", 0, 1, 0, rays, n, direct, direct_seconds, &stats);
     run_batched(scene, "in core, proxies", 0, 0, 0, rays, n, direct, direct_seconds, &stats);
@@ -206,10 +206,10 @@ int main(int argc, char **argv)
     printf("\nmemory limit %.1f MiB (%.0f %% of %.1f MiB geometry; proxies take %.2f MiB of it)\n",
            limit / 1048576.0, o.limit_percent, stats.geometry_bytes / 1048576.0,
            with.proxy_bytes / 1048576.0);
-    printf("proxies: disk bytes x%.2f, loads x%.2f, queued visits x%.2f, time x%.2f\n",
+    printf("proxies: disk bytes x%.2f, loads x%.2f, visits x%.2f, time x%.2f\n",
            (double)with.disk_bytes_read / (double)without.disk_bytes_read,
            (double)with.batch_loads / (double)without.batch_loads,
-           (double)with.queued_visits / (double)without.queued_visits, with.seconds / without.seconds);
+           (double)with.visits / (double)without.visits, with.seconds / without.seconds);
     brt_scene_close(scene);
     if (o.scene == default_scene) unlink(default_scene);
     free(direct);

@@ -16,7 +16,10 @@
 ** Every number comes from build/render (the program next to this one) and
 ** its statistics JSON, so the figures measure exactly what a user runs.
 ** Its output goes to DIR/render.log.  As in the paper, with proxies
-** on the memory limit also pays for the proxies.  Scene files are
+** on the memory limit also pays for the proxies, and every ray is queued
+** (render --queue-resident: the paper's scheduler; by default render
+** intersects rays at once at batching points in memory, which skips their
+** proxies, so the figures would no longer measure what the proxies cull).  Scene files are
 ** built once per resolution in the default scene folder and reused.
 */
 #include "plot.h"
@@ -117,7 +120,7 @@ static void run_render(const settings *s, const char *scene, const char *extra)
     char command[32768];
     snprintf(command, sizeof command,
              "'%s' %s --scale %g --batch-tris %llu --spp %llu --width %llu --height %llu "
-             "--rays-in-flight %llu %s >>'%s' 2>&1",
+             "--rays-in-flight %llu --queue-resident %s >>'%s' 2>&1",
              s->render, scene, s->scale, (unsigned long long)s->batch_tris,
              (unsigned long long)s->spp, (unsigned long long)s->width,
              (unsigned long long)s->height, (unsigned long long)s->rays_in_flight, extra,

@@ -747,15 +747,9 @@ static void run_direct(const brt_mesh *mesh, const render_job *job, run *out)
     brt_bvh_free(bvh);
 }
 
-/* Batching points visited: queued at, or intersected at once in memory. */
-static uint64_t visit_count(const brt_stats *s)
-{
-    return s->queued_visits + s->resident_visits;
-}
-
 static double visits_per_sample(const render_job *job, const brt_stats *s)
 {
-    return (double)visit_count(s) / ((double)job->camera.width * job->camera.height * job->spp);
+    return (double)s->visits / ((double)job->camera.width * job->camera.height * job->spp);
 }
 
 /* The library's statistics plus the renderer's, as one JSON object: the
@@ -872,7 +866,7 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
     printf("proxies: disk bytes x%.2f, loads x%.2f, visits per sample x%.2f, time x%.2f\n",
            (double)runs[2].stats.disk_bytes_read / fmax(1.0, (double)runs[1].stats.disk_bytes_read),
            (double)runs[2].stats.batch_loads / fmax(1.0, (double)runs[1].stats.batch_loads),
-           (double)visit_count(&runs[2].stats) / fmax(1.0, (double)visit_count(&runs[1].stats)),
+           (double)runs[2].stats.visits / fmax(1.0, (double)runs[1].stats.visits),
            runs[2].stats.seconds / runs[1].stats.seconds);
     write_image(o, job, &runs[2]);
     if (o->heatmap) {

@@ -115,11 +115,6 @@ static int trace_matches(const fixture *f, brt_scene *scene, const brt_trace_opt
 
 /* ---- batched == direct --------------------------------------------------- */
 
-static uint64_t visit_count(const brt_stats *s)
-{
-    return s->queued_visits + s->resident_visits;
-}
-
 /* Which batching points a ray visits does not depend on the schedule: its
 ** walk goes in key order, and a point the proxy culls holds no hit that
 ** would change the closest hit so far.  So without proxies, or with them
@@ -130,8 +125,11 @@ static uint64_t visit_count(const brt_stats *s)
 static void check_visits(const brt_stats *stats, const brt_trace_options *opt,
                          const uint64_t paper[2], const char *what)
 {
-    uint64_t v = visit_count(stats);
+    uint64_t v = stats->visits;
     int proxy = !opt->no_proxy;
+    EXPECT(v == stats->queued_visits + stats->resident_visits, "%s: visits %llu != %llu queued + %llu "
+           "in memory", what, (unsigned long long)v, (unsigned long long)stats->queued_visits,
+           (unsigned long long)stats->resident_visits);
     EXPECT(!opt->queue_resident || stats->resident_visits == 0,
            "%s: %llu resident visits while queueing them all", what,
            (unsigned long long)stats->resident_visits);
@@ -162,7 +160,7 @@ static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, 
         snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, proxies %s, all queued", name,
                  batch_tris, res, proxy ? "on" : "off");
         if (!trace_matches(f, scene, &opt, &stats, what)) goto done;
-        paper[proxy] = visit_count(&stats);
+        paper[proxy] = stats.visits;
     }
     opt.queue_resident = 0;
     opt.no_proxy = 1;
@@ -384,9 +382,9 @@ static void test_rays_in_flight(void)
         source.finished = stream_finished;
         source.user = &s;
         EXPECT(brt_scene_trace_stream(scene, &opt, &source, &stats, &err) == BRT_OK, "%s", err.message);
-        EXPECT(s.visits == visit_count(&stats) && s.visits > 0,
+        EXPECT(s.visits == stats.visits && s.visits > 0,
                "per-ray visits add up to %llu, statistics say %llu", (unsigned long long)s.visits,
-               (unsigned long long)visit_count(&stats));
+               (unsigned long long)stats.visits);
         EXPECT(s.finished == f.count, "%zu of %zu rays finished", s.finished, f.count);
         EXPECT(s.bad_normals == 0, "%zu hits came with a wrong normal", s.bad_normals);
         EXPECT(memcmp(s.hits, f.direct, f.count * sizeof *s.hits) == 0,
