@@ -868,6 +868,9 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
            (double)runs[2].stats.batch_loads / fmax(1.0, (double)runs[1].stats.batch_loads),
            (double)runs[2].stats.visits / fmax(1.0, (double)runs[1].stats.visits),
            runs[2].stats.seconds / runs[1].stats.seconds);
+    if (runs[2].stats.proxy_tests == 0)
+        printf("(every batching point fits in memory, so the scheduler leaves the proxies\n"
+               " alone: they could only put loads off; --queue-resident consults them)\n");
     write_image(o, job, &runs[2]);
     if (o->heatmap) {
         /* One colour scale for both, so that they can be compared. */
