@@ -1457,17 +1457,24 @@ static void partition_free(partition *p)
 **
 ** A ray's place in its walk is one 8-byte key (t_entry, id): the entry
 ** distance into the last batching point it was queued at, and that
-** point's id.  top_next finds the smallest key after it among the
-** batching points the ray enters no later than tlimit, by a fresh descent
-** from the root that prunes
-**  (a) subtrees the ray leaves before the last key's t: every box inside is
-**      entered no later than it is left, so its key would be smaller;
-**  (b) subtrees entered after the best candidate found so far.
-** Both are exact because the box test is monotone in the box bounds.
+** point's id.  A walk (top_walk) visits the batching points the ray enters
+** no later than tlimit in key order, best first: a min-heap holds the
+** subtrees and batching points met so far by their entry distance, and
+** the nearest is expanded or, for a batching point, handed out.  Exact,
+** because a box inside another is entered no sooner (the box test is
+** monotone in the box bounds), and at equal distances subtrees come out
+** before batching points, and batching points by id.  One walk serves a
+** ray for as long as it passes batching points in memory or culled by
+** their proxies; queued, it keeps only its key, and the next walk starts
+** again at the root, skipping
+**  (a) subtrees the ray leaves before the key's t: every box inside is
+**      entered no later than it is left, so its key would be smaller,
+** and the batching points at or before the key.  (The previous walk made
+** a fresh descent for every batching point; this one, measured in
+** README's bench-render section.)
 */
 #define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
 #define TOP_LEAF 0x80000000u    /* child code of batching point (code & ~TOP_LEAF) */
-#define TOP_MAX_DEPTH 48        /* median splits give depth log4(n) + 1 */
 #define TOP_NODE_BYTES 112
 
 typedef struct top_node {
@@ -1572,60 +1579,95 @@ static brt_result top_build(const float *boxes, uint32_t count, top_node **nodes
     return BRT_OK;
 }
 
-/* A subtree waiting in top_next's stack, with the distance the ray
-** enters its box (so that a better candidate found meanwhile prunes it). */
+/* A subtree (node index) or a batching point (TOP_LEAF | id) waiting in
+** a walk, with the distance the ray enters its box. */
 typedef struct top_pending {
-    uint32_t node;
     float entry;
+    uint32_t code;
 } top_pending;
 
-/* The next batching point after *key that the ray enters no later than
-** tlimit: 1 and *key updated, or 0 when there is none.  Subtrees are
-** visited nearest entry first, so that a close candidate is found early
-** and prunes the rest by (b).  (With brt_box_span4 and this order, a
-** batched render went from 10.0 G to 9.4 G cycles; README, bench-render.) */
-static int top_next(const top_node *nodes, const brt_ray_prep *ray, float tlimit,
-                    walk_key *key)
+/* The heap holds each node and batching point at most once (check_top
+** makes sure every node has one parent), so nodes + points slots do. */
+typedef struct top_walk {
+    top_pending *heap;
+    uint32_t size;
+} top_walk;
+
+/* Heap order: nearer first; at equal entry, subtrees (codes without
+** TOP_LEAF) before batching points, batching points by id. */
+static int pending_before(top_pending a, top_pending b)
 {
-    top_pending stack[3 * TOP_MAX_DEPTH + 1];
-    int sp = 0;
-    walk_key best;
-    best.t = INFINITY;
-    best.id = TOP_EMPTY;
-    stack[sp].node = 0;
-    stack[sp++].entry = -INFINITY;
-    while (sp > 0) {
-        const top_pending next = stack[--sp];
-        const top_node *node = &nodes[next.node];
-        float entries[4], exits[4];
-        unsigned lanes;
-        int lane, first = sp, i;
-        if (best.id != TOP_EMPTY && next.entry > best.t) continue;           /* (b) */
-        lanes = brt_box_span4(ray, node->box, ray->tnear, tlimit, entries, exits);
-        for (lane = 0; lane < 4; lane++) {
-            uint32_t child = node->child[lane];
-            float entry = entries[lane];
-            if (child == TOP_EMPTY || !(lanes & (1u << lane))) continue;
-            if (key->id != TOP_EMPTY && exits[lane] < key->t) continue;    /* (a) */
-            if (best.id != TOP_EMPTY && entry > best.t) continue;           /* (b) */
-            if (child & TOP_LEAF) {
-                uint32_t id = child & ~TOP_LEAF;
-                if (key_after(entry, id, *key) &&
-                    (best.id == TOP_EMPTY || entry < best.t || (entry == best.t && id < best.id))) {
-                    best.t = entry;
-                    best.id = id;
-                }
-                continue;
-            }
-            /* insert, keeping this node's children farthest first */
-            for (i = sp++; i > first && stack[i - 1].entry < entry; i--) stack[i] = stack[i - 1];
-            stack[i].node = child;
-            stack[i].entry = entry;
-        }
+    return a.entry < b.entry || (a.entry == b.entry && a.code < b.code);
+}
+
+static void walk_push(top_walk *w, uint32_t code, float entry)
+{
+    uint32_t i = w->size++;
+    top_pending item;
+    item.entry = entry;
+    item.code = code;
+    while (i > 0 && pending_before(item, w->heap[(i - 1) / 2])) {
+        w->heap[i] = w->heap[(i - 1) / 2];
+        i = (i - 1) / 2;
     }
-    if (best.id == TOP_EMPTY) return 0;
-    *key = best;
-    return 1;
+    w->heap[i] = item;
+}
+
+static top_pending walk_pop(top_walk *w)
+{
+    top_pending top = w->heap[0], last = w->heap[--w->size];
+    uint32_t i = 0;
+    for (;;) {
+        uint32_t c = 2 * i + 1;
+        if (c >= w->size) break;
+        if (c + 1 < w->size && pending_before(w->heap[c + 1], w->heap[c])) c++;
+        if (!pending_before(w->heap[c], last)) break;
+        w->heap[i] = w->heap[c];
+        i = c;
+    }
+    w->heap[i] = last;
+    return top;
+}
+
+static void top_walk_start(top_walk *w)
+{
+    w->size = 0;
+    walk_push(w, 0, -INFINITY);    /* the root node; its children get box tests */
+}
+
+/* Pushes the children of node that the ray enters no later than tlimit
+** and does not leave before the key's t, (a). */
+static void walk_expand(top_walk *w, const top_node *node, const brt_ray_prep *ray, float tlimit,
+                        walk_key key)
+{
+    float entries[4], exits[4];
+    unsigned lanes = brt_box_span4(ray, node->box, ray->tnear, tlimit, entries, exits);
+    int lane;
+    for (lane = 0; lane < 4; lane++) {
+        if (node->child[lane] == TOP_EMPTY || !(lanes & (1u << lane))) continue;
+        if (key.id != TOP_EMPTY && exits[lane] < key.t) continue;             /* (a) */
+        walk_push(w, node->child[lane], entries[lane]);
+    }
+}
+
+/* The next batching point after *key that the ray enters no later than
+** tlimit (which may have shrunk since the last call): 1 and *key updated,
+** or 0 when there is none. */
+static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep *ray, float tlimit,
+                         walk_key *key)
+{
+    while (w->size > 0 && w->heap[0].entry <= tlimit) {
+        top_pending next = walk_pop(w);
+        if (next.code & TOP_LEAF) {
+            uint32_t id = next.code & ~TOP_LEAF;
+            if (!key_after(next.entry, id, *key)) continue;
+            key->t = next.entry;
+            key->id = id;
+            return 1;
+        }
+        walk_expand(w, &nodes[next.code], ray, tlimit, *key);
+    }
+    return 0;
 }
 
 /* ---- the scene file --------------------------------------------------- */
@@ -2156,15 +2198,16 @@ static brt_result load_batches(brt_scene *s, brt_error *err)
     return r;
 }
 
-/* Every child index points forward and every batching point is a leaf
-** exactly once, so the walk terminates and never indexes out of range;
-** depth is bounded for its fixed stack. */
+/* Every child index points forward, every node but the root has one
+** parent and every batching point is a leaf exactly once: the nodes form
+** a tree, so a walk terminates, never indexes out of range and meets each
+** node and point at most once (the size of its heap). */
 static brt_result check_top(brt_scene *s, brt_error *err)
 {
     uint32_t n = s->header.top_node_count, count = s->header.batch_count, i;
-    unsigned char *depth = calloc((size_t)n + 1, 1), *seen = calloc((size_t)count + 1, 1);
+    unsigned char *has_parent = calloc((size_t)n + 1, 1), *seen = calloc((size_t)count + 1, 1);
     brt_result r = BRT_OK;
-    if (!depth || !seen) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    if (!has_parent || !seen) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
     if (r == BRT_OK && (n == 0 || n > count))
         r = brt_fail(err, BRT_EFORMAT, "%s: %u top-level nodes for %u batching points", s->path, n, count);
     for (i = 0; i < n && r == BRT_OK; i++) {
@@ -2176,16 +2219,14 @@ static brt_result check_top(brt_scene *s, brt_error *err)
                 c &= ~TOP_LEAF;
                 if (c >= count || seen[c]++)
                     r = brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad leaf", s->path, i);
-            } else if (c <= i || c >= n || depth[i] + 1 >= TOP_MAX_DEPTH) {
+            } else if (c <= i || c >= n || has_parent[c]++) {
                 r = brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad child", s->path, i);
-            } else {
-                depth[c] = (unsigned char)(depth[i] + 1);
             }
         }
     }
     for (i = 0; i < count && r == BRT_OK; i++)
         if (!seen[i]) r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u not in the top level", s->path, i);
-    free(depth);
+    free(has_parent);
     free(seen);
     return r;
 }
@@ -2522,6 +2563,7 @@ typedef struct scheduler {
     uint32_t *free_slots, free_count, capacity;
     ray_queue *queues;
     uint32_t *heap, *heap_pos, heap_size;   /* heap_pos[id] = NO_ENTRY when absent */
+    top_walk walk;                          /* the walk of the ray being advanced */
     brt_ray *incoming;
     uint64_t *incoming_tags;
 } scheduler;
@@ -2617,7 +2659,8 @@ static brt_result advance(scheduler *s, uint32_t slot)
     brt_ray_prepare(&r->ray, &prep);
     if (prep.valid) {
         float tlimit = walk_limit(r);
-        while (top_next(s->scene->top, &prep, tlimit, &r->key)) {
+        top_walk_start(&s->walk);
+        while (top_walk_next(&s->walk, s->scene->top, &prep, tlimit, &r->key)) {
             const batch_entry *b = &s->scene->batches[r->key.id];
             const brt_bvh *resident = s->queue_resident ? NULL : cache_resident(&s->cache, r->key.id);
             if (resident) {
@@ -2737,8 +2780,9 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->heap_pos = malloc((size_t)n * sizeof *s->heap_pos);
     s->incoming = malloc((size_t)s->capacity * sizeof *s->incoming);
     s->incoming_tags = malloc((size_t)s->capacity * sizeof *s->incoming_tags);
+    s->walk.heap = malloc(((size_t)n + scene->header.top_node_count) * sizeof *s->walk.heap);
     if (!s->slots || !s->free_slots || !s->queues || !s->heap || !s->heap_pos || !s->incoming ||
-        !s->incoming_tags)
+        !s->incoming_tags || !s->walk.heap)
         return BRT_ENOMEM;
     for (i = 0; i < n; i++) s->heap_pos[i] = NO_ENTRY;
     for (i = 0; i < s->capacity; i++) s->free_slots[i] = s->capacity - 1 - i;
@@ -2758,6 +2802,7 @@ static void scheduler_free(scheduler *s)
     free(s->heap_pos);
     free(s->incoming);
     free(s->incoming_tags);
+    free(s->walk.heap);
 }
 
 static brt_result schedule(scheduler *s, brt_error *err)
