@@ -884,6 +884,53 @@ static void test_identical_triangles(void)
     bench_free(&b);
 }
 
+/* A top level whose root names one subtree twice, every checksum repaired
+** as a forger would: a walk would meet that subtree twice (and outgrow its
+** heap, sized for a tree), so the file is refused. */
+#define TOP_NONE 0xFFFFFFFFu   /* an unused child slot of a top-level node */
+
+static void test_top_level_must_be_a_tree(void)
+{
+    bench b;
+    brt_error err;
+    brt_scene *scene = NULL;
+    size_t size = 0;
+    unsigned char *file;
+    uint32_t child[4], node = TOP_NONE;
+    uint64_t top, st = test_seed() + 76;
+    int lane, other = -1, built;
+    memset(&b, 0, sizeof b);
+    tu_random_soup(&b.mesh, &st, 400, 0.03f);
+    built = bench_scene(&b, 10, 16, "tree.brs");   /* 40 batching points: a few nodes */
+    bench_free(&b);
+    if (!built) return;
+    file = tu_slurp(scratch("tree.brs"), &size);
+    CHECK(file && size >= 256, "cannot read tree.brs back");
+    memcpy(&top, file + 80, sizeof top);            /* the top-level section's offset */
+    if (top > size || size - top < 112) {
+        free(file);
+        CHECK(0, "the top level lies outside the file");
+    }
+    memcpy(child, file + top + 96, sizeof child);   /* the root's children */
+    for (lane = 0; lane < 4; lane++) {
+        if (child[lane] < 0x80000000u && node == TOP_NONE) node = child[lane];
+        else if (child[lane] != TOP_NONE) other = lane;
+    }
+    if (node != TOP_NONE && other >= 0) {
+        child[other] = node;
+        memcpy(file + top + 96, child, sizeof child);
+        fuzz_repair_scene_checksums(file, size);
+    }
+    EXPECT(node != TOP_NONE && other >= 0, "the root has no subtree beside another child");
+    if (!test_failed() && spill("shared.brs", file, size)) {
+        EXPECT(brt_scene_open(scratch("shared.brs"), &scene, &err) == BRT_EFORMAT,
+               "a top level with a shared subtree opened");
+        EXPECT(!scene && strstr(err.message, "bad child") != NULL, "message: %s", err.message);
+    }
+    brt_scene_close(scene);
+    free(file);
+}
+
 /* A budget one byte below the only batching point: every load is an
 ** oversized one, the results stay exact; and a trace of no rays. */
 static void test_budget_below_one_batching_point(void)
@@ -927,6 +974,7 @@ void suite_hardening(void)
     test_run("hardening: one triangle, every limit", test_single_triangle);
     test_run("hardening: a 1x1 render, direct == batched at its limits", test_one_pixel_render);
     test_run("hardening: identical triangles, every limit", test_identical_triangles);
+    test_run("hardening: a top level that is not a tree is refused", test_top_level_must_be_a_tree);
     test_run("hardening: budget below one batching point, no rays",
              test_budget_below_one_batching_point);
 }

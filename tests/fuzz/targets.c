@@ -358,7 +358,7 @@ static int repair(uint8_t *file, size_t file_size, uint64_t offset, uint64_t siz
 ** sections {offset, size, checksum} at 56 (the first is the table of
 ** 80-byte batch entries: blob offset, size, checksum at 24, 32, 40) and
 ** the header checksum at 248.  Inner checksums first, the header last. */
-static void repair_scene_checksums(uint8_t *file, size_t size)
+void fuzz_repair_scene_checksums(uint8_t *file, size_t size)
 {
     uint64_t table, entries, i;
     int s;
@@ -406,7 +406,7 @@ static const char *run_scene(const uint8_t *data, size_t size)
     const char *problem = NULL;
     if (!file) return NULL;
     memcpy(file, data, size);
-    repair_scene_checksums(file, size);
+    fuzz_repair_scene_checksums(file, size);
     temp_path(path, sizeof path, ".brs");
     if (!write_file(path, file, size)) problem = "cannot write a temporary file";
     free(file);

@@ -48,6 +48,8 @@ long fuzz_replay(const fuzz_target *target, const char *dir,
 ** the "scene" target's seed in tests/corpus/scene/ was made. */
 void fuzz_fixed_mesh(brt_mesh *mesh);   /* static arrays: do not free */
 brt_result fuzz_fixed_scene_build(const char *path, brt_error *err);
+/* Recomputes every checksum of a (damaged) scene file, as a forger would. */
+void fuzz_repair_scene_checksums(uint8_t *file, size_t size);
 
 /* libFuzzer: runs the target of that name and abort()s, after printing
 ** the violated property, when it returns one. */
