@@ -75,6 +75,8 @@ static const char *const batched_settings[] = {
     "--memory 10% --no-proxy --rays-in-flight 7",
     "--memory 1K --rays-in-flight 1",      /* smaller than any batching point */
     "--rays-in-flight 33 --res 16",
+    "--memory 10% --queue-resident",       /* the paper's scheduler */
+    "--queue-resident",                    /* ... which consults proxies in core too */
 };
 
 static void test_same_image_every_mode(void)
