@@ -1469,9 +1469,9 @@ static void partition_free(partition *p)
 ** again at the root, skipping
 **  (a) subtrees the ray leaves before the key's t: every box inside is
 **      entered no later than it is left, so its key would be smaller,
-** and the batching points at or before the key.  (The previous walk made
-** a fresh descent for every batching point; this one, measured in
-** README's bench-render section.)
+** and the batching points at or before the key.  (It replaced a fresh
+** descent from the root per batching point: an in-core landscape render
+** went from 40.0 G to 30.2 G instructions; README, Batched mode.)
 */
 #define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
 #define TOP_LEAF 0x80000000u    /* child code of batching point (code & ~TOP_LEAF) */
