@@ -13,7 +13,8 @@
 **   mesh (OBJ/PLY) -> triangle BVH (bvh.c)            direct mode
 **   mesh -> batching points -> scene file + proxies   batched mode
 **        (batchrt.c)           (svdag.c: voxelize -> SVO -> shared DAG)
-**   rays -> top-level walk -> proxy test -> queues -> page cache -> hits
+**   rays -> top-level walk -> (geometry in memory: intersect at once)
+**        -> proxy test -> queues -> page cache -> hits
 **
 ** USAGE (see examples/minimal.c for a complete program)
 **
@@ -484,8 +485,11 @@ typedef struct brt_trace_options {
                              ** blob read again comes from the device, as when
                              ** the file is larger than RAM (otherwise the OS
                              ** keeps the file and hides the memory limit) */
-    int queue_resident;      /* queue at batching points in memory too (the
-                             ** paper's scheduler); 0: intersect there at once */
+    int queue_resident;      /* queue at batching points in memory too and
+                             ** always consult the proxies (the paper's
+                             ** scheduler); 0: intersect at once in memory,
+                             ** and leave the proxies alone when the limit
+                             ** holds every batching point */
     uint32_t rays_in_flight; /* stream mode: 0 means 1 << 20 */
     brt_read_fn read_fn;     /* NULL: pread */
     void *read_user;
