@@ -19,7 +19,9 @@
 ** on the memory limit also pays for the proxies, and every ray is queued
 ** (render --queue-resident: the paper's scheduler; by default render
 ** intersects rays at once at batching points in memory, which skips their
-** proxies, so the figures would no longer measure what the proxies cull).  Scene files are
+** proxies, so the figures would no longer measure what the proxies cull).
+** Fig. 3 is drawn for batchrt's own scheduler as well (two more lines), so
+** the two can be compared.  Scene files are
 ** built once per resolution in the default scene folder and reused.
 */
 #include "plot.h"
@@ -113,17 +115,22 @@ static const char *out_path(const settings *s, const char *name)
     return p;
 }
 
-/* Runs build/render on a built-in scene with the common settings and the
-** given extra arguments, its output appended to DIR/render.log. */
-static void run_render(const settings *s, const char *scene, const char *extra)
+/* The two schedulers: the paper's, and batchrt's default. */
+enum { PAPER_SCHEDULER, BATCHRT_SCHEDULER };
+
+/* Runs build/render on a built-in scene with the common settings, the
+** given scheduler and extra arguments, its output appended to
+** DIR/render.log. */
+static void run_render(const settings *s, const char *scene, int scheduler, const char *extra)
 {
     char command[32768];
     snprintf(command, sizeof command,
              "'%s' %s --scale %g --batch-tris %llu --spp %llu --width %llu --height %llu "
-             "--rays-in-flight %llu --queue-resident %s >>'%s' 2>&1",
+             "--rays-in-flight %llu %s %s >>'%s' 2>&1",
              s->render, scene, s->scale, (unsigned long long)s->batch_tris,
              (unsigned long long)s->spp, (unsigned long long)s->width,
-             (unsigned long long)s->height, (unsigned long long)s->rays_in_flight, extra,
+             (unsigned long long)s->height, (unsigned long long)s->rays_in_flight,
+             scheduler == PAPER_SCHEDULER ? "--queue-resident" : "", extra,
              out_path(s, "render.log"));
     if (system(command) != 0)
         ex_die(prog, "build/render failed on %s (see %s)", scene, out_path(s, "render.log"));
@@ -183,7 +190,7 @@ static void figure1(const settings *s)
                  scene_names[i], s->out, scene_names[i], s->out, scene_names[i]);
         printf("Fig. 1: %s\n", scene_names[i]);
         fflush(stdout);
-        run_render(s, scene_names[i], extra);
+        run_render(s, scene_names[i], PAPER_SCHEDULER, extra);
         snprintf(name, sizeof name, "fig1_%s-noproxy.json", scene_names[i]);
         without = json_number(out_path(s, name), "visits_per_sample");
         snprintf(name, sizeof name, "fig1_%s.json", scene_names[i]);
@@ -215,7 +222,7 @@ static void figure2(const settings *s)
             fflush(stdout);
             snprintf(extra, sizeof extra, "--res %g --out '%s/run.png' --stats '%s'", resolutions[r], s->out,
                      stats);
-            run_render(s, scene_names[i], extra);
+            run_render(s, scene_names[i], PAPER_SCHEDULER, extra);
             bytes = json_number(stats, "proxy_bytes");
             tests = json_number(stats, "proxy_tests");
             culls = json_number(stats, "proxy_culled");
@@ -255,32 +262,41 @@ static void figure2(const settings *s)
 
 /* ---- Fig. 3 ---- */
 
-/* Disk MiB at limit[l] % without (proxies 0) and with proxies (1). */
+/* The four runs at each limit: series 2 * scheduler + proxies. */
+#define FIG3_SERIES 4
+
+/* Disk MiB at limit[l] %, per scheduler, without and with proxies. */
 static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIMIT_COUNT],
-                          double disk[2][LIMIT_COUNT])
+                          double disk[FIG3_SERIES][LIMIT_COUNT])
 {
+    static const char *const scheduler_names[2] = {"paper", "batchrt"};
     char extra[12288], stats[4096];
-    int l, proxies;
+    int l, run, scheduler;
     snprintf(stats, sizeof stats, "%s", out_path(s, "fig3_run.json"));
     printf("Fig. 3: %s, limit %%", scene_names[i]);
     for (l = 0; l < LIMIT_COUNT; l++) {
         limits[l] = 10.0 * (l + 1);
         printf(" %g", limits[l]);
         fflush(stdout);
-        for (proxies = 0; proxies < 2; proxies++) {
+        for (run = 0; run < FIG3_SERIES; run++) {
+            int proxies = run & 1;
+            scheduler = run >> 1;
             snprintf(extra, sizeof extra, "--memory %g%% %s --out '%s/run.png' --stats '%s'",
                      limits[l], proxies ? "" : "--no-proxy", s->out, stats);
-            run_render(s, scene_names[i], extra);
-            disk[proxies][l] = json_number(stats, "disk_bytes_read") / 1048576.0;
-            fprintf(csv, "%s,%g,%d,%.0f,%.0f,%.0f,%.0f,%.4f\n", scene_names[i], limits[l], proxies,
+            run_render(s, scene_names[i], scheduler, extra);
+            disk[run][l] = json_number(stats, "disk_bytes_read") / 1048576.0;
+            fprintf(csv, "%s,%s,%g,%d,%.0f,%.0f,%.0f,%.0f,%.4f\n", scene_names[i],
+                    scheduler_names[scheduler], limits[l], proxies,
                     json_number(stats, "disk_bytes_read"), json_number(stats, "batch_loads"),
                     json_number(stats, "geometry_bytes"), json_number(stats, "proxy_bytes"),
                     json_number(stats, "seconds"));
         }
     }
-    printf("\n  disk bytes with proxies / without:");
-    for (l = 5; l < 9; l++)   /* 60..90 %, the paper's range */
-        printf(" %g%%: x%.2f", limits[l], disk[1][l] / disk[0][l]);
+    for (scheduler = 0; scheduler < 2; scheduler++) {
+        printf("\n  %s's scheduler, disk bytes with proxies / without:", scheduler_names[scheduler]);
+        for (l = 5; l < 9; l++)   /* 60..90 %, the paper's range */
+            printf(" %g%%: x%.2f", limits[l], disk[2 * scheduler + 1][l] / disk[2 * scheduler][l]);
+    }
     printf("\n");
     remove(stats);
     remove(out_path(s, "run.png"));
@@ -288,23 +304,26 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
 
 static void figure3(const settings *s)
 {
-    FILE *csv = open_csv(s, "fig3.csv", "scene,limit_percent,proxies,disk_bytes_read,batch_loads,"
-                                        "geometry_bytes,proxy_bytes,seconds");
-    double limits[LIMIT_COUNT], disk[2][LIMIT_COUNT];
-    ex_plot_series series[2];
+    static const char *const labels[FIG3_SERIES] = {
+        "paper's scheduler, without proxies", "paper's scheduler, with proxies",
+        "batchrt's scheduler, without proxies", "batchrt's scheduler, with proxies"};
+    FILE *csv = open_csv(s, "fig3.csv", "scene,scheduler,limit_percent,proxies,disk_bytes_read,"
+                                        "batch_loads,geometry_bytes,proxy_bytes,seconds");
+    double limits[LIMIT_COUNT], disk[FIG3_SERIES][LIMIT_COUNT];
+    ex_plot_series series[FIG3_SERIES];
     ex_plot plot;
     char title[128], name[64];
-    int i;
+    int i, k;
     for (i = 0; i < SCENE_COUNT; i++) {
         figure3_scene(s, csv, i, limits, disk);
         memset(series, 0, sizeof series);
-        series[0].label = "without proxies";
-        series[0].dashed = 1;
-        series[1].label = "with proxies";
-        series[0].x = series[1].x = limits;
-        series[0].y = disk[0];
-        series[1].y = disk[1];
-        series[0].count = series[1].count = LIMIT_COUNT;
+        for (k = 0; k < FIG3_SERIES; k++) {
+            series[k].label = labels[k];
+            series[k].dashed = !(k & 1);
+            series[k].x = limits;
+            series[k].y = disk[k];
+            series[k].count = LIMIT_COUNT;
+        }
         memset(&plot, 0, sizeof plot);
         snprintf(title, sizeof title, "Fig. 3: disk bytes read, %s", scene_names[i]);
         plot.title = title;
@@ -312,7 +331,7 @@ static void figure3(const settings *s)
         plot.y_label = "disk bytes read (MiB)";
         plot.y_from_zero = 1;
         plot.series = series;
-        plot.series_count = 2;
+        plot.series_count = FIG3_SERIES;
         snprintf(name, sizeof name, "fig3_%s.svg", scene_names[i]);
         write_plot(s, name, &plot);
     }
