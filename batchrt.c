@@ -2451,33 +2451,43 @@ static brt_result cache_check(const page_cache *c, brt_error *err)
     return BRT_OK;
 }
 
-/* Reads a blob, checks its checksum and opens it as a BVH. */
-static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
+/* Reads blob id whole (its page-rounded size, into page-aligned memory,
+** bytes read added to *bytes_read), checks its checksum and opens it as a
+** BVH; *data is to be freed after the BVH. */
+static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
+                            brt_bvh **bvh, brt_error *err)
 {
     const batch_entry *b = &c->scene->batches[id];
-    cache_entry *e = &c->entries[id];
     uint64_t bytes = round_up_page(b->size), done = 0;
-    void *data = NULL;
     brt_result r = BRT_OK;
-    if (posix_memalign(&data, SCENE_PAGE, bytes ? (size_t)bytes : SCENE_PAGE) != 0)
+    if (posix_memalign(data, SCENE_PAGE, bytes ? (size_t)bytes : SCENE_PAGE) != 0)
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory for batching point %u", c->scene->path, id);
     while (done < bytes && r == BRT_OK) {
         size_t chunk = bytes - done < CACHE_READ_CHUNK ? (size_t)(bytes - done) : CACHE_READ_CHUNK;
-        r = read_fully(c->scene->fd, (unsigned char *)data + done, chunk, b->offset + done,
-                       c->read_fn, c->read_user, &c->stats->disk_bytes_read, c->scene->path, err);
+        r = read_fully(c->scene->fd, (unsigned char *)*data + done, chunk, b->offset + done,
+                       c->read_fn, c->read_user, bytes_read, c->scene->path, err);
         done += chunk;
     }
     if (c->drop_os_cache) posix_fadvise(c->scene->fd, (off_t)b->offset, (off_t)bytes, POSIX_FADV_DONTNEED);
-    if (r == BRT_OK && brt_checksum64(data, b->size) != b->checksum)
+    if (r == BRT_OK && brt_checksum64(*data, b->size) != b->checksum)
         r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: checksum mismatch (corrupt file)",
                      c->scene->path, id);
-    if (r == BRT_OK && brt_bvh_blob_open(data, b->size, &e->bvh, NULL) != BRT_OK)
+    if (r == BRT_OK && brt_bvh_blob_open(*data, b->size, bvh, NULL) != BRT_OK)
         r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid BVH blob", c->scene->path, id);
     if (r != BRT_OK) {
-        free(data);
-        return r;
+        free(*data);
+        *data = NULL;
     }
-    e->data = data;
+    return r;
+}
+
+/* Loads blob id into the cache (the caller has made room). */
+static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
+{
+    cache_entry *e = &c->entries[id];
+    uint64_t bytes = round_up_page(c->scene->batches[id].size);
+    brt_result r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->bvh, err);
+    if (r != BRT_OK) return r;
     e->bytes = bytes;
     c->held += bytes;
     c->stats->batch_loads++;
@@ -2564,6 +2574,8 @@ typedef struct scheduler {
     ray_queue *queues;
     uint32_t *heap, *heap_pos, heap_size;   /* heap_pos[id] = NO_ENTRY when absent */
     top_walk walk;                          /* the walk of the ray being advanced */
+    brt_bvh **exact;                        /* exact_proxies: every BVH, or NULL */
+    void **exact_data;
     brt_ray *incoming;
     uint64_t *incoming_tags;
 } scheduler;
@@ -2639,6 +2651,18 @@ static float walk_limit(const ray_slot *r)
     return r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
 }
 
+/* The proxy test: may the ray hit batching point id's triangles in
+** [tnear, tlimit]?  With exact_proxies, the triangles answer. */
+static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
+{
+    if (s->exact) {
+        brt_ray segment = *ray;
+        segment.tfar = tlimit;
+        return brt_bvh_occluded(s->exact[id], &segment);
+    }
+    return brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear, tlimit, NULL);
+}
+
 /* Continues a ray's top-level walk: queues it at the next batching point it
 ** enters before its closest hit and whose proxy it hits, or finishes it.
 ** tlimit is the closest hit (a box entered exactly there may still hold an
@@ -2661,7 +2685,6 @@ static brt_result advance(scheduler *s, uint32_t slot)
         float tlimit = walk_limit(r);
         top_walk_start(&s->walk);
         while (top_walk_next(&s->walk, s->scene->top, &prep, tlimit, &r->key)) {
-            const batch_entry *b = &s->scene->batches[r->key.id];
             const brt_bvh *resident = s->queue_resident ? NULL : cache_resident(&s->cache, r->key.id);
             if (resident) {
                 brt_bvh_intersect_normal(resident, &r->ray, &r->hit, r->normal);
@@ -2673,7 +2696,7 @@ static brt_result advance(scheduler *s, uint32_t slot)
             }
             if (s->use_proxies) {
                 s->stats->proxy_tests++;
-                if (!brt_proxy_raycast(s->scene->dag, &b->proxy, &r->ray, r->ray.tnear, tlimit, NULL)) {
+                if (!proxy_may_hit(s, r->key.id, &r->ray, tlimit)) {
                     s->stats->proxy_culled++;
                     continue;
                 }
@@ -2803,6 +2826,28 @@ static void scheduler_free(scheduler *s)
     free(s->incoming);
     free(s->incoming_tags);
     free(s->walk.heap);
+    for (i = 0; s->exact && i < s->scene->header.batch_count; i++) {
+        brt_bvh_free(s->exact[i]);
+        free(s->exact_data[i]);
+    }
+    free(s->exact);
+    free(s->exact_data);
+}
+
+/* exact_proxies: every batching point's BVH, read once, outside the cache
+** and its statistics (an analysis, not a way to trace). */
+static brt_result exact_load(scheduler *s, brt_error *err)
+{
+    uint32_t n = s->scene->header.batch_count, i;
+    uint64_t uncounted = 0;
+    brt_result r = BRT_OK;
+    s->exact = calloc(n, sizeof *s->exact);
+    s->exact_data = calloc(n, sizeof *s->exact_data);
+    if (!s->exact || !s->exact_data)
+        return brt_fail(err, BRT_ENOMEM, "out of memory for the exact proxies");
+    for (i = 0; i < n && r == BRT_OK; i++)
+        r = blob_read(&s->cache, i, &uncounted, &s->exact_data[i], &s->exact[i], err);
+    return r;
 }
 
 static brt_result schedule(scheduler *s, brt_error *err)
@@ -2829,7 +2874,8 @@ static brt_result trace_source(brt_scene *scene, const brt_trace_options *opt,
     if (opt && opt->drop_os_cache) posix_fadvise(scene->fd, 0, 0, POSIX_FADV_DONTNEED);
     r = scheduler_init(&s, scene, opt, source, capacity_hint, stats);
     if (r != BRT_OK) r = brt_fail(err, r, "out of memory for %u rays in flight", s.capacity);
-    else r = schedule(&s, err);
+    else if (opt && opt->exact_proxies && s.use_proxies) r = exact_load(&s, err);
+    if (r == BRT_OK) r = schedule(&s, err);
     scheduler_free(&s);
     stats->seconds = brt_seconds() - start;
     if (stats->seconds > 0) stats->mrays_per_second = (double)stats->rays / stats->seconds * 1e-6;

@@ -490,6 +490,10 @@ typedef struct brt_trace_options {
                              ** scheduler); 0: intersect at once in memory,
                              ** and leave the proxies alone when the limit
                              ** holds every batching point */
+    int exact_proxies;       /* analysis only: each proxy test becomes an
+                             ** exact test against the batching point's
+                             ** triangles, all read at the start and not
+                             ** counted: what a perfect proxy would cull */
     uint32_t rays_in_flight; /* stream mode: 0 means 1 << 20 */
     brt_read_fn read_fn;     /* NULL: pread */
     void *read_user;

@@ -80,7 +80,7 @@ typedef struct options {
     uint64_t seed, spp, width, height, batch_tris, res, rays_in_flight;
     uint64_t memory;              /* bytes; 0: no limit */
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
-    int no_proxy, queue_resident, direct, compare, have_camera, drop_os_cache;
+    int no_proxy, queue_resident, exact_proxy, direct, compare, have_camera, drop_os_cache;
     float eye[3], target[3], fov;
     double heat_max;              /* colour scale maximum; 0: the image's maximum */
     const char *out, *heatmap, *stats, *scene;
@@ -105,6 +105,8 @@ static void usage(void)
            "  --no-proxy           queue rays at every box they enter (Pharr et al.)\n"
            "  --queue-resident     queue rays at batching points in memory too (the paper's\n"
            "                       scheduler; default: intersect there at once)\n"
+           "  --exact-proxy        analysis: a perfect proxy (an exact test against the\n"
+           "                       triangles, all read first and not counted)\n"
            "  --rays-in-flight N   paths traced at once (default 262144)\n"
            "  --drop-os-cache      cold reads: keep the scene file out of the OS cache, so\n"
            "                       every load reads the device\n"
@@ -207,6 +209,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--scene")) o->scene = VALUE;
         else if (is_option(a, "--no-proxy")) o->no_proxy = 1;
         else if (is_option(a, "--queue-resident")) o->queue_resident = 1;
+        else if (is_option(a, "--exact-proxy")) o->exact_proxy = 1;
         else if (is_option(a, "--direct")) o->direct = 1;
         else if (is_option(a, "--batched")) o->direct = 0;
         else if (is_option(a, "--compare")) o->compare = 1;
@@ -855,7 +858,7 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
     memset(runs, 0, sizeof runs);
     runs[0].label = "direct (in memory)";
     runs[1].label = "batched, no proxies";
-    runs[2].label = "batched, proxies";
+    runs[2].label = with.exact_proxies ? "batched, exact proxies" : "batched, proxies";
     without.no_proxy = 1;
     with.no_proxy = 0;
     run_direct(mesh, job, &runs[0]);
@@ -924,6 +927,7 @@ int main(int argc, char **argv)
     memset(&topt, 0, sizeof topt);
     topt.no_proxy = o.no_proxy;
     topt.queue_resident = o.queue_resident;
+    topt.exact_proxies = o.exact_proxy;
     topt.rays_in_flight = job.paths_in_flight;
     topt.drop_os_cache = o.drop_os_cache;
     if (!o.direct) {

@@ -241,6 +241,38 @@ static void test_soup_resolutions(void)
     fixture_free(&f);
 }
 
+/* exact_proxies, the analysis mode: a perfect proxy culls every visit a
+** voxel proxy culls and more (a voxel miss proves a triangle miss), and
+** never one with a hit (the hits stay the direct ones). */
+static void test_exact_proxies(void)
+{
+    fixture f;
+    brt_scene *scene;
+    brt_trace_options opt;
+    brt_stats voxel, exact, limited;
+    uint64_t st = test_seed() + 2;
+    memset(&f, 0, sizeof f);
+    tu_random_soup(&f.scene, &st, 2000, 0.05f);
+    CHECK(fixture_rays(&f, 400, st), "direct BVH build failed");
+    scene = build_scene(&f.scene, 150, 16, scene_path("exact.brs"));
+    memset(&opt, 0, sizeof opt);
+    opt.queue_resident = 1;   /* the paper's scheduler: every visit meets a proxy */
+    if (scene && trace_matches(&f, scene, &opt, &voxel, "voxel proxies")) {
+        opt.exact_proxies = 1;
+        if (trace_matches(&f, scene, &opt, &exact, "exact proxies"))
+            EXPECT(exact.visits < voxel.visits && exact.proxy_culled > voxel.proxy_culled &&
+                   exact.disk_bytes_read <= voxel.disk_bytes_read,
+                   "exact proxies: %llu visits, %llu culled; voxel proxies: %llu, %llu",
+                   (unsigned long long)exact.visits, (unsigned long long)exact.proxy_culled,
+                   (unsigned long long)voxel.visits, (unsigned long long)voxel.proxy_culled);
+        opt.queue_resident = 0;
+        opt.memory_limit = exact.geometry_bytes / 3;
+        trace_matches(&f, scene, &opt, &limited, "exact proxies, a third of the geometry");
+    }
+    brt_scene_close(scene);
+    fixture_free(&f);
+}
+
 /* Scales from 1e-3 to 1e5 and an offset far from the origin. */
 static void test_soup_scales(void)
 {
@@ -610,6 +642,7 @@ void suite_batched(void)
     test_run("batched: == direct, proxy resolutions 2..256", test_soup_resolutions);
     test_run("batched: == direct, scales 1e-3 and 1e5", test_soup_scales);
     test_run("batched: == direct, flat batching-point boxes", test_flat_boxes);
+    test_run("batched: exact proxies cull more, never a hit", test_exact_proxies);
     test_run("batched: == direct, bunny_tiny", test_bunny_tiny);
     test_run("batched: == direct, bunny", test_bunny);
     test_run("batched: constant rays in flight", test_rays_in_flight);

@@ -804,15 +804,20 @@ static void sweep_limits(bench *b, const uint32_t *batch, int nbatch, const char
         if (!bench_scene(b, batch[i], i % 2 ? 2 : 16, "limits.brs")) return;
         for (m = 0; m < 3; m++)
             for (f = 0; f < 3; f++)
-                for (proxy = 0; proxy < 2 && !test_failed(); proxy++) {
+                for (proxy = 0; proxy < 3 && !test_failed(); proxy++) {
+                    static const char *const kind[3] = {"off", "on", "exact, all queued"};
                     char what[160];
                     memset(&opt, 0, sizeof opt);
                     opt.memory_limit = memory[m];
                     opt.rays_in_flight = in_flight[f];
                     opt.no_proxy = !proxy;
+                    /* the exact proxies of the analysis mode must give the
+                    ** direct hits too; queueing every ray makes every
+                    ** visit meet the test */
+                    opt.exact_proxies = opt.queue_resident = proxy == 2;
                     snprintf(what, sizeof what, "%s: batch %u, memory %llu, %u in flight, "
                              "proxies %s", name, batch[i], (unsigned long long)memory[m],
-                             in_flight[f], proxy ? "on" : "off");
+                             in_flight[f], kind[proxy]);
                     trace_equals_direct(b, &opt, NULL, what);
                 }
     }
