@@ -304,9 +304,8 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
 
 static void figure3(const settings *s)
 {
-    static const char *const labels[FIG3_SERIES] = {
-        "paper's scheduler, without proxies", "paper's scheduler, with proxies",
-        "batchrt's scheduler, without proxies", "batchrt's scheduler, with proxies"};
+    static const char *const labels[FIG3_SERIES] = {   /* scheduler: proxies */
+        "paper: no proxies", "paper: proxies", "batchrt: no proxies", "batchrt: proxies"};
     FILE *csv = open_csv(s, "fig3.csv", "scene,scheduler,limit_percent,proxies,disk_bytes_read,"
                                         "batch_loads,geometry_bytes,proxy_bytes,seconds");
     double limits[LIMIT_COUNT], disk[FIG3_SERIES][LIMIT_COUNT];
