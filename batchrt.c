@@ -2641,7 +2641,6 @@ static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
         s->heap_pos[id] = s->heap_size++;
     }
     heap_up(s, s->heap_pos[id]);
-    s->stats->visits++;
     s->stats->queued_visits++;
     return BRT_OK;
 }
@@ -2689,7 +2688,6 @@ static brt_result advance(scheduler *s, uint32_t slot)
             if (resident) {
                 brt_bvh_intersect_normal(resident, &r->ray, &r->hit, r->normal);
                 r->visits++;
-                s->stats->visits++;
                 s->stats->resident_visits++;
                 tlimit = walk_limit(r);
                 continue;
@@ -2877,6 +2875,7 @@ static brt_result trace_source(brt_scene *scene, const brt_trace_options *opt,
     else if (opt && opt->exact_proxies && s.use_proxies) r = exact_load(&s, err);
     if (r == BRT_OK) r = schedule(&s, err);
     scheduler_free(&s);
+    stats->visits = stats->queued_visits + stats->resident_visits;
     stats->seconds = brt_seconds() - start;
     if (stats->seconds > 0) stats->mrays_per_second = (double)stats->rays / stats->seconds * 1e-6;
     return r;
