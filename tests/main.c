@@ -85,7 +85,7 @@ const char *test_shared_mesh(const char *name)
 {
     static char paths[16][512];
     static int next;
-    char src[512], cmd[1200];
+    char src[512], cmd[4 * 512 + 64];   /* src and three uses of out, each < 512 */
     const char *shared = getenv("BRT_SHARED");
     char *out = paths[next++ % 16];
     size_t len = strlen(name);
