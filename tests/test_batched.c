@@ -270,6 +270,62 @@ static void test_exact_proxies(void)
     fixture_free(&f);
 }
 
+/* The proxy test's limit is inclusive: a ray whose closest hit so far is
+** at t must still be queued at a batching point that holds a hit at the
+** same t with a lower prim (the one ordering rule of closest hits).  Two
+** triangles in the plane z = 0 meet the ray at t = 10 exactly: prim 0 in
+** batching point B (with a flat filler far at -x), prim 2 in A (with a
+** filler at +x rising to z = 5, so the ray enters A's box first, at t = 5).
+** The centroids' x order (-10, -1 | 0.67, 10) puts them in different
+** points at 2 triangles each.  The ray meets prim 2 first, then must
+** visit B; an exclusive limit would cull B and return prim 2. */
+static void test_equal_t_tie(void)
+{
+    static const float tri[4][3][3] = {
+        {{-2, 0, 0}, {1, 0, 0}, {-2, 2, 0}},          /* 0: B, hit at t = 10 */
+        {{-10.5f, 0, 0}, {-9.5f, 0, 0}, {-10, 1, 0}},  /* 1: B's filler */
+        {{0, 0, 0}, {2, 0, 0}, {0, 2, 0}},             /* 2: A, hit at t = 10 */
+        {{9.5f, 0, 0}, {10.5f, 0, 0}, {10, 1, 5}}};    /* 3: A's filler, tall */
+    fixture f;
+    brt_scene *scene;
+    int t, c, setting;
+    memset(&f, 0, sizeof f);
+    for (t = 0; t < 4; t++) {
+        uint32_t v[3];
+        for (c = 0; c < 3; c++) v[c] = tu_add_vertex(&f.scene, tri[t][c][0], tri[t][c][1], tri[t][c][2]);
+        tu_add_triangle(&f.scene, v[0], v[1], v[2]);
+    }
+    f.count = 1;
+    f.rays = calloc(1, sizeof *f.rays);
+    f.direct = malloc(sizeof *f.direct);
+    CHECK(f.rays && f.direct, "out of memory");
+    f.rays[0].org[0] = f.rays[0].org[1] = 0.25f;
+    f.rays[0].org[2] = 10;
+    f.rays[0].dir[2] = -1;
+    f.rays[0].tfar = INFINITY;
+    CHECK(fixture_direct(&f) && f.direct[0].t == 10 && f.direct[0].prim == 0,
+          "direct: t=%a prim=%u, expected 10 and prim 0", f.direct[0].t, (unsigned)f.direct[0].prim);
+    scene = build_scene(&f.scene, 2, 16, scene_path("tie.brs"));
+    for (setting = 0; scene && setting < 6 && !test_failed(); setting++) {
+        static const char *const names[3] = {"no proxies", "voxel proxies", "exact proxies"};
+        brt_trace_options opt;
+        brt_stats stats;
+        char what[96];
+        memset(&opt, 0, sizeof opt);
+        opt.no_proxy = setting % 3 == 0;
+        opt.exact_proxies = setting % 3 == 2;
+        opt.queue_resident = setting / 3;
+        opt.memory_limit = 1;   /* below one blob: B is on disk when the ray reaches it */
+        snprintf(what, sizeof what, "%s, %s scheduler", names[setting % 3], setting / 3 ? "paper's" : "batchrt's");
+        if (trace_matches(&f, scene, &opt, &stats, what))
+            EXPECT(stats.batching_points == 2 && stats.visits == 2,
+                   "%s: %llu batching points, %llu visits (expected 2 and 2: A, then B)", what,
+                   (unsigned long long)stats.batching_points, (unsigned long long)stats.visits);
+    }
+    brt_scene_close(scene);
+    fixture_free(&f);
+}
+
 /* Scales from 1e-3 to 1e5 and an offset far from the origin. */
 static void test_soup_scales(void)
 {
@@ -640,6 +696,7 @@ void suite_batched(void)
     test_run("batched: == direct, scales 1e-3 and 1e5", test_soup_scales);
     test_run("batched: == direct, flat batching-point boxes", test_flat_boxes);
     test_run("batched: exact proxies cull more, never a hit", test_exact_proxies);
+    test_run("batched: an equal-t hit with a lower prim in a later batching point", test_equal_t_tie);
     test_run("batched: == direct, bunny_tiny", test_bunny_tiny);
     test_run("batched: == direct, bunny", test_bunny);
     test_run("batched: constant rays in flight", test_rays_in_flight);
