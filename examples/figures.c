@@ -8,7 +8,9 @@
 **   Fig. 2  proxy memory and effectiveness (share of top-level visits
 **           culled) against proxy resolution 16..512 (fig2.csv, SVG);
 **   Fig. 3  total disk bytes read against the memory limit, 10 %..100 % of
-**           the geometry bytes, without and with proxies (fig3.csv, SVG).
+**           the geometry bytes, without and with proxies, and with exact
+**           proxies (render --exact-proxy: the bound on what any
+**           conservative proxy can save) (fig3.csv, SVG).
 **
 **   build/figures [--out DIR] [--scale S] [--batch-tris N] [--spp N]
 **                 [--width W] [--height H] [--rays-in-flight N]
@@ -20,7 +22,7 @@
 ** (render --queue-resident: the paper's scheduler; by default render
 ** intersects rays at once at batching points in memory, which skips their
 ** proxies, so the figures would no longer measure what the proxies cull).
-** Fig. 3 is drawn for batchrt's own scheduler as well (two more lines), so
+** Fig. 3 is drawn for batchrt's own scheduler as well (three more lines), so
 ** the two can be compared.  Scene files are
 ** built once per resolution in the default scene folder and reused.
 */
@@ -262,10 +264,13 @@ static void figure2(const settings *s)
 
 /* ---- Fig. 3 ---- */
 
-/* The four runs at each limit: series 2 * scheduler + proxies. */
-#define FIG3_SERIES 4
+/* The six runs at each limit: series 3 * scheduler + proxy kind. */
+#define PROXY_KINDS 3
+#define FIG3_SERIES (2 * PROXY_KINDS)
+static const char *const proxy_kinds[PROXY_KINDS] = {"none", "voxels", "exact"};
+static const char *const proxy_options[PROXY_KINDS] = {"--no-proxy", "", "--exact-proxy"};
 
-/* Disk MiB at limit[l] %, per scheduler, without and with proxies. */
+/* Disk MiB at limit[l] %, per scheduler and proxy kind. */
 static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIMIT_COUNT],
                           double disk[FIG3_SERIES][LIMIT_COUNT])
 {
@@ -279,23 +284,26 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
         printf(" %g", limits[l]);
         fflush(stdout);
         for (run = 0; run < FIG3_SERIES; run++) {
-            int proxies = run & 1;
-            scheduler = run >> 1;
+            int kind = run % PROXY_KINDS;
+            scheduler = run / PROXY_KINDS;
             snprintf(extra, sizeof extra, "--memory %g%% %s --out '%s/run.png' --stats '%s'",
-                     limits[l], proxies ? "" : "--no-proxy", s->out, stats);
+                     limits[l], proxy_options[kind], s->out, stats);
             run_render(s, scene_names[i], scheduler, extra);
             disk[run][l] = json_number(stats, "disk_bytes_read") / 1048576.0;
-            fprintf(csv, "%s,%s,%g,%d,%.0f,%.0f,%.0f,%.0f,%.4f\n", scene_names[i],
-                    scheduler_names[scheduler], limits[l], proxies,
+            fprintf(csv, "%s,%s,%g,%s,%.0f,%.0f,%.0f,%.0f,%.4f\n", scene_names[i],
+                    scheduler_names[scheduler], limits[l], proxy_kinds[kind],
                     json_number(stats, "disk_bytes_read"), json_number(stats, "batch_loads"),
                     json_number(stats, "geometry_bytes"), json_number(stats, "proxy_bytes"),
                     json_number(stats, "seconds"));
         }
     }
     for (scheduler = 0; scheduler < 2; scheduler++) {
-        printf("\n  %s's scheduler, disk bytes with proxies / without:", scheduler_names[scheduler]);
+        const double *none = disk[PROXY_KINDS * scheduler];
+        printf("\n  %s's scheduler, disk bytes with proxies / without (exact proxies):",
+               scheduler_names[scheduler]);
         for (l = 5; l < 9; l++)   /* 60..90 %, the paper's range */
-            printf(" %g%%: x%.2f", limits[l], disk[2 * scheduler + 1][l] / disk[2 * scheduler][l]);
+            printf(" %g%%: x%.2f (x%.2f)", limits[l], disk[PROXY_KINDS * scheduler + 1][l] / none[l],
+                   disk[PROXY_KINDS * scheduler + 2][l] / none[l]);
     }
     printf("\n");
     remove(stats);
@@ -305,7 +313,8 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
 static void figure3(const settings *s)
 {
     static const char *const labels[FIG3_SERIES] = {   /* scheduler: proxies */
-        "paper: no proxies", "paper: proxies", "batchrt: no proxies", "batchrt: proxies"};
+        "paper: no proxies", "paper: proxies", "paper: exact",
+        "batchrt: no proxies", "batchrt: proxies", "batchrt: exact"};
     FILE *csv = open_csv(s, "fig3.csv", "scene,scheduler,limit_percent,proxies,disk_bytes_read,"
                                         "batch_loads,geometry_bytes,proxy_bytes,seconds");
     double limits[LIMIT_COUNT], disk[FIG3_SERIES][LIMIT_COUNT];
@@ -318,7 +327,7 @@ static void figure3(const settings *s)
         memset(series, 0, sizeof series);
         for (k = 0; k < FIG3_SERIES; k++) {
             series[k].label = labels[k];
-            series[k].dashed = !(k & 1);
+            series[k].dashed = k % PROXY_KINDS == 0;
             series[k].x = limits;
             series[k].y = disk[k];
             series[k].count = LIMIT_COUNT;
