@@ -213,8 +213,8 @@ valgrind:
 # 25 % of its geometry bytes, without and with proxies (and direct, the
 # reference): one table, the image and the two heatmaps in $(BUILD)/demo.
 # figures: the paper's Figs. 1-3 (PNG, CSV, SVG) in $(BUILD)/fig.
-# bench-render: the landscape at 20M+ triangles, 16 spp at 640x360, proxies
-# off and on, at 25 % of the geometry bytes and in core.
+# bench-render: the landscape and the island at 20M triangles, 16 spp at
+# 640x360, proxies off and on, at 25 % of the geometry bytes and in core.
 .PHONY: demo figures bench-render
 demo: all
 	mkdir -p $(BUILD)/demo
@@ -225,11 +225,13 @@ demo: all
 figures: all
 	./$(BUILD)/figures --out $(BUILD)/fig
 
+BENCH_RENDER = --scale 200 --batch-tris 10000 --spp 16 --width 640 --height 360 --compare
 bench-render: all
-	./$(BUILD)/render landscape --scale 200 --batch-tris 10000 --spp 16 --width 640 --height 360 \
-	  --memory 25% --compare --drop-os-cache --out $(BUILD)/bench-render.png
-	./$(BUILD)/render landscape --scale 200 --batch-tris 10000 --spp 16 --width 640 --height 360 \
-	  --compare --out $(BUILD)/bench-render.png
+	for scene in landscape island; do \
+	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --memory 25% --drop-os-cache \
+	    --out $(BUILD)/bench-render-$$scene.png || exit 1; \
+	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --out $(BUILD)/bench-render-$$scene.png || exit 1; \
+	done
 # == END RENDER ===========================================================
 
 clean:
