@@ -1236,7 +1236,8 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
         {"resident_visits", s->resident_visits},
         {"oversized_loads", s->oversized_loads}};
     const struct { const char *name; double value; } measures[] = {
-        {"seconds", s->seconds}, {"build_seconds", s->build_seconds},
+        {"seconds", s->seconds}, {"load_seconds", s->load_seconds},
+        {"build_seconds", s->build_seconds},
         {"bvh_bytes_per_triangle", s->bvh_bytes_per_triangle},
         {"mrays_per_second", s->mrays_per_second}};
     const size_t n_counters = sizeof counters / sizeof counters[0];
@@ -2486,7 +2487,9 @@ static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
 {
     cache_entry *e = &c->entries[id];
     uint64_t bytes = round_up_page(c->scene->batches[id].size);
+    double start = brt_seconds();
     brt_result r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->bvh, err);
+    c->stats->load_seconds += brt_seconds() - start;
     if (r != BRT_OK) return r;
     e->bytes = bytes;
     c->held += bytes;

@@ -408,6 +408,8 @@ typedef struct brt_stats {
     uint64_t resident_visits;   /* rays intersected at once: the geometry was in memory */
     uint64_t oversized_loads;   /* loads of a blob larger than the budget */
     double seconds;             /* tracing */
+    double load_seconds;        /* of those, loading batching points (read,
+                                ** checksum, open), wall clock */
     double build_seconds;       /* BVH or scene build */
     double bvh_bytes_per_triangle;
     double mrays_per_second;

@@ -57,6 +57,8 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
+#include <time.h>
+#include <unistd.h>
 
 static const char *const prog = "render";
 
@@ -79,6 +81,7 @@ typedef struct options {
     double scale;
     uint64_t seed, spp, width, height, batch_tris, res, rays_in_flight;
     uint64_t memory;              /* bytes; 0: no limit */
+    uint64_t disk_speed;          /* --disk-speed, bytes per second; 0: the device's */
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
     int no_proxy, queue_resident, exact_proxy, direct, compare, have_camera, drop_os_cache;
     float eye[3], target[3], fov;
@@ -110,6 +113,8 @@ static void usage(void)
            "  --rays-in-flight N   paths traced at once (default 262144)\n"
            "  --drop-os-cache      cold reads: keep the scene file out of the OS cache, so\n"
            "                       every load reads the device\n"
+           "  --disk-speed SIZE    model a slower disk: each read lasts at least its bytes\n"
+           "                       / SIZE per second (e.g. 100M: a hard disk)\n"
            "  --batched            batched traversal (the default)\n"
            "  --direct             one in-memory BVH instead: the reference\n"
            "  --compare            batched without and with proxies (and direct): prints a\n"
@@ -214,12 +219,15 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--batched")) o->direct = 0;
         else if (is_option(a, "--compare")) o->compare = 1;
         else if (is_option(a, "--drop-os-cache")) o->drop_os_cache = 1;
+        else if (is_option(a, "--disk-speed")) o->disk_speed = ex_parse_size(prog, a, VALUE);
         else if (a[0] == '-') ex_die(prog, "unknown option '%s' (see --help)", a);
         else o->input = a;
 #undef VALUE
     }
     if (o->direct && (o->heatmap || o->compare))
         ex_die(prog, "--direct has no batching points: no --heatmap or --compare with it");
+    if (o->direct && o->disk_speed)
+        ex_die(prog, "--direct reads no geometry from disk: no --disk-speed with it");
     check_output(o->out);
     check_output(o->heatmap);
     check_output(o->stats);
@@ -306,6 +314,7 @@ typedef struct render_job {
     double diagonal;                  /* of the scene's bounds: the offset scale */
     uint32_t paths_in_flight;
     double scene_seconds;             /* building the scene file (0: reused) */
+    uint64_t disk_speed;              /* modelled, bytes per second; 0: none */
 } render_job;
 
 typedef struct renderer {
@@ -503,6 +512,7 @@ static void make_job(const options *o, const brt_mesh *mesh, render_job *job)
     job->spp = (uint32_t)o->spp;
     job->diagonal = ex_mesh_diagonal(mesh);
     job->paths_in_flight = (uint32_t)o->rays_in_flight;
+    job->disk_speed = o->disk_speed;
 }
 
 /* A built-in scene's recipe (name, scale, seed: its file name). */
@@ -589,6 +599,38 @@ static uint64_t scene_geometry_bytes(brt_scene *scene)
     topt.rays_in_flight = 1;
     ex_check(prog, brt_scene_trace(scene, &topt, NULL, 0, NULL, &stats, &err), &err);
     return stats.geometry_bytes;
+}
+
+/* ===================================================================== */
+/* --disk-speed: a slower disk, modelled                                 */
+/* ===================================================================== */
+
+/* The page cache reads through brt_trace_options.read_fn.  This reader
+** makes each read last at least its bytes / speed: it reads, then sleeps
+** out the rest.  That models a hard disk or a network share on a fast
+** SSD -- the setting the method was made for, where reading dominates and
+** the time a proxy saves follows the bytes it saves.  (Latency is not
+** modelled: proxies cut loads and bytes in about the same ratio.) */
+static void sleep_until(double when)
+{
+    double left;
+    while ((left = when - brt_seconds()) > 0) {
+        struct timespec ts;
+        ts.tv_sec = (time_t)left;
+        ts.tv_nsec = (long)((left - (double)ts.tv_sec) * 1e9);
+        nanosleep(&ts, NULL);   /* early on a signal: the loop sleeps the rest */
+    }
+}
+
+static long slow_disk_read(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    const uint64_t *bytes_per_second = user;
+    double start = brt_seconds();
+    long n = (long)pread(fd, buf, size, (off_t)offset);
+    int saved = errno;          /* pread's errno is the cache's to read */
+    if (n > 0) sleep_until(start + (double)n / (double)*bytes_per_second);
+    errno = saved;
+    return n;
 }
 
 /* ===================================================================== */
@@ -769,11 +811,11 @@ static void write_stats(const char *path, const render_job *job, const run *x, i
              ",\n  \"mode\": \"%s\",\n  \"proxies\": %d,\n  \"width\": %u,\n  \"height\": %u,\n"
              "  \"spp\": %u,\n  \"max_depth\": %d,\n  \"paths\": %llu,\n"
              "  \"paths_in_flight\": %u,\n  \"visits_per_sample\": %.17g,\n"
-             "  \"heatmap_visits\": %llu\n}\n",
+             "  \"heatmap_visits\": %llu,\n  \"disk_speed\": %llu\n}\n",
              direct ? "direct" : "batched", proxies, job->camera.width, job->camera.height, job->spp,
              MAX_DEPTH, (unsigned long long)job->camera.width * job->camera.height * job->spp,
              job->paths_in_flight, visits_per_sample(job, &x->stats),
-             (unsigned long long)x->heat_visits);
+             (unsigned long long)x->heat_visits, (unsigned long long)job->disk_speed);
     f = fopen(path, "rb");
     if (!f || fseek(f, 0, SEEK_END) != 0 || (size = ftell(f)) < 3)
         ex_die(prog, "%s: cannot read back: %s", path, strerror(errno));
@@ -789,20 +831,21 @@ static void write_stats(const char *path, const render_job *job, const run *x, i
 
 static void print_header(void)
 {
-    printf("| %-22s | %10s | %7s | %10s | %8s | %8s | %8s | %9s |\n", "run", "disk MiB", "loads",
-           "visits/spp", "culled", "time s", "Mrays/s", "same image");
-    printf("|---|---:|---:|---:|---:|---:|---:|---|\n");
+    printf("| %-22s | %10s | %7s | %10s | %8s | %8s | %8s | %8s | %9s |\n", "run", "disk MiB",
+           "loads", "visits/spp", "culled", "time s", "load s", "Mrays/s", "same image");
+    printf("|---|---:|---:|---:|---:|---:|---:|---:|---|\n");
 }
 
 static void print_row(const render_job *job, const run *x, const run *reference)
 {
     const brt_stats *s = &x->stats;
     size_t n = 3 * (size_t)job->camera.width * job->camera.height * sizeof *x->sums;
-    printf("| %-22s | %10.2f | %7llu | %10.2f | %7.1f%% | %8.2f | %8.3f | %9s |\n", x->label,
-           s->disk_bytes_read / 1048576.0, (unsigned long long)s->batch_loads,
+    printf("| %-22s | %10.2f | %7llu | %10.2f | %7.1f%% | %8.2f | %8.2f | %8.3f | %9s |\n",
+           x->label, s->disk_bytes_read / 1048576.0, (unsigned long long)s->batch_loads,
            visits_per_sample(job, s),
            s->proxy_tests ? 100.0 * s->proxy_culled / s->proxy_tests : 0.0, s->seconds,
-           s->mrays_per_second, memcmp(x->sums, reference->sums, n) == 0 ? "yes" : "NO");
+           s->load_seconds, s->mrays_per_second,
+           memcmp(x->sums, reference->sums, n) == 0 ? "yes" : "NO");
 }
 
 /* "x.png" -> "x-suffix.png". */
@@ -899,11 +942,11 @@ static void render_once(const options *o, const render_job *job, brt_scene *scen
     memset(&x, 0, sizeof x);
     if (o->direct) run_direct(mesh, job, &x);
     else run_batched(scene, job, topt, o->heatmap != NULL, &x);
-    printf("%s: %.2f s, %.3f Mrays/s, %llu rays; read %.2f MiB in %llu loads; "
+    printf("%s: %.2f s, %.3f Mrays/s, %llu rays; read %.2f MiB in %llu loads (%.2f s); "
            "%.2f batching points visited per sample\n", o->direct ? "direct" : "batched",
            x.stats.seconds, x.stats.mrays_per_second, (unsigned long long)x.stats.rays,
            x.stats.disk_bytes_read / 1048576.0, (unsigned long long)x.stats.batch_loads,
-           visits_per_sample(job, &x.stats));
+           x.stats.load_seconds, visits_per_sample(job, &x.stats));
     write_image(o, job, &x);
     if (o->heatmap)
         write_heatmap(o->heatmap, job, x.visits,
@@ -930,6 +973,10 @@ int main(int argc, char **argv)
     topt.exact_proxies = o.exact_proxy;
     topt.rays_in_flight = job.paths_in_flight;
     topt.drop_os_cache = o.drop_os_cache;
+    if (o.disk_speed) {
+        topt.read_fn = slow_disk_read;
+        topt.read_user = &o.disk_speed;
+    }
     if (!o.direct) {
         scene = open_scene(&o, &mesh, &job.scene_seconds);
         topt.memory_limit = o.memory_percent > 0

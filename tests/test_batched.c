@@ -207,6 +207,11 @@ static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, 
             EXPECT(l != 2 || stats.batch_loads == paper[proxy && stats.proxy_tests > 0].batch_loads,
                    "%s: with room for everything, each batching point loads once", what);
             EXPECT(stats.disk_bytes_read >= stats.batch_loads, "%s: loads without reads", what);
+            /* Loading time is a part of the trace's, and only loads take it. */
+            EXPECT((stats.load_seconds > 0) == (stats.batch_loads > 0) &&
+                   stats.load_seconds <= stats.seconds,
+                   "%s: %llu loads took %g s of a %g s trace", what,
+                   (unsigned long long)stats.batch_loads, stats.load_seconds, stats.seconds);
         }
 done:
     brt_scene_close(scene);

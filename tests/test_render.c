@@ -77,6 +77,7 @@ static const char *const batched_settings[] = {
     "--rays-in-flight 33 --res 16",
     "--memory 10% --queue-resident",       /* the paper's scheduler */
     "--queue-resident",                    /* ... which consults proxies in core too */
+    "--memory 10% --disk-speed 1G",        /* reads through render's own reader */
 };
 
 static void test_same_image_every_mode(void)
@@ -161,6 +162,26 @@ static void test_compare(void)
            "--compare did not write its files");
 }
 
+/* --disk-speed: every load lasts at least its bytes / speed, so the
+** statistics' loading time is at least the bytes read / speed (a bound the
+** reader guarantees by sleeping; nothing here depends on how fast the
+** machine is).  Without it the loads of this small scene, all served by
+** the OS cache, take far less. */
+static void test_disk_speed(void)
+{
+    const char *json = tu_scratch("disk.json");
+    double speed = 32.0 * 1048576, bytes, seconds;
+    CHECK(tu_run("render " SMALL " --memory 10%% --disk-speed 32M --scene @/disk.brs "
+              "--out @/disk.png --stats @/disk.json") == 0, "render --disk-speed failed");
+    bytes = json_number(json, "disk_bytes_read");
+    seconds = json_number(json, "load_seconds");
+    CHECK(bytes > 0 && json_number(json, "disk_speed") == speed,
+          "--disk-speed 32M: %g bytes read, disk_speed %g", bytes, json_number(json, "disk_speed"));
+    EXPECT(seconds >= bytes / speed && seconds <= json_number(json, "seconds"),
+           "--disk-speed 32M: %g bytes loaded in %g s (at least %g s expected), trace %g s", bytes,
+           seconds, bytes / speed, json_number(json, "seconds"));
+}
+
 /* Each bad command exits 1 with one line "render: ..." and writes nothing. */
 static void test_bad_options(void)
 {
@@ -168,7 +189,7 @@ static void test_bad_options(void)
         "--spp 0", "--spp x", "--width -3", "--res 48", "--memory 0", "--memory 5%x",
         "--camera 1,2,3:1,2,3:40", "--camera 1,2:0,0,0:40", "--camera 0,0,1:0,0,0:180",
         "--bogus", "--direct --heatmap @/never-heat.png", "@/no-such-mesh.obj", "--scale 0",
-        "--out",
+        "--out", "--disk-speed 0", "--disk-speed fast", "--direct --disk-speed 100M",
     };
     char *err = NULL;
     size_t i;
@@ -247,6 +268,7 @@ void suite_render(void)
     test_run("render: same image from a mesh file", test_same_image_mesh_file);
     test_run("render: heatmap counts every queued visit", test_heatmap);
     test_run("render: compare table", test_compare);
+    test_run("render: --disk-speed makes loads last bytes / speed", test_disk_speed);
     test_run("render: bad options exit 1 and write nothing", test_bad_options);
     test_run("render: plot svg", test_plot_svg);
 }
