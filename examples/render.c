@@ -114,7 +114,7 @@ static void usage(void)
            "  --drop-os-cache      cold reads: keep the scene file out of the OS cache, so\n"
            "                       every load reads the device\n"
            "  --disk-speed SIZE    model a slower disk: each read lasts at least its bytes\n"
-           "                       / SIZE per second (e.g. 100M: a hard disk)\n"
+           "                       / SIZE per second (e.g. 100M: about a hard disk)\n"
            "  --batched            batched traversal (the default)\n"
            "  --direct             one in-memory BVH instead: the reference\n"
            "  --compare            batched without and with proxies (and direct): prints a\n"
