@@ -22,6 +22,7 @@
 #include <string.h>
 #include <time.h>
 #include <unistd.h>
+#include <sys/resource.h>
 #include <sys/stat.h>
 
 /* ===================================================================== */
@@ -97,6 +98,13 @@ double brt_seconds(void)
     struct timespec ts;
     clock_gettime(CLOCK_MONOTONIC, &ts);
     return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+uint64_t brt_peak_rss_bytes(void)
+{
+    struct rusage usage;
+    if (getrusage(RUSAGE_SELF, &usage) != 0 || usage.ru_maxrss < 0) return 0;
+    return (uint64_t)usage.ru_maxrss * 1024u;   /* Linux and the BSDs: KiB */
 }
 
 /* Writes all of data at offset (pwrite), or at the file position when
@@ -1079,6 +1087,72 @@ void brt_mesh_bounds(const brt_mesh *mesh, float bmin[3], float bmax[3])
     }
 }
 
+/* ---- triangle streams ------------------------------------------------- */
+/*
+** FIRST CUT (interface only): brt_mesh_stream still loads the whole mesh
+** and then emits it, and brt_scene_build_stream collects the stream into a
+** mesh.  The bounded-memory versions replace both.
+*/
+#define STREAM_CHUNK 65536u
+
+static brt_result mesh_emit(const brt_mesh *mesh, brt_triangle_fn emit, void *emit_user,
+                            brt_error *err)
+{
+    float *corners = malloc((size_t)STREAM_CHUNK * 9 * sizeof *corners);
+    uint32_t first = 0;
+    brt_result r = BRT_OK;
+    if (!corners) return brt_fail(err, BRT_ENOMEM, "out of memory");
+    while (first < mesh->triangle_count && r == BRT_OK) {
+        uint32_t n = mesh->triangle_count - first, i;
+        int c;
+        if (n > STREAM_CHUNK) n = STREAM_CHUNK;
+        for (i = 0; i < n; i++)
+            for (c = 0; c < 3; c++)
+                memcpy(corners + 9 * (size_t)i + 3 * c,
+                       mesh->positions + 3 * (size_t)mesh->indices[3 * (size_t)(first + i) + c],
+                       3 * sizeof(float));
+        r = emit(emit_user, corners, n, first, err);
+        first += n;
+    }
+    free(corners);
+    return r;
+}
+
+brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit, void *emit_user,
+                           brt_error *err)
+{
+    brt_mesh mesh;
+    brt_result r = brt_mesh_load(path, &mesh, err);
+    if (r != BRT_OK) return r;
+    r = mesh_emit(&mesh, emit, emit_user, err);
+    brt_mesh_free(&mesh);
+    return r;
+}
+
+static brt_result file_source_run(const void *user, brt_triangle_fn emit, void *emit_user,
+                                  brt_error *err)
+{
+    return brt_mesh_stream((const char *)user, emit, emit_user, err);
+}
+
+static brt_result memory_source_run(const void *user, brt_triangle_fn emit, void *emit_user,
+                                    brt_error *err)
+{
+    return mesh_emit((const brt_mesh *)user, emit, emit_user, err);
+}
+
+void brt_mesh_file_source(const char *path, brt_triangle_source *source)
+{
+    source->run = file_source_run;
+    source->user = path;
+}
+
+void brt_mesh_memory_source(const brt_mesh *mesh, brt_triangle_source *source)
+{
+    source->run = memory_source_run;
+    source->user = mesh;
+}
+
 /* ===================================================================== */
 /* Rays and hits                                                         */
 /* ===================================================================== */
@@ -1234,7 +1308,7 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
         {"proxy_tests", s->proxy_tests}, {"proxy_culled", s->proxy_culled},
         {"visits", s->visits}, {"queued_visits", s->queued_visits},
         {"resident_visits", s->resident_visits},
-        {"oversized_loads", s->oversized_loads}};
+        {"oversized_loads", s->oversized_loads}, {"peak_rss_bytes", s->peak_rss_bytes}};
     const struct { const char *name; double value; } measures[] = {
         {"seconds", s->seconds}, {"load_seconds", s->load_seconds},
         {"build_seconds", s->build_seconds},
@@ -2062,6 +2136,49 @@ brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
     return r;
 }
 
+/* FIRST CUT: collects the stream as a triangle soup and builds from it. */
+typedef struct soup {
+    brt_mesh mesh;
+    size_t cap;
+} soup;
+
+static brt_result soup_add(void *user, const float *corners, uint32_t count, uint32_t first,
+                           brt_error *err)
+{
+    soup *s = user;
+    size_t need = (size_t)first + count, i;
+    if (need > s->cap) {
+        size_t cap = s->cap ? s->cap : 65536;
+        float *pos;
+        uint32_t *idx;
+        while (cap < need) cap *= 2;
+        pos = realloc(s->mesh.positions, cap * 9 * sizeof *pos);
+        if (pos) s->mesh.positions = pos;
+        idx = pos ? realloc(s->mesh.indices, cap * 3 * sizeof *idx) : NULL;
+        if (!idx) return brt_fail(err, BRT_ENOMEM, "out of memory");
+        s->mesh.indices = idx;
+        s->cap = cap;
+    }
+    memcpy(s->mesh.positions + 9 * (size_t)first, corners, 9 * (size_t)count * sizeof *corners);
+    for (i = 3 * (size_t)first; i < 3 * need; i++) s->mesh.indices[i] = (uint32_t)i;
+    s->mesh.triangle_count = (uint32_t)need;
+    s->mesh.vertex_count = 3 * (uint32_t)need;
+    return BRT_OK;
+}
+
+brt_result brt_scene_build_stream(const brt_triangle_source *source,
+                                  const brt_scene_options *opt, uint64_t source_stamp,
+                                  const char *scene_path, brt_error *err)
+{
+    soup s;
+    brt_result r;
+    memset(&s, 0, sizeof s);
+    r = source->run(source->user, soup_add, &s, err);
+    if (r == BRT_OK) r = brt_scene_build(&s.mesh, opt, source_stamp, scene_path, err);
+    brt_mesh_free(&s.mesh);
+    return r;
+}
+
 brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp, brt_error *err)
 {
     struct stat st;
@@ -2320,6 +2437,21 @@ int brt_scene_matches(const brt_scene *s, uint64_t stamp, const brt_scene_option
 
 uint32_t brt_scene_batch_count(const brt_scene *s) { return s->header.batch_count; }
 uint32_t brt_scene_triangle_count(const brt_scene *s) { return s->header.triangle_count; }
+
+void brt_scene_bounds(const brt_scene *s, float bmin[3], float bmax[3])
+{
+    uint32_t i;
+    int a;
+    for (a = 0; a < 3; a++) {
+        bmin[a] = INFINITY;
+        bmax[a] = -INFINITY;
+    }
+    for (i = 0; i < s->header.batch_count; i++)
+        for (a = 0; a < 3; a++) {
+            if (s->batches[i].lo[a] < bmin[a]) bmin[a] = s->batches[i].lo[a];
+            if (s->batches[i].hi[a] > bmax[a]) bmax[a] = s->batches[i].hi[a];
+        }
+}
 
 brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
                              const brt_scene_options *opt, brt_scene **out,

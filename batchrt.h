@@ -108,6 +108,10 @@ uint64_t brt_checksum64(const void *data, size_t size);
 /* Seconds from a monotonic clock, for statistics only. */
 double brt_seconds(void);
 
+/* The process's peak resident set so far, in bytes (getrusage's ru_maxrss);
+** 0 where the system does not say. */
+uint64_t brt_peak_rss_bytes(void);
+
 /* Writes size bytes to path through "path.tmp.<pid>" and rename(), so a
 ** failure never leaves a half-written file under the final name. */
 brt_result brt_write_file_atomic(const char *path, const void *data,
@@ -149,6 +153,39 @@ void brt_mesh_free(brt_mesh *mesh);
 /* Axis-aligned bounds of the referenced vertices; an empty mesh gives
 ** bmin = +inf, bmax = -inf. */
 void brt_mesh_bounds(const brt_mesh *mesh, float bmin[3], float bmax[3]);
+
+/* ---- Triangle streams: meshes that are never held whole ---------------- */
+/*
+** A producer hands triangles to a consumer in chunks, in file order:
+** corners holds 9 floats per triangle (v0, v1, v2) and first is the
+** file-order number of the chunk's first triangle, so chunk after chunk
+** first runs 0, c0, c0 + c1, ...  The consumer returns BRT_OK to go on; any
+** other result stops the producer, which returns it (the consumer wrote the
+** message into err).  Numbering and error messages are brt_mesh_load's.
+*/
+typedef brt_result (*brt_triangle_fn)(void *user, const float *corners,
+                                      uint32_t count, uint32_t first,
+                                      brt_error *err);
+
+/* Something that can produce the same triangles again and again: run
+** delivers every triangle once, in order; a build may run it more than once
+** (each pass sees the same triangles and the same chunks). */
+typedef struct brt_triangle_source {
+    brt_result (*run)(const void *user, brt_triangle_fn emit, void *emit_user,
+                      brt_error *err);
+    const void *user;
+} brt_triangle_source;
+
+/* Streams a mesh file (OBJ or PLY, as brt_mesh_load) to emit.  Holds the
+** vertex positions of an indexed file (12 bytes per vertex) and one chunk,
+** never the triangles.  Errors as brt_mesh_load (with "no triangles"). */
+brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit,
+                           void *emit_user, brt_error *err);
+
+/* Sources over a mesh file (path must outlive the source) and over a mesh
+** in memory (likewise). */
+void brt_mesh_file_source(const char *path, brt_triangle_source *source);
+void brt_mesh_memory_source(const brt_mesh *mesh, brt_triangle_source *source);
 
 /* ===================================================================== */
 /* Rays and hits (batchrt.c)                                             */
@@ -413,6 +450,8 @@ typedef struct brt_stats {
     double build_seconds;       /* BVH or scene build */
     double bvh_bytes_per_triangle;
     double mrays_per_second;
+    uint64_t peak_rss_bytes;    /* the process's, when the stats were taken
+                                ** (programs set it: brt_peak_rss_bytes) */
 } brt_stats;
 
 /* Writes the statistics as one JSON object (atomically). */
@@ -446,6 +485,14 @@ brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
                            uint64_t source_stamp, const char *scene_path,
                            brt_error *err);
 
+/* The same from a triangle stream (see brt_triangle_source): the scene is
+** built without the mesh in memory.  brt_scene_build is this over
+** brt_mesh_memory_source. */
+brt_result brt_scene_build_stream(const brt_triangle_source *source,
+                                  const brt_scene_options *opt,
+                                  uint64_t source_stamp, const char *scene_path,
+                                  brt_error *err);
+
 /* A stamp of a mesh file (size and modification time), as make uses them. */
 brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp,
                                   brt_error *err);
@@ -471,6 +518,8 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
 
 uint32_t brt_scene_batch_count(const brt_scene *scene);
 uint32_t brt_scene_triangle_count(const brt_scene *scene);
+/* The scene's bounds: the union of the batching points' exact boxes. */
+void brt_scene_bounds(const brt_scene *scene, float bmin[3], float bmax[3]);
 
 /* The reader behind the page cache: pread's contract (it may return short
 ** counts or fail with errno EINTR; the cache retries both).  Replaceable
