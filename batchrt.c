@@ -39,6 +39,7 @@ const char *brt_result_string(brt_result r)
     case BRT_EFORMAT: return "bad scene file";
     case BRT_EARG: return "invalid argument";
     case BRT_ECHECK: return "invariant violated";
+    case BRT_EINTR: return "interrupted";
     }
     return "unknown result";
 }

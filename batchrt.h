@@ -51,6 +51,7 @@
 #ifndef BATCHRT_H
 #define BATCHRT_H
 
+#include <signal.h>
 #include <stddef.h>
 #include <stdint.h>
 
@@ -69,7 +70,8 @@ typedef enum brt_result {
     BRT_EPARSE,   /* malformed mesh, ray or hit file */
     BRT_EFORMAT,  /* scene file: bad magic, version, checksum or truncation */
     BRT_EARG,     /* an impossible argument or option value */
-    BRT_ECHECK    /* a structural checker found a violated invariant */
+    BRT_ECHECK,   /* a structural checker found a violated invariant */
+    BRT_EINTR     /* stopped: the caller's interrupt flag was set (a signal) */
 } brt_result;
 
 /* A one-line human-readable message; message[0] == 0 when there is none. */
@@ -476,6 +478,10 @@ typedef struct brt_scene brt_scene;
 typedef struct brt_scene_options {
     uint32_t batch_tris;   /* max triangles per batching point (0: 100000) */
     uint32_t proxy_res;    /* proxy grid resolution, 2^k (0: 128) */
+    /* Polled while building: once *interrupt is nonzero (a program's
+    ** SIGINT/SIGTERM handler sets it) the build removes its temporary files
+    ** and returns BRT_EINTR.  NULL: never interrupted. */
+    const volatile sig_atomic_t *interrupt;
 } brt_scene_options;
 
 /* Builds the scene file for mesh at scene_path (written under a temporary
