@@ -3,22 +3,33 @@
 ** against an Embree build's, and print an agreement table.
 **
 **   build/hitdiff A.hits B.hits [--max-disagree FRACTION] [--t-rel TOL]
+**   build/hitdiff A.hits B.hits --mesh MESH --rays RAYS [--explain FILE.csv]
 **
-** A ray agrees when both files miss it, or both hit the same triangle at
-** distances whose relative difference |tA - tB| / max(|tA|, |tB|) is at
-** most --t-rel.  Barycentrics are reported but never judged: two correct
-** watertight tests may round them differently.
+** Tolerance mode (no --mesh): a ray agrees when both files miss it, or both
+** hit the same triangle at distances whose relative difference
+** |tA - tB| / max(|tA|, |tB|) is at most --t-rel.  Barycentrics are
+** reported but never judged: two correct watertight tests may round them
+** differently.  Exit status: 0 when the fraction of rays that disagree is
+** at most --max-disagree, 1 when it is larger (or on bad input), 2 when the
+** files hold different numbers of records (they cannot describe the same
+** rays).
 **
-** Exit status: 0 when the fraction of rays that disagree is at most
-** --max-disagree, 1 when it is larger (or on bad input), 2 when the files
-** hold different numbers of records (they cannot describe the same rays).
+** Referee mode (--mesh and --rays): every ray whose records differ at all
+** is refereed with exact arithmetic against the mesh and the ray
+** (examples/referee.c) and counted in one class; exit 0 when every
+** disagreement is explained, 1 when one is not (or on bad input), 2 when
+** the three files hold different numbers of records.  --explain writes one
+** CSV line per disagreeing ray (under a temporary name, then renamed).
 */
 #include "common.h"
+#include "referee.h"
 
+#include <errno.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 static const char *const prog = "hitdiff";
 
@@ -36,17 +47,45 @@ typedef struct agreement {
 static void usage(void)
 {
     printf("usage: build/hitdiff A.hits B.hits [--max-disagree FRACTION] [--t-rel TOL]\n"
+           "       build/hitdiff A.hits B.hits --mesh MESH --rays RAYS [--explain FILE.csv]\n"
            "Compares two hit files (16-byte records) ray by ray and prints a table.\n"
            "\n"
+           "Tolerance mode (without --mesh):\n"
            "  --max-disagree F  largest tolerated fraction of disagreeing rays, 0..1\n"
            "                    (default 0: every ray must agree)\n"
            "  --t-rel TOL       largest relative t difference for the same triangle,\n"
            "                    0..2 (default 1e-5)\n"
-           "  --help            this text\n"
-           "\n"
            "A ray agrees when both miss, or both hit the same triangle within --t-rel.\n"
            "Exit status 0: agreement within tolerance; 1: too many disagreements or bad\n"
-           "input; 2: the files hold different numbers of records.\n");
+           "input; 2: the files hold different numbers of records.\n"
+           "\n"
+           "Referee mode:\n"
+           "  --mesh MESH       the mesh both files traced (OBJ or PLY)\n"
+           "  --rays RAYS       the ray file both traced (32-byte records)\n"
+           "  --explain FILE    one CSV line per disagreeing ray: ray index, class,\n"
+           "                    both records (t, prim, u, v) and the exact verdict\n"
+           "A ray disagrees when its records differ at all (prim, hit/miss, t, u or v;\n"
+           "two misses agree).  Each disagreement is refereed with exact arithmetic\n"
+           "(orientation predicates on floating-point expansions, Shewchuk 1997): on\n"
+           "which side of each edge the ray passes, and where along it each named\n"
+           "triangle is met.  Classes:\n"
+           "  tie          both right: two triangles hit at exactly the same t\n"
+           "  near tie     two triangles hit, exact t closer than the t bound\n"
+           "  t bound      the same triangle, each t within the bound for this ray:\n"
+           "               16 eps (L1 L2 (R + |t| |d|) / |n.d| + |t|), L1, L2 the\n"
+           "               longest edges, R the farthest vertex from the origin\n"
+           "  A/B leaks    the ray passes through the closed triangle the other side\n"
+           "               hits, within rounding of an edge or vertex, and this side\n"
+           "               reports a miss or a farther hit\n"
+           "  A/B outside  this side hits a triangle the ray passes just outside of,\n"
+           "               within rounding of an edge or vertex\n"
+           "  boundary     the hit's exact t is within rounding of tnear or tfar\n"
+           "  unexplained  anything else: a real disagreement\n"
+           "Exit status 0: every disagreement explained; 1: some unexplained, or bad\n"
+           "input (a missing file, a prim beyond the mesh); 2: the files hold\n"
+           "different numbers of records.\n"
+           "\n"
+           "  --help            this text\n");
 }
 
 /* |a - b| relative to the larger magnitude; NaN compares as infinitely far. */
@@ -108,10 +147,137 @@ static void print_table(const char *path_a, const char *path_b, const agreement 
     print_count("disagreeing rays", disagree, g->rays);
 }
 
+/* ===================================================================== */
+/* Referee mode                                                          */
+/* ===================================================================== */
+
+typedef struct referee_run {
+    const char *path[2];          /* A.hits, B.hits */
+    const brt_hit *hits[2];
+    const char *mesh_path, *rays_path, *explain_path;
+    const brt_mesh *mesh;
+    const brt_ray *rays;
+    size_t count;
+    uint64_t disagree, classes[EX_CLASSES];
+} referee_run;
+
+/* Bad input before any refereeing: a prim the mesh does not have. */
+static void check_prims(const referee_run *run)
+{
+    size_t i;
+    int f;
+    for (f = 0; f < 2; f++)
+        for (i = 0; i < run->count; i++) {
+            const uint32_t prim = run->hits[f][i].prim;
+            if (prim != BRT_NO_PRIM && prim >= run->mesh->triangle_count)
+                ex_die(prog, "%s: record %lu: prim %lu beyond the %lu triangles of %s",
+                       run->path[f], (unsigned long)i, (unsigned long)prim,
+                       (unsigned long)run->mesh->triangle_count, run->mesh_path);
+        }
+}
+
+static void print_record(FILE *f, const brt_hit *h)
+{
+    fprintf(f, ",%.9g,%ld,%.9g,%.9g", h->t, h->prim == BRT_NO_PRIM ? -1L : (long)h->prim,
+            h->u, h->v);
+}
+
+/* Referees every disagreeing ray; with --explain, one CSV line each, into
+** a temporary file renamed at the end (never a half-written FILE.csv). */
+static void referee_all(referee_run *run)
+{
+    char tmp[4096], verdict[1024];
+    FILE *csv = NULL;
+    size_t i;
+    if (run->explain_path) {
+        if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", run->explain_path, (long)getpid())
+            >= (int)sizeof tmp)
+            ex_die(prog, "%s: path too long", run->explain_path);
+        if (!(csv = fopen(tmp, "w")))
+            ex_die(prog, "%s: cannot create: %s", run->explain_path, strerror(errno));
+        fprintf(csv, "ray,class,a_t,a_prim,a_u,a_v,b_t,b_prim,b_u,b_v,verdict\n");
+    }
+    for (i = 0; i < run->count; i++) {
+        const brt_hit *a = &run->hits[0][i], *b = &run->hits[1][i];
+        ex_class c;
+        if (!ex_hits_disagree(a, b)) continue;
+        c = ex_referee(run->mesh, &run->rays[i], a, b, verdict, sizeof verdict);
+        run->disagree++;
+        run->classes[c]++;
+        if (csv) {
+            fprintf(csv, "%lu,%s", (unsigned long)i, ex_class_id[c]);
+            print_record(csv, a);
+            print_record(csv, b);
+            fprintf(csv, ",\"%s\"\n", verdict);
+        }
+    }
+    if (csv && (ferror(csv) | fclose(csv) | rename(tmp, run->explain_path))) {
+        const int saved = errno;
+        remove(tmp);
+        ex_die(prog, "%s: cannot write: %s", run->explain_path, strerror(saved));
+    }
+}
+
+static void print_referee_table(const referee_run *run)
+{
+    const uint64_t rays = run->count;
+    int c;
+    printf("A: %s\nB: %s\n", run->path[0], run->path[1]);
+    printf("refereed on %s (%lu triangles) and %s\n", run->mesh_path,
+           (unsigned long)run->mesh->triangle_count, run->rays_path);
+    printf("%-38s %12llu\n", "rays", (unsigned long long)rays);
+    printf("%-38s %12llu  %8.4f %%\n", "agree (identical records, or both miss)",
+           (unsigned long long)(rays - run->disagree),
+           rays ? 100.0 * (double)(rays - run->disagree) / (double)rays : 0.0);
+    printf("%-38s %12llu  %8.4f %%\n", "disagree", (unsigned long long)run->disagree,
+           rays ? 100.0 * (double)run->disagree / (double)rays : 0.0);
+    for (c = 0; c < EX_CLASSES; c++)
+        printf("  %-36s %12llu\n", ex_class_label[c], (unsigned long long)run->classes[c]);
+    if (run->classes[EX_UNEXPLAINED] == 0)
+        printf("EXPLAINED: all %llu disagreeing rays of %llu explained\n",
+               (unsigned long long)run->disagree, (unsigned long long)rays);
+    else
+        printf("UNEXPLAINED: %llu of %llu disagreeing rays of %llu unexplained\n",
+               (unsigned long long)run->classes[EX_UNEXPLAINED],
+               (unsigned long long)run->disagree, (unsigned long long)rays);
+}
+
+/* Loads the mesh and the rays, checks the three files describe the same
+** rays, referees, prints; returns the exit status. */
+static int referee_main(referee_run *run)
+{
+    brt_mesh mesh;
+    brt_ray *rays;
+    size_t ray_count;
+    brt_error err;
+    ex_check(prog, brt_mesh_load(run->mesh_path, &mesh, &err), &err);
+    ex_check(prog, brt_rays_read(run->rays_path, &rays, &ray_count, &err), &err);
+    if (ray_count != run->count) {
+        fprintf(stderr, "%s: %s has %lu rays but %s has %lu records: not the same rays\n",
+                prog, run->rays_path, (unsigned long)ray_count, run->path[0],
+                (unsigned long)run->count);
+        return 2;
+    }
+    run->mesh = &mesh;
+    run->rays = rays;
+    check_prims(run);
+    referee_all(run);
+    print_referee_table(run);
+    free(rays);
+    brt_mesh_free(&mesh);
+    return run->classes[EX_UNEXPLAINED] ? 1 : 0;
+}
+
+/* ===================================================================== */
+/* Command line                                                          */
+/* ===================================================================== */
+
 int main(int argc, char **argv)
 {
     const char *path_a = NULL, *path_b = NULL;
     double max_disagree = 0.0, t_rel = 1e-5, fraction;
+    referee_run run;
+    int tolerance_options = 0;
     brt_hit *a, *b;
     size_t count_a, count_b;
     brt_error err;
@@ -119,15 +285,24 @@ int main(int argc, char **argv)
     uint64_t disagree;
     int i;
 
+    memset(&run, 0, sizeof run);
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     for (i = 1; i < argc; i++) {
         const char *arg = argv[i];
-        if (strcmp(arg, "--max-disagree") == 0)
+        if (strcmp(arg, "--max-disagree") == 0) {
             max_disagree = ex_parse_double(prog, arg, ex_option_value(prog, argc, argv, &i),
                                            0.0, 1.0);
-        else if (strcmp(arg, "--t-rel") == 0)   /* 2 bounds every relative difference */
+            tolerance_options = 1;
+        } else if (strcmp(arg, "--t-rel") == 0) {   /* 2 bounds every relative difference */
             t_rel = ex_parse_double(prog, arg, ex_option_value(prog, argc, argv, &i),
                                     0.0, 2.0);
+            tolerance_options = 1;
+        } else if (strcmp(arg, "--mesh") == 0)
+            run.mesh_path = ex_option_value(prog, argc, argv, &i);
+        else if (strcmp(arg, "--rays") == 0)
+            run.rays_path = ex_option_value(prog, argc, argv, &i);
+        else if (strcmp(arg, "--explain") == 0)
+            run.explain_path = ex_option_value(prog, argc, argv, &i);
         else if (arg[0] == '-' && arg[1] != 0)
             ex_die(prog, "unknown option '%s' (see --help)", arg);
         else if (!path_a) path_a = arg;
@@ -135,6 +310,13 @@ int main(int argc, char **argv)
         else ex_die(prog, "unexpected argument '%s' (see --help)", arg);
     }
     if (!path_b) ex_die(prog, "expected two hit files A.hits B.hits (see --help)");
+    if ((run.mesh_path || run.explain_path) && !run.rays_path)
+        ex_die(prog, "--mesh and --explain need --rays RAYS (see --help)");
+    if ((run.rays_path || run.explain_path) && !run.mesh_path)
+        ex_die(prog, "--rays and --explain need --mesh MESH (see --help)");
+    if (run.mesh_path && tolerance_options)
+        ex_die(prog, "--max-disagree and --t-rel are for tolerance mode, not with --mesh "
+               "(see --help)");
 
     ex_check(prog, brt_hits_read(path_a, &a, &count_a, &err), &err);
     ex_check(prog, brt_hits_read(path_b, &b, &count_b, &err), &err);
@@ -146,6 +328,18 @@ int main(int argc, char **argv)
         return 2;
     }
 
+    if (run.mesh_path) {
+        int status;
+        run.path[0] = path_a;
+        run.path[1] = path_b;
+        run.hits[0] = a;
+        run.hits[1] = b;
+        run.count = count_a;
+        status = referee_main(&run);
+        free(a);
+        free(b);
+        return status;
+    }
     compare(a, b, count_a, t_rel, &g);
     disagree = g.rays - g.both_miss - (g.same_prim - g.t_over);
     fraction = g.rays ? (double)disagree / (double)g.rays : 0.0;

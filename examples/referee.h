@@ -1,0 +1,53 @@
+/*
+** examples/referee.h -- hitdiff's referee: for a ray on which two hit files
+** disagree, decides with exact arithmetic which side is right, or that both
+** are, and names the reason (examples/referee.c explains how).  Shared by
+** build/hitdiff and the tests (tests/test_referee.c, tests/test_embree.c).
+**
+** The referee judges closest-hit records (brt_hit).  It looks only at the
+** triangles the two records name: it never traces the ray itself, so a
+** side that misses a triangle neither side reports is not caught (a
+** disagreement always names at least one triangle, so it is refereed).
+*/
+#ifndef BRT_EXAMPLES_REFEREE_H
+#define BRT_EXAMPLES_REFEREE_H
+
+#include "batchrt.h"
+
+#include <stddef.h>
+#include <stdint.h>
+
+/* The classes of a disagreement, in the order of hitdiff's table.  "A" and
+** "B" are the two records of the ray (hitdiff's first and second file). */
+typedef enum ex_class {
+    EX_TIE,          /* both right: two triangles hit at exactly the same t */
+    EX_NEAR_TIE,     /* two triangles hit, their exact t closer than the t
+                     ** bound: which is closer is rounding */
+    EX_T_BOUND,      /* the same triangle, each t within the bound for this
+                     ** ray's conditioning */
+    EX_LEAK_A,       /* A passes through an edge or vertex of a triangle the
+                     ** ray hits (B's): A reports a miss or a farther hit */
+    EX_LEAK_B,
+    EX_OUTSIDE_A,    /* A hits a triangle the ray passes just outside of,
+                     ** within rounding of an edge or vertex */
+    EX_OUTSIDE_B,
+    EX_BOUNDARY,     /* the hit's exact t is within rounding of tnear or tfar */
+    EX_UNEXPLAINED,
+    EX_CLASSES
+} ex_class;
+
+extern const char *const ex_class_id[EX_CLASSES];     /* "tie", "leak_a", ... (CSV) */
+extern const char *const ex_class_label[EX_CLASSES];  /* table rows */
+
+/* Nonzero when the two records of one ray disagree: a different prim, hit
+** against miss, or a different t, u or v (two misses always agree). */
+int ex_hits_disagree(const brt_hit *a, const brt_hit *b);
+
+/* Referees one ray on which a and b disagree.  Every prim must be
+** BRT_NO_PRIM or below mesh->triangle_count (hitdiff checks the files
+** first).  Writes the exact verdict in words into text (a line without
+** commas or quotes; text may be NULL) and returns the class. */
+ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
+                    const brt_hit *b, char *text, size_t size);
+
+#endif
