@@ -125,6 +125,7 @@ int main(int argc, char **argv)
     suite_cli();
     suite_scenes();
     suite_render();
+    suite_referee();
     suite_embree();
     suite_hardening();
     if (failed == 0) remove_tmpdir();

@@ -60,6 +60,7 @@ void suite_batched(void);
 void suite_cli(void);
 void suite_scenes(void);
 void suite_render(void);
+void suite_referee(void);
 void suite_embree(void);
 void suite_hardening(void);
 
