@@ -11,17 +11,20 @@
 **   - direct and batched must be byte-identical (batchrt's own contract);
 **   - for raygen's rays, at least 99.99 % must have the same hit/miss and
 **     prim in batchrt and Embree;
-**   - every other ray must fall into a class where both tracers are right
-**     (classify(), whose oracles are brt_intersect_triangle and geometry in
-**     double precision), or the test fails and prints the ray;
-**   - build/hitdiff, the user's tool, must say "agree" exactly when the
-**     count here says so.
-** The classifier is itself tested on hand-made answers, without Embree.
+**   - every ray whose records differ must be explained by hitdiff's
+**     referee (examples/referee.c, exact predicates; tested on its own in
+**     tests/test_referee.c), or the test fails and prints the verdict;
+**   - build/hitdiff --mesh --rays, the user's tool, must come to the same
+**     count and exit 0 exactly when nothing is unexplained.
+** Then every shared mesh (../shared/data/meshes) gets a sample of each ray
+** kind, and hitdiff --mesh must explain every disagreement with Embree.
 */
 #include "test.h"
+#include "util.h"
 #include "batchrt.h"
+#include "../examples/rays.h"
+#include "../examples/referee.h"
 
-#include <float.h>
 #include <math.h>
 #include <stdarg.h>
 #include <stdlib.h>
@@ -32,10 +35,9 @@
 ** (with BRT_EMBREE_TABLE=1 the test prints its table even when it passes). */
 #define RAYS_PER_KIND 40000
 #define MIN_IDENTICAL 0.9999  /* fraction of rays with the same hit/miss and prim */
-#define T_REL 1e-5            /* same prim: largest relative t difference */
-#define HITDIFF_MAX_DISAGREE 1e-4
-/* The rounding bound of an edge function, in float ulps (see near_edge). */
-#define EDGE_ULPS 16.0
+/* Rays per kind in the sweep over every shared mesh (loading and building
+** the largest, 3.5M triangles, dominates its time, not the rays). */
+#define SHARED_RAYS_PER_KIND 2500
 
 /* ===================================================================== */
 /* Programs and files                                                    */
@@ -94,205 +96,42 @@ static brt_hit *read_hits(const char *path, size_t count)
     return hits;
 }
 
-/* ===================================================================== */
-/* Classifying a disagreement                                            */
-/* ===================================================================== */
-
-enum verdict {
-    SAME,        /* both miss, or the same prim within T_REL */
-    TIE,         /* different prims, both hit at the same t (a shared edge/vertex) */
-    LEAK,        /* batchrt's hit is at an edge that Embree passed through */
-    EDGE,        /* Embree's hit is at an edge that batchrt's test passed by */
-    ILL_CONDITIONED, /* same prim, t apart by more than T_REL: both within
-                        the rounding bound of an ill-conditioned t */
-    TNEAR,       /* batchrt's hit at t == tnear, which Embree excludes */
-    UNEXPLAINED,
-    VERDICTS
-};
-static const char *const verdict_name[VERDICTS] = {
-    "same", "tie", "Embree leak", "Embree edge hit", "ill-conditioned t", "tnear", "unexplained"};
-
-static double relative_difference(double a, double b)
-{
-    double scale = fmax(fabs(a), fabs(b));
-    return a == b ? 0.0 : fabs(a - b) / scale;
-}
-
-static void triangle(const brt_mesh *mesh, uint32_t prim, const float *v[3])
-{
-    int k;
-    for (k = 0; k < 3; k++) v[k] = mesh->positions + 3 * (size_t)mesh->indices[3 * prim + k];
-}
-
-/* The oracle's t for ray and prim, or NaN when the watertight test misses. */
-static float oracle_t(const brt_mesh *mesh, const brt_ray *ray, uint32_t prim)
-{
-    const float *v[3];
-    float t, u, w;
-    triangle(mesh, prim, v);
-    return brt_intersect_triangle(ray, v[0], v[1], v[2], &t, &u, &w) ? t : NAN;
-}
-
-/* Nonzero when the ray passes prim at one of its edges (or vertices),
-** closer than a float ray/triangle test can resolve.  Every such test
-** decides inside/outside by the signs of three edge functions, in exact
-** terms E_ab = ((a - org) x (b - org)) . dir for each edge ab, computed in
-** float from vertices relative to the origin (Woop et al. after a shear,
-** Moeller-Trumbore and Pluecker alike), so their rounding is a few ulps of
-** |a - org| |b - org| |dir|.  "At an edge": every E (oriented to be
-** positive inside) is above minus that bound, and one is below it.  For
-** rays that graze the plane from far away every E is tiny, and the answer
-** is rounding, as it should be. */
-static int near_edge(const brt_mesh *mesh, const brt_ray *ray, uint32_t prim)
-{
-    const float *v[3];
-    double r[3][3], len[3], edge[3], bound[3], sum = 0, d = 0;
-    int i, k, inside = 1, at_edge = 0;
-    triangle(mesh, prim, v);
-    for (i = 0; i < 3; i++) {
-        len[i] = 0;
-        for (k = 0; k < 3; k++) {
-            r[i][k] = (double)v[i][k] - ray->org[k];
-            len[i] += r[i][k] * r[i][k];
-        }
-        len[i] = sqrt(len[i]);
-        d += (double)ray->dir[i] * ray->dir[i];
-    }
-    for (i = 0; i < 3; i++) {
-        const double *a = r[i], *b = r[(i + 1) % 3];
-        edge[i] = (a[1] * b[2] - a[2] * b[1]) * ray->dir[0]
-                + (a[2] * b[0] - a[0] * b[2]) * ray->dir[1]
-                + (a[0] * b[1] - a[1] * b[0]) * ray->dir[2];
-        bound[i] = EDGE_ULPS * FLT_EPSILON * len[i] * len[(i + 1) % 3] * sqrt(d);
-        sum += edge[i];
-    }
-    for (i = 0; i < 3; i++) {
-        const double e = sum < 0 ? -edge[i] : edge[i];
-        inside &= e >= -bound[i];
-        at_edge |= e <= bound[i];
-    }
-    return inside && at_edge;
-}
-
-/* Ill-conditioned t: a float ray/triangle test computes t from products
-** of size |n||v0 - org| and |n||dir| (n the triangle's normal), so its
-** error can reach about eps * |n| (|v0 - org| + t |dir|) / |n.dir|: large
-** when the ray grazes the plane, or starts far from v0 compared with t (a
-** huge triangle near the origin).  Returns that bound (times 16, for the
-** few roundings of each product) and sets *t to the plane's t in double. */
-static double plane_t_error(const brt_mesh *mesh, const brt_ray *ray, uint32_t prim,
-                            double *t)
-{
-    const float *v[3];
-    double e1[3], e2[3], n[3], c[3], nn = 0, dd = 0, cc = 0, nc = 0, nd = 0;
-    int k;
-    triangle(mesh, prim, v);
-    for (k = 0; k < 3; k++) {
-        e1[k] = (double)v[1][k] - v[0][k];
-        e2[k] = (double)v[2][k] - v[0][k];
-        c[k] = (double)v[0][k] - ray->org[k];
-    }
-    for (k = 0; k < 3; k++) {
-        n[k] = e1[(k + 1) % 3] * e2[(k + 2) % 3] - e1[(k + 2) % 3] * e2[(k + 1) % 3];
-        nn += n[k] * n[k];
-        dd += (double)ray->dir[k] * ray->dir[k];
-        cc += c[k] * c[k];
-        nc += n[k] * c[k];
-        nd += n[k] * ray->dir[k];
-    }
-    *t = nc / nd;
-    return 16.0 * FLT_EPSILON * sqrt(nn) * (sqrt(cc) + fabs(*t) * sqrt(dd)) / fabs(nd);
-}
-
-/* Both answers on one prim, t apart by more than T_REL: right when both
-** are within the rounding bound of the plane's t. */
-static int both_within_conditioning(const brt_mesh *mesh, const brt_ray *ray, uint32_t prim,
-                                    float t_ours, float t_theirs)
-{
-    double t, bound = plane_t_error(mesh, ray, prim, &t);
-    return fabs(t_ours - t) <= bound && fabs(t_theirs - t) <= bound;
-}
-
-/* Hits on two prims at "the same t": within T_REL, or within the sum of
-** the two planes' rounding bounds (then the order can flip either way). */
-static int same_t(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
-                  const brt_hit *b)
-{
-    double ta, tb;
-    double bound = plane_t_error(mesh, ray, a->prim, &ta) + plane_t_error(mesh, ray, b->prim, &tb);
-    return relative_difference(a->t, b->t) <= T_REL || fabs((double)a->t - b->t) <= bound;
-}
-
-/* ours: batchrt's hit; theirs: Embree's.  Both answers are right in every
-** class but UNEXPLAINED. */
-static enum verdict classify(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *ours,
-                             const brt_hit *theirs)
-{
-    const int hit_ours = ours->prim != BRT_NO_PRIM, hit_theirs = theirs->prim != BRT_NO_PRIM;
-    if (hit_theirs && theirs->prim >= mesh->triangle_count) return UNEXPLAINED;
-    if (!hit_ours && !hit_theirs) return SAME;
-    if (hit_ours && hit_theirs && ours->prim == theirs->prim) {
-        if (relative_difference(ours->t, theirs->t) <= T_REL) return SAME;
-        return both_within_conditioning(mesh, ray, ours->prim, ours->t, theirs->t)
-                   ? ILL_CONDITIONED : UNEXPLAINED;
-    }
-    if (hit_ours && ours->t == ray->tnear && (!hit_theirs || theirs->t > ours->t)) return TNEAR;
-    /* Two prims at the same t: a tie when our own test hits Embree's prim
-    ** too, or the ray passes at its edge, which our test resolved the other
-    ** way (the prims then share that edge or vertex). */
-    if (hit_ours && hit_theirs && same_t(mesh, ray, ours, theirs)
-        && (!isnan(oracle_t(mesh, ray, theirs->prim)) || near_edge(mesh, ray, theirs->prim)))
-        return TIE;
-    /* One side sees a hit that the other goes past: right only at an edge,
-    ** where rounding decides, and for Embree's hit only when our own test
-    ** misses its prim (else batchrt's traversal lost a hit). */
-    if (hit_ours && (!hit_theirs || theirs->t > ours->t))
-        return near_edge(mesh, ray, ours->prim) ? LEAK : UNEXPLAINED;
-    return near_edge(mesh, ray, theirs->prim) && isnan(oracle_t(mesh, ray, theirs->prim))
-               ? EDGE : UNEXPLAINED;
-}
-
-/* ===================================================================== */
-/* One mesh: rays, four hit files, comparisons                          */
+/* Refereeing every disagreement                                        */
 /* ===================================================================== */
 
 typedef struct tally {
     uint64_t rays, identical;        /* same hit/miss and same prim */
-    uint64_t verdicts[VERDICTS];
+    uint64_t disagree, classes[EX_CLASSES];
 } tally;
 
-static void print_ray(const char *what, const brt_mesh *mesh, const brt_ray *r,
-                      const brt_hit *ours, const brt_hit *theirs)
-{
-    const int hit_theirs = theirs->prim != BRT_NO_PRIM;
-    test_fail_at(__FILE__, __LINE__,
-                 "%s: ray org (%.9g %.9g %.9g) dir (%.9g %.9g %.9g) t [%.9g %.9g]: "
-                 "batchrt t %.9g prim %lu u %.9g v %.9g, Embree t %.9g prim %lu u %.9g v %.9g; "
-                 "brt_intersect_triangle on Embree's prim: t %.9g, at its edge: %s",
-                 what, r->org[0], r->org[1], r->org[2], r->dir[0], r->dir[1], r->dir[2],
-                 r->tnear, r->tfar, ours->t, (unsigned long)ours->prim, ours->u, ours->v,
-                 theirs->t, (unsigned long)theirs->prim, theirs->u, theirs->v,
-                 hit_theirs ? oracle_t(mesh, r, theirs->prim) : NAN,
-                 hit_theirs && near_edge(mesh, r, theirs->prim) ? "yes" : "no");
-}
-
-/* Every ray of one Embree hit file against batchrt's; failures print rays.
-** The rays of raygen must agree on hit/miss and prim for MIN_IDENTICAL of
-** them; edge rays (write_edge_rays) aim at the disagreements, so for them
-** only the classification counts. */
+/* Every ray of one Embree hit file against batchrt's, through the referee
+** (examples/referee.c); each unexplained ray fails the test with the
+** referee's verdict (five at most).  The rays of raygen must also agree on
+** hit/miss and prim for MIN_IDENTICAL of them; edge rays (make_edge_rays)
+** aim at the disagreements, so for them only the referee counts. */
 static void compare_with_embree(const char *label, const brt_mesh *mesh, const brt_ray *rays,
                                 size_t count, const brt_hit *ours, const brt_hit *theirs,
                                 int edge_rays, tally *tl)
 {
+    char verdict[1024];
     size_t i;
     int printed = 0;
     memset(tl, 0, sizeof *tl);
     tl->rays = count;
     for (i = 0; i < count; i++) {
-        enum verdict v = classify(mesh, &rays[i], &ours[i], &theirs[i]);
+        ex_class c;
         tl->identical += ours[i].prim == theirs[i].prim;
-        tl->verdicts[v]++;
-        if (v == UNEXPLAINED && printed++ < 5) print_ray(label, mesh, &rays[i], &ours[i], &theirs[i]);
+        if (!ex_hits_disagree(&ours[i], &theirs[i])) continue;
+        c = ex_referee(mesh, &rays[i], &ours[i], &theirs[i], verdict, sizeof verdict);
+        tl->disagree++;
+        tl->classes[c]++;
+        if (c == EX_UNEXPLAINED && printed++ < 5) {
+            const brt_ray *r = &rays[i];
+            test_fail_at(__FILE__, __LINE__, "%s: ray %lu org (%.9g %.9g %.9g) dir (%.9g %.9g "
+                         "%.9g) t [%.9g %.9g]: A = batchrt, B = Embree: %s", label,
+                         (unsigned long)i, r->org[0], r->org[1], r->org[2], r->dir[0],
+                         r->dir[1], r->dir[2], r->tnear, r->tfar, verdict);
+        }
     }
     EXPECT(edge_rays || (double)tl->identical >= MIN_IDENTICAL * (double)count,
            "%s: only %llu of %llu rays have the same hit/miss and prim (< %.2f %%)", label,
@@ -301,12 +140,13 @@ static void compare_with_embree(const char *label, const brt_mesh *mesh, const b
 
 static void print_tally(const char *label, const tally *tl)
 {
-    int v;
-    printf("  %-28s %7llu rays %8.4f %% identical", label, (unsigned long long)tl->rays,
-           100.0 * (double)tl->identical / (double)tl->rays);
-    for (v = TIE; v < VERDICTS; v++)
-        if (tl->verdicts[v])
-            printf(", %s %llu", verdict_name[v], (unsigned long long)tl->verdicts[v]);
+    int c;
+    printf("  %-28s %7llu rays %8.4f %% identical, %llu disagree", label,
+           (unsigned long long)tl->rays, 100.0 * (double)tl->identical / (double)tl->rays,
+           (unsigned long long)tl->disagree);
+    for (c = 0; c < EX_CLASSES; c++)
+        if (tl->classes[c])
+            printf(", %s %llu", ex_class_id[c], (unsigned long long)tl->classes[c]);
     printf("\n");
 }
 
@@ -315,51 +155,62 @@ static int same_bytes(const brt_hit *a, const brt_hit *b, size_t count)
     return memcmp(a, b, count * sizeof *a) == 0;
 }
 
-/* The user's workflow: build/hitdiff with the tolerances of this test must
-** say "agree" exactly when the count here says so (a ray agrees when it is
-** SAME), whatever the rays that hitdiff cannot classify. */
-static void expect_hitdiff_verdict(const char *label, const char *ours, const char *theirs,
-                                   const tally *tl)
+/* The user's workflow: build/hitdiff --mesh --rays referees the same rays
+** the same way, so it must exit 0 exactly when nothing here is
+** unexplained, and count the same disagreements. */
+static void expect_hitdiff_verdict(const char *label, const char *mesh, const char *rays,
+                                   const char *ours, const char *theirs, const tally *tl)
 {
-    const double disagree = (double)(tl->rays - tl->verdicts[SAME]) / (double)tl->rays;
-    const int expected = disagree <= HITDIFF_MAX_DISAGREE ? 0 : 1;
-    int status = run("hitdiff '%s' '%s' --max-disagree %g --t-rel %g", ours, theirs,
-                     HITDIFF_MAX_DISAGREE, T_REL);
-    EXPECT(status == expected, "%s: hitdiff %s %s: exit status %d, expected %d "
-           "(%.4f %% disagree)", label, ours, theirs, status, expected, 100.0 * disagree);
+    char line[128], log[512];
+    const int expected = tl->classes[EX_UNEXPLAINED] ? 1 : 0;
+    const int status = run("hitdiff '%s' '%s' --mesh '%s' --rays '%s'", ours, theirs, mesh,
+                           rays);
+    unsigned char *out = tu_slurp(scratch(log, "embree.log"), NULL);
+    snprintf(line, sizeof line, "%llu disagreeing rays of %llu",
+             (unsigned long long)tl->disagree, (unsigned long long)tl->rays);
+    EXPECT(status == expected && out && strstr((char *)out, line),
+           "%s: hitdiff %s %s: exit status %d, expected %d and '%s' in:\n%s", label, ours,
+           theirs, status, expected, line, out ? (char *)out : "(no output)");
+    free(out);
 }
 
 /* The hardest rays for a ray/triangle test that is not watertight: from
 ** random points of the mesh's box (grown by half its size) at random
 ** points of triangle edges (one ray in four at a vertex), rounded to
 ** float, so they cross the edge within a few ulps. */
-static int write_edge_rays(const brt_mesh *mesh, const char *path)
+static void make_edge_rays(const brt_mesh *mesh, brt_ray *rays, size_t count, uint64_t *rng)
 {
-    const long count = rays_per_kind();
-    uint64_t rng = test_seed();
     float lo[3], hi[3];
-    brt_ray *rays = malloc((size_t)count * sizeof *rays);
-    brt_result r;
-    long i;
+    size_t i;
     int k;
-    if (!rays) return 0;
     brt_mesh_bounds(mesh, lo, hi);
     for (i = 0; i < count; i++) {
-        const float *v[3];
-        const uint32_t prim = (uint32_t)(brt_random_u64(&rng) % mesh->triangle_count);
-        const int corner = (int)(brt_random_u64(&rng) % 3);
-        const float s = brt_random_u64(&rng) % 4 == 0 ? 0.0f : brt_random_float(&rng);
-        triangle(mesh, prim, v);
+        const uint32_t prim = (uint32_t)(brt_random_u64(rng) % mesh->triangle_count);
+        const uint32_t *tri = mesh->indices + 3 * (size_t)prim;
+        const int corner = (int)(brt_random_u64(rng) % 3);
+        const float *from = mesh->positions + 3 * (size_t)tri[corner];
+        const float *to = mesh->positions + 3 * (size_t)tri[(corner + 1) % 3];
+        const float s = brt_random_u64(rng) % 4 == 0 ? 0.0f : brt_random_float(rng);
         for (k = 0; k < 3; k++) {
-            const float target = v[corner][k] + s * (v[(corner + 1) % 3][k] - v[corner][k]);
+            const float target = from[k] + s * (to[k] - from[k]);
             const float size = hi[k] - lo[k];
-            rays[i].org[k] = lo[k] - 0.5f * size + 2.0f * size * brt_random_float(&rng);
+            rays[i].org[k] = lo[k] - 0.5f * size + 2.0f * size * brt_random_float(rng);
             rays[i].dir[k] = target - rays[i].org[k];
         }
         rays[i].tnear = 0.0f;
         rays[i].tfar = INFINITY;
     }
-    r = brt_rays_write(path, rays, (size_t)count, NULL);
+}
+
+static int write_edge_rays(const brt_mesh *mesh, const char *path)
+{
+    const size_t count = (size_t)rays_per_kind();
+    uint64_t rng = test_seed();
+    brt_ray *rays = malloc(count * sizeof *rays);
+    brt_result r;
+    if (!rays) return 0;
+    make_edge_rays(mesh, rays, count, &rng);
+    r = brt_rays_write(path, rays, count, NULL);
     free(rays);
     return r == BRT_OK;
 }
@@ -422,7 +273,8 @@ static void check_kind(const char *mesh_path, const brt_mesh *mesh, const char *
         if (direct && embree[m]) {
             compare_with_embree(label, mesh, rays, count, direct, embree[m], edge_rays,
                                 &tl[m]);
-            expect_hitdiff_verdict(label, direct_path, embree_path, &tl[m]);
+            expect_hitdiff_verdict(label, mesh_path, rays_path, direct_path, embree_path,
+                                   &tl[m]);
         }
     }
     if (test_failed() || getenv("BRT_EMBREE_TABLE")) {
@@ -456,6 +308,116 @@ static void check_mesh(const char *mesh_path, const char *name)
 }
 
 /* ===================================================================== */
+/* Every shared mesh through hitdiff --mesh                              */
+/* ===================================================================== */
+
+/* SHARED_RAYS_PER_KIND rays of each kind, kind after kind: camera, random
+** and bounce (examples/rays.c, as build/raygen makes them), then edge. */
+static int make_sample_rays(const brt_mesh *mesh, const brt_bvh *bvh, brt_ray *rays)
+{
+    const size_t n = SHARED_RAYS_PER_KIND;
+    const uint32_t width = (uint32_t)ceil(sqrt((double)n));
+    uint64_t rng = test_seed();
+    float lo[3], hi[3];
+    ex_camera cam;
+    brt_mesh_bounds(mesh, lo, hi);
+    ex_camera_fit(&cam, lo, hi, width, (uint32_t)((n + width - 1) / width));
+    ex_rays_camera(&cam, rays, n, &rng);
+    ex_rays_random(lo, hi, rays + n, n, &rng);
+    if (!ex_rays_bounce(mesh, bvh, &cam, rays + 2 * n, n, &rng)) return 0;
+    make_edge_rays(mesh, rays + 3 * n, n, &rng);
+    return 1;
+}
+
+/* The sample rays and batchrt's hits for them (brt_bvh_intersect, which
+** writes the bytes of trace --direct) as files in the scratch directory. */
+static int write_sample(const brt_mesh *mesh, const char *rays_path, const char *hits_path)
+{
+    const size_t count = 4 * SHARED_RAYS_PER_KIND;
+    brt_ray *rays = malloc(count * sizeof *rays);
+    brt_hit *hits = malloc(count * sizeof *hits);
+    brt_bvh *bvh = NULL;
+    int ok = rays && hits
+             && brt_bvh_build(mesh->positions, mesh->indices, mesh->triangle_count, NULL, &bvh)
+                    == BRT_OK
+             && make_sample_rays(mesh, bvh, rays);
+    size_t i;
+    for (i = 0; ok && i < count; i++) {
+        brt_hit_clear(&hits[i]);
+        brt_bvh_intersect(bvh, &rays[i], &hits[i]);
+    }
+    ok = ok && brt_rays_write(rays_path, rays, count, NULL) == BRT_OK
+         && brt_hits_write(hits_path, hits, count, NULL) == BRT_OK;
+    brt_bvh_free(bvh);
+    free(rays);
+    free(hits);
+    return ok;
+}
+
+/* hitdiff's table and the first unexplained lines of its CSV, for a
+** failure message (malloc'd). */
+static char *hitdiff_report(const char *csv_path)
+{
+    char log[512], *out = (char *)tu_slurp(scratch(log, "embree.log"), NULL);
+    char *csv = (char *)tu_slurp(csv_path, NULL), *line = csv, *report;
+    size_t size = (out ? strlen(out) : 0) + 5 * 1100 + 1, used;
+    int shown = 0;
+    if (!(report = malloc(size))) return NULL;
+    used = (size_t)snprintf(report, size, "%s", out ? out : "(no output)\n");
+    while (line && *line && shown < 5) {
+        char *end = strchr(line, '\n');
+        const size_t len = end ? (size_t)(end - line) : strlen(line);
+        if (strstr(line, ",unexplained,") && strstr(line, ",unexplained,") < line + len
+            && len < 1024) {
+            used += (size_t)snprintf(report + used, size - used, "%.*s\n", (int)len, line);
+            shown++;
+        }
+        line = end ? end + 1 : NULL;
+    }
+    free(out);
+    free(csv);
+    return report;
+}
+
+/* One shared mesh: batchrt's hits against Embree's (default and --robust)
+** on the sample, refereed by build/hitdiff --mesh; every disagreement must
+** be explained.  Rays 0.., 2500.., 5000.., 7500.. are camera, random,
+** bounce and edge rays. */
+static void check_shared_referee(const char *file)
+{
+    static const char *const modes[2] = {"", "--robust"};
+    const char *path = test_shared_mesh(file);
+    char rays_path[512], ours[512], theirs[512], csv[512];
+    brt_mesh mesh;
+    brt_error err;
+    int m, ok;
+    if (!path) {
+        test_skip("shared mesh %s not found (set BRT_SHARED)", file);
+        return;
+    }
+    CHECK(brt_mesh_load(path, &mesh, &err) == BRT_OK, "%s", err.message);
+    ok = write_sample(&mesh, scratch(rays_path, "sample.rays"), scratch(ours, "sample.hits"));
+    brt_mesh_free(&mesh);
+    CHECK(ok, "%s: cannot make the sample rays and hits", file);
+    scratch(theirs, "sample_embree.hits");
+    scratch(csv, "sample.csv");
+    for (m = 0; m < 2; m++) {
+        int status;
+        CHECK(run("embree_trace '%s' '%s' '%s' %s", path, rays_path, theirs, modes[m]) == 0,
+              "%s: embree_trace %s failed", file, modes[m]);
+        status = run("hitdiff '%s' '%s' --mesh '%s' --rays '%s' --explain '%s'", ours, theirs,
+                     path, rays_path, csv);
+        if (status != 0 || getenv("BRT_EMBREE_TABLE")) {
+            char *report = hitdiff_report(csv);
+            printf("%s, Embree %s:\n%s", file, m ? "--robust" : "default", report ? report : "");
+            free(report);
+        }
+        EXPECT(status == 0, "%s: hitdiff --mesh against Embree %s: exit status %d (above)", file,
+               modes[m], status);
+    }
+}
+
+/* ===================================================================== */
 /* Tests                                                                 */
 /* ===================================================================== */
 
@@ -482,6 +444,12 @@ static void test_crown(void) { check_builtin_scene("crown"); }
 static void test_landscape(void) { check_builtin_scene("landscape"); }
 static void test_island(void) { check_builtin_scene("island"); }
 static void test_bunny(void) { check_shared_mesh("bunny.obj.gz"); }
+static void test_referee_bunny_tiny(void) { check_shared_referee("bunny_tiny.obj"); }
+static void test_referee_bunny(void) { check_shared_referee("bunny.obj.gz"); }
+static void test_referee_dragon(void) { check_shared_referee("dragon.obj.gz"); }
+static void test_referee_bmw(void) { check_shared_referee("bmw_m6.obj.gz"); }
+static void test_referee_oahu(void) { check_shared_referee("fg_oahu.obj.gz"); }
+static void test_referee_crown(void) { check_shared_referee("crown.obj.gz"); }
 
 /* embree_trace's own contract: build/trace's command line minus the
 ** batched options (rejected by name, nothing written), statistics in
@@ -531,81 +499,6 @@ static void test_command_line(void)
     EXPECT(run("embree_trace '%s' '%s' '%s'", mesh, rays, hits) == 1, "negative tnear accepted");
 }
 
-/* The classifier itself, without Embree: hand-made "Embree" answers that
-** are right in each class are accepted, wrong ones are UNEXPLAINED.  A
-** unit square of two triangles sharing the diagonal x == y, plus a huge
-** far-away triangle for an ill-conditioned t. */
-static void test_classifier(void)
-{
-    static float positions[] = {0, 0, 0, 1, 0, 0, 1, 1, 0, 0, 1, 0,
-                                -1e4f, -1e4f, 5, 1e4f, -1e4f, 5, 0, 1e4f, 5};
-    static uint32_t indices[] = {0, 1, 2, 0, 2, 3, 4, 5, 6};
-    const brt_mesh mesh = {positions, indices, 7, 3};
-    const brt_ray diagonal = {{0.5f, 0.5f, 1}, {0, 0, -1}, 0, INFINITY};
-    const brt_ray inside = {{0.7f, 0.2f, 1}, {0, 0, -1}, 0, INFINITY};
-    const brt_ray at_tnear = {{0.7f, 0.2f, 1}, {0, 0, -1}, 1, INFINITY};
-    const brt_ray outside_edge = {{1.0000001f, 0.5f, 1}, {0, 0, -1}, 0, INFINITY};
-    const brt_ray outside = {{1.01f, 0.5f, 1}, {0, 0, -1}, 0, INFINITY};
-    const brt_ray near_huge = {{0.3f, 0.1f, 4}, {0.6f, 0, 0.8f}, 0, INFINITY};
-    const brt_hit miss = {INFINITY, BRT_NO_PRIM, 0, 0};
-    brt_hit ours[4], theirs;
-    const brt_ray *rays[4] = {&diagonal, &inside, &at_tnear, &near_huge};
-    brt_bvh *bvh;
-    int i;
-    CHECK(brt_bvh_build(positions, indices, 3, NULL, &bvh) == BRT_OK, "BVH build failed");
-    for (i = 0; i < 4; i++) {
-        brt_hit_clear(&ours[i]);
-        brt_bvh_intersect(bvh, rays[i], &ours[i]);
-    }
-    brt_bvh_free(bvh);
-    for (i = 0; i < 4; i++) CHECK(ours[i].prim != BRT_NO_PRIM, "ray %d misses", i);
-    CHECK(ours[0].prim == 0 && ours[0].t == 1.0f, "the diagonal tie goes to prim 0");
-    /* The diagonal: prim 1 at the same t is a tie, a miss is an edge leak. */
-    theirs = ours[0];
-    theirs.prim = 1;
-    theirs.u = 0.5f;
-    theirs.v = 0.0f;
-    EXPECT(classify(&mesh, &diagonal, &ours[0], &theirs) == TIE, "shared edge: tie");
-    EXPECT(classify(&mesh, &diagonal, &ours[0], &miss) == LEAK, "shared edge: leak");
-    /* Inside prim 0, far from every edge: a miss, another prim or another t
-    ** is wrong. */
-    EXPECT(classify(&mesh, &inside, &ours[1], &ours[1]) == SAME, "same answer");
-    EXPECT(classify(&mesh, &inside, &ours[1], &miss) == UNEXPLAINED, "interior leak");
-    theirs = ours[1];
-    theirs.prim = 1;
-    theirs.u = theirs.v = 0.3f;
-    EXPECT(classify(&mesh, &inside, &ours[1], &theirs) == UNEXPLAINED, "wrong prim");
-    theirs = ours[1];
-    theirs.t *= 1.0f + 1e-4f;
-    EXPECT(classify(&mesh, &inside, &ours[1], &theirs) == UNEXPLAINED, "wrong t");
-    theirs = miss;
-    theirs.t = 0.5f;
-    theirs.prim = 2;
-    theirs.u = theirs.v = 0.3f;
-    EXPECT(classify(&mesh, &inside, &ours[1], &theirs) == UNEXPLAINED, "invented hit");
-    theirs.prim = 3;
-    EXPECT(classify(&mesh, &inside, &ours[1], &theirs) == UNEXPLAINED, "prim out of range");
-    /* Just outside the square's open edge x == 1: Embree's hit there is
-    ** rounding, a hit a little farther out is invented. */
-    theirs = miss;
-    theirs.t = 1.0f;
-    theirs.prim = 0;
-    theirs.u = 0.5f;
-    theirs.v = 0.5f;
-    EXPECT(classify(&mesh, &outside_edge, &miss, &theirs) == EDGE, "boundary edge hit");
-    EXPECT(classify(&mesh, &outside, &miss, &theirs) == UNEXPLAINED, "hit outside");
-    /* A hit at t == tnear, which Embree excludes. */
-    EXPECT(classify(&mesh, &at_tnear, &ours[2], &miss) == TNEAR, "hit at tnear");
-    /* A huge triangle just ahead of the origin: t is ill-conditioned. */
-    CHECK(ours[3].prim == 2, "the huge triangle is hit");
-    theirs = ours[3];
-    theirs.t *= 1.0f + 1e-4f;
-    EXPECT(classify(&mesh, &near_huge, &ours[3], &theirs) == ILL_CONDITIONED,
-           "ill-conditioned t");
-    theirs.t = ours[3].t * 1.5f;
-    EXPECT(classify(&mesh, &near_huge, &ours[3], &theirs) == UNEXPLAINED, "t far off");
-}
-
 static void test_skipped(void)
 {
     test_skip("%s/embree_trace not built (make embree; needs Embree 3, Debian libembree-dev)",
@@ -616,8 +509,6 @@ void suite_embree(void)
 {
     char path[512];
     struct stat st;
-    test_run("embree: the disagreement classifier accepts right and rejects wrong answers",
-             test_classifier);
     snprintf(path, sizeof path, "%s/embree_trace", build_dir());
     if (stat(path, &st) != 0) {
         test_run("embree: cross-check against Embree 3", test_skipped);
@@ -629,4 +520,11 @@ void suite_embree(void)
     test_run("embree: landscape scene, direct == batched == Embree", test_landscape);
     test_run("embree: island scene, direct == batched == Embree", test_island);
     test_run("embree: bunny scan, direct == batched == Embree", test_bunny);
+    test_run("embree: hitdiff --mesh explains every disagreement, bunny_tiny",
+             test_referee_bunny_tiny);
+    test_run("embree: hitdiff --mesh explains every disagreement, bunny", test_referee_bunny);
+    test_run("embree: hitdiff --mesh explains every disagreement, dragon", test_referee_dragon);
+    test_run("embree: hitdiff --mesh explains every disagreement, bmw_m6", test_referee_bmw);
+    test_run("embree: hitdiff --mesh explains every disagreement, fg_oahu", test_referee_oahu);
+    test_run("embree: hitdiff --mesh explains every disagreement, crown", test_referee_crown);
 }
