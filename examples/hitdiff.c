@@ -159,6 +159,7 @@ typedef struct referee_run {
     const brt_ray *rays;
     size_t count;
     uint64_t disagree, classes[EX_CLASSES];
+    double t_ratio;               /* the largest of ex_verdict.t_ratio, explained rays */
 } referee_run;
 
 /* Bad input before any refereeing: a prim the mesh does not have. */
@@ -186,7 +187,8 @@ static void print_record(FILE *f, const brt_hit *h)
 ** a temporary file renamed at the end (never a half-written FILE.csv). */
 static void referee_all(referee_run *run)
 {
-    char tmp[4096], verdict[1024];
+    char tmp[4096];
+    ex_verdict verdict;
     FILE *csv = NULL;
     size_t i;
     if (run->explain_path) {
@@ -199,16 +201,16 @@ static void referee_all(referee_run *run)
     }
     for (i = 0; i < run->count; i++) {
         const brt_hit *a = &run->hits[0][i], *b = &run->hits[1][i];
-        ex_class c;
         if (!ex_hits_disagree(a, b)) continue;
-        c = ex_referee(run->mesh, &run->rays[i], a, b, verdict, sizeof verdict);
+        ex_referee(run->mesh, &run->rays[i], a, b, &verdict);
         run->disagree++;
-        run->classes[c]++;
+        run->classes[verdict.cls]++;
+        if (verdict.cls != EX_UNEXPLAINED) run->t_ratio = fmax(run->t_ratio, verdict.t_ratio);
         if (csv) {
-            fprintf(csv, "%lu,%s", (unsigned long)i, ex_class_id[c]);
+            fprintf(csv, "%lu,%s", (unsigned long)i, ex_class_id[verdict.cls]);
             print_record(csv, a);
             print_record(csv, b);
-            fprintf(csv, ",\"%s\"\n", verdict);
+            fprintf(csv, ",\"%s\"\n", verdict.text);
         }
     }
     if (csv && (ferror(csv) | fclose(csv) | rename(tmp, run->explain_path))) {
@@ -233,6 +235,7 @@ static void print_referee_table(const referee_run *run)
            rays ? 100.0 * (double)run->disagree / (double)rays : 0.0);
     for (c = 0; c < EX_CLASSES; c++)
         printf("  %-36s %12llu\n", ex_class_label[c], (unsigned long long)run->classes[c]);
+    printf("%-38s %12.3g\n", "largest |t - exact t| / t bound", run->t_ratio);
     if (run->classes[EX_UNEXPLAINED] == 0)
         printf("EXPLAINED: all %llu disagreeing rays of %llu explained\n",
                (unsigned long long)run->disagree, (unsigned long long)rays);

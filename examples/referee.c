@@ -541,20 +541,20 @@ int ex_hits_disagree(const brt_hit *a, const brt_hit *b)
 }
 
 ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
-                    const brt_hit *b, char *text, size_t size)
+                    const brt_hit *b, ex_verdict *out)
 {
     side sa, sb, *s[2];
-    ex_class cls;
-    char da[400], db[400];
+    char da[480], db[480];
     int i;
     s[0] = &sa;
     s[1] = &sb;
     sa.hit = a;
     sb.hit = b;
+    out->t_ratio = 0.0;
     if (!ray_is_valid(ray)) {
-        if (text) snprintf(text, size, "invalid ray (NaN; inf; zero direction or tnear > tfar): "
-                           "no tracer may hit it");
-        return EX_UNEXPLAINED;
+        snprintf(out->text, sizeof out->text, "invalid ray (NaN; inf; zero direction or "
+                 "tnear > tfar): no tracer may hit it");
+        return out->cls = EX_UNEXPLAINED;
     }
     for (i = 0; i < 2; i++) {
         s[i]->hits = s[i]->hit->prim != BRT_NO_PRIM;
@@ -562,17 +562,16 @@ ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
         if (s[i]->hits) {
             judge_triangle(mesh, ray, s[i]->hit->prim, &s[i]->f);
             s[i]->own = judge_own(ray, s[i]);
+            out->t_ratio = fmax(out->t_ratio,
+                                fabs((double)s[i]->hit->t - s[i]->f.t) / s[i]->f.t_bound);
         }
     }
     for (i = 0; i < 2; i++) {
         const side *other = s[1 - i];
         s[i]->missed = other->hits && other->own == RIGHT ? judge_missed(s[i], &other->f) : RIGHT;
     }
-    cls = classify(&sa, &sb);
-    if (text) {
-        describe(&sa, "A", da, sizeof da);
-        describe(&sb, "B", db, sizeof db);
-        snprintf(text, size, "%s; %s", da, db);
-    }
-    return cls;
+    describe(&sa, "A", da, sizeof da);
+    describe(&sb, "B", db, sizeof db);
+    snprintf(out->text, sizeof out->text, "%s; %s", da, db);
+    return out->cls = classify(&sa, &sb);
 }

@@ -43,11 +43,18 @@ extern const char *const ex_class_label[EX_CLASSES];  /* table rows */
 ** against miss, or a different t, u or v (two misses always agree). */
 int ex_hits_disagree(const brt_hit *a, const brt_hit *b);
 
-/* Referees one ray on which a and b disagree.  Every prim must be
-** BRT_NO_PRIM or below mesh->triangle_count (hitdiff checks the files
-** first).  Writes the exact verdict in words into text (a line without
-** commas or quotes; text may be NULL) and returns the class. */
+/* The referee's answer for one ray. */
+typedef struct ex_verdict {
+    ex_class cls;
+    double t_ratio;      /* the largest |record t - exact t| / t bound of the
+                         ** records that hit a triangle (0 when none does) */
+    char text[1024];     /* the exact verdict in words, without commas or quotes */
+} ex_verdict;
+
+/* Referees one ray on which a and b disagree, into *out; returns out->cls.
+** Every prim must be BRT_NO_PRIM or below mesh->triangle_count (hitdiff
+** checks the files first). */
 ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
-                    const brt_hit *b, char *text, size_t size);
+                    const brt_hit *b, ex_verdict *out);
 
 #endif

@@ -113,24 +113,23 @@ static void compare_with_embree(const char *label, const brt_mesh *mesh, const b
                                 size_t count, const brt_hit *ours, const brt_hit *theirs,
                                 int edge_rays, tally *tl)
 {
-    char verdict[1024];
+    ex_verdict verdict;
     size_t i;
     int printed = 0;
     memset(tl, 0, sizeof *tl);
     tl->rays = count;
     for (i = 0; i < count; i++) {
-        ex_class c;
         tl->identical += ours[i].prim == theirs[i].prim;
         if (!ex_hits_disagree(&ours[i], &theirs[i])) continue;
-        c = ex_referee(mesh, &rays[i], &ours[i], &theirs[i], verdict, sizeof verdict);
+        ex_referee(mesh, &rays[i], &ours[i], &theirs[i], &verdict);
         tl->disagree++;
-        tl->classes[c]++;
-        if (c == EX_UNEXPLAINED && printed++ < 5) {
+        tl->classes[verdict.cls]++;
+        if (verdict.cls == EX_UNEXPLAINED && printed++ < 5) {
             const brt_ray *r = &rays[i];
             test_fail_at(__FILE__, __LINE__, "%s: ray %lu org (%.9g %.9g %.9g) dir (%.9g %.9g "
                          "%.9g) t [%.9g %.9g]: A = batchrt, B = Embree: %s", label,
                          (unsigned long)i, r->org[0], r->org[1], r->org[2], r->dir[0],
-                         r->dir[1], r->dir[2], r->tnear, r->tfar, verdict);
+                         r->dir[1], r->dir[2], r->tnear, r->tfar, verdict.text);
         }
     }
     EXPECT(edge_rays || (double)tl->identical >= MIN_IDENTICAL * (double)count,

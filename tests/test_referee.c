@@ -50,10 +50,10 @@ static brt_ray down(float x, float y)
 static void expect_class(const brt_mesh *mesh, const brt_ray *ray, brt_hit a, brt_hit b,
                          ex_class expected, const char *what)
 {
-    char text[1024];
-    const ex_class got = ex_referee(mesh, ray, &a, &b, text, sizeof text);
+    ex_verdict v;
+    const ex_class got = ex_referee(mesh, ray, &a, &b, &v);
     EXPECT(got == expected, "%s: %s, expected %s (%s)", what, ex_class_id[got],
-           ex_class_id[expected], text);
+           ex_class_id[expected], v.text);
 }
 
 /* Through the shared diagonal exactly: both prims at t = 1 is a tie, and a
