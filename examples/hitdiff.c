@@ -159,7 +159,7 @@ typedef struct referee_run {
     const brt_ray *rays;
     size_t count;
     uint64_t disagree, classes[EX_CLASSES];
-    double t_ratio;               /* the largest of ex_verdict.t_ratio, explained rays */
+    double t_ratio, edge_ratio;   /* the largest of ex_verdict's, explained rays */
 } referee_run;
 
 /* Bad input before any refereeing: a prim the mesh does not have. */
@@ -205,7 +205,10 @@ static void referee_all(referee_run *run)
         ex_referee(run->mesh, &run->rays[i], a, b, &verdict);
         run->disagree++;
         run->classes[verdict.cls]++;
-        if (verdict.cls != EX_UNEXPLAINED) run->t_ratio = fmax(run->t_ratio, verdict.t_ratio);
+        if (verdict.cls != EX_UNEXPLAINED) {
+            run->t_ratio = fmax(run->t_ratio, verdict.t_ratio);
+            run->edge_ratio = fmax(run->edge_ratio, verdict.edge_ratio);
+        }
         if (csv) {
             fprintf(csv, "%lu,%s", (unsigned long)i, ex_class_id[verdict.cls]);
             print_record(csv, a);
@@ -236,6 +239,7 @@ static void print_referee_table(const referee_run *run)
     for (c = 0; c < EX_CLASSES; c++)
         printf("  %-36s %12llu\n", ex_class_label[c], (unsigned long long)run->classes[c]);
     printf("%-38s %12.3g\n", "largest |t - exact t| / t bound", run->t_ratio);
+    printf("%-38s %12.3g\n", "largest |E| / edge band, edge classes", run->edge_ratio);
     if (run->classes[EX_UNEXPLAINED] == 0)
         printf("EXPLAINED: all %llu disagreeing rays of %llu explained\n",
                (unsigned long long)run->disagree, (unsigned long long)rays);

@@ -321,6 +321,9 @@ typedef struct facts {
     uint32_t prim;
     place where;
     int at_vertex;           /* two edges within their bands */
+    double edge_ratio;       /* at an edge: the nearest edge's |E| / band;
+                             ** just outside: the largest |E| / band of the
+                             ** edges it is outside of */
     expansion num, den;      /* N and D, exactly */
     double t, t_bound;       /* N / D rounded to double; the t bound */
     int in_interval;         /* exactly tnear <= t <= tfar */
@@ -375,24 +378,30 @@ static double t_bound(const brt_ray *ray, const float *v[3], double t, double de
 ** functions (oriented by D's sign: +1 means the inner side). */
 static void judge_place(const brt_ray *ray, const float *v[3], int den_sign, facts *f)
 {
+    double nearest = INFINITY, farthest_out = 0.0;
     int i, outside = 0, far_outside = 0, near = 0;
     for (i = 0; i < 3; i++) {
         expansion e;
         const float *a = v[i], *b = v[(i + 1) % 3];
-        double band;
+        double ratio;
         int s;
         edge_function(ray, a, b, &e);
         s = exp_sign(&e) * den_sign;
-        band = edge_band(ray, a, b);
+        ratio = s == 0 ? 0.0 : fabs(exp_value(&e)) / edge_band(ray, a, b);
         if (e.overflow) far_outside = 1;
-        near += fabs(exp_value(&e)) <= band;
-        outside += s < 0;
-        far_outside |= s < 0 && fabs(exp_value(&e)) > band;
+        near += ratio <= 1.0;
+        nearest = fmin(nearest, ratio);
+        if (s < 0) {
+            outside++;
+            far_outside |= !(ratio <= 1.0);
+            farthest_out = fmax(farthest_out, ratio);
+        }
     }
     f->at_vertex = near >= 2;
     if (far_outside) f->where = OUTSIDE;
     else if (outside) f->where = JUST_OUTSIDE;
     else f->where = near ? AT_EDGE : INSIDE;
+    f->edge_ratio = f->where == JUST_OUTSIDE ? farthest_out : nearest;
 }
 
 /* Everything the referee needs to know about the ray and one triangle. */
@@ -403,7 +412,6 @@ static void judge_triangle(const brt_mesh *mesh, const brt_ray *ray, uint32_t pr
     for (k = 0; k < 3; k++) v[k] = mesh->positions + 3 * (size_t)mesh->indices[3 * (size_t)prim + k];
     memset(f, 0, sizeof *f);
     f->prim = prim;
-    f->den.n = f->den.overflow = 0;
     add_triple(&f->den, 1.0, v[0], v[1], ray->dir);
     add_triple(&f->den, 1.0, v[1], v[2], ray->dir);
     add_triple(&f->den, 1.0, v[2], v[0], ray->dir);
@@ -550,7 +558,7 @@ ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
     s[1] = &sb;
     sa.hit = a;
     sb.hit = b;
-    out->t_ratio = 0.0;
+    out->t_ratio = out->edge_ratio = 0.0;
     if (!ray_is_valid(ray)) {
         snprintf(out->text, sizeof out->text, "invalid ray (NaN; inf; zero direction or "
                  "tnear > tfar): no tracer may hit it");
@@ -562,8 +570,9 @@ ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
         if (s[i]->hits) {
             judge_triangle(mesh, ray, s[i]->hit->prim, &s[i]->f);
             s[i]->own = judge_own(ray, s[i]);
-            out->t_ratio = fmax(out->t_ratio,
-                                fabs((double)s[i]->hit->t - s[i]->f.t) / s[i]->f.t_bound);
+            if (s[i]->f.t_bound > 0.0)
+                out->t_ratio = fmax(out->t_ratio,
+                                    fabs((double)s[i]->hit->t - s[i]->f.t) / s[i]->f.t_bound);
         }
     }
     for (i = 0; i < 2; i++) {
@@ -573,5 +582,10 @@ ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
     describe(&sa, "A", da, sizeof da);
     describe(&sb, "B", db, sizeof db);
     snprintf(out->text, sizeof out->text, "%s; %s", da, db);
-    return out->cls = classify(&sa, &sb);
+    out->cls = classify(&sa, &sb);
+    /* The edge that explains a leak is the other side's triangle's. */
+    out->edge_ratio = out->cls == EX_LEAK_A || out->cls == EX_OUTSIDE_B ? sb.f.edge_ratio
+                      : out->cls == EX_LEAK_B || out->cls == EX_OUTSIDE_A ? sa.f.edge_ratio
+                      : 0.0;
+    return out->cls;
 }

@@ -48,6 +48,8 @@ typedef struct ex_verdict {
     ex_class cls;
     double t_ratio;      /* the largest |record t - exact t| / t bound of the
                          ** records that hit a triangle (0 when none does) */
+    double edge_ratio;   /* leaks and hits just outside: the |E| / edge band
+                         ** of the edge that explains it (0 in other classes) */
     char text[1024];     /* the exact verdict in words, without commas or quotes */
 } ex_verdict;
 
