@@ -75,8 +75,9 @@ static void usage(void)
            "               16 eps (L1 L2 (R + |t| |d|) / |n.d| + |t|), L1, L2 the\n"
            "               longest edges, R the farthest vertex from the origin\n"
            "  A/B leaks    the ray passes through the closed triangle the other side\n"
-           "               hits, within rounding of an edge or vertex, and this side\n"
-           "               reports a miss or a farther hit\n"
+           "               hits, within rounding of an edge or vertex (an edge function\n"
+           "               within 16 eps (|a-o| |(b-o) x d| + |b-o| |(a-o) x d|) of 0),\n"
+           "               and this side reports a miss or a farther hit\n"
            "  A/B outside  this side hits a triangle the ray passes just outside of,\n"
            "               within rounding of an edge or vertex\n"
            "  boundary     the hit's exact t is within rounding of tnear or tfar\n"
@@ -216,10 +217,15 @@ static void referee_all(referee_run *run)
             fprintf(csv, ",\"%s\"\n", verdict.text);
         }
     }
-    if (csv && (ferror(csv) | fclose(csv) | rename(tmp, run->explain_path))) {
-        const int saved = errno;
-        remove(tmp);
-        ex_die(prog, "%s: cannot write: %s", run->explain_path, strerror(saved));
+    if (csv) {
+        int failed = ferror(csv);
+        failed |= fclose(csv) != 0;   /* closes in any case */
+        if (failed || rename(tmp, run->explain_path) != 0) {
+            const int saved = errno;
+            remove(tmp);
+            ex_die(prog, "%s: cannot write: %s", run->explain_path,
+                   saved ? strerror(saved) : "write error");
+        }
     }
 }
 
@@ -263,6 +269,8 @@ static int referee_main(referee_run *run)
         fprintf(stderr, "%s: %s has %lu rays but %s has %lu records: not the same rays\n",
                 prog, run->rays_path, (unsigned long)ray_count, run->path[0],
                 (unsigned long)run->count);
+        free(rays);
+        brt_mesh_free(&mesh);
         return 2;
     }
     run->mesh = &mesh;
