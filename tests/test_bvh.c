@@ -729,6 +729,219 @@ static void test_double_fallback(void)
           "reported a hit at t=%g u=%g v=%g for a ray that misses", t, u, v);
 }
 
+/* ---- rays exactly on edges ------------------------------------------- */
+
+/* The sign of the 2D cross product p x q = p0 q1 - p1 q0 of floats,
+** exactly: a product of two floats is exact in double, so comparing the
+** two products decides the sign with no rounding at all. */
+static int exact_cross_sign(const float p[2], const float q[2])
+{
+    const double l = (double)p[0] * q[1], r = (double)p[1] * q[0];
+    return (l > r) - (l < r);
+}
+
+/* The exact answer for a ray along a coordinate axis through the 2D
+** origin: it meets the closed triangle whose vertices project to a, b, c
+** when the three orientations a x b, b x c, c x a share one sign, zeros
+** allowed, and are not all zero (a triangle seen edge-on never hits). */
+static int exact_axis_hit(const float p[3][2])
+{
+    int pos = 0, neg = 0, k;
+    for (k = 0; k < 3; k++) {
+        const int s = exact_cross_sign(p[k], p[(k + 1) % 3]);
+        pos |= s > 0;
+        neg |= s < 0;
+    }
+    return pos != neg;
+}
+
+/* A float with only the top `bits` bits of its mantissa kept. */
+static float trim_mantissa(float x, int bits)
+{
+    int e;
+    const float m = frexpf(x, &e);
+    return ldexpf(floorf(ldexpf(m, bits)) / ldexpf(1.0f, bits), e);
+}
+
+/* A random float of either sign with magnitude in [2^-4, 2^4). */
+static float wide_float(uint64_t *st)
+{
+    const float x = ldexpf(tu_rnd(st, 1.0f, 2.0f), (int)(brt_random_u64(st) % 8) - 4);
+    return brt_random_u64(st) & 1 ? -x : x;
+}
+
+/* Three projected vertices with an edge through or next to the origin:
+** b = s c rounded (s < 0: the origin lies on the segment bc, and float
+** edge functions often round to 0 while the exact one is not 0), b = s c
+** exact (the origin exactly on the edge), a vertex at the origin, or an
+** edge on a coordinate axis.  The vertex order is rotated so that U, V
+** and W each take the zero. */
+static void edge_ray_triangle(uint64_t *st, float p[3][2])
+{
+    static const float exact_s[] = {-1, -2, -0.5f, -0.25f, -3, -1.5f};
+    const int kind = (int)(brt_random_u64(st) % 4), rot = (int)(brt_random_u64(st) % 3);
+    float q[3][2];
+    int k, i;
+    for (k = 0; k < 3; k++)
+        for (i = 0; i < 2; i++) q[k][i] = wide_float(st);
+    switch (kind) {
+    case 0: {
+        const float s = -tu_rnd(st, 0.1f, 10.0f);
+        q[1][0] = s * q[2][0];
+        q[1][1] = s * q[2][1];
+        break;
+    }
+    case 1: {
+        const float s = exact_s[brt_random_u64(st) % 6];
+        for (i = 0; i < 2; i++) {
+            q[2][i] = trim_mantissa(q[2][i], 12);
+            q[1][i] = s * q[2][i];
+        }
+        break;
+    }
+    case 2:
+        q[1][0] = q[1][1] = 0.0f;
+        break;
+    default: {
+        const int axis = (int)(brt_random_u64(st) & 1);
+        q[1][axis] = -fabsf(q[1][axis]);
+        q[2][axis] = fabsf(q[2][axis]);
+        q[1][1 - axis] = q[2][1 - axis] = 0.0f;
+        break;
+    }
+    }
+    for (k = 0; k < 3; k++) memcpy(p[k], q[(k + rot) % 3], sizeof p[k]);
+}
+
+/* Woop's float edge function of p x q for an axis ray from the origin
+** (the shear is 0 and the translation exact): zero or not. */
+static int float_cross_is_zero(const float p[2], const float q[2])
+{
+    const float l = p[0] * q[1], r = p[1] * q[0];
+    return l - r == 0.0f;
+}
+
+/* Rays along all six axis directions through the 2D origin, against
+** triangles with an edge through or next to it: brt_intersect_triangle
+** must give the exact answer every time.  This is what the recomputation
+** of zero edge functions in double is for (a float 0 that is not 0
+** exactly, the first triangle below, which the issue's search found),
+** and what the sign test's strict compares are for (an exact 0 counts as
+** inside).  The test counts the float zeros it met, so that it fails if
+** the generator stops making them. */
+static void test_edge_rays(void)
+{
+    static const float issue[3][3] = {{-0x1.0e1bc8p-4f, 0x1.d20466p-2f, 1},
+                                      {0x1.a75536p-1f, 0x1.a69602p-1f, 1},
+                                      {-0x1.a07916p-2f, -0x1.9fbcfap-2f, 1}};
+    uint64_t st = test_seed() ^ 53;
+    unsigned long rays = 0, rounded_zeros = 0, exact_zeros = 0, hits = 0;
+    float t, u, v;
+    int n;
+    {
+        const brt_ray r = {{0, 0, 0}, {0, 0, 1}, 0.0f, INFINITY};
+        CHECK(!brt_intersect_triangle(&r, issue[0], issue[1], issue[2], &t, &u, &v),
+              "issue 22's triangle: a hit at t=%a for a ray that passes outside", t);
+    }
+    for (n = 0; n < 60000 && !test_failed(); n++) {
+        const int axis = n % 3, sign = (n / 3) % 2 ? -1 : 1;
+        float p[3][2], vert[3][3];
+        brt_ray r = {{0, 0, 0}, {0, 0, 0}, 0.0f, INFINITY};
+        int k, want, got;
+        edge_ray_triangle(&st, p);
+        for (k = 0; k < 3; k++) {
+            vert[k][(axis + 1) % 3] = p[k][0];
+            vert[k][(axis + 2) % 3] = p[k][1];
+            vert[k][axis] = tu_rnd(&st, 1.0f, 2.0f) * (float)sign;
+        }
+        r.org[axis] = -3.0f * (float)sign;
+        r.dir[axis] = (float)sign;
+        want = exact_axis_hit((const float(*)[2])p);
+        got = brt_intersect_triangle(&r, vert[0], vert[1], vert[2], &t, &u, &v);
+        for (k = 0; k < 3; k++)
+            if (float_cross_is_zero(p[k], p[(k + 1) % 3])) {
+                if (exact_cross_sign(p[k], p[(k + 1) % 3]) == 0) exact_zeros++;
+                else rounded_zeros++;
+            }
+        rays++;
+        hits += (unsigned long)want;
+        EXPECT(got == want, "axis %d dir %+d, projected (%a %a) (%a %a) (%a %a): %s, exactly %s",
+               axis, sign, p[0][0], p[0][1], p[1][0], p[1][1], p[2][0], p[2][1],
+               got ? "hit" : "miss", want ? "hit" : "miss");
+    }
+    printf("  bvh: edge rays: %lu rays (%lu hit exactly); float edge functions of 0: "
+           "%lu exact, %lu by rounding\n", rays, hits, exact_zeros, rounded_zeros);
+    EXPECT(rounded_zeros >= 1000 && exact_zeros >= 1000,
+           "too few zero edge functions to test their rule: %lu exact, %lu by rounding",
+           exact_zeros, rounded_zeros);
+}
+
+/* Triangles with a zero cross product in double (collinear or coincident
+** vertices) never hit, whatever their float edge functions say: oblique
+** rays through their points shear them into slivers of rounding noise
+** that often all have one sign. */
+static void test_degenerate_triangles(void)
+{
+    uint64_t st = test_seed() ^ 59;
+    int n;
+    for (n = 0; n < 10000 && !test_failed(); n++) {
+        float v[3][3], target[3], t, u, w;
+        const float along = (float)(brt_random_u64(&st) % 5) - 2.0f;   /* v2 = v0 + along e */
+        const float at = tu_rnd(&st, -0.5f, 1.5f);                      /* target = v0 + at e */
+        brt_ray r;
+        int a;
+        /* few mantissa bits: v1 and v2 are exact, so the three are collinear */
+        for (a = 0; a < 3; a++) {
+            v[0][a] = trim_mantissa(tu_rnd(&st, -1.0f, 1.0f), 12);
+            v[1][a] = v[0][a] + (n % 7 == 0 ? 0.0f : trim_mantissa(tu_rnd(&st, -1.0f, 1.0f), 8));
+            v[2][a] = v[0][a] + along * (v[1][a] - v[0][a]);
+            target[a] = v[0][a] + at * (v[1][a] - v[0][a]);
+        }
+        for (a = 0; a < 3; a++) {
+            r.org[a] = target[a] + 4.0f * tu_rnd(&st, -1.0f, 1.0f);
+            r.dir[a] = target[a] - r.org[a];
+        }
+        r.tnear = 0.0f;
+        r.tfar = INFINITY;
+        EXPECT(!brt_intersect_triangle(&r, v[0], v[1], v[2], &t, &u, &w),
+               "degenerate (%a %a %a) (%a %a %a) (%a %a %a), ray (%a %a %a) dir (%a %a %a): hit t=%a",
+               v[0][0], v[0][1], v[0][2], v[1][0], v[1][1], v[1][2], v[2][0], v[2][1], v[2][2],
+               r.org[0], r.org[1], r.org[2], r.dir[0], r.dir[1], r.dir[2], t);
+    }
+}
+
+/* A box entered exactly at the closest hit so far is still visited: rays
+** start (tnear) exactly on a plane of overlapping triangles, so every
+** box's entry and every hit is t = tnear, and the lowest prim must win
+** wherever its leaf is in the tree.  An exclusive prune (entry < t) would
+** stop at the first leaf. */
+static void test_entry_equals_hit(void)
+{
+    uint64_t st = test_seed() ^ 61;
+    int scene, n;
+    for (scene = 0; scene < 20 && !test_failed(); scene++) {
+        tu_scene s = {0};
+        uint32_t i;
+        brt_bvh *bvh;
+        for (i = 0; i < 64; i++) {   /* most cover the rays' points */
+            const float x = tu_rnd(&st, -2.0f, 0.2f), y = tu_rnd(&st, -2.0f, 0.2f);
+            const uint32_t a = tu_add_vertex(&s, x, y, 0.0f);
+            const uint32_t b = tu_add_vertex(&s, x + 3.0f, y, 0.0f);
+            const uint32_t c = tu_add_vertex(&s, x, y + 3.0f, 0.0f);
+            tu_add_triangle(&s, a, b, c);
+        }
+        bvh = build_checked(&s, NULL);
+        for (n = 0; bvh && n < 8; n++) {
+            brt_ray r = {{0.25f, 0.25f, 10.0f}, {0, 0, -1}, 10.0f, INFINITY};
+            r.org[0] = tu_rnd(&st, 0.0f, 0.2f);
+            r.org[1] = tu_rnd(&st, 0.0f, 0.2f);
+            if (!compare_ray(&s, NULL, bvh, &r, "tnear on the hit plane", (size_t)n)) break;
+        }
+        brt_bvh_free(bvh);
+        tu_scene_free(&s);
+    }
+}
+
 static void test_nonfinite_vertices(void)
 {
     const float bad[] = {NAN, INFINITY, -INFINITY};
@@ -897,6 +1110,9 @@ void suite_bvh(void)
     test_run("bvh: triangle exact values", test_triangle_exact);
     test_run("bvh: 4-wide box test == one-box test", test_box_span4);
     test_run("bvh: double-precision fallback", test_double_fallback);
+    test_run("bvh: edge rays == exact orientation", test_edge_rays);
+    test_run("bvh: degenerate triangles never hit", test_degenerate_triangles);
+    test_run("bvh: a box entered at the closest hit is visited", test_entry_equals_hit);
     test_run("bvh: random soups == brute force", test_random_soups);
     test_run("bvh: prim ids == brute force", test_prim_ids);
     test_run("bvh: coplanar == brute force", test_coplanar);
