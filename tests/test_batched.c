@@ -275,16 +275,21 @@ static void test_exact_proxies(void)
     fixture_free(&f);
 }
 
-/* The proxy test's limit is inclusive: a ray whose closest hit so far is
-** at t must still be queued at a batching point that holds a hit at the
-** same t with a lower prim (the one ordering rule of closest hits).  Two
-** triangles in the plane z = 0 meet the ray at t = 10 exactly: prim 0 in
-** batching point B (with a flat filler far at -x), prim 2 in A (with a
-** filler at +x rising to z = 5, so the ray enters A's box first, at t = 5).
-** The centroids' x order (-10, -1 | 0.67, 10) puts them in different
-** points at 2 triangles each.  The ray meets prim 2 first, then must
-** visit B; an exclusive limit would cull B and return prim 2. */
-static void test_equal_t_tie(void)
+/* The limits of the top-level walk and of the proxy test are inclusive: a
+** ray whose closest hit so far is at t must still be queued at a batching
+** point that holds a hit at the same t with a lower prim (the one ordering
+** rule of closest hits).  Two triangles in the plane z = 0 meet the ray at
+** t = 10 exactly: prim 0 in batching point B (with a flat filler far at
+** -x), prim 2 in A (with a filler at +x rising to z = 5).  The centroids'
+** x order (-10, -1 | 0.67, 10) puts them in different points at 2
+** triangles each.  Ray 0 starts at tnear = 0: it enters A's box first (at
+** t = 5) and B's padded box a little before t = 10.  Ray 1 starts at
+** tnear = 10, on the plane: both boxes are entered exactly at t = 10, the
+** hit's t, and the walk takes the lower id first; the scene and its mirror
+** image (x -> -x) each put one of A and B first.  When A comes first the
+** ray meets prim 2, then must visit B: an exclusive limit (top-level walk
+** or proxy) would cull B and return prim 2. */
+static void equal_t_tie(float mirror)
 {
     static const float tri[4][3][3] = {
         {{-2, 0, 0}, {1, 0, 0}, {-2, 2, 0}},          /* 0: B, hit at t = 10 */
@@ -294,22 +299,31 @@ static void test_equal_t_tie(void)
     fixture f;
     brt_scene *scene;
     int t, c, setting;
+    size_t i;
     memset(&f, 0, sizeof f);
     for (t = 0; t < 4; t++) {
         uint32_t v[3];
-        for (c = 0; c < 3; c++) v[c] = tu_add_vertex(&f.scene, tri[t][c][0], tri[t][c][1], tri[t][c][2]);
+        for (c = 0; c < 3; c++)
+            v[c] = tu_add_vertex(&f.scene, mirror * tri[t][c][0], tri[t][c][1], tri[t][c][2]);
         tu_add_triangle(&f.scene, v[0], v[1], v[2]);
     }
-    f.count = 1;
-    f.rays = calloc(1, sizeof *f.rays);
-    f.direct = malloc(sizeof *f.direct);
+    f.count = 2;
+    f.rays = calloc(2, sizeof *f.rays);
+    f.direct = malloc(2 * sizeof *f.direct);
     CHECK(f.rays && f.direct, "out of memory");
-    f.rays[0].org[0] = f.rays[0].org[1] = 0.25f;
-    f.rays[0].org[2] = 10;
-    f.rays[0].dir[2] = -1;
-    f.rays[0].tfar = INFINITY;
-    CHECK(fixture_direct(&f) && f.direct[0].t == 10 && f.direct[0].prim == 0,
-          "direct: t=%a prim=%u, expected 10 and prim 0", f.direct[0].t, (unsigned)f.direct[0].prim);
+    for (i = 0; i < 2; i++) {
+        f.rays[i].org[0] = mirror * 0.25f;
+        f.rays[i].org[1] = 0.25f;
+        f.rays[i].org[2] = 10;
+        f.rays[i].dir[2] = -1;
+        f.rays[i].tnear = i == 0 ? 0.0f : 10.0f;
+        f.rays[i].tfar = INFINITY;
+    }
+    CHECK(fixture_direct(&f), "direct BVH build failed");
+    for (i = 0; i < 2; i++)
+        CHECK(f.direct[i].t == 10 && f.direct[i].prim == 0,
+              "direct, ray %zu: t=%a prim=%u, expected 10 and prim 0", i, f.direct[i].t,
+              (unsigned)f.direct[i].prim);
     scene = build_scene(&f.scene, 2, 16, scene_path("tie.brs"));
     for (setting = 0; scene && setting < 6 && !test_failed(); setting++) {
         static const char *const names[3] = {"no proxies", "voxel proxies", "exact proxies"};
@@ -321,14 +335,21 @@ static void test_equal_t_tie(void)
         opt.exact_proxies = setting % 3 == 2;
         opt.queue_resident = setting / 3;
         opt.memory_limit = 1;   /* below one blob: B is on disk when the ray reaches it */
-        snprintf(what, sizeof what, "%s, %s scheduler", names[setting % 3], setting / 3 ? "paper's" : "batchrt's");
+        snprintf(what, sizeof what, "x %+g, %s, %s scheduler", mirror, names[setting % 3],
+                 setting / 3 ? "paper's" : "batchrt's");
         if (trace_matches(&f, scene, &opt, &stats, what))
-            EXPECT(stats.batching_points == 2 && stats.visits == 2,
-                   "%s: %llu batching points, %llu visits (expected 2 and 2: A, then B)", what,
+            EXPECT(stats.batching_points == 2 && stats.visits == 4,
+                   "%s: %llu batching points, %llu visits (expected 2 and 4: A and B per ray)", what,
                    (unsigned long long)stats.batching_points, (unsigned long long)stats.visits);
     }
     brt_scene_close(scene);
     fixture_free(&f);
+}
+
+static void test_equal_t_tie(void)
+{
+    equal_t_tie(1.0f);
+    if (!test_failed()) equal_t_tie(-1.0f);
 }
 
 /* Scales from 1e-3 to 1e5 and an offset far from the origin. */
@@ -488,6 +509,90 @@ static void test_rays_in_flight(void)
     }
     brt_scene_close(scene);
     fixture_free(&f);
+}
+
+/* ---- the scheduler's rule -------------------------------------------- */
+
+/* Seven unit triangles 10 apart, one per batching point, and vertical rays
+** onto them: queue lengths 3, 7, 1, 5, 2, 6, 4.  Every ray is queued before
+** the first load, and a ray finishes at the one point it hits, so the order
+** in which rays finish is the order of the loads: the paper's rule (the
+** fullest queue first) gives 7, 6, 5, 4, 3, 2, 1 rays per load. */
+typedef struct order_state {
+    const brt_ray *rays;
+    size_t count, next, finished;
+    uint32_t prims[28];
+} order_state;
+
+static size_t order_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+{
+    order_state *s = user;
+    size_t n = 0;
+    while (n < max && s->next < s->count) {
+        rays[n] = s->rays[s->next];
+        tags[n++] = s->next++;
+    }
+    return n;
+}
+
+static void order_finished(void *user, const brt_ray *ray, const brt_hit *hit,
+                           const float normal[3], uint32_t visits, uint64_t tag)
+{
+    order_state *s = user;
+    (void)ray;
+    (void)normal;
+    (void)visits;
+    (void)tag;
+    if (s->finished < 28) s->prims[s->finished] = hit->prim;
+    s->finished++;
+}
+
+static void test_fullest_queue_first(void)
+{
+    static const uint32_t queued[7] = {3, 7, 1, 5, 2, 6, 4};
+    tu_scene s = {0};
+    brt_ray rays[28];
+    order_state st;
+    brt_scene *scene;
+    uint32_t i, k, n = 0;
+    int setting;
+    for (i = 0; i < 7; i++) {
+        const float x = 10.0f * (float)i;
+        tu_add_triangle(&s, tu_add_vertex(&s, x, 0, 0), tu_add_vertex(&s, x + 1, 0, 0),
+                        tu_add_vertex(&s, x, 1, 0));
+        for (k = 0; k < queued[i]; k++, n++) {
+            brt_ray r = {{0, 0.25f, 5}, {0, 0, -1}, 0.0f, INFINITY};
+            r.org[0] = x + 0.1f + 0.1f * (float)k;
+            rays[n] = r;
+        }
+    }
+    scene = build_scene(&s, 1, 4, scene_path("order.brs"));
+    for (setting = 0; scene && setting < 2 && !test_failed(); setting++) {
+        brt_trace_options opt;
+        brt_ray_source source;
+        brt_error err;
+        uint32_t want = 7;
+        memset(&opt, 0, sizeof opt);
+        opt.queue_resident = setting;   /* batchrt's scheduler and the paper's */
+        memset(&st, 0, sizeof st);
+        st.rays = rays;
+        st.count = n;
+        source.next_rays = order_next;
+        source.finished = order_finished;
+        source.user = &st;
+        CHECK(brt_scene_trace_stream(scene, &opt, &source, NULL, &err) == BRT_OK, "%s", err.message);
+        CHECK(st.finished == n, "%zu of %u rays finished", st.finished, (unsigned)n);
+        /* runs of one prim, in the order loaded: 7 rays, then 6, ... */
+        for (i = 0; i < n; want--) {
+            const uint32_t prim = st.prims[i];
+            for (k = 0; i < n && st.prims[i] == prim; i++) k++;
+            CHECK(prim < 7 && k == queued[prim] && k == want,
+                  "%s scheduler: load of prim %u served %u rays, expected the fullest queue (%u rays) next",
+                  setting ? "the paper's" : "batchrt's", (unsigned)prim, (unsigned)k, (unsigned)want);
+        }
+    }
+    brt_scene_close(scene);
+    tu_scene_free(&s);
 }
 
 /* Rays with NaN, inf, zero directions and empty segments miss in both modes. */
@@ -705,6 +810,7 @@ void suite_batched(void)
     test_run("batched: == direct, bunny_tiny", test_bunny_tiny);
     test_run("batched: == direct, bunny", test_bunny);
     test_run("batched: constant rays in flight", test_rays_in_flight);
+    test_run("batched: fullest queue first", test_fullest_queue_first);
     test_run("batched: degenerate rays", test_degenerate_rays);
     test_run("batched: scene file reused, rebuilt when stale", test_scene_reuse);
     test_run("batched: corrupt, truncated, wrong-version scene files", test_scene_errors);
