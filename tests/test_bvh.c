@@ -554,11 +554,13 @@ static void cube_grid(tu_scene *s, int n, float origin, float cell)
             }
 }
 
-/* A ray from `from` aimed exactly at `target` on a closed surface enclosing
-** `from` (or, from outside, crossing into it) must hit.  The BVH alone is
-** asked: its hits are hits of the shared triangle test, and agreement with
-** brute force is the other tests' business.  Counts leaks, reports the
-** first. */
+/* A ray from `from` aimed exactly at `target` on a closed convex surface
+** enclosing `from` (or, from outside, crossing into it) must hit there,
+** at t = 1 (dir = target - from), give or take rounding: a hit farther
+** on is a leak too (from outside, the far side would hide it).  The BVH
+** alone is asked: its hits are hits of the shared triangle test, and
+** agreement with brute force is the other tests' business.  Counts
+** leaks, reports the first. */
 static void aim(const brt_bvh *bvh, const float from[3], const float target[3],
                 size_t *rays, size_t *leaks)
 {
@@ -571,10 +573,11 @@ static void aim(const brt_bvh *bvh, const float from[3], const float target[3],
     brt_hit_clear(&h);
     brt_bvh_intersect(bvh, &r, &h);
     (*rays)++;
-    if (h.prim != BRT_NO_PRIM) return;
+    if (h.prim != BRT_NO_PRIM && h.t <= 1.001f) return;
     if ((*leaks)++ == 0)
-        test_fail_at(__FILE__, __LINE__, "leak: ray from (%a %a %a) at (%a %a %a) hit nothing",
-                     from[0], from[1], from[2], target[0], target[1], target[2]);
+        test_fail_at(__FILE__, __LINE__, "leak: ray from (%a %a %a) at (%a %a %a) hit nothing "
+                     "up to the target (t=%g)", from[0], from[1], from[2], target[0], target[1],
+                     target[2], h.t);
 }
 
 /* Aims at every vertex and every edge midpoint of every triangle, from an
@@ -616,6 +619,37 @@ static void test_watertight_icosphere(void)
         inside[0] *= 0.3f; inside[1] *= 0.3f; inside[2] *= 0.3f;
         aim_at_features(&s, bvh, inside, &st, &rays, &leaks);
     }
+    EXPECT(leaks == 0, "%zu of %zu rays leaked", leaks, rays);
+    brt_bvh_free(bvh);
+    tu_scene_free(&s);
+}
+
+/* From far away (10^2..10^5 times the sphere's size): the slab distances'
+** rounding then comes from the origin's coordinates, not the box's, and
+** only the origin's own padding (rule 2) keeps the boxes of a vertex's or
+** an edge's triangles from being missed. */
+static void test_watertight_far(void)
+{
+    uint64_t st = test_seed() ^ 67;
+    tu_scene s = {0};
+    brt_bvh *bvh;
+    size_t rays = 0, leaks = 0;
+    uint32_t t;
+    int j, a;
+    icosphere(&s, 2);
+    bvh = build_checked(&s, NULL);
+    for (t = 0; bvh && t < s.tcount; t++)
+        for (j = 0; j < 6; j++) {
+            const float *p = tu_vertex(&s, t, j % 3), *q = tu_vertex(&s, t, (j + 1) % 3);
+            const float far = powf(10.0f, tu_rnd(&st, 2.0f, 5.0f));
+            float target[3], from[3], dir[3];
+            tu_random_unit(&st, dir);
+            for (a = 0; a < 3; a++) {
+                target[a] = j < 3 ? p[a] : 0.5f * (p[a] + q[a]);
+                from[a] = target[a] + far * (dir[a] + 2.0f * target[a]);   /* outside */
+            }
+            aim(bvh, from, target, &rays, &leaks);
+        }
     EXPECT(leaks == 0, "%zu of %zu rays leaked", leaks, rays);
     brt_bvh_free(bvh);
     tu_scene_free(&s);
@@ -1156,6 +1190,7 @@ void suite_bvh(void)
     test_run("bvh: fg_oahu == brute force", test_mesh_oahu);
     test_run("bvh: watertight icosphere", test_watertight_icosphere);
     test_run("bvh: watertight cube grid", test_watertight_cubes);
+    test_run("bvh: watertight from far away", test_watertight_far);
     test_run("bvh: degenerate rays miss", test_degenerate_rays);
     test_run("bvh: non-finite vertices rejected", test_nonfinite_vertices);
     test_run("bvh: empty", test_empty);

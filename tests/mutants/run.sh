@@ -13,12 +13,13 @@
 #   ERROR     the original text is not in the file, or is there more than
 #             once (the list needs updating), or the mutant does not build
 # Usage: sh tests/mutants/run.sh [NAME-SUBSTRING...]   (no argument: all)
-# Environment: MUTANTS_ALL=1 runs the whole suite for each mutant instead of
-# its filters; MUTANTS_TIMEOUT (seconds, default 600) per test run.
+# Environment: MUTANTS_TESTS='FILTER|...' runs those tests for every mutant
+# instead of its own filters ('' with MUTANTS_ALL=1: the whole suite);
+# MUTANTS_LIST another list; MUTANTS_TIMEOUT seconds per run (default 600).
 # Exit status: 0 when every mutant was killed, 1 otherwise.
 set -u
 root=$(cd "$(dirname "$0")/../.." && pwd)
-list=$root/tests/mutants/mutants.txt
+list=${MUTANTS_LIST:-$root/tests/mutants/mutants.txt}
 timeout_s=${MUTANTS_TIMEOUT:-600}
 shared=${BRT_SHARED:-$root/../shared}
 case $shared in /*) ;; *) shared=$root/$shared ;; esac
@@ -76,9 +77,9 @@ run_one() {
         printf '| %s | %s | ERROR | does not build |\n' "$name" "$mech"
         return
     fi
-    if [ "${MUTANTS_ALL:-0}" = 1 ]; then set --; else
-        old_ifs=$IFS; IFS='|'; set -f; set -- $tests; set +f; IFS=$old_ifs
-    fi
+    run=${MUTANTS_TESTS-$tests}
+    [ "${MUTANTS_ALL:-0}" = 1 ] && run=
+    old_ifs=$IFS; IFS='|'; set -f; set -- $run; set +f; IFS=$old_ifs
     (cd "$dir" && BRT_BUILD=build BRT_SHARED=$shared $limit ./build/run_tests "$@") \
         >"$dir/test.log" 2>&1
     status=$?
@@ -86,7 +87,7 @@ run_one() {
          awk 'NR > 1 { printf ", " } { printf "%s", $0 }')
     if [ "$status" -eq 0 ]; then
         survived=$((survived + 1))
-        printf '| %s | %s | SURVIVED | (ran: %s) |\n' "$name" "$mech" "$tests"
+        printf '| %s | %s | SURVIVED | (ran: %s) |\n' "$name" "$mech" "${run:-all}"
         return
     fi
     killed=$((killed + 1))
