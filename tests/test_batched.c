@@ -9,6 +9,7 @@
 */
 #include "test.h"
 #include "util.h"
+#include "fuzz/targets.h"
 
 #include <errno.h>
 #include <math.h>
@@ -723,6 +724,41 @@ static void expect_damaged(const char *good, long at, int truncate_it, const cha
            "damage at %ld: message '%s' lacks '%s'", at, err.message, words);
 }
 
+/* A forged file: one u32 of good changed to value and every checksum
+** repaired (as a forger would), so only the validators can refuse it. */
+static void expect_forged(const char *good, size_t at, uint32_t value, const char *words)
+{
+    size_t size = 0;
+    unsigned char *file = tu_slurp(good, &size);
+    char path[512];
+    brt_scene *scene = NULL;
+    brt_error err;
+    brt_result r;
+    snprintf(path, sizeof path, "%s/forged.brs", test_tmpdir());   /* not scene_path's buffer: good may be it */
+    CHECK(file && at + 4 <= size, "cannot read %s", good);
+    memcpy(file + at, &value, 4);
+    fuzz_repair_scene_checksums(file, size);
+    CHECK(tu_spill(path, file, size), "cannot write %s", path);
+    free(file);
+    err.message[0] = 0;
+    r = brt_scene_open(path, &scene, &err);
+    brt_scene_close(scene);
+    EXPECT(r == BRT_EFORMAT && strstr(err.message, words), "forged u32 at %zu: %s '%s', expected "
+           "a format error about '%s'", at, brt_result_string(r), err.message, words);
+}
+
+/* The offset of section s (0 batch table, 1 top level, 2 proxy pool) in
+** a scene file (header layout in batchrt.c), or 0. */
+static long section_offset(const char *path, int s)
+{
+    size_t size = 0;
+    unsigned char *file = tu_slurp(path, &size);
+    uint64_t offset = 0;
+    if (file && size >= 256) memcpy(&offset, file + 56 + 24 * s, 8);
+    free(file);
+    return (long)offset;
+}
+
 static void test_scene_errors(void)
 {
     tu_scene s;
@@ -746,6 +782,16 @@ static void test_scene_errors(void)
     expect_damaged(good, 4096 + 10, 0, "checksum");           /* inside the first blob */
     expect_damaged(good, (long)info.st_size - 4096 - 1, 1, "outside the file");
     expect_damaged(good, 100, 1, "truncated");
+    /* In each section, damage only its checksum sees: the low byte of a
+    ** box coordinate (batch table, top level), the pool's magic. */
+    CHECK(section_offset(good, 0) > 0, "no sections in %s", good);
+    expect_damaged(good, section_offset(good, 0), 0, "batch table checksum");
+    expect_damaged(good, section_offset(good, 1), 0, "top-level BVH checksum");
+    expect_damaged(good, section_offset(good, 2), 0, "proxy pool checksum");
+    /* Checksums repaired: the first batch entry's proxy resolution (at
+    ** 56), and its root (at 52) out of the pool. */
+    expect_forged(good, (size_t)section_offset(good, 0) + 56, 3, "invalid proxy");
+    expect_forged(good, (size_t)section_offset(good, 0) + 52, 0x7FFFFFF0u, "invalid proxy");
     EXPECT(brt_scene_open(scene_path("missing.brs"), &scene, &err) == BRT_EIO &&
            strstr(err.message, "missing.brs"), "missing file: '%s'", err.message);
     tu_scene_free(&s);

@@ -1105,6 +1105,23 @@ static void test_blob(void)
     memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 3);
     put_u32(bad, HEADER_BYTES + 96, s.tcount - 1);
     expect_eformat(bad, size, "leaf range past the end");
+    {   /* an empty slot made to point at a later node: a node with two
+        ** parents, everything else intact (no orphan, no triangle twice) */
+        const uint32_t nodes = ((uint32_t *)(void *)blob)[1];
+        uint32_t node, slot, found = 0;
+        for (node = 0; node + 1 < nodes && !found; node++)
+            for (slot = 0; slot < 4 && !found; slot++) {
+                uint32_t child, count;
+                memcpy(&child, blob + HEADER_BYTES + NODE_BYTES * node + 96 + 4 * slot, 4);
+                memcpy(&count, blob + HEADER_BYTES + NODE_BYTES * node + 112 + 4 * slot, 4);
+                if (child != 0xFFFFFFFFu || count != 0) continue;
+                memcpy(bad, blob, size);
+                put_u32(bad, HEADER_BYTES + NODE_BYTES * node + 96 + 4 * slot, nodes - 1);
+                expect_eformat(bad, size, "a node with two parents");
+                found = 1;
+            }
+        EXPECT(found, "no empty slot in the test BVH to damage");
+    }
     /* Random damage to the nodes' child and count words: a format error,
     ** or a BVH whose structure holds (open checks it) and which, since
     ** triangles and prims are intact, reports only real hits: the

@@ -1104,6 +1104,29 @@ static void test_blob_corrupt(void)
         EXPECT(brt_svdag_blob_open(dup, sizeof dup, &none, NULL) == BRT_EFORMAT && !none,
                "duplicate leaves accepted");
     }
+    {   /* an empty leaf (the smallest pool: no words, one leaf of 0) */
+        unsigned char empty[24 + 8];
+        brt_svdag *none = NULL;
+        memcpy(empty, blob, 24);
+        empty[12] = empty[13] = empty[14] = empty[15] = 0;        /* no words */
+        empty[16] = 1; empty[17] = empty[18] = empty[19] = 0;     /* one leaf */
+        memset(empty + 24, 0, 8);
+        EXPECT(brt_svdag_blob_open(empty, sizeof empty, &none, NULL) == BRT_EFORMAT && !none,
+               "an empty leaf accepted");
+    }
+    {   /* a node whose child is itself (one leaf, a two-word node) */
+        unsigned char loop[24 + 8 + 8];
+        const uint32_t node[2] = {0x01u, 0u};   /* child 0 present, at word 0 */
+        brt_svdag *none = NULL;
+        memcpy(loop, blob, 24);
+        loop[12] = 2; loop[13] = loop[14] = loop[15] = 0;         /* two words */
+        loop[16] = 1; loop[17] = loop[18] = loop[19] = 0;         /* one leaf */
+        memset(loop + 24, 0x11, 8);
+        memcpy(loop + 32, node, 8);
+        EXPECT(brt_svdag_blob_open(loop, sizeof loop, &none, NULL) == BRT_EFORMAT && !none,
+               "a node that is its own child accepted");
+        brt_svdag_free(none);
+    }
     printf("  svdag: corrupt blobs: %u of the flipped ones still valid pools\n", opened);
     free(copy);
     free(blob);
