@@ -223,23 +223,27 @@ static void test_axis_grid(void)
     compare_scene(&s, NULL, 300, st, "grid");
     bvh = build_checked(&s, NULL);
     if (!bvh) { tu_scene_free(&s); return; }
-    /* axis rays through every lattice point and half-lattice point */
-    for (a = 0; a < 3 && !test_failed(); a++)
+    /* axis rays both ways through every lattice point and half-lattice
+    ** point (both ways: each sees the squares wound the other way round) */
+    for (a = 0; a < 6 && !test_failed(); a++)
         for (x = 0; x <= 24; x++)
             for (y = 0; y <= 24; y++) {
+                const int axis = a % 3;
+                const float sign = a < 3 ? 1.0f : -1.0f;
                 brt_ray r = {{0, 0, 0}, {0, 0, 0}, 0.0f, INFINITY};
-                r.org[a] = -5.0f;
-                r.org[(a + 1) % 3] = 0.5f * (float)x;
-                r.org[(a + 2) % 3] = 0.5f * (float)y;
-                r.dir[a] = 1.0f;
+                r.org[axis] = 6.0f - 11.0f * sign;
+                r.org[(axis + 1) % 3] = 0.5f * (float)x;
+                r.org[(axis + 2) % 3] = 0.5f * (float)y;
+                r.dir[axis] = sign;
                 if (!compare_ray(&s, NULL, bvh, &r, "grid lattice", n++)) goto done;
-                {   /* the closed squares of plane a cover [0,12]^2: a hit at t = 11 */
+                {   /* the closed squares of plane axis cover [0,12]^2: a hit at t = 11 */
                     brt_hit h;
                     brt_hit_clear(&h);
                     brt_bvh_intersect(bvh, &r, &h);
-                    CHECK(h.prim != BRT_NO_PRIM && h.t == 11.0f && tu_vertex(&s, h.prim, 0)[a] == 6.0f,
-                          "lattice ray along axis %d through (%g, %g): t=%g prim %u, expected a "
-                          "square of plane %d at t = 11", a, 0.5 * x, 0.5 * y, h.t, (unsigned)h.prim, a);
+                    CHECK(h.prim != BRT_NO_PRIM && h.t == 11.0f && tu_vertex(&s, h.prim, 0)[axis] == 6.0f,
+                          "lattice ray along axis %d (%+g) through (%g, %g): t=%g prim %u, expected "
+                          "a square of plane %d at t = 11", axis, sign, 0.5 * x, 0.5 * y, h.t,
+                          (unsigned)h.prim, axis);
                 }
             }
 done:
