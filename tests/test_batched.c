@@ -759,6 +759,17 @@ static long section_offset(const char *path, int s)
     return (long)offset;
 }
 
+/* The u32 at byte at of a file, or 0. */
+static uint32_t file_u32(const char *path, size_t at)
+{
+    size_t size = 0;
+    unsigned char *file = tu_slurp(path, &size);
+    uint32_t value = 0;
+    if (file && at + 4 <= size) memcpy(&value, file + at, 4);
+    free(file);
+    return value;
+}
+
 static void test_scene_errors(void)
 {
     tu_scene s;
@@ -792,6 +803,10 @@ static void test_scene_errors(void)
     ** 56), and its root (at 52) out of the pool. */
     expect_forged(good, (size_t)section_offset(good, 0) + 56, 3, "invalid proxy");
     expect_forged(good, (size_t)section_offset(good, 0) + 52, 0x7FFFFFF0u, "invalid proxy");
+    /* The top-level root (children at 96) names its first child, here the
+    ** one batching point, twice. */
+    expect_forged(good, (size_t)section_offset(good, 1) + 100,
+                  file_u32(good, (size_t)section_offset(good, 1) + 96), "bad leaf");
     EXPECT(brt_scene_open(scene_path("missing.brs"), &scene, &err) == BRT_EIO &&
            strstr(err.message, "missing.brs"), "missing file: '%s'", err.message);
     tu_scene_free(&s);

@@ -84,8 +84,8 @@ run_one() {
     sh -c 'limit=$2; cd "$1" && shift 3 && BRT_BUILD=build BRT_SHARED=$0 $limit ./build/run_tests "$@"; exit $?' \
         "$shared" "$dir" "$limit" - "$@" >"$dir/test.log" 2>&1
     status=$?
-    by=$(sed -n 's/^FAIL \(.*\): tests\/[a-z_]*\.c:[0-9]*:.*/\1/p' "$dir/test.log" | sort -u |
-         awk 'NR > 1 { printf ", " } { printf "%s", $0 }')
+    by=$(awk '/^FAIL / { i = index($0, ": tests/"); if (i > 6) print substr($0, 6, i - 6) }' \
+             "$dir/test.log" | sort -u | awk 'NR > 1 { printf ", " } { printf "%s", $0 }')
     if [ "$status" -eq 0 ]; then
         survived=$((survived + 1))
         printf '| %s | %s | SURVIVED | (ran: %s) |\n' "$name" "$mech" "${run:-all}"
