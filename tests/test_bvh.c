@@ -762,20 +762,26 @@ static void test_triangle_exact(void)
     CHECK(!brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v), "behind the origin");
 }
 
-/* Float edge functions U = V = 0 here although exactly (and in double,
-** where products of floats are exact) U > 0 > V: the ray passes just
-** outside the needle A,B,C.  Only the paper's double-precision recheck
-** of zero edge functions gets the miss right (found by a search over
-** vertices a few ulps apart). */
+/* Two triangles where the float edge functions have a 0 that is not 0
+** exactly, and the ray from the origin along +z passes just outside.
+** First (found by issue 22's search): only the paper's double-precision
+** recheck of zero edge functions gets the miss right.  Second, a needle
+** (found by a search over vertices a few ulps apart): U = V = 0 in float
+** although exactly U > 0 > V; here the ray also misses the needle's box,
+** so the hit-distance clamp rejects it too. */
 static void test_double_fallback(void)
 {
-    const float v0[3] = {0x1.ffffep+0f, 0x1.ffffe4p+0f, 1.0f};
-    const float v1[3] = {0x1.fffff8p-1f, 0x1.fffffep-1f, 1.0f};
-    const float v2[3] = {0x1.000002p+0f, 0x1.000004p+0f, 1.0f};
+    static const float tri[2][3][3] = {
+        {{-0x1.0e1bc8p-4f, 0x1.d20466p-2f, 1}, {0x1.a75536p-1f, 0x1.a69602p-1f, 1},
+         {-0x1.a07916p-2f, -0x1.9fbcfap-2f, 1}},
+        {{0x1.ffffep+0f, 0x1.ffffe4p+0f, 1}, {0x1.fffff8p-1f, 0x1.fffffep-1f, 1},
+         {0x1.000002p+0f, 0x1.000004p+0f, 1}}};
     const brt_ray r = {{0, 0, 0}, {0, 0, 1}, 0.0f, INFINITY};
     float t, u, v;
-    CHECK(!brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v),
-          "reported a hit at t=%g u=%g v=%g for a ray that misses", t, u, v);
+    int i;
+    for (i = 0; i < 2; i++)
+        CHECK(!brt_intersect_triangle(&r, tri[i][0], tri[i][1], tri[i][2], &t, &u, &v),
+              "triangle %d: a hit at t=%g u=%g v=%g for a ray that passes outside", i, t, u, v);
 }
 
 /* ---- rays exactly on edges ------------------------------------------- */
@@ -874,24 +880,16 @@ static int float_cross_is_zero(const float p[2], const float q[2])
 ** triangles with an edge through or next to it: brt_intersect_triangle
 ** must give the exact answer every time.  This is what the recomputation
 ** of zero edge functions in double is for (a float 0 that is not 0
-** exactly, the first triangle below, which the issue's search found),
-** and what the sign test's strict compares are for (an exact 0 counts as
+** exactly; test_double_fallback holds two found by searches), and what
+** the sign test's strict compares are for (an exact 0 counts as
 ** inside).  The test counts the float zeros it met, so that it fails if
 ** the generator stops making them. */
 static void test_edge_rays(void)
 {
-    static const float issue[3][3] = {{-0x1.0e1bc8p-4f, 0x1.d20466p-2f, 1},
-                                      {0x1.a75536p-1f, 0x1.a69602p-1f, 1},
-                                      {-0x1.a07916p-2f, -0x1.9fbcfap-2f, 1}};
     uint64_t st = test_seed() ^ 53;
     unsigned long rays = 0, rounded_zeros = 0, exact_zeros = 0, hits = 0;
     float t, u, v;
     int n;
-    {
-        const brt_ray r = {{0, 0, 0}, {0, 0, 1}, 0.0f, INFINITY};
-        CHECK(!brt_intersect_triangle(&r, issue[0], issue[1], issue[2], &t, &u, &v),
-              "issue 22's triangle: a hit at t=%a for a ray that passes outside", t);
-    }
     for (n = 0; n < 60000 && !test_failed(); n++) {
         const int axis = n % 3, sign = (n / 3) % 2 ? -1 : 1;
         float p[3][2], vert[3][3];
