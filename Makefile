@@ -5,6 +5,7 @@
 #   make debug        the same with -O0 -g and the library's internal checks
 #   make sanitize     the test suite under AddressSanitizer + UBSan
 #   make bench        benchmarks (figures printed, never pass/fail)
+#   make mutants      mutation testing of the suite (tests/mutants/)
 #   make clean
 #   make V=1 ...      show the full command lines
 #
@@ -50,7 +51,7 @@ TEST_SRC = $(wildcard tests/*.c)
 TEST_OBJ = $(TEST_SRC:%.c=$(BUILD)/%.o)
 TEST_BIN = $(BUILD)/run_tests
 
-.PHONY: all test debug sanitize bench bench-batched clean
+.PHONY: all test debug sanitize bench bench-batched clean mutants
 all: $(LIB) $(PROGRAMS)
 
 $(BUILD)/%.o: %.c batchrt.h | $(BUILD)/examples $(BUILD)/tests
@@ -84,6 +85,13 @@ $(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(LIB)
 # The tests run programs from $(BUILD) too (command-line contracts).
 test: all $(TEST_BIN)
 	BRT_BUILD=$(BUILD) ./$(TEST_BIN) $(T)
+
+# Mutation testing (tests/mutants/): each mutant in tests/mutants/mutants.txt
+# weakens one mechanism in a copy of the tree and must make its tests fail;
+# prints a table (README, Tests).  M=NAME runs the mutants whose names
+# contain NAME.  Not part of "make test": about 5 minutes on 2 cores.
+mutants: all $(TEST_BIN)
+	sh tests/mutants/run.sh $(M)
 
 debug:
 	$(MAKE) --no-print-directory test BUILD=build/debug OPT="-O0 -g" XCFLAGS="-DBRT_DEBUG"

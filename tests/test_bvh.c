@@ -37,10 +37,13 @@ static int compare_normal(const tu_scene *s, const uint32_t *prim_ids, const brt
     if (memcmp(&h, want, sizeof h) != 0) return 0;
     if (want->prim != BRT_NO_PRIM) {
         const float *v0, *v1, *v2;
-        if (prim_ids) return 1;   /* the triangle's index is not at hand */
-        v0 = tu_vertex(s, want->prim, 0);
-        v1 = tu_vertex(s, want->prim, 1);
-        v2 = tu_vertex(s, want->prim, 2);
+        uint32_t tri = want->prim;
+        if (prim_ids)   /* the triangle that reports this number */
+            for (tri = 0; tri < s->tcount && prim_ids[tri] != want->prim; tri++) continue;
+        if (tri >= s->tcount) return 0;
+        v0 = tu_vertex(s, tri, 0);
+        v1 = tu_vertex(s, tri, 1);
+        v2 = tu_vertex(s, tri, 2);
         for (a = 0; a < 3; a++) {
             const int b = (a + 1) % 3, c = (a + 2) % 3;
             expect[a] = (v1[b] - v0[b]) * (v2[c] - v0[c]) - (v1[c] - v0[c]) * (v2[b] - v0[b]);
@@ -220,16 +223,28 @@ static void test_axis_grid(void)
     compare_scene(&s, NULL, 300, st, "grid");
     bvh = build_checked(&s, NULL);
     if (!bvh) { tu_scene_free(&s); return; }
-    /* axis rays through every lattice point and half-lattice point */
-    for (a = 0; a < 3 && !test_failed(); a++)
+    /* axis rays both ways through every lattice point and half-lattice
+    ** point (both ways: each sees the squares wound the other way round) */
+    for (a = 0; a < 6 && !test_failed(); a++)
         for (x = 0; x <= 24; x++)
             for (y = 0; y <= 24; y++) {
+                const int axis = a % 3;
+                const float sign = a < 3 ? 1.0f : -1.0f;
                 brt_ray r = {{0, 0, 0}, {0, 0, 0}, 0.0f, INFINITY};
-                r.org[a] = -5.0f;
-                r.org[(a + 1) % 3] = 0.5f * (float)x;
-                r.org[(a + 2) % 3] = 0.5f * (float)y;
-                r.dir[a] = 1.0f;
+                r.org[axis] = 6.0f - 11.0f * sign;
+                r.org[(axis + 1) % 3] = 0.5f * (float)x;
+                r.org[(axis + 2) % 3] = 0.5f * (float)y;
+                r.dir[axis] = sign;
                 if (!compare_ray(&s, NULL, bvh, &r, "grid lattice", n++)) goto done;
+                {   /* the closed squares of plane axis cover [0,12]^2: a hit at t = 11 */
+                    brt_hit h;
+                    brt_hit_clear(&h);
+                    brt_bvh_intersect(bvh, &r, &h);
+                    CHECK(h.prim != BRT_NO_PRIM && h.t == 11.0f && tu_vertex(&s, h.prim, 0)[axis] == 6.0f,
+                          "lattice ray along axis %d (%+g) through (%g, %g): t=%g prim %u, expected "
+                          "a square of plane %d at t = 11", axis, sign, 0.5 * x, 0.5 * y, h.t,
+                          (unsigned)h.prim, axis);
+                }
             }
 done:
     brt_bvh_free(bvh);
@@ -543,11 +558,13 @@ static void cube_grid(tu_scene *s, int n, float origin, float cell)
             }
 }
 
-/* A ray from `from` aimed exactly at `target` on a closed surface enclosing
-** `from` (or, from outside, crossing into it) must hit.  The BVH alone is
-** asked: its hits are hits of the shared triangle test, and agreement with
-** brute force is the other tests' business.  Counts leaks, reports the
-** first. */
+/* A ray from `from` aimed exactly at `target` on a closed convex surface
+** enclosing `from` (or, from outside, crossing into it) must hit there,
+** at t = 1 (dir = target - from), give or take rounding: a hit farther
+** on is a leak too (from outside, the far side would hide it).  The BVH
+** alone is asked: its hits are hits of the shared triangle test, and
+** agreement with brute force is the other tests' business.  Counts
+** leaks, reports the first. */
 static void aim(const brt_bvh *bvh, const float from[3], const float target[3],
                 size_t *rays, size_t *leaks)
 {
@@ -560,10 +577,11 @@ static void aim(const brt_bvh *bvh, const float from[3], const float target[3],
     brt_hit_clear(&h);
     brt_bvh_intersect(bvh, &r, &h);
     (*rays)++;
-    if (h.prim != BRT_NO_PRIM) return;
+    if (h.prim != BRT_NO_PRIM && h.t <= 1.001f) return;
     if ((*leaks)++ == 0)
-        test_fail_at(__FILE__, __LINE__, "leak: ray from (%a %a %a) at (%a %a %a) hit nothing",
-                     from[0], from[1], from[2], target[0], target[1], target[2]);
+        test_fail_at(__FILE__, __LINE__, "leak: ray from (%a %a %a) at (%a %a %a) hit nothing "
+                     "up to the target (t=%g)", from[0], from[1], from[2], target[0], target[1],
+                     target[2], h.t);
 }
 
 /* Aims at every vertex and every edge midpoint of every triangle, from an
@@ -605,6 +623,37 @@ static void test_watertight_icosphere(void)
         inside[0] *= 0.3f; inside[1] *= 0.3f; inside[2] *= 0.3f;
         aim_at_features(&s, bvh, inside, &st, &rays, &leaks);
     }
+    EXPECT(leaks == 0, "%zu of %zu rays leaked", leaks, rays);
+    brt_bvh_free(bvh);
+    tu_scene_free(&s);
+}
+
+/* From far away (10^2..10^5 times the sphere's size): the slab distances'
+** rounding then comes from the origin's coordinates, not the box's, and
+** only the origin's own padding (rule 2) keeps the boxes of a vertex's or
+** an edge's triangles from being missed. */
+static void test_watertight_far(void)
+{
+    uint64_t st = test_seed() ^ 67;
+    tu_scene s = {0};
+    brt_bvh *bvh;
+    size_t rays = 0, leaks = 0;
+    uint32_t t;
+    int j, a;
+    icosphere(&s, 2);
+    bvh = build_checked(&s, NULL);
+    for (t = 0; bvh && t < s.tcount; t++)
+        for (j = 0; j < 6; j++) {
+            const float *p = tu_vertex(&s, t, j % 3), *q = tu_vertex(&s, t, (j + 1) % 3);
+            const float far = powf(10.0f, tu_rnd(&st, 2.0f, 5.0f));
+            float target[3], from[3], dir[3];
+            tu_random_unit(&st, dir);
+            for (a = 0; a < 3; a++) {
+                target[a] = j < 3 ? p[a] : 0.5f * (p[a] + q[a]);
+                from[a] = target[a] + far * (dir[a] + 2.0f * target[a]);   /* outside */
+            }
+            aim(bvh, from, target, &rays, &leaks);
+        }
     EXPECT(leaks == 0, "%zu of %zu rays leaked", leaks, rays);
     brt_bvh_free(bvh);
     tu_scene_free(&s);
@@ -713,20 +762,231 @@ static void test_triangle_exact(void)
     CHECK(!brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v), "behind the origin");
 }
 
-/* Float edge functions U = V = 0 here although exactly (and in double,
-** where products of floats are exact) U > 0 > V: the ray passes just
-** outside the needle A,B,C.  Only the paper's double-precision recheck
-** of zero edge functions gets the miss right (found by a search over
-** vertices a few ulps apart). */
+/* Two triangles where the float edge functions have a 0 that is not 0
+** exactly, and the ray from the origin along +z passes just outside.
+** First (found by issue 22's search): only the paper's double-precision
+** recheck of zero edge functions gets the miss right.  Second, a needle
+** (found by a search over vertices a few ulps apart): U = V = 0 in float
+** although exactly U > 0 > V; here the ray also misses the needle's box,
+** so the hit-distance clamp rejects it too. */
 static void test_double_fallback(void)
 {
-    const float v0[3] = {0x1.ffffep+0f, 0x1.ffffe4p+0f, 1.0f};
-    const float v1[3] = {0x1.fffff8p-1f, 0x1.fffffep-1f, 1.0f};
-    const float v2[3] = {0x1.000002p+0f, 0x1.000004p+0f, 1.0f};
+    static const float tri[2][3][3] = {
+        {{-0x1.0e1bc8p-4f, 0x1.d20466p-2f, 1}, {0x1.a75536p-1f, 0x1.a69602p-1f, 1},
+         {-0x1.a07916p-2f, -0x1.9fbcfap-2f, 1}},
+        {{0x1.ffffep+0f, 0x1.ffffe4p+0f, 1}, {0x1.fffff8p-1f, 0x1.fffffep-1f, 1},
+         {0x1.000002p+0f, 0x1.000004p+0f, 1}}};
     const brt_ray r = {{0, 0, 0}, {0, 0, 1}, 0.0f, INFINITY};
     float t, u, v;
-    CHECK(!brt_intersect_triangle(&r, v0, v1, v2, &t, &u, &v),
-          "reported a hit at t=%g u=%g v=%g for a ray that misses", t, u, v);
+    int i;
+    for (i = 0; i < 2; i++)
+        CHECK(!brt_intersect_triangle(&r, tri[i][0], tri[i][1], tri[i][2], &t, &u, &v),
+              "triangle %d: a hit at t=%g u=%g v=%g for a ray that passes outside", i, t, u, v);
+}
+
+/* ---- rays exactly on edges ------------------------------------------- */
+
+/* The sign of the 2D cross product p x q = p0 q1 - p1 q0 of floats,
+** exactly: a product of two floats is exact in double, so comparing the
+** two products decides the sign with no rounding at all. */
+static int exact_cross_sign(const float p[2], const float q[2])
+{
+    const double l = (double)p[0] * q[1], r = (double)p[1] * q[0];
+    return (l > r) - (l < r);
+}
+
+/* The exact answer for a ray along a coordinate axis through the 2D
+** origin: it meets the closed triangle whose vertices project to a, b, c
+** when the three orientations a x b, b x c, c x a share one sign, zeros
+** allowed, and are not all zero (a triangle seen edge-on never hits). */
+static int exact_axis_hit(const float p[3][2])
+{
+    int pos = 0, neg = 0, k;
+    for (k = 0; k < 3; k++) {
+        const int s = exact_cross_sign(p[k], p[(k + 1) % 3]);
+        pos |= s > 0;
+        neg |= s < 0;
+    }
+    return pos != neg;
+}
+
+/* A float with only the top `bits` bits of its mantissa kept. */
+static float trim_mantissa(float x, int bits)
+{
+    int e;
+    const float m = frexpf(x, &e);
+    return ldexpf(floorf(ldexpf(m, bits)) / ldexpf(1.0f, bits), e);
+}
+
+/* A random float of either sign with magnitude in [2^-4, 2^4). */
+static float wide_float(uint64_t *st)
+{
+    const float x = ldexpf(tu_rnd(st, 1.0f, 2.0f), (int)(brt_random_u64(st) % 8) - 4);
+    return brt_random_u64(st) & 1 ? -x : x;
+}
+
+/* Three projected vertices with an edge through or next to the origin:
+** b = s c rounded (s < 0: the origin lies on the segment bc, and float
+** edge functions often round to 0 while the exact one is not 0), b = s c
+** exact (the origin exactly on the edge), a vertex at the origin, or an
+** edge on a coordinate axis.  The vertex order is rotated so that U, V
+** and W each take the zero. */
+static void edge_ray_triangle(uint64_t *st, float p[3][2])
+{
+    static const float exact_s[] = {-1, -2, -0.5f, -0.25f, -3, -1.5f};
+    const int kind = (int)(brt_random_u64(st) % 4), rot = (int)(brt_random_u64(st) % 3);
+    float q[3][2];
+    int k, i;
+    for (k = 0; k < 3; k++)
+        for (i = 0; i < 2; i++) q[k][i] = wide_float(st);
+    switch (kind) {
+    case 0: {
+        const float s = -tu_rnd(st, 0.1f, 10.0f);
+        q[1][0] = s * q[2][0];
+        q[1][1] = s * q[2][1];
+        break;
+    }
+    case 1: {
+        const float s = exact_s[brt_random_u64(st) % 6];
+        for (i = 0; i < 2; i++) {
+            q[2][i] = trim_mantissa(q[2][i], 12);
+            q[1][i] = s * q[2][i];
+        }
+        break;
+    }
+    case 2:
+        q[1][0] = q[1][1] = 0.0f;
+        break;
+    default: {
+        const int axis = (int)(brt_random_u64(st) & 1);
+        q[1][axis] = -fabsf(q[1][axis]);
+        q[2][axis] = fabsf(q[2][axis]);
+        q[1][1 - axis] = q[2][1 - axis] = 0.0f;
+        break;
+    }
+    }
+    for (k = 0; k < 3; k++) memcpy(p[k], q[(k + rot) % 3], sizeof p[k]);
+}
+
+/* Woop's float edge function of p x q for an axis ray from the origin
+** (the shear is 0 and the translation exact): zero or not. */
+static int float_cross_is_zero(const float p[2], const float q[2])
+{
+    const float l = p[0] * q[1], r = p[1] * q[0];
+    return l - r == 0.0f;
+}
+
+/* Rays along all six axis directions through the 2D origin, against
+** triangles with an edge through or next to it: brt_intersect_triangle
+** must give the exact answer every time.  This is what the recomputation
+** of zero edge functions in double is for (a float 0 that is not 0
+** exactly; test_double_fallback holds two found by searches), and what
+** the sign test's strict compares are for (an exact 0 counts as
+** inside).  The test counts the float zeros it met, so that it fails if
+** the generator stops making them. */
+static void test_edge_rays(void)
+{
+    uint64_t st = test_seed() ^ 53;
+    unsigned long rays = 0, rounded_zeros = 0, exact_zeros = 0, hits = 0;
+    float t, u, v;
+    int n;
+    for (n = 0; n < 60000 && !test_failed(); n++) {
+        const int axis = n % 3, sign = (n / 3) % 2 ? -1 : 1;
+        float p[3][2], vert[3][3];
+        brt_ray r = {{0, 0, 0}, {0, 0, 0}, 0.0f, INFINITY};
+        int k, want, got;
+        edge_ray_triangle(&st, p);
+        for (k = 0; k < 3; k++) {
+            vert[k][(axis + 1) % 3] = p[k][0];
+            vert[k][(axis + 2) % 3] = p[k][1];
+            vert[k][axis] = tu_rnd(&st, 1.0f, 2.0f) * (float)sign;
+        }
+        r.org[axis] = -3.0f * (float)sign;
+        r.dir[axis] = (float)sign;
+        want = exact_axis_hit((const float(*)[2])p);
+        got = brt_intersect_triangle(&r, vert[0], vert[1], vert[2], &t, &u, &v);
+        for (k = 0; k < 3; k++)
+            if (float_cross_is_zero(p[k], p[(k + 1) % 3])) {
+                if (exact_cross_sign(p[k], p[(k + 1) % 3]) == 0) exact_zeros++;
+                else rounded_zeros++;
+            }
+        rays++;
+        hits += (unsigned long)want;
+        EXPECT(got == want, "axis %d dir %+d, projected (%a %a) (%a %a) (%a %a): %s, exactly %s",
+               axis, sign, p[0][0], p[0][1], p[1][0], p[1][1], p[2][0], p[2][1],
+               got ? "hit" : "miss", want ? "hit" : "miss");
+    }
+    printf("  bvh: edge rays: %lu rays (%lu hit exactly); float edge functions of 0: "
+           "%lu exact, %lu by rounding\n", rays, hits, exact_zeros, rounded_zeros);
+    EXPECT(rounded_zeros >= 1000 && exact_zeros >= 1000,
+           "too few zero edge functions to test their rule: %lu exact, %lu by rounding",
+           exact_zeros, rounded_zeros);
+}
+
+/* Triangles with a zero cross product in double (collinear or coincident
+** vertices) never hit, whatever their float edge functions say: oblique
+** rays through their points shear them into slivers of rounding noise
+** that often all have one sign. */
+static void test_degenerate_triangles(void)
+{
+    uint64_t st = test_seed() ^ 59;
+    int n;
+    for (n = 0; n < 10000 && !test_failed(); n++) {
+        float v[3][3], target[3], t, u, w;
+        const float along = (float)(brt_random_u64(&st) % 5) - 2.0f;   /* v2 = v0 + along e */
+        const float at = tu_rnd(&st, -0.5f, 1.5f);                      /* target = v0 + at e */
+        brt_ray r;
+        int a;
+        /* few mantissa bits: v1 and v2 are exact, so the three are collinear */
+        for (a = 0; a < 3; a++) {
+            v[0][a] = trim_mantissa(tu_rnd(&st, -1.0f, 1.0f), 12);
+            v[1][a] = v[0][a] + (n % 7 == 0 ? 0.0f : trim_mantissa(tu_rnd(&st, -1.0f, 1.0f), 8));
+            v[2][a] = v[0][a] + along * (v[1][a] - v[0][a]);
+            target[a] = v[0][a] + at * (v[1][a] - v[0][a]);
+        }
+        for (a = 0; a < 3; a++) {
+            r.org[a] = target[a] + 4.0f * tu_rnd(&st, -1.0f, 1.0f);
+            r.dir[a] = target[a] - r.org[a];
+        }
+        r.tnear = 0.0f;
+        r.tfar = INFINITY;
+        EXPECT(!brt_intersect_triangle(&r, v[0], v[1], v[2], &t, &u, &w),
+               "degenerate (%a %a %a) (%a %a %a) (%a %a %a), ray (%a %a %a) dir (%a %a %a): hit t=%a",
+               v[0][0], v[0][1], v[0][2], v[1][0], v[1][1], v[1][2], v[2][0], v[2][1], v[2][2],
+               r.org[0], r.org[1], r.org[2], r.dir[0], r.dir[1], r.dir[2], t);
+    }
+}
+
+/* A box entered exactly at the closest hit so far is still visited: rays
+** start (tnear) exactly on a plane of overlapping triangles, so every
+** box's entry and every hit is t = tnear, and the lowest prim must win
+** wherever its leaf is in the tree.  An exclusive prune (entry < t) would
+** stop at the first leaf. */
+static void test_entry_equals_hit(void)
+{
+    uint64_t st = test_seed() ^ 61;
+    int scene, n;
+    for (scene = 0; scene < 20 && !test_failed(); scene++) {
+        tu_scene s = {0};
+        uint32_t i;
+        brt_bvh *bvh;
+        for (i = 0; i < 64; i++) {   /* most cover the rays' points */
+            const float x = tu_rnd(&st, -2.0f, 0.2f), y = tu_rnd(&st, -2.0f, 0.2f);
+            const uint32_t a = tu_add_vertex(&s, x, y, 0.0f);
+            const uint32_t b = tu_add_vertex(&s, x + 3.0f, y, 0.0f);
+            const uint32_t c = tu_add_vertex(&s, x, y + 3.0f, 0.0f);
+            tu_add_triangle(&s, a, b, c);
+        }
+        bvh = build_checked(&s, NULL);
+        for (n = 0; bvh && n < 8; n++) {
+            brt_ray r = {{0.25f, 0.25f, 10.0f}, {0, 0, -1}, 10.0f, INFINITY};
+            r.org[0] = tu_rnd(&st, 0.0f, 0.2f);
+            r.org[1] = tu_rnd(&st, 0.0f, 0.2f);
+            if (!compare_ray(&s, NULL, bvh, &r, "tnear on the hit plane", (size_t)n)) break;
+        }
+        brt_bvh_free(bvh);
+        tu_scene_free(&s);
+    }
 }
 
 static void test_nonfinite_vertices(void)
@@ -847,7 +1107,27 @@ static void test_blob(void)
     memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 3);
     put_u32(bad, HEADER_BYTES + 96, s.tcount - 1);
     expect_eformat(bad, size, "leaf range past the end");
-    /* random damage to the nodes: a format error or a working BVH */
+    {   /* an empty slot made to point at a later node: a node with two
+        ** parents, everything else intact (no orphan, no triangle twice) */
+        const uint32_t nodes = ((uint32_t *)(void *)blob)[1];
+        uint32_t node, slot, found = 0;
+        for (node = 0; node + 1 < nodes && !found; node++)
+            for (slot = 0; slot < 4 && !found; slot++) {
+                uint32_t child, count;
+                memcpy(&child, blob + HEADER_BYTES + NODE_BYTES * node + 96 + 4 * slot, 4);
+                memcpy(&count, blob + HEADER_BYTES + NODE_BYTES * node + 112 + 4 * slot, 4);
+                if (child != 0xFFFFFFFFu || count != 0) continue;
+                memcpy(bad, blob, size);
+                put_u32(bad, HEADER_BYTES + NODE_BYTES * node + 96 + 4 * slot, nodes - 1);
+                expect_eformat(bad, size, "a node with two parents");
+                found = 1;
+            }
+        EXPECT(found, "no empty slot in the test BVH to damage");
+    }
+    /* Random damage to the nodes' child and count words: a format error,
+    ** or a BVH whose structure holds (open checks it) and which, since
+    ** triangles and prims are intact, reports only real hits: the
+    ** triangle's own t, u, v, never closer than brute force. */
     for (i = 0; i < 300 && !test_failed(); i++) {
         const size_t nodes = (size - HEADER_BYTES - 40 * (size_t)s.tcount) / NODE_BYTES;
         const size_t at = HEADER_BYTES + NODE_BYTES * (brt_random_u64(&st) % nodes)
@@ -858,11 +1138,24 @@ static void test_blob(void)
         r = brt_bvh_blob_open(bad, size, &opened, &err);
         EXPECT(r == BRT_OK || r == BRT_EFORMAT, "damaged byte %zu: %s", at, brt_result_string(r));
         if (r == BRT_OK) {
-            brt_ray ray;
-            brt_hit h;
-            tu_make_ray(&s, lo, hi, TU_RANDOM, &st, &ray);
-            brt_hit_clear(&h);
-            brt_bvh_intersect(opened, &ray, &h);
+            int k;
+            for (k = 0; k < 10 && !test_failed(); k++) {
+                brt_ray ray;
+                brt_hit h, want;
+                float t, u, v;
+                tu_make_ray(&s, lo, hi, k & 1 ? TU_RANDOM : TU_CAMERA, &st, &ray);
+                brt_hit_clear(&h);
+                brt_hit_clear(&want);
+                brt_bvh_intersect(opened, &ray, &h);
+                tu_brute_force(&s, NULL, &ray, &want);
+                if (h.prim == BRT_NO_PRIM) continue;
+                EXPECT(h.prim < s.tcount &&
+                       brt_intersect_triangle(&ray, tu_vertex(&s, h.prim, 0), tu_vertex(&s, h.prim, 1),
+                                              tu_vertex(&s, h.prim, 2), &t, &u, &v) &&
+                       t == h.t && u == h.u && v == h.v && !brt_hit_is_closer(h.t, h.prim, &want),
+                       "damaged byte %zu: hit t=%a prim %u is not a hit of that triangle, or beats "
+                       "brute force (t=%a prim %u)", at, h.t, (unsigned)h.prim, want.t, (unsigned)want.prim);
+            }
             brt_bvh_free(opened);
         }
     }
@@ -897,6 +1190,9 @@ void suite_bvh(void)
     test_run("bvh: triangle exact values", test_triangle_exact);
     test_run("bvh: 4-wide box test == one-box test", test_box_span4);
     test_run("bvh: double-precision fallback", test_double_fallback);
+    test_run("bvh: edge rays == exact orientation", test_edge_rays);
+    test_run("bvh: degenerate triangles never hit", test_degenerate_triangles);
+    test_run("bvh: a box entered at the closest hit is visited", test_entry_equals_hit);
     test_run("bvh: random soups == brute force", test_random_soups);
     test_run("bvh: prim ids == brute force", test_prim_ids);
     test_run("bvh: coplanar == brute force", test_coplanar);
@@ -913,6 +1209,7 @@ void suite_bvh(void)
     test_run("bvh: fg_oahu == brute force", test_mesh_oahu);
     test_run("bvh: watertight icosphere", test_watertight_icosphere);
     test_run("bvh: watertight cube grid", test_watertight_cubes);
+    test_run("bvh: watertight from far away", test_watertight_far);
     test_run("bvh: degenerate rays miss", test_degenerate_rays);
     test_run("bvh: non-finite vertices rejected", test_nonfinite_vertices);
     test_run("bvh: empty", test_empty);

@@ -249,6 +249,94 @@ static void test_voxelizer_exact(void)
            (unsigned long long)set, (unsigned long long)extra, set ? 100.0 * extra / set : 0.0);
 }
 
+/* ---- non-lattice triangles ------------------------------------------- */
+
+/* Expects every voxel whose closed box contains the point p (world
+** coordinates, a point of the triangle) to be set.  Voxel bounds
+** origin + x cell are exact in double in the frames used here. */
+static int voxels_at_point_set(const brt_grid *grid, const float p[3])
+{
+    uint32_t lo[3], hi[3], x, y, z;
+    int i;
+    for (i = 0; i < 3; i++) {
+        const double q = ((double)p[i] - grid->origin[i]) / grid->cell;
+        double k = floor(q);
+        if (k > grid->res - 1.0) k = grid->res - 1.0;
+        lo[i] = hi[i] = (uint32_t)k;
+        if ((double)grid->origin[i] + k * (double)grid->cell == (double)p[i] && k > 0) lo[i]--;
+    }
+    for (z = lo[2]; z <= hi[2]; z++)
+        for (y = lo[1]; y <= hi[1]; y++)
+            for (x = lo[0]; x <= hi[0]; x++)
+                if (!brt_grid_get(grid, x, y, z)) return 0;
+    return 1;
+}
+
+/* A world point origin + k cell that is a float, with k an interior
+** lattice coordinate, found by trying; 0 when none came up. */
+static int lattice_float(uint64_t *rng, const brt_grid *grid, int axis, float *out)
+{
+    int tries;
+    for (tries = 0; tries < 50; tries++) {
+        const double w = grid->origin[axis] + (double)(1 + rand_below(rng, grid->res - 1)) * grid->cell;
+        if ((double)(float)w == w) {
+            *out = (float)w;
+            return 1;
+        }
+    }
+    return 0;
+}
+
+/* Triangles with full-mantissa vertices (so that the voxelizer's dot
+** products round, unlike on lattice vertices) and one point exactly on a
+** voxel corner, edge or face: a vertex there, or the midpoint of an edge
+** (v2 = 2 L - v1, kept when exact).  The voxels around that point are
+** touched only at it, and must all be set: this is what the voxelizer's
+** rounding growth is for. */
+static void test_voxelizer_non_lattice(void)
+{
+    static const float origins[3][3] = {{0, 0, 0}, {0, 0, 0}, {-1024, 96, 4096}};
+    static const float cells[3] = {1, 0.1f, 0.5f};
+    const uint32_t res = 8, idx[3] = {0, 1, 2};
+    uint64_t rng = test_seed() + 11, checked = 0;
+    int f, n;
+    for (f = 0; f < 3 && !test_failed(); f++) {
+        brt_grid grid;
+        grid_exact(&grid, res, origins[f], cells[f]);
+        for (n = 0; n < 4000 && !test_failed(); n++) {
+            const int midpoint = n & 1, on_lattice = (int)rand_below(&rng, 4);
+            float v[3][3], point[3];
+            int k, i, ok = 1;
+            for (k = 0; k < 3; k++)
+                for (i = 0; i < 3; i++)
+                    v[k][i] = grid.origin[i] + grid.cell * rand_range(&rng, 0.0f, (float)res);
+            /* the point: on a corner (on_lattice 3), else on an edge or face */
+            for (i = 0; i < 3 && ok; i++)
+                if (i < on_lattice || on_lattice == 3) ok = lattice_float(&rng, &grid, i, &point[i]);
+                else point[i] = v[0][i];
+            if (!ok) continue;
+            for (i = 0; i < 3; i++) {
+                if (!midpoint) {
+                    v[0][i] = point[i];
+                    continue;
+                }
+                v[2][i] = 2.0f * point[i] - v[1][i];
+                if ((double)v[2][i] != 2.0 * point[i] - (double)v[1][i]) ok = 0;
+            }
+            if (!ok) continue;
+            grid_clear(&grid);
+            CHECK(brt_voxelize(&grid, &v[0][0], idx, 1) == BRT_OK, "voxelize failed");
+            checked++;
+            EXPECT(voxels_at_point_set(&grid, point),
+                   "frame %d: a voxel at (%a %a %a), a point of the triangle (%a %a %a) (%a %a %a) "
+                   "(%a %a %a), is not set", f, point[0], point[1], point[2], v[0][0], v[0][1],
+                   v[0][2], v[1][0], v[1][1], v[1][2], v[2][0], v[2][1], v[2][2]);
+        }
+        brt_grid_free(&grid);
+    }
+    EXPECT(checked > 3000, "only %llu triangles checked", (unsigned long long)checked);
+}
+
 static void test_voxelizer_input(void)
 {
     brt_grid grid;
@@ -417,6 +505,23 @@ static double documented_grow(const brt_grid *grid, const brt_ray *ray)
     return 2 * 0x1p-18 * (p + 3) * n;
 }
 
+/* The box growth of brt_proxy_raycast exactly as svdag.c states it, in
+** cells: g = 2^-18 (P + 3) root-cube units, P the largest |coordinate| of
+** the mirrored origin in the [1,2] frame, computed as the cast computes it
+** (root cube of N = 2^levels cells, levels >= 2). */
+static double stated_grow(const brt_proxy *proxy, const brt_ray *ray)
+{
+    const double n = proxy->res < 4 ? 4 : proxy->res, scale = (1.0 / n) / proxy->cell;
+    double pmax = 0;
+    int i;
+    for (i = 0; i < 3; i++) {
+        double p = 1.0 + ((double)ray->org[i] - proxy->origin[i]) * scale;
+        if (ray->dir[i] * scale > 0) p = 3.0 - p;
+        pmax = fmax(pmax, fabs(p));
+    }
+    return 0x1p-18 * (pmax + 3) * n;
+}
+
 /* Oracle-friendly rays in cell units: random, axis-parallel, grazing along
 ** voxel faces, through lattice corners, from far away. */
 static void lattice_ray(uint64_t *rng, const brt_grid *grid, brt_ray *ray)
@@ -479,12 +584,16 @@ static void test_raycast_oracle(void)
             CHECK(brt_svdag_add(dag, &grid, &proxy) == BRT_OK, "add");
             for (n = 0; n < 6000 && !test_failed(); n++) {
                 brt_ray ray;
-                double t_oracle = 0, t_grown = 0;
+                double t_oracle = 0, t_grown = 0, t_stated = 0;
                 float t_entry;
-                int want, near, got;
+                int want, near, got, stated;
                 lattice_ray(&rng, &grid, &ray);
                 want = oracle_grid(&grid, &ray, 0, &t_oracle);
                 near = oracle_grid(&grid, &ray, documented_grow(&grid, &ray), &t_grown);
+                /* Boxes grown by the stated g, less 2^-20 of it: more than
+                ** the cast's rounding (a few 2^-53 (P + 3)) and the oracle's,
+                ** far less than an ulp of t. */
+                stated = oracle_grid(&grid, &ray, stated_grow(&proxy, &ray) * (1 - 0x1p-20), &t_stated);
                 got = brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, &t_entry);
                 rays++;
                 /* the yes/no cast (no entry wanted) stops early, same answer */
@@ -497,6 +606,12 @@ static void test_raycast_oracle(void)
                        "res %u ray (%a %a %a) dir (%a %a %a) [%a %a]: oracle t %a, proxy %d t %a",
                        res, ray.org[0], ray.org[1], ray.org[2], ray.dir[0], ray.dir[1],
                        ray.dir[2], ray.tnear, ray.tfar, t_oracle, got, t_entry);
+                /* the stated bound: every box grown by g is reported, and
+                ** entered no earlier than the entry (rounded down) */
+                EXPECT(!stated || (got && t_entry <= t_stated),
+                       "res %u ray (%a %a %a) dir (%a %a %a) [%a %a]: entry of the voxels grown by "
+                       "the stated g %a, proxy %d t %a", res, ray.org[0], ray.org[1], ray.org[2],
+                       ray.dir[0], ray.dir[1], ray.dir[2], ray.tnear, ray.tfar, t_stated, got, t_entry);
                 /* the other side: float rounding of the entry allowed */
                 EXPECT(!got || (near && t_entry >= nextafterf((float)t_grown, -INFINITY)),
                        "res %u ray (%a %a %a) dir (%a %a %a) [%a %a]: proxy t %a, no set voxel "
@@ -904,6 +1019,11 @@ static void test_blob_round_trip(void)
     brt_svdag_free(dag);
 }
 
+/* Opens a damaged blob: a format error, or a pool that passes its check
+** and whose casts, whatever the proxies point at now, answer as a fresh
+** pool built from the grids they decode to (the cast depends only on the
+** voxels), or -- for a proxy that no longer fits the pool -- hit at tnear,
+** the conservative answer. */
 static void try_corrupt(const unsigned char *blob, size_t size, const brt_proxy proxies[3],
                         uint64_t *rng, uint32_t *opened)
 {
@@ -918,18 +1038,32 @@ static void try_corrupt(const unsigned char *blob, size_t size, const brt_proxy 
     }
     ++*opened;
     EXPECT(brt_svdag_check(back, &err) == BRT_OK, "opened a pool that fails its check");
-    for (i = 0; i < 3; i++) {   /* whatever the proxies point at now: no crash */
+    for (i = 0; i < 3 && !test_failed(); i++) {
         brt_grid grid;
-        grid.res = proxies[i].res;
+        brt_svdag *fresh = NULL;
+        brt_proxy again;
+        int decoded = brt_svdag_decode(back, &proxies[i], &grid) == BRT_OK;
+        if (decoded) {
+            CHECK(brt_svdag_create(&fresh) == BRT_OK && brt_svdag_add(fresh, &grid, &again) == BRT_OK,
+                  "rebuilding a decoded proxy");
+            brt_grid_free(&grid);
+        }
         for (n = 0; n < 20; n++) {
             brt_ray ray;
-            float t;
+            float t = -1, t_fresh = -1;
+            int got, want = 1;
             memcpy(grid.origin, proxies[i].origin, sizeof grid.origin);
             grid.cell = proxies[i].cell;
+            grid.res = proxies[i].res;
             lattice_ray(rng, &grid, &ray);
-            brt_proxy_raycast(back, &proxies[i], &ray, ray.tnear, ray.tfar, &t);
+            got = brt_proxy_raycast(back, &proxies[i], &ray, ray.tnear, ray.tfar, &t);
+            t_fresh = ray.tnear;
+            if (decoded) want = brt_proxy_raycast(fresh, &again, &ray, ray.tnear, ray.tfar, &t_fresh);
+            EXPECT(got == want && (!got || t == t_fresh),
+                   "proxy %d of a damaged pool (%s): cast %d t %a, expected %d t %a", i,
+                   decoded ? "decodes" : "invalid", got, t, want, t_fresh);
         }
-        if (brt_svdag_decode(back, &proxies[i], &grid) == BRT_OK) brt_grid_free(&grid);
+        brt_svdag_free(fresh);
     }
     brt_svdag_free(back);
 }
@@ -969,6 +1103,29 @@ static void test_blob_corrupt(void)
         memset(dup + 24, 0x11, 16);
         EXPECT(brt_svdag_blob_open(dup, sizeof dup, &none, NULL) == BRT_EFORMAT && !none,
                "duplicate leaves accepted");
+    }
+    {   /* an empty leaf (the smallest pool: no words, one leaf of 0) */
+        unsigned char empty[24 + 8];
+        brt_svdag *none = NULL;
+        memcpy(empty, blob, 24);
+        empty[12] = empty[13] = empty[14] = empty[15] = 0;        /* no words */
+        empty[16] = 1; empty[17] = empty[18] = empty[19] = 0;     /* one leaf */
+        memset(empty + 24, 0, 8);
+        EXPECT(brt_svdag_blob_open(empty, sizeof empty, &none, NULL) == BRT_EFORMAT && !none,
+               "an empty leaf accepted");
+    }
+    {   /* a node whose child is itself (one leaf, a two-word node) */
+        unsigned char loop[24 + 8 + 8];
+        const uint32_t node[2] = {0x01u, 0u};   /* child 0 present, at word 0 */
+        brt_svdag *none = NULL;
+        memcpy(loop, blob, 24);
+        loop[12] = 2; loop[13] = loop[14] = loop[15] = 0;         /* two words */
+        loop[16] = 1; loop[17] = loop[18] = loop[19] = 0;         /* one leaf */
+        memset(loop + 24, 0x11, 8);
+        memcpy(loop + 32, node, 8);
+        EXPECT(brt_svdag_blob_open(loop, sizeof loop, &none, NULL) == BRT_EFORMAT && !none,
+               "a node that is its own child accepted");
+        brt_svdag_free(none);
     }
     printf("  svdag: corrupt blobs: %u of the flipped ones still valid pools\n", opened);
     free(copy);
@@ -1072,6 +1229,7 @@ void suite_svdag(void)
 {
     test_run("svdag: grid frame covers the box", test_grid_frame);
     test_run("svdag: voxelizer vs exact lattice SAT", test_voxelizer_exact);
+    test_run("svdag: voxelizer: non-lattice triangles touching voxels", test_voxelizer_non_lattice);
     test_run("svdag: voxelizer input", test_voxelizer_input);
     test_run("svdag: decode equals grid, res 2..1024", test_decode_every_resolution);
     test_run("svdag: raycast vs brute-force slabs", test_raycast_oracle);
