@@ -1,7 +1,7 @@
 /*
 ** examples/common.c -- helpers shared by the programs in examples/: error
-** exits, option values with range checks, a throttled progress line, and a
-** minimal PNG writer.
+** exits, option values with range checks, a throttled progress line, a
+** SIGINT/SIGTERM flag, and a minimal PNG writer.
 **
 ** The PNG writer follows the PNG specification (ISO/IEC 15948) and RFC 1950
 ** (zlib) / RFC 1951 (deflate) in their simplest legal form: the image data
@@ -19,6 +19,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <limits.h>
+#include <signal.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -142,6 +143,46 @@ void ex_progress_end(void)
     if (!progress_drawn) return;
     fputc('\n', stderr);
     progress_drawn = 0;
+}
+
+/* ===================================================================== */
+/* Interrupts                                                            */
+/* ===================================================================== */
+
+/* sig_atomic_t is the one type a handler may write and the program read
+** (C99 7.14.1.1); volatile makes every poll read it again. */
+static volatile sig_atomic_t interrupt_signal;
+
+static void record_signal(int signo)
+{
+    interrupt_signal = signo;
+}
+
+const volatile sig_atomic_t *ex_catch_interrupts(void)
+{
+    struct sigaction action;
+    memset(&action, 0, sizeof action);
+    action.sa_handler = record_signal;
+    sigemptyset(&action.sa_mask);
+    /* SA_RESETHAND: a second signal gets the default action (the process
+    ** ends), for a user whose first one a long phase has not seen yet. */
+    action.sa_flags = SA_RESETHAND;
+    sigaction(SIGINT, &action, NULL);
+    sigaction(SIGTERM, &action, NULL);
+    return &interrupt_signal;
+}
+
+int ex_interrupted(void)
+{
+    return interrupt_signal;
+}
+
+void ex_die_interrupted(const char *prog)
+{
+    int signo = interrupt_signal ? interrupt_signal : SIGINT;
+    ex_progress_end();
+    fprintf(stderr, "%s: interrupted by %s\n", prog, signo == SIGTERM ? "SIGTERM" : "SIGINT");
+    exit(128 + signo);
 }
 
 /* ===================================================================== */

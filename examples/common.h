@@ -8,6 +8,7 @@
 
 #include "batchrt.h"
 
+#include <signal.h>
 #include <stddef.h>
 #include <stdint.h>
 
@@ -54,6 +55,25 @@ void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tr
 ** BRT_PROGRESS=1): "label  42% ...".  done <= total. */
 void ex_progress(const char *label, uint64_t done, uint64_t total);
 void ex_progress_end(void);
+
+/* Installs a handler for SIGINT and SIGTERM that only records the signal
+** (the one async-signal-safe thing to do) and returns the flag it sets:
+** for brt_scene_options.interrupt and the program's own loops, which then
+** remove their temporary files and call ex_die_interrupted.  The handler
+** is reset after the first signal, so a second one ends the process at
+** once (without clean-up) when a phase does not poll the flag. */
+const volatile sig_atomic_t *ex_catch_interrupts(void);
+
+/* The signal caught so far, 0 when none. */
+int ex_interrupted(void);
+
+/* Prints "PROG: interrupted by SIGINT" (or SIGTERM) on stderr and exits
+** with 128 + the signal number, the shell's convention. */
+void ex_die_interrupted(const char *prog)
+#if defined(__GNUC__)
+    __attribute__((noreturn))
+#endif
+    ;
 
 /* PNG of 8-bit RGB pixels (row-major, top row first), encoded with stored
 ** deflate blocks, CRC-32 and Adler-32.  encode: *png is malloc'd. */
