@@ -106,6 +106,59 @@ const char *ex_option_value(const char *prog, int argc, char **argv, int *i)
 }
 
 /* ===================================================================== */
+/* Scene files and meshes                                                */
+/* ===================================================================== */
+
+brt_scene *ex_scene_prepare(const char *prog, const brt_triangle_source *source,
+                            uint64_t stamp, const char *path, const brt_scene_options *opt,
+                            int replace_unreadable, int *rebuilt)
+{
+    brt_scene *scene = NULL;
+    brt_error err;
+    brt_result r;
+    struct stat st;
+    *rebuilt = 0;
+    if (stat(path, &st) == 0) {
+        r = brt_scene_open(path, &scene, &err);
+        if (r == BRT_OK && brt_scene_matches(scene, stamp, opt)) return scene;
+        if (r != BRT_OK && !replace_unreadable) ex_check(prog, r, &err);
+        brt_scene_close(scene);   /* stale: the source or the settings changed */
+    }
+    *rebuilt = 1;
+    ex_progress("building scene", 0, 1);
+    r = brt_scene_build_stream(source, opt, stamp, path, &err);
+    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
+    ex_check(prog, r, &err);
+    ex_progress("building scene", 1, 1);
+    ex_progress_end();
+    ex_check(prog, brt_scene_open(path, &scene, &err), &err);
+    return scene;
+}
+
+uint64_t ex_mesh_bytes(const brt_mesh *mesh)
+{
+    return 12 * ((uint64_t)mesh->vertex_count + mesh->triangle_count);
+}
+
+/* "12.3 MiB" or, below a MiB, "45.6 KiB". */
+static const char *format_bytes(uint64_t bytes, char *text, size_t size)
+{
+    int mib = bytes >= 1048576;
+    snprintf(text, size, "%.1f %s", (double)bytes / (mib ? 1048576.0 : 1024.0), mib ? "MiB" : "KiB");
+    return text;
+}
+
+void ex_note_mesh_memory(const char *prog, const brt_mesh *mesh, uint64_t limit)
+{
+    char held[32], limit_text[32];
+    if (limit == 0 || ex_mesh_bytes(mesh) <= limit) return;
+    fprintf(stderr, "%s: note: the direct run holds the whole mesh in memory (%s of vertices "
+            "and indices, and its BVH), more than --memory (%s)\n", prog,
+            format_bytes(ex_mesh_bytes(mesh), held, sizeof held),
+            format_bytes(limit, limit_text, sizeof limit_text));
+}
+
+/* ===================================================================== */
 /* Progress line                                                         */
 /* ===================================================================== */
 
@@ -160,7 +213,10 @@ static void record_signal(int signo)
 
 const volatile sig_atomic_t *ex_catch_interrupts(void)
 {
+    static int installed;
     struct sigaction action;
+    if (installed) return &interrupt_signal;
+    installed = 1;
     memset(&action, 0, sizeof action);
     action.sa_handler = record_signal;
     sigemptyset(&action.sa_mask);
