@@ -55,7 +55,7 @@ static void usage(void)
            "  --help      this text\n"
            "\n"
            "The mesh is written as it is made, never held in memory.  Prints the\n"
-           "triangle count and the bounds.\n", EX_SCENE_MAX_SCALE);
+           "triangle count, the time, the peak resident memory and the bounds.\n", EX_SCENE_MAX_SCALE);
 }
 
 static int has_suffix(const char *s, const char *suffix)
@@ -277,8 +277,9 @@ int main(int argc, char **argv)
     if (r == BRT_EINTR) ex_die_interrupted(prog);
     ex_check(prog, r, &err);
     seconds = brt_seconds() - seconds;
-    printf("%s: %llu triangles, %llu vertices, written in %.2f s\n", recipe.name,
-           (unsigned long long)w.triangles_total, (unsigned long long)vertices, seconds);
+    printf("%s: %llu triangles, %llu vertices, written in %.2f s, peak RSS %.1f MiB\n",
+           recipe.name, (unsigned long long)w.triangles_total, (unsigned long long)vertices,
+           seconds, (double)brt_peak_rss_bytes() / 1048576.0);
     printf("bounds: %g %g %g .. %g %g %g\n", w.lo[0], w.lo[1], w.lo[2], w.hi[0], w.hi[1],
            w.hi[2]);
     return 0;
