@@ -171,8 +171,22 @@ brt_result brt_write_file_atomic(const char *path, const void *data,
 ** a memory buffer or a file read in 1 MiB chunks; the unread tail of a chunk
 ** (a partial line or record) is carried over to the front of the buffer
 ** before the next read.  So brt_mesh_load and brt_mesh_parse_* run the same
-** code, and a 10-million-triangle file never has its text in memory twice:
-** only the chunk, the vertex array and the index array.
+** code, and a 10-million-triangle file never has its text in memory twice.
+**
+** One parser, two destinations for its triangles (add_triangle):
+**  - collect (brt_mesh_load, brt_mesh_parse_*): the index array grows, and
+**    the result is an indexed mesh with the file's vertex indices;
+**  - stream (brt_mesh_stream): each triangle's corners are looked up at
+**    once and appended to a chunk of STREAM_CHUNK triangles that is handed
+**    to the consumer when full.  Only the vertex positions (12 bytes per
+**    vertex), the read buffer and one chunk are held, never the indices.
+**    An OBJ face may only use vertices defined before it, so its corners
+**    are always known.  A PLY file may (legally, rarely) put its faces
+**    before its vertices; from the first triangle whose vertex is not read
+**    yet, the stream collects indices instead and emits those triangles
+**    after the last element (numbering unchanged): such a file costs its
+**    index array, as with brt_mesh_load.
+** Both give the same triangles, numbers and messages.
 **
 ** Limits and decisions, written down because users depend on them:
 **  - Zero triangles is an error ("no triangles"): every program needs some.
@@ -217,8 +231,16 @@ typedef struct parser {
     /* the mesh under construction */
     float *positions;
     size_t vertex_count, vertex_cap;
+    size_t triangle_count;      /* triangles numbered so far */
+    /* collected triangles: indices[0..3) is triangle indexed_first */
     uint32_t *indices;
-    size_t triangle_count, triangle_cap;
+    size_t indexed_first, indexed_count, indexed_cap;
+    /* streaming (emit != NULL): the chunk of corners not yet emitted */
+    brt_triangle_fn emit;
+    void *emit_user;
+    float *chunk;
+    uint32_t chunk_count;
+    int deferring;              /* a vertex was missing: collect from now on */
     /* the polygon being read, as 0-based vertex indices */
     uint32_t *polygon;
     size_t polygon_count, polygon_cap;
@@ -353,27 +375,73 @@ static brt_result add_corner(parser *p, uint32_t vertex)
     return BRT_OK;
 }
 
+#define STREAM_CHUNK 65536u   /* triangles per emitted chunk (2.25 MiB) */
+
+/* Hands the chunk to the consumer; its triangles are the last numbered. */
+static brt_result flush_chunk(parser *p)
+{
+    uint32_t n = p->chunk_count;
+    p->chunk_count = 0;
+    if (n == 0) return BRT_OK;
+    return p->emit(p->emit_user, p->chunk, n, (uint32_t)(p->triangle_count - n), p->err);
+}
+
+/* Streams the triangle when its corners are known (see the section's
+** comment); 0 when it is to be collected instead. */
+static int stream_triangle(parser *p, const uint32_t v[3], brt_result *rc)
+{
+    int c;
+    if (!p->emit || p->deferring) return 0;
+    if (v[0] >= p->vertex_count || v[1] >= p->vertex_count || v[2] >= p->vertex_count) {
+        p->deferring = 1;
+        p->indexed_first = p->triangle_count;
+        *rc = flush_chunk(p);
+        return *rc != BRT_OK;
+    }
+    if (!p->chunk && !(p->chunk = malloc((size_t)STREAM_CHUNK * 9 * sizeof *p->chunk))) {
+        *rc = parse_fail(p, BRT_ENOMEM, "out of memory");
+        return 1;
+    }
+    for (c = 0; c < 3; c++)
+        memcpy(p->chunk + 9 * (size_t)p->chunk_count + 3 * c, p->positions + 3 * (size_t)v[c],
+               3 * sizeof(float));
+    p->triangle_count++;
+    *rc = ++p->chunk_count == STREAM_CHUNK ? flush_chunk(p) : BRT_OK;
+    return 1;
+}
+
+/* The next triangle in file order: streamed or collected. */
+static brt_result add_triangle(parser *p, const uint32_t v[3])
+{
+    brt_result rc = BRT_OK;
+    if (stream_triangle(p, v, &rc)) return rc;
+    if (p->indexed_count == p->indexed_cap) {
+        void *bigger = grow(p->indices, &p->indexed_cap, p->indexed_count + 1, 3 * sizeof(uint32_t));
+        if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
+        p->indices = bigger;
+    }
+    memcpy(p->indices + 3 * p->indexed_count++, v, 3 * sizeof(uint32_t));
+    p->triangle_count++;
+    return BRT_OK;
+}
+
 /* Ends the polygon being read: the fan (a,b,c), (a,c,d), ... of design.md. */
 static brt_result end_polygon(parser *p)
 {
     size_t n = p->polygon_count, k;
+    brt_result rc = BRT_OK;
     p->polygon_count = 0;
     if (n < 3) return parse_fail(p, BRT_EPARSE, "face with fewer than 3 vertices (%zu)", n);
     if (n - 2 > MAX_COUNT - p->triangle_count)
         return parse_fail(p, BRT_EPARSE, "too many triangles");
-    if (p->triangle_count + n - 2 > p->triangle_cap) {
-        void *bigger = grow(p->indices, &p->triangle_cap, p->triangle_count + n - 2,
-                            3 * sizeof(uint32_t));
-        if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
-        p->indices = bigger;
-    }
-    for (k = 1; k + 1 < n; k++) {
-        uint32_t *tri = p->indices + 3 * p->triangle_count++;
+    for (k = 1; k + 1 < n && rc == BRT_OK; k++) {
+        uint32_t tri[3];
         tri[0] = p->polygon[0];
         tri[1] = p->polygon[k];
         tri[2] = p->polygon[k + 1];
+        rc = add_triangle(p, tri);
     }
-    return BRT_OK;
+    return rc;
 }
 
 /* ---- tokens and numbers ----------------------------------------------- */
@@ -995,19 +1063,59 @@ static void *shrink(void *items, size_t bytes)
     return smaller ? smaller : items;
 }
 
-static brt_result parse_mesh(parser *p, int format, brt_mesh *mesh)
+/* Hands count triangles of an indexed mesh to emit in chunks of
+** STREAM_CHUNK, numbered from number (the memory source, and a PLY
+** stream's collected tail). */
+static brt_result emit_indexed(const float *positions, const uint32_t *indices, size_t count,
+                               size_t number, brt_triangle_fn emit, void *emit_user,
+                               brt_error *err)
+{
+    float *corners;
+    size_t done = 0;
+    brt_result r = BRT_OK;
+    if (count == 0) return BRT_OK;
+    corners = malloc((size_t)STREAM_CHUNK * 9 * sizeof *corners);
+    if (!corners) return brt_fail(err, BRT_ENOMEM, "out of memory");
+    while (done < count && r == BRT_OK) {
+        uint32_t n = count - done < STREAM_CHUNK ? (uint32_t)(count - done) : STREAM_CHUNK, i;
+        int c;
+        for (i = 0; i < n; i++)
+            for (c = 0; c < 3; c++)
+                memcpy(corners + 9 * (size_t)i + 3 * c,
+                       positions + 3 * (size_t)indices[3 * (done + i) + (size_t)c], 3 * sizeof(float));
+        r = emit(emit_user, corners, n, (uint32_t)(number + done), err);
+        done += n;
+    }
+    free(corners);
+    return r;
+}
+
+/* Runs the parser over the whole input; a stream's last chunk and its
+** collected tail are emitted before "no triangles" is decided. */
+static brt_result parse_input(parser *p, int format)
 {
     brt_result rc = reader_fill(p, 5);
-    memset(mesh, 0, sizeof *mesh);
     if (rc == BRT_OK) {
         if (format == FORMAT_BY_CONTENT) format = has_ply_magic(&p->in) ? FORMAT_PLY : FORMAT_OBJ;
         rc = format == FORMAT_PLY ? ply_parse(p) : obj_parse(p);
     }
+    if (rc == BRT_OK && p->emit) rc = flush_chunk(p);
+    if (rc == BRT_OK && p->emit)
+        rc = emit_indexed(p->positions, p->indices, p->indexed_count, p->indexed_first,
+                          p->emit, p->emit_user, p->err);
     if (rc == BRT_OK && p->triangle_count == 0) {
         p->where = WHERE_NONE;
         rc = parse_fail(p, BRT_EPARSE, "no triangles");
     }
     free(p->polygon);
+    free(p->chunk);
+    return rc;
+}
+
+static brt_result parse_mesh(parser *p, int format, brt_mesh *mesh)
+{
+    brt_result rc = parse_input(p, format);
+    memset(mesh, 0, sizeof *mesh);
     if (rc != BRT_OK) {
         free(p->positions);
         free(p->indices);
@@ -1043,24 +1151,51 @@ brt_result brt_mesh_parse_ply(const char *name, const void *data, size_t size,
     return parse_memory(name, data, size, FORMAT_PLY, mesh, err);
 }
 
+/* Opens path for the parser with a READ_CHUNK buffer. */
+static brt_result parser_open(parser *p, const char *path, brt_error *err)
+{
+    parser_init(p, path, err);
+    p->in.fd = open(path, O_RDONLY);
+    if (p->in.fd < 0) return brt_fail(err, BRT_EIO, "%s: cannot open: %s", path, strerror(errno));
+    p->in.owned = malloc(READ_CHUNK);
+    if (!p->in.owned) {
+        close(p->in.fd);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", path);
+    }
+    p->in.data = p->in.owned;
+    p->in.cap = READ_CHUNK;
+    return BRT_OK;
+}
+
+static void parser_close(parser *p)
+{
+    free(p->in.owned);
+    close(p->in.fd);
+}
+
 brt_result brt_mesh_load(const char *path, brt_mesh *mesh, brt_error *err)
 {
     parser p;
     brt_result rc;
     memset(mesh, 0, sizeof *mesh);
-    parser_init(&p, path, err);
-    p.in.fd = open(path, O_RDONLY);
-    if (p.in.fd < 0) return brt_fail(err, BRT_EIO, "%s: cannot open: %s", path, strerror(errno));
-    p.in.owned = malloc(READ_CHUNK);
-    if (!p.in.owned) {
-        close(p.in.fd);
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", path);
-    }
-    p.in.data = p.in.owned;
-    p.in.cap = READ_CHUNK;
+    if ((rc = parser_open(&p, path, err)) != BRT_OK) return rc;
     rc = parse_mesh(&p, FORMAT_BY_CONTENT, mesh);
-    free(p.in.owned);
-    close(p.in.fd);
+    parser_close(&p);
+    return rc;
+}
+
+brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit, void *emit_user,
+                           brt_error *err)
+{
+    parser p;
+    brt_result rc;
+    if ((rc = parser_open(&p, path, err)) != BRT_OK) return rc;
+    p.emit = emit;
+    p.emit_user = emit_user;
+    rc = parse_input(&p, FORMAT_BY_CONTENT);
+    free(p.positions);
+    free(p.indices);
+    parser_close(&p);
     return rc;
 }
 
@@ -1088,47 +1223,7 @@ void brt_mesh_bounds(const brt_mesh *mesh, float bmin[3], float bmax[3])
     }
 }
 
-/* ---- triangle streams ------------------------------------------------- */
-/*
-** FIRST CUT (interface only): brt_mesh_stream still loads the whole mesh
-** and then emits it, and brt_scene_build_stream collects the stream into a
-** mesh.  The bounded-memory versions replace both.
-*/
-#define STREAM_CHUNK 65536u
-
-static brt_result mesh_emit(const brt_mesh *mesh, brt_triangle_fn emit, void *emit_user,
-                            brt_error *err)
-{
-    float *corners = malloc((size_t)STREAM_CHUNK * 9 * sizeof *corners);
-    uint32_t first = 0;
-    brt_result r = BRT_OK;
-    if (!corners) return brt_fail(err, BRT_ENOMEM, "out of memory");
-    while (first < mesh->triangle_count && r == BRT_OK) {
-        uint32_t n = mesh->triangle_count - first, i;
-        int c;
-        if (n > STREAM_CHUNK) n = STREAM_CHUNK;
-        for (i = 0; i < n; i++)
-            for (c = 0; c < 3; c++)
-                memcpy(corners + 9 * (size_t)i + 3 * c,
-                       mesh->positions + 3 * (size_t)mesh->indices[3 * (size_t)(first + i) + c],
-                       3 * sizeof(float));
-        r = emit(emit_user, corners, n, first, err);
-        first += n;
-    }
-    free(corners);
-    return r;
-}
-
-brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit, void *emit_user,
-                           brt_error *err)
-{
-    brt_mesh mesh;
-    brt_result r = brt_mesh_load(path, &mesh, err);
-    if (r != BRT_OK) return r;
-    r = mesh_emit(&mesh, emit, emit_user, err);
-    brt_mesh_free(&mesh);
-    return r;
-}
+/* ---- triangle sources ------------------------------------------------- */
 
 static brt_result file_source_run(const void *user, brt_triangle_fn emit, void *emit_user,
                                   brt_error *err)
@@ -1139,7 +1234,9 @@ static brt_result file_source_run(const void *user, brt_triangle_fn emit, void *
 static brt_result memory_source_run(const void *user, brt_triangle_fn emit, void *emit_user,
                                     brt_error *err)
 {
-    return mesh_emit((const brt_mesh *)user, emit, emit_user, err);
+    const brt_mesh *mesh = user;
+    return emit_indexed(mesh->positions, mesh->indices, mesh->triangle_count, 0, emit,
+                        emit_user, err);
 }
 
 void brt_mesh_file_source(const char *path, brt_triangle_source *source)
