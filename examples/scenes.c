@@ -1353,8 +1353,9 @@ uint64_t ex_scene_stamp(const ex_scene_recipe *recipe)
 /* ---- the collector: the whole mesh in two growing arrays ---- */
 
 typedef struct collector {
-    brt_mesh mesh;
+    void *positions, *indices;     /* 12 bytes per vertex, 12 per triangle */
     uint64_t vertex_cap, triangle_cap;
+    uint32_t vertex_count, triangle_count;
     const char *name;
     double scale;
 } collector;
@@ -1376,48 +1377,30 @@ static int grow(void **array, uint64_t *cap, uint64_t need, size_t item_bytes)
     return 1;
 }
 
-static brt_result collect_vertices(void *user, const float *xyz, uint32_t count, brt_error *err)
+/* Appends n items of 12 bytes (vertices or index triples) to an array. */
+static brt_result append(const collector *c, void **array, uint64_t *cap, uint32_t *count,
+                         const void *items, uint32_t n, brt_error *err)
 {
-    collector *c = user;
-    void *p = c->mesh.positions;
-    int ok = grow(&p, &c->vertex_cap, (uint64_t)c->mesh.vertex_count + count, 12);
-    c->mesh.positions = p;
-    if (!ok) {
+    if (!grow(array, cap, (uint64_t)*count + n, 12)) {
         out_of_memory(err, c->name, c->scale);
         return BRT_ENOMEM;
     }
-    memcpy(c->mesh.positions + 3 * (size_t)c->mesh.vertex_count, xyz, 12 * (size_t)count);
-    c->mesh.vertex_count += count;
+    memcpy((unsigned char *)*array + 12 * (size_t)*count, items, 12 * (size_t)n);
+    *count += n;
     return BRT_OK;
+}
+
+static brt_result collect_vertices(void *user, const float *xyz, uint32_t count, brt_error *err)
+{
+    collector *c = user;
+    return append(c, &c->positions, &c->vertex_cap, &c->vertex_count, xyz, count, err);
 }
 
 static brt_result collect_triangles(void *user, const uint32_t *abc, uint32_t count,
                                     brt_error *err)
 {
     collector *c = user;
-    void *p = c->mesh.indices;
-    int ok = grow(&p, &c->triangle_cap, (uint64_t)c->mesh.triangle_count + count, 12);
-    c->mesh.indices = p;
-    if (!ok) {
-        out_of_memory(err, c->name, c->scale);
-        return BRT_ENOMEM;
-    }
-    memcpy(c->mesh.indices + 3 * (size_t)c->mesh.triangle_count, abc, 12 * (size_t)count);
-    c->mesh.triangle_count += count;
-    return BRT_OK;
-}
-
-/* Reserves the arrays for the scene's budget: every scene stays near it
-** and has fewer than 1.25 vertices per triangle, so they are rarely grown;
-** pages never written cost no memory. */
-static int collector_reserve(collector *c)
-{
-    void *positions = NULL, *indices = NULL;
-    int ok = grow(&positions, &c->vertex_cap, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * c->scale) + 4096, 12)
-          && grow(&indices, &c->triangle_cap, (uint64_t)(1.05 * TRIANGLES_PER_SCALE * c->scale) + 4096, 12);
-    c->mesh.positions = positions;
-    c->mesh.indices = indices;
-    return ok;
+    return append(c, &c->indices, &c->triangle_cap, &c->triangle_count, abc, count, err);
 }
 
 brt_result ex_scene_generate(const char *name, double scale, uint64_t seed,
@@ -1435,23 +1418,30 @@ brt_result ex_scene_generate(const char *name, double scale, uint64_t seed,
     sink.vertices = collect_vertices;
     sink.triangles = collect_triangles;
     sink.user = &c;
-    if (scale > 0 && scale <= EX_SCENE_MAX_SCALE && !collector_reserve(&c)) {
+    /* Reserved for the budget: every scene stays near it and has fewer
+    ** than 1.25 vertices per triangle, so the arrays are rarely grown;
+    ** pages never written cost no memory. */
+    if (scale > 0 && scale <= EX_SCENE_MAX_SCALE
+        && (!grow(&c.positions, &c.vertex_cap, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * scale) + 4096, 12)
+            || !grow(&c.indices, &c.triangle_cap,
+                     (uint64_t)(1.05 * TRIANGLES_PER_SCALE * scale) + 4096, 12))) {
         out_of_memory(err, name, scale);
         r = BRT_ENOMEM;
     } else {
         r = ex_scene_write(&recipe, &sink, err);
     }
     if (r != BRT_OK) {
-        brt_mesh_free(&c.mesh);
+        free(c.positions);
+        free(c.indices);
         return r;
     }
     /* Trim to size; a failed shrink leaves the larger block, still valid. */
-    mesh->positions = realloc(c.mesh.positions, 12 * (size_t)c.mesh.vertex_count);
-    mesh->indices = realloc(c.mesh.indices, 12 * (size_t)c.mesh.triangle_count);
-    if (!mesh->positions) mesh->positions = c.mesh.positions;
-    if (!mesh->indices) mesh->indices = c.mesh.indices;
-    mesh->vertex_count = c.mesh.vertex_count;
-    mesh->triangle_count = c.mesh.triangle_count;
+    mesh->positions = realloc(c.positions, 12 * (size_t)c.vertex_count);
+    mesh->indices = realloc(c.indices, 12 * (size_t)c.triangle_count);
+    if (!mesh->positions) mesh->positions = c.positions;
+    if (!mesh->indices) mesh->indices = c.indices;
+    mesh->vertex_count = c.vertex_count;
+    mesh->triangle_count = c.triangle_count;
     return BRT_OK;
 }
 
