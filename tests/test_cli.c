@@ -973,14 +973,16 @@ static void check_interrupted(const char *const *argv, const char *dir, int sign
 
 /* mkscene and render (while it builds the scene file) stop on SIGTERM
 ** and SIGINT, remove their temporary files and write no output.  Scale
-** 200 would take mkscene seconds, and render's build of scale 10 one or more:
-** the signal comes long before. */
+** 200 would take mkscene seconds, and render's build of scale 10 about one:
+** the signal comes long before.  Should the build be done already, the
+** render of 4 M paths that follows is not, and stops as well. */
 static void test_interrupts_leave_nothing(void)
 {
     char mk_dir[512], mk_out[600], r_dir[512], r_scene[600], r_out[600];
     const char *mkscene[] = {"mkscene", "landscape", mk_out, "--scale", "200", NULL};
-    const char *render[] = {"render", "landscape", "--scale", "10", "--res", "16", "--width", "8",
-                      "--height", "8", "--spp", "1", "--scene", r_scene, "--out", r_out, NULL};
+    const char *render[] = {"render", "landscape", "--scale", "10", "--res", "16", "--width", "320",
+                            "--height", "200", "--spp", "64", "--scene", r_scene, "--out", r_out,
+                            NULL};
     snprintf(mk_dir, sizeof mk_dir, "%s", tu_scratch("mkscene-interrupted"));
     snprintf(mk_out, sizeof mk_out, "%s/big.ply", mk_dir);
     check_interrupted(mkscene, mk_dir, SIGTERM, 10000, NULL);
