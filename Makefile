@@ -261,7 +261,11 @@ bench-scale: all
 	@set -e; d=$(SCALE_DIR); b=./$(BUILD); mkdir -p $$d; \
 	num() { sed -n "s/.*\"$$2\": *\([0-9.eE+-]*\).*/\1/p" $$1; }; \
 	mib() { awk -v x=$$1 'BEGIN { printf "%.1f MiB", x / 1048576 }'; }; \
-	speed() { awk -v t=$$1 -v s=$$2 'BEGIN { printf "build %.1f s (%.2f M triangles/s)", s, t / s / 1e6 }'; }; \
+	cpu() { out=$$1; shift; if [ -x /usr/bin/time ]; then /usr/bin/time -f "%U %S" -o $$out "$$@"; \
+	  else "$$@"; echo "0 0" > $$out; fi; }; \
+	speed() { awk -v t=$$1 -v s=$$2 -v c="$$(cat $$3)" 'BEGIN { split(c, u, " "); \
+	  printf "build %.1f s wall (%.2f M triangles/s), %.1f s CPU (%.2f M triangles/s)", \
+	    s, t / s / 1e6, u[1] + u[2], t / (u[1] + u[2] + 1e-9) / 1e6 }'; }; \
 	check() { awk -v what="$$1" -v peak=$$2 -v bound=$$3 'BEGIN { \
 	  printf "  %s: peak RSS %.1f MiB <= bound %.1f MiB: %s\n", what, peak / 1048576, \
 	    bound / 1048576, peak <= bound ? "holds" : "VIOLATED"; exit peak > bound }' || fail=1; }; \
@@ -273,20 +277,20 @@ bench-scale: all
 	verts=$$(sed -n 's/.* \([0-9]*\) vertices.*/\1/p' $$d/mkscene.txt); \
 	echo "  file $$(stat -c %s $$d/big.obj) bytes"; \
 	echo "== trace big.obj --batched: the scene file from the OBJ"; rm -f $$d/obj.brs; \
-	$$b/trace $$d/big.obj $$d/one.rays $$d/one.hits --batched --batch-tris $(SCALE_BATCH) \
+	cpu $$d/obj.cpu $$b/trace $$d/big.obj $$d/one.rays $$d/one.hits --batched --batch-tris $(SCALE_BATCH) \
 	  --scene $$d/obj.brs --stats $$d/obj.json; \
-	echo "  $$tris triangles, $$verts vertices: $$(speed $$tris $$(num $$d/obj.json build_seconds)),"\
+	echo "  $$tris triangles, $$verts vertices: $$(speed $$tris $$(num $$d/obj.json build_seconds) $$d/obj.cpu),"\
 	  "scene file $$(stat -c %s $$d/obj.brs) bytes"; \
 	check "build from the OBJ" $$(num $$d/obj.json peak_rss_bytes) $$(awk -v v=$$verts \
 	  -v dag=$$(num $$d/obj.json proxy_bytes) 'BEGIN { printf "%.0f", 256 * 1048576 + 12 * v + dag }'); \
 	rm -f $$d/big.obj $$d/obj.brs; \
 	echo "== render landscape --scale $(SCALE_LAND): the scene file from the generator"; \
 	rm -f $$d/land.brs; \
-	$$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) --width 1 --height 1 \
+	cpu $$d/land.cpu $$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) --width 1 --height 1 \
 	  --spp 1 --scene $$d/land.brs \
 	  --out $$d/one.png --stats $$d/land-build.json | tee $$d/land.txt; \
 	tris=$$(sed -n 's/^landscape: \([0-9]*\) triangles.*/\1/p' $$d/land.txt); \
-	echo "  $$tris triangles: $$(speed $$tris $$(num $$d/land-build.json build_seconds)),"\
+	echo "  $$tris triangles: $$(speed $$tris $$(num $$d/land-build.json build_seconds) $$d/land.cpu),"\
 	  "scene file $$(stat -c %s $$d/land.brs) bytes"; \
 	check "build from the generator" $$(num $$d/land-build.json peak_rss_bytes) \
 	  $$(awk -v dag=$$(num $$d/land-build.json proxy_bytes) 'BEGIN { printf "%.0f", 256 * 1048576 + dag }'); \
