@@ -232,9 +232,9 @@ typedef struct parser {
     float *positions;
     size_t vertex_count, vertex_cap;
     size_t triangle_count;      /* triangles numbered so far */
-    /* collected triangles: indices[0..3) is triangle indexed_first */
+    /* collected triangles: the last indexed_count numbered */
     uint32_t *indices;
-    size_t indexed_first, indexed_count, indexed_cap;
+    size_t indexed_count, indexed_cap;
     /* streaming (emit != NULL): the chunk of corners not yet emitted */
     brt_triangle_fn emit;
     void *emit_user;
@@ -394,7 +394,6 @@ static int stream_triangle(parser *p, const uint32_t v[3], brt_result *rc)
     if (!p->emit || p->deferring) return 0;
     if (v[0] >= p->vertex_count || v[1] >= p->vertex_count || v[2] >= p->vertex_count) {
         p->deferring = 1;
-        p->indexed_first = p->triangle_count;
         *rc = flush_chunk(p);
         return *rc != BRT_OK;
     }
@@ -1101,8 +1100,8 @@ static brt_result parse_input(parser *p, int format)
     }
     if (rc == BRT_OK && p->emit) rc = flush_chunk(p);
     if (rc == BRT_OK && p->emit)
-        rc = emit_indexed(p->positions, p->indices, p->indexed_count, p->indexed_first,
-                          p->emit, p->emit_user, p->err);
+        rc = emit_indexed(p->positions, p->indices, p->indexed_count,
+                          p->triangle_count - p->indexed_count, p->emit, p->emit_user, p->err);
     if (rc == BRT_OK && p->triangle_count == 0) {
         p->where = WHERE_NONE;
         rc = parse_fail(p, BRT_EPARSE, "no triangles");
@@ -2086,7 +2085,6 @@ typedef struct scene_writer {
 
 typedef struct scene_builder {
     scene_writer w;
-    char spill_path[4096];      /* for messages: the file is already unlinked */
     int spill_fd;
     uint64_t spill_end;         /* records in the spill file */
     const volatile sig_atomic_t *interrupt;
@@ -2145,7 +2143,7 @@ static brt_result spill_write(scene_builder *b, const spill_record *recs, uint32
 {
     if (write_fully(b->spill_fd, recs, (size_t)n * sizeof *recs,
                     (int64_t)(first * sizeof *recs)) != 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", b->spill_path, strerror(errno));
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", b->w.path, strerror(errno));
     return BRT_OK;
 }
 
@@ -2153,7 +2151,7 @@ static brt_result spill_read(scene_builder *b, spill_record *recs, uint32_t n, u
                              brt_error *err)
 {
     return read_fully(b->spill_fd, recs, (size_t)n * sizeof *recs, first * sizeof *recs,
-                      pread_reader, NULL, NULL, b->spill_path, err);
+                      pread_reader, NULL, NULL, b->w.path, err);
 }
 
 /* Writes the buffered records at the end of the bucket's region. */
@@ -2594,6 +2592,7 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
 {
     uint32_t cap = opt && opt->test_bucket_tris ? opt->test_bucket_tris
                                                  : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
+    char spill_path[4096];
     memset(b, 0, sizeof *b);
     b->spill_fd = b->w.fd = -1;
     b->w.path = scene_path;
@@ -2606,16 +2605,17 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->chunk = opt && opt->test_spill_chunk ? opt->test_spill_chunk : SPILL_CHUNK;
     if (is_special_file(scene_path))
         return brt_fail(err, BRT_EARG, "%s: not a regular file", scene_path);
-    if (snprintf(b->spill_path, sizeof b->spill_path, "%s.spill.%ld", scene_path,
-                 (long)getpid()) >= (int)sizeof b->spill_path)
+    if (snprintf(spill_path, sizeof spill_path, "%s.spill.%ld", scene_path,
+                 (long)getpid()) >= (int)sizeof spill_path)
         return brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
     if (!(b->read_buf = malloc((size_t)b->chunk * sizeof *b->read_buf)))
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
-    /* Unlinked at once: the descriptor keeps it, and nothing can leave it behind. */
-    b->spill_fd = open(b->spill_path, O_RDWR | O_CREAT | O_TRUNC, 0600);
+    /* Unlinked at once: the descriptor keeps it, and nothing can leave it
+    ** behind.  (Messages then name the scene: the spill file has no name.) */
+    b->spill_fd = open(spill_path, O_RDWR | O_CREAT | O_TRUNC, 0600);
     if (b->spill_fd < 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", b->spill_path, strerror(errno));
-    unlink(b->spill_path);
+        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", spill_path, strerror(errno));
+    unlink(spill_path);
     return BRT_OK;
 }
 
