@@ -2934,7 +2934,7 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
                              int *rebuilt, brt_error *err)
 {
     uint64_t stamp;
-    brt_mesh mesh;
+    brt_triangle_source source;
     struct stat st;
     brt_result r = brt_scene_source_stamp(mesh_path, &stamp, err);
     *out = NULL;
@@ -2946,10 +2946,8 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
         brt_scene_close(*out);   /* stale: the mesh or the settings changed */
         *out = NULL;
     }
-    r = brt_mesh_load(mesh_path, &mesh, err);
-    if (r != BRT_OK) return r;
-    r = brt_scene_build(&mesh, opt, stamp, scene_path, err);
-    brt_mesh_free(&mesh);
+    brt_mesh_file_source(mesh_path, &source);   /* never the whole mesh in memory */
+    r = brt_scene_build_stream(&source, opt, stamp, scene_path, err);
     if (r != BRT_OK) return r;
     if (rebuilt) *rebuilt = 1;
     return brt_scene_open(scene_path, out, err);

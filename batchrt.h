@@ -538,7 +538,8 @@ int brt_scene_matches(const brt_scene *scene, uint64_t source_stamp,
                       const brt_scene_options *opt);
 
 /* Opens scene_path when it matches mesh_path and opt; otherwise (missing
-** or stale) loads the mesh, builds the scene file and opens it.  A corrupt
+** or stale) builds the scene file from the mesh file streamed (never held
+** whole) and opens it.  A corrupt
 ** or wrong-version file is an error, not silently replaced.  *rebuilt
 ** tells which happened (may be NULL). */
 brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
