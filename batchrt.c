@@ -2025,7 +2025,7 @@ static brt_result write_at(int fd, const void *data, size_t size, uint64_t offse
 **           (format unchanged).
 **
 ** Held in memory, whatever the triangle count: the histogram (8 MiB), one
-** bucket (bucket_tris records, centroids and ids: 56 bytes each, 90 MiB at
+** bucket (bucket_tris records, centroids and ids: 56 bytes each, 86 MiB at
 ** most by default), one batching point's arrays and BVH build, one proxy
 ** grid, the scatter buffers (16 MiB together) and one read chunk; plus the
 ** per-point tables (batch entries, boxes, the DAG) and, in pass A, what the
@@ -2239,20 +2239,27 @@ static void cell_frame_init(const bucket *bk, cell_frame *f)
     }
 }
 
+/* Spreads the low 10 bits of v to every third bit (bit i to bit 3i). */
+static uint32_t spread3(uint32_t v)
+{
+    v = (v | (v << 16)) & 0x030000FFu;
+    v = (v | (v << 8)) & 0x0300F00Fu;
+    v = (v | (v << 4)) & 0x030C30C3u;
+    return (v | (v << 2)) & 0x09249249u;
+}
+
 /* The Morton code of the cell (bits of x, y, z interleaved). */
 static uint32_t cell_of(const cell_frame *f, const spill_record *rec)
 {
     float c[3];
-    uint32_t q[3], code = 0;
-    int a, bit;
+    uint32_t q[3];
+    int a;
     centroid(rec, c);
     for (a = 0; a < 3; a++) {
         float x = (c[a] - f->lo[a]) * f->scale[a];
         q[a] = x > 0.0f ? (x < (float)(1u << f->bits) ? (uint32_t)x : (1u << f->bits) - 1) : 0;
     }
-    for (bit = 0; bit < f->bits; bit++)
-        for (a = 0; a < 3; a++) code |= ((q[a] >> bit) & 1u) << (3 * bit + a);
-    return code;
+    return spread3(q[0]) | spread3(q[1]) << 1 | spread3(q[2]) << 2;
 }
 
 typedef struct split_state {
