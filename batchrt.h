@@ -178,9 +178,12 @@ typedef struct brt_triangle_source {
     const void *user;
 } brt_triangle_source;
 
-/* Streams a mesh file (OBJ or PLY, as brt_mesh_load) to emit.  Holds the
-** vertex positions of an indexed file (12 bytes per vertex) and one chunk,
-** never the triangles.  Errors as brt_mesh_load (with "no triangles"). */
+/* Streams a mesh file (OBJ or PLY, as brt_mesh_load) to emit in chunks of
+** 65536 triangles.  Holds the vertex positions of an indexed file (12 bytes
+** per vertex) and one chunk, never the triangles (except a PLY whose faces
+** come before its vertices: its index array, emitted after the vertices).
+** Errors as brt_mesh_load (with "no triangles"), possibly after chunks
+** were emitted. */
 brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit,
                            void *emit_user, brt_error *err);
 

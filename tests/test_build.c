@@ -513,6 +513,29 @@ static void test_write_failure(void)
     }
 }
 
+/* A mesh file whose error comes after a whole chunk was spilled: the
+** build returns the reader's message (as brt_mesh_load gives it) and
+** leaves the directory empty. */
+static void test_source_error(void)
+{
+    const char *bad = write_big_obj("bad_for_build.obj", 40000, 1), *dir = fresh_dir("bad_source");
+    char path[600], left[256];
+    brt_scene_options opt = build_options(1000, 8, 4000, 0);
+    brt_triangle_source source;
+    brt_error load_err, err;
+    brt_mesh mesh;
+    int n;
+    CHECK(bad != NULL, "cannot write the OBJ file");
+    CHECK(brt_mesh_load(bad, &mesh, &load_err) == BRT_EPARSE, "the bad OBJ loads");
+    snprintf(path, sizeof path, "%s/scene.brs", dir);
+    brt_mesh_file_source(bad, &source);
+    EXPECT(brt_scene_build_stream(&source, &opt, 1, path, &err) == BRT_EPARSE &&
+               strcmp(err.message, load_err.message) == 0,
+           "build says '%s', load says '%s'", err.message, load_err.message);
+    n = dir_entries(dir, left);
+    EXPECT(n == 0, "%d files left, such as %s", n, left);
+}
+
 /* The flag set after the first chunk (pass A), after the last one (the
 ** first poll after pass A), and by a real SIGALRM handler at several
 ** times: BRT_EINTR and an empty directory. */
@@ -647,6 +670,7 @@ void suite_build(void)
     test_run("build: a bucket larger than a spill chunk", test_bucket_larger_than_chunk);
     test_run("build: one bucket is the whole median split; deterministic; checker", test_one_bucket_and_checker);
     test_run("build: write failures leave nothing", test_write_failure);
+    test_run("build: a bad mesh file leaves nothing", test_source_error);
     test_run("build: interrupts leave nothing", test_interrupt);
     test_run("build: memory does not grow with the triangle count", test_memory_bound);
 }
