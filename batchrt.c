@@ -232,9 +232,9 @@ typedef struct parser {
     float *positions;
     size_t vertex_count, vertex_cap;
     size_t triangle_count;      /* triangles numbered so far */
-    /* collected triangles: indices[0..3) is triangle indexed_first */
+    /* collected triangles: the last indexed_count numbered */
     uint32_t *indices;
-    size_t indexed_first, indexed_count, indexed_cap;
+    size_t indexed_count, indexed_cap;
     /* streaming (emit != NULL): the chunk of corners not yet emitted */
     brt_triangle_fn emit;
     void *emit_user;
@@ -394,7 +394,6 @@ static int stream_triangle(parser *p, const uint32_t v[3], brt_result *rc)
     if (!p->emit || p->deferring) return 0;
     if (v[0] >= p->vertex_count || v[1] >= p->vertex_count || v[2] >= p->vertex_count) {
         p->deferring = 1;
-        p->indexed_first = p->triangle_count;
         *rc = flush_chunk(p);
         return *rc != BRT_OK;
     }
@@ -1101,8 +1100,8 @@ static brt_result parse_input(parser *p, int format)
     }
     if (rc == BRT_OK && p->emit) rc = flush_chunk(p);
     if (rc == BRT_OK && p->emit)
-        rc = emit_indexed(p->positions, p->indices, p->indexed_count, p->indexed_first,
-                          p->emit, p->emit_user, p->err);
+        rc = emit_indexed(p->positions, p->indices, p->indexed_count,
+                          p->triangle_count - p->indexed_count, p->emit, p->emit_user, p->err);
     if (rc == BRT_OK && p->triangle_count == 0) {
         p->where = WHERE_NONE;
         rc = parse_fail(p, BRT_EPARSE, "no triangles");
@@ -2026,7 +2025,7 @@ static brt_result write_at(int fd, const void *data, size_t size, uint64_t offse
 **           (format unchanged).
 **
 ** Held in memory, whatever the triangle count: the histogram (8 MiB), one
-** bucket (bucket_tris records, centroids and ids: 56 bytes each, 90 MiB at
+** bucket (bucket_tris records, centroids and ids: 56 bytes each, 86 MiB at
 ** most by default), one batching point's arrays and BVH build, one proxy
 ** grid, the scatter buffers (16 MiB together) and one read chunk; plus the
 ** per-point tables (batch entries, boxes, the DAG) and, in pass A, what the
@@ -2086,7 +2085,6 @@ typedef struct scene_writer {
 
 typedef struct scene_builder {
     scene_writer w;
-    char spill_path[4096];      /* for messages: the file is already unlinked */
     int spill_fd;
     uint64_t spill_end;         /* records in the spill file */
     const volatile sig_atomic_t *interrupt;
@@ -2145,7 +2143,7 @@ static brt_result spill_write(scene_builder *b, const spill_record *recs, uint32
 {
     if (write_fully(b->spill_fd, recs, (size_t)n * sizeof *recs,
                     (int64_t)(first * sizeof *recs)) != 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", b->spill_path, strerror(errno));
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", b->w.path, strerror(errno));
     return BRT_OK;
 }
 
@@ -2153,7 +2151,7 @@ static brt_result spill_read(scene_builder *b, spill_record *recs, uint32_t n, u
                              brt_error *err)
 {
     return read_fully(b->spill_fd, recs, (size_t)n * sizeof *recs, first * sizeof *recs,
-                      pread_reader, NULL, NULL, b->spill_path, err);
+                      pread_reader, NULL, NULL, b->w.path, err);
 }
 
 /* Writes the buffered records at the end of the bucket's region. */
@@ -2241,20 +2239,27 @@ static void cell_frame_init(const bucket *bk, cell_frame *f)
     }
 }
 
+/* Spreads the low 10 bits of v to every third bit (bit i to bit 3i). */
+static uint32_t spread3(uint32_t v)
+{
+    v = (v | (v << 16)) & 0x030000FFu;
+    v = (v | (v << 8)) & 0x0300F00Fu;
+    v = (v | (v << 4)) & 0x030C30C3u;
+    return (v | (v << 2)) & 0x09249249u;
+}
+
 /* The Morton code of the cell (bits of x, y, z interleaved). */
 static uint32_t cell_of(const cell_frame *f, const spill_record *rec)
 {
     float c[3];
-    uint32_t q[3], code = 0;
-    int a, bit;
+    uint32_t q[3];
+    int a;
     centroid(rec, c);
     for (a = 0; a < 3; a++) {
         float x = (c[a] - f->lo[a]) * f->scale[a];
         q[a] = x > 0.0f ? (x < (float)(1u << f->bits) ? (uint32_t)x : (1u << f->bits) - 1) : 0;
     }
-    for (bit = 0; bit < f->bits; bit++)
-        for (a = 0; a < 3; a++) code |= ((q[a] >> bit) & 1u) << (3 * bit + a);
-    return code;
+    return spread3(q[0]) | spread3(q[1]) << 1 | spread3(q[2]) << 2;
 }
 
 typedef struct split_state {
@@ -2594,6 +2599,7 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
 {
     uint32_t cap = opt && opt->test_bucket_tris ? opt->test_bucket_tris
                                                  : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
+    char spill_path[4096];
     memset(b, 0, sizeof *b);
     b->spill_fd = b->w.fd = -1;
     b->w.path = scene_path;
@@ -2606,16 +2612,17 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->chunk = opt && opt->test_spill_chunk ? opt->test_spill_chunk : SPILL_CHUNK;
     if (is_special_file(scene_path))
         return brt_fail(err, BRT_EARG, "%s: not a regular file", scene_path);
-    if (snprintf(b->spill_path, sizeof b->spill_path, "%s.spill.%ld", scene_path,
-                 (long)getpid()) >= (int)sizeof b->spill_path)
+    if (snprintf(spill_path, sizeof spill_path, "%s.spill.%ld", scene_path,
+                 (long)getpid()) >= (int)sizeof spill_path)
         return brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
     if (!(b->read_buf = malloc((size_t)b->chunk * sizeof *b->read_buf)))
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
-    /* Unlinked at once: the descriptor keeps it, and nothing can leave it behind. */
-    b->spill_fd = open(b->spill_path, O_RDWR | O_CREAT | O_TRUNC, 0600);
+    /* Unlinked at once: the descriptor keeps it, and nothing can leave it
+    ** behind.  (Messages then name the scene: the spill file has no name.) */
+    b->spill_fd = open(spill_path, O_RDWR | O_CREAT | O_TRUNC, 0600);
     if (b->spill_fd < 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", b->spill_path, strerror(errno));
-    unlink(b->spill_path);
+        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", spill_path, strerror(errno));
+    unlink(spill_path);
     return BRT_OK;
 }
 
@@ -2934,7 +2941,7 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
                              int *rebuilt, brt_error *err)
 {
     uint64_t stamp;
-    brt_mesh mesh;
+    brt_triangle_source source;
     struct stat st;
     brt_result r = brt_scene_source_stamp(mesh_path, &stamp, err);
     *out = NULL;
@@ -2946,10 +2953,8 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
         brt_scene_close(*out);   /* stale: the mesh or the settings changed */
         *out = NULL;
     }
-    r = brt_mesh_load(mesh_path, &mesh, err);
-    if (r != BRT_OK) return r;
-    r = brt_scene_build(&mesh, opt, stamp, scene_path, err);
-    brt_mesh_free(&mesh);
+    brt_mesh_file_source(mesh_path, &source);   /* never the whole mesh in memory */
+    r = brt_scene_build_stream(&source, opt, stamp, scene_path, err);
     if (r != BRT_OK) return r;
     if (rebuilt) *rebuilt = 1;
     return brt_scene_open(scene_path, out, err);

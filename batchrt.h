@@ -178,9 +178,12 @@ typedef struct brt_triangle_source {
     const void *user;
 } brt_triangle_source;
 
-/* Streams a mesh file (OBJ or PLY, as brt_mesh_load) to emit.  Holds the
-** vertex positions of an indexed file (12 bytes per vertex) and one chunk,
-** never the triangles.  Errors as brt_mesh_load (with "no triangles"). */
+/* Streams a mesh file (OBJ or PLY, as brt_mesh_load) to emit in chunks of
+** 65536 triangles.  Holds the vertex positions of an indexed file (12 bytes
+** per vertex) and one chunk, never the triangles (except a PLY whose faces
+** come before its vertices: its index array, emitted after the vertices).
+** Errors as brt_mesh_load (with "no triangles"), possibly after chunks
+** were emitted. */
 brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit,
                            void *emit_user, brt_error *err);
 
@@ -538,7 +541,8 @@ int brt_scene_matches(const brt_scene *scene, uint64_t source_stamp,
                       const brt_scene_options *opt);
 
 /* Opens scene_path when it matches mesh_path and opt; otherwise (missing
-** or stale) loads the mesh, builds the scene file and opens it.  A corrupt
+** or stale) builds the scene file from the mesh file streamed (never held
+** whole) and opens it.  A corrupt
 ** or wrong-version file is an error, not silently replaced.  *rebuilt
 ** tells which happened (may be NULL). */
 brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,

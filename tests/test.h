@@ -62,5 +62,6 @@ void suite_scenes(void);
 void suite_render(void);
 void suite_embree(void);
 void suite_hardening(void);
+void suite_build(void);
 
 #endif
