@@ -106,34 +106,8 @@ const char *ex_option_value(const char *prog, int argc, char **argv, int *i)
 }
 
 /* ===================================================================== */
-/* Scene files and meshes                                                */
+/* Meshes held whole                                                     */
 /* ===================================================================== */
-
-brt_scene *ex_scene_prepare(const char *prog, const brt_triangle_source *source,
-                            uint64_t stamp, const char *path, const brt_scene_options *opt,
-                            int replace_unreadable, int *rebuilt)
-{
-    brt_scene *scene = NULL;
-    brt_error err;
-    brt_result r;
-    struct stat st;
-    *rebuilt = 0;
-    if (stat(path, &st) == 0) {
-        r = brt_scene_open(path, &scene, &err);
-        if (r == BRT_OK && brt_scene_matches(scene, stamp, opt)) return scene;
-        if (r != BRT_OK && !replace_unreadable) ex_check(prog, r, &err);
-        brt_scene_close(scene);   /* stale: the source or the settings changed */
-    }
-    *rebuilt = 1;
-    ex_progress("building scene", 0, 1);
-    r = brt_scene_build_stream(source, opt, stamp, path, &err);
-    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
-    ex_check(prog, r, &err);
-    ex_progress("building scene", 1, 1);
-    ex_progress_end();
-    ex_check(prog, brt_scene_open(path, &scene, &err), &err);
-    return scene;
-}
 
 uint64_t ex_mesh_bytes(const brt_mesh *mesh)
 {

@@ -51,18 +51,6 @@ void ex_scene_folder(const char *prog, char *dir, size_t size);
 void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tris,
                            uint32_t res, char *path, size_t size);
 
-/* The scene file at path, opened when it was built from stamp with opt
-** (brt_scene_matches); otherwise built from source with
-** brt_scene_build_stream -- the triangles stream through, the mesh is
-** never held -- and opened.  A file there that does not open (corrupt,
-** another format version) is an error, unless replace_unreadable (a
-** program's own cache of built-in scenes).  Dies on error, and with
-** ex_die_interrupted when the build was interrupted (opt->interrupt).
-** *rebuilt tells whether it was built. */
-brt_scene *ex_scene_prepare(const char *prog, const brt_triangle_source *source,
-                            uint64_t stamp, const char *path, const brt_scene_options *opt,
-                            int replace_unreadable, int *rebuilt);
-
 /* The bytes an indexed mesh holds in memory (positions and indices), and
 ** a note on stderr when they exceed a nonzero memory limit: a run that
 ** holds the whole mesh (--direct) says so, since the limit then does not

@@ -542,6 +542,37 @@ static void builtin_scene_path(const options *o, char *path, size_t size)
         ex_die(prog, "%s: scene path too long", dir);
 }
 
+/* The scene file at path, opened when it was built from stamp with sopt
+** (brt_scene_matches); otherwise built from source with
+** brt_scene_build_stream and opened.  A file there that does not open
+** (corrupt, another format version) is an error, as in brt_scene_prepare,
+** unless replace_unreadable (render's own cache of built-in scenes). */
+static brt_scene *prepare_scene(const brt_triangle_source *source, uint64_t stamp,
+                                const char *path, const brt_scene_options *sopt,
+                                int replace_unreadable, int *rebuilt)
+{
+    brt_scene *scene = NULL;
+    brt_error err;
+    brt_result r;
+    struct stat st;
+    *rebuilt = 0;
+    if (stat(path, &st) == 0) {
+        r = brt_scene_open(path, &scene, &err);
+        if (r == BRT_OK && brt_scene_matches(scene, stamp, sopt)) return scene;
+        if (r != BRT_OK && !replace_unreadable) ex_check(prog, r, &err);
+        brt_scene_close(scene);   /* stale: the source or the settings changed */
+    }
+    *rebuilt = 1;
+    ex_progress("building scene", 0, 1);
+    r = brt_scene_build_stream(source, sopt, stamp, path, &err);
+    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
+    ex_check(prog, r, &err);
+    ex_progress("building scene", 1, 1);
+    ex_progress_end();
+    ex_check(prog, brt_scene_open(path, &scene, &err), &err);
+    return scene;
+}
+
 /* The scene file: reused when it matches the input (a mesh file's stamp,
 ** or a built-in scene's recipe), else built from a triangle stream -- the
 ** mesh file read, or the built-in scene made, as the build consumes it. */
@@ -576,7 +607,7 @@ static brt_scene *open_scene(const options *o, const volatile sig_atomic_t *inte
     }
     /* The folder of built-in scene files is render's own cache: a file
     ** there that does not open is replaced, not reported. */
-    scene = ex_scene_prepare(prog, &source, stamp, path, &sopt, builtin, &rebuilt);
+    scene = prepare_scene(&source, stamp, path, &sopt, builtin, &rebuilt);
     *build_seconds = rebuilt ? brt_seconds() - start : 0.0;
     return scene;
 }

@@ -148,19 +148,18 @@ static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count
 }
 
 /* Batched mode: the scene file (reused, or built from the mesh file as a
-** stream), then the scheduler. */
+** stream by brt_scene_prepare), then the scheduler. */
 static void trace_batched(const trace_options *o, const brt_ray *rays, size_t count,
                           brt_hit *hits, brt_stats *stats)
 {
     brt_scene_options scene_opt;
     brt_trace_options trace_opt;
-    brt_triangle_source source;
     brt_scene *scene;
     brt_error err;
     char default_path[4096];
     const char *path = o->scene;
     double start = brt_seconds();
-    uint64_t stamp;
+    brt_result r;
     int rebuilt;
     memset(&scene_opt, 0, sizeof scene_opt);
     scene_opt.batch_tris = (uint32_t)o->batch_tris;
@@ -173,9 +172,10 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     }
     if (o->rebuild && unlink(path) != 0 && errno != ENOENT)
         ex_die(prog, "%s: cannot remove: %s", path, strerror(errno));
-    ex_check(prog, brt_scene_source_stamp(o->mesh, &stamp, &err), &err);
-    brt_mesh_file_source(o->mesh, &source);
-    scene = ex_scene_prepare(prog, &source, stamp, path, &scene_opt, 0, &rebuilt);
+    ex_progress("preparing scene", 0, 1);
+    r = brt_scene_prepare(o->mesh, path, &scene_opt, &scene, &rebuilt, &err);
+    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
+    ex_check(prog, r, &err);
     memset(&trace_opt, 0, sizeof trace_opt);
     trace_opt.memory_limit = o->memory;
     trace_opt.no_proxy = o->no_proxy;
