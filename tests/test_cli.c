@@ -863,6 +863,29 @@ static void test_batched_needs_no_mesh(void)
            "trace --direct accepted the garbled mesh: the test proves nothing");
 }
 
+/* --direct holds the whole mesh: when it is larger than the --memory given,
+** trace and render say so in one line and go on (exit 0, same hits). */
+static void test_direct_notes_memory(void)
+{
+    static const char *const runs[] = {
+        "trace @/note.ply @/note.rays @/note.hits --memory 1K",
+        "render @/note.ply --direct --memory 1K --width 8 --height 8 --spp 1 --out @/note.png",
+        "trace @/note.ply @/note.rays @/note.hits --memory 1G",   /* fits: no note */
+    };
+    size_t i;
+    CHECK(tu_run("mkscene crown @/note.ply --scale 0.01") == 0, "mkscene failed");
+    CHECK(tu_run("raygen @/note.ply @/note.rays --kind random --count 10") == 0, "raygen failed");
+    for (i = 0; i < 3; i++) {
+        int status = tu_run("%s", runs[i]);
+        char *err = tu_last_stderr();
+        int noted = err && strstr(err, "note: the direct run holds the whole mesh in memory")
+                    && strchr(err, '\n') == err + strlen(err) - 1;
+        EXPECT(status == 0 && (i < 2 ? noted : err && err[0] == 0),
+               "'%s': exit %d, stderr '%s'", runs[i], status, err ? err : "(none)");
+        free(err);
+    }
+}
+
 /* Every program's statistics carry the process's peak resident memory. */
 static void test_peak_rss_in_statistics(void)
 {
@@ -1033,6 +1056,7 @@ void suite_cli(void)
     test_run("cli: PNG decodes with an independent decoder", test_png);
     test_run("cli: PNG write", test_png_write);
     test_run("cli: batched runs need no mesh once the scene file matches", test_batched_needs_no_mesh);
+    test_run("cli: --direct says when the mesh exceeds --memory", test_direct_notes_memory);
     test_run("cli: peak_rss_bytes in every program's statistics", test_peak_rss_in_statistics);
     test_run("cli: SIGINT and SIGTERM leave no temporary file", test_interrupts_leave_nothing);
     test_run("cli: trace --batched equals --direct on every built-in scene",
