@@ -2621,10 +2621,10 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     if (!(b->read_buf = malloc((size_t)b->chunk * sizeof *b->read_buf)))
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
     /* Unlinked at once: the descriptor keeps it, and nothing can leave it
-    ** behind.  (Messages then name the scene: the spill file has no name.) */
+    ** behind.  (Messages name the scene, as for the scene's own file.) */
     b->spill_fd = open(spill_path, O_RDWR | O_CREAT | O_TRUNC, 0600);
     if (b->spill_fd < 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", spill_path, strerror(errno));
+        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
     unlink(spill_path);
     return BRT_OK;
 }
