@@ -2013,7 +2013,10 @@ static brt_result write_at(int fd, const void *data, size_t size, uint64_t offse
 **           per child.  Children larger than a bucket are split again; a
 **           run whose records all fall in one cell (equal centroids, or
 **           bounds that overflow) is cut in record order instead, so every
-**           split makes progress.  Records keep stream order in every
+**           split makes progress.  A child larger than a bucket is one
+**           cell, whose centroids span at most 1/128 of its parent's extent
+**           per axis, so within about 40 levels (floats span 2^277) a run
+**           is small enough or flat.  Records keep stream order in every
 **           region, so the number order of a bucket is its record order.
 **   build   a bucket is read whole and split in memory by the median
 **           splits above into batching points of at most batch_tris
@@ -2618,10 +2621,10 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     if (!(b->read_buf = malloc((size_t)b->chunk * sizeof *b->read_buf)))
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
     /* Unlinked at once: the descriptor keeps it, and nothing can leave it
-    ** behind.  (Messages then name the scene: the spill file has no name.) */
+    ** behind.  (Messages name the scene, as for the scene's own file.) */
     b->spill_fd = open(spill_path, O_RDWR | O_CREAT | O_TRUNC, 0600);
     if (b->spill_fd < 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", spill_path, strerror(errno));
+        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
     unlink(spill_path);
     return BRT_OK;
 }
