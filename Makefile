@@ -245,6 +245,84 @@ bench-render: all
 	done
 # == END RENDER ===========================================================
 
+# == SCALE (out of core from end to end; not part of CI) ==================
+# bench-scale: an OBJ of SCALE_OBJ * 100K triangles written by mkscene and
+# its scene file built by trace --batched (a mesh file: the build holds its
+# vertex positions), the built-in landscape at SCALE_LAND * 100K triangles
+# whose scene file render builds straight from the generator, then a render
+# of that landscape at 640x360, 16 spp, --memory SCALE_MEMORY.  Prints time,
+# disk and peak RSS of each step and checks the README's two statements
+# ("Out of core from end to end"): a build peaks at no more than 256 MiB +
+# 12 B per vertex of an indexed input + the DAG; a render at no more than
+# its limit + 200 B per path in flight + 512 B per batching point + 40 B
+# per pixel + 16 MiB.  Exit status 1 when a statement fails.  The files
+# (about 60 B per triangle of scene file, and the OBJ) go to SCALE_DIR and
+# are removed at the end unless SCALE_KEEP=1.
+SCALE_LAND   ?= 1000
+SCALE_OBJ    ?= 200
+SCALE_MEMORY ?= 1G
+SCALE_BATCH  ?= 100000
+SCALE_DIR    ?= /tmp/batchrt-bench-scale
+SCALE_KEEP   ?= 0
+.PHONY: bench-scale
+bench-scale: all
+	@set -e; d=$(SCALE_DIR); b=./$(BUILD); mkdir -p $$d; \
+	num() { sed -n "s/.*\"$$2\": *\([0-9.eE+-]*\).*/\1/p" $$1; }; \
+	mib() { awk -v x=$$1 'BEGIN { printf "%.1f MiB", x / 1048576 }'; }; \
+	cpu() { out=$$1; shift; if [ -x /usr/bin/time ]; then /usr/bin/time -f "%U %S" -o $$out "$$@"; \
+	  else "$$@"; echo "0 0" > $$out; fi; }; \
+	speed() { awk -v t=$$1 -v s=$$2 -v c="$$(cat $$3)" 'BEGIN { split(c, u, " "); \
+	  printf "build %.1f s wall (%.2f M triangles/s), %.1f s CPU (%.2f M triangles/s)", \
+	    s, t / s / 1e6, u[1] + u[2], t / (u[1] + u[2] + 1e-9) / 1e6 }'; }; \
+	check() { if awk -v what="$$1" -v peak=$$2 -v bound=$$3 'BEGIN { \
+	  printf "  %s: peak RSS %.1f MiB <= bound %.1f MiB: %s\n", what, peak / 1048576, \
+	    bound / 1048576, peak <= bound ? "holds" : "VIOLATED"; exit peak > bound }'; \
+	  then return 0; else fail=1; return 1; fi; }; \
+	fail=0; df -h $$d | tail -1; \
+	head -c 32 /dev/zero > $$d/one.rays; \
+	echo "== mkscene landscape --scale $(SCALE_OBJ) big.obj"; \
+	$$b/mkscene landscape $$d/big.obj --scale $(SCALE_OBJ) | tee $$d/mkscene.txt; \
+	tris=$$(sed -n 's/^landscape: \([0-9]*\) triangles.*/\1/p' $$d/mkscene.txt); \
+	verts=$$(sed -n 's/.* \([0-9]*\) vertices.*/\1/p' $$d/mkscene.txt); \
+	echo "  file $$(stat -c %s $$d/big.obj) bytes"; \
+	echo "== trace big.obj --batched: the scene file from the OBJ"; rm -f $$d/obj.brs; \
+	cpu $$d/obj.cpu $$b/trace $$d/big.obj $$d/one.rays $$d/one.hits --batched --batch-tris $(SCALE_BATCH) \
+	  --scene $$d/obj.brs --stats $$d/obj.json; \
+	echo "  $$tris triangles, $$verts vertices: $$(speed $$tris $$(num $$d/obj.json build_seconds) $$d/obj.cpu),"\
+	  "scene file $$(stat -c %s $$d/obj.brs) bytes"; \
+	check "build from the OBJ" $$(num $$d/obj.json peak_rss_bytes) $$(awk -v v=$$verts \
+	  -v dag=$$(num $$d/obj.json proxy_bytes) 'BEGIN { printf "%.0f", 256 * 1048576 + 12 * v + dag }') || :; \
+	rm -f $$d/big.obj $$d/obj.brs; \
+	echo "== render landscape --scale $(SCALE_LAND): the scene file from the generator"; \
+	rm -f $$d/land.brs; \
+	cpu $$d/land.cpu $$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) --width 1 --height 1 \
+	  --spp 1 --scene $$d/land.brs \
+	  --out $$d/one.png --stats $$d/land-build.json | tee $$d/land.txt; \
+	tris=$$(sed -n 's/^landscape: \([0-9]*\) triangles.*/\1/p' $$d/land.txt); \
+	echo "  $$tris triangles: $$(speed $$tris $$(num $$d/land-build.json build_seconds) $$d/land.cpu),"\
+	  "scene file $$(stat -c %s $$d/land.brs) bytes"; \
+	check "build from the generator" $$(num $$d/land-build.json peak_rss_bytes) \
+	  $$(awk -v dag=$$(num $$d/land-build.json proxy_bytes) 'BEGIN { printf "%.0f", 256 * 1048576 + dag }') || :; \
+	echo "== render landscape --scale $(SCALE_LAND) 640x360, 16 spp, --memory $(SCALE_MEMORY)"; \
+	render="$$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) --width 640 \
+	  --height 360 --spp 16 --memory $(SCALE_MEMORY) --scene $$d/land.brs --out $$d/land.png"; \
+	$$render --stats $$d/render.json; \
+	j=$$d/render.json; \
+	echo "  $$(awk -v s=$$(num $$j seconds) 'BEGIN { printf "%.1f", s }') s, read $$(mib $$(num $$j disk_bytes_read)) in $$(num $$j batch_loads) loads,"\
+	  "$$(num $$j batching_points) batching points, DAG $$(mib $$(num $$j proxy_bytes)),"\
+	  "$$(num $$j paths_in_flight) paths in flight"; \
+	bound=$$(awk -v l=$$(num $$j memory_limit) -v p=$$(num $$j paths_in_flight) \
+	  -v n=$$(num $$j batching_points) \
+	  'BEGIN { printf "%.0f", l + 200 * p + 512 * n + 40 * 640 * 360 + 16 * 1048576 }'); \
+	check "render" $$(num $$j peak_rss_bytes) $$bound || { \
+	  echo "  diagnosis: the same render with evicted blobs returned to the system (glibc)"; \
+	  MALLOC_MMAP_THRESHOLD_=131072 $$render --stats $$d/render-mmap.json > /dev/null; \
+	  check "render, MALLOC_MMAP_THRESHOLD_=131072" $$(num $$d/render-mmap.json peak_rss_bytes) \
+	    $$bound || :; }; \
+	if [ "$(SCALE_KEEP)" != 1 ]; then rm -f $$d/land.brs; fi; \
+	exit $$fail
+# == END SCALE ============================================================
+
 clean:
 	rm -rf build
 

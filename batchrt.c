@@ -171,8 +171,22 @@ brt_result brt_write_file_atomic(const char *path, const void *data,
 ** a memory buffer or a file read in 1 MiB chunks; the unread tail of a chunk
 ** (a partial line or record) is carried over to the front of the buffer
 ** before the next read.  So brt_mesh_load and brt_mesh_parse_* run the same
-** code, and a 10-million-triangle file never has its text in memory twice:
-** only the chunk, the vertex array and the index array.
+** code, and a 10-million-triangle file never has its text in memory twice.
+**
+** One parser, two destinations for its triangles (add_triangle):
+**  - collect (brt_mesh_load, brt_mesh_parse_*): the index array grows, and
+**    the result is an indexed mesh with the file's vertex indices;
+**  - stream (brt_mesh_stream): each triangle's corners are looked up at
+**    once and appended to a chunk of STREAM_CHUNK triangles that is handed
+**    to the consumer when full.  Only the vertex positions (12 bytes per
+**    vertex), the read buffer and one chunk are held, never the indices.
+**    An OBJ face may only use vertices defined before it, so its corners
+**    are always known.  A PLY file may (legally, rarely) put its faces
+**    before its vertices; from the first triangle whose vertex is not read
+**    yet, the stream collects indices instead and emits those triangles
+**    after the last element (numbering unchanged): such a file costs its
+**    index array, as with brt_mesh_load.
+** Both give the same triangles, numbers and messages.
 **
 ** Limits and decisions, written down because users depend on them:
 **  - Zero triangles is an error ("no triangles"): every program needs some.
@@ -217,8 +231,16 @@ typedef struct parser {
     /* the mesh under construction */
     float *positions;
     size_t vertex_count, vertex_cap;
+    size_t triangle_count;      /* triangles numbered so far */
+    /* collected triangles: the last indexed_count numbered */
     uint32_t *indices;
-    size_t triangle_count, triangle_cap;
+    size_t indexed_count, indexed_cap;
+    /* streaming (emit != NULL): the chunk of corners not yet emitted */
+    brt_triangle_fn emit;
+    void *emit_user;
+    float *chunk;
+    uint32_t chunk_count;
+    int deferring;              /* a vertex was missing: collect from now on */
     /* the polygon being read, as 0-based vertex indices */
     uint32_t *polygon;
     size_t polygon_count, polygon_cap;
@@ -353,27 +375,72 @@ static brt_result add_corner(parser *p, uint32_t vertex)
     return BRT_OK;
 }
 
+#define STREAM_CHUNK 65536u   /* triangles per emitted chunk (2.25 MiB) */
+
+/* Hands the chunk to the consumer; its triangles are the last numbered. */
+static brt_result flush_chunk(parser *p)
+{
+    uint32_t n = p->chunk_count;
+    p->chunk_count = 0;
+    if (n == 0) return BRT_OK;
+    return p->emit(p->emit_user, p->chunk, n, (uint32_t)(p->triangle_count - n), p->err);
+}
+
+/* Streams the triangle when its corners are known (see the section's
+** comment); 0 when it is to be collected instead. */
+static int stream_triangle(parser *p, const uint32_t v[3], brt_result *rc)
+{
+    int c;
+    if (!p->emit || p->deferring) return 0;
+    if (v[0] >= p->vertex_count || v[1] >= p->vertex_count || v[2] >= p->vertex_count) {
+        p->deferring = 1;
+        *rc = flush_chunk(p);
+        return *rc != BRT_OK;
+    }
+    if (!p->chunk && !(p->chunk = malloc((size_t)STREAM_CHUNK * 9 * sizeof *p->chunk))) {
+        *rc = parse_fail(p, BRT_ENOMEM, "out of memory");
+        return 1;
+    }
+    for (c = 0; c < 3; c++)
+        memcpy(p->chunk + 9 * (size_t)p->chunk_count + 3 * c, p->positions + 3 * (size_t)v[c],
+               3 * sizeof(float));
+    p->triangle_count++;
+    *rc = ++p->chunk_count == STREAM_CHUNK ? flush_chunk(p) : BRT_OK;
+    return 1;
+}
+
+/* The next triangle in file order: streamed or collected. */
+static brt_result add_triangle(parser *p, const uint32_t v[3])
+{
+    brt_result rc = BRT_OK;
+    if (stream_triangle(p, v, &rc)) return rc;
+    if (p->indexed_count == p->indexed_cap) {
+        void *bigger = grow(p->indices, &p->indexed_cap, p->indexed_count + 1, 3 * sizeof(uint32_t));
+        if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
+        p->indices = bigger;
+    }
+    memcpy(p->indices + 3 * p->indexed_count++, v, 3 * sizeof(uint32_t));
+    p->triangle_count++;
+    return BRT_OK;
+}
+
 /* Ends the polygon being read: the fan (a,b,c), (a,c,d), ... of design.md. */
 static brt_result end_polygon(parser *p)
 {
     size_t n = p->polygon_count, k;
+    brt_result rc = BRT_OK;
     p->polygon_count = 0;
     if (n < 3) return parse_fail(p, BRT_EPARSE, "face with fewer than 3 vertices (%zu)", n);
     if (n - 2 > MAX_COUNT - p->triangle_count)
         return parse_fail(p, BRT_EPARSE, "too many triangles");
-    if (p->triangle_count + n - 2 > p->triangle_cap) {
-        void *bigger = grow(p->indices, &p->triangle_cap, p->triangle_count + n - 2,
-                            3 * sizeof(uint32_t));
-        if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
-        p->indices = bigger;
-    }
-    for (k = 1; k + 1 < n; k++) {
-        uint32_t *tri = p->indices + 3 * p->triangle_count++;
+    for (k = 1; k + 1 < n && rc == BRT_OK; k++) {
+        uint32_t tri[3];
         tri[0] = p->polygon[0];
         tri[1] = p->polygon[k];
         tri[2] = p->polygon[k + 1];
+        rc = add_triangle(p, tri);
     }
-    return BRT_OK;
+    return rc;
 }
 
 /* ---- tokens and numbers ----------------------------------------------- */
@@ -995,19 +1062,59 @@ static void *shrink(void *items, size_t bytes)
     return smaller ? smaller : items;
 }
 
-static brt_result parse_mesh(parser *p, int format, brt_mesh *mesh)
+/* Hands count triangles of an indexed mesh to emit in chunks of
+** STREAM_CHUNK, numbered from number (the memory source, and a PLY
+** stream's collected tail). */
+static brt_result emit_indexed(const float *positions, const uint32_t *indices, size_t count,
+                               size_t number, brt_triangle_fn emit, void *emit_user,
+                               brt_error *err)
+{
+    float *corners;
+    size_t done = 0;
+    brt_result r = BRT_OK;
+    if (count == 0) return BRT_OK;
+    corners = malloc((size_t)STREAM_CHUNK * 9 * sizeof *corners);
+    if (!corners) return brt_fail(err, BRT_ENOMEM, "out of memory");
+    while (done < count && r == BRT_OK) {
+        uint32_t n = count - done < STREAM_CHUNK ? (uint32_t)(count - done) : STREAM_CHUNK, i;
+        int c;
+        for (i = 0; i < n; i++)
+            for (c = 0; c < 3; c++)
+                memcpy(corners + 9 * (size_t)i + 3 * c,
+                       positions + 3 * (size_t)indices[3 * (done + i) + (size_t)c], 3 * sizeof(float));
+        r = emit(emit_user, corners, n, (uint32_t)(number + done), err);
+        done += n;
+    }
+    free(corners);
+    return r;
+}
+
+/* Runs the parser over the whole input; a stream's last chunk and its
+** collected tail are emitted before "no triangles" is decided. */
+static brt_result parse_input(parser *p, int format)
 {
     brt_result rc = reader_fill(p, 5);
-    memset(mesh, 0, sizeof *mesh);
     if (rc == BRT_OK) {
         if (format == FORMAT_BY_CONTENT) format = has_ply_magic(&p->in) ? FORMAT_PLY : FORMAT_OBJ;
         rc = format == FORMAT_PLY ? ply_parse(p) : obj_parse(p);
     }
+    if (rc == BRT_OK && p->emit) rc = flush_chunk(p);
+    if (rc == BRT_OK && p->emit)
+        rc = emit_indexed(p->positions, p->indices, p->indexed_count,
+                          p->triangle_count - p->indexed_count, p->emit, p->emit_user, p->err);
     if (rc == BRT_OK && p->triangle_count == 0) {
         p->where = WHERE_NONE;
         rc = parse_fail(p, BRT_EPARSE, "no triangles");
     }
     free(p->polygon);
+    free(p->chunk);
+    return rc;
+}
+
+static brt_result parse_mesh(parser *p, int format, brt_mesh *mesh)
+{
+    brt_result rc = parse_input(p, format);
+    memset(mesh, 0, sizeof *mesh);
     if (rc != BRT_OK) {
         free(p->positions);
         free(p->indices);
@@ -1043,24 +1150,51 @@ brt_result brt_mesh_parse_ply(const char *name, const void *data, size_t size,
     return parse_memory(name, data, size, FORMAT_PLY, mesh, err);
 }
 
+/* Opens path for the parser with a READ_CHUNK buffer. */
+static brt_result parser_open(parser *p, const char *path, brt_error *err)
+{
+    parser_init(p, path, err);
+    p->in.fd = open(path, O_RDONLY);
+    if (p->in.fd < 0) return brt_fail(err, BRT_EIO, "%s: cannot open: %s", path, strerror(errno));
+    p->in.owned = malloc(READ_CHUNK);
+    if (!p->in.owned) {
+        close(p->in.fd);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", path);
+    }
+    p->in.data = p->in.owned;
+    p->in.cap = READ_CHUNK;
+    return BRT_OK;
+}
+
+static void parser_close(parser *p)
+{
+    free(p->in.owned);
+    close(p->in.fd);
+}
+
 brt_result brt_mesh_load(const char *path, brt_mesh *mesh, brt_error *err)
 {
     parser p;
     brt_result rc;
     memset(mesh, 0, sizeof *mesh);
-    parser_init(&p, path, err);
-    p.in.fd = open(path, O_RDONLY);
-    if (p.in.fd < 0) return brt_fail(err, BRT_EIO, "%s: cannot open: %s", path, strerror(errno));
-    p.in.owned = malloc(READ_CHUNK);
-    if (!p.in.owned) {
-        close(p.in.fd);
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", path);
-    }
-    p.in.data = p.in.owned;
-    p.in.cap = READ_CHUNK;
+    if ((rc = parser_open(&p, path, err)) != BRT_OK) return rc;
     rc = parse_mesh(&p, FORMAT_BY_CONTENT, mesh);
-    free(p.in.owned);
-    close(p.in.fd);
+    parser_close(&p);
+    return rc;
+}
+
+brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit, void *emit_user,
+                           brt_error *err)
+{
+    parser p;
+    brt_result rc;
+    if ((rc = parser_open(&p, path, err)) != BRT_OK) return rc;
+    p.emit = emit;
+    p.emit_user = emit_user;
+    rc = parse_input(&p, FORMAT_BY_CONTENT);
+    free(p.positions);
+    free(p.indices);
+    parser_close(&p);
     return rc;
 }
 
@@ -1088,47 +1222,7 @@ void brt_mesh_bounds(const brt_mesh *mesh, float bmin[3], float bmax[3])
     }
 }
 
-/* ---- triangle streams ------------------------------------------------- */
-/*
-** FIRST CUT (interface only): brt_mesh_stream still loads the whole mesh
-** and then emits it, and brt_scene_build_stream collects the stream into a
-** mesh.  The bounded-memory versions replace both.
-*/
-#define STREAM_CHUNK 65536u
-
-static brt_result mesh_emit(const brt_mesh *mesh, brt_triangle_fn emit, void *emit_user,
-                            brt_error *err)
-{
-    float *corners = malloc((size_t)STREAM_CHUNK * 9 * sizeof *corners);
-    uint32_t first = 0;
-    brt_result r = BRT_OK;
-    if (!corners) return brt_fail(err, BRT_ENOMEM, "out of memory");
-    while (first < mesh->triangle_count && r == BRT_OK) {
-        uint32_t n = mesh->triangle_count - first, i;
-        int c;
-        if (n > STREAM_CHUNK) n = STREAM_CHUNK;
-        for (i = 0; i < n; i++)
-            for (c = 0; c < 3; c++)
-                memcpy(corners + 9 * (size_t)i + 3 * c,
-                       mesh->positions + 3 * (size_t)mesh->indices[3 * (size_t)(first + i) + c],
-                       3 * sizeof(float));
-        r = emit(emit_user, corners, n, first, err);
-        first += n;
-    }
-    free(corners);
-    return r;
-}
-
-brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit, void *emit_user,
-                           brt_error *err)
-{
-    brt_mesh mesh;
-    brt_result r = brt_mesh_load(path, &mesh, err);
-    if (r != BRT_OK) return r;
-    r = mesh_emit(&mesh, emit, emit_user, err);
-    brt_mesh_free(&mesh);
-    return r;
-}
+/* ---- triangle sources ------------------------------------------------- */
 
 static brt_result file_source_run(const void *user, brt_triangle_fn emit, void *emit_user,
                                   brt_error *err)
@@ -1139,7 +1233,9 @@ static brt_result file_source_run(const void *user, brt_triangle_fn emit, void *
 static brt_result memory_source_run(const void *user, brt_triangle_fn emit, void *emit_user,
                                     brt_error *err)
 {
-    return mesh_emit((const brt_mesh *)user, emit, emit_user, err);
+    const brt_mesh *mesh = user;
+    return emit_indexed(mesh->positions, mesh->indices, mesh->triangle_count, 0, emit,
+                        emit_user, err);
 }
 
 void brt_mesh_file_source(const char *path, brt_triangle_source *source)
@@ -1449,7 +1545,8 @@ typedef struct batch_range {
 } batch_range;
 
 typedef struct partition {
-    uint32_t *order;              /* triangle ids, batching point by batching point */
+    uint32_t *order;              /* triangle ids, batching point by batching point
+                                  ** (the caller's array) */
     batch_range *ranges;
     uint32_t count, capacity;
 } partition;
@@ -1486,42 +1583,6 @@ static brt_result partition_split(partition *p, const float *centroids, uint32_t
     r = partition_split(p, centroids, first, k, batch_tris);
     if (r == BRT_OK) r = partition_split(p, centroids, first + k, count - k, batch_tris);
     return r;
-}
-
-static void triangle_vertex(const brt_mesh *m, uint32_t tri, int corner, float out[3])
-{
-    memcpy(out, m->positions + 3 * (size_t)m->indices[3 * (size_t)tri + corner], 3 * sizeof(float));
-}
-
-static brt_result partition_mesh(const brt_mesh *mesh, uint32_t batch_tris, partition *p)
-{
-    uint32_t n = mesh->triangle_count, t;
-    float *centroids = malloc(3 * (size_t)n * sizeof *centroids);
-    brt_result r;
-    memset(p, 0, sizeof *p);
-    p->order = malloc((size_t)n * sizeof *p->order);
-    if (!centroids || !p->order) {
-        free(centroids);
-        return BRT_ENOMEM;
-    }
-    for (t = 0; t < n; t++) {
-        float v[3][3];
-        int a;
-        triangle_vertex(mesh, t, 0, v[0]);
-        triangle_vertex(mesh, t, 1, v[1]);
-        triangle_vertex(mesh, t, 2, v[2]);
-        for (a = 0; a < 3; a++) centroids[3 * (size_t)t + a] = (v[0][a] + v[1][a] + v[2][a]) / 3.0f;
-        p->order[t] = t;
-    }
-    r = partition_split(p, centroids, 0, n, batch_tris);
-    free(centroids);
-    return r;
-}
-
-static void partition_free(partition *p)
-{
-    free(p->order);
-    free(p->ranges);
 }
 
 /* ---- the top-level BVH over batching points and its restartable walk -- */
@@ -1931,7 +1992,79 @@ static brt_result write_at(int fd, const void *data, size_t size, uint64_t offse
     return BRT_OK;
 }
 
-/* ---- building a scene file ------------------------------------------ */
+/* ---- building a scene file out of core ------------------------------- */
+/*
+** The build never holds the triangles: it spills them to a temporary file
+** and works through it in buckets of at most bucket_tris triangles.
+**
+**   pass A  runs the triangle source once: each triangle becomes a 40-byte
+**           record (its 9 floats and its number) appended to the spill
+**           file in stream order, and the bounds of the centroids grow.
+**           (One run: parsing an OBJ costs far more than reading 40 bytes
+**           per triangle back, so the source is not run again.)
+**   split   a run of records larger than a bucket is split spatially: a
+**           histogram of its centroids over 2^21 Morton cells (7 bits per
+**           axis of its own centroid bounds) is counted in one read, cells
+**           are packed in Morton order into children of at most
+**           bucket_tris triangles (a cell with more is a child on its own),
+**           and a second read scatters each record to its child's region,
+**           appended to the spill file (the counts give every region its
+**           place, so no chunk lists are needed), through one write buffer
+**           per child.  Children larger than a bucket are split again; a
+**           run whose records all fall in one cell (equal centroids, or
+**           bounds that overflow) is cut in record order instead, so every
+**           split makes progress.  A child larger than a bucket is one
+**           cell, whose centroids span at most 1/128 of its parent's extent
+**           per axis, so within about 40 levels (floats span 2^277) a run
+**           is small enough or flat.  Records keep stream order in every
+**           region, so the number order of a bucket is its record order.
+**   build   a bucket is read whole and split in memory by the median
+**           splits above into batching points of at most batch_tris
+**           triangles; each gets its BVH blob, written at the next page of
+**           the scene file, its proxy in the shared DAG, and a table entry.
+**           A mesh that fits one bucket is partitioned exactly as a whole
+**           in-memory median split would (the same file as before).
+**   tables  the top-level BVH, the batch table and the DAG, then the header
+**           (format unchanged).
+**
+** Held in memory, whatever the triangle count: the histogram (8 MiB), one
+** bucket (bucket_tris records, centroids and ids: 56 bytes each, 86 MiB at
+** most by default), one batching point's arrays and BVH build, one proxy
+** grid, the scatter buffers (16 MiB together) and one read chunk; plus the
+** per-point tables (batch entries, boxes, the DAG) and, in pass A, what the
+** source holds (a mesh file's vertex positions).  The spill file takes 40
+** bytes per triangle for pass A and 40 more per split level (usually one).
+** It is unlinked as soon as it is created, so it disappears with its
+** descriptor on success, on failure, on interrupt and if the process dies.
+** The interrupt flag is polled once per chunk and per batching point.
+*/
+#define CELL_BITS 7                                 /* per axis */
+#define CELL_COUNT (1u << (3 * CELL_BITS))          /* Morton cells of a split */
+#define NO_CHILD 0xFFFFFFFFu
+#define BUCKET_BYTES ((size_t)64 << 20)             /* records of one bucket */
+#define SCATTER_BYTES ((size_t)16 << 20)            /* all write buffers of a split */
+#define SPILL_CHUNK 16384u                          /* records per read and buffer */
+
+typedef struct spill_record {
+    float v[9];                 /* the corners v0, v1, v2 */
+    uint32_t prim;              /* the triangle's number */
+} spill_record;
+
+typedef char spill_record_has_no_padding[sizeof(spill_record) == 40 ? 1 : -1];
+
+/* A run of records in the spill file and the bounds of their centroids. */
+typedef struct bucket {
+    uint64_t first;             /* index of its first record */
+    uint32_t count;
+    float lo[3], hi[3];
+} bucket;
+
+/* A bucket being written: records go through buf (cap of them). */
+typedef struct spill_out {
+    bucket b;                   /* count: records written or buffered */
+    spill_record *buf;
+    uint32_t held, cap;
+} spill_out;
 
 static void scene_options_resolve(const brt_scene_options *opt, uint32_t *batch_tris,
                                   uint32_t *res)
@@ -1942,83 +2075,422 @@ static void scene_options_resolve(const brt_scene_options *opt, uint32_t *batch_
 
 /* Everything written while a scene file is built. */
 typedef struct scene_writer {
-    const brt_mesh *mesh;
     const char *path;           /* final name, for messages */
     int fd;
     uint64_t offset;            /* next free, page-aligned */
     uint32_t res;
     brt_svdag *dag;
-    batch_entry *batches;
+    batch_entry *batches;       /* the per-point tables, grown as points come */
     float *boxes;               /* 6 floats per batching point */
-    uint32_t *indices;          /* scratch: one batching point's triangles */
+    uint32_t batch_count, batch_cap;
+    uint64_t geometry_bytes;
 } scene_writer;
 
-static void batch_bounds(const brt_mesh *mesh, const uint32_t *tris, uint32_t count,
-                         float lo[3], float hi[3])
+typedef struct scene_builder {
+    scene_writer w;
+    int spill_fd;
+    uint64_t spill_end;         /* records in the spill file */
+    const volatile sig_atomic_t *interrupt;
+    uint32_t batch_tris, bucket_tris, chunk;
+    spill_out root;             /* pass A's output: the whole stream */
+    spill_record *read_buf;     /* chunk records */
+    uint32_t *cells;            /* CELL_COUNT: a histogram, then each cell's child */
+    spill_record *records;      /* one bucket in memory, with its centroids */
+    float *centroids;           /* and median split order */
+    uint32_t *order;
+    partition points;           /* the bucket's batching points */
+    float *corners;             /* one batching point: 9 floats, 3 indices */
+    uint32_t *indices, *prims;  /* and the number of each triangle */
+} scene_builder;
+
+static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
+                             brt_read_fn read_fn, void *user, uint64_t *bytes_read,
+                             const char *path, brt_error *err);
+static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user);
+
+static brt_result poll_interrupt(const scene_builder *b, brt_error *err)
 {
-    uint32_t i;
-    int c, a;
+    if (b->interrupt && *b->interrupt)
+        return brt_fail(err, BRT_EINTR, "%s: build interrupted", b->w.path);
+    return BRT_OK;
+}
+
+static void centroid(const spill_record *r, float c[3])
+{
+    int a;
+    for (a = 0; a < 3; a++) c[a] = (r->v[a] + r->v[3 + a] + r->v[6 + a]) / 3.0f;
+}
+
+static void bounds_clear(float lo[3], float hi[3])
+{
+    int a;
     for (a = 0; a < 3; a++) {
         lo[a] = INFINITY;
         hi[a] = -INFINITY;
     }
-    for (i = 0; i < count; i++)
-        for (c = 0; c < 3; c++) {
-            float v[3];
-            triangle_vertex(mesh, tris[i], c, v);
-            for (a = 0; a < 3; a++) {
-                if (v[a] < lo[a]) lo[a] = v[a];
-                if (v[a] > hi[a]) hi[a] = v[a];
-            }
-        }
 }
+
+static void bounds_grow(float lo[3], float hi[3], const float p[3])
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        if (p[a] < lo[a]) lo[a] = p[a];
+        if (p[a] > hi[a]) hi[a] = p[a];
+    }
+}
+
+/* ---- the spill file ---- */
+
+static brt_result spill_write(scene_builder *b, const spill_record *recs, uint32_t n,
+                              uint64_t first, brt_error *err)
+{
+    if (write_fully(b->spill_fd, recs, (size_t)n * sizeof *recs,
+                    (int64_t)(first * sizeof *recs)) != 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", b->w.path, strerror(errno));
+    return BRT_OK;
+}
+
+static brt_result spill_read(scene_builder *b, spill_record *recs, uint32_t n, uint64_t first,
+                             brt_error *err)
+{
+    return read_fully(b->spill_fd, recs, (size_t)n * sizeof *recs, first * sizeof *recs,
+                      pread_reader, NULL, NULL, b->w.path, err);
+}
+
+/* Writes the buffered records at the end of the bucket's region. */
+static brt_result spill_flush(scene_builder *b, spill_out *o, brt_error *err)
+{
+    brt_result r = spill_write(b, o->buf, o->held, o->b.first + o->b.count - o->held, err);
+    o->held = 0;
+    return r;
+}
+
+static brt_result spill_put(scene_builder *b, spill_out *o, const spill_record *rec,
+                            const float c[3], brt_error *err)
+{
+    o->buf[o->held++] = *rec;
+    o->b.count++;
+    bounds_grow(o->b.lo, o->b.hi, c);
+    return o->held == o->cap ? spill_flush(b, o, err) : BRT_OK;
+}
+
+/* Pass A's consumer: the chunk in stream order onto the root bucket. */
+static brt_result spill_stream(void *user, const float *corners, uint32_t count, uint32_t first,
+                               brt_error *err)
+{
+    scene_builder *b = user;
+    uint32_t i;
+    brt_result r = poll_interrupt(b, err);
+    if (r != BRT_OK) return r;
+    if (first != b->root.b.count)
+        return brt_fail(err, BRT_EARG, "%s: the triangle source numbered a chunk %u, not %u",
+                        b->w.path, first, b->root.b.count);
+    if (count > MAX_COUNT - b->root.b.count)
+        return brt_fail(err, BRT_EARG, "%s: more than %u triangles", b->w.path, MAX_COUNT);
+    for (i = 0; i < count && r == BRT_OK; i++) {
+        spill_record rec;
+        float c[3];
+        memcpy(rec.v, corners + 9 * (size_t)i, sizeof rec.v);
+        rec.prim = first + i;
+        centroid(&rec, c);
+        r = spill_put(b, &b->root, &rec, c, err);
+    }
+    return r;
+}
+
+/* Calls fn on every record of bucket in order, a chunk at a time. */
+typedef brt_result (*record_fn)(scene_builder *b, const spill_record *rec, void *user,
+                                brt_error *err);
+
+static brt_result for_each_record(scene_builder *b, const bucket *bk, record_fn fn, void *user,
+                                  brt_error *err)
+{
+    uint32_t done = 0, i;
+    brt_result r = BRT_OK;
+    while (done < bk->count && r == BRT_OK) {
+        uint32_t n = bk->count - done < b->chunk ? bk->count - done : b->chunk;
+        if ((r = poll_interrupt(b, err)) != BRT_OK) break;
+        r = spill_read(b, b->read_buf, n, bk->first + done, err);
+        for (i = 0; i < n && r == BRT_OK; i++) r = fn(b, &b->read_buf[i], user, err);
+        done += n;
+    }
+    return r;
+}
+
+/* ---- splitting a bucket larger than memory allows ---- */
+
+/* Quantises centroids in a bucket's centroid bounds: 2^bits cells per
+** axis, bits = CELL_BITS, or fewer for a bucket of fewer than 2^(3 bits)
+** / 4 records (more cells than records would only cost time: the small
+** buckets of the tests).  A flat axis, an extent that overflows or a NaN
+** lands in cell 0, so the code is always in range. */
+typedef struct cell_frame {
+    float lo[3], scale[3];
+    int bits;
+    uint32_t cells;             /* 2^(3 bits) */
+} cell_frame;
+
+static void cell_frame_init(const bucket *bk, cell_frame *f)
+{
+    int a;
+    for (f->bits = CELL_BITS; f->bits > 1 && (1u << (3 * f->bits)) / 4 > bk->count; f->bits--) {}
+    f->cells = 1u << (3 * f->bits);
+    for (a = 0; a < 3; a++) {
+        float extent = bk->hi[a] - bk->lo[a];
+        f->lo[a] = bk->lo[a];
+        f->scale[a] = extent > 0.0f ? (float)(1u << f->bits) / extent : 0.0f;
+    }
+}
+
+/* Spreads the low 10 bits of v to every third bit (bit i to bit 3i). */
+static uint32_t spread3(uint32_t v)
+{
+    v = (v | (v << 16)) & 0x030000FFu;
+    v = (v | (v << 8)) & 0x0300F00Fu;
+    v = (v | (v << 4)) & 0x030C30C3u;
+    return (v | (v << 2)) & 0x09249249u;
+}
+
+/* The Morton code of the cell (bits of x, y, z interleaved). */
+static uint32_t cell_of(const cell_frame *f, const spill_record *rec)
+{
+    float c[3];
+    uint32_t q[3];
+    int a;
+    centroid(rec, c);
+    for (a = 0; a < 3; a++) {
+        float x = (c[a] - f->lo[a]) * f->scale[a];
+        q[a] = x > 0.0f ? (x < (float)(1u << f->bits) ? (uint32_t)x : (1u << f->bits) - 1) : 0;
+    }
+    return spread3(q[0]) | spread3(q[1]) << 1 | spread3(q[2]) << 2;
+}
+
+typedef struct split_state {
+    cell_frame frame;
+    spill_out *children;
+} split_state;
+
+static brt_result count_cell(scene_builder *b, const spill_record *rec, void *user,
+                             brt_error *err)
+{
+    (void)err;
+    b->cells[cell_of(&((split_state *)user)->frame, rec)]++;
+    return BRT_OK;
+}
+
+static brt_result scatter_record(scene_builder *b, const spill_record *rec, void *user,
+                                 brt_error *err)
+{
+    split_state *s = user;
+    float c[3];
+    centroid(rec, c);
+    return spill_put(b, &s->children[b->cells[cell_of(&s->frame, rec)]], rec, c, err);
+}
+
+/* Packs the histogram's cells in Morton order into children of at most
+** bucket_tris records (a fuller cell alone), turning each cell's count
+** into its child's index; the children's regions follow the spill file's
+** end.  Returns the number of children (*planned their sizes). */
+static uint32_t plan_children(scene_builder *b, uint32_t cells, uint32_t *sizes)
+{
+    uint32_t cell, children = 0, open = 0;
+    for (cell = 0; cell < cells; cell++) {
+        uint32_t n = b->cells[cell];
+        if (n == 0) {
+            b->cells[cell] = NO_CHILD;
+            continue;
+        }
+        if (children == 0 || open + n > b->bucket_tris) {
+            sizes[children++] = 0;
+            open = 0;
+        }
+        open += n;
+        sizes[children - 1] += n;
+        b->cells[cell] = children - 1;
+    }
+    return children;
+}
+
+static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *err);
+static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *err);
+
+/* A bucket whose records share one cell: runs of bucket_tris in record order. */
+static brt_result cut_in_order(scene_builder *b, const bucket *bk, brt_error *err)
+{
+    bucket part = *bk;
+    uint32_t done;
+    brt_result r = BRT_OK;
+    for (done = 0; done < bk->count && r == BRT_OK; done += part.count) {
+        part.first = bk->first + done;
+        part.count = bk->count - done < b->bucket_tris ? bk->count - done : b->bucket_tris;
+        r = build_bucket(b, &part, err);
+    }
+    return r;
+}
+
+/* Scatters the bucket into its planned children, then processes them. */
+static brt_result scatter(scene_builder *b, const bucket *bk, split_state *s, const uint32_t *sizes,
+                          uint32_t children, brt_error *err)
+{
+    uint32_t cap = (uint32_t)(SCATTER_BYTES / sizeof(spill_record) / children), i;
+    spill_record *bufs;
+    brt_result r = BRT_OK;
+    if (cap > b->chunk) cap = b->chunk;
+    if (cap == 0) cap = 1;
+    bufs = malloc((size_t)children * cap * sizeof *bufs);
+    if (!bufs) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    for (i = 0; i < children; i++) {
+        spill_out *o = &s->children[i];
+        o->b.first = b->spill_end;
+        o->b.count = 0;
+        bounds_clear(o->b.lo, o->b.hi);
+        o->buf = bufs + (size_t)i * cap;
+        o->held = 0;
+        o->cap = cap;
+        b->spill_end += sizes[i];
+    }
+    r = for_each_record(b, bk, scatter_record, s, err);
+    for (i = 0; i < children && r == BRT_OK; i++) r = spill_flush(b, &s->children[i], err);
+    free(bufs);
+    for (i = 0; i < children && r == BRT_OK; i++) r = process_bucket(b, &s->children[i].b, err);
+    return r;
+}
+
+static brt_result split_bucket(scene_builder *b, const bucket *bk, brt_error *err)
+{
+    split_state s;
+    uint32_t *sizes, largest = 0, i;
+    brt_result r;
+    if (!b->cells && !(b->cells = malloc(CELL_COUNT * sizeof *b->cells)))
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    cell_frame_init(bk, &s.frame);
+    memset(b->cells, 0, s.frame.cells * sizeof *b->cells);
+    r = for_each_record(b, bk, count_cell, &s, err);
+    if (r != BRT_OK) return r;
+    for (i = 0; i < s.frame.cells; i++)
+        if (b->cells[i] > largest) largest = b->cells[i];
+    if (largest == bk->count) return cut_in_order(b, bk, err);
+    sizes = malloc(((size_t)bk->count / b->bucket_tris * 2 + 2) * sizeof *sizes);
+    s.children = sizes ? malloc(((size_t)bk->count / b->bucket_tris * 2 + 2) * sizeof *s.children) : NULL;
+    if (!s.children) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    else r = scatter(b, bk, &s, sizes, plan_children(b, s.frame.cells, sizes), err);
+    free(sizes);
+    free(s.children);
+    return r;
+}
+
+static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *err)
+{
+    return bk->count <= b->bucket_tris ? build_bucket(b, bk, err) : split_bucket(b, bk, err);
+}
+
+/* ---- batching points ---- */
 
 /* The proxy of one batching point: its triangles voxelized in a grid
 ** fitted to its box, added to the shared pool. */
-static brt_result batch_proxy(scene_writer *w, batch_entry *b, uint32_t count)
+static brt_result batch_proxy(scene_builder *b, batch_entry *e, uint32_t count)
 {
     brt_grid grid;
-    brt_result r = brt_grid_init(&grid, b->lo, b->hi, w->res);
+    brt_result r = brt_grid_init(&grid, e->lo, e->hi, b->w.res);
     if (r != BRT_OK) return r;
-    r = brt_voxelize(&grid, w->mesh->positions, w->indices, count);
-    if (r == BRT_OK) r = brt_svdag_add(w->dag, &grid, &b->proxy);
+    r = brt_voxelize(&grid, b->corners, b->indices, count);
+    if (r == BRT_OK) r = brt_svdag_add(b->w.dag, &grid, &e->proxy);
     brt_grid_free(&grid);
     return r;
 }
 
-/* One batching point: its BVH as a blob at the next page, and its proxy. */
-static brt_result write_batch(scene_writer *w, const uint32_t *tris, uint32_t count,
-                              batch_entry *b, brt_error *err)
+/* A new entry of the per-point tables. */
+static batch_entry *batch_append(scene_writer *w)
+{
+    if (w->batch_count == w->batch_cap) {
+        size_t cap = w->batch_cap ? 2 * (size_t)w->batch_cap : 64;
+        batch_entry *batches = realloc(w->batches, cap * sizeof *batches);
+        float *boxes;
+        if (batches) w->batches = batches;
+        boxes = batches ? realloc(w->boxes, cap * 6 * sizeof *boxes) : NULL;
+        if (!boxes || cap > MAX_COUNT) return NULL;
+        w->boxes = boxes;
+        w->batch_cap = (uint32_t)cap;
+    }
+    memset(&w->batches[w->batch_count], 0, sizeof *w->batches);
+    return &w->batches[w->batch_count++];
+}
+
+/* BVH blob bytes of the batching point in corners/indices/prims. */
+static brt_result point_blob(scene_builder *b, uint32_t count, void **blob, size_t *size,
+                             brt_error *err)
 {
     brt_bvh *bvh = NULL;
-    void *blob = NULL;
-    uint32_t i;
-    brt_result r;
-    for (i = 0; i < count; i++)
-        memcpy(w->indices + 3 * (size_t)i, w->mesh->indices + 3 * (size_t)tris[i], 3 * sizeof *w->indices);
-    batch_bounds(w->mesh, tris, count, b->lo, b->hi);
-    b->triangles = count;
-    r = brt_bvh_build(w->mesh->positions, w->indices, count, tris, &bvh);
+    brt_result r = brt_bvh_build(b->corners, b->indices, count, b->prims, &bvh);
     if (r != BRT_OK) return brt_fail(err, r, "%s: building a batching point's BVH: %s",
-                                     w->path, brt_result_string(r));
-    b->size = brt_bvh_blob_size(bvh);
-    blob = calloc(1, b->size ? b->size : 1);
-    if (!blob) {
-        brt_bvh_free(bvh);
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
-    }
-    brt_bvh_blob_write(bvh, blob);
+                                     b->w.path, brt_result_string(r));
+    *size = brt_bvh_blob_size(bvh);
+    *blob = calloc(1, *size ? *size : 1);
+    if (*blob) brt_bvh_blob_write(bvh, *blob);
     brt_bvh_free(bvh);
-    b->checksum = brt_checksum64(blob, b->size);
-    b->offset = w->offset;
-    r = write_at(w->fd, blob, b->size, b->offset, w->path, err);
+    return *blob ? BRT_OK : brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+}
+
+/* One batching point: the bucket's records ids[0..count): its BVH as a
+** blob at the next page, its box and its proxy. */
+static brt_result write_point(scene_builder *b, const uint32_t *ids, uint32_t count,
+                              brt_error *err)
+{
+    scene_writer *w = &b->w;
+    batch_entry *e;
+    void *blob = NULL;
+    size_t size = 0;
+    uint32_t i;
+    brt_result r = poll_interrupt(b, err);
+    if (r != BRT_OK) return r;
+    if (!(e = batch_append(w))) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    bounds_clear(e->lo, e->hi);
+    for (i = 0; i < count; i++) {
+        const spill_record *rec = &b->records[ids[i]];
+        memcpy(b->corners + 9 * (size_t)i, rec->v, sizeof rec->v);
+        b->prims[i] = rec->prim;
+        bounds_grow(e->lo, e->hi, rec->v);
+        bounds_grow(e->lo, e->hi, rec->v + 3);
+        bounds_grow(e->lo, e->hi, rec->v + 6);
+    }
+    e->triangles = count;
+    if ((r = point_blob(b, count, &blob, &size, err)) != BRT_OK) return r;
+    e->size = size;
+    e->checksum = brt_checksum64(blob, size);
+    e->offset = w->offset;
+    r = write_at(w->fd, blob, size, e->offset, w->path, err);
     free(blob);
     if (r != BRT_OK) return r;
-    w->offset = round_up_page(b->offset + b->size);
-    r = batch_proxy(w, b, count);
+    w->offset = round_up_page(e->offset + e->size);
+    w->geometry_bytes += e->size;
+    memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1), e->lo, 3 * sizeof(float));
+    memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1) + 3, e->hi, 3 * sizeof(float));
+    r = batch_proxy(b, e, count);
     if (r != BRT_OK) return brt_fail(err, r, "%s: building a proxy: %s", w->path, brt_result_string(r));
     return BRT_OK;
 }
+
+/* A bucket that fits in memory: read whole, split by medians into
+** batching points (ties by record order, which is number order). */
+static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *err)
+{
+    uint32_t i;
+    brt_result r = spill_read(b, b->records, bk->count, bk->first, err);
+    if (r != BRT_OK) return r;
+    for (i = 0; i < bk->count; i++) {
+        centroid(&b->records[i], b->centroids + 3 * (size_t)i);
+        b->order[i] = i;
+    }
+    b->points.count = 0;
+    b->points.order = b->order;
+    if (partition_split(&b->points, b->centroids, 0, bk->count, b->batch_tris) != BRT_OK)
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    for (i = 0; i < b->points.count && r == BRT_OK; i++)
+        r = write_point(b, b->order + b->points.ranges[i].first, b->points.ranges[i].count, err);
+    return r;
+}
+
+/* ---- the file's tables ---- */
 
 /* Writes a section at the next page and fills in its table entry. */
 static brt_result write_section(scene_writer *w, const void *data, size_t size, section *s,
@@ -2063,107 +2535,97 @@ static brt_result write_tables(scene_writer *w, scene_header *h, brt_error *err)
     return write_at(w->fd, header, sizeof header, 0, w->path, err);
 }
 
-static brt_result write_scene(scene_writer *w, const partition *p, scene_header *h,
-                              brt_error *err)
+/* ---- the build ---- */
+
+/* The bucket arrays, sized for the largest bucket this stream can have. */
+static brt_result builder_arrays(scene_builder *b, brt_error *err)
 {
-    uint32_t i, largest = 1;
-    brt_result r;
-    for (i = 0; i < p->count; i++)
-        if (p->ranges[i].count > largest) largest = p->ranges[i].count;
-    w->batches = calloc(p->count, sizeof *w->batches);
-    w->boxes = malloc(6 * (size_t)p->count * sizeof *w->boxes);
-    w->indices = malloc(3 * (size_t)largest * sizeof *w->indices);
-    if (!w->batches || !w->boxes || !w->indices)
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
-    r = brt_svdag_create(&w->dag);
-    if (r != BRT_OK) return brt_fail(err, r, "%s: out of memory", w->path);
-    w->offset = SCENE_PAGE;
-    for (i = 0; i < p->count && r == BRT_OK; i++) {
-        batch_entry *b = &w->batches[i];
-        r = write_batch(w, p->order + p->ranges[i].first, p->ranges[i].count, b, err);
-        memcpy(w->boxes + 6 * (size_t)i, b->lo, 3 * sizeof(float));
-        memcpy(w->boxes + 6 * (size_t)i + 3, b->hi, 3 * sizeof(float));
-        h->geometry_bytes += b->size;
-    }
-    return r == BRT_OK ? write_tables(w, h, err) : r;
+    size_t most = b->root.b.count < b->bucket_tris ? b->root.b.count : b->bucket_tris, i;
+    size_t point = most < b->batch_tris ? most : b->batch_tris;
+    b->records = malloc(most * sizeof *b->records);
+    b->centroids = malloc(3 * most * sizeof *b->centroids);
+    b->order = malloc(most * sizeof *b->order);
+    b->corners = malloc(9 * point * sizeof *b->corners);
+    b->indices = malloc(3 * point * sizeof *b->indices);
+    b->prims = malloc(point * sizeof *b->prims);
+    if (!b->records || !b->centroids || !b->order || !b->corners || !b->indices || !b->prims)
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    for (i = 0; i < 3 * point; i++) b->indices[i] = (uint32_t)i;
+    return BRT_OK;
 }
 
-brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
-                           uint64_t source_stamp, const char *scene_path,
-                           brt_error *err)
+/* Pass A, the buckets, the tables. */
+static brt_result build_passes(scene_builder *b, const brt_triangle_source *source,
+                               scene_header *h, brt_error *err)
 {
-    scene_writer w;
-    scene_header h;
-    partition p;
-    char tmp[4096];
     brt_result r;
-    memset(&w, 0, sizeof w);
-    memset(&h, 0, sizeof h);
-    scene_options_resolve(opt, &h.batch_tris, &w.res);
-    if (w.res < 2 || w.res > 1024 || (w.res & (w.res - 1)) != 0)
-        return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", w.res);
-    if (mesh->triangle_count == 0)
-        return brt_fail(err, BRT_EARG, "%s: the mesh has no triangles", scene_path);
+    b->root.cap = b->chunk;
+    b->root.buf = b->read_buf;
+    bounds_clear(b->root.b.lo, b->root.b.hi);
+    r = source->run(source->user, spill_stream, b, err);
+    if (r == BRT_OK) r = spill_flush(b, &b->root, err);
+    if (r != BRT_OK) return r;
+    if (b->root.b.count == 0)
+        return brt_fail(err, BRT_EARG, "%s: the mesh has no triangles", b->w.path);
+    b->spill_end = b->root.b.count;
+    if ((r = builder_arrays(b, err)) != BRT_OK) return r;
+    if ((r = brt_svdag_create(&b->w.dag)) != BRT_OK)
+        return brt_fail(err, r, "%s: out of memory", b->w.path);
+    b->w.offset = SCENE_PAGE;
+    r = process_bucket(b, &b->root.b, err);
+    if (r != BRT_OK) return r;
+    h->batch_count = b->w.batch_count;
+    h->triangle_count = b->root.b.count;
+    h->geometry_bytes = b->w.geometry_bytes;
+    return write_tables(&b->w, h, err);
+}
+
+static void builder_free(scene_builder *b)
+{
+    if (b->spill_fd >= 0) close(b->spill_fd);
+    free(b->read_buf);
+    free(b->cells);
+    free(b->records);
+    free(b->centroids);
+    free(b->order);
+    free(b->points.ranges);
+    free(b->corners);
+    free(b->indices);
+    free(b->prims);
+    brt_svdag_free(b->w.dag);
+    free(b->w.batches);
+    free(b->w.boxes);
+}
+
+static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
+                               const char *scene_path, brt_error *err)
+{
+    uint32_t cap = opt && opt->test_bucket_tris ? opt->test_bucket_tris
+                                                 : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
+    char spill_path[4096];
+    memset(b, 0, sizeof *b);
+    b->spill_fd = b->w.fd = -1;
+    b->w.path = scene_path;
+    b->interrupt = opt ? opt->interrupt : NULL;
+    scene_options_resolve(opt, &b->batch_tris, &b->w.res);
+    if (b->w.res < 2 || b->w.res > 1024 || (b->w.res & (b->w.res - 1)) != 0)
+        return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", b->w.res);
+    b->bucket_tris = cap / b->batch_tris * b->batch_tris;
+    if (b->bucket_tris < b->batch_tris) b->bucket_tris = b->batch_tris;
+    b->chunk = opt && opt->test_spill_chunk ? opt->test_spill_chunk : SPILL_CHUNK;
     if (is_special_file(scene_path))
         return brt_fail(err, BRT_EARG, "%s: not a regular file", scene_path);
-    if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", scene_path, (long)getpid()) >= (int)sizeof tmp)
+    if (snprintf(spill_path, sizeof spill_path, "%s.spill.%ld", scene_path,
+                 (long)getpid()) >= (int)sizeof spill_path)
         return brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
-    h.proxy_res = w.res;
-    h.stamp = source_stamp;
-    h.triangle_count = mesh->triangle_count;
-    w.mesh = mesh;
-    w.path = scene_path;
-    r = partition_mesh(mesh, h.batch_tris, &p);
-    if (r != BRT_OK) {
-        partition_free(&p);
-        return brt_fail(err, r, "%s: out of memory", scene_path);
-    }
-    h.batch_count = p.count;
-    w.fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644);
-    if (w.fd < 0)
-        r = brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
-    else
-        r = write_scene(&w, &p, &h, err);
-    if (w.fd >= 0 && close(w.fd) != 0 && r == BRT_OK)
-        r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", scene_path, strerror(errno));
-    if (r == BRT_OK && rename(tmp, scene_path) != 0)
-        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", scene_path, strerror(errno));
-    if (r != BRT_OK && w.fd >= 0) unlink(tmp);
-    partition_free(&p);
-    brt_svdag_free(w.dag);
-    free(w.batches);
-    free(w.boxes);
-    free(w.indices);
-    return r;
-}
-
-/* FIRST CUT: collects the stream as a triangle soup and builds from it. */
-typedef struct soup {
-    brt_mesh mesh;
-    size_t cap;
-} soup;
-
-static brt_result soup_add(void *user, const float *corners, uint32_t count, uint32_t first,
-                           brt_error *err)
-{
-    soup *s = user;
-    size_t need = (size_t)first + count, i;
-    if (need > s->cap) {
-        size_t cap = s->cap ? s->cap : 65536;
-        float *pos;
-        uint32_t *idx;
-        while (cap < need) cap *= 2;
-        pos = realloc(s->mesh.positions, cap * 9 * sizeof *pos);
-        if (pos) s->mesh.positions = pos;
-        idx = pos ? realloc(s->mesh.indices, cap * 3 * sizeof *idx) : NULL;
-        if (!idx) return brt_fail(err, BRT_ENOMEM, "out of memory");
-        s->mesh.indices = idx;
-        s->cap = cap;
-    }
-    memcpy(s->mesh.positions + 9 * (size_t)first, corners, 9 * (size_t)count * sizeof *corners);
-    for (i = 3 * (size_t)first; i < 3 * need; i++) s->mesh.indices[i] = (uint32_t)i;
-    s->mesh.triangle_count = (uint32_t)need;
-    s->mesh.vertex_count = 3 * (uint32_t)need;
+    if (!(b->read_buf = malloc((size_t)b->chunk * sizeof *b->read_buf)))
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
+    /* Unlinked at once: the descriptor keeps it, and nothing can leave it
+    ** behind.  (Messages name the scene, as for the scene's own file.) */
+    b->spill_fd = open(spill_path, O_RDWR | O_CREAT | O_TRUNC, 0600);
+    if (b->spill_fd < 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
+    unlink(spill_path);
     return BRT_OK;
 }
 
@@ -2171,13 +2633,36 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
                                   const brt_scene_options *opt, uint64_t source_stamp,
                                   const char *scene_path, brt_error *err)
 {
-    soup s;
+    scene_builder b;
+    scene_header h;
+    char tmp[4096];
     brt_result r;
-    memset(&s, 0, sizeof s);
-    r = source->run(source->user, soup_add, &s, err);
-    if (r == BRT_OK) r = brt_scene_build(&s.mesh, opt, source_stamp, scene_path, err);
-    brt_mesh_free(&s.mesh);
+    memset(&h, 0, sizeof h);
+    r = builder_init(&b, opt, scene_path, err);
+    if (r == BRT_OK && snprintf(tmp, sizeof tmp, "%s.tmp.%ld", scene_path, (long)getpid()) >= (int)sizeof tmp)
+        r = brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
+    if (r == BRT_OK && (b.w.fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644)) < 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
+    h.batch_tris = b.batch_tris;
+    h.proxy_res = b.w.res;
+    h.stamp = source_stamp;
+    if (r == BRT_OK) r = build_passes(&b, source, &h, err);
+    if (b.w.fd >= 0 && close(b.w.fd) != 0 && r == BRT_OK)
+        r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", scene_path, strerror(errno));
+    if (r == BRT_OK && rename(tmp, scene_path) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", scene_path, strerror(errno));
+    if (r != BRT_OK && b.w.fd >= 0) unlink(tmp);
+    builder_free(&b);
     return r;
+}
+
+brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
+                           uint64_t source_stamp, const char *scene_path,
+                           brt_error *err)
+{
+    brt_triangle_source source;
+    brt_mesh_memory_source(mesh, &source);
+    return brt_scene_build_stream(&source, opt, source_stamp, scene_path, err);
 }
 
 brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp, brt_error *err)
@@ -2459,7 +2944,7 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
                              int *rebuilt, brt_error *err)
 {
     uint64_t stamp;
-    brt_mesh mesh;
+    brt_triangle_source source;
     struct stat st;
     brt_result r = brt_scene_source_stamp(mesh_path, &stamp, err);
     *out = NULL;
@@ -2471,10 +2956,8 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
         brt_scene_close(*out);   /* stale: the mesh or the settings changed */
         *out = NULL;
     }
-    r = brt_mesh_load(mesh_path, &mesh, err);
-    if (r != BRT_OK) return r;
-    r = brt_scene_build(&mesh, opt, stamp, scene_path, err);
-    brt_mesh_free(&mesh);
+    brt_mesh_file_source(mesh_path, &source);   /* never the whole mesh in memory */
+    r = brt_scene_build_stream(&source, opt, stamp, scene_path, err);
     if (r != BRT_OK) return r;
     if (rebuilt) *rebuilt = 1;
     return brt_scene_open(scene_path, out, err);
@@ -2672,6 +3155,64 @@ static const brt_bvh *cache_resident(page_cache *c, uint32_t id)
 static void cache_release(page_cache *c, uint32_t id)
 {
     if (--c->entries[id].pins == 0) lru_append(c, id);
+}
+
+/* ---- the partition checker ------------------------------------------ */
+
+/* Marks the triangles of blob id in seen[] (one bit each). */
+static brt_result check_point(const page_cache *c, uint32_t id, uint32_t batch_tris,
+                              unsigned char *seen, brt_error *err)
+{
+    const brt_scene *s = c->scene;
+    const uint32_t *prims;
+    uint64_t bytes = 0;
+    void *data = NULL;
+    brt_bvh *bvh = NULL;
+    uint32_t k, n;
+    brt_result r = BRT_OK;
+    if (s->batches[id].triangles > batch_tris)
+        return brt_fail(err, BRT_ECHECK, "%s: batching point %u holds %u triangles, more than %u",
+                        s->path, id, s->batches[id].triangles, batch_tris);
+    if ((r = blob_read(c, id, &bytes, &data, &bvh, err)) != BRT_OK) return r;
+    prims = brt_bvh_prim_ids(bvh);
+    n = brt_bvh_triangle_count(bvh);
+    if (n != s->batches[id].triangles)
+        r = brt_fail(err, BRT_ECHECK, "%s: batching point %u: its BVH holds %u triangles, "
+                     "its table entry %u", s->path, id, n, s->batches[id].triangles);
+    for (k = 0; k < n && r == BRT_OK; k++) {
+        uint32_t p = prims[k];
+        if (p >= s->header.triangle_count)
+            r = brt_fail(err, BRT_ECHECK, "%s: batching point %u: triangle %u out of range "
+                         "(%u triangles)", s->path, id, p, s->header.triangle_count);
+        else if (seen[p >> 3] & (1u << (p & 7)))
+            r = brt_fail(err, BRT_ECHECK, "%s: triangle %u is in two batching points "
+                         "(again in %u)", s->path, p, id);
+        else
+            seen[p >> 3] |= (unsigned char)(1u << (p & 7));
+    }
+    brt_bvh_free(bvh);
+    free(data);
+    return r;
+}
+
+brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
+                                     brt_error *err)
+{
+    uint32_t n = scene->header.triangle_count, id, t;
+    unsigned char *seen = calloc((size_t)n / 8 + 1, 1);
+    page_cache c;
+    brt_result r = BRT_OK;
+    if (!seen) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene->path);
+    memset(&c, 0, sizeof c);
+    c.scene = (brt_scene *)scene;   /* blob_read only reads through it */
+    c.read_fn = pread_reader;
+    for (id = 0; id < scene->header.batch_count && r == BRT_OK; id++)
+        r = check_point(&c, id, batch_tris, seen, err);
+    for (t = 0; t < n && r == BRT_OK; t++)
+        if (!(seen[t >> 3] & (1u << (t & 7))))
+            r = brt_fail(err, BRT_ECHECK, "%s: triangle %u is in no batching point", scene->path, t);
+    free(seen);
+    return r;
 }
 
 /* ---- ray queues and the scheduler ------------------------------------ */

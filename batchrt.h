@@ -178,9 +178,12 @@ typedef struct brt_triangle_source {
     const void *user;
 } brt_triangle_source;
 
-/* Streams a mesh file (OBJ or PLY, as brt_mesh_load) to emit.  Holds the
-** vertex positions of an indexed file (12 bytes per vertex) and one chunk,
-** never the triangles.  Errors as brt_mesh_load (with "no triangles"). */
+/* Streams a mesh file (OBJ or PLY, as brt_mesh_load) to emit in chunks of
+** 65536 triangles.  Holds the vertex positions of an indexed file (12 bytes
+** per vertex) and one chunk, never the triangles (except a PLY whose faces
+** come before its vertices: its index array, emitted after the vertices).
+** Errors as brt_mesh_load (with "no triangles"), possibly after chunks
+** were emitted. */
 brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit,
                            void *emit_user, brt_error *err);
 
@@ -316,6 +319,9 @@ int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
 brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
 
 uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
+/* The number reported for each stored triangle, in storage order
+** (brt_bvh_triangle_count of them; checkers read it). */
+const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh);
 size_t brt_bvh_memory_bytes(const brt_bvh *bvh);   /* nodes + triangles */
 /* Bounds of the root's boxes: the triangles' bounds grown by a few ulps
 ** of their magnitude (bvh.c: the pad that makes box tests conservative
@@ -482,11 +488,24 @@ typedef struct brt_scene_options {
     ** SIGINT/SIGTERM handler sets it) the build removes its temporary files
     ** and returns BRT_EINTR.  NULL: never interrupted. */
     const volatile sig_atomic_t *interrupt;
+    /* For tests only (0: the defaults).  test_spill_chunk: triangles per
+    ** write buffer of a bucket and per read of the build's temporary file
+    ** (default 16384); test_bucket_tris: the most triangles of one bucket
+    ** held in memory, rounded down to a multiple of batch_tris and at least
+    ** batch_tris (default 64 MiB of 40-byte records).  Small values run
+    ** the out-of-core paths of the build on small meshes.  Neither changes
+    ** what a scene file built from a mesh that fits one bucket holds. */
+    uint32_t test_spill_chunk;
+    uint32_t test_bucket_tris;
 } brt_scene_options;
 
 /* Builds the scene file for mesh at scene_path (written under a temporary
 ** name and renamed).  source_stamp identifies the mesh file (see
-** brt_scene_source_stamp) so that a stale scene file can be recognised. */
+** brt_scene_source_stamp) so that a stale scene file can be recognised.
+** The build holds bounded memory whatever the triangle count (README,
+** "Building scene files out of core"): it spills the triangles to a
+** temporary file beside scene_path, removed on success, failure and
+** interrupt; a failed or interrupted build leaves no file behind. */
 brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
                            uint64_t source_stamp, const char *scene_path,
                            brt_error *err);
@@ -498,6 +517,13 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
                                   const brt_scene_options *opt,
                                   uint64_t source_stamp, const char *scene_path,
                                   brt_error *err);
+
+/* Partition checker: every triangle number below the scene's triangle
+** count is in exactly one batching point, and no batching point holds more
+** than batch_tris triangles (it reads every blob).  BRT_ECHECK with a
+** message naming the first violation. */
+brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
+                                     brt_error *err);
 
 /* A stamp of a mesh file (size and modification time), as make uses them. */
 brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp,
@@ -515,7 +541,8 @@ int brt_scene_matches(const brt_scene *scene, uint64_t source_stamp,
                       const brt_scene_options *opt);
 
 /* Opens scene_path when it matches mesh_path and opt; otherwise (missing
-** or stale) loads the mesh, builds the scene file and opens it.  A corrupt
+** or stale) builds the scene file from the mesh file streamed (never held
+** whole) and opens it.  A corrupt
 ** or wrong-version file is an error, not silently replaced.  *rebuilt
 ** tells which happened (may be NULL). */
 brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,

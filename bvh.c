@@ -962,6 +962,7 @@ void brt_bvh_free(brt_bvh *bvh)
 }
 
 uint32_t brt_bvh_triangle_count(const brt_bvh *bvh) { return bvh->tri_count; }
+const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh) { return bvh->prim; }
 
 size_t brt_bvh_memory_bytes(const brt_bvh *bvh)
 {

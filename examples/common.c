@@ -1,7 +1,7 @@
 /*
 ** examples/common.c -- helpers shared by the programs in examples/: error
-** exits, option values with range checks, a throttled progress line, and a
-** minimal PNG writer.
+** exits, option values with range checks, a throttled progress line, a
+** SIGINT/SIGTERM flag, and a minimal PNG writer.
 **
 ** The PNG writer follows the PNG specification (ISO/IEC 15948) and RFC 1950
 ** (zlib) / RFC 1951 (deflate) in their simplest legal form: the image data
@@ -19,6 +19,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <limits.h>
+#include <signal.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -105,6 +106,33 @@ const char *ex_option_value(const char *prog, int argc, char **argv, int *i)
 }
 
 /* ===================================================================== */
+/* Meshes held whole                                                     */
+/* ===================================================================== */
+
+uint64_t ex_mesh_bytes(const brt_mesh *mesh)
+{
+    return 12 * ((uint64_t)mesh->vertex_count + mesh->triangle_count);
+}
+
+/* "12.3 MiB" or, below a MiB, "45.6 KiB". */
+static const char *format_bytes(uint64_t bytes, char *text, size_t size)
+{
+    int mib = bytes >= 1048576;
+    snprintf(text, size, "%.1f %s", (double)bytes / (mib ? 1048576.0 : 1024.0), mib ? "MiB" : "KiB");
+    return text;
+}
+
+void ex_note_mesh_memory(const char *prog, const brt_mesh *mesh, uint64_t limit)
+{
+    char held[32], limit_text[32];
+    if (limit == 0 || ex_mesh_bytes(mesh) <= limit) return;
+    fprintf(stderr, "%s: note: the direct run holds the whole mesh in memory (%s of vertices "
+            "and indices, and its BVH), more than --memory (%s)\n", prog,
+            format_bytes(ex_mesh_bytes(mesh), held, sizeof held),
+            format_bytes(limit, limit_text, sizeof limit_text));
+}
+
+/* ===================================================================== */
 /* Progress line                                                         */
 /* ===================================================================== */
 
@@ -142,6 +170,49 @@ void ex_progress_end(void)
     if (!progress_drawn) return;
     fputc('\n', stderr);
     progress_drawn = 0;
+}
+
+/* ===================================================================== */
+/* Interrupts                                                            */
+/* ===================================================================== */
+
+/* sig_atomic_t is the one type a handler may write and the program read
+** (C99 7.14.1.1); volatile makes every poll read it again. */
+static volatile sig_atomic_t interrupt_signal;
+
+static void record_signal(int signo)
+{
+    interrupt_signal = signo;
+}
+
+const volatile sig_atomic_t *ex_catch_interrupts(void)
+{
+    static int installed;
+    struct sigaction action;
+    if (installed) return &interrupt_signal;
+    installed = 1;
+    memset(&action, 0, sizeof action);
+    action.sa_handler = record_signal;
+    sigemptyset(&action.sa_mask);
+    /* SA_RESETHAND: a second signal gets the default action (the process
+    ** ends), for a user whose first one a long phase has not seen yet. */
+    action.sa_flags = SA_RESETHAND;
+    sigaction(SIGINT, &action, NULL);
+    sigaction(SIGTERM, &action, NULL);
+    return &interrupt_signal;
+}
+
+int ex_interrupted(void)
+{
+    return interrupt_signal;
+}
+
+void ex_die_interrupted(const char *prog)
+{
+    int signo = interrupt_signal ? interrupt_signal : SIGINT;
+    ex_progress_end();
+    fprintf(stderr, "%s: interrupted by %s\n", prog, signo == SIGTERM ? "SIGTERM" : "SIGINT");
+    exit(128 + signo);
 }
 
 /* ===================================================================== */

@@ -8,6 +8,7 @@
 
 #include "batchrt.h"
 
+#include <signal.h>
 #include <stddef.h>
 #include <stdint.h>
 
@@ -50,10 +51,37 @@ void ex_scene_folder(const char *prog, char *dir, size_t size);
 void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tris,
                            uint32_t res, char *path, size_t size);
 
+/* The bytes an indexed mesh holds in memory (positions and indices), and
+** a note on stderr when they exceed a nonzero memory limit: a run that
+** holds the whole mesh (--direct) says so, since the limit then does not
+** bound its memory. */
+uint64_t ex_mesh_bytes(const brt_mesh *mesh);
+void ex_note_mesh_memory(const char *prog, const brt_mesh *mesh, uint64_t limit);
+
 /* A progress line on stderr, shown only when stderr is a terminal (or
 ** BRT_PROGRESS=1): "label  42% ...".  done <= total. */
 void ex_progress(const char *label, uint64_t done, uint64_t total);
 void ex_progress_end(void);
+
+/* Installs (on the first call) a handler for SIGINT and SIGTERM that only
+** records the signal (the one async-signal-safe thing to do) and returns
+** the flag it sets: for brt_scene_options.interrupt and the program's own
+** loops, which then remove their temporary files and call
+** ex_die_interrupted.  The handler is reset after the first signal, so a
+** second one ends the process at once (without clean-up) when a phase
+** does not poll the flag. */
+const volatile sig_atomic_t *ex_catch_interrupts(void);
+
+/* The signal caught so far, 0 when none. */
+int ex_interrupted(void);
+
+/* Prints "PROG: interrupted by SIGINT" (or SIGTERM) on stderr and exits
+** with 128 + the signal number, the shell's convention. */
+void ex_die_interrupted(const char *prog)
+#if defined(__GNUC__)
+    __attribute__((noreturn))
+#endif
+    ;
 
 /* PNG of 8-bit RGB pixels (row-major, top row first), encoded with stored
 ** deflate blocks, CRC-32 and Adler-32.  encode: *png is malloc'd. */

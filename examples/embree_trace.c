@@ -255,6 +255,7 @@ int main(int argc, char **argv)
     if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
 
     ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
+    stats.peak_rss_bytes = brt_peak_rss_bytes();
     if (o.stats) ex_check(prog, brt_stats_write_json(o.stats, &stats, &err), &err);
     if (o.verbose || isatty(2)) {
         for (i = 0; i < count; i++) hit_count += hits[i].prim != BRT_NO_PRIM;

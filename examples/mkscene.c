@@ -8,20 +8,38 @@
 ** .ply: binary little-endian PLY (float x y z; uchar count, uint32
 ** indices), 12 bytes per vertex and 13 per triangle.  .obj: "v" and "f"
 ** lines; coordinates printed with 9 significant digits, which read back
-** as the same floats.  The file is streamed to OUT.tmp.<pid> and renamed,
-** so no half-written file ever carries the final name, and the file's
-** bytes are never held in memory as a whole (the mesh is).
+** as the same floats.
+**
+** A STREAM, NEVER THE MESH
+** Scale 2000 is 200 million triangles (5.6 GB of PLY), more than many
+** machines hold, so the mesh is written as it is made (ex_scene_write),
+** in three steps:
+**   1. count: ex_scene_count gives the totals the header needs, from the
+**      placements alone (a few per cent of the time);
+**   2. stream: the header and then every vertex go to OUT.tmp.<pid>, the
+**      faces (which the file wants after all vertices, while the scene
+**      makes them surface by surface) to OUT.faces.tmp.<pid>;
+**   3. join: the faces are appended to the first file, the part removed,
+**      and OUT.tmp.<pid> renamed to OUT.
+** So no half-written file ever carries the final name, the memory used
+** does not grow with the scale, and the disk holds at most the file and
+** its faces once more.  A failure (a full disk) or SIGINT/SIGTERM removes
+** both temporary files.  Long runs show a progress line on a terminal.
 */
 #include "common.h"
 #include "scenes.h"
 
 #include <errno.h>
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/types.h>
 #include <unistd.h>
 
 static const char *const prog = "mkscene";
+
+#define COPY_BYTES ((size_t)1 << 20)   /* the join copies in blocks of 1 MiB */
 
 static void usage(void)
 {
@@ -36,7 +54,8 @@ static void usage(void)
            "  --seed N    random seed (default 1); the same seed gives the same bytes\n"
            "  --help      this text\n"
            "\n"
-           "Prints the triangle count and the bounds.\n", EX_SCENE_MAX_SCALE);
+           "The mesh is written as it is made, never held in memory.  Prints the\n"
+           "triangle count, the time, the peak resident memory and the bounds.\n", EX_SCENE_MAX_SCALE);
 }
 
 static int has_suffix(const char *s, const char *suffix)
@@ -53,108 +72,215 @@ static void put_u32(unsigned char *p, uint32_t v)
     p[3] = (unsigned char)(v >> 24);
 }
 
-/* Little-endian records through a buffer (the host may be big-endian). */
-static int write_ply(FILE *f, const brt_mesh *m)
+/* ===================================================================== */
+/* The writer: an ex_mesh_sink over two files                            */
+/* ===================================================================== */
+
+typedef struct writer {
+    const char *path;            /* the final name, for messages */
+    int ply;                     /* else OBJ */
+    FILE *main, *faces;          /* OUT.tmp.<pid> and OUT.faces.tmp.<pid> */
+    char main_tmp[4096], faces_tmp[4096];
+    uint64_t triangles_total, triangles_done;
+    float lo[3], hi[3];          /* bounds of the vertices so far */
+    int created;                 /* the two temporary files exist */
+} writer;
+
+static brt_result write_error(const writer *w, brt_error *err)
 {
+    return brt_fail(err, BRT_EIO, "%s: cannot write: %s", w->path,
+                    strerror(errno ? errno : EIO));
+}
+
+/* The sink's callbacks stop the scene on a signal (BRT_EINTR). */
+static brt_result check_interrupt(brt_error *err)
+{
+    return ex_interrupted() ? brt_fail(err, BRT_EINTR, "interrupted") : BRT_OK;
+}
+
+static brt_result write_vertices(void *user, const float *xyz, uint32_t count, brt_error *err)
+{
+    writer *w = user;
+    unsigned char record[12];
+    uint32_t i;
+    int k;
+    for (i = 0; i < count; i++) {
+        const float *p = xyz + 3 * (size_t)i;
+        for (k = 0; k < 3; k++) {
+            uint32_t bits;   /* little-endian records, whatever the host */
+            memcpy(&bits, p + k, 4);
+            put_u32(record + 4 * k, bits);
+            if (p[k] < w->lo[k]) w->lo[k] = p[k];
+            if (p[k] > w->hi[k]) w->hi[k] = p[k];
+        }
+        if (w->ply ? fwrite(record, 12, 1, w->main) != 1
+                   : fprintf(w->main, "v %.9g %.9g %.9g\n", p[0], p[1], p[2]) < 0)
+            return write_error(w, err);
+    }
+    return check_interrupt(err);
+}
+
+static brt_result write_triangles(void *user, const uint32_t *abc, uint32_t count, brt_error *err)
+{
+    writer *w = user;
     unsigned char record[13];
     uint32_t i;
     int k;
-    fprintf(f, "ply\nformat binary_little_endian 1.0\ncomment batchrt mkscene\n"
-               "element vertex %lu\nproperty float x\nproperty float y\nproperty float z\n"
-               "element face %lu\nproperty list uchar uint vertex_indices\nend_header\n",
-            (unsigned long)m->vertex_count, (unsigned long)m->triangle_count);
-    for (i = 0; i < m->vertex_count; i++) {
-        for (k = 0; k < 3; k++) {
-            uint32_t bits;
-            memcpy(&bits, m->positions + 3 * (size_t)i + k, 4);
-            put_u32(record + 4 * k, bits);
-        }
-        if (fwrite(record, 12, 1, f) != 1) return 0;
-    }
     record[0] = 3;
-    for (i = 0; i < m->triangle_count; i++) {
-        for (k = 0; k < 3; k++) put_u32(record + 1 + 4 * k, m->indices[3 * (size_t)i + k]);
-        if (fwrite(record, 13, 1, f) != 1) return 0;
+    for (i = 0; i < count; i++) {
+        const uint32_t *t = abc + 3 * (size_t)i;
+        for (k = 0; k < 3; k++) put_u32(record + 1 + 4 * k, t[k]);
+        if (w->ply ? fwrite(record, 13, 1, w->faces) != 1
+                   : fprintf(w->faces, "f %lu %lu %lu\n", (unsigned long)t[0] + 1,
+                             (unsigned long)t[1] + 1, (unsigned long)t[2] + 1) < 0)
+            return write_error(w, err);
     }
-    return 1;
+    w->triangles_done += count;
+    ex_progress("writing", w->triangles_done, w->triangles_total);
+    return check_interrupt(err);
 }
 
-static int write_obj(FILE *f, const brt_mesh *m)
+static int write_header(const writer *w, uint64_t vertices, uint64_t triangles)
 {
-    uint32_t i;
-    fprintf(f, "# batchrt mkscene: %lu vertices, %lu triangles\n",
-            (unsigned long)m->vertex_count, (unsigned long)m->triangle_count);
-    for (i = 0; i < m->vertex_count; i++) {
-        const float *p = m->positions + 3 * (size_t)i;
-        if (fprintf(f, "v %.9g %.9g %.9g\n", p[0], p[1], p[2]) < 0) return 0;
-    }
-    for (i = 0; i < m->triangle_count; i++) {
-        const uint32_t *t = m->indices + 3 * (size_t)i;
-        if (fprintf(f, "f %lu %lu %lu\n", (unsigned long)t[0] + 1, (unsigned long)t[1] + 1,
-                    (unsigned long)t[2] + 1) < 0)
-            return 0;
-    }
-    return 1;
+    if (w->ply)
+        return fprintf(w->main, "ply\nformat binary_little_endian 1.0\ncomment batchrt mkscene\n"
+                       "element vertex %llu\nproperty float x\nproperty float y\n"
+                       "property float z\nelement face %llu\n"
+                       "property list uchar uint vertex_indices\nend_header\n",
+                       (unsigned long long)vertices, (unsigned long long)triangles) >= 0;
+    return fprintf(w->main, "# batchrt mkscene: %llu vertices, %llu triangles\n",
+                   (unsigned long long)vertices, (unsigned long long)triangles) >= 0;
 }
 
-/* Streams the mesh to a temporary name, then renames it into place. */
-static void write_mesh(const char *path, const brt_mesh *m)
+/* Appends the faces part to the main file. */
+static brt_result join(writer *w, brt_error *err)
 {
-    char tmp[4096];
-    FILE *f;
-    int ok, saved;
-    if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", path, (long)getpid()) >= (int)sizeof tmp)
-        ex_die(prog, "%s: path too long", path);
-    f = fopen(tmp, "wb");
-    if (!f) ex_die(prog, "%s: cannot create: %s", path, strerror(errno));
-    ok = has_suffix(path, ".ply") ? write_ply(f, m) : write_obj(f, m);
-    saved = errno;
-    if (fclose(f) != 0 && ok) { ok = 0; saved = errno; }
-    if (ok && rename(tmp, path) != 0) { ok = 0; saved = errno; }
-    if (!ok) {
-        unlink(tmp);
-        ex_die(prog, "%s: cannot write: %s", path, strerror(saved ? saved : EIO));
+    unsigned char *block = malloc(COPY_BYTES);
+    uint64_t size, done = 0;
+    brt_result r = BRT_OK;
+    size_t n;
+    off_t end = 0;
+    if (!block) return brt_fail(err, BRT_ENOMEM, "out of memory");
+    if (fflush(w->faces) != 0 || (end = ftello(w->faces)) < 0 || fseeko(w->faces, 0, SEEK_SET) != 0)
+        r = write_error(w, err);
+    size = r == BRT_OK ? (uint64_t)end : 0;
+    while (r == BRT_OK && (n = fread(block, 1, COPY_BYTES, w->faces)) > 0) {
+        if (fwrite(block, 1, n, w->main) != n) r = write_error(w, err);
+        done += n;
+        ex_progress("joining", done, size);
+        if (r == BRT_OK) r = check_interrupt(err);
     }
+    if (r == BRT_OK && (ferror(w->faces) || done != size))
+        r = brt_fail(err, BRT_EIO, "%s: cannot read back the faces: %s", w->faces_tmp,
+                     strerror(errno ? errno : EIO));
+    free(block);
+    return r;
+}
+
+/* Closes both files (a failed close is a failed write: data may be lost)
+** and, when r failed, removes them. */
+static brt_result finish(writer *w, brt_result r, brt_error *err)
+{
+    int k;
+    FILE **files[2];
+    files[0] = &w->main;
+    files[1] = &w->faces;
+    for (k = 0; k < 2; k++) {
+        if (*files[k] && fclose(*files[k]) != 0 && r == BRT_OK) r = write_error(w, err);
+        *files[k] = NULL;
+    }
+    if (!w->created) return r;
+    unlink(w->faces_tmp);
+    if (r == BRT_OK && rename(w->main_tmp, w->path) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", w->path, strerror(errno));
+    if (r != BRT_OK) unlink(w->main_tmp);
+    return r;
+}
+
+static brt_result open_parts(writer *w, brt_error *err)
+{
+    long pid = (long)getpid();
+    if (snprintf(w->main_tmp, sizeof w->main_tmp, "%s.tmp.%ld", w->path, pid)
+            >= (int)sizeof w->main_tmp
+        || snprintf(w->faces_tmp, sizeof w->faces_tmp, "%s.faces.tmp.%ld", w->path, pid)
+            >= (int)sizeof w->faces_tmp)
+        return brt_fail(err, BRT_EARG, "%s: path too long", w->path);
+    w->created = 1;
+    w->main = fopen(w->main_tmp, "wb");
+    w->faces = w->main ? fopen(w->faces_tmp, "w+b") : NULL;
+    if (!w->faces) return brt_fail(err, BRT_EIO, "%s: cannot create: %s", w->path, strerror(errno));
+    return BRT_OK;
+}
+
+/* The three steps of the file comment. */
+static brt_result write_scene(const ex_scene_recipe *recipe, writer *w, uint64_t *vertices,
+                              brt_error *err)
+{
+    ex_mesh_sink sink;
+    brt_result r = ex_scene_count(recipe, vertices, &w->triangles_total, err);
+    if (r != BRT_OK) return r;
+    r = open_parts(w, err);
+    if (r == BRT_OK && !write_header(w, *vertices, w->triangles_total)) r = write_error(w, err);
+    sink.vertices = write_vertices;
+    sink.triangles = write_triangles;
+    sink.user = w;
+    if (r == BRT_OK) r = ex_scene_write(recipe, &sink, err);
+    if (r == BRT_OK) r = join(w, err);
+    return finish(w, r, err);
 }
 
 int main(int argc, char **argv)
 {
-    const char *name = NULL, *out = NULL;
-    double scale = 1, seconds;
-    uint64_t seed = 1;
-    brt_mesh mesh;
+    ex_scene_recipe recipe;
+    const char *out = NULL;
+    double seconds;
+    uint64_t vertices = 0;
     brt_error err;
-    float lo[3], hi[3];
-    int i;
+    brt_result r;
+    writer w;
+    int i, k;
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
+    memset(&recipe, 0, sizeof recipe);
+    recipe.scale = 1;
+    recipe.seed = 1;
     for (i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--scale") == 0)
-            scale = ex_parse_double(prog, "--scale", ex_option_value(prog, argc, argv, &i),
-                                    0.001, EX_SCENE_MAX_SCALE);
+            recipe.scale = ex_parse_double(prog, "--scale", ex_option_value(prog, argc, argv, &i),
+                                           0.001, EX_SCENE_MAX_SCALE);
         else if (strcmp(argv[i], "--seed") == 0)
-            seed = ex_parse_u64(prog, "--seed", ex_option_value(prog, argc, argv, &i), 0,
-                                UINT64_MAX);
+            recipe.seed = ex_parse_u64(prog, "--seed", ex_option_value(prog, argc, argv, &i), 0,
+                                       UINT64_MAX);
         else if (argv[i][0] == '-' && argv[i][1] != 0)
             ex_die(prog, "unknown option '%s' (see --help)", argv[i]);
-        else if (!name) name = argv[i];
+        else if (!recipe.name) recipe.name = argv[i];
         else if (!out) out = argv[i];
         else ex_die(prog, "unexpected argument '%s' (see --help)", argv[i]);
     }
     if (!out) ex_die(prog, "expected NAME and OUT.ply|OUT.obj (see --help)");
-    if (!ex_scene_is_builtin(name))
-        ex_die(prog, "unknown scene '%s' (built-in: crown, landscape, island)", name);
+    if (!ex_scene_is_builtin(recipe.name))
+        ex_die(prog, "unknown scene '%s' (built-in: crown, landscape, island)", recipe.name);
     if (!has_suffix(out, ".ply") && !has_suffix(out, ".obj"))
         ex_die(prog, "%s: the output name must end in .ply or .obj", out);
 
+    memset(&w, 0, sizeof w);
+    w.path = out;
+    w.ply = has_suffix(out, ".ply");
+    for (k = 0; k < 3; k++) {
+        w.lo[k] = INFINITY;
+        w.hi[k] = -INFINITY;
+    }
+    ex_catch_interrupts();
     seconds = brt_seconds();
-    ex_check(prog, ex_scene_generate(name, scale, seed, &mesh, &err), &err);
+    r = write_scene(&recipe, &w, &vertices, &err);
+    ex_progress_end();
+    if (r == BRT_EINTR) ex_die_interrupted(prog);
+    ex_check(prog, r, &err);
     seconds = brt_seconds() - seconds;
-    write_mesh(out, &mesh);
-    brt_mesh_bounds(&mesh, lo, hi);
-    printf("%s: %lu triangles, %lu vertices, generated in %.2f s\n", name,
-           (unsigned long)mesh.triangle_count, (unsigned long)mesh.vertex_count, seconds);
-    printf("bounds: %g %g %g .. %g %g %g\n", lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]);
-    brt_mesh_free(&mesh);
+    printf("%s: %llu triangles, %llu vertices, written in %.2f s, peak RSS %.1f MiB\n",
+           recipe.name, (unsigned long long)w.triangles_total, (unsigned long long)vertices,
+           seconds, (double)brt_peak_rss_bytes() / 1048576.0);
+    printf("bounds: %g %g %g .. %g %g %g\n", w.lo[0], w.lo[1], w.lo[2], w.hi[0], w.hi[1],
+           w.hi[2]);
     return 0;
 }

@@ -243,14 +243,19 @@ void ex_bounce_ray(const brt_mesh *mesh, double diagonal, const brt_ray *in,
     ex_lambert_bounce(p, n, in->dir, diagonal, u1, u2, out);
 }
 
+double ex_box_diagonal(const float bmin[3], const float bmax[3])
+{
+    double d = 0;
+    int k;
+    for (k = 0; k < 3; k++) d += ((double)bmax[k] - bmin[k]) * ((double)bmax[k] - bmin[k]);
+    return sqrt(d);
+}
+
 double ex_mesh_diagonal(const brt_mesh *mesh)
 {
     float bmin[3], bmax[3];
-    double d = 0;
-    int k;
     brt_mesh_bounds(mesh, bmin, bmax);
-    for (k = 0; k < 3; k++) d += ((double)bmax[k] - bmin[k]) * ((double)bmax[k] - bmin[k]);
-    return sqrt(d);
+    return ex_box_diagonal(bmin, bmax);
 }
 
 int ex_rays_bounce(const brt_mesh *mesh, const brt_bvh *bvh, const ex_camera *cam,

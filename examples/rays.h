@@ -37,7 +37,8 @@ void ex_rays_camera(const ex_camera *cam, brt_ray *rays, size_t count, uint64_t 
 ** side, directions uniform on the sphere. */
 void ex_rays_random(const float bmin[3], const float bmax[3], brt_ray *rays, size_t count,
                     uint64_t *rng);
-/* Length of the diagonal of the mesh's bounding box. */
+/* Length of the diagonal of a box, and of the mesh's bounding box. */
+double ex_box_diagonal(const float bmin[3], const float bmax[3]);
 double ex_mesh_diagonal(const brt_mesh *mesh);
 /* A Lambert bounce: from point nudged off the surface along the normal
 ** (any length, either side) turned to face the incoming direction, a

@@ -40,13 +40,23 @@
 ** or intersected at once because their geometry was in memory), and each
 ** path adds its rays' counts to its pixel.
 **
-** BUILT-IN SCENES ON DISK
-** A built-in scene is generated in memory (fast: about 10 M triangles/s);
-** its scene file goes to the default scene folder (ex_scene_folder)
-** under a name made of the scene name, scale, seed and the build options,
-** and carries a checksum of the generated triangles as its stamp
-** (brt_scene_matches), so it is built once and reused -- until the
-** generator changes what those triangles are.
+** OUT OF CORE FROM END TO END
+** The batched modes never hold the mesh.  The scene file is built from a
+** triangle stream (brt_scene_build_stream): a mesh file read as the build
+** consumes it, or a built-in scene made as it is consumed (ex_scene_source,
+** one object at a time).  Everything else -- the bounds for the default
+** camera and the offsets, the triangle count -- comes from the opened
+** scene file.  A built-in scene's file goes to the default scene folder
+** (ex_scene_folder) under a name made of the scene name, scale, seed and
+** the build options, with a stamp made of the same and the generator's
+** version (ex_scene_stamp), so it is built once and reused without making
+** the scene again.  Only --direct and the direct run of --compare load the
+** whole mesh, and say so when it is larger than --memory.
+**
+** INTERRUPTS
+** SIGINT and SIGTERM set a flag (ex_catch_interrupts): the scene build
+** polls it and removes its temporary files; the renderer stops starting
+** paths, and the program exits non-zero before writing any output.
 */
 #include "rays.h"
 #include "scenes.h"
@@ -377,6 +387,7 @@ static size_t next_rays(void *user, brt_ray *rays, uint64_t *tags, size_t max)
 {
     renderer *r = user;
     size_t n = 0;
+    if (ex_interrupted()) return 0;   /* the paths in flight end; main exits */
     while (n < max && r->pending_count > 0) {
         uint32_t id = r->pending[--r->pending_count];
         rays[n] = r->paths[id].ray;
@@ -440,9 +451,11 @@ static void finished(void *user, const brt_ray *ray, const brt_hit *hit, const f
     if ((r->finished & 0xFFF) == 0) ex_progress("rendering", r->finished, r->total);
 }
 
-/* The progress line at 100 % and done. */
+/* The progress line at 100 % and done; after SIGINT or SIGTERM (the
+** paths stopped early), the exit, before any output is written. */
 static void end_progress(const renderer *r)
 {
+    if (ex_interrupted()) ex_die_interrupted(prog);
     ex_progress("rendering", r->total, r->total);
     ex_progress_end();
 }
@@ -486,21 +499,24 @@ static void render_batched(brt_scene *scene, const brt_trace_options *topt, rend
 /* The scene                                                             */
 /* ===================================================================== */
 
-static void load_mesh(const options *o, brt_mesh *mesh)
+/* The whole mesh in memory: only --direct and the direct run of --compare
+** need it (they say so when it is larger than the memory limit). */
+static void load_mesh(const options *o, uint64_t limit, brt_mesh *mesh)
 {
     brt_error err;
     if (ex_scene_is_builtin(o->input))
         ex_check(prog, ex_scene_generate(o->input, o->scale, o->seed, mesh, &err), &err);
     else
         ex_check(prog, brt_mesh_load(o->input, mesh, &err), &err);
+    ex_note_mesh_memory(prog, mesh, limit);
 }
 
-/* The camera (given, or the scene's default view) and the offset scale. */
-static void make_job(const options *o, const brt_mesh *mesh, render_job *job)
+/* The camera (given, or the scene's default view) and the offset scale,
+** from the scene's bounds: the mesh's (--direct) or the scene file's,
+** which are the same floats (README: "Out of core from end to end"). */
+static void make_job(const options *o, const float bmin[3], const float bmax[3], render_job *job)
 {
-    float bmin[3], bmax[3], eye[3], target[3], fov;
-    memset(job, 0, sizeof *job);
-    brt_mesh_bounds(mesh, bmin, bmax);
+    float eye[3], target[3], fov;
     if (o->have_camera) {
         memcpy(eye, o->eye, sizeof eye);
         memcpy(target, o->target, sizeof target);
@@ -510,83 +526,91 @@ static void make_job(const options *o, const brt_mesh *mesh, render_job *job)
     }
     ex_camera_look(&job->camera, eye, target, fov, (uint32_t)o->width, (uint32_t)o->height);
     job->spp = (uint32_t)o->spp;
-    job->diagonal = ex_mesh_diagonal(mesh);
+    job->diagonal = ex_box_diagonal(bmin, bmax);
     job->paths_in_flight = (uint32_t)o->rays_in_flight;
     job->disk_speed = o->disk_speed;
 }
 
-/* A built-in scene's recipe (name, scale, seed: its file name). */
-static void builtin_recipe(const options *o, char *recipe, size_t size)
-{
-    snprintf(recipe, size, "%s-s%g-seed%llu", o->input, o->scale, (unsigned long long)o->seed);
-}
-
-/* The stamp of a built-in scene: a checksum of the generated triangles
-** themselves, not of the recipe, so that a file left by an older
-** generator (same name, other geometry) is rebuilt, never reused. */
-static uint64_t builtin_stamp(const brt_mesh *mesh)
-{
-    uint64_t positions = brt_checksum64(mesh->positions, 12 * (size_t)mesh->vertex_count);
-    uint64_t indices = brt_checksum64(mesh->indices, 12 * (size_t)mesh->triangle_count);
-    return positions ^ (indices * 0x9E3779B97F4A7C15u);
-}
-
-/* DIR/RECIPE-bBATCH-rRES.brs in the scene folder (ex_scene_folder). */
-static void builtin_scene_path(const options *o, const char *recipe, char *path, size_t size)
+/* DIR/NAME-sSCALE-seedSEED-bBATCH-rRES.brs in the scene folder (ex_scene_folder). */
+static void builtin_scene_path(const options *o, char *path, size_t size)
 {
     char dir[4096];
     ex_scene_folder(prog, dir, sizeof dir);
-    if (snprintf(path, size, "%s/%s-b%llu-r%llu.brs", dir, recipe,
-                 (unsigned long long)o->batch_tris, (unsigned long long)o->res) >= (int)size)
+    if (snprintf(path, size, "%s/%s-s%g-seed%llu-b%llu-r%llu.brs", dir, o->input, o->scale,
+                 (unsigned long long)o->seed, (unsigned long long)o->batch_tris,
+                 (unsigned long long)o->res) >= (int)size)
         ex_die(prog, "%s: scene path too long", dir);
 }
 
-/* Opens the scene file when it matches the built-in recipe, else builds it
-** from the mesh (already generated: it also gave the camera). */
-static brt_scene *prepare_builtin(const brt_scene_options *sopt, const brt_mesh *mesh,
-                                  const char *path, int *rebuilt)
+/* The scene file at path, opened when it was built from stamp with sopt
+** (brt_scene_matches); otherwise built from source with
+** brt_scene_build_stream and opened.  A file there that does not open
+** (corrupt, another format version) is an error, as in brt_scene_prepare,
+** unless replace_unreadable (render's own cache of built-in scenes). */
+static brt_scene *prepare_scene(const brt_triangle_source *source, uint64_t stamp,
+                                const char *path, const brt_scene_options *sopt,
+                                int replace_unreadable, int *rebuilt)
 {
-    uint64_t stamp = builtin_stamp(mesh);
     brt_scene *scene = NULL;
     brt_error err;
+    brt_result r;
+    struct stat st;
     *rebuilt = 0;
-    if (brt_scene_open(path, &scene, &err) == BRT_OK) {
-        if (brt_scene_matches(scene, stamp, sopt)) return scene;
-        brt_scene_close(scene);
+    if (stat(path, &st) == 0) {
+        r = brt_scene_open(path, &scene, &err);
+        if (r == BRT_OK && brt_scene_matches(scene, stamp, sopt)) return scene;
+        if (r != BRT_OK && !replace_unreadable) ex_check(prog, r, &err);
+        brt_scene_close(scene);   /* stale: the source or the settings changed */
     }
     *rebuilt = 1;
     ex_progress("building scene", 0, 1);
-    ex_check(prog, brt_scene_build(mesh, sopt, stamp, path, &err), &err);
-    ex_check(prog, brt_scene_open(path, &scene, &err), &err);
+    r = brt_scene_build_stream(source, sopt, stamp, path, &err);
+    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
+    ex_check(prog, r, &err);
+    ex_progress("building scene", 1, 1);
     ex_progress_end();
+    ex_check(prog, brt_scene_open(path, &scene, &err), &err);
     return scene;
 }
 
-static brt_scene *open_scene(const options *o, const brt_mesh *mesh, double *build_seconds)
+/* The scene file: reused when it matches the input (a mesh file's stamp,
+** or a built-in scene's recipe), else built from a triangle stream -- the
+** mesh file read, or the built-in scene made, as the build consumes it. */
+static brt_scene *open_scene(const options *o, const volatile sig_atomic_t *interrupt,
+                             double *build_seconds)
 {
     brt_scene_options sopt;
+    brt_triangle_source source;
+    ex_scene_recipe recipe;
     brt_scene *scene;
     brt_error err;
-    char path[4096], recipe[256];
+    char path[4096];
     double start = brt_seconds();
-    int rebuilt;
+    uint64_t stamp;
+    int builtin = ex_scene_is_builtin(o->input), rebuilt;
     memset(&sopt, 0, sizeof sopt);
     sopt.batch_tris = (uint32_t)o->batch_tris;
     sopt.proxy_res = (uint32_t)o->res;
-    if (ex_scene_is_builtin(o->input)) {
-        builtin_recipe(o, recipe, sizeof recipe);
-        if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
-        else builtin_scene_path(o, recipe, path, sizeof path);
-        scene = prepare_builtin(&sopt, mesh, path, &rebuilt);
+    sopt.interrupt = interrupt;
+    if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
+    else if (builtin) builtin_scene_path(o, path, sizeof path);
+    else ex_default_scene_path(prog, o->input, sopt.batch_tris, sopt.proxy_res, path, sizeof path);
+    if (builtin) {
+        recipe.name = o->input;
+        recipe.scale = o->scale;
+        recipe.seed = o->seed;
+        ex_scene_source(&recipe, &source);
+        stamp = ex_scene_stamp(&recipe);
     } else {
-        if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
-        else ex_default_scene_path(prog, o->input, sopt.batch_tris, sopt.proxy_res, path, sizeof path);
-        ex_check(prog, brt_scene_prepare(o->input, path, &sopt, &scene, &rebuilt, &err), &err);
+        brt_mesh_file_source(o->input, &source);
+        ex_check(prog, brt_scene_source_stamp(o->input, &stamp, &err), &err);
     }
+    /* The folder of built-in scene files is render's own cache: a file
+    ** there that does not open is replaced, not reported. */
+    scene = prepare_scene(&source, stamp, path, &sopt, builtin, &rebuilt);
     *build_seconds = rebuilt ? brt_seconds() - start : 0.0;
     return scene;
 }
-
 
 /* The geometry bytes of a scene, from a trace of no rays (the statistics
 ** say it; a percentage limit needs it before the real trace). */
@@ -891,8 +915,9 @@ static void describe(const options *o, uint32_t triangles, brt_scene *scene, uin
 /* --compare: batched without and with proxies at the same limit, and the
 ** direct reference; one table, the image, the two heatmaps. */
 static void compare(const options *o, const render_job *job, brt_scene *scene,
-                    const brt_mesh *mesh, const brt_trace_options *topt)
+                    const brt_trace_options *topt)
 {
+    brt_mesh mesh;
     run runs[3];
     brt_trace_options without = *topt, with = *topt;
     char path[4096];
@@ -904,7 +929,9 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
     runs[2].label = with.exact_proxies ? "batched, exact proxies" : "batched, proxies";
     without.no_proxy = 1;
     with.no_proxy = 0;
-    run_direct(mesh, job, &runs[0]);
+    load_mesh(o, topt->memory_limit, &mesh);
+    run_direct(&mesh, job, &runs[0]);
+    brt_mesh_free(&mesh);
     run_batched(scene, job, &without, o->heatmap != NULL, &runs[1]);
     run_batched(scene, job, &with, o->heatmap != NULL, &runs[2]);
     print_header();
@@ -928,6 +955,7 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
         write_heatmap(path, job, runs[2].visits, max);
     }
     if (o->stats) {
+        runs[1].stats.peak_rss_bytes = runs[2].stats.peak_rss_bytes = brt_peak_rss_bytes();
         write_stats(o->stats, job, &runs[2], 0, 1);
         suffixed(o->stats, "noproxy", path, sizeof path);
         write_stats(path, job, &runs[1], 0, 0);
@@ -942,11 +970,13 @@ static void render_once(const options *o, const render_job *job, brt_scene *scen
     memset(&x, 0, sizeof x);
     if (o->direct) run_direct(mesh, job, &x);
     else run_batched(scene, job, topt, o->heatmap != NULL, &x);
+    x.stats.peak_rss_bytes = brt_peak_rss_bytes();
     printf("%s: %.2f s, %.3f Mrays/s, %llu rays; read %.2f MiB in %llu loads (%.2f s); "
-           "%.2f batching points visited per sample\n", o->direct ? "direct" : "batched",
-           x.stats.seconds, x.stats.mrays_per_second, (unsigned long long)x.stats.rays,
-           x.stats.disk_bytes_read / 1048576.0, (unsigned long long)x.stats.batch_loads,
-           x.stats.load_seconds, visits_per_sample(job, &x.stats));
+           "%.2f batching points visited per sample; peak RSS %.1f MiB\n",
+           o->direct ? "direct" : "batched", x.stats.seconds, x.stats.mrays_per_second,
+           (unsigned long long)x.stats.rays, x.stats.disk_bytes_read / 1048576.0,
+           (unsigned long long)x.stats.batch_loads, x.stats.load_seconds,
+           visits_per_sample(job, &x.stats), x.stats.peak_rss_bytes / 1048576.0);
     write_image(o, job, &x);
     if (o->heatmap)
         write_heatmap(o->heatmap, job, x.visits,
@@ -962,33 +992,41 @@ int main(int argc, char **argv)
     brt_scene *scene = NULL;
     brt_trace_options topt;
     render_job job;
+    const volatile sig_atomic_t *interrupt;
+    float bmin[3], bmax[3];
+    uint32_t triangles;
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
-    load_mesh(&o, &mesh);
-    make_job(&o, &mesh, &job);
+    interrupt = ex_catch_interrupts();
+    memset(&job, 0, sizeof job);
+    memset(&mesh, 0, sizeof mesh);
     memset(&topt, 0, sizeof topt);
     topt.no_proxy = o.no_proxy;
     topt.queue_resident = o.queue_resident;
     topt.exact_proxies = o.exact_proxy;
-    topt.rays_in_flight = job.paths_in_flight;
+    topt.rays_in_flight = (uint32_t)o.rays_in_flight;
     topt.drop_os_cache = o.drop_os_cache;
     if (o.disk_speed) {
         topt.read_fn = slow_disk_read;
         topt.read_user = &o.disk_speed;
     }
-    if (!o.direct) {
-        scene = open_scene(&o, &mesh, &job.scene_seconds);
+    if (o.direct) {
+        load_mesh(&o, o.memory, &mesh);
+        brt_mesh_bounds(&mesh, bmin, bmax);
+        triangles = mesh.triangle_count;
+    } else {
+        scene = open_scene(&o, interrupt, &job.scene_seconds);
+        brt_scene_bounds(scene, bmin, bmax);
+        triangles = brt_scene_triangle_count(scene);
         topt.memory_limit = o.memory_percent > 0
             ? (uint64_t)(o.memory_percent / 100.0 * (double)scene_geometry_bytes(scene)) + 1
             : o.memory;
     }
-    describe(&o, mesh.triangle_count, scene, topt.memory_limit);
+    make_job(&o, bmin, bmax, &job);
+    describe(&o, triangles, scene, topt.memory_limit);
     fflush(stdout);
-    /* Out of core, the mesh is on disk now; only --direct and --compare
-    ** (which renders the direct reference too) still need it. */
-    if (!o.direct && !o.compare) brt_mesh_free(&mesh);
-    if (o.compare) compare(&o, &job, scene, &mesh, &topt);
+    if (o.compare) compare(&o, &job, scene, &topt);
     else render_once(&o, &job, scene, &mesh, &topt);
     if (scene) brt_scene_close(scene);
     brt_mesh_free(&mesh);

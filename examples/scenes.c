@@ -13,13 +13,17 @@
 ** A surface is placed by an affine transform (rotation, uniform scale,
 ** translation); instances (trees, rocks, plants) are baked in world space.
 **
-** MEMORY
-** The two arrays are reserved once from the triangle budget (a little
-** more than it) and grown by half when a scene overshoots; pages that are
-** never written cost no memory, and realloc of a large block moves pages
-** rather than bytes on common systems.  They are trimmed to size at the
-** end.  No per-triangle temporaries: each surface is written straight
-** into them.
+** OUTPUTS AND MEMORY
+** The builders describe a scene surface by surface; emit_surface makes
+** each surface ring by ring and hands vertices and triangles on in batches
+** to one of three outputs: counts only (mkscene writes them in its header
+** before the first vertex), an indexed mesh (vertices and index triples,
+** to ex_mesh_sink: the collector ex_scene_generate and mkscene's writer),
+** or a triangle stream (corners, to brt_triangle_fn: the streamed scene
+** build).  The builder holds one batch, three rings of the current surface
+** and the placement of the current object, so its memory does not grow
+** with the scale; only the collector holds the scene.  Each output sees
+** the same triangles in the same order, so they agree bit for bit.
 **
 ** SIZE
 ** A scene gets a triangle budget of 100000 * scale, shared out between
@@ -30,6 +34,7 @@
 #include "scenes.h"
 
 #include <math.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -148,46 +153,38 @@ typedef struct grid {
 /* A surface point for u, v in [0, 1]; the poles are at v = 0 and v = 1. */
 typedef void (*surface_fn)(const void *shape, double u, double v, double p[3]);
 
+/* What the builder makes of the surfaces (see OUTPUTS at the top). */
+enum output { OUT_COUNT, OUT_INDEXED, OUT_TRIANGLES };
+
+#define BATCH 8192   /* vertices, index triples or corner triples per hand-over */
+
 typedef struct builder {
-    float *positions;      /* 3 per vertex, vertex_cap of them */
-    uint32_t *indices;     /* 3 per triangle, triangle_cap of them */
-    uint64_t vertices, triangles;         /* written so far */
-    uint64_t vertex_cap, triangle_cap;
-    brt_result failed;     /* BRT_ENOMEM, or BRT_EARG past 2^32 - 1 */
+    enum output out;
+    ex_mesh_sink sink;             /* OUT_INDEXED */
+    brt_triangle_fn emit;          /* OUT_TRIANGLES */
+    void *emit_user;
+    const char *name;              /* for messages */
+    double scale;
+    brt_error *err;
+    uint64_t vertices, triangles;  /* made so far: the number of the next one */
+    float *vertex_batch;           /* BATCH vertices awaiting the sink */
+    uint32_t vertex_pending;
+    void *triangle_batch;          /* BATCH index triples or corner triples */
+    uint32_t triangle_pending;
+    float *rings[3];               /* one surface's first ring and two rolling ones */
+    uint32_t ring_cap;             /* vertices each ring buffer holds */
+    brt_result failed;             /* the first failure (err says what) */
 } builder;
 
-/* Grows one array (by half, or to `need`) unless it has room for `need`. */
-static int grow(void **array, uint64_t *cap, uint64_t need, size_t item_bytes)
+static void out_of_memory(brt_error *err, const char *name, double scale)
 {
-    uint64_t next = *cap + *cap / 2;
-    void *bigger;
-    if (need <= *cap) return 1;
-    if (next < need) next = need;
-    if (next > UINT32_MAX) next = UINT32_MAX;
-    if (next > SIZE_MAX / item_bytes) return 0;
-    bigger = realloc(*array, (size_t)next * item_bytes);
-    if (!bigger) return 0;
-    *array = bigger;
-    *cap = next;
-    return 1;
+    brt_fail(err, BRT_ENOMEM, "%s: out of memory at scale %g", name, scale);
 }
 
-/* Room for nv more vertices and nt more triangles, or b->failed set. */
-static int reserve(builder *b, uint64_t nv, uint64_t nt)
+static void fail_out_of_memory(builder *b)
 {
-    void *p;
-    if (b->failed) return 0;
-    if (b->vertices + nv > UINT32_MAX || b->triangles + nt > UINT32_MAX) {
-        b->failed = BRT_EARG;
-        return 0;
-    }
-    p = b->positions;
-    if (!grow(&p, &b->vertex_cap, b->vertices + nv, 3 * sizeof(float))) b->failed = BRT_ENOMEM;
-    b->positions = p;
-    p = b->indices;
-    if (!grow(&p, &b->triangle_cap, b->triangles + nt, 3 * sizeof(uint32_t))) b->failed = BRT_ENOMEM;
-    b->indices = p;
-    return !b->failed;
+    out_of_memory(b->err, b->name, b->scale);
+    b->failed = BRT_ENOMEM;
 }
 
 static uint32_t grid_poles(const grid *g)
@@ -234,12 +231,143 @@ static void put_vertex(float *out, const xform *x, const double p[3])
         out[r] = (float)(x->m[r][0] * p[0] + x->m[r][1] * p[1] + x->m[r][2] * p[2] + x->t[r]);
 }
 
-static void put_triangle(builder *b, uint64_t a, uint64_t c, uint64_t d)
+/* ---- handing vertices and triangles on, a batch at a time ---- */
+
+static void flush_vertices(builder *b)
 {
-    uint32_t *t = b->indices + 3 * b->triangles++;
-    t[0] = (uint32_t)a;
-    t[1] = (uint32_t)c;
-    t[2] = (uint32_t)d;
+    brt_result r;
+    if (b->vertex_pending == 0 || b->failed) return;
+    r = b->sink.vertices(b->sink.user, b->vertex_batch, b->vertex_pending, b->err);
+    b->vertex_pending = 0;
+    if (r != BRT_OK) b->failed = r;
+}
+
+static void flush_triangles(builder *b)
+{
+    brt_result r;
+    uint32_t n = b->triangle_pending;
+    if (n == 0 || b->failed) return;
+    if (b->out == OUT_INDEXED)
+        r = b->sink.triangles(b->sink.user, b->triangle_batch, n, b->err);
+    else   /* the numbers fit: emit_surface refuses more than 2^32 - 1 */
+        r = b->emit(b->emit_user, b->triangle_batch, n, (uint32_t)(b->triangles - n), b->err);
+    b->triangle_pending = 0;
+    if (r != BRT_OK) b->failed = r;
+}
+
+/* Vertices go on only in indexed output: a triangle stream carries
+** positions in its corners. */
+static void put_vertices(builder *b, const float *xyz, uint32_t count)
+{
+    while (b->out == OUT_INDEXED && count > 0 && !b->failed) {
+        uint32_t n = BATCH - b->vertex_pending;
+        if (n > count) n = count;
+        memcpy(b->vertex_batch + 3 * (size_t)b->vertex_pending, xyz, 12 * (size_t)n);
+        b->vertex_pending += n;
+        xyz += 3 * (size_t)n;
+        count -= n;
+        if (b->vertex_pending == BATCH) flush_vertices(b);
+    }
+}
+
+/* A vertex of the surface being made: where its position is (in a ring
+** buffer) and its number in the mesh. */
+typedef struct corner {
+    const float *p;
+    uint64_t index;
+} corner;
+
+/* A ring of vertices: positions and the number of the first. */
+typedef struct ring {
+    const float *xyz;
+    uint64_t first;
+} ring;
+
+static corner ring_corner(const ring *r, uint32_t j)
+{
+    corner c;
+    c.p = r->xyz + 3 * (size_t)j;
+    c.index = r->first + j;
+    return c;
+}
+
+static void put_triangle(builder *b, corner a, corner c, corner d)
+{
+    if (b->out == OUT_INDEXED) {
+        uint32_t *t = (uint32_t *)b->triangle_batch + 3 * (size_t)b->triangle_pending;
+        t[0] = (uint32_t)a.index;
+        t[1] = (uint32_t)c.index;
+        t[2] = (uint32_t)d.index;
+    } else {
+        float *t = (float *)b->triangle_batch + 9 * (size_t)b->triangle_pending;
+        memcpy(t, a.p, 12);
+        memcpy(t + 3, c.p, 12);
+        memcpy(t + 6, d.p, 12);
+    }
+    b->triangles++;
+    if (++b->triangle_pending == BATCH) flush_triangles(b);
+}
+
+/* ---- surfaces ---- */
+
+typedef struct surface {
+    const grid *g;
+    surface_fn fn;
+    const void *shape;
+    const xform *x;
+} surface;
+
+/* The positions of ring i (segs vertices) into out. */
+static void surface_ring(const surface *s, uint32_t i, float *out)
+{
+    uint32_t segs = s->g->segs, j;
+    double p[3], v = grid_v(s->g, i), du = 1.0 / ((s->g->flags & WRAP_U) ? segs : segs - 1);
+    for (j = 0; j < segs; j++) {
+        s->fn(s->shape, j * du, v, p);
+        put_vertex(out + 3 * (size_t)j, s->x, p);
+    }
+}
+
+/* Ring buffers for rings of segs vertices (kept and grown across surfaces). */
+static int reserve_rings(builder *b, uint32_t segs)
+{
+    int k;
+    if (segs <= b->ring_cap) return 1;
+    for (k = 0; k < 3; k++) {
+        float *bigger = realloc(b->rings[k], 12 * (size_t)segs);
+        if (!bigger) {
+            fail_out_of_memory(b);
+            return 0;
+        }
+        b->rings[k] = bigger;
+    }
+    b->ring_cap = segs;
+    return 1;
+}
+
+/* The triangles of the band between rings lo and hi (quads split along
+** one diagonal). */
+static void put_band(builder *b, const surface *s, const ring *lo, const ring *hi)
+{
+    uint32_t segs = s->g->segs, j;
+    uint32_t cols = (s->g->flags & WRAP_U) ? segs : segs - 1;
+    for (j = 0; j < cols; j++) {
+        uint32_t j2 = (j + 1) % segs;
+        put_triangle(b, ring_corner(lo, j), ring_corner(lo, j2), ring_corner(hi, j2));
+        put_triangle(b, ring_corner(lo, j), ring_corner(hi, j2), ring_corner(hi, j));
+    }
+}
+
+/* The fan between a pole and a ring; towards the start pole it runs
+** against the ring's order, towards the end pole with it. */
+static void put_fan(builder *b, uint32_t segs, const ring *pole, const ring *r, int start)
+{
+    uint32_t j;
+    for (j = 0; j < segs; j++) {
+        corner here = ring_corner(r, j), next = ring_corner(r, (j + 1) % segs);
+        if (start) put_triangle(b, ring_corner(pole, 0), next, here);
+        else put_triangle(b, ring_corner(pole, 0), here, next);
+    }
 }
 
 /*
@@ -248,45 +376,69 @@ static void put_triangle(builder *b, uint64_t a, uint64_t c, uint64_t d)
 ** split along the same diagonal, and the pole fans run against the ring
 ** edges they share, so every surface is consistently oriented: a closed
 ** one has each edge once in each direction.
+**
+** The rings are made one after another, band by band: only the first
+** ring (a band or fan may come back to it), the two of the current band
+** and the poles are held, so a terrain grid of millions of triangles costs
+** three rows of vertices.  Vertices and triangles come out in the order of
+** the indexed arrays: all rings, then the poles; all bands, then the fan
+** of the start pole, then that of the end pole.
 */
 static void emit_surface(builder *b, const grid *g, surface_fn fn,
                          const void *shape, const xform *x)
 {
-    uint64_t base = b->vertices, pole = base + (uint64_t)g->segs * g->rings;
-    uint32_t segs = g->segs, i, j;
-    uint32_t cols = (g->flags & WRAP_U) ? segs : segs - 1;
-    uint32_t bands = (g->flags & WRAP_V) ? g->rings : g->rings - 1;
-    double p[3], du = 1.0 / ((g->flags & WRAP_U) ? segs : segs - 1);
+    surface s;
+    uint64_t base = b->vertices, nv = grid_vertices(g), nt = grid_triangles(g);
+    uint32_t bands = (g->flags & WRAP_V) ? g->rings : g->rings - 1, i, k;
+    float pole_xyz[2][3];
+    ring first, lo, hi, poles[2];
+    double p[3];
 
-    if (!reserve(b, grid_vertices(g), grid_triangles(g))) return;
-    for (i = 0; i < g->rings; i++) {
-        double v = grid_v(g, i);
-        for (j = 0; j < segs; j++) {
-            fn(shape, j * du, v, p);
-            put_vertex(b->positions + 3 * (base + (uint64_t)i * segs + j), x, p);
+    if (b->failed) return;
+    if (base + nv > UINT32_MAX || b->triangles + nt > UINT32_MAX) {
+        b->failed = brt_fail(b->err, BRT_EARG, "%s: scale %g needs more than 2^32 - 1 vertices "
+                             "or triangles", b->name, b->scale);
+        return;
+    }
+    b->vertices += nv;
+    if (b->out == OUT_COUNT) {
+        b->triangles += nt;
+        return;
+    }
+    if (!reserve_rings(b, g->segs)) return;
+    s.g = g;
+    s.fn = fn;
+    s.shape = shape;
+    s.x = x;
+    for (k = 0; k < grid_poles(g); k++) {
+        fn(shape, 0, (k == 0 && (g->flags & POLE_START)) ? 0 : 1, p);
+        put_vertex(pole_xyz[k], x, p);
+        poles[k].xyz = pole_xyz[k];
+        poles[k].first = base + (uint64_t)g->segs * g->rings + k;
+    }
+    first.xyz = b->rings[0];
+    first.first = base;
+    surface_ring(&s, 0, b->rings[0]);
+    put_vertices(b, first.xyz, g->segs);
+    lo = first;
+    for (i = 0; i < bands && !b->failed; i++) {
+        uint32_t next = (i + 1) % g->rings;
+        hi.first = base + (uint64_t)next * g->segs;
+        if (next == 0) {
+            hi.xyz = first.xyz;
+        } else {   /* the buffer lo does not use */
+            float *free_ring = b->rings[lo.xyz == b->rings[1] ? 2 : 1];
+            surface_ring(&s, next, free_ring);
+            put_vertices(b, free_ring, g->segs);
+            hi.xyz = free_ring;
         }
+        put_band(b, &s, &lo, &hi);
+        if (next != 0) lo = hi;
     }
-    for (i = 0; i < grid_poles(g); i++) {
-        fn(shape, 0, (i == 0 && (g->flags & POLE_START)) ? 0 : 1, p);
-        put_vertex(b->positions + 3 * (pole + i), x, p);
-    }
-    b->vertices += grid_vertices(g);
-
-    for (i = 0; i < bands; i++) {
-        uint64_t lo = base + (uint64_t)i * segs, hi = base + (uint64_t)((i + 1) % g->rings) * segs;
-        for (j = 0; j < cols; j++) {
-            uint32_t j2 = (j + 1) % segs;
-            put_triangle(b, lo + j, lo + j2, hi + j2);
-            put_triangle(b, lo + j, hi + j2, hi + j);
-        }
-    }
-    if (g->flags & POLE_START)
-        for (j = 0; j < segs; j++) put_triangle(b, pole, base + (j + 1) % segs, base + j);
-    if (g->flags & POLE_END) {
-        uint64_t last = base + (uint64_t)(g->rings - 1) * segs;
-        uint64_t end_pole = pole + ((g->flags & POLE_START) != 0);
-        for (j = 0; j < segs; j++) put_triangle(b, end_pole, last + j, last + (j + 1) % segs);
-    }
+    put_vertices(b, pole_xyz[0], grid_poles(g));
+    /* lo is now the last ring (with WRAP_V the last band ends on ring 0) */
+    if (g->flags & POLE_START) put_fan(b, g->segs, &poles[0], &first, 1);
+    if (g->flags & POLE_END) put_fan(b, g->segs, &poles[grid_poles(g) - 1], &lo, 0);
 }
 
 /* ===================================================================== */
@@ -1069,7 +1221,10 @@ static void build_island(builder *b, double scale, uint64_t seed)
     if (count < 3) count = 3;
     half_side = 0.5 * ISLAND_SPACING * sqrt((double)count);
     all = malloc(count * sizeof *all);
-    if (!all) { b->failed = BRT_ENOMEM; return; }
+    if (!all) {
+        fail_out_of_memory(b);
+        return;
+    }
     emit_sea(b, half_side + 150);
     for (i = 0; i < count; i++) {
         grid g = grid_for_budget(0.2 * budget / count, 2 * PI, WRAP_U | POLE_START);
@@ -1107,38 +1262,186 @@ int ex_scene_is_builtin(const char *name)
     return scene_index(name) >= 0;
 }
 
+/* Checks the recipe, runs its scene's builder into the given output and
+** hands on what is left in the batches. */
+static brt_result run_builder(builder *b, const ex_scene_recipe *recipe)
+{
+    int index = scene_index(recipe->name);
+    if (index < 0)
+        return brt_fail(b->err, BRT_EARG, "unknown scene '%s' (built-in: crown, landscape, island)",
+                        recipe->name ? recipe->name : "(null)");
+    if (!(recipe->scale > 0 && recipe->scale <= EX_SCENE_MAX_SCALE))
+        return brt_fail(b->err, BRT_EARG, "%s: scale %g outside (0, %g]", recipe->name,
+                        recipe->scale, EX_SCENE_MAX_SCALE);
+    b->name = recipe->name;
+    b->scale = recipe->scale;
+    if (b->out == OUT_INDEXED) b->vertex_batch = malloc(12 * (size_t)BATCH);
+    if (b->out != OUT_COUNT)
+        b->triangle_batch = malloc((b->out == OUT_INDEXED ? 12 : 36) * (size_t)BATCH);
+    if ((b->out == OUT_INDEXED && !b->vertex_batch) || (b->out != OUT_COUNT && !b->triangle_batch))
+        fail_out_of_memory(b);
+    else
+        scene_builders[index](b, recipe->scale, recipe->seed);
+    flush_vertices(b);
+    flush_triangles(b);
+    free(b->vertex_batch);
+    free(b->triangle_batch);
+    free(b->rings[0]);
+    free(b->rings[1]);
+    free(b->rings[2]);
+    return b->failed;
+}
+
+static void builder_init(builder *b, enum output out, brt_error *err)
+{
+    memset(b, 0, sizeof *b);
+    b->out = out;
+    b->err = err;
+}
+
+brt_result ex_scene_count(const ex_scene_recipe *recipe, uint64_t *vertices, uint64_t *triangles,
+                          brt_error *err)
+{
+    builder b;
+    brt_result r;
+    builder_init(&b, OUT_COUNT, err);
+    r = run_builder(&b, recipe);
+    *vertices = r == BRT_OK ? b.vertices : 0;
+    *triangles = r == BRT_OK ? b.triangles : 0;
+    return r;
+}
+
+brt_result ex_scene_write(const ex_scene_recipe *recipe, const ex_mesh_sink *sink, brt_error *err)
+{
+    builder b;
+    builder_init(&b, OUT_INDEXED, err);
+    b.sink = *sink;
+    return run_builder(&b, recipe);
+}
+
+brt_result ex_scene_stream(const ex_scene_recipe *recipe, brt_triangle_fn emit, void *emit_user,
+                           brt_error *err)
+{
+    builder b;
+    builder_init(&b, OUT_TRIANGLES, err);
+    b.emit = emit;
+    b.emit_user = emit_user;
+    return run_builder(&b, recipe);
+}
+
+static brt_result source_run(const void *user, brt_triangle_fn emit, void *emit_user,
+                             brt_error *err)
+{
+    return ex_scene_stream(user, emit, emit_user, err);
+}
+
+void ex_scene_source(const ex_scene_recipe *recipe, brt_triangle_source *source)
+{
+    source->run = source_run;
+    source->user = recipe;
+}
+
+uint64_t ex_scene_stamp(const ex_scene_recipe *recipe)
+{
+    char text[256];
+    int n = snprintf(text, sizeof text, "batchrt built-in scene %s, scale %.17g, seed %llu, "
+                     "generator %d", recipe->name, recipe->scale,
+                     (unsigned long long)recipe->seed, EX_SCENE_GENERATOR_VERSION);
+    return brt_checksum64(text, n < (int)sizeof text ? (size_t)n : sizeof text - 1);
+}
+
+/* ---- the collector: the whole mesh in two growing arrays ---- */
+
+typedef struct collector {
+    void *positions, *indices;     /* 12 bytes per vertex, 12 per triangle */
+    uint64_t vertex_cap, triangle_cap;
+    uint32_t vertex_count, triangle_count;
+    const char *name;
+    double scale;
+} collector;
+
+/* Grows one array (by half, or to `need`) unless it has room for `need`;
+** need never passes 2^32 - 1 (emit_surface refuses more). */
+static int grow(void **array, uint64_t *cap, uint64_t need, size_t item_bytes)
+{
+    uint64_t next = *cap + *cap / 2;
+    void *bigger;
+    if (need <= *cap) return 1;
+    if (next < need) next = need;
+    if (next > UINT32_MAX) next = UINT32_MAX;
+    if (next > SIZE_MAX / item_bytes) return 0;
+    bigger = realloc(*array, (size_t)next * item_bytes);
+    if (!bigger) return 0;
+    *array = bigger;
+    *cap = next;
+    return 1;
+}
+
+/* Appends n items of 12 bytes (vertices or index triples) to an array. */
+static brt_result append(const collector *c, void **array, uint64_t *cap, uint32_t *count,
+                         const void *items, uint32_t n, brt_error *err)
+{
+    if (!grow(array, cap, (uint64_t)*count + n, 12)) {
+        out_of_memory(err, c->name, c->scale);
+        return BRT_ENOMEM;
+    }
+    memcpy((unsigned char *)*array + 12 * (size_t)*count, items, 12 * (size_t)n);
+    *count += n;
+    return BRT_OK;
+}
+
+static brt_result collect_vertices(void *user, const float *xyz, uint32_t count, brt_error *err)
+{
+    collector *c = user;
+    return append(c, &c->positions, &c->vertex_cap, &c->vertex_count, xyz, count, err);
+}
+
+static brt_result collect_triangles(void *user, const uint32_t *abc, uint32_t count,
+                                    brt_error *err)
+{
+    collector *c = user;
+    return append(c, &c->indices, &c->triangle_cap, &c->triangle_count, abc, count, err);
+}
+
 brt_result ex_scene_generate(const char *name, double scale, uint64_t seed,
                              brt_mesh *mesh, brt_error *err)
 {
-    int index = scene_index(name);
-    builder b;
+    ex_scene_recipe recipe;
+    ex_mesh_sink sink;
+    collector c;
+    brt_result r;
+    memset(&c, 0, sizeof c);
     memset(mesh, 0, sizeof *mesh);
-    if (index < 0)
-        return brt_fail(err, BRT_EARG, "unknown scene '%s' (built-in: crown, landscape, island)",
-                        name ? name : "(null)");
-    if (!(scale > 0 && scale <= EX_SCENE_MAX_SCALE))
-        return brt_fail(err, BRT_EARG, "%s: scale %g outside (0, %g]", name, scale,
-                        EX_SCENE_MAX_SCALE);
-    memset(&b, 0, sizeof b);
-    /* Every scene stays near its budget and has fewer than 1.25 vertices
-    ** per triangle, so this reservation is rarely grown. */
-    if (reserve(&b, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * scale) + 4096,
-                (uint64_t)(1.05 * TRIANGLES_PER_SCALE * scale) + 4096))
-        scene_builders[index](&b, scale, seed);
-    if (b.failed) {
-        free(b.positions);
-        free(b.indices);
-        return brt_fail(err, b.failed, b.failed == BRT_EARG
-                        ? "%s: scale %g needs more than 2^32 - 1 vertices or triangles"
-                        : "%s: out of memory at scale %g", name, scale);
+    recipe.name = c.name = name;
+    recipe.scale = c.scale = scale;
+    recipe.seed = seed;
+    sink.vertices = collect_vertices;
+    sink.triangles = collect_triangles;
+    sink.user = &c;
+    /* Reserved for the budget: every scene stays near it and has fewer
+    ** than 1.25 vertices per triangle, so the arrays are rarely grown;
+    ** pages never written cost no memory. */
+    if (scale > 0 && scale <= EX_SCENE_MAX_SCALE
+        && (!grow(&c.positions, &c.vertex_cap, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * scale) + 4096, 12)
+            || !grow(&c.indices, &c.triangle_cap,
+                     (uint64_t)(1.05 * TRIANGLES_PER_SCALE * scale) + 4096, 12))) {
+        out_of_memory(err, name, scale);
+        r = BRT_ENOMEM;
+    } else {
+        r = ex_scene_write(&recipe, &sink, err);
+    }
+    if (r != BRT_OK) {
+        free(c.positions);
+        free(c.indices);
+        return r;
     }
     /* Trim to size; a failed shrink leaves the larger block, still valid. */
-    mesh->positions = realloc(b.positions, 3 * sizeof(float) * (size_t)b.vertices);
-    mesh->indices = realloc(b.indices, 3 * sizeof(uint32_t) * (size_t)b.triangles);
-    if (!mesh->positions) mesh->positions = b.positions;
-    if (!mesh->indices) mesh->indices = b.indices;
-    mesh->vertex_count = (uint32_t)b.vertices;
-    mesh->triangle_count = (uint32_t)b.triangles;
+    mesh->positions = realloc(c.positions, 12 * (size_t)c.vertex_count);
+    mesh->indices = realloc(c.indices, 12 * (size_t)c.triangle_count);
+    if (!mesh->positions) mesh->positions = c.positions;
+    if (!mesh->indices) mesh->indices = c.indices;
+    mesh->vertex_count = c.vertex_count;
+    mesh->triangle_count = c.triangle_count;
     return BRT_OK;
 }
 

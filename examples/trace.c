@@ -10,7 +10,15 @@
 ** stored in a scene file (built once, reused while the mesh and settings
 ** are unchanged), casts each ray against the voxel proxies before queueing
 ** it, and reads geometry through the page cache (Pharr et al. 1997;
-** Molenaar and Eisemann 2020).
+** Molenaar and Eisemann 2020).  It never holds the mesh: the scene file is
+** built from the mesh file as a triangle stream (brt_scene_build_stream),
+** and a scene file that matches is used without reading the mesh at all.
+** Only --direct loads the whole mesh, and says so when it is larger than
+** the --memory given.
+**
+** SIGINT and SIGTERM stop the scene build (which removes its temporary
+** files) or, at the latest, the program before it writes any output; the
+** exit status is then 128 + the signal number.
 **
 ** Everything is validated (options, mesh, ray file) before any output file
 ** is written, and outputs are written atomically, so a failed run never
@@ -33,6 +41,7 @@ typedef struct trace_options {
     uint64_t res;                    /* proxy resolution, a power of two */
     int no_proxy;                    /* batched without proxies */
     uint64_t memory;                 /* page-cache budget in bytes */
+    int memory_given;                /* --memory was on the command line */
     const char *scene;               /* scene file of the batched mode */
     int rebuild;                     /* rebuild the scene file even if current */
     int drop_os_cache;               /* cold reads (brt_trace_options) */
@@ -89,8 +98,10 @@ static void parse_options(int argc, char **argv, trace_options *o)
                                          1, UINT32_MAX);
         else if (strcmp(a, "--res") == 0)
             o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
-        else if (strcmp(a, "--memory") == 0)
+        else if (strcmp(a, "--memory") == 0) {
             o->memory = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
+            o->memory_given = 1;
+        }
         else if (strcmp(a, "--scene") == 0) o->scene = ex_option_value(prog, argc, argv, &i);
         else if (strcmp(a, "--stats") == 0) o->stats = ex_option_value(prog, argc, argv, &i);
         else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
@@ -121,8 +132,12 @@ static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count
 
     start = brt_seconds();
     for (i = 0; i < count; i++) {
-        /* Progress in slices of 64K rays keeps the clock out of the loop. */
-        if ((i & 0xFFFF) == 0) ex_progress("tracing", i, count);
+        /* Progress (and the interrupt flag) in slices of 64K rays keeps
+        ** the clock out of the loop. */
+        if ((i & 0xFFFF) == 0) {
+            if (ex_interrupted()) ex_die_interrupted(prog);
+            ex_progress("tracing", i, count);
+        }
         brt_hit_clear(&hits[i]);
         brt_bvh_intersect(bvh, &rays[i], &hits[i]);
     }
@@ -132,7 +147,8 @@ static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count
     brt_bvh_free(bvh);
 }
 
-/* Batched mode: the scene file (reused or rebuilt), then the scheduler. */
+/* Batched mode: the scene file (reused, or built from the mesh file as a
+** stream by brt_scene_prepare), then the scheduler. */
 static void trace_batched(const trace_options *o, const brt_ray *rays, size_t count,
                           brt_hit *hits, brt_stats *stats)
 {
@@ -143,10 +159,12 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     char default_path[4096];
     const char *path = o->scene;
     double start = brt_seconds();
+    brt_result r;
     int rebuilt;
     memset(&scene_opt, 0, sizeof scene_opt);
     scene_opt.batch_tris = (uint32_t)o->batch_tris;
     scene_opt.proxy_res = (uint32_t)o->res;
+    scene_opt.interrupt = ex_catch_interrupts();
     if (!path) {
         ex_default_scene_path(prog, o->mesh, scene_opt.batch_tris, scene_opt.proxy_res,
                               default_path, sizeof default_path);
@@ -155,7 +173,9 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     if (o->rebuild && unlink(path) != 0 && errno != ENOENT)
         ex_die(prog, "%s: cannot remove: %s", path, strerror(errno));
     ex_progress("preparing scene", 0, 1);
-    ex_check(prog, brt_scene_prepare(o->mesh, path, &scene_opt, &scene, &rebuilt, &err), &err);
+    r = brt_scene_prepare(o->mesh, path, &scene_opt, &scene, &rebuilt, &err);
+    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
+    ex_check(prog, r, &err);
     memset(&trace_opt, 0, sizeof trace_opt);
     trace_opt.memory_limit = o->memory;
     trace_opt.no_proxy = o->no_proxy;
@@ -195,6 +215,7 @@ int main(int argc, char **argv)
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
+    ex_catch_interrupts();
     ex_check(prog, brt_rays_read(o.rays, &rays, &count, &err), &err);
     hits = malloc((count ? count : 1) * sizeof *hits);
     if (!hits) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
@@ -204,15 +225,18 @@ int main(int argc, char **argv)
         trace_batched(&o, rays, count, hits, &stats);
     } else {
         ex_check(prog, brt_mesh_load(o.mesh, &mesh, &err), &err);
+        ex_note_mesh_memory(prog, &mesh, o.memory_given ? o.memory : 0);
         stats.rays = count;
         trace_direct(&mesh, rays, count, hits, &stats);
         brt_mesh_free(&mesh);
         if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
     }
 
+    if (ex_interrupted()) ex_die_interrupted(prog);
     ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
     /* A run that fails leaves no output at all: the hits go if the
     ** statistics cannot be written. */
+    stats.peak_rss_bytes = brt_peak_rss_bytes();
     if (o.stats && brt_stats_write_json(o.stats, &stats, &err) != BRT_OK) {
         unlink(o.hits);
         ex_die(prog, "%s", err.message);

@@ -289,13 +289,15 @@ static char *stats_json(const brt_mesh *mesh, uint32_t res, const proxy_figures 
                  "  \"svo_nodes\": %llu,\n  \"dag_nodes\": %u,\n  \"dag_bytes\": %lu,\n"
                  "  \"seconds\": %.6f,\n  \"octant_voxels\": %llu,\n  \"octant_svo_nodes\": %llu,\n"
                  "  \"octant_dag_nodes\": %u,\n  \"octant_dag_bytes\": %lu,\n"
-                 "  \"octant_dag_bytes_unshared\": %lu,\n  \"octant_seconds\": %.6f\n}\n",
+                 "  \"octant_dag_bytes_unshared\": %lu,\n  \"octant_seconds\": %.6f,\n"
+                 "  \"peak_rss_bytes\": %llu\n}\n",
                  mesh->triangle_count, res, (unsigned long long)alone->voxels,
                  (unsigned long long)alone->svo_nodes, alone->dag_nodes,
                  (unsigned long)alone->dag_bytes, alone->seconds,
                  (unsigned long long)octants->voxels, (unsigned long long)octants->svo_nodes,
                  octants->dag_nodes, (unsigned long)octants->dag_bytes,
-                 (unsigned long)separate_bytes, octants->seconds);
+                 (unsigned long)separate_bytes, octants->seconds,
+                 (unsigned long long)brt_peak_rss_bytes());
     *size = (size_t)n;
     return json;
 }

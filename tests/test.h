@@ -63,5 +63,6 @@ void suite_render(void);
 void suite_referee(void);
 void suite_embree(void);
 void suite_hardening(void);
+void suite_build(void);
 
 #endif

@@ -80,6 +80,7 @@ static brt_scene *build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t r
     brt_scene *scene = NULL;
     brt_error err;
     brt_result r;
+    memset(&opt, 0, sizeof opt);   /* fields added later mean defaults */
     opt.batch_tris = batch_tris;
     opt.proxy_res = res;
     r = brt_scene_build(&mesh, &opt, 1, path, &err);
@@ -652,6 +653,7 @@ static int prepare(const char *mesh, const char *path, uint32_t batch_tris, int 
     brt_scene_options opt;
     brt_scene *scene = NULL;
     brt_result r;
+    memset(&opt, 0, sizeof opt);
     opt.batch_tris = batch_tris;
     opt.proxy_res = 16;
     r = brt_scene_prepare(mesh, path, &opt, &scene, rebuilt, err);

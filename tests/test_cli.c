@@ -5,6 +5,12 @@
 ** files are compared with independent oracles written here (a brute-force
 ** loop over brt_intersect_triangle for hits, geometry for rays, a
 ** self-written PNG decoder for the PNG writer of examples/common.c).
+**
+** Out of core from end to end (issue 14): batched runs work from the
+** scene file alone (the mesh file replaced by garbage, its stamp kept),
+** every program's statistics carry peak_rss_bytes, SIGINT and SIGTERM
+** leave no temporary file behind, and trace --batched equals --direct on
+** every built-in scene through the streamed build.
 */
 #include "test.h"
 #include "batchrt.h"
@@ -16,8 +22,12 @@
 #include <stdarg.h>
 #include <stdlib.h>
 #include <string.h>
+#include <fcntl.h>
+#include <signal.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
+#include <time.h>
+#include <unistd.h>
 
 /* ===================================================================== */
 /* Test meshes and record codecs                                         */
@@ -783,6 +793,258 @@ static void test_png_write(void)
            "a 0x5 image was accepted");
 }
 
+/* ===================================================================== */
+/* Out of core from end to end                                           */
+/* ===================================================================== */
+
+/* Overwrites a file in place with garbage of the same size and puts its
+** times back: size, modification time and inode -- the stamp of
+** brt_scene_source_stamp -- stay, the contents do not parse. */
+static int garble_keeping_stamp(const char *path)
+{
+    struct stat st;
+    struct timespec times[2];
+    char junk[4096];
+    off_t done = 0;
+    int fd = open(path, O_WRONLY), ok;
+    if (fd < 0 || fstat(fd, &st) != 0) return 0;
+    memset(junk, '#', sizeof junk);
+    junk[0] = 'x';   /* not a comment: the first line is an unknown statement... */
+    memcpy(junk + 1, " y\nf 9 9 9\n", 11);   /* ...then a face without vertices */
+    while (done < st.st_size) {
+        size_t n = st.st_size - done < (off_t)sizeof junk ? (size_t)(st.st_size - done) : sizeof junk;
+        if (write(fd, junk, n) != (ssize_t)n) break;
+        done += (off_t)n;
+    }
+    ok = close(fd) == 0 && done == st.st_size;
+    times[0] = st.st_atim;
+    times[1] = st.st_mtim;
+    return ok && utimensat(AT_FDCWD, path, times, 0) == 0;
+}
+
+static int same_file_bytes(const char *a, const char *b)
+{
+    size_t na = 0, nb = 0;
+    unsigned char *x = tu_slurp(a, &na), *y = tu_slurp(b, &nb);
+    int same = x && y && na == nb && memcmp(x, y, na) == 0;
+    free(x);
+    free(y);
+    return same;
+}
+
+/* Batched runs need the mesh only to build the scene file: once it
+** exists and matches, trace --batched and render (camera, bounds,
+** triangle count from the scene file) give the same bytes with the mesh
+** file turned to garbage, which --direct then refuses. */
+static void test_batched_needs_no_mesh(void)
+{
+    const char *render = "render @/nomesh.ply --scene @/nomesh-r.brs --batch-tris 500 --width 24 "
+                         "--height 16 --spp 2";
+    char *err;
+    int status;
+    CHECK(tu_run("mkscene crown @/nomesh.ply --scale 0.05") == 0, "mkscene failed");
+    CHECK(tu_run("raygen @/nomesh.ply @/nomesh.rays --kind bounce --count 2000") == 0, "raygen failed");
+    CHECK(tu_run("trace @/nomesh.ply @/nomesh.rays @/nomesh-direct.hits") == 0, "trace failed");
+    CHECK(tu_run("trace @/nomesh.ply @/nomesh.rays @/nomesh-built.hits --batched --batch-tris 500 "
+                 "--scene @/nomesh.brs") == 0, "trace --batched failed");
+    CHECK(tu_run("%s --out @/nomesh-built.png", render) == 0, "render failed");
+    CHECK(garble_keeping_stamp(tu_scratch("nomesh.ply")), "cannot garble the mesh");
+    status = tu_run("trace @/nomesh.ply @/nomesh.rays @/nomesh-reused.hits --batched "
+                    "--batch-tris 500 --scene @/nomesh.brs --verbose");
+    err = tu_last_stderr();
+    EXPECT(status == 0 && err && strstr(err, "(reused)"), "trace --batched on the garbled mesh: "
+           "exit %d, stderr '%s'", status, err ? err : "");
+    free(err);
+    EXPECT(same_file_bytes(tu_scratch("nomesh-direct.hits"), tu_scratch("nomesh-reused.hits")),
+           "trace --batched from the scene file alone differs from --direct");
+    status = tu_run("%s --out @/nomesh-reused.png", render);
+    err = tu_last_stderr();
+    EXPECT(status == 0 && same_file_bytes(tu_scratch("nomesh-built.png"),
+                                          tu_scratch("nomesh-reused.png")),
+           "render from the scene file alone: exit %d, stderr '%s', same image %d", status,
+           err ? err : "", same_file_bytes(tu_scratch("nomesh-built.png"), tu_scratch("nomesh-reused.png")));
+    free(err);
+    EXPECT(tu_run("trace @/nomesh.ply @/nomesh.rays @/nomesh-bad.hits") == 1,
+           "trace --direct accepted the garbled mesh: the test proves nothing");
+}
+
+/* --direct holds the whole mesh: when it is larger than the --memory given,
+** trace and render say so in one line and go on (exit 0, same hits). */
+static void test_direct_notes_memory(void)
+{
+    static const char *const runs[] = {
+        "trace @/note.ply @/note.rays @/note.hits --memory 1K",
+        "render @/note.ply --direct --memory 1K --width 8 --height 8 --spp 1 --out @/note.png",
+        "trace @/note.ply @/note.rays @/note.hits --memory 1G",   /* fits: no note */
+    };
+    size_t i;
+    CHECK(tu_run("mkscene crown @/note.ply --scale 0.01") == 0, "mkscene failed");
+    CHECK(tu_run("raygen @/note.ply @/note.rays --kind random --count 10") == 0, "raygen failed");
+    for (i = 0; i < 3; i++) {
+        int status = tu_run("%s", runs[i]);
+        char *err = tu_last_stderr();
+        int noted = err && strstr(err, "note: the direct run holds the whole mesh in memory")
+                    && strchr(err, '\n') == err + strlen(err) - 1;
+        EXPECT(status == 0 && (i < 2 ? noted : err && err[0] == 0),
+               "'%s': exit %d, stderr '%s'", runs[i], status, err ? err : "(none)");
+        free(err);
+    }
+}
+
+/* Every program's statistics carry the process's peak resident memory. */
+static void test_peak_rss_in_statistics(void)
+{
+    static const char *const runs[][2] = {
+        {"trace @/rss.ply @/rss.rays @/rss.hits --stats @/rss-trace.json", "rss-trace.json"},
+        {"trace @/rss.ply @/rss.rays @/rss.hits --batched --scene @/rss.brs --stats @/rss-tb.json",
+         "rss-tb.json"},
+        {"voxelize @/rss.ply --res 16 --stats @/rss-vox.json", "rss-vox.json"},
+        {"render crown --scale 0.01 --width 8 --height 8 --spp 1 --direct --out @/rss.png "
+         "--stats @/rss-rd.json", "rss-rd.json"},
+        {"render crown --scale 0.01 --width 8 --height 8 --spp 1 --scene @/rss-r.brs --out @/rss.png "
+         "--stats @/rss-rb.json", "rss-rb.json"},
+        {"render crown --scale 0.01 --width 8 --height 8 --spp 1 --scene @/rss-r.brs --compare "
+         "--out @/rss.png --stats @/rss-rc.json", "rss-rc-noproxy.json"},
+    };
+    size_t i;
+    CHECK(tu_run("mkscene island @/rss.ply --scale 0.01") == 0, "mkscene failed");
+    CHECK(tu_run("raygen @/rss.ply @/rss.rays --kind random --count 100") == 0, "raygen failed");
+    for (i = 0; i < sizeof runs / sizeof *runs; i++) {
+        char *json;
+        int status = tu_run("%s", runs[i][0]);
+        json = (char *)tu_slurp(tu_scratch(runs[i][1]), NULL);
+        EXPECT(status == 0 && json && json_number(json, "peak_rss_bytes") > 0,
+               "'%s': exit %d, peak_rss_bytes %g", runs[i][0], status,
+               json ? json_number(json, "peak_rss_bytes") : NAN);
+        free(json);
+    }
+}
+
+/* ---- signals ---- */
+
+/* Starts $BRT_BUILD/ARGV[0] with stdout and stderr to files in the
+** scratch directory; returns the pid (or -1). */
+static pid_t spawn(const char *const *argv, const char *err_name)
+{
+    char path[1024];
+    const char *build = getenv("BRT_BUILD");
+    pid_t pid;
+    snprintf(path, sizeof path, "%s/%s", build ? build : "build", argv[0]);
+    pid = fork();
+    if (pid == 0) {
+        int out = open(tu_scratch("spawn.out"), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+        int err = open(tu_scratch(err_name), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+        if (out < 0 || err < 0 || dup2(out, 1) < 0 || dup2(err, 2) < 0) _exit(127);
+        execv(path, (char *const *)argv);   /* execv does not change them */
+        _exit(127);
+    }
+    return pid;
+}
+
+/* The number of entries of a directory (without . and ..), and the name of
+** one of them. */
+static int directory_entries(const char *dir, char *name, size_t size)
+{
+    DIR *d = opendir(dir);
+    struct dirent *e;
+    int n = 0;
+    if (!d) return -1;
+    while ((e = readdir(d)) != NULL) {
+        if (strcmp(e->d_name, ".") == 0 || strcmp(e->d_name, "..") == 0) continue;
+        if (name) snprintf(name, size, "%s", e->d_name);
+        n++;
+    }
+    closedir(d);
+    return n;
+}
+
+static void sleep_ms(long ms)
+{
+    struct timespec ts;
+    ts.tv_sec = ms / 1000;
+    ts.tv_nsec = (ms % 1000) * 1000000L;
+    nanosleep(&ts, NULL);
+}
+
+/* Runs a program in DIR, sends it signo once a file has appeared there
+** (or after max_wait_ms), and checks: it was still running, it exits with
+** 128 + signo and one line "PROG: interrupted by SIG...", and DIR then
+** holds nothing but `allowed` (a complete output, or NULL: nothing). */
+static void check_interrupted(const char *const *argv, const char *dir, int signo, long max_wait_ms,
+                              const char *allowed)
+{
+    char left[256] = "", *err;
+    long waited = 0;
+    int status = 0, entries;
+    pid_t pid;
+    CHECK(mkdir(dir, 0755) == 0, "cannot create %s", dir);
+    pid = spawn(argv, "spawn.err");
+    CHECK(pid > 0, "cannot start %s", argv[0]);
+    while (waited < max_wait_ms && directory_entries(dir, NULL, 0) == 0) {
+        sleep_ms(10);
+        waited += 10;
+    }
+    sleep_ms(50);   /* well into the writing */
+    EXPECT(waitpid(pid, &status, WNOHANG) == 0, "%s finished before the signal", argv[0]);
+    kill(pid, signo);
+    CHECK(waitpid(pid, &status, 0) == pid, "waitpid failed");
+    err = (char *)tu_slurp(tu_scratch("spawn.err"), NULL);
+    EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 128 + signo && err
+           && strstr(err, "interrupted by SIG") && strchr(err, '\n') == err + strlen(err) - 1,
+           "%s after signal %d: status %#x, stderr '%s'", argv[0], signo, (unsigned)status,
+           err ? err : "(none)");
+    free(err);
+    entries = directory_entries(dir, left, sizeof left);
+    EXPECT(entries == 0 || (entries == 1 && allowed && strcmp(left, allowed) == 0),
+           "%s left %d files in %s after signal %d, e.g. '%s'", argv[0], entries, dir, signo, left);
+}
+
+/* mkscene and render (while it builds the scene file) stop on SIGTERM
+** and SIGINT, remove their temporary files and write no output.  Scale
+** 200 would take mkscene seconds, and render's build of scale 10 about one:
+** the signal comes long before.  Should the build be done already, the
+** render of 4 M paths that follows is not, and stops as well. */
+static void test_interrupts_leave_nothing(void)
+{
+    char mk_dir[512], mk_out[600], r_dir[512], r_scene[600], r_out[600];
+    const char *mkscene[] = {"mkscene", "landscape", mk_out, "--scale", "200", NULL};
+    const char *render[] = {"render", "landscape", "--scale", "10", "--res", "16", "--width", "320",
+                            "--height", "200", "--spp", "64", "--scene", r_scene, "--out", r_out,
+                            NULL};
+    snprintf(mk_dir, sizeof mk_dir, "%s", tu_scratch("mkscene-interrupted"));
+    snprintf(mk_out, sizeof mk_out, "%s/big.ply", mk_dir);
+    check_interrupted(mkscene, mk_dir, SIGTERM, 10000, NULL);
+    snprintf(r_dir, sizeof r_dir, "%s", tu_scratch("render-interrupted"));
+    snprintf(r_scene, sizeof r_scene, "%s/scene.brs", r_dir);
+    snprintf(r_out, sizeof r_out, "%s/image.png", r_dir);
+    /* A build that has already finished leaves its (complete) scene file. */
+    check_interrupted(render, r_dir, SIGINT, 500, "scene.brs");
+}
+
+/* trace --batched writes the bytes of --direct on every built-in scene,
+** from a scene file built as a stream from mkscene's file (PLY and OBJ). */
+static void test_builtin_scenes_batched_equals_direct(void)
+{
+    static const char *const files[] = {"crown.ply", "landscape.ply", "island.obj"};
+    static const char *const kinds[] = {"camera", "bounce"};
+    size_t i, k;
+    for (i = 0; i < 3; i++) {
+        char name[32];
+        snprintf(name, sizeof name, "%.*s", (int)strcspn(files[i], "."), files[i]);
+        CHECK(tu_run("mkscene %s @/bi-%s --scale 0.05", name, files[i]) == 0, "mkscene %s failed", name);
+        for (k = 0; k < 2; k++) {
+            CHECK(tu_run("raygen @/bi-%s @/bi.rays --kind %s --count 1500", files[i], kinds[k]) == 0,
+                  "raygen failed");
+            CHECK(tu_run("trace @/bi-%s @/bi.rays @/bi-direct.hits", files[i]) == 0, "trace failed");
+            CHECK(tu_run("trace @/bi-%s @/bi.rays @/bi-batched.hits --batched --batch-tris 400 "
+                         "--res 32 --memory 40K --scene @/bi-%s.brs", files[i], name) == 0,
+                  "trace --batched failed");
+            EXPECT(same_file_bytes(tu_scratch("bi-direct.hits"), tu_scratch("bi-batched.hits")),
+                   "%s, %s rays: batched and direct hits differ", files[i], kinds[k]);
+        }
+    }
+}
+
 void suite_cli(void)
 {
     test_run("cli: --help of every program", test_help);
@@ -798,4 +1060,10 @@ void suite_cli(void)
     test_run("cli: bad input exits 1 and writes nothing", test_bad_input);
     test_run("cli: PNG decodes with an independent decoder", test_png);
     test_run("cli: PNG write", test_png_write);
+    test_run("cli: batched runs need no mesh once the scene file matches", test_batched_needs_no_mesh);
+    test_run("cli: --direct says when the mesh exceeds --memory", test_direct_notes_memory);
+    test_run("cli: peak_rss_bytes in every program's statistics", test_peak_rss_in_statistics);
+    test_run("cli: SIGINT and SIGTERM leave no temporary file", test_interrupts_leave_nothing);
+    test_run("cli: trace --batched equals --direct on every built-in scene",
+             test_builtin_scenes_batched_equals_direct);
 }

@@ -8,12 +8,16 @@
 ** built-in scene and a mesh file under many settings and compare the
 ** files byte for byte; they also check that paths really bounce (more
 ** rays than paths), so that identical images are not identically empty.
+** Every built-in scene goes through the streamed build (the generator feeds
+** brt_scene_build_stream) and must give --direct's image; and a reused
+** built-in scene file is rendered without making the scene (peak RSS).
 ** Programs run from $BRT_BUILD (default build) through system().
 */
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
 #include "../examples/plot.h"
+#include "../examples/scenes.h"
 
 #include <math.h>
 #include <stdarg.h>
@@ -217,6 +221,58 @@ static void test_bad_options(void)
     free(err);
 }
 
+/* Batched renders of a built-in scene build its scene file from the
+** generator's triangle stream, never from a mesh in memory: the image must
+** still be --direct's (which does generate the mesh), for every scene, in
+** core and out of core. */
+static void test_builtin_scenes_streamed(void)
+{
+    static const char *const scenes[] = {"crown", "landscape", "island"};
+    size_t i;
+    for (i = 0; i < 3; i++) {
+        const char *args = "--scale 0.05 --batch-tris 400 --width 32 --height 20 --spp 2";
+        CHECK(tu_run("render %s %s --direct --out @/bs-direct.png", scenes[i], args) == 0,
+              "render %s --direct failed", scenes[i]);
+        CHECK(tu_run("render %s %s --scene @/bs-%s.brs --out @/bs-batched.png", scenes[i], args,
+                     scenes[i]) == 0, "render %s failed", scenes[i]);
+        EXPECT(same_bytes(tu_scratch("bs-direct.png"), tu_scratch("bs-batched.png")),
+               "%s: the streamed build's image differs from --direct", scenes[i]);
+        CHECK(tu_run("render %s %s --scene @/bs-%s.brs --memory 10%% --out @/bs-batched.png",
+                     scenes[i], args, scenes[i]) == 0, "render %s --memory 10%% failed", scenes[i]);
+        EXPECT(same_bytes(tu_scratch("bs-direct.png"), tu_scratch("bs-batched.png")),
+               "%s at 10 %% memory: the image differs from --direct", scenes[i]);
+    }
+}
+
+/* A reused built-in scene file is rendered from the file alone: the
+** scene is not made again (its stamp is the recipe's).  Measured by peak
+** RSS against a tiny scene with the same image, paths and cache limit:
+** the landscape at scale 5 holds 9.8 MB as a mesh, and the render may
+** exceed the tiny one's peak by at most half of that. */
+static void test_reused_builtin_holds_no_mesh(void)
+{
+    const char *args = "--width 16 --height 16 --spp 1 --res 16 --rays-in-flight 256 --memory 1M";
+    ex_scene_recipe recipe = {"landscape", 5, 1};
+    uint64_t vertices = 0, triangles = 0;
+    double base, peak, mesh_bytes;
+    brt_error err;
+    CHECK(ex_scene_count(&recipe, &vertices, &triangles, &err) == BRT_OK, "%s", err.message);
+    mesh_bytes = 12.0 * (double)(vertices + triangles);
+    CHECK(tu_run("render crown --scale 0.01 %s --scene @/tiny.brs --out @/tiny.png "
+                 "--stats @/tiny.json", args) == 0, "render crown failed");
+    base = json_number(tu_scratch("tiny.json"), "peak_rss_bytes");
+    CHECK(tu_run("render landscape --scale 5 %s --scene @/l5.brs --out @/l5.png", args) == 0,
+          "render landscape (build) failed");
+    CHECK(tu_run("render landscape --scale 5 %s --scene @/l5.brs --out @/l5.png "
+                 "--stats @/l5.json", args) == 0, "render landscape (reuse) failed");
+    peak = json_number(tu_scratch("l5.json"), "peak_rss_bytes");
+    EXPECT(base > 0 && peak > 0 && peak < base + mesh_bytes / 2 &&
+           json_number(tu_scratch("l5.json"), "build_seconds") == 0,
+           "reused scene file: peak RSS %.1f MiB, tiny scene %.1f MiB, the mesh %.1f MiB, "
+           "build %g s", peak / 1048576, base / 1048576, mesh_bytes / 1048576,
+           json_number(tu_scratch("l5.json"), "build_seconds"));
+}
+
 /* ---- the plot writer ---- */
 
 /* The centre of the k-th circle of an SVG; 0 when there is none. */
@@ -275,5 +331,7 @@ void suite_render(void)
     test_run("render: compare table", test_compare);
     test_run("render: --disk-speed makes loads last bytes / speed", test_disk_speed);
     test_run("render: bad options exit 1 and write nothing", test_bad_options);
+    test_run("render: every built-in scene, streamed build == --direct", test_builtin_scenes_streamed);
+    test_run("render: a reused built-in scene file holds no mesh", test_reused_builtin_holds_no_mesh);
     test_run("render: plot svg", test_plot_svg);
 }

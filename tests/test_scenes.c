@@ -8,6 +8,13 @@
 ** (signed volume > 0), default views whose central ray hits the scene
 ** (brute force over brt_intersect_triangle), and mkscene's files read back
 ** by brt_mesh_load to the same floats and indices.
+**
+** The streamed outputs (issue 14) against the collector: the triangle
+** stream's corners equal the indexed arrays' triangles in order, in the
+** same chunks on every run; counts equal; a scene file built from the
+** stream has the mesh's bounds bit for bit (render's camera comes from
+** them); the stamp follows the recipe; and mkscene, which streams, stays
+** far below the mesh's bytes in peak memory.
 */
 #include "test.h"
 #include "batchrt.h"
@@ -16,6 +23,7 @@
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+#include <stdio.h>
 #include <sys/stat.h>
 
 #define SCENES 3
@@ -352,6 +360,206 @@ static void test_mkscene_files_read_back(void)
     fclose(f);
 }
 
+/* ---- the streamed outputs ---- */
+
+/* Collects a triangle stream and checks its chunk numbering. */
+typedef struct corner_log {
+    float *corners;
+    uint64_t count, cap;
+    uint32_t chunks;
+    int misnumbered;             /* a chunk's first was not the count so far */
+    uint64_t chunk_hash;         /* of the chunk sizes, in order */
+} corner_log;
+
+static brt_result log_corners(void *user, const float *corners, uint32_t count, uint32_t first,
+                              brt_error *err)
+{
+    corner_log *log = user;
+    (void)err;
+    if (first != log->count) log->misnumbered = 1;
+    if (log->count + count > log->cap) {
+        uint64_t cap = 2 * (log->count + count);
+        float *bigger = realloc(log->corners, 36 * (size_t)cap);
+        if (!bigger) return BRT_ENOMEM;
+        log->corners = bigger;
+        log->cap = cap;
+    }
+    memcpy(log->corners + 9 * (size_t)log->count, corners, 36 * (size_t)count);
+    log->count += count;
+    log->chunks++;
+    log->chunk_hash = (log->chunk_hash ^ count) * 1099511628211ull;
+    return BRT_OK;
+}
+
+/* Triangle i of the stream is the collector's triangle i, corner by
+** corner, bit for bit. */
+static int stream_matches_mesh(const corner_log *log, const brt_mesh *m)
+{
+    uint64_t i;
+    int c;
+    if (log->count != m->triangle_count || log->misnumbered) return 0;
+    for (i = 0; i < log->count; i++)
+        for (c = 0; c < 3; c++)
+            if (memcmp(log->corners + 9 * i + 3 * c,
+                       m->positions + 3 * (size_t)m->indices[3 * i + c], 12) != 0)
+                return 0;
+    return 1;
+}
+
+/* Scale 2 gives the landscape a terrain grid of 40 thousand triangles
+** and the crown's band one of 60 thousand: several batches each, so the
+** band-by-band emission and the batch boundaries inside a surface are
+** exercised. */
+static void test_stream_equals_collector(void)
+{
+    static const double scales[] = {0.05, 2};
+    int s, k;
+    for (s = 0; s < SCENES; s++)
+        for (k = 0; k < 2; k++) {
+            ex_scene_recipe recipe;
+            corner_log first, again;
+            brt_mesh m;
+            brt_error err;
+            uint64_t vertices, triangles;
+            recipe.name = scene_list[s];
+            recipe.scale = scales[k];
+            recipe.seed = test_seed();
+            memset(&first, 0, sizeof first);
+            memset(&again, 0, sizeof again);
+            if (!generate(recipe.name, recipe.scale, recipe.seed, &m)) return;
+            EXPECT(ex_scene_stream(&recipe, log_corners, &first, &err) == BRT_OK
+                   && ex_scene_stream(&recipe, log_corners, &again, &err) == BRT_OK,
+                   "%s: stream failed: %s", recipe.name, err.message);
+            EXPECT(stream_matches_mesh(&first, &m), "%s at scale %g: the stream's %llu triangles "
+                   "are not the collector's %lu", recipe.name, recipe.scale,
+                   (unsigned long long)first.count, (unsigned long)m.triangle_count);
+            EXPECT(first.chunks == again.chunks && first.chunk_hash == again.chunk_hash
+                   && first.chunks >= (k == 0 ? 1u : 3u),
+                   "%s: %u chunks, then %u on the second run", recipe.name, first.chunks,
+                   again.chunks);
+            EXPECT(ex_scene_count(&recipe, &vertices, &triangles, &err) == BRT_OK
+                   && vertices == m.vertex_count && triangles == m.triangle_count,
+                   "%s: counted %llu vertices and %llu triangles, made %lu and %lu", recipe.name,
+                   (unsigned long long)vertices, (unsigned long long)triangles,
+                   (unsigned long)m.vertex_count, (unsigned long)m.triangle_count);
+            free(first.corners);
+            free(again.corners);
+            brt_mesh_free(&m);
+        }
+}
+
+/* A consumer that fails stops the scene at once, with its result. */
+static brt_result refuse_third_chunk(void *user, const float *corners, uint32_t count,
+                                     uint32_t first, brt_error *err)
+{
+    int *calls = user;
+    (void)corners;
+    (void)count;
+    (void)first;
+    return ++*calls == 3 ? brt_fail(err, BRT_EINTR, "stop") : BRT_OK;
+}
+
+static void test_stream_stops_on_consumer_error(void)
+{
+    ex_scene_recipe recipe = {"landscape", 2, 1};
+    brt_error err;
+    int calls = 0;
+    brt_result r = ex_scene_stream(&recipe, refuse_third_chunk, &calls, &err);
+    EXPECT(r == BRT_EINTR && calls == 3 && strcmp(err.message, "stop") == 0,
+           "result %d after %d calls: %s", (int)r, calls, err.message);
+    recipe.name = "teapot";
+    EXPECT(ex_scene_stream(&recipe, refuse_third_chunk, &calls, &err) == BRT_EARG
+           && strstr(err.message, "teapot"), "unknown scene: %s", err.message);
+}
+
+/* The camera of a batched render comes from brt_scene_bounds, --direct's
+** from brt_mesh_bounds: the union of the batching points' exact boxes is
+** the minimum and maximum over the same floats, so they agree bit for bit
+** (also in the sign of a zero), and so do the images. */
+static void test_scene_file_has_mesh_bounds(void)
+{
+    int s;
+    for (s = 0; s < SCENES; s++) {
+        ex_scene_recipe recipe;
+        brt_triangle_source source;
+        brt_scene_options opt;
+        brt_scene *scene;
+        brt_mesh m;
+        brt_error err;
+        float mesh_lo[3], mesh_hi[3], lo[3], hi[3];
+        char path[512];
+        recipe.name = scene_list[s];
+        recipe.scale = 0.05;
+        recipe.seed = test_seed();
+        snprintf(path, sizeof path, "%s/%s-bounds.brs", test_tmpdir(), recipe.name);
+        memset(&opt, 0, sizeof opt);
+        opt.batch_tris = 700;
+        opt.proxy_res = 8;
+        ex_scene_source(&recipe, &source);
+        CHECK(brt_scene_build_stream(&source, &opt, ex_scene_stamp(&recipe), path, &err) == BRT_OK
+              && brt_scene_open(path, &scene, &err) == BRT_OK, "%s: %s", path, err.message);
+        if (!generate(recipe.name, recipe.scale, recipe.seed, &m)) return;
+        brt_mesh_bounds(&m, mesh_lo, mesh_hi);
+        brt_scene_bounds(scene, lo, hi);
+        EXPECT(memcmp(lo, mesh_lo, sizeof lo) == 0 && memcmp(hi, mesh_hi, sizeof hi) == 0,
+               "%s: scene bounds %g %g %g .. %g %g %g, mesh bounds %g %g %g .. %g %g %g",
+               recipe.name, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], mesh_lo[0], mesh_lo[1],
+               mesh_lo[2], mesh_hi[0], mesh_hi[1], mesh_hi[2]);
+        EXPECT(brt_scene_triangle_count(scene) == m.triangle_count
+               && brt_scene_matches(scene, ex_scene_stamp(&recipe), &opt),
+               "%s: %lu triangles in the scene file, %lu made", recipe.name,
+               (unsigned long)brt_scene_triangle_count(scene), (unsigned long)m.triangle_count);
+        brt_scene_close(scene);
+        brt_mesh_free(&m);
+        remove(path);
+    }
+}
+
+/* The stamp is the recipe's: equal recipes, equal stamps; any field
+** changed, another stamp. */
+static void test_stamp_follows_recipe(void)
+{
+    ex_scene_recipe a = {"landscape", 3, 7}, b = a;
+    uint64_t stamp = ex_scene_stamp(&a);
+    EXPECT(ex_scene_stamp(&b) == stamp, "equal recipes, different stamps");
+    b.name = "island";
+    EXPECT(ex_scene_stamp(&b) != stamp, "the name does not change the stamp");
+    b = a;
+    b.scale = 3.0000001;
+    EXPECT(ex_scene_stamp(&b) != stamp, "the scale does not change the stamp");
+    b = a;
+    b.seed = 8;
+    EXPECT(ex_scene_stamp(&b) != stamp, "the seed does not change the stamp");
+}
+
+/* mkscene streams: at scale 10 (a million triangles, 27 MB as an indexed
+** mesh) its peak resident memory stays under a fifth of the mesh's bytes;
+** holding the mesh would take all of them. */
+static void test_mkscene_holds_no_mesh(void)
+{
+    char cmd[2048], out[512], line[256] = {0}, *p;
+    const char *build = getenv("BRT_BUILD");
+    ex_scene_recipe recipe = {"landscape", 10, 1};
+    uint64_t vertices, triangles;
+    double peak_mib = -1, mesh_mib;
+    brt_error err;
+    FILE *f;
+    CHECK(ex_scene_count(&recipe, &vertices, &triangles, &err) == BRT_OK, "%s", err.message);
+    mesh_mib = 12.0 * (double)(vertices + triangles) / 1048576.0;
+    snprintf(out, sizeof out, "%s/big.ply", test_tmpdir());
+    snprintf(cmd, sizeof cmd, "'%s/mkscene' landscape '%s' --scale 10", build ? build : "build", out);
+    f = popen(cmd, "r");
+    CHECK(f != NULL, "cannot run %s", cmd);
+    CHECK(fgets(line, sizeof line, f) != NULL, "no output from %s", cmd);
+    while (fgetc(f) != EOF) {}
+    CHECK(pclose(f) == 0, "%s failed", cmd);
+    if ((p = strstr(line, "peak RSS ")) != NULL) peak_mib = strtod(p + 9, NULL);
+    EXPECT(peak_mib > 0 && peak_mib < mesh_mib / 5, "mkscene at scale 10: peak RSS %.1f MiB, "
+           "the mesh holds %.1f MiB ('%s')", peak_mib, mesh_mib, line);
+    check_file_equals_scene(out, "landscape", 10, 1);
+    remove(out);
+}
+
 void suite_scenes(void)
 {
     test_run("scenes_same_seed_same_bytes", test_same_seed_same_bytes);
@@ -361,4 +569,9 @@ void suite_scenes(void)
     test_run("scenes_names_and_errors", test_names_and_errors);
     test_run("scenes_default_view_sees_the_scene", test_default_view_sees_the_scene);
     test_run("scenes_mkscene_files_read_back", test_mkscene_files_read_back);
+    test_run("scenes_stream_equals_collector", test_stream_equals_collector);
+    test_run("scenes_stream_stops_on_consumer_error", test_stream_stops_on_consumer_error);
+    test_run("scenes_scene_file_has_mesh_bounds", test_scene_file_has_mesh_bounds);
+    test_run("scenes_stamp_follows_recipe", test_stamp_follows_recipe);
+    test_run("scenes_mkscene_holds_no_mesh", test_mkscene_holds_no_mesh);
 }
