@@ -1405,7 +1405,10 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
         {"proxy_tests", s->proxy_tests}, {"proxy_culled", s->proxy_culled},
         {"visits", s->visits}, {"queued_visits", s->queued_visits},
         {"resident_visits", s->resident_visits},
-        {"oversized_loads", s->oversized_loads}, {"peak_rss_bytes", s->peak_rss_bytes}};
+        {"oversized_loads", s->oversized_loads}, {"shadow_rays", s->shadow_rays},
+        {"shadow_occluded", s->shadow_occluded}, {"shadow_batch_loads", s->shadow_batch_loads},
+        {"shadow_disk_bytes_read", s->shadow_disk_bytes_read},
+        {"peak_rss_bytes", s->peak_rss_bytes}};
     const struct { const char *name; double value; } measures[] = {
         {"seconds", s->seconds}, {"load_seconds", s->load_seconds},
         {"build_seconds", s->build_seconds},
@@ -3225,6 +3228,9 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 ** Per-ray state while queued: the ray (32 bytes), its closest hit so far
 ** (16) and that triangle's normal (12), its walk key (8), the number of
 ** batching points it was queued at (4) and the caller's tag (8): 80 bytes.
+** The tag also says the ray's kind (BRT_TAG_OCCLUSION), so an occlusion
+** ray costs no byte more: it keeps an unused normal, and its hit record
+** turns from the miss record into "occluded" at its first hit.
 */
 typedef struct ray_slot {
     brt_ray ray;
@@ -3322,6 +3328,33 @@ static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
     return BRT_OK;
 }
 
+static int is_occlusion(const ray_slot *r)
+{
+    return (r->tag & BRT_TAG_OCCLUSION) != 0;
+}
+
+/* An occlusion ray is done at its first hit; a closest-hit ray only when
+** its walk ends. */
+static int found_occluder(const ray_slot *r)
+{
+    return is_occlusion(r) && r->hit.prim != BRT_NO_PRIM;
+}
+
+/* Intersects a ray with a batching point's triangles: the closest hit so
+** far, or for an occlusion ray any hit in [tnear, tfar] (the record of
+** brt_ray_source: t = 0, prim = 0 when occluded). */
+static void intersect_slot(const brt_bvh *bvh, ray_slot *r)
+{
+    if (!is_occlusion(r)) {
+        brt_bvh_intersect_normal(bvh, &r->ray, &r->hit, r->normal);
+    } else if (brt_bvh_occluded(bvh, &r->ray)) {
+        r->hit.t = 0.0f;
+        r->hit.prim = 0;
+    }
+}
+
+/* How far the walk goes: the closest hit so far, or tfar.  (An occlusion
+** ray's record stays the miss record, t = +inf, until it ends the walk.) */
 static float walk_limit(const ray_slot *r)
 {
     return r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
@@ -3340,7 +3373,8 @@ static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, fl
 }
 
 /* Continues a ray's top-level walk: queues it at the next batching point it
-** enters before its closest hit and whose proxy it hits, or finishes it.
+** enters before its closest hit and whose proxy it hits, or finishes it
+** (an occlusion ray also at its first hit).
 ** tlimit is the closest hit (a box entered exactly there may still hold an
 ** equal-t hit with a lower prim, so the compare is inclusive).
 **
@@ -3360,10 +3394,10 @@ static brt_result advance(scheduler *s, uint32_t slot)
     if (prep.valid) {
         float tlimit = walk_limit(r);
         top_walk_start(&s->walk);
-        while (top_walk_next(&s->walk, s->scene->top, &prep, tlimit, &r->key)) {
+        while (!found_occluder(r) && top_walk_next(&s->walk, s->scene->top, &prep, tlimit, &r->key)) {
             const brt_bvh *resident = s->queue_resident ? NULL : cache_resident(&s->cache, r->key.id);
             if (resident) {
-                brt_bvh_intersect_normal(resident, &r->ray, &r->hit, r->normal);
+                intersect_slot(resident, r);
                 r->visits++;
                 s->stats->resident_visits++;
                 tlimit = walk_limit(r);
@@ -3380,6 +3414,7 @@ static brt_result advance(scheduler *s, uint32_t slot)
             return enqueue(s, r->key.id, slot);
         }
     }
+    s->stats->shadow_occluded += found_occluder(r);
     s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
     s->free_slots[s->free_count++] = slot;
     return BRT_OK;
@@ -3404,11 +3439,35 @@ static brt_result refill(scheduler *s)
             r->key.t = -INFINITY;
             r->key.id = TOP_EMPTY;
             s->stats->rays++;
+            s->stats->shadow_rays += is_occlusion(r);
             res = advance(s, slot);
             if (res != BRT_OK) return res;
         }
     }
     return BRT_OK;
+}
+
+/* Nonzero when every ray of the queue is an occlusion ray. */
+static int only_occlusion(const scheduler *s, const ray_queue *q)
+{
+    uint32_t i;
+    for (i = 0; i < q->count; i++)
+        if (!is_occlusion(&s->slots[q->slots[i]])) return 0;
+    return 1;
+}
+
+/* Fetches batching point id for its queue, and books the load (if there
+** is one) as the shadow rays' when they alone asked for it. */
+static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const brt_bvh **bvh,
+                            brt_error *err)
+{
+    uint64_t loads = s->stats->batch_loads, bytes = s->stats->disk_bytes_read;
+    brt_result r = cache_fetch(&s->cache, id, bvh, err);
+    if (r == BRT_OK && s->stats->batch_loads != loads && only_occlusion(s, q)) {
+        s->stats->shadow_batch_loads += s->stats->batch_loads - loads;
+        s->stats->shadow_disk_bytes_read += s->stats->disk_bytes_read - bytes;
+    }
+    return r;
 }
 
 /* Intersects every ray queued at batching point id, then moves each on. */
@@ -3417,15 +3476,12 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     ray_queue q = s->queues[id];
     const brt_bvh *bvh;
     uint32_t i;
-    brt_result r = cache_fetch(&s->cache, id, &bvh, err);
+    brt_result r = fetch_for(s, id, &q, &bvh, err);
     if (r != BRT_OK) return r;
     /* Take the queue out first: no ray is queued here again (keys only
     ** grow), but the walk may queue rays elsewhere while we iterate. */
     memset(&s->queues[id], 0, sizeof s->queues[id]);
-    for (i = 0; i < q.count; i++) {
-        ray_slot *slot = &s->slots[q.slots[i]];
-        brt_bvh_intersect_normal(bvh, &slot->ray, &slot->hit, slot->normal);
-    }
+    for (i = 0; i < q.count; i++) intersect_slot(bvh, &s->slots[q.slots[i]]);
     cache_release(&s->cache, id);
     for (i = 0; i < q.count && r == BRT_OK; i++) r = advance(s, q.slots[i]);
     free(q.slots);
@@ -3565,11 +3621,13 @@ brt_result brt_scene_trace_stream(brt_scene *scene, const brt_trace_options *opt
     return trace_source(scene, opt, source, 0, stats, err);
 }
 
-/* brt_scene_trace on top of the stream: rays are handed out in order and
-** the tag is the index of the hit to write. */
+/* brt_scene_trace and brt_scene_occluded on top of the stream: rays are
+** handed out in order and the tag is the index of the answer to write
+** (with BRT_TAG_OCCLUSION when the answers are occlusion bytes). */
 typedef struct array_source {
     const brt_ray *rays;
-    brt_hit *hits;
+    brt_hit *hits;              /* closest hits, or NULL */
+    uint8_t *occluded;          /* or occlusion bytes */
     size_t count, next;
 } array_source;
 
@@ -3579,7 +3637,7 @@ static size_t array_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
     size_t n = a->count - a->next < max ? a->count - a->next : max, i;
     for (i = 0; i < n; i++) {
         rays[i] = a->rays[a->next];
-        tags[i] = a->next++;
+        tags[i] = a->next++ | (a->occluded ? BRT_TAG_OCCLUSION : 0);
     }
     return n;
 }
@@ -3591,7 +3649,19 @@ static void array_finished(void *user, const brt_ray *ray, const brt_hit *hit,
     (void)ray;
     (void)normal;
     (void)visits;
-    a->hits[tag] = *hit;
+    if (a->occluded) a->occluded[tag & ~BRT_TAG_OCCLUSION] = hit->prim != BRT_NO_PRIM;
+    else a->hits[tag] = *hit;
+}
+
+static brt_result trace_array(brt_scene *scene, const brt_trace_options *opt, array_source *a,
+                              brt_stats *stats, brt_error *err)
+{
+    brt_ray_source source;
+    a->next = 0;
+    source.next_rays = array_next;
+    source.finished = array_finished;
+    source.user = a;
+    return trace_source(scene, opt, &source, a->count > 0 ? a->count : 1, stats, err);
 }
 
 brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
@@ -3599,13 +3669,21 @@ brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
                            brt_stats *stats, brt_error *err)
 {
     array_source a;
-    brt_ray_source source;
     a.rays = rays;
     a.hits = hits;
+    a.occluded = NULL;
     a.count = count;
-    a.next = 0;
-    source.next_rays = array_next;
-    source.finished = array_finished;
-    source.user = &a;
-    return trace_source(scene, opt, &source, count > 0 ? count : 1, stats, err);
+    return trace_array(scene, opt, &a, stats, err);
+}
+
+brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
+                              const brt_ray *rays, size_t count, uint8_t *occluded,
+                              brt_stats *stats, brt_error *err)
+{
+    array_source a;
+    a.rays = rays;
+    a.hits = NULL;
+    a.occluded = occluded;
+    a.count = count;
+    return trace_array(scene, opt, &a, stats, err);
 }

@@ -452,6 +452,12 @@ typedef struct brt_stats {
     uint64_t queued_visits;     /* rays queued at a batching point */
     uint64_t resident_visits;   /* rays intersected at once: the geometry was in memory */
     uint64_t oversized_loads;   /* loads of a blob larger than the budget */
+    uint64_t shadow_rays;       /* occlusion rays traced (counted in rays too) */
+    uint64_t shadow_occluded;   /* of those, the ones that found a hit */
+    uint64_t shadow_batch_loads;     /* loads for a queue of occlusion rays only */
+    uint64_t shadow_disk_bytes_read; /* the bytes those loads read: what the
+                                ** shadow rays alone made the cache read (a
+                                ** load for a mixed queue counts for neither) */
     double seconds;             /* tracing */
     double load_seconds;        /* of those, loading batching points (read,
                                 ** checksum, open), wall clock */
@@ -583,6 +589,17 @@ typedef struct brt_trace_options {
     void *read_user;
 } brt_trace_options;
 
+/* Ray kinds.  A ray of a stream is a closest-hit ray, or an occlusion ray
+** when its tag has BRT_TAG_OCCLUSION set: the question "is any triangle hit
+** within [tnear, tfar]?" (Embree's rtcOccluded1, brt_bvh_occluded).  An
+** occlusion ray finishes at the first hit found anywhere, walks and is
+** culled by the proxies like any ray, and comes back to finished with the
+** bit still set in its tag and a hit record that says only the answer:
+** the miss record when clear; t = 0, prim = 0, u = v = 0 when occluded
+** (which triangle is found first depends on the schedule, so none is
+** named); the normal is zero.  The flag leaves 63 bits of tag. */
+#define BRT_TAG_OCCLUSION ((uint64_t)1 << 63)
+
 /* Stream mode, so a path tracer keeps a constant number of rays in flight:
 ** the scheduler calls next_rays when it has room (return 0 when there are
 ** no more for now) and finished for every completed ray, in an order that
@@ -610,6 +627,14 @@ brt_result brt_scene_trace_stream(brt_scene *scene,
 brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
                            const brt_ray *rays, size_t count, brt_hit *hits,
                            brt_stats *stats, brt_error *err);
+
+/* Occlusion queries for an array of rays: occluded[i] = 1 when some
+** triangle is hit within [rays[i].tnear, rays[i].tfar], else 0 -- byte for
+** byte brt_bvh_occluded over the whole mesh, whatever the options (the
+** occlusion file of README.md). */
+brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
+                              const brt_ray *rays, size_t count, uint8_t *occluded,
+                              brt_stats *stats, brt_error *err);
 
 #ifdef __cplusplus
 }
