@@ -372,6 +372,7 @@ typedef struct path_state {
     double light[3];                  /* what the shadow ray adds when clear */
     int in_shadow_step;               /* the pending ray is the shadow ray */
     int goes_on;                      /* after it, the path bounces with ray */
+    double luminance;                 /* added so far (sample_moments) */
 } path_state;
 
 /* What one render needs to know. */
@@ -383,8 +384,19 @@ typedef struct render_job {
     double scene_seconds;             /* building the scene file (0: reused) */
     uint64_t disk_speed;              /* modelled, bytes per second; 0: none */
     sun_light sun;
+    double sun_radius;                /* degrees (sun.cos_max is what renders) */
     int nee;                          /* next-event estimation (shadow rays) */
 } render_job;
+
+/* Sums over finished samples of their luminance (the mean of r, g, b of
+** what the path added) and its square: the image's mean and its standard
+** error, for comparing estimators (tests/test_render.c).  A measurement
+** in double precision: its last digits may depend on the schedule, unlike
+** the image, which is summed in fixed point. */
+typedef struct sample_moments {
+    double sum, sum_sq;
+    uint64_t count;
+} sample_moments;
 
 typedef struct renderer {
     const render_job *job;
@@ -394,6 +406,7 @@ typedef struct renderer {
     uint64_t started, finished, total; /* path number = sample * pixels + pixel */
     uint64_t *sums;                    /* 3 per pixel, fixed point (FIXED_ONE) */
     uint64_t *visits;                  /* batching points visited per pixel, or NULL */
+    sample_moments moments;            /* of the samples' luminance */
 } renderer;
 
 static void renderer_init(renderer *r, const render_job *job, int count_visits)
@@ -433,6 +446,7 @@ static void start_path(const render_job *job, uint64_t number, path_state *p)
     p->bounce = 0;
     p->weight = 1.0;
     p->in_shadow_step = 0;
+    p->luminance = 0.0;
     px = p->pixel % job->camera.width;
     ex_camera_ray(&job->camera,
                   (px + random_at(p->pixel, p->sample, 0, DIM_PIXEL_X)) / job->camera.width,
@@ -464,12 +478,13 @@ static size_t next_rays(void *user, brt_ray *rays, uint64_t *tags, size_t max)
 }
 
 /* Adds weight * radiance to the path's pixel, in fixed point. */
-static void add_radiance(renderer *r, const path_state *p, double weight, const double radiance[3])
+static void add_radiance(renderer *r, path_state *p, double weight, const double radiance[3])
 {
     int k;
     for (k = 0; k < 3; k++) {
         double v = fmin(weight * radiance[k], SAMPLE_CLAMP);
         r->sums[3 * (size_t)p->pixel + k] += (uint64_t)(v * FIXED_ONE + 0.5);
+        p->luminance += v / 3.0;
     }
 }
 
@@ -559,6 +574,9 @@ static void finished(void *user, const brt_ray *ray, const brt_hit *hit, const f
         return;
     }
     r->idle[r->idle_count++] = id;
+    r->moments.sum += p->luminance;
+    r->moments.sum_sq += p->luminance * p->luminance;
+    r->moments.count++;
     r->finished++;
     if ((r->finished & 0xFFF) == 0) ex_progress("rendering", r->finished, r->total);
 }
@@ -669,6 +687,7 @@ static void make_job(const options *o, const float bmin[3], const float bmax[3],
     job->paths_in_flight = (uint32_t)o->rays_in_flight;
     job->disk_speed = o->disk_speed;
     make_sun(o, &job->sun);
+    job->sun_radius = o->sun_radius;
     job->nee = !o->no_nee;
 }
 
@@ -920,6 +939,7 @@ typedef struct run {
     uint64_t *sums;            /* pixel sums (owned) */
     uint64_t *visits;          /* batching points visited per pixel, or NULL (owned) */
     uint64_t heat_visits;      /* their total */
+    sample_moments moments;
 } run;
 
 static void run_batched(brt_scene *scene, const render_job *job, const brt_trace_options *topt,
@@ -933,6 +953,7 @@ static void run_batched(brt_scene *scene, const render_job *job, const brt_trace
     end_progress(&r);
     out->sums = r.sums;
     out->visits = r.visits;
+    out->moments = r.moments;
     for (i = 0; r.visits && i < pixels; i++) out->heat_visits += r.visits[i];
     r.sums = NULL;
     r.visits = NULL;
@@ -952,6 +973,7 @@ static void run_direct(const brt_mesh *mesh, const render_job *job, run *out)
     end_progress(&r);
     if (out->stats.seconds > 0) out->stats.mrays_per_second = out->stats.rays / out->stats.seconds * 1e-6;
     out->sums = r.sums;
+    out->moments = r.moments;
     r.sums = NULL;
     renderer_free(&r);
     brt_bvh_free(bvh);
@@ -967,7 +989,12 @@ static double visits_per_sample(const render_job *job, const brt_stats *s)
 static void write_stats(const char *path, const render_job *job, const run *x, int direct,
                         int proxies)
 {
-    char extra[1024], *text;
+    char extra[2048], *text;
+    const sample_moments *m = &x->moments;
+    double n = m->count > 1 ? (double)m->count : 2.0, mean = m->sum / n;
+    /* The standard error of the mean: the samples are independent (each
+    ** draws its own random numbers), so it is their sd / sqrt(n). */
+    double se = sqrt(fmax(0.0, m->sum_sq / n - mean * mean) / (n - 1.0));
     FILE *f;
     long size;
     brt_error err;
@@ -976,11 +1003,14 @@ static void write_stats(const char *path, const render_job *job, const run *x, i
              ",\n  \"mode\": \"%s\",\n  \"proxies\": %d,\n  \"width\": %u,\n  \"height\": %u,\n"
              "  \"spp\": %u,\n  \"max_depth\": %d,\n  \"paths\": %llu,\n"
              "  \"paths_in_flight\": %u,\n  \"visits_per_sample\": %.17g,\n"
-             "  \"heatmap_visits\": %llu,\n  \"disk_speed\": %llu\n}\n",
+             "  \"heatmap_visits\": %llu,\n  \"disk_speed\": %llu,\n  \"nee\": %d,\n"
+             "  \"sun_radius_degrees\": %.17g,\n  \"sun_radiance\": %.17g,\n"
+             "  \"mean_luminance\": %.17g,\n  \"mean_luminance_se\": %.17g\n}\n",
              direct ? "direct" : "batched", proxies, job->camera.width, job->camera.height, job->spp,
              MAX_DEPTH, (unsigned long long)job->camera.width * job->camera.height * job->spp,
              job->paths_in_flight, visits_per_sample(job, &x->stats),
-             (unsigned long long)x->heat_visits, (unsigned long long)job->disk_speed);
+             (unsigned long long)x->heat_visits, (unsigned long long)job->disk_speed, job->nee,
+             job->sun_radius, job->sun.radiance[0], mean, se);
     f = fopen(path, "rb");
     if (!f || fseek(f, 0, SEEK_END) != 0 || (size = ftell(f)) < 3)
         ex_die(prog, "%s: cannot read back: %s", path, strerror(errno));
