@@ -135,7 +135,8 @@ static void usage(void)
            "  --width W            image width (default 320)\n"
            "  --height H           image height (default 180)\n"
            "  --camera E:T:F       eye ex,ey,ez : target tx,ty,tz : field of view in degrees\n"
-           "  --sun X,Y,Z          direction toward the sun (default: the scene's; y is up)\n"
+           "  --sun X,Y,Z          direction toward the sun, y up (default: one per built-in\n"
+           "                       scene; 0.48,0.62,0.62 for mesh files)\n"
            "  --sun-radius DEG     the sun's angular radius (default 3)\n"
            "  --sun-radiance V     its radiance (default 500; sky about 0.5)\n"
            "  --no-nee             no shadow rays: only escaping rays find the sun\n"
@@ -331,7 +332,7 @@ typedef struct sun_light {
 ** (the world beyond the scene, dark so that surfaces stand out). */
 static void sky_radiance(const float d[3], double rgb[3])
 {
-    static const double zenith[3] = {0.25, 0.40, 0.80}, horizon[3] = {0.70, 0.72, 0.78};
+    static const double zenith[3] = {0.12, 0.22, 0.50}, horizon[3] = {0.45, 0.50, 0.58};
     static const double ground[3] = {0.10, 0.09, 0.08};
     double up = d[1], a = sqrt(fabs(up));
     int k;
@@ -648,12 +649,20 @@ static void load_mesh(const options *o, uint64_t limit, brt_mesh *mesh)
     ex_note_mesh_memory(prog, mesh, limit);
 }
 
-/* The sun of --sun, --sun-radius and --sun-radiance: a warm white disc;
-** by default low in the south-west, so that shadows fall long and across
-** the default views. */
+/* The sun of --sun, --sun-radius and --sun-radiance: a warm white disc.
+** By default low (20 degrees) and to the side of the default view, so that
+** shadows fall long and across the picture: for the landscape from the
+** right and a little behind its trees and rocks; for the island from
+** behind the camera's left, so the islands' shadows fall on the sea beside
+** them; for the crown and meshes high from the front right, the old sky's
+** sun lobe. */
 static void make_sun(const options *o, sun_light *sun)
 {
-    static const double colour[3] = {1.0, 0.92, 0.78}, fallback[3] = {0.6, 0.3, -0.75};
+    static const double colour[3] = {1.0, 0.92, 0.78};
+    static const double landscape[3] = {0.75, 0.35, 0.1}, island[3] = {0.6, 0.3, -0.75};
+    static const double other[3] = {0.48, 0.62, 0.62};
+    const double *fallback = strcmp(o->input, "landscape") == 0 ? landscape
+                             : strcmp(o->input, "island") == 0 ? island : other;
     double len = 0;
     int k;
     for (k = 0; k < 3; k++) {
