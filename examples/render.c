@@ -121,6 +121,7 @@ typedef struct options {
     double sun_radius, sun_radiance;
     double heat_max;              /* colour scale maximum; 0: the image's maximum */
     const char *out, *heatmap, *stats, *scene;
+    const char *pfm, *reference;  /* --pfm, --reference: linear images */
 } options;
 
 static void usage(void)
@@ -164,6 +165,10 @@ static void usage(void)
            "  --heatmap FILE.png   batching points visited per sample (paper's Fig. 1)\n"
            "  --heat-max V         top of the heatmap's colour scale (default: 99.5th percentile)\n"
            "  --stats FILE.json    statistics (design.md fields plus spp, paths, ...)\n"
+           "  --pfm FILE.pfm       the image before tone mapping: each pixel's mean radiance\n"
+           "                       (Portable Float Map, little-endian)\n"
+           "  --reference REF.pfm  print the RMSE of this image's mean radiance against REF\n"
+           "                       (a --pfm of a long render), also \"rmse\" in --stats\n"
            "  --scene FILE         the scene file (default: in the scene folder, reused)\n"
            "  --help               this text\n"
            "\n"
@@ -265,6 +270,8 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--out")) o->out = VALUE;
         else if (is_option(a, "--heatmap")) o->heatmap = VALUE;
         else if (is_option(a, "--stats")) o->stats = VALUE;
+        else if (is_option(a, "--pfm")) o->pfm = VALUE;
+        else if (is_option(a, "--reference")) o->reference = VALUE;
         else if (is_option(a, "--scene")) o->scene = VALUE;
         else if (is_option(a, "--no-proxy")) o->no_proxy = 1;
         else if (is_option(a, "--queue-resident")) o->queue_resident = 1;
@@ -285,6 +292,7 @@ static void parse_options(int argc, char **argv, options *o)
     check_output(o->out);
     check_output(o->heatmap);
     check_output(o->stats);
+    check_output(o->pfm);
 }
 
 /* ===================================================================== */
@@ -830,6 +838,12 @@ static long slow_disk_read(int fd, void *buf, size_t size, uint64_t offset, void
 /* Images                                                                */
 /* ===================================================================== */
 
+/* The mean radiance of pixel channel i (3 per pixel, rows top first). */
+static double pixel_mean(const render_job *job, const uint64_t *sums, size_t i)
+{
+    return (double)sums[i] / FIXED_ONE / job->spp;
+}
+
 /* Tone mapping of the pixel sums: mean, exposure, Reinhard's x/(1+x),
 ** gamma 2.2.  Only integer sums go in, so equal sums give equal bytes. */
 static unsigned char *tone_map(const render_job *job, const uint64_t *sums)
@@ -838,10 +852,70 @@ static unsigned char *tone_map(const render_job *job, const uint64_t *sums)
     unsigned char *rgb = malloc(n);
     if (!rgb) ex_die(prog, "out of memory for the image");
     for (i = 0; i < n; i++) {
-        double v = EXPOSURE * (double)sums[i] / FIXED_ONE / job->spp;
+        double v = EXPOSURE * pixel_mean(job, sums, i);
         rgb[i] = (unsigned char)(255.0 * pow(v / (1.0 + v), 1.0 / 2.2) + 0.5);
     }
     return rgb;
+}
+
+/* The linear image as a Portable Float Map: "PF", width, height, -1 (little
+** endian), then float RGB rows from the bottom row up. */
+static void write_pfm(const char *path, const render_job *job, const uint64_t *sums)
+{
+    size_t w = job->camera.width, h = job->camera.height, x, y, k, at;
+    char header[64];
+    int head = snprintf(header, sizeof header, "PF\n%u %u\n-1.0\n", job->camera.width,
+                        job->camera.height);
+    unsigned char *data = malloc((size_t)head + 12 * w * h);
+    brt_error err;
+    if (!data) ex_die(prog, "out of memory for %s", path);
+    memcpy(data, header, (size_t)head);
+    at = (size_t)head;
+    for (y = h; y-- > 0;)
+        for (x = 0; x < w; x++)
+            for (k = 0; k < 3; k++, at += 4) {
+                float v = (float)pixel_mean(job, sums, 3 * (y * w + x) + k);
+                uint32_t bits;
+                memcpy(&bits, &v, 4);
+                data[at] = (unsigned char)bits;
+                data[at + 1] = (unsigned char)(bits >> 8);
+                data[at + 2] = (unsigned char)(bits >> 16);
+                data[at + 3] = (unsigned char)(bits >> 24);
+            }
+    ex_check(prog, brt_write_file_atomic(path, data, at, &err), &err);
+    free(data);
+}
+
+/* The root mean square difference, over every pixel channel, between this
+** image's mean radiance and a --pfm written by an earlier render of the
+** same size. */
+static double rmse_against(const char *path, const render_job *job, const uint64_t *sums)
+{
+    FILE *f = fopen(path, "rb");
+    unsigned w = 0, h = 0;
+    double scale = 0, sum = 0;
+    size_t x, y, k;
+    if (!f) ex_die(prog, "%s: cannot open: %s", path, strerror(errno));
+    if (fscanf(f, "PF %u %u %lf", &w, &h, &scale) != 3 || fgetc(f) != '\n' || scale >= 0)
+        ex_die(prog, "%s: not a little-endian colour PFM", path);
+    if (w != job->camera.width || h != job->camera.height)
+        ex_die(prog, "%s: %ux%u, but this image is %ux%u", path, w, h, job->camera.width,
+               job->camera.height);
+    for (y = h; y-- > 0;)
+        for (x = 0; x < w; x++)
+            for (k = 0; k < 3; k++) {
+                unsigned char b[4];
+                uint32_t bits;
+                float v;
+                double d;
+                if (fread(b, 1, 4, f) != 4) ex_die(prog, "%s: truncated", path);
+                bits = (uint32_t)b[0] | (uint32_t)b[1] << 8 | (uint32_t)b[2] << 16 | (uint32_t)b[3] << 24;
+                memcpy(&v, &bits, 4);
+                d = pixel_mean(job, sums, 3 * (y * w + x) + k) - v;
+                sum += d * d;
+            }
+    fclose(f);
+    return sqrt(sum / (3.0 * w * h));
 }
 
 /* A 5-stop approximation of the "inferno" colour map, for x in [0, 1]. */
@@ -949,6 +1023,7 @@ typedef struct run {
     uint64_t *visits;          /* batching points visited per pixel, or NULL (owned) */
     uint64_t heat_visits;      /* their total */
     sample_moments moments;
+    double rmse;               /* against --reference; NAN without one */
 } run;
 
 static void run_batched(brt_scene *scene, const render_job *job, const brt_trace_options *topt,
@@ -1004,6 +1079,9 @@ static void write_stats(const char *path, const render_job *job, const run *x, i
     /* The standard error of the mean: the samples are independent (each
     ** draws its own random numbers), so it is their sd / sqrt(n). */
     double se = sqrt(fmax(0.0, m->sum_sq / n - mean * mean) / (n - 1.0));
+    char rmse[64];
+    if (isnan(x->rmse)) snprintf(rmse, sizeof rmse, "null");
+    else snprintf(rmse, sizeof rmse, "%.17g", x->rmse);
     FILE *f;
     long size;
     brt_error err;
@@ -1014,12 +1092,12 @@ static void write_stats(const char *path, const render_job *job, const run *x, i
              "  \"paths_in_flight\": %u,\n  \"visits_per_sample\": %.17g,\n"
              "  \"heatmap_visits\": %llu,\n  \"disk_speed\": %llu,\n  \"nee\": %d,\n"
              "  \"sun_radius_degrees\": %.17g,\n  \"sun_radiance\": %.17g,\n"
-             "  \"mean_luminance\": %.17g,\n  \"mean_luminance_se\": %.17g\n}\n",
+             "  \"mean_luminance\": %.17g,\n  \"mean_luminance_se\": %.17g,\n  \"rmse\": %s\n}\n",
              direct ? "direct" : "batched", proxies, job->camera.width, job->camera.height, job->spp,
              MAX_DEPTH, (unsigned long long)job->camera.width * job->camera.height * job->spp,
              job->paths_in_flight, visits_per_sample(job, &x->stats),
              (unsigned long long)x->heat_visits, (unsigned long long)job->disk_speed, job->nee,
-             job->sun_radius, job->sun.radiance[0], mean, se);
+             job->sun_radius, job->sun.radiance[0], mean, se, rmse);
     f = fopen(path, "rb");
     if (!f || fseek(f, 0, SEEK_END) != 0 || (size = ftell(f)) < 3)
         ex_die(prog, "%s: cannot read back: %s", path, strerror(errno));
@@ -1070,10 +1148,16 @@ static void free_run(run *x)
 /* main                                                                  */
 /* ===================================================================== */
 
-static void write_image(const options *o, const render_job *job, const run *x)
+/* The PNG, and the linear image and its RMSE when asked for. */
+static void write_image(const options *o, const render_job *job, run *x)
 {
     unsigned char *rgb = tone_map(job, x->sums);
     brt_error err;
+    if (o->pfm) write_pfm(o->pfm, job, x->sums);
+    if (o->reference) {
+        x->rmse = rmse_against(o->reference, job, x->sums);
+        printf("RMSE against %s: %.6g\n", o->reference, x->rmse);
+    }
     ex_check(prog, ex_png_write_rgb(o->out, (int)job->camera.width, (int)job->camera.height, rgb,
                                     &err), &err);
     free(rgb);
@@ -1104,6 +1188,7 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
     double max;
     int i;
     memset(runs, 0, sizeof runs);
+    for (i = 0; i < 3; i++) runs[i].rmse = NAN;
     runs[0].label = "direct (in memory)";
     runs[1].label = "batched, no proxies";
     runs[2].label = with.exact_proxies ? "batched, exact proxies" : "batched, proxies";
@@ -1148,6 +1233,7 @@ static void render_once(const options *o, const render_job *job, brt_scene *scen
 {
     run x;
     memset(&x, 0, sizeof x);
+    x.rmse = NAN;
     if (o->direct) run_direct(mesh, job, &x);
     else run_batched(scene, job, topt, o->heatmap != NULL, &x);
     x.stats.peak_rss_bytes = brt_peak_rss_bytes();
