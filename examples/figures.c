@@ -25,6 +25,10 @@
 ** Fig. 3 is drawn for batchrt's own scheduler as well (three more lines), so
 ** the two can be compared.  Scene files are
 ** built once per resolution in the default scene folder and reused.
+** Fig. 1 is a picture, rendered with the sun's shadow rays (next-event
+** estimation, render's default, whose rays count among the visits);
+** Figs. 2 and 3 trace the paths alone (render --no-nee), the workload
+** their README tables were measured on.
 */
 #include "plot.h"
 #include "scenes.h"
@@ -222,7 +226,7 @@ static void figure2(const settings *s)
             double bytes, tests, culls;
             printf(" %g", resolutions[r]);
             fflush(stdout);
-            snprintf(extra, sizeof extra, "--res %g --out '%s/run.png' --stats '%s'", resolutions[r], s->out,
+            snprintf(extra, sizeof extra, "--res %g --no-nee --out '%s/run.png' --stats '%s'", resolutions[r], s->out,
                      stats);
             run_render(s, scene_names[i], PAPER_SCHEDULER, extra);
             bytes = json_number(stats, "proxy_bytes");
@@ -286,7 +290,7 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
         for (run = 0; run < FIG3_SERIES; run++) {
             int kind = run % PROXY_KINDS;
             scheduler = run / PROXY_KINDS;
-            snprintf(extra, sizeof extra, "--memory %g%% %s --out '%s/run.png' --stats '%s'",
+            snprintf(extra, sizeof extra, "--memory %g%% %s --no-nee --out '%s/run.png' --stats '%s'",
                      limits[l], proxy_options[kind], s->out, stats);
             run_render(s, scene_names[i], scheduler, extra);
             disk[run][l] = json_number(stats, "disk_bytes_read") / 1048576.0;
