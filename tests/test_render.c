@@ -176,6 +176,25 @@ static void test_nee_converges_to_no_nee(void)
            mean[0] - mean[2], bound);
 }
 
+/* --pfm writes the linear image and --reference measures against one: an
+** image against its own PFM has an RMSE of float rounding (each mean is
+** stored as a float: within 2^-24 of values below 8, so below 1e-6), a noisier
+** one of the same view does not, and a PFM of another size is refused. */
+static void test_pfm_reference(void)
+{
+    double same, other;
+    CHECK(tu_run("render " SMALL " --direct --pfm @/ref.pfm --out @/ref.png") == 0, "render --pfm failed");
+    CHECK(tu_run("render " SMALL " --scene @/pfm.brs --memory 10%% --reference @/ref.pfm "
+                 "--out @/p.png --stats @/p.json") == 0, "render --reference failed");
+    same = json_number(tu_scratch("p.json"), "rmse");
+    CHECK(tu_run("render " SMALL " --no-nee --scene @/pfm.brs --reference @/ref.pfm --out @/p.png "
+                 "--stats @/p.json") == 0, "render --no-nee --reference failed");
+    other = json_number(tu_scratch("p.json"), "rmse");
+    EXPECT(same < 1e-6 && other > 0.01, "RMSE %g against its own image, %g against --no-nee's", same, other);
+    EXPECT(tu_run("render " SMALL " --width 41 --reference @/ref.pfm --out @/never.png") == 1 &&
+           !tu_file_exists(tu_scratch("never.png")), "a reference of another size was accepted");
+}
+
 /* A mesh file and an explicit camera take the other input path. */
 static void test_same_image_mesh_file(void)
 {
@@ -403,6 +422,7 @@ void suite_render(void)
              test_nee_same_image_every_mode);
     test_run("render: next-event estimation and --no-nee converge to the same mean",
              test_nee_converges_to_no_nee);
+    test_run("render: --pfm and --reference (RMSE)", test_pfm_reference);
     test_run("render: heatmap counts every queued visit", test_heatmap);
     test_run("render: compare table", test_compare);
     test_run("render: --disk-speed makes loads last bytes / speed", test_disk_speed);
