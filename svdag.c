@@ -1293,29 +1293,179 @@ static int walk(const brt_svdag *dag, ray_frame *r, uint64_t node, unsigned m)
     }
 }
 
-int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
-                      const brt_ray *ray, float tnear, float tfar,
-                      float *t_entry)
+/* The walk of a cast: fills r->found and r->hi; 0 when it gave up. */
+typedef int (*cast_walk)(const brt_svdag *dag, ray_frame *r, uint64_t root, unsigned m);
+
+/* What both casts share: the rays and proxies that need no walk, the
+** frame, the root and its child mask, and the entry rounded down to float. */
+static int proxy_cast(const brt_svdag *dag, const brt_proxy *proxy, const brt_ray *ray,
+                      float tnear, float tfar, float *t_entry, cast_walk walk_fn)
 {
     ray_frame r;
     float t, unused;
+    uint64_t root = proxy->root;
+    unsigned m;
     if (!t_entry) t_entry = &unused;
     *t_entry = tnear;
     if (ray_is_degenerate(ray, tnear, tfar)) return 1;
     if (tnear > tfar) return 0;
-    if (brt_proxy_check(dag, proxy, NULL) != BRT_OK) return 1;
     if (proxy->root == BRT_EMPTY_ROOT) return 0;
     frame_setup(&r, proxy, ray);
     r.any = t_entry == &unused;
     clip_to_root(&r, tnear, tfar);
     if (!(r.lo <= r.hi)) return 0;
     if (r.levels == 2) {
-        uint64_t leaf = dag->leaves[proxy->root];
-        if (!walk(dag, &r, leaf, leaf_octants(leaf))) return 1;
-    } else if (!walk(dag, &r, proxy->root, dag->words[proxy->root] & 0xFFu)) return 1;
+        root = dag->leaves[proxy->root];
+        m = leaf_octants(root);
+    } else {
+        m = dag->words[proxy->root] & 0xFFu;
+    }
+    if (!walk_fn(dag, &r, root, m)) return 1;
     if (!r.found) return 0;
     t = (float)r.hi;
     if ((double)t > r.hi) t = nextafterf(t, -INFINITY);
     *t_entry = t > tnear ? t : tnear;
     return 1;
+}
+
+int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
+                      const brt_ray *ray, float tnear, float tfar,
+                      float *t_entry)
+{
+    return proxy_cast(dag, proxy, ray, tnear, tfar, t_entry, walk);
+}
+
+/* ===================================================================== */
+/* The reference cast: Laine and Karras, written for reading               */
+/* ===================================================================== */
+
+/*
+** The same question as brt_proxy_raycast, answered by the plain traversal
+** of Laine and Karras (2010, section 3 and the castRay listing of their
+** technical report), one phase after another with the paper's names:
+**   INITIALIZE  the frame (frame_setup: the root cube mapped to [1,2]^3,
+**               the ray mirrored so that it runs towards smaller
+**               coordinates, octant_mask = r->mirror; tx_coef and tx_bias
+**               are r->step and r->enter_bias) and the root's [t_min,
+**               t_max] (clip_to_root);
+**   PUSH        descend into the current child when the segment touches it
+**               and it is not empty;
+**   ADVANCE     step to the sibling the ray enters next;
+**   POP         when no sibling is left, return to the parent's scale.
+** Positions are integers in voxels of the finest level (the numbers ESVO
+** keeps in float mantissas), so `pos` is exact; `scale` is the level of the
+** parent (its side is 2^scale voxels; ESVO counts the same levels).  A
+** child's interval is a plain slab test of its grown box (the box of the
+** voxels it spans, grown by g on every side, see CONSERVATIVE IN FLOAT
+** above), so the rounding argument of the fast cast holds for every number
+** here: they are the same plane distances.  ESVO's h (the stack entry that
+** is still valid) only saves stack writes; here the stack is written at
+** every PUSH.
+**
+** Not for speed: every ADVANCE tests all eight siblings.  The fast cast
+** (walk) visits the same children, in an order of its own, at about a
+** third of the cost; tests check that the two answer alike.
+*/
+typedef struct lk_scale {
+    uint64_t parent;        /* a pool node, a leaf's 64 bits, an octant's 8 */
+    unsigned child_mask;    /* the parent's non-empty children (world index) */
+    uint32_t pos[3];        /* the parent's mirrored corner, in voxels */
+    unsigned idx;           /* the current child (mirrored index) ... */
+    double t_min;           /* ... and where the segment enters it */
+} lk_scale;
+
+/* The segment's interval in the grown box of the child idx of a parent of
+** side 2^scale at mirrored corner pos: bit a of idx says "upper half on
+** axis a", which the ray (running to smaller coordinates) meets first. */
+static void lk_child_interval(const ray_frame *r, const uint32_t pos[3], int scale,
+                              unsigned idx, double *t_min, double *t_max)
+{
+    uint32_t half = 1u << (scale - 1);
+    int a;
+    *t_min = r->lo;
+    *t_max = r->hi;
+    for (a = 0; a < 3; a++) {
+        uint32_t low = pos[a] + ((idx >> a) & 1) * half;
+        *t_min = max2(*t_min, enter_t(r, a, low + half));
+        *t_max = min2(*t_max, leave_t(r, a, low));
+    }
+}
+
+/*
+** ADVANCE.  ESVO steps from the current child across the face through which
+** the ray leaves it: step_mask holds every axis whose exit plane comes
+** first.  When two (three) exit planes are crossed at the same t the ray
+** leaves through an edge (a corner) and ESVO flips two (three) bits at once,
+** stepping diagonally -- and never visits the cubes that share only that
+** edge or corner with the current one.  A closed box contains its edges and
+** corners, so the ray touches those cubes; and the grown boxes overlap, so
+** a ray that passes within g of an edge touches both cubes beside it as
+** well.  A proxy must report them all.  So ADVANCE does not step across a
+** face: it takes, among all eight children, the non-empty one whose grown
+** box the segment enters next -- the least (t_min, idx) after the current
+** child's, in lexicographic order so that children entered at the same t
+** are each taken once.  Which child comes first among equal t_min does not
+** change the answer: it is the least entry over every touched voxel.
+** Returns 8 when no child is left.  "Touched" is t_min <= t_max, and a
+** child entered at or after the best hit so far (r->hi once r->found) can
+** not beat it and is skipped.
+*/
+static unsigned lk_advance(const ray_frame *r, const lk_scale *s, int scale,
+                           unsigned after, double t_after, double *t_next)
+{
+    unsigned idx, next = 8;
+    for (idx = 0; idx < 8; idx++) {
+        double t_min, t_max;
+        if (!((s->child_mask >> (idx ^ r->mirror)) & 1)) continue;   /* empty */
+        lk_child_interval(r, s->pos, scale, idx, &t_min, &t_max);
+        if (t_min > t_max || (r->found && t_min >= r->hi)) continue;  /* missed */
+        if (t_min < t_after || (t_min == t_after && idx <= after)) continue;  /* done */
+        if (next == 8 || t_min < *t_next) {
+            next = idx;
+            *t_next = t_min;
+        }
+    }
+    return next;
+}
+
+/* The traversal; the root is a pool node (or a leaf when the root spans
+** 4 voxels) with its world child mask m.  Always completes: 1. */
+static int reference_walk(const brt_svdag *dag, ray_frame *r, uint64_t root, unsigned m)
+{
+    lk_scale stack[MAX_LEVEL + 1];
+    int scale = r->levels;                           /* INITIALIZE */
+    lk_scale *s = &stack[scale];
+    s->parent = root;
+    s->child_mask = m;
+    s->pos[0] = s->pos[1] = s->pos[2] = 0;
+    s->idx = lk_advance(r, s, scale, 8, -INFINITY, &s->t_min);   /* the first child */
+    for (;;) {
+        if (s->idx == 8) {                                          /* POP */
+            if (++scale > r->levels) return 1;
+            s = &stack[scale];
+        } else if (scale == 1) {      /* the current child is a set voxel: a hit */
+            r->hi = s->t_min;
+            r->found = 1;
+            if (r->any) return 1;
+        } else {                                                    /* PUSH */
+            lk_scale *child = &stack[scale - 1];
+            uint32_t half = 1u << (scale - 1);
+            int a;
+            child->parent = child_fetch(dag, s->parent, scale, s->idx ^ r->mirror,
+                                        &child->child_mask);
+            for (a = 0; a < 3; a++) child->pos[a] = s->pos[a] + ((s->idx >> a) & 1) * half;
+            scale--;
+            s = child;
+            s->idx = lk_advance(r, s, scale, 8, -INFINITY, &s->t_min);
+            continue;
+        }
+        s->idx = lk_advance(r, s, scale, s->idx, s->t_min, &s->t_min);   /* ADVANCE */
+    }
+}
+
+int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
+                                const brt_ray *ray, float tnear, float tfar,
+                                float *t_entry)
+{
+    return proxy_cast(dag, proxy, ray, tnear, tfar, t_entry, reference_walk);
 }
