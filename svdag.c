@@ -83,15 +83,6 @@ static unsigned lowest_bit64(uint64_t m)
     return table[((m & (0 - m)) * 0x03F79D71B4CB0A89ull) >> 58];
 }
 
-/* Index of the highest set bit of an 8-bit mask m != 0 (a table per
-** nibble; the choice compiles to a conditional move, not a branch). */
-static unsigned highest_bit8(unsigned m)
-{
-    static const unsigned char nibble[16] = {0, 0, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3, 3, 3};
-    unsigned high = m >> 4;
-    return high ? 4u + nibble[high] : nibble[m];
-}
-
 /* min and max without libm's NaN rules (a call each with -std=c99); the
 ** callers never pass NaN. */
 static double min2(double a, double b) { return a < b ? a : b; }
@@ -1012,7 +1003,6 @@ typedef struct ray_frame {
     double gap[3];          /* exit minus entry t of one plane: 2g / |d_i| */
     double step[3];         /* t per voxel along each axis: (1/N) / |d_i| */
     unsigned mirror;        /* bit i: axis i mirrored (ESVO's octant_mask) */
-    unsigned near[3];       /* world children on the entry side of each axis */
     int levels;             /* root spans N = 2^levels voxels */
     double lo, hi;          /* the live segment: hi shrinks to the best hit */
     int found;              /* a set voxel was touched; its entry is hi */
@@ -1020,19 +1010,18 @@ typedef struct ray_frame {
 } ray_frame;
 
 /* One scale of the parent stack: a node, its mirrored corner in voxels,
-** its live interval [tin, tout] and, by rank (see push_node), what its
-** children need: entries, centre-plane exits, the ranks still to visit.
-** Above the leaves a node is a pool word offset; at level 2 it is a leaf's
-** 64 bits, and at level 1 the 8 voxels of one 2x2x2 octant of a leaf, so
-** the bit-mask levels are walked like any other. */
+** its live interval [tin, tout], its three centre planes' entries and
+** exits, and the children still to visit, as a set of far-side sets (see
+** push_node).  Above the leaves a node is a pool word offset; at level 2
+** it is a leaf's 64 bits, and at level 1 the 8 voxels of one 2x2x2 octant
+** of a leaf, so the bit-mask levels are walked like any other. */
 typedef struct scale_entry {
     uint64_t node;
     uint32_t corner[3];
     double tin, tout;
-    double entry[3];        /* max(tin, centre entry) of the axis of rank q */
-    double leave[3];        /* centre-plane exit of the axis of rank q */
-    unsigned axis_bit[3];   /* child index bit of the axis of rank q */
-    unsigned pending;       /* ranks not yet visited */
+    double e[3];            /* centre plane of axis a: the far half entered */
+    double l[3];            /* ... and the near half left (e + gap) */
+    unsigned pending;       /* bit k: child of far-side set k still to visit */
 } scale_entry;
 
 /* t where the ray enters / leaves the grown slab face at voxel plane u
@@ -1058,9 +1047,6 @@ static int ray_is_degenerate(const brt_ray *ray, float tnear, float tfar)
     return zero;
 }
 
-/* World children in the upper half of each axis: bit w of child w. */
-static const unsigned high_half[3] = {0xAAu, 0xCCu, 0xF0u};
-
 static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray)
 {
     double unit, scale, p[3], d[3], inv[3], dmax = 0, pmax = 0, g;
@@ -1078,7 +1064,6 @@ static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray
         unsigned mirrored = d[i] > 0;     /* selects, not branches */
         p[i] = mirrored ? 3.0 - p[i] : p[i];
         r->mirror |= mirrored << i;
-        r->near[i] = high_half[i] ^ (0xFFu & (0u - mirrored));
         inv[i] = 1.0 / max2(fabs(d[i]), dmax * 0x1p-40);
         pmax = max2(pmax, fabs(p[i]));
     }
@@ -1109,77 +1094,71 @@ static unsigned all_or(int keep, unsigned mask)
     return keep ? 0xFFu : mask;
 }
 
-/* A world child mask m (bit w: child w is set) by rank: bit k of the
-** result is bit w of m for the child w of rank k, which is first_child
-** with the axis bits of k's set bits flipped.  Written out: GCC at -O2
-** does not unroll the loop, which made this a third of PUSH. */
-static unsigned mask_by_rank(unsigned m, unsigned first_child, const unsigned axis_bit[3])
+/* A world child mask m (bit w: child w is set) by far-side set: bit k of
+** the result is bit k ^ x of m, x = 7 ^ mirror (see push_node).  XOR with
+** a constant permutes bit indices by swapping bits, pairs and nibbles. */
+static unsigned by_far_set(unsigned m, unsigned x)
 {
-    unsigned w0 = first_child, w1 = w0 ^ axis_bit[0], w2 = w0 ^ axis_bit[1];
-    unsigned w3 = w2 ^ axis_bit[0], w4 = w0 ^ axis_bit[2], w5 = w4 ^ axis_bit[0];
-    unsigned w6 = w4 ^ axis_bit[1], w7 = w6 ^ axis_bit[0];
-    return ((m >> w0) & 1u) | (((m >> w1) & 1u) << 1) | (((m >> w2) & 1u) << 2) |
-           (((m >> w3) & 1u) << 3) | (((m >> w4) & 1u) << 4) | (((m >> w5) & 1u) << 5) |
-           (((m >> w6) & 1u) << 6) | (((m >> w7) & 1u) << 7);
+    m = x & 1u ? ((m & 0x55u) << 1) | ((m >> 1) & 0x55u) : m;
+    m = x & 2u ? ((m & 0x33u) << 2) | ((m >> 2) & 0x33u) : m;
+    return x & 4u ? ((m & 0x0Fu) << 4) | (m >> 4) : m;
 }
+
+/* The children whose far-side set has bit a: 0xAA, 0xCC, 0xF0. */
+#define FAR0 0xAAu
+#define FAR1 0xCCu
+#define FAR2 0xF0u
 
 /*
 ** PUSH: the node spanning 2^level voxels at a mirrored corner, entered on
 ** [tin, tout], whose set children form the world mask m.  Only the three
-** centre planes are new: a child's other faces are its parent's.  So a
-** child's interval is
-**     [max(tin, centre entries of the axes it lies beyond),
-**      min(tout, centre exits of the axes it lies before)]
+** centre planes are new: a child's other faces are its parent's.  Name a
+** child by its FAR-SIDE SET k: bit a of k says it lies beyond the centre
+** plane of axis a (ESVO's idx is 7 ^ k, the world index 7 ^ k ^ mirror).
+** Then its interval is
+**     [max(tin, e_a for a in k), min(tout, l_a for a not in k)]
 ** (a centre plane is crossed after the node's entry plane on that axis,
-** so the parent's faces add nothing).  These are the same numbers a slab
-** test of each child computes, from 6 plane distances instead of 12.
-** RANK: with the axes sorted by centre entry, bit q of a rank says
-** "beyond the centre of the axis of rank q"; ranks 0, 1, 3, 7 are ESVO's
-** child sequence, and all eight come in non-decreasing entry order.
-** LIVE: a child's interval is not empty when each of its lower bounds is
-** below each upper bound: tin <= the exit of an axis it lies before, the
-** entry of an axis it lies beyond <= tout, and that entry <= the exit of
-** any axis it lies before (6 ordered pairs of axes).  The tests run on
-** world child masks and unsorted values, so that no value goes through
-** the stack entry before the mask is known (the store-to-load chain cost
-** a quarter of the time); the sort is a rank count and a scatter, and
-** nothing here branches on the ray.
+** so the parent's faces add nothing): the same numbers a slab test of each
+** child computes, from 6 plane distances instead of 12.
+** LIVE: that interval is not empty when each lower bound is below each
+** upper bound: e_a <= tout for a in k, tin <= l_b for b not in k, and
+** e_a <= l_b for a in k, b not in k (6 ordered pairs of axes); with k the
+** bit index these are masks fixed at compile time, and nothing branches.
+** ORDER: the children are visited by increasing k.  A child's entry only
+** grows when axes join its far-side set, so k comes after every subset of
+** itself; child 0 (entered at tin) is first, child 7 last.  It is not
+** ESVO's ray order (the entries are not sorted: see COST for why), so a
+** hit does not end a scale: each child is compared with the best hit.
 */
 static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
                       unsigned m, const uint32_t corner[3], int level,
                       double tin, double tout)
 {
-    uint32_t half = 1u << (level - 1);    /* centre plane entries e, exits l */
+    uint32_t half = 1u << (level - 1);
     double e0 = enter_t(r, 0, corner[0] + half), e1 = enter_t(r, 1, corner[1] + half);
     double e2 = enter_t(r, 2, corner[2] + half);
-    unsigned r0 = (unsigned)(e1 < e0) + (unsigned)(e2 < e0);   /* ties: lower axis first */
-    unsigned r1 = (unsigned)(e0 <= e1) + (unsigned)(e2 < e1);
-    unsigned r2 = (unsigned)(e0 <= e2) + (unsigned)(e1 <= e2);
     double l0 = e0 + r->gap[0], l1 = e1 + r->gap[1], l2 = e2 + r->gap[2];
-    unsigned n0 = r->near[0], n1 = r->near[1], n2 = r->near[2], live;
+    unsigned live;
     s->node = node;
     s->tin = tin;
     s->tout = tout;
     s->corner[0] = corner[0];
     s->corner[1] = corner[1];
     s->corner[2] = corner[2];
-    s->entry[r0] = max2(tin, e0);
-    s->entry[r1] = max2(tin, e1);
-    s->entry[r2] = max2(tin, e2);
-    s->leave[r0] = l0;
-    s->leave[r1] = l1;
-    s->leave[r2] = l2;
-    s->axis_bit[r0] = 1;
-    s->axis_bit[r1] = 2;
-    s->axis_bit[r2] = 4;
+    s->e[0] = e0;
+    s->e[1] = e1;
+    s->e[2] = e2;
+    s->l[0] = l0;
+    s->l[1] = l1;
+    s->l[2] = l2;
     /* LIVE: far side reached in time, near side not left before tin, no
-    ** far side entered after a near side is left (n: near, ~n: far) */
-    live = all_or(e0 <= tout, n0) & all_or(e1 <= tout, n1) & all_or(e2 <= tout, n2) &
-           all_or(l0 >= tin, ~n0) & all_or(l1 >= tin, ~n1) & all_or(l2 >= tin, ~n2) &
-           all_or(e1 <= l0, ~(n0 & ~n1)) & all_or(e2 <= l0, ~(n0 & ~n2)) &
-           all_or(e0 <= l1, ~(n1 & ~n0)) & all_or(e2 <= l1, ~(n1 & ~n2)) &
-           all_or(e0 <= l2, ~(n2 & ~n0)) & all_or(e1 <= l2, ~(n2 & ~n1));
-    s->pending = mask_by_rank(live & m, 7u ^ r->mirror, s->axis_bit);
+    ** far side entered after a near side is left */
+    live = all_or(e0 <= tout, ~FAR0) & all_or(e1 <= tout, ~FAR1) & all_or(e2 <= tout, ~FAR2) &
+           all_or(l0 >= tin, FAR0) & all_or(l1 >= tin, FAR1) & all_or(l2 >= tin, FAR2) &
+           all_or(e1 <= l0, ~(FAR1 & ~FAR0)) & all_or(e2 <= l0, ~(FAR2 & ~FAR0)) &
+           all_or(e0 <= l1, ~(FAR0 & ~FAR1)) & all_or(e2 <= l1, ~(FAR2 & ~FAR1)) &
+           all_or(e0 <= l2, ~(FAR0 & ~FAR2)) & all_or(e1 <= l2, ~(FAR1 & ~FAR2));
+    s->pending = live & by_far_set(m, 7u ^ r->mirror);
 }
 
 /* Bit o of the result: octant o of a leaf (2x2x2 voxels) is not empty. */
@@ -1223,70 +1202,56 @@ static uint64_t child_fetch(const brt_svdag *dag, uint64_t node, int level,
     return leaf;
 }
 
-/* ADVANCE: the next child of scale s in ray order that is still worth a
-** visit, as its rank; 8 when the scale is done.  Ranks come in entry order,
-** so a child entered behind the best hit so far ends the scale. */
-static unsigned next_rank(const ray_frame *r, scale_entry *s, double *in)
-{
-    unsigned k;
-    if (!s->pending) return 8;
-    k = lowest_bit64(s->pending);
-    s->pending &= s->pending - 1;
-    *in = k ? s->entry[highest_bit8(k)] : s->tin;
-    if (*in > r->hi || (*in == r->hi && r->found)) {
-        s->pending = 0;
-        return 8;
-    }
-    return k;
-}
-
-/* Adds nothing to a rank's own exits, and removes the others from a min. */
+/* Subtracted from a centre entry: nothing when the child is beyond that
+** plane, else everything (the entry then does not bound the child). */
+static const double near_off[2] = {INFINITY, 0};
+/* Added to a centre exit: nothing when the child is before that plane. */
 static const double far_off[2] = {0, INFINITY};
 
-/* The walk from the root; returns 0 when it hit the iteration cap.  The
-** first set voxel in rank order is its node's nearest; it lowers hi, and
-** the scales still open then only finish the children that the segment
-** enters sooner (the siblings of the hit and of its ancestors). */
+/* The walk from the root; returns 0 when it hit the iteration cap.  Each
+** child is entered at in = max(tin, e_a for a in k); a set voxel lowers hi
+** to its entry, and from then on a child entered at or after hi is passed
+** over (it holds nothing nearer). */
 static int walk(const brt_svdag *dag, ray_frame *r, uint64_t node, unsigned m)
 {
     scale_entry stack[MAX_LEVEL + 1], *s;
     uint32_t corner[3] = {0, 0, 0};
-    double tin = r->lo, tout = r->hi, in = 0;
+    double tin = r->lo, tout = r->hi;
     long budget = 64L * (1L << r->levels) + 4096;
     int level = r->levels;
     for (;;) {
         s = &stack[level];
         push_node(r, s, node, m, corner, level, tin, tout);      /* PUSH */
         for (;;) {
-            unsigned k = next_rank(r, s, &in), j;
             uint32_t half = 1u << (level - 1);
-            if (k == 8) {                                          /* POP */
+            unsigned k, j;
+            double in;
+            if (!s->pending) {                                     /* POP */
                 if (++level > r->levels) return 1;
                 s = &stack[level];
                 continue;
             }
+            k = lowest_bit64(s->pending);                      /* ADVANCE */
+            s->pending &= s->pending - 1;
+            in = max2(max2(s->tin, s->e[0] - near_off[k & 1]),
+                      max2(s->e[1] - near_off[(k >> 1) & 1], s->e[2] - near_off[k >> 2]));
+            if (in > r->hi || (in == r->hi && r->found)) continue;  /* no better */
             if (--budget < 0) return 0;
-            if (level == 1) {                   /* the nearest voxel here */
+            if (level == 1) {                   /* a set voxel: the best so far */
                 r->hi = in;
                 r->found = 1;
-                if (r->any) return 1;   /* yes/no: no need to finish the
-                                         ** siblings entered sooner */
-                s->pending = 0;
+                if (r->any) return 1;   /* yes/no: nothing more to learn */
                 continue;
             }
-            /* the child: its exit is the least of the centre exits of
-            ** the axes it lies before; its index flips the axes it lies beyond */
-            tout = min2(s->tout, min2(s->leave[0] + far_off[k & 1],
-                                      min2(s->leave[1] + far_off[(k >> 1) & 1],
-                                           s->leave[2] + far_off[k >> 2])));
-            j = 7u ^ (s->axis_bit[0] & (0u - (k & 1))) ^
-                (s->axis_bit[1] & (0u - ((k >> 1) & 1))) ^ (s->axis_bit[2] & (0u - (k >> 2)));
+            tout = min2(min2(s->tout, r->hi),
+                        min2(s->l[0] + far_off[k & 1],
+                             min2(s->l[1] + far_off[(k >> 1) & 1], s->l[2] + far_off[k >> 2])));
+            j = 7u ^ k;                 /* ESVO's idx: bit a, the upper half */
             corner[0] = s->corner[0] + (j & 1) * half;
             corner[1] = s->corner[1] + ((j >> 1) & 1) * half;
             corner[2] = s->corner[2] + (j >> 2) * half;
             node = child_fetch(dag, s->node, level, j ^ r->mirror, &m);
             tin = in;
-            tout = min2(tout, r->hi);
             level--;
             break;
         }
