@@ -657,7 +657,6 @@ static int tree_levels(uint32_t res)
     int k = resolution_log2(res);
     return k < 2 ? 2 : k;
 }
-
 /* The 4x4x4 block at (x,y,z) as a leaf mask; each row of 4 voxels is one
 ** aligned nibble of the grid's bits when res >= 4. */
 static uint64_t block_mask(const brt_grid *grid, uint32_t x, uint32_t y,
@@ -1085,7 +1084,6 @@ typedef struct ray_frame {
     double step[3];         /* t per voxel along each axis: (1/N) / |d_i| */
     unsigned mirror;        /* bit i: axis i mirrored (ESVO's octant_mask) */
     uint32_t bounds_flip;   /* 0x3F at the bounds fields of mirrored axes */
-    uint32_t bounds_swap;   /* the same: their first and last trade places */
     int levels;             /* root spans N = 2^levels voxels */
     double lo, hi;          /* the live segment: hi shrinks to the best hit */
     int found;              /* a set voxel was touched; its entry is hi */
@@ -1119,59 +1117,67 @@ static double leave_t(const ray_frame *r, int axis, uint32_t u)
     return enter_t(r, axis, u) + r->gap[axis];
 }
 
+/* NaN bounds, a NaN or infinite coordinate (x - x is then NaN, and the
+** sum is 0 only when all are finite), or a zero direction. */
 static int ray_is_degenerate(const brt_ray *ray, float tnear, float tfar)
 {
-    int i, zero = 1;
-    if (isnan(tnear) || isnan(tfar)) return 1;
-    for (i = 0; i < 3; i++) {
-        if (!isfinite(ray->org[i]) || !isfinite(ray->dir[i])) return 1;
-        if (ray->dir[i] != 0) zero = 0;
-    }
-    return zero;
+    const float *o = ray->org, *d = ray->dir;
+    double finite = ((double)o[0] - o[0]) + ((double)o[1] - o[1]) + ((double)o[2] - o[2]) +
+                    ((double)d[0] - d[0]) + ((double)d[1] - d[1]) + ((double)d[2] - d[2]);
+    return isnan(tnear) || isnan(tfar) || finite != 0 || (d[0] == 0 && d[1] == 0 && d[2] == 0);
+}
+
+/* One axis of the frame (written out per axis: GCC -O2 kept the loops,
+** whose counters were a tenth of a culled cast). */
+static void frame_axis(ray_frame *r, int i, double p, double d, double dmax, double g,
+                       double unit)
+{
+    double inv = 1.0 / max2(fabs(d), dmax * 0x1p-40);
+    r->enter_bias[i] = (p - (1.0 + g)) * inv;
+    r->gap[i] = (p - (1.0 - g)) * inv - r->enter_bias[i];
+    r->step[i] = inv * unit;
+}
+
+/* A coordinate in the [1,2] frame, mirrored when the direction is positive
+** (a select, not a branch). */
+static double frame_point(double p, double d)
+{
+    return d > 0 ? 3.0 - p : p;
 }
 
 static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray)
 {
-    double unit, scale, p[3], d[3], inv[3], dmax = 0, pmax = 0, g;
-    int i;
+    double unit, scale, p0, p1, p2, d0, d1, d2, dmax, g;
     r->levels = tree_levels(proxy->res);
     unit = 1.0 / (1u << r->levels);                     /* exact */
     scale = unit / proxy->cell;     /* world -> frame; one rounding */
-    r->mirror = 0;
-    r->bounds_flip = 0;
-    for (i = 0; i < 3; i++) {
-        p[i] = 1.0 + ((double)ray->org[i] - proxy->origin[i]) * scale;
-        d[i] = ray->dir[i] * scale;
-        dmax = max2(dmax, fabs(d[i]));
-    }
-    for (i = 0; i < 3; i++) {
-        unsigned mirrored = d[i] > 0;     /* selects, not branches */
-        p[i] = mirrored ? 3.0 - p[i] : p[i];
-        r->mirror |= mirrored << i;
-        r->bounds_flip |= (0x3Fu & (0u - mirrored)) << (6 * i);
-        inv[i] = 1.0 / max2(fabs(d[i]), dmax * 0x1p-40);
-        pmax = max2(pmax, fabs(p[i]));
-    }
-    r->bounds_swap = r->bounds_flip;
-    g = 0x1p-18 * (pmax + 3);
-    for (i = 0; i < 3; i++) {
-        r->enter_bias[i] = (p[i] - (1.0 + g)) * inv[i];
-        r->gap[i] = (p[i] - (1.0 - g)) * inv[i] - r->enter_bias[i];
-        r->step[i] = inv[i] * unit;
-    }
+    d0 = ray->dir[0] * scale;
+    d1 = ray->dir[1] * scale;
+    d2 = ray->dir[2] * scale;
+    p0 = frame_point(1.0 + ((double)ray->org[0] - proxy->origin[0]) * scale, d0);
+    p1 = frame_point(1.0 + ((double)ray->org[1] - proxy->origin[1]) * scale, d1);
+    p2 = frame_point(1.0 + ((double)ray->org[2] - proxy->origin[2]) * scale, d2);
+    r->mirror = (unsigned)(d0 > 0) | (unsigned)(d1 > 0) << 1 | (unsigned)(d2 > 0) << 2;
+    r->bounds_flip = (0x3Fu & (0u - (r->mirror & 1u))) | (0xFC0u & (0u - ((r->mirror >> 1) & 1u))) |
+                     (0x3F000u & (0u - (r->mirror >> 2)));
+    dmax = max2(fabs(d0), max2(fabs(d1), fabs(d2)));
+    g = 0x1p-18 * (max2(fabs(p0), max2(fabs(p1), fabs(p2))) + 3);
+    frame_axis(r, 0, p0, d0, dmax, g, unit);
+    frame_axis(r, 1, p1, d1, dmax, g, unit);
+    frame_axis(r, 2, p2, d2, dmax, g, unit);
     r->found = 0;
 }
 
-/* The root cube's grown interval, intersected with the segment. */
-static void clip_to_root(ray_frame *r, float tnear, float tfar)
+/* The segment [r->lo, r->hi] clipped to the root cube's grown box; 0 when
+** it misses. */
+static int clip_to_root(ray_frame *r)
 {
     int a;
-    r->lo = tnear;
-    r->hi = tfar;
     for (a = 0; a < 3; a++) {
         r->lo = max2(r->lo, enter_t(r, a, 1u << r->levels));
         r->hi = min2(r->hi, leave_t(r, a, 0));
     }
+    return r->lo <= r->hi;
 }
 
 /* All children when keep, else those of mask (a select, not a branch). */
@@ -1266,9 +1272,18 @@ static uint64_t octant_voxels(uint64_t leaf, unsigned w)
     return (m & 0x3u) | ((m >> 2) & 0xCu) | ((m >> 12) & 0x30u) | ((m >> 14) & 0xC0u);
 }
 
+/* Inlined by force where the compiler allows: GCC -O2 kept child_fetch
+** and clip_to_bounds out of line (two call sites each), and the calls
+** were a fifth of a culled cast. */
+#if defined(__GNUC__)
+#define WALK_INLINE __attribute__((always_inline)) inline
+#else
+#define WALK_INLINE inline
+#endif
+
 /* Child w (world index, known to be set) of a node of the given level and
 ** its own world child mask: a pool node, a leaf, an octant's voxels. */
-static uint64_t child_fetch(const brt_svdag *dag, uint64_t node, int level,
+static WALK_INLINE uint64_t child_fetch(const brt_svdag *dag, uint64_t node, int level,
                             unsigned w, unsigned *m)
 {
     uint32_t h, slot;
@@ -1309,24 +1324,16 @@ static const double far_off[2] = {0, INFINITY};
 ** every voxel's computed entry and exit as they were: the cast answers
 ** bit for bit as without the test (and as the reference cast).
 */
-/* Inlined by force where the compiler allows: GCC -O2 kept it out of line
-** (two call sites), and the call was a fifth of a culled cast. */
-#if defined(__GNUC__)
-#define WALK_INLINE __attribute__((always_inline)) inline
-#else
-#define WALK_INLINE inline
-#endif
 
 static WALK_INLINE int clip_to_bounds(const ray_frame *r, uint32_t header, const uint32_t corner[3],
                           int level, double *tin, double *tout)
 {
     /* mirrored axes: flip every eighth (i -> 7 - i, an XOR with 7) and
     ** swap first and last, all three fields at once */
-    uint32_t f = (header >> BOUNDS_SHIFT) ^ r->bounds_flip;
+    uint32_t f = (header >> BOUNDS_SHIFT) ^ r->bounds_flip, swap = r->bounds_flip;
     int shift = level - 3;          /* an eighth spans 2^(level-3) voxels */
     double in, out;
-    f = (f & ~r->bounds_swap) | ((f >> 3) & r->bounds_swap & 0x71C7u) |
-        ((f << 3) & r->bounds_swap & 0x38E38u);
+    f = (f & ~swap) | ((f >> 3) & swap & 0x71C7u) | ((f << 3) & swap & 0x38E38u);
     in = max2(max2(*tin, enter_t(r, 0, corner[0] + ((((f >> 3) & 7u) + 1) << shift))),
               max2(enter_t(r, 1, corner[1] + ((((f >> 9) & 7u) + 1) << shift)),
                    enter_t(r, 2, corner[2] + ((((f >> 15) & 7u) + 1) << shift))));
@@ -1346,10 +1353,16 @@ static int walk(const brt_svdag *dag, ray_frame *r, uint64_t node, unsigned m)
 {
     scale_entry stack[MAX_LEVEL + 1], *s;
     uint32_t corner[3] = {0, 0, 0};
-    double tin = r->lo, tout = r->hi;
+    double tin, tout;
     long budget = 64L * (1L << r->levels) + 4096;
     int level = r->levels;
-    if (level > 2 && !clip_to_bounds(r, dag->words[node], corner, level, &tin, &tout)) return 1;
+    /* the segment in the root's box of set voxels, or in the root cube when
+    ** the root is a leaf (see BOUNDS TEST: the same answers either way) */
+    if (level > 2 ? !clip_to_bounds(r, dag->words[node], corner, level, &r->lo, &r->hi)
+                  : !clip_to_root(r))
+        return 1;
+    tin = r->lo;
+    tout = r->hi;
     for (;;) {
         s = &stack[level];
         push_node(r, s, node, m, corner, level, tin, tout);      /* PUSH */
@@ -1410,8 +1423,8 @@ static int proxy_cast(const brt_svdag *dag, const brt_proxy *proxy, const brt_ra
     if (proxy->root == BRT_EMPTY_ROOT) return 0;
     frame_setup(&r, proxy, ray);
     r.any = t_entry == &unused;
-    clip_to_root(&r, tnear, tfar);
-    if (!(r.lo <= r.hi)) return 0;
+    r.lo = tnear;
+    r.hi = tfar;
     if (r.levels == 2) {
         root = dag->leaves[proxy->root];
         m = leaf_octants(root);
@@ -1533,6 +1546,7 @@ static int reference_walk(const brt_svdag *dag, ray_frame *r, uint64_t root, uns
     lk_scale stack[MAX_LEVEL + 1];
     int scale = r->levels;                           /* INITIALIZE */
     lk_scale *s = &stack[scale];
+    if (!clip_to_root(r)) return 1;
     s->parent = root;
     s->child_mask = m;
     s->pos[0] = s->pos[1] = s->pos[2] = 0;
