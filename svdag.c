@@ -11,7 +11,9 @@
 **      proxy -- the sparse voxel DAG of Kampe, Sintorn and Assarsson (2013).
 **   3. brt_proxy_raycast: the ray cast of Laine and Karras (2010) -- octant
 **      mirroring, the [1,2] coordinate frame, a parent stack per scale --
-**      adapted to the DAG and made conservative for closed, grown boxes.
+**      adapted to the DAG and made conservative for closed, grown boxes;
+**      brt_proxy_raycast_reference: the same cast as their plain
+**      algorithm, written for reading, that the tests hold the fast one to.
 **
 ** NODE LAYOUT (the pool; also the blob, see brt_svdag_blob_write)
 **   leaves[]  uint64 per leaf: a 4x4x4 block of voxels, bit x+4*(y+4*z).
@@ -1023,39 +1025,49 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 ** WHY NOT ESVO'S ADVANCE STEP.  ESVO steps from a cube to its neighbour
 ** through the face the ray leaves by.  When the ray leaves through an edge
 ** or a corner it steps diagonally and never visits the cubes that it only
-** touches there -- but a proxy must report closed boxes it touches.  So
-** PUSH finds, from the node's three centre planes, every child whose
-** grown box the segment touches, numbered in ray order (RANK, see
-** push_node: ESVO's child sequence plus the children touched only at an
-** edge or a corner); ADVANCE takes the next rank; POP returns to the
-** parent scale.  The two bit-mask levels of a leaf are walked the same
-** way (a leaf's octants, an octant's voxels), so the first set voxel met
-** is its node's nearest.  It becomes the best hit, and a scale is left as
-** soon as its next child is entered behind that hit: the rest of the walk
-** only visits siblings (of the hit and of its ancestors) that the segment
-** enters sooner, because a grown sibling may start before the hit.
+** touches there -- but a proxy must report closed boxes it touches (the
+** reference cast below shows where, in ESVO's own structure).  So PUSH
+** finds, from the node's three centre planes, every child whose grown box
+** the segment touches (push_node), ADVANCE takes the next of them, POP
+** returns to the parent scale.  The two bit-mask levels of a leaf are
+** walked the same way (a leaf's octants, an octant's voxels).  A set voxel
+** becomes the best hit; from then on a child entered at or behind it is
+** passed over, and the walk only finishes the children (siblings of the
+** hit and of its ancestors) that the segment enters sooner, because a
+** grown sibling may start before the hit.  Before it descends into a node
+** the walk tests the box of the node's set voxels (BOUNDS TEST).
 **
-** COST (res 128, bunny, 1M rays of bench_svdag's kinds plus axis-parallel
-** ones; one core of a loaded 2-core VM, so cycles are +-20%, instruction
-** counts are exact).  The previous walk tested all 8 children's slabs at
-** each node (12 plane distances, 8 intervals), visited them in mirrored
-** index order and tested a leaf's set voxels one by one: 3510
-** instructions, 1170-1460 cycles, 12 branch misses per ray.  Rank order
-** with the bit-mask levels walked as tree levels and 6 plane distances
-** per node: 2520 instructions but still ~1250 cycles -- the liveness
-** tests read the rank-sorted values back from the stack entry just
-** written, a chain of store-to-load stalls; testing in world child space
-** on the unsorted values (6 pairs instead of 3) gave ~920 cycles.
-** Branch-free child exits: 10.7 -> 7.7 branch misses.  A byte popcount
-** table and an unrolled rank gather (GCC -O2 does not unroll) saved 500
-** instructions, branch-free mirroring 30 more (the set-up alone, for a
-** ray that misses the root: 529 -> 485, of which brt_proxy_check ~110).
-** Now 2450 instructions, 875-1170 cycles.  Tried and dropped: a special
-** case for the voxel level, per-ray pair masks, axis bits kept in
-** registers, a bit set of open scales to skip exhausted ones on POP (each
-** +50..190 instructions, no measurable gain).  Every variant returned bit
-** for bit the same hits and entries as the previous walk on 3M rays
-** (bunny_tiny, bunny, dragon): same intervals, so the same false hits.
+** COST, per culled cast and per hit, in instructions (callgrind, exact):
+** the render's proxy tests, `bench_svdag --scene landscape|island` at
+** scale 2 (21 batching points of 10 000 triangles, 128^3, 100 000 rays:
+** 19 181 and 157 112 culled casts), yes/no casts as the render asks them.
+**                                     landscape        island
+**                                   culled    hit   culled    hit
+**   rank order, checked proxy        5089    4335    2711    3673
+**   far-side-set order                3694    3176    1972    2699
+**   + node bounds, called             2743    3495    1642    3061
+**   + inlined by force                2533    3260    1530    2861
+**   + cheaper set-up                  2365    3097    1370    2702
+** - rank order: the walk of the previous sessions (rank sort of the centre
+**   entries, a rank gather of the child mask, brt_proxy_check on every
+**   cast, about 100 instructions).
+** - far-side-set order: no sort; children by increasing far-side set k
+**   (push_node), the LIVE masks fixed at compile time.  Rank order let a
+**   hit end its scale; without it each child is compared with the best hit,
+**   which costs nothing for the yes/no casts the render makes.
+** - node bounds: 3.0 of the 7.2 pushes of an island miss (6.8 of 14.7 on
+**   the landscape) found no child to visit -- a ray skimming a terrain
+**   enters nodes whose voxels lie below it.  The box of a node's set voxels
+**   (header bits, no memory) cuts the pushes to 2.6 (4.7); hits pay for
+**   the test at every descent and gain less from it.
+** - inlined by force: GCC -O2 kept clip_to_bounds and child_fetch as calls.
+** - cheaper set-up: the root's bounds instead of the root cube, finiteness
+**   by one sum, the frame written out per axis (GCC kept 3-step loops).
+** Tried and dropped: each child's interval stored at PUSH (7 max, 7 min,
+** 16 stores: +570 a landscape culled cast), bounds tested only from level 5 up
+** (island -7, landscape +140).  With an entry wanted (bench_svdag's
+** throughput run, bunny_tiny, 200 000 rays) a cast costs 3051 -> 2263.
+** Every step answers bit for bit as the reference cast on the tests' rays.
 **
 ** CONSERVATIVE IN FLOAT.  Every box is grown by g on each side, in frame
 ** units (the root cube has side 1):  g = 2^-18 (P + 3), P = max |p_i|.
@@ -1075,8 +1087,9 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 **   test, whose hit point is off by some float ulps of the distance from
 **   the ray origin -- a few 2^-24 (P + 3) at most, still well inside g.
 ** The entry is rounded down to float and clamped to tnear.  Rays with a NaN
-** or an infinity, zero directions, invalid proxies, and a walk that hits
-** the iteration cap all answer "hit at tnear", the conservative answer.
+** or an infinity, zero directions, and a walk that hits the iteration cap
+** all answer "hit at tnear", the conservative answer.  The proxy is not
+** checked here (brt_proxy_check, once, when it is built or read).
 */
 typedef struct ray_frame {
     double enter_bias[3];   /* t of plane x = 1 grown by +g (entry side) */
