@@ -4,6 +4,8 @@
 ** Prints figures, never pass/fail.
 **
 ** Usage: build/bench_svdag [MESH...] [--rays N] [--res R] [--seed S] [--no-table]
+**        build/bench_svdag --scene landscape|island|crown [--scale S] [--batch-tris N]
+**                          [--rays N] [--res R] [--seed S]
 **   MESH defaults to bunny_tiny, bunny and dragon from ../shared/data/meshes
 **   (the .gz ones unpacked with gzip into /tmp), whichever are present.
 ** For each mesh:
@@ -14,6 +16,9 @@
 **     and how many BVH hits the proxy missed (must be 0) or added (false hits);
 **   - voxelization and DAG build time, and DAG bytes, at res 16..512
 **     (the paper's Fig. 2, left), as a Markdown table.
+** With --scene: the proxy tests of a render of a built-in scene, culled
+** casts and hits apart, for instruction counts with callgrind (see
+** "Scene mode" below and the README's "The proxy cast").
 */
 #include "common.h"
 #include "rays.h"
