@@ -4,6 +4,7 @@
 #   make test         build and run the test suite (last line: "N passed, N failed")
 #   make debug        the same with -O0 -g and the library's internal checks
 #   make sanitize     the test suite under AddressSanitizer + UBSan
+#   make tsan         the threaded tests under ThreadSanitizer
 #   make bench        benchmarks (figures printed, never pass/fail)
 #   make mutants      mutation testing of the suite (tests/mutants/)
 #   make clean
@@ -21,7 +22,8 @@ WARN    = -Wall -Wextra -pedantic -Werror \
           -Wwrite-strings -Wundef -Wformat=2 -Wvla -Wcast-align \
           -Wold-style-definition -Wredundant-decls -Wnested-externs
 CFLAGS  ?=
-CFLAGS  += $(STD) $(WARN) $(OPT) $(XCFLAGS)
+# -pthread: the pool of batchrt.c (README, "Threads"), compile and link.
+CFLAGS  += $(STD) $(WARN) $(OPT) -pthread $(XCFLAGS)
 LDLIBS  = -lm
 BUILD   ?= build
 # "make V=1" shows the full command lines.
@@ -51,7 +53,7 @@ TEST_SRC = $(wildcard tests/*.c)
 TEST_OBJ = $(TEST_SRC:%.c=$(BUILD)/%.o)
 TEST_BIN = $(BUILD)/run_tests
 
-.PHONY: all test debug sanitize bench bench-batched clean mutants
+.PHONY: all test debug sanitize tsan bench bench-batched clean mutants
 all: $(LIB) $(PROGRAMS)
 
 $(BUILD)/%.o: %.c batchrt.h | $(BUILD)/examples $(BUILD)/tests
@@ -99,6 +101,13 @@ debug:
 sanitize:
 	$(MAKE) --no-print-directory test BUILD=build/sanitize OPT="-O1 -g -fno-omit-frame-pointer" \
 	  XCFLAGS="-DBRT_DEBUG -fsanitize=address,undefined -fno-sanitize-recover=all"
+
+# The threaded tests (names starting "threads") under ThreadSanitizer: any
+# report fails (halt_on_error).  About 1 minute on 2 cores.
+tsan:
+	$(MAKE) --no-print-directory all build/tsan/run_tests BUILD=build/tsan OPT="-O1 -g" \
+	  XCFLAGS="-fsanitize=thread"
+	BRT_BUILD=build/tsan TSAN_OPTIONS="halt_on_error=1 exitcode=66" ./build/tsan/run_tests threads
 
 bench: all
 	./$(BUILD)/bench_bvh
@@ -197,7 +206,7 @@ fuzz-replay: $(BUILD)/tests/fuzz/replay
 $(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h $(LIB_SRC) batchrt.h
 	$(SAY) FUZZ $@
 	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
-	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
+	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
 
 fuzz: $(FUZZ_BINS)
 	$(Q)for t in $(FUZZ_TARGETS); do \

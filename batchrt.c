@@ -22,6 +22,7 @@
 #include <string.h>
 #include <time.h>
 #include <unistd.h>
+#include <pthread.h>
 #include <sys/resource.h>
 #include <sys/stat.h>
 
@@ -161,6 +162,198 @@ brt_result brt_write_file_atomic(const char *path, const void *data,
         return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(saved));
     }
     return BRT_OK;
+}
+
+/* ===================================================================== */
+/* Threads: a small pool and a split of the work                         */
+/* ===================================================================== */
+/*
+** A pool runs one job at a time on its threads, the caller being thread 0.
+** A job hands out [0, total) in chunks from one counter; every output is
+** written per item (a hit, a ray's slot, a batching point's buffers) or
+** summed per thread, so which thread took which chunk changes no byte.
+** The pool lives as long as one trace or one build: the library keeps no
+** global state.  With one thread no thread is created and the job runs
+** in the caller, as the code read before threads.
+*/
+typedef void (*pool_job)(void *ctx, unsigned thread, size_t first, size_t end);
+
+typedef struct pool {
+    pthread_mutex_t lock;
+    pthread_cond_t wake, idle;
+    pthread_t *threads;
+    unsigned count;             /* threads that run jobs, the caller included */
+    unsigned long round;        /* incremented for each job */
+    unsigned busy;              /* threads still in the current job */
+    int quit;
+    pool_job job;
+    void *ctx;
+    size_t next, total, chunk;  /* the split of the current job */
+} pool;
+
+unsigned brt_threads_resolve(unsigned threads)
+{
+    /* _SC_NPROCESSORS_ONLN is not in POSIX, but glibc, musl, the BSDs
+    ** and macOS all have it; elsewhere one thread. */
+#ifdef _SC_NPROCESSORS_ONLN
+    long online = sysconf(_SC_NPROCESSORS_ONLN);
+#else
+    long online = 1;
+#endif
+    if (threads == 0) threads = online > 0 ? (unsigned)online : 1u;
+    return threads < BRT_MAX_THREADS ? threads : BRT_MAX_THREADS;
+}
+
+/* Takes the next chunk of the current job; 0 when none is left. */
+static int pool_take(pool *p, size_t *first, size_t *end)
+{
+    int got;
+    pthread_mutex_lock(&p->lock);
+    got = p->next < p->total;
+    *first = p->next;
+    *end = p->total - p->next < p->chunk ? p->total : p->next + p->chunk;
+    if (got) p->next = *end;
+    pthread_mutex_unlock(&p->lock);
+    return got;
+}
+
+static void pool_work(pool *p, unsigned thread)
+{
+    size_t first, end;
+    while (pool_take(p, &first, &end)) p->job(p->ctx, thread, first, end);
+}
+
+typedef struct pool_thread {
+    pool *p;
+    unsigned index;
+} pool_thread;
+
+static void *pool_main(void *arg)
+{
+    pool *p = ((pool_thread *)arg)->p;
+    unsigned index = ((pool_thread *)arg)->index;
+    unsigned long seen = 0;
+    free(arg);
+    pthread_mutex_lock(&p->lock);
+    for (;;) {
+        while (p->round == seen && !p->quit) pthread_cond_wait(&p->wake, &p->lock);
+        if (p->quit) break;
+        seen = p->round;
+        pthread_mutex_unlock(&p->lock);
+        pool_work(p, index);
+        pthread_mutex_lock(&p->lock);
+        if (--p->busy == 0) pthread_cond_signal(&p->idle);
+    }
+    pthread_mutex_unlock(&p->lock);
+    return NULL;
+}
+
+/* Starts up to threads - 1 threads; fewer when the system refuses (the
+** results do not depend on the count). */
+static void pool_init(pool *p, unsigned threads)
+{
+    memset(p, 0, sizeof *p);
+    p->count = 1;
+    threads = brt_threads_resolve(threads);
+    if (threads < 2) return;
+    pthread_mutex_init(&p->lock, NULL);
+    pthread_cond_init(&p->wake, NULL);
+    pthread_cond_init(&p->idle, NULL);
+    p->threads = malloc((threads - 1) * sizeof *p->threads);
+    while (p->threads && p->count < threads) {
+        pool_thread *arg = malloc(sizeof *arg);
+        if (!arg) break;
+        arg->p = p;
+        arg->index = p->count;
+        if (pthread_create(&p->threads[p->count - 1], NULL, pool_main, arg) != 0) {
+            free(arg);
+            break;
+        }
+        p->count++;
+    }
+}
+
+static void pool_free(pool *p)
+{
+    unsigned i;
+    if (!p->threads) return;
+    pthread_mutex_lock(&p->lock);
+    p->quit = 1;
+    pthread_cond_broadcast(&p->wake);
+    pthread_mutex_unlock(&p->lock);
+    for (i = 0; i + 1 < p->count; i++) pthread_join(p->threads[i], NULL);
+    free(p->threads);
+    pthread_mutex_destroy(&p->lock);
+    pthread_cond_destroy(&p->wake);
+    pthread_cond_destroy(&p->idle);
+}
+
+/* Runs job over [0, total) in chunks of at most chunk items, on every
+** thread of the pool, and returns when all are done.  Below two chunks
+** the caller runs it alone: waking threads would cost more. */
+static void pool_run(pool *p, pool_job job, void *ctx, size_t total, size_t chunk)
+{
+    if (total == 0) return;
+    if (p->count < 2 || total <= chunk) {
+        job(ctx, 0, 0, total);
+        return;
+    }
+    pthread_mutex_lock(&p->lock);
+    p->job = job;
+    p->ctx = ctx;
+    p->next = 0;
+    p->total = total;
+    p->chunk = chunk;
+    p->busy = p->count - 1;
+    p->round++;
+    pthread_cond_broadcast(&p->wake);
+    pthread_mutex_unlock(&p->lock);
+    pool_work(p, 0);
+    pthread_mutex_lock(&p->lock);
+    while (p->busy > 0) pthread_cond_wait(&p->idle, &p->lock);
+    pthread_mutex_unlock(&p->lock);
+}
+
+/* ---- direct tracing: chunks of rays through one BVH ----------------- */
+
+typedef struct bvh_trace_job {
+    const brt_bvh *bvh;
+    const brt_ray *rays;
+    brt_hit *hits;
+    float *normals;
+} bvh_trace_job;
+
+static void bvh_trace_chunk(void *ctx, unsigned thread, size_t first, size_t end)
+{
+    const bvh_trace_job *j = ctx;
+    size_t i;
+    (void)thread;
+    for (i = first; i < end; i++) {
+        brt_hit_clear(&j->hits[i]);
+        if (j->normals) {
+            float *normal = j->normals + 3 * i;
+            normal[0] = normal[1] = normal[2] = 0.0f;
+            brt_bvh_intersect_normal(j->bvh, &j->rays[i], &j->hits[i], normal);
+        } else {
+            brt_bvh_intersect(j->bvh, &j->rays[i], &j->hits[i]);
+        }
+    }
+}
+
+#define TRACE_CHUNK 1024   /* rays per chunk: ~1 ms, against ~10 us per take */
+
+void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, size_t count,
+                   brt_hit *hits, float *normals, unsigned threads)
+{
+    bvh_trace_job j;
+    pool p;
+    j.bvh = bvh;
+    j.rays = rays;
+    j.hits = hits;
+    j.normals = normals;
+    pool_init(&p, count > TRACE_CHUNK ? threads : 1);
+    pool_run(&p, bvh_trace_chunk, &j, count, TRACE_CHUNK);
+    pool_free(&p);
 }
 
 /* ===================================================================== */
@@ -3138,17 +3331,21 @@ static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, b
 #endif
 }
 
-/* The BVH of batching point id if it is in memory (then it counts as just
-** used), or NULL.  Never loads. */
-static const brt_bvh *cache_resident(page_cache *c, uint32_t id)
+/* The BVH of batching point id if it is in memory, or NULL.  Never loads
+** and changes nothing, so that threads may ask at once; the scheduler
+** reports the use afterwards with cache_touch. */
+static const brt_bvh *cache_peek(const page_cache *c, uint32_t id)
 {
-    cache_entry *e = &c->entries[id];
-    if (!e->data) return NULL;
-    if (e->pins == 0) {
+    return c->entries[id].data ? c->entries[id].bvh : NULL;
+}
+
+/* Batching point id, resident, counts as just used. */
+static void cache_touch(page_cache *c, uint32_t id)
+{
+    if (c->entries[id].data && c->entries[id].pins == 0) {
         lru_unlink(c, id);
         lru_append(c, id);
     }
-    return e->bvh;
 }
 
 /* Release unpins: the entry becomes the most recently used evictable one. */
@@ -3225,6 +3422,19 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 ** Per-ray state while queued: the ray (32 bytes), its closest hit so far
 ** (16) and that triangle's normal (12), its walk key (8), the number of
 ** batching points it was queued at (4) and the caller's tag (8): 80 bytes.
+**
+** Threads (README, "Threads"): the scheduler works in phases.  A phase is
+** a list of rays -- the queue of the batching point just loaded, or rays
+** new from the source -- each of which is intersected there (a queue) and
+** then walks on until it must be queued or is finished (walk_on).  The
+** rays of a phase are split across the pool's threads; walk_on reads the
+** shared state (top-level BVH, proxies, resident BVHs) and writes only its
+** ray's slot, its outcome and its thread's counters.  One thread then
+** commits the phase in list order (commit): counters summed, the page
+** cache's LRU order updated from the touches as if the rays had walked one
+** after another, rays queued or finished.  So every decision -- which
+** queue is fullest, what is evicted, the order of finished calls -- is the
+** one the one-thread run makes.
 */
 typedef struct ray_slot {
     brt_ray ray;
@@ -3240,6 +3450,22 @@ typedef struct ray_queue {
     uint32_t count, capacity;
 } ray_queue;
 
+/* One thread's part of a phase: its walk, its counters, and the batching
+** points it found in memory with the stamp of its last use of each (the
+** stamp orders uses as a one-thread walk would make them). */
+typedef struct walker {
+    top_walk walk;
+    uint64_t resident_visits, proxy_tests, proxy_culled;
+    uint64_t *used_at;          /* per batching point; 0: not used */
+    uint32_t *used, used_count;
+} walker;
+
+/* A batching point used by a phase and the stamp of its last use. */
+typedef struct point_use {
+    uint64_t stamp;
+    uint32_t id;
+} point_use;
+
 typedef struct scheduler {
     brt_scene *scene;
     const brt_ray_source *source;
@@ -3250,7 +3476,10 @@ typedef struct scheduler {
     uint32_t *free_slots, free_count, capacity;
     ray_queue *queues;
     uint32_t *heap, *heap_pos, heap_size;   /* heap_pos[id] = NO_ENTRY when absent */
-    top_walk walk;                          /* the walk of the ray being advanced */
+    pool pool;
+    walker *walkers;                        /* one per thread of the pool */
+    uint32_t *phase, *outcome;              /* a phase's slots; NO_ENTRY: finished */
+    point_use *uses;                        /* a phase's uses, merged */
     brt_bvh **exact;                        /* exact_proxies: every BVH, or NULL */
     void **exact_data;
     brt_ray *incoming;
@@ -3339,10 +3568,12 @@ static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, fl
     return brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear, tlimit, NULL);
 }
 
-/* Continues a ray's top-level walk: queues it at the next batching point it
-** enters before its closest hit and whose proxy it hits, or finishes it.
-** tlimit is the closest hit (a box entered exactly there may still hold an
-** equal-t hit with a lower prim, so the compare is inclusive).
+/* Continues a ray's top-level walk: stops at the next batching point it
+** enters before its closest hit and whose proxy it hits (returned: the
+** ray is to be queued there), or finishes (NO_ENTRY).  tlimit is the
+** closest hit (a box entered exactly there may still hold an equal-t hit
+** with a lower prim, so the compare is inclusive).  Writes only the ray's
+** slot and the walker w: threads walk different rays at once.
 **
 ** A batching point whose geometry is in memory needs no queue: the ray is
 ** intersected there at once and walks on (unless queue_resident asks for
@@ -3351,37 +3582,128 @@ static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, fl
 ** bounce ray starts inside the batching point just processed, which is
 ** still in memory; queued, it would wait there until that point might be
 ** evicted and read again.  (Landscape, 2 M triangles, 25 % limit: loads
-** 4,309 -> 1,358 without proxies, 3,104 -> 929 with them; README.) */
-static brt_result advance(scheduler *s, uint32_t slot)
+** 4,309 -> 1,358 without proxies, 3,104 -> 929 with them; README.)
+** stamp: the ray's place in its phase, high word; each use adds one. */
+static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t stamp)
 {
-    ray_slot *r = &s->slots[slot];
     brt_ray_prep prep;
+    float tlimit;
     brt_ray_prepare(&r->ray, &prep);
-    if (prep.valid) {
-        float tlimit = walk_limit(r);
-        top_walk_start(&s->walk);
-        while (top_walk_next(&s->walk, s->scene->top, &prep, tlimit, &r->key)) {
-            const brt_bvh *resident = s->queue_resident ? NULL : cache_resident(&s->cache, r->key.id);
-            if (resident) {
-                brt_bvh_intersect_normal(resident, &r->ray, &r->hit, r->normal);
-                r->visits++;
-                s->stats->resident_visits++;
-                tlimit = walk_limit(r);
+    if (!prep.valid) return NO_ENTRY;
+    tlimit = walk_limit(r);
+    top_walk_start(&w->walk);
+    while (top_walk_next(&w->walk, s->scene->top, &prep, tlimit, &r->key)) {
+        uint32_t id = r->key.id;
+        const brt_bvh *resident = s->queue_resident ? NULL : cache_peek(&s->cache, id);
+        if (resident) {
+            if (w->used_at[id] == 0) w->used[w->used_count++] = id;
+            w->used_at[id] = stamp++;
+            brt_bvh_intersect_normal(resident, &r->ray, &r->hit, r->normal);
+            r->visits++;
+            w->resident_visits++;
+            tlimit = walk_limit(r);
+            continue;
+        }
+        if (s->use_proxies) {
+            w->proxy_tests++;
+            if (!proxy_may_hit(s, id, &r->ray, tlimit)) {
+                w->proxy_culled++;
                 continue;
             }
-            if (s->use_proxies) {
-                s->stats->proxy_tests++;
-                if (!proxy_may_hit(s, r->key.id, &r->ray, tlimit)) {
-                    s->stats->proxy_culled++;
-                    continue;
-                }
-            }
-            r->visits++;
-            return enqueue(s, r->key.id, slot);
         }
+        r->visits++;
+        return id;
     }
-    s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
-    s->free_slots[s->free_count++] = slot;
+    return NO_ENTRY;
+}
+
+/* A phase: the rays in slots[0..count), first intersected with bvh when
+** it is not NULL (the batching point whose queue they are). */
+typedef struct phase_job {
+    scheduler *s;
+    const uint32_t *slots;
+    const brt_bvh *bvh;
+} phase_job;
+
+static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
+{
+    const phase_job *j = ctx;
+    scheduler *s = j->s;
+    size_t i;
+    for (i = first; i < end; i++) {
+        ray_slot *r = &s->slots[j->slots[i]];
+        if (j->bvh) brt_bvh_intersect_normal(j->bvh, &r->ray, &r->hit, r->normal);
+        s->outcome[i] = walk_on(s, &s->walkers[thread], r, ((uint64_t)(i + 1)) << 32);
+    }
+}
+
+#define PHASE_CHUNK 64   /* rays per chunk: ~0.1-1 ms of walks */
+
+static void phase_run(scheduler *s, const uint32_t *slots, uint32_t count, const brt_bvh *bvh)
+{
+    phase_job j;
+    j.s = s;
+    j.slots = slots;
+    j.bvh = bvh;
+    pool_run(&s->pool, phase_chunk, &j, count, PHASE_CHUNK);
+}
+
+static int use_before(const void *a, const void *b)
+{
+    uint64_t x = ((const point_use *)a)->stamp, y = ((const point_use *)b)->stamp;
+    return (x > y) - (x < y);
+}
+
+/* The LRU order after a phase: each resident batching point it used moves
+** to the back in the order of its last use over all threads -- the order
+** the uses of one thread walking the rays in list order leave. */
+static void commit_uses(scheduler *s)
+{
+    walker *all = &s->walkers[0];   /* thread 0's table gathers the others' */
+    uint32_t t, k, n;
+    for (t = 1; t < s->pool.count; t++) {
+        walker *w = &s->walkers[t];
+        for (k = 0; k < w->used_count; k++) {
+            uint32_t id = w->used[k];
+            if (all->used_at[id] == 0) all->used[all->used_count++] = id;
+            if (w->used_at[id] > all->used_at[id]) all->used_at[id] = w->used_at[id];
+            w->used_at[id] = 0;
+        }
+        w->used_count = 0;
+    }
+    for (n = 0; n < all->used_count; n++) {
+        s->uses[n].id = all->used[n];
+        s->uses[n].stamp = all->used_at[all->used[n]];
+        all->used_at[all->used[n]] = 0;
+    }
+    all->used_count = 0;
+    qsort(s->uses, n, sizeof *s->uses, use_before);
+    for (k = 0; k < n; k++) cache_touch(&s->cache, s->uses[k].id);
+}
+
+/* Commits a phase (see "Threads" above): counters, the LRU order, then
+** each ray, in list order, queued or finished. */
+static brt_result commit(scheduler *s, const uint32_t *slots, uint32_t count)
+{
+    uint32_t t, i;
+    for (t = 0; t < s->pool.count; t++) {
+        walker *w = &s->walkers[t];
+        s->stats->resident_visits += w->resident_visits;
+        s->stats->proxy_tests += w->proxy_tests;
+        s->stats->proxy_culled += w->proxy_culled;
+        w->resident_visits = w->proxy_tests = w->proxy_culled = 0;
+    }
+    commit_uses(s);
+    for (i = 0; i < count; i++) {
+        ray_slot *r = &s->slots[slots[i]];
+        if (s->outcome[i] != NO_ENTRY) {
+            brt_result res = enqueue(s, s->outcome[i], slots[i]);
+            if (res != BRT_OK) return res;
+            continue;
+        }
+        s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
+        s->free_slots[s->free_count++] = slots[i];
+    }
     return BRT_OK;
 }
 
@@ -3390,12 +3712,13 @@ static brt_result refill(scheduler *s)
 {
     while (s->free_count > 0) {
         size_t n = s->source->next_rays(s->source->user, s->incoming, s->incoming_tags, s->free_count), i;
+        brt_result res;
         if (n == 0) return BRT_OK;
         if (n > s->free_count) n = s->free_count;
         for (i = 0; i < n; i++) {
             uint32_t slot = s->free_slots[--s->free_count];
             ray_slot *r = &s->slots[slot];
-            brt_result res;
+            s->phase[i] = slot;
             r->ray = s->incoming[i];
             r->tag = s->incoming_tags[i];
             brt_hit_clear(&r->hit);
@@ -3404,30 +3727,29 @@ static brt_result refill(scheduler *s)
             r->key.t = -INFINITY;
             r->key.id = TOP_EMPTY;
             s->stats->rays++;
-            res = advance(s, slot);
-            if (res != BRT_OK) return res;
         }
+        phase_run(s, s->phase, (uint32_t)n, NULL);
+        res = commit(s, s->phase, (uint32_t)n);
+        if (res != BRT_OK) return res;
     }
     return BRT_OK;
 }
 
-/* Intersects every ray queued at batching point id, then moves each on. */
+/* Intersects every ray queued at batching point id, then moves each on.
+** (Released before the phase's uses are committed, as a one-thread run
+** would: no ray of the queue uses id again, keys only grow.) */
 static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
 {
     ray_queue q = s->queues[id];
     const brt_bvh *bvh;
-    uint32_t i;
     brt_result r = cache_fetch(&s->cache, id, &bvh, err);
     if (r != BRT_OK) return r;
     /* Take the queue out first: no ray is queued here again (keys only
-    ** grow), but the walk may queue rays elsewhere while we iterate. */
+    ** grow), but the commit queues rays elsewhere. */
     memset(&s->queues[id], 0, sizeof s->queues[id]);
-    for (i = 0; i < q.count; i++) {
-        ray_slot *slot = &s->slots[q.slots[i]];
-        brt_bvh_intersect_normal(bvh, &slot->ray, &slot->hit, slot->normal);
-    }
+    phase_run(s, q.slots, q.count, bvh);
     cache_release(&s->cache, id);
-    for (i = 0; i < q.count && r == BRT_OK; i++) r = advance(s, q.slots[i]);
+    r = commit(s, q.slots, q.count);
     free(q.slots);
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
 }
@@ -3439,6 +3761,37 @@ static uint64_t all_blob_bytes(const brt_scene *scene)
     uint32_t i;
     for (i = 0; i < scene->header.batch_count; i++) bytes += round_up_page(scene->batches[i].size);
     return bytes;
+}
+
+/* The pool and one walker per thread (opt->threads: 0 means all cores). */
+static brt_result walkers_init(scheduler *s, const brt_trace_options *opt)
+{
+    uint32_t n = s->scene->header.batch_count, t;
+    pool_init(&s->pool, opt ? opt->threads : 0);
+    s->walkers = calloc(s->pool.count, sizeof *s->walkers);
+    s->uses = malloc((size_t)n * sizeof *s->uses);
+    if (!s->walkers || !s->uses) return BRT_ENOMEM;
+    for (t = 0; t < s->pool.count; t++) {
+        walker *w = &s->walkers[t];
+        w->walk.heap = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.heap);
+        w->used_at = calloc(n, sizeof *w->used_at);
+        w->used = malloc((size_t)n * sizeof *w->used);
+        if (!w->walk.heap || !w->used_at || !w->used) return BRT_ENOMEM;
+    }
+    return BRT_OK;
+}
+
+static void walkers_free(scheduler *s)
+{
+    uint32_t t;
+    for (t = 0; s->walkers && t < s->pool.count; t++) {
+        free(s->walkers[t].walk.heap);
+        free(s->walkers[t].used_at);
+        free(s->walkers[t].used);
+    }
+    free(s->walkers);
+    free(s->uses);
+    pool_free(&s->pool);
 }
 
 /* capacity_hint: the number of rays there will be, when known (0: not),
@@ -3478,9 +3831,10 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->heap_pos = malloc((size_t)n * sizeof *s->heap_pos);
     s->incoming = malloc((size_t)s->capacity * sizeof *s->incoming);
     s->incoming_tags = malloc((size_t)s->capacity * sizeof *s->incoming_tags);
-    s->walk.heap = malloc(((size_t)n + scene->header.top_node_count) * sizeof *s->walk.heap);
+    s->phase = malloc((size_t)s->capacity * sizeof *s->phase);
+    s->outcome = malloc((size_t)s->capacity * sizeof *s->outcome);
     if (!s->slots || !s->free_slots || !s->queues || !s->heap || !s->heap_pos || !s->incoming ||
-        !s->incoming_tags || !s->walk.heap)
+        !s->incoming_tags || !s->phase || !s->outcome || walkers_init(s, opt) != BRT_OK)
         return BRT_ENOMEM;
     for (i = 0; i < n; i++) s->heap_pos[i] = NO_ENTRY;
     for (i = 0; i < s->capacity; i++) s->free_slots[i] = s->capacity - 1 - i;
@@ -3500,7 +3854,9 @@ static void scheduler_free(scheduler *s)
     free(s->heap_pos);
     free(s->incoming);
     free(s->incoming_tags);
-    free(s->walk.heap);
+    free(s->phase);
+    free(s->outcome);
+    walkers_free(s);
     for (i = 0; s->exact && i < s->scene->header.batch_count; i++) {
         brt_bvh_free(s->exact[i]);
         free(s->exact_data[i]);

@@ -114,6 +114,13 @@ double brt_seconds(void);
 ** 0 where the system does not say. */
 uint64_t brt_peak_rss_bytes(void);
 
+/* Threads (README, "Threads"): every option named threads means that many
+** POSIX threads, the caller's included; 0 means one per online core.  No
+** output byte and no count depends on it.  brt_threads_resolve returns
+** the number a request stands for (at least 1, at most BRT_MAX_THREADS). */
+#define BRT_MAX_THREADS 256u
+unsigned brt_threads_resolve(unsigned threads);
+
 /* Writes size bytes to path through "path.tmp.<pid>" and rename(), so a
 ** failure never leaves a half-written file under the final name. */
 brt_result brt_write_file_atomic(const char *path, const void *data,
@@ -310,6 +317,13 @@ void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit);
 void brt_bvh_intersect_normal(const brt_bvh *bvh, const brt_ray *ray,
                               brt_hit *hit, float normal[3]);
 
+/* brt_bvh_intersect_normal for count rays from cleared hits: hits[i] (and
+** normals[3i..3i+2] when normals is not NULL, zero on a miss) for rays[i],
+** in chunks spread over threads threads (0: all cores).  Out of memory for
+** the threads, it runs on fewer; the bytes are the same either way. */
+void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, size_t count,
+                   brt_hit *hits, float *normals, unsigned threads);
+
 /* Any hit in [tnear, tfar]: 1 if occluded. */
 int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
 
@@ -497,6 +511,9 @@ typedef struct brt_scene_options {
     ** what a scene file built from a mesh that fits one bucket holds. */
     uint32_t test_spill_chunk;
     uint32_t test_bucket_tris;
+    /* Threads building batching points' BVHs and proxies (0: all cores);
+    ** the file's bytes do not depend on it. */
+    unsigned threads;
 } brt_scene_options;
 
 /* Builds the scene file for mesh at scene_path (written under a temporary
@@ -581,6 +598,10 @@ typedef struct brt_trace_options {
     uint32_t rays_in_flight; /* stream mode: 0 means 1 << 20 */
     brt_read_fn read_fn;     /* NULL: pread */
     void *read_user;
+    unsigned threads;        /* threads intersecting and walking rays (0:
+                             ** all cores); the scheduler's decisions, the
+                             ** order of finished calls and every count are
+                             ** the same for any number (README, "Threads") */
 } brt_trace_options;
 
 /* Stream mode, so a path tracer keeps a constant number of rays in flight:
