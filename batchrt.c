@@ -10,6 +10,10 @@
 **     walk, the pread page cache (SQLite's pcache shape) and the scheduler.
 ** The sections follow that order; each opens with a comment on its design.
 */
+/* MAP_ANONYMOUS (POSIX.1-2024) for the page cache's buffers: glibc shows
+** it only beyond the Makefile's _POSIX_C_SOURCE=200809L, hence this file's
+** one feature macro (nothing else here uses what it adds). */
+#define _DEFAULT_SOURCE
 #include "batchrt.h"
 
 #include <errno.h>
@@ -23,6 +27,7 @@
 #include <time.h>
 #include <unistd.h>
 #include <pthread.h>
+#include <sys/mman.h>
 #include <sys/resource.h>
 #include <sys/stat.h>
 
@@ -177,10 +182,11 @@ brt_result brt_write_file_atomic(const char *path, const void *data,
 ** in the caller, as the code read before threads.
 */
 typedef void (*pool_job)(void *ctx, unsigned thread, size_t first, size_t end);
+typedef void (*pool_commit)(void *ctx, size_t first, size_t end);
 
 typedef struct pool {
     pthread_mutex_t lock;
-    pthread_cond_t wake, idle;
+    pthread_cond_t wake, idle, progress;
     pthread_t *threads;
     unsigned count;             /* threads that run jobs, the caller included */
     unsigned long round;        /* incremented for each job */
@@ -189,6 +195,8 @@ typedef struct pool {
     pool_job job;
     void *ctx;
     size_t next, total, chunk;  /* the split of the current job */
+    unsigned char *done;        /* per chunk of the job: finished */
+    size_t done_cap;
 } pool;
 
 unsigned brt_threads_resolve(unsigned threads)
@@ -204,23 +212,47 @@ unsigned brt_threads_resolve(unsigned threads)
     return threads < BRT_MAX_THREADS ? threads : BRT_MAX_THREADS;
 }
 
-/* Takes the next chunk of the current job; 0 when none is left. */
+/* Takes the next chunk of the current job (lock held); 0: none left. */
 static int pool_take(pool *p, size_t *first, size_t *end)
 {
-    int got;
-    pthread_mutex_lock(&p->lock);
-    got = p->next < p->total;
+    if (p->next >= p->total) return 0;
     *first = p->next;
     *end = p->total - p->next < p->chunk ? p->total : p->next + p->chunk;
-    if (got) p->next = *end;
-    pthread_mutex_unlock(&p->lock);
-    return got;
+    p->next = *end;
+    return 1;
 }
 
-static void pool_work(pool *p, unsigned thread)
+/* Runs one chunk (lock held on entry and return) and marks it done. */
+static void pool_chunk(pool *p, unsigned thread, size_t first, size_t end)
 {
-    size_t first, end;
-    while (pool_take(p, &first, &end)) p->job(p->ctx, thread, first, end);
+    pthread_mutex_unlock(&p->lock);
+    p->job(p->ctx, thread, first, end);
+    pthread_mutex_lock(&p->lock);
+    p->done[first / p->chunk] = 1;
+    pthread_cond_signal(&p->progress);
+}
+
+/* The caller's part of a job: it commits the chunks in order as they are
+** done, and runs chunks itself while the next one to commit is not. */
+static void pool_commit_in_order(pool *p, pool_commit commit)
+{
+    size_t chunks = (p->total + p->chunk - 1) / p->chunk, c = 0, first, end;
+    pthread_mutex_lock(&p->lock);
+    while (c < chunks) {
+        if (p->done[c]) {
+            pthread_mutex_unlock(&p->lock);
+            end = (c + 1) * p->chunk < p->total ? (c + 1) * p->chunk : p->total;
+            if (commit) commit(p->ctx, c * p->chunk, end);
+            c++;
+            pthread_mutex_lock(&p->lock);
+        } else if (pool_take(p, &first, &end)) {
+            pool_chunk(p, 0, first, end);
+        } else {
+            pthread_cond_wait(&p->progress, &p->lock);
+        }
+    }
+    while (p->busy > 0) pthread_cond_wait(&p->idle, &p->lock);
+    pthread_mutex_unlock(&p->lock);
 }
 
 typedef struct pool_thread {
@@ -233,15 +265,14 @@ static void *pool_main(void *arg)
     pool *p = ((pool_thread *)arg)->p;
     unsigned index = ((pool_thread *)arg)->index;
     unsigned long seen = 0;
+    size_t first, end;
     free(arg);
     pthread_mutex_lock(&p->lock);
     for (;;) {
         while (p->round == seen && !p->quit) pthread_cond_wait(&p->wake, &p->lock);
         if (p->quit) break;
         seen = p->round;
-        pthread_mutex_unlock(&p->lock);
-        pool_work(p, index);
-        pthread_mutex_lock(&p->lock);
+        while (pool_take(p, &first, &end)) pool_chunk(p, index, first, end);
         if (--p->busy == 0) pthread_cond_signal(&p->idle);
     }
     pthread_mutex_unlock(&p->lock);
@@ -259,6 +290,7 @@ static void pool_init(pool *p, unsigned threads)
     pthread_mutex_init(&p->lock, NULL);
     pthread_cond_init(&p->wake, NULL);
     pthread_cond_init(&p->idle, NULL);
+    pthread_cond_init(&p->progress, NULL);
     p->threads = malloc((threads - 1) * sizeof *p->threads);
     while (p->threads && p->count < threads) {
         pool_thread *arg = malloc(sizeof *arg);
@@ -283,21 +315,37 @@ static void pool_free(pool *p)
     pthread_mutex_unlock(&p->lock);
     for (i = 0; i + 1 < p->count; i++) pthread_join(p->threads[i], NULL);
     free(p->threads);
+    free(p->done);
     pthread_mutex_destroy(&p->lock);
     pthread_cond_destroy(&p->wake);
     pthread_cond_destroy(&p->idle);
+    pthread_cond_destroy(&p->progress);
 }
 
 /* Runs job over [0, total) in chunks of at most chunk items, on every
-** thread of the pool, and returns when all are done.  Below two chunks
-** the caller runs it alone: waking threads would cost more. */
-static void pool_run(pool *p, pool_job job, void *ctx, size_t total, size_t chunk)
+** thread of the pool, and, when commit is not NULL, commit over the same
+** chunks in order, in the calling thread, each as soon as it and those
+** before it are done (so one thread's serial work overlaps the others'
+** jobs).  Returns when all is done.  Below two chunks, or without room
+** for the chunk flags, the caller runs it alone. */
+static void pool_run(pool *p, pool_job job, pool_commit commit, void *ctx, size_t total,
+                     size_t chunk)
 {
+    size_t chunks = (total + chunk - 1) / chunk;
     if (total == 0) return;
-    if (p->count < 2 || total <= chunk) {
+    if (chunks > p->done_cap && p->count > 1 && chunks > 1) {
+        unsigned char *done = realloc(p->done, chunks);
+        if (done) {
+            p->done = done;
+            p->done_cap = chunks;
+        }
+    }
+    if (p->count < 2 || chunks < 2 || chunks > p->done_cap) {
         job(ctx, 0, 0, total);
+        if (commit) commit(ctx, 0, total);
         return;
     }
+    memset(p->done, 0, chunks);
     pthread_mutex_lock(&p->lock);
     p->job = job;
     p->ctx = ctx;
@@ -308,10 +356,7 @@ static void pool_run(pool *p, pool_job job, void *ctx, size_t total, size_t chun
     p->round++;
     pthread_cond_broadcast(&p->wake);
     pthread_mutex_unlock(&p->lock);
-    pool_work(p, 0);
-    pthread_mutex_lock(&p->lock);
-    while (p->busy > 0) pthread_cond_wait(&p->idle, &p->lock);
-    pthread_mutex_unlock(&p->lock);
+    pool_commit_in_order(p, commit);
 }
 
 /* ---- direct tracing: chunks of rays through one BVH ----------------- */
@@ -352,7 +397,7 @@ void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, size_t count,
     j.hits = hits;
     j.normals = normals;
     pool_init(&p, count > TRACE_CHUNK ? threads : 1);
-    pool_run(&p, bvh_trace_chunk, &j, count, TRACE_CHUNK);
+    pool_run(&p, bvh_trace_chunk, NULL, &j, count, TRACE_CHUNK);
     pool_free(&p);
 }
 
@@ -3162,6 +3207,14 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
 ** of at most CACHE_READ_CHUNK bytes.  The budget counts the page-rounded
 ** bytes held.  A blob larger than the budget is allowed when it is the
 ** only one held (it is counted in stats->oversized_loads).
+**
+** Each buffer is its own anonymous mapping (mmap), returned to the system
+** by munmap on eviction.  Why not malloc: glibc serves blobs below its
+** mmap threshold (which grows up to 32 MiB once a large block is freed)
+** from the heap and keeps freed heap resident, so a render at --memory 1G
+** of a 100 M-triangle landscape peaked at 1222 MiB against a bound of
+** 1099 MiB (README, "Out of core from end to end"); with mappings the
+** resident bytes follow what the cache holds.
 */
 #define CACHE_READ_CHUNK ((size_t)8 << 20)
 
@@ -3196,12 +3249,24 @@ static void lru_append(page_cache *c, uint32_t id)
     c->lru_tail = id;
 }
 
+/* The bytes of blob id's buffer: its page-rounded size, at least a page. */
+static size_t blob_buffer_bytes(const brt_scene *scene, uint32_t id)
+{
+    uint64_t bytes = round_up_page(scene->batches[id].size);
+    return bytes ? (size_t)bytes : SCENE_PAGE;
+}
+
+static void blob_free(const brt_scene *scene, uint32_t id, void *data)
+{
+    if (data) munmap(data, blob_buffer_bytes(scene, id));
+}
+
 static void cache_evict(page_cache *c, uint32_t id)
 {
     cache_entry *e = &c->entries[id];
     lru_unlink(c, id);
     brt_bvh_free(e->bvh);
-    free(e->data);
+    blob_free(c->scene, id, e->data);
     c->held -= e->bytes;
     e->data = NULL;
     e->bvh = NULL;
@@ -3231,7 +3296,7 @@ static void cache_free(page_cache *c)
     uint32_t i;
     for (i = 0; c->entries && i < c->scene->header.batch_count; i++) {
         brt_bvh_free(c->entries[i].bvh);
-        free(c->entries[i].data);
+        blob_free(c->scene, i, c->entries[i].data);
     }
     free(c->entries);
 }
@@ -3261,17 +3326,21 @@ static brt_result cache_check(const page_cache *c, brt_error *err)
     return BRT_OK;
 }
 
-/* Reads blob id whole (its page-rounded size, into page-aligned memory,
+/* Reads blob id whole (its page-rounded size, into a mapping of its own,
 ** bytes read added to *bytes_read), checks its checksum and opens it as a
-** BVH; *data is to be freed after the BVH. */
+** BVH; *data is to be freed (blob_free) after the BVH. */
 static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
                             brt_bvh **bvh, brt_error *err)
 {
     const batch_entry *b = &c->scene->batches[id];
     uint64_t bytes = round_up_page(b->size), done = 0;
     brt_result r = BRT_OK;
-    if (posix_memalign(data, SCENE_PAGE, bytes ? (size_t)bytes : SCENE_PAGE) != 0)
+    *data = mmap(NULL, blob_buffer_bytes(c->scene, id), PROT_READ | PROT_WRITE,
+                 MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (*data == MAP_FAILED) {
+        *data = NULL;
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory for batching point %u", c->scene->path, id);
+    }
     while (done < bytes && r == BRT_OK) {
         size_t chunk = bytes - done < CACHE_READ_CHUNK ? (size_t)(bytes - done) : CACHE_READ_CHUNK;
         r = read_fully(c->scene->fd, (unsigned char *)*data + done, chunk, b->offset + done,
@@ -3285,7 +3354,7 @@ static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_re
     if (r == BRT_OK && brt_bvh_blob_open(*data, b->size, bvh, NULL) != BRT_OK)
         r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid BVH blob", c->scene->path, id);
     if (r != BRT_OK) {
-        free(*data);
+        blob_free(c->scene, id, *data);
         *data = NULL;
     }
     return r;
@@ -3388,7 +3457,7 @@ static brt_result check_point(const page_cache *c, uint32_t id, uint32_t batch_t
             seen[p >> 3] |= (unsigned char)(1u << (p & 7));
     }
     brt_bvh_free(bvh);
-    free(data);
+    blob_free(s, id, data);
     return r;
 }
 
@@ -3623,6 +3692,7 @@ typedef struct phase_job {
     scheduler *s;
     const uint32_t *slots;
     const brt_bvh *bvh;
+    brt_result result;          /* of the commits: BRT_ENOMEM from a queue */
 } phase_job;
 
 static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
@@ -3637,15 +3707,23 @@ static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
     }
 }
 
-#define PHASE_CHUNK 64   /* rays per chunk: ~0.1-1 ms of walks */
-
-static void phase_run(scheduler *s, const uint32_t *slots, uint32_t count, const brt_bvh *bvh)
+/* Commits rays [first, end) of a phase, in order: each is queued where
+** its walk stopped, or finished. */
+static void phase_commit(void *ctx, size_t first, size_t end)
 {
-    phase_job j;
-    j.s = s;
-    j.slots = slots;
-    j.bvh = bvh;
-    pool_run(&s->pool, phase_chunk, &j, count, PHASE_CHUNK);
+    phase_job *j = ctx;
+    scheduler *s = j->s;
+    size_t i;
+    for (i = first; i < end && j->result == BRT_OK; i++) {
+        uint32_t slot = j->slots[i];
+        ray_slot *r = &s->slots[slot];
+        if (s->outcome[i] != NO_ENTRY) {
+            j->result = enqueue(s, s->outcome[i], slot);
+            continue;
+        }
+        s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
+        s->free_slots[s->free_count++] = slot;
+    }
 }
 
 static int use_before(const void *a, const void *b)
@@ -3681,11 +3759,10 @@ static void commit_uses(scheduler *s)
     for (k = 0; k < n; k++) cache_touch(&s->cache, s->uses[k].id);
 }
 
-/* Commits a phase (see "Threads" above): counters, the LRU order, then
-** each ray, in list order, queued or finished. */
-static brt_result commit(scheduler *s, const uint32_t *slots, uint32_t count)
+/* The end of a phase, its threads idle: the counters and the LRU order. */
+static void phase_end(scheduler *s)
 {
-    uint32_t t, i;
+    uint32_t t;
     for (t = 0; t < s->pool.count; t++) {
         walker *w = &s->walkers[t];
         s->stats->resident_visits += w->resident_visits;
@@ -3694,17 +3771,26 @@ static brt_result commit(scheduler *s, const uint32_t *slots, uint32_t count)
         w->resident_visits = w->proxy_tests = w->proxy_culled = 0;
     }
     commit_uses(s);
-    for (i = 0; i < count; i++) {
-        ray_slot *r = &s->slots[slots[i]];
-        if (s->outcome[i] != NO_ENTRY) {
-            brt_result res = enqueue(s, s->outcome[i], slots[i]);
-            if (res != BRT_OK) return res;
-            continue;
-        }
-        s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
-        s->free_slots[s->free_count++] = slots[i];
-    }
-    return BRT_OK;
+}
+
+#define PHASE_CHUNK 64   /* rays per chunk: ~0.1-1 ms of walks */
+
+/* Runs a phase (see "Threads" above); id: the batching point whose queue
+** it is, pinned, released before the uses are committed as a one-thread
+** run would (no ray of its queue uses it again: keys only grow), or
+** NO_ENTRY for new rays. */
+static brt_result phase_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
+                            const brt_bvh *bvh)
+{
+    phase_job j;
+    j.s = s;
+    j.slots = slots;
+    j.bvh = bvh;
+    j.result = BRT_OK;
+    pool_run(&s->pool, phase_chunk, phase_commit, &j, count, PHASE_CHUNK);
+    if (id != NO_ENTRY) cache_release(&s->cache, id);
+    phase_end(s);
+    return j.result;
 }
 
 /* Takes new rays from the source while there are free slots. */
@@ -3728,16 +3814,13 @@ static brt_result refill(scheduler *s)
             r->key.id = TOP_EMPTY;
             s->stats->rays++;
         }
-        phase_run(s, s->phase, (uint32_t)n, NULL);
-        res = commit(s, s->phase, (uint32_t)n);
+        res = phase_run(s, s->phase, (uint32_t)n, NO_ENTRY, NULL);
         if (res != BRT_OK) return res;
     }
     return BRT_OK;
 }
 
-/* Intersects every ray queued at batching point id, then moves each on.
-** (Released before the phase's uses are committed, as a one-thread run
-** would: no ray of the queue uses id again, keys only grow.) */
+/* Intersects every ray queued at batching point id, then moves each on. */
 static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
 {
     ray_queue q = s->queues[id];
@@ -3747,9 +3830,7 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     /* Take the queue out first: no ray is queued here again (keys only
     ** grow), but the commit queues rays elsewhere. */
     memset(&s->queues[id], 0, sizeof s->queues[id]);
-    phase_run(s, q.slots, q.count, bvh);
-    cache_release(&s->cache, id);
-    r = commit(s, q.slots, q.count);
+    r = phase_run(s, q.slots, q.count, id, bvh);
     free(q.slots);
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
 }
@@ -3859,7 +3940,7 @@ static void scheduler_free(scheduler *s)
     walkers_free(s);
     for (i = 0; s->exact && i < s->scene->header.batch_count; i++) {
         brt_bvh_free(s->exact[i]);
-        free(s->exact_data[i]);
+        blob_free(s->scene, i, s->exact_data[i]);
     }
     free(s->exact);
     free(s->exact_data);
