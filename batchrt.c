@@ -2337,8 +2337,10 @@ typedef struct scene_builder {
     float *centroids;           /* and median split order */
     uint32_t *order;
     partition points;           /* the bucket's batching points */
-    float *corners;             /* one batching point: 9 floats, 3 indices */
-    uint32_t *indices, *prims;  /* and the number of each triangle */
+    uint32_t *indices;          /* 0, 1, 2, ...: a point's triangles are its corners */
+    pool pool;                  /* brt_scene_options.threads */
+    struct point_work *work;    /* a window of points built at once */
+    uint32_t window;
 } scene_builder;
 
 static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
@@ -2624,19 +2626,6 @@ static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *
 
 /* ---- batching points ---- */
 
-/* The proxy of one batching point: its triangles voxelized in a grid
-** fitted to its box, added to the shared pool. */
-static brt_result batch_proxy(scene_builder *b, batch_entry *e, uint32_t count)
-{
-    brt_grid grid;
-    brt_result r = brt_grid_init(&grid, e->lo, e->hi, b->w.res);
-    if (r != BRT_OK) return r;
-    r = brt_voxelize(&grid, b->corners, b->indices, count);
-    if (r == BRT_OK) r = brt_svdag_add(b->w.dag, &grid, &e->proxy);
-    brt_grid_free(&grid);
-    return r;
-}
-
 /* A new entry of the per-point tables. */
 static batch_entry *batch_append(scene_writer *w)
 {
@@ -2654,65 +2643,118 @@ static batch_entry *batch_append(scene_writer *w)
     return &w->batches[w->batch_count++];
 }
 
-/* BVH blob bytes of the batching point in corners/indices/prims. */
-static brt_result point_blob(scene_builder *b, uint32_t count, void **blob, size_t *size,
-                             brt_error *err)
+/*
+** Threads: a bucket's points are built a window at a time (two per
+** thread).  Each point is built whole by one thread into a work slot of
+** its own -- its triangles, box, BVH blob and checksum, and its proxy's
+** voxel grid -- and the caller writes the blobs and adds the grids to the
+** shared DAG in point order, each as soon as the points before it are
+** written (pool_run's commit).  So blob offsets and the DAG's nodes, whose
+** numbers follow the order of the adds, are those of one thread.
+*/
+typedef struct point_work {
+    float *corners;             /* its triangles: 9 floats each */
+    uint32_t *prims;            /* and the number of each */
+    uint32_t first, count;      /* its records: order[first .. first + count) */
+    float lo[3], hi[3];
+    void *blob;                 /* its BVH, as stored */
+    size_t size;
+    uint64_t checksum;
+    brt_grid grid;              /* its proxy's voxels */
+    brt_result bvh_result, grid_result;
+} point_work;
+
+/* Builds one point in its slot (any thread: reads the bucket only). */
+static void point_build(const scene_builder *b, point_work *pw)
 {
     brt_bvh *bvh = NULL;
-    brt_result r = brt_bvh_build(b->corners, b->indices, count, b->prims, &bvh);
-    if (r != BRT_OK) return brt_fail(err, r, "%s: building a batching point's BVH: %s",
-                                     b->w.path, brt_result_string(r));
-    *size = brt_bvh_blob_size(bvh);
-    *blob = calloc(1, *size ? *size : 1);
-    if (*blob) brt_bvh_blob_write(bvh, *blob);
-    brt_bvh_free(bvh);
-    return *blob ? BRT_OK : brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    uint32_t i;
+    bounds_clear(pw->lo, pw->hi);
+    for (i = 0; i < pw->count; i++) {
+        const spill_record *rec = &b->records[b->order[pw->first + i]];
+        memcpy(pw->corners + 9 * (size_t)i, rec->v, sizeof rec->v);
+        pw->prims[i] = rec->prim;
+        bounds_grow(pw->lo, pw->hi, rec->v);
+        bounds_grow(pw->lo, pw->hi, rec->v + 3);
+        bounds_grow(pw->lo, pw->hi, rec->v + 6);
+    }
+    pw->blob = NULL;
+    pw->bvh_result = brt_bvh_build(pw->corners, b->indices, pw->count, pw->prims, &bvh);
+    if (pw->bvh_result == BRT_OK) {
+        pw->size = brt_bvh_blob_size(bvh);
+        pw->blob = calloc(1, pw->size ? pw->size : 1);
+        if (pw->blob) brt_bvh_blob_write(bvh, pw->blob);
+        if (pw->blob) pw->checksum = brt_checksum64(pw->blob, pw->size);
+        brt_bvh_free(bvh);
+    }
+    pw->grid_result = brt_grid_init(&pw->grid, pw->lo, pw->hi, b->w.res);
+    if (pw->grid_result == BRT_OK)
+        pw->grid_result = brt_voxelize(&pw->grid, pw->corners, b->indices, pw->count);
 }
 
-/* One batching point: the bucket's records ids[0..count): its BVH as a
-** blob at the next page, its box and its proxy. */
-static brt_result write_point(scene_builder *b, const uint32_t *ids, uint32_t count,
-                              brt_error *err)
+/* Writes one built point: its blob at the next page, its table entry and
+** box, its proxy added to the shared pool (the caller, in point order). */
+static brt_result point_write(scene_builder *b, point_work *pw, brt_error *err)
 {
     scene_writer *w = &b->w;
     batch_entry *e;
-    void *blob = NULL;
-    size_t size = 0;
-    uint32_t i;
     brt_result r = poll_interrupt(b, err);
     if (r != BRT_OK) return r;
-    if (!(e = batch_append(w))) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
-    bounds_clear(e->lo, e->hi);
-    for (i = 0; i < count; i++) {
-        const spill_record *rec = &b->records[ids[i]];
-        memcpy(b->corners + 9 * (size_t)i, rec->v, sizeof rec->v);
-        b->prims[i] = rec->prim;
-        bounds_grow(e->lo, e->hi, rec->v);
-        bounds_grow(e->lo, e->hi, rec->v + 3);
-        bounds_grow(e->lo, e->hi, rec->v + 6);
-    }
-    e->triangles = count;
-    if ((r = point_blob(b, count, &blob, &size, err)) != BRT_OK) return r;
-    e->size = size;
-    e->checksum = brt_checksum64(blob, size);
+    if (pw->bvh_result != BRT_OK)
+        return brt_fail(err, pw->bvh_result, "%s: building a batching point's BVH: %s",
+                        w->path, brt_result_string(pw->bvh_result));
+    if (!pw->blob || !(e = batch_append(w))) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    memcpy(e->lo, pw->lo, sizeof e->lo);
+    memcpy(e->hi, pw->hi, sizeof e->hi);
+    e->triangles = pw->count;
+    e->size = pw->size;
+    e->checksum = pw->checksum;
     e->offset = w->offset;
-    r = write_at(w->fd, blob, size, e->offset, w->path, err);
-    free(blob);
-    if (r != BRT_OK) return r;
+    if ((r = write_at(w->fd, pw->blob, pw->size, e->offset, w->path, err)) != BRT_OK) return r;
     w->offset = round_up_page(e->offset + e->size);
     w->geometry_bytes += e->size;
     memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1), e->lo, 3 * sizeof(float));
     memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1) + 3, e->hi, 3 * sizeof(float));
-    r = batch_proxy(b, e, count);
+    r = pw->grid_result;
+    if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->grid, &e->proxy);
     if (r != BRT_OK) return brt_fail(err, r, "%s: building a proxy: %s", w->path, brt_result_string(r));
     return BRT_OK;
 }
 
+typedef struct window_job {
+    scene_builder *b;
+    brt_result result;
+    brt_error *err;
+} window_job;
+
+static void window_build(void *ctx, unsigned thread, size_t first, size_t end)
+{
+    const window_job *j = ctx;
+    size_t k;
+    (void)thread;
+    for (k = first; k < end; k++) point_build(j->b, &j->b->work[k]);
+}
+
+static void window_write(void *ctx, size_t first, size_t end)
+{
+    window_job *j = ctx;
+    size_t k;
+    for (k = first; k < end; k++) {
+        point_work *pw = &j->b->work[k];
+        if (j->result == BRT_OK) j->result = point_write(j->b, pw, j->err);
+        free(pw->blob);
+        pw->blob = NULL;
+        brt_grid_free(&pw->grid);
+    }
+}
+
 /* A bucket that fits in memory: read whole, split by medians into
-** batching points (ties by record order, which is number order). */
+** batching points (ties by record order, which is number order), built
+** a window at a time. */
 static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *err)
 {
-    uint32_t i;
+    uint32_t i, k, m;
+    window_job j;
     brt_result r = spill_read(b, b->records, bk->count, bk->first, err);
     if (r != BRT_OK) return r;
     for (i = 0; i < bk->count; i++) {
@@ -2723,9 +2765,18 @@ static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *er
     b->points.order = b->order;
     if (partition_split(&b->points, b->centroids, 0, bk->count, b->batch_tris) != BRT_OK)
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
-    for (i = 0; i < b->points.count && r == BRT_OK; i++)
-        r = write_point(b, b->order + b->points.ranges[i].first, b->points.ranges[i].count, err);
-    return r;
+    j.b = b;
+    j.err = err;
+    j.result = BRT_OK;
+    for (i = 0; i < b->points.count && j.result == BRT_OK; i += m) {
+        m = b->points.count - i < b->window ? b->points.count - i : b->window;
+        for (k = 0; k < m; k++) {
+            b->work[k].first = b->points.ranges[i + k].first;
+            b->work[k].count = b->points.ranges[i + k].count;
+        }
+        pool_run(&b->pool, window_build, window_write, &j, m, 1);
+    }
+    return j.result;
 }
 
 /* ---- the file's tables ---- */
@@ -2780,14 +2831,21 @@ static brt_result builder_arrays(scene_builder *b, brt_error *err)
 {
     size_t most = b->root.b.count < b->bucket_tris ? b->root.b.count : b->bucket_tris, i;
     size_t point = most < b->batch_tris ? most : b->batch_tris;
+    uint32_t k;
     b->records = malloc(most * sizeof *b->records);
     b->centroids = malloc(3 * most * sizeof *b->centroids);
     b->order = malloc(most * sizeof *b->order);
-    b->corners = malloc(9 * point * sizeof *b->corners);
     b->indices = malloc(3 * point * sizeof *b->indices);
-    b->prims = malloc(point * sizeof *b->prims);
-    if (!b->records || !b->centroids || !b->order || !b->corners || !b->indices || !b->prims)
+    b->window = 2 * b->pool.count;
+    b->work = calloc(b->window, sizeof *b->work);
+    if (!b->records || !b->centroids || !b->order || !b->indices || !b->work)
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    for (k = 0; k < b->window; k++) {
+        b->work[k].corners = malloc(9 * point * sizeof *b->work[k].corners);
+        b->work[k].prims = malloc(point * sizeof *b->work[k].prims);
+        if (!b->work[k].corners || !b->work[k].prims)
+            return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    }
     for (i = 0; i < 3 * point; i++) b->indices[i] = (uint32_t)i;
     return BRT_OK;
 }
@@ -2820,6 +2878,7 @@ static brt_result build_passes(scene_builder *b, const brt_triangle_source *sour
 
 static void builder_free(scene_builder *b)
 {
+    uint32_t k;
     if (b->spill_fd >= 0) close(b->spill_fd);
     free(b->read_buf);
     free(b->cells);
@@ -2827,9 +2886,13 @@ static void builder_free(scene_builder *b)
     free(b->centroids);
     free(b->order);
     free(b->points.ranges);
-    free(b->corners);
     free(b->indices);
-    free(b->prims);
+    for (k = 0; b->work && k < b->window; k++) {
+        free(b->work[k].corners);
+        free(b->work[k].prims);
+    }
+    free(b->work);
+    pool_free(&b->pool);
     brt_svdag_free(b->w.dag);
     free(b->w.batches);
     free(b->w.boxes);
@@ -2845,6 +2908,7 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->spill_fd = b->w.fd = -1;
     b->w.path = scene_path;
     b->interrupt = opt ? opt->interrupt : NULL;
+    pool_init(&b->pool, opt ? opt->threads : 0);
     scene_options_resolve(opt, &b->batch_tris, &b->w.res);
     if (b->w.res < 2 || b->w.res > 1024 || (b->w.res & (b->w.res - 1)) != 0)
         return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", b->w.res);
