@@ -254,6 +254,46 @@ bench-render: all
 	done
 # == END RENDER ===========================================================
 
+# == THREADS (speed-ups; not part of CI) =================================
+# bench-threads: each of the README's four targets (section "Threads") at
+# 1 and THREADS_N threads, THREADS_REPEAT times each: trace --direct (1M
+# bounce rays on the shared dragon), render in core and at 25 % with
+# --disk-speed 100M (landscape --scale 10, 320x180, 8 spp), and the scene
+# build (the landscape at --scale 10 from the generator).  Prints the
+# timed part's wall seconds (from --stats) and the process's CPU seconds;
+# checks that every statistics count is equal across the thread counts.
+THREADS_N      ?= 2
+THREADS_REPEAT ?= 3
+THREADS_DIR    ?= /tmp/batchrt-bench-threads
+.PHONY: bench-threads
+bench-threads: all
+	@set -e; d=$(THREADS_DIR); b=./$(BUILD); mkdir -p $$d; \
+	num() { sed -n "s/.*\"$$2\": *\([0-9.eE+-]*\).*/\1/p" $$1; }; \
+	counts() { grep -v 'seconds\|mrays\|peak_rss' $$1; }; \
+	m=$$d/dragon.obj; test -s $$m || gzip -dc ../shared/data/meshes/dragon.obj.gz > $$m; \
+	$$b/raygen $$m $$d/rays --kind bounce --count 1000000 --seed 1 > /dev/null; \
+	land="landscape --scale 10 --batch-tris 10000"; \
+	img="--width 320 --height 180 --spp 8"; \
+	$$b/render $$land --width 1 --height 1 --spp 1 --scene $$d/land.brs --out $$d/x.png > /dev/null; \
+	run() { name=$$1; field=$$2; shift 2; \
+	  for t in 1 $(THREADS_N); do for i in $$(seq $(THREADS_REPEAT)); do \
+	    rm -f $$d/build.brs; \
+	    /usr/bin/time -f "%U %S" -o $$d/cpu "$$@" --threads $$t --stats $$d/s$$t.json > /dev/null; \
+	    awk -v n="$$name" -v t=$$t -v w=$$(num $$d/s$$t.json $$field) \
+	      -v l=$$(num $$d/s$$t.json load_seconds) -v c="$$(cat $$d/cpu)" \
+	      'BEGIN { split(c, u, " "); printf "%-28s %2d threads: %7.2f s wall (%s), %7.2f s CPU, loads %.2f s\n", \
+	        n, t, w, "'$$field'", u[1] + u[2], l }'; \
+	  done; done; \
+	  counts $$d/s1.json > $$d/c1; counts $$d/s$(THREADS_N).json > $$d/c2; \
+	  cmp -s $$d/c1 $$d/c2 && echo "  counts equal" || echo "  COUNTS DIFFER"; }; \
+	run "trace --direct" seconds $$b/trace $$m $$d/rays $$d/hits --direct; \
+	run "render in core" seconds $$b/render $$land $$img --scene $$d/land.brs --out $$d/x.png; \
+	run "render 25%, --disk-speed 100M" seconds $$b/render $$land $$img --scene $$d/land.brs \
+	  --memory 25% --disk-speed 100M --out $$d/x.png; \
+	run "scene build" build_seconds $$b/render $$land --width 1 --height 1 --spp 1 \
+	  --scene $$d/build.brs --out $$d/x.png
+# == END THREADS ==========================================================
+
 # == SCALE (out of core from end to end; not part of CI) ==================
 # bench-scale: an OBJ of SCALE_OBJ * 100K triangles written by mkscene and
 # its scene file built by trace --batched (a mesh file: the build holds its
