@@ -3291,6 +3291,17 @@ typedef struct page_cache {
     void *read_user;
     int drop_os_cache;          /* brt_trace_options.drop_os_cache */
     brt_stats *stats;
+    /* Read-ahead (more than one thread): one blob read by a thread of its
+    ** own while the scheduler's threads intersect (cache_read_ahead). */
+    int read_ahead;
+    int ahead_running;
+    pthread_t ahead_thread;
+    uint32_t ahead_id;          /* NO_ENTRY: none */
+    void *ahead_data;
+    brt_bvh *ahead_bvh;
+    uint64_t ahead_bytes;
+    double ahead_seconds;
+    brt_result ahead_result;
 } page_cache;
 
 static void lru_unlink(page_cache *c, uint32_t id)
@@ -3348,6 +3359,7 @@ static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
     c->scene = scene;
     c->budget = budget;
     c->lru_head = c->lru_tail = NO_ENTRY;
+    c->ahead_id = NO_ENTRY;
     c->read_fn = opt && opt->read_fn ? opt->read_fn : pread_reader;
     c->read_user = opt ? opt->read_user : NULL;
     c->drop_os_cache = opt && opt->drop_os_cache;
@@ -3355,9 +3367,12 @@ static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
     return BRT_OK;
 }
 
+static int cache_ahead_take(page_cache *c, uint32_t id);
+
 static void cache_free(page_cache *c)
 {
     uint32_t i;
+    cache_ahead_take(c, NO_ENTRY);
     for (i = 0; c->entries && i < c->scene->header.batch_count; i++) {
         brt_bvh_free(c->entries[i].bvh);
         blob_free(c->scene, i, c->entries[i].data);
@@ -3424,14 +3439,73 @@ static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_re
     return r;
 }
 
+/* ---- read-ahead ---- */
+/*
+** While the threads intersect the rays of one batching point, a thread of
+** the cache's own reads the blob of the fullest queue left (the likely
+** next load: cache_read_ahead).  The schedule does not change: when the
+** scheduler then asks for that blob, cache_load takes the buffer read
+** ahead instead of reading (the same bytes, counted then, as a load of
+** the same size would be); when it asks for another, the buffer is
+** dropped uncounted.  So every count is the one-thread count, and only
+** the wall time differs.  The buffer is held beside the budget: one blob
+** more at most (README, "Threads").  read_fn is never called by two
+** threads at once: the read-ahead is joined before any other read.
+*/
+static void *ahead_main(void *arg)
+{
+    page_cache *c = arg;
+    double start = brt_seconds();
+    c->ahead_result = blob_read(c, c->ahead_id, &c->ahead_bytes, &c->ahead_data, &c->ahead_bvh, NULL);
+    c->ahead_seconds = brt_seconds() - start;
+    return NULL;
+}
+
+/* Starts reading blob id ahead, unless it is in memory or a read-ahead is
+** under way. */
+static void cache_read_ahead(page_cache *c, uint32_t id)
+{
+    if (!c->read_ahead || c->ahead_running || c->entries[id].data) return;
+    c->ahead_id = id;
+    c->ahead_bytes = 0;
+    c->ahead_data = NULL;
+    c->ahead_bvh = NULL;
+    c->ahead_running = pthread_create(&c->ahead_thread, NULL, ahead_main, c) == 0;
+}
+
+/* Waits for the read-ahead, if any: 1 when it read blob id without error
+** (its buffer and BVH are then the caller's), else 0 (dropped). */
+static int cache_ahead_take(page_cache *c, uint32_t id)
+{
+    int ok;
+    if (!c->ahead_running) return 0;
+    pthread_join(c->ahead_thread, NULL);
+    c->ahead_running = 0;
+    ok = c->ahead_id == id && c->ahead_result == BRT_OK;
+    if (!ok) {
+        brt_bvh_free(c->ahead_bvh);
+        blob_free(c->scene, c->ahead_id, c->ahead_data);
+    }
+    c->ahead_id = NO_ENTRY;
+    return ok;
+}
+
 /* Loads blob id into the cache (the caller has made room). */
 static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
 {
     cache_entry *e = &c->entries[id];
     uint64_t bytes = round_up_page(c->scene->batches[id].size);
     double start = brt_seconds();
-    brt_result r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->bvh, err);
-    c->stats->load_seconds += brt_seconds() - start;
+    brt_result r = BRT_OK;
+    if (cache_ahead_take(c, id)) {
+        e->data = c->ahead_data;
+        e->bvh = c->ahead_bvh;
+        c->stats->disk_bytes_read += c->ahead_bytes;
+        c->stats->load_seconds += c->ahead_seconds;
+    } else {
+        r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->bvh, err);
+        c->stats->load_seconds += brt_seconds() - start;
+    }
     if (r != BRT_OK) return r;
     e->bytes = bytes;
     c->held += bytes;
@@ -3894,6 +3968,7 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     /* Take the queue out first: no ray is queued here again (keys only
     ** grow), but the commit queues rays elsewhere. */
     memset(&s->queues[id], 0, sizeof s->queues[id]);
+    if (s->heap_size > 0) cache_read_ahead(&s->cache, s->heap[0]);
     r = phase_run(s, q.slots, q.count, id, bvh);
     free(q.slots);
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
@@ -3984,7 +4059,9 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     for (i = 0; i < n; i++) s->heap_pos[i] = NO_ENTRY;
     for (i = 0; i < s->capacity; i++) s->free_slots[i] = s->capacity - 1 - i;
     s->free_count = s->capacity;
-    return cache_init(&s->cache, scene, budget, opt, stats);
+    if (cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK) return BRT_ENOMEM;
+    s->cache.read_ahead = s->pool.count > 1;
+    return BRT_OK;
 }
 
 static void scheduler_free(scheduler *s)

@@ -583,7 +583,10 @@ void brt_scene_bounds(const brt_scene *scene, float bmin[3], float bmax[3]);
 
 /* The reader behind the page cache: pread's contract (it may return short
 ** counts or fail with errno EINTR; the cache retries both).  Replaceable
-** so that tests can inject faults. */
+** so that tests can inject faults.  With more than one thread the cache
+** also reads ahead: the reader may then be called from a thread of the
+** cache's own (never by two threads at once), for a blob that may not be
+** used; a failed read-ahead is dropped and the blob read again if needed. */
 typedef long (*brt_read_fn)(int fd, void *buf, size_t size, uint64_t offset,
                             void *user);
 
