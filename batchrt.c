@@ -3800,11 +3800,10 @@ static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t sta
     tlimit = walk_limit(r);
     top_walk_start(&w->walk);
     while (top_walk_next(&w->walk, s->scene->top, &prep, tlimit, &r->key)) {
-        uint32_t id = r->key.id;
-        const brt_bvh *resident = s->queue_resident ? NULL : cache_peek(&s->cache, id);
+        const brt_bvh *resident = s->queue_resident ? NULL : cache_peek(&s->cache, r->key.id);
         if (resident) {
-            if (w->used_at[id] == 0) w->used[w->used_count++] = id;
-            w->used_at[id] = stamp++;
+            if (w->used_at[r->key.id] == 0) w->used[w->used_count++] = r->key.id;
+            w->used_at[r->key.id] = stamp++;
             brt_bvh_intersect_normal(resident, &r->ray, &r->hit, r->normal);
             r->visits++;
             w->resident_visits++;
@@ -3813,13 +3812,13 @@ static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t sta
         }
         if (s->use_proxies) {
             w->proxy_tests++;
-            if (!proxy_may_hit(s, id, &r->ray, tlimit)) {
+            if (!proxy_may_hit(s, r->key.id, &r->ray, tlimit)) {
                 w->proxy_culled++;
                 continue;
             }
         }
         r->visits++;
-        return id;
+        return r->key.id;
     }
     return NO_ENTRY;
 }
