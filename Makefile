@@ -6,6 +6,7 @@
 #   make sanitize     the test suite under AddressSanitizer + UBSan
 #   make tsan         the threaded tests under ThreadSanitizer
 #   make bench        benchmarks (figures printed, never pass/fail)
+#   make bench-threads  speed-ups at 1 and 2 threads (README, "Threads")
 #   make mutants      mutation testing of the suite (tests/mutants/)
 #   make clean
 #   make V=1 ...      show the full command lines
