@@ -113,6 +113,7 @@ typedef struct options {
     uint64_t seed, spp, width, height, batch_tris, res, rays_in_flight;
     uint64_t memory;              /* bytes; 0: no limit */
     uint64_t disk_speed;          /* --disk-speed, bytes per second; 0: the device's */
+    uint64_t threads;             /* --threads; 0: all cores */
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
     int no_proxy, queue_resident, exact_proxy, direct, compare, have_camera, drop_os_cache;
     int no_nee, have_sun;
@@ -152,6 +153,7 @@ static void usage(void)
            "  --exact-proxy        analysis: a perfect proxy (an exact test against the\n"
            "                       triangles, all read first and not counted)\n"
            "  --rays-in-flight N   paths traced at once (default 262144)\n"
+           "  --threads N          threads (default 0: all cores); no byte changes\n"
            "  --drop-os-cache      cold reads: keep the scene file out of the OS cache, so\n"
            "                       every load reads the device\n"
            "  --disk-speed SIZE    model a slower disk: each read lasts at least its bytes\n"
@@ -266,6 +268,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--res")) o->res = ex_parse_resolution(prog, a, VALUE);
         else if (is_option(a, "--rays-in-flight"))
             o->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
+        else if (is_option(a, "--threads")) o->threads = ex_parse_u64(prog, a, VALUE, 0, BRT_MAX_THREADS);
         else if (is_option(a, "--heat-max")) o->heat_max = ex_parse_double(prog, a, VALUE, 1e-9, 1e9);
         else if (is_option(a, "--out")) o->out = VALUE;
         else if (is_option(a, "--heatmap")) o->heatmap = VALUE;
@@ -395,6 +398,7 @@ typedef struct render_job {
     sun_light sun;
     double sun_radius;                /* degrees (sun.cos_max is what renders) */
     int nee;                          /* next-event estimation (shadow rays) */
+    unsigned threads;                 /* --threads (0: all cores) */
 } render_job;
 
 /* Sums over finished samples of their luminance (the mean of r, g, b of
@@ -608,22 +612,17 @@ static void render_direct(const brt_bvh *bvh, renderer *r, brt_stats *stats)
 {
     static brt_ray rays[DIRECT_CHUNK];
     static uint64_t tags[DIRECT_CHUNK];
+    static brt_hit hits[DIRECT_CHUNK];
+    static float normals[3 * DIRECT_CHUNK];
     double start = brt_seconds();
     size_t n, i;
     while ((n = next_rays(r, rays, tags, DIRECT_CHUNK)) > 0) {
+        brt_bvh_trace(bvh, rays, tags, n, hits, normals, r->job->threads);
         for (i = 0; i < n; i++) {
-            brt_hit hit;
-            float normal[3] = {0, 0, 0};
-            brt_hit_clear(&hit);
-            if (!(tags[i] & BRT_TAG_OCCLUSION)) {
-                brt_bvh_intersect_normal(bvh, &rays[i], &hit, normal);
-            } else if (brt_bvh_occluded(bvh, &rays[i])) {
-                hit.t = 0.0f;   /* the occluded record of brt_ray_source */
-                hit.prim = 0;
-            }
-            stats->shadow_rays += (tags[i] & BRT_TAG_OCCLUSION) != 0;
-            stats->shadow_occluded += (tags[i] & BRT_TAG_OCCLUSION) && hit.prim != BRT_NO_PRIM;
-            finished(r, &rays[i], &hit, normal, 0, tags[i]);
+            int shadow = (tags[i] & BRT_TAG_OCCLUSION) != 0;
+            stats->shadow_rays += shadow;
+            stats->shadow_occluded += shadow && hits[i].prim != BRT_NO_PRIM;
+            finished(r, &rays[i], &hits[i], normals + 3 * i, 0, tags[i]);
         }
         stats->rays += n;
     }
@@ -702,6 +701,7 @@ static void make_job(const options *o, const float bmin[3], const float bmax[3],
     job->spp = (uint32_t)o->spp;
     job->diagonal = ex_box_diagonal(bmin, bmax);
     job->paths_in_flight = (uint32_t)o->rays_in_flight;
+    job->threads = (unsigned)o->threads;
     job->disk_speed = o->disk_speed;
     make_sun(o, &job->sun);
     job->sun_radius = o->sun_radius;
@@ -769,6 +769,7 @@ static brt_scene *open_scene(const options *o, const volatile sig_atomic_t *inte
     sopt.batch_tris = (uint32_t)o->batch_tris;
     sopt.proxy_res = (uint32_t)o->res;
     sopt.interrupt = interrupt;
+    sopt.threads = (unsigned)o->threads;
     if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
     else if (builtin) builtin_scene_path(o, path, sizeof path);
     else ex_default_scene_path(prog, o->input, sopt.batch_tris, sopt.proxy_res, path, sizeof path);
@@ -1272,6 +1273,7 @@ int main(int argc, char **argv)
     topt.queue_resident = o.queue_resident;
     topt.exact_proxies = o.exact_proxy;
     topt.rays_in_flight = (uint32_t)o.rays_in_flight;
+    topt.threads = (unsigned)o.threads;
     topt.drop_os_cache = o.drop_os_cache;
     if (o.disk_speed) {
         topt.read_fn = slow_disk_read;

@@ -53,6 +53,7 @@ typedef struct trace_options {
     const char *stats;               /* --stats FILE.json, or NULL */
     int verbose;                     /* summary line even when not a tty */
     int occlusion;                   /* --occlusion: one byte per ray */
+    unsigned threads;                /* --threads; 0: all cores */
 } trace_options;
 
 static void usage(void)
@@ -75,6 +76,7 @@ static void usage(void)
            "  --rebuild         rebuild the scene file even when it is up to date\n"
            "  --drop-os-cache   cold reads: keep the scene file out of the OS cache, so\n"
            "                    every load reads the device\n"
+           "  --threads N       threads (default 0: all cores); no byte or count changes\n"
            "  --stats FILE      write statistics as JSON\n"
            "  --verbose         print the summary line even when stderr is not a terminal\n"
            "  --help            this text\n"
@@ -112,6 +114,9 @@ static void parse_options(int argc, char **argv, trace_options *o)
             o->memory = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
             o->memory_given = 1;
         }
+        else if (strcmp(a, "--threads") == 0)
+            o->threads = (unsigned)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i),
+                                                0, BRT_MAX_THREADS);
         else if (strcmp(a, "--scene") == 0) o->scene = ex_option_value(prog, argc, argv, &i);
         else if (strcmp(a, "--stats") == 0) o->stats = ex_option_value(prog, argc, argv, &i);
         else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
@@ -123,12 +128,17 @@ static void parse_options(int argc, char **argv, trace_options *o)
                npos, npos == 1 ? "" : "s");
 }
 
+#define SLICE ((size_t)1 << 18)
+
 /* Direct mode: one BVH over the whole mesh, then every ray through it,
 ** with the statistics of design.md (cache fields stay 0). */
 static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count,
-                         brt_hit *hits, uint8_t *occluded, brt_stats *stats)
+                         brt_hit *hits, uint8_t *occluded, brt_stats *stats,
+                         unsigned threads)
 {
     brt_bvh *bvh;
+    brt_hit *scratch = NULL;
+    uint64_t *tags = NULL;
     double start = brt_seconds();
     size_t i;
 
@@ -141,19 +151,25 @@ static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count
             (double)brt_bvh_memory_bytes(bvh) / (double)mesh->triangle_count;
 
     start = brt_seconds();
-    for (i = 0; i < count; i++) {
-        /* Progress (and the interrupt flag) in slices of 64K rays keeps
-        ** the clock out of the loop. */
-        if ((i & 0xFFFF) == 0) {
-            if (ex_interrupted()) ex_die_interrupted(prog);
-            ex_progress("tracing", i, count);
-        }
-        if (occluded) {
-            occluded[i] = (uint8_t)brt_bvh_occluded(bvh, &rays[i]);
-            stats->shadow_occluded += occluded[i];
-        } else {
-            brt_hit_clear(&hits[i]);
-            brt_bvh_intersect(bvh, &rays[i], &hits[i]);
+    /* Occlusion rays are traced as such (tags) into scratch records, which
+    ** become the file's bytes: brt_bvh_trace's record has prim 0 when
+    ** occluded, the miss record when clear. */
+    if (occluded) {
+        scratch = malloc(SLICE * sizeof *scratch);
+        tags = malloc(SLICE * sizeof *tags);
+        if (!scratch || !tags) ex_die(prog, "out of memory for a slice of occlusion rays");
+        for (i = 0; i < SLICE; i++) tags[i] = BRT_TAG_OCCLUSION;
+    }
+    /* Progress (and the interrupt flag) in slices of 256K rays, each
+    ** traced by all threads. */
+    for (i = 0; i < count; i += SLICE) {
+        size_t n = count - i < SLICE ? count - i : SLICE, k;
+        if (ex_interrupted()) ex_die_interrupted(prog);
+        ex_progress("tracing", i, count);
+        brt_bvh_trace(bvh, rays + i, tags, n, occluded ? scratch : hits + i, NULL, threads);
+        for (k = 0; occluded && k < n; k++) {
+            occluded[i + k] = scratch[k].prim != BRT_NO_PRIM;
+            stats->shadow_occluded += occluded[i + k];
         }
     }
     if (occluded) stats->shadow_rays = count;
@@ -161,6 +177,8 @@ static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count
     ex_progress("tracing", count, count);
     ex_progress_end();
     brt_bvh_free(bvh);
+    free(scratch);
+    free(tags);
 }
 
 /* Batched mode: the scene file (reused, or built from the mesh file as a
@@ -181,6 +199,7 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     scene_opt.batch_tris = (uint32_t)o->batch_tris;
     scene_opt.proxy_res = (uint32_t)o->res;
     scene_opt.interrupt = ex_catch_interrupts();
+    scene_opt.threads = o->threads;
     if (!path) {
         ex_default_scene_path(prog, o->mesh, scene_opt.batch_tris, scene_opt.proxy_res,
                               default_path, sizeof default_path);
@@ -196,6 +215,7 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     trace_opt.memory_limit = o->memory;
     trace_opt.no_proxy = o->no_proxy;
     trace_opt.drop_os_cache = o->drop_os_cache;
+    trace_opt.threads = o->threads;
     ex_progress("tracing", 0, 1);
     if (occluded)
         r = brt_scene_occluded(scene, &trace_opt, rays, count, occluded, stats, &err);
@@ -249,7 +269,7 @@ int main(int argc, char **argv)
         ex_check(prog, brt_mesh_load(o.mesh, &mesh, &err), &err);
         ex_note_mesh_memory(prog, &mesh, o.memory_given ? o.memory : 0);
         stats.rays = count;
-        trace_direct(&mesh, rays, count, hits, occluded, &stats);
+        trace_direct(&mesh, rays, count, hits, occluded, &stats, o.threads);
         brt_mesh_free(&mesh);
         if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
     }

@@ -65,5 +65,6 @@ void suite_embree(void);
 void suite_hardening(void);
 void suite_build(void);
 void suite_occlusion(void);
+void suite_threads(void);
 
 #endif
