@@ -17,7 +17,10 @@
 **    ignored makes write() fail with EFBIG, as a full disk fails with
 **    ENOSPC): the library and the programs must leave no partial file;
 **  - limits: one triangle, all triangles identical, a memory limit below
-**    one batching point, one ray in flight, no rays at all, a 1x1 image.
+**    one batching point, one ray in flight, no rays at all, a 1x1 image;
+**  - forged scene files (issue 21): valid checksums, one cross-reference
+**    broken per file, one file per line of the validators of batchrt.c's
+**    scene open and bvh.c's blob open, each refused naming the part.
 ** Oracles: the direct mode and brute force over brt_intersect_triangle.
 */
 #include "test.h"
