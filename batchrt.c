@@ -2323,16 +2323,14 @@ static brt_result check_header(const brt_scene *s, brt_error *err)
     return BRT_OK;
 }
 
-/* What brt_proxy_check asks (res, origin, cell, root in the pool), the
-** header's resolution, and a grid whose far corner is finite too: the
-** cast maps the ray into the grid's frame and may then trust it. */
+/* The header's resolution, and all brt_proxy_raycast relies on: brt_proxy_check
+** (res a power of two, origin and cell finite, cell positive, root a node
+** of the pool at the depth res needs), so the cast need not check again.
+** (The far corner origin + res * cell may overflow a float, at coordinates
+** near FLT_MAX, but the cast maps rays into the grid's frame in double.) */
 static int proxy_valid(const brt_scene *s, const brt_proxy *p)
 {
-    int a;
-    if (p->res != s->header.proxy_res || brt_proxy_check(s->dag, p, NULL) != BRT_OK) return 0;
-    for (a = 0; a < 3; a++)
-        if (!isfinite(p->origin[a] + p->cell * (float)p->res)) return 0;
-    return 1;
+    return p->res == s->header.proxy_res && brt_proxy_check(s->dag, p, NULL) == BRT_OK;
 }
 
 /* One batch table entry: its box, its blob inside the file (whole pages,

@@ -29,6 +29,7 @@
 
 #include <dirent.h>
 #include <errno.h>
+#include <float.h>
 #include <math.h>
 #include <signal.h>
 #include <stdarg.h>
@@ -1050,8 +1051,8 @@ static void forge_header_top(forged *f) { forge_u64(f, 88, forged_u64(f, 88) + 1
 static void forge_batch_box(forged *f) { forge_f32(f, entry_at(f, 1), NAN); }
 static void forge_blob_extent(forged *f) { forge_u64(f, entry_at(f, 1) + 24, f->size); }
 static void forge_proxy_root(forged *f) { forge_u32(f, entry_at(f, 1) + 52, 0x7FFFFFF0u); }
-/* a grid of res 4 cells of 1e38: its far corner overflows to infinity */
-static void forge_proxy_extent(forged *f) { forge_f32(f, entry_at(f, 1) + 72, 1e38f); }
+/* the header's proxy resolution 8, the proxies' (valid) 4 */
+static void forge_proxy_res(forged *f) { forge_u32(f, 28, 8); }
 static void forge_triangle_sum(forged *f) { forge_u32(f, 36, forged_u32(f, 36) + 1); }
 static void forge_byte_sum(forged *f) { forge_u64(f, 48, forged_u64(f, 48) + 1); }
 static void forge_top_box(forged *f) { forge_f32(f, top_root_at(f), -INFINITY); }
@@ -1087,7 +1088,7 @@ static const forgery forgeries[] = {
     {"batch_box.brs", forge_batch_box, "batching point 1: box not finite"},
     {"blob_extent.brs", forge_blob_extent, "batching point 1: blob outside the file"},
     {"proxy_root.brs", forge_proxy_root, "batching point 1: invalid proxy"},
-    {"proxy_extent.brs", forge_proxy_extent, "batching point 1: invalid proxy"},
+    {"proxy_res.brs", forge_proxy_res, "batching point 0: invalid proxy"},
     {"triangle_sum.brs", forge_triangle_sum, "batch table: batching points hold 25 triangles"},
     {"byte_sum.brs", forge_byte_sum, "batch table: blobs hold"},
     {"top_box.brs", forge_top_box, "top-level node 0: box not finite"},
@@ -1150,6 +1151,36 @@ static void test_forged_scenes(void)
     free(base.file);
 }
 
+/* The validators refuse forgeries, not extremes: a scene built from
+** triangles at +-FLT_MAX (padded BVH boxes round out to infinity there,
+** and a proxy grid's far corner overflows a float) opens, loads every blob
+** and traces, with the hit brute force gives. */
+static void test_extreme_scene_opens(void)
+{
+    static float pos[] = {-FLT_MAX, -FLT_MAX, 0, FLT_MAX, -FLT_MAX, 0, -FLT_MAX, FLT_MAX, 0,
+                          0, 0, FLT_MAX, 1, 0, FLT_MAX, 0, 1, -FLT_MAX};
+    static uint32_t idx[] = {0, 1, 2, 3, 4, 5};
+    brt_mesh mesh = {pos, idx, 6, 2};
+    brt_scene_options sopt;
+    brt_trace_options opt;
+    brt_scene *scene = NULL;
+    brt_ray ray = {{-1e30f, -1e30f, 1.0f}, {0.0f, 0.0f, -1.0f}, 0.0f, INFINITY};
+    brt_hit hit;
+    brt_error err;
+    float t, u, v;
+    memset(&sopt, 0, sizeof sopt);
+    sopt.batch_tris = 1;   /* two batching points */
+    CHECK(brt_scene_build(&mesh, &sopt, 0, scratch("extreme.brs"), &err) == BRT_OK, "%s", err.message);
+    CHECK(brt_scene_open(scratch("extreme.brs"), &scene, &err) == BRT_OK, "%s", err.message);
+    memset(&opt, 0, sizeof opt);
+    opt.exact_proxies = 1;   /* loads every blob */
+    EXPECT(brt_scene_trace(scene, &opt, &ray, 1, &hit, NULL, &err) == BRT_OK, "%s", err.message);
+    brt_scene_close(scene);
+    CHECK(brt_intersect_triangle(&ray, pos, pos + 3, pos + 6, &t, &u, &v), "the ray misses");
+    EXPECT(hit.prim == 0 && hit.t == t, "hit prim %u at %g, brute force 0 at %g",
+           (unsigned)hit.prim, (double)hit.t, (double)t);
+}
+
 void suite_hardening(void)
 {
     test_run("hardening: fuzz corpus replays cleanly", test_corpus_replay);
@@ -1167,4 +1198,5 @@ void suite_hardening(void)
     test_run("hardening: budget below one batching point, no rays",
              test_budget_below_one_batching_point);
     test_run("hardening: forged scene files, one per validator, are refused", test_forged_scenes);
+    test_run("hardening: a scene at +-FLT_MAX passes the validators", test_extreme_scene_opens);
 }
