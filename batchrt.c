@@ -2323,9 +2323,10 @@ static brt_result check_header(const brt_scene *s, brt_error *err)
     return BRT_OK;
 }
 
-/* The header's resolution, and all brt_proxy_raycast relies on: brt_proxy_check
-** (res a power of two, origin and cell finite, cell positive, root a node
-** of the pool at the depth res needs), so the cast need not check again.
+/* The header's resolution, and all that brt_proxy_raycast relies on:
+** brt_proxy_check (res a power of two, origin and cell finite, cell
+** positive, root a node of the pool at the depth res needs), so the cast
+** need not check again.
 ** (The far corner origin + res * cell may overflow a float, at coordinates
 ** near FLT_MAX, but the cast maps rays into the grid's frame in double.) */
 static int proxy_valid(const brt_scene *s, const brt_proxy *p)
