@@ -1151,6 +1151,41 @@ static void test_forged_scenes(void)
     free(base.file);
 }
 
+/* The fixed mesh in 25 batching points (a top level of several nodes): a
+** root lane over a node narrowed to zero width in x, still ordered and
+** finite, no longer holds that node's boxes. */
+static void forge_node_nesting(forged *f)
+{
+    uint64_t root = top_root_at(f);
+    int lane;
+    for (lane = 0; lane < 4; lane++)
+        if (forged_u32(f, root + 96 + 4 * (uint64_t)lane) < 0x80000000u) {
+            forge_f32(f, root + 48 + 4 * (uint64_t)lane, forged_f32(f, root + 4 * (uint64_t)lane));
+            return;
+        }
+}
+
+static void test_forged_node_nesting(void)
+{
+    brt_scene_options opt;
+    brt_mesh mesh;
+    forged base;
+    brt_error err;
+    brt_result r;
+    fuzz_fixed_mesh(&mesh);
+    memset(&opt, 0, sizeof opt);
+    opt.batch_tris = 1;
+    opt.proxy_res = 4;
+    CHECK(brt_scene_build(&mesh, &opt, 0, scratch("nodes_base.brs"), &err) == BRT_OK, "%s", err.message);
+    base.file = tu_slurp(scratch("nodes_base.brs"), &base.size);
+    CHECK(base.file && base.size >= 256 && forged_u32(&base, 40) > 1, "no top level of several nodes");
+    EXPECT(open_forged(&base, "nodes.brs", NULL, &err) == BRT_OK, "unforged: %s", err.message);
+    r = open_forged(&base, "node_nesting.brs", forge_node_nesting, &err);
+    EXPECT(r == BRT_EFORMAT && strstr(err.message, "node_nesting.brs: top-level node 0: box does "
+                                      "not hold node"), "%s: %s", brt_result_string(r), err.message);
+    free(base.file);
+}
+
 /* The validators refuse forgeries, not extremes: a scene built from
 ** triangles at +-FLT_MAX (padded BVH boxes round out to infinity there,
 ** and a proxy grid's far corner overflows a float) opens, loads every blob
@@ -1198,5 +1233,7 @@ void suite_hardening(void)
     test_run("hardening: budget below one batching point, no rays",
              test_budget_below_one_batching_point);
     test_run("hardening: forged scene files, one per validator, are refused", test_forged_scenes);
+    test_run("hardening: forged scene file, a top-level box not holding its node",
+             test_forged_node_nesting);
     test_run("hardening: a scene at +-FLT_MAX passes the validators", test_extreme_scene_opens);
 }
