@@ -348,11 +348,14 @@ void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
 /* A BVH as one relocatable blob (indices, no pointers) for the scene file.
 ** brt_bvh_blob_open makes a BVH that refers to the blob's memory (which
 ** must stay alive and be 16-byte aligned) after validating its sizes and
-** indices; a corrupt blob is BRT_EFORMAT, never a crash later. */
+** indices, its boxes (ordered) and triangles (finite), and that every
+** triangle number it reports is below prim_limit (a scene's triangle
+** count; UINT32_MAX when there is none); a corrupt blob is BRT_EFORMAT,
+** never a crash or a wrong hit record later. */
 size_t brt_bvh_blob_size(const brt_bvh *bvh);
 void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
-brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
-                             brt_error *err);
+brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
+                             brt_bvh **out, brt_error *err);
 
 /* ===================================================================== */
 /* Conservative voxel proxies: voxelizer, shared SVDAG, ray cast (svdag.c) */

@@ -1140,8 +1140,38 @@ void brt_bvh_blob_write(const brt_bvh *bvh, void *dst)
     memcpy(p, bvh->prim, (size_t)bvh->tri_count * 4u);
 }
 
-brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
-                             brt_error *err)
+/* What traversal takes on trust beyond the structure: every slot box in
+** use ordered (lo <= hi, so no NaN; +-inf is allowed because brt_box_pad
+** may round a box of coordinates near FLT_MAX out to infinity), every
+** triangle coordinate finite (brt_bvh_build refuses others), and every
+** reported number below prim_limit, so a hit never names a triangle the
+** scene does not have (nor BRT_NO_PRIM, the mark of a miss).  Checked
+** once per blob open, never per ray. */
+static brt_result validate_blob_data(const brt_bvh *bvh, uint32_t prim_limit,
+                                     brt_error *err)
+{
+    uint32_t i, k;
+    size_t c;
+    int s, a;
+    for (i = 0; i < bvh->node_count; i++)
+        for (s = 0; s < 4; s++)
+            for (a = 0; a < 3 && !slot_is_empty(&bvh->nodes[i], s); a++)
+                if (!(bvh->nodes[i].box[a][s] <= bvh->nodes[i].box[a + 3][s]))
+                    return brt_fail(err, BRT_EFORMAT, "bvh blob: node %u slot %d: box inverted "
+                                    "or NaN", (unsigned)i, s);
+    for (c = 0; c < 9 * (size_t)bvh->tri_count; c++)
+        if (!isfinite(bvh->tris[c]))
+            return brt_fail(err, BRT_EFORMAT, "bvh blob: triangle %u: coordinate not finite",
+                            (unsigned)(c / 9));
+    for (k = 0; k < bvh->tri_count; k++)
+        if (bvh->prim[k] >= prim_limit)
+            return brt_fail(err, BRT_EFORMAT, "bvh blob: triangle %u: number %u not below %u",
+                            (unsigned)k, (unsigned)bvh->prim[k], (unsigned)prim_limit);
+    return BRT_OK;
+}
+
+brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
+                             brt_bvh **out, brt_error *err)
 {
     uint32_t header[BLOB_HEADER / 4];
     const char *p = blob;
@@ -1173,6 +1203,7 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
     bvh->tris = (const float *)(const void *)p;
     bvh->prim = (const uint32_t *)(const void *)(p + (size_t)bvh->tri_count * 36u);
     r = validate_structure(bvh, BRT_EFORMAT, err);
+    if (r == BRT_OK) r = validate_blob_data(bvh, prim_limit, err);
     if (r != BRT_OK) { free(bvh); return r; }
     *out = bvh;
     return BRT_OK;
