@@ -1187,6 +1187,36 @@ static void test_forged_node_nesting(void)
     free(base.file);
 }
 
+/* Blob 1's first triangle renumbered as blob 0's first: every validator
+** of scene open passes (numbers below the count, counts and sums agree),
+** and only the partition checker sees a triangle in two batching points.
+** (Its "in no batching point" check cannot fire alone: n numbers below n
+** with one missing repeat one, pigeonhole, and the repeat is found first.) */
+static void forge_prim_twice(forged *f)
+{
+    forge_u32(f, blob_prims_at(f, 1), forged_u32(f, blob_prims_at(f, 0)));
+}
+
+static void test_forged_partition(void)
+{
+    forged base;
+    brt_error err;
+    brt_scene *scene = NULL;
+    brt_result r;
+    CHECK(fuzz_fixed_scene_build(scratch("twice_base.brs"), &err) == BRT_OK, "%s", err.message);
+    base.file = tu_slurp(scratch("twice_base.brs"), &base.size);
+    CHECK(base.file && base.size >= 256 && forged_u32(&base, 32) == 4, "the fixed scene has not 4 points");
+    EXPECT(open_forged(&base, "twice.brs", forge_prim_twice, &err) == BRT_OK,
+           "the forgery should pass scene open: %s", err.message);
+    CHECK(brt_scene_open(scratch("twice.brs"), &scene, &err) == BRT_OK, "%s", err.message);
+    r = brt_scene_check_partition(scene, 25, &err);
+    EXPECT(r == BRT_ECHECK && strstr(err.message, "twice.brs: triangle ") &&
+           strstr(err.message, "is in two batching points (again in 1)"), "%s: %s",
+           brt_result_string(r), err.message);
+    brt_scene_close(scene);
+    free(base.file);
+}
+
 /* The validators refuse forgeries, not extremes: a scene built from
 ** triangles at +-FLT_MAX (padded BVH boxes round out to infinity there,
 ** and a proxy grid's far corner overflows a float) opens, loads every blob
@@ -1236,5 +1266,7 @@ void suite_hardening(void)
     test_run("hardening: forged scene files, one per validator, are refused", test_forged_scenes);
     test_run("hardening: forged scene file, a top-level box not holding its node",
              test_forged_node_nesting);
+    test_run("hardening: forged scene file, a triangle in two batching points (partition checker)",
+             test_forged_partition);
     test_run("hardening: a scene at +-FLT_MAX passes the validators", test_extreme_scene_opens);
 }

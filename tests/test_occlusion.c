@@ -436,6 +436,41 @@ static void test_trace_and_hitdiff(void)
     free(direct);
 }
 
+/* The walk stops at the first occluder.  Two triangles, one per batching
+** point, both through o = (0.1, 0.1, 0): A in z = 0, B in x + z = 0.1.  A
+** ray from o down -z with tnear = 0 hits both at t = 0, and both points are
+** entered at t = 0.  As a closest-hit ray it is queued at both (a point
+** entered exactly at the closest hit is visited); as an occlusion ray it
+** is done at the first, its queued visits 1.  (A walk that went on would
+** queue it at the second, entered at 0 <= its limit 0.) */
+static void test_walk_stops_at_occluder(void)
+{
+    static float positions[] = {-1, -1, 0, 1, -1, 0, 0, 1, 0,
+                                1.1f, -1, -1, -0.9f, -1, 1, 0.1f, 2, 0};
+    static uint32_t indices[] = {0, 1, 2, 3, 4, 5};
+    brt_mesh mesh = {positions, indices, 6, 2};
+    brt_ray ray = {{0.1f, 0.1f, 0.0f}, {0.0f, 0.0f, -1.0f}, 0.0f, INFINITY};
+    brt_scene_options sopt;
+    brt_scene *scene = NULL;
+    brt_stats closest, occlusion;
+    brt_hit hit;
+    uint8_t occluded = 0;
+    brt_error err;
+    memset(&sopt, 0, sizeof sopt);
+    sopt.batch_tris = 1;
+    sopt.proxy_res = 4;
+    CHECK(brt_scene_build(&mesh, &sopt, 0, tu_scratch("stop.brs"), &err) == BRT_OK, "%s", err.message);
+    CHECK(brt_scene_open(tu_scratch("stop.brs"), &scene, &err) == BRT_OK, "%s", err.message);
+    EXPECT(brt_scene_trace(scene, NULL, &ray, 1, &hit, &closest, &err) == BRT_OK && hit.t == 0.0f,
+           "closest hit: t = %g, %s", hit.t, err.message);
+    EXPECT(brt_scene_occluded(scene, NULL, &ray, 1, &occluded, &occlusion, &err) == BRT_OK && occluded,
+           "not occluded: %s", err.message);
+    EXPECT(closest.queued_visits == 2 && occlusion.queued_visits == 1,
+           "queued visits: closest-hit ray %llu (expected 2), occlusion ray %llu (expected 1)",
+           (unsigned long long)closest.queued_visits, (unsigned long long)occlusion.queued_visits);
+    brt_scene_close(scene);
+}
+
 void suite_occlusion(void)
 {
     test_run("occlusion: BVH == brute force and the closest-hit cuts, adversarial sets",
@@ -446,4 +481,5 @@ void suite_occlusion(void)
     test_run("occlusion: both kinds in one stream", test_mixed_stream);
     test_run("occlusion: trace --occlusion direct == batched, hitdiff --occlusion",
              test_trace_and_hitdiff);
+    test_run("occlusion: the walk stops at the first occluder", test_walk_stops_at_occluder);
 }
