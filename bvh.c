@@ -93,23 +93,31 @@
 #define MAX_DEPTH (SAH_DEPTH + 32)
 #define STACK_SIZE (3 * MAX_DEPTH + 1)
 #define PAD_REL (16.0f * FLT_EPSILON)
-#define EMPTY_SLOT 0xFFFFFFFFu
-#define BLOB_MAGIC 0x31485642u   /* "BVH1" little endian */
+#define EMPTY_COUNT 0xFFu   /* count[] of an empty slot */
+#define VERTEX_WINDOW 65536u /* 16-bit corner offsets from a node's vertex_base */
+#define NODE_NEW_VERTICES (4u * 3u * MAX_LEAF)   /* corners a node may add */
+#define BLOB_MAGIC 0x32485642u   /* "BVH2" little endian */
 #define BLOB_HEADER 64u        /* bytes: a cache line, so nodes stay aligned */
 
-typedef struct wnode {
-    float box[6][4];      /* min x,y,z rows then max x,y,z rows; 4 slots */
-    uint32_t child[4];    /* node index, first triangle, or EMPTY_SLOT */
-    uint32_t count[4];    /* triangles of a leaf slot; 0 for node/empty */
-} wnode;
+typedef struct qnode {
+    float org[3];         /* the frame: plane q of axis a is */
+    float scale[3];       /*   org[a] + q * scale[a] (decode_plane) */
+    uint8_t q[6][4];      /* min x,y,z rows then max x,y,z rows; 4 slots */
+    uint32_t first_node;  /* the inner slots' children, consecutive */
+    uint32_t first_tri;   /* the leaf slots' triangles, consecutive */
+    uint32_t vertex_base; /* the leaves' corners are vertex_base + idx */
+    uint8_t count[4];     /* 0 inner, 1..MAX_LEAF leaf, EMPTY_COUNT empty */
+} qnode;
+
+typedef char qnode_is_one_cache_line[sizeof(qnode) == 64 ? 1 : -1];
 
 struct brt_bvh {
-    const wnode *nodes;   /* node_count, root first */
-    const float *tris;    /* 9 floats per triangle, in leaf order */
+    const qnode *nodes;   /* node_count, root first */
+    const float *verts;   /* 3 floats per vertex, exactly as given */
     const uint32_t *prim; /* reported number of each stored triangle */
-    uint32_t node_count;
-    uint32_t tri_count;
-    void *owned;          /* one allocation holding all three, or NULL */
+    const uint16_t *idx;  /* 3 corner offsets per triangle, in leaf order */
+    uint32_t node_count, vert_count, tri_count;
+    void *owned;          /* one allocation holding all four, or NULL */
 };
 
 /* ===================================================================== */
@@ -392,13 +400,35 @@ static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float box
     return bit[0] | bit[1] | bit[2] | bit[3];
 }
 
+/* ---- quantized nodes ---- */
+
+/* One plane of a node's frame: org + q * scale, each operation rounded
+** once (-ffp-contract=off), hence non-decreasing in q.  The build, the
+** traversal, bounds and the checker all decode through this one
+** function, so they all see the same floats. */
+static inline float decode_plane(float org, float scale, unsigned q)
+{
+    return org + (float)q * scale;
+}
+
+/* The four slots' boxes as brt_box_span4 rows.  Written as a plain
+** 6 x 4 loop so that GCC -O2 vectorizes the byte-to-float conversion. */
+static inline ALWAYS_INLINE void decode_boxes(const qnode *n, float box[6][4])
+{
+    int r, i;
+    for (r = 0; r < 6; r++)
+        for (i = 0; i < 4; i++)
+            box[r][i] = decode_plane(n->org[r % 3], n->scale[r % 3], n->q[r][i]);
+}
+
 /* A node's slots: only the entries are wanted (the exits are dead stores
-** the compiler drops). */
-static inline unsigned box_test4(const box_ray *b, const wnode *n,
+** the compiler drops).  Empty slots are masked out by the caller. */
+static inline unsigned box_test4(const box_ray *b, const qnode *n,
                                  float tnear, float tfar, float lo[4])
 {
-    float hi[4];
-    return box_span4(b, n->box, tnear, tfar, lo, hi);
+    float box[6][4], hi[4];
+    decode_boxes(n, box);
+    return box_span4(b, (const float (*)[4])box, tnear, tfar, lo, hi);
 }
 
 unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tmin,
@@ -409,6 +439,25 @@ unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tm
     return box_span4(&b, box, tmin, tmax, entry, exit);
 }
 
+/* What each slot points to: inner slots take the node's consecutive
+** children from first_node on, leaf slots the consecutive triangle
+** ranges from first_tri on, both in slot order.  Returns the mask of
+** non-empty slots (target[] of an empty slot is left unset). */
+static inline unsigned slot_targets(const qnode *n, uint32_t target[4])
+{
+    uint32_t node = n->first_node, tri = n->first_tri;
+    unsigned valid = 0;
+    int i;
+    for (i = 0; i < 4; i++) {
+        const unsigned c = n->count[i];
+        if (c == EMPTY_COUNT) continue;
+        valid |= 1u << i;
+        if (c == 0) target[i] = node++;
+        else { target[i] = tri; tri += c; }
+    }
+    return valid;
+}
+
 /* ===================================================================== */
 /* Traversal                                                             */
 /* ===================================================================== */
@@ -416,43 +465,39 @@ unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tm
 typedef struct stack_entry {
     uint32_t child;
     uint32_t count;   /* > 0: a leaf */
+    uint32_t vbase;   /* the leaf's vertex_base */
     float lo;         /* entry distance, for pruning when popped */
 } stack_entry;
 
 /* The lowest set bit of a 4-bit mask (C99 has no ctz). */
 static const unsigned char lowest_bit[16] = {0, 0, 1, 0, 2, 0, 1, 0, 3, 0, 1, 0, 2, 0, 1, 0};
 
-/* Starts fetching the memory of every slot in mask (a child node's two
-** cache lines, a leaf's triangles) before the first is visited: cold
-** rays wait on DRAM for nearly every node, and these misses then overlap
+/* Starts fetching the memory of every slot in mask (a child node's cache
+** line, a leaf's vertex indices) before the first is visited: cold rays
+** wait on DRAM for nearly every node, and these misses then overlap
 ** instead of queueing one after another.  A hint only: without GCC's
 ** builtin (or clang's, which defines __GNUC__ too) it does nothing. */
-static void prefetch_slots(const brt_bvh *bvh, const wnode *n, unsigned mask)
+static void prefetch_slots(const brt_bvh *bvh, const qnode *n, const uint32_t target[4],
+                           unsigned mask)
 {
 #if defined(__GNUC__)
     for (; mask != 0; mask &= mask - 1) {
         const unsigned i = lowest_bit[mask];
-        const char *p, *end;
-        if (n->count[i] == 0) {
-            p = (const char *)&bvh->nodes[n->child[i]];
-            end = p + sizeof(wnode);
-        } else {
-            p = (const char *)(bvh->tris + 9 * (size_t)n->child[i]);
-            end = p + 36 * (size_t)n->count[i];
-        }
-        for (; p < end; p += 64) __builtin_prefetch(p);
-        __builtin_prefetch(end - 1);
+        if (n->count[i] == 0) __builtin_prefetch(&bvh->nodes[target[i]]);
+        else __builtin_prefetch(bvh->idx + 3 * (size_t)target[i]);
     }
 #else
-    (void)bvh; (void)n; (void)mask;
+    (void)bvh; (void)n; (void)target; (void)mask;
 #endif
 }
 
-static stack_entry slot_entry(const wnode *n, unsigned i, const float lo[4])
+static stack_entry slot_entry(const qnode *n, const uint32_t target[4], unsigned i,
+                              const float lo[4])
 {
     stack_entry e;
-    e.child = n->child[i];
+    e.child = target[i];
     e.count = n->count[i];
+    e.vbase = n->vertex_base;
     e.lo = lo[i];
     return e;
 }
@@ -462,13 +507,13 @@ static stack_entry slot_entry(const wnode *n, unsigned i, const float lo[4])
 ** takes the short path; otherwise the slot numbers are insertion-sorted
 ** by descending entry distance and only then copied out.  Returns the
 ** new stack size. */
-static int next_child(const wnode *n, unsigned mask, const float lo[4],
-                      stack_entry *stack, int sp, stack_entry *next)
+static int next_child(const qnode *n, const uint32_t target[4], unsigned mask,
+                      const float lo[4], stack_entry *stack, int sp, stack_entry *next)
 {
     unsigned order[4];
     int k = 0, j;
     if ((mask & (mask - 1)) == 0) {
-        *next = slot_entry(n, lowest_bit[mask], lo);
+        *next = slot_entry(n, target, lowest_bit[mask], lo);
         return sp;
     }
     for (; mask != 0; mask &= mask - 1) {
@@ -476,27 +521,37 @@ static int next_child(const wnode *n, unsigned mask, const float lo[4],
         for (j = k++; j > 0 && lo[order[j - 1]] < lo[i]; j--) order[j] = order[j - 1];
         order[j] = i;
     }
-    for (j = 0; j < k - 1; j++) stack[sp++] = slot_entry(n, order[j], lo);
-    *next = slot_entry(n, order[k - 1], lo);
+    for (j = 0; j < k - 1; j++) stack[sp++] = slot_entry(n, target, order[j], lo);
+    *next = slot_entry(n, target, order[k - 1], lo);
     return sp;
 }
 
-/* The geometric normal (v1-v0) x (v2-v0) of a stored triangle. */
-static void triangle_normal(const float *p, float n[3])
+/* The three corners of stored triangle k of a leaf whose node has
+** vertex_base vbase. */
+static void triangle_corners(const brt_bvh *bvh, uint32_t k, uint32_t vbase,
+                             const float *p[3])
+{
+    const uint16_t *ix = bvh->idx + 3 * (size_t)k;
+    p[0] = bvh->verts + 3 * ((size_t)vbase + ix[0]);
+    p[1] = bvh->verts + 3 * ((size_t)vbase + ix[1]);
+    p[2] = bvh->verts + 3 * ((size_t)vbase + ix[2]);
+}
+
+/* The geometric normal (v1-v0) x (v2-v0) of a triangle. */
+static void triangle_normal(const float *const p[3], float n[3])
 {
     int a;
     for (a = 0; a < 3; a++) {
         const int b = (a + 1) % 3, c = (a + 2) % 3;
-        n[a] = (p[3 + b] - p[b]) * (p[6 + c] - p[c]) - (p[3 + c] - p[c]) * (p[6 + b] - p[b]);
+        n[a] = (p[1][b] - p[0][b]) * (p[2][c] - p[0][c]) - (p[1][c] - p[0][c]) * (p[2][b] - p[0][b]);
     }
 }
 
 /* Closest hit into *hit (and its triangle's normal into normal, unless
 ** NULL, whenever the hit changes), or (any != 0) returns 1 at the first
-** hit.  Empty slots have inverted boxes, so they never hit.  The tree is checked
-** acyclic with depth <= MAX_DEPTH at build/open time, so each node is
-** entered at most once and the stack (3 entries per level) never
-** overflows. */
+** hit.  Empty slots are masked out.  The tree is checked acyclic with
+** depth <= MAX_DEPTH at build/open time, so each node is entered at most
+** once and the stack (3 entries per level) never overflows. */
 static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
                     float normal[3], int any)
 {
@@ -516,20 +571,23 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
     tri_ray_setup(ray, &tr);
     cur.child = 0;
     cur.count = 0;
+    cur.vbase = 0;
     cur.lo = ray->tnear;
     for (;;) {
         uint32_t k;
         while (cur.count == 0) {
-            const wnode *n = &bvh->nodes[cur.child];
-            const unsigned mask = box_test4(&br, n, ray->tnear, tfar, lo);
+            const qnode *n = &bvh->nodes[cur.child];
+            uint32_t target[4];
+            const unsigned mask = box_test4(&br, n, ray->tnear, tfar, lo) & slot_targets(n, target);
             if (mask == 0) goto pop;
-            prefetch_slots(bvh, n, mask);
-            sp = next_child(n, mask, lo, stack, sp, &cur);
+            prefetch_slots(bvh, n, target, mask);
+            sp = next_child(n, target, mask, lo, stack, sp, &cur);
         }
         for (k = cur.child; k < cur.child + cur.count; k++) {
-            const float *p = bvh->tris + 9 * (size_t)k;
+            const float *p[3];
             float t, u, v;
-            if (!tri_intersect(&tr, &prep, p, p + 3, p + 6, ray->tnear, tfar, &t, &u, &v))
+            triangle_corners(bvh, k, cur.vbase, p);
+            if (!tri_intersect(&tr, &prep, p[0], p[1], p[2], ray->tnear, tfar, &t, &u, &v))
                 continue;
             if (any) return 1;
             if (brt_hit_is_closer(t, bvh->prim[k], hit)) {
@@ -797,10 +855,10 @@ static uint32_t build_node(builder *b, uint32_t begin, uint32_t end,
 }
 
 /* ===================================================================== */
-/* Collapse into the 4-wide layout                                       */
+/* Collapse into the 4-wide quantized layout                             */
 /* ===================================================================== */
 
-/* The stored boxes are padded with pad_box, like every box tested. */
+/* The stored boxes are padded with brt_box_pad, like every box tested. */
 static aabb aabb_padded(const aabb *box)
 {
     aabb p = *box;
@@ -808,28 +866,133 @@ static aabb aabb_padded(const aabb *box)
     return p;
 }
 
-static void set_slot(wnode *w, int i, const aabb *box, uint32_t child, uint32_t count)
+/* The frame of a node along each axis: org = the lowest plane of its
+** slots' padded boxes, and the smallest scale (starting from the rounded
+** quotient, one ulp at a time) with org + 255 * scale >= the highest
+** plane.  A frame that overflows (coordinates near FLT_MAX) decodes to
+** inf or NaN planes, which the box test treats as no constraint (NaN
+** never narrows), so such nodes are only slower, never wrong. */
+static void set_frame(qnode *w, const aabb *u)
 {
     int a;
     for (a = 0; a < 3; a++) {
-        w->box[a][i] = box->lo[a];
-        w->box[a + 3][i] = box->hi[a];
+        float s = (u->hi[a] - u->lo[a]) / 255.0f;
+        if (s < FLT_MIN) s = FLT_MIN;   /* also a zero extent: planes stay distinct */
+        w->org[a] = u->lo[a];
+        while (decode_plane(u->lo[a], s, 255) < u->hi[a]) s = nextafterf(s, INFINITY);
+        w->scale[a] = s;
     }
-    w->child[i] = child;
-    w->count[i] = count;
 }
 
-/* Fills wide node w with the descendants of binary node bi found by
-** opening the largest-area inner child until there are four.  The inner
-** children get consecutive indices after everything emitted so far (so
-** they follow their parent and sit together in memory, where one fetch
-** brings in the next sibling too), then are filled in turn. */
-static void emit_wide(const builder *b, wnode *out, uint32_t *out_count,
-                      uint32_t bi, uint32_t w)
+/* Rounding OUTWARD: the largest q whose plane is <= v (q = 0 always
+** qualifies, its plane is org), and the smallest q whose plane is >= v
+** (q = 255 always qualifies).  Binary searches, valid because
+** decode_plane is non-decreasing in q; comparisons only, so inf and NaN
+** frames cannot trap. */
+static unsigned quantize_down(float org, float scale, float v)
+{
+    unsigned a = 0, b = 255;
+    while (a < b) {
+        const unsigned mid = (a + b + 1) / 2;
+        if (decode_plane(org, scale, mid) <= v) a = mid;
+        else b = mid - 1;
+    }
+    return a;
+}
+
+static unsigned quantize_up(float org, float scale, float v)
+{
+    unsigned a = 0, b = 255;
+    while (a < b) {
+        const unsigned mid = (a + b) / 2;
+        if (decode_plane(org, scale, mid) >= v) b = mid;
+        else a = mid + 1;
+    }
+    return a;
+}
+
+/* Slot i's box, quantized in w's frame (set_frame first). */
+static void set_slot_box(qnode *w, int i, const aabb *box)
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        w->q[a][i] = (uint8_t)quantize_down(w->org[a], w->scale[a], box->lo[a]);
+        w->q[a + 3][i] = (uint8_t)quantize_up(w->org[a], w->scale[a], box->hi[a]);
+    }
+}
+
+/* The output of the collapse: nodes, then the leaf triangles as they are
+** emitted, with their corners shared through a small direct-mapped table
+** of recently stored vertices (a table miss only stores a vertex twice,
+** which costs bytes, never answers). */
+#define VERTEX_TABLE (1u << 16)
+#define NO_VERTEX 0xFFFFFFFFu
+
+typedef struct emitter {
+    const builder *b;
+    const float *positions;
+    const uint32_t *indices, *prim_ids;
+    qnode *nodes;
+    uint32_t node_count, tri_count, vert_count, vert_cap;
+    uint16_t *idx;        /* 3 per triangle, relative to the node's vertex_base */
+    uint32_t *prim;
+    float *verts;         /* grows; at most 3 per triangle */
+    uint32_t *recent;     /* VERTEX_TABLE entries: a vertex with that hash */
+} emitter;
+
+static uint32_t vertex_hash(const float *p)
+{
+    uint32_t w[3], h;
+    memcpy(w, p, sizeof w);
+    h = w[0] * 0x9E3779B1u ^ w[1] * 0x85EBCA77u ^ w[2] * 0xC2B2AE3Du;
+    return (h ^ (h >> 16)) & (VERTEX_TABLE - 1);
+}
+
+/* The index of a vertex with p's exact bits at or after base, stored
+** now if the table knows none; NO_VERTEX when out of memory.  Equal bits
+** are the same float values, so sharing never changes a triangle. */
+static uint32_t vertex_index(emitter *e, const float *p, uint32_t base)
+{
+    const uint32_t h = vertex_hash(p);
+    const uint32_t j = e->recent[h];
+    if (j < e->vert_count && j >= base && memcmp(e->verts + 3 * (size_t)j, p, 12) == 0)
+        return j;
+    if (e->vert_count == e->vert_cap) {
+        const uint32_t cap = e->vert_cap < 0x3FFFFFFFu ? 2 * e->vert_cap : 0xFFFFFFFEu;
+        float *v = realloc(e->verts, 12 * (size_t)cap);
+        if (!v) return NO_VERTEX;
+        e->verts = v;
+        e->vert_cap = cap;
+    }
+    memcpy(e->verts + 3 * (size_t)e->vert_count, p, 12);
+    e->recent[h] = e->vert_count;
+    return e->vert_count++;
+}
+
+/* Appends the triangles of binary leaf c, their corners indexed from
+** base; 0 when out of memory. */
+static int emit_leaf(emitter *e, const bnode *c, uint32_t base)
+{
+    uint32_t k;
+    int j;
+    for (k = c->first; k < c->first + c->count; k++) {
+        const uint32_t t = e->b->refs[k].tri, out = e->tri_count++;
+        for (j = 0; j < 3; j++) {
+            const uint32_t v = vertex_index(e, e->positions + 3 * (size_t)e->indices[3 * (size_t)t + j], base);
+            if (v == NO_VERTEX) return 0;
+            e->idx[3 * (size_t)out + j] = (uint16_t)(v - base);
+        }
+        e->prim[out] = e->prim_ids ? e->prim_ids[t] : t;
+    }
+    return 1;
+}
+
+/* Picks the (up to four) binary nodes that become the slots of a wide
+** node: opens the largest-area inner child until there are four (as
+** Embree does).  Returns how many. */
+static int wide_slots(const builder *b, uint32_t bi, uint32_t slot[4])
 {
     const bnode *root = &b->nodes[bi];
-    uint32_t slot[4], child[4];
-    aabb empty;
     int n = 0, i;
     if (root->count > 0) slot[n++] = bi;
     else { slot[n++] = root->left; slot[n++] = root->right; }
@@ -844,39 +1007,97 @@ static void emit_wide(const builder *b, wnode *out, uint32_t *out_count,
         slot[n++] = b->nodes[slot[open]].right;
         slot[open] = b->nodes[slot[open]].left;
     }
-    aabb_empty(&empty);
-    for (i = 0; i < 4; i++) set_slot(&out[w], i, &empty, EMPTY_SLOT, 0);
+    return n;
+}
+
+/* Fills wide node w from binary node bi.  Its inner children get
+** consecutive indices after everything emitted so far (so they follow
+** their parent and sit together in memory), its leaves' triangles are
+** appended in slot order, and its vertex_base is chosen so that every
+** vertex it may add (at most NODE_NEW_VERTICES) gets a 16-bit offset:
+** older vertices below the base are stored again.  0 when out of
+** memory. */
+static int emit_wide(emitter *e, uint32_t bi, uint32_t w)
+{
+    const builder *b = e->b;
+    qnode *out = &e->nodes[w];
+    uint32_t slot[4], first;
+    aabb box[4], frame;
+    const int n = wide_slots(b, bi, slot);
+    int i, inner = 0;
+    memset(out, 0, sizeof *out);
+    aabb_empty(&frame);
+    for (i = 0; i < n; i++) {
+        box[i] = aabb_padded(&b->nodes[slot[i]].box);
+        aabb_grow(&frame, &box[i]);
+    }
+    set_frame(out, &frame);
+    out->first_node = first = e->node_count;
+    out->first_tri = e->tri_count;
+    out->vertex_base = e->vert_count > VERTEX_WINDOW - NODE_NEW_VERTICES
+                     ? e->vert_count - (VERTEX_WINDOW - NODE_NEW_VERTICES) : 0;
+    for (i = 0; i < 4; i++) out->count[i] = EMPTY_COUNT;
     for (i = 0; i < n; i++) {
         const bnode *c = &b->nodes[slot[i]];
-        const aabb box = aabb_padded(&c->box);
-        child[i] = c->count > 0 ? c->first : (*out_count)++;
-        set_slot(&out[w], i, &box, child[i], c->count);
+        set_slot_box(out, i, &box[i]);
+        out->count[i] = (uint8_t)c->count;
+        if (c->count == 0) inner++;
+        else if (!emit_leaf(e, c, out->vertex_base)) return 0;
     }
+    e->node_count += (uint32_t)inner;
     for (i = 0; i < n; i++)
-        if (b->nodes[slot[i]].count == 0) emit_wide(b, out, out_count, slot[i], child[i]);
+        if (b->nodes[slot[i]].count == 0 && !emit_wide(e, slot[i], first++)) return 0;
+    return 1;
 }
 
 /* ===================================================================== */
 /* Build, free, queries                                                  */
 /* ===================================================================== */
 
-/* One allocation for nodes, triangles and prim ids (the blob's order). */
-static brt_bvh *bvh_alloc(uint32_t node_count, uint32_t tri_count)
+static uint64_t arrays_bytes(uint64_t node_count, uint64_t vert_count, uint64_t tri_count)
 {
-    const size_t bytes = (size_t)node_count * sizeof(wnode) + (size_t)tri_count * 40u;
-    brt_bvh *bvh = calloc(1, sizeof *bvh);
-    void *mem = NULL;
-    /* 64-byte alignment: a 128-byte node then spans 2 cache lines, not 3. */
-    if (bytes && posix_memalign(&mem, 64, bytes) != 0) mem = NULL;
-    if (!bvh || (bytes && !mem)) { free(bvh); free(mem); return NULL; }
-    if (!mem) return bvh;   /* the empty BVH: no arrays */
-    bvh->owned = mem;
-    bvh->nodes = (const wnode *)(void *)mem;
-    bvh->tris = (const float *)(void *)((char *)mem + (size_t)node_count * sizeof(wnode));
-    bvh->prim = (const uint32_t *)(void *)((char *)mem + (size_t)node_count * sizeof(wnode)
-                                           + (size_t)tri_count * 36u);
+    return node_count * sizeof(qnode) + vert_count * 12u + tri_count * 10u;
+}
+
+/* Points the arrays into mem, in the blob's order: nodes, vertices,
+** prim ids, vertex indices (each array then starts aligned for its type). */
+static void bvh_point(brt_bvh *bvh, const void *mem, uint32_t node_count,
+                      uint32_t vert_count, uint32_t tri_count)
+{
+    const char *p = mem;
     bvh->node_count = node_count;
+    bvh->vert_count = vert_count;
     bvh->tri_count = tri_count;
+    bvh->nodes = (const qnode *)(const void *)p;
+    p += (size_t)node_count * sizeof(qnode);
+    bvh->verts = (const float *)(const void *)p;
+    p += (size_t)vert_count * 12u;
+    bvh->prim = (const uint32_t *)(const void *)p;
+    p += (size_t)tri_count * 4u;
+    bvh->idx = (const uint16_t *)(const void *)p;
+}
+
+/* One allocation for all arrays, copied from the emitter. */
+static brt_bvh *bvh_from_emitter(const emitter *e)
+{
+    const size_t bytes = (size_t)arrays_bytes(e->node_count, e->vert_count, e->tri_count);
+    brt_bvh *bvh = calloc(1, sizeof *bvh);
+    char *mem = NULL;
+    void *m = NULL;
+    /* 64-byte alignment: a node is then one cache line. */
+    if (bytes && posix_memalign(&m, 64, bytes) != 0) m = NULL;
+    if (!bvh || (bytes && !m)) { free(bvh); free(m); return NULL; }
+    if (!m) return bvh;   /* the empty BVH: no arrays */
+    mem = m;
+    bvh->owned = m;
+    memcpy(mem, e->nodes, (size_t)e->node_count * sizeof(qnode));
+    mem += (size_t)e->node_count * sizeof(qnode);
+    memcpy(mem, e->verts, (size_t)e->vert_count * 12u);
+    mem += (size_t)e->vert_count * 12u;
+    memcpy(mem, e->prim, (size_t)e->tri_count * 4u);
+    mem += (size_t)e->tri_count * 4u;
+    memcpy(mem, e->idx, (size_t)e->tri_count * 6u);
+    bvh_point(bvh, m, e->node_count, e->vert_count, e->tri_count);
     return bvh;
 }
 
@@ -902,21 +1123,32 @@ static int setup_refs(builder *b, const float *positions,
     return 1;
 }
 
-static void store_triangles(const builder *b, const float *positions,
-                            const uint32_t *indices, const uint32_t *prim_ids,
-                            brt_bvh *bvh)
+/* The emitter's arrays, sized for the worst case except the vertices
+** (which grow: most meshes share each vertex among about six triangles). */
+static int emitter_init(emitter *e, const builder *b, const float *positions,
+                        const uint32_t *indices, const uint32_t *prim_ids, uint32_t tri_count)
 {
-    float *tris = (float *)(void *)((char *)bvh->owned + (size_t)bvh->node_count * sizeof(wnode));
-    uint32_t *prim = (uint32_t *)(void *)(tris + 9 * (size_t)bvh->tri_count);
-    uint32_t k;
-    int j;
-    for (k = 0; k < bvh->tri_count; k++) {
-        const uint32_t t = b->refs[k].tri;
-        for (j = 0; j < 3; j++)
-            memcpy(tris + 9 * (size_t)k + 3 * j,
-                   positions + 3 * (size_t)indices[3 * (size_t)t + j], 3 * sizeof(float));
-        prim[k] = prim_ids ? prim_ids[t] : t;
-    }
+    uint32_t i;
+    memset(e, 0, sizeof *e);
+    e->b = b;
+    e->positions = positions;
+    e->indices = indices;
+    e->prim_ids = prim_ids;
+    e->nodes = malloc((2 * (size_t)tri_count - 1) * sizeof *e->nodes);
+    e->idx = malloc(3 * (size_t)tri_count * sizeof *e->idx);
+    e->prim = malloc((size_t)tri_count * sizeof *e->prim);
+    e->vert_cap = tri_count / 2 + NODE_NEW_VERTICES;
+    e->verts = malloc(12 * (size_t)e->vert_cap);
+    e->recent = malloc(VERTEX_TABLE * sizeof *e->recent);
+    if (!e->nodes || !e->idx || !e->prim || !e->verts || !e->recent) return 0;
+    for (i = 0; i < VERTEX_TABLE; i++) e->recent[i] = NO_VERTEX;
+    e->node_count = 1;
+    return 1;
+}
+
+static void emitter_free(emitter *e)
+{
+    free(e->nodes); free(e->idx); free(e->prim); free(e->verts); free(e->recent);
 }
 
 brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
@@ -924,33 +1156,29 @@ brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
                          brt_bvh **out)
 {
     builder b;
-    wnode *wide = NULL;
-    uint32_t wide_count = 0;
+    emitter e;
     aabb box, cbox;
     brt_result r = BRT_ENOMEM;
     *out = NULL;
     if (tri_count > 0 && (!positions || !indices)) return BRT_EARG;
     if (tri_count == 0) {
-        *out = bvh_alloc(0, 0);
+        *out = calloc(1, sizeof **out);
         return *out ? BRT_OK : BRT_ENOMEM;
     }
     memset(&b, 0, sizeof b);
     b.refs = malloc((size_t)tri_count * sizeof *b.refs);
     b.nodes = malloc((2 * (size_t)tri_count - 1) * sizeof *b.nodes);
-    wide = malloc((2 * (size_t)tri_count - 1) * sizeof *wide);
-    if (!b.refs || !b.nodes || !wide) goto done;
+    if (!emitter_init(&e, &b, positions, indices, prim_ids, tri_count) || !b.refs || !b.nodes)
+        goto done;
     if (!setup_refs(&b, positions, indices, tri_count)) { r = BRT_EARG; goto done; }
     range_bounds(&b, 0, tri_count, &box, &cbox);
     build_node(&b, 0, tri_count, &box, &cbox, 0);
-    wide_count = 1;
-    emit_wide(&b, wide, &wide_count, 0, 0);
-    *out = bvh_alloc(wide_count, tri_count);
-    if (!*out) goto done;
-    memcpy((*out)->owned, wide, (size_t)wide_count * sizeof *wide);
-    store_triangles(&b, positions, indices, prim_ids, *out);
-    r = BRT_OK;
+    if (!emit_wide(&e, 0, 0)) goto done;
+    *out = bvh_from_emitter(&e);
+    if (*out) r = BRT_OK;
 done:
-    free(b.refs); free(b.nodes); free(wide);
+    free(b.refs); free(b.nodes);
+    emitter_free(&e);
     return r;
 }
 
@@ -966,19 +1194,21 @@ const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh) { return bvh->prim; }
 
 size_t brt_bvh_memory_bytes(const brt_bvh *bvh)
 {
-    return (size_t)bvh->node_count * sizeof(wnode) + (size_t)bvh->tri_count * 40u;
+    return (size_t)arrays_bytes(bvh->node_count, bvh->vert_count, bvh->tri_count);
 }
 
 void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3])
 {
+    float box[6][4];
     int a, i;
     for (a = 0; a < 3; a++) { bmin[a] = INFINITY; bmax[a] = -INFINITY; }
     if (bvh->node_count == 0) return;
+    decode_boxes(&bvh->nodes[0], box);
     for (i = 0; i < 4; i++) {
-        if (bvh->nodes[0].count[i] == 0 && bvh->nodes[0].child[i] == EMPTY_SLOT) continue;
+        if (bvh->nodes[0].count[i] == EMPTY_COUNT) continue;
         for (a = 0; a < 3; a++) {
-            if (bvh->nodes[0].box[a][i] < bmin[a]) bmin[a] = bvh->nodes[0].box[a][i];
-            if (bvh->nodes[0].box[a + 3][i] > bmax[a]) bmax[a] = bvh->nodes[0].box[a + 3][i];
+            if (box[a][i] < bmin[a]) bmin[a] = box[a][i];
+            if (box[a + 3][i] > bmax[a]) bmax[a] = box[a + 3][i];
         }
     }
 }
@@ -987,24 +1217,32 @@ void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3])
 /* Structure validation (blob open) and the checker                      */
 /* ===================================================================== */
 
-static int slot_is_empty(const wnode *n, int i)
+/* Marks the triangles of one leaf slot, checking that the range is in
+** bounds, that no triangle is in two leaves and that every corner index
+** lands in the vertex array.  The message on failure, else NULL. */
+static const char *mark_leaf(const brt_bvh *bvh, const qnode *n, uint32_t c, unsigned count,
+                             unsigned char *seen)
 {
-    return n->count[i] == 0 && n->child[i] == EMPTY_SLOT;
-}
-
-/* Traversal relies on empty slots never passing the box test. */
-static int slot_box_is_inverted(const wnode *n, int s)
-{
-    int a;
-    for (a = 0; a < 3; a++)
-        if (n->box[a][s] != INFINITY || n->box[a + 3][s] != -INFINITY) return 0;
-    return 1;
+    uint32_t k;
+    int j;
+    if (count > MAX_LEAF || c >= bvh->tri_count || count > bvh->tri_count - c)
+        return "bad leaf range";
+    for (k = c; k < c + count; k++) {
+        if (seen[k]) return "a triangle in two leaves";
+        seen[k] = 1;
+        for (j = 0; j < 3; j++)
+            if ((uint64_t)n->vertex_base + bvh->idx[3 * (size_t)k + j] >= bvh->vert_count)
+                return "vertex index out of range";
+    }
+    return NULL;
 }
 
 /* Indices in range, children after parents and referenced once (so the
 ** nodes form one tree), depth <= MAX_DEPTH, every triangle in exactly one
-** leaf, empty slots with inverted boxes.  Everything traversal relies on
-** to stay in bounds and terminate. */
+** leaf, slot counts 0 (inner), 1..MAX_LEAF (leaf) or EMPTY_COUNT, every
+** corner in the vertex array.  Everything traversal relies on to stay in
+** bounds and terminate.  (Any frame and box bytes are safe: a NaN plane
+** only never narrows.) */
 static brt_result validate_structure(const brt_bvh *bvh, brt_result code,
                                      brt_error *err)
 {
@@ -1012,43 +1250,37 @@ static brt_result validate_structure(const brt_bvh *bvh, brt_result code,
     uint32_t i, k;
     brt_result r = code;
     int s;
-    if ((bvh->node_count == 0) != (bvh->tri_count == 0))
-        return brt_fail(err, code, "bvh: %u nodes for %u triangles",
-                        (unsigned)bvh->node_count, (unsigned)bvh->tri_count);
+    if ((bvh->node_count == 0) != (bvh->tri_count == 0) || bvh->vert_count / 3 > bvh->tri_count)
+        return brt_fail(err, code, "bvh: %u nodes and %u vertices for %u triangles",
+                        (unsigned)bvh->node_count, (unsigned)bvh->vert_count,
+                        (unsigned)bvh->tri_count);
     if (bvh->node_count == 0) return BRT_OK;
     depth = calloc(bvh->node_count, 1);
     seen = calloc(bvh->tri_count, 1);
     if (!depth || !seen) { r = brt_fail(err, BRT_ENOMEM, "bvh: out of memory"); goto done; }
     depth[0] = 1;
     for (i = 0; i < bvh->node_count; i++) {
-        const wnode *n = &bvh->nodes[i];
+        const qnode *n = &bvh->nodes[i];
+        uint32_t c = n->first_node, t = n->first_tri;
         if (depth[i] == 0) { brt_fail(err, code, "bvh: node %u is never referenced", (unsigned)i); goto done; }
         for (s = 0; s < 4; s++) {
-            const uint32_t c = n->child[s];
-            if (slot_is_empty(n, s)) {
-                if (!slot_box_is_inverted(n, s)) {
-                    brt_fail(err, code, "bvh: node %u slot %d: empty slot with a box", (unsigned)i, s);
-                    goto done;
-                }
-                continue;
-            }
+            const char *bad;
+            if (n->count[s] == EMPTY_COUNT) continue;
             if (n->count[s] == 0) {
                 if (c <= i || c >= bvh->node_count || depth[c] != 0 || depth[i] >= MAX_DEPTH) {
                     brt_fail(err, code, "bvh: node %u slot %d: bad child node %u", (unsigned)i, s, (unsigned)c);
                     goto done;
                 }
-                depth[c] = (unsigned char)(depth[i] + 1);
+                depth[c++] = (unsigned char)(depth[i] + 1);
                 continue;
             }
-            if (n->count[s] > MAX_LEAF || c >= bvh->tri_count || n->count[s] > bvh->tri_count - c) {
-                brt_fail(err, code, "bvh: node %u slot %d: bad leaf range %u+%u", (unsigned)i, s,
-                         (unsigned)c, (unsigned)n->count[s]);
+            bad = mark_leaf(bvh, n, t, n->count[s], seen);
+            if (bad) {
+                brt_fail(err, code, "bvh: node %u slot %d: %s (triangles %u+%u)", (unsigned)i, s,
+                         bad, (unsigned)t, (unsigned)n->count[s]);
                 goto done;
             }
-            for (k = c; k < c + n->count[s]; k++) {
-                if (seen[k]) { brt_fail(err, code, "bvh: triangle %u in two leaves", (unsigned)k); goto done; }
-                seen[k] = 1;
-            }
+            t += n->count[s];
         }
     }
     for (k = 0; k < bvh->tri_count; k++)
@@ -1060,37 +1292,52 @@ done:
     return r;
 }
 
-static int slot_contains(const wnode *n, int s, const float p[3])
+/* The checker's geometry: every triangle's padded box (the box its hit
+** distance is clamped into) lies inside the decoded box of every slot on
+** its path from the root.  That is what makes pruning exact (README,
+** Floating point, rules 2 and 3): such a slot is entered no later and
+** left no earlier than any hit on the triangle.  clip is the
+** intersection of the decoded boxes above node i (exact min/max, no
+** rounding), so one containment test per triangle covers its whole path. */
+static brt_result check_node(const brt_bvh *bvh, uint32_t i, const aabb *clip, brt_error *err)
 {
-    int a;
-    for (a = 0; a < 3; a++)
-        if (!(n->box[a][s] <= p[a] && p[a] <= n->box[a + 3][s])) return 0;
-    return 1;
-}
-
-/* Geometry of one slot: a leaf's triangles or a child's slots inside it. */
-static brt_result check_slot(const brt_bvh *bvh, uint32_t i, int s, brt_error *err)
-{
-    const wnode *n = &bvh->nodes[i];
-    uint32_t k;
-    int cs, a;
-    if (n->count[s] > 0) {
-        for (k = n->child[s]; k < n->child[s] + n->count[s]; k++)
+    const qnode *n = &bvh->nodes[i];
+    uint32_t target[4], k;
+    float box[6][4];
+    const unsigned valid = slot_targets(n, target);
+    int s, a;
+    decode_boxes(n, box);
+    for (s = 0; s < 4; s++) {
+        aabb c = *clip;
+        brt_result r;
+        if (!(valid >> s & 1u)) continue;
+        for (a = 0; a < 3; a++) {
+            c.lo[a] = box[a][s] > c.lo[a] ? box[a][s] : c.lo[a];
+            c.hi[a] = box[a + 3][s] < c.hi[a] ? box[a + 3][s] : c.hi[a];
+        }
+        if (n->count[s] == 0) {
+            r = check_node(bvh, target[s], &c, err);
+            if (r != BRT_OK) return r;
+            continue;
+        }
+        for (k = target[s]; k < target[s] + n->count[s]; k++) {
+            const float *p[3];
+            aabb t;
+            int j;
+            triangle_corners(bvh, k, n->vertex_base, p);
+            aabb_empty(&t);
+            for (j = 0; j < 3; j++)
+                for (a = 0; a < 3; a++) {
+                    t.lo[a] = p[j][a] < t.lo[a] ? p[j][a] : t.lo[a];
+                    t.hi[a] = p[j][a] > t.hi[a] ? p[j][a] : t.hi[a];
+                }
+            t = aabb_padded(&t);
             for (a = 0; a < 3; a++)
-                if (!slot_contains(n, s, bvh->tris + 9 * (size_t)k + 3 * a))
+                if (!(c.lo[a] <= t.lo[a] && t.hi[a] <= c.hi[a]))
                     return brt_fail(err, BRT_ECHECK, "bvh: node %u slot %d: triangle %u (prim %u) "
-                                    "vertex %d outside the leaf box", (unsigned)i, s, (unsigned)k,
-                                    (unsigned)bvh->prim[k], a);
-        return BRT_OK;
-    }
-    for (cs = 0; cs < 4; cs++) {
-        const wnode *c = &bvh->nodes[n->child[s]];
-        float lo[3], hi[3];
-        if (slot_is_empty(c, cs)) continue;
-        for (a = 0; a < 3; a++) { lo[a] = c->box[a][cs]; hi[a] = c->box[a + 3][cs]; }
-        if (!slot_contains(n, s, lo) || !slot_contains(n, s, hi))
-            return brt_fail(err, BRT_ECHECK, "bvh: node %u slot %d: box of node %u slot %d "
-                            "not inside it", (unsigned)i, s, (unsigned)n->child[s], cs);
+                                    "outside a box on its path", (unsigned)i, s, (unsigned)k,
+                                    (unsigned)bvh->prim[k]);
+        }
     }
     return BRT_OK;
 }
@@ -1098,29 +1345,37 @@ static brt_result check_slot(const brt_bvh *bvh, uint32_t i, int s, brt_error *e
 brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err)
 {
     brt_result r = validate_structure(bvh, BRT_ECHECK, err);
-    uint32_t i;
-    int s;
-    for (i = 0; r == BRT_OK && i < bvh->node_count; i++)
-        for (s = 0; r == BRT_OK && s < 4; s++)
-            if (!slot_is_empty(&bvh->nodes[i], s)) r = check_slot(bvh, i, s, err);
+    aabb all;
+    int a;
+    for (a = 0; a < 4; a++) { all.lo[a] = -INFINITY; all.hi[a] = INFINITY; }
+    if (r == BRT_OK && bvh->node_count > 0) r = check_node(bvh, 0, &all, err);
     return r;
 }
 
 /* ===================================================================== */
-/* Relocatable blob: a 64-byte header {magic, node_count, tri_count, 0..} */
-/* then the nodes, the triangles and the prim ids exactly as in memory   */
-/* (host byte order, little endian on every supported host).  A blob at  */
-/* a 64-byte aligned address keeps the nodes on cache-line boundaries.   */
+/* Relocatable blob: a 64-byte header {magic, node_count, vert_count,     */
+/* tri_count, 0..} then the arrays exactly as in memory (bvh_point's      */
+/* order).  Little-endian, like every part of the scene file; the blob is */
+/* read in place, so a big-endian host refuses it.  A blob at a 64-byte   */
+/* aligned address keeps each node on one cache line.                    */
 /* ===================================================================== */
 
-static uint64_t blob_bytes(uint64_t node_count, uint64_t tri_count)
+static int host_is_little_endian(void)
 {
-    return BLOB_HEADER + node_count * sizeof(wnode) + tri_count * 40u;
+    const uint32_t one = 1;
+    unsigned char b;
+    memcpy(&b, &one, 1);
+    return b == 1;
+}
+
+static uint64_t blob_bytes(uint64_t node_count, uint64_t vert_count, uint64_t tri_count)
+{
+    return BLOB_HEADER + arrays_bytes(node_count, vert_count, tri_count);
 }
 
 size_t brt_bvh_blob_size(const brt_bvh *bvh)
 {
-    return (size_t)blob_bytes(bvh->node_count, bvh->tri_count);
+    return (size_t)blob_bytes(bvh->node_count, bvh->vert_count, bvh->tri_count);
 }
 
 void brt_bvh_blob_write(const brt_bvh *bvh, void *dst)
@@ -1129,26 +1384,25 @@ void brt_bvh_blob_write(const brt_bvh *bvh, void *dst)
     char *p = dst;
     header[0] = BLOB_MAGIC;
     header[1] = bvh->node_count;
-    header[2] = bvh->tri_count;
+    header[2] = bvh->vert_count;
+    header[3] = bvh->tri_count;
     memcpy(p, header, sizeof header);
     if (bvh->tri_count == 0) return;   /* and no nodes: nothing to copy */
-    p += sizeof header;
-    memcpy(p, bvh->nodes, (size_t)bvh->node_count * sizeof(wnode));
-    p += (size_t)bvh->node_count * sizeof(wnode);
-    memcpy(p, bvh->tris, (size_t)bvh->tri_count * 36u);
-    p += (size_t)bvh->tri_count * 36u;
-    memcpy(p, bvh->prim, (size_t)bvh->tri_count * 4u);
+    memcpy(p + sizeof header, bvh->nodes,   /* the arrays are contiguous */
+           (size_t)arrays_bytes(bvh->node_count, bvh->vert_count, bvh->tri_count));
 }
 
 brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
                              brt_error *err)
 {
     uint32_t header[BLOB_HEADER / 4];
-    const char *p = blob;
     int i;
     brt_bvh *bvh;
     brt_result r;
     *out = NULL;
+    if (!host_is_little_endian())
+        return brt_fail(err, BRT_EFORMAT, "bvh blob: little-endian, read in place; "
+                        "this host is big-endian");
     if (((uintptr_t)blob & 15u) != 0)
         return brt_fail(err, BRT_EARG, "bvh blob: not 16-byte aligned");
     if (size < BLOB_HEADER)
@@ -1156,22 +1410,16 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
     memcpy(header, blob, sizeof header);
     if (header[0] != BLOB_MAGIC)
         return brt_fail(err, BRT_EFORMAT, "bvh blob: bad magic");
-    for (i = 3; i < (int)(BLOB_HEADER / 4); i++)
+    for (i = 4; i < (int)(BLOB_HEADER / 4); i++)
         if (header[i] != 0) return brt_fail(err, BRT_EFORMAT, "bvh blob: nonzero header padding");
-    if (blob_bytes(header[1], header[2]) != size)
-        return brt_fail(err, BRT_EFORMAT, "bvh blob: %zu bytes, expected %llu for %u nodes "
-                        "and %u triangles", size,
-                        (unsigned long long)blob_bytes(header[1], header[2]),
-                        (unsigned)header[1], (unsigned)header[2]);
+    if (blob_bytes(header[1], header[2], header[3]) != size)
+        return brt_fail(err, BRT_EFORMAT, "bvh blob: %zu bytes, expected %llu for %u nodes, "
+                        "%u vertices and %u triangles", size,
+                        (unsigned long long)blob_bytes(header[1], header[2], header[3]),
+                        (unsigned)header[1], (unsigned)header[2], (unsigned)header[3]);
     bvh = calloc(1, sizeof *bvh);
     if (!bvh) return brt_fail(err, BRT_ENOMEM, "bvh blob: out of memory");
-    bvh->node_count = header[1];
-    bvh->tri_count = header[2];
-    p += BLOB_HEADER;
-    bvh->nodes = (const wnode *)(const void *)p;
-    p += (size_t)bvh->node_count * sizeof(wnode);
-    bvh->tris = (const float *)(const void *)p;
-    bvh->prim = (const uint32_t *)(const void *)(p + (size_t)bvh->tri_count * 36u);
+    bvh_point(bvh, (const char *)blob + BLOB_HEADER, header[1], header[2], header[3]);
     r = validate_structure(bvh, BRT_EFORMAT, err);
     if (r != BRT_OK) { free(bvh); return r; }
     *out = bvh;
