@@ -1037,9 +1037,17 @@ static void test_empty(void)
     brt_bvh_free(bvh);
 }
 
-/* The blob's layout (see bvh.c): 64-byte header, 128-byte nodes. */
+/* The blob's layout (see bvh.c): a 64-byte header {magic, nodes,
+** vertices, triangles}, then 64-byte nodes: f32 org[3] scale[3] at 0,
+** u8 q[6][4] at 24, u32 first_node at 48, first_tri at 52, vertex_base at
+** 56, u8 count[4] at 60; then 12-byte vertices, u32 prims, 3 u16 corner
+** offsets per triangle. */
 #define HEADER_BYTES 64
-#define NODE_BYTES 128
+#define NODE_BYTES 64
+#define FIRST_NODE 48
+#define FIRST_TRI 52
+#define VERTEX_BASE 56
+#define COUNT 60
 
 static void expect_eformat(const void *blob, size_t size, const char *what)
 {
@@ -1053,6 +1061,21 @@ static void expect_eformat(const void *blob, size_t size, const char *what)
 static void put_u32(unsigned char *p, size_t offset, uint32_t value)
 {
     memcpy(p + offset, &value, 4);
+}
+
+static uint32_t get_u32(const unsigned char *p, size_t offset)
+{
+    uint32_t value;
+    memcpy(&value, p + offset, 4);
+    return value;
+}
+
+static int node_has_leaf(const unsigned char *node)
+{
+    int slot;
+    for (slot = 0; slot < 4; slot++)
+        if (node[COUNT + slot] >= 1 && node[COUNT + slot] <= 8) return 1;
+    return 0;
 }
 
 static void test_blob(void)
@@ -1087,52 +1110,66 @@ static void test_blob(void)
     brt_bvh_free(opened);
 
     expect_eformat(blob, size - 1, "truncated by one byte");
-    expect_eformat(blob, size - 40, "one triangle short");
+    expect_eformat(blob, size - 10, "one triangle short");
     expect_eformat(blob, 8, "shorter than a header");
     memcpy(bad, blob, size); put_u32(bad, 0, 0x12345678u);
     expect_eformat(bad, size, "bad magic");
-    memcpy(bad, blob, size); put_u32(bad, 4, ((uint32_t *)(void *)blob)[1] + 1);
+    memcpy(bad, blob, size); put_u32(bad, 4, get_u32(blob, 4) + 1);
     expect_eformat(bad, size, "node count one too many");
-    memcpy(bad, blob, size); put_u32(bad, 8, 0xFFFFFFF0u);
+    memcpy(bad, blob, size); put_u32(bad, 12, 0xFFFFFFF0u);
     expect_eformat(bad, size, "huge triangle count");
     memcpy(bad, blob, size); put_u32(bad, 60, 1);
     expect_eformat(bad, size, "nonzero header padding");
-    /* child slots: root slot 0 at header + 96 (child) and + 112 (count) */
-    memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 0);
-    put_u32(bad, HEADER_BYTES + 96, 1000000u);
+    /* the root's slot 0 made inner, its children's first index moved */
+    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 0;
+    put_u32(bad, HEADER_BYTES + FIRST_NODE, 1000000u);
     expect_eformat(bad, size, "child node out of range");
-    memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 0);
-    put_u32(bad, HEADER_BYTES + 96, 0);
+    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 0;
+    put_u32(bad, HEADER_BYTES + FIRST_NODE, 0);
     expect_eformat(bad, size, "child pointing at the root (a cycle)");
-    memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 3);
-    put_u32(bad, HEADER_BYTES + 96, s.tcount - 1);
+    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 3;
+    put_u32(bad, HEADER_BYTES + FIRST_TRI, s.tcount - 1);
     expect_eformat(bad, size, "leaf range past the end");
-    {   /* an empty slot made to point at a later node: a node with two
-        ** parents, everything else intact (no orphan, no triangle twice) */
-        const uint32_t nodes = ((uint32_t *)(void *)blob)[1];
+    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 9;
+    expect_eformat(bad, size, "a leaf of more than 8 triangles");
+    {   /* the vertex base of the first node with a leaf, past the vertices */
+        size_t at = HEADER_BYTES;
+        while (!node_has_leaf(blob + at)) at += NODE_BYTES;
+        memcpy(bad, blob, size); put_u32(bad, at + VERTEX_BASE, get_u32(blob, 8));
+        expect_eformat(bad, size, "vertex base past the vertices");
+    }
+    {   /* the last corner offset of the last triangle past the vertices */
+        const size_t last = size - 2;
+        const uint16_t big = 0xFFFF;
+        memcpy(bad, blob, size); memcpy(bad + last, &big, 2);
+        expect_eformat(bad, size, "corner offset past the vertices");
+    }
+    {   /* an empty slot made inner: it takes the node after its parent's
+        ** children, which already has a parent (or does not exist) */
+        const uint32_t nodes = get_u32(blob, 4);
         uint32_t node, slot, found = 0;
-        for (node = 0; node + 1 < nodes && !found; node++)
+        for (node = 0; node < nodes && !found; node++)
             for (slot = 0; slot < 4 && !found; slot++) {
-                uint32_t child, count;
-                memcpy(&child, blob + HEADER_BYTES + NODE_BYTES * node + 96 + 4 * slot, 4);
-                memcpy(&count, blob + HEADER_BYTES + NODE_BYTES * node + 112 + 4 * slot, 4);
-                if (child != 0xFFFFFFFFu || count != 0) continue;
+                const size_t at = HEADER_BYTES + NODE_BYTES * (size_t)node + COUNT + slot;
+                if (blob[at] != 0xFF) continue;
                 memcpy(bad, blob, size);
-                put_u32(bad, HEADER_BYTES + NODE_BYTES * node + 96 + 4 * slot, nodes - 1);
+                bad[at] = 0;
                 expect_eformat(bad, size, "a node with two parents");
                 found = 1;
             }
         EXPECT(found, "no empty slot in the test BVH to damage");
     }
-    /* Random damage to the nodes' child and count words: a format error,
-    ** or a BVH whose structure holds (open checks it) and which, since
-    ** triangles and prims are intact, reports only real hits: the
-    ** triangle's own t, u, v, never closer than brute force. */
+    /* Random damage to the nodes' boxes, child and triangle indices and
+    ** counts (not the vertex base, which would change the triangles): a
+    ** format error, or a BVH whose structure holds (open checks it) and
+    ** which, since vertices and prims are intact, reports only real hits:
+    ** the triangle's own t, u, v, never closer than brute force. */
     for (i = 0; i < 300 && !test_failed(); i++) {
-        const size_t nodes = (size - HEADER_BYTES - 40 * (size_t)s.tcount) / NODE_BYTES;
-        const size_t at = HEADER_BYTES + NODE_BYTES * (brt_random_u64(&st) % nodes)
-                          + 96 + brt_random_u64(&st) % 32;
+        const size_t nodes = get_u32(blob, 4);
+        size_t at = HEADER_BYTES + NODE_BYTES * (brt_random_u64(&st) % nodes)
+                    + 24 + brt_random_u64(&st) % 36;
         brt_result r;
+        if (at % NODE_BYTES >= VERTEX_BASE) at += 4;   /* skip vertex_base */
         memcpy(bad, blob, size);
         bad[at] = (unsigned char)brt_random_u64(&st);
         r = brt_bvh_blob_open(bad, size, &opened, &err);
