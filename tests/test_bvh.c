@@ -162,6 +162,19 @@ static void test_random_soups(void)
     }
 }
 
+/* A soup of 25,000 triangles has 75,000 distinct corners: beyond the
+** 65,536 that 16-bit corner offsets reach from one base, so later nodes
+** must move their vertex_base (and store again the older corners they
+** share).  The checker and brute force see wrong corners at once. */
+static void test_vertex_window(void)
+{
+    uint64_t st = test_seed() ^ 5;
+    tu_scene s = {0};
+    tu_random_soup(&s, &st, 25000, 0.02f);
+    compare_scene(&s, NULL, 600, brt_random_u64(&st), "vertex window");
+    tu_scene_free(&s);
+}
+
 /* prim_ids other than the identity must be reported (and tie-broken). */
 static void test_prim_ids(void)
 {
@@ -1232,6 +1245,7 @@ void suite_bvh(void)
     test_run("bvh: a box entered at the closest hit is visited", test_entry_equals_hit);
     test_run("bvh: random soups == brute force", test_random_soups);
     test_run("bvh: prim ids == brute force", test_prim_ids);
+    test_run("bvh: more than 65536 corners (16-bit offsets) == brute force", test_vertex_window);
     test_run("bvh: coplanar == brute force", test_coplanar);
     test_run("bvh: axis grid == brute force", test_axis_grid);
     test_run("bvh: duplicates == brute force", test_duplicates);
