@@ -867,19 +867,21 @@ static aabb aabb_padded(const aabb *box)
 }
 
 /* The frame of a node along each axis: org = the lowest plane of its
-** slots' padded boxes, and the smallest scale (starting from the rounded
-** quotient, one ulp at a time) with org + 255 * scale >= the highest
-** plane.  A frame that overflows (coordinates near FLT_MAX) decodes to
+** slots' padded boxes, and a scale with org + 255 * scale >= the highest
+** plane: the rounded quotient, grown by a doubling step until that holds
+** (rounding can leave it a few ulps short; the doubling bounds the loop
+** even when org dwarfs the extent).  A frame that overflows (coordinates near FLT_MAX) decodes to
 ** inf or NaN planes, which the box test treats as no constraint (NaN
 ** never narrows), so such nodes are only slower, never wrong. */
 static void set_frame(qnode *w, const aabb *u)
 {
     int a;
     for (a = 0; a < 3; a++) {
-        float s = (u->hi[a] - u->lo[a]) / 255.0f;
+        float s = (u->hi[a] - u->lo[a]) / 255.0f, step;
         if (s < FLT_MIN) s = FLT_MIN;   /* also a zero extent: planes stay distinct */
+        step = s * FLT_EPSILON > FLT_MIN ? s * FLT_EPSILON : FLT_MIN;
         w->org[a] = u->lo[a];
-        while (decode_plane(u->lo[a], s, 255) < u->hi[a]) s = nextafterf(s, INFINITY);
+        for (; decode_plane(u->lo[a], s, 255) < u->hi[a]; step *= 2.0f) s += step;
         w->scale[a] = s;
     }
 }
