@@ -102,7 +102,8 @@
 typedef struct qnode {
     float org[3];         /* the frame: plane q of axis a is */
     float scale[3];       /*   org[a] + q * scale[a] (decode_plane) */
-    uint8_t q[6][4];      /* min x,y,z rows then max x,y,z rows; 4 slots */
+    uint32_t q[6];        /* min x,y,z rows then max x,y,z rows: slot i's
+                          ** 8-bit plane in bits 8i..8i+7 (q_lane) */
     uint32_t first_node;  /* the inner slots' children, consecutive */
     uint32_t first_tri;   /* the leaf slots' triangles, consecutive */
     uint32_t vertex_base; /* the leaves' corners are vertex_base + idx */
@@ -408,17 +409,49 @@ static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float box
 ** function, so they all see the same floats. */
 static inline float decode_plane(float org, float scale, unsigned q)
 {
-    return org + (float)q * scale;
+    return org + (float)q * scale;   /* decode_row: the same, four at once */
 }
 
-/* The four slots' boxes as brt_box_span4 rows.  Written as a plain
-** 6 x 4 loop so that GCC -O2 vectorizes the byte-to-float conversion. */
+/* One row of four slots' planes along axis a. */
+/* Slot i's 8-bit plane in a row word. */
+static inline unsigned q_lane(uint32_t row, int i)
+{
+    return (row >> (8 * i)) & 0xFFu;
+}
+
+/* One row of four slots' planes along axis a: decode_plane of each lane,
+** written so that GCC -O2 makes it a few vector instructions: each lane's
+** byte is masked in place (lane 3 shifted down 8 bits first so that the
+** word stays positive as an int), converted, and scaled by a power of
+** two back to the byte's value -- every step exact, so each lane is
+** exactly (float)q_lane.  (A loop calling q_lane stays scalar: traversal
+** then ran 3.6 times the instructions of the float nodes.) */
+static inline ALWAYS_INLINE void decode_row(const qnode *n, int row, int a, float out[4])
+{
+    static const uint32_t mask[4] = {0xFFu, 0xFF00u, 0xFF0000u, 0xFF0000u};
+    static const float unit[4] = {1.0f, 1.0f / 256.0f, 1.0f / 65536.0f, 1.0f / 65536.0f};
+    const float o = n->org[a], s = n->scale[a];
+    const uint32_t w = n->q[row];
+    int32_t v[4];
+    int i;
+    v[0] = (int32_t)(w & mask[0]);
+    v[1] = (int32_t)(w & mask[1]);
+    v[2] = (int32_t)(w & mask[2]);
+    v[3] = (int32_t)((w >> 8) & mask[3]);
+    for (i = 0; i < 4; i++) out[i] = o + ((float)v[i] * unit[i]) * s;
+}
+
+/* The four slots' boxes as brt_box_span4 rows.  Row by row, four lanes
+** each, so that GCC -O2 turns each row into a few vector instructions
+** (one loop over all 24 planes with row % 3 stayed scalar: traversal
+** then ran 4.6 times the instructions of the float nodes). */
 static inline ALWAYS_INLINE void decode_boxes(const qnode *n, float box[6][4])
 {
-    int r, i;
-    for (r = 0; r < 6; r++)
-        for (i = 0; i < 4; i++)
-            box[r][i] = decode_plane(n->org[r % 3], n->scale[r % 3], n->q[r][i]);
+    int a;
+    for (a = 0; a < 3; a++) {
+        decode_row(n, a, a, box[a]);
+        decode_row(n, a + 3, a, box[a + 3]);
+    }
 }
 
 /* A node's slots: only the entries are wanted (the exits are dead stores
@@ -918,8 +951,8 @@ static void set_slot_box(qnode *w, int i, const aabb *box)
 {
     int a;
     for (a = 0; a < 3; a++) {
-        w->q[a][i] = (uint8_t)quantize_down(w->org[a], w->scale[a], box->lo[a]);
-        w->q[a + 3][i] = (uint8_t)quantize_up(w->org[a], w->scale[a], box->hi[a]);
+        w->q[a] |= (uint32_t)quantize_down(w->org[a], w->scale[a], box->lo[a]) << (8 * i);
+        w->q[a + 3] |= (uint32_t)quantize_up(w->org[a], w->scale[a], box->hi[a]) << (8 * i);
     }
 }
 
