@@ -19,31 +19,52 @@
 ** so the BVH returns bit-identical t, u, v: a brute-force loop over
 ** brt_intersect_triangle is an exact oracle for it.
 **
-** NODE LAYOUT (4-wide BVH, one flat array, indices only):
-**   struct wnode { float box[6][4]; uint32_t child[4]; uint32_t count[4]; }
-**   box[0..2][i] = min x,y,z of slot i, box[3..5][i] = max x,y,z: 6 rows of
-**   4 floats (structure of arrays), so the slab test of the four children is
-**   a loop of 4 that GCC vectorizes at -O2 without intrinsics.  Slot i is
-**     count[i] >  0: a leaf of count[i] triangles from triangle child[i];
-**     count[i] == 0: an inner node child[i] (always > the parent's index),
-**                    or an empty slot when child[i] == EMPTY_SLOT; empty
-**                    slots have inverted boxes (+inf, -inf), so they never
-**                    pass the box test (blob_open insists on it).
-**   Node 0 is the root (no nodes at all for 0 triangles); the inner
-**   children of a node have consecutive indices, so siblings share pages
-**   and cache lines.  Triangles are stored in leaf order, 9 floats each
-**   (v0, v1, v2 exactly as given), and their reported numbers in a side
-**   array prim[] read only on a hit.  128 bytes per node, 40 per triangle.
+** NODE LAYOUT (4-wide BVH, one flat array, indices only; 64 bytes a node,
+** one cache line; the same layout in memory, in the blob and in the
+** direct mode):
+**   struct qnode { float org[3], scale[3]; uint32_t q[6];
+**                  uint32_t first_node, first_tri, vertex_base;
+**                  uint8_t count[4]; }
+**   Slot i's box is quantized in the node's frame: plane q of axis a is
+**   org[a] + q * scale[a] (decode_plane), with q the 8-bit lane i of row
+**   q[0..2] (min x, y, z) or q[3..5] (max x, y, z).  Slot i is
+**     count[i] == 0: an inner node: the inner slots take first_node,
+**                    first_node + 1, ... in slot order (always > the
+**                    parent's index, siblings consecutive in memory);
+**     count[i] 1..MAX_LEAF: a leaf; the leaf slots take consecutive
+**                    triangle ranges from first_tri on, in slot order;
+**     count[i] == EMPTY_COUNT: empty, masked out before the box test.
+**   Node 0 is the root (no nodes at all for 0 triangles).  Then the
+**   vertices (3 floats each, exactly as given; equal bits stored once as
+**   far as a node can reach them), the reported triangle numbers prim[]
+**   (read only on a hit), and per triangle 3 uint16 corner offsets from
+**   its node's vertex_base.  Bytes per triangle: 64 per node, 12 per
+**   vertex, 10 per triangle: 23-29 on the shared meshes and built-in
+**   scenes (the float layout before it: 58-63).
+**
+** WHY THE QUANTIZED BOXES KEEP PRUNING EXACT.  The build quantizes each
+** padded child box outward (min planes down, max planes up, checked by
+** decoding: quantize_down/up), so the decoded box contains the padded
+** box of every triangle below it (brt_bvh_check verifies exactly that).
+** The traversal decodes with the same decode_plane and runs the one
+** monotone box test (box_span4) on the decoded floats.  A triangle's hit
+** distance is clamped into its own padded box's interval (hit_distance),
+** and a box containing that box is entered no later and left no later
+** bit for bit (rule 2 of the README's Floating point section), so every
+** decoded box around a hit at t is entered at or before t: pruning a
+** slot whose entry exceeds the closest t so far never loses a hit, and
+** the hits are those of the float boxes, byte for byte.
 **
 ** BUILD: binned SAH (Wald 2007, "On fast construction of SAH-based
 ** bounding volume hierarchies") into a binary tree, then collapsed into the
 ** 4-wide tree by repeatedly opening the child of largest surface area (as
 ** Embree does).  16 bins per axis (fewer, one per triangle, in nodes of
 ** under 16): Wald reports 16 bins within a few percent of the full-sweep
-** SAH, and more bins cost build time.  Costs C_TRAV = 2, C_ISECT = 1: a
-** 4-wide node test is about two scalar triangle tests here, and the larger
-** leaves this gives cut memory from 77 to 63 bytes per triangle at equal
-** speed (measured; C_TRAV = 1 and 3 were no faster).  A leaf holds at most
+** SAH, and more bins cost build time.  Costs C_TRAV = 3, C_ISECT = 1: a
+** 4-wide quantized node test costs about three scalar triangle tests
+** here, and the larger leaves cut bytes (island at 1 M triangles: 32.0 ->
+** 29.3 per triangle, landscape 26.8 -> 24.1; float nodes: C_TRAV 2 took
+** 77 -> 63 and 1 or 3 were no faster).  A leaf holds at most
 ** MAX_LEAF = 8 triangles.  Below depth SAH_DEPTH the split is the SAH one;
 ** deeper (pathological inputs only) the range is halved, so the binary
 ** depth is at most SAH_DEPTH + 32 = MAX_DEPTH and the 4-wide depth no
@@ -87,7 +108,7 @@
 
 #define BINS 16
 #define MAX_LEAF 8
-#define C_TRAV 2.0f
+#define C_TRAV 3.0f
 #define C_ISECT 1.0f
 #define SAH_DEPTH 64
 #define MAX_DEPTH (SAH_DEPTH + 32)
@@ -1534,4 +1555,27 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
 **       chain of dependent node misses (~9 levels) is what is left; an
 **       8-wide node (256 bytes, 4 lines fetched in parallel, ~6.5
 **       levels) is the next thing to try.
+**   - Third round (issue 15: bytes first, then speed).  Bytes per
+**     triangle of a blob, `trace --batched` / `render --stats`
+**     geometry_bytes over the triangle count:
+**     * quantized 64-byte nodes + shared vertices with 16-bit offsets
+**       (C_TRAV 2): bunny x4 62.9 -> 27.6; shared meshes 25.2-27.5
+**       (58-63 before); landscape at 1 M triangles (10,000 per batching
+**       point) 58.3 -> 26.8, island 60.6 -> 32.2 (its small objects
+**       share few corners: 0.97 vertices per triangle);
+**     * C_TRAV 3 then: island 29.3, landscape 24.1, bunny x4 23.1, with
+**       no measurable change in speed.
+**     Kept as one layout for the direct mode and the blobs (a decoded
+**     in-memory copy would cost the load time and twice the cache bytes).
+**     Traversal instructions (callgrind, bench_bvh on the bunny, 20 k rays
+**     per kind; the float layout took 172 M): first decode loop over 24
+**     planes with row % 3, scalar: 795 M; a row of 4 lanes with the 2^23
+**     float trick: 629 M; rows as words masked in place and scaled by
+**     powers of two (vectorized): 462 M.  What is left: the decode (about
+**     175 M) and slot_targets' loop over the counts (about 76 M).  Cold
+**     speed on the sphere mesh against the float layout: camera 0.76-0.90,
+**     random 0.85-0.93, bounce 0.64-0.82 (two runs; the warm figures lose
+**     more, 0.6-0.8).  Not done for lack of time: inner slots first so a
+**     slot's target is arithmetic, 8-wide nodes, leaves laid out for the
+**     vectorizer.
 */
