@@ -397,10 +397,21 @@ brt_result brt_svdag_decode(const brt_svdag *dag, const brt_proxy *proxy,
 ** than where it first touches one (clamped to tnear).  Conservative under
 ** rounding; NaN rays return 1 with *t_entry = tnear (a proxy may only err
 ** towards "hit").  t_entry may be NULL: the cast then stops at the first
-** set voxel it touches (the yes/no question the batched traversal asks). */
+** set voxel it touches (the yes/no question the batched traversal asks).
+** The proxy must have passed brt_proxy_check against this pool (done once,
+** when a proxy is built or read: the cast does not check it again; an
+** unchecked proxy may read outside the pool). */
 int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
                       const brt_ray *ray, float tnear, float tfar,
                       float *t_entry);
+
+/* The same cast written for reading: plain Laine-Karras (phases INITIALIZE,
+** PUSH, ADVANCE, POP, the paper's names), about 3x slower; same contract.
+** It answers hit or miss exactly as brt_proxy_raycast does, with the same
+** *t_entry (the same plane distances; tests check both). */
+int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
+                                const brt_ray *ray, float tnear, float tfar,
+                                float *t_entry);
 
 /* Pool checker: child indices in range and pointing to earlier nodes,
 ** masks consistent, no two identical nodes. */
@@ -409,8 +420,7 @@ brt_result brt_svdag_check(const brt_svdag *dag, brt_error *err);
 /* Checks a proxy against a pool (e.g. one read from a scene file): res a
 ** power of two in 2..1024, finite origin, finite positive cell, and root
 ** an empty root or a node of the pool of the depth res needs.
-** brt_proxy_raycast does the same check and answers "hit" (at tnear) for
-** a proxy that fails it. BRT_ECHECK with a message. */
+** BRT_ECHECK with a message. */
 brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
                            brt_error *err);
 

@@ -11,7 +11,9 @@
 **      proxy -- the sparse voxel DAG of Kampe, Sintorn and Assarsson (2013).
 **   3. brt_proxy_raycast: the ray cast of Laine and Karras (2010) -- octant
 **      mirroring, the [1,2] coordinate frame, a parent stack per scale --
-**      adapted to the DAG and made conservative for closed, grown boxes.
+**      adapted to the DAG and made conservative for closed, grown boxes;
+**      brt_proxy_raycast_reference: the same cast as their plain
+**      algorithm, written for reading, that the tests hold the fast one to.
 **
 ** NODE LAYOUT (the pool; also the blob, see brt_svdag_blob_write)
 **   leaves[]  uint64 per leaf: a 4x4x4 block of voxels, bit x+4*(y+4*z).
@@ -20,9 +22,16 @@
 **   words[]   interior nodes, one after another, children before parents:
 **             word 0  child mask in bits 0..7 (bit c: child c = x+2y+4z
 **                     is not empty), bit 8 set when the children are
-**                     leaves (the node covers 8^3 voxels), bits 9.. zero;
+**                     leaves (the node covers 8^3 voxels), bits 9..26
+**                     the node's BOUNDS (below), bits 27.. zero;
 **             then one uint32 per child, in child order: a word offset
 **             of an interior node, or a leaf index when bit 8 is set.
+**   BOUNDS: the box of the node's set voxels, per axis a its first and
+**   last eighth of the node's side (3 bits each, at 9 + 6a and 12 + 6a):
+**   the ray cast tests it before it descends into the node.  A function
+**   of the node's subtree, so equal subtrees still have equal headers;
+**   kept in memory only (a blob stores the bits as zero, and opening it
+**   computes them again).
 **   A node's id is its word offset (leaf index for a leaf).  Bytes: 8 per
 **   leaf, 4 + 4 * children per interior node.  Every path from a node to
 **   a leaf has the same length, so a node's level (log2 of the voxels it
@@ -43,6 +52,9 @@
 #include <string.h>
 
 #define LEAF_CHILDREN 0x100u   /* header bit: the children are leaves */
+#define HEADER_STORED 0x1FFu   /* what a blob stores: mask and LEAF_CHILDREN */
+#define BOUNDS_SHIFT 9         /* the bounds of the node (layout above) */
+#define BOUNDS_BITS (0x3FFFFu << BOUNDS_SHIFT)
 #define MAX_LEVEL 10           /* res 1024 */
 
 /* ===================================================================== */
@@ -81,15 +93,6 @@ static unsigned lowest_bit64(uint64_t m)
         63, 47, 56, 27, 60, 41, 37, 16, 54, 35, 52, 21, 44, 32, 23, 11,
         46, 26, 40, 15, 34, 20, 31, 10, 25, 14, 19, 9, 13, 8, 7, 6};
     return table[((m & (0 - m)) * 0x03F79D71B4CB0A89ull) >> 58];
-}
-
-/* Index of the highest set bit of an 8-bit mask m != 0 (a table per
-** nibble; the choice compiles to a conditional move, not a branch). */
-static unsigned highest_bit8(unsigned m)
-{
-    static const unsigned char nibble[16] = {0, 0, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3, 3, 3};
-    unsigned high = m >> 4;
-    return high ? 4u + nibble[high] : nibble[m];
 }
 
 /* min and max without libm's NaN rules (a call each with -std=c99); the
@@ -597,6 +600,56 @@ static brt_result intern_node(brt_svdag *dag, const uint32_t *node, uint32_t *id
 }
 
 /* ===================================================================== */
+/* Node bounds                                                             */
+/* ===================================================================== */
+
+/* The first and last set voxel of a leaf (not empty) along axis a: 0..3. */
+static void leaf_extent(uint64_t leaf, int a, unsigned *lo, unsigned *hi)
+{
+    unsigned i, cols = 0;
+    for (i = 0; i < 64; i++)
+        if ((leaf >> i) & 1u) cols |= 1u << ((i >> (2 * a)) & 3u);
+    for (*lo = 0; !((cols >> *lo) & 1u); ++*lo) {}
+    for (*hi = 3; !((cols >> *hi) & 1u); --*hi) {}
+}
+
+/* The bounds field (layout at the top) of the interior node whose words
+** are node[]: a leaf child c spans voxels 4c..4c+3 of the node's 8 (its
+** eighths), a node child's eighths are sixteenths of its parent.  Node
+** children must lie below limit, leaf children in the pool; others (a
+** blob not yet checked) count as empty: the check that follows rejects
+** such a pool anyway. */
+static uint32_t node_bounds(const brt_svdag *dag, const uint32_t *node, uint32_t limit)
+{
+    uint32_t field = 0, slot = 1, c;
+    unsigned lo[3] = {7, 7, 7}, hi[3] = {0, 0, 0}, a, l, u;
+    for (c = 0; c < 8; c++) {
+        uint32_t child;
+        if (!((node[0] >> c) & 1u)) continue;
+        child = node[slot++];
+        if ((node[0] & LEAF_CHILDREN) ? child >= dag->leaf_count || !dag->leaves[child]
+                                      : child >= limit)
+            continue;
+        for (a = 0; a < 3; a++) {
+            unsigned half = (c >> a) & 1u;
+            if (node[0] & LEAF_CHILDREN) {
+                leaf_extent(dag->leaves[child], (int)a, &l, &u);
+                l += 4 * half;
+                u += 4 * half;
+            } else {
+                uint32_t g = dag->words[child] >> BOUNDS_SHIFT;
+                l = (8 * half + ((g >> (6 * a)) & 7u)) >> 1;
+                u = (8 * half + ((g >> (6 * a + 3)) & 7u)) >> 1;
+            }
+            lo[a] = l < lo[a] ? l : lo[a];
+            hi[a] = u > hi[a] ? u : hi[a];
+        }
+    }
+    for (a = 0; a < 3; a++) field |= (lo[a] | hi[a] << 3) << (6 * a);
+    return field << BOUNDS_SHIFT;
+}
+
+/* ===================================================================== */
 /* SVO build, bottom up, straight into the DAG                             */
 /* ===================================================================== */
 
@@ -606,7 +659,6 @@ static int tree_levels(uint32_t res)
     int k = resolution_log2(res);
     return k < 2 ? 2 : k;
 }
-
 /* The 4x4x4 block at (x,y,z) as a leaf mask; each row of 4 voxels is one
 ** aligned nibble of the grid's bits when res >= 4. */
 static uint64_t block_mask(const brt_grid *grid, uint32_t x, uint32_t y,
@@ -654,6 +706,7 @@ static brt_result build_subtree(brt_svdag *dag, const brt_grid *grid,
     }
     if (!mask) return BRT_OK;
     node[0] = mask | (level == 3 ? LEAF_CHILDREN : 0);
+    node[0] |= node_bounds(dag, node, dag->word_count);
     return intern_node(dag, node, id);
 }
 
@@ -721,10 +774,12 @@ static brt_result check_node(const brt_svdag *dag, uint32_t o,
 {
     uint32_t h = dag->words[o], n = popcount8(h & 0xFFu), i;
     int child_level = -1;
-    if ((h >> 9) || !(h & 0xFFu))
+    if ((h & ~(HEADER_STORED | BOUNDS_BITS)) || !(h & 0xFFu))
         return brt_fail(err, BRT_ECHECK, "svdag: node %u: bad header 0x%x", o, h);
     if ((uint64_t)o + 1 + n > dag->word_count)
         return brt_fail(err, BRT_ECHECK, "svdag: node %u runs past the pool", o);
+    if ((h & BOUNDS_BITS) != node_bounds(dag, dag->words + o, o))
+        return brt_fail(err, BRT_ECHECK, "svdag: node %u: wrong bounds in header 0x%x", o, h);
     for (i = 0; i < n; i++) {
         uint32_t c = dag->words[o + 1 + i];
         int level;
@@ -879,7 +934,8 @@ void brt_svdag_blob_write(const brt_svdag *dag, void *dst)
     put_le(p + 20, 0, 4);
     p += BLOB_HEADER;
     for (i = 0; i < dag->leaf_count; i++, p += 8) put_le(p, dag->leaves[i], 8);
-    for (i = 0; i < dag->word_count; i++, p += 4) put_le(p, dag->words[i], 4);
+    for (i = 0; i < dag->word_count; i++, p += 4)
+        put_le(p, is_node_start(dag, i) ? dag->words[i] & HEADER_STORED : dag->words[i], 4);
 }
 
 /* Copies the blob's arrays into a new pool and marks node starts by
@@ -900,6 +956,19 @@ static brt_result blob_load(const unsigned char *p, uint32_t words,
         dag->node_count++;
     }
     return BRT_OK;
+}
+
+/* Computes the bounds of every node of a pool just loaded, children first;
+** 0 when a header has bits that a blob does not store. */
+static int blob_bounds(brt_svdag *dag)
+{
+    uint32_t o;
+    for (o = 0; o < dag->word_count; o += node_length(dag->words + o)) {
+        if (dag->words[o] & ~HEADER_STORED) return 0;
+        if ((uint64_t)o + node_length(dag->words + o) <= dag->word_count)
+            dag->words[o] |= node_bounds(dag, dag->words + o, o);
+    }
+    return 1;
 }
 
 brt_result brt_svdag_blob_open(const void *blob, size_t size,
@@ -925,6 +994,10 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
     if (r != BRT_OK) {
         brt_svdag_free(dag);
         return brt_fail(err, r, "svdag blob: out of memory");
+    }
+    if (!blob_bounds(dag)) {
+        brt_svdag_free(dag);
+        return brt_fail(err, BRT_EFORMAT, "svdag blob: a node header has bits above 8 set");
     }
     r = brt_svdag_check(dag, err);
     if (r != BRT_OK) {
@@ -952,39 +1025,49 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 ** WHY NOT ESVO'S ADVANCE STEP.  ESVO steps from a cube to its neighbour
 ** through the face the ray leaves by.  When the ray leaves through an edge
 ** or a corner it steps diagonally and never visits the cubes that it only
-** touches there -- but a proxy must report closed boxes it touches.  So
-** PUSH finds, from the node's three centre planes, every child whose
-** grown box the segment touches, numbered in ray order (RANK, see
-** push_node: ESVO's child sequence plus the children touched only at an
-** edge or a corner); ADVANCE takes the next rank; POP returns to the
-** parent scale.  The two bit-mask levels of a leaf are walked the same
-** way (a leaf's octants, an octant's voxels), so the first set voxel met
-** is its node's nearest.  It becomes the best hit, and a scale is left as
-** soon as its next child is entered behind that hit: the rest of the walk
-** only visits siblings (of the hit and of its ancestors) that the segment
-** enters sooner, because a grown sibling may start before the hit.
+** touches there -- but a proxy must report closed boxes it touches (the
+** reference cast below shows where, in ESVO's own structure).  So PUSH
+** finds, from the node's three centre planes, every child whose grown box
+** the segment touches (push_node), ADVANCE takes the next of them, POP
+** returns to the parent scale.  The two bit-mask levels of a leaf are
+** walked the same way (a leaf's octants, an octant's voxels).  A set voxel
+** becomes the best hit; from then on a child entered at or behind it is
+** passed over, and the walk only finishes the children (siblings of the
+** hit and of its ancestors) that the segment enters sooner, because a
+** grown sibling may start before the hit.  Before it descends into a node
+** the walk tests the box of the node's set voxels (BOUNDS TEST).
 **
-** COST (res 128, bunny, 1M rays of bench_svdag's kinds plus axis-parallel
-** ones; one core of a loaded 2-core VM, so cycles are +-20%, instruction
-** counts are exact).  The previous walk tested all 8 children's slabs at
-** each node (12 plane distances, 8 intervals), visited them in mirrored
-** index order and tested a leaf's set voxels one by one: 3510
-** instructions, 1170-1460 cycles, 12 branch misses per ray.  Rank order
-** with the bit-mask levels walked as tree levels and 6 plane distances
-** per node: 2520 instructions but still ~1250 cycles -- the liveness
-** tests read the rank-sorted values back from the stack entry just
-** written, a chain of store-to-load stalls; testing in world child space
-** on the unsorted values (6 pairs instead of 3) gave ~920 cycles.
-** Branch-free child exits: 10.7 -> 7.7 branch misses.  A byte popcount
-** table and an unrolled rank gather (GCC -O2 does not unroll) saved 500
-** instructions, branch-free mirroring 30 more (the set-up alone, for a
-** ray that misses the root: 529 -> 485, of which brt_proxy_check ~110).
-** Now 2450 instructions, 875-1170 cycles.  Tried and dropped: a special
-** case for the voxel level, per-ray pair masks, axis bits kept in
-** registers, a bit set of open scales to skip exhausted ones on POP (each
-** +50..190 instructions, no measurable gain).  Every variant returned bit
-** for bit the same hits and entries as the previous walk on 3M rays
-** (bunny_tiny, bunny, dragon): same intervals, so the same false hits.
+** COST, per culled cast and per hit, in instructions (callgrind, exact):
+** the render's proxy tests, `bench_svdag --scene landscape|island` at
+** scale 2 (21 batching points of 10 000 triangles, 128^3, 100 000 rays:
+** 19 181 and 157 112 culled casts), yes/no casts as the render asks them.
+**                                     landscape        island
+**                                   culled    hit   culled    hit
+**   rank order, checked proxy        5089    4335    2711    3673
+**   far-side-set order                3694    3176    1972    2699
+**   + node bounds, called             2743    3495    1642    3061
+**   + inlined by force                2533    3260    1530    2861
+**   + cheaper set-up                  2365    3097    1370    2702
+** - rank order: the walk of the previous sessions (rank sort of the centre
+**   entries, a rank gather of the child mask, brt_proxy_check on every
+**   cast, about 100 instructions).
+** - far-side-set order: no sort; children by increasing far-side set k
+**   (push_node), the LIVE masks fixed at compile time.  Rank order let a
+**   hit end its scale; without it each child is compared with the best hit,
+**   which costs nothing for the yes/no casts the render makes.
+** - node bounds: 3.0 of the 7.2 pushes of an island miss (6.8 of 14.7 on
+**   the landscape) found no child to visit -- a ray skimming a terrain
+**   enters nodes whose voxels lie below it.  The box of a node's set voxels
+**   (header bits, no memory) cuts the pushes to 2.6 (4.7); hits pay for
+**   the test at every descent and gain less from it.
+** - inlined by force: GCC -O2 kept clip_to_bounds and child_fetch as calls.
+** - cheaper set-up: the root's bounds instead of the root cube, finiteness
+**   by one sum, the frame written out per axis (GCC kept 3-step loops).
+** Tried and dropped: each child's interval stored at PUSH (7 max, 7 min,
+** 16 stores: +570 a landscape culled cast), bounds tested only from level 5 up
+** (island -7, landscape +140).  With an entry wanted (bench_svdag's
+** throughput run, bunny_tiny, 200 000 rays) a cast costs 3051 -> 2263.
+** Every step answers bit for bit as the reference cast on the tests' rays.
 **
 ** CONSERVATIVE IN FLOAT.  Every box is grown by g on each side, in frame
 ** units (the root cube has side 1):  g = 2^-18 (P + 3), P = max |p_i|.
@@ -1004,15 +1087,16 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 **   test, whose hit point is off by some float ulps of the distance from
 **   the ray origin -- a few 2^-24 (P + 3) at most, still well inside g.
 ** The entry is rounded down to float and clamped to tnear.  Rays with a NaN
-** or an infinity, zero directions, invalid proxies, and a walk that hits
-** the iteration cap all answer "hit at tnear", the conservative answer.
+** or an infinity, zero directions, and a walk that hits the iteration cap
+** all answer "hit at tnear", the conservative answer.  The proxy is not
+** checked here (brt_proxy_check, once, when it is built or read).
 */
 typedef struct ray_frame {
     double enter_bias[3];   /* t of plane x = 1 grown by +g (entry side) */
     double gap[3];          /* exit minus entry t of one plane: 2g / |d_i| */
     double step[3];         /* t per voxel along each axis: (1/N) / |d_i| */
     unsigned mirror;        /* bit i: axis i mirrored (ESVO's octant_mask) */
-    unsigned near[3];       /* world children on the entry side of each axis */
+    uint32_t bounds_flip;   /* 0x3F at the bounds fields of mirrored axes */
     int levels;             /* root spans N = 2^levels voxels */
     double lo, hi;          /* the live segment: hi shrinks to the best hit */
     int found;              /* a set voxel was touched; its entry is hi */
@@ -1020,19 +1104,18 @@ typedef struct ray_frame {
 } ray_frame;
 
 /* One scale of the parent stack: a node, its mirrored corner in voxels,
-** its live interval [tin, tout] and, by rank (see push_node), what its
-** children need: entries, centre-plane exits, the ranks still to visit.
-** Above the leaves a node is a pool word offset; at level 2 it is a leaf's
-** 64 bits, and at level 1 the 8 voxels of one 2x2x2 octant of a leaf, so
-** the bit-mask levels are walked like any other. */
+** its live interval [tin, tout], its three centre planes' entries and
+** exits, and the children still to visit, as a set of far-side sets (see
+** push_node).  Above the leaves a node is a pool word offset; at level 2
+** it is a leaf's 64 bits, and at level 1 the 8 voxels of one 2x2x2 octant
+** of a leaf, so the bit-mask levels are walked like any other. */
 typedef struct scale_entry {
     uint64_t node;
     uint32_t corner[3];
     double tin, tout;
-    double entry[3];        /* max(tin, centre entry) of the axis of rank q */
-    double leave[3];        /* centre-plane exit of the axis of rank q */
-    unsigned axis_bit[3];   /* child index bit of the axis of rank q */
-    unsigned pending;       /* ranks not yet visited */
+    double e[3];            /* centre plane of axis a: the far half entered */
+    double l[3];            /* ... and the near half left (e + gap) */
+    unsigned pending;       /* bit k: child of far-side set k still to visit */
 } scale_entry;
 
 /* t where the ray enters / leaves the grown slab face at voxel plane u
@@ -1047,60 +1130,67 @@ static double leave_t(const ray_frame *r, int axis, uint32_t u)
     return enter_t(r, axis, u) + r->gap[axis];
 }
 
+/* NaN bounds, a NaN or infinite coordinate (x - x is then NaN, and the
+** sum is 0 only when all are finite), or a zero direction. */
 static int ray_is_degenerate(const brt_ray *ray, float tnear, float tfar)
 {
-    int i, zero = 1;
-    if (isnan(tnear) || isnan(tfar)) return 1;
-    for (i = 0; i < 3; i++) {
-        if (!isfinite(ray->org[i]) || !isfinite(ray->dir[i])) return 1;
-        if (ray->dir[i] != 0) zero = 0;
-    }
-    return zero;
+    const float *o = ray->org, *d = ray->dir;
+    double finite = ((double)o[0] - o[0]) + ((double)o[1] - o[1]) + ((double)o[2] - o[2]) +
+                    ((double)d[0] - d[0]) + ((double)d[1] - d[1]) + ((double)d[2] - d[2]);
+    return isnan(tnear) || isnan(tfar) || finite != 0 || (d[0] == 0 && d[1] == 0 && d[2] == 0);
 }
 
-/* World children in the upper half of each axis: bit w of child w. */
-static const unsigned high_half[3] = {0xAAu, 0xCCu, 0xF0u};
+/* One axis of the frame (written out per axis: GCC -O2 kept the loops,
+** whose counters were a tenth of a culled cast). */
+static void frame_axis(ray_frame *r, int i, double p, double d, double dmax, double g,
+                       double unit)
+{
+    double inv = 1.0 / max2(fabs(d), dmax * 0x1p-40);
+    r->enter_bias[i] = (p - (1.0 + g)) * inv;
+    r->gap[i] = (p - (1.0 - g)) * inv - r->enter_bias[i];
+    r->step[i] = inv * unit;
+}
+
+/* A coordinate in the [1,2] frame, mirrored when the direction is positive
+** (a select, not a branch). */
+static double frame_point(double p, double d)
+{
+    return d > 0 ? 3.0 - p : p;
+}
 
 static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray)
 {
-    double unit, scale, p[3], d[3], inv[3], dmax = 0, pmax = 0, g;
-    int i;
+    double unit, scale, p0, p1, p2, d0, d1, d2, dmax, g;
     r->levels = tree_levels(proxy->res);
     unit = 1.0 / (1u << r->levels);                     /* exact */
     scale = unit / proxy->cell;     /* world -> frame; one rounding */
-    r->mirror = 0;
-    for (i = 0; i < 3; i++) {
-        p[i] = 1.0 + ((double)ray->org[i] - proxy->origin[i]) * scale;
-        d[i] = ray->dir[i] * scale;
-        dmax = max2(dmax, fabs(d[i]));
-    }
-    for (i = 0; i < 3; i++) {
-        unsigned mirrored = d[i] > 0;     /* selects, not branches */
-        p[i] = mirrored ? 3.0 - p[i] : p[i];
-        r->mirror |= mirrored << i;
-        r->near[i] = high_half[i] ^ (0xFFu & (0u - mirrored));
-        inv[i] = 1.0 / max2(fabs(d[i]), dmax * 0x1p-40);
-        pmax = max2(pmax, fabs(p[i]));
-    }
-    g = 0x1p-18 * (pmax + 3);
-    for (i = 0; i < 3; i++) {
-        r->enter_bias[i] = (p[i] - (1.0 + g)) * inv[i];
-        r->gap[i] = (p[i] - (1.0 - g)) * inv[i] - r->enter_bias[i];
-        r->step[i] = inv[i] * unit;
-    }
+    d0 = ray->dir[0] * scale;
+    d1 = ray->dir[1] * scale;
+    d2 = ray->dir[2] * scale;
+    p0 = frame_point(1.0 + ((double)ray->org[0] - proxy->origin[0]) * scale, d0);
+    p1 = frame_point(1.0 + ((double)ray->org[1] - proxy->origin[1]) * scale, d1);
+    p2 = frame_point(1.0 + ((double)ray->org[2] - proxy->origin[2]) * scale, d2);
+    r->mirror = (unsigned)(d0 > 0) | (unsigned)(d1 > 0) << 1 | (unsigned)(d2 > 0) << 2;
+    r->bounds_flip = (0x3Fu & (0u - (r->mirror & 1u))) | (0xFC0u & (0u - ((r->mirror >> 1) & 1u))) |
+                     (0x3F000u & (0u - (r->mirror >> 2)));
+    dmax = max2(fabs(d0), max2(fabs(d1), fabs(d2)));
+    g = 0x1p-18 * (max2(fabs(p0), max2(fabs(p1), fabs(p2))) + 3);
+    frame_axis(r, 0, p0, d0, dmax, g, unit);
+    frame_axis(r, 1, p1, d1, dmax, g, unit);
+    frame_axis(r, 2, p2, d2, dmax, g, unit);
     r->found = 0;
 }
 
-/* The root cube's grown interval, intersected with the segment. */
-static void clip_to_root(ray_frame *r, float tnear, float tfar)
+/* The segment [r->lo, r->hi] clipped to the root cube's grown box; 0 when
+** it misses. */
+static int clip_to_root(ray_frame *r)
 {
     int a;
-    r->lo = tnear;
-    r->hi = tfar;
     for (a = 0; a < 3; a++) {
         r->lo = max2(r->lo, enter_t(r, a, 1u << r->levels));
         r->hi = min2(r->hi, leave_t(r, a, 0));
     }
+    return r->lo <= r->hi;
 }
 
 /* All children when keep, else those of mask (a select, not a branch). */
@@ -1109,77 +1199,71 @@ static unsigned all_or(int keep, unsigned mask)
     return keep ? 0xFFu : mask;
 }
 
-/* A world child mask m (bit w: child w is set) by rank: bit k of the
-** result is bit w of m for the child w of rank k, which is first_child
-** with the axis bits of k's set bits flipped.  Written out: GCC at -O2
-** does not unroll the loop, which made this a third of PUSH. */
-static unsigned mask_by_rank(unsigned m, unsigned first_child, const unsigned axis_bit[3])
+/* A world child mask m (bit w: child w is set) by far-side set: bit k of
+** the result is bit k ^ x of m, x = 7 ^ mirror (see push_node).  XOR with
+** a constant permutes bit indices by swapping bits, pairs and nibbles. */
+static unsigned by_far_set(unsigned m, unsigned x)
 {
-    unsigned w0 = first_child, w1 = w0 ^ axis_bit[0], w2 = w0 ^ axis_bit[1];
-    unsigned w3 = w2 ^ axis_bit[0], w4 = w0 ^ axis_bit[2], w5 = w4 ^ axis_bit[0];
-    unsigned w6 = w4 ^ axis_bit[1], w7 = w6 ^ axis_bit[0];
-    return ((m >> w0) & 1u) | (((m >> w1) & 1u) << 1) | (((m >> w2) & 1u) << 2) |
-           (((m >> w3) & 1u) << 3) | (((m >> w4) & 1u) << 4) | (((m >> w5) & 1u) << 5) |
-           (((m >> w6) & 1u) << 6) | (((m >> w7) & 1u) << 7);
+    m = x & 1u ? ((m & 0x55u) << 1) | ((m >> 1) & 0x55u) : m;
+    m = x & 2u ? ((m & 0x33u) << 2) | ((m >> 2) & 0x33u) : m;
+    return x & 4u ? ((m & 0x0Fu) << 4) | (m >> 4) : m;
 }
+
+/* The children whose far-side set has bit a: 0xAA, 0xCC, 0xF0. */
+#define FAR0 0xAAu
+#define FAR1 0xCCu
+#define FAR2 0xF0u
 
 /*
 ** PUSH: the node spanning 2^level voxels at a mirrored corner, entered on
 ** [tin, tout], whose set children form the world mask m.  Only the three
-** centre planes are new: a child's other faces are its parent's.  So a
-** child's interval is
-**     [max(tin, centre entries of the axes it lies beyond),
-**      min(tout, centre exits of the axes it lies before)]
+** centre planes are new: a child's other faces are its parent's.  Name a
+** child by its FAR-SIDE SET k: bit a of k says it lies beyond the centre
+** plane of axis a (ESVO's idx is 7 ^ k, the world index 7 ^ k ^ mirror).
+** Then its interval is
+**     [max(tin, e_a for a in k), min(tout, l_a for a not in k)]
 ** (a centre plane is crossed after the node's entry plane on that axis,
-** so the parent's faces add nothing).  These are the same numbers a slab
-** test of each child computes, from 6 plane distances instead of 12.
-** RANK: with the axes sorted by centre entry, bit q of a rank says
-** "beyond the centre of the axis of rank q"; ranks 0, 1, 3, 7 are ESVO's
-** child sequence, and all eight come in non-decreasing entry order.
-** LIVE: a child's interval is not empty when each of its lower bounds is
-** below each upper bound: tin <= the exit of an axis it lies before, the
-** entry of an axis it lies beyond <= tout, and that entry <= the exit of
-** any axis it lies before (6 ordered pairs of axes).  The tests run on
-** world child masks and unsorted values, so that no value goes through
-** the stack entry before the mask is known (the store-to-load chain cost
-** a quarter of the time); the sort is a rank count and a scatter, and
-** nothing here branches on the ray.
+** so the parent's faces add nothing): the same numbers a slab test of each
+** child computes, from 6 plane distances instead of 12.
+** LIVE: that interval is not empty when each lower bound is below each
+** upper bound: e_a <= tout for a in k, tin <= l_b for b not in k, and
+** e_a <= l_b for a in k, b not in k (6 ordered pairs of axes); with k the
+** bit index these are masks fixed at compile time, and nothing branches.
+** ORDER: the children are visited by increasing k.  A child's entry only
+** grows when axes join its far-side set, so k comes after every subset of
+** itself; child 0 (entered at tin) is first, child 7 last.  It is not
+** ESVO's ray order (the entries are not sorted: see COST for why), so a
+** hit does not end a scale: each child is compared with the best hit.
 */
 static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
                       unsigned m, const uint32_t corner[3], int level,
                       double tin, double tout)
 {
-    uint32_t half = 1u << (level - 1);    /* centre plane entries e, exits l */
+    uint32_t half = 1u << (level - 1);
     double e0 = enter_t(r, 0, corner[0] + half), e1 = enter_t(r, 1, corner[1] + half);
     double e2 = enter_t(r, 2, corner[2] + half);
-    unsigned r0 = (unsigned)(e1 < e0) + (unsigned)(e2 < e0);   /* ties: lower axis first */
-    unsigned r1 = (unsigned)(e0 <= e1) + (unsigned)(e2 < e1);
-    unsigned r2 = (unsigned)(e0 <= e2) + (unsigned)(e1 <= e2);
     double l0 = e0 + r->gap[0], l1 = e1 + r->gap[1], l2 = e2 + r->gap[2];
-    unsigned n0 = r->near[0], n1 = r->near[1], n2 = r->near[2], live;
+    unsigned live;
     s->node = node;
     s->tin = tin;
     s->tout = tout;
     s->corner[0] = corner[0];
     s->corner[1] = corner[1];
     s->corner[2] = corner[2];
-    s->entry[r0] = max2(tin, e0);
-    s->entry[r1] = max2(tin, e1);
-    s->entry[r2] = max2(tin, e2);
-    s->leave[r0] = l0;
-    s->leave[r1] = l1;
-    s->leave[r2] = l2;
-    s->axis_bit[r0] = 1;
-    s->axis_bit[r1] = 2;
-    s->axis_bit[r2] = 4;
+    s->e[0] = e0;
+    s->e[1] = e1;
+    s->e[2] = e2;
+    s->l[0] = l0;
+    s->l[1] = l1;
+    s->l[2] = l2;
     /* LIVE: far side reached in time, near side not left before tin, no
-    ** far side entered after a near side is left (n: near, ~n: far) */
-    live = all_or(e0 <= tout, n0) & all_or(e1 <= tout, n1) & all_or(e2 <= tout, n2) &
-           all_or(l0 >= tin, ~n0) & all_or(l1 >= tin, ~n1) & all_or(l2 >= tin, ~n2) &
-           all_or(e1 <= l0, ~(n0 & ~n1)) & all_or(e2 <= l0, ~(n0 & ~n2)) &
-           all_or(e0 <= l1, ~(n1 & ~n0)) & all_or(e2 <= l1, ~(n1 & ~n2)) &
-           all_or(e0 <= l2, ~(n2 & ~n0)) & all_or(e1 <= l2, ~(n2 & ~n1));
-    s->pending = mask_by_rank(live & m, 7u ^ r->mirror, s->axis_bit);
+    ** far side entered after a near side is left */
+    live = all_or(e0 <= tout, ~FAR0) & all_or(e1 <= tout, ~FAR1) & all_or(e2 <= tout, ~FAR2) &
+           all_or(l0 >= tin, FAR0) & all_or(l1 >= tin, FAR1) & all_or(l2 >= tin, FAR2) &
+           all_or(e1 <= l0, ~(FAR1 & ~FAR0)) & all_or(e2 <= l0, ~(FAR2 & ~FAR0)) &
+           all_or(e0 <= l1, ~(FAR0 & ~FAR1)) & all_or(e2 <= l1, ~(FAR2 & ~FAR1)) &
+           all_or(e0 <= l2, ~(FAR0 & ~FAR2)) & all_or(e1 <= l2, ~(FAR1 & ~FAR2));
+    s->pending = live & by_far_set(m, 7u ^ r->mirror);
 }
 
 /* Bit o of the result: octant o of a leaf (2x2x2 voxels) is not empty. */
@@ -1201,9 +1285,18 @@ static uint64_t octant_voxels(uint64_t leaf, unsigned w)
     return (m & 0x3u) | ((m >> 2) & 0xCu) | ((m >> 12) & 0x30u) | ((m >> 14) & 0xC0u);
 }
 
+/* Inlined by force where the compiler allows: GCC -O2 kept child_fetch
+** and clip_to_bounds out of line (two call sites each), and the calls
+** were a fifth of a culled cast. */
+#if defined(__GNUC__)
+#define WALK_INLINE __attribute__((always_inline)) inline
+#else
+#define WALK_INLINE inline
+#endif
+
 /* Child w (world index, known to be set) of a node of the given level and
 ** its own world child mask: a pool node, a leaf, an octant's voxels. */
-static uint64_t child_fetch(const brt_svdag *dag, uint64_t node, int level,
+static WALK_INLINE uint64_t child_fetch(const brt_svdag *dag, uint64_t node, int level,
                             unsigned w, unsigned *m)
 {
     uint32_t h, slot;
@@ -1223,99 +1316,281 @@ static uint64_t child_fetch(const brt_svdag *dag, uint64_t node, int level,
     return leaf;
 }
 
-/* ADVANCE: the next child of scale s in ray order that is still worth a
-** visit, as its rank; 8 when the scale is done.  Ranks come in entry order,
-** so a child entered behind the best hit so far ends the scale. */
-static unsigned next_rank(const ray_frame *r, scale_entry *s, double *in)
-{
-    unsigned k;
-    if (!s->pending) return 8;
-    k = lowest_bit64(s->pending);
-    s->pending &= s->pending - 1;
-    *in = k ? s->entry[highest_bit8(k)] : s->tin;
-    if (*in > r->hi || (*in == r->hi && r->found)) {
-        s->pending = 0;
-        return 8;
-    }
-    return k;
-}
-
-/* Adds nothing to a rank's own exits, and removes the others from a min. */
+/* Subtracted from a centre entry: nothing when the child is beyond that
+** plane, else everything (the entry then does not bound the child). */
+static const double near_off[2] = {INFINITY, 0};
+/* Added to a centre exit: nothing when the child is before that plane. */
 static const double far_off[2] = {0, INFINITY};
 
-/* The walk from the root; returns 0 when it hit the iteration cap.  The
-** first set voxel in rank order is its node's nearest; it lowers hi, and
-** the scales still open then only finish the children that the segment
-** enters sooner (the siblings of the hit and of its ancestors). */
+/*
+** BOUNDS TEST: the box of a node's set voxels (its header's bounds, in
+** eighths of its side; layout at the top), turned into the mirrored frame
+** (a mirrored axis swaps first and last: eighth i becomes 7 - i), clamps
+** the node's interval [*tin, *tout]; 0 when the segment misses the box.
+** ROUNDING.  The box's planes are voxel planes and go through enter_t and
+** leave_t like every other plane, grown by g.  A computed plane distance,
+** bias - u * step with step > 0, never increases with u (each rounding is
+** monotone), so for every set voxel v inside the box the computed entry
+** of v on each axis is at least the box's and its exit at most the box's:
+** v's computed interval lies inside the box's.  So a node whose box is
+** missed holds no touched voxel, and max/min with the box's planes leave
+** every voxel's computed entry and exit as they were: the cast answers
+** bit for bit as without the test (and as the reference cast).
+*/
+
+static WALK_INLINE int clip_to_bounds(const ray_frame *r, uint32_t header, const uint32_t corner[3],
+                          int level, double *tin, double *tout)
+{
+    /* mirrored axes: flip every eighth (i -> 7 - i, an XOR with 7) and
+    ** swap first and last, all three fields at once */
+    uint32_t f = (header >> BOUNDS_SHIFT) ^ r->bounds_flip, swap = r->bounds_flip;
+    int shift = level - 3;          /* an eighth spans 2^(level-3) voxels */
+    double in, out;
+    f = (f & ~swap) | ((f >> 3) & swap & 0x71C7u) | ((f << 3) & swap & 0x38E38u);
+    in = max2(max2(*tin, enter_t(r, 0, corner[0] + ((((f >> 3) & 7u) + 1) << shift))),
+              max2(enter_t(r, 1, corner[1] + ((((f >> 9) & 7u) + 1) << shift)),
+                   enter_t(r, 2, corner[2] + ((((f >> 15) & 7u) + 1) << shift))));
+    out = min2(min2(*tout, leave_t(r, 0, corner[0] + ((f & 7u) << shift))),
+               min2(leave_t(r, 1, corner[1] + (((f >> 6) & 7u) << shift)),
+                    leave_t(r, 2, corner[2] + (((f >> 12) & 7u) << shift))));
+    *tin = in;
+    *tout = out;
+    return in <= out;
+}
+
+/* The walk from the root; returns 0 when it hit the iteration cap.  Each
+** child is entered at in = max(tin, e_a for a in k); a set voxel lowers hi
+** to its entry, and from then on a child entered at or after hi is passed
+** over (it holds nothing nearer). */
 static int walk(const brt_svdag *dag, ray_frame *r, uint64_t node, unsigned m)
 {
     scale_entry stack[MAX_LEVEL + 1], *s;
     uint32_t corner[3] = {0, 0, 0};
-    double tin = r->lo, tout = r->hi, in = 0;
+    double tin, tout;
     long budget = 64L * (1L << r->levels) + 4096;
     int level = r->levels;
+    /* the segment in the root's box of set voxels, or in the root cube when
+    ** the root is a leaf (see BOUNDS TEST: the same answers either way) */
+    if (level > 2 ? !clip_to_bounds(r, dag->words[node], corner, level, &r->lo, &r->hi)
+                  : !clip_to_root(r))
+        return 1;
+    tin = r->lo;
+    tout = r->hi;
     for (;;) {
         s = &stack[level];
         push_node(r, s, node, m, corner, level, tin, tout);      /* PUSH */
         for (;;) {
-            unsigned k = next_rank(r, s, &in), j;
             uint32_t half = 1u << (level - 1);
-            if (k == 8) {                                          /* POP */
+            unsigned k, j;
+            double in;
+            if (!s->pending) {                                     /* POP */
                 if (++level > r->levels) return 1;
                 s = &stack[level];
                 continue;
             }
+            k = lowest_bit64(s->pending);                      /* ADVANCE */
+            s->pending &= s->pending - 1;
+            in = max2(max2(s->tin, s->e[0] - near_off[k & 1]),
+                      max2(s->e[1] - near_off[(k >> 1) & 1], s->e[2] - near_off[k >> 2]));
+            if (in > r->hi || (in == r->hi && r->found)) continue;  /* no better */
             if (--budget < 0) return 0;
-            if (level == 1) {                   /* the nearest voxel here */
+            if (level == 1) {                   /* a set voxel: the best so far */
                 r->hi = in;
                 r->found = 1;
-                if (r->any) return 1;   /* yes/no: no need to finish the
-                                         ** siblings entered sooner */
-                s->pending = 0;
+                if (r->any) return 1;   /* yes/no: nothing more to learn */
                 continue;
             }
-            /* the child: its exit is the least of the centre exits of
-            ** the axes it lies before; its index flips the axes it lies beyond */
-            tout = min2(s->tout, min2(s->leave[0] + far_off[k & 1],
-                                      min2(s->leave[1] + far_off[(k >> 1) & 1],
-                                           s->leave[2] + far_off[k >> 2])));
-            j = 7u ^ (s->axis_bit[0] & (0u - (k & 1))) ^
-                (s->axis_bit[1] & (0u - ((k >> 1) & 1))) ^ (s->axis_bit[2] & (0u - (k >> 2)));
+            tout = min2(min2(s->tout, r->hi),
+                        min2(s->l[0] + far_off[k & 1],
+                             min2(s->l[1] + far_off[(k >> 1) & 1], s->l[2] + far_off[k >> 2])));
+            j = 7u ^ k;                 /* ESVO's idx: bit a, the upper half */
             corner[0] = s->corner[0] + (j & 1) * half;
             corner[1] = s->corner[1] + ((j >> 1) & 1) * half;
             corner[2] = s->corner[2] + (j >> 2) * half;
             node = child_fetch(dag, s->node, level, j ^ r->mirror, &m);
             tin = in;
-            tout = min2(tout, r->hi);
+            if (level > 3 && !clip_to_bounds(r, dag->words[node], corner, level - 1, &tin, &tout))
+                continue;       /* the segment misses the child's set voxels */
             level--;
             break;
         }
     }
 }
 
-int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
-                      const brt_ray *ray, float tnear, float tfar,
-                      float *t_entry)
+/* The walk of a cast: fills r->found and r->hi; 0 when it gave up. */
+typedef int (*cast_walk)(const brt_svdag *dag, ray_frame *r, uint64_t root, unsigned m);
+
+/* What both casts share: the rays and proxies that need no walk, the
+** frame, the root and its child mask, and the entry rounded down to float. */
+static int proxy_cast(const brt_svdag *dag, const brt_proxy *proxy, const brt_ray *ray,
+                      float tnear, float tfar, float *t_entry, cast_walk walk_fn)
 {
     ray_frame r;
     float t, unused;
+    uint64_t root = proxy->root;
+    unsigned m;
     if (!t_entry) t_entry = &unused;
     *t_entry = tnear;
     if (ray_is_degenerate(ray, tnear, tfar)) return 1;
     if (tnear > tfar) return 0;
-    if (brt_proxy_check(dag, proxy, NULL) != BRT_OK) return 1;
     if (proxy->root == BRT_EMPTY_ROOT) return 0;
     frame_setup(&r, proxy, ray);
     r.any = t_entry == &unused;
-    clip_to_root(&r, tnear, tfar);
-    if (!(r.lo <= r.hi)) return 0;
+    r.lo = tnear;
+    r.hi = tfar;
     if (r.levels == 2) {
-        uint64_t leaf = dag->leaves[proxy->root];
-        if (!walk(dag, &r, leaf, leaf_octants(leaf))) return 1;
-    } else if (!walk(dag, &r, proxy->root, dag->words[proxy->root] & 0xFFu)) return 1;
+        root = dag->leaves[proxy->root];
+        m = leaf_octants(root);
+    } else {
+        m = dag->words[proxy->root] & 0xFFu;
+    }
+    if (!walk_fn(dag, &r, root, m)) return 1;
     if (!r.found) return 0;
     t = (float)r.hi;
     if ((double)t > r.hi) t = nextafterf(t, -INFINITY);
     *t_entry = t > tnear ? t : tnear;
     return 1;
+}
+
+int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
+                      const brt_ray *ray, float tnear, float tfar,
+                      float *t_entry)
+{
+    return proxy_cast(dag, proxy, ray, tnear, tfar, t_entry, walk);
+}
+
+/* ===================================================================== */
+/* The reference cast: Laine and Karras, written for reading               */
+/* ===================================================================== */
+
+/*
+** The same question as brt_proxy_raycast, answered by the plain traversal
+** of Laine and Karras (2010, section 3 and the castRay listing of their
+** technical report), one phase after another with the paper's names:
+**   INITIALIZE  the frame (frame_setup: the root cube mapped to [1,2]^3,
+**               the ray mirrored so that it runs towards smaller
+**               coordinates, octant_mask = r->mirror; tx_coef and tx_bias
+**               are r->step and r->enter_bias) and the root's [t_min,
+**               t_max] (clip_to_root);
+**   PUSH        descend into the current child when the segment touches it
+**               and it is not empty;
+**   ADVANCE     step to the sibling the ray enters next;
+**   POP         when no sibling is left, return to the parent's scale.
+** Positions are integers in voxels of the finest level (the numbers ESVO
+** keeps in float mantissas), so `pos` is exact; `scale` is the level of the
+** parent (its side is 2^scale voxels; ESVO counts the same levels).  A
+** child's interval is a plain slab test of its grown box (the box of the
+** voxels it spans, grown by g on every side, see CONSERVATIVE IN FLOAT
+** above), so the rounding argument of the fast cast holds for every number
+** here: they are the same plane distances.  ESVO's h (the stack entry that
+** is still valid) only saves stack writes; here the stack is written at
+** every PUSH.
+**
+** Not for speed: every ADVANCE tests all eight siblings.  The fast cast
+** (walk) visits the same children, in an order of its own, at about a
+** third of the cost; tests check that the two answer alike.
+*/
+typedef struct lk_scale {
+    uint64_t parent;        /* a pool node, a leaf's 64 bits, an octant's 8 */
+    unsigned child_mask;    /* the parent's non-empty children (world index) */
+    uint32_t pos[3];        /* the parent's mirrored corner, in voxels */
+    unsigned idx;           /* the current child (mirrored index) ... */
+    double t_min;           /* ... and where the segment enters it */
+} lk_scale;
+
+/* The segment's interval in the grown box of the child idx of a parent of
+** side 2^scale at mirrored corner pos: bit a of idx says "upper half on
+** axis a", which the ray (running to smaller coordinates) meets first. */
+static void lk_child_interval(const ray_frame *r, const uint32_t pos[3], int scale,
+                              unsigned idx, double *t_min, double *t_max)
+{
+    uint32_t half = 1u << (scale - 1);
+    int a;
+    *t_min = r->lo;
+    *t_max = r->hi;
+    for (a = 0; a < 3; a++) {
+        uint32_t low = pos[a] + ((idx >> a) & 1) * half;
+        *t_min = max2(*t_min, enter_t(r, a, low + half));
+        *t_max = min2(*t_max, leave_t(r, a, low));
+    }
+}
+
+/*
+** ADVANCE.  ESVO steps from the current child across the face through which
+** the ray leaves it: step_mask holds every axis whose exit plane comes
+** first.  When two (three) exit planes are crossed at the same t the ray
+** leaves through an edge (a corner) and ESVO flips two (three) bits at once,
+** stepping diagonally -- and never visits the cubes that share only that
+** edge or corner with the current one.  A closed box contains its edges and
+** corners, so the ray touches those cubes; and the grown boxes overlap, so
+** a ray that passes within g of an edge touches both cubes beside it as
+** well.  A proxy must report them all.  So ADVANCE does not step across a
+** face: it takes, among all eight children, the non-empty one whose grown
+** box the segment enters next -- the least (t_min, idx) after the current
+** child's, in lexicographic order so that children entered at the same t
+** are each taken once.  Which child comes first among equal t_min does not
+** change the answer: it is the least entry over every touched voxel.
+** Returns 8 when no child is left.  "Touched" is t_min <= t_max, and a
+** child entered at or after the best hit so far (r->hi once r->found) can
+** not beat it and is skipped.
+*/
+static unsigned lk_advance(const ray_frame *r, const lk_scale *s, int scale,
+                           unsigned after, double t_after, double *t_next)
+{
+    unsigned idx, next = 8;
+    for (idx = 0; idx < 8; idx++) {
+        double t_min, t_max;
+        if (!((s->child_mask >> (idx ^ r->mirror)) & 1)) continue;   /* empty */
+        lk_child_interval(r, s->pos, scale, idx, &t_min, &t_max);
+        if (t_min > t_max || (r->found && t_min >= r->hi)) continue;  /* missed */
+        if (t_min < t_after || (t_min == t_after && idx <= after)) continue;  /* done */
+        if (next == 8 || t_min < *t_next) {
+            next = idx;
+            *t_next = t_min;
+        }
+    }
+    return next;
+}
+
+/* The traversal; the root is a pool node (or a leaf when the root spans
+** 4 voxels) with its world child mask m.  Always completes: 1. */
+static int reference_walk(const brt_svdag *dag, ray_frame *r, uint64_t root, unsigned m)
+{
+    lk_scale stack[MAX_LEVEL + 1];
+    int scale = r->levels;                           /* INITIALIZE */
+    lk_scale *s = &stack[scale];
+    if (!clip_to_root(r)) return 1;
+    s->parent = root;
+    s->child_mask = m;
+    s->pos[0] = s->pos[1] = s->pos[2] = 0;
+    s->idx = lk_advance(r, s, scale, 8, -INFINITY, &s->t_min);   /* the first child */
+    for (;;) {
+        if (s->idx == 8) {                                          /* POP */
+            if (++scale > r->levels) return 1;
+            s = &stack[scale];
+        } else if (scale == 1) {      /* the current child is a set voxel: a hit */
+            r->hi = s->t_min;
+            r->found = 1;
+            if (r->any) return 1;
+        } else {                                                    /* PUSH */
+            lk_scale *child = &stack[scale - 1];
+            uint32_t half = 1u << (scale - 1);
+            int a;
+            child->parent = child_fetch(dag, s->parent, scale, s->idx ^ r->mirror,
+                                        &child->child_mask);
+            for (a = 0; a < 3; a++) child->pos[a] = s->pos[a] + ((s->idx >> a) & 1) * half;
+            scale--;
+            s = child;
+            s->idx = lk_advance(r, s, scale, 8, -INFINITY, &s->t_min);
+            continue;
+        }
+        s->idx = lk_advance(r, s, scale, s->idx, s->t_min, &s->t_min);   /* ADVANCE */
+    }
+}
+
+int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
+                                const brt_ray *ray, float tnear, float tfar,
+                                float *t_entry)
+{
+    return proxy_cast(dag, proxy, ray, tnear, tfar, t_entry, reference_walk);
 }
