@@ -28,8 +28,8 @@
 **   Slot i's box is quantized in the node's frame: plane q of axis a is
 **   org[a] + q * scale[a] (decode_plane), with q the 8-bit lane i of row
 **   q[0..2] (min x, y, z) or q[3..5] (max x, y, z).  Slot i is
-**     count[i] == 0: an inner node: the inner slots take first_node,
-**                    first_node + 1, ... in slot order (always > the
+**     count[i] == 0: an inner node: inner slots come first and take
+**                    first_node, first_node + 1, ... (always > the
 **                    parent's index, siblings consecutive in memory);
 **     count[i] 1..MAX_LEAF: a leaf; the leaf slots take consecutive
 **                    triangle ranges from first_tri on, in slot order;
@@ -493,23 +493,23 @@ unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tm
     return box_span4(&b, box, tmin, tmax, entry, exit);
 }
 
-/* What each slot points to: inner slots take the node's consecutive
-** children from first_node on, leaf slots the consecutive triangle
-** ranges from first_tri on, both in slot order.  Returns the mask of
-** non-empty slots (target[] of an empty slot is left unset). */
-static inline unsigned slot_targets(const qnode *n, uint32_t target[4])
+/* The mask of non-empty slots. */
+static inline unsigned slot_valid(const qnode *n)
 {
-    uint32_t node = n->first_node, tri = n->first_tri;
-    unsigned valid = 0;
-    int i;
-    for (i = 0; i < 4; i++) {
-        const unsigned c = n->count[i];
-        if (c == EMPTY_COUNT) continue;
-        valid |= 1u << i;
-        if (c == 0) target[i] = node++;
-        else { target[i] = tri; tri += c; }
-    }
-    return valid;
+    return (unsigned)(n->count[0] != EMPTY_COUNT) | (unsigned)(n->count[1] != EMPTY_COUNT) << 1 |
+           (unsigned)(n->count[2] != EMPTY_COUNT) << 2 | (unsigned)(n->count[3] != EMPTY_COUNT) << 3;
+}
+
+/* What non-empty slot i points to.  Inner slots come first, then leaves,
+** then empty ones (the build orders them so, blob_open insists), so inner
+** slot i is child first_node + i, and leaf slot i starts after the
+** triangles of the slots below it (inner slots count 0): arithmetic, not
+** a loop over the slots at every node. */
+static inline uint32_t slot_target(const qnode *n, unsigned i)
+{
+    const unsigned below = (i > 0 ? n->count[0] : 0u) + (i > 1 ? n->count[1] : 0u) +
+                           (i > 2 ? n->count[2] : 0u);
+    return n->count[i] == 0 ? n->first_node + i : n->first_tri + below;
 }
 
 /* ===================================================================== */
@@ -531,25 +531,23 @@ static const unsigned char lowest_bit[16] = {0, 0, 1, 0, 2, 0, 1, 0, 3, 0, 1, 0,
 ** wait on DRAM for nearly every node, and these misses then overlap
 ** instead of queueing one after another.  A hint only: without GCC's
 ** builtin (or clang's, which defines __GNUC__ too) it does nothing. */
-static void prefetch_slots(const brt_bvh *bvh, const qnode *n, const uint32_t target[4],
-                           unsigned mask)
+static void prefetch_slots(const brt_bvh *bvh, const qnode *n, unsigned mask)
 {
 #if defined(__GNUC__)
     for (; mask != 0; mask &= mask - 1) {
         const unsigned i = lowest_bit[mask];
-        if (n->count[i] == 0) __builtin_prefetch(&bvh->nodes[target[i]]);
-        else __builtin_prefetch(bvh->idx + 3 * (size_t)target[i]);
+        if (n->count[i] == 0) __builtin_prefetch(&bvh->nodes[slot_target(n, i)]);
+        else __builtin_prefetch(bvh->idx + 3 * (size_t)slot_target(n, i));
     }
 #else
-    (void)bvh; (void)n; (void)target; (void)mask;
+    (void)bvh; (void)n; (void)mask;
 #endif
 }
 
-static stack_entry slot_entry(const qnode *n, const uint32_t target[4], unsigned i,
-                              const float lo[4])
+static stack_entry slot_entry(const qnode *n, unsigned i, const float lo[4])
 {
     stack_entry e;
-    e.child = target[i];
+    e.child = slot_target(n, i);
     e.count = n->count[i];
     e.vbase = n->vertex_base;
     e.lo = lo[i];
@@ -561,13 +559,13 @@ static stack_entry slot_entry(const qnode *n, const uint32_t target[4], unsigned
 ** takes the short path; otherwise the slot numbers are insertion-sorted
 ** by descending entry distance and only then copied out.  Returns the
 ** new stack size. */
-static int next_child(const qnode *n, const uint32_t target[4], unsigned mask,
-                      const float lo[4], stack_entry *stack, int sp, stack_entry *next)
+static int next_child(const qnode *n, unsigned mask, const float lo[4],
+                      stack_entry *stack, int sp, stack_entry *next)
 {
     unsigned order[4];
     int k = 0, j;
     if ((mask & (mask - 1)) == 0) {
-        *next = slot_entry(n, target, lowest_bit[mask], lo);
+        *next = slot_entry(n, lowest_bit[mask], lo);
         return sp;
     }
     for (; mask != 0; mask &= mask - 1) {
@@ -575,8 +573,8 @@ static int next_child(const qnode *n, const uint32_t target[4], unsigned mask,
         for (j = k++; j > 0 && lo[order[j - 1]] < lo[i]; j--) order[j] = order[j - 1];
         order[j] = i;
     }
-    for (j = 0; j < k - 1; j++) stack[sp++] = slot_entry(n, target, order[j], lo);
-    *next = slot_entry(n, target, order[k - 1], lo);
+    for (j = 0; j < k - 1; j++) stack[sp++] = slot_entry(n, order[j], lo);
+    *next = slot_entry(n, order[k - 1], lo);
     return sp;
 }
 
@@ -631,11 +629,10 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
         uint32_t k;
         while (cur.count == 0) {
             const qnode *n = &bvh->nodes[cur.child];
-            uint32_t target[4];
-            const unsigned mask = box_test4(&br, n, ray->tnear, tfar, lo) & slot_targets(n, target);
+            const unsigned mask = box_test4(&br, n, ray->tnear, tfar, lo) & slot_valid(n);
             if (mask == 0) goto pop;
-            prefetch_slots(bvh, n, target, mask);
-            sp = next_child(n, target, mask, lo, stack, sp, &cur);
+            prefetch_slots(bvh, n, mask);
+            sp = next_child(n, mask, lo, stack, sp, &cur);
         }
         for (k = cur.child; k < cur.child + cur.count; k++) {
             const float *p[3];
@@ -1066,6 +1063,18 @@ static int wide_slots(const builder *b, uint32_t bi, uint32_t slot[4])
     return n;
 }
 
+/* Orders a node's slots inner first, then leaves (slot_target's rule);
+** stable, so the area order of the rest stays. */
+static void inner_first(const builder *b, uint32_t slot[4], int n)
+{
+    uint32_t sorted[4];
+    int i, k = 0, pass;
+    for (pass = 0; pass < 2; pass++)
+        for (i = 0; i < n; i++)
+            if ((b->nodes[slot[i]].count > 0) == (pass == 1)) sorted[k++] = slot[i];
+    memcpy(slot, sorted, (size_t)n * sizeof *slot);
+}
+
 /* Fills wide node w from binary node bi.  Its inner children get
 ** consecutive indices after everything emitted so far (so they follow
 ** their parent and sit together in memory), its leaves' triangles are
@@ -1081,6 +1090,7 @@ static int emit_wide(emitter *e, uint32_t bi, uint32_t w)
     aabb box[4], frame;
     const int n = wide_slots(b, bi, slot);
     int i, inner = 0;
+    inner_first(b, slot, n);
     memset(out, 0, sizeof *out);
     aabb_empty(&frame);
     for (i = 0; i < n; i++) {
@@ -1318,11 +1328,19 @@ static brt_result validate_structure(const brt_bvh *bvh, brt_result code,
     for (i = 0; i < bvh->node_count; i++) {
         const qnode *n = &bvh->nodes[i];
         uint32_t c = n->first_node, t = n->first_tri;
+        int kind = 0;   /* 0 inner, 1 leaf, 2 empty: slots may only go up */
         if (depth[i] == 0) { brt_fail(err, code, "bvh: node %u is never referenced", (unsigned)i); goto done; }
         for (s = 0; s < 4; s++) {
             const char *bad;
-            if (n->count[s] == EMPTY_COUNT) continue;
-            if (n->count[s] == 0) {
+            const int slot_kind = n->count[s] == 0 ? 0 : n->count[s] == EMPTY_COUNT ? 2 : 1;
+            if (slot_kind < kind) {
+                brt_fail(err, code, "bvh: node %u slot %d: slots not ordered inner, leaf, empty",
+                         (unsigned)i, s);
+                goto done;
+            }
+            kind = slot_kind;
+            if (kind == 2) continue;
+            if (kind == 0) {
                 if (c <= i || c >= bvh->node_count || depth[c] != 0 || depth[i] >= MAX_DEPTH) {
                     brt_fail(err, code, "bvh: node %u slot %d: bad child node %u", (unsigned)i, s, (unsigned)c);
                     goto done;
@@ -1358,9 +1376,9 @@ done:
 static brt_result check_node(const brt_bvh *bvh, uint32_t i, const aabb *clip, brt_error *err)
 {
     const qnode *n = &bvh->nodes[i];
-    uint32_t target[4], k;
+    uint32_t k;
     float box[6][4];
-    const unsigned valid = slot_targets(n, target);
+    const unsigned valid = slot_valid(n);
     int s, a;
     decode_boxes(n, box);
     for (s = 0; s < 4; s++) {
@@ -1372,11 +1390,11 @@ static brt_result check_node(const brt_bvh *bvh, uint32_t i, const aabb *clip, b
             c.hi[a] = box[a + 3][s] < c.hi[a] ? box[a + 3][s] : c.hi[a];
         }
         if (n->count[s] == 0) {
-            r = check_node(bvh, target[s], &c, err);
+            r = check_node(bvh, slot_target(n, (unsigned)s), &c, err);
             if (r != BRT_OK) return r;
             continue;
         }
-        for (k = target[s]; k < target[s] + n->count[s]; k++) {
+        for (k = slot_target(n, (unsigned)s); k < slot_target(n, (unsigned)s) + n->count[s]; k++) {
             const float *p[3];
             aabb t;
             int j;
@@ -1571,11 +1589,12 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
 **     per kind; the float layout took 172 M): first decode loop over 24
 **     planes with row % 3, scalar: 795 M; a row of 4 lanes with the 2^23
 **     float trick: 629 M; rows as words masked in place and scaled by
-**     powers of two (vectorized): 462 M.  What is left: the decode (about
-**     175 M) and slot_targets' loop over the counts (about 76 M).  Cold
+**     powers of two (vectorized): 462 M; inner slots first, so a slot's
+**     target is arithmetic instead of a loop over the counts at every
+**     node (which took about 76 M): 413 M with C_TRAV 3 (whose larger
+**     leaves add 30 M of triangle tests).  The decode is most of the rest.  Cold
 **     speed on the sphere mesh against the float layout: camera 0.76-0.90,
 **     random 0.85-0.93, bounce 0.64-0.82 (two runs; the warm figures lose
-**     more, 0.6-0.8).  Not done for lack of time: inner slots first so a
-**     slot's target is arithmetic, 8-wide nodes, leaves laid out for the
-**     vectorizer.
+**     more, 0.6-0.8).  Not done for lack of time: 8-wide nodes, leaves
+**     laid out for the vectorizer, prefetching a leaf's vertices.
 */
