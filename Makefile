@@ -4,7 +4,9 @@
 #   make test         build and run the test suite (last line: "N passed, N failed")
 #   make debug        the same with -O0 -g and the library's internal checks
 #   make sanitize     the test suite under AddressSanitizer + UBSan
+#   make tsan         the threaded tests under ThreadSanitizer
 #   make bench        benchmarks (figures printed, never pass/fail)
+#   make bench-threads  speed-ups at 1 and 2 threads (README, "Threads")
 #   make mutants      mutation testing of the suite (tests/mutants/)
 #   make clean
 #   make V=1 ...      show the full command lines
@@ -21,7 +23,8 @@ WARN    = -Wall -Wextra -pedantic -Werror \
           -Wwrite-strings -Wundef -Wformat=2 -Wvla -Wcast-align \
           -Wold-style-definition -Wredundant-decls -Wnested-externs
 CFLAGS  ?=
-CFLAGS  += $(STD) $(WARN) $(OPT) $(XCFLAGS)
+# -pthread: the pool of batchrt.c (README, "Threads"), compile and link.
+CFLAGS  += $(STD) $(WARN) $(OPT) -pthread $(XCFLAGS)
 LDLIBS  = -lm
 BUILD   ?= build
 # "make V=1" shows the full command lines.
@@ -51,7 +54,7 @@ TEST_SRC = $(wildcard tests/*.c)
 TEST_OBJ = $(TEST_SRC:%.c=$(BUILD)/%.o)
 TEST_BIN = $(BUILD)/run_tests
 
-.PHONY: all test debug sanitize bench bench-batched clean mutants
+.PHONY: all test debug sanitize tsan bench bench-batched clean mutants
 all: $(LIB) $(PROGRAMS)
 
 $(BUILD)/%.o: %.c batchrt.h | $(BUILD)/examples $(BUILD)/tests
@@ -99,6 +102,13 @@ debug:
 sanitize:
 	$(MAKE) --no-print-directory test BUILD=build/sanitize OPT="-O1 -g -fno-omit-frame-pointer" \
 	  XCFLAGS="-DBRT_DEBUG -fsanitize=address,undefined -fno-sanitize-recover=all"
+
+# The threaded tests (names starting "threads") under ThreadSanitizer: any
+# report fails (halt_on_error).  About 1 minute on 2 cores.
+tsan:
+	$(MAKE) --no-print-directory all build/tsan/run_tests BUILD=build/tsan OPT="-O1 -g" \
+	  XCFLAGS="-fsanitize=thread"
+	BRT_BUILD=build/tsan TSAN_OPTIONS="halt_on_error=1 exitcode=66" ./build/tsan/run_tests threads
 
 bench: all
 	./$(BUILD)/bench_bvh
@@ -201,7 +211,7 @@ fuzz-replay: $(BUILD)/tests/fuzz/replay
 $(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h $(LIB_SRC) batchrt.h
 	$(SAY) FUZZ $@
 	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
-	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
+	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
 
 fuzz: $(FUZZ_BINS)
 	$(Q)for t in $(FUZZ_TARGETS); do \
@@ -254,6 +264,46 @@ bench-render: all
 	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --out $(BUILD)/bench-render-$$scene.png || exit 1; \
 	done
 # == END RENDER ===========================================================
+
+# == THREADS (speed-ups; not part of CI) =================================
+# bench-threads: each of the README's four targets (section "Threads") at
+# 1 and THREADS_N threads, THREADS_REPEAT times each: trace --direct (1M
+# bounce rays on the shared dragon), render in core and at 25 % with
+# --disk-speed 100M (landscape --scale 10, 320x180, 8 spp), and the scene
+# build (the landscape at --scale 10 from the generator).  Prints the
+# timed part's wall seconds (from --stats) and the process's CPU seconds;
+# checks that every statistics count is equal across the thread counts.
+THREADS_N      ?= 2
+THREADS_REPEAT ?= 3
+THREADS_DIR    ?= /tmp/batchrt-bench-threads
+.PHONY: bench-threads
+bench-threads: all
+	@set -e; d=$(THREADS_DIR); b=./$(BUILD); mkdir -p $$d; \
+	num() { sed -n "s/.*\"$$2\": *\([0-9.eE+-]*\).*/\1/p" $$1; }; \
+	counts() { grep -v 'seconds\|mrays\|peak_rss' $$1; }; \
+	m=$$d/dragon.obj; test -s $$m || gzip -dc ../shared/data/meshes/dragon.obj.gz > $$m; \
+	$$b/raygen $$m $$d/rays --kind bounce --count 1000000 --seed 1 > /dev/null; \
+	land="landscape --scale 10 --batch-tris 10000"; \
+	img="--width 320 --height 180 --spp 8"; \
+	$$b/render $$land --width 1 --height 1 --spp 1 --scene $$d/land.brs --out $$d/x.png > /dev/null; \
+	run() { name=$$1; field=$$2; shift 2; \
+	  for t in 1 $(THREADS_N); do for i in $$(seq $(THREADS_REPEAT)); do \
+	    rm -f $$d/build.brs; \
+	    /usr/bin/time -f "%U %S" -o $$d/cpu "$$@" --threads $$t --stats $$d/s$$t.json > /dev/null; \
+	    awk -v n="$$name" -v t=$$t -v w=$$(num $$d/s$$t.json $$field) \
+	      -v l=$$(num $$d/s$$t.json load_seconds) -v c="$$(cat $$d/cpu)" \
+	      'BEGIN { split(c, u, " "); printf "%-28s %2d threads: %7.2f s wall (%s), %7.2f s CPU, loads %.2f s\n", \
+	        n, t, w, "'$$field'", u[1] + u[2], l }'; \
+	  done; done; \
+	  counts $$d/s1.json > $$d/c1; counts $$d/s$(THREADS_N).json > $$d/c2; \
+	  cmp -s $$d/c1 $$d/c2 && echo "  counts equal" || echo "  COUNTS DIFFER"; }; \
+	run "trace --direct" seconds $$b/trace $$m $$d/rays $$d/hits --direct; \
+	run "render in core" seconds $$b/render $$land $$img --scene $$d/land.brs --out $$d/x.png; \
+	run "render 25%, --disk-speed 100M" seconds $$b/render $$land $$img --scene $$d/land.brs \
+	  --memory 25% --disk-speed 100M --out $$d/x.png; \
+	run "scene build" build_seconds $$b/render $$land --width 1 --height 1 --spp 1 \
+	  --scene $$d/build.brs --out $$d/x.png
+# == END THREADS ==========================================================
 
 # == SCALE (out of core from end to end; not part of CI) ==================
 # bench-scale: an OBJ of SCALE_OBJ * 100K triangles written by mkscene and

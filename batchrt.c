@@ -10,6 +10,10 @@
 **     walk, the pread page cache (SQLite's pcache shape) and the scheduler.
 ** The sections follow that order; each opens with a comment on its design.
 */
+/* MAP_ANONYMOUS (POSIX.1-2024) for the page cache's buffers: glibc shows
+** it only beyond the Makefile's _POSIX_C_SOURCE=200809L, hence this file's
+** one feature macro (nothing else here uses what it adds). */
+#define _DEFAULT_SOURCE
 #include "batchrt.h"
 
 #include <errno.h>
@@ -22,6 +26,8 @@
 #include <string.h>
 #include <time.h>
 #include <unistd.h>
+#include <pthread.h>
+#include <sys/mman.h>
 #include <sys/resource.h>
 #include <sys/stat.h>
 
@@ -161,6 +167,256 @@ brt_result brt_write_file_atomic(const char *path, const void *data,
         return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(saved));
     }
     return BRT_OK;
+}
+
+/* ===================================================================== */
+/* Threads: a small pool and a split of the work                         */
+/* ===================================================================== */
+/*
+** A pool runs one job at a time on its threads, the caller being thread 0.
+** A job hands out [0, total) in chunks from one counter; every output is
+** written per item (a hit, a ray's slot, a batching point's buffers) or
+** summed per thread, so which thread took which chunk changes no byte.
+** The pool lives as long as one trace or one build: the library keeps no
+** global state.  With one thread no thread is created and the job runs
+** in the caller, as the code read before threads.
+*/
+typedef void (*pool_job)(void *ctx, unsigned thread, size_t first, size_t end);
+typedef void (*pool_commit)(void *ctx, size_t first, size_t end);
+
+typedef struct pool {
+    pthread_mutex_t lock;
+    pthread_cond_t wake, idle, progress;
+    pthread_t *threads;
+    unsigned count;             /* threads that run jobs, the caller included */
+    unsigned long round;        /* incremented for each job */
+    unsigned busy;              /* threads still in the current job */
+    int quit;
+    pool_job job;
+    void *ctx;
+    size_t next, total, chunk;  /* the split of the current job */
+    unsigned char *done;        /* per chunk of the job: finished */
+    size_t done_cap;
+} pool;
+
+unsigned brt_threads_resolve(unsigned threads)
+{
+    /* _SC_NPROCESSORS_ONLN is not in POSIX, but glibc, musl, the BSDs
+    ** and macOS all have it; elsewhere one thread. */
+#ifdef _SC_NPROCESSORS_ONLN
+    long online = sysconf(_SC_NPROCESSORS_ONLN);
+#else
+    long online = 1;
+#endif
+    if (threads == 0) threads = online > 0 ? (unsigned)online : 1u;
+    return threads < BRT_MAX_THREADS ? threads : BRT_MAX_THREADS;
+}
+
+/* Takes the next chunk of the current job (lock held); 0: none left. */
+static int pool_take(pool *p, size_t *first, size_t *end)
+{
+    if (p->next >= p->total) return 0;
+    *first = p->next;
+    *end = p->total - p->next < p->chunk ? p->total : p->next + p->chunk;
+    p->next = *end;
+    return 1;
+}
+
+/* Runs one chunk (lock held on entry and return) and marks it done. */
+static void pool_chunk(pool *p, unsigned thread, size_t first, size_t end)
+{
+    pthread_mutex_unlock(&p->lock);
+    p->job(p->ctx, thread, first, end);
+    pthread_mutex_lock(&p->lock);
+    p->done[first / p->chunk] = 1;
+    pthread_cond_signal(&p->progress);
+}
+
+/* The caller's part of a job: it commits the chunks in order as they are
+** done, and runs chunks itself while the next one to commit is not. */
+static void pool_commit_in_order(pool *p, pool_commit commit)
+{
+    size_t chunks = (p->total + p->chunk - 1) / p->chunk, c = 0, first, end;
+    pthread_mutex_lock(&p->lock);
+    while (c < chunks) {
+        if (p->done[c]) {
+            pthread_mutex_unlock(&p->lock);
+            end = (c + 1) * p->chunk < p->total ? (c + 1) * p->chunk : p->total;
+            if (commit) commit(p->ctx, c * p->chunk, end);
+            c++;
+            pthread_mutex_lock(&p->lock);
+        } else if (pool_take(p, &first, &end)) {
+            pool_chunk(p, 0, first, end);
+        } else {
+            pthread_cond_wait(&p->progress, &p->lock);
+        }
+    }
+    while (p->busy > 0) pthread_cond_wait(&p->idle, &p->lock);
+    pthread_mutex_unlock(&p->lock);
+}
+
+typedef struct pool_thread {
+    pool *p;
+    unsigned index;
+} pool_thread;
+
+static void *pool_main(void *arg)
+{
+    pool *p = ((pool_thread *)arg)->p;
+    unsigned index = ((pool_thread *)arg)->index;
+    unsigned long seen = 0;
+    size_t first, end;
+    free(arg);
+    pthread_mutex_lock(&p->lock);
+    for (;;) {
+        while (p->round == seen && !p->quit) pthread_cond_wait(&p->wake, &p->lock);
+        if (p->quit) break;
+        seen = p->round;
+        while (pool_take(p, &first, &end)) pool_chunk(p, index, first, end);
+        if (--p->busy == 0) pthread_cond_signal(&p->idle);
+    }
+    pthread_mutex_unlock(&p->lock);
+    return NULL;
+}
+
+/* Starts up to threads - 1 threads; fewer when the system refuses (the
+** results do not depend on the count). */
+static void pool_init(pool *p, unsigned threads)
+{
+    memset(p, 0, sizeof *p);
+    p->count = 1;
+    threads = brt_threads_resolve(threads);
+    if (threads < 2) return;
+    pthread_mutex_init(&p->lock, NULL);
+    pthread_cond_init(&p->wake, NULL);
+    pthread_cond_init(&p->idle, NULL);
+    pthread_cond_init(&p->progress, NULL);
+    p->threads = malloc((threads - 1) * sizeof *p->threads);
+    while (p->threads && p->count < threads) {
+        pool_thread *arg = malloc(sizeof *arg);
+        if (!arg) break;
+        arg->p = p;
+        arg->index = p->count;
+        if (pthread_create(&p->threads[p->count - 1], NULL, pool_main, arg) != 0) {
+            free(arg);
+            break;
+        }
+        p->count++;
+    }
+}
+
+static void pool_free(pool *p)
+{
+    unsigned i;
+    if (!p->threads) return;
+    pthread_mutex_lock(&p->lock);
+    p->quit = 1;
+    pthread_cond_broadcast(&p->wake);
+    pthread_mutex_unlock(&p->lock);
+    for (i = 0; i + 1 < p->count; i++) pthread_join(p->threads[i], NULL);
+    free(p->threads);
+    free(p->done);
+    pthread_mutex_destroy(&p->lock);
+    pthread_cond_destroy(&p->wake);
+    pthread_cond_destroy(&p->idle);
+    pthread_cond_destroy(&p->progress);
+}
+
+/* Runs job over [0, total) in chunks of at most chunk items, on every
+** thread of the pool, and, when commit is not NULL, commit over the same
+** chunks in order, in the calling thread, each as soon as it and those
+** before it are done (so one thread's serial work overlaps the others'
+** jobs).  Returns when all is done.  Below two chunks, or without room
+** for the chunk flags, the caller runs it alone. */
+static void pool_run(pool *p, pool_job job, pool_commit commit, void *ctx, size_t total,
+                     size_t chunk)
+{
+    size_t chunks = (total + chunk - 1) / chunk;
+    if (total == 0) return;
+    if (chunks > p->done_cap && p->count > 1 && chunks > 1) {
+        unsigned char *done = realloc(p->done, chunks);
+        if (done) {
+            p->done = done;
+            p->done_cap = chunks;
+        }
+    }
+    if (p->count < 2 || chunks < 2 || chunks > p->done_cap) {
+        job(ctx, 0, 0, total);
+        if (commit) commit(ctx, 0, total);
+        return;
+    }
+    memset(p->done, 0, chunks);
+    pthread_mutex_lock(&p->lock);
+    p->job = job;
+    p->ctx = ctx;
+    p->next = 0;
+    p->total = total;
+    p->chunk = chunk;
+    p->busy = p->count - 1;
+    p->round++;
+    pthread_cond_broadcast(&p->wake);
+    pthread_mutex_unlock(&p->lock);
+    pool_commit_in_order(p, commit);
+}
+
+/* ---- direct tracing: chunks of rays through one BVH ----------------- */
+
+/* One ray of either kind through one BVH, on the record of brt_ray_source:
+** the closest hit so far (and its normal when normal is not NULL), or for
+** an occlusion ray (tag has BRT_TAG_OCCLUSION) t = 0, prim = 0 once any
+** triangle is hit in [tnear, tfar].  The direct trace and the scheduler
+** share it, so both kinds give the same bytes in every mode. */
+static void intersect_ray(const brt_bvh *bvh, const brt_ray *ray, uint64_t tag, brt_hit *hit,
+                          float normal[3])
+{
+    if (tag & BRT_TAG_OCCLUSION) {
+        if (brt_bvh_occluded(bvh, ray)) {
+            hit->t = 0.0f;
+            hit->prim = 0;
+        }
+    } else if (normal) {
+        brt_bvh_intersect_normal(bvh, ray, hit, normal);
+    } else {
+        brt_bvh_intersect(bvh, ray, hit);
+    }
+}
+
+typedef struct bvh_trace_job {
+    const brt_bvh *bvh;
+    const brt_ray *rays;
+    const uint64_t *tags;
+    brt_hit *hits;
+    float *normals;
+} bvh_trace_job;
+
+static void bvh_trace_chunk(void *ctx, unsigned thread, size_t first, size_t end)
+{
+    const bvh_trace_job *j = ctx;
+    size_t i;
+    (void)thread;
+    for (i = first; i < end; i++) {
+        float *normal = j->normals ? j->normals + 3 * i : NULL;
+        if (normal) normal[0] = normal[1] = normal[2] = 0.0f;
+        brt_hit_clear(&j->hits[i]);
+        intersect_ray(j->bvh, &j->rays[i], j->tags ? j->tags[i] : 0, &j->hits[i], normal);
+    }
+}
+
+#define TRACE_CHUNK 1024   /* rays per chunk: ~1 ms, against ~10 us per take */
+
+void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags,
+                   size_t count, brt_hit *hits, float *normals, unsigned threads)
+{
+    bvh_trace_job j;
+    pool p;
+    j.bvh = bvh;
+    j.rays = rays;
+    j.tags = tags;
+    j.hits = hits;
+    j.normals = normals;
+    pool_init(&p, count > TRACE_CHUNK ? threads : 1);
+    pool_run(&p, bvh_trace_chunk, NULL, &j, count, TRACE_CHUNK);
+    pool_free(&p);
 }
 
 /* ===================================================================== */
@@ -1405,7 +1661,10 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
         {"proxy_tests", s->proxy_tests}, {"proxy_culled", s->proxy_culled},
         {"visits", s->visits}, {"queued_visits", s->queued_visits},
         {"resident_visits", s->resident_visits},
-        {"oversized_loads", s->oversized_loads}, {"peak_rss_bytes", s->peak_rss_bytes}};
+        {"oversized_loads", s->oversized_loads}, {"shadow_rays", s->shadow_rays},
+        {"shadow_occluded", s->shadow_occluded}, {"shadow_batch_loads", s->shadow_batch_loads},
+        {"shadow_disk_bytes_read", s->shadow_disk_bytes_read},
+        {"peak_rss_bytes", s->peak_rss_bytes}};
     const struct { const char *name; double value; } measures[] = {
         {"seconds", s->seconds}, {"load_seconds", s->load_seconds},
         {"build_seconds", s->build_seconds},
@@ -2112,8 +2371,10 @@ typedef struct scene_builder {
     float *centroids;           /* and median split order */
     uint32_t *order;
     partition points;           /* the bucket's batching points */
-    float *corners;             /* one batching point: 9 floats, 3 indices */
-    uint32_t *indices, *prims;  /* and the number of each triangle */
+    uint32_t *indices;          /* 0, 1, 2, ...: a point's triangles are its corners */
+    pool pool;                  /* brt_scene_options.threads */
+    struct point_work *work;    /* a window of points built at once */
+    uint32_t window;
 } scene_builder;
 
 static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
@@ -2399,19 +2660,6 @@ static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *
 
 /* ---- batching points ---- */
 
-/* The proxy of one batching point: its triangles voxelized in a grid
-** fitted to its box, added to the shared pool. */
-static brt_result batch_proxy(scene_builder *b, batch_entry *e, uint32_t count)
-{
-    brt_grid grid;
-    brt_result r = brt_grid_init(&grid, e->lo, e->hi, b->w.res);
-    if (r != BRT_OK) return r;
-    r = brt_voxelize(&grid, b->corners, b->indices, count);
-    if (r == BRT_OK) r = brt_svdag_add(b->w.dag, &grid, &e->proxy);
-    brt_grid_free(&grid);
-    return r;
-}
-
 /* A new entry of the per-point tables. */
 static batch_entry *batch_append(scene_writer *w)
 {
@@ -2429,65 +2677,118 @@ static batch_entry *batch_append(scene_writer *w)
     return &w->batches[w->batch_count++];
 }
 
-/* BVH blob bytes of the batching point in corners/indices/prims. */
-static brt_result point_blob(scene_builder *b, uint32_t count, void **blob, size_t *size,
-                             brt_error *err)
+/*
+** Threads: a bucket's points are built a window at a time (two per
+** thread).  Each point is built whole by one thread into a work slot of
+** its own -- its triangles, box, BVH blob and checksum, and its proxy's
+** voxel grid -- and the caller writes the blobs and adds the grids to the
+** shared DAG in point order, each as soon as the points before it are
+** written (pool_run's commit).  So blob offsets and the DAG's nodes, whose
+** numbers follow the order of the adds, are those of one thread.
+*/
+typedef struct point_work {
+    float *corners;             /* its triangles: 9 floats each */
+    uint32_t *prims;            /* and the number of each */
+    uint32_t first, count;      /* its records: order[first .. first + count) */
+    float lo[3], hi[3];
+    void *blob;                 /* its BVH, as stored */
+    size_t size;
+    uint64_t checksum;
+    brt_grid grid;              /* its proxy's voxels */
+    brt_result bvh_result, grid_result;
+} point_work;
+
+/* Builds one point in its slot (any thread: reads the bucket only). */
+static void point_build(const scene_builder *b, point_work *pw)
 {
     brt_bvh *bvh = NULL;
-    brt_result r = brt_bvh_build(b->corners, b->indices, count, b->prims, &bvh);
-    if (r != BRT_OK) return brt_fail(err, r, "%s: building a batching point's BVH: %s",
-                                     b->w.path, brt_result_string(r));
-    *size = brt_bvh_blob_size(bvh);
-    *blob = calloc(1, *size ? *size : 1);
-    if (*blob) brt_bvh_blob_write(bvh, *blob);
-    brt_bvh_free(bvh);
-    return *blob ? BRT_OK : brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    uint32_t i;
+    bounds_clear(pw->lo, pw->hi);
+    for (i = 0; i < pw->count; i++) {
+        const spill_record *rec = &b->records[b->order[pw->first + i]];
+        memcpy(pw->corners + 9 * (size_t)i, rec->v, sizeof rec->v);
+        pw->prims[i] = rec->prim;
+        bounds_grow(pw->lo, pw->hi, rec->v);
+        bounds_grow(pw->lo, pw->hi, rec->v + 3);
+        bounds_grow(pw->lo, pw->hi, rec->v + 6);
+    }
+    pw->blob = NULL;
+    pw->bvh_result = brt_bvh_build(pw->corners, b->indices, pw->count, pw->prims, &bvh);
+    if (pw->bvh_result == BRT_OK) {
+        pw->size = brt_bvh_blob_size(bvh);
+        pw->blob = calloc(1, pw->size ? pw->size : 1);
+        if (pw->blob) brt_bvh_blob_write(bvh, pw->blob);
+        if (pw->blob) pw->checksum = brt_checksum64(pw->blob, pw->size);
+        brt_bvh_free(bvh);
+    }
+    pw->grid_result = brt_grid_init(&pw->grid, pw->lo, pw->hi, b->w.res);
+    if (pw->grid_result == BRT_OK)
+        pw->grid_result = brt_voxelize(&pw->grid, pw->corners, b->indices, pw->count);
 }
 
-/* One batching point: the bucket's records ids[0..count): its BVH as a
-** blob at the next page, its box and its proxy. */
-static brt_result write_point(scene_builder *b, const uint32_t *ids, uint32_t count,
-                              brt_error *err)
+/* Writes one built point: its blob at the next page, its table entry and
+** box, its proxy added to the shared pool (the caller, in point order). */
+static brt_result point_write(scene_builder *b, point_work *pw, brt_error *err)
 {
     scene_writer *w = &b->w;
     batch_entry *e;
-    void *blob = NULL;
-    size_t size = 0;
-    uint32_t i;
     brt_result r = poll_interrupt(b, err);
     if (r != BRT_OK) return r;
-    if (!(e = batch_append(w))) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
-    bounds_clear(e->lo, e->hi);
-    for (i = 0; i < count; i++) {
-        const spill_record *rec = &b->records[ids[i]];
-        memcpy(b->corners + 9 * (size_t)i, rec->v, sizeof rec->v);
-        b->prims[i] = rec->prim;
-        bounds_grow(e->lo, e->hi, rec->v);
-        bounds_grow(e->lo, e->hi, rec->v + 3);
-        bounds_grow(e->lo, e->hi, rec->v + 6);
-    }
-    e->triangles = count;
-    if ((r = point_blob(b, count, &blob, &size, err)) != BRT_OK) return r;
-    e->size = size;
-    e->checksum = brt_checksum64(blob, size);
+    if (pw->bvh_result != BRT_OK)
+        return brt_fail(err, pw->bvh_result, "%s: building a batching point's BVH: %s",
+                        w->path, brt_result_string(pw->bvh_result));
+    if (!pw->blob || !(e = batch_append(w))) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    memcpy(e->lo, pw->lo, sizeof e->lo);
+    memcpy(e->hi, pw->hi, sizeof e->hi);
+    e->triangles = pw->count;
+    e->size = pw->size;
+    e->checksum = pw->checksum;
     e->offset = w->offset;
-    r = write_at(w->fd, blob, size, e->offset, w->path, err);
-    free(blob);
-    if (r != BRT_OK) return r;
+    if ((r = write_at(w->fd, pw->blob, pw->size, e->offset, w->path, err)) != BRT_OK) return r;
     w->offset = round_up_page(e->offset + e->size);
     w->geometry_bytes += e->size;
     memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1), e->lo, 3 * sizeof(float));
     memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1) + 3, e->hi, 3 * sizeof(float));
-    r = batch_proxy(b, e, count);
+    r = pw->grid_result;
+    if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->grid, &e->proxy);
     if (r != BRT_OK) return brt_fail(err, r, "%s: building a proxy: %s", w->path, brt_result_string(r));
     return BRT_OK;
 }
 
+typedef struct window_job {
+    scene_builder *b;
+    brt_result result;
+    brt_error *err;
+} window_job;
+
+static void window_build(void *ctx, unsigned thread, size_t first, size_t end)
+{
+    const window_job *j = ctx;
+    size_t k;
+    (void)thread;
+    for (k = first; k < end; k++) point_build(j->b, &j->b->work[k]);
+}
+
+static void window_write(void *ctx, size_t first, size_t end)
+{
+    window_job *j = ctx;
+    size_t k;
+    for (k = first; k < end; k++) {
+        point_work *pw = &j->b->work[k];
+        if (j->result == BRT_OK) j->result = point_write(j->b, pw, j->err);
+        free(pw->blob);
+        pw->blob = NULL;
+        brt_grid_free(&pw->grid);
+    }
+}
+
 /* A bucket that fits in memory: read whole, split by medians into
-** batching points (ties by record order, which is number order). */
+** batching points (ties by record order, which is number order), built
+** a window at a time. */
 static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *err)
 {
-    uint32_t i;
+    uint32_t i, k, m;
+    window_job j;
     brt_result r = spill_read(b, b->records, bk->count, bk->first, err);
     if (r != BRT_OK) return r;
     for (i = 0; i < bk->count; i++) {
@@ -2498,9 +2799,18 @@ static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *er
     b->points.order = b->order;
     if (partition_split(&b->points, b->centroids, 0, bk->count, b->batch_tris) != BRT_OK)
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
-    for (i = 0; i < b->points.count && r == BRT_OK; i++)
-        r = write_point(b, b->order + b->points.ranges[i].first, b->points.ranges[i].count, err);
-    return r;
+    j.b = b;
+    j.err = err;
+    j.result = BRT_OK;
+    for (i = 0; i < b->points.count && j.result == BRT_OK; i += m) {
+        m = b->points.count - i < b->window ? b->points.count - i : b->window;
+        for (k = 0; k < m; k++) {
+            b->work[k].first = b->points.ranges[i + k].first;
+            b->work[k].count = b->points.ranges[i + k].count;
+        }
+        pool_run(&b->pool, window_build, window_write, &j, m, 1);
+    }
+    return j.result;
 }
 
 /* ---- the file's tables ---- */
@@ -2555,14 +2865,21 @@ static brt_result builder_arrays(scene_builder *b, brt_error *err)
 {
     size_t most = b->root.b.count < b->bucket_tris ? b->root.b.count : b->bucket_tris, i;
     size_t point = most < b->batch_tris ? most : b->batch_tris;
+    uint32_t k;
     b->records = malloc(most * sizeof *b->records);
     b->centroids = malloc(3 * most * sizeof *b->centroids);
     b->order = malloc(most * sizeof *b->order);
-    b->corners = malloc(9 * point * sizeof *b->corners);
     b->indices = malloc(3 * point * sizeof *b->indices);
-    b->prims = malloc(point * sizeof *b->prims);
-    if (!b->records || !b->centroids || !b->order || !b->corners || !b->indices || !b->prims)
+    b->window = 2 * b->pool.count;
+    b->work = calloc(b->window, sizeof *b->work);
+    if (!b->records || !b->centroids || !b->order || !b->indices || !b->work)
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    for (k = 0; k < b->window; k++) {
+        b->work[k].corners = malloc(9 * point * sizeof *b->work[k].corners);
+        b->work[k].prims = malloc(point * sizeof *b->work[k].prims);
+        if (!b->work[k].corners || !b->work[k].prims)
+            return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    }
     for (i = 0; i < 3 * point; i++) b->indices[i] = (uint32_t)i;
     return BRT_OK;
 }
@@ -2595,6 +2912,7 @@ static brt_result build_passes(scene_builder *b, const brt_triangle_source *sour
 
 static void builder_free(scene_builder *b)
 {
+    uint32_t k;
     if (b->spill_fd >= 0) close(b->spill_fd);
     free(b->read_buf);
     free(b->cells);
@@ -2602,9 +2920,13 @@ static void builder_free(scene_builder *b)
     free(b->centroids);
     free(b->order);
     free(b->points.ranges);
-    free(b->corners);
     free(b->indices);
-    free(b->prims);
+    for (k = 0; b->work && k < b->window; k++) {
+        free(b->work[k].corners);
+        free(b->work[k].prims);
+    }
+    free(b->work);
+    pool_free(&b->pool);
     brt_svdag_free(b->w.dag);
     free(b->w.batches);
     free(b->w.boxes);
@@ -2620,6 +2942,7 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->spill_fd = b->w.fd = -1;
     b->w.path = scene_path;
     b->interrupt = opt ? opt->interrupt : NULL;
+    pool_init(&b->pool, opt ? opt->threads : 0);
     scene_options_resolve(opt, &b->batch_tris, &b->w.res);
     if (b->w.res < 2 || b->w.res > 1024 || (b->w.res & (b->w.res - 1)) != 0)
         return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", b->w.res);
@@ -2982,6 +3305,14 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
 ** of at most CACHE_READ_CHUNK bytes.  The budget counts the page-rounded
 ** bytes held.  A blob larger than the budget is allowed when it is the
 ** only one held (it is counted in stats->oversized_loads).
+**
+** Each buffer is its own anonymous mapping (mmap), returned to the system
+** by munmap on eviction.  Why not malloc: glibc serves blobs below its
+** mmap threshold (which grows up to 32 MiB once a large block is freed)
+** from the heap and keeps freed heap resident, so a render at --memory 1G
+** of a 100 M-triangle landscape peaked at 1222 MiB against a bound of
+** 1099 MiB (README, "Out of core from end to end"); with mappings the
+** resident bytes follow what the cache holds.
 */
 #define CACHE_READ_CHUNK ((size_t)8 << 20)
 
@@ -2994,6 +3325,17 @@ typedef struct page_cache {
     void *read_user;
     int drop_os_cache;          /* brt_trace_options.drop_os_cache */
     brt_stats *stats;
+    /* Read-ahead (more than one thread): one blob read by a thread of its
+    ** own while the scheduler's threads intersect (cache_read_ahead). */
+    int read_ahead;
+    int ahead_running;
+    pthread_t ahead_thread;
+    uint32_t ahead_id;          /* NO_ENTRY: none */
+    void *ahead_data;
+    brt_bvh *ahead_bvh;
+    uint64_t ahead_bytes;
+    double ahead_seconds;
+    brt_result ahead_result;
 } page_cache;
 
 static void lru_unlink(page_cache *c, uint32_t id)
@@ -3016,12 +3358,24 @@ static void lru_append(page_cache *c, uint32_t id)
     c->lru_tail = id;
 }
 
+/* The bytes of blob id's buffer: its page-rounded size, at least a page. */
+static size_t blob_buffer_bytes(const brt_scene *scene, uint32_t id)
+{
+    uint64_t bytes = round_up_page(scene->batches[id].size);
+    return bytes ? (size_t)bytes : SCENE_PAGE;
+}
+
+static void blob_free(const brt_scene *scene, uint32_t id, void *data)
+{
+    if (data) munmap(data, blob_buffer_bytes(scene, id));
+}
+
 static void cache_evict(page_cache *c, uint32_t id)
 {
     cache_entry *e = &c->entries[id];
     lru_unlink(c, id);
     brt_bvh_free(e->bvh);
-    free(e->data);
+    blob_free(c->scene, id, e->data);
     c->held -= e->bytes;
     e->data = NULL;
     e->bvh = NULL;
@@ -3039,6 +3393,7 @@ static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
     c->scene = scene;
     c->budget = budget;
     c->lru_head = c->lru_tail = NO_ENTRY;
+    c->ahead_id = NO_ENTRY;
     c->read_fn = opt && opt->read_fn ? opt->read_fn : pread_reader;
     c->read_user = opt ? opt->read_user : NULL;
     c->drop_os_cache = opt && opt->drop_os_cache;
@@ -3046,12 +3401,15 @@ static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
     return BRT_OK;
 }
 
+static int cache_ahead_take(page_cache *c, uint32_t id);
+
 static void cache_free(page_cache *c)
 {
     uint32_t i;
+    cache_ahead_take(c, NO_ENTRY);
     for (i = 0; c->entries && i < c->scene->header.batch_count; i++) {
         brt_bvh_free(c->entries[i].bvh);
-        free(c->entries[i].data);
+        blob_free(c->scene, i, c->entries[i].data);
     }
     free(c->entries);
 }
@@ -3081,17 +3439,21 @@ static brt_result cache_check(const page_cache *c, brt_error *err)
     return BRT_OK;
 }
 
-/* Reads blob id whole (its page-rounded size, into page-aligned memory,
+/* Reads blob id whole (its page-rounded size, into a mapping of its own,
 ** bytes read added to *bytes_read), checks its checksum and opens it as a
-** BVH; *data is to be freed after the BVH. */
+** BVH; *data is to be freed (blob_free) after the BVH. */
 static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
                             brt_bvh **bvh, brt_error *err)
 {
     const batch_entry *b = &c->scene->batches[id];
     uint64_t bytes = round_up_page(b->size), done = 0;
     brt_result r = BRT_OK;
-    if (posix_memalign(data, SCENE_PAGE, bytes ? (size_t)bytes : SCENE_PAGE) != 0)
+    *data = mmap(NULL, blob_buffer_bytes(c->scene, id), PROT_READ | PROT_WRITE,
+                 MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (*data == MAP_FAILED) {
+        *data = NULL;
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory for batching point %u", c->scene->path, id);
+    }
     while (done < bytes && r == BRT_OK) {
         size_t chunk = bytes - done < CACHE_READ_CHUNK ? (size_t)(bytes - done) : CACHE_READ_CHUNK;
         r = read_fully(c->scene->fd, (unsigned char *)*data + done, chunk, b->offset + done,
@@ -3105,10 +3467,61 @@ static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_re
     if (r == BRT_OK && brt_bvh_blob_open(*data, b->size, bvh, NULL) != BRT_OK)
         r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid BVH blob", c->scene->path, id);
     if (r != BRT_OK) {
-        free(*data);
+        blob_free(c->scene, id, *data);
         *data = NULL;
     }
     return r;
+}
+
+/* ---- read-ahead ---- */
+/*
+** While the threads intersect the rays of one batching point, a thread of
+** the cache's own reads the blob of the fullest queue left (the likely
+** next load: cache_read_ahead).  The schedule does not change: when the
+** scheduler then asks for that blob, cache_load takes the buffer read
+** ahead instead of reading (the same bytes, counted then, as a load of
+** the same size would be); when it asks for another, the buffer is
+** dropped uncounted.  So every count is the one-thread count, and only
+** the wall time differs.  The buffer is held beside the budget: one blob
+** more at most (README, "Threads").  read_fn is never called by two
+** threads at once: the read-ahead is joined before any other read.
+*/
+static void *ahead_main(void *arg)
+{
+    page_cache *c = arg;
+    double start = brt_seconds();
+    c->ahead_result = blob_read(c, c->ahead_id, &c->ahead_bytes, &c->ahead_data, &c->ahead_bvh, NULL);
+    c->ahead_seconds = brt_seconds() - start;
+    return NULL;
+}
+
+/* Starts reading blob id ahead, unless it is in memory or a read-ahead is
+** under way. */
+static void cache_read_ahead(page_cache *c, uint32_t id)
+{
+    if (!c->read_ahead || c->ahead_running || c->entries[id].data) return;
+    c->ahead_id = id;
+    c->ahead_bytes = 0;
+    c->ahead_data = NULL;
+    c->ahead_bvh = NULL;
+    c->ahead_running = pthread_create(&c->ahead_thread, NULL, ahead_main, c) == 0;
+}
+
+/* Waits for the read-ahead, if any: 1 when it read blob id without error
+** (its buffer and BVH are then the caller's), else 0 (dropped). */
+static int cache_ahead_take(page_cache *c, uint32_t id)
+{
+    int ok;
+    if (!c->ahead_running) return 0;
+    pthread_join(c->ahead_thread, NULL);
+    c->ahead_running = 0;
+    ok = c->ahead_id == id && c->ahead_result == BRT_OK;
+    if (!ok) {
+        brt_bvh_free(c->ahead_bvh);
+        blob_free(c->scene, c->ahead_id, c->ahead_data);
+    }
+    c->ahead_id = NO_ENTRY;
+    return ok;
 }
 
 /* Loads blob id into the cache (the caller has made room). */
@@ -3117,8 +3530,16 @@ static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
     cache_entry *e = &c->entries[id];
     uint64_t bytes = round_up_page(c->scene->batches[id].size);
     double start = brt_seconds();
-    brt_result r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->bvh, err);
-    c->stats->load_seconds += brt_seconds() - start;
+    brt_result r = BRT_OK;
+    if (cache_ahead_take(c, id)) {
+        e->data = c->ahead_data;
+        e->bvh = c->ahead_bvh;
+        c->stats->disk_bytes_read += c->ahead_bytes;
+        c->stats->load_seconds += c->ahead_seconds;
+    } else {
+        r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->bvh, err);
+        c->stats->load_seconds += brt_seconds() - start;
+    }
     if (r != BRT_OK) return r;
     e->bytes = bytes;
     c->held += bytes;
@@ -3151,17 +3572,21 @@ static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, b
 #endif
 }
 
-/* The BVH of batching point id if it is in memory (then it counts as just
-** used), or NULL.  Never loads. */
-static const brt_bvh *cache_resident(page_cache *c, uint32_t id)
+/* The BVH of batching point id if it is in memory, or NULL.  Never loads
+** and changes nothing, so that threads may ask at once; the scheduler
+** reports the use afterwards with cache_touch. */
+static const brt_bvh *cache_peek(const page_cache *c, uint32_t id)
 {
-    cache_entry *e = &c->entries[id];
-    if (!e->data) return NULL;
-    if (e->pins == 0) {
+    return c->entries[id].data ? c->entries[id].bvh : NULL;
+}
+
+/* Batching point id, resident, counts as just used. */
+static void cache_touch(page_cache *c, uint32_t id)
+{
+    if (c->entries[id].data && c->entries[id].pins == 0) {
         lru_unlink(c, id);
         lru_append(c, id);
     }
-    return e->bvh;
 }
 
 /* Release unpins: the entry becomes the most recently used evictable one. */
@@ -3204,7 +3629,7 @@ static brt_result check_point(const page_cache *c, uint32_t id, uint32_t batch_t
             seen[p >> 3] |= (unsigned char)(1u << (p & 7));
     }
     brt_bvh_free(bvh);
-    free(data);
+    blob_free(s, id, data);
     return r;
 }
 
@@ -3238,6 +3663,22 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 ** Per-ray state while queued: the ray (32 bytes), its closest hit so far
 ** (16) and that triangle's normal (12), its walk key (8), the number of
 ** batching points it was queued at (4) and the caller's tag (8): 80 bytes.
+** The tag also says the ray's kind (BRT_TAG_OCCLUSION), so an occlusion
+** ray costs no byte more: it keeps an unused normal, and its hit record
+** turns from the miss record into "occluded" at its first hit.
+**
+** Threads (README, "Threads"): the scheduler works in phases.  A phase is
+** a list of rays -- the queue of the batching point just loaded, or rays
+** new from the source -- each of which is intersected there (a queue) and
+** then walks on until it must be queued or is finished (walk_on).  The
+** rays of a phase are split across the pool's threads; walk_on reads the
+** shared state (top-level BVH, proxies, resident BVHs) and writes only its
+** ray's slot, its outcome and its thread's counters.  One thread then
+** commits the phase in list order (commit): counters summed, the page
+** cache's LRU order updated from the touches as if the rays had walked one
+** after another, rays queued or finished.  So every decision -- which
+** queue is fullest, what is evicted, the order of finished calls -- is the
+** one the one-thread run makes.
 */
 typedef struct ray_slot {
     brt_ray ray;
@@ -3253,6 +3694,22 @@ typedef struct ray_queue {
     uint32_t count, capacity;
 } ray_queue;
 
+/* One thread's part of a phase: its walk, its counters, and the batching
+** points it found in memory with the stamp of its last use of each (the
+** stamp orders uses as a one-thread walk would make them). */
+typedef struct walker {
+    top_walk walk;
+    uint64_t resident_visits, proxy_tests, proxy_culled;
+    uint64_t *used_at;          /* per batching point; 0: not used */
+    uint32_t *used, used_count;
+} walker;
+
+/* A batching point used by a phase and the stamp of its last use. */
+typedef struct point_use {
+    uint64_t stamp;
+    uint32_t id;
+} point_use;
+
 typedef struct scheduler {
     brt_scene *scene;
     const brt_ray_source *source;
@@ -3263,7 +3720,10 @@ typedef struct scheduler {
     uint32_t *free_slots, free_count, capacity;
     ray_queue *queues;
     uint32_t *heap, *heap_pos, heap_size;   /* heap_pos[id] = NO_ENTRY when absent */
-    top_walk walk;                          /* the walk of the ray being advanced */
+    pool pool;
+    walker *walkers;                        /* one per thread of the pool */
+    uint32_t *phase, *outcome;              /* a phase's slots; NO_ENTRY: finished */
+    point_use *uses;                        /* a phase's uses, merged */
     brt_bvh **exact;                        /* exact_proxies: every BVH, or NULL */
     void **exact_data;
     brt_ray *incoming;
@@ -3335,6 +3795,28 @@ static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
     return BRT_OK;
 }
 
+static int is_occlusion(const ray_slot *r)
+{
+    return (r->tag & BRT_TAG_OCCLUSION) != 0;
+}
+
+/* An occlusion ray is done at its first hit; a closest-hit ray only when
+** its walk ends. */
+static int found_occluder(const ray_slot *r)
+{
+    return is_occlusion(r) && r->hit.prim != BRT_NO_PRIM;
+}
+
+/* Intersects a ray with a batching point's triangles: the closest hit so
+** far, or for an occlusion ray any hit in [tnear, tfar] (the record of
+** brt_ray_source: t = 0, prim = 0 when occluded). */
+static void intersect_slot(const brt_bvh *bvh, ray_slot *r)
+{
+    intersect_ray(bvh, &r->ray, r->tag, &r->hit, r->normal);
+}
+
+/* How far the walk goes: the closest hit so far, or tfar.  (An occlusion
+** ray's record stays the miss record, t = +inf, until it ends the walk.) */
 static float walk_limit(const ray_slot *r)
 {
     return r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
@@ -3352,10 +3834,13 @@ static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, fl
     return brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear, tlimit, NULL);
 }
 
-/* Continues a ray's top-level walk: queues it at the next batching point it
-** enters before its closest hit and whose proxy it hits, or finishes it.
-** tlimit is the closest hit (a box entered exactly there may still hold an
-** equal-t hit with a lower prim, so the compare is inclusive).
+/* Continues a ray's top-level walk: stops at the next batching point it
+** enters before its closest hit and whose proxy it hits (returned: the
+** ray is to be queued there), or finishes (NO_ENTRY).  tlimit is the
+** closest hit (a box entered exactly there may still hold an equal-t hit
+** with a lower prim, so the compare is inclusive).  An occlusion ray
+** also finishes at its first hit.  Writes only the ray's
+** slot and the walker w: threads walk different rays at once.
 **
 ** A batching point whose geometry is in memory needs no queue: the ray is
 ** intersected there at once and walks on (unless queue_resident asks for
@@ -3364,38 +3849,146 @@ static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, fl
 ** bounce ray starts inside the batching point just processed, which is
 ** still in memory; queued, it would wait there until that point might be
 ** evicted and read again.  (Landscape, 2 M triangles, 25 % limit: loads
-** 4,309 -> 1,358 without proxies, 3,104 -> 929 with them; README.) */
-static brt_result advance(scheduler *s, uint32_t slot)
+** 4,309 -> 1,358 without proxies, 3,104 -> 929 with them; README.)
+** stamp: the ray's place in its phase, high word; each use adds one. */
+static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t stamp)
 {
-    ray_slot *r = &s->slots[slot];
     brt_ray_prep prep;
+    float tlimit;
     brt_ray_prepare(&r->ray, &prep);
-    if (prep.valid) {
-        float tlimit = walk_limit(r);
-        top_walk_start(&s->walk);
-        while (top_walk_next(&s->walk, s->scene->top, &prep, tlimit, &r->key)) {
-            const brt_bvh *resident = s->queue_resident ? NULL : cache_resident(&s->cache, r->key.id);
-            if (resident) {
-                brt_bvh_intersect_normal(resident, &r->ray, &r->hit, r->normal);
-                r->visits++;
-                s->stats->resident_visits++;
-                tlimit = walk_limit(r);
+    if (!prep.valid) return NO_ENTRY;
+    tlimit = walk_limit(r);
+    top_walk_start(&w->walk);
+    while (!found_occluder(r) && top_walk_next(&w->walk, s->scene->top, &prep, tlimit, &r->key)) {
+        const brt_bvh *resident = s->queue_resident ? NULL : cache_peek(&s->cache, r->key.id);
+        if (resident) {
+            if (w->used_at[r->key.id] == 0) w->used[w->used_count++] = r->key.id;
+            w->used_at[r->key.id] = stamp++;
+            intersect_slot(resident, r);
+            r->visits++;
+            w->resident_visits++;
+            tlimit = walk_limit(r);
+            continue;
+        }
+        if (s->use_proxies) {
+            w->proxy_tests++;
+            if (!proxy_may_hit(s, r->key.id, &r->ray, tlimit)) {
+                w->proxy_culled++;
                 continue;
             }
-            if (s->use_proxies) {
-                s->stats->proxy_tests++;
-                if (!proxy_may_hit(s, r->key.id, &r->ray, tlimit)) {
-                    s->stats->proxy_culled++;
-                    continue;
-                }
-            }
-            r->visits++;
-            return enqueue(s, r->key.id, slot);
         }
+        r->visits++;
+        return r->key.id;
     }
-    s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
-    s->free_slots[s->free_count++] = slot;
-    return BRT_OK;
+    return NO_ENTRY;
+}
+
+/* A phase: the rays in slots[0..count), first intersected with bvh when
+** it is not NULL (the batching point whose queue they are). */
+typedef struct phase_job {
+    scheduler *s;
+    const uint32_t *slots;
+    const brt_bvh *bvh;
+    brt_result result;          /* of the commits: BRT_ENOMEM from a queue */
+} phase_job;
+
+static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
+{
+    const phase_job *j = ctx;
+    scheduler *s = j->s;
+    size_t i;
+    for (i = first; i < end; i++) {
+        ray_slot *r = &s->slots[j->slots[i]];
+        if (j->bvh) intersect_slot(j->bvh, r);
+        s->outcome[i] = walk_on(s, &s->walkers[thread], r, ((uint64_t)(i + 1)) << 32);
+    }
+}
+
+/* Commits rays [first, end) of a phase, in order: each is queued where
+** its walk stopped, or finished. */
+static void phase_commit(void *ctx, size_t first, size_t end)
+{
+    phase_job *j = ctx;
+    scheduler *s = j->s;
+    size_t i;
+    for (i = first; i < end && j->result == BRT_OK; i++) {
+        uint32_t slot = j->slots[i];
+        ray_slot *r = &s->slots[slot];
+        if (s->outcome[i] != NO_ENTRY) {
+            j->result = enqueue(s, s->outcome[i], slot);
+            continue;
+        }
+        s->stats->shadow_occluded += found_occluder(r);
+        s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
+        s->free_slots[s->free_count++] = slot;
+    }
+}
+
+static int use_before(const void *a, const void *b)
+{
+    uint64_t x = ((const point_use *)a)->stamp, y = ((const point_use *)b)->stamp;
+    return (x > y) - (x < y);
+}
+
+/* The LRU order after a phase: each resident batching point it used moves
+** to the back in the order of its last use over all threads -- the order
+** the uses of one thread walking the rays in list order leave. */
+static void commit_uses(scheduler *s)
+{
+    walker *all = &s->walkers[0];   /* thread 0's table gathers the others' */
+    uint32_t t, k, n;
+    for (t = 1; t < s->pool.count; t++) {
+        walker *w = &s->walkers[t];
+        for (k = 0; k < w->used_count; k++) {
+            uint32_t id = w->used[k];
+            if (all->used_at[id] == 0) all->used[all->used_count++] = id;
+            if (w->used_at[id] > all->used_at[id]) all->used_at[id] = w->used_at[id];
+            w->used_at[id] = 0;
+        }
+        w->used_count = 0;
+    }
+    for (n = 0; n < all->used_count; n++) {
+        s->uses[n].id = all->used[n];
+        s->uses[n].stamp = all->used_at[all->used[n]];
+        all->used_at[all->used[n]] = 0;
+    }
+    all->used_count = 0;
+    qsort(s->uses, n, sizeof *s->uses, use_before);
+    for (k = 0; k < n; k++) cache_touch(&s->cache, s->uses[k].id);
+}
+
+/* The end of a phase, its threads idle: the counters and the LRU order. */
+static void phase_end(scheduler *s)
+{
+    uint32_t t;
+    for (t = 0; t < s->pool.count; t++) {
+        walker *w = &s->walkers[t];
+        s->stats->resident_visits += w->resident_visits;
+        s->stats->proxy_tests += w->proxy_tests;
+        s->stats->proxy_culled += w->proxy_culled;
+        w->resident_visits = w->proxy_tests = w->proxy_culled = 0;
+    }
+    commit_uses(s);
+}
+
+#define PHASE_CHUNK 64   /* rays per chunk: ~0.1-1 ms of walks */
+
+/* Runs a phase (see "Threads" above); id: the batching point whose queue
+** it is, pinned, released before the uses are committed as a one-thread
+** run would (no ray of its queue uses it again: keys only grow), or
+** NO_ENTRY for new rays. */
+static brt_result phase_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
+                            const brt_bvh *bvh)
+{
+    phase_job j;
+    j.s = s;
+    j.slots = slots;
+    j.bvh = bvh;
+    j.result = BRT_OK;
+    pool_run(&s->pool, phase_chunk, phase_commit, &j, count, PHASE_CHUNK);
+    if (id != NO_ENTRY) cache_release(&s->cache, id);
+    phase_end(s);
+    return j.result;
 }
 
 /* Takes new rays from the source while there are free slots. */
@@ -3403,12 +3996,13 @@ static brt_result refill(scheduler *s)
 {
     while (s->free_count > 0) {
         size_t n = s->source->next_rays(s->source->user, s->incoming, s->incoming_tags, s->free_count), i;
+        brt_result res;
         if (n == 0) return BRT_OK;
         if (n > s->free_count) n = s->free_count;
         for (i = 0; i < n; i++) {
             uint32_t slot = s->free_slots[--s->free_count];
             ray_slot *r = &s->slots[slot];
-            brt_result res;
+            s->phase[i] = slot;
             r->ray = s->incoming[i];
             r->tag = s->incoming_tags[i];
             brt_hit_clear(&r->hit);
@@ -3417,11 +4011,35 @@ static brt_result refill(scheduler *s)
             r->key.t = -INFINITY;
             r->key.id = TOP_EMPTY;
             s->stats->rays++;
-            res = advance(s, slot);
-            if (res != BRT_OK) return res;
+            s->stats->shadow_rays += is_occlusion(r);
         }
+        res = phase_run(s, s->phase, (uint32_t)n, NO_ENTRY, NULL);
+        if (res != BRT_OK) return res;
     }
     return BRT_OK;
+}
+
+/* Nonzero when every ray of the queue is an occlusion ray. */
+static int only_occlusion(const scheduler *s, const ray_queue *q)
+{
+    uint32_t i;
+    for (i = 0; i < q->count; i++)
+        if (!is_occlusion(&s->slots[q->slots[i]])) return 0;
+    return 1;
+}
+
+/* Fetches batching point id for its queue, and books the load (if there
+** is one) as the shadow rays' when they alone asked for it. */
+static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const brt_bvh **bvh,
+                            brt_error *err)
+{
+    uint64_t loads = s->stats->batch_loads, bytes = s->stats->disk_bytes_read;
+    brt_result r = cache_fetch(&s->cache, id, bvh, err);
+    if (r == BRT_OK && s->stats->batch_loads != loads && only_occlusion(s, q)) {
+        s->stats->shadow_batch_loads += s->stats->batch_loads - loads;
+        s->stats->shadow_disk_bytes_read += s->stats->disk_bytes_read - bytes;
+    }
+    return r;
 }
 
 /* Intersects every ray queued at batching point id, then moves each on. */
@@ -3429,18 +4047,13 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
 {
     ray_queue q = s->queues[id];
     const brt_bvh *bvh;
-    uint32_t i;
-    brt_result r = cache_fetch(&s->cache, id, &bvh, err);
+    brt_result r = fetch_for(s, id, &q, &bvh, err);
     if (r != BRT_OK) return r;
     /* Take the queue out first: no ray is queued here again (keys only
-    ** grow), but the walk may queue rays elsewhere while we iterate. */
+    ** grow), but the commit queues rays elsewhere. */
     memset(&s->queues[id], 0, sizeof s->queues[id]);
-    for (i = 0; i < q.count; i++) {
-        ray_slot *slot = &s->slots[q.slots[i]];
-        brt_bvh_intersect_normal(bvh, &slot->ray, &slot->hit, slot->normal);
-    }
-    cache_release(&s->cache, id);
-    for (i = 0; i < q.count && r == BRT_OK; i++) r = advance(s, q.slots[i]);
+    if (s->heap_size > 0) cache_read_ahead(&s->cache, s->heap[0]);
+    r = phase_run(s, q.slots, q.count, id, bvh);
     free(q.slots);
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
 }
@@ -3452,6 +4065,37 @@ static uint64_t all_blob_bytes(const brt_scene *scene)
     uint32_t i;
     for (i = 0; i < scene->header.batch_count; i++) bytes += round_up_page(scene->batches[i].size);
     return bytes;
+}
+
+/* The pool and one walker per thread (opt->threads: 0 means all cores). */
+static brt_result walkers_init(scheduler *s, const brt_trace_options *opt)
+{
+    uint32_t n = s->scene->header.batch_count, t;
+    pool_init(&s->pool, opt ? opt->threads : 0);
+    s->walkers = calloc(s->pool.count, sizeof *s->walkers);
+    s->uses = malloc((size_t)n * sizeof *s->uses);
+    if (!s->walkers || !s->uses) return BRT_ENOMEM;
+    for (t = 0; t < s->pool.count; t++) {
+        walker *w = &s->walkers[t];
+        w->walk.heap = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.heap);
+        w->used_at = calloc(n, sizeof *w->used_at);
+        w->used = malloc((size_t)n * sizeof *w->used);
+        if (!w->walk.heap || !w->used_at || !w->used) return BRT_ENOMEM;
+    }
+    return BRT_OK;
+}
+
+static void walkers_free(scheduler *s)
+{
+    uint32_t t;
+    for (t = 0; s->walkers && t < s->pool.count; t++) {
+        free(s->walkers[t].walk.heap);
+        free(s->walkers[t].used_at);
+        free(s->walkers[t].used);
+    }
+    free(s->walkers);
+    free(s->uses);
+    pool_free(&s->pool);
 }
 
 /* capacity_hint: the number of rays there will be, when known (0: not),
@@ -3491,14 +4135,17 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->heap_pos = malloc((size_t)n * sizeof *s->heap_pos);
     s->incoming = malloc((size_t)s->capacity * sizeof *s->incoming);
     s->incoming_tags = malloc((size_t)s->capacity * sizeof *s->incoming_tags);
-    s->walk.heap = malloc(((size_t)n + scene->header.top_node_count) * sizeof *s->walk.heap);
+    s->phase = malloc((size_t)s->capacity * sizeof *s->phase);
+    s->outcome = malloc((size_t)s->capacity * sizeof *s->outcome);
     if (!s->slots || !s->free_slots || !s->queues || !s->heap || !s->heap_pos || !s->incoming ||
-        !s->incoming_tags || !s->walk.heap)
+        !s->incoming_tags || !s->phase || !s->outcome || walkers_init(s, opt) != BRT_OK)
         return BRT_ENOMEM;
     for (i = 0; i < n; i++) s->heap_pos[i] = NO_ENTRY;
     for (i = 0; i < s->capacity; i++) s->free_slots[i] = s->capacity - 1 - i;
     s->free_count = s->capacity;
-    return cache_init(&s->cache, scene, budget, opt, stats);
+    if (cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK) return BRT_ENOMEM;
+    s->cache.read_ahead = s->pool.count > 1;
+    return BRT_OK;
 }
 
 static void scheduler_free(scheduler *s)
@@ -3513,10 +4160,12 @@ static void scheduler_free(scheduler *s)
     free(s->heap_pos);
     free(s->incoming);
     free(s->incoming_tags);
-    free(s->walk.heap);
+    free(s->phase);
+    free(s->outcome);
+    walkers_free(s);
     for (i = 0; s->exact && i < s->scene->header.batch_count; i++) {
         brt_bvh_free(s->exact[i]);
-        free(s->exact_data[i]);
+        blob_free(s->scene, i, s->exact_data[i]);
     }
     free(s->exact);
     free(s->exact_data);
@@ -3578,11 +4227,13 @@ brt_result brt_scene_trace_stream(brt_scene *scene, const brt_trace_options *opt
     return trace_source(scene, opt, source, 0, stats, err);
 }
 
-/* brt_scene_trace on top of the stream: rays are handed out in order and
-** the tag is the index of the hit to write. */
+/* brt_scene_trace and brt_scene_occluded on top of the stream: rays are
+** handed out in order and the tag is the index of the answer to write
+** (with BRT_TAG_OCCLUSION when the answers are occlusion bytes). */
 typedef struct array_source {
     const brt_ray *rays;
-    brt_hit *hits;
+    brt_hit *hits;              /* closest hits, or NULL */
+    uint8_t *occluded;          /* or occlusion bytes */
     size_t count, next;
 } array_source;
 
@@ -3592,7 +4243,7 @@ static size_t array_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
     size_t n = a->count - a->next < max ? a->count - a->next : max, i;
     for (i = 0; i < n; i++) {
         rays[i] = a->rays[a->next];
-        tags[i] = a->next++;
+        tags[i] = a->next++ | (a->occluded ? BRT_TAG_OCCLUSION : 0);
     }
     return n;
 }
@@ -3604,7 +4255,19 @@ static void array_finished(void *user, const brt_ray *ray, const brt_hit *hit,
     (void)ray;
     (void)normal;
     (void)visits;
-    a->hits[tag] = *hit;
+    if (a->occluded) a->occluded[tag & ~BRT_TAG_OCCLUSION] = hit->prim != BRT_NO_PRIM;
+    else a->hits[tag] = *hit;
+}
+
+static brt_result trace_array(brt_scene *scene, const brt_trace_options *opt, array_source *a,
+                              brt_stats *stats, brt_error *err)
+{
+    brt_ray_source source;
+    a->next = 0;
+    source.next_rays = array_next;
+    source.finished = array_finished;
+    source.user = a;
+    return trace_source(scene, opt, &source, a->count > 0 ? a->count : 1, stats, err);
 }
 
 brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
@@ -3612,13 +4275,21 @@ brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
                            brt_stats *stats, brt_error *err)
 {
     array_source a;
-    brt_ray_source source;
     a.rays = rays;
     a.hits = hits;
+    a.occluded = NULL;
     a.count = count;
-    a.next = 0;
-    source.next_rays = array_next;
-    source.finished = array_finished;
-    source.user = &a;
-    return trace_source(scene, opt, &source, count > 0 ? count : 1, stats, err);
+    return trace_array(scene, opt, &a, stats, err);
+}
+
+brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
+                              const brt_ray *rays, size_t count, uint8_t *occluded,
+                              brt_stats *stats, brt_error *err)
+{
+    array_source a;
+    a.rays = rays;
+    a.hits = NULL;
+    a.occluded = occluded;
+    a.count = count;
+    return trace_array(scene, opt, &a, stats, err);
 }

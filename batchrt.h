@@ -114,6 +114,13 @@ double brt_seconds(void);
 ** 0 where the system does not say. */
 uint64_t brt_peak_rss_bytes(void);
 
+/* Threads (README, "Threads"): every option named threads means that many
+** POSIX threads, the caller's included; 0 means one per online core.  No
+** output byte and no count depends on it.  brt_threads_resolve returns
+** the number a request stands for (at least 1, at most BRT_MAX_THREADS). */
+#define BRT_MAX_THREADS 256u
+unsigned brt_threads_resolve(unsigned threads);
+
 /* Writes size bytes to path through "path.tmp.<pid>" and rename(), so a
 ** failure never leaves a half-written file under the final name. */
 brt_result brt_write_file_atomic(const char *path, const void *data,
@@ -310,6 +317,16 @@ void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit);
 void brt_bvh_intersect_normal(const brt_bvh *bvh, const brt_ray *ray,
                               brt_hit *hit, float normal[3]);
 
+/* brt_bvh_intersect_normal for count rays from cleared hits: hits[i] (and
+** normals[3i..3i+2] when normals is not NULL, zero on a miss) for rays[i],
+** in chunks spread over threads threads (0: all cores).  tags may be NULL;
+** otherwise a ray whose tags[i] has BRT_TAG_OCCLUSION is an occlusion ray
+** and gets brt_ray_source's record (t = 0, prim = 0 when occluded, else the
+** miss record).  Out of memory for the threads, it runs on fewer; the bytes
+** are the same either way. */
+void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags,
+                   size_t count, brt_hit *hits, float *normals, unsigned threads);
+
 /* Any hit in [tnear, tfar]: 1 if occluded. */
 int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
 
@@ -467,6 +484,12 @@ typedef struct brt_stats {
     uint64_t queued_visits;     /* rays queued at a batching point */
     uint64_t resident_visits;   /* rays intersected at once: the geometry was in memory */
     uint64_t oversized_loads;   /* loads of a blob larger than the budget */
+    uint64_t shadow_rays;       /* occlusion rays traced (counted in rays too) */
+    uint64_t shadow_occluded;   /* of those, the ones that found a hit */
+    uint64_t shadow_batch_loads;     /* loads for a queue of occlusion rays only */
+    uint64_t shadow_disk_bytes_read; /* the bytes those loads read: what the
+                                ** shadow rays alone made the cache read (a
+                                ** load for a mixed queue counts for neither) */
     double seconds;             /* tracing */
     double load_seconds;        /* of those, loading batching points (read,
                                 ** checksum, open), wall clock */
@@ -512,6 +535,9 @@ typedef struct brt_scene_options {
     ** what a scene file built from a mesh that fits one bucket holds. */
     uint32_t test_spill_chunk;
     uint32_t test_bucket_tris;
+    /* Threads building batching points' BVHs and proxies (0: all cores);
+    ** the file's bytes do not depend on it. */
+    unsigned threads;
 } brt_scene_options;
 
 /* Builds the scene file for mesh at scene_path (written under a temporary
@@ -571,7 +597,10 @@ void brt_scene_bounds(const brt_scene *scene, float bmin[3], float bmax[3]);
 
 /* The reader behind the page cache: pread's contract (it may return short
 ** counts or fail with errno EINTR; the cache retries both).  Replaceable
-** so that tests can inject faults. */
+** so that tests can inject faults.  With more than one thread the cache
+** also reads ahead: the reader may then be called from a thread of the
+** cache's own (never by two threads at once), for a blob that may not be
+** used; a failed read-ahead is dropped and the blob read again if needed. */
 typedef long (*brt_read_fn)(int fd, void *buf, size_t size, uint64_t offset,
                             void *user);
 
@@ -596,7 +625,22 @@ typedef struct brt_trace_options {
     uint32_t rays_in_flight; /* stream mode: 0 means 1 << 20 */
     brt_read_fn read_fn;     /* NULL: pread */
     void *read_user;
+    unsigned threads;        /* threads intersecting and walking rays (0:
+                             ** all cores); the scheduler's decisions, the
+                             ** order of finished calls and every count are
+                             ** the same for any number (README, "Threads") */
 } brt_trace_options;
+
+/* Ray kinds.  A ray of a stream is a closest-hit ray, or an occlusion ray
+** when its tag has BRT_TAG_OCCLUSION set: the question "is any triangle hit
+** within [tnear, tfar]?" (Embree's rtcOccluded1, brt_bvh_occluded).  An
+** occlusion ray finishes at the first hit found anywhere, walks and is
+** culled by the proxies like any ray, and comes back to finished with the
+** bit still set in its tag and a hit record that says only the answer:
+** the miss record when clear; t = 0, prim = 0, u = v = 0 when occluded
+** (which triangle is found first depends on the schedule, so none is
+** named); the normal is zero.  The flag leaves 63 bits of tag. */
+#define BRT_TAG_OCCLUSION ((uint64_t)1 << 63)
 
 /* Stream mode, so a path tracer keeps a constant number of rays in flight:
 ** the scheduler calls next_rays when it has room (return 0 when there are
@@ -625,6 +669,14 @@ brt_result brt_scene_trace_stream(brt_scene *scene,
 brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
                            const brt_ray *rays, size_t count, brt_hit *hits,
                            brt_stats *stats, brt_error *err);
+
+/* Occlusion queries for an array of rays: occluded[i] = 1 when some
+** triangle is hit within [rays[i].tnear, rays[i].tfar], else 0 -- byte for
+** byte brt_bvh_occluded over the whole mesh, whatever the options (the
+** occlusion file of README.md). */
+brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
+                              const brt_ray *rays, size_t count, uint8_t *occluded,
+                              brt_stats *stats, brt_error *err);
 
 #ifdef __cplusplus
 }

@@ -23,6 +23,10 @@
 ** file with a negative tnear is rejected.  Rays batchrt never hits (NaN,
 ** infinite or zero direction, tnear > tfar) are written as misses without
 ** asking Embree, whose behaviour on them is undefined.
+**
+** --occlusion: rtcOccluded1 instead, and an occlusion file out (one byte
+** per ray, 1 occluded, 0 clear; Embree sets tfar to -inf on a hit), the
+** file of build/trace --occlusion.
 */
 #include "common.h"
 
@@ -41,6 +45,7 @@ typedef struct embree_options {
     int robust;                      /* RTC_SCENE_FLAG_ROBUST */
     const char *stats;               /* --stats FILE.json, or NULL */
     int verbose;                     /* summary line even when not a tty */
+    int occlusion;                   /* rtcOccluded1, one byte per ray */
 } embree_options;
 
 static void usage(void)
@@ -51,6 +56,8 @@ static void usage(void)
            "records), in the formats and triangle numbering of build/trace.\n"
            "\n"
            "  --direct          accepted for symmetry with build/trace (the only mode)\n"
+           "  --occlusion       rtcOccluded1: HITS becomes an occlusion file, one byte per\n"
+           "                    ray, 1 occluded, 0 clear (as build/trace --occlusion)\n"
            "  --robust          RTC_SCENE_FLAG_ROBUST: watertight Pluecker triangle test\n"
            "                    and conservative box tests (default: Embree's fast mode)\n"
            "  --stats FILE      write statistics as JSON (the fields of build/trace)\n"
@@ -88,6 +95,7 @@ static void parse_options(int argc, char **argv, embree_options *o)
         if (strcmp(a, "--direct") == 0) continue;
         else if (strcmp(a, "--robust") == 0) o->robust = 1;
         else if (strcmp(a, "--verbose") == 0) o->verbose = 1;
+        else if (strcmp(a, "--occlusion") == 0) o->occlusion = 1;
         else if (strcmp(a, "--stats") == 0) o->stats = ex_option_value(prog, argc, argv, &i);
         else if (is_batched_option(a))
             ex_die(prog, "%s: not supported: Embree traces in memory (use build/trace for "
@@ -169,6 +177,39 @@ static void check_rays(const char *path, const brt_ray *rays, size_t count)
                    path, (unsigned long)i, (double)rays[i].tnear);
 }
 
+/* batchrt's ray as Embree's. */
+static void embree_ray(const brt_ray *ray, struct RTCRay *out)
+{
+    out->org_x = ray->org[0];
+    out->org_y = ray->org[1];
+    out->org_z = ray->org[2];
+    out->dir_x = ray->dir[0];
+    out->dir_y = ray->dir[1];
+    out->dir_z = ray->dir[2];
+    out->tnear = ray->tnear;
+    out->tfar = ray->tfar;
+    out->time = 0.0f;
+    out->mask = 0xFFFFFFFFu;
+    out->id = 0;
+    out->flags = 0;
+}
+
+/* One ray through rtcOccluded1: 1 occluded, 0 clear (and for the rays
+** batchrt never hits, 0 without asking Embree). */
+static uint8_t occluded_ray(RTCScene scene, const brt_ray *ray)
+{
+    struct RTCIntersectContext context;
+    struct RTCRay r;
+    brt_ray_prep prep;
+
+    brt_ray_prepare(ray, &prep);
+    if (!prep.valid) return 0;
+    rtcInitIntersectContext(&context);
+    embree_ray(ray, &r);
+    rtcOccluded1(scene, &context, &r);
+    return r.tfar == -INFINITY;
+}
+
 /* One ray through rtcIntersect1, answered as batchrt's hit record. */
 static void trace_ray(RTCScene scene, const brt_ray *ray, brt_hit *hit)
 {
@@ -180,18 +221,7 @@ static void trace_ray(RTCScene scene, const brt_ray *ray, brt_hit *hit)
     brt_ray_prepare(ray, &prep);
     if (!prep.valid) return;
     rtcInitIntersectContext(&context);
-    rh.ray.org_x = ray->org[0];
-    rh.ray.org_y = ray->org[1];
-    rh.ray.org_z = ray->org[2];
-    rh.ray.dir_x = ray->dir[0];
-    rh.ray.dir_y = ray->dir[1];
-    rh.ray.dir_z = ray->dir[2];
-    rh.ray.tnear = ray->tnear;
-    rh.ray.tfar = ray->tfar;
-    rh.ray.time = 0.0f;
-    rh.ray.mask = 0xFFFFFFFFu;
-    rh.ray.id = 0;
-    rh.ray.flags = 0;
+    embree_ray(ray, &rh.ray);
     rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
     rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
     rtcIntersect1(scene, &context, &rh);
@@ -203,7 +233,7 @@ static void trace_ray(RTCScene scene, const brt_ray *ray, brt_hit *hit)
 }
 
 static void trace_all(const embree_options *o, const brt_mesh *mesh, const brt_ray *rays,
-                      size_t count, brt_hit *hits, brt_stats *stats)
+                      size_t count, brt_hit *hits, uint8_t *occluded, brt_stats *stats)
 {
     RTCDevice device = open_device();
     RTCScene scene;
@@ -220,8 +250,10 @@ static void trace_all(const embree_options *o, const brt_mesh *mesh, const brt_r
     for (i = 0; i < count; i++) {
         /* Progress in slices of 64K rays keeps the clock out of the loop. */
         if ((i & 0xFFFF) == 0) ex_progress("tracing", i, count);
-        trace_ray(scene, &rays[i], &hits[i]);
+        if (occluded) stats->shadow_occluded += occluded[i] = occluded_ray(scene, &rays[i]);
+        else trace_ray(scene, &rays[i], &hits[i]);
     }
+    if (occluded) stats->shadow_rays = count;
     stats->seconds = brt_seconds() - start;
     ex_progress("tracing", count, count);
     ex_progress_end();
@@ -235,7 +267,8 @@ int main(int argc, char **argv)
     brt_error err;
     brt_mesh mesh;
     brt_ray *rays;
-    brt_hit *hits;
+    brt_hit *hits = NULL;
+    uint8_t *occluded = NULL;
     size_t count, i;
     brt_stats stats;
     uint64_t hit_count = 0;
@@ -244,27 +277,32 @@ int main(int argc, char **argv)
     parse_options(argc, argv, &o);
     ex_check(prog, brt_rays_read(o.rays, &rays, &count, &err), &err);
     check_rays(o.rays, rays, count);
-    hits = malloc((count ? count : 1) * sizeof *hits);
-    if (!hits) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
+    if (o.occlusion) occluded = malloc(count ? count : 1);
+    else hits = malloc((count ? count : 1) * sizeof *hits);
+    if (!hits && !occluded) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
     ex_check(prog, brt_mesh_load(o.mesh, &mesh, &err), &err);
 
     memset(&stats, 0, sizeof stats);
     stats.rays = count;
-    trace_all(&o, &mesh, rays, count, hits, &stats);
+    trace_all(&o, &mesh, rays, count, hits, occluded, &stats);
     brt_mesh_free(&mesh);
     if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
 
-    ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
+    if (occluded) ex_check(prog, brt_write_file_atomic(o.hits, occluded, count, &err), &err);
+    else ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
     stats.peak_rss_bytes = brt_peak_rss_bytes();
     if (o.stats) ex_check(prog, brt_stats_write_json(o.stats, &stats, &err), &err);
     if (o.verbose || isatty(2)) {
-        for (i = 0; i < count; i++) hit_count += hits[i].prim != BRT_NO_PRIM;
-        fprintf(stderr, "embree_trace: %llu rays, %llu hits, build %.3f s, trace %.3f s, "
+        for (i = 0; hits && i < count; i++) hit_count += hits[i].prim != BRT_NO_PRIM;
+        hit_count += stats.shadow_occluded;
+        fprintf(stderr, "embree_trace: %llu rays, %llu %s, build %.3f s, trace %.3f s, "
                 "%.2f Mrays/s%s\n", (unsigned long long)count, (unsigned long long)hit_count,
+                hits ? "hits" : "occluded",
                 stats.build_seconds, stats.seconds, stats.mrays_per_second,
                 o.robust ? " (robust)" : "");
     }
     free(hits);
+    free(occluded);
     free(rays);
     return 0;
 }

@@ -13,7 +13,7 @@
 **           conservative proxy can save) (fig3.csv, SVG).
 **
 **   build/figures [--out DIR] [--scale S] [--batch-tris N] [--spp N]
-**                 [--width W] [--height H] [--rays-in-flight N]
+**                 [--width W] [--height H] [--rays-in-flight N] [--threads N]
 **
 ** Every number comes from build/render (the program next to this one) and
 ** its statistics JSON, so the figures measure exactly what a user runs.
@@ -25,6 +25,10 @@
 ** Fig. 3 is drawn for batchrt's own scheduler as well (three more lines), so
 ** the two can be compared.  Scene files are
 ** built once per resolution in the default scene folder and reused.
+** Fig. 1 is a picture, rendered with the sun's shadow rays (next-event
+** estimation, render's default, whose rays count among the visits);
+** Figs. 2 and 3 trace the paths alone (render --no-nee), the workload
+** their README tables were measured on.
 */
 #include "plot.h"
 #include "scenes.h"
@@ -47,7 +51,7 @@ static const double resolutions[RES_COUNT] = {16, 32, 64, 128, 256, 512};
 typedef struct settings {
     const char *out;
     double scale;
-    uint64_t batch_tris, spp, width, height, rays_in_flight;
+    uint64_t batch_tris, spp, width, height, rays_in_flight, threads;
     char render[4096];        /* path of build/render */
 } settings;
 
@@ -64,6 +68,7 @@ static void usage(void)
            "  --width W            image width (default 160)\n"
            "  --height H           image height (default 90)\n"
            "  --rays-in-flight N   paths traced at once (default 16384)\n"
+           "  --threads N          threads of each render (default 0: all cores)\n"
            "  --help               this text\n");
 }
 
@@ -97,6 +102,7 @@ static void parse_options(int argc, char **argv, settings *s)
         else if (strcmp(a, "--height") == 0) s->height = ex_parse_u64(prog, a, VALUE, 1, 16384);
         else if (strcmp(a, "--rays-in-flight") == 0)
             s->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
+        else if (strcmp(a, "--threads") == 0) s->threads = ex_parse_u64(prog, a, VALUE, 0, BRT_MAX_THREADS);
         else ex_die(prog, "unknown argument '%s' (see --help)", a);
 #undef VALUE
     }
@@ -128,11 +134,11 @@ static void run_render(const settings *s, const char *scene, int scheduler, cons
     char command[32768];
     snprintf(command, sizeof command,
              "'%s' %s --scale %g --batch-tris %llu --spp %llu --width %llu --height %llu "
-             "--rays-in-flight %llu %s %s >>'%s' 2>&1",
+             "--rays-in-flight %llu --threads %llu %s %s >>'%s' 2>&1",
              s->render, scene, s->scale, (unsigned long long)s->batch_tris,
              (unsigned long long)s->spp, (unsigned long long)s->width,
              (unsigned long long)s->height, (unsigned long long)s->rays_in_flight,
-             scheduler == PAPER_SCHEDULER ? "--queue-resident" : "", extra,
+             (unsigned long long)s->threads, scheduler == PAPER_SCHEDULER ? "--queue-resident" : "", extra,
              out_path(s, "render.log"));
     if (system(command) != 0)
         ex_die(prog, "build/render failed on %s (see %s)", scene, out_path(s, "render.log"));
@@ -222,7 +228,7 @@ static void figure2(const settings *s)
             double bytes, tests, culls;
             printf(" %g", resolutions[r]);
             fflush(stdout);
-            snprintf(extra, sizeof extra, "--res %g --out '%s/run.png' --stats '%s'", resolutions[r], s->out,
+            snprintf(extra, sizeof extra, "--res %g --no-nee --out '%s/run.png' --stats '%s'", resolutions[r], s->out,
                      stats);
             run_render(s, scene_names[i], PAPER_SCHEDULER, extra);
             bytes = json_number(stats, "proxy_bytes");
@@ -286,7 +292,7 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
         for (run = 0; run < FIG3_SERIES; run++) {
             int kind = run % PROXY_KINDS;
             scheduler = run / PROXY_KINDS;
-            snprintf(extra, sizeof extra, "--memory %g%% %s --out '%s/run.png' --stats '%s'",
+            snprintf(extra, sizeof extra, "--memory %g%% %s --no-nee --out '%s/run.png' --stats '%s'",
                      limits[l], proxy_options[kind], s->out, stats);
             run_render(s, scene_names[i], scheduler, extra);
             disk[run][l] = json_number(stats, "disk_bytes_read") / 1048576.0;

@@ -20,6 +20,12 @@
 ** disagreement is explained, 1 when one is not (or on bad input), 2 when
 ** the three files hold different numbers of records.  --explain writes one
 ** CSV line per disagreeing ray (under a temporary name, then renamed).
+**
+** Occlusion mode (--occlusion): A and B are occlusion files (one byte per
+** ray, 0 or 1; README.md), compared byte by byte: both clear, both
+** occluded, occluded in one only.  Chosen by the option, never guessed
+** from the size (a file of 16 n bytes may be either).  --max-disagree
+** applies; the exact referee does not cover occlusion files yet.
 */
 #include "common.h"
 #include "referee.h"
@@ -87,6 +93,11 @@ static void usage(void)
            "input (a missing file, a prim beyond the mesh); 2: the files hold\n"
            "different numbers of records.\n"
            "\n"
+           "Occlusion mode:\n"
+           "  --occlusion       A and B are occlusion files (one byte per ray, 0 clear,\n"
+           "                    1 occluded); counts both clear, both occluded and each\n"
+           "                    one-sided answer; --max-disagree as above\n"
+           "\n"
            "  --help            this text\n");
 }
 
@@ -147,6 +158,67 @@ static void print_table(const char *path_a, const char *path_b, const agreement 
     print_count(label, g->t_over, g->rays);
     printf("%-34s %12.3e\n", "same prim: max u,v diff", g->uv_max);
     print_count("disagreeing rays", disagree, g->rays);
+}
+
+/* ===================================================================== */
+/* Occlusion mode                                                        */
+/* ===================================================================== */
+
+/* An occlusion file whole (malloc'd): every byte must be 0 or 1. */
+static uint8_t *read_occlusion(const char *path, size_t *count)
+{
+    FILE *f = fopen(path, "rb");
+    uint8_t *bytes = NULL;
+    size_t cap = 0, n = 0, i;
+    if (!f) ex_die(prog, "%s: cannot open: %s", path, strerror(errno));
+    for (;;) {
+        if (n == cap) {
+            cap = cap ? 2 * cap : 65536;
+            if (!(bytes = realloc(bytes, cap))) ex_die(prog, "%s: out of memory", path);
+        }
+        i = fread(bytes + n, 1, cap - n, f);
+        n += i;
+        if (i == 0) break;
+    }
+    if (ferror(f)) ex_die(prog, "%s: cannot read: %s", path, strerror(errno));
+    fclose(f);
+    for (i = 0; i < n; i++)
+        if (bytes[i] > 1)
+            ex_die(prog, "%s: byte %lu is %u, not 0 or 1: not an occlusion file", path,
+                   (unsigned long)i, (unsigned)bytes[i]);
+    *count = n;
+    return bytes;
+}
+
+/* Compares two occlusion files; returns the exit status. */
+static int occlusion_main(const char *path_a, const char *path_b, double max_disagree)
+{
+    size_t count_a, count_b, i;
+    uint8_t *a = read_occlusion(path_a, &count_a), *b = read_occlusion(path_b, &count_b);
+    uint64_t kinds[2][2] = {{0, 0}, {0, 0}}, disagree;
+    double fraction;
+    if (count_a != count_b) {
+        fprintf(stderr, "%s: %s has %lu records but %s has %lu: not the same rays\n",
+                prog, path_a, (unsigned long)count_a, path_b, (unsigned long)count_b);
+        free(a);
+        free(b);
+        return 2;
+    }
+    for (i = 0; i < count_a; i++) kinds[a[i]][b[i]]++;
+    disagree = kinds[1][0] + kinds[0][1];
+    fraction = count_a ? (double)disagree / (double)count_a : 0.0;
+    printf("A: %s\nB: %s\n", path_a, path_b);
+    printf("%-34s %12llu\n", "rays", (unsigned long long)count_a);
+    print_count("both clear", kinds[0][0], count_a);
+    print_count("both occluded", kinds[1][1], count_a);
+    print_count("occluded in A only", kinds[1][0], count_a);
+    print_count("occluded in B only", kinds[0][1], count_a);
+    printf("%s: %llu of %llu rays disagree (%.4f %%, tolerated %.4f %%)\n",
+           fraction <= max_disagree ? "AGREE" : "DISAGREE", (unsigned long long)disagree,
+           (unsigned long long)count_a, 100.0 * fraction, 100.0 * max_disagree);
+    free(a);
+    free(b);
+    return fraction <= max_disagree ? 0 : 1;
 }
 
 /* ===================================================================== */
@@ -293,7 +365,7 @@ int main(int argc, char **argv)
     const char *path_a = NULL, *path_b = NULL;
     double max_disagree = 0.0, t_rel = 1e-5, fraction;
     referee_run run;
-    int tolerance_options = 0;
+    int tolerance_options = 0, occlusion = 0;
     brt_hit *a, *b;
     size_t count_a, count_b;
     brt_error err;
@@ -313,7 +385,9 @@ int main(int argc, char **argv)
             t_rel = ex_parse_double(prog, arg, ex_option_value(prog, argc, argv, &i),
                                     0.0, 2.0);
             tolerance_options = 1;
-        } else if (strcmp(arg, "--mesh") == 0)
+        } else if (strcmp(arg, "--occlusion") == 0)
+            occlusion = 1;
+        else if (strcmp(arg, "--mesh") == 0)
             run.mesh_path = ex_option_value(prog, argc, argv, &i);
         else if (strcmp(arg, "--rays") == 0)
             run.rays_path = ex_option_value(prog, argc, argv, &i);
@@ -333,6 +407,10 @@ int main(int argc, char **argv)
     if (run.mesh_path && tolerance_options)
         ex_die(prog, "--max-disagree and --t-rel are for tolerance mode, not with --mesh "
                "(see --help)");
+    if (occlusion && (run.mesh_path || run.rays_path))
+        ex_die(prog, "--occlusion compares occlusion files byte by byte: no --mesh or --rays "
+               "with it (see --help)");
+    if (occlusion) return occlusion_main(path_a, path_b, max_disagree);
 
     ex_check(prog, brt_hits_read(path_a, &a, &count_a, &err), &err);
     ex_check(prog, brt_hits_read(path_b, &b, &count_b, &err), &err);

@@ -200,12 +200,10 @@ static void tangent_frame(const double n[3], double t[3], double b[3])
     b[0] = c;                         b[1] = s + n[1] * n[1] * a; b[2] = -n[1];
 }
 
-int ex_lambert_bounce(const double point[3], const double normal[3], const float incoming[3],
-                      double diagonal, double u1, double u2, brt_ray *out)
+int ex_surface_point(const double point[3], const double normal[3], const float incoming[3],
+                     double diagonal, double n[3], double p[3])
 {
-    double n[3], t[3], b[3], p[3], dir[3], len = sqrt(dot3(normal, normal)), scale = 0;
-    double r = sqrt(u1), phi = 2.0 * PI * u2;
-    double x = r * cos(phi), y = r * sin(phi), z = sqrt(fmax(0.0, 1.0 - u1));
+    double len = sqrt(dot3(normal, normal)), scale = 0;
     int k;
     if (!(len > 0)) return 0;
     if (normal[0] * incoming[0] + normal[1] * incoming[1] + normal[2] * incoming[2] > 0) len = -len;
@@ -213,17 +211,37 @@ int ex_lambert_bounce(const double point[3], const double normal[3], const float
         n[k] = normal[k] / len;
         scale = fmax(scale, fabs(point[k]));
     }
-    tangent_frame(n, t, b);
     /* The offset is relative to the scene size and to the coordinates'
     ** magnitude, so the nudged origin clears the surface by many float ulps
     ** at any scale and any distance from the origin. */
     scale = 1e-5 * (scale + diagonal);
-    for (k = 0; k < 3; k++) {
-        p[k] = point[k] + scale * n[k];
-        dir[k] = x * t[k] + y * b[k] + z * n[k];
-    }
+    for (k = 0; k < 3; k++) p[k] = point[k] + scale * n[k];
+    return 1;
+}
+
+int ex_lambert_bounce(const double point[3], const double normal[3], const float incoming[3],
+                      double diagonal, double u1, double u2, brt_ray *out)
+{
+    double n[3], t[3], b[3], p[3], dir[3];
+    double r = sqrt(u1), phi = 2.0 * PI * u2;
+    double x = r * cos(phi), y = r * sin(phi), z = sqrt(fmax(0.0, 1.0 - u1));
+    int k;
+    if (!ex_surface_point(point, normal, incoming, diagonal, n, p)) return 0;
+    tangent_frame(n, t, b);
+    for (k = 0; k < 3; k++) dir[k] = x * t[k] + y * b[k] + z * n[k];
     set_ray(out, p, dir);
     return 1;
+}
+
+void ex_cone_ray(const double origin[3], const double axis[3], double cos_max, double u1,
+                 double u2, brt_ray *out)
+{
+    double t[3], b[3], dir[3];
+    double z = 1.0 - u1 * (1.0 - cos_max), r = sqrt(fmax(0.0, 1.0 - z * z)), phi = 2.0 * PI * u2;
+    int k;
+    tangent_frame(axis, t, b);
+    for (k = 0; k < 3; k++) dir[k] = r * cos(phi) * t[k] + r * sin(phi) * b[k] + z * axis[k];
+    set_ray(out, origin, dir);
 }
 
 void ex_bounce_ray(const brt_mesh *mesh, double diagonal, const brt_ray *in,

@@ -47,6 +47,14 @@ double ex_mesh_diagonal(const brt_mesh *mesh);
 ** point's largest |coordinate|.  Returns 0 for a zero normal. */
 int ex_lambert_bounce(const double point[3], const double normal[3], const float incoming[3],
                       double diagonal, double u1, double u2, brt_ray *out);
+/* The two halves of it: the unit normal n turned to face the incoming
+** direction and the point p nudged along it (0 for a zero normal); and a
+** ray from origin in a direction uniform in the cone of directions within
+** acos(cos_max) of the unit axis, from (u1, u2) (a sun's disc). */
+int ex_surface_point(const double point[3], const double normal[3], const float incoming[3],
+                     double diagonal, double n[3], double p[3]);
+void ex_cone_ray(const double origin[3], const double axis[3], double cos_max, double u1,
+                 double u2, brt_ray *out);
 /* ex_lambert_bounce at the hit of ray in, with the triangle's normal and
 ** two numbers drawn from rng. */
 void ex_bounce_ray(const brt_mesh *mesh, double diagonal, const brt_ray *in,

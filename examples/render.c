@@ -11,10 +11,23 @@
 ** default: the landscape at scale 1, about 100 thousand triangles).
 **
 ** THE RENDERER
-** Homogeneous Lambert material (albedo 0.8) lit by a sky with a sun that
-** only escaping rays see (no light sampling: every ray is a plain closest-
-** hit ray, which is what the batched traversal serves).  A path ends when
-** it escapes, after MAX_DEPTH bounces, or by Russian roulette.  The rays go
+** Homogeneous Lambert material (albedo 0.8) lit by a sky and a sun: a disc
+** of a given direction, angular radius and radiance.  A path ends when it
+** escapes, after MAX_DEPTH bounces, or by Russian roulette.
+**
+** Next-event estimation (the default): at every hit that may go on (below
+** MAX_DEPTH) one shadow ray -- an occlusion ray, BRT_TAG_OCCLUSION -- goes
+** toward a point drawn uniformly on the sun's disc (a cone of solid angle
+** W = 2 pi (1 - cos r)); when it is clear the hit gains
+** throughput * albedo / pi * sun * cos * W.  Sun and sky are split so that
+** nothing is counted twice: an escaping ray then adds the sky only, the
+** sun comes only through the shadow rays.  --no-nee is the estimator
+** without shadow rays: escaping rays add the sky and, inside the disc, the
+** sun.  Both estimate the same sum over the same path depths (a shadow ray
+** is cast exactly where the path could go on and find the sun), so they
+** converge to the same image (tests/test_render.c checks the means).  A
+** path waits for its shadow ray before it bounces on, so it has one ray in
+** flight at a time and the number of rays in flight stays constant.  The rays go
 ** to the scheduler as a stream (brt_scene_trace_stream): the scheduler asks
 ** for rays when it has free slots and hands back each finished one with
 ** its hit and geometric normal; a path that bounces gives its next ray on
@@ -76,11 +89,19 @@ static const char *const prog = "render";
 #define MAX_DEPTH 8           /* bounces; a path ends at its 8th hit */
 #define ROULETTE_DEPTH 3      /* Russian roulette from the 3rd hit on */
 #define FIXED_ONE 4294967296.0 /* 2^32: the fixed-point unit of a pixel sum */
-#define SAMPLE_CLAMP 64.0     /* caps one sample's radiance: no overflow, fewer fireflies */
-#define MAX_SPP 65536         /* 2^16 samples * 64 * 2^32 < 2^64 */
+/* Caps one addition to a pixel (no overflow).  A path adds at most
+** MAX_DEPTH + 1 times (a shadow ray per hit, the escape), so a pixel sum
+** stays below 9 * MAX_SPP * SAMPLE_CLAMP * FIXED_ONE = 9 * 2^58 < 2^64.
+** Above the sun's radiance (throughputs stay <= 1 under the roulette), so
+** the cap never biases --no-nee against next-event estimation. */
+#define SAMPLE_CLAMP 1024.0
+#define MAX_SPP 65536
+#define SUN_RADIUS 3.0        /* degrees, default */
+#define SUN_RADIANCE 500.0    /* default: sun irradiance 4.3 at normal incidence */
 #define DIRECT_CHUNK 4096     /* rays per batch in --direct mode */
 #define LEGEND_ROWS 24        /* the heatmap's colour bar and its labels */
-#define EXPOSURE 0.6          /* the sky is bright: a lit surface is about 1 */
+#define PI 3.14159265358979323846
+#define EXPOSURE 0.3          /* a sunlit surface is about 2 */
 
 /* ===================================================================== */
 /* Options                                                               */
@@ -92,11 +113,16 @@ typedef struct options {
     uint64_t seed, spp, width, height, batch_tris, res, rays_in_flight;
     uint64_t memory;              /* bytes; 0: no limit */
     uint64_t disk_speed;          /* --disk-speed, bytes per second; 0: the device's */
+    uint64_t threads;             /* --threads; 0: all cores */
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
     int no_proxy, queue_resident, exact_proxy, direct, compare, have_camera, drop_os_cache;
+    int no_nee, have_sun;
     float eye[3], target[3], fov;
+    float sun[3];                 /* --sun: toward the sun (any length) */
+    double sun_radius, sun_radiance;
     double heat_max;              /* colour scale maximum; 0: the image's maximum */
     const char *out, *heatmap, *stats, *scene;
+    const char *pfm, *reference;  /* --pfm, --reference: linear images */
 } options;
 
 static void usage(void)
@@ -111,6 +137,12 @@ static void usage(void)
            "  --width W            image width (default 320)\n"
            "  --height H           image height (default 180)\n"
            "  --camera E:T:F       eye ex,ey,ez : target tx,ty,tz : field of view in degrees\n"
+           "  --sun X,Y,Z          direction toward the sun, y up (default: one per built-in\n"
+           "                       scene; 0.48,0.62,0.62 for mesh files)\n"
+           "  --sun-radius DEG     the sun's angular radius (default 3)\n"
+           "  --sun-radiance V     its radiance (default 500; sky about 0.5)\n"
+           "  --no-nee             no shadow rays: only escaping rays find the sun\n"
+           "                       (default: next-event estimation toward the sun)\n"
            "  --memory SIZE|P%%     geometry memory limit, e.g. 64M, or P %% of the geometry\n"
            "                       bytes (default: no limit); proxies count against it\n"
            "  --batch-tris N       triangles per batching point (default 10000)\n"
@@ -121,6 +153,7 @@ static void usage(void)
            "  --exact-proxy        analysis: a perfect proxy (an exact test against the\n"
            "                       triangles, all read first and not counted)\n"
            "  --rays-in-flight N   paths traced at once (default 262144)\n"
+           "  --threads N          threads (default 0: all cores); no byte changes\n"
            "  --drop-os-cache      cold reads: keep the scene file out of the OS cache, so\n"
            "                       every load reads the device\n"
            "  --disk-speed SIZE    model a slower disk: each read lasts at least its bytes\n"
@@ -134,6 +167,10 @@ static void usage(void)
            "  --heatmap FILE.png   batching points visited per sample (paper's Fig. 1)\n"
            "  --heat-max V         top of the heatmap's colour scale (default: 99.5th percentile)\n"
            "  --stats FILE.json    statistics (design.md fields plus spp, paths, ...)\n"
+           "  --pfm FILE.pfm       the image before tone mapping: each pixel's mean radiance\n"
+           "                       (Portable Float Map, little-endian)\n"
+           "  --reference REF.pfm  print the RMSE of this image's mean radiance against REF\n"
+           "                       (a --pfm of a long render), also \"rmse\" in --stats\n"
            "  --scene FILE         the scene file (default: in the scene folder, reused)\n"
            "  --help               this text\n"
            "\n"
@@ -161,6 +198,14 @@ static void parse_camera(const char *text, options *o)
         ex_die(prog, "--camera: expected ex,ey,ez:tx,ty,tz:fov with eye != target and "
                "0 < fov < 180, got '%s'", text);
     o->have_camera = 1;
+}
+
+static void parse_sun(const char *text, options *o)
+{
+    const char *p = parse_vector(text, o->sun);
+    if (!p || *p != 0 || (o->sun[0] == 0 && o->sun[1] == 0 && o->sun[2] == 0))
+        ex_die(prog, "--sun: expected a nonzero direction x,y,z, got '%s'", text);
+    o->have_sun = 1;
 }
 
 static void parse_memory(const char *text, options *o)
@@ -202,6 +247,8 @@ static void parse_options(int argc, char **argv, options *o)
     o->batch_tris = 10000;
     o->res = 128;
     o->rays_in_flight = 1u << 18;
+    o->sun_radius = SUN_RADIUS;
+    o->sun_radiance = SUN_RADIANCE;
     o->out = "render.png";
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -212,15 +259,22 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--width")) o->width = ex_parse_u64(prog, a, VALUE, 1, 16384);
         else if (is_option(a, "--height")) o->height = ex_parse_u64(prog, a, VALUE, 1, 16384);
         else if (is_option(a, "--camera")) parse_camera(VALUE, o);
+        else if (is_option(a, "--sun")) parse_sun(VALUE, o);
+        else if (is_option(a, "--sun-radius")) o->sun_radius = ex_parse_double(prog, a, VALUE, 0.01, 45);
+        else if (is_option(a, "--sun-radiance")) o->sun_radiance = ex_parse_double(prog, a, VALUE, 0, 1000);
+        else if (is_option(a, "--no-nee")) o->no_nee = 1;
         else if (is_option(a, "--memory")) parse_memory(VALUE, o);
         else if (is_option(a, "--batch-tris")) o->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
         else if (is_option(a, "--res")) o->res = ex_parse_resolution(prog, a, VALUE);
         else if (is_option(a, "--rays-in-flight"))
             o->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
+        else if (is_option(a, "--threads")) o->threads = ex_parse_u64(prog, a, VALUE, 0, BRT_MAX_THREADS);
         else if (is_option(a, "--heat-max")) o->heat_max = ex_parse_double(prog, a, VALUE, 1e-9, 1e9);
         else if (is_option(a, "--out")) o->out = VALUE;
         else if (is_option(a, "--heatmap")) o->heatmap = VALUE;
         else if (is_option(a, "--stats")) o->stats = VALUE;
+        else if (is_option(a, "--pfm")) o->pfm = VALUE;
+        else if (is_option(a, "--reference")) o->reference = VALUE;
         else if (is_option(a, "--scene")) o->scene = VALUE;
         else if (is_option(a, "--no-proxy")) o->no_proxy = 1;
         else if (is_option(a, "--queue-resident")) o->queue_resident = 1;
@@ -241,6 +295,7 @@ static void parse_options(int argc, char **argv, options *o)
     check_output(o->out);
     check_output(o->heatmap);
     check_output(o->stats);
+    check_output(o->pfm);
 }
 
 /* ===================================================================== */
@@ -257,7 +312,8 @@ static uint64_t mix64(uint64_t z)
 }
 
 /* Random dimensions of one bounce. */
-enum { DIM_PIXEL_X, DIM_PIXEL_Y, DIM_DIRECTION_R, DIM_DIRECTION_PHI, DIM_ROULETTE };
+enum { DIM_PIXEL_X, DIM_PIXEL_Y, DIM_DIRECTION_R, DIM_DIRECTION_PHI, DIM_ROULETTE,
+       DIM_SUN_Z, DIM_SUN_PHI };
 
 /* A counter-based generator: the number of (pixel, sample, bounce,
 ** dimension) is a hash of that key alone, uniform in [0, 1) with 24 bits,
@@ -274,23 +330,32 @@ static double random_at(uint32_t pixel, uint32_t sample, uint32_t bounce, uint32
 /* Light and surfaces                                                    */
 /* ===================================================================== */
 
-/* The sky seen along unit direction d: a gradient from a bright horizon to
-** a blue zenith, a dark ground below the horizon (the world beyond the
-** scene, dark so that surfaces stand out against it), and a sun.  The sun is a broad lobe, cos^4 about its direction,
-** rather than a small disc: only escaping rays can find it (there are no
-** shadow rays), and a broad lobe keeps that noise low. */
+/* The sun: a disc of directions within its angular radius of dir. */
+typedef struct sun_light {
+    double dir[3];          /* unit, toward the sun */
+    double cos_max;         /* cos of the angular radius */
+    double solid_angle;     /* 2 pi (1 - cos_max) */
+    double radiance[3];
+} sun_light;
+
+/* The sky seen along unit direction d, without the sun: a gradient from a
+** bright horizon to a blue zenith, and a dark ground below the horizon
+** (the world beyond the scene, dark so that surfaces stand out). */
 static void sky_radiance(const float d[3], double rgb[3])
 {
-    static const double sun_dir[3] = {0.48, 0.62, 0.62};   /* unit: 0.48^2+2*0.62^2 = 1.0 */
-    static const double sun[3] = {1.6, 1.45, 1.2};
-    static const double zenith[3] = {0.25, 0.40, 0.80}, horizon[3] = {0.70, 0.72, 0.78};
+    static const double zenith[3] = {0.12, 0.22, 0.50}, horizon[3] = {0.45, 0.50, 0.58};
     static const double ground[3] = {0.10, 0.09, 0.08};
     double up = d[1], a = sqrt(fabs(up));
-    double cos_sun = fmax(0.0, sun_dir[0] * d[0] + sun_dir[1] * d[1] + sun_dir[2] * d[2]);
-    double lobe = pow(cos_sun, 4.0);
     int k;
-    for (k = 0; k < 3; k++)
-        rgb[k] = (1 - a) * horizon[k] + a * (up >= 0 ? zenith[k] : ground[k]) + lobe * sun[k];
+    for (k = 0; k < 3; k++) rgb[k] = (1 - a) * horizon[k] + a * (up >= 0 ? zenith[k] : ground[k]);
+}
+
+/* Nonzero when direction d (any length) lies inside the sun's disc. */
+static int sees_sun(const sun_light *sun, const float d[3])
+{
+    double len = sqrt((double)d[0] * d[0] + (double)d[1] * d[1] + (double)d[2] * d[2]);
+    return len > 0 && (sun->dir[0] * d[0] + sun->dir[1] * d[1] + sun->dir[2] * d[2]) / len
+                          >= sun->cos_max;
 }
 
 /* The Lambert bounce from the hit of ray `in` (ex_lambert_bounce); the
@@ -315,6 +380,11 @@ typedef struct path_state {
     uint32_t pixel, sample, bounce;   /* the random key; bounce = hits so far */
     double weight;                    /* throughput: albedo^bounce / roulette survival */
     brt_ray ray;                      /* the next ray, while the path is pending */
+    brt_ray shadow;                   /* the shadow ray, while it is pending */
+    double light[3];                  /* what the shadow ray adds when clear */
+    int in_shadow_step;               /* the pending ray is the shadow ray */
+    int goes_on;                      /* after it, the path bounces with ray */
+    double luminance;                 /* added so far (sample_moments) */
 } path_state;
 
 /* What one render needs to know. */
@@ -325,7 +395,21 @@ typedef struct render_job {
     uint32_t paths_in_flight;
     double scene_seconds;             /* building the scene file (0: reused) */
     uint64_t disk_speed;              /* modelled, bytes per second; 0: none */
+    sun_light sun;
+    double sun_radius;                /* degrees (sun.cos_max is what renders) */
+    int nee;                          /* next-event estimation (shadow rays) */
+    unsigned threads;                 /* --threads (0: all cores) */
 } render_job;
+
+/* Sums over finished samples of their luminance (the mean of r, g, b of
+** what the path added) and its square: the image's mean and its standard
+** error, for comparing estimators (tests/test_render.c).  A measurement
+** in double precision: its last digits may depend on the schedule, unlike
+** the image, which is summed in fixed point. */
+typedef struct sample_moments {
+    double sum, sum_sq;
+    uint64_t count;
+} sample_moments;
 
 typedef struct renderer {
     const render_job *job;
@@ -335,6 +419,7 @@ typedef struct renderer {
     uint64_t started, finished, total; /* path number = sample * pixels + pixel */
     uint64_t *sums;                    /* 3 per pixel, fixed point (FIXED_ONE) */
     uint64_t *visits;                  /* batching points visited per pixel, or NULL */
+    sample_moments moments;            /* of the samples' luminance */
 } renderer;
 
 static void renderer_init(renderer *r, const render_job *job, int count_visits)
@@ -373,6 +458,8 @@ static void start_path(const render_job *job, uint64_t number, path_state *p)
     p->sample = (uint32_t)(number / pixels);
     p->bounce = 0;
     p->weight = 1.0;
+    p->in_shadow_step = 0;
+    p->luminance = 0.0;
     px = p->pixel % job->camera.width;
     ex_camera_ray(&job->camera,
                   (px + random_at(p->pixel, p->sample, 0, DIM_PIXEL_X)) / job->camera.width,
@@ -390,8 +477,9 @@ static size_t next_rays(void *user, brt_ray *rays, uint64_t *tags, size_t max)
     if (ex_interrupted()) return 0;   /* the paths in flight end; main exits */
     while (n < max && r->pending_count > 0) {
         uint32_t id = r->pending[--r->pending_count];
-        rays[n] = r->paths[id].ray;
-        tags[n++] = id;
+        const path_state *p = &r->paths[id];
+        rays[n] = p->in_shadow_step ? p->shadow : p->ray;
+        tags[n++] = id | (p->in_shadow_step ? BRT_TAG_OCCLUSION : 0);
     }
     while (n < max && r->idle_count > 0 && r->started < r->total) {
         uint32_t id = r->idle[--r->idle_count];
@@ -403,23 +491,63 @@ static size_t next_rays(void *user, brt_ray *rays, uint64_t *tags, size_t max)
 }
 
 /* Adds weight * radiance to the path's pixel, in fixed point. */
-static void add_radiance(renderer *r, const path_state *p, const double radiance[3])
+static void add_radiance(renderer *r, path_state *p, double weight, const double radiance[3])
 {
     int k;
     for (k = 0; k < 3; k++) {
-        double v = fmin(p->weight * radiance[k], SAMPLE_CLAMP);
+        double v = fmin(weight * radiance[k], SAMPLE_CLAMP);
         r->sums[3 * (size_t)p->pixel + k] += (uint64_t)(v * FIXED_ONE + 0.5);
+        p->luminance += v / 3.0;
     }
 }
 
-/* One more hit: absorb, end by depth or roulette, or bounce.  Returns 1
-** when the path goes on with p->ray. */
+/* What an escaping ray sees: the sky, and the sun only without shadow
+** rays (with them, the sun comes through the shadow rays alone). */
+static void escape_radiance(const render_job *job, const float d[3], double rgb[3])
+{
+    int k;
+    sky_radiance(d, rgb);
+    if (!job->nee && sees_sun(&job->sun, d))
+        for (k = 0; k < 3; k++) rgb[k] += job->sun.radiance[k];
+}
+
+/* Next-event estimation at the hit of ray: the shadow ray toward a point
+** of the sun's disc and, in p->light, what it adds when clear: the Lambert
+** BRDF albedo / pi times the sun's radiance, cos, and 1 / pdf = the disc's
+** solid angle; p->weight already holds the albedo.  Returns 0 when the
+** sun is behind the surface (nothing to add, no ray). */
+static int sun_sample(const render_job *job, path_state *p, const brt_ray *ray,
+                      const brt_hit *hit, const float normal[3])
+{
+    double n[3], org[3], point[3], cosine;
+    int k;
+    for (k = 0; k < 3; k++) {
+        n[k] = normal[k];
+        point[k] = (double)ray->org[k] + (double)hit->t * ray->dir[k];
+    }
+    if (!ex_surface_point(point, n, ray->dir, job->diagonal, n, org)) return 0;
+    ex_cone_ray(org, job->sun.dir, job->sun.cos_max,
+                random_at(p->pixel, p->sample, p->bounce, DIM_SUN_Z),
+                random_at(p->pixel, p->sample, p->bounce, DIM_SUN_PHI), &p->shadow);
+    cosine = n[0] * p->shadow.dir[0] + n[1] * p->shadow.dir[1] + n[2] * p->shadow.dir[2];
+    if (!(cosine > 0)) return 0;
+    for (k = 0; k < 3; k++)
+        p->light[k] = p->weight / PI * job->sun.radiance[k] * cosine * job->sun.solid_angle;
+    return 1;
+}
+
+/* One more hit: absorb, end by depth, sample the sun (p->in_shadow_step),
+** end by roulette, or bounce.  Returns 1 when the path goes on with
+** p->ray. */
 static int scatter(const render_job *job, path_state *p, const brt_ray *ray, const brt_hit *hit,
                    const float normal[3])
 {
     p->bounce++;
     if (p->bounce >= MAX_DEPTH) return 0;
     p->weight *= ALBEDO;   /* Lambert, cosine sampled: f cos / pdf = albedo */
+    /* Before the roulette: the shadow ray stands for the bounce ray that
+    ** would find the sun, whose weight the roulette only rescales. */
+    p->in_shadow_step = job->nee && sun_sample(job, p, ray, hit, normal);
     if (p->bounce >= ROULETTE_DEPTH) {
         double survive = fmin(0.95, p->weight);
         if (random_at(p->pixel, p->sample, p->bounce, DIM_ROULETTE) >= survive) return 0;
@@ -430,23 +558,38 @@ static int scatter(const render_job *job, path_state *p, const brt_ray *ray, con
                           random_at(p->pixel, p->sample, p->bounce, DIM_DIRECTION_PHI), &p->ray);
 }
 
-/* brt_ray_source.finished: the path escapes to the sky, ends, or waits
-** with its bounce ray for the next next_rays call. */
+/* brt_ray_source.finished: a shadow ray adds the sun when clear; a path
+** ray escapes to the sky, or hits.  The path then ends or waits with its
+** next ray (the shadow ray first, when there is one) for next_rays. */
 static void finished(void *user, const brt_ray *ray, const brt_hit *hit, const float normal[3],
                      uint32_t visits, uint64_t tag)
 {
     renderer *r = user;
-    path_state *p = &r->paths[tag];
+    uint32_t id = (uint32_t)(tag & ~BRT_TAG_OCCLUSION);
+    path_state *p = &r->paths[id];
+    int goes_on;
     if (r->visits) r->visits[p->pixel] += visits;
-    if (hit->prim == BRT_NO_PRIM) {
+    if (tag & BRT_TAG_OCCLUSION) {
+        if (hit->prim == BRT_NO_PRIM) add_radiance(r, p, 1.0, p->light);
+        p->in_shadow_step = 0;
+        goes_on = p->goes_on;
+    } else if (hit->prim == BRT_NO_PRIM) {
         double sky[3];
-        sky_radiance(ray->dir, sky);
-        add_radiance(r, p, sky);
-    } else if (scatter(r->job, p, ray, hit, normal)) {
-        r->pending[r->pending_count++] = (uint32_t)tag;
+        escape_radiance(r->job, ray->dir, sky);
+        add_radiance(r, p, p->weight, sky);
+        goes_on = 0;
+    } else {
+        p->goes_on = goes_on = scatter(r->job, p, ray, hit, normal);
+        goes_on |= p->in_shadow_step;
+    }
+    if (goes_on) {
+        r->pending[r->pending_count++] = id;
         return;
     }
-    r->idle[r->idle_count++] = (uint32_t)tag;
+    r->idle[r->idle_count++] = id;
+    r->moments.sum += p->luminance;
+    r->moments.sum_sq += p->luminance * p->luminance;
+    r->moments.count++;
     r->finished++;
     if ((r->finished & 0xFFF) == 0) ex_progress("rendering", r->finished, r->total);
 }
@@ -469,15 +612,17 @@ static void render_direct(const brt_bvh *bvh, renderer *r, brt_stats *stats)
 {
     static brt_ray rays[DIRECT_CHUNK];
     static uint64_t tags[DIRECT_CHUNK];
+    static brt_hit hits[DIRECT_CHUNK];
+    static float normals[3 * DIRECT_CHUNK];
     double start = brt_seconds();
     size_t n, i;
     while ((n = next_rays(r, rays, tags, DIRECT_CHUNK)) > 0) {
+        brt_bvh_trace(bvh, rays, tags, n, hits, normals, r->job->threads);
         for (i = 0; i < n; i++) {
-            brt_hit hit;
-            float normal[3] = {0, 0, 0};
-            brt_hit_clear(&hit);
-            brt_bvh_intersect_normal(bvh, &rays[i], &hit, normal);
-            finished(r, &rays[i], &hit, normal, 0, tags[i]);
+            int shadow = (tags[i] & BRT_TAG_OCCLUSION) != 0;
+            stats->shadow_rays += shadow;
+            stats->shadow_occluded += shadow && hits[i].prim != BRT_NO_PRIM;
+            finished(r, &rays[i], &hits[i], normals + 3 * i, 0, tags[i]);
         }
         stats->rays += n;
     }
@@ -511,6 +656,34 @@ static void load_mesh(const options *o, uint64_t limit, brt_mesh *mesh)
     ex_note_mesh_memory(prog, mesh, limit);
 }
 
+/* The sun of --sun, --sun-radius and --sun-radiance: a warm white disc.
+** By default low (20 degrees) and to the side of the default view, so that
+** shadows fall long and across the picture: for the landscape from the
+** right and a little behind its trees and rocks; for the island from
+** behind the camera's left, so the islands' shadows fall on the sea beside
+** them; for the crown and meshes high from the front right, the old sky's
+** sun lobe. */
+static void make_sun(const options *o, sun_light *sun)
+{
+    static const double colour[3] = {1.0, 0.92, 0.78};
+    static const double landscape[3] = {0.75, 0.35, 0.1}, island[3] = {0.6, 0.3, -0.75};
+    static const double other[3] = {0.48, 0.62, 0.62};
+    const double *fallback = strcmp(o->input, "landscape") == 0 ? landscape
+                             : strcmp(o->input, "island") == 0 ? island : other;
+    double len = 0;
+    int k;
+    for (k = 0; k < 3; k++) {
+        sun->dir[k] = o->have_sun ? o->sun[k] : fallback[k];
+        len += sun->dir[k] * sun->dir[k];
+    }
+    for (k = 0; k < 3; k++) {
+        sun->dir[k] /= sqrt(len);
+        sun->radiance[k] = o->sun_radiance * colour[k];
+    }
+    sun->cos_max = cos(o->sun_radius * PI / 180.0);
+    sun->solid_angle = 2.0 * PI * (1.0 - sun->cos_max);
+}
+
 /* The camera (given, or the scene's default view) and the offset scale,
 ** from the scene's bounds: the mesh's (--direct) or the scene file's,
 ** which are the same floats (README: "Out of core from end to end"). */
@@ -528,7 +701,11 @@ static void make_job(const options *o, const float bmin[3], const float bmax[3],
     job->spp = (uint32_t)o->spp;
     job->diagonal = ex_box_diagonal(bmin, bmax);
     job->paths_in_flight = (uint32_t)o->rays_in_flight;
+    job->threads = (unsigned)o->threads;
     job->disk_speed = o->disk_speed;
+    make_sun(o, &job->sun);
+    job->sun_radius = o->sun_radius;
+    job->nee = !o->no_nee;
 }
 
 /* DIR/NAME-sSCALE-seedSEED-bBATCH-rRES.brs in the scene folder (ex_scene_folder). */
@@ -592,6 +769,7 @@ static brt_scene *open_scene(const options *o, const volatile sig_atomic_t *inte
     sopt.batch_tris = (uint32_t)o->batch_tris;
     sopt.proxy_res = (uint32_t)o->res;
     sopt.interrupt = interrupt;
+    sopt.threads = (unsigned)o->threads;
     if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
     else if (builtin) builtin_scene_path(o, path, sizeof path);
     else ex_default_scene_path(prog, o->input, sopt.batch_tris, sopt.proxy_res, path, sizeof path);
@@ -661,6 +839,12 @@ static long slow_disk_read(int fd, void *buf, size_t size, uint64_t offset, void
 /* Images                                                                */
 /* ===================================================================== */
 
+/* The mean radiance of pixel channel i (3 per pixel, rows top first). */
+static double pixel_mean(const render_job *job, const uint64_t *sums, size_t i)
+{
+    return (double)sums[i] / FIXED_ONE / job->spp;
+}
+
 /* Tone mapping of the pixel sums: mean, exposure, Reinhard's x/(1+x),
 ** gamma 2.2.  Only integer sums go in, so equal sums give equal bytes. */
 static unsigned char *tone_map(const render_job *job, const uint64_t *sums)
@@ -669,10 +853,70 @@ static unsigned char *tone_map(const render_job *job, const uint64_t *sums)
     unsigned char *rgb = malloc(n);
     if (!rgb) ex_die(prog, "out of memory for the image");
     for (i = 0; i < n; i++) {
-        double v = EXPOSURE * (double)sums[i] / FIXED_ONE / job->spp;
+        double v = EXPOSURE * pixel_mean(job, sums, i);
         rgb[i] = (unsigned char)(255.0 * pow(v / (1.0 + v), 1.0 / 2.2) + 0.5);
     }
     return rgb;
+}
+
+/* The linear image as a Portable Float Map: "PF", width, height, -1 (little
+** endian), then float RGB rows from the bottom row up. */
+static void write_pfm(const char *path, const render_job *job, const uint64_t *sums)
+{
+    size_t w = job->camera.width, h = job->camera.height, x, y, k, at;
+    char header[64];
+    int head = snprintf(header, sizeof header, "PF\n%u %u\n-1.0\n", job->camera.width,
+                        job->camera.height);
+    unsigned char *data = malloc((size_t)head + 12 * w * h);
+    brt_error err;
+    if (!data) ex_die(prog, "out of memory for %s", path);
+    memcpy(data, header, (size_t)head);
+    at = (size_t)head;
+    for (y = h; y-- > 0;)
+        for (x = 0; x < w; x++)
+            for (k = 0; k < 3; k++, at += 4) {
+                float v = (float)pixel_mean(job, sums, 3 * (y * w + x) + k);
+                uint32_t bits;
+                memcpy(&bits, &v, 4);
+                data[at] = (unsigned char)bits;
+                data[at + 1] = (unsigned char)(bits >> 8);
+                data[at + 2] = (unsigned char)(bits >> 16);
+                data[at + 3] = (unsigned char)(bits >> 24);
+            }
+    ex_check(prog, brt_write_file_atomic(path, data, at, &err), &err);
+    free(data);
+}
+
+/* The root mean square difference, over every pixel channel, between this
+** image's mean radiance and a --pfm written by an earlier render of the
+** same size. */
+static double rmse_against(const char *path, const render_job *job, const uint64_t *sums)
+{
+    FILE *f = fopen(path, "rb");
+    unsigned w = 0, h = 0;
+    double scale = 0, sum = 0;
+    size_t x, y, k;
+    if (!f) ex_die(prog, "%s: cannot open: %s", path, strerror(errno));
+    if (fscanf(f, "PF %u %u %lf", &w, &h, &scale) != 3 || fgetc(f) != '\n' || scale >= 0)
+        ex_die(prog, "%s: not a little-endian colour PFM", path);
+    if (w != job->camera.width || h != job->camera.height)
+        ex_die(prog, "%s: %ux%u, but this image is %ux%u", path, w, h, job->camera.width,
+               job->camera.height);
+    for (y = h; y-- > 0;)
+        for (x = 0; x < w; x++)
+            for (k = 0; k < 3; k++) {
+                unsigned char b[4];
+                uint32_t bits;
+                float v;
+                double d;
+                if (fread(b, 1, 4, f) != 4) ex_die(prog, "%s: truncated", path);
+                bits = (uint32_t)b[0] | (uint32_t)b[1] << 8 | (uint32_t)b[2] << 16 | (uint32_t)b[3] << 24;
+                memcpy(&v, &bits, 4);
+                d = pixel_mean(job, sums, 3 * (y * w + x) + k) - v;
+                sum += d * d;
+            }
+    fclose(f);
+    return sqrt(sum / (3.0 * w * h));
 }
 
 /* A 5-stop approximation of the "inferno" colour map, for x in [0, 1]. */
@@ -779,6 +1023,8 @@ typedef struct run {
     uint64_t *sums;            /* pixel sums (owned) */
     uint64_t *visits;          /* batching points visited per pixel, or NULL (owned) */
     uint64_t heat_visits;      /* their total */
+    sample_moments moments;
+    double rmse;               /* against --reference; NAN without one */
 } run;
 
 static void run_batched(brt_scene *scene, const render_job *job, const brt_trace_options *topt,
@@ -792,6 +1038,7 @@ static void run_batched(brt_scene *scene, const render_job *job, const brt_trace
     end_progress(&r);
     out->sums = r.sums;
     out->visits = r.visits;
+    out->moments = r.moments;
     for (i = 0; r.visits && i < pixels; i++) out->heat_visits += r.visits[i];
     r.sums = NULL;
     r.visits = NULL;
@@ -811,6 +1058,7 @@ static void run_direct(const brt_mesh *mesh, const render_job *job, run *out)
     end_progress(&r);
     if (out->stats.seconds > 0) out->stats.mrays_per_second = out->stats.rays / out->stats.seconds * 1e-6;
     out->sums = r.sums;
+    out->moments = r.moments;
     r.sums = NULL;
     renderer_free(&r);
     brt_bvh_free(bvh);
@@ -826,7 +1074,15 @@ static double visits_per_sample(const render_job *job, const brt_stats *s)
 static void write_stats(const char *path, const render_job *job, const run *x, int direct,
                         int proxies)
 {
-    char extra[1024], *text;
+    char extra[2048], *text;
+    const sample_moments *m = &x->moments;
+    double n = m->count > 1 ? (double)m->count : 2.0, mean = m->sum / n;
+    /* The standard error of the mean: the samples are independent (each
+    ** draws its own random numbers), so it is their sd / sqrt(n). */
+    double se = sqrt(fmax(0.0, m->sum_sq / n - mean * mean) / (n - 1.0));
+    char rmse[64];
+    if (isnan(x->rmse)) snprintf(rmse, sizeof rmse, "null");
+    else snprintf(rmse, sizeof rmse, "%.17g", x->rmse);
     FILE *f;
     long size;
     brt_error err;
@@ -835,11 +1091,14 @@ static void write_stats(const char *path, const render_job *job, const run *x, i
              ",\n  \"mode\": \"%s\",\n  \"proxies\": %d,\n  \"width\": %u,\n  \"height\": %u,\n"
              "  \"spp\": %u,\n  \"max_depth\": %d,\n  \"paths\": %llu,\n"
              "  \"paths_in_flight\": %u,\n  \"visits_per_sample\": %.17g,\n"
-             "  \"heatmap_visits\": %llu,\n  \"disk_speed\": %llu\n}\n",
+             "  \"heatmap_visits\": %llu,\n  \"disk_speed\": %llu,\n  \"nee\": %d,\n"
+             "  \"sun_radius_degrees\": %.17g,\n  \"sun_radiance\": %.17g,\n"
+             "  \"mean_luminance\": %.17g,\n  \"mean_luminance_se\": %.17g,\n  \"rmse\": %s\n}\n",
              direct ? "direct" : "batched", proxies, job->camera.width, job->camera.height, job->spp,
              MAX_DEPTH, (unsigned long long)job->camera.width * job->camera.height * job->spp,
              job->paths_in_flight, visits_per_sample(job, &x->stats),
-             (unsigned long long)x->heat_visits, (unsigned long long)job->disk_speed);
+             (unsigned long long)x->heat_visits, (unsigned long long)job->disk_speed, job->nee,
+             job->sun_radius, job->sun.radiance[0], mean, se, rmse);
     f = fopen(path, "rb");
     if (!f || fseek(f, 0, SEEK_END) != 0 || (size = ftell(f)) < 3)
         ex_die(prog, "%s: cannot read back: %s", path, strerror(errno));
@@ -890,10 +1149,16 @@ static void free_run(run *x)
 /* main                                                                  */
 /* ===================================================================== */
 
-static void write_image(const options *o, const render_job *job, const run *x)
+/* The PNG, and the linear image and its RMSE when asked for. */
+static void write_image(const options *o, const render_job *job, run *x)
 {
     unsigned char *rgb = tone_map(job, x->sums);
     brt_error err;
+    if (o->pfm) write_pfm(o->pfm, job, x->sums);
+    if (o->reference) {
+        x->rmse = rmse_against(o->reference, job, x->sums);
+        printf("RMSE against %s: %.6g\n", o->reference, x->rmse);
+    }
     ex_check(prog, ex_png_write_rgb(o->out, (int)job->camera.width, (int)job->camera.height, rgb,
                                     &err), &err);
     free(rgb);
@@ -924,6 +1189,7 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
     double max;
     int i;
     memset(runs, 0, sizeof runs);
+    for (i = 0; i < 3; i++) runs[i].rmse = NAN;
     runs[0].label = "direct (in memory)";
     runs[1].label = "batched, no proxies";
     runs[2].label = with.exact_proxies ? "batched, exact proxies" : "batched, proxies";
@@ -968,6 +1234,7 @@ static void render_once(const options *o, const render_job *job, brt_scene *scen
 {
     run x;
     memset(&x, 0, sizeof x);
+    x.rmse = NAN;
     if (o->direct) run_direct(mesh, job, &x);
     else run_batched(scene, job, topt, o->heatmap != NULL, &x);
     x.stats.peak_rss_bytes = brt_peak_rss_bytes();
@@ -1006,6 +1273,7 @@ int main(int argc, char **argv)
     topt.queue_resident = o.queue_resident;
     topt.exact_proxies = o.exact_proxy;
     topt.rays_in_flight = (uint32_t)o.rays_in_flight;
+    topt.threads = (unsigned)o.threads;
     topt.drop_os_cache = o.drop_os_cache;
     if (o.disk_speed) {
         topt.read_fn = slow_disk_read;

@@ -16,6 +16,11 @@
 ** Only --direct loads the whole mesh, and says so when it is larger than
 ** the --memory given.
 **
+** --occlusion asks the other question of every ray: is any triangle hit
+** within [tnear, tfar]?  The output is then an occlusion file, one byte per
+** ray (1 occluded, 0 clear), Embree's rtcOccluded1; both modes write the
+** same bytes (brt_bvh_occluded, brt_scene_occluded).
+**
 ** SIGINT and SIGTERM stop the scene build (which removes its temporary
 ** files) or, at the latest, the program before it writes any output; the
 ** exit status is then 128 + the signal number.
@@ -47,6 +52,8 @@ typedef struct trace_options {
     int drop_os_cache;               /* cold reads (brt_trace_options) */
     const char *stats;               /* --stats FILE.json, or NULL */
     int verbose;                     /* summary line even when not a tty */
+    int occlusion;                   /* --occlusion: one byte per ray */
+    unsigned threads;                /* --threads; 0: all cores */
 } trace_options;
 
 static void usage(void)
@@ -55,6 +62,9 @@ static void usage(void)
            "Intersects every ray of RAYS (32-byte records) with the triangles of MESH\n"
            "(OBJ or PLY) and writes the closest hits to HITS (16-byte records).\n"
            "\n"
+           "  --occlusion       occlusion queries instead: HITS becomes an occlusion file,\n"
+           "                    one byte per ray, 1 when a triangle is hit within\n"
+           "                    [tnear, tfar], else 0 (Embree's rtcOccluded1)\n"
            "  --direct          one BVH over the whole mesh in memory (default)\n"
            "  --batched         batching points, proxies and page cache\n"
            "  --batch-tris N    triangles per batching point, N >= 1 (batched; default 100000)\n"
@@ -66,11 +76,12 @@ static void usage(void)
            "  --rebuild         rebuild the scene file even when it is up to date\n"
            "  --drop-os-cache   cold reads: keep the scene file out of the OS cache, so\n"
            "                    every load reads the device\n"
+           "  --threads N       threads (default 0: all cores); no byte or count changes\n"
            "  --stats FILE      write statistics as JSON\n"
            "  --verbose         print the summary line even when stderr is not a terminal\n"
            "  --help            this text\n"
            "\n"
-           "Both modes write byte-identical hit files.  Exit status 0 on success, 1 on\n"
+           "Both modes write byte-identical hit (and occlusion) files.  Exit status 0 on success, 1 on\n"
            "bad input (nothing is written then).\n");
 }
 
@@ -91,6 +102,7 @@ static void parse_options(int argc, char **argv, trace_options *o)
         else if (strcmp(a, "--batched") == 0) o->batched = 1;
         else if (strcmp(a, "--no-proxy") == 0) o->no_proxy = 1;
         else if (strcmp(a, "--verbose") == 0) o->verbose = 1;
+        else if (strcmp(a, "--occlusion") == 0) o->occlusion = 1;
         else if (strcmp(a, "--rebuild") == 0) o->rebuild = 1;
         else if (strcmp(a, "--drop-os-cache") == 0) o->drop_os_cache = 1;
         else if (strcmp(a, "--batch-tris") == 0)
@@ -102,6 +114,9 @@ static void parse_options(int argc, char **argv, trace_options *o)
             o->memory = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
             o->memory_given = 1;
         }
+        else if (strcmp(a, "--threads") == 0)
+            o->threads = (unsigned)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i),
+                                                0, BRT_MAX_THREADS);
         else if (strcmp(a, "--scene") == 0) o->scene = ex_option_value(prog, argc, argv, &i);
         else if (strcmp(a, "--stats") == 0) o->stats = ex_option_value(prog, argc, argv, &i);
         else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
@@ -113,12 +128,17 @@ static void parse_options(int argc, char **argv, trace_options *o)
                npos, npos == 1 ? "" : "s");
 }
 
+#define SLICE ((size_t)1 << 18)
+
 /* Direct mode: one BVH over the whole mesh, then every ray through it,
 ** with the statistics of design.md (cache fields stay 0). */
 static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count,
-                         brt_hit *hits, brt_stats *stats)
+                         brt_hit *hits, uint8_t *occluded, brt_stats *stats,
+                         unsigned threads)
 {
     brt_bvh *bvh;
+    brt_hit *scratch = NULL;
+    uint64_t *tags = NULL;
     double start = brt_seconds();
     size_t i;
 
@@ -131,26 +151,40 @@ static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count
             (double)brt_bvh_memory_bytes(bvh) / (double)mesh->triangle_count;
 
     start = brt_seconds();
-    for (i = 0; i < count; i++) {
-        /* Progress (and the interrupt flag) in slices of 64K rays keeps
-        ** the clock out of the loop. */
-        if ((i & 0xFFFF) == 0) {
-            if (ex_interrupted()) ex_die_interrupted(prog);
-            ex_progress("tracing", i, count);
-        }
-        brt_hit_clear(&hits[i]);
-        brt_bvh_intersect(bvh, &rays[i], &hits[i]);
+    /* Occlusion rays are traced as such (tags) into scratch records, which
+    ** become the file's bytes: brt_bvh_trace's record has prim 0 when
+    ** occluded, the miss record when clear. */
+    if (occluded) {
+        scratch = malloc(SLICE * sizeof *scratch);
+        tags = malloc(SLICE * sizeof *tags);
+        if (!scratch || !tags) ex_die(prog, "out of memory for a slice of occlusion rays");
+        for (i = 0; i < SLICE; i++) tags[i] = BRT_TAG_OCCLUSION;
     }
+    /* Progress (and the interrupt flag) in slices of 256K rays, each
+    ** traced by all threads. */
+    for (i = 0; i < count; i += SLICE) {
+        size_t n = count - i < SLICE ? count - i : SLICE, k;
+        if (ex_interrupted()) ex_die_interrupted(prog);
+        ex_progress("tracing", i, count);
+        brt_bvh_trace(bvh, rays + i, tags, n, occluded ? scratch : hits + i, NULL, threads);
+        for (k = 0; occluded && k < n; k++) {
+            occluded[i + k] = scratch[k].prim != BRT_NO_PRIM;
+            stats->shadow_occluded += occluded[i + k];
+        }
+    }
+    if (occluded) stats->shadow_rays = count;
     stats->seconds = brt_seconds() - start;
     ex_progress("tracing", count, count);
     ex_progress_end();
     brt_bvh_free(bvh);
+    free(scratch);
+    free(tags);
 }
 
 /* Batched mode: the scene file (reused, or built from the mesh file as a
 ** stream by brt_scene_prepare), then the scheduler. */
 static void trace_batched(const trace_options *o, const brt_ray *rays, size_t count,
-                          brt_hit *hits, brt_stats *stats)
+                          brt_hit *hits, uint8_t *occluded, brt_stats *stats)
 {
     brt_scene_options scene_opt;
     brt_trace_options trace_opt;
@@ -165,6 +199,7 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     scene_opt.batch_tris = (uint32_t)o->batch_tris;
     scene_opt.proxy_res = (uint32_t)o->res;
     scene_opt.interrupt = ex_catch_interrupts();
+    scene_opt.threads = o->threads;
     if (!path) {
         ex_default_scene_path(prog, o->mesh, scene_opt.batch_tris, scene_opt.proxy_res,
                               default_path, sizeof default_path);
@@ -180,8 +215,13 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     trace_opt.memory_limit = o->memory;
     trace_opt.no_proxy = o->no_proxy;
     trace_opt.drop_os_cache = o->drop_os_cache;
+    trace_opt.threads = o->threads;
     ex_progress("tracing", 0, 1);
-    ex_check(prog, brt_scene_trace(scene, &trace_opt, rays, count, hits, stats, &err), &err);
+    if (occluded)
+        r = brt_scene_occluded(scene, &trace_opt, rays, count, occluded, stats, &err);
+    else
+        r = brt_scene_trace(scene, &trace_opt, rays, count, hits, stats, &err);
+    ex_check(prog, r, &err);
     ex_progress_end();
     stats->build_seconds = rebuilt ? brt_seconds() - start - stats->seconds : 0.0;
     if (stats->oversized_loads > 0)
@@ -196,11 +236,11 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
 
 static void print_summary(const brt_hit *hits, const brt_stats *stats)
 {
-    uint64_t i, hit_count = 0;
-    for (i = 0; i < stats->rays; i++) hit_count += hits[i].prim != BRT_NO_PRIM;
-    fprintf(stderr, "trace: %llu rays, %llu hits, build %.3f s, trace %.3f s, %.2f Mrays/s\n",
+    uint64_t i, hit_count = stats->shadow_occluded;
+    for (i = 0; hits && i < stats->rays; i++) hit_count += hits[i].prim != BRT_NO_PRIM;
+    fprintf(stderr, "trace: %llu rays, %llu %s, build %.3f s, trace %.3f s, %.2f Mrays/s\n",
             (unsigned long long)stats->rays, (unsigned long long)hit_count,
-            stats->build_seconds, stats->seconds, stats->mrays_per_second);
+            hits ? "hits" : "occluded", stats->build_seconds, stats->seconds, stats->mrays_per_second);
 }
 
 int main(int argc, char **argv)
@@ -209,7 +249,8 @@ int main(int argc, char **argv)
     brt_error err;
     brt_mesh mesh;
     brt_ray *rays;
-    brt_hit *hits;
+    brt_hit *hits = NULL;
+    uint8_t *occluded = NULL;
     size_t count;
     brt_stats stats;
 
@@ -217,23 +258,25 @@ int main(int argc, char **argv)
     parse_options(argc, argv, &o);
     ex_catch_interrupts();
     ex_check(prog, brt_rays_read(o.rays, &rays, &count, &err), &err);
-    hits = malloc((count ? count : 1) * sizeof *hits);
-    if (!hits) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
+    if (o.occlusion) occluded = malloc(count ? count : 1);
+    else hits = malloc((count ? count : 1) * sizeof *hits);
+    if (!hits && !occluded) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
 
     memset(&stats, 0, sizeof stats);
     if (o.batched) {
-        trace_batched(&o, rays, count, hits, &stats);
+        trace_batched(&o, rays, count, hits, occluded, &stats);
     } else {
         ex_check(prog, brt_mesh_load(o.mesh, &mesh, &err), &err);
         ex_note_mesh_memory(prog, &mesh, o.memory_given ? o.memory : 0);
         stats.rays = count;
-        trace_direct(&mesh, rays, count, hits, &stats);
+        trace_direct(&mesh, rays, count, hits, occluded, &stats, o.threads);
         brt_mesh_free(&mesh);
         if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
     }
 
     if (ex_interrupted()) ex_die_interrupted(prog);
-    ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
+    if (occluded) ex_check(prog, brt_write_file_atomic(o.hits, occluded, count, &err), &err);
+    else ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
     /* A run that fails leaves no output at all: the hits go if the
     ** statistics cannot be written. */
     stats.peak_rss_bytes = brt_peak_rss_bytes();
@@ -243,6 +286,7 @@ int main(int argc, char **argv)
     }
     if (o.verbose || isatty(2)) print_summary(hits, &stats);
     free(hits);
+    free(occluded);
     free(rays);
     return 0;
 }

@@ -129,6 +129,8 @@ int main(int argc, char **argv)
     suite_embree();
     suite_hardening();
     suite_build();
+    suite_occlusion();
+    suite_threads();
     if (failed == 0) remove_tmpdir();
     else if (tmpdir[0]) printf("scratch files kept in %s\n", tmpdir);
     if (skipped) printf("(%d skipped, see SKIP lines above)\n", skipped);

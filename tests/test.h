@@ -64,5 +64,7 @@ void suite_referee(void);
 void suite_embree(void);
 void suite_hardening(void);
 void suite_build(void);
+void suite_occlusion(void);
+void suite_threads(void);
 
 #endif

@@ -855,6 +855,7 @@ static void test_read_faults(void)
     opt.read_fn = faulty_read;
     opt.read_user = &plan;
     opt.memory_limit = 32 << 10;
+    opt.threads = 1;   /* the plan counts calls: no read-ahead */
     EXPECT(trace_matches(&f, scene, &opt, NULL, "short reads and EINTR"), "results changed");
     EXPECT(plan.calls > 10, "the injected reader was not used (%ld calls)", plan.calls);
     hits = malloc(f.count * sizeof *hits);

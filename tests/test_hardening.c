@@ -591,6 +591,7 @@ static void fault_options(brt_trace_options *opt, read_plan *plan)
     opt->read_user = plan;
     opt->memory_limit = 16 << 10;   /* reloads: the faults hit loads again and again */
     opt->rays_in_flight = 50;
+    opt->threads = 1;   /* the plan counts calls: no read-ahead */
 }
 
 /* 600 triangles in 15 batching points and 400 rays. */
