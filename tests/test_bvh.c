@@ -1157,8 +1157,47 @@ static void test_blob(void)
         memcpy(bad, blob, size); memcpy(bad + last, &big, 2);
         expect_eformat(bad, size, "corner offset past the vertices");
     }
-    {   /* an empty slot made inner: it takes the node after its parent's
-        ** children, which already has a parent (or does not exist) */
+    {   /* a leaf slot made inner, its triangles merged into the next leaf
+        ** slot (which then starts where it did): slots still ordered, every
+        ** triangle in one leaf, no node orphaned, but the new inner slot
+        ** takes the node after its parent's children, which has a parent */
+        const uint32_t nodes = get_u32(blob, 4);
+        uint32_t node, slot, found = 0;
+        for (node = 0; node < nodes && !found; node++) {
+            unsigned char *c = blob + HEADER_BYTES + NODE_BYTES * (size_t)node + COUNT;
+            for (slot = 0; slot + 1 < 4 && !found; slot++) {
+                if ((slot > 0 && c[slot - 1] != 0) || c[slot] == 0 || c[slot] > 8 ||
+                    c[slot + 1] == 0 || c[slot + 1] > 8 || c[slot] + c[slot + 1] > 8 ||
+                    get_u32(blob, HEADER_BYTES + NODE_BYTES * (size_t)node + FIRST_NODE) + slot >= nodes)
+                    continue;
+                memcpy(bad, blob, size);
+                bad[c - blob + slot + 1] = (unsigned char)(c[slot] + c[slot + 1]);
+                bad[c - blob + slot] = 0;
+                expect_eformat(bad, size, "a node with two parents");
+                found = 1;
+            }
+        }
+        EXPECT(found, "no pair of leaf slots in the test BVH to damage");
+    }
+    {   /* an inner slot and the leaf after it swapped: every index the
+        ** slots reach is still fine, only their order is wrong (traversal
+        ** finds an inner slot's child by its position) */
+        const uint32_t nodes = get_u32(blob, 4);
+        uint32_t node, slot, found = 0;
+        for (node = 0; node < nodes && !found; node++) {
+            unsigned char *c = blob + HEADER_BYTES + NODE_BYTES * (size_t)node + COUNT;
+            for (slot = 0; slot + 1 < 4 && !found; slot++) {
+                if (c[slot] != 0 || c[slot + 1] == 0 || c[slot + 1] > 8) continue;
+                memcpy(bad, blob, size);
+                bad[c - blob + slot] = c[slot + 1];
+                bad[c - blob + slot + 1] = 0;
+                expect_eformat(bad, size, "an inner slot after a leaf");
+                found = 1;
+            }
+        }
+        EXPECT(found, "no inner slot before a leaf in the test BVH");
+    }
+    {   /* an empty slot made inner: slots out of order */
         const uint32_t nodes = get_u32(blob, 4);
         uint32_t node, slot, found = 0;
         for (node = 0; node < nodes && !found; node++)
@@ -1167,7 +1206,7 @@ static void test_blob(void)
                 if (blob[at] != 0xFF) continue;
                 memcpy(bad, blob, size);
                 bad[at] = 0;
-                expect_eformat(bad, size, "a node with two parents");
+                expect_eformat(bad, size, "an empty slot made inner");
                 found = 1;
             }
         EXPECT(found, "no empty slot in the test BVH to damage");
