@@ -182,6 +182,10 @@ bench-embree: all embree
 #                      FUZZ_SECONDS from tests/corpus/NAME; new inputs go to
 #                      $(BUILD)/fuzz/corpus/NAME, crashes to $(BUILD)/fuzz/
 #   make fuzz-replay   tests/corpus through the same targets, plain build
+#   make fuzz-smoke    CI's smoke (.ci/run): "make fuzz" for FUZZ_SMOKE_SECONDS
+#                      (60) a target, one line each, failing on the first
+#                      problem; one SKIP line when $(FUZZ_CC) cannot build
+#                      libFuzzer programs
 # The targets (tests/fuzz/targets.c) are also linked into run_tests, whose
 # "hardening:" tests replay tests/corpus on every "make test".
 FUZZ_TARGETS = obj ply scene rays
@@ -195,7 +199,19 @@ VALGRIND = valgrind -q --error-exitcode=99 --leak-check=full \
            --trace-children=yes --trace-children-skip='*/gzip,*/cp,*/rm,*/mv' \
            --log-file=build/valgrind/memcheck.%p.log
 
-.PHONY: valgrind fuzz fuzz-replay
+FUZZ_SMOKE_SECONDS ?= 60
+# Can $(FUZZ_CC) link a libFuzzer program (clang and its runtime)?
+FUZZ_PROBE = printf 'int LLVMFuzzerTestOneInput(const char *d, unsigned long n);\n%s\n' \
+  'int LLVMFuzzerTestOneInput(const char *d, unsigned long n) { return (int)(d && n) * 0; }' \
+  | $(FUZZ_CC) -fsanitize=fuzzer -x c - -o $(BUILD)/fuzz/probe >/dev/null 2>&1
+# Target $$t for $(1) seconds (an argument of $(call)): seeds from
+# tests/corpus/$$t, new inputs to $(BUILD)/fuzz/corpus/$$t, a failing
+# input to $(BUILD)/fuzz/crash-$$t-*.
+FUZZ_RUN = ./$(BUILD)/fuzz/fuzz_$$t -max_total_time=$(1) -timeout=10 -print_final_stats=1 \
+    -artifact_prefix=$(BUILD)/fuzz/crash-$$t- \
+    $$(test -f tests/fuzz/$$t.dict && echo -dict=tests/fuzz/$$t.dict) \
+    $(BUILD)/fuzz/corpus/$$t tests/corpus/$$t
+.PHONY: valgrind fuzz fuzz-replay fuzz-smoke
 $(TEST_BIN): $(BUILD)/tests/fuzz/targets.o
 $(BUILD)/tests/fuzz/targets.o $(BUILD)/tests/fuzz/replay.o: tests/fuzz/targets.h | $(BUILD)/tests/fuzz
 $(BUILD)/tests/fuzz:
@@ -214,11 +230,20 @@ $(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/target
 	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
 
 fuzz: $(FUZZ_BINS)
-	$(Q)for t in $(FUZZ_TARGETS); do \
-	  ./$(BUILD)/fuzz/fuzz_$$t -max_total_time=$(FUZZ_SECONDS) -timeout=10 \
-	    -artifact_prefix=$(BUILD)/fuzz/crash-$$t- \
-	    $$(test -f tests/fuzz/$$t.dict && echo -dict=tests/fuzz/$$t.dict) \
-	    $(BUILD)/fuzz/corpus/$$t tests/corpus/$$t || exit 1; done
+	$(Q)for t in $(FUZZ_TARGETS); do $(call FUZZ_RUN,$(FUZZ_SECONDS)) || exit 1; done
+
+# The log of each run goes to $(BUILD)/fuzz/smoke-NAME.log; when a run
+# fails, its lines naming the problem and the input are shown.
+fuzz-smoke:
+	$(Q)mkdir -p $(BUILD)/fuzz
+	$(Q)$(FUZZ_PROBE) || { echo "SKIP fuzz smoke: $(FUZZ_CC) cannot build libFuzzer programs"; exit 0; }; \
+	$(MAKE) --no-print-directory $(FUZZ_BINS) || exit 1; \
+	for t in $(FUZZ_TARGETS); do log=$(BUILD)/fuzz/smoke-$$t.log; \
+	  if $(call FUZZ_RUN,$(FUZZ_SMOKE_SECONDS)) >$$log 2>&1; then \
+	    echo "fuzz smoke $$t: $$(sed -n 's/^stat::number_of_executed_units: *//p' $$log) runs" \
+	      "in $(FUZZ_SMOKE_SECONDS) s, no problem"; \
+	  else grep -E '^fuzz target|ERROR|SUMMARY|Test unit written' $$log; echo "fuzz smoke $$t: FAILED (log: $$log)"; exit 1; fi; \
+	done
 
 # Children (the programs run by the CLI tests) log to their own files; a
 # memcheck error in one makes it exit 99, which its test reports.

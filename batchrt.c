@@ -3099,71 +3099,194 @@ static brt_result read_section(brt_scene *s, int which, const char *what, void *
     return BRT_OK;
 }
 
+/* ---- validating a scene file at open ---------------------------------- */
+/*
+** A checksum tells a damaged file from the one that was written, not a
+** forged or miswritten one: a file whose checksums match may still say
+** anything.  So opening a scene validates every cross-reference once,
+** before anything is traced, one validator per structure:
+**   check_header   counts and section sizes agree with one another
+**   (read_section) each section lies inside the file and matches its sum
+**   brt_svdag_blob_open (svdag.c): the DAG pool, its child indices
+**   check_batch    one table entry: box, blob extent, proxy (proxy_valid)
+**   check_batches  the table against the header: triangles and bytes add up
+**   check_top      the top level: a tree over every batching point, boxes
+**                  ordered, finite and nested
+** and every blob load (blob_read) runs brt_bvh_blob_open (bvh.c: indices,
+** boxes, finite triangles, triangle numbers below the scene's count) and
+** check_blob (its triangle count is its table entry's).  The walk, the
+** proxy cast and the BVH traversal then trust what they read: no test on
+** the hot path.  A failure is BRT_EFORMAT, "FILE: PART: what is wrong".
+*/
+
+/* Finite and ordered: what the box tests of the walk rely on. */
+static int box_valid(const float lo[3], const float hi[3])
+{
+    int a;
+    for (a = 0; a < 3; a++)
+        if (!isfinite(lo[a]) || !isfinite(hi[a]) || !(lo[a] <= hi[a])) return 0;
+    return 1;
+}
+
+/* The counts of the header against one another and the section sizes. */
+static brt_result check_header(const brt_scene *s, brt_error *err)
+{
+    const scene_header *h = &s->header;
+    if (h->batch_count == 0)
+        return brt_fail(err, BRT_EFORMAT, "%s: header: no batching points", s->path);
+    if (h->top_node_count == 0 || h->top_node_count > h->batch_count)
+        return brt_fail(err, BRT_EFORMAT, "%s: header: %u top-level nodes for %u batching points",
+                        s->path, h->top_node_count, h->batch_count);
+    if (h->sections[SECTION_BATCHES].size != (uint64_t)h->batch_count * BATCH_ENTRY_BYTES)
+        return brt_fail(err, BRT_EFORMAT, "%s: header: batch table has the wrong size", s->path);
+    if (h->sections[SECTION_TOP].size != (uint64_t)h->top_node_count * TOP_NODE_BYTES)
+        return brt_fail(err, BRT_EFORMAT, "%s: header: top-level section has the wrong size", s->path);
+    return BRT_OK;
+}
+
+/* The header's resolution, and all that brt_proxy_raycast relies on:
+** brt_proxy_check (res a power of two, origin and cell finite, cell
+** positive, root a node of the pool at the depth res needs), so the cast
+** need not check again.
+** (The far corner origin + res * cell may overflow a float, at coordinates
+** near FLT_MAX, but the cast maps rays into the grid's frame in double.) */
 static int proxy_valid(const brt_scene *s, const brt_proxy *p)
 {
-    if (p->res != s->header.proxy_res || !(p->cell > 0.0f) || !isfinite(p->cell)) return 0;
-    if (!isfinite(p->origin[0]) || !isfinite(p->origin[1]) || !isfinite(p->origin[2])) return 0;
-    return brt_proxy_check(s->dag, p, NULL) == BRT_OK;
+    return p->res == s->header.proxy_res && brt_proxy_check(s->dag, p, NULL) == BRT_OK;
+}
+
+/* One batch table entry: its box, its blob inside the file (whole pages,
+** as the cache reads them), its proxy. */
+static brt_result check_batch(const brt_scene *s, uint32_t i, const batch_entry *b, brt_error *err)
+{
+    if (!box_valid(b->lo, b->hi))
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: box not finite or inverted",
+                        s->path, i);
+    if (b->offset % SCENE_PAGE != 0 || b->size > s->file_size ||
+        b->offset > s->file_size - round_up_page(b->size))
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob outside the file", s->path, i);
+    if (!proxy_valid(s, &b->proxy))
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid proxy", s->path, i);
+    return BRT_OK;
+}
+
+/* The table against the header: the entries' triangles and blob bytes
+** add up to the header's counts. */
+static brt_result check_batches(const brt_scene *s, brt_error *err)
+{
+    uint64_t triangles = 0, bytes = 0;
+    uint32_t i;
+    for (i = 0; i < s->header.batch_count; i++) {
+        brt_result r = check_batch(s, i, &s->batches[i], err);
+        if (r != BRT_OK) return r;
+        triangles += s->batches[i].triangles;
+        bytes += s->batches[i].size;
+    }
+    if (triangles != s->header.triangle_count)
+        return brt_fail(err, BRT_EFORMAT, "%s: batch table: batching points hold %llu triangles, "
+                        "header says %u", s->path, (unsigned long long)triangles,
+                        s->header.triangle_count);
+    if (bytes != s->header.geometry_bytes)
+        return brt_fail(err, BRT_EFORMAT, "%s: batch table: blobs hold %llu bytes, header says %llu",
+                        s->path, (unsigned long long)bytes,
+                        (unsigned long long)s->header.geometry_bytes);
+    return BRT_OK;
 }
 
 static brt_result load_batches(brt_scene *s, brt_error *err)
 {
     unsigned char *table;
     uint32_t i;
-    uint64_t triangles = 0;
-    brt_result r;
-    if (s->header.sections[SECTION_BATCHES].size != (uint64_t)s->header.batch_count * BATCH_ENTRY_BYTES)
-        return brt_fail(err, BRT_EFORMAT, "%s: batch table has the wrong size", s->path);
-    r = read_section(s, SECTION_BATCHES, "batch table", (void **)&table, err);
+    brt_result r = read_section(s, SECTION_BATCHES, "batch table", (void **)&table, err);
     if (r != BRT_OK) return r;
     s->batches = malloc(((size_t)s->header.batch_count + 1) * sizeof *s->batches);
     if (!s->batches) {
         free(table);
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
     }
-    for (i = 0; i < s->header.batch_count && r == BRT_OK; i++) {
-        batch_entry *b = &s->batches[i];
-        batch_entry_unpack(table + (size_t)i * BATCH_ENTRY_BYTES, b);
-        triangles += b->triangles;
-        if (b->offset % SCENE_PAGE != 0 || b->offset > s->file_size ||
-            round_up_page(b->size) > s->file_size - b->offset)
-            r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob outside the file", s->path, i);
-        else if (!proxy_valid(s, &b->proxy))
-            r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid proxy", s->path, i);
-    }
+    for (i = 0; i < s->header.batch_count; i++)
+        batch_entry_unpack(table + (size_t)i * BATCH_ENTRY_BYTES, &s->batches[i]);
     free(table);
-    if (r == BRT_OK && triangles != s->header.triangle_count)
-        r = brt_fail(err, BRT_EFORMAT, "%s: batching points hold %llu triangles, header says %u",
-                     s->path, (unsigned long long)triangles, s->header.triangle_count);
-    return r;
+    return check_batches(s, err);
+}
+
+/* Lane `lane` of node n holds the box lo, hi (inclusive: the build's lane
+** box is the union of what it holds, so it may equal it). */
+static int lane_holds(const top_node *n, int lane, const float lo[3], const float hi[3])
+{
+    int a;
+    for (a = 0; a < 3; a++)
+        if (!(n->box[a][lane] <= lo[a] && hi[a] <= n->box[3 + a][lane])) return 0;
+    return 1;
+}
+
+/* Lane `lane` of node n holds every box of child node c and c's boxes
+** are valid (they are checked as a lane of c in turn). */
+static int lane_holds_node(const top_node *n, int lane, const top_node *c)
+{
+    int k, a;
+    for (k = 0; k < 4; k++) {
+        float lo[3], hi[3];
+        if (c->child[k] == TOP_EMPTY) continue;
+        for (a = 0; a < 3; a++) {
+            lo[a] = c->box[a][k];
+            hi[a] = c->box[3 + a][k];
+        }
+        if (!lane_holds(n, lane, lo, hi)) return 0;
+    }
+    return 1;
+}
+
+/* One lane in use of node i: the child's index in range, the lane's box
+** finite, ordered and around what the child holds. */
+static brt_result check_top_lane(const brt_scene *s, uint32_t i, int lane,
+                                 unsigned char *has_parent, unsigned char *seen, brt_error *err)
+{
+    const top_node *n = &s->top[i];
+    uint32_t c = n->child[lane];
+    float lo[3], hi[3];
+    int a;
+    for (a = 0; a < 3; a++) {
+        lo[a] = n->box[a][lane];
+        hi[a] = n->box[3 + a][lane];
+    }
+    if (c & TOP_LEAF) {
+        c &= ~TOP_LEAF;
+        if (c >= s->header.batch_count || seen[c]++)
+            return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad leaf", s->path, i);
+        if (!lane_holds(n, lane, s->batches[c].lo, s->batches[c].hi))
+            return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box does not hold batching "
+                            "point %u", s->path, i, c);
+    } else if (c <= i || c >= s->header.top_node_count || has_parent[c]++) {
+        return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad child", s->path, i);
+    } else if (!lane_holds_node(n, lane, &s->top[c])) {
+        return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box does not hold node %u",
+                        s->path, i, c);
+    }
+    if (!box_valid(lo, hi))
+        return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box not finite or inverted",
+                        s->path, i);
+    return BRT_OK;
 }
 
 /* Every child index points forward, every node but the root has one
 ** parent and every batching point is a leaf exactly once: the nodes form
 ** a tree, so a walk terminates, never indexes out of range and meets each
-** node and point at most once (the size of its heap). */
+** node and point at most once (the size of its heap).  Every box holds
+** what is below it, so a subtree is entered no later than anything in it
+** (the walk's skip rule (a) relies on that).  Runs on the file's exact
+** boxes, before top_node_pad. */
 static brt_result check_top(brt_scene *s, brt_error *err)
 {
     uint32_t n = s->header.top_node_count, count = s->header.batch_count, i;
     unsigned char *has_parent = calloc((size_t)n + 1, 1), *seen = calloc((size_t)count + 1, 1);
     brt_result r = BRT_OK;
+    int lane;
     if (!has_parent || !seen) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
-    if (r == BRT_OK && (n == 0 || n > count))
-        r = brt_fail(err, BRT_EFORMAT, "%s: %u top-level nodes for %u batching points", s->path, n, count);
-    for (i = 0; i < n && r == BRT_OK; i++) {
-        int lane;
-        for (lane = 0; lane < 4 && r == BRT_OK; lane++) {
-            uint32_t c = s->top[i].child[lane];
-            if (c == TOP_EMPTY) continue;
-            if (c & TOP_LEAF) {
-                c &= ~TOP_LEAF;
-                if (c >= count || seen[c]++)
-                    r = brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad leaf", s->path, i);
-            } else if (c <= i || c >= n || has_parent[c]++) {
-                r = brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad child", s->path, i);
-            }
-        }
-    }
+    for (i = 0; i < n && r == BRT_OK; i++)
+        for (lane = 0; lane < 4 && r == BRT_OK; lane++)
+            if (s->top[i].child[lane] != TOP_EMPTY)
+                r = check_top_lane(s, i, lane, has_parent, seen, err);
     for (i = 0; i < count && r == BRT_OK; i++)
         if (!seen[i]) r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u not in the top level", s->path, i);
     free(has_parent);
@@ -3175,22 +3298,19 @@ static brt_result load_top(brt_scene *s, brt_error *err)
 {
     unsigned char *raw;
     uint32_t i;
-    brt_result r;
-    if (s->header.sections[SECTION_TOP].size != (uint64_t)s->header.top_node_count * TOP_NODE_BYTES)
-        return brt_fail(err, BRT_EFORMAT, "%s: top-level section has the wrong size", s->path);
-    r = read_section(s, SECTION_TOP, "top-level BVH", (void **)&raw, err);
+    brt_result r = read_section(s, SECTION_TOP, "top-level BVH", (void **)&raw, err);
     if (r != BRT_OK) return r;
     s->top = malloc(((size_t)s->header.top_node_count + 1) * sizeof *s->top);
     if (!s->top) {
         free(raw);
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
     }
-    for (i = 0; i < s->header.top_node_count; i++) {
+    for (i = 0; i < s->header.top_node_count; i++)
         top_node_unpack(raw + (size_t)i * TOP_NODE_BYTES, &s->top[i]);
-        top_node_pad(&s->top[i]);
-    }
     free(raw);
-    return check_top(s, err);
+    r = check_top(s, err);
+    for (i = 0; r == BRT_OK && i < s->header.top_node_count; i++) top_node_pad(&s->top[i]);
+    return r;
 }
 
 static brt_result load_dag(brt_scene *s, brt_error *err)
@@ -3224,8 +3344,7 @@ brt_result brt_scene_open(const char *scene_path, brt_scene **out, brt_error *er
     if (r == BRT_OK)
         r = read_fully(s->fd, header, sizeof header, 0, pread_reader, NULL, NULL, scene_path, err);
     if (r == BRT_OK) r = header_unpack(scene_path, header, &s->header, err);
-    if (r == BRT_OK && s->header.batch_count == 0)
-        r = brt_fail(err, BRT_EFORMAT, "%s: no batching points", scene_path);
+    if (r == BRT_OK) r = check_header(s, err);
     if (r == BRT_OK) r = load_dag(s, err);
     if (r == BRT_OK) r = load_batches(s, err);
     if (r == BRT_OK) r = load_top(s, err);
@@ -3439,6 +3558,25 @@ static brt_result cache_check(const page_cache *c, brt_error *err)
     return BRT_OK;
 }
 
+/* Opens blob id's BVH, validated by brt_bvh_blob_open against the scene's
+** triangle count, and checks it holds as many triangles as its table
+** entry says (the entries add up to the header's count, check_batches). */
+static brt_result check_blob(const brt_scene *s, uint32_t id, const void *data, brt_bvh **bvh,
+                             brt_error *err)
+{
+    const batch_entry *b = &s->batches[id];
+    brt_error why;
+    uint32_t held;
+    if (brt_bvh_blob_open(data, b->size, s->header.triangle_count, bvh, &why) != BRT_OK)
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: %s", s->path, id, why.message);
+    held = brt_bvh_triangle_count(*bvh);
+    if (held == b->triangles) return BRT_OK;
+    brt_bvh_free(*bvh);
+    *bvh = NULL;
+    return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob holds %u triangles, the batch "
+                    "table says %u", s->path, id, held, b->triangles);
+}
+
 /* Reads blob id whole (its page-rounded size, into a mapping of its own,
 ** bytes read added to *bytes_read), checks its checksum and opens it as a
 ** BVH; *data is to be freed (blob_free) after the BVH. */
@@ -3464,8 +3602,7 @@ static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_re
     if (r == BRT_OK && brt_checksum64(*data, b->size) != b->checksum)
         r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: checksum mismatch (corrupt file)",
                      c->scene->path, id);
-    if (r == BRT_OK && brt_bvh_blob_open(*data, b->size, bvh, NULL) != BRT_OK)
-        r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid BVH blob", c->scene->path, id);
+    if (r == BRT_OK) r = check_blob(c->scene, id, *data, bvh, err);
     if (r != BRT_OK) {
         blob_free(c->scene, id, *data);
         *data = NULL;

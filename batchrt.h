@@ -352,12 +352,15 @@ void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
 /* A BVH as one relocatable blob (indices, no pointers, little-endian) for
 ** the scene file.  brt_bvh_blob_open makes a BVH that refers to the blob's
 ** memory (which must stay alive and be 16-byte aligned) after validating
-** its sizes, indices and slot order; a corrupt blob is BRT_EFORMAT, never a
-** crash later (a big-endian host refuses blobs: they are read in place). */
+** its sizes, indices and slot order, its decoded boxes (ordered) and
+** vertices (finite), and that every triangle number it reports is below
+** prim_limit (a scene's triangle count; UINT32_MAX when there is none); a
+** corrupt blob is BRT_EFORMAT, never a crash or a wrong hit record later
+** (a big-endian host refuses blobs: they are read in place). */
 size_t brt_bvh_blob_size(const brt_bvh *bvh);
 void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
-brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
-                             brt_error *err);
+brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
+                             brt_bvh **out, brt_error *err);
 
 /* ===================================================================== */
 /* Conservative voxel proxies: voxelizer, shared SVDAG, ray cast (svdag.c) */

@@ -239,8 +239,10 @@ void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3
     }
     pad = PAD_REL * m;
     for (a = 0; a < 3; a++) {
-        plo[a] = lo[a] - pad;
-        phi[a] = hi[a] + pad;
+        /* Clamped to +-FLT_MAX (monotone, like the rest), so a quantized
+        ** node's frame (set_frame) never starts at an infinity. */
+        plo[a] = lo[a] - pad > -FLT_MAX ? lo[a] - pad : -FLT_MAX;
+        phi[a] = hi[a] + pad < FLT_MAX ? hi[a] + pad : FLT_MAX;
     }
 }
 
@@ -921,14 +923,15 @@ static aabb aabb_padded(const aabb *box)
 ** slots' padded boxes, and a scale with org + 255 * scale >= the highest
 ** plane: the rounded quotient, grown by a doubling step until that holds
 ** (rounding can leave it a few ulps short; the doubling bounds the loop
-** even when org dwarfs the extent).  A frame that overflows (coordinates near FLT_MAX) decodes to
-** inf or NaN planes, which the box test treats as no constraint (NaN
-** never narrows), so such nodes are only slower, never wrong. */
+** even when org dwarfs the extent).  Padded boxes stay within +-FLT_MAX
+** (brt_box_pad), so org is finite and no plane decodes to NaN. */
 static void set_frame(qnode *w, const aabb *u)
 {
     int a;
     for (a = 0; a < 3; a++) {
-        float s = (u->hi[a] - u->lo[a]) / 255.0f, step;
+        /* hi / 255 - lo / 255: no overflow between +-FLT_MAX; 255 * s may
+        ** still round to +inf, which only makes the top planes +inf. */
+        float s = u->hi[a] / 255.0f - u->lo[a] / 255.0f, step;
         if (s < FLT_MIN) s = FLT_MIN;   /* also a zero extent: planes stay distinct */
         step = s * FLT_EPSILON > FLT_MIN ? s * FLT_EPSILON : FLT_MIN;
         w->org[a] = u->lo[a];
@@ -1466,8 +1469,41 @@ void brt_bvh_blob_write(const brt_bvh *bvh, void *dst)
            (size_t)arrays_bytes(bvh->node_count, bvh->vert_count, bvh->tri_count));
 }
 
-brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
-                             brt_error *err)
+/* What traversal takes on trust beyond the structure: every slot box in
+** use ordered once decoded (lo <= hi, so no NaN), every vertex
+** coordinate finite (brt_bvh_build refuses others), and every reported
+** number below prim_limit, so a hit never names a triangle the scene does
+** not have (nor BRT_NO_PRIM, the mark of a miss).  Checked once per blob
+** open, never per ray.  (Top planes may decode to +inf near FLT_MAX.) */
+static brt_result validate_blob_data(const brt_bvh *bvh, uint32_t prim_limit,
+                                     brt_error *err)
+{
+    uint32_t i, k;
+    size_t c;
+    int s, a;
+    for (i = 0; i < bvh->node_count; i++) {
+        const unsigned valid = slot_valid(&bvh->nodes[i]);
+        float box[6][4];
+        decode_boxes(&bvh->nodes[i], box);
+        for (s = 0; s < 4; s++)
+            for (a = 0; a < 3 && (valid >> s & 1u); a++)
+                if (!(box[a][s] <= box[a + 3][s]))
+                    return brt_fail(err, BRT_EFORMAT, "bvh blob: node %u slot %d: box inverted "
+                                    "or NaN", (unsigned)i, s);
+    }
+    for (c = 0; c < 3 * (size_t)bvh->vert_count; c++)
+        if (!isfinite(bvh->verts[c]))
+            return brt_fail(err, BRT_EFORMAT, "bvh blob: vertex %u: coordinate not finite",
+                            (unsigned)(c / 3));
+    for (k = 0; k < bvh->tri_count; k++)
+        if (bvh->prim[k] >= prim_limit)
+            return brt_fail(err, BRT_EFORMAT, "bvh blob: triangle %u: number %u not below %u",
+                            (unsigned)k, (unsigned)bvh->prim[k], (unsigned)prim_limit);
+    return BRT_OK;
+}
+
+brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
+                             brt_bvh **out, brt_error *err)
 {
     uint32_t header[BLOB_HEADER / 4];
     int i;
@@ -1495,6 +1531,7 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, brt_bvh **out,
     if (!bvh) return brt_fail(err, BRT_ENOMEM, "bvh blob: out of memory");
     bvh_point(bvh, (const char *)blob + BLOB_HEADER, header[1], header[2], header[3]);
     r = validate_structure(bvh, BRT_EFORMAT, err);
+    if (r == BRT_OK) r = validate_blob_data(bvh, prim_limit, err);
     if (r != BRT_OK) { free(bvh); return r; }
     *out = bvh;
     return BRT_OK;

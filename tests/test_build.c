@@ -650,16 +650,8 @@ static long build_rss_growth(uint32_t n)
 ** at most below 2^21 / 4 records) and the per-point tables. */
 static void test_memory_bound(void)
 {
-    const char *preload = getenv("LD_PRELOAD");
     long small, large;
-#if defined(__SANITIZE_ADDRESS__)
-    test_skip("AddressSanitizer's quarantine keeps freed memory resident");
-    return;
-#endif
-    if (preload && strstr(preload, "vgpreload")) {
-        test_skip("under valgrind, whose shadow memory and freed-block queue are resident");
-        return;
-    }
+    if (!tu_rss_is_meaningful()) return;
     small = build_rss_growth(50000);
     if (small < 0) {
         test_skip("cannot reset the peak RSS through /proc/self/clear_refs");

@@ -1039,7 +1039,7 @@ static void test_empty(void)
     EXPECT(lo[0] == INFINITY && hi[0] == -INFINITY, "empty bounds");
     blob = malloc(brt_bvh_blob_size(bvh));
     brt_bvh_blob_write(bvh, blob);
-    EXPECT(brt_bvh_blob_open(blob, brt_bvh_blob_size(bvh), &opened, &err) == BRT_OK,
+    EXPECT(brt_bvh_blob_open(blob, brt_bvh_blob_size(bvh), 0, &opened, &err) == BRT_OK,
            "empty blob: %s", err.message);
     if (opened) {
         brt_bvh_intersect(opened, &r, &h);
@@ -1066,7 +1066,7 @@ static void expect_eformat(const void *blob, size_t size, const char *what)
 {
     brt_bvh *b = NULL;
     brt_error err;
-    brt_result r = brt_bvh_blob_open(blob, size, &b, &err);
+    brt_result r = brt_bvh_blob_open(blob, size, UINT32_MAX, &b, &err);
     EXPECT(r == BRT_EFORMAT, "%s: got %s, expected a format error", what, brt_result_string(r));
     brt_bvh_free(b);
 }
@@ -1107,7 +1107,7 @@ static void test_blob(void)
     blob = malloc(size);
     bad = malloc(size);
     brt_bvh_blob_write(bvh, blob);
-    CHECK(brt_bvh_blob_open(blob, size, &opened, &err) == BRT_OK, "open: %s", err.message);
+    CHECK(brt_bvh_blob_open(blob, size, s.tcount, &opened, &err) == BRT_OK, "open: %s", err.message);
     CHECK(brt_bvh_check(opened, &err) == BRT_OK, "check opened: %s", err.message);
     tu_scene_bounds(&s, lo, hi);
     for (n = 0; n < 1000 && !test_failed(); n++) {
@@ -1224,7 +1224,7 @@ static void test_blob(void)
         if (at % NODE_BYTES >= VERTEX_BASE) at += 4;   /* skip vertex_base */
         memcpy(bad, blob, size);
         bad[at] = (unsigned char)brt_random_u64(&st);
-        r = brt_bvh_blob_open(bad, size, &opened, &err);
+        r = brt_bvh_blob_open(bad, size, s.tcount, &opened, &err);
         EXPECT(r == BRT_OK || r == BRT_EFORMAT, "damaged byte %zu: %s", at, brt_result_string(r));
         if (r == BRT_OK) {
             int k;

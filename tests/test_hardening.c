@@ -17,7 +17,10 @@
 **    ignored makes write() fail with EFBIG, as a full disk fails with
 **    ENOSPC): the library and the programs must leave no partial file;
 **  - limits: one triangle, all triangles identical, a memory limit below
-**    one batching point, one ray in flight, no rays at all, a 1x1 image.
+**    one batching point, one ray in flight, no rays at all, a 1x1 image;
+**  - forged scene files (issue 21): valid checksums, one cross-reference
+**    broken per file, one file per line of the validators of batchrt.c's
+**    scene open and bvh.c's blob open, each refused naming the part.
 ** Oracles: the direct mode and brute force over brt_intersect_triangle.
 */
 #include "test.h"
@@ -26,6 +29,7 @@
 
 #include <dirent.h>
 #include <errno.h>
+#include <float.h>
 #include <math.h>
 #include <signal.h>
 #include <stdarg.h>
@@ -968,6 +972,254 @@ static void test_budget_below_one_batching_point(void)
     bench_free(&b);
 }
 
+/* ===================================================================== */
+/* Forged scene files: one per validator (issue 21)                      */
+/* ===================================================================== */
+/*
+** The fuzz target's fixed scene (25 triangles in 4 batching points) with
+** one cross-reference broken and every checksum repaired, as a forger (and
+** the scene fuzz target) would; then opened and, when it opens, traced
+** with exact proxies, which load every blob.  Each must be refused with
+** BRT_EFORMAT and a message naming the file and the part.  The unbroken
+** file goes the same way and must trace, so a refusal is the forgery's.
+** Offsets: batchrt.c's scene file (header fields at fixed offsets, 80-byte
+** batch entries, 112-byte top-level nodes) and bvh.c's blob (64-byte
+** header, 128-byte nodes, 36 bytes a triangle, then 4-byte numbers).
+*/
+typedef struct forged {
+    unsigned char *file;
+    size_t size;
+} forged;
+
+static uint64_t forged_u64(const forged *f, uint64_t at)
+{
+    uint64_t v = 0;
+    if (at <= f->size && f->size - at >= 8) memcpy(&v, f->file + at, 8);
+    return v;
+}
+
+static uint32_t forged_u32(const forged *f, uint64_t at)
+{
+    uint32_t v = 0;
+    if (at <= f->size && f->size - at >= 4) memcpy(&v, f->file + at, 4);
+    return v;
+}
+
+static float forged_f32(const forged *f, uint64_t at)
+{
+    uint32_t bits = forged_u32(f, at);
+    float v;
+    memcpy(&v, &bits, 4);
+    return v;
+}
+
+static void forge_bytes(forged *f, uint64_t at, const void *v, size_t n)
+{
+    if (at <= f->size && f->size - at >= n) memcpy(f->file + at, v, n);
+}
+
+static void forge_u32(forged *f, uint64_t at, uint32_t v) { forge_bytes(f, at, &v, 4); }
+static void forge_u64(forged *f, uint64_t at, uint64_t v) { forge_bytes(f, at, &v, 8); }
+static void forge_f32(forged *f, uint64_t at, float v) { forge_bytes(f, at, &v, 4); }
+
+/* Batch entry i, the root of the top level, blob i's parts. */
+static uint64_t entry_at(const forged *f, uint32_t i) { return forged_u64(f, 56) + 80u * i; }
+static uint64_t top_root_at(const forged *f) { return forged_u64(f, 80); }
+static uint64_t blob_at(const forged *f, uint32_t i) { return forged_u64(f, entry_at(f, i) + 24); }
+/* A blob (bvh.c, scene format 2): 64-byte header {magic, nodes, vertices,
+** triangles}, 64-byte nodes, 12-byte vertices, u32 prims, u16 corners. */
+static uint64_t blob_verts_at(const forged *f, uint32_t i)
+{
+    return blob_at(f, i) + 64 + 64 * (uint64_t)forged_u32(f, blob_at(f, i) + 4);
+}
+static uint64_t blob_prims_at(const forged *f, uint32_t i)
+{
+    return blob_verts_at(f, i) + 12 * (uint64_t)forged_u32(f, blob_at(f, i) + 8);
+}
+
+/* header: no batching points (and a table to match) */
+static void forge_header_points(forged *f)
+{
+    forge_u32(f, 32, 0);
+    forge_u64(f, 64, 0);
+}
+/* header: 5 top-level nodes for 4 points (and a section to match) */
+static void forge_header_nodes(forged *f)
+{
+    forge_u32(f, 40, 5);
+    forge_u64(f, 88, 5 * 112);
+}
+/* header: the batch table, or the top level, one record longer than its count */
+static void forge_header_table(forged *f) { forge_u64(f, 64, forged_u64(f, 64) + 80); }
+static void forge_header_top(forged *f) { forge_u64(f, 88, forged_u64(f, 88) + 112); }
+static void forge_batch_box(forged *f) { forge_f32(f, entry_at(f, 1), NAN); }
+static void forge_blob_extent(forged *f) { forge_u64(f, entry_at(f, 1) + 24, f->size); }
+static void forge_proxy_root(forged *f) { forge_u32(f, entry_at(f, 1) + 52, 0x7FFFFFF0u); }
+/* the header's proxy resolution 8, the proxies' (valid) 4 */
+static void forge_proxy_res(forged *f) { forge_u32(f, 28, 8); }
+static void forge_triangle_sum(forged *f) { forge_u32(f, 36, forged_u32(f, 36) + 1); }
+static void forge_byte_sum(forged *f) { forge_u64(f, 48, forged_u64(f, 48) + 1); }
+static void forge_top_box(forged *f) { forge_f32(f, top_root_at(f), -INFINITY); }
+/* lane 0's max x down to its min x: ordered, but narrower than its point */
+static void forge_top_nesting(forged *f)
+{
+    forge_f32(f, top_root_at(f) + 48, forged_f32(f, top_root_at(f)));
+}
+static void forge_top_leaf(forged *f) { forge_u32(f, top_root_at(f) + 96, 0x80000000u | 100u); }
+static void forge_top_missing(forged *f) { forge_u32(f, top_root_at(f) + 96, 0xFFFFFFFFu); }
+static void forge_prim_number(forged *f) { forge_u32(f, blob_prims_at(f, 1), 25); }
+static void forge_prim_no_prim(forged *f) { forge_u32(f, blob_prims_at(f, 1), BRT_NO_PRIM); }
+static void forge_blob_box(forged *f) { forge_f32(f, blob_at(f, 1) + 64, NAN); }
+static void forge_blob_triangle(forged *f) { forge_f32(f, blob_verts_at(f, 1), INFINITY); }
+/* one triangle moved between two table entries: the sums still agree */
+static void forge_blob_count(forged *f)
+{
+    forge_u32(f, entry_at(f, 1) + 48, forged_u32(f, entry_at(f, 1) + 48) + 1);
+    forge_u32(f, entry_at(f, 2) + 48, forged_u32(f, entry_at(f, 2) + 48) - 1);
+}
+
+typedef struct forgery {
+    const char *name;           /* also the file's name */
+    void (*forge)(forged *f);
+    const char *part;           /* what the message must name */
+} forgery;
+
+static const forgery forgeries[] = {
+    {"header_points.brs", forge_header_points, "header: no batching points"},
+    {"header_nodes.brs", forge_header_nodes, "header: 5 top-level nodes for 4 batching points"},
+    {"header_table.brs", forge_header_table, "header: batch table has the wrong size"},
+    {"header_top.brs", forge_header_top, "header: top-level section has the wrong size"},
+    {"batch_box.brs", forge_batch_box, "batching point 1: box not finite"},
+    {"blob_extent.brs", forge_blob_extent, "batching point 1: blob outside the file"},
+    {"proxy_root.brs", forge_proxy_root, "batching point 1: invalid proxy"},
+    {"proxy_res.brs", forge_proxy_res, "batching point 0: invalid proxy"},
+    {"triangle_sum.brs", forge_triangle_sum, "batch table: batching points hold 25 triangles"},
+    {"byte_sum.brs", forge_byte_sum, "batch table: blobs hold"},
+    {"top_box.brs", forge_top_box, "top-level node 0: box not finite"},
+    {"top_nesting.brs", forge_top_nesting, "top-level node 0: box does not hold batching point"},
+    {"top_leaf.brs", forge_top_leaf, "top-level node 0: bad leaf"},
+    {"top_missing.brs", forge_top_missing, "not in the top level"},
+    {"prim_number.brs", forge_prim_number, "batching point 1: bvh blob: triangle 0: number 25"},
+    {"prim_no_prim.brs", forge_prim_no_prim, "batching point 1: bvh blob: triangle 0: number"},
+    {"blob_box.brs", forge_blob_box, "batching point 1: bvh blob: node 0 slot 0: box"},
+    {"blob_triangle.brs", forge_blob_triangle, "batching point 1: bvh blob: vertex 0: coordinate"},
+    {"blob_count.brs", forge_blob_count, "batching point 1: blob holds"},
+};
+
+/* Writes base forged by fn (none: unchanged) with repaired checksums as
+** name, opens it, traces one ray loading every blob; the result, and the
+** message in err. */
+static brt_result open_forged(const forged *base, const char *name, void (*fn)(forged *),
+                              brt_error *err)
+{
+    forged f;
+    brt_scene *scene = NULL;
+    brt_trace_options opt;
+    brt_ray ray = {{0.1f, 0.1f, 3.0f}, {0.0f, 0.0f, -1.0f}, 0.0f, INFINITY};
+    brt_hit hit;
+    brt_result r = BRT_ENOMEM;
+    f.size = base->size;
+    f.file = malloc(f.size);
+    if (!f.file) return r;
+    memcpy(f.file, base->file, f.size);
+    if (fn) fn(&f);
+    fuzz_repair_scene_checksums(f.file, f.size);
+    err->message[0] = 0;
+    if (spill(name, f.file, f.size)) r = brt_scene_open(scratch(name), &scene, err);
+    free(f.file);
+    if (r != BRT_OK) return r;
+    memset(&opt, 0, sizeof opt);
+    opt.exact_proxies = 1;   /* loads every blob */
+    r = brt_scene_trace(scene, &opt, &ray, 1, &hit, NULL, err);
+    brt_scene_close(scene);
+    return r;
+}
+
+static void test_forged_scenes(void)
+{
+    forged base;
+    brt_error err;
+    size_t i;
+    CHECK(fuzz_fixed_scene_build(scratch("forge_base.brs"), &err) == BRT_OK, "%s", err.message);
+    base.file = tu_slurp(scratch("forge_base.brs"), &base.size);
+    CHECK(base.file && base.size >= 256 && forged_u32(&base, 32) == 4 && forged_u32(&base, 36) == 25
+          && forged_u32(&base, 40) == 1, "the fixed scene is not 25 triangles, 4 points, 1 node");
+    EXPECT(open_forged(&base, "unforged.brs", NULL, &err) == BRT_OK, "unforged: %s", err.message);
+    for (i = 0; i < sizeof forgeries / sizeof *forgeries; i++) {
+        const forgery *g = &forgeries[i];
+        brt_result r = open_forged(&base, g->name, g->forge, &err);
+        EXPECT(r == BRT_EFORMAT, "%s: %s, expected a format error", g->name, brt_result_string(r));
+        EXPECT(strstr(err.message, g->name) && strstr(err.message, g->part),
+               "%s: message '%s' lacks '%s'", g->name, err.message, g->part);
+    }
+    free(base.file);
+}
+
+/* The fixed mesh in 25 batching points (a top level of several nodes): a
+** root lane over a node narrowed to zero width in x, still ordered and
+** finite, no longer holds that node's boxes. */
+static void forge_node_nesting(forged *f)
+{
+    uint64_t root = top_root_at(f);
+    int lane;
+    for (lane = 0; lane < 4; lane++)
+        if (forged_u32(f, root + 96 + 4 * (uint64_t)lane) < 0x80000000u) {
+            forge_f32(f, root + 48 + 4 * (uint64_t)lane, forged_f32(f, root + 4 * (uint64_t)lane));
+            return;
+        }
+}
+
+static void test_forged_node_nesting(void)
+{
+    brt_scene_options opt;
+    brt_mesh mesh;
+    forged base;
+    brt_error err;
+    brt_result r;
+    fuzz_fixed_mesh(&mesh);
+    memset(&opt, 0, sizeof opt);
+    opt.batch_tris = 1;
+    opt.proxy_res = 4;
+    CHECK(brt_scene_build(&mesh, &opt, 0, scratch("nodes_base.brs"), &err) == BRT_OK, "%s", err.message);
+    base.file = tu_slurp(scratch("nodes_base.brs"), &base.size);
+    CHECK(base.file && base.size >= 256 && forged_u32(&base, 40) > 1, "no top level of several nodes");
+    EXPECT(open_forged(&base, "nodes.brs", NULL, &err) == BRT_OK, "unforged: %s", err.message);
+    r = open_forged(&base, "node_nesting.brs", forge_node_nesting, &err);
+    EXPECT(r == BRT_EFORMAT && strstr(err.message, "node_nesting.brs: top-level node 0: box does "
+                                      "not hold node"), "%s: %s", brt_result_string(r), err.message);
+    free(base.file);
+}
+
+/* The validators refuse forgeries, not extremes: a scene built from
+** triangles at +-FLT_MAX (padded BVH boxes round out to infinity there,
+** and a proxy grid's far corner overflows a float) opens, loads every blob
+** and traces, with the hit brute force gives. */
+static void test_extreme_scene_opens(void)
+{
+    static float pos[] = {-FLT_MAX, -FLT_MAX, 0, FLT_MAX, -FLT_MAX, 0, -FLT_MAX, FLT_MAX, 0,
+                          0, 0, FLT_MAX, 1, 0, FLT_MAX, 0, 1, -FLT_MAX};
+    static uint32_t idx[] = {0, 1, 2, 3, 4, 5};
+    brt_mesh mesh = {pos, idx, 6, 2};
+    brt_scene_options sopt;
+    brt_trace_options opt;
+    brt_scene *scene = NULL;
+    brt_ray ray = {{-1e30f, -1e30f, 1.0f}, {0.0f, 0.0f, -1.0f}, 0.0f, INFINITY};
+    brt_hit hit;
+    brt_error err;
+    float t, u, v;
+    memset(&sopt, 0, sizeof sopt);
+    sopt.batch_tris = 1;   /* two batching points */
+    CHECK(brt_scene_build(&mesh, &sopt, 0, scratch("extreme.brs"), &err) == BRT_OK, "%s", err.message);
+    CHECK(brt_scene_open(scratch("extreme.brs"), &scene, &err) == BRT_OK, "%s", err.message);
+    memset(&opt, 0, sizeof opt);
+    opt.exact_proxies = 1;   /* loads every blob */
+    EXPECT(brt_scene_trace(scene, &opt, &ray, 1, &hit, NULL, &err) == BRT_OK, "%s", err.message);
+    brt_scene_close(scene);
+    CHECK(brt_intersect_triangle(&ray, pos, pos + 3, pos + 6, &t, &u, &v), "the ray misses");
+    EXPECT(hit.prim == 0 && hit.t == t, "hit prim %u at %g, brute force 0 at %g",
+           (unsigned)hit.prim, (double)hit.t, (double)t);
+}
+
 void suite_hardening(void)
 {
     test_run("hardening: fuzz corpus replays cleanly", test_corpus_replay);
@@ -984,4 +1236,8 @@ void suite_hardening(void)
     test_run("hardening: a top level that is not a tree is refused", test_top_level_must_be_a_tree);
     test_run("hardening: budget below one batching point, no rays",
              test_budget_below_one_batching_point);
+    test_run("hardening: forged scene files, one per validator, are refused", test_forged_scenes);
+    test_run("hardening: forged scene file, a top-level box not holding its node",
+             test_forged_node_nesting);
+    test_run("hardening: a scene at +-FLT_MAX passes the validators", test_extreme_scene_opens);
 }

@@ -347,6 +347,7 @@ static void test_reused_builtin_holds_no_mesh(void)
     uint64_t vertices = 0, triangles = 0;
     double base, peak, mesh_bytes;
     brt_error err;
+    if (!tu_rss_is_meaningful()) return;
     CHECK(ex_scene_count(&recipe, &vertices, &triangles, &err) == BRT_OK, "%s", err.message);
     mesh_bytes = 12.0 * (double)(vertices + triangles);
     CHECK(tu_run("render crown --scale 0.01 %s --scene @/tiny.brs --out @/tiny.png "

@@ -353,3 +353,17 @@ unsigned char *tu_png_decode(const unsigned char *png, size_t size, int *w, int 
     }
     return rgb;
 }
+
+int tu_rss_is_meaningful(void)
+{
+    const char *preload = getenv("LD_PRELOAD");
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+    test_skip("under a sanitizer, whose shadow memory and quarantine are resident");
+    return 0;
+#endif
+    if (preload && strstr(preload, "vgpreload")) {
+        test_skip("under valgrind, whose shadow memory and freed-block queue are resident");
+        return 0;
+    }
+    return 1;
+}

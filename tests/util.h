@@ -44,6 +44,12 @@ void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids, const brt_ray *
 
 /* NAME inside the scratch directory (a few rotating buffers). */
 const char *tu_scratch(const char *name);
+/* Whether this process's peak RSS means what a test of a memory bound
+** needs: not under AddressSanitizer or ThreadSanitizer (shadow memory and
+** quarantines of freed blocks stay resident) nor valgrind.  When it does
+** not, says SKIP with the reason and returns 0. */
+int tu_rss_is_meaningful(void);
+
 int tu_file_exists(const char *path);
 /* The whole file, NUL-terminated (malloc'd), or NULL; size may be NULL. */
 unsigned char *tu_slurp(const char *path, size_t *size);
