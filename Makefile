@@ -151,17 +151,21 @@ bench-embree: all embree
 	    "$$@" --stats $$out.json || exit 1; \
 	    sed -n 's/.*"mrays_per_second": *\([0-9.eE+-]*\).*/\1/p' $$out.json; \
 	  done | sort -g | tail -1; }; \
-	echo "$$m, $(EMBREE_RAYS) rays per kind, one thread, best of $(EMBREE_REPEAT)"; \
-	printf '%-7s %15s %15s %15s %7s %7s\n' kind "batchrt Mr/s" "Embree Mr/s" "robust Mr/s" ratio "ratio r"; \
+	echo "$$m, $(EMBREE_RAYS) rays per kind, one thread, best of $(EMBREE_REPEAT) (cold: one trace run each)"; \
+	printf '%-7s %9s %9s %9s %9s %7s %7s %7s\n' kind "direct" "batched" "Embree" "robust" "d/E" "b/E" "E/d"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
 	  ./$(BUILD)/raygen $$m $$d.rays --kind $$k --count $(EMBREE_RAYS) || exit 1; \
 	  b=$$(best $$d.brt ./$(BUILD)/trace $$m $$d.rays $$d.brt.hits); \
+	  bb=$$(best $$d.bat ./$(BUILD)/trace $$m $$d.rays $$d.bat.hits --batched --scene $(EMBREE_BENCH)/scene.brs); \
+	  cmp -s $$d.brt.hits $$d.bat.hits || { echo "$$k: batched hits differ from direct"; exit 1; }; \
 	  e=$$(best $$d.emb ./$(BUILD)/embree_trace $$m $$d.rays $$d.emb.hits); \
 	  r=$$(best $$d.rob ./$(BUILD)/embree_trace $$m $$d.rays $$d.rob.hits --robust); \
-	  awk -v k=$$k -v b=$$b -v e=$$e -v r=$$r 'BEGIN { \
-	    printf "%-7s %15.2f %15.2f %15.2f %7.2f %7.2f\n", k, b, e, r, e / b, r / b }'; \
+	  awk -v k=$$k -v b=$$b -v bb=$$bb -v e=$$e -v r=$$r 'BEGIN { \
+	    printf "%-7s %9.2f %9.2f %9.2f %9.2f %7.2f %7.2f %7.2f\n", k, b, bb, e, r, b / e, bb / e, e / b }'; \
 	done; \
-	echo "ratio: Embree Mrays/s over batchrt's (ratio r: Embree --robust)"; \
+	echo "Mrays/s; d/E, b/E: batchrt direct and batched (in core, hits byte-identical) over Embree; E/d: the old ratio"; \
+	sed -n 's/.*"bvh_bytes_per_triangle": *\([0-9.eE+-]*\).*/batchrt BVH bytes per triangle: \1/p; s/.*"build_seconds": *\([0-9.eE+-]*\).*/batchrt BVH build seconds: \1/p' $(EMBREE_BENCH)/bounce.brt.json; \
+	echo "warm (cached) figures: make bench (build/bench_bvh)"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
 	  for x in emb rob; do printf '%s vs %s: ' $$k $$x; \
 	    ./$(BUILD)/hitdiff $$d.brt.hits $$d.$$x.hits --max-disagree 1e-4 | tail -1; \

@@ -1727,15 +1727,26 @@ uint64_t brt_checksum64(const void *data, size_t size)
     return h ^ (h >> 29);
 }
 
-/* Scene files are written in host byte order; the header's endianness
-** mark makes a file from a machine of the other order a clear error
-** instead of garbage.  (BVH blobs are host-order arrays, read in place.) */
-static void put_u32(unsigned char *p, uint32_t v) { memcpy(p, &v, 4); }
-static void put_u64(unsigned char *p, uint64_t v) { memcpy(p, &v, 8); }
-static void put_f32(unsigned char *p, float v) { memcpy(p, &v, 4); }
-static uint32_t get_u32(const unsigned char *p) { uint32_t v; memcpy(&v, p, 4); return v; }
-static uint64_t get_u64(const unsigned char *p) { uint64_t v; memcpy(&v, p, 8); return v; }
-static float get_f32(const unsigned char *p) { float v; memcpy(&v, p, 4); return v; }
+/* Every number of a scene file is little-endian, like ray and hit files
+** (version 2; version 1 used the writer's byte order).  The BVH blobs
+** inside it are little-endian too and read in place (bvh.c). */
+static void put_u32(unsigned char *p, uint32_t v)
+{
+    int i;
+    for (i = 0; i < 4; i++) p[i] = (unsigned char)(v >> (8 * i));
+}
+static void put_u64(unsigned char *p, uint64_t v)
+{
+    put_u32(p, (uint32_t)v);
+    put_u32(p + 4, (uint32_t)(v >> 32));
+}
+static void put_f32(unsigned char *p, float v) { uint32_t w; memcpy(&w, &v, 4); put_u32(p, w); }
+static uint32_t get_u32(const unsigned char *p)
+{
+    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
+}
+static uint64_t get_u64(const unsigned char *p) { return get_u32(p) | (uint64_t)get_u32(p + 4) << 32; }
+static float get_f32(const unsigned char *p) { uint32_t w = get_u32(p); float v; memcpy(&v, &w, 4); return v; }
 
 /* ---- median splits (the partition and the top-level build share them) -- */
 
@@ -2068,7 +2079,8 @@ static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep 
 
 /* ---- the scene file --------------------------------------------------- */
 /*
-** Layout (all numbers in host byte order, see the endianness mark):
+** Layout, version 2 (all numbers little-endian; the mark is kept so
+** that a file of version 1 written on a big-endian host is named as such):
 **   header, 256 bytes:
 **     0 "BRTSCENE"  8 u32 version  12 u32 endianness mark 0x01020304
 **     16 u64 source stamp  24 u32 batch_tris  28 u32 proxy_res
@@ -2087,7 +2099,7 @@ static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep 
 ** The file is padded to a multiple of SCENE_PAGE.
 */
 #define SCENE_MAGIC "BRTSCENE"
-#define SCENE_VERSION 1u
+#define SCENE_VERSION 2u
 #define SCENE_ENDIAN_MARK 0x01020304u
 #define SCENE_HEADER_BYTES 256
 #define SCENE_PAGE 4096u
@@ -2222,7 +2234,8 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
     if (memcmp(p, SCENE_MAGIC, 8) != 0)
         return brt_fail(err, BRT_EFORMAT, "%s: not a batchrt scene file (bad magic)", path);
     if (mark != SCENE_ENDIAN_MARK)
-        return brt_fail(err, BRT_EFORMAT, "%s: written on a machine of the other byte order", path);
+        return brt_fail(err, BRT_EFORMAT, "%s: a version-1 scene file written on a machine of the other "
+                        "byte order (delete the file to rebuild it)", path);
     if (get_u32(p + 8) != SCENE_VERSION)
         return brt_fail(err, BRT_EFORMAT, "%s: scene file version %u, this build reads version %u"
                         " (delete the file to rebuild it)", path, get_u32(p + 8), SCENE_VERSION);

@@ -330,28 +330,33 @@ void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags
 /* Any hit in [tnear, tfar]: 1 if occluded. */
 int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
 
-/* Structural checker: every triangle in exactly one leaf, child boxes
-** inside parent boxes, every triangle inside its leaf box, indices in
-** range.  BRT_ECHECK with a message naming the first violation. */
+/* Structural checker: every triangle in exactly one leaf, indices in
+** range, slots ordered, and every triangle's grown box inside the decoded
+** (quantized) box of every slot on its path from the root -- what makes
+** pruning exact.  BRT_ECHECK with a message naming the first violation. */
 brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
 
 uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
 /* The number reported for each stored triangle, in storage order
 ** (brt_bvh_triangle_count of them; checkers read it). */
 const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh);
-size_t brt_bvh_memory_bytes(const brt_bvh *bvh);   /* nodes + triangles */
-/* Bounds of the root's boxes: the triangles' bounds grown by a few ulps
-** of their magnitude (bvh.c: the pad that makes box tests conservative
-** for the rounding of the triangle test); +inf/-inf when empty. */
+/* Nodes, vertices, prim ids and corner indices: the blob less its
+** 64-byte header (the same bytes in memory and on disk). */
+size_t brt_bvh_memory_bytes(const brt_bvh *bvh);
+/* Bounds of the root's decoded boxes: the triangles' bounds grown by a
+** few ulps of their magnitude (bvh.c: the pad that makes box tests
+** conservative for the rounding of the triangle test), then rounded
+** outward to the root's 8-bit planes; +inf/-inf when empty. */
 void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
 
-/* A BVH as one relocatable blob (indices, no pointers) for the scene file.
-** brt_bvh_blob_open makes a BVH that refers to the blob's memory (which
-** must stay alive and be 16-byte aligned) after validating its sizes and
-** indices, its boxes (ordered) and triangles (finite), and that every
-** triangle number it reports is below prim_limit (a scene's triangle
-** count; UINT32_MAX when there is none); a corrupt blob is BRT_EFORMAT,
-** never a crash or a wrong hit record later. */
+/* A BVH as one relocatable blob (indices, no pointers, little-endian) for
+** the scene file.  brt_bvh_blob_open makes a BVH that refers to the blob's
+** memory (which must stay alive and be 16-byte aligned) after validating
+** its sizes, indices and slot order, its decoded boxes (ordered) and
+** vertices (finite), and that every triangle number it reports is below
+** prim_limit (a scene's triangle count; UINT32_MAX when there is none); a
+** corrupt blob is BRT_EFORMAT, never a crash or a wrong hit record later
+** (a big-endian host refuses blobs: they are read in place). */
 size_t brt_bvh_blob_size(const brt_bvh *bvh);
 void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
 brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,

@@ -19,31 +19,52 @@
 ** so the BVH returns bit-identical t, u, v: a brute-force loop over
 ** brt_intersect_triangle is an exact oracle for it.
 **
-** NODE LAYOUT (4-wide BVH, one flat array, indices only):
-**   struct wnode { float box[6][4]; uint32_t child[4]; uint32_t count[4]; }
-**   box[0..2][i] = min x,y,z of slot i, box[3..5][i] = max x,y,z: 6 rows of
-**   4 floats (structure of arrays), so the slab test of the four children is
-**   a loop of 4 that GCC vectorizes at -O2 without intrinsics.  Slot i is
-**     count[i] >  0: a leaf of count[i] triangles from triangle child[i];
-**     count[i] == 0: an inner node child[i] (always > the parent's index),
-**                    or an empty slot when child[i] == EMPTY_SLOT; empty
-**                    slots have inverted boxes (+inf, -inf), so they never
-**                    pass the box test (blob_open insists on it).
-**   Node 0 is the root (no nodes at all for 0 triangles); the inner
-**   children of a node have consecutive indices, so siblings share pages
-**   and cache lines.  Triangles are stored in leaf order, 9 floats each
-**   (v0, v1, v2 exactly as given), and their reported numbers in a side
-**   array prim[] read only on a hit.  128 bytes per node, 40 per triangle.
+** NODE LAYOUT (4-wide BVH, one flat array, indices only; 64 bytes a node,
+** one cache line; the same layout in memory, in the blob and in the
+** direct mode):
+**   struct qnode { float org[3], scale[3]; uint32_t q[6];
+**                  uint32_t first_node, first_tri, vertex_base;
+**                  uint8_t count[4]; }
+**   Slot i's box is quantized in the node's frame: plane q of axis a is
+**   org[a] + q * scale[a] (decode_plane), with q the 8-bit lane i of row
+**   q[0..2] (min x, y, z) or q[3..5] (max x, y, z).  Slot i is
+**     count[i] == 0: an inner node: inner slots come first and take
+**                    first_node, first_node + 1, ... (always > the
+**                    parent's index, siblings consecutive in memory);
+**     count[i] 1..MAX_LEAF: a leaf; the leaf slots take consecutive
+**                    triangle ranges from first_tri on, in slot order;
+**     count[i] == EMPTY_COUNT: empty, masked out before the box test.
+**   Node 0 is the root (no nodes at all for 0 triangles).  Then the
+**   vertices (3 floats each, exactly as given; equal bits stored once as
+**   far as a node can reach them), the reported triangle numbers prim[]
+**   (read only on a hit), and per triangle 3 uint16 corner offsets from
+**   its node's vertex_base.  Bytes per triangle: 64 per node, 12 per
+**   vertex, 10 per triangle: 23-29 on the shared meshes and built-in
+**   scenes (the float layout before it: 58-63).
+**
+** WHY THE QUANTIZED BOXES KEEP PRUNING EXACT.  The build quantizes each
+** padded child box outward (min planes down, max planes up, checked by
+** decoding: quantize_down/up), so the decoded box contains the padded
+** box of every triangle below it (brt_bvh_check verifies exactly that).
+** The traversal decodes with the same decode_plane and runs the one
+** monotone box test (box_span4) on the decoded floats.  A triangle's hit
+** distance is clamped into its own padded box's interval (hit_distance),
+** and a box containing that box is entered no later and left no later
+** bit for bit (rule 2 of the README's Floating point section), so every
+** decoded box around a hit at t is entered at or before t: pruning a
+** slot whose entry exceeds the closest t so far never loses a hit, and
+** the hits are those of the float boxes, byte for byte.
 **
 ** BUILD: binned SAH (Wald 2007, "On fast construction of SAH-based
 ** bounding volume hierarchies") into a binary tree, then collapsed into the
 ** 4-wide tree by repeatedly opening the child of largest surface area (as
 ** Embree does).  16 bins per axis (fewer, one per triangle, in nodes of
 ** under 16): Wald reports 16 bins within a few percent of the full-sweep
-** SAH, and more bins cost build time.  Costs C_TRAV = 2, C_ISECT = 1: a
-** 4-wide node test is about two scalar triangle tests here, and the larger
-** leaves this gives cut memory from 77 to 63 bytes per triangle at equal
-** speed (measured; C_TRAV = 1 and 3 were no faster).  A leaf holds at most
+** SAH, and more bins cost build time.  Costs C_TRAV = 3, C_ISECT = 1: a
+** 4-wide quantized node test costs about three scalar triangle tests
+** here, and the larger leaves cut bytes (island at 1 M triangles: 32.0 ->
+** 29.3 per triangle, landscape 26.8 -> 24.1; float nodes: C_TRAV 2 took
+** 77 -> 63 and 1 or 3 were no faster).  A leaf holds at most
 ** MAX_LEAF = 8 triangles.  Below depth SAH_DEPTH the split is the SAH one;
 ** deeper (pathological inputs only) the range is halved, so the binary
 ** depth is at most SAH_DEPTH + 32 = MAX_DEPTH and the 4-wide depth no
@@ -87,29 +108,38 @@
 
 #define BINS 16
 #define MAX_LEAF 8
-#define C_TRAV 2.0f
+#define C_TRAV 3.0f
 #define C_ISECT 1.0f
 #define SAH_DEPTH 64
 #define MAX_DEPTH (SAH_DEPTH + 32)
 #define STACK_SIZE (3 * MAX_DEPTH + 1)
 #define PAD_REL (16.0f * FLT_EPSILON)
-#define EMPTY_SLOT 0xFFFFFFFFu
-#define BLOB_MAGIC 0x31485642u   /* "BVH1" little endian */
+#define EMPTY_COUNT 0xFFu   /* count[] of an empty slot */
+#define VERTEX_WINDOW 65536u /* 16-bit corner offsets from a node's vertex_base */
+#define NODE_NEW_VERTICES (4u * 3u * MAX_LEAF)   /* corners a node may add */
+#define BLOB_MAGIC 0x32485642u   /* "BVH2" little endian */
 #define BLOB_HEADER 64u        /* bytes: a cache line, so nodes stay aligned */
 
-typedef struct wnode {
-    float box[6][4];      /* min x,y,z rows then max x,y,z rows; 4 slots */
-    uint32_t child[4];    /* node index, first triangle, or EMPTY_SLOT */
-    uint32_t count[4];    /* triangles of a leaf slot; 0 for node/empty */
-} wnode;
+typedef struct qnode {
+    float org[3];         /* the frame: plane q of axis a is */
+    float scale[3];       /*   org[a] + q * scale[a] (decode_plane) */
+    uint32_t q[6];        /* min x,y,z rows then max x,y,z rows: slot i's
+                          ** 8-bit plane in bits 8i..8i+7 (q_lane) */
+    uint32_t first_node;  /* the inner slots' children, consecutive */
+    uint32_t first_tri;   /* the leaf slots' triangles, consecutive */
+    uint32_t vertex_base; /* the leaves' corners are vertex_base + idx */
+    uint8_t count[4];     /* 0 inner, 1..MAX_LEAF leaf, EMPTY_COUNT empty */
+} qnode;
+
+typedef char qnode_is_one_cache_line[sizeof(qnode) == 64 ? 1 : -1];
 
 struct brt_bvh {
-    const wnode *nodes;   /* node_count, root first */
-    const float *tris;    /* 9 floats per triangle, in leaf order */
+    const qnode *nodes;   /* node_count, root first */
+    const float *verts;   /* 3 floats per vertex, exactly as given */
     const uint32_t *prim; /* reported number of each stored triangle */
-    uint32_t node_count;
-    uint32_t tri_count;
-    void *owned;          /* one allocation holding all three, or NULL */
+    const uint16_t *idx;  /* 3 corner offsets per triangle, in leaf order */
+    uint32_t node_count, vert_count, tri_count;
+    void *owned;          /* one allocation holding all four, or NULL */
 };
 
 /* ===================================================================== */
@@ -209,8 +239,10 @@ void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3
     }
     pad = PAD_REL * m;
     for (a = 0; a < 3; a++) {
-        plo[a] = lo[a] - pad;
-        phi[a] = hi[a] + pad;
+        /* Clamped to +-FLT_MAX (monotone, like the rest), so a quantized
+        ** node's frame (set_frame) never starts at an infinity. */
+        plo[a] = lo[a] - pad > -FLT_MAX ? lo[a] - pad : -FLT_MAX;
+        phi[a] = hi[a] + pad < FLT_MAX ? hi[a] + pad : FLT_MAX;
     }
 }
 
@@ -392,13 +424,67 @@ static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float box
     return bit[0] | bit[1] | bit[2] | bit[3];
 }
 
+/* ---- quantized nodes ---- */
+
+/* One plane of a node's frame: org + q * scale, each operation rounded
+** once (-ffp-contract=off), hence non-decreasing in q.  The build, the
+** traversal, bounds and the checker all decode through this one
+** function, so they all see the same floats. */
+static inline float decode_plane(float org, float scale, unsigned q)
+{
+    return org + (float)q * scale;   /* decode_row: the same, four at once */
+}
+
+/* One row of four slots' planes along axis a. */
+/* Slot i's 8-bit plane in a row word. */
+static inline unsigned q_lane(uint32_t row, int i)
+{
+    return (row >> (8 * i)) & 0xFFu;
+}
+
+/* One row of four slots' planes along axis a: decode_plane of each lane,
+** written so that GCC -O2 makes it a few vector instructions: each lane's
+** byte is masked in place (lane 3 shifted down 8 bits first so that the
+** word stays positive as an int), converted, and scaled by a power of
+** two back to the byte's value -- every step exact, so each lane is
+** exactly (float)q_lane.  (A loop calling q_lane stays scalar: traversal
+** then ran 3.6 times the instructions of the float nodes.) */
+static inline ALWAYS_INLINE void decode_row(const qnode *n, int row, int a, float out[4])
+{
+    static const uint32_t mask[4] = {0xFFu, 0xFF00u, 0xFF0000u, 0xFF0000u};
+    static const float unit[4] = {1.0f, 1.0f / 256.0f, 1.0f / 65536.0f, 1.0f / 65536.0f};
+    const float o = n->org[a], s = n->scale[a];
+    const uint32_t w = n->q[row];
+    int32_t v[4];
+    int i;
+    v[0] = (int32_t)(w & mask[0]);
+    v[1] = (int32_t)(w & mask[1]);
+    v[2] = (int32_t)(w & mask[2]);
+    v[3] = (int32_t)((w >> 8) & mask[3]);
+    for (i = 0; i < 4; i++) out[i] = o + ((float)v[i] * unit[i]) * s;
+}
+
+/* The four slots' boxes as brt_box_span4 rows.  Row by row, four lanes
+** each, so that GCC -O2 turns each row into a few vector instructions
+** (one loop over all 24 planes with row % 3 stayed scalar: traversal
+** then ran 4.6 times the instructions of the float nodes). */
+static inline ALWAYS_INLINE void decode_boxes(const qnode *n, float box[6][4])
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        decode_row(n, a, a, box[a]);
+        decode_row(n, a + 3, a, box[a + 3]);
+    }
+}
+
 /* A node's slots: only the entries are wanted (the exits are dead stores
-** the compiler drops). */
-static inline unsigned box_test4(const box_ray *b, const wnode *n,
+** the compiler drops).  Empty slots are masked out by the caller. */
+static inline unsigned box_test4(const box_ray *b, const qnode *n,
                                  float tnear, float tfar, float lo[4])
 {
-    float hi[4];
-    return box_span4(b, n->box, tnear, tfar, lo, hi);
+    float box[6][4], hi[4];
+    decode_boxes(n, box);
+    return box_span4(b, (const float (*)[4])box, tnear, tfar, lo, hi);
 }
 
 unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tmin,
@@ -409,6 +495,25 @@ unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tm
     return box_span4(&b, box, tmin, tmax, entry, exit);
 }
 
+/* The mask of non-empty slots. */
+static inline unsigned slot_valid(const qnode *n)
+{
+    return (unsigned)(n->count[0] != EMPTY_COUNT) | (unsigned)(n->count[1] != EMPTY_COUNT) << 1 |
+           (unsigned)(n->count[2] != EMPTY_COUNT) << 2 | (unsigned)(n->count[3] != EMPTY_COUNT) << 3;
+}
+
+/* What non-empty slot i points to.  Inner slots come first, then leaves,
+** then empty ones (the build orders them so, blob_open insists), so inner
+** slot i is child first_node + i, and leaf slot i starts after the
+** triangles of the slots below it (inner slots count 0): arithmetic, not
+** a loop over the slots at every node. */
+static inline uint32_t slot_target(const qnode *n, unsigned i)
+{
+    const unsigned below = (i > 0 ? n->count[0] : 0u) + (i > 1 ? n->count[1] : 0u) +
+                           (i > 2 ? n->count[2] : 0u);
+    return n->count[i] == 0 ? n->first_node + i : n->first_tri + below;
+}
+
 /* ===================================================================== */
 /* Traversal                                                             */
 /* ===================================================================== */
@@ -416,43 +521,37 @@ unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tm
 typedef struct stack_entry {
     uint32_t child;
     uint32_t count;   /* > 0: a leaf */
+    uint32_t vbase;   /* the leaf's vertex_base */
     float lo;         /* entry distance, for pruning when popped */
 } stack_entry;
 
 /* The lowest set bit of a 4-bit mask (C99 has no ctz). */
 static const unsigned char lowest_bit[16] = {0, 0, 1, 0, 2, 0, 1, 0, 3, 0, 1, 0, 2, 0, 1, 0};
 
-/* Starts fetching the memory of every slot in mask (a child node's two
-** cache lines, a leaf's triangles) before the first is visited: cold
-** rays wait on DRAM for nearly every node, and these misses then overlap
+/* Starts fetching the memory of every slot in mask (a child node's cache
+** line, a leaf's vertex indices) before the first is visited: cold rays
+** wait on DRAM for nearly every node, and these misses then overlap
 ** instead of queueing one after another.  A hint only: without GCC's
 ** builtin (or clang's, which defines __GNUC__ too) it does nothing. */
-static void prefetch_slots(const brt_bvh *bvh, const wnode *n, unsigned mask)
+static void prefetch_slots(const brt_bvh *bvh, const qnode *n, unsigned mask)
 {
 #if defined(__GNUC__)
     for (; mask != 0; mask &= mask - 1) {
         const unsigned i = lowest_bit[mask];
-        const char *p, *end;
-        if (n->count[i] == 0) {
-            p = (const char *)&bvh->nodes[n->child[i]];
-            end = p + sizeof(wnode);
-        } else {
-            p = (const char *)(bvh->tris + 9 * (size_t)n->child[i]);
-            end = p + 36 * (size_t)n->count[i];
-        }
-        for (; p < end; p += 64) __builtin_prefetch(p);
-        __builtin_prefetch(end - 1);
+        if (n->count[i] == 0) __builtin_prefetch(&bvh->nodes[slot_target(n, i)]);
+        else __builtin_prefetch(bvh->idx + 3 * (size_t)slot_target(n, i));
     }
 #else
     (void)bvh; (void)n; (void)mask;
 #endif
 }
 
-static stack_entry slot_entry(const wnode *n, unsigned i, const float lo[4])
+static stack_entry slot_entry(const qnode *n, unsigned i, const float lo[4])
 {
     stack_entry e;
-    e.child = n->child[i];
+    e.child = slot_target(n, i);
     e.count = n->count[i];
+    e.vbase = n->vertex_base;
     e.lo = lo[i];
     return e;
 }
@@ -462,7 +561,7 @@ static stack_entry slot_entry(const wnode *n, unsigned i, const float lo[4])
 ** takes the short path; otherwise the slot numbers are insertion-sorted
 ** by descending entry distance and only then copied out.  Returns the
 ** new stack size. */
-static int next_child(const wnode *n, unsigned mask, const float lo[4],
+static int next_child(const qnode *n, unsigned mask, const float lo[4],
                       stack_entry *stack, int sp, stack_entry *next)
 {
     unsigned order[4];
@@ -481,22 +580,32 @@ static int next_child(const wnode *n, unsigned mask, const float lo[4],
     return sp;
 }
 
-/* The geometric normal (v1-v0) x (v2-v0) of a stored triangle. */
-static void triangle_normal(const float *p, float n[3])
+/* The three corners of stored triangle k of a leaf whose node has
+** vertex_base vbase. */
+static void triangle_corners(const brt_bvh *bvh, uint32_t k, uint32_t vbase,
+                             const float *p[3])
+{
+    const uint16_t *ix = bvh->idx + 3 * (size_t)k;
+    p[0] = bvh->verts + 3 * ((size_t)vbase + ix[0]);
+    p[1] = bvh->verts + 3 * ((size_t)vbase + ix[1]);
+    p[2] = bvh->verts + 3 * ((size_t)vbase + ix[2]);
+}
+
+/* The geometric normal (v1-v0) x (v2-v0) of a triangle. */
+static void triangle_normal(const float *const p[3], float n[3])
 {
     int a;
     for (a = 0; a < 3; a++) {
         const int b = (a + 1) % 3, c = (a + 2) % 3;
-        n[a] = (p[3 + b] - p[b]) * (p[6 + c] - p[c]) - (p[3 + c] - p[c]) * (p[6 + b] - p[b]);
+        n[a] = (p[1][b] - p[0][b]) * (p[2][c] - p[0][c]) - (p[1][c] - p[0][c]) * (p[2][b] - p[0][b]);
     }
 }
 
 /* Closest hit into *hit (and its triangle's normal into normal, unless
 ** NULL, whenever the hit changes), or (any != 0) returns 1 at the first
-** hit.  Empty slots have inverted boxes, so they never hit.  The tree is checked
-** acyclic with depth <= MAX_DEPTH at build/open time, so each node is
-** entered at most once and the stack (3 entries per level) never
-** overflows. */
+** hit.  Empty slots are masked out.  The tree is checked acyclic with
+** depth <= MAX_DEPTH at build/open time, so each node is entered at most
+** once and the stack (3 entries per level) never overflows. */
 static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
                     float normal[3], int any)
 {
@@ -516,20 +625,22 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
     tri_ray_setup(ray, &tr);
     cur.child = 0;
     cur.count = 0;
+    cur.vbase = 0;
     cur.lo = ray->tnear;
     for (;;) {
         uint32_t k;
         while (cur.count == 0) {
-            const wnode *n = &bvh->nodes[cur.child];
-            const unsigned mask = box_test4(&br, n, ray->tnear, tfar, lo);
+            const qnode *n = &bvh->nodes[cur.child];
+            const unsigned mask = box_test4(&br, n, ray->tnear, tfar, lo) & slot_valid(n);
             if (mask == 0) goto pop;
             prefetch_slots(bvh, n, mask);
             sp = next_child(n, mask, lo, stack, sp, &cur);
         }
         for (k = cur.child; k < cur.child + cur.count; k++) {
-            const float *p = bvh->tris + 9 * (size_t)k;
+            const float *p[3];
             float t, u, v;
-            if (!tri_intersect(&tr, &prep, p, p + 3, p + 6, ray->tnear, tfar, &t, &u, &v))
+            triangle_corners(bvh, k, cur.vbase, p);
+            if (!tri_intersect(&tr, &prep, p[0], p[1], p[2], ray->tnear, tfar, &t, &u, &v))
                 continue;
             if (any) return 1;
             if (brt_hit_is_closer(t, bvh->prim[k], hit)) {
@@ -797,10 +908,10 @@ static uint32_t build_node(builder *b, uint32_t begin, uint32_t end,
 }
 
 /* ===================================================================== */
-/* Collapse into the 4-wide layout                                       */
+/* Collapse into the 4-wide quantized layout                             */
 /* ===================================================================== */
 
-/* The stored boxes are padded with pad_box, like every box tested. */
+/* The stored boxes are padded with brt_box_pad, like every box tested. */
 static aabb aabb_padded(const aabb *box)
 {
     aabb p = *box;
@@ -808,28 +919,136 @@ static aabb aabb_padded(const aabb *box)
     return p;
 }
 
-static void set_slot(wnode *w, int i, const aabb *box, uint32_t child, uint32_t count)
+/* The frame of a node along each axis: org = the lowest plane of its
+** slots' padded boxes, and a scale with org + 255 * scale >= the highest
+** plane: the rounded quotient, grown by a doubling step until that holds
+** (rounding can leave it a few ulps short; the doubling bounds the loop
+** even when org dwarfs the extent).  Padded boxes stay within +-FLT_MAX
+** (brt_box_pad), so org is finite and no plane decodes to NaN. */
+static void set_frame(qnode *w, const aabb *u)
 {
     int a;
     for (a = 0; a < 3; a++) {
-        w->box[a][i] = box->lo[a];
-        w->box[a + 3][i] = box->hi[a];
+        /* hi / 255 - lo / 255: no overflow between +-FLT_MAX; 255 * s may
+        ** still round to +inf, which only makes the top planes +inf. */
+        float s = u->hi[a] / 255.0f - u->lo[a] / 255.0f, step;
+        if (s < FLT_MIN) s = FLT_MIN;   /* also a zero extent: planes stay distinct */
+        step = s * FLT_EPSILON > FLT_MIN ? s * FLT_EPSILON : FLT_MIN;
+        w->org[a] = u->lo[a];
+        for (; decode_plane(u->lo[a], s, 255) < u->hi[a]; step *= 2.0f) s += step;
+        w->scale[a] = s;
     }
-    w->child[i] = child;
-    w->count[i] = count;
 }
 
-/* Fills wide node w with the descendants of binary node bi found by
-** opening the largest-area inner child until there are four.  The inner
-** children get consecutive indices after everything emitted so far (so
-** they follow their parent and sit together in memory, where one fetch
-** brings in the next sibling too), then are filled in turn. */
-static void emit_wide(const builder *b, wnode *out, uint32_t *out_count,
-                      uint32_t bi, uint32_t w)
+/* Rounding OUTWARD: the largest q whose plane is <= v (q = 0 always
+** qualifies, its plane is org), and the smallest q whose plane is >= v
+** (q = 255 always qualifies).  Binary searches, valid because
+** decode_plane is non-decreasing in q; comparisons only, so inf and NaN
+** frames cannot trap. */
+static unsigned quantize_down(float org, float scale, float v)
+{
+    unsigned a = 0, b = 255;
+    while (a < b) {
+        const unsigned mid = (a + b + 1) / 2;
+        if (decode_plane(org, scale, mid) <= v) a = mid;
+        else b = mid - 1;
+    }
+    return a;
+}
+
+static unsigned quantize_up(float org, float scale, float v)
+{
+    unsigned a = 0, b = 255;
+    while (a < b) {
+        const unsigned mid = (a + b) / 2;
+        if (decode_plane(org, scale, mid) >= v) b = mid;
+        else a = mid + 1;
+    }
+    return a;
+}
+
+/* Slot i's box, quantized in w's frame (set_frame first). */
+static void set_slot_box(qnode *w, int i, const aabb *box)
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        w->q[a] |= (uint32_t)quantize_down(w->org[a], w->scale[a], box->lo[a]) << (8 * i);
+        w->q[a + 3] |= (uint32_t)quantize_up(w->org[a], w->scale[a], box->hi[a]) << (8 * i);
+    }
+}
+
+/* The output of the collapse: nodes, then the leaf triangles as they are
+** emitted, with their corners shared through a small direct-mapped table
+** of recently stored vertices (a table miss only stores a vertex twice,
+** which costs bytes, never answers). */
+#define VERTEX_TABLE (1u << 16)
+#define NO_VERTEX 0xFFFFFFFFu
+
+typedef struct emitter {
+    const builder *b;
+    const float *positions;
+    const uint32_t *indices, *prim_ids;
+    qnode *nodes;
+    uint32_t node_count, tri_count, vert_count, vert_cap;
+    uint16_t *idx;        /* 3 per triangle, relative to the node's vertex_base */
+    uint32_t *prim;
+    float *verts;         /* grows; at most 3 per triangle */
+    uint32_t *recent;     /* VERTEX_TABLE entries: a vertex with that hash */
+} emitter;
+
+static uint32_t vertex_hash(const float *p)
+{
+    uint32_t w[3], h;
+    memcpy(w, p, sizeof w);
+    h = w[0] * 0x9E3779B1u ^ w[1] * 0x85EBCA77u ^ w[2] * 0xC2B2AE3Du;
+    return (h ^ (h >> 16)) & (VERTEX_TABLE - 1);
+}
+
+/* The index of a vertex with p's exact bits at or after base, stored
+** now if the table knows none; NO_VERTEX when out of memory.  Equal bits
+** are the same float values, so sharing never changes a triangle. */
+static uint32_t vertex_index(emitter *e, const float *p, uint32_t base)
+{
+    const uint32_t h = vertex_hash(p);
+    const uint32_t j = e->recent[h];
+    if (j < e->vert_count && j >= base && memcmp(e->verts + 3 * (size_t)j, p, 12) == 0)
+        return j;
+    if (e->vert_count == e->vert_cap) {
+        const uint32_t cap = e->vert_cap < 0x3FFFFFFFu ? 2 * e->vert_cap : 0xFFFFFFFEu;
+        float *v = realloc(e->verts, 12 * (size_t)cap);
+        if (!v) return NO_VERTEX;
+        e->verts = v;
+        e->vert_cap = cap;
+    }
+    memcpy(e->verts + 3 * (size_t)e->vert_count, p, 12);
+    e->recent[h] = e->vert_count;
+    return e->vert_count++;
+}
+
+/* Appends the triangles of binary leaf c, their corners indexed from
+** base; 0 when out of memory. */
+static int emit_leaf(emitter *e, const bnode *c, uint32_t base)
+{
+    uint32_t k;
+    int j;
+    for (k = c->first; k < c->first + c->count; k++) {
+        const uint32_t t = e->b->refs[k].tri, out = e->tri_count++;
+        for (j = 0; j < 3; j++) {
+            const uint32_t v = vertex_index(e, e->positions + 3 * (size_t)e->indices[3 * (size_t)t + j], base);
+            if (v == NO_VERTEX) return 0;
+            e->idx[3 * (size_t)out + j] = (uint16_t)(v - base);
+        }
+        e->prim[out] = e->prim_ids ? e->prim_ids[t] : t;
+    }
+    return 1;
+}
+
+/* Picks the (up to four) binary nodes that become the slots of a wide
+** node: opens the largest-area inner child until there are four (as
+** Embree does).  Returns how many. */
+static int wide_slots(const builder *b, uint32_t bi, uint32_t slot[4])
 {
     const bnode *root = &b->nodes[bi];
-    uint32_t slot[4], child[4];
-    aabb empty;
     int n = 0, i;
     if (root->count > 0) slot[n++] = bi;
     else { slot[n++] = root->left; slot[n++] = root->right; }
@@ -844,39 +1063,110 @@ static void emit_wide(const builder *b, wnode *out, uint32_t *out_count,
         slot[n++] = b->nodes[slot[open]].right;
         slot[open] = b->nodes[slot[open]].left;
     }
-    aabb_empty(&empty);
-    for (i = 0; i < 4; i++) set_slot(&out[w], i, &empty, EMPTY_SLOT, 0);
+    return n;
+}
+
+/* Orders a node's slots inner first, then leaves (slot_target's rule);
+** stable, so the area order of the rest stays. */
+static void inner_first(const builder *b, uint32_t slot[4], int n)
+{
+    uint32_t sorted[4];
+    int i, k = 0, pass;
+    for (pass = 0; pass < 2; pass++)
+        for (i = 0; i < n; i++)
+            if ((b->nodes[slot[i]].count > 0) == (pass == 1)) sorted[k++] = slot[i];
+    memcpy(slot, sorted, (size_t)n * sizeof *slot);
+}
+
+/* Fills wide node w from binary node bi.  Its inner children get
+** consecutive indices after everything emitted so far (so they follow
+** their parent and sit together in memory), its leaves' triangles are
+** appended in slot order, and its vertex_base is chosen so that every
+** vertex it may add (at most NODE_NEW_VERTICES) gets a 16-bit offset:
+** older vertices below the base are stored again.  0 when out of
+** memory. */
+static int emit_wide(emitter *e, uint32_t bi, uint32_t w)
+{
+    const builder *b = e->b;
+    qnode *out = &e->nodes[w];
+    uint32_t slot[4], first;
+    aabb box[4], frame;
+    const int n = wide_slots(b, bi, slot);
+    int i, inner = 0;
+    inner_first(b, slot, n);
+    memset(out, 0, sizeof *out);
+    aabb_empty(&frame);
+    for (i = 0; i < n; i++) {
+        box[i] = aabb_padded(&b->nodes[slot[i]].box);
+        aabb_grow(&frame, &box[i]);
+    }
+    set_frame(out, &frame);
+    out->first_node = first = e->node_count;
+    out->first_tri = e->tri_count;
+    out->vertex_base = e->vert_count > VERTEX_WINDOW - NODE_NEW_VERTICES
+                     ? e->vert_count - (VERTEX_WINDOW - NODE_NEW_VERTICES) : 0;
+    for (i = 0; i < 4; i++) out->count[i] = EMPTY_COUNT;
     for (i = 0; i < n; i++) {
         const bnode *c = &b->nodes[slot[i]];
-        const aabb box = aabb_padded(&c->box);
-        child[i] = c->count > 0 ? c->first : (*out_count)++;
-        set_slot(&out[w], i, &box, child[i], c->count);
+        set_slot_box(out, i, &box[i]);
+        out->count[i] = (uint8_t)c->count;
+        if (c->count == 0) inner++;
+        else if (!emit_leaf(e, c, out->vertex_base)) return 0;
     }
+    e->node_count += (uint32_t)inner;
     for (i = 0; i < n; i++)
-        if (b->nodes[slot[i]].count == 0) emit_wide(b, out, out_count, slot[i], child[i]);
+        if (b->nodes[slot[i]].count == 0 && !emit_wide(e, slot[i], first++)) return 0;
+    return 1;
 }
 
 /* ===================================================================== */
 /* Build, free, queries                                                  */
 /* ===================================================================== */
 
-/* One allocation for nodes, triangles and prim ids (the blob's order). */
-static brt_bvh *bvh_alloc(uint32_t node_count, uint32_t tri_count)
+static uint64_t arrays_bytes(uint64_t node_count, uint64_t vert_count, uint64_t tri_count)
 {
-    const size_t bytes = (size_t)node_count * sizeof(wnode) + (size_t)tri_count * 40u;
-    brt_bvh *bvh = calloc(1, sizeof *bvh);
-    void *mem = NULL;
-    /* 64-byte alignment: a 128-byte node then spans 2 cache lines, not 3. */
-    if (bytes && posix_memalign(&mem, 64, bytes) != 0) mem = NULL;
-    if (!bvh || (bytes && !mem)) { free(bvh); free(mem); return NULL; }
-    if (!mem) return bvh;   /* the empty BVH: no arrays */
-    bvh->owned = mem;
-    bvh->nodes = (const wnode *)(void *)mem;
-    bvh->tris = (const float *)(void *)((char *)mem + (size_t)node_count * sizeof(wnode));
-    bvh->prim = (const uint32_t *)(void *)((char *)mem + (size_t)node_count * sizeof(wnode)
-                                           + (size_t)tri_count * 36u);
+    return node_count * sizeof(qnode) + vert_count * 12u + tri_count * 10u;
+}
+
+/* Points the arrays into mem, in the blob's order: nodes, vertices,
+** prim ids, vertex indices (each array then starts aligned for its type). */
+static void bvh_point(brt_bvh *bvh, const void *mem, uint32_t node_count,
+                      uint32_t vert_count, uint32_t tri_count)
+{
+    const char *p = mem;
     bvh->node_count = node_count;
+    bvh->vert_count = vert_count;
     bvh->tri_count = tri_count;
+    bvh->nodes = (const qnode *)(const void *)p;
+    p += (size_t)node_count * sizeof(qnode);
+    bvh->verts = (const float *)(const void *)p;
+    p += (size_t)vert_count * 12u;
+    bvh->prim = (const uint32_t *)(const void *)p;
+    p += (size_t)tri_count * 4u;
+    bvh->idx = (const uint16_t *)(const void *)p;
+}
+
+/* One allocation for all arrays, copied from the emitter. */
+static brt_bvh *bvh_from_emitter(const emitter *e)
+{
+    const size_t bytes = (size_t)arrays_bytes(e->node_count, e->vert_count, e->tri_count);
+    brt_bvh *bvh = calloc(1, sizeof *bvh);
+    char *mem = NULL;
+    void *m = NULL;
+    /* 64-byte alignment: a node is then one cache line. */
+    if (bytes && posix_memalign(&m, 64, bytes) != 0) m = NULL;
+    if (!bvh || (bytes && !m)) { free(bvh); free(m); return NULL; }
+    if (!m) return bvh;   /* the empty BVH: no arrays */
+    mem = m;
+    bvh->owned = m;
+    memcpy(mem, e->nodes, (size_t)e->node_count * sizeof(qnode));
+    mem += (size_t)e->node_count * sizeof(qnode);
+    memcpy(mem, e->verts, (size_t)e->vert_count * 12u);
+    mem += (size_t)e->vert_count * 12u;
+    memcpy(mem, e->prim, (size_t)e->tri_count * 4u);
+    mem += (size_t)e->tri_count * 4u;
+    memcpy(mem, e->idx, (size_t)e->tri_count * 6u);
+    bvh_point(bvh, m, e->node_count, e->vert_count, e->tri_count);
     return bvh;
 }
 
@@ -902,21 +1192,32 @@ static int setup_refs(builder *b, const float *positions,
     return 1;
 }
 
-static void store_triangles(const builder *b, const float *positions,
-                            const uint32_t *indices, const uint32_t *prim_ids,
-                            brt_bvh *bvh)
+/* The emitter's arrays, sized for the worst case except the vertices
+** (which grow: most meshes share each vertex among about six triangles). */
+static int emitter_init(emitter *e, const builder *b, const float *positions,
+                        const uint32_t *indices, const uint32_t *prim_ids, uint32_t tri_count)
 {
-    float *tris = (float *)(void *)((char *)bvh->owned + (size_t)bvh->node_count * sizeof(wnode));
-    uint32_t *prim = (uint32_t *)(void *)(tris + 9 * (size_t)bvh->tri_count);
-    uint32_t k;
-    int j;
-    for (k = 0; k < bvh->tri_count; k++) {
-        const uint32_t t = b->refs[k].tri;
-        for (j = 0; j < 3; j++)
-            memcpy(tris + 9 * (size_t)k + 3 * j,
-                   positions + 3 * (size_t)indices[3 * (size_t)t + j], 3 * sizeof(float));
-        prim[k] = prim_ids ? prim_ids[t] : t;
-    }
+    uint32_t i;
+    memset(e, 0, sizeof *e);
+    e->b = b;
+    e->positions = positions;
+    e->indices = indices;
+    e->prim_ids = prim_ids;
+    e->nodes = malloc((2 * (size_t)tri_count - 1) * sizeof *e->nodes);
+    e->idx = malloc(3 * (size_t)tri_count * sizeof *e->idx);
+    e->prim = malloc((size_t)tri_count * sizeof *e->prim);
+    e->vert_cap = tri_count / 2 + NODE_NEW_VERTICES;
+    e->verts = malloc(12 * (size_t)e->vert_cap);
+    e->recent = malloc(VERTEX_TABLE * sizeof *e->recent);
+    if (!e->nodes || !e->idx || !e->prim || !e->verts || !e->recent) return 0;
+    for (i = 0; i < VERTEX_TABLE; i++) e->recent[i] = NO_VERTEX;
+    e->node_count = 1;
+    return 1;
+}
+
+static void emitter_free(emitter *e)
+{
+    free(e->nodes); free(e->idx); free(e->prim); free(e->verts); free(e->recent);
 }
 
 brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
@@ -924,33 +1225,29 @@ brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
                          brt_bvh **out)
 {
     builder b;
-    wnode *wide = NULL;
-    uint32_t wide_count = 0;
+    emitter e;
     aabb box, cbox;
     brt_result r = BRT_ENOMEM;
     *out = NULL;
     if (tri_count > 0 && (!positions || !indices)) return BRT_EARG;
     if (tri_count == 0) {
-        *out = bvh_alloc(0, 0);
+        *out = calloc(1, sizeof **out);
         return *out ? BRT_OK : BRT_ENOMEM;
     }
     memset(&b, 0, sizeof b);
     b.refs = malloc((size_t)tri_count * sizeof *b.refs);
     b.nodes = malloc((2 * (size_t)tri_count - 1) * sizeof *b.nodes);
-    wide = malloc((2 * (size_t)tri_count - 1) * sizeof *wide);
-    if (!b.refs || !b.nodes || !wide) goto done;
+    if (!emitter_init(&e, &b, positions, indices, prim_ids, tri_count) || !b.refs || !b.nodes)
+        goto done;
     if (!setup_refs(&b, positions, indices, tri_count)) { r = BRT_EARG; goto done; }
     range_bounds(&b, 0, tri_count, &box, &cbox);
     build_node(&b, 0, tri_count, &box, &cbox, 0);
-    wide_count = 1;
-    emit_wide(&b, wide, &wide_count, 0, 0);
-    *out = bvh_alloc(wide_count, tri_count);
-    if (!*out) goto done;
-    memcpy((*out)->owned, wide, (size_t)wide_count * sizeof *wide);
-    store_triangles(&b, positions, indices, prim_ids, *out);
-    r = BRT_OK;
+    if (!emit_wide(&e, 0, 0)) goto done;
+    *out = bvh_from_emitter(&e);
+    if (*out) r = BRT_OK;
 done:
-    free(b.refs); free(b.nodes); free(wide);
+    free(b.refs); free(b.nodes);
+    emitter_free(&e);
     return r;
 }
 
@@ -966,19 +1263,21 @@ const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh) { return bvh->prim; }
 
 size_t brt_bvh_memory_bytes(const brt_bvh *bvh)
 {
-    return (size_t)bvh->node_count * sizeof(wnode) + (size_t)bvh->tri_count * 40u;
+    return (size_t)arrays_bytes(bvh->node_count, bvh->vert_count, bvh->tri_count);
 }
 
 void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3])
 {
+    float box[6][4];
     int a, i;
     for (a = 0; a < 3; a++) { bmin[a] = INFINITY; bmax[a] = -INFINITY; }
     if (bvh->node_count == 0) return;
+    decode_boxes(&bvh->nodes[0], box);
     for (i = 0; i < 4; i++) {
-        if (bvh->nodes[0].count[i] == 0 && bvh->nodes[0].child[i] == EMPTY_SLOT) continue;
+        if (bvh->nodes[0].count[i] == EMPTY_COUNT) continue;
         for (a = 0; a < 3; a++) {
-            if (bvh->nodes[0].box[a][i] < bmin[a]) bmin[a] = bvh->nodes[0].box[a][i];
-            if (bvh->nodes[0].box[a + 3][i] > bmax[a]) bmax[a] = bvh->nodes[0].box[a + 3][i];
+            if (box[a][i] < bmin[a]) bmin[a] = box[a][i];
+            if (box[a + 3][i] > bmax[a]) bmax[a] = box[a + 3][i];
         }
     }
 }
@@ -987,24 +1286,32 @@ void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3])
 /* Structure validation (blob open) and the checker                      */
 /* ===================================================================== */
 
-static int slot_is_empty(const wnode *n, int i)
+/* Marks the triangles of one leaf slot, checking that the range is in
+** bounds, that no triangle is in two leaves and that every corner index
+** lands in the vertex array.  The message on failure, else NULL. */
+static const char *mark_leaf(const brt_bvh *bvh, const qnode *n, uint32_t c, unsigned count,
+                             unsigned char *seen)
 {
-    return n->count[i] == 0 && n->child[i] == EMPTY_SLOT;
-}
-
-/* Traversal relies on empty slots never passing the box test. */
-static int slot_box_is_inverted(const wnode *n, int s)
-{
-    int a;
-    for (a = 0; a < 3; a++)
-        if (n->box[a][s] != INFINITY || n->box[a + 3][s] != -INFINITY) return 0;
-    return 1;
+    uint32_t k;
+    int j;
+    if (count > MAX_LEAF || c >= bvh->tri_count || count > bvh->tri_count - c)
+        return "bad leaf range";
+    for (k = c; k < c + count; k++) {
+        if (seen[k]) return "a triangle in two leaves";
+        seen[k] = 1;
+        for (j = 0; j < 3; j++)
+            if ((uint64_t)n->vertex_base + bvh->idx[3 * (size_t)k + j] >= bvh->vert_count)
+                return "vertex index out of range";
+    }
+    return NULL;
 }
 
 /* Indices in range, children after parents and referenced once (so the
 ** nodes form one tree), depth <= MAX_DEPTH, every triangle in exactly one
-** leaf, empty slots with inverted boxes.  Everything traversal relies on
-** to stay in bounds and terminate. */
+** leaf, slot counts 0 (inner), 1..MAX_LEAF (leaf) or EMPTY_COUNT, every
+** corner in the vertex array.  Everything traversal relies on to stay in
+** bounds and terminate.  (Any frame and box bytes are safe: a NaN plane
+** only never narrows.) */
 static brt_result validate_structure(const brt_bvh *bvh, brt_result code,
                                      brt_error *err)
 {
@@ -1012,43 +1319,45 @@ static brt_result validate_structure(const brt_bvh *bvh, brt_result code,
     uint32_t i, k;
     brt_result r = code;
     int s;
-    if ((bvh->node_count == 0) != (bvh->tri_count == 0))
-        return brt_fail(err, code, "bvh: %u nodes for %u triangles",
-                        (unsigned)bvh->node_count, (unsigned)bvh->tri_count);
+    if ((bvh->node_count == 0) != (bvh->tri_count == 0) || bvh->vert_count / 3 > bvh->tri_count)
+        return brt_fail(err, code, "bvh: %u nodes and %u vertices for %u triangles",
+                        (unsigned)bvh->node_count, (unsigned)bvh->vert_count,
+                        (unsigned)bvh->tri_count);
     if (bvh->node_count == 0) return BRT_OK;
     depth = calloc(bvh->node_count, 1);
     seen = calloc(bvh->tri_count, 1);
     if (!depth || !seen) { r = brt_fail(err, BRT_ENOMEM, "bvh: out of memory"); goto done; }
     depth[0] = 1;
     for (i = 0; i < bvh->node_count; i++) {
-        const wnode *n = &bvh->nodes[i];
+        const qnode *n = &bvh->nodes[i];
+        uint32_t c = n->first_node, t = n->first_tri;
+        int kind = 0;   /* 0 inner, 1 leaf, 2 empty: slots may only go up */
         if (depth[i] == 0) { brt_fail(err, code, "bvh: node %u is never referenced", (unsigned)i); goto done; }
         for (s = 0; s < 4; s++) {
-            const uint32_t c = n->child[s];
-            if (slot_is_empty(n, s)) {
-                if (!slot_box_is_inverted(n, s)) {
-                    brt_fail(err, code, "bvh: node %u slot %d: empty slot with a box", (unsigned)i, s);
-                    goto done;
-                }
-                continue;
+            const char *bad;
+            const int slot_kind = n->count[s] == 0 ? 0 : n->count[s] == EMPTY_COUNT ? 2 : 1;
+            if (slot_kind < kind) {
+                brt_fail(err, code, "bvh: node %u slot %d: slots not ordered inner, leaf, empty",
+                         (unsigned)i, s);
+                goto done;
             }
-            if (n->count[s] == 0) {
+            kind = slot_kind;
+            if (kind == 2) continue;
+            if (kind == 0) {
                 if (c <= i || c >= bvh->node_count || depth[c] != 0 || depth[i] >= MAX_DEPTH) {
                     brt_fail(err, code, "bvh: node %u slot %d: bad child node %u", (unsigned)i, s, (unsigned)c);
                     goto done;
                 }
-                depth[c] = (unsigned char)(depth[i] + 1);
+                depth[c++] = (unsigned char)(depth[i] + 1);
                 continue;
             }
-            if (n->count[s] > MAX_LEAF || c >= bvh->tri_count || n->count[s] > bvh->tri_count - c) {
-                brt_fail(err, code, "bvh: node %u slot %d: bad leaf range %u+%u", (unsigned)i, s,
-                         (unsigned)c, (unsigned)n->count[s]);
+            bad = mark_leaf(bvh, n, t, n->count[s], seen);
+            if (bad) {
+                brt_fail(err, code, "bvh: node %u slot %d: %s (triangles %u+%u)", (unsigned)i, s,
+                         bad, (unsigned)t, (unsigned)n->count[s]);
                 goto done;
             }
-            for (k = c; k < c + n->count[s]; k++) {
-                if (seen[k]) { brt_fail(err, code, "bvh: triangle %u in two leaves", (unsigned)k); goto done; }
-                seen[k] = 1;
-            }
+            t += n->count[s];
         }
     }
     for (k = 0; k < bvh->tri_count; k++)
@@ -1060,37 +1369,52 @@ done:
     return r;
 }
 
-static int slot_contains(const wnode *n, int s, const float p[3])
+/* The checker's geometry: every triangle's padded box (the box its hit
+** distance is clamped into) lies inside the decoded box of every slot on
+** its path from the root.  That is what makes pruning exact (README,
+** Floating point, rules 2 and 3): such a slot is entered no later and
+** left no earlier than any hit on the triangle.  clip is the
+** intersection of the decoded boxes above node i (exact min/max, no
+** rounding), so one containment test per triangle covers its whole path. */
+static brt_result check_node(const brt_bvh *bvh, uint32_t i, const aabb *clip, brt_error *err)
 {
-    int a;
-    for (a = 0; a < 3; a++)
-        if (!(n->box[a][s] <= p[a] && p[a] <= n->box[a + 3][s])) return 0;
-    return 1;
-}
-
-/* Geometry of one slot: a leaf's triangles or a child's slots inside it. */
-static brt_result check_slot(const brt_bvh *bvh, uint32_t i, int s, brt_error *err)
-{
-    const wnode *n = &bvh->nodes[i];
+    const qnode *n = &bvh->nodes[i];
     uint32_t k;
-    int cs, a;
-    if (n->count[s] > 0) {
-        for (k = n->child[s]; k < n->child[s] + n->count[s]; k++)
+    float box[6][4];
+    const unsigned valid = slot_valid(n);
+    int s, a;
+    decode_boxes(n, box);
+    for (s = 0; s < 4; s++) {
+        aabb c = *clip;
+        brt_result r;
+        if (!(valid >> s & 1u)) continue;
+        for (a = 0; a < 3; a++) {
+            c.lo[a] = box[a][s] > c.lo[a] ? box[a][s] : c.lo[a];
+            c.hi[a] = box[a + 3][s] < c.hi[a] ? box[a + 3][s] : c.hi[a];
+        }
+        if (n->count[s] == 0) {
+            r = check_node(bvh, slot_target(n, (unsigned)s), &c, err);
+            if (r != BRT_OK) return r;
+            continue;
+        }
+        for (k = slot_target(n, (unsigned)s); k < slot_target(n, (unsigned)s) + n->count[s]; k++) {
+            const float *p[3];
+            aabb t;
+            int j;
+            triangle_corners(bvh, k, n->vertex_base, p);
+            aabb_empty(&t);
+            for (j = 0; j < 3; j++)
+                for (a = 0; a < 3; a++) {
+                    t.lo[a] = p[j][a] < t.lo[a] ? p[j][a] : t.lo[a];
+                    t.hi[a] = p[j][a] > t.hi[a] ? p[j][a] : t.hi[a];
+                }
+            t = aabb_padded(&t);
             for (a = 0; a < 3; a++)
-                if (!slot_contains(n, s, bvh->tris + 9 * (size_t)k + 3 * a))
+                if (!(c.lo[a] <= t.lo[a] && t.hi[a] <= c.hi[a]))
                     return brt_fail(err, BRT_ECHECK, "bvh: node %u slot %d: triangle %u (prim %u) "
-                                    "vertex %d outside the leaf box", (unsigned)i, s, (unsigned)k,
-                                    (unsigned)bvh->prim[k], a);
-        return BRT_OK;
-    }
-    for (cs = 0; cs < 4; cs++) {
-        const wnode *c = &bvh->nodes[n->child[s]];
-        float lo[3], hi[3];
-        if (slot_is_empty(c, cs)) continue;
-        for (a = 0; a < 3; a++) { lo[a] = c->box[a][cs]; hi[a] = c->box[a + 3][cs]; }
-        if (!slot_contains(n, s, lo) || !slot_contains(n, s, hi))
-            return brt_fail(err, BRT_ECHECK, "bvh: node %u slot %d: box of node %u slot %d "
-                            "not inside it", (unsigned)i, s, (unsigned)n->child[s], cs);
+                                    "outside a box on its path", (unsigned)i, s, (unsigned)k,
+                                    (unsigned)bvh->prim[k]);
+        }
     }
     return BRT_OK;
 }
@@ -1098,29 +1422,37 @@ static brt_result check_slot(const brt_bvh *bvh, uint32_t i, int s, brt_error *e
 brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err)
 {
     brt_result r = validate_structure(bvh, BRT_ECHECK, err);
-    uint32_t i;
-    int s;
-    for (i = 0; r == BRT_OK && i < bvh->node_count; i++)
-        for (s = 0; r == BRT_OK && s < 4; s++)
-            if (!slot_is_empty(&bvh->nodes[i], s)) r = check_slot(bvh, i, s, err);
+    aabb all;
+    int a;
+    for (a = 0; a < 4; a++) { all.lo[a] = -INFINITY; all.hi[a] = INFINITY; }
+    if (r == BRT_OK && bvh->node_count > 0) r = check_node(bvh, 0, &all, err);
     return r;
 }
 
 /* ===================================================================== */
-/* Relocatable blob: a 64-byte header {magic, node_count, tri_count, 0..} */
-/* then the nodes, the triangles and the prim ids exactly as in memory   */
-/* (host byte order, little endian on every supported host).  A blob at  */
-/* a 64-byte aligned address keeps the nodes on cache-line boundaries.   */
+/* Relocatable blob: a 64-byte header {magic, node_count, vert_count,     */
+/* tri_count, 0..} then the arrays exactly as in memory (bvh_point's      */
+/* order).  Little-endian, like every part of the scene file; the blob is */
+/* read in place, so a big-endian host refuses it.  A blob at a 64-byte   */
+/* aligned address keeps each node on one cache line.                    */
 /* ===================================================================== */
 
-static uint64_t blob_bytes(uint64_t node_count, uint64_t tri_count)
+static int host_is_little_endian(void)
 {
-    return BLOB_HEADER + node_count * sizeof(wnode) + tri_count * 40u;
+    const uint32_t one = 1;
+    unsigned char b;
+    memcpy(&b, &one, 1);
+    return b == 1;
+}
+
+static uint64_t blob_bytes(uint64_t node_count, uint64_t vert_count, uint64_t tri_count)
+{
+    return BLOB_HEADER + arrays_bytes(node_count, vert_count, tri_count);
 }
 
 size_t brt_bvh_blob_size(const brt_bvh *bvh)
 {
-    return (size_t)blob_bytes(bvh->node_count, bvh->tri_count);
+    return (size_t)blob_bytes(bvh->node_count, bvh->vert_count, bvh->tri_count);
 }
 
 void brt_bvh_blob_write(const brt_bvh *bvh, void *dst)
@@ -1129,40 +1461,40 @@ void brt_bvh_blob_write(const brt_bvh *bvh, void *dst)
     char *p = dst;
     header[0] = BLOB_MAGIC;
     header[1] = bvh->node_count;
-    header[2] = bvh->tri_count;
+    header[2] = bvh->vert_count;
+    header[3] = bvh->tri_count;
     memcpy(p, header, sizeof header);
     if (bvh->tri_count == 0) return;   /* and no nodes: nothing to copy */
-    p += sizeof header;
-    memcpy(p, bvh->nodes, (size_t)bvh->node_count * sizeof(wnode));
-    p += (size_t)bvh->node_count * sizeof(wnode);
-    memcpy(p, bvh->tris, (size_t)bvh->tri_count * 36u);
-    p += (size_t)bvh->tri_count * 36u;
-    memcpy(p, bvh->prim, (size_t)bvh->tri_count * 4u);
+    memcpy(p + sizeof header, bvh->nodes,   /* the arrays are contiguous */
+           (size_t)arrays_bytes(bvh->node_count, bvh->vert_count, bvh->tri_count));
 }
 
 /* What traversal takes on trust beyond the structure: every slot box in
-** use ordered (lo <= hi, so no NaN; +-inf is allowed because brt_box_pad
-** may round a box of coordinates near FLT_MAX out to infinity), every
-** triangle coordinate finite (brt_bvh_build refuses others), and every
-** reported number below prim_limit, so a hit never names a triangle the
-** scene does not have (nor BRT_NO_PRIM, the mark of a miss).  Checked
-** once per blob open, never per ray. */
+** use ordered once decoded (lo <= hi, so no NaN), every vertex
+** coordinate finite (brt_bvh_build refuses others), and every reported
+** number below prim_limit, so a hit never names a triangle the scene does
+** not have (nor BRT_NO_PRIM, the mark of a miss).  Checked once per blob
+** open, never per ray.  (Top planes may decode to +inf near FLT_MAX.) */
 static brt_result validate_blob_data(const brt_bvh *bvh, uint32_t prim_limit,
                                      brt_error *err)
 {
     uint32_t i, k;
     size_t c;
     int s, a;
-    for (i = 0; i < bvh->node_count; i++)
+    for (i = 0; i < bvh->node_count; i++) {
+        const unsigned valid = slot_valid(&bvh->nodes[i]);
+        float box[6][4];
+        decode_boxes(&bvh->nodes[i], box);
         for (s = 0; s < 4; s++)
-            for (a = 0; a < 3 && !slot_is_empty(&bvh->nodes[i], s); a++)
-                if (!(bvh->nodes[i].box[a][s] <= bvh->nodes[i].box[a + 3][s]))
+            for (a = 0; a < 3 && (valid >> s & 1u); a++)
+                if (!(box[a][s] <= box[a + 3][s]))
                     return brt_fail(err, BRT_EFORMAT, "bvh blob: node %u slot %d: box inverted "
                                     "or NaN", (unsigned)i, s);
-    for (c = 0; c < 9 * (size_t)bvh->tri_count; c++)
-        if (!isfinite(bvh->tris[c]))
-            return brt_fail(err, BRT_EFORMAT, "bvh blob: triangle %u: coordinate not finite",
-                            (unsigned)(c / 9));
+    }
+    for (c = 0; c < 3 * (size_t)bvh->vert_count; c++)
+        if (!isfinite(bvh->verts[c]))
+            return brt_fail(err, BRT_EFORMAT, "bvh blob: vertex %u: coordinate not finite",
+                            (unsigned)(c / 3));
     for (k = 0; k < bvh->tri_count; k++)
         if (bvh->prim[k] >= prim_limit)
             return brt_fail(err, BRT_EFORMAT, "bvh blob: triangle %u: number %u not below %u",
@@ -1174,11 +1506,13 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
                              brt_bvh **out, brt_error *err)
 {
     uint32_t header[BLOB_HEADER / 4];
-    const char *p = blob;
     int i;
     brt_bvh *bvh;
     brt_result r;
     *out = NULL;
+    if (!host_is_little_endian())
+        return brt_fail(err, BRT_EFORMAT, "bvh blob: little-endian, read in place; "
+                        "this host is big-endian");
     if (((uintptr_t)blob & 15u) != 0)
         return brt_fail(err, BRT_EARG, "bvh blob: not 16-byte aligned");
     if (size < BLOB_HEADER)
@@ -1186,22 +1520,16 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
     memcpy(header, blob, sizeof header);
     if (header[0] != BLOB_MAGIC)
         return brt_fail(err, BRT_EFORMAT, "bvh blob: bad magic");
-    for (i = 3; i < (int)(BLOB_HEADER / 4); i++)
+    for (i = 4; i < (int)(BLOB_HEADER / 4); i++)
         if (header[i] != 0) return brt_fail(err, BRT_EFORMAT, "bvh blob: nonzero header padding");
-    if (blob_bytes(header[1], header[2]) != size)
-        return brt_fail(err, BRT_EFORMAT, "bvh blob: %zu bytes, expected %llu for %u nodes "
-                        "and %u triangles", size,
-                        (unsigned long long)blob_bytes(header[1], header[2]),
-                        (unsigned)header[1], (unsigned)header[2]);
+    if (blob_bytes(header[1], header[2], header[3]) != size)
+        return brt_fail(err, BRT_EFORMAT, "bvh blob: %zu bytes, expected %llu for %u nodes, "
+                        "%u vertices and %u triangles", size,
+                        (unsigned long long)blob_bytes(header[1], header[2], header[3]),
+                        (unsigned)header[1], (unsigned)header[2], (unsigned)header[3]);
     bvh = calloc(1, sizeof *bvh);
     if (!bvh) return brt_fail(err, BRT_ENOMEM, "bvh blob: out of memory");
-    bvh->node_count = header[1];
-    bvh->tri_count = header[2];
-    p += BLOB_HEADER;
-    bvh->nodes = (const wnode *)(const void *)p;
-    p += (size_t)bvh->node_count * sizeof(wnode);
-    bvh->tris = (const float *)(const void *)p;
-    bvh->prim = (const uint32_t *)(const void *)(p + (size_t)bvh->tri_count * 36u);
+    bvh_point(bvh, (const char *)blob + BLOB_HEADER, header[1], header[2], header[3]);
     r = validate_structure(bvh, BRT_EFORMAT, err);
     if (r == BRT_OK) r = validate_blob_data(bvh, prim_limit, err);
     if (r != BRT_OK) { free(bvh); return r; }
@@ -1282,4 +1610,28 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **       chain of dependent node misses (~9 levels) is what is left; an
 **       8-wide node (256 bytes, 4 lines fetched in parallel, ~6.5
 **       levels) is the next thing to try.
+**   - Third round (issue 15: bytes first, then speed).  Bytes per
+**     triangle of a blob, `trace --batched` / `render --stats`
+**     geometry_bytes over the triangle count:
+**     * quantized 64-byte nodes + shared vertices with 16-bit offsets
+**       (C_TRAV 2): bunny x4 62.9 -> 27.6; shared meshes 25.2-27.5
+**       (58-63 before); landscape at 1 M triangles (10,000 per batching
+**       point) 58.3 -> 26.8, island 60.6 -> 32.2 (its small objects
+**       share few corners: 0.97 vertices per triangle);
+**     * C_TRAV 3 then: island 29.3, landscape 24.1, bunny x4 23.1, with
+**       no measurable change in speed.
+**     Kept as one layout for the direct mode and the blobs (a decoded
+**     in-memory copy would cost the load time and twice the cache bytes).
+**     Traversal instructions (callgrind, bench_bvh on the bunny, 20 k rays
+**     per kind; the float layout took 172 M): first decode loop over 24
+**     planes with row % 3, scalar: 795 M; a row of 4 lanes with the 2^23
+**     float trick: 629 M; rows as words masked in place and scaled by
+**     powers of two (vectorized): 462 M; inner slots first, so a slot's
+**     target is arithmetic instead of a loop over the counts at every
+**     node (which took about 76 M): 413 M with C_TRAV 3 (whose larger
+**     leaves add 30 M of triangle tests).  The decode is most of the rest.  Cold
+**     speed on the sphere mesh against the float layout: camera 0.76-0.90,
+**     random 0.85-0.93, bounce 0.64-0.82 (two runs; the warm figures lose
+**     more, 0.6-0.8).  Not done for lack of time: 8-wide nodes, leaves
+**     laid out for the vectorizer, prefetching a leaf's vertices.
 */

@@ -162,6 +162,19 @@ static void test_random_soups(void)
     }
 }
 
+/* A soup of 25,000 triangles has 75,000 distinct corners: beyond the
+** 65,536 that 16-bit corner offsets reach from one base, so later nodes
+** must move their vertex_base (and store again the older corners they
+** share).  The checker and brute force see wrong corners at once. */
+static void test_vertex_window(void)
+{
+    uint64_t st = test_seed() ^ 5;
+    tu_scene s = {0};
+    tu_random_soup(&s, &st, 25000, 0.02f);
+    compare_scene(&s, NULL, 600, brt_random_u64(&st), "vertex window");
+    tu_scene_free(&s);
+}
+
 /* prim_ids other than the identity must be reported (and tie-broken). */
 static void test_prim_ids(void)
 {
@@ -1037,9 +1050,17 @@ static void test_empty(void)
     brt_bvh_free(bvh);
 }
 
-/* The blob's layout (see bvh.c): 64-byte header, 128-byte nodes. */
+/* The blob's layout (see bvh.c): a 64-byte header {magic, nodes,
+** vertices, triangles}, then 64-byte nodes: f32 org[3] scale[3] at 0,
+** u8 q[6][4] at 24, u32 first_node at 48, first_tri at 52, vertex_base at
+** 56, u8 count[4] at 60; then 12-byte vertices, u32 prims, 3 u16 corner
+** offsets per triangle. */
 #define HEADER_BYTES 64
-#define NODE_BYTES 128
+#define NODE_BYTES 64
+#define FIRST_NODE 48
+#define FIRST_TRI 52
+#define VERTEX_BASE 56
+#define COUNT 60
 
 static void expect_eformat(const void *blob, size_t size, const char *what)
 {
@@ -1053,6 +1074,21 @@ static void expect_eformat(const void *blob, size_t size, const char *what)
 static void put_u32(unsigned char *p, size_t offset, uint32_t value)
 {
     memcpy(p + offset, &value, 4);
+}
+
+static uint32_t get_u32(const unsigned char *p, size_t offset)
+{
+    uint32_t value;
+    memcpy(&value, p + offset, 4);
+    return value;
+}
+
+static int node_has_leaf(const unsigned char *node)
+{
+    int slot;
+    for (slot = 0; slot < 4; slot++)
+        if (node[COUNT + slot] >= 1 && node[COUNT + slot] <= 8) return 1;
+    return 0;
 }
 
 static void test_blob(void)
@@ -1087,52 +1123,105 @@ static void test_blob(void)
     brt_bvh_free(opened);
 
     expect_eformat(blob, size - 1, "truncated by one byte");
-    expect_eformat(blob, size - 40, "one triangle short");
+    expect_eformat(blob, size - 10, "one triangle short");
     expect_eformat(blob, 8, "shorter than a header");
     memcpy(bad, blob, size); put_u32(bad, 0, 0x12345678u);
     expect_eformat(bad, size, "bad magic");
-    memcpy(bad, blob, size); put_u32(bad, 4, ((uint32_t *)(void *)blob)[1] + 1);
+    memcpy(bad, blob, size); put_u32(bad, 4, get_u32(blob, 4) + 1);
     expect_eformat(bad, size, "node count one too many");
-    memcpy(bad, blob, size); put_u32(bad, 8, 0xFFFFFFF0u);
+    memcpy(bad, blob, size); put_u32(bad, 12, 0xFFFFFFF0u);
     expect_eformat(bad, size, "huge triangle count");
     memcpy(bad, blob, size); put_u32(bad, 60, 1);
     expect_eformat(bad, size, "nonzero header padding");
-    /* child slots: root slot 0 at header + 96 (child) and + 112 (count) */
-    memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 0);
-    put_u32(bad, HEADER_BYTES + 96, 1000000u);
+    /* the root's slot 0 made inner, its children's first index moved */
+    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 0;
+    put_u32(bad, HEADER_BYTES + FIRST_NODE, 1000000u);
     expect_eformat(bad, size, "child node out of range");
-    memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 0);
-    put_u32(bad, HEADER_BYTES + 96, 0);
+    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 0;
+    put_u32(bad, HEADER_BYTES + FIRST_NODE, 0);
     expect_eformat(bad, size, "child pointing at the root (a cycle)");
-    memcpy(bad, blob, size); put_u32(bad, HEADER_BYTES + 112, 3);
-    put_u32(bad, HEADER_BYTES + 96, s.tcount - 1);
+    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 3;
+    put_u32(bad, HEADER_BYTES + FIRST_TRI, s.tcount - 1);
     expect_eformat(bad, size, "leaf range past the end");
-    {   /* an empty slot made to point at a later node: a node with two
-        ** parents, everything else intact (no orphan, no triangle twice) */
-        const uint32_t nodes = ((uint32_t *)(void *)blob)[1];
+    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 9;
+    expect_eformat(bad, size, "a leaf of more than 8 triangles");
+    {   /* the vertex base of the first node with a leaf, past the vertices */
+        size_t at = HEADER_BYTES;
+        while (!node_has_leaf(blob + at)) at += NODE_BYTES;
+        memcpy(bad, blob, size); put_u32(bad, at + VERTEX_BASE, get_u32(blob, 8));
+        expect_eformat(bad, size, "vertex base past the vertices");
+    }
+    {   /* the last corner offset of the last triangle past the vertices */
+        const size_t last = size - 2;
+        const uint16_t big = 0xFFFF;
+        memcpy(bad, blob, size); memcpy(bad + last, &big, 2);
+        expect_eformat(bad, size, "corner offset past the vertices");
+    }
+    {   /* a leaf slot made inner, its triangles merged into the next leaf
+        ** slot (which then starts where it did): slots still ordered, every
+        ** triangle in one leaf, no node orphaned, but the new inner slot
+        ** takes the node after its parent's children, which has a parent */
+        const uint32_t nodes = get_u32(blob, 4);
         uint32_t node, slot, found = 0;
-        for (node = 0; node + 1 < nodes && !found; node++)
-            for (slot = 0; slot < 4 && !found; slot++) {
-                uint32_t child, count;
-                memcpy(&child, blob + HEADER_BYTES + NODE_BYTES * node + 96 + 4 * slot, 4);
-                memcpy(&count, blob + HEADER_BYTES + NODE_BYTES * node + 112 + 4 * slot, 4);
-                if (child != 0xFFFFFFFFu || count != 0) continue;
+        for (node = 0; node < nodes && !found; node++) {
+            unsigned char *c = blob + HEADER_BYTES + NODE_BYTES * (size_t)node + COUNT;
+            for (slot = 0; slot + 1 < 4 && !found; slot++) {
+                if ((slot > 0 && c[slot - 1] != 0) || c[slot] == 0 || c[slot] > 8 ||
+                    c[slot + 1] == 0 || c[slot + 1] > 8 || c[slot] + c[slot + 1] > 8 ||
+                    get_u32(blob, HEADER_BYTES + NODE_BYTES * (size_t)node + FIRST_NODE) + slot >= nodes)
+                    continue;
                 memcpy(bad, blob, size);
-                put_u32(bad, HEADER_BYTES + NODE_BYTES * node + 96 + 4 * slot, nodes - 1);
+                bad[c - blob + slot + 1] = (unsigned char)(c[slot] + c[slot + 1]);
+                bad[c - blob + slot] = 0;
                 expect_eformat(bad, size, "a node with two parents");
+                found = 1;
+            }
+        }
+        EXPECT(found, "no pair of leaf slots in the test BVH to damage");
+    }
+    {   /* an inner slot and the leaf after it swapped: every index the
+        ** slots reach is still fine, only their order is wrong (traversal
+        ** finds an inner slot's child by its position) */
+        const uint32_t nodes = get_u32(blob, 4);
+        uint32_t node, slot, found = 0;
+        for (node = 0; node < nodes && !found; node++) {
+            unsigned char *c = blob + HEADER_BYTES + NODE_BYTES * (size_t)node + COUNT;
+            for (slot = 0; slot + 1 < 4 && !found; slot++) {
+                if (c[slot] != 0 || c[slot + 1] == 0 || c[slot + 1] > 8) continue;
+                memcpy(bad, blob, size);
+                bad[c - blob + slot] = c[slot + 1];
+                bad[c - blob + slot + 1] = 0;
+                expect_eformat(bad, size, "an inner slot after a leaf");
+                found = 1;
+            }
+        }
+        EXPECT(found, "no inner slot before a leaf in the test BVH");
+    }
+    {   /* an empty slot made inner: slots out of order */
+        const uint32_t nodes = get_u32(blob, 4);
+        uint32_t node, slot, found = 0;
+        for (node = 0; node < nodes && !found; node++)
+            for (slot = 0; slot < 4 && !found; slot++) {
+                const size_t at = HEADER_BYTES + NODE_BYTES * (size_t)node + COUNT + slot;
+                if (blob[at] != 0xFF) continue;
+                memcpy(bad, blob, size);
+                bad[at] = 0;
+                expect_eformat(bad, size, "an empty slot made inner");
                 found = 1;
             }
         EXPECT(found, "no empty slot in the test BVH to damage");
     }
-    /* Random damage to the nodes' child and count words: a format error,
-    ** or a BVH whose structure holds (open checks it) and which, since
-    ** triangles and prims are intact, reports only real hits: the
-    ** triangle's own t, u, v, never closer than brute force. */
+    /* Random damage to the nodes' boxes, child and triangle indices and
+    ** counts (not the vertex base, which would change the triangles): a
+    ** format error, or a BVH whose structure holds (open checks it) and
+    ** which, since vertices and prims are intact, reports only real hits:
+    ** the triangle's own t, u, v, never closer than brute force. */
     for (i = 0; i < 300 && !test_failed(); i++) {
-        const size_t nodes = (size - HEADER_BYTES - 40 * (size_t)s.tcount) / NODE_BYTES;
-        const size_t at = HEADER_BYTES + NODE_BYTES * (brt_random_u64(&st) % nodes)
-                          + 96 + brt_random_u64(&st) % 32;
+        const size_t nodes = get_u32(blob, 4);
+        size_t at = HEADER_BYTES + NODE_BYTES * (brt_random_u64(&st) % nodes)
+                    + 24 + brt_random_u64(&st) % 36;
         brt_result r;
+        if (at % NODE_BYTES >= VERTEX_BASE) at += 4;   /* skip vertex_base */
         memcpy(bad, blob, size);
         bad[at] = (unsigned char)brt_random_u64(&st);
         r = brt_bvh_blob_open(bad, size, s.tcount, &opened, &err);
@@ -1195,6 +1284,7 @@ void suite_bvh(void)
     test_run("bvh: a box entered at the closest hit is visited", test_entry_equals_hit);
     test_run("bvh: random soups == brute force", test_random_soups);
     test_run("bvh: prim ids == brute force", test_prim_ids);
+    test_run("bvh: more than 65536 corners (16-bit offsets) == brute force", test_vertex_window);
     test_run("bvh: coplanar == brute force", test_coplanar);
     test_run("bvh: axis grid == brute force", test_axis_grid);
     test_run("bvh: duplicates == brute force", test_duplicates);

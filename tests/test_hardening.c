@@ -213,7 +213,7 @@ static const bad_run bad_runs[] = {
     {"trace @/tri.obj @/odd.rays @/b15.hits --batched --scene @/b15.brs", 1,
      "trace: @/odd.rays: size 65 is not a multiple of the 32-byte ray record", "b15.hits"},
     {"trace @/tri.obj @/good.rays @/b16.hits --batched --scene @/version.brs", 1,
-     "trace: @/version.brs: scene file version 2, this build reads version 1 (delete the "
+     "trace: @/version.brs: scene file version 1, this build reads version 2 (delete the "
      "file to rebuild it)", "b16.hits"},
     /* option values */
     {"trace @/tri.obj @/good.rays @/b17.hits --res 0", 1,
@@ -304,17 +304,18 @@ static int write_cut_ply(void)
     return spill("cut.ply", data, sizeof header - 1 + 36 + 6);
 }
 
-/* A scene file whose version field says 2 (the header checksum is not
+/* A scene file whose version field says 1, the format before blobs and
+** header were little-endian on every host (the header checksum is not
 ** reached: the version is checked first). */
 static int write_version_scene(void)
 {
     brt_error err;
     FILE *f;
-    unsigned char two[4] = {2, 0, 0, 0};
+    unsigned char one[4] = {1, 0, 0, 0};
     int ok = fuzz_fixed_scene_build(scratch("version.brs"), &err) == BRT_OK
              && (f = fopen(scratch("version.brs"), "r+b")) != NULL;
     if (!ok) return 0;
-    ok = fseek(f, 8, SEEK_SET) == 0 && fwrite(two, 1, 4, f) == 4;
+    ok = fseek(f, 8, SEEK_SET) == 0 && fwrite(one, 1, 4, f) == 4;
     return fclose(f) == 0 && ok;
 }
 
@@ -1025,13 +1026,15 @@ static void forge_f32(forged *f, uint64_t at, float v) { forge_bytes(f, at, &v, 
 static uint64_t entry_at(const forged *f, uint32_t i) { return forged_u64(f, 56) + 80u * i; }
 static uint64_t top_root_at(const forged *f) { return forged_u64(f, 80); }
 static uint64_t blob_at(const forged *f, uint32_t i) { return forged_u64(f, entry_at(f, i) + 24); }
-static uint64_t blob_tris_at(const forged *f, uint32_t i)
+/* A blob (bvh.c, scene format 2): 64-byte header {magic, nodes, vertices,
+** triangles}, 64-byte nodes, 12-byte vertices, u32 prims, u16 corners. */
+static uint64_t blob_verts_at(const forged *f, uint32_t i)
 {
-    return blob_at(f, i) + 64 + 128 * (uint64_t)forged_u32(f, blob_at(f, i) + 4);
+    return blob_at(f, i) + 64 + 64 * (uint64_t)forged_u32(f, blob_at(f, i) + 4);
 }
 static uint64_t blob_prims_at(const forged *f, uint32_t i)
 {
-    return blob_tris_at(f, i) + 36 * (uint64_t)forged_u32(f, blob_at(f, i) + 8);
+    return blob_verts_at(f, i) + 12 * (uint64_t)forged_u32(f, blob_at(f, i) + 8);
 }
 
 /* header: no batching points (and a table to match) */
@@ -1067,7 +1070,7 @@ static void forge_top_missing(forged *f) { forge_u32(f, top_root_at(f) + 96, 0xF
 static void forge_prim_number(forged *f) { forge_u32(f, blob_prims_at(f, 1), 25); }
 static void forge_prim_no_prim(forged *f) { forge_u32(f, blob_prims_at(f, 1), BRT_NO_PRIM); }
 static void forge_blob_box(forged *f) { forge_f32(f, blob_at(f, 1) + 64, NAN); }
-static void forge_blob_triangle(forged *f) { forge_f32(f, blob_tris_at(f, 1), INFINITY); }
+static void forge_blob_triangle(forged *f) { forge_f32(f, blob_verts_at(f, 1), INFINITY); }
 /* one triangle moved between two table entries: the sums still agree */
 static void forge_blob_count(forged *f)
 {
@@ -1099,7 +1102,7 @@ static const forgery forgeries[] = {
     {"prim_number.brs", forge_prim_number, "batching point 1: bvh blob: triangle 0: number 25"},
     {"prim_no_prim.brs", forge_prim_no_prim, "batching point 1: bvh blob: triangle 0: number"},
     {"blob_box.brs", forge_blob_box, "batching point 1: bvh blob: node 0 slot 0: box"},
-    {"blob_triangle.brs", forge_blob_triangle, "batching point 1: bvh blob: triangle 0: coordinate"},
+    {"blob_triangle.brs", forge_blob_triangle, "batching point 1: bvh blob: vertex 0: coordinate"},
     {"blob_count.brs", forge_blob_count, "batching point 1: blob holds"},
 };
 

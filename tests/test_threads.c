@@ -450,8 +450,8 @@ static void test_programs(void)
 
 /* ---- the page cache's resident memory ------------------------------------ */
 
-/* A render from a scene file at --memory 8M that reads its ~1.4 MiB blobs
-** over a hundred times: peak RSS at most the limit + the README's fixed
+/* A render from a scene file at --memory 3M that reads its ~0.35 MiB blobs
+** (scene format 2; 8M held too many of them to bite) over a hundred times: peak RSS at most the limit + the README's fixed
 ** costs (200 B per path in flight, 512 B per batching point, 40 B per
 ** pixel) + 8 MiB of program, libraries and stacks (measured: 4 MiB).
 ** With the blobs malloc'd and freed, glibc's heap kept freed blobs
@@ -466,7 +466,7 @@ static void test_cache_rss(void)
     CHECK(tu_run("render landscape --scale 6 --batch-tris 15000 --width 1 --height 1 --spp 1 "
                  "--scene @/rss.brs --out @/rss.png") == 0, "build: %s", tu_last_stderr());
     CHECK(tu_run("render landscape --scale 6 --batch-tris 15000 --width 240 --height 135 --spp 4 "
-                 "--memory 8M --rays-in-flight 1024 --scene @/rss.brs --out @/rss.png "
+                 "--memory 3M --rays-in-flight 1024 --scene @/rss.brs --out @/rss.png "
                  "--stats @/rss.json") == 0, "render: %s", tu_last_stderr());
     CHECK((json = (char *)slurp_scratch("rss.json", NULL)) != NULL, "stats");
     if ((p = strstr(json, "\"peak_rss_bytes\":"))) peak = strtoull(p + 17, NULL, 10);
