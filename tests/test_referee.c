@@ -297,6 +297,35 @@ static void test_hitdiff_referee(void)
     EXPECT(!tu_temporary_file_left(), "a temporary file was left behind");
 }
 
+/* The same square and rays as occlusion files: ray 0 (the shared edge)
+** leaks in B, ray 2 (prim 0's middle) is clear in B when wrong, ray 3
+** (far away) agrees. */
+static void test_hitdiff_occlusion_referee(void)
+{
+    static const uint8_t a[4] = {1, 1, 1, 0}, right[4] = {1, 0, 1, 0}, wrong[4] = {1, 0, 0, 0};
+    char *csv;
+    int status;
+    CHECK(write_case(0) && tu_spill(tu_scratch("ref_a.occ"), a, 4)
+          && tu_spill(tu_scratch("ref_b.occ"), right, 4)
+          && tu_spill(tu_scratch("ref_w.occ"), wrong, 4), "cannot write the files");
+    status = tu_run("hitdiff @/ref_a.occ @/ref_b.occ --occlusion --mesh @/ref.obj "
+                    "--rays @/ref.rays --explain @/ref.csv");
+    EXPECT(status == 0, "hitdiff --occlusion --mesh: exit status %d, expected 0", status);
+    EXPECT(output_has("EXPLAINED: all 1 disagreeing rays of 4 explained"), "no verdict line");
+    csv = (char *)tu_slurp(tu_scratch("ref.csv"), NULL);
+    EXPECT(csv && strstr(csv, "ray,class,a,b,verdict\n1,leak_b,1,0,\"A: 1; B: 0;"),
+           "CSV:\n%s", csv ? csv : "(none)");
+    free(csv);
+    status = tu_run("hitdiff @/ref_a.occ @/ref_w.occ --occlusion --mesh @/ref.obj "
+                    "--rays @/ref.rays --explain @/ref.csv");
+    EXPECT(status == 1, "a 0 through a middle: exit status %d, expected 1", status);
+    EXPECT(output_has("UNEXPLAINED: 1 of 2 disagreeing rays of 4 unexplained"),
+           "no UNEXPLAINED line");
+    EXPECT(tu_run("hitdiff @/ref_a.occ @/ref_b.occ --occlusion") == 1
+           && output_has("occluded in A only"), "without --mesh: not the byte comparison");
+    EXPECT(!tu_temporary_file_left(), "a temporary file was left behind");
+}
+
 /* Bad input: one line on stderr naming the file, no CSV. */
 static void expect_bad(int expected_status, const char *args, const char *words)
 {
@@ -350,5 +379,7 @@ void suite_referee(void)
              test_occlusion_referee);
     test_run("referee: hitdiff --mesh table, exit status and --explain",
              test_hitdiff_referee);
+    test_run("referee: hitdiff --occlusion --mesh table, exit status and --explain",
+             test_hitdiff_occlusion_referee);
     test_run("referee: hitdiff --mesh rejects bad input in one line", test_hitdiff_bad_input);
 }
