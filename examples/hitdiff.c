@@ -4,6 +4,8 @@
 **
 **   build/hitdiff A.hits B.hits [--max-disagree FRACTION] [--t-rel TOL]
 **   build/hitdiff A.hits B.hits --mesh MESH --rays RAYS [--explain FILE.csv]
+**   build/hitdiff A.occ B.occ --occlusion [--max-disagree FRACTION]
+**   build/hitdiff A.occ B.occ --occlusion --mesh MESH --rays RAYS [--explain FILE.csv]
 **
 ** Tolerance mode (no --mesh): a ray agrees when both files miss it, or both
 ** hit the same triangle at distances whose relative difference
@@ -25,7 +27,9 @@
 ** ray, 0 or 1; README.md), compared byte by byte: both clear, both
 ** occluded, occluded in one only.  Chosen by the option, never guessed
 ** from the size (a file of 16 n bytes may be either).  --max-disagree
-** applies; the exact referee does not cover occlusion files yet.
+** applies.  With --mesh and --rays every ray whose bytes differ is
+** refereed (ex_referee_occlusion: the candidates by brute force over the
+** mesh, so each disagreeing ray costs one box test per triangle).
 */
 #include "common.h"
 #include "referee.h"
@@ -54,6 +58,7 @@ static void usage(void)
 {
     printf("usage: build/hitdiff A.hits B.hits [--max-disagree FRACTION] [--t-rel TOL]\n"
            "       build/hitdiff A.hits B.hits --mesh MESH --rays RAYS [--explain FILE.csv]\n"
+           "       build/hitdiff A.occ B.occ --occlusion [--mesh MESH --rays RAYS]\n"
            "Compares two hit files (16-byte records) ray by ray and prints a table.\n"
            "\n"
            "Tolerance mode (without --mesh):\n"
@@ -97,6 +102,13 @@ static void usage(void)
            "  --occlusion       A and B are occlusion files (one byte per ray, 0 clear,\n"
            "                    1 occluded); counts both clear, both occluded and each\n"
            "                    one-sided answer; --max-disagree as above\n"
+"  --occlusion --mesh MESH --rays RAYS [--explain FILE]\n"
+           "                    referees each ray whose bytes differ: the candidates are\n"
+           "                    the triangles whose padded boxes [tnear, tfar] enters\n"
+           "                    (brute force, per disagreeing ray), each judged exactly;\n"
+           "                    the side saying 0 leaks when the only exact hits are at\n"
+           "                    an edge or vertex, the side saying 1 hits just outside\n"
+           "                    when no hit is exact but one is within an edge band\n"
            "\n"
            "  --help            this text\n");
 }
@@ -226,8 +238,9 @@ static int occlusion_main(const char *path_a, const char *path_b, double max_dis
 /* ===================================================================== */
 
 typedef struct referee_run {
-    const char *path[2];          /* A.hits, B.hits */
+    const char *path[2];          /* A.hits, B.hits (or A.occ, B.occ) */
     const brt_hit *hits[2];
+    const uint8_t *occluded[2];   /* occlusion files instead of hits[] */
     const char *mesh_path, *rays_path, *explain_path;
     const brt_mesh *mesh;
     const brt_ray *rays;
@@ -241,6 +254,7 @@ static void check_prims(const referee_run *run)
 {
     size_t i;
     int f;
+    if (run->occluded[0]) return;   /* an occlusion byte names no prim */
     for (f = 0; f < 2; f++)
         for (i = 0; i < run->count; i++) {
             const uint32_t prim = run->hits[f][i].prim;
@@ -257,6 +271,22 @@ static void print_record(FILE *f, const brt_hit *h)
             h->u, h->v);
 }
 
+/* Referees ray i into *verdict when its two records disagree; returns
+** whether they do. */
+static int referee_ray(const referee_run *run, size_t i, ex_verdict *verdict)
+{
+    if (run->occluded[0]) {
+        const int a = run->occluded[0][i], b = run->occluded[1][i];
+        if (a == b) return 0;
+        ex_referee_occlusion(run->mesh, &run->rays[i], a, b, verdict);
+    } else {
+        const brt_hit *a = &run->hits[0][i], *b = &run->hits[1][i];
+        if (!ex_hits_disagree(a, b)) return 0;
+        ex_referee(run->mesh, &run->rays[i], a, b, verdict);
+    }
+    return 1;
+}
+
 /* Referees every disagreeing ray; with --explain, one CSV line each, into
 ** a temporary file renamed at the end (never a half-written FILE.csv). */
 static void referee_all(referee_run *run)
@@ -271,12 +301,11 @@ static void referee_all(referee_run *run)
             ex_die(prog, "%s: path too long", run->explain_path);
         if (!(csv = fopen(tmp, "w")))
             ex_die(prog, "%s: cannot create: %s", run->explain_path, strerror(errno));
-        fprintf(csv, "ray,class,a_t,a_prim,a_u,a_v,b_t,b_prim,b_u,b_v,verdict\n");
+        fprintf(csv, run->occluded[0] ? "ray,class,a,b,verdict\n"
+                     : "ray,class,a_t,a_prim,a_u,a_v,b_t,b_prim,b_u,b_v,verdict\n");
     }
     for (i = 0; i < run->count; i++) {
-        const brt_hit *a = &run->hits[0][i], *b = &run->hits[1][i];
-        if (!ex_hits_disagree(a, b)) continue;
-        ex_referee(run->mesh, &run->rays[i], a, b, &verdict);
+        if (!referee_ray(run, i, &verdict)) continue;
         run->disagree++;
         run->classes[verdict.cls]++;
         if (verdict.cls != EX_UNEXPLAINED) {
@@ -285,8 +314,12 @@ static void referee_all(referee_run *run)
         }
         if (csv) {
             fprintf(csv, "%lu,%s", (unsigned long)i, ex_class_id[verdict.cls]);
-            print_record(csv, a);
-            print_record(csv, b);
+            if (run->occluded[0])
+                fprintf(csv, ",%d,%d", run->occluded[0][i], run->occluded[1][i]);
+            else {
+                print_record(csv, &run->hits[0][i]);
+                print_record(csv, &run->hits[1][i]);
+            }
             fprintf(csv, ",\"%s\"\n", verdict.text);
         }
     }
@@ -356,6 +389,28 @@ static int referee_main(referee_run *run)
     return run->classes[EX_UNEXPLAINED] ? 1 : 0;
 }
 
+/* Referees two occlusion files; returns the exit status. */
+static int occlusion_referee_main(referee_run *run, const char *path_a, const char *path_b)
+{
+    size_t count_a, count_b;
+    uint8_t *a = read_occlusion(path_a, &count_a), *b = read_occlusion(path_b, &count_b);
+    int status = 2;
+    if (count_a != count_b)
+        fprintf(stderr, "%s: %s has %lu records but %s has %lu: not the same rays\n",
+                prog, path_a, (unsigned long)count_a, path_b, (unsigned long)count_b);
+    else {
+        run->path[0] = path_a;
+        run->path[1] = path_b;
+        run->occluded[0] = a;
+        run->occluded[1] = b;
+        run->count = count_a;
+        status = referee_main(run);
+    }
+    free(a);
+    free(b);
+    return status;
+}
+
 /* ===================================================================== */
 /* Command line                                                          */
 /* ===================================================================== */
@@ -407,9 +462,7 @@ int main(int argc, char **argv)
     if (run.mesh_path && tolerance_options)
         ex_die(prog, "--max-disagree and --t-rel are for tolerance mode, not with --mesh "
                "(see --help)");
-    if (occlusion && (run.mesh_path || run.rays_path))
-        ex_die(prog, "--occlusion compares occlusion files byte by byte: no --mesh or --rays "
-               "with it (see --help)");
+    if (occlusion && run.mesh_path) return occlusion_referee_main(&run, path_a, path_b);
     if (occlusion) return occlusion_main(path_a, path_b, max_disagree);
 
     ex_check(prog, brt_hits_read(path_a, &a, &count_a, &err), &err);

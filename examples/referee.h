@@ -4,7 +4,8 @@
 ** are, and names the reason (examples/referee.c explains how).  Shared by
 ** build/hitdiff and the tests (tests/test_referee.c, tests/test_embree.c).
 **
-** The referee judges closest-hit records (brt_hit).  It looks only at the
+** The referee judges closest-hit records (brt_hit), and occlusion records
+** (ex_referee_occlusion).  It looks only at the
 ** triangles the two records name: it never traces the ray itself, so a
 ** side that misses a triangle neither side reports is not caught (a
 ** disagreement always names at least one triangle, so it is refereed).
@@ -58,5 +59,16 @@ typedef struct ex_verdict {
 ** checks the files first). */
 ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
                     const brt_hit *b, ex_verdict *out);
+
+/* Referees one ray on which two occlusion records a and b (0 clear, 1
+** occluded) disagree, into *out; returns out->cls.  The candidates are
+** found by brute force over the mesh (referee.c, OCCLUSION): O(triangles)
+** per call.  The classes keep their meaning: a leak is the side saying 0
+** when the only exact hits are at an edge or vertex; a hit just outside is
+** the side saying 1 when no triangle is hit exactly but one is missed by
+** less than an edge band; t_ratio is the boundary's distance to tnear or
+** tfar / t bound. */
+ex_class ex_referee_occlusion(const brt_mesh *mesh, const brt_ray *ray, int a, int b,
+                              ex_verdict *out);
 
 #endif

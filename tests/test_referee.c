@@ -186,6 +186,56 @@ static void test_exact_vertex(void)
 }
 
 /* ===================================================================== */
+/* Occlusion records                                                     */
+/* ===================================================================== */
+
+static void expect_occlusion(const brt_ray *ray, int a, int b, ex_class expected,
+                             const char *what)
+{
+    ex_verdict v;
+    const ex_class got = ex_referee_occlusion(&square, ray, a, b, &v);
+    EXPECT(got == expected, "%s: %s, expected %s (%s)", what, ex_class_id[got],
+           ex_class_id[expected], v.text);
+}
+
+/* The square's rays as occlusion records: no record names a triangle, so
+** the referee must find the triangles among its candidates itself.  The
+** huge prim 2 (z = 5) is behind every origin (z = 1) until tnear = -inf;
+** prim 3 lies 1e-7 above prim 0 (x > y), so rays through prim 0 hit both,
+** and rays through prim 1 (x < y) hit prim 1 only. */
+static void test_occlusion_referee(void)
+{
+    brt_ray edge = down(0.5f, 0.5f), middle = down(0.75f, 0.25f), far = down(3, 3);
+    brt_ray near_edge = down(nextafterf(1.0f, 2.0f), 0.5f), at_tfar = down(0.25f, 0.75f);
+    /* Through the shared diagonal x == y of prims 0 and 1 (and the edge
+    ** x == y of prim 3): every exact hit is at an edge. */
+    expect_occlusion(&edge, 0, 1, EX_LEAK_A, "A says clear through the shared edge");
+    expect_occlusion(&edge, 1, 0, EX_LEAK_B, "B says clear through the shared edge");
+    /* Through the middle of prim 0 (and 3): a 0 is wrong. */
+    expect_occlusion(&middle, 0, 1, EX_UNEXPLAINED, "A says clear through prim 0's middle");
+    /* Far from every triangle (the huge prim 2 is behind the origin): a 1
+    ** is wrong. */
+    expect_occlusion(&far, 1, 0, EX_UNEXPLAINED, "A says occluded far from everything");
+    far.tnear = -INFINITY;   /* now prim 2 lies on the segment, well inside */
+    expect_occlusion(&far, 1, 0, EX_UNEXPLAINED, "B says clear through prim 2");
+    /* A hit well inside decides, even when the ray also passes an edge. */
+    edge.tnear = -INFINITY;
+    expect_occlusion(&edge, 0, 1, EX_UNEXPLAINED, "A says clear through prim 2 and an edge");
+    /* One float step outside x == 1: only rounding can hit prim 0. */
+    expect_occlusion(&near_edge, 0, 1, EX_OUTSIDE_B, "B says occluded one ulp outside");
+    /* Through prim 1 only (x < y, where prim 3 is absent), whose exact t
+    ** is 1 == tfar: the closed interval counts the hit, so 1 is right and
+    ** 0 is the boundary's rounding; one ulp before, the hit is not on the
+    ** segment, and 1 is the boundary's rounding. */
+    at_tfar.tfar = 1;
+    expect_occlusion(&at_tfar, 1, 0, EX_BOUNDARY, "B says clear at exactly tfar");
+    at_tfar.tfar = nextafterf(1.0f, 0.0f);
+    expect_occlusion(&at_tfar, 0, 1, EX_BOUNDARY, "B says occluded one ulp past tfar");
+    at_tfar.tfar = 0.5f;
+    expect_occlusion(&at_tfar, 0, 1, EX_UNEXPLAINED, "B says occluded far past tfar");
+}
+
+/* ===================================================================== */
 /* build/hitdiff --mesh from outside                                     */
 /* ===================================================================== */
 
@@ -247,6 +297,35 @@ static void test_hitdiff_referee(void)
     EXPECT(!tu_temporary_file_left(), "a temporary file was left behind");
 }
 
+/* The same square and rays as occlusion files: ray 0 (the shared edge)
+** leaks in B, ray 2 (prim 0's middle) is clear in B when wrong, ray 3
+** (far away) agrees. */
+static void test_hitdiff_occlusion_referee(void)
+{
+    static const uint8_t a[4] = {1, 1, 1, 0}, right[4] = {1, 0, 1, 0}, wrong[4] = {1, 0, 0, 0};
+    char *csv;
+    int status;
+    CHECK(write_case(0) && tu_spill(tu_scratch("ref_a.occ"), a, 4)
+          && tu_spill(tu_scratch("ref_b.occ"), right, 4)
+          && tu_spill(tu_scratch("ref_w.occ"), wrong, 4), "cannot write the files");
+    status = tu_run("hitdiff @/ref_a.occ @/ref_b.occ --occlusion --mesh @/ref.obj "
+                    "--rays @/ref.rays --explain @/ref.csv");
+    EXPECT(status == 0, "hitdiff --occlusion --mesh: exit status %d, expected 0", status);
+    EXPECT(output_has("EXPLAINED: all 1 disagreeing rays of 4 explained"), "no verdict line");
+    csv = (char *)tu_slurp(tu_scratch("ref.csv"), NULL);
+    EXPECT(csv && strstr(csv, "ray,class,a,b,verdict\n1,leak_b,1,0,\"A: 1; B: 0;"),
+           "CSV:\n%s", csv ? csv : "(none)");
+    free(csv);
+    status = tu_run("hitdiff @/ref_a.occ @/ref_w.occ --occlusion --mesh @/ref.obj "
+                    "--rays @/ref.rays --explain @/ref.csv");
+    EXPECT(status == 1, "a 0 through a middle: exit status %d, expected 1", status);
+    EXPECT(output_has("UNEXPLAINED: 1 of 2 disagreeing rays of 4 unexplained"),
+           "no UNEXPLAINED line");
+    EXPECT(tu_run("hitdiff @/ref_a.occ @/ref_b.occ --occlusion") == 1
+           && output_has("occluded in A only"), "without --mesh: not the byte comparison");
+    EXPECT(!tu_temporary_file_left(), "a temporary file was left behind");
+}
+
 /* Bad input: one line on stderr naming the file, no CSV. */
 static void expect_bad(int expected_status, const char *args, const char *words)
 {
@@ -296,7 +375,11 @@ void suite_referee(void)
     test_run("referee: hits at exactly tnear and tfar", test_interval);
     test_run("referee: two surfaces closer than t can tell", test_near_tie);
     test_run("referee: an exact vertex where double arithmetic errs", test_exact_vertex);
+    test_run("referee: occlusion records: leak, outside, tfar, fabricated 0 and 1",
+             test_occlusion_referee);
     test_run("referee: hitdiff --mesh table, exit status and --explain",
              test_hitdiff_referee);
+    test_run("referee: hitdiff --occlusion --mesh table, exit status and --explain",
+             test_hitdiff_occlusion_referee);
     test_run("referee: hitdiff --mesh rejects bad input in one line", test_hitdiff_bad_input);
 }
