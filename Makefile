@@ -339,7 +339,7 @@ bench-threads: all
 # disk and peak RSS of each step and checks the README's two statements
 # ("Out of core from end to end"): a build peaks at no more than 256 MiB +
 # 12 B per vertex of an indexed input + the DAG; a render at no more than
-# its limit + 200 B per path in flight + 512 B per batching point + 40 B
+# its limit + 280 B per path in flight + 512 B per batching point + 40 B
 # per pixel + 16 MiB.  Exit status 1 when a statement fails.  The files
 # (about 60 B per triangle of scene file, and the OBJ) go to SCALE_DIR and
 # are removed at the end unless SCALE_KEEP=1.
@@ -398,12 +398,8 @@ bench-scale: all
 	  "$$(num $$j paths_in_flight) paths in flight"; \
 	bound=$$(awk -v l=$$(num $$j memory_limit) -v p=$$(num $$j paths_in_flight) \
 	  -v n=$$(num $$j batching_points) \
-	  'BEGIN { printf "%.0f", l + 200 * p + 512 * n + 40 * 640 * 360 + 16 * 1048576 }'); \
-	check "render" $$(num $$j peak_rss_bytes) $$bound || { \
-	  echo "  diagnosis: the same render with evicted blobs returned to the system (glibc)"; \
-	  MALLOC_MMAP_THRESHOLD_=131072 $$render --stats $$d/render-mmap.json > /dev/null; \
-	  check "render, MALLOC_MMAP_THRESHOLD_=131072" $$(num $$d/render-mmap.json peak_rss_bytes) \
-	    $$bound || :; }; \
+	  'BEGIN { printf "%.0f", l + 280 * p + 512 * n + 40 * 640 * 360 + 16 * 1048576 }'); \
+	check "render" $$(num $$j peak_rss_bytes) $$bound || :; \
 	if [ "$(SCALE_KEEP)" != 1 ]; then rm -f $$d/land.brs; fi; \
 	exit $$fail
 # == END SCALE ============================================================

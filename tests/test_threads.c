@@ -450,12 +450,14 @@ static void test_programs(void)
 
 /* ---- the page cache's resident memory ------------------------------------ */
 
-/* A render from a scene file at --memory 3M that reads its ~0.35 MiB blobs
-** (scene format 2; 8M held too many of them to bite) over a hundred times: peak RSS at most the limit + the README's fixed
-** costs (200 B per path in flight, 512 B per batching point, 40 B per
-** pixel) + 8 MiB of program, libraries and stacks (measured: 4 MiB).
-** With the blobs malloc'd and freed, glibc's heap kept freed blobs
-** resident and this failed (peak 26.1 MiB against a bound of 17.5). */
+/* A render from a scene file at --memory 3M that reads its ~0.9 MiB blobs
+** (40,000 triangles of scene format 2) about 90 times: peak RSS at most the
+** limit + the README's fixed costs (280 B per path in flight, 512 B per
+** batching point, 40 B per pixel) + 8 MiB of program, libraries and stacks
+** (measured: 7.8 MiB in all).  With the blobs posix_memalign'd and freed,
+** glibc's heap keeps freed blobs resident and this fails (16.8 MiB against
+** a bound of 12.5; with blobs of 15,000 triangles the difference, 12.1
+** against 7.1, stayed inside the bound, so they would not catch it). */
 static void test_cache_rss(void)
 {
     char *json;
@@ -463,9 +465,9 @@ static void test_cache_rss(void)
     const char *p;
     double bound;
     if (!tu_rss_is_meaningful()) return;
-    CHECK(tu_run("render landscape --scale 6 --batch-tris 15000 --width 1 --height 1 --spp 1 "
+    CHECK(tu_run("render landscape --scale 6 --batch-tris 40000 --width 1 --height 1 --spp 1 "
                  "--scene @/rss.brs --out @/rss.png") == 0, "build: %s", tu_last_stderr());
-    CHECK(tu_run("render landscape --scale 6 --batch-tris 15000 --width 240 --height 135 --spp 4 "
+    CHECK(tu_run("render landscape --scale 6 --batch-tris 40000 --width 240 --height 135 --spp 4 "
                  "--memory 3M --rays-in-flight 1024 --scene @/rss.brs --out @/rss.png "
                  "--stats @/rss.json") == 0, "render: %s", tu_last_stderr());
     CHECK((json = (char *)slurp_scratch("rss.json", NULL)) != NULL, "stats");
@@ -477,7 +479,7 @@ static void test_cache_rss(void)
     CHECK(peak > 0 && limit > 0, "no peak_rss_bytes or memory_limit in the statistics");
     CHECK(loads > 3 * points, "only %llu loads of %llu batching points: the limit does not bite",
           loads, points);
-    bound = (double)limit + 200.0 * 1024 + 512.0 * (double)points + 40.0 * 240 * 135 + 8.0 * 1048576;
+    bound = (double)limit + 280.0 * 1024 + 512.0 * (double)points + 40.0 * 240 * 135 + 8.0 * 1048576;
     EXPECT((double)peak <= bound, "peak RSS %.1f MiB > limit %.1f MiB + fixed costs = %.1f MiB",
            (double)peak / 1048576, (double)limit / 1048576, bound / 1048576);
 }
