@@ -124,7 +124,7 @@ typedef struct qnode {
     float org[3];         /* the frame: plane q of axis a is */
     float scale[3];       /*   org[a] + q * scale[a] (decode_plane) */
     uint32_t q[6];        /* min x,y,z rows then max x,y,z rows: slot i's
-                          ** 8-bit plane in bits 8i..8i+7 (q_lane) */
+                          ** 8-bit plane in bits 8i..8i+7 (decode_row) */
     uint32_t first_node;  /* the inner slots' children, consecutive */
     uint32_t first_tri;   /* the leaf slots' triangles, consecutive */
     uint32_t vertex_base; /* the leaves' corners are vertex_base + idx */
@@ -435,20 +435,14 @@ static inline float decode_plane(float org, float scale, unsigned q)
     return org + (float)q * scale;   /* decode_row: the same, four at once */
 }
 
-/* One row of four slots' planes along axis a. */
-/* Slot i's 8-bit plane in a row word. */
-static inline unsigned q_lane(uint32_t row, int i)
-{
-    return (row >> (8 * i)) & 0xFFu;
-}
-
 /* One row of four slots' planes along axis a: decode_plane of each lane,
 ** written so that GCC -O2 makes it a few vector instructions: each lane's
 ** byte is masked in place (lane 3 shifted down 8 bits first so that the
 ** word stays positive as an int), converted, and scaled by a power of
 ** two back to the byte's value -- every step exact, so each lane is
-** exactly (float)q_lane.  (A loop calling q_lane stays scalar: traversal
-** then ran 3.6 times the instructions of the float nodes.) */
+** exactly the float of its byte, (row >> 8i) & 0xFF.  (A loop that
+** extracted each byte that way stayed scalar: traversal then ran 3.6 times
+** the instructions of the float nodes.) */
 static inline ALWAYS_INLINE void decode_row(const qnode *n, int row, int a, float out[4])
 {
     static const uint32_t mask[4] = {0xFFu, 0xFF00u, 0xFF0000u, 0xFF0000u};
