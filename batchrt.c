@@ -4407,26 +4407,29 @@ static brt_result trace_array(brt_scene *scene, const brt_trace_options *opt, ar
     return trace_source(scene, opt, &source, a->count > 0 ? a->count : 1, stats, err);
 }
 
-brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
-                           const brt_ray *rays, size_t count, brt_hit *hits,
-                           brt_stats *stats, brt_error *err)
+/* The array forms: either hits or occluded is written (the other NULL). */
+static brt_result trace_rays(brt_scene *scene, const brt_trace_options *opt,
+                             const brt_ray *rays, size_t count, brt_hit *hits,
+                             uint8_t *occluded, brt_stats *stats, brt_error *err)
 {
     array_source a;
     a.rays = rays;
     a.hits = hits;
-    a.occluded = NULL;
+    a.occluded = occluded;
     a.count = count;
     return trace_array(scene, opt, &a, stats, err);
+}
+
+brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
+                           const brt_ray *rays, size_t count, brt_hit *hits,
+                           brt_stats *stats, brt_error *err)
+{
+    return trace_rays(scene, opt, rays, count, hits, NULL, stats, err);
 }
 
 brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
                               const brt_ray *rays, size_t count, uint8_t *occluded,
                               brt_stats *stats, brt_error *err)
 {
-    array_source a;
-    a.rays = rays;
-    a.hits = NULL;
-    a.occluded = occluded;
-    a.count = count;
-    return trace_array(scene, opt, &a, stats, err);
+    return trace_rays(scene, opt, rays, count, NULL, occluded, stats, err);
 }

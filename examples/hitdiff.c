@@ -202,6 +202,15 @@ static uint8_t *read_occlusion(const char *path, size_t *count)
     return bytes;
 }
 
+/* Nonzero when two files hold as many records; otherwise says so. */
+static int same_count(const char *path_a, size_t count_a, const char *path_b, size_t count_b)
+{
+    if (count_a == count_b) return 1;
+    fprintf(stderr, "%s: %s has %lu records but %s has %lu: not the same rays\n",
+            prog, path_a, (unsigned long)count_a, path_b, (unsigned long)count_b);
+    return 0;
+}
+
 /* Compares two occlusion files; returns the exit status. */
 static int occlusion_main(const char *path_a, const char *path_b, double max_disagree)
 {
@@ -209,9 +218,7 @@ static int occlusion_main(const char *path_a, const char *path_b, double max_dis
     uint8_t *a = read_occlusion(path_a, &count_a), *b = read_occlusion(path_b, &count_b);
     uint64_t kinds[2][2] = {{0, 0}, {0, 0}}, disagree;
     double fraction;
-    if (count_a != count_b) {
-        fprintf(stderr, "%s: %s has %lu records but %s has %lu: not the same rays\n",
-                prog, path_a, (unsigned long)count_a, path_b, (unsigned long)count_b);
+    if (!same_count(path_a, count_a, path_b, count_b)) {
         free(a);
         free(b);
         return 2;
@@ -395,10 +402,7 @@ static int occlusion_referee_main(referee_run *run, const char *path_a, const ch
     size_t count_a, count_b;
     uint8_t *a = read_occlusion(path_a, &count_a), *b = read_occlusion(path_b, &count_b);
     int status = 2;
-    if (count_a != count_b)
-        fprintf(stderr, "%s: %s has %lu records but %s has %lu: not the same rays\n",
-                prog, path_a, (unsigned long)count_a, path_b, (unsigned long)count_b);
-    else {
+    if (same_count(path_a, count_a, path_b, count_b)) {
         run->path[0] = path_a;
         run->path[1] = path_b;
         run->occluded[0] = a;
@@ -467,9 +471,7 @@ int main(int argc, char **argv)
 
     ex_check(prog, brt_hits_read(path_a, &a, &count_a, &err), &err);
     ex_check(prog, brt_hits_read(path_b, &b, &count_b, &err), &err);
-    if (count_a != count_b) {
-        fprintf(stderr, "%s: %s has %lu records but %s has %lu: not the same rays\n",
-                prog, path_a, (unsigned long)count_a, path_b, (unsigned long)count_b);
+    if (!same_count(path_a, count_a, path_b, count_b)) {
         free(a);
         free(b);
         return 2;
