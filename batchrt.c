@@ -680,7 +680,7 @@ static brt_result add_triangle(parser *p, const uint32_t v[3])
     return BRT_OK;
 }
 
-/* Ends the polygon being read: the fan (a,b,c), (a,c,d), ... of design.md. */
+/* Ends the polygon being read: the fan (a,b,c), (a,c,d), ... of README.md ("Files"). */
 static brt_result end_polygon(parser *p)
 {
     size_t n = p->polygon_count, k;

@@ -470,7 +470,7 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 /* Statistics (batchrt.c)                                                */
 /* ===================================================================== */
 
-/* The fields of design.md's statistics contract; fields that do not apply
+/* The fields of the statistics contract (README.md, "Batched mode"); fields that do not apply
 ** to a mode are 0. */
 typedef struct brt_stats {
     uint64_t rays;

@@ -35,7 +35,7 @@
 ** in Pharr et al. and the paper).  --direct traces the same paths against one
 ** in-memory BVH (brt_bvh_intersect_normal), the reference.
 **
-** DETERMINISM (design.md)
+** DETERMINISM (README.md, "Rendering")
 ** Rays finish in an order that depends on the schedule, so nothing may
 ** depend on that order:
 **   - every random number is a hash of (pixel, sample, bounce, dimension),
@@ -166,7 +166,7 @@ static void usage(void)
            "  --out FILE.png       the image (default render.png)\n"
            "  --heatmap FILE.png   batching points visited per sample (paper's Fig. 1)\n"
            "  --heat-max V         top of the heatmap's colour scale (default: 99.5th percentile)\n"
-           "  --stats FILE.json    statistics (design.md fields plus spp, paths, ...)\n"
+           "  --stats FILE.json    statistics (trace's fields plus spp, paths, ...)\n"
            "  --pfm FILE.pfm       the image before tone mapping: each pixel's mean radiance\n"
            "                       (Portable Float Map, little-endian)\n"
            "  --reference REF.pfm  print the RMSE of this image's mean radiance against REF\n"

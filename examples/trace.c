@@ -131,7 +131,7 @@ static void parse_options(int argc, char **argv, trace_options *o)
 #define SLICE ((size_t)1 << 18)
 
 /* Direct mode: one BVH over the whole mesh, then every ray through it,
-** with the statistics of design.md (cache fields stay 0). */
+** with the statistics of README.md (cache fields stay 0). */
 static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count,
                          brt_hit *hits, uint8_t *occluded, brt_stats *stats,
                          unsigned threads)

@@ -1,5 +1,5 @@
 /*
-** tests/test_cli.c -- the command-line contracts of design.md, checked from
+** tests/test_cli.c -- the command-line contracts of README.md, checked from
 ** outside: the programs in $BRT_BUILD (default "build") run through
 ** system() on small meshes generated into the scratch directory, and their
 ** files are compared with independent oracles written here (a brute-force

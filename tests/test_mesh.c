@@ -1,6 +1,6 @@
 /*
 ** tests/test_mesh.c -- mesh loading (OBJ, PLY), ray and hit files, sizes
-** and statistics JSON: the file contracts of design.md.
+** and statistics JSON: the file contracts of README.md.
 **
 ** Oracles are independent of the loaders: expected index lists written out
 ** by hand, a mesh encoded by this file's own PLY writer in every flavour,

@@ -2,7 +2,7 @@
 ** tests/test_render.c -- the renderer (examples/render.c) checked from
 ** outside, and the SVG plot writer (examples/plot.c) from inside.
 **
-** The renderer's central promise is design.md's determinism: --direct,
+** The renderer's central promise is determinism (README, "Rendering"): --direct,
 ** batched with or without proxies, any memory limit and any number of
 ** rays in flight write byte-identical PNGs.  The tests render a small
 ** built-in scene and a mesh file under many settings and compare the
@@ -211,7 +211,7 @@ static void test_same_image_mesh_file(void)
 /* The heatmap counts every visit of the render exactly once, it
 ** decodes (an independent decoder, tests/util.c) to the map plus a 24-row
 ** legend, the map is not flat, and proxies only ever remove visits
-** (design.md, invariant 7).  Under a memory limit, so that proxies are
+** (proxies never change a result; README, "Batched mode").  Under a memory limit, so that proxies are
 ** consulted at all: a culled batching point holds no hit in the ray's
 ** segment, so every ray reaches the same points with or without proxies,
 ** and the visits with them plus the culls are exactly the visits without. */

@@ -1,5 +1,5 @@
 /*
-** tests/test_threads.c -- the threads contract (design.md, README
+** tests/test_threads.c -- the threads contract (README
 ** "Threads"): at 1, 2 and 7 threads (more than this machine's cores, and
 ** more than some runs have work), every hit equals the direct mode's, the
 ** scheduler's counts and the order of its finished calls are equal, scene
