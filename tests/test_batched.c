@@ -66,13 +66,6 @@ static void fixture_free(fixture *f)
     free(f->direct);
 }
 
-static const char *scene_path(const char *name)
-{
-    static char path[512];
-    snprintf(path, sizeof path, "%s/%s", test_tmpdir(), name);
-    return path;
-}
-
 static brt_scene *build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, const char *path)
 {
     brt_scene_options opt;
@@ -145,7 +138,7 @@ static void check_visits(const brt_stats *stats, const brt_trace_options *opt,
 ** the budget and that proxies only ever remove work. */
 static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, const char *name)
 {
-    brt_scene *scene = build_scene(&f->scene, batch_tris, res, scene_path(name));
+    brt_scene *scene = build_scene(&f->scene, batch_tris, res, tu_scratch(name));
     brt_trace_options opt;
     brt_stats all, none, stats, paper[2];   /* paper: the paper's scheduler, no limit */
     char what[200];
@@ -264,7 +257,7 @@ static void test_exact_proxies(void)
     memset(&f, 0, sizeof f);
     tu_random_soup(&f.scene, &st, 2000, 0.05f);
     CHECK(fixture_rays(&f, 400, st), "direct BVH build failed");
-    scene = build_scene(&f.scene, 150, 16, scene_path("exact.brs"));
+    scene = build_scene(&f.scene, 150, 16, tu_scratch("exact.brs"));
     memset(&opt, 0, sizeof opt);
     opt.queue_resident = 1;   /* the paper's scheduler: every visit meets a proxy */
     if (scene && trace_matches(&f, scene, &opt, &voxel, "voxel proxies")) {
@@ -332,7 +325,7 @@ static void equal_t_tie(float mirror)
         CHECK(f.direct[i].t == 10 && f.direct[i].prim == 0,
               "direct, ray %zu: t=%a prim=%u, expected 10 and prim 0", i, f.direct[i].t,
               (unsigned)f.direct[i].prim);
-    scene = build_scene(&f.scene, 2, 16, scene_path("tie.brs"));
+    scene = build_scene(&f.scene, 2, 16, tu_scratch("tie.brs"));
     for (setting = 0; scene && setting < 6 && !test_failed(); setting++) {
         static const char *const names[3] = {"no proxies", "voxel proxies", "exact proxies"};
         brt_trace_options opt;
@@ -487,7 +480,7 @@ static void test_rays_in_flight(void)
     memset(&f, 0, sizeof f);
     tu_random_soup(&f.scene, &st, 800, 0.05f);
     CHECK(fixture_rays(&f, 100, st), "direct BVH build failed");
-    scene = build_scene(&f.scene, 50, 32, scene_path("stream.brs"));
+    scene = build_scene(&f.scene, 50, 32, tu_scratch("stream.brs"));
     for (i = 0; scene && i < 3 && !test_failed(); i++) {
         brt_trace_options opt;
         brt_ray_source source;
@@ -574,7 +567,7 @@ static void test_fullest_queue_first(void)
             rays[n] = r;
         }
     }
-    scene = build_scene(&s, 1, 4, scene_path("order.brs"));
+    scene = build_scene(&s, 1, 4, tu_scratch("order.brs"));
     for (setting = 0; scene && setting < 2 && !test_failed(); setting++) {
         brt_trace_options opt;
         brt_ray_source source;
@@ -627,7 +620,7 @@ static void test_degenerate_rays(void)
     CHECK(fixture_direct(&f), "direct BVH build failed");
     for (i = 0; i < f.count; i += 5)
         EXPECT(f.direct[i].prim == BRT_NO_PRIM, "degenerate ray %zu hit in direct mode", i);
-    scene = build_scene(&f.scene, 20, 16, scene_path("degenerate.brs"));
+    scene = build_scene(&f.scene, 20, 16, tu_scratch("degenerate.brs"));
     if (scene) trace_matches(&f, scene, NULL, NULL, "degenerate rays");
     brt_scene_close(scene);
     fixture_free(&f);
@@ -776,7 +769,7 @@ static void test_scene_errors(void)
 {
     tu_scene s;
     brt_scene *scene;
-    const char *good = scene_path("good.brs");
+    const char *good = tu_scratch("good.brs");
     brt_error err;
     uint64_t st = test_seed() + 4;
     struct stat info;
@@ -809,7 +802,7 @@ static void test_scene_errors(void)
     ** one batching point, twice. */
     expect_forged(good, (size_t)section_offset(good, 1) + 100,
                   file_u32(good, (size_t)section_offset(good, 1) + 96), "bad leaf");
-    EXPECT(brt_scene_open(scene_path("missing.brs"), &scene, &err) == BRT_EIO &&
+    EXPECT(brt_scene_open(tu_scratch("missing.brs"), &scene, &err) == BRT_EIO &&
            strstr(err.message, "missing.brs"), "missing file: '%s'", err.message);
     tu_scene_free(&s);
 }
@@ -849,7 +842,7 @@ static void test_read_faults(void)
     memset(&f, 0, sizeof f);
     tu_random_soup(&f.scene, &st, 1000, 0.05f);
     CHECK(fixture_rays(&f, 200, st), "direct BVH build failed");
-    scene = build_scene(&f.scene, 100, 16, scene_path("faults.brs"));
+    scene = build_scene(&f.scene, 100, 16, tu_scratch("faults.brs"));
     CHECK(scene, "build failed");
     memset(&opt, 0, sizeof opt);
     opt.read_fn = faulty_read;

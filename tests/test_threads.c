@@ -116,13 +116,6 @@ static void test_bvh_trace(void)
 
 /* ---- batched tracing ----------------------------------------------------- */
 
-static const char *scratch_scene(const char *name)
-{
-    static char path[512];
-    snprintf(path, sizeof path, "%s/%s", test_tmpdir(), name);
-    return path;
-}
-
 static brt_scene *soup_scene(const soup *s, uint32_t batch_tris, unsigned threads, const char *name)
 {
     brt_scene_options opt;
@@ -134,8 +127,8 @@ static brt_scene *soup_scene(const soup *s, uint32_t batch_tris, unsigned thread
     opt.batch_tris = batch_tris;
     opt.proxy_res = 32;
     opt.threads = threads;
-    r = brt_scene_build(&mesh, &opt, 1, scratch_scene(name), &err);
-    if (r == BRT_OK) r = brt_scene_open(scratch_scene(name), &scene, &err);
+    r = brt_scene_build(&mesh, &opt, 1, tu_scratch(name), &err);
+    if (r == BRT_OK) r = brt_scene_open(tu_scratch(name), &scene, &err);
     if (r != BRT_OK) test_fail_at(__FILE__, __LINE__, "scene: %s", err.message);
     return scene;
 }
@@ -351,9 +344,9 @@ static void test_scene_bytes(void)
             opt.proxy_res = 16;
             opt.test_bucket_tris = buckets[b];
             opt.threads = thread_counts[run];
-            CHECK(brt_scene_build(&mesh, &opt, 7, scratch_scene("bytes.brs"), &err) == BRT_OK,
+            CHECK(brt_scene_build(&mesh, &opt, 7, tu_scratch("bytes.brs"), &err) == BRT_OK,
                   "build: %s", err.message);
-            CHECK((bytes = tu_slurp(scratch_scene("bytes.brs"), &size)) != NULL, "read back");
+            CHECK((bytes = tu_slurp(tu_scratch("bytes.brs"), &size)) != NULL, "read back");
             if (run == 0) {
                 first = bytes;
                 first_size = size;
