@@ -330,8 +330,10 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
     return 1;
 }
 
-/* The watertight test proper (Woop et al., Fig. 4 with culling off). */
-static inline int tri_intersect(const tri_ray *r, const brt_ray_prep *bp,
+/* The watertight test proper (Woop et al., Fig. 4 with culling off).
+** Forced inline: as a call with its eleven arguments it cost the BVH walk
+** 2-4 % more instructions (callgrind, dragon). */
+static inline ALWAYS_INLINE int tri_intersect(const tri_ray *r, const brt_ray_prep *bp,
                                 const float *p0, const float *p1, const float *p2,
                                 float tnear, float tfar,
                                 float *t, float *u, float *v)
