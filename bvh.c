@@ -97,7 +97,8 @@
 ** Rays with a NaN anywhere, an inf in the origin or direction, an all-zero
 ** direction, or tnear > tfar never hit (checked once per ray).
 **
-** PERFORMANCE NOTES (what was tried) are at the end of the file.
+** PERFORMANCE NOTES (what was tried) are at the end of the file; the
+** full diary is in the README, "The BVH: what was tried".
 */
 #include "batchrt.h"
 
@@ -1559,100 +1560,25 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 }
 
 /*
-** PERFORMANCE NOTES (examples/bench_bvh.c and "make bench-embree" on this
-** 2-core EPYC VM, -O2, no -march, one thread, while other jobs shared the
-** machine, so figures moved by +-30 % between runs).
-**   - Bench mesh: bunny_tiny subdivided 4 times (940,544 triangles),
-**     raygen's rays, CPU seconds: camera 3.2-3.6, random 0.9-1.2, bounce
-**     0.5-0.7 Mrays/s; build 0.7-0.85 s per million triangles; 63 bytes
-**     per triangle.  The goal quotes Embree at 9 / 3.4 / 4 on it.
-**   - make bench-embree (dragon, same ray files, wall clock, two runs):
-**     Embree over batchrt 1.4-1.7 camera, 2.5-3.4 random, 1.5-2.5 bounce.
-**     So camera meets "half of Embree", random does not.
-**   - Why: the same random rays each traced 8 times in a row (warm
-**     caches) run at 3.3 Mrays/s, Embree's cold speed; cold, a ray visits
-**     only 6.8 nodes and 2.1 triangles (counted) but waits ~150 ns on each
-**     node, i.e. on DRAM and page walks over the 55 MB structure.  Embree
-**     allocates with madvise(MADV_HUGEPAGE); trying that here (not POSIX,
-**     not kept) gained about 25 %.  Quantized 64-byte nodes (one cache
-**     line) are the next step; not done.
-**   - A first version (branchy sorted push of all hit slots, preorder
-**     nodes, C_TRAV 1) ran 2.6 / 0.8 / 0.4.  Kept since: descending into
-**     the nearest hit child without a push, siblings at consecutive
-**     indices, 64-byte aligned nodes, C_TRAV = 2 (63 instead of 77 bytes
-**     per triangle).  No gain: 32 bins, MAX_LEAF 4, C_TRAV 1.5 or 3 (node
-**     and triangle counts per ray within 2 %).
-**   - Build: bins of all three axes in one pass over a contiguous array of
-**     triangle boxes, boxes as 4 floats so growing one is a minps and a
-**     maxps, children's bounds gathered while partitioning, fewer bins in
-**     small nodes: from 3.5 s to about 0.8 s per million triangles.
-**   - Second round (traversal; A/B = both versions built in one process
-**     and run alternately on the same rays, CPU time, 3 passes; and
-**     callgrind instruction counts, which the load does not blur):
-**     * Counted per ray: camera 5.5 nodes, 0.63 leaves, 1.9 triangles,
-**       0.31 passing the 2D edge test; random 7.1 / 0.78 / 2.3 / 0.36;
-**       bounce 14.9 / 2.34 / 7.0 / 1.05, of which 0.056 accepted.  Why
-**       bounce is slower than random: 94 % of bounce rays escape, so
-**       nothing is pruned, and a ray that starts on the surface is inside
-**       every box around its origin down to the leaves, so it opens twice
-**       the nodes, each a DRAM wait.  Its 1.05 2D passes are the
-**       triangle it leaves (behind the origin): hit_distance then runs
-**       once and tnear rejects it, about 3 % of the ray's instructions.
-**       Skipping that work when the triangle's box interval misses
-**       [tnear, tfar] (exact, since t is clamped into it) caught only
-**       0.5 % of those calls: not kept.
-**     * bench_bvh's "warm" figure (blocks of 256 rays traced twice, the
-**       second pass timed): 5.3 / 3.0 / 1.2 Mrays/s against cold 3.9 /
-**       1.0 / 0.67, so waiting on memory is about 25 % of a camera ray,
-**       65 % of a random one and 45 % of a bounce one (which also does
-**       twice the work: ~15 node tests and 7 triangle tests).
-**     * Kept: box_test4 reading per-ray constants already repeated in 4
-**       lanes (the compiler had reloaded and broadcast 9 scalars per
-**       node) and forming the hit mask with one vector compare (the
-**       per-lane shift loop was a quarter of the node's instructions);
-**       next_child sorting slot numbers, not 12-byte entries; the ray
-**       checked once, not twice: same arithmetic, 14 % fewer
-**       instructions (callgrind: 735 M -> 633 M for the same rays).
-**       And prefetch_slots: without it the A/B was 0.97 random, 0.93
-**       bounce (escaping rays visit every hit child, so their misses can
-**       overlap).  All together against the first round: A/B camera
-**       1.03-1.17, random 1.00-1.06, bounce 1.03-1.05.
-**     * Tried, not kept (A/B within noise or worse): 4096-byte instead
-**       of 64-byte alignment (1.00); numbering each node's children and
-**       grandchildren together so three levels share a 4 KB page (dTLB
-**       misses -6 %, time 0.96-1.16 random, 0.97-1.08 bounce, 0.94-1.01
-**       camera); C_TRAV 4 (0.90 camera, 0.91-1.0 others) and with
-**       MAX_LEAF 16 (0.90 camera); tri_intersect's 2D test inlined into
-**       the leaf loop with the rest out of line (needs GCC attributes:
-**       only 2 % fewer instructions).
-**     * make bench-embree after this round (dragon, wall clock, loaded
-**       machine): Embree over batchrt 1.27 camera, 1.92 random, 2.56
-**       bounce (2.19 / 2.81 / 4.46 in a more loaded run before it).  The
-**       chain of dependent node misses (~9 levels) is what is left; an
-**       8-wide node (256 bytes, 4 lines fetched in parallel, ~6.5
-**       levels) is the next thing to try.
-**   - Third round (issue 15: bytes first, then speed).  Bytes per
-**     triangle of a blob, `trace --batched` / `render --stats`
-**     geometry_bytes over the triangle count:
-**     * quantized 64-byte nodes + shared vertices with 16-bit offsets
-**       (C_TRAV 2): bunny x4 62.9 -> 27.6; shared meshes 25.2-27.5
-**       (58-63 before); landscape at 1 M triangles (10,000 per batching
-**       point) 58.3 -> 26.8, island 60.6 -> 32.2 (its small objects
-**       share few corners: 0.97 vertices per triangle);
-**     * C_TRAV 3 then: island 29.3, landscape 24.1, bunny x4 23.1, with
-**       no measurable change in speed.
-**     Kept as one layout for the direct mode and the blobs (a decoded
-**     in-memory copy would cost the load time and twice the cache bytes).
-**     Traversal instructions (callgrind, bench_bvh on the bunny, 20 k rays
-**     per kind; the float layout took 172 M): first decode loop over 24
-**     planes with row % 3, scalar: 795 M; a row of 4 lanes with the 2^23
-**     float trick: 629 M; rows as words masked in place and scaled by
-**     powers of two (vectorized): 462 M; inner slots first, so a slot's
-**     target is arithmetic instead of a loop over the counts at every
-**     node (which took about 76 M): 413 M with C_TRAV 3 (whose larger
-**     leaves add 30 M of triangle tests).  The decode is most of the rest.  Cold
-**     speed on the sphere mesh against the float layout: camera 0.76-0.90,
-**     random 0.85-0.93, bounce 0.64-0.82 (two runs; the warm figures lose
-**     more, 0.6-0.8).  Not done for lack of time: 8-wide nodes, leaves
-**     laid out for the vectorizer, prefetching a leaf's vertices.
+** PERFORMANCE NOTES: what was tried, one figure each (the full diary with
+** its measurements: README, "The BVH: what was tried"; make bench-embree
+** and callgrind on the 2-core VM, one thread).
+**   - Float nodes (v1): binned build 3.5 -> 0.8 s per million triangles;
+**     nearest child without a push, siblings consecutive, prefetching hit
+**     children, box test as vectors: 735 M -> 633 M instructions; not
+**     kept: 4 KB alignment, page-grouped node order, MAX_LEAF 4/16, 32 bins.
+**   - Quantized 64-byte nodes + shared vertices (v2): 58-63 -> 23-29.5
+**     bytes per triangle; decode as vector rows: 795 M -> 413 M (float
+**     nodes: 172 M); C_TRAV 3: island 32.2 -> 29.3 bytes per triangle.
+**   - Second session: brt_box_span4 vectorized and the near/far rows
+**     decoded from their words (batched x0.88), decode_row's lane-3
+**     fix-up (decoding 118 -> 96 instructions a node), tri_intersect
+**     inlined (x0.97): together x0.83-0.87 instructions direct and
+**     batched.  Not kept: slot_valid as one word (+0.2 %), lazy
+**     tri_ray_setup (bounce +1.8 %), a xor-and-bias decode (+16 %), huge
+**     pages (not POSIX; cold random x0.92-1.27, noise).
+**   - Ratio to Embree (make bench-embree, --threads 1): 0.57 camera,
+**     0.33-0.38 random and bounce direct, 0.31-0.37 batched.  Warm speed
+**     is near Embree's cold, so random and bounce rays wait on memory;
+**     not done: 8-wide nodes, SoA leaves of 4 (a format v3).
 */
