@@ -4012,7 +4012,7 @@ static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, fl
 static int inner_stops(const scheduler *s, ray_slot *r)
 {
     brt_proxy inner;
-    if (!s->use_inner || !is_occlusion(r) || r->ray.tfar != INFINITY) return 0;
+    if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
     inner = inner_proxy(&s->scene->batches[r->key.id]);
     if (!brt_inner_occludes(s->scene->dag, &inner, &r->ray)) return 0;
     r->hit.t = 0;

@@ -12,6 +12,7 @@
 */
 #include "test.h"
 #include "util.h"
+#include "../examples/scenes.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -477,6 +478,32 @@ static void test_trace_files(void)
     free(direct);
 }
 
+/* The built-in scenes have closed parts for the inner proxies: the crown
+** entirely; the landscape's terrain (skirt and floor), rocks and trunks;
+** the island's land masses and trunks.  Shares at scale 0.2, seed 1. */
+static void test_builtin_closed_parts(void)
+{
+    static const struct { const char *name; double least; } scenes[] = {
+        {"crown", 1.0}, {"landscape", 0.8}, {"island", 0.3}};
+    size_t k;
+    for (k = 0; k < 3; k++) {
+        brt_mesh mesh;
+        brt_error err;
+        brt_grid g;
+        float lo[3], hi[3];
+        uint32_t closed = 0;
+        CHECK(ex_scene_generate(scenes[k].name, 0.2, 1, &mesh, &err) == BRT_OK, "%s", err.message);
+        brt_mesh_bounds(&mesh, lo, hi);
+        CHECK(brt_grid_init(&g, lo, hi, 2) == BRT_OK, "no grid");
+        EXPECT(brt_voxelize_inner(&g, mesh.positions, mesh.indices, mesh.triangle_count, &closed)
+                   == BRT_OK && closed >= scenes[k].least * mesh.triangle_count,
+               "%s: %u of %u triangles in closed components, expected at least %.0f %%",
+               scenes[k].name, closed, mesh.triangle_count, 100 * scenes[k].least);
+        brt_grid_free(&g);
+        brt_mesh_free(&mesh);
+    }
+}
+
 void suite_inner(void)
 {
     test_run("inner: never occluded where brute force is clear, solids and near-solids",
@@ -486,4 +513,5 @@ void suite_inner(void)
     test_run("inner: batched occlusion == brute force, inner on/off, cut solids get none",
              test_scene_balls);
     test_run("inner: trace --occlusion files direct == batched, inner on and off", test_trace_files);
+    test_run("inner: built-in scenes have closed parts", test_builtin_closed_parts);
 }
