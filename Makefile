@@ -288,6 +288,27 @@ bench-render: all
 	    --out $(BUILD)/bench-render-$$scene.png || exit 1; \
 	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --out $(BUILD)/bench-render-$$scene.png || exit 1; \
 	done
+# bench-inner: inner proxies (README "Inner proxies"): the landscape and the
+# island at 1M triangles, 25 % of the geometry bytes, next-event estimation,
+# outer proxies alone (--no-inner) against outer + inner; one JSON each in
+# $(BUILD)/inner, a table of the counts, and the two images compared.
+BENCH_INNER = --scale 10 --batch-tris 10000 --spp 4 --width 320 --height 180 --memory 25%
+INNER_FIELDS = disk_bytes_read batch_loads shadow_rays shadow_occluded shadow_disk_bytes_read \
+  shadow_inner_stopped proxy_bytes
+.PHONY: bench-inner
+bench-inner: all
+	mkdir -p $(BUILD)/inner
+	for scene in landscape island; do \
+	  for run in outer inner; do \
+	    ./$(BUILD)/render $$scene $(BENCH_INNER) $$( [ $$run = outer ] && echo --no-inner ) \
+	      --out $(BUILD)/inner/$$scene-$$run.png --stats $(BUILD)/inner/$$scene-$$run.json || exit 1; \
+	    printf '%s %s:' $$scene $$run; \
+	    for f in $(INNER_FIELDS); do \
+	      printf ' %s %s' $$f $$(sed -n "s/^ *\"$$f\": \([0-9]*\),*$$/\1/p" $(BUILD)/inner/$$scene-$$run.json); \
+	    done; echo; \
+	  done; \
+	  cmp $(BUILD)/inner/$$scene-outer.png $(BUILD)/inner/$$scene-inner.png || exit 1; \
+	done
 # == END RENDER ===========================================================
 
 # == THREADS (speed-ups; not part of CI) =================================
