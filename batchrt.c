@@ -2109,12 +2109,23 @@ static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep 
 #define SECTION_TOP 1
 #define SECTION_DAG 2
 
+/* Inner proxies are stored at half the proxy resolution (at least 2), a
+** choice measured with make bench-inner (README, "Inner proxies"): at full
+** resolution their surface nodes, unique like the outer proxy's, doubled
+** the pool (landscape, 1M triangles: 0.64 -> 1.41 MB) and the geometry
+** budget paid for it; at a quarter they stopped too few rays. */
+static uint32_t inner_res(uint32_t proxy_res)
+{
+    return proxy_res >= 4 ? proxy_res / 2 : 2;
+}
+
 typedef struct batch_entry {
     float lo[3], hi[3];
     uint64_t offset, size, checksum;
     uint32_t triangles;
     brt_proxy proxy;
-    uint32_t inner_root;        /* inner proxy: same frame as proxy */
+    brt_proxy inner;            /* inner proxy; the file holds its root, its
+                                ** frame follows from the box (inner_frame) */
 } batch_entry;
 
 typedef struct section {
@@ -2142,7 +2153,7 @@ static void batch_entry_pack(const batch_entry *b, unsigned char *p)
     put_u32(p + 52, b->proxy.root);
     put_u32(p + 56, b->proxy.res);
     put_f32(p + 72, b->proxy.cell);
-    put_u32(p + 76, b->inner_root);
+    put_u32(p + 76, b->inner.root);
 }
 
 static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
@@ -2160,7 +2171,7 @@ static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
     b->proxy.root = get_u32(p + 52);
     b->proxy.res = get_u32(p + 56);
     b->proxy.cell = get_f32(p + 72);
-    b->inner_root = get_u32(p + 76);
+    b->inner.root = get_u32(p + 76);
 }
 
 static void top_node_pack(const top_node *n, unsigned char *p)
@@ -2379,6 +2390,7 @@ typedef struct scene_builder {
     pool pool;                  /* brt_scene_options.threads */
     struct point_work *work;    /* a window of points built at once */
     uint32_t window;
+    brt_solids *solids;         /* the bucket's closed components (svdag.c) */
 } scene_builder;
 
 static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
@@ -2731,19 +2743,9 @@ static void point_build(const scene_builder *b, point_work *pw)
         pw->grid_result = brt_voxelize(&pw->grid, pw->corners, b->indices, pw->count);
     pw->inner.bits = NULL;
     if (pw->grid_result == BRT_OK)
-        pw->grid_result = brt_grid_init(&pw->inner, pw->lo, pw->hi, b->w.res);
+        pw->grid_result = brt_grid_init(&pw->inner, pw->lo, pw->hi, inner_res(b->w.res));
     if (pw->grid_result == BRT_OK)
-        pw->grid_result = brt_voxelize_inner(&pw->inner, pw->corners, b->indices, pw->count, NULL);
-}
-
-/* Adds a point's inner grid to the pool as a second root in the frame of
-** its outer proxy (brt_grid_init gives both grids the same frame). */
-static brt_result point_add_inner(brt_svdag *dag, const brt_grid *inner, batch_entry *e)
-{
-    brt_proxy p;
-    brt_result r = brt_svdag_add(dag, inner, &p);
-    e->inner_root = p.root;
-    return r;
+        pw->grid_result = brt_voxelize_inner(&pw->inner, b->solids);
 }
 
 /* Writes one built point: its blob at the next page, its table entry and
@@ -2771,7 +2773,7 @@ static brt_result point_write(scene_builder *b, point_work *pw, brt_error *err)
     memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1) + 3, e->hi, 3 * sizeof(float));
     r = pw->grid_result;
     if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->grid, &e->proxy);
-    if (r == BRT_OK) r = point_add_inner(w->dag, &pw->inner, e);
+    if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->inner, &e->inner);
     if (r != BRT_OK) return brt_fail(err, r, "%s: building a proxy: %s", w->path, brt_result_string(r));
     return BRT_OK;
 }
@@ -2806,7 +2808,9 @@ static void window_write(void *ctx, size_t first, size_t end)
 
 /* A bucket that fits in memory: read whole, split by medians into
 ** batching points (ties by record order, which is number order), built
-** a window at a time. */
+** a window at a time.  Its closed components are found over the whole
+** bucket, so a solid that batching points cut still gives each of them
+** inner voxels (svdag.c, "Inner proxies"). */
 static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *err)
 {
     uint32_t i, k, m;
@@ -2819,7 +2823,9 @@ static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *er
     }
     b->points.count = 0;
     b->points.order = b->order;
-    if (partition_split(&b->points, b->centroids, 0, bk->count, b->batch_tris) != BRT_OK)
+    if (partition_split(&b->points, b->centroids, 0, bk->count, b->batch_tris) != BRT_OK ||
+        brt_solids_build(b->records[0].v, sizeof *b->records / sizeof(float), bk->count,
+                         &b->solids) != BRT_OK)
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
     j.b = b;
     j.err = err;
@@ -2832,6 +2838,8 @@ static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *er
         }
         pool_run(&b->pool, window_build, window_write, &j, m, 1);
     }
+    brt_solids_free(b->solids);
+    b->solids = NULL;
     return j.result;
 }
 
@@ -3177,19 +3185,16 @@ static int proxy_valid(const brt_scene *s, const brt_proxy *p)
     return p->res == s->header.proxy_res && brt_proxy_check(s->dag, p, NULL) == BRT_OK;
 }
 
-/* A batching point's inner proxy: its root in the outer proxy's frame. */
-static brt_proxy inner_proxy(const batch_entry *b)
+/* An inner proxy: a root of the pool at the resolution inner_res gives. */
+static int inner_valid(const brt_scene *s, const brt_proxy *p)
 {
-    brt_proxy p = b->proxy;
-    p.root = b->inner_root;
-    return p;
+    return p->res == inner_res(s->header.proxy_res) && brt_proxy_check(s->dag, p, NULL) == BRT_OK;
 }
 
 /* One batch table entry: its box, its blob inside the file (whole pages,
 ** as the cache reads them), its proxy. */
 static brt_result check_batch(const brt_scene *s, uint32_t i, const batch_entry *b, brt_error *err)
 {
-    brt_proxy inner = inner_proxy(b);
     if (!box_valid(b->lo, b->hi))
         return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: box not finite or inverted",
                         s->path, i);
@@ -3198,7 +3203,7 @@ static brt_result check_batch(const brt_scene *s, uint32_t i, const batch_entry 
         return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob outside the file", s->path, i);
     if (!proxy_valid(s, &b->proxy))
         return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid proxy", s->path, i);
-    if (!proxy_valid(s, &inner))
+    if (!inner_valid(s, &b->inner))
         return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid inner proxy", s->path, i);
     return BRT_OK;
 }
@@ -3226,6 +3231,21 @@ static brt_result check_batches(const brt_scene *s, brt_error *err)
     return BRT_OK;
 }
 
+/* The frame of a batching point's inner proxy, as the build made it: the
+** grid brt_grid_init fits to its box at inner_res (res 0, which no check
+** passes, when the box is not valid: check_batch names that first). */
+static void inner_frame(batch_entry *b, uint32_t proxy_res)
+{
+    brt_grid g;
+    b->inner.res = 0;
+    if (!box_valid(b->lo, b->hi) || brt_grid_init(&g, b->lo, b->hi, inner_res(proxy_res)) != BRT_OK)
+        return;
+    b->inner.res = g.res;
+    memcpy(b->inner.origin, g.origin, sizeof g.origin);
+    b->inner.cell = g.cell;
+    brt_grid_free(&g);
+}
+
 static brt_result load_batches(brt_scene *s, brt_error *err)
 {
     unsigned char *table;
@@ -3237,8 +3257,10 @@ static brt_result load_batches(brt_scene *s, brt_error *err)
         free(table);
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
     }
-    for (i = 0; i < s->header.batch_count; i++)
+    for (i = 0; i < s->header.batch_count; i++) {
         batch_entry_unpack(table + (size_t)i * BATCH_ENTRY_BYTES, &s->batches[i]);
+        inner_frame(&s->batches[i], s->header.proxy_res);
+    }
     free(table);
     return check_batches(s, err);
 }
@@ -4011,10 +4033,8 @@ static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, fl
 ** intersect_slot) with no queue and no load (README, "Inner proxies"). */
 static int inner_stops(const scheduler *s, ray_slot *r)
 {
-    brt_proxy inner;
     if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
-    inner = inner_proxy(&s->scene->batches[r->key.id]);
-    if (!brt_inner_occludes(s->scene->dag, &inner, &r->ray)) return 0;
+    if (!brt_inner_occludes(s->scene->dag, &s->scene->batches[r->key.id].inner, &r->ray)) return 0;
     r->hit.t = 0;
     r->hit.prim = 0;
     r->hit.u = r->hit.v = 0;

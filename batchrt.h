@@ -454,15 +454,20 @@ brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
 ** proxy or when memory runs out. */
 uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy);
 
-/* Inner voxelization (svdag.c, "Inner proxies"): into an allocated, empty
-** grid, the voxels whose closed box lies inside a closed component of the
-** triangles (every edge used an even number of times by triangles with
-** exactly equal vertex positions), so that a ray from any of them to
-** infinity hits a triangle.  *closed_count (may be NULL): the triangles
-** in closed components. */
-brt_result brt_voxelize_inner(brt_grid *inner, const float *positions,
-                              const uint32_t *indices, uint32_t tri_count,
-                              uint32_t *closed_count);
+/* Inner voxelization (svdag.c, "Inner proxies").  A solids set: the
+** closed components of a set of triangles (every edge used an even number
+** of times by triangles with exactly equal vertex positions, none
+** degenerate); triangle t's corners are the 9 floats at corners + stride * t. */
+typedef struct brt_solids brt_solids;
+brt_result brt_solids_build(const float *corners, size_t stride, uint32_t tri_count,
+                            brt_solids **out);
+uint32_t brt_solids_triangles(const brt_solids *solids);   /* in closed components */
+void brt_solids_free(brt_solids *solids);
+
+/* Into an allocated, empty grid: the voxels whose closed box lies inside a
+** closed component of solids (odd crossing parity), so that a ray from any
+** of them to infinity hits a triangle of solids. */
+brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids);
 
 /* 1 only when the ray, with tfar = +inf, certainly hits a triangle at
 ** t >= tnear: it passes through the core of an inner voxel of the proxy

@@ -1605,38 +1605,39 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 ** The inner grid of a batching point uses the frame of its outer proxy
 ** and is stored as a second root in the same shared pool.
 **
-** WHICH GEOMETRY QUALIFIES.  Triangles are joined into components by
-** exactly equal vertex positions (-0 = +0).  A component is CLOSED when
-** every edge (pair of distinct positions) is used by an even number of its
-** triangles and none of its triangles is degenerate (two equal positions,
-** or a cross product below 2^-40 of |e1||e2|).  A closed component is a
-** 2-cycle mod 2, so for points off its surface the parity of the number
-** of crossings of any path to infinity is well defined (Jordan-Brouwer,
-** mod 2); odd parity is INSIDE.  A component that a batching-point
-** boundary cuts has edges used once within the point and gets nothing
-** (conservative: a solid split across points has no inner voxels).
-** Open geometry never counts, neither as a wall nor as a solid.
+** WHICH GEOMETRY QUALIFIES (brt_solids_build).  The triangles of a set --
+** the scene build passes a whole bucket, all the triangles it holds in
+** memory at once, so a solid cut by batching-point boundaries still counts
+** -- are joined into components by exactly equal vertex positions (-0 =
+** +0).  A component is CLOSED when every edge (pair of distinct positions)
+** is used by an even number of its triangles and none of its triangles is
+** degenerate (two equal positions, or a cross product below 2^-40 of
+** |e1||e2|).  A closed component is a 2-cycle mod 2, so for points off its
+** surface the parity of the number of crossings of any path to infinity is
+** well defined (Jordan-Brouwer, mod 2); odd parity is INSIDE.  A component
+** that a bucket boundary cuts has edges used once within the set and gets
+** nothing (conservative).  Open geometry never counts, neither as a wall
+** nor as a solid.
 **
-** HOW INSIDE IS DECIDED.  The closed components are voxelized with the
-** conservative voxelizer above: an unmarked voxel's closed box touches no
-** closed triangle, so a 6-connected set of unmarked voxels is a connected
-** set off the surface and has one parity.  Unmarked voxels reached from
-** the grid's border are outside (all triangles lie in the grid's box, so a
-** ray from a border voxel straight out crosses nothing).  A flood fill
-** alone does NOT prove the rest inside: a pocket walled in by marked voxels
-** of several small closed solids may still be outside (a path leaves it
-** through the marked voxels between the solids).  So each remaining
-** component's parity is counted: a ray from one voxel centre, in up to four
-** fixed directions, against every closed triangle in double precision;
-** a direction is dropped when some triangle is too close to call (its
-** determinant or a barycentric within a bound of the rounding error,
-** parity_cast), and a component whose every direction is dropped, or past
-** INNER_MAX_COMPONENTS, is left out.  Odd count: every voxel of the
-** component is inner.  (Nested shells: the space between them counts one
-** crossing and is inner; the core inside the inner shell counts two and is
-** left out, although a ray from it is occluded too: parity is a sufficient
-** test, not a necessary one.  Overlapping solids: their common part counts
-** two, left out alike.)
+** HOW INSIDE IS DECIDED (brt_voxelize_inner).  Every closed triangle of the
+** set that comes near the grid's box is voxelized with the conservative
+** voxelizer above: an unmarked voxel's closed box touches no closed
+** triangle, so a 6-connected set of unmarked voxels is a connected set off
+** the surface and has one parity.  A flood fill from the grid's border is
+** NOT a proof (a solid may run past the border; a pocket walled in by
+** marked voxels of several small solids may be outside, a path leaving it
+** through the marked voxels between them), so each component's parity is
+** counted: a ray straight up (+y) from one voxel centre against the closed
+** triangles whose xz boxes hold the centre (a uniform xz grid over the
+** set), in double precision; a triangle too close to call (an xz edge
+** function within its rounding bound of 0, parity_up) makes that voxel
+** undecided, and up to four voxels of the component are tried before it
+** is left out (so is a component past INNER_MAX_COMPONENTS).  Odd count:
+** every voxel of the component is inner.  (Nested shells: the space
+** between them counts one crossing and is inner; the core inside the inner
+** shell counts two and is left out, although a ray from it is occluded
+** too: parity is a sufficient test, not a necessary one.  Overlapping
+** solids: their common part counts two, left out alike.)
 **
 ** THE MARGIN AND ROUNDING (brt_inner_occludes).  The cast never trusts a
 ** voxel whole: it takes the voxel's CORE, the box shrunk by a quarter
@@ -1668,9 +1669,18 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 ** with it; interiors are mostly solid blocks, which dedup to few nodes.
 */
 
-#define INNER_MAX_COMPONENTS 1024u  /* parity casts per batching point */
+#define INNER_MAX_COMPONENTS 1024u  /* parity decisions per grid */
 #define INNER_MAX_CELLS 16384.0     /* 2^14: magnitude bound, in cells */
 #define INNER_CORE 0.25             /* the margin: a voxel's core starts here */
+
+struct brt_solids {
+    float *tris;                /* the closed triangles, 9 floats each */
+    uint32_t count;
+    double x0, z0, cx, cz;      /* the xz index: origin and cell sides */
+    uint32_t nx, nz;
+    uint32_t *first;            /* cell c's triangles: items[first[c] .. first[c+1]) */
+    uint32_t *items;
+};
 
 typedef struct weld_vertex {
     float p[3];
@@ -1698,16 +1708,21 @@ static uint32_t uf_find(uint32_t *parent, uint32_t v)
     return v;
 }
 
+static const float *corner_at(const float *corners, size_t stride, uint32_t t, int k)
+{
+    return corners + stride * t + 3 * k;
+}
+
 /* Vertex ids by exact position: vid[3t + k] for corner k of triangle t. */
-static brt_result weld(const float *positions, const uint32_t *indices, uint32_t n,
-                       uint32_t *vid, uint32_t *unique)
+static brt_result weld(const float *corners, size_t stride, uint32_t n, uint32_t *vid,
+                       uint32_t *unique)
 {
     size_t c, count = 3 * (size_t)n;
     weld_vertex *w = malloc((count ? count : 1) * sizeof *w);
     int i;
     if (!w) return BRT_ENOMEM;
     for (c = 0; c < count; c++) {
-        const float *v = positions + 3 * (size_t)indices[c];
+        const float *v = corner_at(corners, stride, (uint32_t)(c / 3), (int)(c % 3));
         for (i = 0; i < 3; i++) w[c].p[i] = v[i] == 0.0f ? 0.0f : v[i];   /* -0 = +0 */
         w[c].ref = (uint32_t)c;
     }
@@ -1722,16 +1737,14 @@ static brt_result weld(const float *positions, const uint32_t *indices, uint32_t
     return BRT_OK;
 }
 
-static int triangle_degenerate(const float *positions, const uint32_t *tri, const uint32_t *vid)
+static int triangle_degenerate(const float *tri, const uint32_t *vid)
 {
-    const float *a = positions + 3 * (size_t)tri[0], *b = positions + 3 * (size_t)tri[1];
-    const float *c = positions + 3 * (size_t)tri[2];
     double e1[3], e2[3], x[3], l1 = 0, l2 = 0, lx = 0;
     int i;
     if (vid[0] == vid[1] || vid[1] == vid[2] || vid[0] == vid[2]) return 1;
     for (i = 0; i < 3; i++) {
-        e1[i] = (double)b[i] - a[i];
-        e2[i] = (double)c[i] - a[i];
+        e1[i] = (double)tri[3 + i] - tri[i];
+        e2[i] = (double)tri[6 + i] - tri[i];
     }
     for (i = 0; i < 3; i++) {
         x[i] = e1[(i + 1) % 3] * e2[(i + 2) % 3] - e1[(i + 2) % 3] * e2[(i + 1) % 3];
@@ -1743,14 +1756,14 @@ static int triangle_degenerate(const float *positions, const uint32_t *tri, cons
 }
 
 /* closed[t] = 1 for the triangles of closed components (header above). */
-static brt_result closed_triangles(const float *positions, const uint32_t *indices, uint32_t n,
+static brt_result closed_triangles(const float *corners, size_t stride, uint32_t n,
                                    unsigned char *closed)
 {
     uint32_t *vid = malloc((3 * (size_t)n + 1) * sizeof *vid), unique = 0, *parent = NULL, t;
     uint64_t *edges = malloc((3 * (size_t)n + 1) * sizeof *edges);
     unsigned char *bad = NULL;
     size_t e, run;
-    brt_result r = (vid && edges) ? weld(positions, indices, n, vid, &unique) : BRT_ENOMEM;
+    brt_result r = (vid && edges) ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
     if (r == BRT_OK) {
         parent = malloc(((size_t)unique + 1) * sizeof *parent);
         bad = calloc((size_t)unique + 1, 1);
@@ -1766,7 +1779,7 @@ static brt_result closed_triangles(const float *positions, const uint32_t *indic
     for (t = 0; t < n; t++) {
         const uint32_t *v = vid + 3 * (size_t)t;
         int k;
-        if (triangle_degenerate(positions, indices + 3 * (size_t)t, v)) bad[uf_find(parent, v[0])] = 1;
+        if (triangle_degenerate(corner_at(corners, stride, t, 0), v)) bad[uf_find(parent, v[0])] = 1;
         for (k = 0; k < 3; k++) {
             uint32_t a = v[k], b = v[(k + 1) % 3];
             edges[3 * (size_t)t + k] = a < b ? (uint64_t)a << 32 | b : (uint64_t)b << 32 | a;
@@ -1786,83 +1799,170 @@ done:
     return r;
 }
 
-static double dot3(const double a[3], const double b[3])
+/* ---- the xz index of the closed triangles ---- */
+
+static void cell_range(const brt_solids *s, double lo, double hi, int z, uint32_t *a, uint32_t *b)
 {
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    double o = z ? s->z0 : s->x0, c = z ? s->cz : s->cx, n = z ? s->nz : s->nx;
+    double fa = floor((lo - o) / c), fb = floor((hi - o) / c);
+    *a = fa < 0 ? 0 : fa >= n ? (uint32_t)n - 1 : (uint32_t)fa;
+    *b = fb < 0 ? 0 : fb >= n ? (uint32_t)n - 1 : (uint32_t)fb;
 }
 
-static void cross3(const double a[3], const double b[3], double x[3])
+static void tri_extent(const float *t, int axis, double *lo, double *hi)
 {
-    x[0] = a[1] * b[2] - a[2] * b[1];
-    x[1] = a[2] * b[0] - a[0] * b[2];
-    x[2] = a[0] * b[1] - a[1] * b[0];
+    *lo = min2(t[axis], min2(t[3 + axis], t[6 + axis]));
+    *hi = max2(t[axis], max2(t[3 + axis], t[6 + axis]));
+}
+
+/* Counting pass (items NULL: first[] counts) or filling pass. */
+static void index_pass(brt_solids *s, uint32_t *items)
+{
+    uint32_t t, x, z, a[2], b[2];
+    for (t = 0; t < s->count; t++) {
+        double lo, hi;
+        tri_extent(s->tris + 9 * (size_t)t, 0, &lo, &hi);
+        cell_range(s, lo, hi, 0, &a[0], &b[0]);
+        tri_extent(s->tris + 9 * (size_t)t, 2, &lo, &hi);
+        cell_range(s, lo, hi, 1, &a[1], &b[1]);
+        for (z = a[1]; z <= b[1]; z++)
+            for (x = a[0]; x <= b[0]; x++) {
+                uint32_t c = x + s->nx * z;
+                if (items) items[s->first[c]++] = t;
+                else s->first[c + 1]++;
+            }
+    }
+}
+
+static brt_result build_index(brt_solids *s)
+{
+    double xlo = INFINITY, xhi = -INFINITY, zlo = INFINITY, zhi = -INFINITY, lo, hi;
+    uint32_t t, c, side = 1, cells;
+    while (side < 1024 && (uint64_t)side * side * 4 < s->count) side *= 2;
+    for (t = 0; t < s->count; t++) {
+        tri_extent(s->tris + 9 * (size_t)t, 0, &lo, &hi);
+        xlo = min2(xlo, lo); xhi = max2(xhi, hi);
+        tri_extent(s->tris + 9 * (size_t)t, 2, &lo, &hi);
+        zlo = min2(zlo, lo); zhi = max2(zhi, hi);
+    }
+    s->nx = s->nz = side;
+    s->x0 = s->count ? xlo : 0;
+    s->z0 = s->count ? zlo : 0;
+    s->cx = s->count && xhi > xlo ? (xhi - xlo) / side * (1 + 0x1p-40) : 1;
+    s->cz = s->count && zhi > zlo ? (zhi - zlo) / side * (1 + 0x1p-40) : 1;
+    cells = side * side;
+    s->first = calloc((size_t)cells + 1, sizeof *s->first);
+    if (!s->first) return BRT_ENOMEM;
+    index_pass(s, NULL);
+    for (c = 0; c < cells; c++) s->first[c + 1] += s->first[c];
+    s->items = malloc(((size_t)s->first[cells] + 1) * sizeof *s->items);
+    if (!s->items) return BRT_ENOMEM;
+    index_pass(s, s->items);   /* moves first[c] to the end of cell c ... */
+    for (c = cells; c > 0; c--) s->first[c] = s->first[c - 1];
+    s->first[0] = 0;           /* ... so shift back by one cell */
+    return BRT_OK;
+}
+
+brt_result brt_solids_build(const float *corners, size_t stride, uint32_t tri_count,
+                            brt_solids **out)
+{
+    brt_solids *s = calloc(1, sizeof *s);
+    unsigned char *closed = malloc((size_t)tri_count + 1);
+    brt_result r = s && closed ? closed_triangles(corners, stride, tri_count, closed) : BRT_ENOMEM;
+    uint32_t t;
+    *out = NULL;
+    if (r == BRT_OK) {
+        for (t = 0; t < tri_count; t++) s->count += closed[t];
+        s->tris = malloc(((size_t)s->count * 9 + 1) * sizeof *s->tris);
+        if (!s->tris) r = BRT_ENOMEM;
+    }
+    if (r == BRT_OK) {
+        uint32_t m = 0;
+        for (t = 0; t < tri_count; t++)
+            if (closed[t]) memcpy(s->tris + 9 * (size_t)m++, corner_at(corners, stride, t, 0), 36);
+        r = build_index(s);
+    }
+    free(closed);
+    if (r == BRT_OK) *out = s;
+    else brt_solids_free(s);
+    return r;
+}
+
+uint32_t brt_solids_triangles(const brt_solids *s)
+{
+    return s ? s->count : 0;
+}
+
+void brt_solids_free(brt_solids *s)
+{
+    if (!s) return;
+    free(s->tris);
+    free(s->first);
+    free(s->items);
+    free(s);
+}
+
+/* ---- parity ---- */
+
+/* The xz edge function of a -> b at p, and its rounding bound: each
+** difference and product rounds once (relative 2^-53), so the error is
+** below 2^-50 times the sum of the products' magnitudes. */
+static double edge_xz(const float *a, const float *b, const double p[3], double *bound)
+{
+    double l = ((double)b[0] - a[0]) * (p[2] - a[2]), r = ((double)b[2] - a[2]) * (p[0] - a[0]);
+    *bound = 0x1p-50 * (fabs(l) + fabs(r));
+    return l - r;
 }
 
 /*
-** Parity of the crossings of the ray c + t d, t > 0, with the closed
-** triangles (Moller-Trumbore in double): 1 odd, 0 even, -1 when some
-** triangle is too close to call.  Error bound: every quantity is a few
-** double operations on float inputs, so its absolute error is below
-** 2^-46 times the product of the magnitudes involved (the coordinates'
-** size M included, since c - v0 and v1 - v0 round relative to M); a
-** determinant or barycentric within that bound of 0 makes the direction
-** undecided.  c lies at least half a cell from every closed triangle, so
-** t is never near 0.
+** Parity of the crossings of the ray c + t (0, 1, 0), t > 0, with the
+** closed triangles: 1 odd, 0 even, -1 when a triangle is too close to
+** call.  A triangle is crossed when c's xz point is strictly inside its xz
+** projection (three edge functions of one sign, each beyond its bound:
+** then the exact ones have that sign too) and the triangle's height there
+** is above c.  c lies at least half a cell from every closed triangle
+** (walls), so the height is never near c's; one within a quarter cell is
+** called undecided all the same.
 */
-static int parity_cast(const float *positions, const uint32_t *indices, const uint32_t *tris,
-                       uint32_t m, const double c[3], const double d[3], double mag)
+static int parity_up(const brt_solids *s, const double c[3], double cell)
 {
-    uint32_t k;
-    int odd = 0, i;
-    for (k = 0; k < m; k++) {
-        const uint32_t *tri = indices + 3 * (size_t)tris[k];
-        const float *v0 = positions + 3 * (size_t)tri[0];
-        const float *v1 = positions + 3 * (size_t)tri[1], *v2 = positions + 3 * (size_t)tri[2];
-        double e1[3], e2[3], s[3], p[3], q[3], det, u, v, t, le, ls, bound;
+    uint32_t x, z, k, cellno;
+    int odd = 0;
+    cell_range(s, c[0], c[0], 0, &x, &k);
+    cell_range(s, c[2], c[2], 1, &z, &k);
+    cellno = x + s->nx * z;
+    for (k = s->first[cellno]; k < s->first[cellno + 1]; k++) {
+        const float *t = s->tris + 9 * (size_t)s->items[k];
+        double w[3], bound[3], y;
+        int i, pos = 0, neg = 0, near = 0;
         for (i = 0; i < 3; i++) {
-            e1[i] = (double)v1[i] - v0[i];
-            e2[i] = (double)v2[i] - v0[i];
-            s[i] = c[i] - v0[i];
+            w[i] = edge_xz(t + 3 * ((i + 1) % 3), t + 3 * ((i + 2) % 3), c, &bound[i]);
+            pos |= w[i] > bound[i];
+            neg |= w[i] < -bound[i];
+            near |= fabs(w[i]) <= bound[i];
         }
-        cross3(d, e2, p);
-        det = dot3(e1, p);
-        le = sqrt(dot3(e1, e1)) + sqrt(dot3(e2, e2)) + mag;
-        ls = sqrt(dot3(s, s)) + mag;
-        if (fabs(det) <= 0x1p-40 * le * le) return -1;   /* |d| = 1 */
-        cross3(s, e1, q);
-        u = dot3(s, p) / det;
-        v = dot3(d, q) / det;
-        t = dot3(e2, q) / det;
-        bound = 0x1p-46 * ls * le / fabs(det);
-        if (t <= 0 || u < -bound || v < -bound || u + v > 1 + bound) continue;
-        if (u <= bound || v <= bound || u + v >= 1 - bound) return -1;
-        odd ^= 1;
+        if (pos && neg) continue;      /* clearly outside */
+        if (near) return -1;
+        y = (w[0] * t[1] + w[1] * t[4] + w[2] * t[7]) / (w[0] + w[1] + w[2]);
+        if (fabs(y - c[1]) < 0.25 * cell) return -1;
+        odd ^= y > c[1];
     }
     return odd;
 }
 
-/* Parity of the component at voxel (x,y,z) from its centre: the first of
-** four directions that decides (odd: 1), else 0. */
-static int voxel_inside(const brt_grid *g, const float *positions, const uint32_t *indices,
-                        const uint32_t *tris, uint32_t m, uint32_t x, uint32_t y, uint32_t z)
+/* The parity of a component (voxels queue[0..count)): the first of up to
+** four of its voxels that decides; 0 when none does. */
+static int component_inside(const brt_grid *g, const brt_solids *s, const uint32_t *queue,
+                            uint32_t count)
 {
-    static const double dirs[4][3] = {{0.5741, 0.3119, 0.7571}, {-0.6211, 0.4523, -0.6400},
-                                      {0.2003, -0.8812, 0.4283}, {-0.3301, -0.5017, -0.7996}};
-    double c[3], mag = 0;
-    uint32_t xyz[3];
-    int i, k;
-    xyz[0] = x; xyz[1] = y; xyz[2] = z;
-    for (i = 0; i < 3; i++) {
-        c[i] = g->origin[i] + ((double)xyz[i] + 0.5) * g->cell;
-        mag = max2(mag, fabs(g->origin[i]) + (double)g->res * g->cell);
-    }
+    uint32_t k, res = g->res;
     for (k = 0; k < 4; k++) {
-        double d[3], l;
+        uint32_t i = queue[(uint64_t)count * k / 4], at[3], a;
+        double c[3];
         int odd;
-        memcpy(d, dirs[k], sizeof d);
-        l = sqrt(dot3(d, d));
-        for (i = 0; i < 3; i++) d[i] /= l;
-        odd = parity_cast(positions, indices, tris, m, c, d, mag);
+        at[0] = i % res; at[1] = i / res % res; at[2] = i / res / res;
+        for (a = 0; a < 3; a++) c[a] = g->origin[a] + ((double)at[a] + 0.5) * g->cell;
+        odd = parity_up(s, c, g->cell);
         if (odd >= 0) return odd;
     }
     return 0;
@@ -1889,74 +1989,81 @@ static uint32_t flood(const brt_grid *walls, unsigned char *seen, uint32_t *queu
     return count;
 }
 
-/* The components of unmarked voxels: the border's first (outside), then
-** each other one, set in inner when its parity is odd. */
-static void inner_components(const brt_grid *walls, brt_grid *inner, const float *positions,
-                             const uint32_t *indices, const uint32_t *tris, uint32_t m,
+/* Each component of unmarked voxels, set in inner when its parity is odd. */
+static void inner_components(const brt_grid *walls, brt_grid *inner, const brt_solids *s,
                              unsigned char *seen, uint32_t *queue)
 {
-    uint32_t res = walls->res, x, y, z, count = 0, components = 0, k;
-    for (z = 0; z < res; z++)
-        for (y = 0; y < res; y++)
-            for (x = 0; x < res; x++) {
-                uint32_t j = x + res * (y + res * z);
-                int border = x == 0 || y == 0 || z == 0 || x == res - 1 || y == res - 1 || z == res - 1;
-                if (!border || brt_grid_get(walls, x, y, z)) continue;
-                seen[j] = 1;
-                queue[count++] = j;
-            }
-    flood(walls, seen, queue, count);
-    for (z = 0; z < res; z++)
-        for (y = 0; y < res; y++)
-            for (x = 0; x < res; x++) {
-                uint32_t j = x + res * (y + res * z);
-                if (seen[j] || brt_grid_get(walls, x, y, z)) continue;
-                seen[j] = 1;
-                queue[0] = j;
-                count = flood(walls, seen, queue, 1);
-                if (++components > INNER_MAX_COMPONENTS ||
-                    !voxel_inside(walls, positions, indices, tris, m, x, y, z)) continue;
-                for (k = 0; k < count; k++)
-                    brt_grid_set(inner, queue[k] % res, queue[k] / res % res, queue[k] / res / res);
-            }
+    uint32_t res = walls->res, j, count, components = 0, k;
+    for (j = 0; j < res * res * res; j++) {
+        if (seen[j] || brt_grid_get(walls, j % res, j / res % res, j / res / res)) continue;
+        seen[j] = 1;
+        queue[0] = j;
+        count = flood(walls, seen, queue, 1);
+        if (++components > INNER_MAX_COMPONENTS || !component_inside(walls, s, queue, count))
+            continue;
+        for (k = 0; k < count; k++)
+            brt_grid_set(inner, queue[k] % res, queue[k] / res % res, queue[k] / res / res);
+    }
 }
 
-brt_result brt_voxelize_inner(brt_grid *inner, const float *positions, const uint32_t *indices,
-                              uint32_t tri_count, uint32_t *closed_count)
+/* The walls: every closed triangle whose box comes within a cell of the
+** grid's box (the others cannot touch a voxel), voxelized once each. */
+static brt_result voxelize_walls(brt_grid *walls, const brt_solids *s)
+{
+    double lo[3], hi[3];
+    uint32_t a[2], b[2], x, z, k;
+    unsigned char *done = calloc((size_t)s->count + 1, 1);
+    int i;
+    if (!done) return BRT_ENOMEM;
+    for (i = 0; i < 3; i++) {
+        lo[i] = walls->origin[i] - (double)walls->cell;
+        hi[i] = walls->origin[i] + ((double)walls->res + 1) * walls->cell;
+    }
+    cell_range(s, lo[0], hi[0], 0, &a[0], &b[0]);
+    cell_range(s, lo[2], hi[2], 1, &a[1], &b[1]);
+    for (z = a[1]; z <= b[1]; z++)
+        for (x = a[0]; x <= b[0]; x++)
+            for (k = s->first[x + s->nx * z]; k < s->first[x + s->nx * z + 1]; k++) {
+                uint32_t t = s->items[k];
+                const float *v = s->tris + 9 * (size_t)t;
+                double q[3][3], tlo, thi;
+                int c, near = 1;
+                if (done[t]) continue;
+                done[t] = 1;
+                for (i = 0; i < 3; i++) {
+                    tri_extent(v, i, &tlo, &thi);
+                    near &= thi >= lo[i] && tlo <= hi[i];
+                }
+                if (!near) continue;
+                for (c = 0; c < 3; c++)
+                    for (i = 0; i < 3; i++)
+                        q[c][i] = ((double)v[3 * c + i] - walls->origin[i]) / walls->cell;
+                voxelize_triangle(walls, q);
+            }
+    free(done);
+    return BRT_OK;
+}
+
+brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids)
 {
     size_t voxels;
-    unsigned char *closed, *seen = NULL;
-    uint32_t *tris, *tri_indices = NULL, *queue = NULL, m = 0, t;
+    unsigned char *seen;
+    uint32_t *queue;
     brt_grid walls;
     brt_result r;
-    if (closed_count) *closed_count = 0;
-    if (!grid_frame_valid(inner)) return BRT_EARG;
+    if (!grid_frame_valid(inner) || !solids) return BRT_EARG;
+    if (solids->count == 0) return BRT_OK;
     voxels = (size_t)inner->res * inner->res * inner->res;
-    closed = malloc((size_t)tri_count + 1);
-    tris = malloc(((size_t)tri_count + 1) * sizeof *tris);
-    r = closed && tris ? closed_triangles(positions, indices, tri_count, closed) : BRT_ENOMEM;
-    walls.bits = NULL;
+    seen = calloc(voxels, 1);
+    queue = malloc(voxels * sizeof *queue);
+    r = seen && queue ? grid_alloc(&walls, inner->res, inner->origin, inner->cell) : BRT_ENOMEM;
     if (r == BRT_OK) {
-        for (t = 0; t < tri_count; t++)
-            if (closed[t]) tris[m++] = t;
-        if (closed_count) *closed_count = m;
-        tri_indices = malloc((3 * (size_t)m + 1) * sizeof *tri_indices);
-        seen = calloc(voxels, 1);
-        queue = malloc(voxels * sizeof *queue);
-        r = tri_indices && seen && queue ? grid_alloc(&walls, inner->res, inner->origin, inner->cell)
-                                         : BRT_ENOMEM;
+        r = voxelize_walls(&walls, solids);
+        if (r == BRT_OK) inner_components(&walls, inner, solids, seen, queue);
+        free(walls.bits);
     }
-    if (r == BRT_OK && m > 0) {
-        for (t = 0; t < m; t++) memcpy(tri_indices + 3 * (size_t)t, indices + 3 * (size_t)tris[t], 12);
-        r = brt_voxelize(&walls, positions, tri_indices, m);
-        if (r == BRT_OK) inner_components(&walls, inner, positions, indices, tris, m, seen, queue);
-    }
-    free(closed);
-    free(tris);
-    free(tri_indices);
     free(seen);
     free(queue);
-    free(walls.bits);
     return r;
 }
 

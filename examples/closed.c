@@ -24,9 +24,9 @@ int main(int argc, char **argv)
     const char *prog = "closed";
     double scale = 1.0;
     uint64_t seed = 1;
-    float lo[3], hi[3];
-    uint32_t closed = 0;
-    brt_grid grid;
+    brt_solids *solids = NULL;
+    float *corners;
+    uint32_t t;
     brt_mesh mesh;
     brt_error err;
     brt_result r;
@@ -45,15 +45,19 @@ int main(int argc, char **argv)
     r = ex_scene_generate(argv[1], scale, seed, &mesh, &err);
     if (r == BRT_EARG) r = brt_mesh_load(argv[1], &mesh, &err);
     ex_check(prog, r, &err);
-    brt_mesh_bounds(&mesh, lo, hi);
-    /* The smallest grid: only the count is wanted, not the voxels. */
-    r = brt_grid_init(&grid, lo, hi, 2);
-    if (r == BRT_OK)
-        r = brt_voxelize_inner(&grid, mesh.positions, mesh.indices, mesh.triangle_count, &closed);
+    corners = malloc((9 * (size_t)mesh.triangle_count + 1) * sizeof *corners);
+    if (!corners) ex_die(prog, "out of memory for %u triangles", mesh.triangle_count);
+    for (t = 0; t < mesh.triangle_count; t++)
+        for (i = 0; i < 3; i++)
+            memcpy(corners + 9 * (size_t)t + 3 * i, mesh.positions + 3 * (size_t)mesh.indices[3 * (size_t)t + i],
+                   3 * sizeof *corners);
+    r = brt_solids_build(corners, 9, mesh.triangle_count, &solids);
     if (r != BRT_OK) ex_die(prog, "%s: %s", argv[1], brt_result_string(r));
     printf("%s: %u triangles, %u in closed components (%.1f %%)\n", argv[1], mesh.triangle_count,
-           closed, mesh.triangle_count ? 100.0 * closed / mesh.triangle_count : 0.0);
-    brt_grid_free(&grid);
+           brt_solids_triangles(solids),
+           mesh.triangle_count ? 100.0 * brt_solids_triangles(solids) / mesh.triangle_count : 0.0);
+    brt_solids_free(solids);
+    free(corners);
     brt_mesh_free(&mesh);
     return 0;
 }

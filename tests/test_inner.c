@@ -173,22 +173,51 @@ static void make_ray(const tu_scene *s, uint64_t *st, brt_ray *r)
     r->tfar = brt_random_u64(st) % 8 ? INFINITY : tu_rnd(st, 0, 1);
 }
 
-/* The inner proxy of a whole soup at resolution res, through the API. */
-static brt_result inner_of(const tu_scene *s, uint32_t res, brt_svdag *dag, brt_proxy *p,
-                           uint64_t *voxels, uint32_t *closed)
+/* The closed components of an indexed mesh (its corners copied out). */
+static brt_result solids_of(const float *pos, const uint32_t *idx, uint32_t n, brt_solids **out)
+{
+    float *corners = malloc((9 * (size_t)n + 1) * sizeof *corners);
+    uint32_t t;
+    int k;
+    brt_result r = BRT_ENOMEM;
+    if (corners) {
+        for (t = 0; t < n; t++)
+            for (k = 0; k < 3; k++) memcpy(corners + 9 * (size_t)t + 3 * k, pos + 3 * (size_t)idx[3 * t + k], 12);
+        r = brt_solids_build(corners, 9, n, out);
+    }
+    free(corners);
+    return r;
+}
+
+/* The inner proxy of a whole soup at resolution res, through the API, in
+** a grid over the box [lo, hi] (NULL: the soup's box). */
+static brt_result inner_in(const tu_scene *s, uint32_t res, const float *lo_in, const float *hi_in,
+                           brt_svdag *dag, brt_proxy *p, uint64_t *voxels, uint32_t *closed)
 {
     float lo[3], hi[3];
+    brt_solids *solids = NULL;
     brt_grid g;
     brt_result r;
     tu_scene_bounds(s, lo, hi);
-    r = brt_grid_init(&g, lo, hi, res);
-    if (r == BRT_OK) r = brt_voxelize_inner(&g, s->pos, s->idx, s->tcount, closed);
+    r = brt_grid_init(&g, lo_in ? lo_in : lo, hi_in ? hi_in : hi, res);
+    if (r == BRT_OK) r = solids_of(s->pos, s->idx, s->tcount, &solids);
+    if (r == BRT_OK) {
+        *closed = brt_solids_triangles(solids);
+        r = brt_voxelize_inner(&g, solids);
+    }
     if (r == BRT_OK) {
         *voxels = brt_grid_count(&g);
         r = brt_svdag_add(dag, &g, p);
     }
+    brt_solids_free(solids);
     brt_grid_free(&g);
     return r;
+}
+
+static brt_result inner_of(const tu_scene *s, uint32_t res, brt_svdag *dag, brt_proxy *p,
+                           uint64_t *voxels, uint32_t *closed)
+{
+    return inner_in(s, res, NULL, NULL, dag, p, voxels, closed);
 }
 
 /* ---- tests ------------------------------------------------------------- */
@@ -198,11 +227,12 @@ static brt_result inner_of(const tu_scene *s, uint32_t res, brt_svdag *dag, brt_
 ** many rays, open ones have none. */
 static void test_one_sided_api(void)
 {
-    static const uint32_t resolutions[] = {16, 64};
+    static const uint32_t resolutions[] = {16, 64, 32};
+    static const float part_lo[3] = {0.3f, 0.25f, 0.35f}, part_hi[3] = {0.62f, 0.7f, 0.55f};
     int kind;
     size_t q;
     for (kind = 0; kind < SOLID_KINDS && !test_failed(); kind++)
-        for (q = 0; q < 2 && !test_failed(); q++) {
+        for (q = 0; q < 3 && !test_failed(); q++) {
             uint64_t st = test_seed() + 977u * (uint64_t)kind, voxels = 0;
             uint32_t closed = 0, i, stopped = 0, occluded = 0, inside_voxels_expected;
             brt_svdag *dag = NULL;
@@ -210,11 +240,15 @@ static void test_one_sided_api(void)
             tu_scene s;
             make_solids(&s, kind, &st);
             CHECK(brt_svdag_create(&dag) == BRT_OK, "no pool");
-            CHECK(inner_of(&s, resolutions[q], dag, &p, &voxels, &closed) == BRT_OK,
+            /* the third grid covers part of the solids only: a batching
+            ** point that cuts them */
+            CHECK(inner_in(&s, resolutions[q], q == 2 ? part_lo : NULL, q == 2 ? part_hi : NULL,
+                           dag, &p, &voxels, &closed) == BRT_OK,
                   "%s: inner voxelization failed", solid_name[kind]);
             inside_voxels_expected = kind != SOLID_HOLE && kind != SOLID_SMALL_HOLE &&
                                      kind != SOLID_PEBBLES;
-            EXPECT(kind == SOLID_PEBBLES || (inside_voxels_expected ? voxels > 0 : voxels == 0),
+            EXPECT(kind == SOLID_PEBBLES || (q == 2 && kind == SOLID_MANY) ||
+                       (inside_voxels_expected ? voxels > 0 : voxels == 0),
                    "%s, res %u: %llu inner voxels", solid_name[kind], resolutions[q],
                    (unsigned long long)voxels);
             EXPECT(kind == SOLID_HOLE || kind == SOLID_SMALL_HOLE
@@ -233,7 +267,7 @@ static void test_one_sided_api(void)
                                  solid_name[kind], resolutions[q], (unsigned long long)test_seed(), i,
                                  r.org[0], r.org[1], r.org[2], r.dir[0], r.dir[1], r.dir[2], r.tnear);
             }
-            EXPECT(!inside_voxels_expected || resolutions[q] < 64 || stopped > occluded / 10,
+            EXPECT(!inside_voxels_expected || q != 1 || stopped > occluded / 10,
                    "%s, res %u: inner proxy stopped %u of %u occluded rays", solid_name[kind],
                    resolutions[q], stopped, occluded);
             brt_svdag_free(dag);
@@ -345,9 +379,11 @@ static void test_open_geometry_walls_nothing(void)
 
 /* A scene of balls: occlusion bytes identical across brute force, direct,
 ** batched with inner proxies on and off, at memory limits; inner proxies
-** stop rays when each ball lies in one batching point, and none when the
-** batching points cut the balls (their components are open in each). */
-static void check_scene(const tu_scene *s, uint32_t batch_tris, int expect_stopped, const char *what)
+** stop rays when each ball lies in one bucket of the build (whether or not
+** batching points cut it), and none when the buckets cut the balls (their
+** components are open in each). */
+static void check_scene(const tu_scene *s, uint32_t batch_tris, uint32_t bucket_tris, int expect_stopped,
+                        const char *what)
 {
     static const uint64_t limits[] = {0, 1};
     brt_mesh mesh = tu_mesh_view(s);
@@ -366,6 +402,7 @@ static void check_scene(const tu_scene *s, uint32_t batch_tris, int expect_stopp
     memset(&sopt, 0, sizeof sopt);
     sopt.batch_tris = batch_tris;
     sopt.proxy_res = 32;
+    sopt.test_bucket_tris = bucket_tris;
     CHECK(brt_scene_build(&mesh, &sopt, 0, tu_scratch("inner.brs"), &err) == BRT_OK, "%s", err.message);
     CHECK(brt_scene_open(tu_scratch("inner.brs"), &scene, &err) == BRT_OK, "%s", err.message);
     for (k = 0; k < 4 && !test_failed(); k++) {
@@ -411,8 +448,9 @@ static void test_scene_balls(void)
         c[2] = 0.25f + 0.5f * (float)(i >> 2);
         add_ball(&s, c, 0.18f, 4, 0.05f, &st);
     }
-    check_scene(&s, 192, 1, "a ball per batching point");
-    check_scene(&s, 100, 0, "balls cut by batching points");
+    check_scene(&s, 192, 0, 1, "a ball per batching point");
+    check_scene(&s, 100, 0, 1, "balls cut by batching points, one bucket");
+    check_scene(&s, 100, 100, 0, "balls cut by buckets");
     tu_scene_free(&s);
 }
 
@@ -489,17 +527,15 @@ static void test_builtin_closed_parts(void)
     for (k = 0; k < 3; k++) {
         brt_mesh mesh;
         brt_error err;
-        brt_grid g;
-        float lo[3], hi[3];
+        brt_solids *solids = NULL;
         uint32_t closed = 0;
         CHECK(ex_scene_generate(scenes[k].name, 0.2, 1, &mesh, &err) == BRT_OK, "%s", err.message);
-        brt_mesh_bounds(&mesh, lo, hi);
-        CHECK(brt_grid_init(&g, lo, hi, 2) == BRT_OK, "no grid");
-        EXPECT(brt_voxelize_inner(&g, mesh.positions, mesh.indices, mesh.triangle_count, &closed)
-                   == BRT_OK && closed >= scenes[k].least * mesh.triangle_count,
+        if (solids_of(mesh.positions, mesh.indices, mesh.triangle_count, &solids) == BRT_OK)
+            closed = brt_solids_triangles(solids);
+        EXPECT(closed >= scenes[k].least * mesh.triangle_count,
                "%s: %u of %u triangles in closed components, expected at least %.0f %%",
                scenes[k].name, closed, mesh.triangle_count, 100 * scenes[k].least);
-        brt_grid_free(&g);
+        brt_solids_free(solids);
         brt_mesh_free(&mesh);
     }
 }
