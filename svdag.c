@@ -1602,8 +1602,8 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 ** The paper's future work (section 4.3): a second voxelization whose set
 ** voxels lie certainly inside solid geometry, so that an occlusion ray
 ** with tfar = +inf that passes through one is occluded without a load.
-** The inner grid of a batching point uses the frame of its outer proxy
-** and is stored as a second root in the same shared pool.
+** The inner grid of a batching point is fitted to its box like the outer
+** proxy's and stored as a second root in the same shared pool.
 **
 ** WHICH GEOMETRY QUALIFIES (brt_solids_build).  The triangles of a set --
 ** the scene build passes a whole bucket, all the triangles it holds in
@@ -1665,8 +1665,10 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 ** t_s >= tnear are used, so the hit beyond is at t > tnear too.
 **
 ** STORAGE (measured, README "Inner proxies"): a second root per batching
-** point in the shared pool, same frame as the outer proxy, deduplicated
-** with it; interiors are mostly solid blocks, which dedup to few nodes.
+** point in the shared pool, deduplicated with the outer proxies, at half
+** their resolution (batchrt.c, inner_res): interiors are mostly solid
+** blocks, which dedup to few nodes, but their surfaces are as unique as
+** the outer proxies', and at full resolution they doubled the pool.
 */
 
 #define INNER_MAX_COMPONENTS 1024u  /* parity decisions per grid */
