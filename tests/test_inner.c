@@ -546,7 +546,7 @@ void suite_inner(void)
              test_one_sided_api);
     test_run("inner: open geometry walls nothing in", test_open_geometry_walls_nothing);
     test_run("inner: the cast keeps its margin and tnear", test_core_margin);
-    test_run("inner: batched occlusion == brute force, inner on/off, cut solids get none",
+    test_run("inner: batched occlusion == brute force, inner on/off, solids cut by points and buckets",
              test_scene_balls);
     test_run("inner: trace --occlusion files direct == batched, inner on and off", test_trace_files);
     test_run("inner: built-in scenes have closed parts", test_builtin_closed_parts);
