@@ -457,7 +457,8 @@ uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy);
 /* Inner voxelization (svdag.c, "Inner proxies").  A solids set: the
 ** closed components of a set of triangles (every edge used an even number
 ** of times by triangles with exactly equal vertex positions, none
-** degenerate); triangle t's corners are the 9 floats at corners + stride * t. */
+** degenerate); triangle t's corners are the 9 floats at corners + stride * t,
+** which the set refers to: keep them until brt_solids_free. */
 typedef struct brt_solids brt_solids;
 brt_result brt_solids_build(const float *corners, size_t stride, uint32_t tri_count,
                             brt_solids **out);

@@ -1676,7 +1676,9 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 #define INNER_CORE 0.25             /* the margin: a voxel's core starts here */
 
 struct brt_solids {
-    float *tris;                /* the closed triangles, 9 floats each */
+    const float *corners;       /* the caller's triangles (kept alive by it) */
+    size_t stride;
+    uint32_t *ids;              /* the closed ones among them */
     uint32_t count;
     double x0, z0, cx, cz;      /* the xz index: origin and cell sides */
     uint32_t nx, nz;
@@ -1762,14 +1764,17 @@ static brt_result closed_triangles(const float *corners, size_t stride, uint32_t
                                    unsigned char *closed)
 {
     uint32_t *vid = malloc((3 * (size_t)n + 1) * sizeof *vid), unique = 0, *parent = NULL, t;
-    uint64_t *edges = malloc((3 * (size_t)n + 1) * sizeof *edges);
+    uint64_t *edges = NULL;
     unsigned char *bad = NULL;
     size_t e, run;
-    brt_result r = (vid && edges) ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
+    /* weld's 16 bytes a corner are freed before the edges' 8 are taken:
+    ** the peak is 20 bytes a corner (a full bucket, 1.68 M triangles: 100 MB) */
+    brt_result r = vid ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
     if (r == BRT_OK) {
+        edges = malloc((3 * (size_t)n + 1) * sizeof *edges);
         parent = malloc(((size_t)unique + 1) * sizeof *parent);
         bad = calloc((size_t)unique + 1, 1);
-        if (!parent || !bad) r = BRT_ENOMEM;
+        if (!edges || !parent || !bad) r = BRT_ENOMEM;
     }
     if (r != BRT_OK) goto done;
     for (t = 0; t < unique; t++) parent[t] = t;
@@ -1803,6 +1808,12 @@ done:
 
 /* ---- the xz index of the closed triangles ---- */
 
+/* Closed triangle t's 9 floats. */
+static const float *solid_tri(const brt_solids *s, uint32_t t)
+{
+    return corner_at(s->corners, s->stride, s->ids[t], 0);
+}
+
 static void cell_range(const brt_solids *s, double lo, double hi, int z, uint32_t *a, uint32_t *b)
 {
     double o = z ? s->z0 : s->x0, c = z ? s->cz : s->cx, n = z ? s->nz : s->nx;
@@ -1823,9 +1834,9 @@ static void index_pass(brt_solids *s, uint32_t *items)
     uint32_t t, x, z, a[2], b[2];
     for (t = 0; t < s->count; t++) {
         double lo, hi;
-        tri_extent(s->tris + 9 * (size_t)t, 0, &lo, &hi);
+        tri_extent(solid_tri(s, t), 0, &lo, &hi);
         cell_range(s, lo, hi, 0, &a[0], &b[0]);
-        tri_extent(s->tris + 9 * (size_t)t, 2, &lo, &hi);
+        tri_extent(solid_tri(s, t), 2, &lo, &hi);
         cell_range(s, lo, hi, 1, &a[1], &b[1]);
         for (z = a[1]; z <= b[1]; z++)
             for (x = a[0]; x <= b[0]; x++) {
@@ -1842,9 +1853,9 @@ static brt_result build_index(brt_solids *s)
     uint32_t t, c, side = 1, cells;
     while (side < 1024 && (uint64_t)side * side * 4 < s->count) side *= 2;
     for (t = 0; t < s->count; t++) {
-        tri_extent(s->tris + 9 * (size_t)t, 0, &lo, &hi);
+        tri_extent(solid_tri(s, t), 0, &lo, &hi);
         xlo = min2(xlo, lo); xhi = max2(xhi, hi);
-        tri_extent(s->tris + 9 * (size_t)t, 2, &lo, &hi);
+        tri_extent(solid_tri(s, t), 2, &lo, &hi);
         zlo = min2(zlo, lo); zhi = max2(zhi, hi);
     }
     s->nx = s->nz = side;
@@ -1875,13 +1886,15 @@ brt_result brt_solids_build(const float *corners, size_t stride, uint32_t tri_co
     *out = NULL;
     if (r == BRT_OK) {
         for (t = 0; t < tri_count; t++) s->count += closed[t];
-        s->tris = malloc(((size_t)s->count * 9 + 1) * sizeof *s->tris);
-        if (!s->tris) r = BRT_ENOMEM;
+        s->ids = malloc(((size_t)s->count + 1) * sizeof *s->ids);
+        s->corners = corners;
+        s->stride = stride;
+        if (!s->ids) r = BRT_ENOMEM;
     }
     if (r == BRT_OK) {
         uint32_t m = 0;
         for (t = 0; t < tri_count; t++)
-            if (closed[t]) memcpy(s->tris + 9 * (size_t)m++, corner_at(corners, stride, t, 0), 36);
+            if (closed[t]) s->ids[m++] = t;
         r = build_index(s);
     }
     free(closed);
@@ -1898,7 +1911,7 @@ uint32_t brt_solids_triangles(const brt_solids *s)
 void brt_solids_free(brt_solids *s)
 {
     if (!s) return;
-    free(s->tris);
+    free(s->ids);
     free(s->first);
     free(s->items);
     free(s);
@@ -1934,7 +1947,7 @@ static int parity_up(const brt_solids *s, const double c[3], double cell)
     cell_range(s, c[2], c[2], 1, &z, &k);
     cellno = x + s->nx * z;
     for (k = s->first[cellno]; k < s->first[cellno + 1]; k++) {
-        const float *t = s->tris + 9 * (size_t)s->items[k];
+        const float *t = solid_tri(s, s->items[k]);
         double w[3], bound[3], y;
         int i, pos = 0, neg = 0, near = 0;
         for (i = 0; i < 3; i++) {
@@ -2027,7 +2040,7 @@ static brt_result voxelize_walls(brt_grid *walls, const brt_solids *s)
         for (x = a[0]; x <= b[0]; x++)
             for (k = s->first[x + s->nx * z]; k < s->first[x + s->nx * z + 1]; k++) {
                 uint32_t t = s->items[k];
-                const float *v = s->tris + 9 * (size_t)t;
+                const float *v = solid_tri(s, t);
                 double q[3][3], tlo, thi;
                 int c, near = 1;
                 if (done[t]) continue;

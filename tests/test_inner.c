@@ -173,20 +173,19 @@ static void make_ray(const tu_scene *s, uint64_t *st, brt_ray *r)
     r->tfar = brt_random_u64(st) % 8 ? INFINITY : tu_rnd(st, 0, 1);
 }
 
-/* The closed components of an indexed mesh (its corners copied out). */
-static brt_result solids_of(const float *pos, const uint32_t *idx, uint32_t n, brt_solids **out)
+/* The closed components of an indexed mesh, over its corners copied out
+** into *corners (free it after brt_solids_free). */
+static brt_result solids_of(const float *pos, const uint32_t *idx, uint32_t n, brt_solids **out,
+                           float **corners)
 {
-    float *corners = malloc((9 * (size_t)n + 1) * sizeof *corners);
     uint32_t t;
     int k;
-    brt_result r = BRT_ENOMEM;
-    if (corners) {
-        for (t = 0; t < n; t++)
-            for (k = 0; k < 3; k++) memcpy(corners + 9 * (size_t)t + 3 * k, pos + 3 * (size_t)idx[3 * t + k], 12);
-        r = brt_solids_build(corners, 9, n, out);
-    }
-    free(corners);
-    return r;
+    *out = NULL;
+    *corners = malloc((9 * (size_t)n + 1) * sizeof **corners);
+    if (!*corners) return BRT_ENOMEM;
+    for (t = 0; t < n; t++)
+        for (k = 0; k < 3; k++) memcpy(*corners + 9 * (size_t)t + 3 * k, pos + 3 * (size_t)idx[3 * t + k], 12);
+    return brt_solids_build(*corners, 9, n, out);
 }
 
 /* The inner proxy of a whole soup at resolution res, through the API, in
@@ -196,11 +195,12 @@ static brt_result inner_in(const tu_scene *s, uint32_t res, const float *lo_in, 
 {
     float lo[3], hi[3];
     brt_solids *solids = NULL;
+    float *corners = NULL;
     brt_grid g;
     brt_result r;
     tu_scene_bounds(s, lo, hi);
     r = brt_grid_init(&g, lo_in ? lo_in : lo, hi_in ? hi_in : hi, res);
-    if (r == BRT_OK) r = solids_of(s->pos, s->idx, s->tcount, &solids);
+    if (r == BRT_OK) r = solids_of(s->pos, s->idx, s->tcount, &solids, &corners);
     if (r == BRT_OK) {
         *closed = brt_solids_triangles(solids);
         r = brt_voxelize_inner(&g, solids);
@@ -210,6 +210,7 @@ static brt_result inner_in(const tu_scene *s, uint32_t res, const float *lo_in, 
         r = brt_svdag_add(dag, &g, p);
     }
     brt_solids_free(solids);
+    free(corners);
     brt_grid_free(&g);
     return r;
 }
@@ -528,14 +529,16 @@ static void test_builtin_closed_parts(void)
         brt_mesh mesh;
         brt_error err;
         brt_solids *solids = NULL;
+        float *corners = NULL;
         uint32_t closed = 0;
         CHECK(ex_scene_generate(scenes[k].name, 0.2, 1, &mesh, &err) == BRT_OK, "%s", err.message);
-        if (solids_of(mesh.positions, mesh.indices, mesh.triangle_count, &solids) == BRT_OK)
+        if (solids_of(mesh.positions, mesh.indices, mesh.triangle_count, &solids, &corners) == BRT_OK)
             closed = brt_solids_triangles(solids);
         EXPECT(closed >= scenes[k].least * mesh.triangle_count,
                "%s: %u of %u triangles in closed components, expected at least %.0f %%",
                scenes[k].name, closed, mesh.triangle_count, 100 * scenes[k].least);
         brt_solids_free(solids);
+        free(corners);
         brt_mesh_free(&mesh);
     }
 }
