@@ -1686,30 +1686,14 @@ struct brt_solids {
     uint32_t *items;
 };
 
-typedef struct weld_vertex {
-    float p[3];
-    uint32_t ref;                  /* corner number, 3 * triangle + k */
-} weld_vertex;
-
-static int weld_before(const void *a, const void *b)
+/* A corner's position with -0 made +0 (equal values weld), as bits. */
+static void corner_bits(const float *v, uint32_t bits[3])
 {
-    const weld_vertex *u = a, *v = b;
     int i;
-    for (i = 0; i < 3; i++)
-        if (u->p[i] != v->p[i]) return u->p[i] < v->p[i] ? -1 : 1;
-    return 0;
-}
-
-static int u64_before(const void *a, const void *b)
-{
-    uint64_t u = *(const uint64_t *)a, v = *(const uint64_t *)b;
-    return u < v ? -1 : u > v;
-}
-
-static uint32_t uf_find(uint32_t *parent, uint32_t v)
-{
-    while (parent[v] != v) v = parent[v] = parent[parent[v]];
-    return v;
+    for (i = 0; i < 3; i++) {
+        float f = v[i] == 0.0f ? 0.0f : v[i];
+        memcpy(&bits[i], &f, 4);
+    }
 }
 
 static const float *corner_at(const float *corners, size_t stride, uint32_t t, int k)
@@ -1717,28 +1701,82 @@ static const float *corner_at(const float *corners, size_t stride, uint32_t t, i
     return corners + stride * t + 3 * k;
 }
 
-/* Vertex ids by exact position: vid[3t + k] for corner k of triangle t. */
+static const float *corner_ref(const float *corners, size_t stride, uint32_t ref)
+{
+    return corner_at(corners, stride, ref / 3, (int)(ref % 3));
+}
+
+/*
+** Vertex ids by exact position: vid[3t + k] for corner k of triangle t.
+** An open-addressing table of ids (load at most 3/4), each id remembered
+** by its first corner: 20 bytes a corner at most, where a sort would take
+** twice the corners' positions (glibc's qsort copies its array).
+*/
 static brt_result weld(const float *corners, size_t stride, uint32_t n, uint32_t *vid,
                        uint32_t *unique)
 {
-    size_t c, count = 3 * (size_t)n;
-    weld_vertex *w = malloc((count ? count : 1) * sizeof *w);
-    int i;
-    if (!w) return BRT_ENOMEM;
-    for (c = 0; c < count; c++) {
-        const float *v = corner_at(corners, stride, (uint32_t)(c / 3), (int)(c % 3));
-        for (i = 0; i < 3; i++) w[c].p[i] = v[i] == 0.0f ? 0.0f : v[i];   /* -0 = +0 */
-        w[c].ref = (uint32_t)c;
-    }
-    qsort(w, count, sizeof *w, weld_before);
+    size_t count = 3 * (size_t)n, cap = 4, c;
+    uint32_t *slot, *first;
+    while (cap < count + count / 3 + 1) cap *= 2;
+    slot = calloc(cap, sizeof *slot);
+    first = malloc((count + 1) * sizeof *first);
     *unique = 0;
-    for (c = 0; c < count; c++) {
-        if (c > 0 && weld_before(&w[c - 1], &w[c]) != 0) (*unique)++;
-        vid[w[c].ref] = *unique;
+    if (!slot || !first) {
+        free(slot);
+        free(first);
+        return BRT_ENOMEM;
     }
-    if (count) (*unique)++;
-    free(w);
+    for (c = 0; c < count; c++) {
+        uint32_t b[3], o[3];
+        size_t h;
+        corner_bits(corner_ref(corners, stride, (uint32_t)c), b);
+        h = (size_t)mix64(((uint64_t)b[0] << 32 | b[1]) ^ mix64(b[2])) & (cap - 1);
+        for (;; h = (h + 1) & (cap - 1)) {
+            if (!slot[h]) {
+                first[*unique] = (uint32_t)c;
+                slot[h] = ++*unique;
+                break;
+            }
+            corner_bits(corner_ref(corners, stride, first[slot[h] - 1]), o);
+            if (memcmp(b, o, sizeof b) == 0) break;
+        }
+        vid[c] = slot[h] - 1;
+    }
+    free(slot);
+    free(first);
     return BRT_OK;
+}
+
+/* Sorts in place (heapsort): no second array, unlike qsort. */
+static void sift_down(uint64_t *a, size_t i, size_t n)
+{
+    for (;;) {
+        size_t c = 2 * i + 1;
+        uint64_t t;
+        if (c >= n) return;
+        if (c + 1 < n && a[c + 1] > a[c]) c++;
+        if (a[i] >= a[c]) return;
+        t = a[i]; a[i] = a[c]; a[c] = t;
+        i = c;
+    }
+}
+
+static void heap_sort64(uint64_t *a, size_t n)
+{
+    size_t i;
+    for (i = n / 2; i-- > 0;) sift_down(a, i, n);
+    while (n > 1) {
+        uint64_t t = a[0];
+        a[0] = a[--n];
+        a[n] = t;
+        sift_down(a, 0, n);
+    }
+}
+
+static uint32_t uf_find(uint32_t *parent, uint32_t v)
+{
+    while (parent[v] != v) v = parent[v] = parent[parent[v]];
+    return v;
 }
 
 static int triangle_degenerate(const float *tri, const uint32_t *vid)
@@ -1767,8 +1805,8 @@ static brt_result closed_triangles(const float *corners, size_t stride, uint32_t
     uint64_t *edges = NULL;
     unsigned char *bad = NULL;
     size_t e, run;
-    /* weld's 16 bytes a corner are freed before the edges' 8 are taken:
-    ** the peak is 20 bytes a corner (a full bucket, 1.68 M triangles: 100 MB) */
+    /* weld's table is freed before the edges are taken: the peak is about
+    ** 16 bytes a corner (a full bucket, 1.68 M triangles: about 80 MB) */
     brt_result r = vid ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
     if (r == BRT_OK) {
         edges = malloc((3 * (size_t)n + 1) * sizeof *edges);
@@ -1792,7 +1830,7 @@ static brt_result closed_triangles(const float *corners, size_t stride, uint32_t
             edges[3 * (size_t)t + k] = a < b ? (uint64_t)a << 32 | b : (uint64_t)b << 32 | a;
         }
     }
-    qsort(edges, 3 * (size_t)n, sizeof *edges, u64_before);
+    heap_sort64(edges, 3 * (size_t)n);
     for (e = 0; e < 3 * (size_t)n; e += run) {   /* an edge used an odd number of times */
         for (run = 1; e + run < 3 * (size_t)n && edges[e + run] == edges[e]; run++) {}
         if (run & 1) bad[uf_find(parent, (uint32_t)(edges[e] >> 32))] = 1;
