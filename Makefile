@@ -118,7 +118,7 @@ bench: all
 	./$(BUILD)/bench_bvh
 	./$(BUILD)/bench_svdag
 
-# Out of core: proxies on and off at 25 % of the geometry bytes (issue 4).
+# Out of core: proxies on and off at 25 % of the geometry bytes (README, Benchmarks).
 bench-batched: all
 	./$(BUILD)/bench_batched landscape --scale 50
 

@@ -6,7 +6,7 @@
 ** loop over brt_intersect_triangle for hits, geometry for rays, a
 ** self-written PNG decoder for the PNG writer of examples/common.c).
 **
-** Out of core from end to end (issue 14): batched runs work from the
+** Out of core from end to end (README, same title): batched runs work from the
 ** scene file alone (the mesh file replaced by garbage, its stamp kept),
 ** every program's statistics carry peak_rss_bytes, SIGINT and SIGTERM
 ** leave no temporary file behind, and trace --batched equals --direct on
