@@ -87,7 +87,10 @@ int main(int argc, char **argv)
         return 1;
     }
     /* The direct mode, the reference: one BVH over the whole mesh. */
-    if (brt_bvh_build(positions, indices, 20, NULL, &bvh) != BRT_OK) return 1;
+    if (brt_bvh_build(positions, indices, 20, NULL, &bvh) != BRT_OK) {
+        fprintf(stderr, "minimal_batched: out of memory\n");
+        return 1;
+    }
     for (i = 0; i < SIDE * SIDE; i++) {
         brt_hit_clear(&direct[i]);
         brt_bvh_intersect(bvh, &rays[i], &direct[i]);
