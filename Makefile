@@ -458,13 +458,14 @@ uninstall:
 
 # Without pkg-config the flags are read from batchrt.pc itself: its variable
 # lines (name=value, ${name} references) are shell assignments, so eval
-# expands them as pkg-config would; a line says so.
-INSTALL_CHECK = $(BUILD)/install-check
+# expands them as pkg-config would; a line says so.  The lines that run
+# $(MAKE) are separate so that "make -n install-check" only prints.
+INSTALL_CHECK = $(abspath $(BUILD))/install-check
 install-check: $(LIB) $(BUILD)/minimal_batched
 	$(SAY) CHECK "make install, pkg-config, $(INSTALL_CHECK)"
-	$(Q)set -e; d="$(CURDIR)/$(INSTALL_CHECK)"; rm -rf "$$d"; mkdir -p "$$d"; \
-	$(MAKE) --no-print-directory -s install PREFIX="$$d/prefix" DESTDIR=; \
-	pc="$$d/prefix/lib/pkgconfig/batchrt.pc"; \
+	$(Q)rm -rf "$(INSTALL_CHECK)" && mkdir -p "$(INSTALL_CHECK)"
+	$(Q)$(MAKE) --no-print-directory -s install PREFIX="$(INSTALL_CHECK)/prefix" DESTDIR=
+	$(Q)set -e; d="$(INSTALL_CHECK)"; pc="$$d/prefix/lib/pkgconfig/batchrt.pc"; \
 	if command -v $(PKG_CONFIG) >/dev/null 2>&1; then \
 	  flags=$$(PKG_CONFIG_PATH="$$d/prefix/lib/pkgconfig" $(PKG_CONFIG) --cflags --libs batchrt); \
 	else echo "install-check: no $(PKG_CONFIG); the flags are read from batchrt.pc with sed"; \
@@ -475,13 +476,15 @@ install-check: $(LIB) $(BUILD)/minimal_batched
 	TMPDIR="$$d" "$$d/minimal_batched" > "$$d/installed.out"; \
 	TMPDIR="$$d" ./$(BUILD)/minimal_batched > "$$d/tree.out"; \
 	cmp -s "$$d/installed.out" "$$d/tree.out" || { echo "install-check: the installed copy printed"; \
-	  cat "$$d/installed.out"; exit 1; }; \
-	$(MAKE) --no-print-directory -s install DESTDIR="$$d/stage" PREFIX=/opt/batchrt; \
-	grep -qx 'prefix=/opt/batchrt' "$$d/stage/opt/batchrt/lib/pkgconfig/batchrt.pc"; \
-	test -f "$$d/stage/opt/batchrt/lib/libbatchrt.a" -a -f "$$d/stage/opt/batchrt/include/batchrt.h"; \
-	$(MAKE) --no-print-directory -s uninstall DESTDIR="$$d/stage" PREFIX=/opt/batchrt; \
-	left=$$(find "$$d/stage" -type f); test -z "$$left" || { echo "uninstall left $$left"; exit 1; }; \
-	rm -rf "$$d"
+	  cat "$$d/installed.out"; exit 1; }
+	$(Q)$(MAKE) --no-print-directory -s install DESTDIR="$(INSTALL_CHECK)/stage" PREFIX=/opt/batchrt
+	$(Q)grep -qx 'prefix=/opt/batchrt' "$(INSTALL_CHECK)/stage/opt/batchrt/lib/pkgconfig/batchrt.pc" && \
+	test -f "$(INSTALL_CHECK)/stage/opt/batchrt/lib/libbatchrt.a" && \
+	test -f "$(INSTALL_CHECK)/stage/opt/batchrt/include/batchrt.h"
+	$(Q)$(MAKE) --no-print-directory -s uninstall DESTDIR="$(INSTALL_CHECK)/stage" PREFIX=/opt/batchrt
+	$(Q)left=$$(find "$(INSTALL_CHECK)/stage" -type f); \
+	test -z "$$left" || { echo "install-check: uninstall left $$left"; exit 1; }; \
+	rm -rf "$(INSTALL_CHECK)"
 # == END INSTALL ==========================================================
 
 clean:
