@@ -62,10 +62,14 @@ int main(int argc, char **argv)
     int i, fd, count = 0;
     brt_result r;
 
+    if (argc > 1 && strcmp(argv[1], "--help") != 0) {
+        fprintf(stderr, "minimal_batched: takes no arguments (see --help)\n");
+        return 1;
+    }
     if (argc > 1) {
         printf("usage: build/minimal_batched   (no arguments: traces %d rays through a\n"
                "  scene file of a built-in icosahedron, written to $TMPDIR and removed)\n", SIDE * SIDE);
-        return strcmp(argv[1], "--help") == 0 ? 0 : 1;
+        return 0;
     }
     /* A pinhole camera at z = 4 looking at the origin; the corners miss. */
     for (i = 0; i < SIDE * SIDE; i++) {

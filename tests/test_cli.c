@@ -1078,6 +1078,11 @@ static void test_minimal_batched(void)
            tests, culled, queued, loads, bytes);
     EXPECT(directory_entries(tu_scratch("minimal-tmp"), NULL, 0) == 0, "minimal_batched left files in $TMPDIR");
     free(out);
+    status = tu_run("minimal_batched --bogus");
+    out = tu_last_stderr();
+    EXPECT(status == 1 && out && strncmp(out, "minimal_batched: ", 17) == 0 && strchr(out, '\n') &&
+           strchr(out, '\n')[1] == 0, "minimal_batched --bogus: exit %d, stderr %s", status, out ? out : "");
+    free(out);
 }
 
 void suite_cli(void)
