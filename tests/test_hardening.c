@@ -1,5 +1,5 @@
 /*
-** tests/test_hardening.c -- issue 7: bad input, I/O faults and limits, with
+** tests/test_hardening.c -- bad input, I/O faults and limits, with
 ** nothing lost and nothing left behind.
 **
 **  - the fuzz corpus (tests/corpus/NAME, seeds and every crash the fuzzers
@@ -18,9 +18,10 @@
 **    ENOSPC): the library and the programs must leave no partial file;
 **  - limits: one triangle, all triangles identical, a memory limit below
 **    one batching point, one ray in flight, no rays at all, a 1x1 image;
-**  - forged scene files (issue 21): valid checksums, one cross-reference
-**    broken per file, one file per line of the validators of batchrt.c's
-**    scene open and bvh.c's blob open, each refused naming the part.
+**  - forged scene files (README, "The scene file"): valid checksums, one
+**    cross-reference broken per file, one file per line of the validators
+**    of batchrt.c's scene open and bvh.c's blob open, each refused naming
+**    the part.
 ** Oracles: the direct mode and brute force over brt_intersect_triangle.
 */
 #include "test.h"
@@ -973,7 +974,7 @@ static void test_budget_below_one_batching_point(void)
 }
 
 /* ===================================================================== */
-/* Forged scene files: one per validator (issue 21)                      */
+/* Forged scene files: one per validator                                */
 /* ===================================================================== */
 /*
 ** The fuzz target's fixed scene (25 triangles in 4 batching points) with
