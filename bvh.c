@@ -1570,7 +1570,7 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **   - Quantized 64-byte nodes + shared vertices (v2): 58-63 -> 23-29.5
 **     bytes per triangle; decode as vector rows: 795 M -> 413 M (float
 **     nodes: 172 M); C_TRAV 3: island 32.2 -> 29.3 bytes per triangle.
-**   - Second session: brt_box_span4 vectorized and the near/far rows
+**   - Fourth round: brt_box_span4 vectorized and the near/far rows
 **     decoded from their words (batched x0.88), decode_row's lane-3
 **     fix-up (decoding 118 -> 96 instructions a node), tri_intersect
 **     inlined (x0.97): together x0.83-0.87 instructions direct and
