@@ -152,6 +152,7 @@ EMBREE_REPEAT ?= 3
 EMBREE_BENCH  ?= /tmp/batchrt-bench-embree
 bench-embree: all embree
 	@mkdir -p $(EMBREE_BENCH)
+	@rm -f $(EMBREE_BENCH)/scene.brs   # built afresh by the first batched run (not timed)
 	@m=$(EMBREE_BENCH)/$$(basename $(EMBREE_MESH) .gz); \
 	test -s $$m || gzip -dc $(EMBREE_MESH) > $$m || exit 1; \
 	best() { out=$$1; shift; for i in $$(seq $(EMBREE_REPEAT)); do \
