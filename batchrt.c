@@ -85,19 +85,71 @@ brt_result brt_parse_size(const char *text, uint64_t *bytes)
     return BRT_OK;
 }
 
-uint64_t brt_random_u64(uint64_t *state)
+/* The one 64-bit mixer of batchrt: SplitMix64's finaliser (Steele, Lea,
+** Flood 2014; Stafford's "variant 13" of MurmurHash3's fmix64).  A
+** bijection whose outputs for neighbouring inputs look independent: the
+** generator below, the DAG's dedup tables (svdag.c) and the renderer's
+** counter-based samples (examples/render.c) all use it.  (brt_checksum64
+** is not built on it: its steps are fixed by the scene files written.) */
+uint64_t brt_mix64(uint64_t z)
 {
-    /* SplitMix64 (Steele, Lea, Flood 2014): every seed is a good seed. */
-    uint64_t z = (*state += 0x9E3779B97F4A7C15ull);
     z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
     z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
     return z ^ (z >> 31);
+}
+
+uint64_t brt_random_u64(uint64_t *state)
+{
+    /* SplitMix64: a Weyl sequence, mixed.  Every seed is a good seed. */
+    return brt_mix64(*state += 0x9E3779B97F4A7C15ull);
 }
 
 float brt_random_float(uint64_t *state)
 {
     /* The top 24 bits give every float in [0,1) with spacing 2^-24. */
     return (float)(brt_random_u64(state) >> 40) * (1.0f / 16777216.0f);
+}
+
+/* Little-endian numbers: every file batchrt writes stores them so (scene
+** files, the DAG blob, ray and hit records), whatever the host's order.
+** Byte by byte, so that neither the host's order nor alignment matters. */
+void brt_put_le32(unsigned char *p, uint32_t v)
+{
+    int i;
+    for (i = 0; i < 4; i++) p[i] = (unsigned char)(v >> (8 * i));
+}
+
+void brt_put_le64(unsigned char *p, uint64_t v)
+{
+    brt_put_le32(p, (uint32_t)v);
+    brt_put_le32(p + 4, (uint32_t)(v >> 32));
+}
+
+uint32_t brt_get_le32(const unsigned char *p)
+{
+    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
+}
+
+uint64_t brt_get_le64(const unsigned char *p)
+{
+    return brt_get_le32(p) | (uint64_t)brt_get_le32(p + 4) << 32;
+}
+
+/* The one growable array: returns items with room for need elements of
+** size bytes (capacity *cap, updated), or NULL with items untouched.
+** Doubling from 16 makes n appends cost O(n) copies in total. */
+void *brt_grow(void *items, size_t *cap, size_t need, size_t size)
+{
+    size_t n = *cap ? *cap : 16;
+    void *bigger;
+    while (n < need) {
+        if (n > SIZE_MAX / 2) return NULL;
+        n *= 2;
+    }
+    if (n > SIZE_MAX / size) return NULL;
+    bigger = realloc(items, n * size);
+    if (bigger) *cap = n;
+    return bigger;
 }
 
 double brt_seconds(void)
@@ -142,31 +194,55 @@ static int is_special_file(const char *path)
     return stat(path, &st) == 0 && !S_ISREG(st.st_mode);
 }
 
+/* The one temporary-file-and-rename writer: everything batchrt writes
+** (ray, hit and statistics files, scene files, the programs' images, CSV
+** and mesh files) is written under "path.tmp.<pid>" and renamed over path
+** only when complete, so a failure never leaves a half-written file under
+** the final name. */
+brt_result brt_atomic_open(brt_atomic_file *f, const char *path, brt_error *err)
+{
+    f->path = path;
+    f->fd = -1;
+    if (snprintf(f->tmp, sizeof f->tmp, "%s.tmp.%ld", path, (long)getpid()) >= (int)sizeof f->tmp) {
+        f->tmp[0] = 0;      /* nothing created: brt_atomic_close has nothing to do */
+        return brt_fail(err, BRT_EARG, "%s: path too long", path);
+    }
+    f->fd = open(f->tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    if (f->fd < 0) {
+        f->tmp[0] = 0;
+        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", path, strerror(errno));
+    }
+    return BRT_OK;
+}
+
+brt_result brt_atomic_close(brt_atomic_file *f, brt_result r, brt_error *err)
+{
+    if (f->tmp[0] == 0) return r;
+    if (f->fd >= 0 && close(f->fd) != 0 && r == BRT_OK)   /* a failed close may lose data */
+        r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", f->path, strerror(errno));
+    f->fd = -1;
+    if (r == BRT_OK && rename(f->tmp, f->path) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", f->path, strerror(errno));
+    if (r != BRT_OK) unlink(f->tmp);
+    f->tmp[0] = 0;
+    return r;
+}
+
 brt_result brt_write_file_atomic(const char *path, const void *data,
                                  size_t size, brt_error *err)
 {
-    char tmp[4096];
-    int fd, failed;
+    brt_atomic_file f;
+    brt_result r;
     if (is_special_file(path)) {
-        fd = open(path, O_WRONLY);
+        int fd = open(path, O_WRONLY), failed;
         failed = fd < 0 || write_fully(fd, data, size, -1) != 0;
         if (fd >= 0 && close(fd) != 0) failed = 1;
         return failed ? brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno)) : BRT_OK;
     }
-    if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", path, (long)getpid()) >= (int)sizeof tmp)
-        return brt_fail(err, BRT_EARG, "%s: path too long", path);
-    fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644);
-    if (fd < 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", path, strerror(errno));
-    failed = write_fully(fd, data, size, 0) != 0;
-    if (close(fd) != 0) failed = 1;
-    if (!failed && rename(tmp, path) != 0) failed = 1;
-    if (failed) {
-        int saved = errno ? errno : EIO;
-        unlink(tmp);
-        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(saved));
-    }
-    return BRT_OK;
+    r = brt_atomic_open(&f, path, err);
+    if (r == BRT_OK && write_fully(f.fd, data, size, 0) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno ? errno : EIO));
+    return brt_atomic_close(&f, r, err);
 }
 
 /* ===================================================================== */
@@ -524,22 +600,6 @@ static brt_result parse_fail(parser *p, brt_result code, const char *fmt, ...)
     return brt_fail(p->err, code, "%s: %s", p->name, reason);
 }
 
-/* Returns items with room for need elements of size bytes, or NULL (items
-** untouched).  Doubling makes n appends cost O(n) copies in total. */
-static void *grow(void *items, size_t *cap, size_t need, size_t size)
-{
-    size_t n = *cap ? *cap : 256;
-    void *bigger;
-    while (n < need) {
-        if (n > SIZE_MAX / 2) return NULL;
-        n *= 2;
-    }
-    if (n > SIZE_MAX / size) return NULL;
-    bigger = realloc(items, n * size);
-    if (bigger) *cap = n;
-    return bigger;
-}
-
 /* ---- byte source ------------------------------------------------------ */
 
 /* Makes at least need unread bytes available unless the input ends first:
@@ -553,7 +613,7 @@ static brt_result reader_fill(parser *p, size_t need)
     r->end -= r->pos;
     r->pos = 0;
     if (need > r->cap) {
-        void *bigger = grow(r->owned, &r->cap, need, 1);
+        void *bigger = brt_grow(r->owned, &r->cap, need, 1);
         if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
         r->owned = bigger;
     }
@@ -611,7 +671,7 @@ static brt_result add_vertex(parser *p, const float xyz[3])
     if (p->vertex_count == p->vertex_cap) {
         void *bigger;
         if (p->vertex_count >= MAX_COUNT) return parse_fail(p, BRT_EPARSE, "too many vertices");
-        bigger = grow(p->positions, &p->vertex_cap, p->vertex_count + 1, 3 * sizeof(float));
+        bigger = brt_grow(p->positions, &p->vertex_cap, p->vertex_count + 1, 3 * sizeof(float));
         if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
         p->positions = bigger;
     }
@@ -623,7 +683,7 @@ static brt_result add_vertex(parser *p, const float xyz[3])
 static brt_result add_corner(parser *p, uint32_t vertex)
 {
     if (p->polygon_count == p->polygon_cap) {
-        void *bigger = grow(p->polygon, &p->polygon_cap, p->polygon_count + 1, sizeof(uint32_t));
+        void *bigger = brt_grow(p->polygon, &p->polygon_cap, p->polygon_count + 1, sizeof(uint32_t));
         if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
         p->polygon = bigger;
     }
@@ -671,7 +731,7 @@ static brt_result add_triangle(parser *p, const uint32_t v[3])
     brt_result rc = BRT_OK;
     if (stream_triangle(p, v, &rc)) return rc;
     if (p->indexed_count == p->indexed_cap) {
-        void *bigger = grow(p->indices, &p->indexed_cap, p->indexed_count + 1, 3 * sizeof(uint32_t));
+        void *bigger = brt_grow(p->indices, &p->indexed_cap, p->indexed_count + 1, 3 * sizeof(uint32_t));
         if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
         p->indices = bigger;
     }
@@ -1510,6 +1570,16 @@ void brt_mesh_memory_source(const brt_mesh *mesh, brt_triangle_source *source)
 /* Rays and hits                                                         */
 /* ===================================================================== */
 
+int brt_ray_valid(const brt_ray *ray)
+{
+    int a;
+    for (a = 0; a < 3; a++)
+        if (!isfinite(ray->org[a]) || !isfinite(ray->dir[a])) return 0;
+    if (ray->dir[0] == 0.0f && ray->dir[1] == 0.0f && ray->dir[2] == 0.0f)
+        return 0;
+    return ray->tnear <= ray->tfar;   /* false for NaN too */
+}
+
 void brt_hit_clear(brt_hit *hit)
 {
     hit->t = INFINITY;
@@ -1537,8 +1607,7 @@ static void words_from_le(void *buffer, size_t words)
     unsigned char *b = buffer;
     size_t i;
     for (i = 0; i < words; i++, b += 4) {
-        uint32_t w = (uint32_t)b[0] | (uint32_t)b[1] << 8 |
-                     (uint32_t)b[2] << 16 | (uint32_t)b[3] << 24;
+        uint32_t w = brt_get_le32(b);
         memcpy(b, &w, 4);
     }
 }
@@ -1550,10 +1619,7 @@ static void words_to_le(const void *source, unsigned char *le, size_t words)
     for (i = 0; i < words; i++, s += 4, le += 4) {
         uint32_t w;
         memcpy(&w, s, 4);
-        le[0] = (unsigned char)w;
-        le[1] = (unsigned char)(w >> 8);
-        le[2] = (unsigned char)(w >> 16);
-        le[3] = (unsigned char)(w >> 24);
+        brt_put_le32(le, w);
     }
 }
 
@@ -1727,26 +1793,12 @@ uint64_t brt_checksum64(const void *data, size_t size)
     return h ^ (h >> 29);
 }
 
-/* Every number of a scene file is little-endian, like ray and hit files
-** (version 2; version 1 used the writer's byte order).  The BVH blobs
-** inside it are little-endian too and read in place (bvh.c). */
-static void put_u32(unsigned char *p, uint32_t v)
-{
-    int i;
-    for (i = 0; i < 4; i++) p[i] = (unsigned char)(v >> (8 * i));
-}
-static void put_u64(unsigned char *p, uint64_t v)
-{
-    put_u32(p, (uint32_t)v);
-    put_u32(p + 4, (uint32_t)(v >> 32));
-}
-static void put_f32(unsigned char *p, float v) { uint32_t w; memcpy(&w, &v, 4); put_u32(p, w); }
-static uint32_t get_u32(const unsigned char *p)
-{
-    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
-}
-static uint64_t get_u64(const unsigned char *p) { return get_u32(p) | (uint64_t)get_u32(p + 4) << 32; }
-static float get_f32(const unsigned char *p) { uint32_t w = get_u32(p); float v; memcpy(&v, &w, 4); return v; }
+/* Every number of a scene file is little-endian (brt_put_le32 and its
+** kin), like ray and hit files (version 2; version 1 used the writer's
+** byte order).  The BVH blobs inside it are little-endian too and read in
+** place (bvh.c). */
+static void put_f32(unsigned char *p, float v) { uint32_t w; memcpy(&w, &v, 4); brt_put_le32(p, w); }
+static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); float v; memcpy(&v, &w, 4); return v; }
 
 /* ---- median splits (the partition and the top-level build share them) -- */
 
@@ -1818,17 +1870,16 @@ typedef struct partition {
     uint32_t *order;              /* triangle ids, batching point by batching point
                                   ** (the caller's array) */
     batch_range *ranges;
-    uint32_t count, capacity;
+    uint32_t count;
+    size_t capacity;
 } partition;
 
 static brt_result partition_push(partition *p, uint32_t first, uint32_t count)
 {
     if (p->count == p->capacity) {
-        uint32_t cap = p->capacity ? 2 * p->capacity : 64;
-        batch_range *r = realloc(p->ranges, cap * sizeof *r);
+        batch_range *r = brt_grow(p->ranges, &p->capacity, (size_t)p->count + 1, sizeof *r);
         if (!r) return BRT_ENOMEM;
         p->ranges = r;
-        p->capacity = cap;
     }
     p->ranges[p->count].first = first;
     p->ranges[p->count].count = count;
@@ -1853,6 +1904,72 @@ static brt_result partition_split(partition *p, const float *centroids, uint32_t
     r = partition_split(p, centroids, first, k, batch_tris);
     if (r == BRT_OK) r = partition_split(p, centroids, first + k, count - k, batch_tris);
     return r;
+}
+
+/* ---- one binary heap (the top-level walk and the scheduler share it) -- */
+/*
+** A binary min-heap (Williams 1964) of 64-bit keys whose low word names
+** the item.  Each user packs its whole order into the key, so one integer
+** compare decides: the walk, subtrees and batching points by entry
+** distance (walk_key_of); the scheduler, batching points by queue length
+** (queue_key).  Ties fall to the lower item number, so the order is total
+** and what comes out first never depends on the heap's inner layout.
+** With pos (the scheduler) pos[item] is the item's place or HEAP_ABSENT,
+** for a key lowered in place (a queue grew); the walk passes pos = NULL.
+*/
+#define HEAP_ABSENT 0xFFFFFFFFu
+
+typedef struct key_heap {
+    uint64_t *keys;
+    uint32_t *pos;              /* per item: its index in keys, or HEAP_ABSENT; or NULL */
+    uint32_t size;
+} key_heap;
+
+static void heap_place(key_heap *h, uint32_t i, uint64_t key)
+{
+    h->keys[i] = key;
+    if (h->pos) h->pos[(uint32_t)key] = i;
+}
+
+/* Puts key at hole i or above it (every key above i is no larger). */
+static void heap_up(key_heap *h, uint32_t i, uint64_t key)
+{
+    while (i > 0 && key < h->keys[(i - 1) / 2]) {
+        heap_place(h, i, h->keys[(i - 1) / 2]);
+        i = (i - 1) / 2;
+    }
+    heap_place(h, i, key);
+}
+
+static void heap_push(key_heap *h, uint64_t key)
+{
+    heap_up(h, h->size++, key);
+}
+
+/* Inserts key's item, or lowers the key of the item already there (pos). */
+static void heap_lower(key_heap *h, uint64_t key)
+{
+    uint32_t at = h->pos[(uint32_t)key];
+    heap_up(h, at == HEAP_ABSENT ? h->size++ : at, key);
+}
+
+/* Removes and returns the least key. */
+static uint64_t heap_pop(key_heap *h)
+{
+    uint64_t top = h->keys[0], last = h->keys[--h->size];
+    uint32_t i = 0;
+    if (h->pos) h->pos[(uint32_t)top] = HEAP_ABSENT;
+    if (h->size == 0) return top;
+    for (;;) {
+        uint32_t c = 2 * i + 1;
+        if (c >= h->size) break;
+        if (c + 1 < h->size && h->keys[c + 1] < h->keys[c]) c++;
+        if (h->keys[c] >= last) break;
+        heap_place(h, i, h->keys[c]);
+        i = c;
+    }
+    heap_place(h, i, last);
+    return top;
 }
 
 /* ---- the top-level BVH over batching points and its restartable walk -- */
@@ -1986,60 +2103,39 @@ static brt_result top_build(const float *boxes, uint32_t count, top_node **nodes
     return BRT_OK;
 }
 
-/* A subtree (node index) or a batching point (TOP_LEAF | id) waiting in
-** a walk, with the distance the ray enters its box. */
-typedef struct top_pending {
-    float entry;
-    uint32_t code;
-} top_pending;
-
 /* The heap holds each node and batching point at most once (check_top
-** makes sure every node has one parent), so nodes + points slots do. */
-typedef struct top_walk {
-    top_pending *heap;
-    uint32_t size;
-} top_walk;
+** makes sure every node has one parent), so nodes + points keys do.  An
+** entry is a subtree (node index) or a batching point (TOP_LEAF | id)
+** with the distance the ray enters its box (walk_key_of). */
+typedef key_heap top_walk;
 
 /* Heap order: nearer first; at equal entry, subtrees (codes without
-** TOP_LEAF) before batching points, batching points by id. */
-static int pending_before(top_pending a, top_pending b)
+** TOP_LEAF) before batching points, batching points by id.  The entry
+** goes to the high word as an unsigned integer that orders as the float
+** does (sign-magnitude to offset binary; -0 as +0, which compare equal).
+** Never NaN: a box is entered only when entry <= exit. */
+static uint64_t walk_key_of(float entry, uint32_t code)
 {
-    return a.entry < b.entry || (a.entry == b.entry && a.code < b.code);
+    uint32_t bits;
+    if (entry == 0.0f) entry = 0.0f;
+    memcpy(&bits, &entry, 4);
+    bits = bits & 0x80000000u ? ~bits : bits | 0x80000000u;
+    return (uint64_t)bits << 32 | code;
 }
 
-static void walk_push(top_walk *w, uint32_t code, float entry)
+static float walk_entry_of(uint64_t key)
 {
-    uint32_t i = w->size++;
-    top_pending item;
-    item.entry = entry;
-    item.code = code;
-    while (i > 0 && pending_before(item, w->heap[(i - 1) / 2])) {
-        w->heap[i] = w->heap[(i - 1) / 2];
-        i = (i - 1) / 2;
-    }
-    w->heap[i] = item;
-}
-
-static top_pending walk_pop(top_walk *w)
-{
-    top_pending top = w->heap[0], last = w->heap[--w->size];
-    uint32_t i = 0;
-    for (;;) {
-        uint32_t c = 2 * i + 1;
-        if (c >= w->size) break;
-        if (c + 1 < w->size && pending_before(w->heap[c + 1], w->heap[c])) c++;
-        if (!pending_before(w->heap[c], last)) break;
-        w->heap[i] = w->heap[c];
-        i = c;
-    }
-    w->heap[i] = last;
-    return top;
+    uint32_t bits = (uint32_t)(key >> 32);
+    float entry;
+    bits = bits & 0x80000000u ? bits & 0x7FFFFFFFu : ~bits;
+    memcpy(&entry, &bits, 4);
+    return entry;
 }
 
 static void top_walk_start(top_walk *w)
 {
     w->size = 0;
-    walk_push(w, 0, -INFINITY);    /* the root node; its children get box tests */
+    heap_push(w, walk_key_of(-INFINITY, 0));   /* the root node; its children get box tests */
 }
 
 /* Pushes the children of node that the ray enters no later than tlimit
@@ -2053,7 +2149,7 @@ static void walk_expand(top_walk *w, const top_node *node, const brt_ray_prep *r
     for (lane = 0; lane < 4; lane++) {
         if (node->child[lane] == TOP_EMPTY || !(lanes & (1u << lane))) continue;
         if (key.id != TOP_EMPTY && exits[lane] < key.t) continue;             /* (a) */
-        walk_push(w, node->child[lane], entries[lane]);
+        heap_push(w, walk_key_of(entries[lane], node->child[lane]));
     }
 }
 
@@ -2063,16 +2159,18 @@ static void walk_expand(top_walk *w, const top_node *node, const brt_ray_prep *r
 static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep *ray, float tlimit,
                          walk_key *key)
 {
-    while (w->size > 0 && w->heap[0].entry <= tlimit) {
-        top_pending next = walk_pop(w);
-        if (next.code & TOP_LEAF) {
-            uint32_t id = next.code & ~TOP_LEAF;
-            if (!key_after(next.entry, id, *key)) continue;
-            key->t = next.entry;
+    while (w->size > 0 && walk_entry_of(w->keys[0]) <= tlimit) {
+        uint64_t next = heap_pop(w);
+        uint32_t code = (uint32_t)next;
+        float entry = walk_entry_of(next);
+        if (code & TOP_LEAF) {
+            uint32_t id = code & ~TOP_LEAF;
+            if (!key_after(entry, id, *key)) continue;
+            key->t = entry;
             key->id = id;
             return 1;
         }
-        walk_expand(w, &nodes[next.code], ray, tlimit, *key);
+        walk_expand(w, &nodes[code], ray, tlimit, *key);
     }
     return 0;
 }
@@ -2133,12 +2231,12 @@ static void batch_entry_pack(const batch_entry *b, unsigned char *p)
         put_f32(p + 12 + 4 * a, b->hi[a]);
         put_f32(p + 60 + 4 * a, b->proxy.origin[a]);
     }
-    put_u64(p + 24, b->offset);
-    put_u64(p + 32, b->size);
-    put_u64(p + 40, b->checksum);
-    put_u32(p + 48, b->triangles);
-    put_u32(p + 52, b->proxy.root);
-    put_u32(p + 56, b->proxy.res);
+    brt_put_le64(p + 24, b->offset);
+    brt_put_le64(p + 32, b->size);
+    brt_put_le64(p + 40, b->checksum);
+    brt_put_le32(p + 48, b->triangles);
+    brt_put_le32(p + 52, b->proxy.root);
+    brt_put_le32(p + 56, b->proxy.res);
     put_f32(p + 72, b->proxy.cell);
 }
 
@@ -2150,12 +2248,12 @@ static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
         b->hi[a] = get_f32(p + 12 + 4 * a);
         b->proxy.origin[a] = get_f32(p + 60 + 4 * a);
     }
-    b->offset = get_u64(p + 24);
-    b->size = get_u64(p + 32);
-    b->checksum = get_u64(p + 40);
-    b->triangles = get_u32(p + 48);
-    b->proxy.root = get_u32(p + 52);
-    b->proxy.res = get_u32(p + 56);
+    b->offset = brt_get_le64(p + 24);
+    b->size = brt_get_le64(p + 32);
+    b->checksum = brt_get_le64(p + 40);
+    b->triangles = brt_get_le32(p + 48);
+    b->proxy.root = brt_get_le32(p + 52);
+    b->proxy.res = brt_get_le32(p + 56);
     b->proxy.cell = get_f32(p + 72);
 }
 
@@ -2164,7 +2262,7 @@ static void top_node_pack(const top_node *n, unsigned char *p)
     int row, lane;
     for (row = 0; row < 6; row++)
         for (lane = 0; lane < 4; lane++) put_f32(p + 16 * row + 4 * lane, n->box[row][lane]);
-    for (lane = 0; lane < 4; lane++) put_u32(p + 96 + 4 * lane, n->child[lane]);
+    for (lane = 0; lane < 4; lane++) brt_put_le32(p + 96 + 4 * lane, n->child[lane]);
 }
 
 /* In memory the boxes are kept grown for brt_box_span4 (once, at open,
@@ -2192,7 +2290,7 @@ static void top_node_unpack(const unsigned char *p, top_node *n)
     int row, lane;
     for (row = 0; row < 6; row++)
         for (lane = 0; lane < 4; lane++) n->box[row][lane] = get_f32(p + 16 * row + 4 * lane);
-    for (lane = 0; lane < 4; lane++) n->child[lane] = get_u32(p + 96 + 4 * lane);
+    for (lane = 0; lane < 4; lane++) n->child[lane] = brt_get_le32(p + 96 + 4 * lane);
 }
 
 /* What the header says, unpacked. */
@@ -2207,21 +2305,21 @@ static void header_pack(const scene_header *h, unsigned char *p)
     int s;
     memset(p, 0, SCENE_HEADER_BYTES);
     memcpy(p, SCENE_MAGIC, 8);
-    put_u32(p + 8, SCENE_VERSION);
-    put_u32(p + 12, SCENE_ENDIAN_MARK);
-    put_u64(p + 16, h->stamp);
-    put_u32(p + 24, h->batch_tris);
-    put_u32(p + 28, h->proxy_res);
-    put_u32(p + 32, h->batch_count);
-    put_u32(p + 36, h->triangle_count);
-    put_u32(p + 40, h->top_node_count);
-    put_u64(p + 48, h->geometry_bytes);
+    brt_put_le32(p + 8, SCENE_VERSION);
+    brt_put_le32(p + 12, SCENE_ENDIAN_MARK);
+    brt_put_le64(p + 16, h->stamp);
+    brt_put_le32(p + 24, h->batch_tris);
+    brt_put_le32(p + 28, h->proxy_res);
+    brt_put_le32(p + 32, h->batch_count);
+    brt_put_le32(p + 36, h->triangle_count);
+    brt_put_le32(p + 40, h->top_node_count);
+    brt_put_le64(p + 48, h->geometry_bytes);
     for (s = 0; s < 3; s++) {
-        put_u64(p + 56 + 24 * s, h->sections[s].offset);
-        put_u64(p + 64 + 24 * s, h->sections[s].size);
-        put_u64(p + 72 + 24 * s, h->sections[s].checksum);
+        brt_put_le64(p + 56 + 24 * s, h->sections[s].offset);
+        brt_put_le64(p + 64 + 24 * s, h->sections[s].size);
+        brt_put_le64(p + 72 + 24 * s, h->sections[s].checksum);
     }
-    put_u64(p + 248, brt_checksum64(p, 248));
+    brt_put_le64(p + 248, brt_checksum64(p, 248));
 }
 
 /* Checks magic, endianness, version and checksum, in that order, so the
@@ -2229,29 +2327,29 @@ static void header_pack(const scene_header *h, unsigned char *p)
 static brt_result header_unpack(const char *path, const unsigned char *p, scene_header *h,
                                 brt_error *err)
 {
-    uint32_t mark = get_u32(p + 12);
+    uint32_t mark = brt_get_le32(p + 12);
     int s;
     if (memcmp(p, SCENE_MAGIC, 8) != 0)
         return brt_fail(err, BRT_EFORMAT, "%s: not a batchrt scene file (bad magic)", path);
     if (mark != SCENE_ENDIAN_MARK)
         return brt_fail(err, BRT_EFORMAT, "%s: a version-1 scene file written on a machine of the other "
                         "byte order (delete the file to rebuild it)", path);
-    if (get_u32(p + 8) != SCENE_VERSION)
+    if (brt_get_le32(p + 8) != SCENE_VERSION)
         return brt_fail(err, BRT_EFORMAT, "%s: scene file version %u, this build reads version %u"
-                        " (delete the file to rebuild it)", path, get_u32(p + 8), SCENE_VERSION);
-    if (get_u64(p + 248) != brt_checksum64(p, 248))
+                        " (delete the file to rebuild it)", path, brt_get_le32(p + 8), SCENE_VERSION);
+    if (brt_get_le64(p + 248) != brt_checksum64(p, 248))
         return brt_fail(err, BRT_EFORMAT, "%s: header checksum mismatch (corrupt file)", path);
-    h->stamp = get_u64(p + 16);
-    h->batch_tris = get_u32(p + 24);
-    h->proxy_res = get_u32(p + 28);
-    h->batch_count = get_u32(p + 32);
-    h->triangle_count = get_u32(p + 36);
-    h->top_node_count = get_u32(p + 40);
-    h->geometry_bytes = get_u64(p + 48);
+    h->stamp = brt_get_le64(p + 16);
+    h->batch_tris = brt_get_le32(p + 24);
+    h->proxy_res = brt_get_le32(p + 28);
+    h->batch_count = brt_get_le32(p + 32);
+    h->triangle_count = brt_get_le32(p + 36);
+    h->top_node_count = brt_get_le32(p + 40);
+    h->geometry_bytes = brt_get_le64(p + 48);
     for (s = 0; s < 3; s++) {
-        h->sections[s].offset = get_u64(p + 56 + 24 * s);
-        h->sections[s].size = get_u64(p + 64 + 24 * s);
-        h->sections[s].checksum = get_u64(p + 72 + 24 * s);
+        h->sections[s].offset = brt_get_le64(p + 56 + 24 * s);
+        h->sections[s].size = brt_get_le64(p + 64 + 24 * s);
+        h->sections[s].checksum = brt_get_le64(p + 72 + 24 * s);
     }
     return BRT_OK;
 }
@@ -2354,7 +2452,8 @@ typedef struct scene_writer {
     brt_svdag *dag;
     batch_entry *batches;       /* the per-point tables, grown as points come */
     float *boxes;               /* 6 floats per batching point */
-    uint32_t batch_count, batch_cap;
+    uint32_t batch_count;
+    size_t batch_cap;
     uint64_t geometry_bytes;
 } scene_writer;
 
@@ -2664,14 +2763,14 @@ static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *
 static batch_entry *batch_append(scene_writer *w)
 {
     if (w->batch_count == w->batch_cap) {
-        size_t cap = w->batch_cap ? 2 * (size_t)w->batch_cap : 64;
-        batch_entry *batches = realloc(w->batches, cap * sizeof *batches);
+        size_t need = (size_t)w->batch_count + 1, cap = w->batch_cap, box_cap = w->batch_cap;
+        batch_entry *batches = brt_grow(w->batches, &cap, need, sizeof *batches);
         float *boxes;
         if (batches) w->batches = batches;
-        boxes = batches ? realloc(w->boxes, cap * 6 * sizeof *boxes) : NULL;
-        if (!boxes || cap > MAX_COUNT) return NULL;
+        boxes = batches ? brt_grow(w->boxes, &box_cap, need, 6 * sizeof *boxes) : NULL;
+        if (!boxes || need > MAX_COUNT) return NULL;
         w->boxes = boxes;
-        w->batch_cap = (uint32_t)cap;
+        w->batch_cap = cap;         /* box_cap too: both grew from batch_cap to need */
     }
     memset(&w->batches[w->batch_count], 0, sizeof *w->batches);
     return &w->batches[w->batch_count++];
@@ -2971,23 +3070,18 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
 {
     scene_builder b;
     scene_header h;
-    char tmp[4096];
+    brt_atomic_file file;
     brt_result r;
     memset(&h, 0, sizeof h);
+    file.tmp[0] = 0;
     r = builder_init(&b, opt, scene_path, err);
-    if (r == BRT_OK && snprintf(tmp, sizeof tmp, "%s.tmp.%ld", scene_path, (long)getpid()) >= (int)sizeof tmp)
-        r = brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
-    if (r == BRT_OK && (b.w.fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644)) < 0)
-        r = brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
+    if (r == BRT_OK) r = brt_atomic_open(&file, scene_path, err);
+    if (r == BRT_OK) b.w.fd = file.fd;
     h.batch_tris = b.batch_tris;
     h.proxy_res = b.w.res;
     h.stamp = source_stamp;
     if (r == BRT_OK) r = build_passes(&b, source, &h, err);
-    if (b.w.fd >= 0 && close(b.w.fd) != 0 && r == BRT_OK)
-        r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", scene_path, strerror(errno));
-    if (r == BRT_OK && rename(tmp, scene_path) != 0)
-        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", scene_path, strerror(errno));
-    if (r != BRT_OK && b.w.fd >= 0) unlink(tmp);
+    r = brt_atomic_close(&file, r, err);
     builder_free(&b);
     return r;
 }
@@ -3828,7 +3922,8 @@ typedef struct ray_slot {
 
 typedef struct ray_queue {
     uint32_t *slots;
-    uint32_t count, capacity;
+    uint32_t count;
+    size_t capacity;
 } ray_queue;
 
 /* One thread's part of a phase: its walk, its counters, and the batching
@@ -3856,7 +3951,7 @@ typedef struct scheduler {
     ray_slot *slots;
     uint32_t *free_slots, free_count, capacity;
     ray_queue *queues;
-    uint32_t *heap, *heap_pos, heap_size;   /* heap_pos[id] = NO_ENTRY when absent */
+    key_heap fullest;                       /* the non-empty queues (queue_key) */
     pool pool;
     walker *walkers;                        /* one per thread of the pool */
     uint32_t *phase, *outcome;              /* a phase's slots; NO_ENTRY: finished */
@@ -3867,67 +3962,23 @@ typedef struct scheduler {
     uint64_t *incoming_tags;
 } scheduler;
 
-static int queue_fuller(const scheduler *s, uint32_t a, uint32_t b)
+/* Heap order: the fullest queue first (the key's high word falls as the
+** queue grows), at equal lengths the lowest id. */
+static uint64_t queue_key(uint32_t count, uint32_t id)
 {
-    return s->queues[a].count > s->queues[b].count ||
-           (s->queues[a].count == s->queues[b].count && a < b);
-}
-
-static void heap_swap(scheduler *s, uint32_t i, uint32_t j)
-{
-    uint32_t t = s->heap[i];
-    s->heap[i] = s->heap[j];
-    s->heap[j] = t;
-    s->heap_pos[s->heap[i]] = i;
-    s->heap_pos[s->heap[j]] = j;
-}
-
-static void heap_up(scheduler *s, uint32_t i)
-{
-    while (i > 0 && queue_fuller(s, s->heap[i], s->heap[(i - 1) / 2])) {
-        heap_swap(s, i, (i - 1) / 2);
-        i = (i - 1) / 2;
-    }
-}
-
-static void heap_down(scheduler *s, uint32_t i)
-{
-    for (;;) {
-        uint32_t best = i, l = 2 * i + 1, r = 2 * i + 2;
-        if (l < s->heap_size && queue_fuller(s, s->heap[l], s->heap[best])) best = l;
-        if (r < s->heap_size && queue_fuller(s, s->heap[r], s->heap[best])) best = r;
-        if (best == i) return;
-        heap_swap(s, i, best);
-        i = best;
-    }
-}
-
-/* Removes and returns the batching point with the fullest queue. */
-static uint32_t heap_pop(scheduler *s)
-{
-    uint32_t top = s->heap[0];
-    heap_swap(s, 0, --s->heap_size);
-    s->heap_pos[top] = NO_ENTRY;
-    heap_down(s, 0);
-    return top;
+    return (uint64_t)(UINT32_MAX - count) << 32 | id;
 }
 
 static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
 {
     ray_queue *q = &s->queues[id];
     if (q->count == q->capacity) {
-        uint32_t cap = q->capacity ? 2 * q->capacity : 16;
-        uint32_t *grown = realloc(q->slots, cap * sizeof *grown);
+        uint32_t *grown = brt_grow(q->slots, &q->capacity, (size_t)q->count + 1, sizeof *grown);
         if (!grown) return BRT_ENOMEM;
         q->slots = grown;
-        q->capacity = cap;
     }
     q->slots[q->count++] = slot;
-    if (s->heap_pos[id] == NO_ENTRY) {
-        s->heap[s->heap_size] = id;
-        s->heap_pos[id] = s->heap_size++;
-    }
-    heap_up(s, s->heap_pos[id]);
+    heap_lower(&s->fullest, queue_key(q->count, id));
     s->stats->queued_visits++;
     return BRT_OK;
 }
@@ -4189,7 +4240,7 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     /* Take the queue out first: no ray is queued here again (keys only
     ** grow), but the commit queues rays elsewhere. */
     memset(&s->queues[id], 0, sizeof s->queues[id]);
-    if (s->heap_size > 0) cache_read_ahead(&s->cache, s->heap[0]);
+    if (s->fullest.size > 0) cache_read_ahead(&s->cache, (uint32_t)s->fullest.keys[0]);
     r = phase_run(s, q.slots, q.count, id, bvh);
     free(q.slots);
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
@@ -4214,10 +4265,10 @@ static brt_result walkers_init(scheduler *s, const brt_trace_options *opt)
     if (!s->walkers || !s->uses) return BRT_ENOMEM;
     for (t = 0; t < s->pool.count; t++) {
         walker *w = &s->walkers[t];
-        w->walk.heap = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.heap);
+        w->walk.keys = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.keys);
         w->used_at = calloc(n, sizeof *w->used_at);
         w->used = malloc((size_t)n * sizeof *w->used);
-        if (!w->walk.heap || !w->used_at || !w->used) return BRT_ENOMEM;
+        if (!w->walk.keys || !w->used_at || !w->used) return BRT_ENOMEM;
     }
     return BRT_OK;
 }
@@ -4226,7 +4277,7 @@ static void walkers_free(scheduler *s)
 {
     uint32_t t;
     for (t = 0; s->walkers && t < s->pool.count; t++) {
-        free(s->walkers[t].walk.heap);
+        free(s->walkers[t].walk.keys);
         free(s->walkers[t].used_at);
         free(s->walkers[t].used);
     }
@@ -4268,16 +4319,16 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->slots = malloc((size_t)s->capacity * sizeof *s->slots);
     s->free_slots = malloc((size_t)s->capacity * sizeof *s->free_slots);
     s->queues = calloc(n, sizeof *s->queues);
-    s->heap = malloc((size_t)n * sizeof *s->heap);
-    s->heap_pos = malloc((size_t)n * sizeof *s->heap_pos);
+    s->fullest.keys = malloc((size_t)n * sizeof *s->fullest.keys);
+    s->fullest.pos = malloc((size_t)n * sizeof *s->fullest.pos);
     s->incoming = malloc((size_t)s->capacity * sizeof *s->incoming);
     s->incoming_tags = malloc((size_t)s->capacity * sizeof *s->incoming_tags);
     s->phase = malloc((size_t)s->capacity * sizeof *s->phase);
     s->outcome = malloc((size_t)s->capacity * sizeof *s->outcome);
-    if (!s->slots || !s->free_slots || !s->queues || !s->heap || !s->heap_pos || !s->incoming ||
+    if (!s->slots || !s->free_slots || !s->queues || !s->fullest.keys || !s->fullest.pos || !s->incoming ||
         !s->incoming_tags || !s->phase || !s->outcome || walkers_init(s, opt) != BRT_OK)
         return BRT_ENOMEM;
-    for (i = 0; i < n; i++) s->heap_pos[i] = NO_ENTRY;
+    for (i = 0; i < n; i++) s->fullest.pos[i] = HEAP_ABSENT;
     for (i = 0; i < s->capacity; i++) s->free_slots[i] = s->capacity - 1 - i;
     s->free_count = s->capacity;
     if (cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK) return BRT_ENOMEM;
@@ -4293,8 +4344,8 @@ static void scheduler_free(scheduler *s)
     free(s->slots);
     free(s->free_slots);
     free(s->queues);
-    free(s->heap);
-    free(s->heap_pos);
+    free(s->fullest.keys);
+    free(s->fullest.pos);
     free(s->incoming);
     free(s->incoming_tags);
     free(s->phase);
@@ -4327,8 +4378,8 @@ static brt_result exact_load(scheduler *s, brt_error *err)
 static brt_result schedule(scheduler *s, brt_error *err)
 {
     brt_result r = refill(s);
-    while (r == BRT_OK && s->heap_size > 0) {
-        r = process_batch(s, heap_pop(s), err);
+    while (r == BRT_OK && s->fullest.size > 0) {
+        r = process_batch(s, (uint32_t)heap_pop(&s->fullest), err);
         if (r == BRT_OK) r = refill(s);
     }
     if (r == BRT_ENOMEM) return brt_fail(err, r, "out of memory in the ray queues");

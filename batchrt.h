@@ -98,6 +98,11 @@ brt_result brt_fail(brt_error *err, brt_result r, const char *fmt, ...)
 ** Rejects empty, negative, zero, overflowing and trailing-garbage text. */
 brt_result brt_parse_size(const char *text, uint64_t *bytes);
 
+/* The one 64-bit mixer (SplitMix64's finaliser): a bijection whose
+** outputs for neighbouring inputs look independent; hashes and
+** counter-based random numbers are built on it. */
+uint64_t brt_mix64(uint64_t x);
+
 /* SplitMix64: a tiny deterministic generator for raygen and the tests.
 ** brt_random_float returns a float uniformly in [0, 1). */
 uint64_t brt_random_u64(uint64_t *state);
@@ -106,6 +111,17 @@ float brt_random_float(uint64_t *state);
 /* The 64-bit checksum of scene files (header, sections, blobs): a
 ** word-wise multiply-xorshift hash, not cryptographic. */
 uint64_t brt_checksum64(const void *data, size_t size);
+
+/* Little-endian numbers, the byte order of every file batchrt writes. */
+void brt_put_le32(unsigned char *p, uint32_t v);
+void brt_put_le64(unsigned char *p, uint64_t v);
+uint32_t brt_get_le32(const unsigned char *p);
+uint64_t brt_get_le64(const unsigned char *p);
+
+/* The growable array: returns items with room for need elements of size
+** bytes (*cap elements, doubled as needed and updated), or NULL when out
+** of memory, items then untouched (still the caller's to free). */
+void *brt_grow(void *items, size_t *cap, size_t need, size_t size);
 
 /* Seconds from a monotonic clock, for statistics only. */
 double brt_seconds(void);
@@ -122,9 +138,25 @@ uint64_t brt_peak_rss_bytes(void);
 unsigned brt_threads_resolve(unsigned threads);
 
 /* Writes size bytes to path through "path.tmp.<pid>" and rename(), so a
-** failure never leaves a half-written file under the final name. */
+** failure never leaves a half-written file under the final name.  A path
+** that names a device or a pipe (/dev/null, /dev/stdout) is written in
+** place instead: renaming over it would replace it. */
 brt_result brt_write_file_atomic(const char *path, const void *data,
                                  size_t size, brt_error *err);
+
+/* The same for a file written piece by piece: brt_atomic_open creates
+** "path.tmp.<pid>" (fd open for writing; fdopen it for stdio, and set fd to
+** -1 after fclose); brt_atomic_close(f, r, err) closes fd, then renames
+** the file over path when r is BRT_OK, else removes it, and returns r or
+** the close or rename failure.  Call it after every brt_atomic_open,
+** failed or not. */
+typedef struct brt_atomic_file {
+    const char *path;           /* the final name */
+    char tmp[4096];             /* the temporary name; "" when none was created */
+    int fd;                     /* -1 once closed */
+} brt_atomic_file;
+brt_result brt_atomic_open(brt_atomic_file *f, const char *path, brt_error *err);
+brt_result brt_atomic_close(brt_atomic_file *f, brt_result r, brt_error *err);
 
 /* ===================================================================== */
 /* Meshes (batchrt.c)                                                    */
@@ -219,6 +251,11 @@ typedef struct brt_hit {
 #define BRT_NO_PRIM 0xFFFFFFFFu
 #define BRT_RAY_BYTES 32
 #define BRT_HIT_BYTES 16
+
+/* The one ray-validity rule: nonzero when org and dir are finite, dir is
+** not zero and tnear <= tfar (false for a NaN).  Every tracer (BVH, proxy
+** cast, top-level walk) answers "miss" for any other ray. */
+int brt_ray_valid(const brt_ray *ray);
 
 /* Sets a hit to the miss record. */
 void brt_hit_clear(brt_hit *hit);

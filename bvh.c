@@ -146,18 +146,6 @@ struct brt_bvh {
 /* Conservative ray/box test of four slots at once                       */
 /* ===================================================================== */
 
-/* Rays with a NaN, an inf in org or dir, a zero dir, or tnear > tfar
-** never hit (tnear <= tfar is false for NaN too). */
-static int ray_is_valid(const brt_ray *ray)
-{
-    int a;
-    for (a = 0; a < 3; a++)
-        if (!isfinite(ray->org[a]) || !isfinite(ray->dir[a])) return 0;
-    if (ray->dir[0] == 0.0f && ray->dir[1] == 0.0f && ray->dir[2] == 0.0f)
-        return 0;
-    return ray->tnear <= ray->tfar;   /* false for NaN too */
-}
-
 /* The per-ray constants of the box test: brt_ray_prep's 1/dir and padded
 ** origins repeated in four lanes (so box_test4 loads them as vectors
 ** instead of broadcasting nine scalars at every node), and, for the node
@@ -192,7 +180,7 @@ void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
     }
     prep->tnear = ray->tnear;
     prep->tfar = ray->tfar;
-    prep->valid = ray_is_valid(ray);
+    prep->valid = brt_ray_valid(ray);
 }
 
 /* The four-lane copy of an already prepared ray. */
@@ -370,7 +358,7 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
 {
     tri_ray r;
     brt_ray_prep bp;
-    if (!ray_is_valid(ray)) return 0;
+    if (!brt_ray_valid(ray)) return 0;
     tri_ray_setup(ray, &r);
     brt_ray_prepare(ray, &bp);
     return tri_intersect(&r, &bp, v0, v1, v2, ray->tnear, ray->tfar, t, u, v);

@@ -542,17 +542,6 @@ static ex_class classify(const side *a, const side *b)
     return a->hits && b->hits ? EX_TIE : EX_UNEXPLAINED;
 }
 
-/* Rays that no tracer may hit (batchrt's rule, and undefined in Embree). */
-static int ray_is_valid(const brt_ray *r)
-{
-    int k, zero = 1;
-    for (k = 0; k < 3; k++) {
-        if (!isfinite(r->org[k]) || !isfinite(r->dir[k])) return 0;
-        zero &= r->dir[k] == 0.0f;
-    }
-    return !zero && !isnan(r->tnear) && !isnan(r->tfar) && r->tnear <= r->tfar;
-}
-
 int ex_hits_disagree(const brt_hit *a, const brt_hit *b)
 {
     if (a->prim == BRT_NO_PRIM && b->prim == BRT_NO_PRIM) return 0;
@@ -570,7 +559,7 @@ ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
     sa.hit = a;
     sb.hit = b;
     out->t_ratio = out->edge_ratio = 0.0;
-    if (!ray_is_valid(ray)) {
+    if (!brt_ray_valid(ray)) {
         snprintf(out->text, sizeof out->text, "invalid ray (NaN; inf; zero direction or "
                  "tnear > tfar): no tracer may hit it");
         return out->cls = EX_UNEXPLAINED;
@@ -715,7 +704,7 @@ ex_class ex_referee_occlusion(const brt_mesh *mesh, const brt_ray *ray, int a, i
 {
     occlusion_facts o;
     out->t_ratio = out->edge_ratio = 0.0;
-    if (!ray_is_valid(ray)) {
+    if (!brt_ray_valid(ray)) {
         snprintf(out->text, sizeof out->text, "invalid ray (NaN; inf; zero direction or "
                  "tnear > tfar): no tracer may report it occluded");
         return out->cls = EX_UNEXPLAINED;
