@@ -137,15 +137,15 @@ uint64_t brt_get_le64(const unsigned char *p)
 
 /* The one growable array: returns items with room for need elements of
 ** size bytes (capacity *cap, updated), or NULL with items untouched.
-** Doubling from 16 makes n appends cost O(n) copies in total. */
+** At least doubling makes n appends cost O(n) copies in total; a first
+** need is met exactly (a reservation, as the generated scenes make). */
 void *brt_grow(void *items, size_t *cap, size_t need, size_t size)
 {
-    size_t n = *cap ? *cap : 16;
+    size_t n = *cap <= SIZE_MAX / 2 ? 2 * *cap : SIZE_MAX;
     void *bigger;
-    while (n < need) {
-        if (n > SIZE_MAX / 2) return NULL;
-        n *= 2;
-    }
+    if (need <= *cap) return items;
+    if (n < need) n = need;
+    if (n < 16) n = 16;
     if (n > SIZE_MAX / size) return NULL;
     bigger = realloc(items, n * size);
     if (bigger) *cap = n;

@@ -119,8 +119,9 @@ uint32_t brt_get_le32(const unsigned char *p);
 uint64_t brt_get_le64(const unsigned char *p);
 
 /* The growable array: returns items with room for need elements of size
-** bytes (*cap elements, doubled as needed and updated), or NULL when out
-** of memory, items then untouched (still the caller's to free). */
+** bytes (*cap elements: at least doubled, or to need, and updated), or
+** NULL when out of memory, items then untouched (still the caller's to
+** free).  With need <= *cap it returns items as they are. */
 void *brt_grow(void *items, size_t *cap, size_t need, size_t size);
 
 /* Seconds from a monotonic clock, for statistics only. */

@@ -996,11 +996,11 @@ static uint32_t vertex_index(emitter *e, const float *p, uint32_t base)
     if (j < e->vert_count && j >= base && memcmp(e->verts + 3 * (size_t)j, p, 12) == 0)
         return j;
     if (e->vert_count == e->vert_cap) {
-        const uint32_t cap = e->vert_cap < 0x3FFFFFFFu ? 2 * e->vert_cap : 0xFFFFFFFEu;
-        float *v = realloc(e->verts, 12 * (size_t)cap);
+        size_t cap = e->vert_cap;
+        float *v = brt_grow(e->verts, &cap, (size_t)e->vert_count + 1, 12);
         if (!v) return NO_VERTEX;
         e->verts = v;
-        e->vert_cap = cap;
+        e->vert_cap = cap < 0xFFFFFFFEu ? (uint32_t)cap : 0xFFFFFFFEu;   /* uint32 numbers */
     }
     memcpy(e->verts + 3 * (size_t)e->vert_count, p, 12);
     e->recent[h] = e->vert_count;

@@ -417,7 +417,7 @@ static size_t make_tasks(const brt_mesh *mesh, const batches *b, const brt_ray *
         brt_bvh_intersect(bvh, &rays[i], &hit);
         for (k = 0; k < b->count && out; k++) {
             if (!box_entered(&rays[i], b->box[k], hit.t)) continue;
-            if (n == cap) out = realloc(out, (cap *= 2) * sizeof *out);
+            if (n == cap) out = brt_grow(out, &cap, n + 1, sizeof *out);   /* NULL: dies below */
             if (!out) break;
             out[n].ray = rays[i];
             out[n].ray.tfar = fminf(rays[i].tfar, hit.t);

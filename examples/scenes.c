@@ -1354,34 +1354,26 @@ uint64_t ex_scene_stamp(const ex_scene_recipe *recipe)
 
 typedef struct collector {
     void *positions, *indices;     /* 12 bytes per vertex, 12 per triangle */
-    uint64_t vertex_cap, triangle_cap;
+    size_t vertex_cap, triangle_cap;
     uint32_t vertex_count, triangle_count;
     const char *name;
     double scale;
 } collector;
 
-/* Grows one array (by half, or to `need`) unless it has room for `need`;
-** need never passes 2^32 - 1 (emit_surface refuses more). */
-static int grow(void **array, uint64_t *cap, uint64_t need, size_t item_bytes)
+/* Grows one array unless it has room for `need` (brt_grow); need never
+** passes 2^32 - 1 (emit_surface refuses more). */
+static int grow(void **array, size_t *cap, uint64_t need)
 {
-    uint64_t next = *cap + *cap / 2;
-    void *bigger;
-    if (need <= *cap) return 1;
-    if (next < need) next = need;
-    if (next > UINT32_MAX) next = UINT32_MAX;
-    if (next > SIZE_MAX / item_bytes) return 0;
-    bigger = realloc(*array, (size_t)next * item_bytes);
-    if (!bigger) return 0;
-    *array = bigger;
-    *cap = next;
-    return 1;
+    void *bigger = brt_grow(*array, cap, (size_t)need, 12);
+    if (bigger) *array = bigger;
+    return bigger != NULL;
 }
 
 /* Appends n items of 12 bytes (vertices or index triples) to an array. */
-static brt_result append(const collector *c, void **array, uint64_t *cap, uint32_t *count,
+static brt_result append(const collector *c, void **array, size_t *cap, uint32_t *count,
                          const void *items, uint32_t n, brt_error *err)
 {
-    if (!grow(array, cap, (uint64_t)*count + n, 12)) {
+    if (!grow(array, cap, (uint64_t)*count + n)) {
         out_of_memory(err, c->name, c->scale);
         return BRT_ENOMEM;
     }
@@ -1422,9 +1414,8 @@ brt_result ex_scene_generate(const char *name, double scale, uint64_t seed,
     ** than 1.25 vertices per triangle, so the arrays are rarely grown;
     ** pages never written cost no memory. */
     if (scale > 0 && scale <= EX_SCENE_MAX_SCALE
-        && (!grow(&c.positions, &c.vertex_cap, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * scale) + 4096, 12)
-            || !grow(&c.indices, &c.triangle_cap,
-                     (uint64_t)(1.05 * TRIANGLES_PER_SCALE * scale) + 4096, 12))) {
+        && (!grow(&c.positions, &c.vertex_cap, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * scale) + 4096)
+            || !grow(&c.indices, &c.triangle_cap, (uint64_t)(1.05 * TRIANGLES_PER_SCALE * scale) + 4096))) {
         out_of_memory(err, name, scale);
         r = BRT_ENOMEM;
     } else {
