@@ -3043,7 +3043,7 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->interrupt = opt ? opt->interrupt : NULL;
     pool_init(&b->pool, opt ? opt->threads : 0);
     scene_options_resolve(opt, &b->batch_tris, &b->w.res);
-    if (b->w.res < 2 || b->w.res > 1024 || (b->w.res & (b->w.res - 1)) != 0)
+    if (!brt_proxy_res_valid(b->w.res))
         return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", b->w.res);
     b->bucket_tris = cap / b->batch_tris * b->batch_tris;
     if (b->bucket_tris < b->batch_tris) b->bucket_tris = b->batch_tris;

@@ -404,6 +404,10 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 /* Conservative voxel proxies: voxelizer, shared SVDAG, ray cast (svdag.c) */
 /* ===================================================================== */
 
+/* Nonzero when res is a resolution a grid or proxy may have: 2^k,
+** k = 1..10 (the one rule; brt_proxy_check and the scene build use it). */
+int brt_proxy_res_valid(uint32_t res);
+
 /* A dense binary voxel grid with cubic cells, fitted to a box.
 ** Voxel (x,y,z) covers origin + cell*[x,x+1] x [y,y+1] x [z,z+1]; its bit is
 ** bits[i >> 6] >> (i & 63) with i = x + res*(y + res*z). */

@@ -107,6 +107,11 @@ static int resolution_log2(uint32_t res)
     return (int)(popcount8(res - 1) + popcount8((res - 1) >> 8));
 }
 
+int brt_proxy_res_valid(uint32_t res)
+{
+    return resolution_log2(res) > 0;
+}
+
 /* ===================================================================== */
 /* Dense grids                                                            */
 /* ===================================================================== */
@@ -317,11 +322,19 @@ static void voxelize_triangle(brt_grid *grid, double q[3][3])
                     brt_grid_set(grid, x, y, z);
 }
 
+/* The one check of a grid frame, a grid's (grid_frame_valid) or a
+** proxy's (brt_proxy_check): res a power of two in 2..1024, origin
+** finite, cell finite and positive -- what the voxelization and the cast
+** divide and scale by. */
+static int frame_valid(uint32_t res, const float origin[3], float cell)
+{
+    return brt_proxy_res_valid(res) && isfinite(origin[0]) && isfinite(origin[1]) &&
+           isfinite(origin[2]) && isfinite(cell) && cell > 0;
+}
+
 static int grid_frame_valid(const brt_grid *grid)
 {
-    return resolution_log2(grid->res) > 0 && grid->bits &&
-           isfinite(grid->origin[0]) && isfinite(grid->origin[1]) &&
-           isfinite(grid->origin[2]) && isfinite(grid->cell) && grid->cell > 0;
+    return grid->bits && frame_valid(grid->res, grid->origin, grid->cell);
 }
 
 brt_result brt_voxelize(brt_grid *grid, const float *positions,
@@ -737,14 +750,11 @@ static int node_level(const brt_svdag *dag, uint32_t o)
 brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
                            brt_error *err)
 {
-    int k = resolution_log2(proxy->res), i;
-    if (k < 0)
-        return brt_fail(err, BRT_ECHECK, "svdag: proxy res %u is not 2^k, k=1..10", proxy->res);
-    for (i = 0; i < 3; i++)
-        if (!isfinite(proxy->origin[i]))
-            return brt_fail(err, BRT_ECHECK, "svdag: proxy origin not finite");
-    if (!isfinite(proxy->cell) || !(proxy->cell > 0))
-        return brt_fail(err, BRT_ECHECK, "svdag: proxy cell not finite and positive");
+    int k = resolution_log2(proxy->res);
+    if (!frame_valid(proxy->res, proxy->origin, proxy->cell))
+        return brt_fail(err, BRT_ECHECK, "svdag: proxy frame res %u, origin %g %g %g, cell %g: "
+                        "wants res 2^k (k = 1..10), a finite origin and a finite cell > 0",
+                        proxy->res, proxy->origin[0], proxy->origin[1], proxy->origin[2], proxy->cell);
     if (proxy->root == BRT_EMPTY_ROOT) return BRT_OK;
     if (k <= 2) {
         if (proxy->root >= dag->leaf_count)

@@ -94,7 +94,7 @@ uint64_t ex_parse_size(const char *prog, const char *option, const char *text)
 uint32_t ex_parse_resolution(const char *prog, const char *option, const char *text)
 {
     uint64_t res = ex_parse_u64(prog, option, text, 2, 1024);
-    if (res & (res - 1))
+    if (!brt_proxy_res_valid((uint32_t)res))
         ex_die(prog, "%s: expected a power of two in 2..1024, got '%s'", option, text);
     return (uint32_t)res;
 }
