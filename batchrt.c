@@ -3886,10 +3886,35 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 
 /* ---- ray queues and the scheduler ------------------------------------ */
 /*
+** THE PAPER'S SCHEDULER (Pharr et al. 1997, section 4; Molenaar and
+** Eisemann 2020, section 4) is the plain path through this section:
+**   schedule       take new rays (refill); then, while a queue is not
+**                  empty, process the fullest (key_heap, queue_key)
+**   process_batch  fetch its batching point through the LRU page cache
+**                  (cache_fetch), intersect each ray of its queue there,
+**                  and walk each on
+**   walk_on        the ray's top-level walk: at the next batching point it
+**                  enters whose proxy it hits (proxy_test) it is queued
+**                  (enqueue); when there is none, it is finished
+** Each disk read serves as many rays as it can: the fullest queue first.
+**
+** batchrt's improvements are LAYERS on that path: each is one named
+** function that the plain path calls, with what it was measured to do.
+**   1. intersect_resident  geometry in memory: intersect at once, no queue
+**   2. proxies_pay         no proxy tests when the budget holds every blob
+**   3. exact_proxy_hit     analysis: the triangles themselves as the proxy
+**   4. read_ahead          the next load read while a phase runs (threads)
+**   5. phase_run           threads: a phase's walks in parallel, committed
+**                          in order ("Threads" below)
+**   6. fetch_for           statistics: the loads only shadow rays asked for
+** queue_resident turns layers 1 and 2 off (the paper's scheduler, which
+** make figures measures); exact_proxies turns 3 on; one thread turns 4
+** off and makes 5 a plain loop.  No layer changes a hit; 1-3 change
+** which loads happen, 4-6 none.
+**
 ** Rays in flight live in slots; a queue per batching point holds slot
-** numbers.  An indexed binary max-heap orders the non-empty queues by
-** length (ties: lowest id), so the scheduler takes the fullest queue
-** first -- the paper's rule: each disk read serves as many rays as it can.
+** numbers; a min-heap of queue keys (key_heap) orders the non-empty
+** queues, longest first, ties to the lowest id.
 **
 ** Per-ray state while queued: the ray (32 bytes), its closest hit so far
 ** (16) and that triangle's normal (12), its walk key (8), the number of
@@ -3909,7 +3934,9 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 ** cache's LRU order updated from the touches as if the rays had walked one
 ** after another, rays queued or finished.  So every decision -- which
 ** queue is fullest, what is evicted, the order of finished calls -- is the
-** one the one-thread run makes.
+** one the one-thread run makes.  Measured (make bench-threads, 2 threads
+** against 1; README, Threads): render in core 1.5-1.7x, from a modelled
+** 100 MiB/s disk 1.4x, the same counts.
 */
 typedef struct ray_slot {
     brt_ray ray;
@@ -4010,16 +4037,60 @@ static float walk_limit(const ray_slot *r)
     return r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
 }
 
-/* The proxy test: may the ray hit batching point id's triangles in
-** [tnear, tlimit]?  With exact_proxies, the triangles answer. */
-static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
+/* Layer 3, exact proxies (exact_proxies; analysis, not a way to trace):
+** the batching point's triangles answer the proxy test exactly, every
+** BVH read once at the start outside the cache and its counts
+** (exact_load).  It gives the bound no voxel proxy can beat.  Measured
+** (make bench-render, 25 % limit; README, Batched mode): exact proxies read
+** x0.68 of the no-proxy bytes on the landscape and x0.53 on the island,
+** the 128^3 voxels x0.79 and x0.75. */
+static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
 {
-    if (s->exact) {
-        brt_ray segment = *ray;
-        segment.tfar = tlimit;
-        return brt_bvh_occluded(s->exact[id], &segment);
-    }
-    return brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear, tlimit, NULL);
+    brt_ray segment = *ray;
+    segment.tfar = tlimit;
+    return brt_bvh_occluded(s->exact[id], &segment);
+}
+
+/* The paper's proxy test: may the ray hit batching point id's triangles
+** in [tnear, tlimit]?  A miss culls the visit: no queue, no load.  With
+** proxies off (no_proxy, or layer 2) every batching point reached is
+** queued, as in Pharr et al. */
+static int proxy_test(const scheduler *s, walker *w, uint32_t id, const brt_ray *ray, float tlimit)
+{
+    int hit;
+    if (!s->use_proxies) return 1;
+    w->proxy_tests++;
+    hit = s->exact ? exact_proxy_hit(s, id, ray, tlimit)
+                   : brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear,
+                                       tlimit, NULL);
+    w->proxy_culled += !hit;
+    return hit;
+}
+
+/* Layer 1, intersecting at once in memory: at a batching point whose
+** geometry is resident (and unless queue_resident asks for the paper's
+** plain scheduler) the ray needs no queue: it is intersected there at
+** once and walks on.  Its proxy is not consulted: the BVH answers exactly
+** at about the cost of a proxy cast.  Why it matters: a bounce ray starts
+** inside the batching point just processed, still in memory; queued, it
+** would wait there until that point might be evicted and read again.
+** Measured: landscape, 2 M triangles, 25 % limit: loads 4,309 -> 1,358
+** without proxies, 3,104 -> 929 with them; make bench-render at 25 %:
+** 3.5-3.9x fewer bytes than the paper's scheduler, about half the time
+** (README, Batched mode); render landscape --scale 0.3 --width 64
+** --height 36 --spp 2 --memory 25% --batch-tris 3000: 88 -> 59 loads.
+** Returns 0 when the point is not resident.  The use is stamped for the
+** LRU order (commit_uses); *stamp counts the ray's uses. */
+static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, uint64_t *stamp)
+{
+    const brt_bvh *resident = s->queue_resident ? NULL : cache_peek(&s->cache, r->key.id);
+    if (!resident) return 0;
+    if (w->used_at[r->key.id] == 0) w->used[w->used_count++] = r->key.id;
+    w->used_at[r->key.id] = (*stamp)++;
+    intersect_slot(resident, r);
+    r->visits++;
+    w->resident_visits++;
+    return 1;
 }
 
 /* Continues a ray's top-level walk: stops at the next batching point it
@@ -4027,17 +4098,8 @@ static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, fl
 ** ray is to be queued there), or finishes (NO_ENTRY).  tlimit is the
 ** closest hit (a box entered exactly there may still hold an equal-t hit
 ** with a lower prim, so the compare is inclusive).  An occlusion ray
-** also finishes at its first hit.  Writes only the ray's
-** slot and the walker w: threads walk different rays at once.
-**
-** A batching point whose geometry is in memory needs no queue: the ray is
-** intersected there at once and walks on (unless queue_resident asks for
-** the paper's plain scheduler).  Its proxy is not consulted: the BVH
-** answers exactly at about the cost of a proxy cast.  Why it matters: a
-** bounce ray starts inside the batching point just processed, which is
-** still in memory; queued, it would wait there until that point might be
-** evicted and read again.  (Landscape, 2 M triangles, 25 % limit: loads
-** 4,309 -> 1,358 without proxies, 3,104 -> 929 with them; README.)
+** also finishes at its first hit.  Writes only the ray's slot and the
+** walker w: threads walk different rays at once.
 ** stamp: the ray's place in its phase, high word; each use adds one. */
 static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t stamp)
 {
@@ -4048,23 +4110,11 @@ static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t sta
     tlimit = walk_limit(r);
     top_walk_start(&w->walk);
     while (!found_occluder(r) && top_walk_next(&w->walk, s->scene->top, &prep, tlimit, &r->key)) {
-        const brt_bvh *resident = s->queue_resident ? NULL : cache_peek(&s->cache, r->key.id);
-        if (resident) {
-            if (w->used_at[r->key.id] == 0) w->used[w->used_count++] = r->key.id;
-            w->used_at[r->key.id] = stamp++;
-            intersect_slot(resident, r);
-            r->visits++;
-            w->resident_visits++;
+        if (intersect_resident(s, w, r, &stamp)) {          /* layer 1 */
             tlimit = walk_limit(r);
             continue;
         }
-        if (s->use_proxies) {
-            w->proxy_tests++;
-            if (!proxy_may_hit(s, r->key.id, &r->ray, tlimit)) {
-                w->proxy_culled++;
-                continue;
-            }
-        }
+        if (!proxy_test(s, w, r->key.id, &r->ray, tlimit)) continue;
         r->visits++;
         return r->key.id;
     }
@@ -4161,7 +4211,8 @@ static void phase_end(scheduler *s)
 
 #define PHASE_CHUNK 64   /* rays per chunk: ~0.1-1 ms of walks */
 
-/* Runs a phase (see "Threads" above); id: the batching point whose queue
+/* Runs a phase, layer 5 (see "Threads" above: with one thread, a plain
+** loop over the rays, then the commits); id: the batching point whose queue
 ** it is, pinned, released before the uses are committed as a one-thread
 ** run would (no ray of its queue uses it again: keys only grow), or
 ** NO_ENTRY for new rays. */
@@ -4216,8 +4267,9 @@ static int only_occlusion(const scheduler *s, const ray_queue *q)
     return 1;
 }
 
-/* Fetches batching point id for its queue, and books the load (if there
-** is one) as the shadow rays' when they alone asked for it. */
+/* Fetches batching point id for its queue (cache_fetch: the paper's LRU
+** page cache), and, layer 6 (statistics only), books the load, if there
+** is one, as the shadow rays' when they alone asked for it. */
 static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const brt_bvh **bvh,
                             brt_error *err)
 {
@@ -4230,6 +4282,16 @@ static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const
     return r;
 }
 
+/* Layer 4, read-ahead (more than one thread): while a phase runs, the
+** cache's own thread reads the blob of the fullest queue left, the likely
+** next load (cache_read_ahead).  It changes no count and no decision, only
+** the wall time.  Measured (landscape, 25 %; README, Threads): 148 of 166
+** read-aheads were used. */
+static void read_ahead(scheduler *s)
+{
+    if (s->fullest.size > 0) cache_read_ahead(&s->cache, (uint32_t)s->fullest.keys[0]);
+}
+
 /* Intersects every ray queued at batching point id, then moves each on. */
 static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
 {
@@ -4240,7 +4302,7 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     /* Take the queue out first: no ray is queued here again (keys only
     ** grow), but the commit queues rays elsewhere. */
     memset(&s->queues[id], 0, sizeof s->queues[id]);
-    if (s->fullest.size > 0) cache_read_ahead(&s->cache, (uint32_t)s->fullest.keys[0]);
+    read_ahead(s);
     r = phase_run(s, q.slots, q.count, id, bvh);
     free(q.slots);
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
@@ -4253,6 +4315,19 @@ static uint64_t all_blob_bytes(const brt_scene *scene)
     uint32_t i;
     for (i = 0; i < scene->header.batch_count; i++) bytes += round_up_page(scene->batches[i].size);
     return bytes;
+}
+
+/* Layer 2, proxies off when everything fits: proxies only spare loads.
+** When the budget (what is left of it after the proxies) holds every
+** blob nothing is ever evicted, so a load a proxy spares is only put off
+** -- unless no ray ever needs that batching point.  Measured (landscape,
+** 2 M triangles, no limit): 36 of 2.1 M proxy tests were at such points,
+** and the tests cost a fifth of the run (0.71 s against 0.49 s without;
+** README, Batched mode).  So the default scheduler does not consult them
+** then; the paper's (queue_resident) does. */
+static int proxies_pay(const scheduler *s, uint64_t budget)
+{
+    return s->queue_resident || budget < all_blob_bytes(s->scene);
 }
 
 /* The pool and one walker per thread (opt->threads: 0 means all cores). */
@@ -4306,13 +4381,7 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     ** paper's Fig. 3 lowers the geometry limit by the proxies' memory). */
     stats->proxy_bytes = s->use_proxies ? brt_svdag_memory_bytes(scene->dag) : 0;
     if (budget != UINT64_MAX) budget = budget > stats->proxy_bytes ? budget - stats->proxy_bytes : 0;
-    /* Proxies only spare loads.  When the budget holds every blob nothing
-    ** is ever evicted, so a load a proxy spares is only put off -- unless
-    ** no ray ever needs that batching point.  Measured (landscape, 2 M
-    ** triangles, no limit): 36 of 2.1 M proxy tests were at such points,
-    ** and the tests cost a fifth of the run.  So the default scheduler
-    ** does not consult them then; the paper's (queue_resident) does. */
-    if (!s->queue_resident && budget >= all_blob_bytes(scene)) s->use_proxies = 0;
+    if (!proxies_pay(s, budget)) s->use_proxies = 0;            /* layer 2 */
     stats->memory_limit = opt ? opt->memory_limit : 0;
     stats->batching_points = n;
     stats->geometry_bytes = scene->header.geometry_bytes;
@@ -4359,8 +4428,8 @@ static void scheduler_free(scheduler *s)
     free(s->exact_data);
 }
 
-/* exact_proxies: every batching point's BVH, read once, outside the cache
-** and its statistics (an analysis, not a way to trace). */
+/* Layer 3's set-up (exact_proxies): every batching point's BVH, read
+** once, outside the cache and its statistics (exact_proxy_hit). */
 static brt_result exact_load(scheduler *s, brt_error *err)
 {
     uint32_t n = s->scene->header.batch_count, i;
