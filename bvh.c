@@ -99,6 +99,10 @@
 **
 ** PERFORMANCE NOTES (what was tried) are at the end of the file.
 */
+/* The library defines the entry points for tests too (batchrt.h, 7). */
+#ifndef BRT_TESTING
+#define BRT_TESTING 1
+#endif
 #include "batchrt.h"
 
 #include <float.h>

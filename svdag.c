@@ -44,6 +44,10 @@
 ** table is confirmed by comparing the whole node, since a hash is not
 ** equality.  A pool opened from a blob rebuilds them on its first add.
 */
+/* The library defines the entry points for tests too (batchrt.h, 7). */
+#ifndef BRT_TESTING
+#define BRT_TESTING 1
+#endif
 #include "batchrt.h"
 
 #include <float.h>
