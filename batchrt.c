@@ -1781,7 +1781,9 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
 /* Word-wise multiply-xorshift hash (in the style of MurmurHash's
 ** finaliser): fast enough to verify every blob on every load, and a random
 ** corruption goes unnoticed with probability about 2^-64.  Not a
-** cryptographic hash. */
+** cryptographic hash.  Not built on brt_mix64 (the one mixer): its steps
+** are part of the scene-file format -- every file written holds its sums,
+** and changing them would change those bytes. */
 uint64_t brt_checksum64(const void *data, size_t size)
 {
     const unsigned char *p = data;
@@ -1982,6 +1984,15 @@ static uint64_t heap_pop(key_heap *h)
 ** 4-wide too).  It lives here, beside the partition whose median split it
 ** shares, and tests boxes with bvh.c's brt_box_span4 so that its distances
 ** agree bit for bit with the triangle BVHs.
+** Why a node type of its own (top_node) beside bvh.c's qnode, both 4-wide:
+** a qnode holds 8-bit planes in a frame of its own and triangle leaves, in
+** the blobs that the disk reads (its size is the bytes read); a top_node
+** holds float boxes of batching points, stored as is in the scene file's
+** top-level section (TOP_NODE_BYTES) and checked at open against the batch
+** table (check_top: nested, ordered, finite).  One node type would change
+** that section's bytes, which this consolidation keeps.  The two share the
+** box test (brt_box_span4) and the median split; the top level has about
+** one node per three batching points, so its float boxes cost little.
 **
 ** A ray's place in its walk is one 8-byte key (t_entry, id): the entry
 ** distance into the last batching point it was queued at, and that
