@@ -1931,14 +1931,14 @@ typedef struct key_heap {
     uint32_t size;
 } key_heap;
 
-static void heap_place(key_heap *h, uint32_t i, uint64_t key)
+static inline void heap_place(key_heap *h, uint32_t i, uint64_t key)
 {
     h->keys[i] = key;
     if (h->pos) h->pos[(uint32_t)key] = i;
 }
 
 /* Puts key at hole i or above it (every key above i is no larger). */
-static void heap_up(key_heap *h, uint32_t i, uint64_t key)
+static inline void heap_up(key_heap *h, uint32_t i, uint64_t key)
 {
     while (i > 0 && key < h->keys[(i - 1) / 2]) {
         heap_place(h, i, h->keys[(i - 1) / 2]);
@@ -1947,7 +1947,7 @@ static void heap_up(key_heap *h, uint32_t i, uint64_t key)
     heap_place(h, i, key);
 }
 
-static void heap_push(key_heap *h, uint64_t key)
+static inline void heap_push(key_heap *h, uint64_t key)
 {
     heap_up(h, h->size++, key);
 }
@@ -1960,7 +1960,7 @@ static void heap_lower(key_heap *h, uint64_t key)
 }
 
 /* Removes and returns the least key. */
-static uint64_t heap_pop(key_heap *h)
+static inline uint64_t heap_pop(key_heap *h)
 {
     uint64_t top = h->keys[0], last = h->keys[--h->size];
     uint32_t i = 0;
@@ -2174,7 +2174,8 @@ static void walk_expand(top_walk *w, const top_node *node, const brt_ray_prep *r
 static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep *ray, float tlimit,
                          walk_key *key)
 {
-    while (w->size > 0 && walk_entry_of(w->keys[0]) <= tlimit) {
+    const uint64_t stop = walk_key_of(tlimit, 0xFFFFFFFFu);   /* entry <= tlimit */
+    while (w->size > 0 && w->keys[0] <= stop) {
         uint64_t next = heap_pop(w);
         uint32_t code = (uint32_t)next;
         float entry = walk_entry_of(next);
