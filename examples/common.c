@@ -20,6 +20,7 @@
 #include <string.h>
 #include <limits.h>
 #include <signal.h>
+#include <time.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -403,4 +404,9 @@ void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tr
     if (snprintf(path, size, "%s/%s-%08x-b%u-r%u.brs", dir, base, (unsigned)hash, (unsigned)batch_tris,
                  (unsigned)res) >= (int)size)
         ex_die(prog, "%s: scene path too long", dir);
+}
+
+double ex_cpu_seconds(void)
+{
+    return (double)clock() / CLOCKS_PER_SEC;
 }

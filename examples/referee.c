@@ -87,6 +87,7 @@
 ** or tfar); such a ray comes out unexplained, never wrongly explained.
 */
 #include "referee.h"
+#include "common.h"
 
 #include <float.h>
 #include <math.h>
@@ -343,13 +344,6 @@ typedef struct facts {
 
 static double norm3(const double v[3]) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
 
-static void cross3(const double a[3], const double b[3], double out[3])
-{
-    out[0] = a[1] * b[2] - a[2] * b[1];
-    out[1] = a[2] * b[0] - a[0] * b[2];
-    out[2] = a[0] * b[1] - a[1] * b[0];
-}
-
 /* The edge band of edge (a, b), in double (see the top of the file). */
 static double edge_band(const brt_ray *ray, const float *a, const float *b)
 {
@@ -360,8 +354,8 @@ static double edge_band(const brt_ray *ray, const float *a, const float *b)
         B[k] = (double)b[k] - ray->org[k];
         d[k] = ray->dir[k];
     }
-    cross3(A, d, Ad);
-    cross3(B, d, Bd);
+    ex_cross3(A, d, Ad);
+    ex_cross3(B, d, Bd);
     return EDGE_ULPS * FLT_EPSILON * (norm3(A) * norm3(Bd) + norm3(B) * norm3(Ad));
 }
 

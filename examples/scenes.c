@@ -32,6 +32,7 @@
 ** their density stays natural) or into finer grids (crown, terrain).
 */
 #include "scenes.h"
+#include "common.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -52,21 +53,6 @@ typedef struct xform {
     double t[3];
 } xform;
 
-static void cross3(const double a[3], const double b[3], double out[3])
-{
-    out[0] = a[1] * b[2] - a[2] * b[1];
-    out[1] = a[2] * b[0] - a[0] * b[2];
-    out[2] = a[0] * b[1] - a[1] * b[0];
-}
-
-static void normalize3(double v[3])
-{
-    double len = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
-    v[0] /= len;
-    v[1] /= len;
-    v[2] /= len;
-}
-
 /* Local x goes to x_axis, local y to y_axis (orthonormal), local z to their
 ** cross product; then scale and move to `at`. */
 static xform xform_frame(const double x_axis[3], const double y_axis[3],
@@ -75,7 +61,7 @@ static xform xform_frame(const double x_axis[3], const double y_axis[3],
     xform x;
     double z_axis[3];
     int r;
-    cross3(x_axis, y_axis, z_axis);
+    ex_cross3(x_axis, y_axis, z_axis);
     for (r = 0; r < 3; r++) {
         x.m[r][0] = scale * x_axis[r];
         x.m[r][1] = scale * y_axis[r];
@@ -94,11 +80,11 @@ static xform xform_along(const double axis[3], double roll, double scale,
     double y[3], x[3], side[3], helper[3] = {0, 1, 0};
     int k;
     memcpy(y, axis, sizeof y);
-    normalize3(y);
+    ex_normalize3(y);
     if (fabs(y[1]) > 0.99) { helper[0] = 1; helper[1] = 0; }
-    cross3(helper, y, x);
-    normalize3(x);
-    cross3(y, x, side);
+    ex_cross3(helper, y, x);
+    ex_normalize3(x);
+    ex_cross3(y, x, side);
     for (k = 0; k < 3; k++) x[k] = x[k] * cos(roll) + side[k] * sin(roll);
     return xform_frame(x, y, scale, at);
 }
@@ -536,7 +522,7 @@ static void tube_point(const void *shape, double u, double v, double p[3])
     n[0] = t->ay * cos(theta);
     n[1] = t->ax * sin(theta);
     n[2] = 0;
-    normalize3(n);
+    ex_normalize3(n);
     if (t->capped) f *= pow(sin(PI * v), 0.3);
     p[0] = t->ax * cos(theta) + n[0] * t->width * f * cx;
     p[1] = t->ay * sin(theta) + n[1] * t->width * f * cx;
