@@ -262,6 +262,8 @@ uint32_t ex_adler32(const unsigned char *data, size_t size)
 
 #define STORED_BLOCK_MAX 65535u   /* LEN is a 16-bit field (RFC 1951 3.2.4) */
 
+/* PNG's numbers are big-endian (its specification, section 7.1): the one
+** file batchrt's programs write in that order, so not brt_put_le32. */
 static unsigned char *put_be32(unsigned char *p, uint32_t x)
 {
     p[0] = (unsigned char)(x >> 24); p[1] = (unsigned char)(x >> 16);
