@@ -486,7 +486,7 @@ void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep);
 ** plo/phi may be lo/hi themselves. */
 void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3]);
 
-/* brt_box_span on four padded boxes at once, laid out as rows of four
+/* brt_box_span (section 7) on four padded boxes at once, laid out as rows of four
 ** lanes: box[0..2] the minimum x, y, z and box[3..5] the maximum x, y, z
 ** of lanes 0..3 (a 4-wide BVH node).  Bit i of the result is lane i's
 ** answer; entry[i] and exit[i] are bit for bit brt_box_span's. */
@@ -723,14 +723,14 @@ brt_result brt_atomic_close(brt_atomic_file *f, brt_result r, brt_error *err);
 */
 #ifdef BRT_TESTING
 
-/* The same parsers on a memory buffer; name is used in messages.
-** Entry points for tests and fuzzers. */
+/* brt_mesh_load's parsers on a memory buffer; name is used in messages. */
 brt_result brt_mesh_parse_obj(const char *name, const void *data, size_t size,
                               brt_mesh *mesh, brt_error *err);
 brt_result brt_mesh_parse_ply(const char *name, const void *data, size_t size,
                               brt_mesh *mesh, brt_error *err);
 
-/* 1 when the ray's segment [tmin, tmax] meets the closed box [lo, hi],
+/* The one-box form of brt_box_span4 (section 4), the tests' oracle for it:
+** 1 when the ray's segment [tmin, tmax] meets the closed box [lo, hi],
 ** which must already be grown with brt_box_pad (so that a caller testing
 ** one box many times grows it once), with the entry and exit distances. */
 int brt_box_span(const brt_ray_prep *prep, const float lo[3],
@@ -757,7 +757,7 @@ brt_result brt_svdag_check(const brt_svdag *dag, brt_error *err);
 brt_result brt_svdag_decode(const brt_svdag *dag, const brt_proxy *proxy,
                             brt_grid *grid);
 
-/* The same cast written for reading: plain Laine-Karras (phases INITIALIZE,
+/* brt_proxy_raycast written for reading: plain Laine-Karras (INITIALIZE,
 ** PUSH, ADVANCE, POP, the paper's names), about 3x slower; same contract.
 ** It answers hit or miss exactly as brt_proxy_raycast does, with the same
 ** *t_entry (the same plane distances; tests check both). */
