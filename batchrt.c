@@ -3902,8 +3902,8 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 
 /* ---- ray queues and the scheduler ------------------------------------ */
 /*
-** THE PAPER'S SCHEDULER (Pharr et al. 1997, section 4; Molenaar and
-** Eisemann 2020, section 4) is the plain path through this section:
+** THE PAPER'S SCHEDULER (Pharr et al. 1997, as Molenaar and Eisemann
+** 2020 use it with proxies) is the plain path through this section:
 **   schedule       take new rays (refill); then, while a queue is not
 **                  empty, process the fullest (key_heap, queue_key)
 **   process_batch  fetch its batching point through the LRU page cache
