@@ -1,6 +1,8 @@
 /*
 ** batchrt.c -- everything of batchrt that is neither a BVH nor a voxel proxy:
-**   - results, errors and small utilities (sizes, SplitMix64, atomic writes);
+**   - results, errors and the one copy of each small utility (sizes, the
+**     64-bit mixer and SplitMix64, little-endian numbers, the growable
+**     array, the atomic writer);
 **   - mesh loading: Wavefront OBJ and PLY (ascii, binary both endians),
 **     streamed in chunks through one byte reader;
 **   - ray and hit files (little-endian records) and statistics JSON;
