@@ -8,6 +8,8 @@
 #   make bench        benchmarks (figures printed, never pass/fail)
 #   make bench-threads  speed-ups at 1 and 2 threads (README, "Threads")
 #   make mutants      mutation testing of the suite (tests/mutants/)
+#   make install      library, header and batchrt.pc under $(DESTDIR)$(PREFIX)
+#   make uninstall    removes them; make install-check: see INSTALL below
 #   make clean
 #   make V=1 ...      show the full command lines
 #
@@ -88,8 +90,10 @@ $(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
-# The tests run programs from $(BUILD) too (command-line contracts).
-test: all $(TEST_BIN)
+# The tests run programs from $(BUILD) too (command-line contracts).  The
+# install check (below) comes first, so that the runner's line stays last,
+# and only without a filter T.
+test: all $(TEST_BIN) $(if $(T),,install-check)
 	BRT_BUILD=$(BUILD) ./$(TEST_BIN) $(T)
 
 # Mutation testing (tests/mutants/): each mutant in tests/mutants/mutants.txt
@@ -117,7 +121,7 @@ bench: all
 	./$(BUILD)/bench_bvh
 	./$(BUILD)/bench_svdag
 
-# Out of core: proxies on and off at 25 % of the geometry bytes (issue 4).
+# Out of core: proxies on and off at 25 % of the geometry bytes (README, Benchmarks).
 bench-batched: all
 	./$(BUILD)/bench_batched landscape --scale 50
 
@@ -291,6 +295,27 @@ bench-render: all
 	    --out $(BUILD)/bench-render-$$scene.png || exit 1; \
 	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --out $(BUILD)/bench-render-$$scene.png || exit 1; \
 	done
+# bench-inner: inner proxies (README "Inner proxies"): the landscape and the
+# island at 1M triangles, 25 % of the geometry bytes, next-event estimation,
+# outer proxies alone (--no-inner) against outer + inner; one JSON each in
+# $(BUILD)/inner, a table of the counts, and the two images compared.
+BENCH_INNER = --scale 10 --batch-tris 10000 --spp 4 --width 320 --height 180 --memory 25%
+INNER_FIELDS = disk_bytes_read batch_loads shadow_rays shadow_occluded shadow_disk_bytes_read \
+  shadow_inner_stopped proxy_bytes
+.PHONY: bench-inner
+bench-inner: all
+	mkdir -p $(BUILD)/inner
+	for scene in landscape island; do \
+	  for run in outer inner; do \
+	    ./$(BUILD)/render $$scene $(BENCH_INNER) $$( [ $$run = outer ] && echo --no-inner ) \
+	      --out $(BUILD)/inner/$$scene-$$run.png --stats $(BUILD)/inner/$$scene-$$run.json || exit 1; \
+	    printf '%s %s:' $$scene $$run; \
+	    for f in $(INNER_FIELDS); do \
+	      printf ' %s %s' $$f $$(sed -n "s/^ *\"$$f\": \([0-9]*\),*$$/\1/p" $(BUILD)/inner/$$scene-$$run.json); \
+	    done; echo; \
+	  done; \
+	  cmp $(BUILD)/inner/$$scene-outer.png $(BUILD)/inner/$$scene-inner.png || exit 1; \
+	done
 # == END RENDER ===========================================================
 
 # == THREADS (speed-ups; not part of CI) =================================
@@ -406,6 +431,85 @@ bench-scale: all
 	if [ "$(SCALE_KEEP)" != 1 ]; then rm -f $$d/land.brs; fi; \
 	exit $$fail
 # == END SCALE ============================================================
+
+# == INSTALL ==============================================================
+#   make install       $(LIB), batchrt.h and a pkg-config file batchrt.pc
+#                      into $(DESTDIR)$(LIBDIR), $(DESTDIR)$(INCLUDEDIR) and
+#                      $(DESTDIR)$(PKGCONFIGDIR); PREFIX defaults to /usr/local,
+#                      DESTDIR (staging) never appears in batchrt.pc
+#   make uninstall     removes those three files (same PREFIX and DESTDIR)
+#   make install-check installs into $(BUILD)/install-check/prefix, builds
+#                      examples/minimal_batched.c from a copy beside it (so
+#                      no header of the tree can be found) with the flags of
+#                      "pkg-config --cflags --libs batchrt", runs it, requires
+#                      the output of $(BUILD)/minimal_batched, checks that
+#                      DESTDIR stages and uninstall removes, and removes the
+#                      folder.  Under a second; "make test" runs it.
+# Only the static library is installed, so batchrt.pc lists its own
+# libraries (-lm -pthread) under Libs, not Libs.private: a static link
+# needs them and "pkg-config --libs" without --static leaves private ones out.
+PREFIX       ?= /usr/local
+LIBDIR       ?= $(PREFIX)/lib
+INCLUDEDIR   ?= $(PREFIX)/include
+PKGCONFIGDIR ?= $(LIBDIR)/pkgconfig
+PKG_CONFIG   ?= pkg-config
+BRT_VERSION   = 0.1
+define PC_FILE
+prefix=$(PREFIX)
+libdir=$(patsubst $(PREFIX)/%,$${prefix}/%,$(LIBDIR))
+includedir=$(patsubst $(PREFIX)/%,$${prefix}/%,$(INCLUDEDIR))
+
+Name: batchrt
+Description: conservative ray batching with geometry proxies (Molenaar and Eisemann 2020), C99 reference
+Version: $(BRT_VERSION)
+Cflags: -I$${includedir}
+Libs: -L$${libdir} -lbatchrt -lm -pthread
+endef
+export PC_FILE
+INSTALLED = $(DESTDIR)$(LIBDIR)/libbatchrt.a $(DESTDIR)$(INCLUDEDIR)/batchrt.h \
+            $(DESTDIR)$(PKGCONFIGDIR)/batchrt.pc
+.PHONY: install uninstall install-check
+install: $(LIB)
+	$(SAY) INSTALL "$(DESTDIR)$(PREFIX)"
+	$(Q)install -d "$(DESTDIR)$(LIBDIR)" "$(DESTDIR)$(INCLUDEDIR)" "$(DESTDIR)$(PKGCONFIGDIR)"
+	$(Q)install -m 644 $(LIB) "$(DESTDIR)$(LIBDIR)/libbatchrt.a"
+	$(Q)install -m 644 batchrt.h "$(DESTDIR)$(INCLUDEDIR)/batchrt.h"
+	$(Q)printf '%s\n' "$$PC_FILE" > "$(DESTDIR)$(PKGCONFIGDIR)/batchrt.pc"
+
+uninstall:
+	$(SAY) REMOVE "$(DESTDIR)$(PREFIX)"
+	$(Q)rm -f $(INSTALLED:%="%")
+
+# Without pkg-config the flags are read from batchrt.pc itself: its variable
+# lines (name=value, ${name} references) are shell assignments, so eval
+# expands them as pkg-config would; a line says so.  The lines that run
+# $(MAKE) are separate so that "make -n install-check" only prints.
+INSTALL_CHECK = $(abspath $(BUILD))/install-check
+install-check: $(LIB) $(BUILD)/minimal_batched
+	$(SAY) CHECK "make install, pkg-config, $(INSTALL_CHECK)"
+	$(Q)rm -rf "$(INSTALL_CHECK)" && mkdir -p "$(INSTALL_CHECK)"
+	$(Q)$(MAKE) --no-print-directory -s install PREFIX="$(INSTALL_CHECK)/prefix" DESTDIR=
+	$(Q)set -e; d="$(INSTALL_CHECK)"; pc="$$d/prefix/lib/pkgconfig/batchrt.pc"; \
+	if command -v $(PKG_CONFIG) >/dev/null 2>&1; then \
+	  flags=$$(PKG_CONFIG_PATH="$$d/prefix/lib/pkgconfig" $(PKG_CONFIG) --cflags --libs batchrt); \
+	else echo "install-check: no $(PKG_CONFIG); the flags are read from batchrt.pc with sed"; \
+	  eval "$$(sed -n 's/^\([a-z]*\)=\(.*\)$$/\1="\2"/p' "$$pc")"; \
+	  flags=$$(eval echo "$$(sed -n 's/^Cflags: //p; s/^Libs: //p' "$$pc" | tr '\n' ' ')"); fi; \
+	cp examples/minimal_batched.c "$$d/"; \
+	$(CC) $(CFLAGS) "$$d/minimal_batched.c" $$flags -o "$$d/minimal_batched"; \
+	TMPDIR="$$d" "$$d/minimal_batched" > "$$d/installed.out"; \
+	TMPDIR="$$d" ./$(BUILD)/minimal_batched > "$$d/tree.out"; \
+	cmp -s "$$d/installed.out" "$$d/tree.out" || { echo "install-check: the installed copy printed"; \
+	  cat "$$d/installed.out"; exit 1; }
+	$(Q)$(MAKE) --no-print-directory -s install DESTDIR="$(INSTALL_CHECK)/stage" PREFIX=/opt/batchrt
+	$(Q)grep -qx 'prefix=/opt/batchrt' "$(INSTALL_CHECK)/stage/opt/batchrt/lib/pkgconfig/batchrt.pc" && \
+	test -f "$(INSTALL_CHECK)/stage/opt/batchrt/lib/libbatchrt.a" && \
+	test -f "$(INSTALL_CHECK)/stage/opt/batchrt/include/batchrt.h"
+	$(Q)$(MAKE) --no-print-directory -s uninstall DESTDIR="$(INSTALL_CHECK)/stage" PREFIX=/opt/batchrt
+	$(Q)left=$$(find "$(INSTALL_CHECK)/stage" -type f); \
+	test -z "$$left" || { echo "install-check: uninstall left $$left"; exit 1; }; \
+	rm -rf "$(INSTALL_CHECK)"
+# == END INSTALL ==========================================================
 
 clean:
 	rm -rf build

@@ -276,6 +276,8 @@ typedef struct brt_trace_options {
                              ** all cores); the scheduler's decisions, the
                              ** order of finished calls and every count are
                              ** the same for any number (README, "Threads") */
+    int no_inner;            /* do not consult the inner proxies (occlusion
+                             ** rays with tfar = +inf; README "Inner proxies") */
 } brt_trace_options;
 
 /* Ray kinds.  A ray of a stream is a closest-hit ray, or an occlusion ray
@@ -358,6 +360,8 @@ struct brt_stats {
     double mrays_per_second;
     uint64_t peak_rss_bytes;    /* the process's, when the stats were taken
                                 ** (programs set it: brt_peak_rss_bytes) */
+    uint64_t shadow_inner_stopped;   /* occlusion rays settled occluded by an
+                                ** inner proxy: no queue, no load */
 };
 
 /* Writes the statistics as one JSON object (atomically). */
@@ -629,6 +633,30 @@ brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
 ** plus 4x4x4 leaves), counted through the DAG; 0 for an empty or invalid
 ** proxy or when memory runs out. */
 uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy);
+
+/* Inner voxelization (svdag.c, "Inner proxies").  A solids set: the
+** closed components of a set of triangles (every edge used an even number
+** of times by triangles with exactly equal vertex positions, none
+** degenerate); triangle t's corners are the 9 floats at corners + stride * t,
+** which the set refers to: keep them until brt_solids_free. */
+typedef struct brt_solids brt_solids;
+brt_result brt_solids_build(const float *corners, size_t stride, uint32_t tri_count,
+                            brt_solids **out);
+uint32_t brt_solids_triangles(const brt_solids *solids);   /* in closed components */
+void brt_solids_free(brt_solids *solids);
+
+/* Into an allocated, empty grid: the voxels whose closed box lies inside a
+** closed component of solids (odd crossing parity), so that a ray from any
+** of them to infinity hits a triangle of solids. */
+brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids);
+
+/* 1 only when the ray, with tfar = +inf, certainly hits a triangle at
+** t >= tnear: it passes through the core of an inner voxel of the proxy
+** (a root from brt_voxelize_inner's grid, checked like an outer proxy).
+** 0 for any other ray, or when unsure: it may under-report, never
+** over-report. */
+int brt_inner_occludes(const brt_svdag *dag, const brt_proxy *inner,
+                       const brt_ray *ray);
 
 uint32_t brt_svdag_node_count(const brt_svdag *dag);
 size_t brt_svdag_memory_bytes(const brt_svdag *dag);

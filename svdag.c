@@ -1584,3 +1584,628 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 {
     return proxy_cast(dag, proxy, ray, tnear, tfar, t_entry, reference_walk);
 }
+
+/* ===================================================================== */
+/* Inner proxies: voxels that prove a shadow ray occluded (issue 18)      */
+/* ===================================================================== */
+/*
+** The paper's future work (section 4.3): a second voxelization whose set
+** voxels lie certainly inside solid geometry, so that an occlusion ray
+** with tfar = +inf that passes through one is occluded without a load.
+** The inner grid of a batching point is fitted to its box like the outer
+** proxy's and stored as a second root in the same shared pool.
+**
+** WHICH GEOMETRY QUALIFIES (brt_solids_build).  The triangles of a set --
+** the scene build passes a whole bucket, all the triangles it holds in
+** memory at once, so a solid cut by batching-point boundaries still counts
+** -- are joined into components by exactly equal vertex positions (-0 =
+** +0).  A component is CLOSED when every edge (pair of distinct positions)
+** is used by an even number of its triangles and none of its triangles is
+** degenerate (two equal positions, or a cross product below 2^-40 of
+** |e1||e2|).  A closed component is a 2-cycle mod 2, so for points off its
+** surface the parity of the number of crossings of any path to infinity is
+** well defined (Jordan-Brouwer, mod 2); odd parity is INSIDE.  A component
+** that a bucket boundary cuts has edges used once within the set and gets
+** nothing (conservative).  Open geometry never counts, neither as a wall
+** nor as a solid.
+**
+** HOW INSIDE IS DECIDED (brt_voxelize_inner).  Every closed triangle of the
+** set that comes near the grid's box is voxelized with the conservative
+** voxelizer above: an unmarked voxel's closed box touches no closed
+** triangle, so a 6-connected set of unmarked voxels is a connected set off
+** the surface and has one parity.  A flood fill from the grid's border is
+** NOT a proof (a solid may run past the border; a pocket walled in by
+** marked voxels of several small solids may be outside, a path leaving it
+** through the marked voxels between them), so each component's parity is
+** counted: a ray straight up (+y) from one voxel centre against the closed
+** triangles whose xz boxes hold the centre (a uniform xz grid over the
+** set), in double precision; a triangle too close to call (an xz edge
+** function within its rounding bound of 0, parity_up) makes that voxel
+** undecided, and up to four voxels of the component are tried before it
+** is left out (so is a component past INNER_MAX_COMPONENTS).  Odd count:
+** every voxel of the component is inner.  (Nested shells: the space
+** between them counts one crossing and is inner; the core inside the inner
+** shell counts two and is left out, although a ray from it is occluded
+** too: parity is a sufficient test, not a necessary one.  Overlapping
+** solids: their common part counts two, left out alike.)
+**
+** THE MARGIN AND ROUNDING (brt_inner_occludes).  The cast never trusts a
+** voxel whole: it takes the voxel's CORE, the box shrunk by a quarter
+** voxel on every side, picks t_s in [max(entry, tnear), exit] of the core
+** and checks the point there lies in the core (in double, grid units; the
+** error there is below 1e-9 voxels under the magnitude condition below).
+** The real point P = o + t_s d then lies at least ~cell/4 from every
+** closed triangle and is inside, so the ray beyond P crosses the closed
+** surface at some t > t_s >= tnear, at least cell/(4|d|) later.  The
+** watertight test (Woop, Benthin, Wald 2013) cannot let the ray through
+** that surface: vertices are transformed once each, edge functions of a
+** shared edge are exact negations of each other, so the closed component
+** stays closed for the test and its coverage of the ray's line has the
+** parity of the real one (their section 3); the computed t is off by a few
+** float ulps of the coordinates' magnitude M.  The cast refuses any ray or
+** grid with M >= 2^14 cells (origin, ray origin, far grid corner), so
+** those ulps (2^-24 M <= 2^-10 cell) stay far below the cell/4 margin.
+** Assumption stated rather than proved: a hit that grazes a long triangle
+** can err by more than ulps of M in t; the dense tests (tests/test_inner.c)
+** hold the result to the exact query ray by ray.
+**
+** RAYS FROM INSIDE A SOLID.  Nothing changes: an occlusion ray whose origin
+** lies inside a solid and whose tnear is small is occluded by the exact
+** query as well (it leaves the solid); with tnear > 0 only core points at
+** t_s >= tnear are used, so the hit beyond is at t > tnear too.
+**
+** STORAGE (measured, README "Inner proxies"): a second root per batching
+** point in the shared pool, deduplicated with the outer proxies, at half
+** their resolution (batchrt.c, inner_res): interiors are mostly solid
+** blocks, which dedup to few nodes, but their surfaces are as unique as
+** the outer proxies', and at full resolution they doubled the pool.
+*/
+
+#define INNER_MAX_COMPONENTS 1024u  /* parity decisions per grid */
+#define INNER_MAX_CELLS 16384.0     /* 2^14: magnitude bound, in cells */
+#define INNER_CORE 0.25             /* the margin: a voxel's core starts here */
+
+struct brt_solids {
+    const float *corners;       /* the caller's triangles (kept alive by it) */
+    size_t stride;
+    uint32_t *ids;              /* the closed ones among them */
+    uint32_t count;
+    double x0, z0, cx, cz;      /* the xz index: origin and cell sides */
+    uint32_t nx, nz;
+    uint32_t *first;            /* cell c's triangles: items[first[c] .. first[c+1]) */
+    uint32_t *items;
+};
+
+/* A corner's position with -0 made +0 (equal values weld), as bits. */
+static void corner_bits(const float *v, uint32_t bits[3])
+{
+    int i;
+    for (i = 0; i < 3; i++) {
+        float f = v[i] == 0.0f ? 0.0f : v[i];
+        memcpy(&bits[i], &f, 4);
+    }
+}
+
+static const float *corner_at(const float *corners, size_t stride, uint32_t t, int k)
+{
+    return corners + stride * t + 3 * k;
+}
+
+static const float *corner_ref(const float *corners, size_t stride, uint32_t ref)
+{
+    return corner_at(corners, stride, ref / 3, (int)(ref % 3));
+}
+
+/*
+** Vertex ids by exact position: vid[3t + k] for corner k of triangle t.
+** An open-addressing table of ids (load at most 3/4), each id remembered
+** by its first corner: 20 bytes a corner at most, where a sort would take
+** twice the corners' positions (glibc's qsort copies its array).
+*/
+static brt_result weld(const float *corners, size_t stride, uint32_t n, uint32_t *vid,
+                       uint32_t *unique)
+{
+    size_t count = 3 * (size_t)n, cap = 4, c;
+    uint32_t *slot, *first;
+    while (cap < count + count / 3 + 1) cap *= 2;
+    slot = calloc(cap, sizeof *slot);
+    first = malloc((count + 1) * sizeof *first);
+    *unique = 0;
+    if (!slot || !first) {
+        free(slot);
+        free(first);
+        return BRT_ENOMEM;
+    }
+    for (c = 0; c < count; c++) {
+        uint32_t b[3], o[3];
+        size_t h;
+        corner_bits(corner_ref(corners, stride, (uint32_t)c), b);
+        h = (size_t)brt_mix64(((uint64_t)b[0] << 32 | b[1]) ^ brt_mix64(b[2])) & (cap - 1);
+        for (;; h = (h + 1) & (cap - 1)) {
+            if (!slot[h]) {
+                first[*unique] = (uint32_t)c;
+                slot[h] = ++*unique;
+                break;
+            }
+            corner_bits(corner_ref(corners, stride, first[slot[h] - 1]), o);
+            if (memcmp(b, o, sizeof b) == 0) break;
+        }
+        vid[c] = slot[h] - 1;
+    }
+    free(slot);
+    free(first);
+    return BRT_OK;
+}
+
+/* Sorts in place (heapsort): no second array, unlike qsort.  A second
+** binary heap beside batchrt.c's key_heap, for a stated reason: that one
+** is static there so that it inlines into the top-level walk (out of
+** line, and with a decoded compare, a batched trace ran 1.1 % more
+** instructions; callgrind, issue 20), and sharing it across files would
+** put its code in the public header. */
+static void sift_down(uint64_t *a, size_t i, size_t n)
+{
+    for (;;) {
+        size_t c = 2 * i + 1;
+        uint64_t t;
+        if (c >= n) return;
+        if (c + 1 < n && a[c + 1] > a[c]) c++;
+        if (a[i] >= a[c]) return;
+        t = a[i]; a[i] = a[c]; a[c] = t;
+        i = c;
+    }
+}
+
+static void heap_sort64(uint64_t *a, size_t n)
+{
+    size_t i;
+    for (i = n / 2; i-- > 0;) sift_down(a, i, n);
+    while (n > 1) {
+        uint64_t t = a[0];
+        a[0] = a[--n];
+        a[n] = t;
+        sift_down(a, 0, n);
+    }
+}
+
+static uint32_t uf_find(uint32_t *parent, uint32_t v)
+{
+    while (parent[v] != v) v = parent[v] = parent[parent[v]];
+    return v;
+}
+
+static int triangle_degenerate(const float *tri, const uint32_t *vid)
+{
+    double e1[3], e2[3], x[3], l1 = 0, l2 = 0, lx = 0;
+    int i;
+    if (vid[0] == vid[1] || vid[1] == vid[2] || vid[0] == vid[2]) return 1;
+    for (i = 0; i < 3; i++) {
+        e1[i] = (double)tri[3 + i] - tri[i];
+        e2[i] = (double)tri[6 + i] - tri[i];
+    }
+    for (i = 0; i < 3; i++) {
+        x[i] = e1[(i + 1) % 3] * e2[(i + 2) % 3] - e1[(i + 2) % 3] * e2[(i + 1) % 3];
+        l1 += e1[i] * e1[i];
+        l2 += e2[i] * e2[i];
+        lx += x[i] * x[i];
+    }
+    return lx <= 0x1p-80 * l1 * l2;
+}
+
+/* closed[t] = 1 for the triangles of closed components (header above). */
+static brt_result closed_triangles(const float *corners, size_t stride, uint32_t n,
+                                   unsigned char *closed)
+{
+    uint32_t *vid = malloc((3 * (size_t)n + 1) * sizeof *vid), unique = 0, *parent = NULL, t;
+    uint64_t *edges = NULL;
+    unsigned char *bad = NULL;
+    size_t e, run;
+    /* weld's table is freed before the edges are taken: the peak is about
+    ** 16 bytes a corner (a full bucket, 1.68 M triangles: about 80 MB) */
+    brt_result r = vid ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
+    if (r == BRT_OK) {
+        edges = malloc((3 * (size_t)n + 1) * sizeof *edges);
+        parent = malloc(((size_t)unique + 1) * sizeof *parent);
+        bad = calloc((size_t)unique + 1, 1);
+        if (!edges || !parent || !bad) r = BRT_ENOMEM;
+    }
+    if (r != BRT_OK) goto done;
+    for (t = 0; t < unique; t++) parent[t] = t;
+    for (t = 0; t < n; t++) {
+        const uint32_t *v = vid + 3 * (size_t)t;
+        parent[uf_find(parent, v[1])] = uf_find(parent, v[0]);
+        parent[uf_find(parent, v[2])] = uf_find(parent, v[0]);
+    }
+    for (t = 0; t < n; t++) {
+        const uint32_t *v = vid + 3 * (size_t)t;
+        int k;
+        if (triangle_degenerate(corner_at(corners, stride, t, 0), v)) bad[uf_find(parent, v[0])] = 1;
+        for (k = 0; k < 3; k++) {
+            uint32_t a = v[k], b = v[(k + 1) % 3];
+            edges[3 * (size_t)t + k] = a < b ? (uint64_t)a << 32 | b : (uint64_t)b << 32 | a;
+        }
+    }
+    heap_sort64(edges, 3 * (size_t)n);
+    for (e = 0; e < 3 * (size_t)n; e += run) {   /* an edge used an odd number of times */
+        for (run = 1; e + run < 3 * (size_t)n && edges[e + run] == edges[e]; run++) {}
+        if (run & 1) bad[uf_find(parent, (uint32_t)(edges[e] >> 32))] = 1;
+    }
+    for (t = 0; t < n; t++) closed[t] = !bad[uf_find(parent, vid[3 * (size_t)t])];
+done:
+    free(vid);
+    free(edges);
+    free(parent);
+    free(bad);
+    return r;
+}
+
+/* ---- the xz index of the closed triangles ---- */
+
+/* Closed triangle t's 9 floats. */
+static const float *solid_tri(const brt_solids *s, uint32_t t)
+{
+    return corner_at(s->corners, s->stride, s->ids[t], 0);
+}
+
+static void cell_range(const brt_solids *s, double lo, double hi, int z, uint32_t *a, uint32_t *b)
+{
+    double o = z ? s->z0 : s->x0, c = z ? s->cz : s->cx, n = z ? s->nz : s->nx;
+    double fa = floor((lo - o) / c), fb = floor((hi - o) / c);
+    *a = fa < 0 ? 0 : fa >= n ? (uint32_t)n - 1 : (uint32_t)fa;
+    *b = fb < 0 ? 0 : fb >= n ? (uint32_t)n - 1 : (uint32_t)fb;
+}
+
+static void tri_extent(const float *t, int axis, double *lo, double *hi)
+{
+    *lo = min2(t[axis], min2(t[3 + axis], t[6 + axis]));
+    *hi = max2(t[axis], max2(t[3 + axis], t[6 + axis]));
+}
+
+/* Counting pass (items NULL: first[] counts) or filling pass. */
+static void index_pass(brt_solids *s, uint32_t *items)
+{
+    uint32_t t, x, z, a[2], b[2];
+    for (t = 0; t < s->count; t++) {
+        double lo, hi;
+        tri_extent(solid_tri(s, t), 0, &lo, &hi);
+        cell_range(s, lo, hi, 0, &a[0], &b[0]);
+        tri_extent(solid_tri(s, t), 2, &lo, &hi);
+        cell_range(s, lo, hi, 1, &a[1], &b[1]);
+        for (z = a[1]; z <= b[1]; z++)
+            for (x = a[0]; x <= b[0]; x++) {
+                uint32_t c = x + s->nx * z;
+                if (items) items[s->first[c]++] = t;
+                else s->first[c + 1]++;
+            }
+    }
+}
+
+static brt_result build_index(brt_solids *s)
+{
+    double xlo = INFINITY, xhi = -INFINITY, zlo = INFINITY, zhi = -INFINITY, lo, hi;
+    uint32_t t, c, side = 1, cells;
+    while (side < 1024 && (uint64_t)side * side * 4 < s->count) side *= 2;
+    for (t = 0; t < s->count; t++) {
+        tri_extent(solid_tri(s, t), 0, &lo, &hi);
+        xlo = min2(xlo, lo); xhi = max2(xhi, hi);
+        tri_extent(solid_tri(s, t), 2, &lo, &hi);
+        zlo = min2(zlo, lo); zhi = max2(zhi, hi);
+    }
+    s->nx = s->nz = side;
+    s->x0 = s->count ? xlo : 0;
+    s->z0 = s->count ? zlo : 0;
+    s->cx = s->count && xhi > xlo ? (xhi - xlo) / side * (1 + 0x1p-40) : 1;
+    s->cz = s->count && zhi > zlo ? (zhi - zlo) / side * (1 + 0x1p-40) : 1;
+    cells = side * side;
+    s->first = calloc((size_t)cells + 1, sizeof *s->first);
+    if (!s->first) return BRT_ENOMEM;
+    index_pass(s, NULL);
+    for (c = 0; c < cells; c++) s->first[c + 1] += s->first[c];
+    s->items = malloc(((size_t)s->first[cells] + 1) * sizeof *s->items);
+    if (!s->items) return BRT_ENOMEM;
+    index_pass(s, s->items);   /* moves first[c] to the end of cell c ... */
+    for (c = cells; c > 0; c--) s->first[c] = s->first[c - 1];
+    s->first[0] = 0;           /* ... so shift back by one cell */
+    return BRT_OK;
+}
+
+brt_result brt_solids_build(const float *corners, size_t stride, uint32_t tri_count,
+                            brt_solids **out)
+{
+    brt_solids *s = calloc(1, sizeof *s);
+    unsigned char *closed = malloc((size_t)tri_count + 1);
+    brt_result r = s && closed ? closed_triangles(corners, stride, tri_count, closed) : BRT_ENOMEM;
+    uint32_t t;
+    *out = NULL;
+    if (r == BRT_OK) {
+        for (t = 0; t < tri_count; t++) s->count += closed[t];
+        s->ids = malloc(((size_t)s->count + 1) * sizeof *s->ids);
+        s->corners = corners;
+        s->stride = stride;
+        if (!s->ids) r = BRT_ENOMEM;
+    }
+    if (r == BRT_OK) {
+        uint32_t m = 0;
+        for (t = 0; t < tri_count; t++)
+            if (closed[t]) s->ids[m++] = t;
+        r = build_index(s);
+    }
+    free(closed);
+    if (r == BRT_OK) *out = s;
+    else brt_solids_free(s);
+    return r;
+}
+
+uint32_t brt_solids_triangles(const brt_solids *s)
+{
+    return s ? s->count : 0;
+}
+
+void brt_solids_free(brt_solids *s)
+{
+    if (!s) return;
+    free(s->ids);
+    free(s->first);
+    free(s->items);
+    free(s);
+}
+
+/* ---- parity ---- */
+
+/* The xz edge function of a -> b at p, and its rounding bound: each
+** difference and product rounds once (relative 2^-53), so the error is
+** below 2^-50 times the sum of the products' magnitudes. */
+static double edge_xz(const float *a, const float *b, const double p[3], double *bound)
+{
+    double l = ((double)b[0] - a[0]) * (p[2] - a[2]), r = ((double)b[2] - a[2]) * (p[0] - a[0]);
+    *bound = 0x1p-50 * (fabs(l) + fabs(r));
+    return l - r;
+}
+
+/*
+** Parity of the crossings of the ray c + t (0, 1, 0), t > 0, with the
+** closed triangles: 1 odd, 0 even, -1 when a triangle is too close to
+** call.  A triangle is crossed when c's xz point is strictly inside its xz
+** projection (three edge functions of one sign, each beyond its bound:
+** then the exact ones have that sign too) and the triangle's height there
+** is above c.  c lies at least half a cell from every closed triangle
+** (walls), so the height is never near c's; one within a quarter cell is
+** called undecided all the same.
+*/
+static int parity_up(const brt_solids *s, const double c[3], double cell)
+{
+    uint32_t x, z, k, cellno;
+    int odd = 0;
+    cell_range(s, c[0], c[0], 0, &x, &k);
+    cell_range(s, c[2], c[2], 1, &z, &k);
+    cellno = x + s->nx * z;
+    for (k = s->first[cellno]; k < s->first[cellno + 1]; k++) {
+        const float *t = solid_tri(s, s->items[k]);
+        double w[3], bound[3], y;
+        int i, pos = 0, neg = 0, near = 0;
+        for (i = 0; i < 3; i++) {
+            w[i] = edge_xz(t + 3 * ((i + 1) % 3), t + 3 * ((i + 2) % 3), c, &bound[i]);
+            pos |= w[i] > bound[i];
+            neg |= w[i] < -bound[i];
+            near |= fabs(w[i]) <= bound[i];
+        }
+        if (pos && neg) continue;      /* clearly outside */
+        if (near) return -1;
+        y = (w[0] * t[1] + w[1] * t[4] + w[2] * t[7]) / (w[0] + w[1] + w[2]);
+        if (fabs(y - c[1]) < 0.25 * cell) return -1;
+        odd ^= y > c[1];
+    }
+    return odd;
+}
+
+/* The parity of a component (voxels queue[0..count)): the first of up to
+** four of its voxels that decides; 0 when none does. */
+static int component_inside(const brt_grid *g, const brt_solids *s, const uint32_t *queue,
+                            uint32_t count)
+{
+    uint32_t k, res = g->res;
+    for (k = 0; k < 4; k++) {
+        uint32_t i = queue[(uint64_t)count * k / 4], at[3], a;
+        double c[3];
+        int odd;
+        at[0] = i % res; at[1] = i / res % res; at[2] = i / res / res;
+        for (a = 0; a < 3; a++) c[a] = g->origin[a] + ((double)at[a] + 0.5) * g->cell;
+        odd = parity_up(s, c, g->cell);
+        if (odd >= 0) return odd;
+    }
+    return 0;
+}
+
+/* The 6-connected unmarked voxels from queue[0..count), marked seen. */
+static uint32_t flood(const brt_grid *walls, unsigned char *seen, uint32_t *queue, uint32_t count)
+{
+    uint32_t res = walls->res, head;
+    for (head = 0; head < count; head++) {
+        uint32_t i = queue[head], at[3], a;
+        at[0] = i % res; at[1] = i / res % res; at[2] = i / res / res;
+        for (a = 0; a < 6; a++) {
+            uint32_t n[3], j;
+            memcpy(n, at, sizeof n);
+            if (a & 1 ? n[a >> 1] + 1 >= res : n[a >> 1] == 0) continue;
+            n[a >> 1] += a & 1 ? 1 : (uint32_t)-1;
+            j = n[0] + res * (n[1] + res * n[2]);
+            if (seen[j] || brt_grid_get(walls, n[0], n[1], n[2])) continue;
+            seen[j] = 1;
+            queue[count++] = j;
+        }
+    }
+    return count;
+}
+
+/* Each component of unmarked voxels, set in inner when its parity is odd. */
+static void inner_components(const brt_grid *walls, brt_grid *inner, const brt_solids *s,
+                             unsigned char *seen, uint32_t *queue)
+{
+    uint32_t res = walls->res, j, count, components = 0, k;
+    for (j = 0; j < res * res * res; j++) {
+        if (seen[j] || brt_grid_get(walls, j % res, j / res % res, j / res / res)) continue;
+        seen[j] = 1;
+        queue[0] = j;
+        count = flood(walls, seen, queue, 1);
+        if (++components > INNER_MAX_COMPONENTS || !component_inside(walls, s, queue, count))
+            continue;
+        for (k = 0; k < count; k++)
+            brt_grid_set(inner, queue[k] % res, queue[k] / res % res, queue[k] / res / res);
+    }
+}
+
+/* The walls: every closed triangle whose box comes within a cell of the
+** grid's box (the others cannot touch a voxel), voxelized once each. */
+static brt_result voxelize_walls(brt_grid *walls, const brt_solids *s)
+{
+    double lo[3], hi[3];
+    uint32_t a[2], b[2], x, z, k;
+    unsigned char *done = calloc((size_t)s->count + 1, 1);
+    int i;
+    if (!done) return BRT_ENOMEM;
+    for (i = 0; i < 3; i++) {
+        lo[i] = walls->origin[i] - (double)walls->cell;
+        hi[i] = walls->origin[i] + ((double)walls->res + 1) * walls->cell;
+    }
+    cell_range(s, lo[0], hi[0], 0, &a[0], &b[0]);
+    cell_range(s, lo[2], hi[2], 1, &a[1], &b[1]);
+    for (z = a[1]; z <= b[1]; z++)
+        for (x = a[0]; x <= b[0]; x++)
+            for (k = s->first[x + s->nx * z]; k < s->first[x + s->nx * z + 1]; k++) {
+                uint32_t t = s->items[k];
+                const float *v = solid_tri(s, t);
+                double q[3][3], tlo, thi;
+                int c, near = 1;
+                if (done[t]) continue;
+                done[t] = 1;
+                for (i = 0; i < 3; i++) {
+                    tri_extent(v, i, &tlo, &thi);
+                    near &= thi >= lo[i] && tlo <= hi[i];
+                }
+                if (!near) continue;
+                for (c = 0; c < 3; c++)
+                    for (i = 0; i < 3; i++)
+                        q[c][i] = ((double)v[3 * c + i] - walls->origin[i]) / walls->cell;
+                voxelize_triangle(walls, q);
+            }
+    free(done);
+    return BRT_OK;
+}
+
+brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids)
+{
+    size_t voxels;
+    unsigned char *seen;
+    uint32_t *queue;
+    brt_grid walls;
+    brt_result r;
+    if (!grid_frame_valid(inner) || !solids) return BRT_EARG;
+    if (solids->count == 0) return BRT_OK;
+    voxels = (size_t)inner->res * inner->res * inner->res;
+    seen = calloc(voxels, 1);
+    queue = malloc(voxels * sizeof *queue);
+    r = seen && queue ? grid_alloc(&walls, inner->res, inner->origin, inner->cell) : BRT_ENOMEM;
+    if (r == BRT_OK) {
+        r = voxelize_walls(&walls, solids);
+        if (r == BRT_OK) inner_components(&walls, inner, solids, seen, queue);
+        free(walls.bits);
+    }
+    free(seen);
+    free(queue);
+    return r;
+}
+
+/* ---- the cast ---- */
+
+/* Size of the empty node around voxel at[] (log2 of its side), or -1 when
+** the voxel is set. */
+static int inner_lookup(const brt_svdag *dag, uint32_t root, int levels, const uint32_t at[3])
+{
+    uint32_t id = root;
+    int level;
+    for (level = levels; level > 2; level--) {
+        uint32_t header = dag->words[id], b = level - 1;
+        unsigned c = ((at[0] >> b) & 1) | ((at[1] >> b) & 1) << 1 | ((at[2] >> b) & 1) << 2;
+        if (!(header & (1u << c))) return (int)b;
+        id = dag->words[id + 1 + popcount8(header & ((1u << c) - 1))];
+    }
+    return (dag->leaves[id] >> ((at[0] & 3) + 4 * ((at[1] & 3) + 4 * (at[2] & 3)))) & 1 ? -1 : 0;
+}
+
+/* The ray's parameter interval through [lo, hi] on one axis (grid units). */
+static void slab(double g, double gd, double lo, double hi, double *t0, double *t1)
+{
+    if (gd == 0) {
+        if (!(g > lo && g < hi)) *t1 = -INFINITY;
+        return;
+    }
+    *t0 = max2(*t0, ((gd > 0 ? lo : hi) - g) / gd);
+    *t1 = min2(*t1, ((gd > 0 ? hi : lo) - g) / gd);
+}
+
+/* The margin check of the header: a point of the ray at t >= tnear that
+** lies in the voxel's core (the box shrunk by a quarter voxel). */
+static int core_holds(const double g[3], const double gd[3], const uint32_t at[3], double tnear)
+{
+    double t0 = tnear, t1 = INFINITY, ts;
+    int a;
+    for (a = 0; a < 3; a++) slab(g[a], gd[a], at[a] + INNER_CORE, at[a] + 1 - INNER_CORE, &t0, &t1);
+    if (!(t0 < t1)) return 0;
+    ts = 0.5 * (t0 + t1);
+    for (a = 0; a < 3; a++) {
+        double q = g[a] + ts * gd[a];
+        if (!(q > at[a] + INNER_CORE && q < at[a] + 1 - INNER_CORE)) return 0;
+    }
+    return ts >= tnear;
+}
+
+/* The ray in grid units; 0 when the cast must refuse it (header). */
+static int inner_frame(const brt_proxy *p, const brt_ray *ray, double g[3], double gd[3])
+{
+    double limit = INNER_MAX_CELLS * p->cell, moving = 0;
+    int a;
+    if (!(ray->tfar == INFINITY) || !isfinite(ray->tnear) || !brt_ray_valid(ray)) return 0;
+    for (a = 0; a < 3; a++) {
+        if (!(fabs(ray->org[a]) < limit && fabs(p->origin[a]) + (double)p->res * p->cell < limit))
+            return 0;
+        g[a] = ((double)ray->org[a] - p->origin[a]) / p->cell;
+        gd[a] = (double)ray->dir[a] / p->cell;
+        moving = max2(moving, fabs(gd[a]));
+    }
+    return moving > 0;
+}
+
+int brt_inner_occludes(const brt_svdag *dag, const brt_proxy *inner, const brt_ray *ray)
+{
+    double g[3], gd[3], t, tend = INFINITY, nudge = 0;
+    int levels = tree_levels(inner->res), a, step;
+    if (inner->root == BRT_EMPTY_ROOT || !inner_frame(inner, ray, g, gd)) return 0;
+    t = ray->tnear;
+    for (a = 0; a < 3; a++) {
+        slab(g[a], gd[a], 0, inner->res, &t, &tend);
+        nudge = max2(nudge, fabs(gd[a]));
+    }
+    nudge = 0x1p-30 / nudge;   /* a billionth of a voxel */
+    /* Walk the voxels and empty nodes along the ray; a node missed through
+    ** rounding only loses a chance to stop the ray (never a wrong answer). */
+    for (step = 0; t < tend && step < 8 * (int)inner->res + 64; step++) {
+        uint32_t at[3], side;
+        double exit = INFINITY;
+        int size;
+        for (a = 0; a < 3; a++) {
+            /* t lies in the grid's slab interval; a point rounded just
+            ** outside it belongs to the border voxel. */
+            double q = g[a] + t * gd[a], f = gd[a] < 0 ? ceil(q) - 1 : floor(q);
+            at[a] = f < 0 ? 0 : f >= inner->res ? inner->res - 1 : (uint32_t)f;
+        }
+        size = inner_lookup(dag, inner->root, levels, at);
+        if (size < 0 && core_holds(g, gd, at, ray->tnear)) return 1;
+        side = 1u << (size < 0 ? 0 : size);
+        for (a = 0; a < 3; a++) {
+            double lo = at[a] & ~(side - 1);
+            if (gd[a] != 0) exit = min2(exit, ((gd[a] > 0 ? lo + side : lo) - g[a]) / gd[a]);
+        }
+        t = max2(exit, t) + nudge;
+    }
+    return 0;
+}

@@ -1,5 +1,5 @@
 /*
-** examples/bench_batched.c -- the out-of-core benchmark of issue 4
+** examples/bench_batched.c -- the out-of-core benchmark (README, Benchmarks)
 ** (`make bench-batched`): what proxies save when geometry is on disk,
 ** what batching costs in core, and how fast preprocessing is.
 **

@@ -115,6 +115,7 @@ typedef struct options {
     uint64_t disk_speed;          /* --disk-speed, bytes per second; 0: the device's */
     uint64_t threads;             /* --threads; 0: all cores */
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
+    int no_inner;
     int no_proxy, queue_resident, exact_proxy, direct, compare, have_camera, drop_os_cache;
     int no_nee, have_sun;
     float eye[3], target[3], fov;
@@ -148,6 +149,7 @@ static void usage(void)
            "  --batch-tris N       triangles per batching point (default 10000)\n"
            "  --res R              proxy resolution, a power of two (default 128)\n"
            "  --no-proxy           queue rays at every box they enter (Pharr et al.)\n"
+           "  --no-inner           shadow rays do not consult the inner proxies\n"
            "  --queue-resident     queue rays at batching points in memory too (the paper's\n"
            "                       scheduler; default: intersect there at once)\n"
            "  --exact-proxy        analysis: a perfect proxy (an exact test against the\n"
@@ -277,6 +279,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--reference")) o->reference = VALUE;
         else if (is_option(a, "--scene")) o->scene = VALUE;
         else if (is_option(a, "--no-proxy")) o->no_proxy = 1;
+        else if (is_option(a, "--no-inner")) o->no_inner = 1;
         else if (is_option(a, "--queue-resident")) o->queue_resident = 1;
         else if (is_option(a, "--exact-proxy")) o->exact_proxy = 1;
         else if (is_option(a, "--direct")) o->direct = 1;
@@ -1258,6 +1261,7 @@ int main(int argc, char **argv)
     memset(&mesh, 0, sizeof mesh);
     memset(&topt, 0, sizeof topt);
     topt.no_proxy = o.no_proxy;
+    topt.no_inner = o.no_inner;
     topt.queue_resident = o.queue_resident;
     topt.exact_proxies = o.exact_proxy;
     topt.rays_in_flight = (uint32_t)o.rays_in_flight;

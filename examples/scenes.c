@@ -615,6 +615,7 @@ static void patch_point(const void *shape, double u, double v, double p[3])
 typedef struct island {
     double cx, cz, radius, peak;
     uint64_t seed;
+    double v_rim;               /* v of the grid's last ring: the rim */
 } island;
 
 #define ISLAND_RIM 1.35   /* the grid reaches this many radii out */
@@ -626,10 +627,22 @@ static double island_height(const island *s, double x, double z)
     return s->peak * (1 - d2) + 0.35 * s->peak * fbm(s->seed, x / 60, z / 60, 4) * (d2 < 1 ? 1 : 1 / d2);
 }
 
+/* The land mass is closed (inner proxies, svdag.c): the dome's rings run
+** out to the rim at the last ring (v = v_rim), and the end pole at v = 1
+** lies under the peak, ISLAND_BASE peaks below the sea: the rim ring fans
+** in to it, a cone closing the mass from below. */
+#define ISLAND_BASE 1.5
+
 static void island_point(const void *shape, double u, double v, double p[3])
 {
     const island *s = shape;
-    double a = 2 * PI * u, r = v * ISLAND_RIM * s->radius;   /* +u: normals up */
+    double a = 2 * PI * u, r = v / s->v_rim * ISLAND_RIM * s->radius;   /* +u: normals up */
+    if (v >= 1) {
+        p[0] = s->cx;
+        p[1] = -ISLAND_BASE * s->peak;
+        p[2] = s->cz;
+        return;
+    }
     p[0] = s->cx + r * cos(a);
     p[2] = s->cz + r * sin(a);
     p[1] = island_height(s, p[0], p[2]);
@@ -1095,8 +1108,56 @@ static void landscape_rocks(builder *b, uint64_t *rng, const terrain *ground,
     }
 }
 
+/*
+** The terrain closed below (inner proxies, svdag.c): a skirt around the
+** patch down to a floor, and the floor, as one surface: u runs around the
+** patch's border vertex by vertex (WRAP_U), ring 0 is the border itself --
+** the very points patch_point gives the terrain grid (same u, v, same
+** function, so equal bits and shared edges) -- ring 1 is the border
+** dropped to the floor, and the end pole the floor's centre.
+*/
+typedef struct skirt {
+    const patch *land;
+    const grid *top;            /* the terrain's grid */
+    double floor;
+} skirt;
+
+static uint32_t skirt_segments(const grid *top)
+{
+    return 2 * (top->segs - 1) + 2 * (top->rings - 1);
+}
+
+/* Border vertex k of the terrain grid, counterclockwise from (0, 0). */
+static void skirt_border(const skirt *s, uint32_t k, double p[3])
+{
+    uint32_t sides[4], seg, row;
+    double du = 1.0 / (s->top->segs - 1);
+    sides[0] = sides[2] = s->top->segs - 1;
+    sides[1] = sides[3] = s->top->rings - 1;
+    if (k < sides[0]) { seg = k; row = 0; }
+    else if ((k -= sides[0]) < sides[1]) { seg = sides[0]; row = k; }
+    else if ((k -= sides[1]) < sides[2]) { seg = sides[0] - k; row = sides[1]; }
+    else { k -= sides[2]; seg = 0; row = sides[1] - k; }
+    patch_point(s->land, seg * du, grid_v(s->top, row), p);
+}
+
+static void skirt_point(const void *shape, double u, double v, double p[3])
+{
+    const skirt *s = shape;
+    if (v >= 1) {
+        p[0] = s->land->x0 + 0.5 * s->land->size;
+        p[1] = s->floor;
+        p[2] = s->land->z0 + 0.5 * s->land->size;
+        return;
+    }
+    skirt_border(s, (uint32_t)(u * skirt_segments(s->top) + 0.5), p);
+    if (v > 0) p[1] = s->floor;
+}
+
 static void build_landscape(builder *b, double scale, uint64_t seed)
 {
+    skirt below;
+    grid around;
     double budget = TRIANGLES_PER_SCALE * scale, side = LANDSCAPE_SIDE * sqrt(scale);
     uint64_t rng = seed;
     terrain ground;
@@ -1111,6 +1172,13 @@ static void build_landscape(builder *b, double scale, uint64_t seed)
     g.segs = g.rings = (uint32_t)sqrt(0.20 * budget / 2) + 2;
     g.flags = 0;
     emit_surface(b, &g, patch_point, &land, &world);
+    below.land = &land;
+    below.top = &g;
+    below.floor = -2 * ground.hills - 1;   /* fbm > -2: under every point */
+    around.segs = skirt_segments(&g);
+    around.rings = 2;
+    around.flags = WRAP_U | POLE_END;
+    emit_surface(b, &around, skirt_point, &below, &world);
     landscape_trees(b, &rng, &ground, side, 0.70 * budget);
     landscape_rocks(b, &rng, &ground, side, 0.10 * budget);
 }
@@ -1213,8 +1281,9 @@ static void build_island(builder *b, double scale, uint64_t seed)
     }
     emit_sea(b, half_side + 150);
     for (i = 0; i < count; i++) {
-        grid g = grid_for_budget(0.2 * budget / count, 2 * PI, WRAP_U | POLE_START);
+        grid g = grid_for_budget(0.2 * budget / count, 2 * PI, SPHERE_LIKE);
         place_island(&rng, all, i, half_side);
+        all[i].v_rim = grid_v(&g, g.rings - 1);
         emit_surface(b, &g, island_point, &all[i], &world);
         island_plants(b, &rng, &all[i], 0.8 * budget / count);
     }

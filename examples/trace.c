@@ -45,6 +45,7 @@ typedef struct trace_options {
     uint64_t batch_tris;             /* triangles per batching point */
     uint64_t res;                    /* proxy resolution, a power of two */
     int no_proxy;                    /* batched without proxies */
+    int no_inner;                    /* batched without inner proxies */
     uint64_t memory;                 /* page-cache budget in bytes */
     int memory_given;                /* --memory was on the command line */
     const char *scene;               /* scene file of the batched mode */
@@ -70,6 +71,7 @@ static void usage(void)
            "  --batch-tris N    triangles per batching point, N >= 1 (batched; default 100000)\n"
            "  --res R           proxy voxel resolution, a power of two in 2..1024 (default 128)\n"
            "  --no-proxy        batched mode without voxel proxies\n"
+           "  --no-inner        batched occlusion rays without inner proxies\n"
            "  --memory SIZE     page-cache budget, e.g. 512M (suffix K, M, G; default 1G)\n"
            "  --scene FILE      scene file for the batched mode (default: in $BRT_SCENE_DIR,\n"
            "                    $XDG_CACHE_HOME/batchrt or ~/.cache/batchrt)\n"
@@ -101,6 +103,7 @@ static void parse_options(int argc, char **argv, trace_options *o)
         if (strcmp(a, "--direct") == 0) o->batched = 0;
         else if (strcmp(a, "--batched") == 0) o->batched = 1;
         else if (strcmp(a, "--no-proxy") == 0) o->no_proxy = 1;
+        else if (strcmp(a, "--no-inner") == 0) o->no_inner = 1;
         else if (strcmp(a, "--verbose") == 0) o->verbose = 1;
         else if (strcmp(a, "--occlusion") == 0) o->occlusion = 1;
         else if (strcmp(a, "--rebuild") == 0) o->rebuild = 1;
@@ -214,6 +217,7 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     memset(&trace_opt, 0, sizeof trace_opt);
     trace_opt.memory_limit = o->memory;
     trace_opt.no_proxy = o->no_proxy;
+    trace_opt.no_inner = o->no_inner;
     trace_opt.drop_os_cache = o->drop_os_cache;
     trace_opt.threads = o->threads;
     ex_progress("tracing", 0, 1);

@@ -66,5 +66,6 @@ void suite_hardening(void);
 void suite_build(void);
 void suite_occlusion(void);
 void suite_threads(void);
+void suite_inner(void);
 
 #endif

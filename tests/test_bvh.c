@@ -777,7 +777,7 @@ static void test_triangle_exact(void)
 
 /* Two triangles where the float edge functions have a 0 that is not 0
 ** exactly, and the ray from the origin along +z passes just outside.
-** First (found by issue 22's search): only the paper's double-precision
+** First (found by a search of random edges): only the paper's double-precision
 ** recheck of zero edge functions gets the miss right.  Second, a needle
 ** (found by a search over vertices a few ulps apart): U = V = 0 in float
 ** although exactly U > 0 > V; here the ray also misses the needle's box,

@@ -6,7 +6,7 @@
 ** loop over brt_intersect_triangle for hits, geometry for rays, a
 ** self-written PNG decoder for the PNG writer of examples/common.c).
 **
-** Out of core from end to end (issue 14): batched runs work from the
+** Out of core from end to end (README, same title): batched runs work from the
 ** scene file alone (the mesh file replaced by garbage, its stamp kept),
 ** every program's statistics carry peak_rss_bytes, SIGINT and SIGTERM
 ** leave no temporary file behind, and trace --batched equals --direct on
@@ -207,7 +207,7 @@ static int write_lumpy_mesh(tu_scene *m, const char *name)
 
 static void test_help(void)
 {
-    static const char *const programs[] = {"trace", "raygen", "hitdiff", "minimal"};
+    static const char *const programs[] = {"trace", "raygen", "hitdiff", "minimal", "minimal_batched"};
     size_t i;
     for (i = 0; i < sizeof programs / sizeof *programs; i++) {
         char *out;
@@ -1045,10 +1045,52 @@ static void test_builtin_scenes_batched_equals_direct(void)
     }
 }
 
+/* examples/minimal_batched: its scene file (20 triangles in batching points
+** of 2) goes to $TMPDIR and is gone at exit; its batched hits equal the
+** direct mode's (it compares them itself and exits 1 otherwise); proxies
+** cull rays and batching points are loaded under its memory limit. */
+static void test_minimal_batched(void)
+{
+    const char *old = getenv("TMPDIR");
+    char saved[4096], *out;
+    unsigned tris = 0, points = 0, tests = 0, culled = 0, queued = 0, loads = 0, bytes = 0;
+    int status, rays = 0, hits = 0, misses = 0;
+    snprintf(saved, sizeof saved, "%s", old ? old : "");
+    CHECK(mkdir(tu_scratch("minimal-tmp"), 0755) == 0, "cannot make the folder for $TMPDIR");
+    setenv("TMPDIR", tu_scratch("minimal-tmp"), 1);
+    status = tu_run("minimal_batched");
+    if (old) setenv("TMPDIR", saved, 1);
+    else unsetenv("TMPDIR");
+    out = tu_last_stdout();
+    CHECK(out, "minimal_batched: no output");
+    EXPECT(status == 0 && strstr(out, "batched hits equal the direct mode's, byte for byte"),
+           "minimal_batched: exit status %d, printed:\n%s", status, out);
+    EXPECT(sscanf(out, "scene: %u triangles in %u batching points", &tris, &points) == 2 &&
+           tris == 20 && points == 10, "minimal_batched: %u triangles, %u batching points", tris, points);
+    EXPECT(strstr(out, "rays: ") && sscanf(strstr(out, "rays: "), "rays: %d, hits %d, misses %d",
+           &rays, &hits, &misses) == 3 && rays == 256 && hits > 0 && misses > 0 && hits + misses == rays,
+           "minimal_batched: %d rays, %d hits, %d misses", rays, hits, misses);
+    EXPECT(strstr(out, "proxy tests") &&
+           sscanf(strstr(out, "proxy tests"), "proxy tests %u, culled %u; queued visits %u; loads %u, %u bytes",
+                  &tests, &culled, &queued, &loads, &bytes) == 5 &&
+           culled > 0 && culled < tests && queued > 0 && loads > 0 && bytes >= 4096u * loads,
+           "minimal_batched: proxy tests %u, culled %u, queued %u, loads %u, %u bytes read",
+           tests, culled, queued, loads, bytes);
+    EXPECT(directory_entries(tu_scratch("minimal-tmp"), NULL, 0) == 0, "minimal_batched left files in $TMPDIR");
+    free(out);
+    status = tu_run("minimal_batched --bogus");
+    out = tu_last_stderr();
+    EXPECT(status == 1 && out && strncmp(out, "minimal_batched: ", 17) == 0 && strchr(out, '\n') &&
+           strchr(out, '\n')[1] == 0, "minimal_batched --bogus: exit %d, stderr %s", status, out ? out : "");
+    free(out);
+}
+
 void suite_cli(void)
 {
     test_run("cli: --help of every program", test_help);
     test_run("cli: minimal runs", test_minimal);
+    test_run("cli: minimal_batched equals the direct mode and removes its scene file",
+             test_minimal_batched);
     test_run("cli: raygen is deterministic from --seed", test_raygen_deterministic);
     test_run("cli: raygen camera rays", test_raygen_camera);
     test_run("cli: raygen random rays", test_raygen_random);

@@ -1,5 +1,6 @@
 /*
-** tests/test_embree.c -- batchrt against Embree 3, ray by ray (issue 6).
+** tests/test_embree.c -- batchrt against Embree 3, ray by ray (README, "Checking
+** against Embree").
 **
 ** Runs only when $BRT_BUILD/embree_trace exists ("make embree"); otherwise
 ** one visible skip.  For each mesh (the built-in scenes from build/mkscene

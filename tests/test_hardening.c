@@ -1,5 +1,5 @@
 /*
-** tests/test_hardening.c -- issue 7: bad input, I/O faults and limits, with
+** tests/test_hardening.c -- bad input, I/O faults and limits, with
 ** nothing lost and nothing left behind.
 **
 **  - the fuzz corpus (tests/corpus/NAME, seeds and every crash the fuzzers
@@ -18,9 +18,10 @@
 **    ENOSPC): the library and the programs must leave no partial file;
 **  - limits: one triangle, all triangles identical, a memory limit below
 **    one batching point, one ray in flight, no rays at all, a 1x1 image;
-**  - forged scene files (issue 21): valid checksums, one cross-reference
-**    broken per file, one file per line of the validators of batchrt.c's
-**    scene open and bvh.c's blob open, each refused naming the part.
+**  - forged scene files (README, "The scene file"): valid checksums, one
+**    cross-reference broken per file, one file per line of the validators
+**    of batchrt.c's scene open and bvh.c's blob open, each refused naming
+**    the part.
 ** Oracles: the direct mode and brute force over brt_intersect_triangle.
 */
 #include "test.h"
@@ -213,7 +214,7 @@ static const bad_run bad_runs[] = {
     {"trace @/tri.obj @/odd.rays @/b15.hits --batched --scene @/b15.brs", 1,
      "trace: @/odd.rays: size 65 is not a multiple of the 32-byte ray record", "b15.hits"},
     {"trace @/tri.obj @/good.rays @/b16.hits --batched --scene @/version.brs", 1,
-     "trace: @/version.brs: scene file version 1, this build reads version 2 (delete the "
+     "trace: @/version.brs: scene file version 2, this build reads version 3 (delete the "
      "file to rebuild it)", "b16.hits"},
     /* option values */
     {"trace @/tri.obj @/good.rays @/b17.hits --res 0", 1,
@@ -304,14 +305,14 @@ static int write_cut_ply(void)
     return spill("cut.ply", data, sizeof header - 1 + 36 + 6);
 }
 
-/* A scene file whose version field says 1, the format before blobs and
-** header were little-endian on every host (the header checksum is not
-** reached: the version is checked first). */
+/* A scene file whose version field says 2, the format before inner
+** proxies (the header checksum is not reached: the version is checked
+** first). */
 static int write_version_scene(void)
 {
     brt_error err;
     FILE *f;
-    unsigned char one[4] = {1, 0, 0, 0};
+    unsigned char one[4] = {2, 0, 0, 0};
     int ok = fuzz_fixed_scene_build(scratch("version.brs"), &err) == BRT_OK
              && (f = fopen(scratch("version.brs"), "r+b")) != NULL;
     if (!ok) return 0;
@@ -973,7 +974,7 @@ static void test_budget_below_one_batching_point(void)
 }
 
 /* ===================================================================== */
-/* Forged scene files: one per validator (issue 21)                      */
+/* Forged scene files: one per validator                                */
 /* ===================================================================== */
 /*
 ** The fuzz target's fixed scene (25 triangles in 4 batching points) with
@@ -1057,6 +1058,8 @@ static void forge_blob_extent(forged *f) { forge_u64(f, entry_at(f, 1) + 24, f->
 static void forge_proxy_root(forged *f) { forge_u32(f, entry_at(f, 1) + 52, 0x7FFFFFF0u); }
 /* the header's proxy resolution 8, the proxies' (valid) 4 */
 static void forge_proxy_res(forged *f) { forge_u32(f, 28, 8); }
+/* The inner proxy's root (README, "Inner proxies"), past the pool. */
+static void forge_inner_root(forged *f) { forge_u32(f, entry_at(f, 1) + 76, 0x7FFFFFF0u); }
 static void forge_triangle_sum(forged *f) { forge_u32(f, 36, forged_u32(f, 36) + 1); }
 static void forge_byte_sum(forged *f) { forge_u64(f, 48, forged_u64(f, 48) + 1); }
 static void forge_top_box(forged *f) { forge_f32(f, top_root_at(f), -INFINITY); }
@@ -1093,6 +1096,7 @@ static const forgery forgeries[] = {
     {"blob_extent.brs", forge_blob_extent, "batching point 1: blob outside the file"},
     {"proxy_root.brs", forge_proxy_root, "batching point 1: invalid proxy"},
     {"proxy_res.brs", forge_proxy_res, "batching point 0: invalid proxy"},
+    {"inner_root.brs", forge_inner_root, "batching point 1: invalid inner proxy"},
     {"triangle_sum.brs", forge_triangle_sum, "batch table: batching points hold 25 triangles"},
     {"byte_sum.brs", forge_byte_sum, "batch table: blobs hold"},
     {"top_box.brs", forge_top_box, "top-level node 0: box not finite"},

@@ -1,6 +1,7 @@
 /*
 ** tests/fuzz/targets.h -- the four fuzz targets of batchrt: the OBJ reader,
-** the PLY reader, the scene-file reader and the ray-file reader (issue 7).
+** the PLY reader, the scene-file reader and the ray-file reader (README,
+** "Hardening and fuzzing").
 **
 ** One implementation (targets.c) serves three drivers: the libFuzzer entry
 ** points tests/fuzz/fuzz_NAME.c ("make fuzz", clang), the plain replay
