@@ -1187,8 +1187,9 @@ static unsigned by_far_set(unsigned m, unsigned x)
 ** ORDER: the children are visited by increasing k.  A child's entry only
 ** grows when axes join its far-side set, so k comes after every subset of
 ** itself; child 0 (entered at tin) is first, child 7 last.  It is not
-** ESVO's ray order (the entries are not sorted: README, "The proxy cast", says why), so a
-** hit does not end a scale: each child is compared with the best hit.
+** ESVO's ray order (the entries are not sorted; README, "The proxy
+** cast", says why), so a hit does not end a scale: each child is compared
+** with the best hit.
 */
 static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
                       unsigned m, const uint32_t corner[3], int level,
