@@ -1569,8 +1569,8 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     batched.  Not kept: slot_valid as one word (+0.2 %), lazy
 **     tri_ray_setup (bounce +1.8 %), a xor-and-bias decode (+16 %), huge
 **     pages (not POSIX; cold random x0.92-1.27, noise).
-**   - Ratio to Embree (make bench-embree, --threads 1): 0.57 camera,
-**     0.33-0.38 random and bounce direct, 0.31-0.37 batched.  Warm speed
+**   - Ratio to Embree (make bench-embree, --threads 1): 0.51-0.57 camera,
+**     0.32-0.38 random and bounce direct, 0.28-0.41 batched.  Warm speed
 **     is near Embree's cold, so random and bounce rays wait on memory;
 **     not done: 8-wide nodes, SoA leaves of 4 (a format v3).
 */
