@@ -391,11 +391,11 @@ static void figure4_run(const settings *s, FILE *csv, int i, int scheduler, int 
     inner_stopped = json_number(stats, "shadow_inner_stopped");
     *mib = json_number(stats, "disk_bytes_read") / 1048576.0;
     *stopped = occluded > 0 ? 100.0 * inner_stopped / occluded : 0;
-    fprintf(csv, "%s,%s,%s,%.0f,%.0f,%.0f,%.0f,%.0f,%.4f,%.0f\n", fig4_scenes[i],
+    fprintf(csv, "%s,%s,%s,%.0f,%.0f,%.0f,%.0f,%.0f,%.4f,%.0f,%.0f\n", fig4_scenes[i],
             scheduler_names[scheduler], inner ? "outer+inner" : "outer",
             json_number(stats, "disk_bytes_read"), json_number(stats, "batch_loads"),
             json_number(stats, "shadow_rays"), occluded, inner_stopped, *stopped / 100.0,
-            json_number(stats, "proxy_bytes"));
+            json_number(stats, "shadow_disk_bytes_read"), json_number(stats, "proxy_bytes"));
     remove(stats);
 }
 
@@ -405,7 +405,8 @@ static void figure4(const settings *s)
         "landscape, paper", "landscape, batchrt", "island, paper", "island, batchrt"};
     static const char *const bars[2] = {"outer proxies", "outer + inner"};
     FILE *csv = open_csv(s, "fig4.csv", "scene,scheduler,proxies,disk_bytes_read,batch_loads,shadow_rays,"
-                                        "shadow_occluded,shadow_inner_stopped,stopped_share,proxy_bytes");
+                                        "shadow_occluded,shadow_inner_stopped,stopped_share,shadow_disk_bytes_read,"
+                                        "proxy_bytes");
     double mib[2 * FIG4_GROUPS], stopped[2 * FIG4_GROUPS];
     static char note_text[FIG4_GROUPS][32];
     const char *notes[2 * FIG4_GROUPS];

@@ -465,7 +465,7 @@ static void test_bar_svg(void)
 /* One row of fig4.csv. */
 typedef struct fig4_row {
     char scene[32], scheduler[32], proxies[32];
-    double bytes, loads, shadow_rays, occluded, stopped, share, proxy_bytes;
+    double bytes, loads, shadow_rays, occluded, stopped, share, shadow_bytes, proxy_bytes;
 } fig4_row;
 
 /* `figures --only 4` on a tiny scene: fig4.csv holds, per scene and
@@ -479,7 +479,8 @@ static void test_figure4(void)
 {
     static const char *const scenes[] = {"landscape", "island"}, *const schedulers[] = {"paper", "batchrt"};
     static const char header[] = "scene,scheduler,proxies,disk_bytes_read,batch_loads,shadow_rays,"
-                                 "shadow_occluded,shadow_inner_stopped,stopped_share,proxy_bytes\n";
+                                 "shadow_occluded,shadow_inner_stopped,stopped_share,shadow_disk_bytes_read,"
+                                 "proxy_bytes\n";
     fig4_row rows[8];
     char *csv, *line, *svg;
     int n = 0, k;
@@ -489,9 +490,9 @@ static void test_figure4(void)
     CHECK(csv && strncmp(csv, header, strlen(header)) == 0, "fig4.csv missing or its header wrong");
     for (line = strchr(csv, '\n'); line && line[1] && n < 8; line = strchr(line + 1, '\n')) {
         fig4_row *r = &rows[n++];
-        CHECK(sscanf(line + 1, "%31[^,],%31[^,],%31[^,],%lf,%lf,%lf,%lf,%lf,%lf,%lf", r->scene, r->scheduler,
-                     r->proxies, &r->bytes, &r->loads, &r->shadow_rays, &r->occluded, &r->stopped, &r->share,
-                     &r->proxy_bytes) == 10, "fig4.csv row %d unreadable", n);
+        CHECK(sscanf(line + 1, "%31[^,],%31[^,],%31[^,],%lf,%lf,%lf,%lf,%lf,%lf,%lf,%lf", r->scene,
+                     r->scheduler, r->proxies, &r->bytes, &r->loads, &r->shadow_rays, &r->occluded, &r->stopped,
+                     &r->share, &r->shadow_bytes, &r->proxy_bytes) == 11, "fig4.csv row %d unreadable", n);
     }
     EXPECT(n == 8 && (!line || !line[1]), "fig4.csv: %d rows, expected 8", n);
     for (k = 0; k + 1 < n; k += 2) {
@@ -503,6 +504,7 @@ static void test_figure4(void)
                i->scene, i->scheduler, i->proxies);
         EXPECT(o->stopped == 0 && o->share == 0 && o->shadow_rays > 0 && i->shadow_rays == o->shadow_rays &&
                i->occluded == o->occluded && i->stopped <= i->occluded && o->bytes > 0 && i->bytes > 0 &&
+               o->shadow_bytes <= o->bytes && i->shadow_bytes <= i->bytes &&
                o->proxy_bytes == i->proxy_bytes &&
                fabs(i->share - (i->occluded > 0 ? i->stopped / i->occluded : 0)) < 6e-5,
                "%s %s: shadow rays %g/%g, occluded %g/%g, stopped %g/%g, share %g", o->scene, o->scheduler,
