@@ -1028,36 +1028,10 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 ** grown sibling may start before the hit.  Before it descends into a node
 ** the walk tests the box of the node's set voxels (BOUNDS TEST).
 **
-** COST, per culled cast and per hit, in instructions (callgrind, exact):
-** the render's proxy tests, `bench_svdag --scene landscape|island` at
-** scale 2 (21 batching points of 10 000 triangles, 128^3, 100 000 rays:
-** 19 181 and 157 112 culled casts), yes/no casts as the render asks them.
-**                                     landscape        island
-**                                   culled    hit   culled    hit
-**   rank order, checked proxy        5089    4335    2711    3673
-**   far-side-set order                3694    3176    1972    2699
-**   + node bounds, called             2743    3495    1642    3061
-**   + inlined by force                2533    3260    1530    2861
-**   + cheaper set-up                  2365    3097    1370    2702
-** - rank order: the walk of the previous sessions (rank sort of the centre
-**   entries, a rank gather of the child mask, brt_proxy_check on every
-**   cast, about 100 instructions).
-** - far-side-set order: no sort; children by increasing far-side set k
-**   (push_node), the LIVE masks fixed at compile time.  Rank order let a
-**   hit end its scale; without it each child is compared with the best hit,
-**   which costs nothing for the yes/no casts the render makes.
-** - node bounds: 3.0 of the 7.2 pushes of an island miss (6.8 of 14.7 on
-**   the landscape) found no child to visit -- a ray skimming a terrain
-**   enters nodes whose voxels lie below it.  The box of a node's set voxels
-**   (header bits, no memory) cuts the pushes to 2.6 (4.7); hits pay for
-**   the test at every descent and gain less from it.
-** - inlined by force: GCC -O2 kept clip_to_bounds and child_fetch as calls.
-** - cheaper set-up: the root's bounds instead of the root cube, finiteness
-**   by one sum, the frame written out per axis (GCC kept 3-step loops).
-** Tried and dropped: each child's interval stored at PUSH (7 max, 7 min,
-** 16 stores: +570 a landscape culled cast), bounds tested only from level 5 up
-** (island -7, landscape +140).  With an entry wanted (bench_svdag's
-** throughput run, bunny_tiny, 200 000 rays) a cast costs 3051 -> 2263.
+** COST: a culled cast takes x0.46 (landscape) and x0.51 (island) of the
+** instructions of the rank-sorted walk before it; the steps, each
+** measured, and what was tried and dropped are in the README ("The proxy
+** cast").
 ** Every step answers bit for bit as the reference cast on the tests' rays.
 **
 ** CONSERVATIVE IN FLOAT.  Every box is grown by g on each side, in frame
@@ -1213,8 +1187,9 @@ static unsigned by_far_set(unsigned m, unsigned x)
 ** ORDER: the children are visited by increasing k.  A child's entry only
 ** grows when axes join its far-side set, so k comes after every subset of
 ** itself; child 0 (entered at tin) is first, child 7 last.  It is not
-** ESVO's ray order (the entries are not sorted: see COST for why), so a
-** hit does not end a scale: each child is compared with the best hit.
+** ESVO's ray order (the entries are not sorted; README, "The proxy
+** cast", says why), so a hit does not end a scale: each child is compared
+** with the best hit.
 */
 static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
                       unsigned m, const uint32_t corner[3], int level,
@@ -1586,7 +1561,7 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 }
 
 /* ===================================================================== */
-/* Inner proxies: voxels that prove a shadow ray occluded (issue 18)      */
+/* Inner proxies: voxels that prove a shadow ray occluded                */
 /* ===================================================================== */
 /*
 ** The paper's future work (section 4.3): a second voxelization whose set
@@ -1741,7 +1716,7 @@ static brt_result weld(const float *corners, size_t stride, uint32_t n, uint32_t
 ** binary heap beside batchrt.c's key_heap, for a stated reason: that one
 ** is static there so that it inlines into the top-level walk (out of
 ** line, and with a decoded compare, a batched trace ran 1.1 % more
-** instructions; callgrind, issue 20), and sharing it across files would
+** instructions; callgrind), and sharing it across files would
 ** put its code in the public header. */
 static void sift_down(uint64_t *a, size_t i, size_t n)
 {

@@ -1111,7 +1111,7 @@ static void test_io_parse_size(void)
     }
 }
 
-/* The one copy of each small utility (issue 20) against references written
+/* The one copy of each small utility against references written
 ** apart from it: byte layouts spelled out, SplitMix64's published first
 ** outputs for seed 0 (from the algorithm as Steele, Lea and Flood give it,
 ** computed in Python), the growth rule and the validity rule as stated. */
