@@ -29,6 +29,9 @@ CFLAGS  ?=
 CFLAGS  += $(STD) $(WARN) $(OPT) -pthread $(XCFLAGS)
 LDLIBS  = -lm
 BUILD   ?= build
+# The tests and the fuzz targets see batchrt.h's section 7 (entry points for
+# tests only, as SQLite's SQLITE_TEST); the programs in examples/ do not.
+TESTING = -DBRT_TESTING
 # "make V=1" shows the full command lines.
 V       ?= 0
 # == END OF SETTINGS ======================================================
@@ -69,7 +72,7 @@ $(BUILD)/examples/%.o: examples/%.c batchrt.h $(wildcard examples/*.h) | $(BUILD
 
 $(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) batchrt.h | $(BUILD)/tests
 	$(SAY) CC $<
-	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
+	$(Q)$(CC) $(CFLAGS) $(TESTING) -I. -c $< -o $@
 
 $(BUILD)/examples $(BUILD)/tests:
 	$(Q)mkdir -p $@
@@ -195,7 +198,7 @@ bench-embree: all embree
 FUZZ_TARGETS = obj ply scene rays
 FUZZ_SECONDS ?= 600
 FUZZ_CC ?= clang
-FUZZ_FLAGS = $(STD) $(WARN) -O1 -g -fno-omit-frame-pointer \
+FUZZ_FLAGS = $(STD) $(WARN) $(TESTING) -O1 -g -fno-omit-frame-pointer \
              -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=all
 FUZZ_BINS = $(FUZZ_TARGETS:%=$(BUILD)/fuzz/fuzz_%)
 VALGRIND = valgrind -q --error-exitcode=99 --leak-check=full \

@@ -1,19 +1,51 @@
 /*
-** batchrt.c -- everything of batchrt that is neither a BVH nor a voxel proxy:
-**   - results, errors and small utilities (sizes, SplitMix64, atomic writes);
-**   - mesh loading: Wavefront OBJ and PLY (ascii, binary both endians),
-**     streamed in chunks through one byte reader;
-**   - ray and hit files (little-endian records) and statistics JSON;
-**   - the out-of-core batched traversal of Pharr et al. 1997 with the
-**     conservative proxies of Molenaar and Eisemann 2020: partition into
-**     batching points, the scene file, the top-level BVH and its restartable
-**     walk, the pread page cache (SQLite's pcache shape) and the scheduler.
-** The sections follow that order; each opens with a comment on its design.
+** batchrt.c -- the out-of-core batched traversal of Pharr et al. 1997 with
+** the conservative proxies of Molenaar and Eisemann 2020, and what it needs
+** that is neither a BVH (bvh.c) nor a voxel proxy (svdag.c).
+**
+** The file reads in two parts.  Part I is the method, in the order a ray
+** meets it; Part II is support, not the paper: files, input, statistics
+** and utilities.  Each section opens with a comment on its design.
+**
+** PART I -- THE METHOD
+**   the partition into batching points    median splits of triangle centres
+**   the top-level BVH over batching points and its restartable walk
+**                                          (one binary heap, shared with
+**                                          the scheduler)
+**   the scene in memory                    the types the scheduler works on
+**   ray queues and the scheduler           the paper's path (walk_on,
+**                                          proxy_test, enqueue, schedule,
+**                                          process_batch), then batchrt's
+**                                          layers, each named and measured
+**   the page cache                         pread, LRU (SQLite's pcache
+**                                          shape), and read-ahead
+** PART II -- SUPPORT, NOT THE PAPER
+**   the scene file                         format (little-endian), the out-
+**                                          of-core build (spill file,
+**                                          buckets, batching points),
+**                                          opening, validation at open, the
+**                                          partition checker
+**   meshes                                 Wavefront OBJ and PLY, streamed
+**                                          in chunks through one reader
+**   rays and hits                          little-endian record files
+**   statistics                             JSON
+**   results, errors, small utilities       one copy of each: sizes, the
+**                                          64-bit mixer and SplitMix64,
+**                                          little-endian numbers, the
+**                                          growable array, the atomic writer
+**   threads                                a small pool, and the direct
+**                                          mode's chunks of rays
+** Data flow: mesh stream -> batching points -> scene file and proxies ->
+** rays -> queues -> page cache -> hits.
 */
 /* MAP_ANONYMOUS (POSIX.1-2024) for the page cache's buffers: glibc shows
 ** it only beyond the Makefile's _POSIX_C_SOURCE=200809L, hence this file's
 ** one feature macro (nothing else here uses what it adds). */
 #define _DEFAULT_SOURCE
+/* The library defines the entry points for tests too (batchrt.h, 7). */
+#ifndef BRT_TESTING
+#define BRT_TESTING 1
+#endif
 #include "batchrt.h"
 
 #include <errno.h>
@@ -31,155 +63,414 @@
 #include <sys/resource.h>
 #include <sys/stat.h>
 
-/* ===================================================================== */
-/* Results and errors                                                    */
-/* ===================================================================== */
+/* ##################################################################### */
+/* PART I -- THE METHOD: out-of-core batched traversal                   */
+/* ##################################################################### */
+/*
+** The data flow of Pharr et al. 1997 with the proxies of Molenaar and
+** Eisemann 2020:
+**
+**   mesh --partition--> batching points --build--> scene file
+**        (median splits)  (BVH blob + box + proxy each)
+**   rays --top-level walk--> geometry in memory? intersect at once;
+**        else proxy test --> queue at a batching point
+**   scheduler: fullest queue first --> page cache (pread, LRU) --> BVH
+**        --> the ray resumes its walk, or finishes.
+*/
 
-const char *brt_result_string(brt_result r)
+/* ---- median splits (the partition and the top-level build share them) -- */
+
+/* Longest axis of the bounds of the points centres[3*ids[i]]. */
+static int longest_axis(const float *centres, const uint32_t *ids, uint32_t n)
 {
-    switch (r) {
-    case BRT_OK: return "ok";
-    case BRT_ENOMEM: return "out of memory";
-    case BRT_EIO: return "i/o error";
-    case BRT_EPARSE: return "parse error";
-    case BRT_EFORMAT: return "bad scene file";
-    case BRT_EARG: return "invalid argument";
-    case BRT_ECHECK: return "invariant violated";
-    case BRT_EINTR: return "interrupted";
-    }
-    return "unknown result";
+    float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    uint32_t i;
+    int a, axis = 0;
+    for (i = 0; i < n; i++)
+        for (a = 0; a < 3; a++) {
+            float c = centres[3 * (size_t)ids[i] + a];
+            if (c < lo[a]) lo[a] = c;
+            if (c > hi[a]) hi[a] = c;
+        }
+    for (a = 1; a < 3; a++)
+        if (hi[a] - lo[a] > hi[axis] - lo[axis]) axis = a;
+    return axis;
 }
 
-brt_result brt_fail(brt_error *err, brt_result r, const char *fmt, ...)
+/* Orders ids by (centre on axis, id): a total order, so the split and
+** hence the scene file are the same on every run and every libc. */
+static int centre_before(const float *centres, int axis, uint32_t a, uint32_t b)
 {
-    va_list ap;
-    if (!err) return r;
-    va_start(ap, fmt);
-    vsnprintf(err->message, sizeof err->message, fmt, ap);
-    va_end(ap);
-    return r;
+    float ca = centres[3 * (size_t)a + axis], cb = centres[3 * (size_t)b + axis];
+    return ca < cb || (ca == cb && a < b);
 }
 
-/* ===================================================================== */
-/* Small utilities                                                       */
-/* ===================================================================== */
-
-brt_result brt_parse_size(const char *text, uint64_t *bytes)
+/* Quickselect (Hoare 1961): afterwards ids[0..k) come before ids[k..n) in
+** the order above.  Expected linear time; the pivot is a median of three. */
+static void select_kth(const float *centres, int axis, uint32_t *ids, uint32_t n, uint32_t k)
 {
-    uint64_t value = 0, scale = 1;
-    const char *p = text;
-    if (!text || *p < '0' || *p > '9') return BRT_EARG;
-    for (; *p >= '0' && *p <= '9'; p++) {
-        if (value > (UINT64_MAX - 9) / 10) return BRT_EARG;
-        value = value * 10 + (uint64_t)(*p - '0');
+    uint32_t lo = 0, hi = n;            /* the k-th lies in ids[lo..hi) */
+    while (hi - lo > 1) {
+        uint32_t a = ids[lo], b = ids[lo + (hi - lo) / 2], c = ids[hi - 1], pivot, i, store;
+        pivot = centre_before(centres, axis, a, b)
+                    ? (centre_before(centres, axis, b, c) ? b : (centre_before(centres, axis, a, c) ? c : a))
+                    : (centre_before(centres, axis, a, c) ? a : (centre_before(centres, axis, b, c) ? c : b));
+        /* Lomuto partition around the pivot id (moved to the end). */
+        for (i = lo; ids[i] != pivot; i++) {}
+        ids[i] = ids[hi - 1];
+        ids[hi - 1] = pivot;
+        for (store = lo, i = lo; i < hi - 1; i++)
+            if (centre_before(centres, axis, ids[i], pivot)) {
+                uint32_t t = ids[i]; ids[i] = ids[store]; ids[store] = t;
+                store++;
+            }
+        ids[hi - 1] = ids[store];
+        ids[store] = pivot;
+        if (store == k) return;
+        if (store < k) lo = store + 1;
+        else hi = store;
     }
-    switch (*p) {
-    case 'K': case 'k': scale = (uint64_t)1 << 10; p++; break;
-    case 'M': case 'm': scale = (uint64_t)1 << 20; p++; break;
-    case 'G': case 'g': scale = (uint64_t)1 << 30; p++; break;
-    default: break;
+}
+
+/* Splits ids[0..n) spatially: the first k go to one side (k in 1..n-1). */
+static void median_split(const float *centres, uint32_t *ids, uint32_t n, uint32_t k)
+{
+    select_kth(centres, longest_axis(centres, ids, n), ids, n, k);
+}
+
+/* ---- the partition into batching points ------------------------------ */
+
+typedef struct batch_range {
+    uint32_t first, count;        /* into the triangle order */
+} batch_range;
+
+typedef struct partition {
+    uint32_t *order;              /* triangle ids, batching point by batching point
+                                  ** (the caller's array) */
+    batch_range *ranges;
+    uint32_t count;
+    size_t capacity;
+} partition;
+
+static brt_result partition_push(partition *p, uint32_t first, uint32_t count)
+{
+    if (p->count == p->capacity) {
+        batch_range *r = brt_grow(p->ranges, &p->capacity, (size_t)p->count + 1, sizeof *r);
+        if (!r) return BRT_ENOMEM;
+        p->ranges = r;
     }
-    if (*p == 'B' || *p == 'b') p++;   /* "512MB" reads as 512M */
-    if (*p != 0 || value == 0 || value > UINT64_MAX / scale) return BRT_EARG;
-    *bytes = value * scale;
+    p->ranges[p->count].first = first;
+    p->ranges[p->count].count = count;
+    p->count++;
     return BRT_OK;
 }
 
-uint64_t brt_random_u64(uint64_t *state)
+/* Top-down: split on the longest axis of the centroid bounds until each part
+** holds at most batch_tris triangles.  The split point is a multiple of
+** batch_tris near the middle, so parts are full and there are few of them
+** (ceil(n / batch_tris) when the counts allow). */
+static brt_result partition_split(partition *p, const float *centroids, uint32_t first,
+                                  uint32_t count, uint32_t batch_tris)
 {
-    /* SplitMix64 (Steele, Lea, Flood 2014): every seed is a good seed. */
-    uint64_t z = (*state += 0x9E3779B97F4A7C15ull);
-    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
-    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
-    return z ^ (z >> 31);
+    uint32_t parts, k;
+    brt_result r;
+    if (count <= batch_tris) return partition_push(p, first, count);
+    parts = (uint32_t)(((uint64_t)count + batch_tris - 1) / batch_tris);
+    k = (uint32_t)(((uint64_t)parts / 2) * batch_tris);
+    median_split(centroids, p->order + first, count, k);
+    /* Both sides are smaller and k is near the middle: depth O(log n). */
+    r = partition_split(p, centroids, first, k, batch_tris);
+    if (r == BRT_OK) r = partition_split(p, centroids, first + k, count - k, batch_tris);
+    return r;
 }
 
-float brt_random_float(uint64_t *state)
+/* ---- one binary heap (the top-level walk and the scheduler share it) -- */
+/*
+** A binary min-heap (Williams 1964) of 64-bit keys whose low word names
+** the item.  Each user packs its whole order into the key, so one integer
+** compare decides: the walk, subtrees and batching points by entry
+** distance (walk_key_of); the scheduler, batching points by queue length
+** (queue_key).  Ties fall to the lower item number, so the order is total
+** and what comes out first never depends on the heap's inner layout.
+** With pos (the scheduler) pos[item] is the item's place or HEAP_ABSENT,
+** for a key lowered in place (a queue grew); the walk passes pos = NULL.
+*/
+#define HEAP_ABSENT 0xFFFFFFFFu
+
+typedef struct key_heap {
+    uint64_t *keys;
+    uint32_t *pos;              /* per item: its index in keys, or HEAP_ABSENT; or NULL */
+    uint32_t size;
+} key_heap;
+
+static inline void heap_place(key_heap *h, uint32_t i, uint64_t key)
 {
-    /* The top 24 bits give every float in [0,1) with spacing 2^-24. */
-    return (float)(brt_random_u64(state) >> 40) * (1.0f / 16777216.0f);
+    h->keys[i] = key;
+    if (h->pos) h->pos[(uint32_t)key] = i;
 }
 
-double brt_seconds(void)
+/* Puts key at hole i or above it (every key above i is no larger). */
+static inline void heap_up(key_heap *h, uint32_t i, uint64_t key)
 {
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+    while (i > 0 && key < h->keys[(i - 1) / 2]) {
+        heap_place(h, i, h->keys[(i - 1) / 2]);
+        i = (i - 1) / 2;
+    }
+    heap_place(h, i, key);
 }
 
-uint64_t brt_peak_rss_bytes(void)
+static inline void heap_push(key_heap *h, uint64_t key)
 {
-    struct rusage usage;
-    if (getrusage(RUSAGE_SELF, &usage) != 0 || usage.ru_maxrss < 0) return 0;
-    return (uint64_t)usage.ru_maxrss * 1024u;   /* Linux and the BSDs: KiB */
+    heap_up(h, h->size++, key);
 }
 
-/* Writes all of data at offset (pwrite), or at the file position when
-** offset is negative (write: also pipes and devices).  Short writes and
-** EINTR are retried; a write of 0 bytes counts as a full disk. */
-static int write_fully(int fd, const void *data, size_t size, int64_t offset)
+/* Inserts key's item, or lowers the key of the item already there (pos). */
+static void heap_lower(key_heap *h, uint64_t key)
 {
-    const unsigned char *p = data;
-    while (size > 0) {
-        ssize_t n = offset < 0 ? write(fd, p, size) : pwrite(fd, p, size, (off_t)offset);
-        if (n < 0 && errno == EINTR) continue;
-        if (n <= 0) {
-            if (n == 0) errno = ENOSPC;
-            return -1;
+    uint32_t at = h->pos[(uint32_t)key];
+    heap_up(h, at == HEAP_ABSENT ? h->size++ : at, key);
+}
+
+/* Removes and returns the least key. */
+static inline uint64_t heap_pop(key_heap *h)
+{
+    uint64_t top = h->keys[0], last = h->keys[--h->size];
+    uint32_t i = 0;
+    if (h->pos) h->pos[(uint32_t)top] = HEAP_ABSENT;
+    if (h->size == 0) return top;
+    for (;;) {
+        uint32_t c = 2 * i + 1;
+        if (c >= h->size) break;
+        if (c + 1 < h->size && h->keys[c + 1] < h->keys[c]) c++;
+        if (h->keys[c] >= last) break;
+        heap_place(h, i, h->keys[c]);
+        i = c;
+    }
+    heap_place(h, i, last);
+    return top;
+}
+
+/* ---- the top-level BVH over batching points and its restartable walk -- */
+/*
+** A 4-wide BVH over the batching points' boxes (the paper's top level is
+** 4-wide too).  It lives here, beside the partition whose median split it
+** shares, and tests boxes with bvh.c's brt_box_span4 so that its distances
+** agree bit for bit with the triangle BVHs.
+** Why a node type of its own (top_node) beside bvh.c's qnode, both 4-wide:
+** a qnode holds 8-bit planes in a frame of its own and triangle leaves, in
+** the blobs that the disk reads (its size is the bytes read); a top_node
+** holds float boxes of batching points, stored as is in the scene file's
+** top-level section (TOP_NODE_BYTES) and checked at open against the batch
+** table (check_top: nested, ordered, finite).  One node type would change
+** that section's bytes, which this consolidation keeps.  The two share the
+** box test (brt_box_span4) and the median split; the top level has about
+** one node per three batching points, so its float boxes cost little.
+**
+** A ray's place in its walk is one 8-byte key (t_entry, id): the entry
+** distance into the last batching point it was queued at, and that
+** point's id.  A walk (top_walk) visits the batching points the ray enters
+** no later than tlimit in key order, best first: a min-heap holds the
+** subtrees and batching points met so far by their entry distance, and
+** the nearest is expanded or, for a batching point, handed out.  Exact,
+** because a box inside another is entered no sooner (the box test is
+** monotone in the box bounds), and at equal distances subtrees come out
+** before batching points, and batching points by id.  One walk serves a
+** ray for as long as it passes batching points in memory or culled by
+** their proxies; queued, it keeps only its key, and the next walk starts
+** again at the root, skipping
+**  (a) subtrees the ray leaves before the key's t: every box inside is
+**      entered no later than it is left, so its key would be smaller,
+** and the batching points at or before the key.  (It replaced a fresh
+** descent from the root per batching point: an in-core landscape render
+** went from 40.0 G to 30.2 G instructions; README, Batched mode.)
+*/
+#define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
+#define TOP_LEAF 0x80000000u    /* child code of batching point (code & ~TOP_LEAF) */
+#define TOP_NODE_BYTES 112
+
+typedef struct top_node {
+    float box[6][4];            /* child boxes: rows min x, y, z, max x, y, z; one lane
+                                ** per child (grown in memory; brt_box_span4's layout) */
+    uint32_t child[4];          /* node index (> own index), TOP_LEAF|id, TOP_EMPTY */
+} top_node;
+
+typedef struct walk_key {
+    float t;
+    uint32_t id;                /* TOP_EMPTY before the first batching point */
+} walk_key;
+
+static int key_after(float t, uint32_t id, walk_key last)
+{
+    return last.id == TOP_EMPTY || t > last.t || (t == last.t && id > last.id);
+}
+
+typedef struct top_builder {
+    const float *boxes;         /* 6 floats per batching point: lo, hi */
+    const float *centres;       /* 3 floats per batching point */
+    top_node *nodes;
+    uint32_t count;
+} top_builder;
+
+static void top_lane_clear(top_node *node, int lane)
+{
+    int a;
+    node->child[lane] = TOP_EMPTY;
+    for (a = 0; a < 3; a++) {
+        node->box[a][lane] = INFINITY;
+        node->box[3 + a][lane] = -INFINITY;
+    }
+}
+
+static void top_lane_grow(top_node *node, int lane, const float *box)
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        if (box[a] < node->box[a][lane]) node->box[a][lane] = box[a];
+        if (box[3 + a] > node->box[3 + a][lane]) node->box[3 + a][lane] = box[3 + a];
+    }
+}
+
+static uint32_t top_build_node(top_builder *b, uint32_t *ids, uint32_t n)
+{
+    uint32_t index = b->count++, first[5], groups = 1, g, i;
+    first[0] = 0;
+    first[1] = n;
+    /* Split the largest group at its median until there are four: two
+    ** levels of a binary median split collapsed into one node. */
+    while (groups < 4) {
+        uint32_t big = 0, size;
+        for (g = 1; g < groups; g++)
+            if (first[g + 1] - first[g] > first[big + 1] - first[big]) big = g;
+        size = first[big + 1] - first[big];
+        if (size < 2) break;
+        median_split(b->centres, ids + first[big], size, size / 2);
+        memmove(first + big + 2, first + big + 1, (groups - big) * sizeof *first);
+        first[big + 1] = first[big] + size / 2;
+        groups++;
+    }
+    for (g = 0; g < 4; g++) top_lane_clear(&b->nodes[index], (int)g);
+    for (g = 0; g < groups; g++) {
+        uint32_t size = first[g + 1] - first[g];
+        uint32_t child = size == 1 ? (TOP_LEAF | ids[first[g]])
+                                   : top_build_node(b, ids + first[g], size);
+        b->nodes[index].child[g] = child;
+        for (i = first[g]; i < first[g + 1]; i++)
+            top_lane_grow(&b->nodes[index], (int)g, b->boxes + 6 * (size_t)ids[i]);
+    }
+    return index;
+}
+
+/* Builds the nodes (at most count of them: every node has two or more
+** children, except a root over a single batching point). */
+static brt_result top_build(const float *boxes, uint32_t count, top_node **nodes,
+                            uint32_t *node_count)
+{
+    top_builder b;
+    uint32_t *ids = malloc((size_t)count * sizeof *ids), i;
+    float *centres = malloc(3 * (size_t)count * sizeof *centres);
+    b.nodes = malloc((size_t)count * sizeof *b.nodes);
+    if (!ids || !centres || !b.nodes) {
+        free(ids); free(centres); free(b.nodes);
+        return BRT_ENOMEM;
+    }
+    for (i = 0; i < count; i++) {
+        int a;
+        ids[i] = i;
+        for (a = 0; a < 3; a++)
+            centres[3 * (size_t)i + a] = 0.5f * boxes[6 * (size_t)i + a] + 0.5f * boxes[6 * (size_t)i + 3 + a];
+    }
+    b.boxes = boxes;
+    b.centres = centres;
+    b.count = 0;
+    top_build_node(&b, ids, count);
+    free(ids);
+    free(centres);
+    *nodes = b.nodes;
+    *node_count = b.count;
+    return BRT_OK;
+}
+
+/* The heap holds each node and batching point at most once (check_top
+** makes sure every node has one parent), so nodes + points keys do.  An
+** entry is a subtree (node index) or a batching point (TOP_LEAF | id)
+** with the distance the ray enters its box (walk_key_of). */
+typedef key_heap top_walk;
+
+/* Heap order: nearer first; at equal entry, subtrees (codes without
+** TOP_LEAF) before batching points, batching points by id.  The entry
+** goes to the high word as an unsigned integer that orders as the float
+** does (sign-magnitude to offset binary; -0 as +0, which compare equal).
+** Never NaN: a box is entered only when entry <= exit. */
+static uint64_t walk_key_of(float entry, uint32_t code)
+{
+    uint32_t bits;
+    if (entry == 0.0f) entry = 0.0f;
+    memcpy(&bits, &entry, 4);
+    bits = bits & 0x80000000u ? ~bits : bits | 0x80000000u;
+    return (uint64_t)bits << 32 | code;
+}
+
+static float walk_entry_of(uint64_t key)
+{
+    uint32_t bits = (uint32_t)(key >> 32);
+    float entry;
+    bits = bits & 0x80000000u ? bits & 0x7FFFFFFFu : ~bits;
+    memcpy(&entry, &bits, 4);
+    return entry;
+}
+
+static void top_walk_start(top_walk *w)
+{
+    w->size = 0;
+    heap_push(w, walk_key_of(-INFINITY, 0));   /* the root node; its children get box tests */
+}
+
+/* Pushes the children of node that the ray enters no later than tlimit
+** and does not leave before the key's t, (a). */
+static void walk_expand(top_walk *w, const top_node *node, const brt_ray_prep *ray, float tlimit,
+                        walk_key key)
+{
+    float entries[4], exits[4];
+    unsigned lanes = brt_box_span4(ray, node->box, ray->tnear, tlimit, entries, exits);
+    int lane;
+    for (lane = 0; lane < 4; lane++) {
+        if (node->child[lane] == TOP_EMPTY || !(lanes & (1u << lane))) continue;
+        if (key.id != TOP_EMPTY && exits[lane] < key.t) continue;             /* (a) */
+        heap_push(w, walk_key_of(entries[lane], node->child[lane]));
+    }
+}
+
+/* The next batching point after *key that the ray enters no later than
+** tlimit (which may have shrunk since the last call): 1 and *key updated,
+** or 0 when there is none. */
+static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep *ray, float tlimit,
+                         walk_key *key)
+{
+    const uint64_t stop = walk_key_of(tlimit, 0xFFFFFFFFu);   /* entry <= tlimit */
+    while (w->size > 0 && w->keys[0] <= stop) {
+        uint64_t next = heap_pop(w);
+        uint32_t code = (uint32_t)next;
+        float entry = walk_entry_of(next);
+        if (code & TOP_LEAF) {
+            uint32_t id = code & ~TOP_LEAF;
+            if (!key_after(entry, id, *key)) continue;
+            key->t = entry;
+            key->id = id;
+            return 1;
         }
-        p += n;
-        size -= (size_t)n;
-        if (offset >= 0) offset += n;
+        walk_expand(w, &nodes[code], ray, tlimit, *key);
     }
     return 0;
 }
 
-/* Nonzero when path exists and is not a regular file (a device such as
-** /dev/null, a pipe): renaming a file over it would replace it. */
-static int is_special_file(const char *path)
-{
-    struct stat st;
-    return stat(path, &st) == 0 && !S_ISREG(st.st_mode);
-}
-
-brt_result brt_write_file_atomic(const char *path, const void *data,
-                                 size_t size, brt_error *err)
-{
-    char tmp[4096];
-    int fd, failed;
-    if (is_special_file(path)) {
-        fd = open(path, O_WRONLY);
-        failed = fd < 0 || write_fully(fd, data, size, -1) != 0;
-        if (fd >= 0 && close(fd) != 0) failed = 1;
-        return failed ? brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno)) : BRT_OK;
-    }
-    if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", path, (long)getpid()) >= (int)sizeof tmp)
-        return brt_fail(err, BRT_EARG, "%s: path too long", path);
-    fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644);
-    if (fd < 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", path, strerror(errno));
-    failed = write_fully(fd, data, size, 0) != 0;
-    if (close(fd) != 0) failed = 1;
-    if (!failed && rename(tmp, path) != 0) failed = 1;
-    if (failed) {
-        int saved = errno ? errno : EIO;
-        unlink(tmp);
-        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(saved));
-    }
-    return BRT_OK;
-}
-
-/* ===================================================================== */
-/* Threads: a small pool and a split of the work                         */
-/* ===================================================================== */
+/* ---- the scene in memory ---------------------------------------------- */
 /*
-** A pool runs one job at a time on its threads, the caller being thread 0.
-** A job hands out [0, total) in chunks from one counter; every output is
-** written per item (a hit, a ray's slot, a batching point's buffers) or
-** summed per thread, so which thread took which chunk changes no byte.
-** The pool lives as long as one trace or one build: the library keeps no
-** global state.  With one thread no thread is created and the job runs
-** in the caller, as the code read before threads.
+** What the scheduler works on.  An open scene (struct brt_scene) holds the
+** scene file's small parts in memory -- per batching point its box, blob
+** place and proxies (batch_entry), the top-level nodes, the DAG pool --
+** and leaves the blobs on disk.  The page cache keeps some blobs resident
+** (cache_entry per batching point); a pool of threads runs the walks.  The
+** code that fills these structures is in Part II (the scene file, threads).
 */
 typedef void (*pool_job)(void *ctx, unsigned thread, size_t first, size_t end);
 typedef void (*pool_commit)(void *ctx, size_t first, size_t end);
@@ -199,224 +490,2540 @@ typedef struct pool {
     size_t done_cap;
 } pool;
 
-unsigned brt_threads_resolve(unsigned threads)
+typedef struct batch_entry {
+    float lo[3], hi[3];
+    uint64_t offset, size, checksum;
+    uint32_t triangles;
+    brt_proxy proxy;
+    brt_proxy inner;            /* inner proxy; the file holds its root, its
+                                ** frame follows from the box (inner_frame) */
+} batch_entry;
+
+typedef struct section {
+    uint64_t offset, size, checksum;
+} section;
+
+/* What the header says, unpacked. */
+typedef struct scene_header {
+    uint64_t stamp, geometry_bytes;
+    uint32_t batch_tris, proxy_res, batch_count, triangle_count, top_node_count;
+    section sections[3];
+} scene_header;
+
+/* One batching point while a trace runs: where its blob is, and the page
+** cache's state for it (SQLite's pcache shape: fetch pins, release
+** unpins, only unpinned entries are evicted, least recently used first). */
+typedef struct cache_entry {
+    void *data;                 /* page-aligned copy of the blob, or NULL */
+    brt_bvh *bvh;               /* a view into data */
+    uint64_t bytes;             /* what data holds (page-rounded) */
+    uint32_t pins;
+    uint32_t lru_prev, lru_next;   /* unpinned resident entries; NO_ENTRY ends */
+} cache_entry;
+
+#define NO_ENTRY 0xFFFFFFFFu
+
+struct brt_scene {
+    char *path;
+    int fd;
+    scene_header header;
+    batch_entry *batches;
+    top_node *top;
+    brt_svdag *dag;
+    void *dag_blob;             /* the pool refers to it */
+    uint64_t file_size;
+};
+
+typedef struct page_cache {
+    brt_scene *scene;
+    cache_entry *entries;       /* one per batching point */
+    uint64_t budget, held;
+    uint32_t lru_head, lru_tail;   /* least recently used first */
+    brt_read_fn read_fn;
+    void *read_user;
+    int drop_os_cache;          /* brt_trace_options.drop_os_cache */
+    brt_stats *stats;
+    /* Read-ahead (more than one thread): one blob read by a thread of its
+    ** own while the scheduler's threads intersect (cache_read_ahead). */
+    int read_ahead;
+    int ahead_running;
+    pthread_t ahead_thread;
+    uint32_t ahead_id;          /* NO_ENTRY: none */
+    void *ahead_data;
+    brt_bvh *ahead_bvh;
+    uint64_t ahead_bytes;
+    double ahead_seconds;
+    brt_result ahead_result;
+} page_cache;
+
+#define SCENE_PAGE 4096u   /* blobs start at multiples of it (the scene file) */
+
+/* The page cache's interface: its section follows the scheduler's. */
+static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
+                             const brt_trace_options *opt, brt_stats *stats);
+static void cache_free(page_cache *c);
+static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err);
+static const brt_bvh *cache_peek(const page_cache *c, uint32_t id);
+static void cache_touch(page_cache *c, uint32_t id);
+static void cache_release(page_cache *c, uint32_t id);
+static void cache_read_ahead(page_cache *c, uint32_t id);
+static brt_result cache_check(const page_cache *c, brt_error *err);
+static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
+                            brt_bvh **bvh, brt_error *err);
+static void blob_free(const brt_scene *scene, uint32_t id, void *data);
+
+/* From Part II: reading the scene file, the thread pool, one ray through
+** one BVH (the direct mode), page rounding. */
+static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
+                             brt_read_fn read_fn, void *user, uint64_t *bytes_read,
+                             const char *path, brt_error *err);
+static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user);
+static void pool_init(pool *p, unsigned threads);
+static void pool_run(pool *p, pool_job job, pool_commit commit, void *ctx, size_t total,
+                     size_t chunk);
+static void pool_free(pool *p);
+static void intersect_ray(const brt_bvh *bvh, const brt_ray *ray, uint64_t tag, brt_hit *hit,
+                          float normal[3]);
+static uint64_t round_up_page(uint64_t n);
+
+/* ---- ray queues and the scheduler ------------------------------------ */
+/*
+** THE PAPER'S SCHEDULER (Pharr et al. 1997, as Molenaar and Eisemann
+** 2020 use it with proxies) is the plain path through this section:
+**   schedule       take new rays (refill); then, while a queue is not
+**                  empty, process the fullest (key_heap, queue_key)
+**   process_batch  fetch its batching point through the LRU page cache
+**                  (cache_fetch), intersect each ray of its queue there,
+**                  and walk each on
+**   walk_on        the ray's top-level walk: at the next batching point it
+**                  enters whose proxy it hits (proxy_test) it is queued
+**                  (enqueue); when there is none, it is finished
+** Each disk read serves as many rays as it can: the fullest queue first.
+**
+** batchrt's improvements are LAYERS on that path: each is one named
+** function that the plain path calls, with what it was measured to do.
+**   1. intersect_resident  geometry in memory: intersect at once, no queue
+**   2. proxies_pay         no proxy tests when the budget holds every blob
+**   3. exact_proxy_hit     analysis: the triangles themselves as the proxy
+**   4. read_ahead          the next load read while a phase runs (threads)
+**   5. phase_run           threads: a phase's walks in parallel, committed
+**                          in order ("Threads" below)
+**   6. fetch_for           statistics: the loads only shadow rays asked for
+**   7. inner_stops         inner proxies: an occlusion ray settled occluded
+**                          without a queue (the paper's future work)
+** queue_resident turns layers 1 and 2 off (the paper's scheduler, which
+** make figures measures); exact_proxies turns 3 on; one thread turns 4
+** off and makes 5 a plain loop; no_inner turns 7 off.  No layer changes a
+** hit; 1-3 and 7 change which loads happen, 4-6 none.
+**
+** Rays in flight live in slots; a queue per batching point holds slot
+** numbers; a min-heap of queue keys (key_heap) orders the non-empty
+** queues, longest first, ties to the lowest id.
+**
+** Per-ray state while queued: the ray (32 bytes), its closest hit so far
+** (16) and that triangle's normal (12), its walk key (8), the number of
+** batching points it was queued at (4) and the caller's tag (8): 80 bytes.
+** The tag also says the ray's kind (BRT_TAG_OCCLUSION), so an occlusion
+** ray costs no byte more: it keeps an unused normal, and its hit record
+** turns from the miss record into "occluded" at its first hit.
+**
+** Threads (README, "Threads"): the scheduler works in phases.  A phase is
+** a list of rays -- the queue of the batching point just loaded, or rays
+** new from the source -- each of which is intersected there (a queue) and
+** then walks on until it must be queued or is finished (walk_on).  The
+** rays of a phase are split across the pool's threads; walk_on reads the
+** shared state (top-level BVH, proxies, resident BVHs) and writes only its
+** ray's slot, its outcome and its thread's counters.  One thread then
+** commits the phase in list order (commit): counters summed, the page
+** cache's LRU order updated from the touches as if the rays had walked one
+** after another, rays queued or finished.  So every decision -- which
+** queue is fullest, what is evicted, the order of finished calls -- is the
+** one the one-thread run makes.  Measured (make bench-threads, 2 threads
+** against 1; README, Threads): render in core 1.5-1.7x, from a modelled
+** 100 MiB/s disk 1.4x, the same counts.
+*/
+typedef struct ray_slot {
+    brt_ray ray;
+    brt_hit hit;
+    float normal[3];
+    walk_key key;
+    uint32_t visits;
+    uint64_t tag;
+} ray_slot;
+
+typedef struct ray_queue {
+    uint32_t *slots;
+    uint32_t count;
+    size_t capacity;
+} ray_queue;
+
+/* One thread's part of a phase: its walk, its counters, and the batching
+** points it found in memory with the stamp of its last use of each (the
+** stamp orders uses as a one-thread walk would make them). */
+typedef struct walker {
+    top_walk walk;
+    uint64_t resident_visits, proxy_tests, proxy_culled;
+    uint64_t inner_stopped;     /* occlusion rays an inner proxy settled */
+    uint64_t *used_at;          /* per batching point; 0: not used */
+    uint32_t *used, used_count;
+} walker;
+
+/* A batching point used by a phase and the stamp of its last use. */
+typedef struct point_use {
+    uint64_t stamp;
+    uint32_t id;
+} point_use;
+
+typedef struct scheduler {
+    brt_scene *scene;
+    const brt_ray_source *source;
+    int use_proxies, queue_resident;
+    brt_stats *stats;
+    page_cache cache;
+    ray_slot *slots;
+    uint32_t *free_slots, free_count, capacity;
+    ray_queue *queues;
+    key_heap fullest;                       /* the non-empty queues (queue_key) */
+    pool pool;
+    walker *walkers;                        /* one per thread of the pool */
+    uint32_t *phase, *outcome;              /* a phase's slots; NO_ENTRY: finished */
+    point_use *uses;                        /* a phase's uses, merged */
+    brt_bvh **exact;                        /* exact_proxies: every BVH, or NULL */
+    void **exact_data;
+    brt_ray *incoming;
+    uint64_t *incoming_tags;
+    int use_inner;              /* consult the inner proxies (not no_inner) */
+} scheduler;
+
+/* Heap order: the fullest queue first (the key's high word falls as the
+** queue grows), at equal lengths the lowest id. */
+static uint64_t queue_key(uint32_t count, uint32_t id)
 {
-    /* _SC_NPROCESSORS_ONLN is not in POSIX, but glibc, musl, the BSDs
-    ** and macOS all have it; elsewhere one thread. */
-#ifdef _SC_NPROCESSORS_ONLN
-    long online = sysconf(_SC_NPROCESSORS_ONLN);
-#else
-    long online = 1;
-#endif
-    if (threads == 0) threads = online > 0 ? (unsigned)online : 1u;
-    return threads < BRT_MAX_THREADS ? threads : BRT_MAX_THREADS;
+    return (uint64_t)(UINT32_MAX - count) << 32 | id;
 }
 
-/* Takes the next chunk of the current job (lock held); 0: none left. */
-static int pool_take(pool *p, size_t *first, size_t *end)
+static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
 {
-    if (p->next >= p->total) return 0;
-    *first = p->next;
-    *end = p->total - p->next < p->chunk ? p->total : p->next + p->chunk;
-    p->next = *end;
+    ray_queue *q = &s->queues[id];
+    if (q->count == q->capacity) {
+        uint32_t *grown = brt_grow(q->slots, &q->capacity, (size_t)q->count + 1, sizeof *grown);
+        if (!grown) return BRT_ENOMEM;
+        q->slots = grown;
+    }
+    q->slots[q->count++] = slot;
+    heap_lower(&s->fullest, queue_key(q->count, id));
+    s->stats->queued_visits++;
+    return BRT_OK;
+}
+
+static int is_occlusion(const ray_slot *r)
+{
+    return (r->tag & BRT_TAG_OCCLUSION) != 0;
+}
+
+/* An occlusion ray is done at its first hit; a closest-hit ray only when
+** its walk ends. */
+static int found_occluder(const ray_slot *r)
+{
+    return is_occlusion(r) && r->hit.prim != BRT_NO_PRIM;
+}
+
+/* Intersects a ray with a batching point's triangles: the closest hit so
+** far, or for an occlusion ray any hit in [tnear, tfar] (the record of
+** brt_ray_source: t = 0, prim = 0 when occluded). */
+static void intersect_slot(const brt_bvh *bvh, ray_slot *r)
+{
+    intersect_ray(bvh, &r->ray, r->tag, &r->hit, r->normal);
+}
+
+/* How far the walk goes: the closest hit so far, or tfar.  (An occlusion
+** ray's record stays the miss record, t = +inf, until it ends the walk.) */
+static float walk_limit(const ray_slot *r)
+{
+    return r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
+}
+
+/* Layer 3, exact proxies (exact_proxies; analysis, not a way to trace):
+** the batching point's triangles answer the proxy test exactly, every
+** BVH read once at the start outside the cache and its counts
+** (exact_load).  It gives the bound no voxel proxy can beat.  Measured
+** (make bench-render, 25 % limit; README, Batched mode): exact proxies read
+** x0.68 of the no-proxy bytes on the landscape and x0.53 on the island,
+** the 128^3 voxels x0.79 and x0.75. */
+static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
+{
+    brt_ray segment = *ray;
+    segment.tfar = tlimit;
+    return brt_bvh_occluded(s->exact[id], &segment);
+}
+
+/* The paper's proxy test: may the ray hit batching point id's triangles
+** in [tnear, tlimit]?  A miss culls the visit: no queue, no load.  With
+** proxies off (no_proxy, or layer 2) every batching point reached is
+** queued, as in Pharr et al. */
+static int proxy_test(const scheduler *s, walker *w, uint32_t id, const brt_ray *ray, float tlimit)
+{
+    int hit;
+    if (!s->use_proxies) return 1;
+    w->proxy_tests++;
+    hit = s->exact ? exact_proxy_hit(s, id, ray, tlimit)
+                   : brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear,
+                                       tlimit, NULL);
+    w->proxy_culled += !hit;
+    return hit;
+}
+
+/* Layer 1, intersecting at once in memory: at a batching point whose
+** geometry is resident (and unless queue_resident asks for the paper's
+** plain scheduler) the ray needs no queue: it is intersected there at
+** once and walks on.  Its proxy is not consulted: the BVH answers exactly
+** at about the cost of a proxy cast.  Why it matters: a bounce ray starts
+** inside the batching point just processed, still in memory; queued, it
+** would wait there until that point might be evicted and read again.
+** Measured: landscape, 2 M triangles, 25 % limit: loads 4,309 -> 1,358
+** without proxies, 3,104 -> 929 with them; make bench-render at 25 %:
+** 3.5-3.9x fewer bytes than the paper's scheduler, about half the time
+** (README, Batched mode); render landscape --scale 0.3 --width 64
+** --height 36 --spp 2 --memory 25% --batch-tris 3000: 88 -> 59 loads.
+** Returns 0 when the point is not resident.  The use is stamped for the
+** LRU order (commit_uses); *stamp counts the ray's uses. */
+static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, uint64_t *stamp)
+{
+    const brt_bvh *resident = s->queue_resident ? NULL : cache_peek(&s->cache, r->key.id);
+    if (!resident) return 0;
+    if (w->used_at[r->key.id] == 0) w->used[w->used_count++] = r->key.id;
+    w->used_at[r->key.id] = (*stamp)++;
+    intersect_slot(resident, r);
+    r->visits++;
+    w->resident_visits++;
     return 1;
 }
 
-/* Runs one chunk (lock held on entry and return) and marks it done. */
-static void pool_chunk(pool *p, unsigned thread, size_t first, size_t end)
+/* Layer 7, inner proxies: the inner proxy test, first at every batching
+** point an occlusion ray with tfar = +inf reaches: a hit settles the ray
+** occluded (the record of intersect_slot) with no queue and no load.
+** Measured (make bench-inner, 1 M triangles; README, "Inner proxies"): on
+** the island 7,538 of 26,751 occluded shadow rays settled, 8.9 % fewer
+** bytes in 9 % fewer loads; on the landscape 120 of 10,914. */
+static int inner_stops(const scheduler *s, ray_slot *r)
 {
-    pthread_mutex_unlock(&p->lock);
-    p->job(p->ctx, thread, first, end);
-    pthread_mutex_lock(&p->lock);
-    p->done[first / p->chunk] = 1;
-    pthread_cond_signal(&p->progress);
+    if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
+    if (!brt_inner_occludes(s->scene->dag, &s->scene->batches[r->key.id].inner, &r->ray)) return 0;
+    r->hit.t = 0;
+    r->hit.prim = 0;
+    r->hit.u = r->hit.v = 0;
+    return 1;
 }
 
-/* The caller's part of a job: it commits the chunks in order as they are
-** done, and runs chunks itself while the next one to commit is not. */
-static void pool_commit_in_order(pool *p, pool_commit commit)
+/* Continues a ray's top-level walk: stops at the next batching point it
+** enters before its closest hit and whose proxy it hits (returned: the
+** ray is to be queued there), or finishes (NO_ENTRY).  tlimit is the
+** closest hit (a box entered exactly there may still hold an equal-t hit
+** with a lower prim, so the compare is inclusive).  An occlusion ray
+** also finishes at its first hit.  Writes only the ray's slot and the
+** walker w: threads walk different rays at once.
+** stamp: the ray's place in its phase, high word; each use adds one. */
+static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t stamp)
 {
-    size_t chunks = (p->total + p->chunk - 1) / p->chunk, c = 0, first, end;
-    pthread_mutex_lock(&p->lock);
-    while (c < chunks) {
-        if (p->done[c]) {
-            pthread_mutex_unlock(&p->lock);
-            end = (c + 1) * p->chunk < p->total ? (c + 1) * p->chunk : p->total;
-            if (commit) commit(p->ctx, c * p->chunk, end);
-            c++;
-            pthread_mutex_lock(&p->lock);
-        } else if (pool_take(p, &first, &end)) {
-            pool_chunk(p, 0, first, end);
-        } else {
-            pthread_cond_wait(&p->progress, &p->lock);
+    brt_ray_prep prep;
+    float tlimit;
+    brt_ray_prepare(&r->ray, &prep);
+    if (!prep.valid) return NO_ENTRY;
+    tlimit = walk_limit(r);
+    top_walk_start(&w->walk);
+    while (!found_occluder(r) && top_walk_next(&w->walk, s->scene->top, &prep, tlimit, &r->key)) {
+        if (inner_stops(s, r)) {                            /* layer 7 */
+            w->inner_stopped++;
+            break;
         }
+        if (intersect_resident(s, w, r, &stamp)) {          /* layer 1 */
+            tlimit = walk_limit(r);
+            continue;
+        }
+        if (!proxy_test(s, w, r->key.id, &r->ray, tlimit)) continue;
+        r->visits++;
+        return r->key.id;
     }
-    while (p->busy > 0) pthread_cond_wait(&p->idle, &p->lock);
-    pthread_mutex_unlock(&p->lock);
+    return NO_ENTRY;
 }
 
-typedef struct pool_thread {
-    pool *p;
-    unsigned index;
-} pool_thread;
+/* A phase: the rays in slots[0..count), first intersected with bvh when
+** it is not NULL (the batching point whose queue they are). */
+typedef struct phase_job {
+    scheduler *s;
+    const uint32_t *slots;
+    const brt_bvh *bvh;
+    brt_result result;          /* of the commits: BRT_ENOMEM from a queue */
+} phase_job;
 
-static void *pool_main(void *arg)
+static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
 {
-    pool *p = ((pool_thread *)arg)->p;
-    unsigned index = ((pool_thread *)arg)->index;
-    unsigned long seen = 0;
-    size_t first, end;
-    free(arg);
-    pthread_mutex_lock(&p->lock);
-    for (;;) {
-        while (p->round == seen && !p->quit) pthread_cond_wait(&p->wake, &p->lock);
-        if (p->quit) break;
-        seen = p->round;
-        while (pool_take(p, &first, &end)) pool_chunk(p, index, first, end);
-        if (--p->busy == 0) pthread_cond_signal(&p->idle);
+    const phase_job *j = ctx;
+    scheduler *s = j->s;
+    size_t i;
+    for (i = first; i < end; i++) {
+        ray_slot *r = &s->slots[j->slots[i]];
+        if (j->bvh) intersect_slot(j->bvh, r);
+        s->outcome[i] = walk_on(s, &s->walkers[thread], r, ((uint64_t)(i + 1)) << 32);
     }
-    pthread_mutex_unlock(&p->lock);
+}
+
+/* Commits rays [first, end) of a phase, in order: each is queued where
+** its walk stopped, or finished. */
+static void phase_commit(void *ctx, size_t first, size_t end)
+{
+    phase_job *j = ctx;
+    scheduler *s = j->s;
+    size_t i;
+    for (i = first; i < end && j->result == BRT_OK; i++) {
+        uint32_t slot = j->slots[i];
+        ray_slot *r = &s->slots[slot];
+        if (s->outcome[i] != NO_ENTRY) {
+            j->result = enqueue(s, s->outcome[i], slot);
+            continue;
+        }
+        s->stats->shadow_occluded += found_occluder(r);
+        s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
+        s->free_slots[s->free_count++] = slot;
+    }
+}
+
+static int use_before(const void *a, const void *b)
+{
+    uint64_t x = ((const point_use *)a)->stamp, y = ((const point_use *)b)->stamp;
+    return (x > y) - (x < y);
+}
+
+/* The LRU order after a phase: each resident batching point it used moves
+** to the back in the order of its last use over all threads -- the order
+** the uses of one thread walking the rays in list order leave. */
+static void commit_uses(scheduler *s)
+{
+    walker *all = &s->walkers[0];   /* thread 0's table gathers the others' */
+    uint32_t t, k, n;
+    for (t = 1; t < s->pool.count; t++) {
+        walker *w = &s->walkers[t];
+        for (k = 0; k < w->used_count; k++) {
+            uint32_t id = w->used[k];
+            if (all->used_at[id] == 0) all->used[all->used_count++] = id;
+            if (w->used_at[id] > all->used_at[id]) all->used_at[id] = w->used_at[id];
+            w->used_at[id] = 0;
+        }
+        w->used_count = 0;
+    }
+    for (n = 0; n < all->used_count; n++) {
+        s->uses[n].id = all->used[n];
+        s->uses[n].stamp = all->used_at[all->used[n]];
+        all->used_at[all->used[n]] = 0;
+    }
+    all->used_count = 0;
+    qsort(s->uses, n, sizeof *s->uses, use_before);
+    for (k = 0; k < n; k++) cache_touch(&s->cache, s->uses[k].id);
+}
+
+/* The end of a phase, its threads idle: the counters and the LRU order. */
+static void phase_end(scheduler *s)
+{
+    uint32_t t;
+    for (t = 0; t < s->pool.count; t++) {
+        walker *w = &s->walkers[t];
+        s->stats->resident_visits += w->resident_visits;
+        s->stats->proxy_tests += w->proxy_tests;
+        s->stats->proxy_culled += w->proxy_culled;
+        s->stats->shadow_inner_stopped += w->inner_stopped;
+        w->inner_stopped = 0;
+        w->resident_visits = w->proxy_tests = w->proxy_culled = 0;
+    }
+    commit_uses(s);
+}
+
+#define PHASE_CHUNK 64   /* rays per chunk: ~0.1-1 ms of walks */
+
+/* Runs a phase, layer 5 (see "Threads" above: with one thread, a plain
+** loop over the rays, then the commits); id: the batching point whose queue
+** it is, pinned, released before the uses are committed as a one-thread
+** run would (no ray of its queue uses it again: keys only grow), or
+** NO_ENTRY for new rays. */
+static brt_result phase_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
+                            const brt_bvh *bvh)
+{
+    phase_job j;
+    j.s = s;
+    j.slots = slots;
+    j.bvh = bvh;
+    j.result = BRT_OK;
+    pool_run(&s->pool, phase_chunk, phase_commit, &j, count, PHASE_CHUNK);
+    if (id != NO_ENTRY) cache_release(&s->cache, id);
+    phase_end(s);
+    return j.result;
+}
+
+/* Takes new rays from the source while there are free slots. */
+static brt_result refill(scheduler *s)
+{
+    while (s->free_count > 0) {
+        size_t n = s->source->next_rays(s->source->user, s->incoming, s->incoming_tags, s->free_count), i;
+        brt_result res;
+        if (n == 0) return BRT_OK;
+        if (n > s->free_count) n = s->free_count;
+        for (i = 0; i < n; i++) {
+            uint32_t slot = s->free_slots[--s->free_count];
+            ray_slot *r = &s->slots[slot];
+            s->phase[i] = slot;
+            r->ray = s->incoming[i];
+            r->tag = s->incoming_tags[i];
+            brt_hit_clear(&r->hit);
+            r->normal[0] = r->normal[1] = r->normal[2] = 0.0f;
+            r->visits = 0;
+            r->key.t = -INFINITY;
+            r->key.id = TOP_EMPTY;
+            s->stats->rays++;
+            s->stats->shadow_rays += is_occlusion(r);
+        }
+        res = phase_run(s, s->phase, (uint32_t)n, NO_ENTRY, NULL);
+        if (res != BRT_OK) return res;
+    }
+    return BRT_OK;
+}
+
+/* Nonzero when every ray of the queue is an occlusion ray. */
+static int only_occlusion(const scheduler *s, const ray_queue *q)
+{
+    uint32_t i;
+    for (i = 0; i < q->count; i++)
+        if (!is_occlusion(&s->slots[q->slots[i]])) return 0;
+    return 1;
+}
+
+/* Fetches batching point id for its queue (cache_fetch: the paper's LRU
+** page cache), and, layer 6 (statistics only), books the load, if there
+** is one, as the shadow rays' when they alone asked for it. */
+static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const brt_bvh **bvh,
+                            brt_error *err)
+{
+    uint64_t loads = s->stats->batch_loads, bytes = s->stats->disk_bytes_read;
+    brt_result r = cache_fetch(&s->cache, id, bvh, err);
+    if (r == BRT_OK && s->stats->batch_loads != loads && only_occlusion(s, q)) {
+        s->stats->shadow_batch_loads += s->stats->batch_loads - loads;
+        s->stats->shadow_disk_bytes_read += s->stats->disk_bytes_read - bytes;
+    }
+    return r;
+}
+
+/* Layer 4, read-ahead (more than one thread): while a phase runs, the
+** cache's own thread reads the blob of the fullest queue left, the likely
+** next load (cache_read_ahead).  It changes no count and no decision, only
+** the wall time.  Measured (landscape, 25 %; README, Threads): 148 of 166
+** read-aheads were used. */
+static void read_ahead(scheduler *s)
+{
+    if (s->fullest.size > 0) cache_read_ahead(&s->cache, (uint32_t)s->fullest.keys[0]);
+}
+
+/* Intersects every ray queued at batching point id, then moves each on. */
+static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
+{
+    ray_queue q = s->queues[id];
+    const brt_bvh *bvh;
+    brt_result r = fetch_for(s, id, &q, &bvh, err);
+    if (r != BRT_OK) return r;
+    /* Take the queue out first: no ray is queued here again (keys only
+    ** grow), but the commit queues rays elsewhere. */
+    memset(&s->queues[id], 0, sizeof s->queues[id]);
+    read_ahead(s);
+    r = phase_run(s, q.slots, q.count, id, bvh);
+    free(q.slots);
+    return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
+}
+
+/* What the page cache would hold with every batching point in memory. */
+static uint64_t all_blob_bytes(const brt_scene *scene)
+{
+    uint64_t bytes = 0;
+    uint32_t i;
+    for (i = 0; i < scene->header.batch_count; i++) bytes += round_up_page(scene->batches[i].size);
+    return bytes;
+}
+
+/* Layer 2, proxies off when everything fits: proxies only spare loads.
+** When the budget (what is left of it after the proxies) holds every
+** blob nothing is ever evicted, so a load a proxy spares is only put off
+** -- unless no ray ever needs that batching point.  Measured (landscape,
+** 2 M triangles, no limit): 36 of 2.1 M proxy tests were at such points,
+** and the tests cost a fifth of the run (0.71 s against 0.49 s without;
+** README, Batched mode).  So the default scheduler does not consult them
+** then; the paper's (queue_resident) does. */
+static int proxies_pay(const scheduler *s, uint64_t budget)
+{
+    return s->queue_resident || budget < all_blob_bytes(s->scene);
+}
+
+/* The pool and one walker per thread (opt->threads: 0 means all cores). */
+static brt_result walkers_init(scheduler *s, const brt_trace_options *opt)
+{
+    uint32_t n = s->scene->header.batch_count, t;
+    pool_init(&s->pool, opt ? opt->threads : 0);
+    s->walkers = calloc(s->pool.count, sizeof *s->walkers);
+    s->uses = malloc((size_t)n * sizeof *s->uses);
+    if (!s->walkers || !s->uses) return BRT_ENOMEM;
+    for (t = 0; t < s->pool.count; t++) {
+        walker *w = &s->walkers[t];
+        w->walk.keys = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.keys);
+        w->used_at = calloc(n, sizeof *w->used_at);
+        w->used = malloc((size_t)n * sizeof *w->used);
+        if (!w->walk.keys || !w->used_at || !w->used) return BRT_ENOMEM;
+    }
+    return BRT_OK;
+}
+
+static void walkers_free(scheduler *s)
+{
+    uint32_t t;
+    for (t = 0; s->walkers && t < s->pool.count; t++) {
+        free(s->walkers[t].walk.keys);
+        free(s->walkers[t].used_at);
+        free(s->walkers[t].used);
+    }
+    free(s->walkers);
+    free(s->uses);
+    pool_free(&s->pool);
+}
+
+/* capacity_hint: the number of rays there will be, when known (0: not),
+** so that 20 rays do not get a million slots. */
+static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace_options *opt,
+                                 const brt_ray_source *source, size_t capacity_hint,
+                                 brt_stats *stats)
+{
+    uint32_t n = scene->header.batch_count, i;
+    uint64_t budget = opt && opt->memory_limit ? opt->memory_limit : UINT64_MAX;
+    memset(s, 0, sizeof *s);
+    s->scene = scene;
+    s->source = source;
+    s->stats = stats;
+    s->use_proxies = !(opt && opt->no_proxy);
+    s->queue_resident = opt && opt->queue_resident;
+    s->use_inner = !(opt && opt->no_inner);
+    s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
+    if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
+    /* With proxies on, they take their bytes from the same budget (the
+    ** paper's Fig. 3 lowers the geometry limit by the proxies' memory). */
+    stats->proxy_bytes = s->use_proxies ? brt_svdag_memory_bytes(scene->dag) : 0;
+    if (budget != UINT64_MAX) budget = budget > stats->proxy_bytes ? budget - stats->proxy_bytes : 0;
+    if (!proxies_pay(s, budget)) s->use_proxies = 0;            /* layer 2 */
+    stats->memory_limit = opt ? opt->memory_limit : 0;
+    stats->batching_points = n;
+    stats->geometry_bytes = scene->header.geometry_bytes;
+    s->slots = malloc((size_t)s->capacity * sizeof *s->slots);
+    s->free_slots = malloc((size_t)s->capacity * sizeof *s->free_slots);
+    s->queues = calloc(n, sizeof *s->queues);
+    s->fullest.keys = malloc((size_t)n * sizeof *s->fullest.keys);
+    s->fullest.pos = malloc((size_t)n * sizeof *s->fullest.pos);
+    s->incoming = malloc((size_t)s->capacity * sizeof *s->incoming);
+    s->incoming_tags = malloc((size_t)s->capacity * sizeof *s->incoming_tags);
+    s->phase = malloc((size_t)s->capacity * sizeof *s->phase);
+    s->outcome = malloc((size_t)s->capacity * sizeof *s->outcome);
+    if (!s->slots || !s->free_slots || !s->queues || !s->fullest.keys || !s->fullest.pos || !s->incoming ||
+        !s->incoming_tags || !s->phase || !s->outcome || walkers_init(s, opt) != BRT_OK)
+        return BRT_ENOMEM;
+    for (i = 0; i < n; i++) s->fullest.pos[i] = HEAP_ABSENT;
+    for (i = 0; i < s->capacity; i++) s->free_slots[i] = s->capacity - 1 - i;
+    s->free_count = s->capacity;
+    if (cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK) return BRT_ENOMEM;
+    s->cache.read_ahead = s->pool.count > 1;
+    return BRT_OK;
+}
+
+static void scheduler_free(scheduler *s)
+{
+    uint32_t i;
+    for (i = 0; s->queues && i < s->scene->header.batch_count; i++) free(s->queues[i].slots);
+    cache_free(&s->cache);
+    free(s->slots);
+    free(s->free_slots);
+    free(s->queues);
+    free(s->fullest.keys);
+    free(s->fullest.pos);
+    free(s->incoming);
+    free(s->incoming_tags);
+    free(s->phase);
+    free(s->outcome);
+    walkers_free(s);
+    for (i = 0; s->exact && i < s->scene->header.batch_count; i++) {
+        brt_bvh_free(s->exact[i]);
+        blob_free(s->scene, i, s->exact_data[i]);
+    }
+    free(s->exact);
+    free(s->exact_data);
+}
+
+/* Layer 3's set-up (exact_proxies): every batching point's BVH, read
+** once, outside the cache and its statistics (exact_proxy_hit). */
+static brt_result exact_load(scheduler *s, brt_error *err)
+{
+    uint32_t n = s->scene->header.batch_count, i;
+    uint64_t uncounted = 0;
+    brt_result r = BRT_OK;
+    s->exact = calloc(n, sizeof *s->exact);
+    s->exact_data = calloc(n, sizeof *s->exact_data);
+    if (!s->exact || !s->exact_data)
+        return brt_fail(err, BRT_ENOMEM, "out of memory for the exact proxies");
+    for (i = 0; i < n && r == BRT_OK; i++)
+        r = blob_read(&s->cache, i, &uncounted, &s->exact_data[i], &s->exact[i], err);
+    return r;
+}
+
+static brt_result schedule(scheduler *s, brt_error *err)
+{
+    brt_result r = refill(s);
+    while (r == BRT_OK && s->fullest.size > 0) {
+        r = process_batch(s, (uint32_t)heap_pop(&s->fullest), err);
+        if (r == BRT_OK) r = refill(s);
+    }
+    if (r == BRT_ENOMEM) return brt_fail(err, r, "out of memory in the ray queues");
+    return r == BRT_OK ? cache_check(&s->cache, err) : r;
+}
+
+static brt_result trace_source(brt_scene *scene, const brt_trace_options *opt,
+                               const brt_ray_source *source, size_t capacity_hint,
+                               brt_stats *stats, brt_error *err)
+{
+    scheduler s;
+    brt_stats local;
+    double start = brt_seconds();
+    brt_result r;
+    if (!stats) stats = &local;
+    memset(stats, 0, sizeof *stats);
+    if (opt && opt->drop_os_cache) posix_fadvise(scene->fd, 0, 0, POSIX_FADV_DONTNEED);
+    r = scheduler_init(&s, scene, opt, source, capacity_hint, stats);
+    if (r != BRT_OK) r = brt_fail(err, r, "out of memory for %u rays in flight", s.capacity);
+    else if (opt && opt->exact_proxies && s.use_proxies) r = exact_load(&s, err);
+    if (r == BRT_OK) r = schedule(&s, err);
+    scheduler_free(&s);
+    stats->visits = stats->queued_visits + stats->resident_visits;
+    stats->seconds = brt_seconds() - start;
+    if (stats->seconds > 0) stats->mrays_per_second = (double)stats->rays / stats->seconds * 1e-6;
+    return r;
+}
+
+brt_result brt_scene_trace_stream(brt_scene *scene, const brt_trace_options *opt,
+                                  const brt_ray_source *source, brt_stats *stats,
+                                  brt_error *err)
+{
+    return trace_source(scene, opt, source, 0, stats, err);
+}
+
+/* brt_scene_trace and brt_scene_occluded on top of the stream: rays are
+** handed out in order and the tag is the index of the answer to write
+** (with BRT_TAG_OCCLUSION when the answers are occlusion bytes). */
+typedef struct array_source {
+    const brt_ray *rays;
+    brt_hit *hits;              /* closest hits, or NULL */
+    uint8_t *occluded;          /* or occlusion bytes */
+    size_t count, next;
+} array_source;
+
+static size_t array_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+{
+    array_source *a = user;
+    size_t n = a->count - a->next < max ? a->count - a->next : max, i;
+    for (i = 0; i < n; i++) {
+        rays[i] = a->rays[a->next];
+        tags[i] = a->next++ | (a->occluded ? BRT_TAG_OCCLUSION : 0);
+    }
+    return n;
+}
+
+static void array_finished(void *user, const brt_ray *ray, const brt_hit *hit,
+                           const float normal[3], uint32_t visits, uint64_t tag)
+{
+    array_source *a = user;
+    (void)ray;
+    (void)normal;
+    (void)visits;
+    if (a->occluded) a->occluded[tag & ~BRT_TAG_OCCLUSION] = hit->prim != BRT_NO_PRIM;
+    else a->hits[tag] = *hit;
+}
+
+static brt_result trace_array(brt_scene *scene, const brt_trace_options *opt, array_source *a,
+                              brt_stats *stats, brt_error *err)
+{
+    brt_ray_source source;
+    a->next = 0;
+    source.next_rays = array_next;
+    source.finished = array_finished;
+    source.user = a;
+    return trace_source(scene, opt, &source, a->count > 0 ? a->count : 1, stats, err);
+}
+
+/* The array forms: either hits or occluded is written (the other NULL). */
+static brt_result trace_rays(brt_scene *scene, const brt_trace_options *opt,
+                             const brt_ray *rays, size_t count, brt_hit *hits,
+                             uint8_t *occluded, brt_stats *stats, brt_error *err)
+{
+    array_source a;
+    a.rays = rays;
+    a.hits = hits;
+    a.occluded = occluded;
+    a.count = count;
+    return trace_array(scene, opt, &a, stats, err);
+}
+
+brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
+                           const brt_ray *rays, size_t count, brt_hit *hits,
+                           brt_stats *stats, brt_error *err)
+{
+    return trace_rays(scene, opt, rays, count, hits, NULL, stats, err);
+}
+
+brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
+                              const brt_ray *rays, size_t count, uint8_t *occluded,
+                              brt_stats *stats, brt_error *err)
+{
+    return trace_rays(scene, opt, rays, count, NULL, occluded, stats, err);
+}
+
+/* ---- the page cache ---------------------------------------------------- */
+/*
+** Blobs are read whole, with pread, into page-aligned buffers, in requests
+** of at most CACHE_READ_CHUNK bytes.  The budget counts the page-rounded
+** bytes held.  A blob larger than the budget is allowed when it is the
+** only one held (it is counted in stats->oversized_loads).
+**
+** Each buffer is its own anonymous mapping (mmap), returned to the system
+** by munmap on eviction.  Why not malloc: glibc serves blobs below its
+** mmap threshold (which grows up to 32 MiB once a large block is freed)
+** from the heap and keeps freed heap resident, so a render at --memory 1G
+** of a 100 M-triangle landscape peaked at 1222 MiB against a bound of
+** 1099 MiB (README, "Out of core from end to end"); with mappings the
+** resident bytes follow what the cache holds.
+*/
+#define CACHE_READ_CHUNK ((size_t)8 << 20)
+
+static void lru_unlink(page_cache *c, uint32_t id)
+{
+    cache_entry *e = &c->entries[id];
+    if (e->lru_prev != NO_ENTRY) c->entries[e->lru_prev].lru_next = e->lru_next;
+    else c->lru_head = e->lru_next;
+    if (e->lru_next != NO_ENTRY) c->entries[e->lru_next].lru_prev = e->lru_prev;
+    else c->lru_tail = e->lru_prev;
+    e->lru_prev = e->lru_next = NO_ENTRY;
+}
+
+static void lru_append(page_cache *c, uint32_t id)
+{
+    cache_entry *e = &c->entries[id];
+    e->lru_prev = c->lru_tail;
+    e->lru_next = NO_ENTRY;
+    if (c->lru_tail != NO_ENTRY) c->entries[c->lru_tail].lru_next = id;
+    else c->lru_head = id;
+    c->lru_tail = id;
+}
+
+/* The bytes of blob id's buffer: its page-rounded size, at least a page. */
+static size_t blob_buffer_bytes(const brt_scene *scene, uint32_t id)
+{
+    uint64_t bytes = round_up_page(scene->batches[id].size);
+    return bytes ? (size_t)bytes : SCENE_PAGE;
+}
+
+static void blob_free(const brt_scene *scene, uint32_t id, void *data)
+{
+    if (data) munmap(data, blob_buffer_bytes(scene, id));
+}
+
+static void cache_evict(page_cache *c, uint32_t id)
+{
+    cache_entry *e = &c->entries[id];
+    lru_unlink(c, id);
+    brt_bvh_free(e->bvh);
+    blob_free(c->scene, id, e->data);
+    c->held -= e->bytes;
+    e->data = NULL;
+    e->bvh = NULL;
+    e->bytes = 0;
+}
+
+static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
+                             const brt_trace_options *opt, brt_stats *stats)
+{
+    uint32_t i, n = scene->header.batch_count;
+    memset(c, 0, sizeof *c);
+    c->entries = calloc(n, sizeof *c->entries);
+    if (!c->entries) return BRT_ENOMEM;
+    for (i = 0; i < n; i++) c->entries[i].lru_prev = c->entries[i].lru_next = NO_ENTRY;
+    c->scene = scene;
+    c->budget = budget;
+    c->lru_head = c->lru_tail = NO_ENTRY;
+    c->ahead_id = NO_ENTRY;
+    c->read_fn = opt && opt->read_fn ? opt->read_fn : pread_reader;
+    c->read_user = opt ? opt->read_user : NULL;
+    c->drop_os_cache = opt && opt->drop_os_cache;
+    c->stats = stats;
+    return BRT_OK;
+}
+
+static int cache_ahead_take(page_cache *c, uint32_t id);
+
+static void cache_free(page_cache *c)
+{
+    uint32_t i;
+    cache_ahead_take(c, NO_ENTRY);
+    for (i = 0; c->entries && i < c->scene->header.batch_count; i++) {
+        brt_bvh_free(c->entries[i].bvh);
+        blob_free(c->scene, i, c->entries[i].data);
+    }
+    free(c->entries);
+}
+
+/* The cache's own sanity check (SQLite's pcache has one too): the held
+** bytes add up, the LRU list holds exactly the unpinned resident entries,
+** and the budget holds unless one entry alone is larger. */
+static brt_result cache_check(const page_cache *c, brt_error *err)
+{
+    uint64_t held = 0, resident = 0, listed = 0;
+    uint32_t i, id;
+    for (i = 0; i < c->scene->header.batch_count; i++) {
+        const cache_entry *e = &c->entries[i];
+        held += e->bytes;
+        resident += e->data != NULL;
+        listed += e->data && e->pins == 0;
+    }
+    for (id = c->lru_head; id != NO_ENTRY; id = c->entries[id].lru_next) {
+        if (!c->entries[id].data || c->entries[id].pins) break;
+        listed--;
+    }
+    if (held != c->held || listed != 0)
+        return brt_fail(err, BRT_ECHECK, "page cache: bookkeeping broken");
+    if (held > c->budget && resident > 1)
+        return brt_fail(err, BRT_ECHECK, "page cache: holds %llu bytes over a budget of %llu",
+                        (unsigned long long)held, (unsigned long long)c->budget);
+    return BRT_OK;
+}
+
+/* Opens blob id's BVH, validated by brt_bvh_blob_open against the scene's
+** triangle count, and checks it holds as many triangles as its table
+** entry says (the entries add up to the header's count, check_batches). */
+static brt_result check_blob(const brt_scene *s, uint32_t id, const void *data, brt_bvh **bvh,
+                             brt_error *err)
+{
+    const batch_entry *b = &s->batches[id];
+    brt_error why;
+    uint32_t held;
+    if (brt_bvh_blob_open(data, b->size, s->header.triangle_count, bvh, &why) != BRT_OK)
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: %s", s->path, id, why.message);
+    held = brt_bvh_triangle_count(*bvh);
+    if (held == b->triangles) return BRT_OK;
+    brt_bvh_free(*bvh);
+    *bvh = NULL;
+    return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob holds %u triangles, the batch "
+                    "table says %u", s->path, id, held, b->triangles);
+}
+
+/* Reads blob id whole (its page-rounded size, into a mapping of its own,
+** bytes read added to *bytes_read), checks its checksum and opens it as a
+** BVH; *data is to be freed (blob_free) after the BVH. */
+static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
+                            brt_bvh **bvh, brt_error *err)
+{
+    const batch_entry *b = &c->scene->batches[id];
+    uint64_t bytes = round_up_page(b->size), done = 0;
+    brt_result r = BRT_OK;
+    *data = mmap(NULL, blob_buffer_bytes(c->scene, id), PROT_READ | PROT_WRITE,
+                 MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (*data == MAP_FAILED) {
+        *data = NULL;
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory for batching point %u", c->scene->path, id);
+    }
+    while (done < bytes && r == BRT_OK) {
+        size_t chunk = bytes - done < CACHE_READ_CHUNK ? (size_t)(bytes - done) : CACHE_READ_CHUNK;
+        r = read_fully(c->scene->fd, (unsigned char *)*data + done, chunk, b->offset + done,
+                       c->read_fn, c->read_user, bytes_read, c->scene->path, err);
+        done += chunk;
+    }
+    if (c->drop_os_cache) posix_fadvise(c->scene->fd, (off_t)b->offset, (off_t)bytes, POSIX_FADV_DONTNEED);
+    if (r == BRT_OK && brt_checksum64(*data, b->size) != b->checksum)
+        r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: checksum mismatch (corrupt file)",
+                     c->scene->path, id);
+    if (r == BRT_OK) r = check_blob(c->scene, id, *data, bvh, err);
+    if (r != BRT_OK) {
+        blob_free(c->scene, id, *data);
+        *data = NULL;
+    }
+    return r;
+}
+
+/* ---- read-ahead ---- */
+/*
+** While the threads intersect the rays of one batching point, a thread of
+** the cache's own reads the blob of the fullest queue left (the likely
+** next load: cache_read_ahead).  The schedule does not change: when the
+** scheduler then asks for that blob, cache_load takes the buffer read
+** ahead instead of reading (the same bytes, counted then, as a load of
+** the same size would be); when it asks for another, the buffer is
+** dropped uncounted.  So every count is the one-thread count, and only
+** the wall time differs.  The buffer is held beside the budget: one blob
+** more at most (README, "Threads").  read_fn is never called by two
+** threads at once: the read-ahead is joined before any other read.
+*/
+static void *ahead_main(void *arg)
+{
+    page_cache *c = arg;
+    double start = brt_seconds();
+    c->ahead_result = blob_read(c, c->ahead_id, &c->ahead_bytes, &c->ahead_data, &c->ahead_bvh, NULL);
+    c->ahead_seconds = brt_seconds() - start;
     return NULL;
 }
 
-/* Starts up to threads - 1 threads; fewer when the system refuses (the
-** results do not depend on the count). */
-static void pool_init(pool *p, unsigned threads)
+/* Starts reading blob id ahead, unless it is in memory or a read-ahead is
+** under way. */
+static void cache_read_ahead(page_cache *c, uint32_t id)
 {
-    memset(p, 0, sizeof *p);
-    p->count = 1;
-    threads = brt_threads_resolve(threads);
-    if (threads < 2) return;
-    pthread_mutex_init(&p->lock, NULL);
-    pthread_cond_init(&p->wake, NULL);
-    pthread_cond_init(&p->idle, NULL);
-    pthread_cond_init(&p->progress, NULL);
-    p->threads = malloc((threads - 1) * sizeof *p->threads);
-    while (p->threads && p->count < threads) {
-        pool_thread *arg = malloc(sizeof *arg);
-        if (!arg) break;
-        arg->p = p;
-        arg->index = p->count;
-        if (pthread_create(&p->threads[p->count - 1], NULL, pool_main, arg) != 0) {
-            free(arg);
-            break;
-        }
-        p->count++;
-    }
+    if (!c->read_ahead || c->ahead_running || c->entries[id].data) return;
+    c->ahead_id = id;
+    c->ahead_bytes = 0;
+    c->ahead_data = NULL;
+    c->ahead_bvh = NULL;
+    c->ahead_running = pthread_create(&c->ahead_thread, NULL, ahead_main, c) == 0;
 }
 
-static void pool_free(pool *p)
+/* Waits for the read-ahead, if any: 1 when it read blob id without error
+** (its buffer and BVH are then the caller's), else 0 (dropped). */
+static int cache_ahead_take(page_cache *c, uint32_t id)
 {
-    unsigned i;
-    if (!p->threads) return;
-    pthread_mutex_lock(&p->lock);
-    p->quit = 1;
-    pthread_cond_broadcast(&p->wake);
-    pthread_mutex_unlock(&p->lock);
-    for (i = 0; i + 1 < p->count; i++) pthread_join(p->threads[i], NULL);
-    free(p->threads);
-    free(p->done);
-    pthread_mutex_destroy(&p->lock);
-    pthread_cond_destroy(&p->wake);
-    pthread_cond_destroy(&p->idle);
-    pthread_cond_destroy(&p->progress);
+    int ok;
+    if (!c->ahead_running) return 0;
+    pthread_join(c->ahead_thread, NULL);
+    c->ahead_running = 0;
+    ok = c->ahead_id == id && c->ahead_result == BRT_OK;
+    if (!ok) {
+        brt_bvh_free(c->ahead_bvh);
+        blob_free(c->scene, c->ahead_id, c->ahead_data);
+    }
+    c->ahead_id = NO_ENTRY;
+    return ok;
 }
 
-/* Runs job over [0, total) in chunks of at most chunk items, on every
-** thread of the pool, and, when commit is not NULL, commit over the same
-** chunks in order, in the calling thread, each as soon as it and those
-** before it are done (so one thread's serial work overlaps the others'
-** jobs).  Returns when all is done.  Below two chunks, or without room
-** for the chunk flags, the caller runs it alone. */
-static void pool_run(pool *p, pool_job job, pool_commit commit, void *ctx, size_t total,
-                     size_t chunk)
+/* Loads blob id into the cache (the caller has made room). */
+static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
 {
-    size_t chunks = (total + chunk - 1) / chunk;
-    if (total == 0) return;
-    if (chunks > p->done_cap && p->count > 1 && chunks > 1) {
-        unsigned char *done = realloc(p->done, chunks);
-        if (done) {
-            p->done = done;
-            p->done_cap = chunks;
-        }
-    }
-    if (p->count < 2 || chunks < 2 || chunks > p->done_cap) {
-        job(ctx, 0, 0, total);
-        if (commit) commit(ctx, 0, total);
-        return;
-    }
-    memset(p->done, 0, chunks);
-    pthread_mutex_lock(&p->lock);
-    p->job = job;
-    p->ctx = ctx;
-    p->next = 0;
-    p->total = total;
-    p->chunk = chunk;
-    p->busy = p->count - 1;
-    p->round++;
-    pthread_cond_broadcast(&p->wake);
-    pthread_mutex_unlock(&p->lock);
-    pool_commit_in_order(p, commit);
-}
-
-/* ---- direct tracing: chunks of rays through one BVH ----------------- */
-
-/* One ray of either kind through one BVH, on the record of brt_ray_source:
-** the closest hit so far (and its normal when normal is not NULL), or for
-** an occlusion ray (tag has BRT_TAG_OCCLUSION) t = 0, prim = 0 once any
-** triangle is hit in [tnear, tfar].  The direct trace and the scheduler
-** share it, so both kinds give the same bytes in every mode. */
-static void intersect_ray(const brt_bvh *bvh, const brt_ray *ray, uint64_t tag, brt_hit *hit,
-                          float normal[3])
-{
-    if (tag & BRT_TAG_OCCLUSION) {
-        if (brt_bvh_occluded(bvh, ray)) {
-            hit->t = 0.0f;
-            hit->prim = 0;
-        }
-    } else if (normal) {
-        brt_bvh_intersect_normal(bvh, ray, hit, normal);
+    cache_entry *e = &c->entries[id];
+    uint64_t bytes = round_up_page(c->scene->batches[id].size);
+    double start = brt_seconds();
+    brt_result r = BRT_OK;
+    if (cache_ahead_take(c, id)) {
+        e->data = c->ahead_data;
+        e->bvh = c->ahead_bvh;
+        c->stats->disk_bytes_read += c->ahead_bytes;
+        c->stats->load_seconds += c->ahead_seconds;
     } else {
-        brt_bvh_intersect(bvh, ray, hit);
+        r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->bvh, err);
+        c->stats->load_seconds += brt_seconds() - start;
+    }
+    if (r != BRT_OK) return r;
+    e->bytes = bytes;
+    c->held += bytes;
+    c->stats->batch_loads++;
+    if (bytes > c->budget) c->stats->oversized_loads++;
+    if (c->held > c->stats->cache_peak_bytes) c->stats->cache_peak_bytes = c->held;
+    return BRT_OK;
+}
+
+/* Fetch pins: makes batching point id resident (evicting least recently
+** used unpinned entries to make room) and returns its BVH. */
+static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err)
+{
+    cache_entry *e = &c->entries[id];
+    if (!e->data) {
+        uint64_t bytes = round_up_page(c->scene->batches[id].size);
+        brt_result r;
+        while (c->lru_head != NO_ENTRY && c->held + bytes > c->budget) cache_evict(c, c->lru_head);
+        r = cache_load(c, id, err);
+        if (r != BRT_OK) return r;
+    } else if (e->pins == 0) {
+        lru_unlink(c, id);
+    }
+    e->pins++;
+    *bvh = e->bvh;
+#ifdef BRT_DEBUG
+    return cache_check(c, err);
+#else
+    return BRT_OK;
+#endif
+}
+
+/* The BVH of batching point id if it is in memory, or NULL.  Never loads
+** and changes nothing, so that threads may ask at once; the scheduler
+** reports the use afterwards with cache_touch. */
+static const brt_bvh *cache_peek(const page_cache *c, uint32_t id)
+{
+    return c->entries[id].data ? c->entries[id].bvh : NULL;
+}
+
+/* Batching point id, resident, counts as just used. */
+static void cache_touch(page_cache *c, uint32_t id)
+{
+    if (c->entries[id].data && c->entries[id].pins == 0) {
+        lru_unlink(c, id);
+        lru_append(c, id);
     }
 }
 
-typedef struct bvh_trace_job {
-    const brt_bvh *bvh;
-    const brt_ray *rays;
-    const uint64_t *tags;
-    brt_hit *hits;
-    float *normals;
-} bvh_trace_job;
-
-static void bvh_trace_chunk(void *ctx, unsigned thread, size_t first, size_t end)
+/* Release unpins: the entry becomes the most recently used evictable one. */
+static void cache_release(page_cache *c, uint32_t id)
 {
-    const bvh_trace_job *j = ctx;
-    size_t i;
+    if (--c->entries[id].pins == 0) lru_append(c, id);
+}
+
+/* ##################################################################### */
+/* PART II -- SUPPORT, NOT THE PAPER                                     */
+/* ##################################################################### */
+/*
+** What the method needs to run but the paper does not describe: the scene
+** file that holds the batching points between build and trace, the mesh
+** readers that feed the build, ray and hit files, statistics, utilities
+** and threads.  The method's sections above call into these through the
+** declarations that follow.
+*/
+
+#define MAX_COUNT 0xFFFFFFFEu   /* largest vertex or triangle count */
+
+/* The atomic writer's helpers, with the utilities at the end. */
+static int write_fully(int fd, const void *data, size_t size, int64_t offset);
+static int is_special_file(const char *path);
+
+/* ===================================================================== */
+/* Scene files                                                           */
+/* ===================================================================== */
+
+/* ---- checksums and little-endian floats ------------------------------- */
+
+/* Word-wise multiply-xorshift hash (in the style of MurmurHash's
+** finaliser): fast enough to verify every blob on every load, and a random
+** corruption goes unnoticed with probability about 2^-64.  Not a
+** cryptographic hash.  Not built on brt_mix64 (the one mixer): its steps
+** are part of the scene-file format -- every file written holds its sums,
+** and changing them would change those bytes. */
+uint64_t brt_checksum64(const void *data, size_t size)
+{
+    const unsigned char *p = data;
+    uint64_t h = 0x9E3779B97F4A7C15ull ^ (uint64_t)size, w;
+    for (; size >= 8; p += 8, size -= 8) {
+        memcpy(&w, p, 8);
+        h = (h ^ w) * 0xFF51AFD7ED558CCDull;
+        h ^= h >> 32;
+    }
+    w = 0;
+    memcpy(&w, p, size);
+    h = (h ^ w) * 0xC4CEB9FE1A85EC53ull;
+    return h ^ (h >> 29);
+}
+
+/* Every number of a scene file is little-endian (brt_put_le32 and its
+** kin), like ray and hit files (version 2; version 1 used the writer's
+** byte order).  The BVH blobs inside it are little-endian too and read in
+** place (bvh.c). */
+static void put_f32(unsigned char *p, float v) { uint32_t w; memcpy(&w, &v, 4); brt_put_le32(p, w); }
+static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); float v; memcpy(&v, &w, 4); return v; }
+
+/* ---- the scene file --------------------------------------------------- */
+/*
+** Layout, version 3 (all numbers little-endian; the mark is kept so
+** that a file of version 1 written on a big-endian host is named as such):
+**   header, 256 bytes:
+**     0 "BRTSCENE"  8 u32 version  12 u32 endianness mark 0x01020304
+**     16 u64 source stamp  24 u32 batch_tris  28 u32 proxy_res
+**     32 u32 batching points  36 u32 triangles  40 u32 top-level nodes
+**     44 u32 0  48 u64 geometry bytes (all blobs)
+**     56 three sections {u64 offset, u64 size, u64 checksum}:
+**        batch table, top-level nodes, DAG pool
+**     248 u64 checksum of bytes 0..247
+**   blobs: one triangle BVH per batching point (brt_bvh_blob_write), each
+**     at a multiple of SCENE_PAGE, so the cache reads whole aligned pages
+**   batch table: BATCH_ENTRY_BYTES per batching point: f32 lo[3] hi[3],
+**     u64 blob offset, u64 blob size, u64 blob checksum, u32 triangles,
+**     u32 proxy root, u32 proxy res, f32 proxy origin[3], f32 cell,
+**     u32 inner proxy root (version 3; its frame follows from the box)
+**   top-level nodes: TOP_NODE_BYTES each (f32 lo[3][4] hi[3][4], u32 child[4])
+**   DAG pool: brt_svdag_blob_write
+** The file is padded to a multiple of SCENE_PAGE.
+*/
+#define SCENE_MAGIC "BRTSCENE"
+#define SCENE_VERSION 3u   /* 3: inner proxy roots (README "Inner proxies") */
+#define SCENE_ENDIAN_MARK 0x01020304u
+#define SCENE_HEADER_BYTES 256
+#define BATCH_ENTRY_BYTES 80
+#define SECTION_BATCHES 0
+#define SECTION_TOP 1
+#define SECTION_DAG 2
+
+/* Inner proxies are stored at half the proxy resolution (at least 2), a
+** choice measured with make bench-inner (README, "Inner proxies"): at full
+** resolution their surface nodes, unique like the outer proxy's, doubled
+** the pool (landscape, 1M triangles: 0.64 -> 1.41 MB) and the geometry
+** budget paid for it; at a quarter they stopped too few rays. */
+static uint32_t inner_res(uint32_t proxy_res)
+{
+    return proxy_res >= 4 ? proxy_res / 2 : 2;
+}
+
+static uint64_t round_up_page(uint64_t n)
+{
+    return (n + SCENE_PAGE - 1) / SCENE_PAGE * SCENE_PAGE;
+}
+
+static void batch_entry_pack(const batch_entry *b, unsigned char *p)
+{
+    int a;
+    memset(p, 0, BATCH_ENTRY_BYTES);
+    for (a = 0; a < 3; a++) {
+        put_f32(p + 4 * a, b->lo[a]);
+        put_f32(p + 12 + 4 * a, b->hi[a]);
+        put_f32(p + 60 + 4 * a, b->proxy.origin[a]);
+    }
+    brt_put_le64(p + 24, b->offset);
+    brt_put_le64(p + 32, b->size);
+    brt_put_le64(p + 40, b->checksum);
+    brt_put_le32(p + 48, b->triangles);
+    brt_put_le32(p + 52, b->proxy.root);
+    brt_put_le32(p + 56, b->proxy.res);
+    put_f32(p + 72, b->proxy.cell);
+    brt_put_le32(p + 76, b->inner.root);
+}
+
+static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        b->lo[a] = get_f32(p + 4 * a);
+        b->hi[a] = get_f32(p + 12 + 4 * a);
+        b->proxy.origin[a] = get_f32(p + 60 + 4 * a);
+    }
+    b->offset = brt_get_le64(p + 24);
+    b->size = brt_get_le64(p + 32);
+    b->checksum = brt_get_le64(p + 40);
+    b->triangles = brt_get_le32(p + 48);
+    b->proxy.root = brt_get_le32(p + 52);
+    b->proxy.res = brt_get_le32(p + 56);
+    b->proxy.cell = get_f32(p + 72);
+    b->inner.root = brt_get_le32(p + 76);
+}
+
+static void top_node_pack(const top_node *n, unsigned char *p)
+{
+    int row, lane;
+    for (row = 0; row < 6; row++)
+        for (lane = 0; lane < 4; lane++) put_f32(p + 16 * row + 4 * lane, n->box[row][lane]);
+    for (lane = 0; lane < 4; lane++) brt_put_le32(p + 96 + 4 * lane, n->child[lane]);
+}
+
+/* In memory the boxes are kept grown for brt_box_span4 (once, at open,
+** instead of at every test); the file holds them exact. */
+static void top_node_pad(top_node *n)
+{
+    int lane, a;
+    for (lane = 0; lane < 4; lane++) {
+        float lo[3], hi[3];
+        if (n->child[lane] == TOP_EMPTY) continue;
+        for (a = 0; a < 3; a++) {
+            lo[a] = n->box[a][lane];
+            hi[a] = n->box[3 + a][lane];
+        }
+        brt_box_pad(lo, hi, lo, hi);
+        for (a = 0; a < 3; a++) {
+            n->box[a][lane] = lo[a];
+            n->box[3 + a][lane] = hi[a];
+        }
+    }
+}
+
+static void top_node_unpack(const unsigned char *p, top_node *n)
+{
+    int row, lane;
+    for (row = 0; row < 6; row++)
+        for (lane = 0; lane < 4; lane++) n->box[row][lane] = get_f32(p + 16 * row + 4 * lane);
+    for (lane = 0; lane < 4; lane++) n->child[lane] = brt_get_le32(p + 96 + 4 * lane);
+}
+
+static void header_pack(const scene_header *h, unsigned char *p)
+{
+    int s;
+    memset(p, 0, SCENE_HEADER_BYTES);
+    memcpy(p, SCENE_MAGIC, 8);
+    brt_put_le32(p + 8, SCENE_VERSION);
+    brt_put_le32(p + 12, SCENE_ENDIAN_MARK);
+    brt_put_le64(p + 16, h->stamp);
+    brt_put_le32(p + 24, h->batch_tris);
+    brt_put_le32(p + 28, h->proxy_res);
+    brt_put_le32(p + 32, h->batch_count);
+    brt_put_le32(p + 36, h->triangle_count);
+    brt_put_le32(p + 40, h->top_node_count);
+    brt_put_le64(p + 48, h->geometry_bytes);
+    for (s = 0; s < 3; s++) {
+        brt_put_le64(p + 56 + 24 * s, h->sections[s].offset);
+        brt_put_le64(p + 64 + 24 * s, h->sections[s].size);
+        brt_put_le64(p + 72 + 24 * s, h->sections[s].checksum);
+    }
+    brt_put_le64(p + 248, brt_checksum64(p, 248));
+}
+
+/* Checks magic, endianness, version and checksum, in that order, so the
+** message names the first thing that is wrong. */
+static brt_result header_unpack(const char *path, const unsigned char *p, scene_header *h,
+                                brt_error *err)
+{
+    uint32_t mark = brt_get_le32(p + 12);
+    int s;
+    if (memcmp(p, SCENE_MAGIC, 8) != 0)
+        return brt_fail(err, BRT_EFORMAT, "%s: not a batchrt scene file (bad magic)", path);
+    if (mark != SCENE_ENDIAN_MARK)
+        return brt_fail(err, BRT_EFORMAT, "%s: a version-1 scene file written on a machine of the other "
+                        "byte order (delete the file to rebuild it)", path);
+    if (brt_get_le32(p + 8) != SCENE_VERSION)
+        return brt_fail(err, BRT_EFORMAT, "%s: scene file version %u, this build reads version %u"
+                        " (delete the file to rebuild it)", path, brt_get_le32(p + 8), SCENE_VERSION);
+    if (brt_get_le64(p + 248) != brt_checksum64(p, 248))
+        return brt_fail(err, BRT_EFORMAT, "%s: header checksum mismatch (corrupt file)", path);
+    h->stamp = brt_get_le64(p + 16);
+    h->batch_tris = brt_get_le32(p + 24);
+    h->proxy_res = brt_get_le32(p + 28);
+    h->batch_count = brt_get_le32(p + 32);
+    h->triangle_count = brt_get_le32(p + 36);
+    h->top_node_count = brt_get_le32(p + 40);
+    h->geometry_bytes = brt_get_le64(p + 48);
+    for (s = 0; s < 3; s++) {
+        h->sections[s].offset = brt_get_le64(p + 56 + 24 * s);
+        h->sections[s].size = brt_get_le64(p + 64 + 24 * s);
+        h->sections[s].checksum = brt_get_le64(p + 72 + 24 * s);
+    }
+    return BRT_OK;
+}
+
+static brt_result write_at(int fd, const void *data, size_t size, uint64_t offset,
+                           const char *path, brt_error *err)
+{
+    if (write_fully(fd, data, size, (int64_t)offset) != 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno));
+    return BRT_OK;
+}
+
+/* ---- building a scene file out of core ------------------------------- */
+/*
+** The build never holds the triangles: it spills them to a temporary file
+** and works through it in buckets of at most bucket_tris triangles.
+**
+**   pass A  runs the triangle source once: each triangle becomes a 40-byte
+**           record (its 9 floats and its number) appended to the spill
+**           file in stream order, and the bounds of the centroids grow.
+**           (One run: parsing an OBJ costs far more than reading 40 bytes
+**           per triangle back, so the source is not run again.)
+**   split   a run of records larger than a bucket is split spatially: a
+**           histogram of its centroids over 2^21 Morton cells (7 bits per
+**           axis of its own centroid bounds) is counted in one read, cells
+**           are packed in Morton order into children of at most
+**           bucket_tris triangles (a cell with more is a child on its own),
+**           and a second read scatters each record to its child's region,
+**           appended to the spill file (the counts give every region its
+**           place, so no chunk lists are needed), through one write buffer
+**           per child.  Children larger than a bucket are split again; a
+**           run whose records all fall in one cell (equal centroids, or
+**           bounds that overflow) is cut in record order instead, so every
+**           split makes progress.  A child larger than a bucket is one
+**           cell, whose centroids span at most 1/128 of its parent's extent
+**           per axis, so within about 40 levels (floats span 2^277) a run
+**           is small enough or flat.  Records keep stream order in every
+**           region, so the number order of a bucket is its record order.
+**   build   a bucket is read whole and split in memory by the median
+**           splits above into batching points of at most batch_tris
+**           triangles; each gets its BVH blob, written at the next page of
+**           the scene file, its proxy in the shared DAG, and a table entry.
+**           A mesh that fits one bucket is partitioned exactly as a whole
+**           in-memory median split would (the same file as before).
+**   tables  the top-level BVH, the batch table and the DAG, then the header
+**           (format unchanged).
+**
+** Held in memory, whatever the triangle count: the histogram (8 MiB), one
+** bucket (bucket_tris records, centroids and ids: 56 bytes each, 86 MiB at
+** most by default), one batching point's arrays and BVH build, one proxy
+** grid, the scatter buffers (16 MiB together) and one read chunk; plus the
+** per-point tables (batch entries, boxes, the DAG) and, in pass A, what the
+** source holds (a mesh file's vertex positions).  The spill file takes 40
+** bytes per triangle for pass A and 40 more per split level (usually one).
+** It is unlinked as soon as it is created, so it disappears with its
+** descriptor on success, on failure, on interrupt and if the process dies.
+** The interrupt flag is polled once per chunk and per batching point.
+*/
+#define CELL_BITS 7                                 /* per axis */
+#define CELL_COUNT (1u << (3 * CELL_BITS))          /* Morton cells of a split */
+#define NO_CHILD 0xFFFFFFFFu
+#define BUCKET_BYTES ((size_t)64 << 20)             /* records of one bucket */
+#define SCATTER_BYTES ((size_t)16 << 20)            /* all write buffers of a split */
+#define SPILL_CHUNK 16384u                          /* records per read and buffer */
+
+typedef struct spill_record {
+    float v[9];                 /* the corners v0, v1, v2 */
+    uint32_t prim;              /* the triangle's number */
+} spill_record;
+
+typedef char spill_record_has_no_padding[sizeof(spill_record) == 40 ? 1 : -1];
+
+/* A run of records in the spill file and the bounds of their centroids. */
+typedef struct bucket {
+    uint64_t first;             /* index of its first record */
+    uint32_t count;
+    float lo[3], hi[3];
+} bucket;
+
+/* A bucket being written: records go through buf (cap of them). */
+typedef struct spill_out {
+    bucket b;                   /* count: records written or buffered */
+    spill_record *buf;
+    uint32_t held, cap;
+} spill_out;
+
+static void scene_options_resolve(const brt_scene_options *opt, uint32_t *batch_tris,
+                                  uint32_t *res)
+{
+    *batch_tris = opt && opt->batch_tris ? opt->batch_tris : 100000;
+    *res = opt && opt->proxy_res ? opt->proxy_res : 128;
+}
+
+/* Everything written while a scene file is built. */
+typedef struct scene_writer {
+    const char *path;           /* final name, for messages */
+    int fd;
+    uint64_t offset;            /* next free, page-aligned */
+    uint32_t res;
+    brt_svdag *dag;
+    batch_entry *batches;       /* the per-point tables, grown as points come */
+    float *boxes;               /* 6 floats per batching point */
+    uint32_t batch_count;
+    size_t batch_cap;
+    uint64_t geometry_bytes;
+} scene_writer;
+
+typedef struct scene_builder {
+    scene_writer w;
+    int spill_fd;
+    uint64_t spill_end;         /* records in the spill file */
+    const volatile sig_atomic_t *interrupt;
+    uint32_t batch_tris, bucket_tris, chunk;
+    spill_out root;             /* pass A's output: the whole stream */
+    spill_record *read_buf;     /* chunk records */
+    uint32_t *cells;            /* CELL_COUNT: a histogram, then each cell's child */
+    spill_record *records;      /* one bucket in memory, with its centroids */
+    float *centroids;           /* and median split order */
+    uint32_t *order;
+    partition points;           /* the bucket's batching points */
+    uint32_t *indices;          /* 0, 1, 2, ...: a point's triangles are its corners */
+    pool pool;                  /* brt_scene_options.threads */
+    struct point_work *work;    /* a window of points built at once */
+    uint32_t window;
+    brt_solids *solids;         /* the bucket's closed components (svdag.c) */
+} scene_builder;
+
+static brt_result poll_interrupt(const scene_builder *b, brt_error *err)
+{
+    if (b->interrupt && *b->interrupt)
+        return brt_fail(err, BRT_EINTR, "%s: build interrupted", b->w.path);
+    return BRT_OK;
+}
+
+static void centroid(const spill_record *r, float c[3])
+{
+    int a;
+    for (a = 0; a < 3; a++) c[a] = (r->v[a] + r->v[3 + a] + r->v[6 + a]) / 3.0f;
+}
+
+static void bounds_clear(float lo[3], float hi[3])
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        lo[a] = INFINITY;
+        hi[a] = -INFINITY;
+    }
+}
+
+static void bounds_grow(float lo[3], float hi[3], const float p[3])
+{
+    int a;
+    for (a = 0; a < 3; a++) {
+        if (p[a] < lo[a]) lo[a] = p[a];
+        if (p[a] > hi[a]) hi[a] = p[a];
+    }
+}
+
+/* ---- the spill file ---- */
+
+static brt_result spill_write(scene_builder *b, const spill_record *recs, uint32_t n,
+                              uint64_t first, brt_error *err)
+{
+    if (write_fully(b->spill_fd, recs, (size_t)n * sizeof *recs,
+                    (int64_t)(first * sizeof *recs)) != 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", b->w.path, strerror(errno));
+    return BRT_OK;
+}
+
+static brt_result spill_read(scene_builder *b, spill_record *recs, uint32_t n, uint64_t first,
+                             brt_error *err)
+{
+    return read_fully(b->spill_fd, recs, (size_t)n * sizeof *recs, first * sizeof *recs,
+                      pread_reader, NULL, NULL, b->w.path, err);
+}
+
+/* Writes the buffered records at the end of the bucket's region. */
+static brt_result spill_flush(scene_builder *b, spill_out *o, brt_error *err)
+{
+    brt_result r = spill_write(b, o->buf, o->held, o->b.first + o->b.count - o->held, err);
+    o->held = 0;
+    return r;
+}
+
+static brt_result spill_put(scene_builder *b, spill_out *o, const spill_record *rec,
+                            const float c[3], brt_error *err)
+{
+    o->buf[o->held++] = *rec;
+    o->b.count++;
+    bounds_grow(o->b.lo, o->b.hi, c);
+    return o->held == o->cap ? spill_flush(b, o, err) : BRT_OK;
+}
+
+/* Pass A's consumer: the chunk in stream order onto the root bucket. */
+static brt_result spill_stream(void *user, const float *corners, uint32_t count, uint32_t first,
+                               brt_error *err)
+{
+    scene_builder *b = user;
+    uint32_t i;
+    brt_result r = poll_interrupt(b, err);
+    if (r != BRT_OK) return r;
+    if (first != b->root.b.count)
+        return brt_fail(err, BRT_EARG, "%s: the triangle source numbered a chunk %u, not %u",
+                        b->w.path, first, b->root.b.count);
+    if (count > MAX_COUNT - b->root.b.count)
+        return brt_fail(err, BRT_EARG, "%s: more than %u triangles", b->w.path, MAX_COUNT);
+    for (i = 0; i < count && r == BRT_OK; i++) {
+        spill_record rec;
+        float c[3];
+        memcpy(rec.v, corners + 9 * (size_t)i, sizeof rec.v);
+        rec.prim = first + i;
+        centroid(&rec, c);
+        r = spill_put(b, &b->root, &rec, c, err);
+    }
+    return r;
+}
+
+/* Calls fn on every record of bucket in order, a chunk at a time. */
+typedef brt_result (*record_fn)(scene_builder *b, const spill_record *rec, void *user,
+                                brt_error *err);
+
+static brt_result for_each_record(scene_builder *b, const bucket *bk, record_fn fn, void *user,
+                                  brt_error *err)
+{
+    uint32_t done = 0, i;
+    brt_result r = BRT_OK;
+    while (done < bk->count && r == BRT_OK) {
+        uint32_t n = bk->count - done < b->chunk ? bk->count - done : b->chunk;
+        if ((r = poll_interrupt(b, err)) != BRT_OK) break;
+        r = spill_read(b, b->read_buf, n, bk->first + done, err);
+        for (i = 0; i < n && r == BRT_OK; i++) r = fn(b, &b->read_buf[i], user, err);
+        done += n;
+    }
+    return r;
+}
+
+/* ---- splitting a bucket larger than memory allows ---- */
+
+/* Quantises centroids in a bucket's centroid bounds: 2^bits cells per
+** axis, bits = CELL_BITS, or fewer for a bucket of fewer than 2^(3 bits)
+** / 4 records (more cells than records would only cost time: the small
+** buckets of the tests).  A flat axis, an extent that overflows or a NaN
+** lands in cell 0, so the code is always in range. */
+typedef struct cell_frame {
+    float lo[3], scale[3];
+    int bits;
+    uint32_t cells;             /* 2^(3 bits) */
+} cell_frame;
+
+static void cell_frame_init(const bucket *bk, cell_frame *f)
+{
+    int a;
+    for (f->bits = CELL_BITS; f->bits > 1 && (1u << (3 * f->bits)) / 4 > bk->count; f->bits--) {}
+    f->cells = 1u << (3 * f->bits);
+    for (a = 0; a < 3; a++) {
+        float extent = bk->hi[a] - bk->lo[a];
+        f->lo[a] = bk->lo[a];
+        f->scale[a] = extent > 0.0f ? (float)(1u << f->bits) / extent : 0.0f;
+    }
+}
+
+/* Spreads the low 10 bits of v to every third bit (bit i to bit 3i). */
+static uint32_t spread3(uint32_t v)
+{
+    v = (v | (v << 16)) & 0x030000FFu;
+    v = (v | (v << 8)) & 0x0300F00Fu;
+    v = (v | (v << 4)) & 0x030C30C3u;
+    return (v | (v << 2)) & 0x09249249u;
+}
+
+/* The Morton code of the cell (bits of x, y, z interleaved). */
+static uint32_t cell_of(const cell_frame *f, const spill_record *rec)
+{
+    float c[3];
+    uint32_t q[3];
+    int a;
+    centroid(rec, c);
+    for (a = 0; a < 3; a++) {
+        float x = (c[a] - f->lo[a]) * f->scale[a];
+        q[a] = x > 0.0f ? (x < (float)(1u << f->bits) ? (uint32_t)x : (1u << f->bits) - 1) : 0;
+    }
+    return spread3(q[0]) | spread3(q[1]) << 1 | spread3(q[2]) << 2;
+}
+
+typedef struct split_state {
+    cell_frame frame;
+    spill_out *children;
+} split_state;
+
+static brt_result count_cell(scene_builder *b, const spill_record *rec, void *user,
+                             brt_error *err)
+{
+    (void)err;
+    b->cells[cell_of(&((split_state *)user)->frame, rec)]++;
+    return BRT_OK;
+}
+
+static brt_result scatter_record(scene_builder *b, const spill_record *rec, void *user,
+                                 brt_error *err)
+{
+    split_state *s = user;
+    float c[3];
+    centroid(rec, c);
+    return spill_put(b, &s->children[b->cells[cell_of(&s->frame, rec)]], rec, c, err);
+}
+
+/* Packs the histogram's cells in Morton order into children of at most
+** bucket_tris records (a fuller cell alone), turning each cell's count
+** into its child's index; the children's regions follow the spill file's
+** end.  Returns the number of children (*planned their sizes). */
+static uint32_t plan_children(scene_builder *b, uint32_t cells, uint32_t *sizes)
+{
+    uint32_t cell, children = 0, open = 0;
+    for (cell = 0; cell < cells; cell++) {
+        uint32_t n = b->cells[cell];
+        if (n == 0) {
+            b->cells[cell] = NO_CHILD;
+            continue;
+        }
+        if (children == 0 || open + n > b->bucket_tris) {
+            sizes[children++] = 0;
+            open = 0;
+        }
+        open += n;
+        sizes[children - 1] += n;
+        b->cells[cell] = children - 1;
+    }
+    return children;
+}
+
+static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *err);
+static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *err);
+
+/* A bucket whose records share one cell: runs of bucket_tris in record order. */
+static brt_result cut_in_order(scene_builder *b, const bucket *bk, brt_error *err)
+{
+    bucket part = *bk;
+    uint32_t done;
+    brt_result r = BRT_OK;
+    for (done = 0; done < bk->count && r == BRT_OK; done += part.count) {
+        part.first = bk->first + done;
+        part.count = bk->count - done < b->bucket_tris ? bk->count - done : b->bucket_tris;
+        r = build_bucket(b, &part, err);
+    }
+    return r;
+}
+
+/* Scatters the bucket into its planned children, then processes them. */
+static brt_result scatter(scene_builder *b, const bucket *bk, split_state *s, const uint32_t *sizes,
+                          uint32_t children, brt_error *err)
+{
+    uint32_t cap = (uint32_t)(SCATTER_BYTES / sizeof(spill_record) / children), i;
+    spill_record *bufs;
+    brt_result r = BRT_OK;
+    if (cap > b->chunk) cap = b->chunk;
+    if (cap == 0) cap = 1;
+    bufs = malloc((size_t)children * cap * sizeof *bufs);
+    if (!bufs) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    for (i = 0; i < children; i++) {
+        spill_out *o = &s->children[i];
+        o->b.first = b->spill_end;
+        o->b.count = 0;
+        bounds_clear(o->b.lo, o->b.hi);
+        o->buf = bufs + (size_t)i * cap;
+        o->held = 0;
+        o->cap = cap;
+        b->spill_end += sizes[i];
+    }
+    r = for_each_record(b, bk, scatter_record, s, err);
+    for (i = 0; i < children && r == BRT_OK; i++) r = spill_flush(b, &s->children[i], err);
+    free(bufs);
+    for (i = 0; i < children && r == BRT_OK; i++) r = process_bucket(b, &s->children[i].b, err);
+    return r;
+}
+
+static brt_result split_bucket(scene_builder *b, const bucket *bk, brt_error *err)
+{
+    split_state s;
+    uint32_t *sizes, largest = 0, i;
+    brt_result r;
+    if (!b->cells && !(b->cells = malloc(CELL_COUNT * sizeof *b->cells)))
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    cell_frame_init(bk, &s.frame);
+    memset(b->cells, 0, s.frame.cells * sizeof *b->cells);
+    r = for_each_record(b, bk, count_cell, &s, err);
+    if (r != BRT_OK) return r;
+    for (i = 0; i < s.frame.cells; i++)
+        if (b->cells[i] > largest) largest = b->cells[i];
+    if (largest == bk->count) return cut_in_order(b, bk, err);
+    sizes = malloc(((size_t)bk->count / b->bucket_tris * 2 + 2) * sizeof *sizes);
+    s.children = sizes ? malloc(((size_t)bk->count / b->bucket_tris * 2 + 2) * sizeof *s.children) : NULL;
+    if (!s.children) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    else r = scatter(b, bk, &s, sizes, plan_children(b, s.frame.cells, sizes), err);
+    free(sizes);
+    free(s.children);
+    return r;
+}
+
+static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *err)
+{
+    return bk->count <= b->bucket_tris ? build_bucket(b, bk, err) : split_bucket(b, bk, err);
+}
+
+/* ---- batching points ---- */
+
+/* A new entry of the per-point tables. */
+static batch_entry *batch_append(scene_writer *w)
+{
+    if (w->batch_count == w->batch_cap) {
+        size_t need = (size_t)w->batch_count + 1, cap = w->batch_cap, box_cap = w->batch_cap;
+        batch_entry *batches = brt_grow(w->batches, &cap, need, sizeof *batches);
+        float *boxes;
+        if (batches) w->batches = batches;
+        boxes = batches ? brt_grow(w->boxes, &box_cap, need, 6 * sizeof *boxes) : NULL;
+        if (!boxes || need > MAX_COUNT) return NULL;
+        w->boxes = boxes;
+        w->batch_cap = cap;         /* box_cap too: both grew from batch_cap to need */
+    }
+    memset(&w->batches[w->batch_count], 0, sizeof *w->batches);
+    return &w->batches[w->batch_count++];
+}
+
+/*
+** Threads: a bucket's points are built a window at a time (two per
+** thread).  Each point is built whole by one thread into a work slot of
+** its own -- its triangles, box, BVH blob and checksum, and its proxy's
+** voxel grid -- and the caller writes the blobs and adds the grids to the
+** shared DAG in point order, each as soon as the points before it are
+** written (pool_run's commit).  So blob offsets and the DAG's nodes, whose
+** numbers follow the order of the adds, are those of one thread.
+*/
+typedef struct point_work {
+    float *corners;             /* its triangles: 9 floats each */
+    uint32_t *prims;            /* and the number of each */
+    uint32_t first, count;      /* its records: order[first .. first + count) */
+    float lo[3], hi[3];
+    void *blob;                 /* its BVH, as stored */
+    size_t size;
+    uint64_t checksum;
+    brt_grid grid;              /* its proxy's voxels */
+    brt_result bvh_result, grid_result;
+    brt_grid inner;             /* its inner proxy's voxels (svdag.c) */
+} point_work;
+
+/* Builds one point in its slot (any thread: reads the bucket only). */
+static void point_build(const scene_builder *b, point_work *pw)
+{
+    brt_bvh *bvh = NULL;
+    uint32_t i;
+    bounds_clear(pw->lo, pw->hi);
+    for (i = 0; i < pw->count; i++) {
+        const spill_record *rec = &b->records[b->order[pw->first + i]];
+        memcpy(pw->corners + 9 * (size_t)i, rec->v, sizeof rec->v);
+        pw->prims[i] = rec->prim;
+        bounds_grow(pw->lo, pw->hi, rec->v);
+        bounds_grow(pw->lo, pw->hi, rec->v + 3);
+        bounds_grow(pw->lo, pw->hi, rec->v + 6);
+    }
+    pw->blob = NULL;
+    pw->bvh_result = brt_bvh_build(pw->corners, b->indices, pw->count, pw->prims, &bvh);
+    if (pw->bvh_result == BRT_OK) {
+        pw->size = brt_bvh_blob_size(bvh);
+        pw->blob = calloc(1, pw->size ? pw->size : 1);
+        if (pw->blob) brt_bvh_blob_write(bvh, pw->blob);
+        if (pw->blob) pw->checksum = brt_checksum64(pw->blob, pw->size);
+        brt_bvh_free(bvh);
+    }
+    pw->grid_result = brt_grid_init(&pw->grid, pw->lo, pw->hi, b->w.res);
+    if (pw->grid_result == BRT_OK)
+        pw->grid_result = brt_voxelize(&pw->grid, pw->corners, b->indices, pw->count);
+    pw->inner.bits = NULL;
+    if (pw->grid_result == BRT_OK)
+        pw->grid_result = brt_grid_init(&pw->inner, pw->lo, pw->hi, inner_res(b->w.res));
+    if (pw->grid_result == BRT_OK)
+        pw->grid_result = brt_voxelize_inner(&pw->inner, b->solids);
+}
+
+/* Writes one built point: its blob at the next page, its table entry and
+** box, its proxy added to the shared pool (the caller, in point order). */
+static brt_result point_write(scene_builder *b, point_work *pw, brt_error *err)
+{
+    scene_writer *w = &b->w;
+    batch_entry *e;
+    brt_result r = poll_interrupt(b, err);
+    if (r != BRT_OK) return r;
+    if (pw->bvh_result != BRT_OK)
+        return brt_fail(err, pw->bvh_result, "%s: building a batching point's BVH: %s",
+                        w->path, brt_result_string(pw->bvh_result));
+    if (!pw->blob || !(e = batch_append(w))) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    memcpy(e->lo, pw->lo, sizeof e->lo);
+    memcpy(e->hi, pw->hi, sizeof e->hi);
+    e->triangles = pw->count;
+    e->size = pw->size;
+    e->checksum = pw->checksum;
+    e->offset = w->offset;
+    if ((r = write_at(w->fd, pw->blob, pw->size, e->offset, w->path, err)) != BRT_OK) return r;
+    w->offset = round_up_page(e->offset + e->size);
+    w->geometry_bytes += e->size;
+    memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1), e->lo, 3 * sizeof(float));
+    memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1) + 3, e->hi, 3 * sizeof(float));
+    r = pw->grid_result;
+    if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->grid, &e->proxy);
+    if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->inner, &e->inner);
+    if (r != BRT_OK) return brt_fail(err, r, "%s: building a proxy: %s", w->path, brt_result_string(r));
+    return BRT_OK;
+}
+
+typedef struct window_job {
+    scene_builder *b;
+    brt_result result;
+    brt_error *err;
+} window_job;
+
+static void window_build(void *ctx, unsigned thread, size_t first, size_t end)
+{
+    const window_job *j = ctx;
+    size_t k;
     (void)thread;
-    for (i = first; i < end; i++) {
-        float *normal = j->normals ? j->normals + 3 * i : NULL;
-        if (normal) normal[0] = normal[1] = normal[2] = 0.0f;
-        brt_hit_clear(&j->hits[i]);
-        intersect_ray(j->bvh, &j->rays[i], j->tags ? j->tags[i] : 0, &j->hits[i], normal);
+    for (k = first; k < end; k++) point_build(j->b, &j->b->work[k]);
+}
+
+static void window_write(void *ctx, size_t first, size_t end)
+{
+    window_job *j = ctx;
+    size_t k;
+    for (k = first; k < end; k++) {
+        point_work *pw = &j->b->work[k];
+        if (j->result == BRT_OK) j->result = point_write(j->b, pw, j->err);
+        free(pw->blob);
+        pw->blob = NULL;
+        brt_grid_free(&pw->grid);
+        brt_grid_free(&pw->inner);
     }
 }
 
-#define TRACE_CHUNK 1024   /* rays per chunk: ~1 ms, against ~10 us per take */
-
-void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags,
-                   size_t count, brt_hit *hits, float *normals, unsigned threads)
+/* A bucket that fits in memory: read whole, split by medians into
+** batching points (ties by record order, which is number order), built
+** a window at a time.  Its closed components are found over the whole
+** bucket, so a solid that batching points cut still gives each of them
+** inner voxels (svdag.c, "Inner proxies"). */
+static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *err)
 {
-    bvh_trace_job j;
-    pool p;
-    j.bvh = bvh;
-    j.rays = rays;
-    j.tags = tags;
-    j.hits = hits;
-    j.normals = normals;
-    pool_init(&p, count > TRACE_CHUNK ? threads : 1);
-    pool_run(&p, bvh_trace_chunk, NULL, &j, count, TRACE_CHUNK);
-    pool_free(&p);
+    uint32_t i, k, m;
+    window_job j;
+    brt_result r = spill_read(b, b->records, bk->count, bk->first, err);
+    if (r != BRT_OK) return r;
+    for (i = 0; i < bk->count; i++) {
+        centroid(&b->records[i], b->centroids + 3 * (size_t)i);
+        b->order[i] = i;
+    }
+    b->points.count = 0;
+    b->points.order = b->order;
+    if (partition_split(&b->points, b->centroids, 0, bk->count, b->batch_tris) != BRT_OK ||
+        brt_solids_build(b->records[0].v, sizeof *b->records / sizeof(float), bk->count,
+                         &b->solids) != BRT_OK)
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    j.b = b;
+    j.err = err;
+    j.result = BRT_OK;
+    for (i = 0; i < b->points.count && j.result == BRT_OK; i += m) {
+        m = b->points.count - i < b->window ? b->points.count - i : b->window;
+        for (k = 0; k < m; k++) {
+            b->work[k].first = b->points.ranges[i + k].first;
+            b->work[k].count = b->points.ranges[i + k].count;
+        }
+        pool_run(&b->pool, window_build, window_write, &j, m, 1);
+    }
+    brt_solids_free(b->solids);
+    b->solids = NULL;
+    return j.result;
+}
+
+/* ---- the file's tables ---- */
+
+/* Writes a section at the next page and fills in its table entry. */
+static brt_result write_section(scene_writer *w, const void *data, size_t size, section *s,
+                                brt_error *err)
+{
+    s->offset = w->offset;
+    s->size = size;
+    s->checksum = brt_checksum64(data, size);
+    w->offset = round_up_page(w->offset + size);
+    return write_at(w->fd, data, size, s->offset, w->path, err);
+}
+
+/* The batch table, the top-level nodes and the DAG pool, then the header. */
+static brt_result write_tables(scene_writer *w, scene_header *h, brt_error *err)
+{
+    size_t top_bytes, dag_bytes, table_bytes = (size_t)h->batch_count * BATCH_ENTRY_BYTES;
+    top_node *nodes = NULL;
+    unsigned char *buf, header[SCENE_HEADER_BYTES];
+    uint32_t i;
+    brt_result r = top_build(w->boxes, h->batch_count, &nodes, &h->top_node_count);
+    if (r != BRT_OK) return brt_fail(err, r, "%s: out of memory", w->path);
+    top_bytes = (size_t)h->top_node_count * TOP_NODE_BYTES;
+    dag_bytes = brt_svdag_blob_size(w->dag);
+    buf = malloc(table_bytes + top_bytes + dag_bytes + 1);
+    if (!buf) {
+        free(nodes);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    }
+    for (i = 0; i < h->batch_count; i++) batch_entry_pack(&w->batches[i], buf + (size_t)i * BATCH_ENTRY_BYTES);
+    for (i = 0; i < h->top_node_count; i++) top_node_pack(&nodes[i], buf + table_bytes + (size_t)i * TOP_NODE_BYTES);
+    brt_svdag_blob_write(w->dag, buf + table_bytes + top_bytes);
+    free(nodes);
+    r = write_section(w, buf, table_bytes, &h->sections[SECTION_BATCHES], err);
+    if (r == BRT_OK) r = write_section(w, buf + table_bytes, top_bytes, &h->sections[SECTION_TOP], err);
+    if (r == BRT_OK) r = write_section(w, buf + table_bytes + top_bytes, dag_bytes, &h->sections[SECTION_DAG], err);
+    free(buf);
+    if (r != BRT_OK) return r;
+    /* Pad to whole pages so the cache's page-rounded reads stay in the file. */
+    if (ftruncate(w->fd, (off_t)w->offset) != 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", w->path, strerror(errno));
+    header_pack(h, header);
+    return write_at(w->fd, header, sizeof header, 0, w->path, err);
+}
+
+/* ---- the build ---- */
+
+/* The bucket arrays, sized for the largest bucket this stream can have. */
+static brt_result builder_arrays(scene_builder *b, brt_error *err)
+{
+    size_t most = b->root.b.count < b->bucket_tris ? b->root.b.count : b->bucket_tris, i;
+    size_t point = most < b->batch_tris ? most : b->batch_tris;
+    uint32_t k;
+    b->records = malloc(most * sizeof *b->records);
+    b->centroids = malloc(3 * most * sizeof *b->centroids);
+    b->order = malloc(most * sizeof *b->order);
+    b->indices = malloc(3 * point * sizeof *b->indices);
+    b->window = 2 * b->pool.count;
+    b->work = calloc(b->window, sizeof *b->work);
+    if (!b->records || !b->centroids || !b->order || !b->indices || !b->work)
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    for (k = 0; k < b->window; k++) {
+        b->work[k].corners = malloc(9 * point * sizeof *b->work[k].corners);
+        b->work[k].prims = malloc(point * sizeof *b->work[k].prims);
+        if (!b->work[k].corners || !b->work[k].prims)
+            return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    }
+    for (i = 0; i < 3 * point; i++) b->indices[i] = (uint32_t)i;
+    return BRT_OK;
+}
+
+/* Pass A, the buckets, the tables. */
+static brt_result build_passes(scene_builder *b, const brt_triangle_source *source,
+                               scene_header *h, brt_error *err)
+{
+    brt_result r;
+    b->root.cap = b->chunk;
+    b->root.buf = b->read_buf;
+    bounds_clear(b->root.b.lo, b->root.b.hi);
+    r = source->run(source->user, spill_stream, b, err);
+    if (r == BRT_OK) r = spill_flush(b, &b->root, err);
+    if (r != BRT_OK) return r;
+    if (b->root.b.count == 0)
+        return brt_fail(err, BRT_EARG, "%s: the mesh has no triangles", b->w.path);
+    b->spill_end = b->root.b.count;
+    if ((r = builder_arrays(b, err)) != BRT_OK) return r;
+    if ((r = brt_svdag_create(&b->w.dag)) != BRT_OK)
+        return brt_fail(err, r, "%s: out of memory", b->w.path);
+    b->w.offset = SCENE_PAGE;
+    r = process_bucket(b, &b->root.b, err);
+    if (r != BRT_OK) return r;
+    h->batch_count = b->w.batch_count;
+    h->triangle_count = b->root.b.count;
+    h->geometry_bytes = b->w.geometry_bytes;
+    return write_tables(&b->w, h, err);
+}
+
+static void builder_free(scene_builder *b)
+{
+    uint32_t k;
+    if (b->spill_fd >= 0) close(b->spill_fd);
+    free(b->read_buf);
+    free(b->cells);
+    free(b->records);
+    free(b->centroids);
+    free(b->order);
+    free(b->points.ranges);
+    free(b->indices);
+    for (k = 0; b->work && k < b->window; k++) {
+        free(b->work[k].corners);
+        free(b->work[k].prims);
+    }
+    free(b->work);
+    pool_free(&b->pool);
+    brt_svdag_free(b->w.dag);
+    free(b->w.batches);
+    free(b->w.boxes);
+}
+
+static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
+                               const char *scene_path, brt_error *err)
+{
+    uint32_t cap = opt && opt->test_bucket_tris ? opt->test_bucket_tris
+                                                 : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
+    char spill_path[4096];
+    memset(b, 0, sizeof *b);
+    b->spill_fd = b->w.fd = -1;
+    b->w.path = scene_path;
+    b->interrupt = opt ? opt->interrupt : NULL;
+    pool_init(&b->pool, opt ? opt->threads : 0);
+    scene_options_resolve(opt, &b->batch_tris, &b->w.res);
+    if (!brt_proxy_res_valid(b->w.res))
+        return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", b->w.res);
+    b->bucket_tris = cap / b->batch_tris * b->batch_tris;
+    if (b->bucket_tris < b->batch_tris) b->bucket_tris = b->batch_tris;
+    b->chunk = opt && opt->test_spill_chunk ? opt->test_spill_chunk : SPILL_CHUNK;
+    if (is_special_file(scene_path))
+        return brt_fail(err, BRT_EARG, "%s: not a regular file", scene_path);
+    if (snprintf(spill_path, sizeof spill_path, "%s.spill.%ld", scene_path,
+                 (long)getpid()) >= (int)sizeof spill_path)
+        return brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
+    if (!(b->read_buf = malloc((size_t)b->chunk * sizeof *b->read_buf)))
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
+    /* Unlinked at once: the descriptor keeps it, and nothing can leave it
+    ** behind.  (Messages name the scene, as for the scene's own file.) */
+    b->spill_fd = open(spill_path, O_RDWR | O_CREAT | O_TRUNC, 0600);
+    if (b->spill_fd < 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
+    unlink(spill_path);
+    return BRT_OK;
+}
+
+brt_result brt_scene_build_stream(const brt_triangle_source *source,
+                                  const brt_scene_options *opt, uint64_t source_stamp,
+                                  const char *scene_path, brt_error *err)
+{
+    scene_builder b;
+    scene_header h;
+    brt_atomic_file file;
+    brt_result r;
+    memset(&h, 0, sizeof h);
+    file.tmp[0] = 0;
+    r = builder_init(&b, opt, scene_path, err);
+    if (r == BRT_OK) r = brt_atomic_open(&file, scene_path, err);
+    if (r == BRT_OK) b.w.fd = file.fd;
+    h.batch_tris = b.batch_tris;
+    h.proxy_res = b.w.res;
+    h.stamp = source_stamp;
+    if (r == BRT_OK) r = build_passes(&b, source, &h, err);
+    r = brt_atomic_close(&file, r, err);
+    builder_free(&b);
+    return r;
+}
+
+brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
+                           uint64_t source_stamp, const char *scene_path,
+                           brt_error *err)
+{
+    brt_triangle_source source;
+    brt_mesh_memory_source(mesh, &source);
+    return brt_scene_build_stream(&source, opt, source_stamp, scene_path, err);
+}
+
+brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp, brt_error *err)
+{
+    struct stat st;
+    uint64_t parts[4];
+    if (stat(mesh_path, &st) != 0)
+        return brt_fail(err, BRT_EIO, "%s: %s", mesh_path, strerror(errno));
+    /* Size, modification time to the nanosecond (POSIX.1-2008) and inode,
+    ** hashed into one number: what make trusts, plus a replaced file. */
+    parts[0] = (uint64_t)st.st_size;
+    parts[1] = (uint64_t)st.st_mtim.tv_sec;
+    parts[2] = (uint64_t)st.st_mtim.tv_nsec;
+    parts[3] = (uint64_t)st.st_ino;
+    *stamp = brt_checksum64(parts, sizeof parts);
+    return BRT_OK;
+}
+
+/* ---- opening a scene file ------------------------------------------- */
+
+/* pread until done, through the given reader: short reads and EINTR are
+** retried; an error or an early end of file is reported, never ignored. */
+static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
+                             brt_read_fn read_fn, void *user, uint64_t *bytes_read,
+                             const char *path, brt_error *err)
+{
+    unsigned char *p = buf;
+    while (size > 0) {
+        long n;
+        errno = 0;
+        n = read_fn(fd, p, size, offset, user);
+        if (n < 0 && errno == EINTR) continue;
+        if (n < 0)
+            return brt_fail(err, BRT_EIO, "%s: read at byte %llu failed: %s", path,
+                            (unsigned long long)offset, strerror(errno ? errno : EIO));
+        if (n == 0)
+            return brt_fail(err, BRT_EFORMAT, "%s: truncated (end of file at byte %llu)",
+                            path, (unsigned long long)offset);
+        if ((size_t)n > size) n = (long)size;
+        p += n;
+        size -= (size_t)n;
+        offset += (uint64_t)n;
+        if (bytes_read) *bytes_read += (uint64_t)n;
+    }
+    return BRT_OK;
+}
+
+static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    (void)user;
+    return (long)pread(fd, buf, size, (off_t)offset);
+}
+
+/* Reads a section into a fresh buffer and checks its checksum. */
+static brt_result read_section(brt_scene *s, int which, const char *what, void **out,
+                               brt_error *err)
+{
+    const section *sec = &s->header.sections[which];
+    void *buf;
+    brt_result r;
+    *out = NULL;
+    if (sec->offset > s->file_size || sec->size > s->file_size - sec->offset)
+        return brt_fail(err, BRT_EFORMAT, "%s: %s lies outside the file (truncated?)", s->path, what);
+    buf = malloc(sec->size ? sec->size : 1);
+    if (!buf) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    r = read_fully(s->fd, buf, sec->size, sec->offset, pread_reader, NULL, NULL, s->path, err);
+    if (r == BRT_OK && brt_checksum64(buf, sec->size) != sec->checksum)
+        r = brt_fail(err, BRT_EFORMAT, "%s: %s checksum mismatch (corrupt file)", s->path, what);
+    if (r != BRT_OK) {
+        free(buf);
+        return r;
+    }
+    *out = buf;
+    return BRT_OK;
+}
+
+/* ---- validating a scene file at open ---------------------------------- */
+/*
+** A checksum tells a damaged file from the one that was written, not a
+** forged or miswritten one: a file whose checksums match may still say
+** anything.  So opening a scene validates every cross-reference once,
+** before anything is traced, one validator per structure:
+**   check_header   counts and section sizes agree with one another
+**   (read_section) each section lies inside the file and matches its sum
+**   brt_svdag_blob_open (svdag.c): the DAG pool, its child indices
+**   check_batch    one table entry: box, blob extent, proxy (proxy_valid)
+**   check_batches  the table against the header: triangles and bytes add up
+**   check_top      the top level: a tree over every batching point, boxes
+**                  ordered, finite and nested
+** and every blob load (blob_read) runs brt_bvh_blob_open (bvh.c: indices,
+** boxes, finite triangles, triangle numbers below the scene's count) and
+** check_blob (its triangle count is its table entry's).  The walk, the
+** proxy cast and the BVH traversal then trust what they read: no test on
+** the hot path.  A failure is BRT_EFORMAT, "FILE: PART: what is wrong".
+*/
+
+/* Finite and ordered: what the box tests of the walk rely on. */
+static int box_valid(const float lo[3], const float hi[3])
+{
+    int a;
+    for (a = 0; a < 3; a++)
+        if (!isfinite(lo[a]) || !isfinite(hi[a]) || !(lo[a] <= hi[a])) return 0;
+    return 1;
+}
+
+/* The counts of the header against one another and the section sizes. */
+static brt_result check_header(const brt_scene *s, brt_error *err)
+{
+    const scene_header *h = &s->header;
+    if (h->batch_count == 0)
+        return brt_fail(err, BRT_EFORMAT, "%s: header: no batching points", s->path);
+    if (h->top_node_count == 0 || h->top_node_count > h->batch_count)
+        return brt_fail(err, BRT_EFORMAT, "%s: header: %u top-level nodes for %u batching points",
+                        s->path, h->top_node_count, h->batch_count);
+    if (h->sections[SECTION_BATCHES].size != (uint64_t)h->batch_count * BATCH_ENTRY_BYTES)
+        return brt_fail(err, BRT_EFORMAT, "%s: header: batch table has the wrong size", s->path);
+    if (h->sections[SECTION_TOP].size != (uint64_t)h->top_node_count * TOP_NODE_BYTES)
+        return brt_fail(err, BRT_EFORMAT, "%s: header: top-level section has the wrong size", s->path);
+    return BRT_OK;
+}
+
+/* The header's resolution, and all that brt_proxy_raycast relies on:
+** brt_proxy_check (res a power of two, origin and cell finite, cell
+** positive, root a node of the pool at the depth res needs), so the cast
+** need not check again.
+** (The far corner origin + res * cell may overflow a float, at coordinates
+** near FLT_MAX, but the cast maps rays into the grid's frame in double.) */
+static int proxy_valid(const brt_scene *s, const brt_proxy *p)
+{
+    return p->res == s->header.proxy_res && brt_proxy_check(s->dag, p, NULL) == BRT_OK;
+}
+
+/* An inner proxy: a root of the pool at the resolution inner_res gives. */
+static int inner_valid(const brt_scene *s, const brt_proxy *p)
+{
+    return p->res == inner_res(s->header.proxy_res) && brt_proxy_check(s->dag, p, NULL) == BRT_OK;
+}
+
+/* One batch table entry: its box, its blob inside the file (whole pages,
+** as the cache reads them), its proxy. */
+static brt_result check_batch(const brt_scene *s, uint32_t i, const batch_entry *b, brt_error *err)
+{
+    if (!box_valid(b->lo, b->hi))
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: box not finite or inverted",
+                        s->path, i);
+    if (b->offset % SCENE_PAGE != 0 || b->size > s->file_size ||
+        b->offset > s->file_size - round_up_page(b->size))
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob outside the file", s->path, i);
+    if (!proxy_valid(s, &b->proxy))
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid proxy", s->path, i);
+    if (!inner_valid(s, &b->inner))
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid inner proxy", s->path, i);
+    return BRT_OK;
+}
+
+/* The table against the header: the entries' triangles and blob bytes
+** add up to the header's counts. */
+static brt_result check_batches(const brt_scene *s, brt_error *err)
+{
+    uint64_t triangles = 0, bytes = 0;
+    uint32_t i;
+    for (i = 0; i < s->header.batch_count; i++) {
+        brt_result r = check_batch(s, i, &s->batches[i], err);
+        if (r != BRT_OK) return r;
+        triangles += s->batches[i].triangles;
+        bytes += s->batches[i].size;
+    }
+    if (triangles != s->header.triangle_count)
+        return brt_fail(err, BRT_EFORMAT, "%s: batch table: batching points hold %llu triangles, "
+                        "header says %u", s->path, (unsigned long long)triangles,
+                        s->header.triangle_count);
+    if (bytes != s->header.geometry_bytes)
+        return brt_fail(err, BRT_EFORMAT, "%s: batch table: blobs hold %llu bytes, header says %llu",
+                        s->path, (unsigned long long)bytes,
+                        (unsigned long long)s->header.geometry_bytes);
+    return BRT_OK;
+}
+
+/* The frame of a batching point's inner proxy, as the build made it: the
+** grid brt_grid_init fits to its box at inner_res (res 0, which no check
+** passes, when the box is not valid: check_batch names that first). */
+static void inner_frame(batch_entry *b, uint32_t proxy_res)
+{
+    brt_grid g;
+    b->inner.res = 0;
+    if (!box_valid(b->lo, b->hi) || brt_grid_init(&g, b->lo, b->hi, inner_res(proxy_res)) != BRT_OK)
+        return;
+    b->inner.res = g.res;
+    memcpy(b->inner.origin, g.origin, sizeof g.origin);
+    b->inner.cell = g.cell;
+    brt_grid_free(&g);
+}
+
+static brt_result load_batches(brt_scene *s, brt_error *err)
+{
+    unsigned char *table;
+    uint32_t i;
+    brt_result r = read_section(s, SECTION_BATCHES, "batch table", (void **)&table, err);
+    if (r != BRT_OK) return r;
+    s->batches = malloc(((size_t)s->header.batch_count + 1) * sizeof *s->batches);
+    if (!s->batches) {
+        free(table);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    }
+    for (i = 0; i < s->header.batch_count; i++) {
+        batch_entry_unpack(table + (size_t)i * BATCH_ENTRY_BYTES, &s->batches[i]);
+        inner_frame(&s->batches[i], s->header.proxy_res);
+    }
+    free(table);
+    return check_batches(s, err);
+}
+
+/* Lane `lane` of node n holds the box lo, hi (inclusive: the build's lane
+** box is the union of what it holds, so it may equal it). */
+static int lane_holds(const top_node *n, int lane, const float lo[3], const float hi[3])
+{
+    int a;
+    for (a = 0; a < 3; a++)
+        if (!(n->box[a][lane] <= lo[a] && hi[a] <= n->box[3 + a][lane])) return 0;
+    return 1;
+}
+
+/* Lane `lane` of node n holds every box of child node c and c's boxes
+** are valid (they are checked as a lane of c in turn). */
+static int lane_holds_node(const top_node *n, int lane, const top_node *c)
+{
+    int k, a;
+    for (k = 0; k < 4; k++) {
+        float lo[3], hi[3];
+        if (c->child[k] == TOP_EMPTY) continue;
+        for (a = 0; a < 3; a++) {
+            lo[a] = c->box[a][k];
+            hi[a] = c->box[3 + a][k];
+        }
+        if (!lane_holds(n, lane, lo, hi)) return 0;
+    }
+    return 1;
+}
+
+/* One lane in use of node i: the child's index in range, the lane's box
+** finite, ordered and around what the child holds. */
+static brt_result check_top_lane(const brt_scene *s, uint32_t i, int lane,
+                                 unsigned char *has_parent, unsigned char *seen, brt_error *err)
+{
+    const top_node *n = &s->top[i];
+    uint32_t c = n->child[lane];
+    float lo[3], hi[3];
+    int a;
+    for (a = 0; a < 3; a++) {
+        lo[a] = n->box[a][lane];
+        hi[a] = n->box[3 + a][lane];
+    }
+    if (c & TOP_LEAF) {
+        c &= ~TOP_LEAF;
+        if (c >= s->header.batch_count || seen[c]++)
+            return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad leaf", s->path, i);
+        if (!lane_holds(n, lane, s->batches[c].lo, s->batches[c].hi))
+            return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box does not hold batching "
+                            "point %u", s->path, i, c);
+    } else if (c <= i || c >= s->header.top_node_count || has_parent[c]++) {
+        return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad child", s->path, i);
+    } else if (!lane_holds_node(n, lane, &s->top[c])) {
+        return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box does not hold node %u",
+                        s->path, i, c);
+    }
+    if (!box_valid(lo, hi))
+        return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box not finite or inverted",
+                        s->path, i);
+    return BRT_OK;
+}
+
+/* Every child index points forward, every node but the root has one
+** parent and every batching point is a leaf exactly once: the nodes form
+** a tree, so a walk terminates, never indexes out of range and meets each
+** node and point at most once (the size of its heap).  Every box holds
+** what is below it, so a subtree is entered no later than anything in it
+** (the walk's skip rule (a) relies on that).  Runs on the file's exact
+** boxes, before top_node_pad. */
+static brt_result check_top(brt_scene *s, brt_error *err)
+{
+    uint32_t n = s->header.top_node_count, count = s->header.batch_count, i;
+    unsigned char *has_parent = calloc((size_t)n + 1, 1), *seen = calloc((size_t)count + 1, 1);
+    brt_result r = BRT_OK;
+    int lane;
+    if (!has_parent || !seen) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    for (i = 0; i < n && r == BRT_OK; i++)
+        for (lane = 0; lane < 4 && r == BRT_OK; lane++)
+            if (s->top[i].child[lane] != TOP_EMPTY)
+                r = check_top_lane(s, i, lane, has_parent, seen, err);
+    for (i = 0; i < count && r == BRT_OK; i++)
+        if (!seen[i]) r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u not in the top level", s->path, i);
+    free(has_parent);
+    free(seen);
+    return r;
+}
+
+static brt_result load_top(brt_scene *s, brt_error *err)
+{
+    unsigned char *raw;
+    uint32_t i;
+    brt_result r = read_section(s, SECTION_TOP, "top-level BVH", (void **)&raw, err);
+    if (r != BRT_OK) return r;
+    s->top = malloc(((size_t)s->header.top_node_count + 1) * sizeof *s->top);
+    if (!s->top) {
+        free(raw);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    }
+    for (i = 0; i < s->header.top_node_count; i++)
+        top_node_unpack(raw + (size_t)i * TOP_NODE_BYTES, &s->top[i]);
+    free(raw);
+    r = check_top(s, err);
+    for (i = 0; r == BRT_OK && i < s->header.top_node_count; i++) top_node_pad(&s->top[i]);
+    return r;
+}
+
+static brt_result load_dag(brt_scene *s, brt_error *err)
+{
+    brt_error why;
+    brt_result r = read_section(s, SECTION_DAG, "proxy pool", &s->dag_blob, err);
+    if (r != BRT_OK) return r;
+    r = brt_svdag_blob_open(s->dag_blob, s->header.sections[SECTION_DAG].size, &s->dag, &why);
+    if (r != BRT_OK) return brt_fail(err, BRT_EFORMAT, "%s: proxy pool: %s", s->path, why.message);
+    return BRT_OK;
+}
+
+brt_result brt_scene_open(const char *scene_path, brt_scene **out, brt_error *err)
+{
+    unsigned char header[SCENE_HEADER_BYTES];
+    struct stat st;
+    brt_scene *s = calloc(1, sizeof *s);
+    brt_result r = BRT_OK;
+    *out = NULL;
+    if (!s || !(s->path = malloc(strlen(scene_path) + 1))) {
+        free(s);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
+    }
+    strcpy(s->path, scene_path);
+    s->fd = open(scene_path, O_RDONLY);
+    if (s->fd < 0 || fstat(s->fd, &st) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot open: %s", scene_path, strerror(errno));
+    else if ((s->file_size = (uint64_t)st.st_size) < SCENE_HEADER_BYTES)
+        r = brt_fail(err, BRT_EFORMAT, "%s: truncated (%llu bytes, no header)", scene_path,
+                     (unsigned long long)s->file_size);
+    if (r == BRT_OK)
+        r = read_fully(s->fd, header, sizeof header, 0, pread_reader, NULL, NULL, scene_path, err);
+    if (r == BRT_OK) r = header_unpack(scene_path, header, &s->header, err);
+    if (r == BRT_OK) r = check_header(s, err);
+    if (r == BRT_OK) r = load_dag(s, err);
+    if (r == BRT_OK) r = load_batches(s, err);
+    if (r == BRT_OK) r = load_top(s, err);
+    if (r != BRT_OK) {
+        brt_scene_close(s);
+        return r;
+    }
+    *out = s;
+    return BRT_OK;
+}
+
+void brt_scene_close(brt_scene *s)
+{
+    if (!s) return;
+    if (s->fd >= 0) close(s->fd);
+    brt_svdag_free(s->dag);
+    free(s->dag_blob);
+    free(s->batches);
+    free(s->top);
+    free(s->path);
+    free(s);
+}
+
+int brt_scene_matches(const brt_scene *s, uint64_t stamp, const brt_scene_options *opt)
+{
+    uint32_t batch_tris, res;
+    scene_options_resolve(opt, &batch_tris, &res);
+    return s->header.stamp == stamp && s->header.batch_tris == batch_tris &&
+           s->header.proxy_res == res;
+}
+
+uint32_t brt_scene_batch_count(const brt_scene *s) { return s->header.batch_count; }
+uint32_t brt_scene_triangle_count(const brt_scene *s) { return s->header.triangle_count; }
+
+void brt_scene_bounds(const brt_scene *s, float bmin[3], float bmax[3])
+{
+    uint32_t i;
+    int a;
+    for (a = 0; a < 3; a++) {
+        bmin[a] = INFINITY;
+        bmax[a] = -INFINITY;
+    }
+    for (i = 0; i < s->header.batch_count; i++)
+        for (a = 0; a < 3; a++) {
+            if (s->batches[i].lo[a] < bmin[a]) bmin[a] = s->batches[i].lo[a];
+            if (s->batches[i].hi[a] > bmax[a]) bmax[a] = s->batches[i].hi[a];
+        }
+}
+
+brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
+                             const brt_scene_options *opt, brt_scene **out,
+                             int *rebuilt, brt_error *err)
+{
+    uint64_t stamp;
+    brt_triangle_source source;
+    struct stat st;
+    brt_result r = brt_scene_source_stamp(mesh_path, &stamp, err);
+    *out = NULL;
+    if (rebuilt) *rebuilt = 0;
+    if (r != BRT_OK) return r;
+    if (stat(scene_path, &st) == 0) {
+        r = brt_scene_open(scene_path, out, err);
+        if (r != BRT_OK || brt_scene_matches(*out, stamp, opt)) return r;
+        brt_scene_close(*out);   /* stale: the mesh or the settings changed */
+        *out = NULL;
+    }
+    brt_mesh_file_source(mesh_path, &source);   /* never the whole mesh in memory */
+    r = brt_scene_build_stream(&source, opt, stamp, scene_path, err);
+    if (r != BRT_OK) return r;
+    if (rebuilt) *rebuilt = 1;
+    return brt_scene_open(scene_path, out, err);
+}
+
+/* ---- the partition checker ------------------------------------------ */
+
+/* Marks the triangles of blob id in seen[] (one bit each). */
+static brt_result check_point(const page_cache *c, uint32_t id, uint32_t batch_tris,
+                              unsigned char *seen, brt_error *err)
+{
+    const brt_scene *s = c->scene;
+    const uint32_t *prims;
+    uint64_t bytes = 0;
+    void *data = NULL;
+    brt_bvh *bvh = NULL;
+    uint32_t k, n;
+    brt_result r = BRT_OK;
+    if (s->batches[id].triangles > batch_tris)
+        return brt_fail(err, BRT_ECHECK, "%s: batching point %u holds %u triangles, more than %u",
+                        s->path, id, s->batches[id].triangles, batch_tris);
+    if ((r = blob_read(c, id, &bytes, &data, &bvh, err)) != BRT_OK) return r;
+    prims = brt_bvh_prim_ids(bvh);
+    n = brt_bvh_triangle_count(bvh);
+    if (n != s->batches[id].triangles)
+        r = brt_fail(err, BRT_ECHECK, "%s: batching point %u: its BVH holds %u triangles, "
+                     "its table entry %u", s->path, id, n, s->batches[id].triangles);
+    for (k = 0; k < n && r == BRT_OK; k++) {
+        uint32_t p = prims[k];
+        if (p >= s->header.triangle_count)
+            r = brt_fail(err, BRT_ECHECK, "%s: batching point %u: triangle %u out of range "
+                         "(%u triangles)", s->path, id, p, s->header.triangle_count);
+        else if (seen[p >> 3] & (1u << (p & 7)))
+            r = brt_fail(err, BRT_ECHECK, "%s: triangle %u is in two batching points "
+                         "(again in %u)", s->path, p, id);
+        else
+            seen[p >> 3] |= (unsigned char)(1u << (p & 7));
+    }
+    brt_bvh_free(bvh);
+    blob_free(s, id, data);
+    return r;
+}
+
+brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
+                                     brt_error *err)
+{
+    uint32_t n = scene->header.triangle_count, id, t;
+    unsigned char *seen = calloc((size_t)n / 8 + 1, 1);
+    page_cache c;
+    brt_result r = BRT_OK;
+    if (!seen) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene->path);
+    memset(&c, 0, sizeof c);
+    c.scene = (brt_scene *)scene;   /* blob_read only reads through it */
+    c.read_fn = pread_reader;
+    for (id = 0; id < scene->header.batch_count && r == BRT_OK; id++)
+        r = check_point(&c, id, batch_tris, seen, err);
+    for (t = 0; t < n && r == BRT_OK; t++)
+        if (!(seen[t >> 3] & (1u << (t & 7))))
+            r = brt_fail(err, BRT_ECHECK, "%s: triangle %u is in no batching point", scene->path, t);
+    free(seen);
+    return r;
 }
 
 /* ===================================================================== */
@@ -464,7 +3071,6 @@ void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags
 */
 
 #define READ_CHUNK ((size_t)1 << 20)
-#define MAX_COUNT 0xFFFFFFFEu   /* largest vertex or triangle count */
 
 typedef struct reader {
     int fd;                     /* -1: the whole input is already in data */
@@ -524,22 +3130,6 @@ static brt_result parse_fail(parser *p, brt_result code, const char *fmt, ...)
     return brt_fail(p->err, code, "%s: %s", p->name, reason);
 }
 
-/* Returns items with room for need elements of size bytes, or NULL (items
-** untouched).  Doubling makes n appends cost O(n) copies in total. */
-static void *grow(void *items, size_t *cap, size_t need, size_t size)
-{
-    size_t n = *cap ? *cap : 256;
-    void *bigger;
-    while (n < need) {
-        if (n > SIZE_MAX / 2) return NULL;
-        n *= 2;
-    }
-    if (n > SIZE_MAX / size) return NULL;
-    bigger = realloc(items, n * size);
-    if (bigger) *cap = n;
-    return bigger;
-}
-
 /* ---- byte source ------------------------------------------------------ */
 
 /* Makes at least need unread bytes available unless the input ends first:
@@ -553,7 +3143,7 @@ static brt_result reader_fill(parser *p, size_t need)
     r->end -= r->pos;
     r->pos = 0;
     if (need > r->cap) {
-        void *bigger = grow(r->owned, &r->cap, need, 1);
+        void *bigger = brt_grow(r->owned, &r->cap, need, 1);
         if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
         r->owned = bigger;
     }
@@ -611,7 +3201,7 @@ static brt_result add_vertex(parser *p, const float xyz[3])
     if (p->vertex_count == p->vertex_cap) {
         void *bigger;
         if (p->vertex_count >= MAX_COUNT) return parse_fail(p, BRT_EPARSE, "too many vertices");
-        bigger = grow(p->positions, &p->vertex_cap, p->vertex_count + 1, 3 * sizeof(float));
+        bigger = brt_grow(p->positions, &p->vertex_cap, p->vertex_count + 1, 3 * sizeof(float));
         if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
         p->positions = bigger;
     }
@@ -623,7 +3213,7 @@ static brt_result add_vertex(parser *p, const float xyz[3])
 static brt_result add_corner(parser *p, uint32_t vertex)
 {
     if (p->polygon_count == p->polygon_cap) {
-        void *bigger = grow(p->polygon, &p->polygon_cap, p->polygon_count + 1, sizeof(uint32_t));
+        void *bigger = brt_grow(p->polygon, &p->polygon_cap, p->polygon_count + 1, sizeof(uint32_t));
         if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
         p->polygon = bigger;
     }
@@ -671,7 +3261,7 @@ static brt_result add_triangle(parser *p, const uint32_t v[3])
     brt_result rc = BRT_OK;
     if (stream_triangle(p, v, &rc)) return rc;
     if (p->indexed_count == p->indexed_cap) {
-        void *bigger = grow(p->indices, &p->indexed_cap, p->indexed_count + 1, 3 * sizeof(uint32_t));
+        void *bigger = brt_grow(p->indices, &p->indexed_cap, p->indexed_count + 1, 3 * sizeof(uint32_t));
         if (!bigger) return parse_fail(p, BRT_ENOMEM, "out of memory");
         p->indices = bigger;
     }
@@ -1510,6 +4100,16 @@ void brt_mesh_memory_source(const brt_mesh *mesh, brt_triangle_source *source)
 /* Rays and hits                                                         */
 /* ===================================================================== */
 
+int brt_ray_valid(const brt_ray *ray)
+{
+    int a;
+    for (a = 0; a < 3; a++)
+        if (!isfinite(ray->org[a]) || !isfinite(ray->dir[a])) return 0;
+    if (ray->dir[0] == 0.0f && ray->dir[1] == 0.0f && ray->dir[2] == 0.0f)
+        return 0;
+    return ray->tnear <= ray->tfar;   /* false for NaN too */
+}
+
 void brt_hit_clear(brt_hit *hit)
 {
     hit->t = INFINITY;
@@ -1537,8 +4137,7 @@ static void words_from_le(void *buffer, size_t words)
     unsigned char *b = buffer;
     size_t i;
     for (i = 0; i < words; i++, b += 4) {
-        uint32_t w = (uint32_t)b[0] | (uint32_t)b[1] << 8 |
-                     (uint32_t)b[2] << 16 | (uint32_t)b[3] << 24;
+        uint32_t w = brt_get_le32(b);
         memcpy(b, &w, 4);
     }
 }
@@ -1550,10 +4149,7 @@ static void words_to_le(const void *source, unsigned char *le, size_t words)
     for (i = 0; i < words; i++, s += 4, le += 4) {
         uint32_t w;
         memcpy(&w, s, 4);
-        le[0] = (unsigned char)w;
-        le[1] = (unsigned char)(w >> 8);
-        le[2] = (unsigned char)(w >> 16);
-        le[3] = (unsigned char)(w >> 24);
+        brt_put_le32(le, w);
     }
 }
 
@@ -1693,2821 +4289,448 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
 }
 
 /* ===================================================================== */
-/* Out-of-core batched traversal                                         */
+/* Results and errors                                                    */
 /* ===================================================================== */
-/*
-** The data flow of Pharr et al. 1997 with the proxies of Molenaar and
-** Eisemann 2020:
-**
-**   mesh --partition--> batching points --build--> scene file
-**        (median splits)  (BVH blob + box + proxy each)
-**   rays --top-level walk--> geometry in memory? intersect at once;
-**        else proxy test --> queue at a batching point
-**   scheduler: fullest queue first --> page cache (pread, LRU) --> BVH
-**        --> the ray resumes its walk, or finishes.
-*/
 
-/* ---- checksums and host-order packing --------------------------------- */
-
-/* Word-wise multiply-xorshift hash (in the style of MurmurHash's
-** finaliser): fast enough to verify every blob on every load, and a random
-** corruption goes unnoticed with probability about 2^-64.  Not a
-** cryptographic hash. */
-uint64_t brt_checksum64(const void *data, size_t size)
+const char *brt_result_string(brt_result r)
 {
-    const unsigned char *p = data;
-    uint64_t h = 0x9E3779B97F4A7C15ull ^ (uint64_t)size, w;
-    for (; size >= 8; p += 8, size -= 8) {
-        memcpy(&w, p, 8);
-        h = (h ^ w) * 0xFF51AFD7ED558CCDull;
-        h ^= h >> 32;
+    switch (r) {
+    case BRT_OK: return "ok";
+    case BRT_ENOMEM: return "out of memory";
+    case BRT_EIO: return "i/o error";
+    case BRT_EPARSE: return "parse error";
+    case BRT_EFORMAT: return "bad scene file";
+    case BRT_EARG: return "invalid argument";
+    case BRT_ECHECK: return "invariant violated";
+    case BRT_EINTR: return "interrupted";
     }
-    w = 0;
-    memcpy(&w, p, size);
-    h = (h ^ w) * 0xC4CEB9FE1A85EC53ull;
-    return h ^ (h >> 29);
+    return "unknown result";
 }
 
-/* Every number of a scene file is little-endian, like ray and hit files
-** (version 2; version 1 used the writer's byte order).  The BVH blobs
-** inside it are little-endian too and read in place (bvh.c). */
-static void put_u32(unsigned char *p, uint32_t v)
+brt_result brt_fail(brt_error *err, brt_result r, const char *fmt, ...)
+{
+    va_list ap;
+    if (!err) return r;
+    va_start(ap, fmt);
+    vsnprintf(err->message, sizeof err->message, fmt, ap);
+    va_end(ap);
+    return r;
+}
+
+/* ===================================================================== */
+/* Small utilities                                                       */
+/* ===================================================================== */
+
+brt_result brt_parse_size(const char *text, uint64_t *bytes)
+{
+    uint64_t value = 0, scale = 1;
+    const char *p = text;
+    if (!text || *p < '0' || *p > '9') return BRT_EARG;
+    for (; *p >= '0' && *p <= '9'; p++) {
+        if (value > (UINT64_MAX - 9) / 10) return BRT_EARG;
+        value = value * 10 + (uint64_t)(*p - '0');
+    }
+    switch (*p) {
+    case 'K': case 'k': scale = (uint64_t)1 << 10; p++; break;
+    case 'M': case 'm': scale = (uint64_t)1 << 20; p++; break;
+    case 'G': case 'g': scale = (uint64_t)1 << 30; p++; break;
+    default: break;
+    }
+    if (*p == 'B' || *p == 'b') p++;   /* "512MB" reads as 512M */
+    if (*p != 0 || value == 0 || value > UINT64_MAX / scale) return BRT_EARG;
+    *bytes = value * scale;
+    return BRT_OK;
+}
+
+/* The one 64-bit mixer of batchrt: SplitMix64's finaliser (Steele, Lea,
+** Flood 2014; Stafford's "variant 13" of MurmurHash3's fmix64).  A
+** bijection whose outputs for neighbouring inputs look independent: the
+** generator below, the DAG's dedup tables (svdag.c) and the renderer's
+** counter-based samples (examples/render.c) all use it.  (brt_checksum64
+** is not built on it: its steps are fixed by the scene files written.) */
+uint64_t brt_mix64(uint64_t z)
+{
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return z ^ (z >> 31);
+}
+
+uint64_t brt_random_u64(uint64_t *state)
+{
+    /* SplitMix64: a Weyl sequence, mixed.  Every seed is a good seed. */
+    return brt_mix64(*state += 0x9E3779B97F4A7C15ull);
+}
+
+float brt_random_float(uint64_t *state)
+{
+    /* The top 24 bits give every float in [0,1) with spacing 2^-24. */
+    return (float)(brt_random_u64(state) >> 40) * (1.0f / 16777216.0f);
+}
+
+/* Little-endian numbers: every file batchrt writes stores them so (scene
+** files, the DAG blob, ray and hit records), whatever the host's order.
+** Byte by byte, so that neither the host's order nor alignment matters. */
+void brt_put_le32(unsigned char *p, uint32_t v)
 {
     int i;
     for (i = 0; i < 4; i++) p[i] = (unsigned char)(v >> (8 * i));
 }
-static void put_u64(unsigned char *p, uint64_t v)
+
+void brt_put_le64(unsigned char *p, uint64_t v)
 {
-    put_u32(p, (uint32_t)v);
-    put_u32(p + 4, (uint32_t)(v >> 32));
+    brt_put_le32(p, (uint32_t)v);
+    brt_put_le32(p + 4, (uint32_t)(v >> 32));
 }
-static void put_f32(unsigned char *p, float v) { uint32_t w; memcpy(&w, &v, 4); put_u32(p, w); }
-static uint32_t get_u32(const unsigned char *p)
+
+uint32_t brt_get_le32(const unsigned char *p)
 {
     return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
 }
-static uint64_t get_u64(const unsigned char *p) { return get_u32(p) | (uint64_t)get_u32(p + 4) << 32; }
-static float get_f32(const unsigned char *p) { uint32_t w = get_u32(p); float v; memcpy(&v, &w, 4); return v; }
 
-/* ---- median splits (the partition and the top-level build share them) -- */
-
-/* Longest axis of the bounds of the points centres[3*ids[i]]. */
-static int longest_axis(const float *centres, const uint32_t *ids, uint32_t n)
+uint64_t brt_get_le64(const unsigned char *p)
 {
-    float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
-    uint32_t i;
-    int a, axis = 0;
-    for (i = 0; i < n; i++)
-        for (a = 0; a < 3; a++) {
-            float c = centres[3 * (size_t)ids[i] + a];
-            if (c < lo[a]) lo[a] = c;
-            if (c > hi[a]) hi[a] = c;
+    return brt_get_le32(p) | (uint64_t)brt_get_le32(p + 4) << 32;
+}
+
+/* The one growable array: returns items with room for need elements of
+** size bytes (capacity *cap, updated), or NULL with items untouched.
+** At least doubling makes n appends cost O(n) copies in total; a first
+** need is met exactly (a reservation, as the generated scenes make). */
+void *brt_grow(void *items, size_t *cap, size_t need, size_t size)
+{
+    size_t n = *cap <= SIZE_MAX / 2 ? 2 * *cap : SIZE_MAX;
+    void *bigger;
+    if (need <= *cap) return items;
+    if (n < need) n = need;
+    if (n < 16) n = 16;
+    if (n > SIZE_MAX / size) return NULL;
+    bigger = realloc(items, n * size);
+    if (bigger) *cap = n;
+    return bigger;
+}
+
+double brt_seconds(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+uint64_t brt_peak_rss_bytes(void)
+{
+    struct rusage usage;
+    if (getrusage(RUSAGE_SELF, &usage) != 0 || usage.ru_maxrss < 0) return 0;
+    return (uint64_t)usage.ru_maxrss * 1024u;   /* Linux and the BSDs: KiB */
+}
+
+/* Writes all of data at offset (pwrite), or at the file position when
+** offset is negative (write: also pipes and devices).  Short writes and
+** EINTR are retried; a write of 0 bytes counts as a full disk. */
+static int write_fully(int fd, const void *data, size_t size, int64_t offset)
+{
+    const unsigned char *p = data;
+    while (size > 0) {
+        ssize_t n = offset < 0 ? write(fd, p, size) : pwrite(fd, p, size, (off_t)offset);
+        if (n < 0 && errno == EINTR) continue;
+        if (n <= 0) {
+            if (n == 0) errno = ENOSPC;
+            return -1;
         }
-    for (a = 1; a < 3; a++)
-        if (hi[a] - lo[a] > hi[axis] - lo[axis]) axis = a;
-    return axis;
-}
-
-/* Orders ids by (centre on axis, id): a total order, so the split and
-** hence the scene file are the same on every run and every libc. */
-static int centre_before(const float *centres, int axis, uint32_t a, uint32_t b)
-{
-    float ca = centres[3 * (size_t)a + axis], cb = centres[3 * (size_t)b + axis];
-    return ca < cb || (ca == cb && a < b);
-}
-
-/* Quickselect (Hoare 1961): afterwards ids[0..k) come before ids[k..n) in
-** the order above.  Expected linear time; the pivot is a median of three. */
-static void select_kth(const float *centres, int axis, uint32_t *ids, uint32_t n, uint32_t k)
-{
-    uint32_t lo = 0, hi = n;            /* the k-th lies in ids[lo..hi) */
-    while (hi - lo > 1) {
-        uint32_t a = ids[lo], b = ids[lo + (hi - lo) / 2], c = ids[hi - 1], pivot, i, store;
-        pivot = centre_before(centres, axis, a, b)
-                    ? (centre_before(centres, axis, b, c) ? b : (centre_before(centres, axis, a, c) ? c : a))
-                    : (centre_before(centres, axis, a, c) ? a : (centre_before(centres, axis, b, c) ? c : b));
-        /* Lomuto partition around the pivot id (moved to the end). */
-        for (i = lo; ids[i] != pivot; i++) {}
-        ids[i] = ids[hi - 1];
-        ids[hi - 1] = pivot;
-        for (store = lo, i = lo; i < hi - 1; i++)
-            if (centre_before(centres, axis, ids[i], pivot)) {
-                uint32_t t = ids[i]; ids[i] = ids[store]; ids[store] = t;
-                store++;
-            }
-        ids[hi - 1] = ids[store];
-        ids[store] = pivot;
-        if (store == k) return;
-        if (store < k) lo = store + 1;
-        else hi = store;
-    }
-}
-
-/* Splits ids[0..n) spatially: the first k go to one side (k in 1..n-1). */
-static void median_split(const float *centres, uint32_t *ids, uint32_t n, uint32_t k)
-{
-    select_kth(centres, longest_axis(centres, ids, n), ids, n, k);
-}
-
-/* ---- the partition into batching points ------------------------------ */
-
-typedef struct batch_range {
-    uint32_t first, count;        /* into the triangle order */
-} batch_range;
-
-typedef struct partition {
-    uint32_t *order;              /* triangle ids, batching point by batching point
-                                  ** (the caller's array) */
-    batch_range *ranges;
-    uint32_t count, capacity;
-} partition;
-
-static brt_result partition_push(partition *p, uint32_t first, uint32_t count)
-{
-    if (p->count == p->capacity) {
-        uint32_t cap = p->capacity ? 2 * p->capacity : 64;
-        batch_range *r = realloc(p->ranges, cap * sizeof *r);
-        if (!r) return BRT_ENOMEM;
-        p->ranges = r;
-        p->capacity = cap;
-    }
-    p->ranges[p->count].first = first;
-    p->ranges[p->count].count = count;
-    p->count++;
-    return BRT_OK;
-}
-
-/* Top-down: split on the longest axis of the centroid bounds until each part
-** holds at most batch_tris triangles.  The split point is a multiple of
-** batch_tris near the middle, so parts are full and there are few of them
-** (ceil(n / batch_tris) when the counts allow). */
-static brt_result partition_split(partition *p, const float *centroids, uint32_t first,
-                                  uint32_t count, uint32_t batch_tris)
-{
-    uint32_t parts, k;
-    brt_result r;
-    if (count <= batch_tris) return partition_push(p, first, count);
-    parts = (uint32_t)(((uint64_t)count + batch_tris - 1) / batch_tris);
-    k = (uint32_t)(((uint64_t)parts / 2) * batch_tris);
-    median_split(centroids, p->order + first, count, k);
-    /* Both sides are smaller and k is near the middle: depth O(log n). */
-    r = partition_split(p, centroids, first, k, batch_tris);
-    if (r == BRT_OK) r = partition_split(p, centroids, first + k, count - k, batch_tris);
-    return r;
-}
-
-/* ---- the top-level BVH over batching points and its restartable walk -- */
-/*
-** A 4-wide BVH over the batching points' boxes (the paper's top level is
-** 4-wide too).  It lives here, beside the partition whose median split it
-** shares, and tests boxes with bvh.c's brt_box_span4 so that its distances
-** agree bit for bit with the triangle BVHs.
-**
-** A ray's place in its walk is one 8-byte key (t_entry, id): the entry
-** distance into the last batching point it was queued at, and that
-** point's id.  A walk (top_walk) visits the batching points the ray enters
-** no later than tlimit in key order, best first: a min-heap holds the
-** subtrees and batching points met so far by their entry distance, and
-** the nearest is expanded or, for a batching point, handed out.  Exact,
-** because a box inside another is entered no sooner (the box test is
-** monotone in the box bounds), and at equal distances subtrees come out
-** before batching points, and batching points by id.  One walk serves a
-** ray for as long as it passes batching points in memory or culled by
-** their proxies; queued, it keeps only its key, and the next walk starts
-** again at the root, skipping
-**  (a) subtrees the ray leaves before the key's t: every box inside is
-**      entered no later than it is left, so its key would be smaller,
-** and the batching points at or before the key.  (It replaced a fresh
-** descent from the root per batching point: an in-core landscape render
-** went from 40.0 G to 30.2 G instructions; README, Batched mode.)
-*/
-#define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
-#define TOP_LEAF 0x80000000u    /* child code of batching point (code & ~TOP_LEAF) */
-#define TOP_NODE_BYTES 112
-
-typedef struct top_node {
-    float box[6][4];            /* child boxes: rows min x, y, z, max x, y, z; one lane
-                                ** per child (grown in memory; brt_box_span4's layout) */
-    uint32_t child[4];          /* node index (> own index), TOP_LEAF|id, TOP_EMPTY */
-} top_node;
-
-typedef struct walk_key {
-    float t;
-    uint32_t id;                /* TOP_EMPTY before the first batching point */
-} walk_key;
-
-static int key_after(float t, uint32_t id, walk_key last)
-{
-    return last.id == TOP_EMPTY || t > last.t || (t == last.t && id > last.id);
-}
-
-typedef struct top_builder {
-    const float *boxes;         /* 6 floats per batching point: lo, hi */
-    const float *centres;       /* 3 floats per batching point */
-    top_node *nodes;
-    uint32_t count;
-} top_builder;
-
-static void top_lane_clear(top_node *node, int lane)
-{
-    int a;
-    node->child[lane] = TOP_EMPTY;
-    for (a = 0; a < 3; a++) {
-        node->box[a][lane] = INFINITY;
-        node->box[3 + a][lane] = -INFINITY;
-    }
-}
-
-static void top_lane_grow(top_node *node, int lane, const float *box)
-{
-    int a;
-    for (a = 0; a < 3; a++) {
-        if (box[a] < node->box[a][lane]) node->box[a][lane] = box[a];
-        if (box[3 + a] > node->box[3 + a][lane]) node->box[3 + a][lane] = box[3 + a];
-    }
-}
-
-static uint32_t top_build_node(top_builder *b, uint32_t *ids, uint32_t n)
-{
-    uint32_t index = b->count++, first[5], groups = 1, g, i;
-    first[0] = 0;
-    first[1] = n;
-    /* Split the largest group at its median until there are four: two
-    ** levels of a binary median split collapsed into one node. */
-    while (groups < 4) {
-        uint32_t big = 0, size;
-        for (g = 1; g < groups; g++)
-            if (first[g + 1] - first[g] > first[big + 1] - first[big]) big = g;
-        size = first[big + 1] - first[big];
-        if (size < 2) break;
-        median_split(b->centres, ids + first[big], size, size / 2);
-        memmove(first + big + 2, first + big + 1, (groups - big) * sizeof *first);
-        first[big + 1] = first[big] + size / 2;
-        groups++;
-    }
-    for (g = 0; g < 4; g++) top_lane_clear(&b->nodes[index], (int)g);
-    for (g = 0; g < groups; g++) {
-        uint32_t size = first[g + 1] - first[g];
-        uint32_t child = size == 1 ? (TOP_LEAF | ids[first[g]])
-                                   : top_build_node(b, ids + first[g], size);
-        b->nodes[index].child[g] = child;
-        for (i = first[g]; i < first[g + 1]; i++)
-            top_lane_grow(&b->nodes[index], (int)g, b->boxes + 6 * (size_t)ids[i]);
-    }
-    return index;
-}
-
-/* Builds the nodes (at most count of them: every node has two or more
-** children, except a root over a single batching point). */
-static brt_result top_build(const float *boxes, uint32_t count, top_node **nodes,
-                            uint32_t *node_count)
-{
-    top_builder b;
-    uint32_t *ids = malloc((size_t)count * sizeof *ids), i;
-    float *centres = malloc(3 * (size_t)count * sizeof *centres);
-    b.nodes = malloc((size_t)count * sizeof *b.nodes);
-    if (!ids || !centres || !b.nodes) {
-        free(ids); free(centres); free(b.nodes);
-        return BRT_ENOMEM;
-    }
-    for (i = 0; i < count; i++) {
-        int a;
-        ids[i] = i;
-        for (a = 0; a < 3; a++)
-            centres[3 * (size_t)i + a] = 0.5f * boxes[6 * (size_t)i + a] + 0.5f * boxes[6 * (size_t)i + 3 + a];
-    }
-    b.boxes = boxes;
-    b.centres = centres;
-    b.count = 0;
-    top_build_node(&b, ids, count);
-    free(ids);
-    free(centres);
-    *nodes = b.nodes;
-    *node_count = b.count;
-    return BRT_OK;
-}
-
-/* A subtree (node index) or a batching point (TOP_LEAF | id) waiting in
-** a walk, with the distance the ray enters its box. */
-typedef struct top_pending {
-    float entry;
-    uint32_t code;
-} top_pending;
-
-/* The heap holds each node and batching point at most once (check_top
-** makes sure every node has one parent), so nodes + points slots do. */
-typedef struct top_walk {
-    top_pending *heap;
-    uint32_t size;
-} top_walk;
-
-/* Heap order: nearer first; at equal entry, subtrees (codes without
-** TOP_LEAF) before batching points, batching points by id. */
-static int pending_before(top_pending a, top_pending b)
-{
-    return a.entry < b.entry || (a.entry == b.entry && a.code < b.code);
-}
-
-static void walk_push(top_walk *w, uint32_t code, float entry)
-{
-    uint32_t i = w->size++;
-    top_pending item;
-    item.entry = entry;
-    item.code = code;
-    while (i > 0 && pending_before(item, w->heap[(i - 1) / 2])) {
-        w->heap[i] = w->heap[(i - 1) / 2];
-        i = (i - 1) / 2;
-    }
-    w->heap[i] = item;
-}
-
-static top_pending walk_pop(top_walk *w)
-{
-    top_pending top = w->heap[0], last = w->heap[--w->size];
-    uint32_t i = 0;
-    for (;;) {
-        uint32_t c = 2 * i + 1;
-        if (c >= w->size) break;
-        if (c + 1 < w->size && pending_before(w->heap[c + 1], w->heap[c])) c++;
-        if (!pending_before(w->heap[c], last)) break;
-        w->heap[i] = w->heap[c];
-        i = c;
-    }
-    w->heap[i] = last;
-    return top;
-}
-
-static void top_walk_start(top_walk *w)
-{
-    w->size = 0;
-    walk_push(w, 0, -INFINITY);    /* the root node; its children get box tests */
-}
-
-/* Pushes the children of node that the ray enters no later than tlimit
-** and does not leave before the key's t, (a). */
-static void walk_expand(top_walk *w, const top_node *node, const brt_ray_prep *ray, float tlimit,
-                        walk_key key)
-{
-    float entries[4], exits[4];
-    unsigned lanes = brt_box_span4(ray, node->box, ray->tnear, tlimit, entries, exits);
-    int lane;
-    for (lane = 0; lane < 4; lane++) {
-        if (node->child[lane] == TOP_EMPTY || !(lanes & (1u << lane))) continue;
-        if (key.id != TOP_EMPTY && exits[lane] < key.t) continue;             /* (a) */
-        walk_push(w, node->child[lane], entries[lane]);
-    }
-}
-
-/* The next batching point after *key that the ray enters no later than
-** tlimit (which may have shrunk since the last call): 1 and *key updated,
-** or 0 when there is none. */
-static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep *ray, float tlimit,
-                         walk_key *key)
-{
-    while (w->size > 0 && w->heap[0].entry <= tlimit) {
-        top_pending next = walk_pop(w);
-        if (next.code & TOP_LEAF) {
-            uint32_t id = next.code & ~TOP_LEAF;
-            if (!key_after(next.entry, id, *key)) continue;
-            key->t = next.entry;
-            key->id = id;
-            return 1;
-        }
-        walk_expand(w, &nodes[next.code], ray, tlimit, *key);
+        p += n;
+        size -= (size_t)n;
+        if (offset >= 0) offset += n;
     }
     return 0;
 }
 
-/* ---- the scene file --------------------------------------------------- */
-/*
-** Layout, version 2 (all numbers little-endian; the mark is kept so
-** that a file of version 1 written on a big-endian host is named as such):
-**   header, 256 bytes:
-**     0 "BRTSCENE"  8 u32 version  12 u32 endianness mark 0x01020304
-**     16 u64 source stamp  24 u32 batch_tris  28 u32 proxy_res
-**     32 u32 batching points  36 u32 triangles  40 u32 top-level nodes
-**     44 u32 0  48 u64 geometry bytes (all blobs)
-**     56 three sections {u64 offset, u64 size, u64 checksum}:
-**        batch table, top-level nodes, DAG pool
-**     248 u64 checksum of bytes 0..247
-**   blobs: one triangle BVH per batching point (brt_bvh_blob_write), each
-**     at a multiple of SCENE_PAGE, so the cache reads whole aligned pages
-**   batch table: BATCH_ENTRY_BYTES per batching point: f32 lo[3] hi[3],
-**     u64 blob offset, u64 blob size, u64 blob checksum, u32 triangles,
-**     u32 proxy root, u32 proxy res, f32 proxy origin[3], f32 cell, u32 0
-**   top-level nodes: TOP_NODE_BYTES each (f32 lo[3][4] hi[3][4], u32 child[4])
-**   DAG pool: brt_svdag_blob_write
-** The file is padded to a multiple of SCENE_PAGE.
-*/
-#define SCENE_MAGIC "BRTSCENE"
-#define SCENE_VERSION 3u   /* 3: inner proxy roots (README "Inner proxies") */
-#define SCENE_ENDIAN_MARK 0x01020304u
-#define SCENE_HEADER_BYTES 256
-#define SCENE_PAGE 4096u
-#define BATCH_ENTRY_BYTES 80
-#define SECTION_BATCHES 0
-#define SECTION_TOP 1
-#define SECTION_DAG 2
-
-/* Inner proxies are stored at half the proxy resolution (at least 2), a
-** choice measured with make bench-inner (README, "Inner proxies"): at full
-** resolution their surface nodes, unique like the outer proxy's, doubled
-** the pool (landscape, 1M triangles: 0.64 -> 1.41 MB) and the geometry
-** budget paid for it; at a quarter they stopped too few rays. */
-static uint32_t inner_res(uint32_t proxy_res)
-{
-    return proxy_res >= 4 ? proxy_res / 2 : 2;
-}
-
-typedef struct batch_entry {
-    float lo[3], hi[3];
-    uint64_t offset, size, checksum;
-    uint32_t triangles;
-    brt_proxy proxy;
-    brt_proxy inner;            /* inner proxy; the file holds its root, its
-                                ** frame follows from the box (inner_frame) */
-} batch_entry;
-
-typedef struct section {
-    uint64_t offset, size, checksum;
-} section;
-
-static uint64_t round_up_page(uint64_t n)
-{
-    return (n + SCENE_PAGE - 1) / SCENE_PAGE * SCENE_PAGE;
-}
-
-static void batch_entry_pack(const batch_entry *b, unsigned char *p)
-{
-    int a;
-    memset(p, 0, BATCH_ENTRY_BYTES);
-    for (a = 0; a < 3; a++) {
-        put_f32(p + 4 * a, b->lo[a]);
-        put_f32(p + 12 + 4 * a, b->hi[a]);
-        put_f32(p + 60 + 4 * a, b->proxy.origin[a]);
-    }
-    put_u64(p + 24, b->offset);
-    put_u64(p + 32, b->size);
-    put_u64(p + 40, b->checksum);
-    put_u32(p + 48, b->triangles);
-    put_u32(p + 52, b->proxy.root);
-    put_u32(p + 56, b->proxy.res);
-    put_f32(p + 72, b->proxy.cell);
-    put_u32(p + 76, b->inner.root);
-}
-
-static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
-{
-    int a;
-    for (a = 0; a < 3; a++) {
-        b->lo[a] = get_f32(p + 4 * a);
-        b->hi[a] = get_f32(p + 12 + 4 * a);
-        b->proxy.origin[a] = get_f32(p + 60 + 4 * a);
-    }
-    b->offset = get_u64(p + 24);
-    b->size = get_u64(p + 32);
-    b->checksum = get_u64(p + 40);
-    b->triangles = get_u32(p + 48);
-    b->proxy.root = get_u32(p + 52);
-    b->proxy.res = get_u32(p + 56);
-    b->proxy.cell = get_f32(p + 72);
-    b->inner.root = get_u32(p + 76);
-}
-
-static void top_node_pack(const top_node *n, unsigned char *p)
-{
-    int row, lane;
-    for (row = 0; row < 6; row++)
-        for (lane = 0; lane < 4; lane++) put_f32(p + 16 * row + 4 * lane, n->box[row][lane]);
-    for (lane = 0; lane < 4; lane++) put_u32(p + 96 + 4 * lane, n->child[lane]);
-}
-
-/* In memory the boxes are kept grown for brt_box_span4 (once, at open,
-** instead of at every test); the file holds them exact. */
-static void top_node_pad(top_node *n)
-{
-    int lane, a;
-    for (lane = 0; lane < 4; lane++) {
-        float lo[3], hi[3];
-        if (n->child[lane] == TOP_EMPTY) continue;
-        for (a = 0; a < 3; a++) {
-            lo[a] = n->box[a][lane];
-            hi[a] = n->box[3 + a][lane];
-        }
-        brt_box_pad(lo, hi, lo, hi);
-        for (a = 0; a < 3; a++) {
-            n->box[a][lane] = lo[a];
-            n->box[3 + a][lane] = hi[a];
-        }
-    }
-}
-
-static void top_node_unpack(const unsigned char *p, top_node *n)
-{
-    int row, lane;
-    for (row = 0; row < 6; row++)
-        for (lane = 0; lane < 4; lane++) n->box[row][lane] = get_f32(p + 16 * row + 4 * lane);
-    for (lane = 0; lane < 4; lane++) n->child[lane] = get_u32(p + 96 + 4 * lane);
-}
-
-/* What the header says, unpacked. */
-typedef struct scene_header {
-    uint64_t stamp, geometry_bytes;
-    uint32_t batch_tris, proxy_res, batch_count, triangle_count, top_node_count;
-    section sections[3];
-} scene_header;
-
-static void header_pack(const scene_header *h, unsigned char *p)
-{
-    int s;
-    memset(p, 0, SCENE_HEADER_BYTES);
-    memcpy(p, SCENE_MAGIC, 8);
-    put_u32(p + 8, SCENE_VERSION);
-    put_u32(p + 12, SCENE_ENDIAN_MARK);
-    put_u64(p + 16, h->stamp);
-    put_u32(p + 24, h->batch_tris);
-    put_u32(p + 28, h->proxy_res);
-    put_u32(p + 32, h->batch_count);
-    put_u32(p + 36, h->triangle_count);
-    put_u32(p + 40, h->top_node_count);
-    put_u64(p + 48, h->geometry_bytes);
-    for (s = 0; s < 3; s++) {
-        put_u64(p + 56 + 24 * s, h->sections[s].offset);
-        put_u64(p + 64 + 24 * s, h->sections[s].size);
-        put_u64(p + 72 + 24 * s, h->sections[s].checksum);
-    }
-    put_u64(p + 248, brt_checksum64(p, 248));
-}
-
-/* Checks magic, endianness, version and checksum, in that order, so the
-** message names the first thing that is wrong. */
-static brt_result header_unpack(const char *path, const unsigned char *p, scene_header *h,
-                                brt_error *err)
-{
-    uint32_t mark = get_u32(p + 12);
-    int s;
-    if (memcmp(p, SCENE_MAGIC, 8) != 0)
-        return brt_fail(err, BRT_EFORMAT, "%s: not a batchrt scene file (bad magic)", path);
-    if (mark != SCENE_ENDIAN_MARK)
-        return brt_fail(err, BRT_EFORMAT, "%s: a version-1 scene file written on a machine of the other "
-                        "byte order (delete the file to rebuild it)", path);
-    if (get_u32(p + 8) != SCENE_VERSION)
-        return brt_fail(err, BRT_EFORMAT, "%s: scene file version %u, this build reads version %u"
-                        " (delete the file to rebuild it)", path, get_u32(p + 8), SCENE_VERSION);
-    if (get_u64(p + 248) != brt_checksum64(p, 248))
-        return brt_fail(err, BRT_EFORMAT, "%s: header checksum mismatch (corrupt file)", path);
-    h->stamp = get_u64(p + 16);
-    h->batch_tris = get_u32(p + 24);
-    h->proxy_res = get_u32(p + 28);
-    h->batch_count = get_u32(p + 32);
-    h->triangle_count = get_u32(p + 36);
-    h->top_node_count = get_u32(p + 40);
-    h->geometry_bytes = get_u64(p + 48);
-    for (s = 0; s < 3; s++) {
-        h->sections[s].offset = get_u64(p + 56 + 24 * s);
-        h->sections[s].size = get_u64(p + 64 + 24 * s);
-        h->sections[s].checksum = get_u64(p + 72 + 24 * s);
-    }
-    return BRT_OK;
-}
-
-static brt_result write_at(int fd, const void *data, size_t size, uint64_t offset,
-                           const char *path, brt_error *err)
-{
-    if (write_fully(fd, data, size, (int64_t)offset) != 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno));
-    return BRT_OK;
-}
-
-/* ---- building a scene file out of core ------------------------------- */
-/*
-** The build never holds the triangles: it spills them to a temporary file
-** and works through it in buckets of at most bucket_tris triangles.
-**
-**   pass A  runs the triangle source once: each triangle becomes a 40-byte
-**           record (its 9 floats and its number) appended to the spill
-**           file in stream order, and the bounds of the centroids grow.
-**           (One run: parsing an OBJ costs far more than reading 40 bytes
-**           per triangle back, so the source is not run again.)
-**   split   a run of records larger than a bucket is split spatially: a
-**           histogram of its centroids over 2^21 Morton cells (7 bits per
-**           axis of its own centroid bounds) is counted in one read, cells
-**           are packed in Morton order into children of at most
-**           bucket_tris triangles (a cell with more is a child on its own),
-**           and a second read scatters each record to its child's region,
-**           appended to the spill file (the counts give every region its
-**           place, so no chunk lists are needed), through one write buffer
-**           per child.  Children larger than a bucket are split again; a
-**           run whose records all fall in one cell (equal centroids, or
-**           bounds that overflow) is cut in record order instead, so every
-**           split makes progress.  A child larger than a bucket is one
-**           cell, whose centroids span at most 1/128 of its parent's extent
-**           per axis, so within about 40 levels (floats span 2^277) a run
-**           is small enough or flat.  Records keep stream order in every
-**           region, so the number order of a bucket is its record order.
-**   build   a bucket is read whole and split in memory by the median
-**           splits above into batching points of at most batch_tris
-**           triangles; each gets its BVH blob, written at the next page of
-**           the scene file, its proxy in the shared DAG, and a table entry.
-**           A mesh that fits one bucket is partitioned exactly as a whole
-**           in-memory median split would (the same file as before).
-**   tables  the top-level BVH, the batch table and the DAG, then the header
-**           (format unchanged).
-**
-** Held in memory, whatever the triangle count: the histogram (8 MiB), one
-** bucket (bucket_tris records, centroids and ids: 56 bytes each, 86 MiB at
-** most by default), one batching point's arrays and BVH build, one proxy
-** grid, the scatter buffers (16 MiB together) and one read chunk; plus the
-** per-point tables (batch entries, boxes, the DAG) and, in pass A, what the
-** source holds (a mesh file's vertex positions).  The spill file takes 40
-** bytes per triangle for pass A and 40 more per split level (usually one).
-** It is unlinked as soon as it is created, so it disappears with its
-** descriptor on success, on failure, on interrupt and if the process dies.
-** The interrupt flag is polled once per chunk and per batching point.
-*/
-#define CELL_BITS 7                                 /* per axis */
-#define CELL_COUNT (1u << (3 * CELL_BITS))          /* Morton cells of a split */
-#define NO_CHILD 0xFFFFFFFFu
-#define BUCKET_BYTES ((size_t)64 << 20)             /* records of one bucket */
-#define SCATTER_BYTES ((size_t)16 << 20)            /* all write buffers of a split */
-#define SPILL_CHUNK 16384u                          /* records per read and buffer */
-
-typedef struct spill_record {
-    float v[9];                 /* the corners v0, v1, v2 */
-    uint32_t prim;              /* the triangle's number */
-} spill_record;
-
-typedef char spill_record_has_no_padding[sizeof(spill_record) == 40 ? 1 : -1];
-
-/* A run of records in the spill file and the bounds of their centroids. */
-typedef struct bucket {
-    uint64_t first;             /* index of its first record */
-    uint32_t count;
-    float lo[3], hi[3];
-} bucket;
-
-/* A bucket being written: records go through buf (cap of them). */
-typedef struct spill_out {
-    bucket b;                   /* count: records written or buffered */
-    spill_record *buf;
-    uint32_t held, cap;
-} spill_out;
-
-static void scene_options_resolve(const brt_scene_options *opt, uint32_t *batch_tris,
-                                  uint32_t *res)
-{
-    *batch_tris = opt && opt->batch_tris ? opt->batch_tris : 100000;
-    *res = opt && opt->proxy_res ? opt->proxy_res : 128;
-}
-
-/* Everything written while a scene file is built. */
-typedef struct scene_writer {
-    const char *path;           /* final name, for messages */
-    int fd;
-    uint64_t offset;            /* next free, page-aligned */
-    uint32_t res;
-    brt_svdag *dag;
-    batch_entry *batches;       /* the per-point tables, grown as points come */
-    float *boxes;               /* 6 floats per batching point */
-    uint32_t batch_count, batch_cap;
-    uint64_t geometry_bytes;
-} scene_writer;
-
-typedef struct scene_builder {
-    scene_writer w;
-    int spill_fd;
-    uint64_t spill_end;         /* records in the spill file */
-    const volatile sig_atomic_t *interrupt;
-    uint32_t batch_tris, bucket_tris, chunk;
-    spill_out root;             /* pass A's output: the whole stream */
-    spill_record *read_buf;     /* chunk records */
-    uint32_t *cells;            /* CELL_COUNT: a histogram, then each cell's child */
-    spill_record *records;      /* one bucket in memory, with its centroids */
-    float *centroids;           /* and median split order */
-    uint32_t *order;
-    partition points;           /* the bucket's batching points */
-    uint32_t *indices;          /* 0, 1, 2, ...: a point's triangles are its corners */
-    pool pool;                  /* brt_scene_options.threads */
-    struct point_work *work;    /* a window of points built at once */
-    uint32_t window;
-    brt_solids *solids;         /* the bucket's closed components (svdag.c) */
-} scene_builder;
-
-static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
-                             brt_read_fn read_fn, void *user, uint64_t *bytes_read,
-                             const char *path, brt_error *err);
-static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user);
-
-static brt_result poll_interrupt(const scene_builder *b, brt_error *err)
-{
-    if (b->interrupt && *b->interrupt)
-        return brt_fail(err, BRT_EINTR, "%s: build interrupted", b->w.path);
-    return BRT_OK;
-}
-
-static void centroid(const spill_record *r, float c[3])
-{
-    int a;
-    for (a = 0; a < 3; a++) c[a] = (r->v[a] + r->v[3 + a] + r->v[6 + a]) / 3.0f;
-}
-
-static void bounds_clear(float lo[3], float hi[3])
-{
-    int a;
-    for (a = 0; a < 3; a++) {
-        lo[a] = INFINITY;
-        hi[a] = -INFINITY;
-    }
-}
-
-static void bounds_grow(float lo[3], float hi[3], const float p[3])
-{
-    int a;
-    for (a = 0; a < 3; a++) {
-        if (p[a] < lo[a]) lo[a] = p[a];
-        if (p[a] > hi[a]) hi[a] = p[a];
-    }
-}
-
-/* ---- the spill file ---- */
-
-static brt_result spill_write(scene_builder *b, const spill_record *recs, uint32_t n,
-                              uint64_t first, brt_error *err)
-{
-    if (write_fully(b->spill_fd, recs, (size_t)n * sizeof *recs,
-                    (int64_t)(first * sizeof *recs)) != 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", b->w.path, strerror(errno));
-    return BRT_OK;
-}
-
-static brt_result spill_read(scene_builder *b, spill_record *recs, uint32_t n, uint64_t first,
-                             brt_error *err)
-{
-    return read_fully(b->spill_fd, recs, (size_t)n * sizeof *recs, first * sizeof *recs,
-                      pread_reader, NULL, NULL, b->w.path, err);
-}
-
-/* Writes the buffered records at the end of the bucket's region. */
-static brt_result spill_flush(scene_builder *b, spill_out *o, brt_error *err)
-{
-    brt_result r = spill_write(b, o->buf, o->held, o->b.first + o->b.count - o->held, err);
-    o->held = 0;
-    return r;
-}
-
-static brt_result spill_put(scene_builder *b, spill_out *o, const spill_record *rec,
-                            const float c[3], brt_error *err)
-{
-    o->buf[o->held++] = *rec;
-    o->b.count++;
-    bounds_grow(o->b.lo, o->b.hi, c);
-    return o->held == o->cap ? spill_flush(b, o, err) : BRT_OK;
-}
-
-/* Pass A's consumer: the chunk in stream order onto the root bucket. */
-static brt_result spill_stream(void *user, const float *corners, uint32_t count, uint32_t first,
-                               brt_error *err)
-{
-    scene_builder *b = user;
-    uint32_t i;
-    brt_result r = poll_interrupt(b, err);
-    if (r != BRT_OK) return r;
-    if (first != b->root.b.count)
-        return brt_fail(err, BRT_EARG, "%s: the triangle source numbered a chunk %u, not %u",
-                        b->w.path, first, b->root.b.count);
-    if (count > MAX_COUNT - b->root.b.count)
-        return brt_fail(err, BRT_EARG, "%s: more than %u triangles", b->w.path, MAX_COUNT);
-    for (i = 0; i < count && r == BRT_OK; i++) {
-        spill_record rec;
-        float c[3];
-        memcpy(rec.v, corners + 9 * (size_t)i, sizeof rec.v);
-        rec.prim = first + i;
-        centroid(&rec, c);
-        r = spill_put(b, &b->root, &rec, c, err);
-    }
-    return r;
-}
-
-/* Calls fn on every record of bucket in order, a chunk at a time. */
-typedef brt_result (*record_fn)(scene_builder *b, const spill_record *rec, void *user,
-                                brt_error *err);
-
-static brt_result for_each_record(scene_builder *b, const bucket *bk, record_fn fn, void *user,
-                                  brt_error *err)
-{
-    uint32_t done = 0, i;
-    brt_result r = BRT_OK;
-    while (done < bk->count && r == BRT_OK) {
-        uint32_t n = bk->count - done < b->chunk ? bk->count - done : b->chunk;
-        if ((r = poll_interrupt(b, err)) != BRT_OK) break;
-        r = spill_read(b, b->read_buf, n, bk->first + done, err);
-        for (i = 0; i < n && r == BRT_OK; i++) r = fn(b, &b->read_buf[i], user, err);
-        done += n;
-    }
-    return r;
-}
-
-/* ---- splitting a bucket larger than memory allows ---- */
-
-/* Quantises centroids in a bucket's centroid bounds: 2^bits cells per
-** axis, bits = CELL_BITS, or fewer for a bucket of fewer than 2^(3 bits)
-** / 4 records (more cells than records would only cost time: the small
-** buckets of the tests).  A flat axis, an extent that overflows or a NaN
-** lands in cell 0, so the code is always in range. */
-typedef struct cell_frame {
-    float lo[3], scale[3];
-    int bits;
-    uint32_t cells;             /* 2^(3 bits) */
-} cell_frame;
-
-static void cell_frame_init(const bucket *bk, cell_frame *f)
-{
-    int a;
-    for (f->bits = CELL_BITS; f->bits > 1 && (1u << (3 * f->bits)) / 4 > bk->count; f->bits--) {}
-    f->cells = 1u << (3 * f->bits);
-    for (a = 0; a < 3; a++) {
-        float extent = bk->hi[a] - bk->lo[a];
-        f->lo[a] = bk->lo[a];
-        f->scale[a] = extent > 0.0f ? (float)(1u << f->bits) / extent : 0.0f;
-    }
-}
-
-/* Spreads the low 10 bits of v to every third bit (bit i to bit 3i). */
-static uint32_t spread3(uint32_t v)
-{
-    v = (v | (v << 16)) & 0x030000FFu;
-    v = (v | (v << 8)) & 0x0300F00Fu;
-    v = (v | (v << 4)) & 0x030C30C3u;
-    return (v | (v << 2)) & 0x09249249u;
-}
-
-/* The Morton code of the cell (bits of x, y, z interleaved). */
-static uint32_t cell_of(const cell_frame *f, const spill_record *rec)
-{
-    float c[3];
-    uint32_t q[3];
-    int a;
-    centroid(rec, c);
-    for (a = 0; a < 3; a++) {
-        float x = (c[a] - f->lo[a]) * f->scale[a];
-        q[a] = x > 0.0f ? (x < (float)(1u << f->bits) ? (uint32_t)x : (1u << f->bits) - 1) : 0;
-    }
-    return spread3(q[0]) | spread3(q[1]) << 1 | spread3(q[2]) << 2;
-}
-
-typedef struct split_state {
-    cell_frame frame;
-    spill_out *children;
-} split_state;
-
-static brt_result count_cell(scene_builder *b, const spill_record *rec, void *user,
-                             brt_error *err)
-{
-    (void)err;
-    b->cells[cell_of(&((split_state *)user)->frame, rec)]++;
-    return BRT_OK;
-}
-
-static brt_result scatter_record(scene_builder *b, const spill_record *rec, void *user,
-                                 brt_error *err)
-{
-    split_state *s = user;
-    float c[3];
-    centroid(rec, c);
-    return spill_put(b, &s->children[b->cells[cell_of(&s->frame, rec)]], rec, c, err);
-}
-
-/* Packs the histogram's cells in Morton order into children of at most
-** bucket_tris records (a fuller cell alone), turning each cell's count
-** into its child's index; the children's regions follow the spill file's
-** end.  Returns the number of children (*planned their sizes). */
-static uint32_t plan_children(scene_builder *b, uint32_t cells, uint32_t *sizes)
-{
-    uint32_t cell, children = 0, open = 0;
-    for (cell = 0; cell < cells; cell++) {
-        uint32_t n = b->cells[cell];
-        if (n == 0) {
-            b->cells[cell] = NO_CHILD;
-            continue;
-        }
-        if (children == 0 || open + n > b->bucket_tris) {
-            sizes[children++] = 0;
-            open = 0;
-        }
-        open += n;
-        sizes[children - 1] += n;
-        b->cells[cell] = children - 1;
-    }
-    return children;
-}
-
-static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *err);
-static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *err);
-
-/* A bucket whose records share one cell: runs of bucket_tris in record order. */
-static brt_result cut_in_order(scene_builder *b, const bucket *bk, brt_error *err)
-{
-    bucket part = *bk;
-    uint32_t done;
-    brt_result r = BRT_OK;
-    for (done = 0; done < bk->count && r == BRT_OK; done += part.count) {
-        part.first = bk->first + done;
-        part.count = bk->count - done < b->bucket_tris ? bk->count - done : b->bucket_tris;
-        r = build_bucket(b, &part, err);
-    }
-    return r;
-}
-
-/* Scatters the bucket into its planned children, then processes them. */
-static brt_result scatter(scene_builder *b, const bucket *bk, split_state *s, const uint32_t *sizes,
-                          uint32_t children, brt_error *err)
-{
-    uint32_t cap = (uint32_t)(SCATTER_BYTES / sizeof(spill_record) / children), i;
-    spill_record *bufs;
-    brt_result r = BRT_OK;
-    if (cap > b->chunk) cap = b->chunk;
-    if (cap == 0) cap = 1;
-    bufs = malloc((size_t)children * cap * sizeof *bufs);
-    if (!bufs) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
-    for (i = 0; i < children; i++) {
-        spill_out *o = &s->children[i];
-        o->b.first = b->spill_end;
-        o->b.count = 0;
-        bounds_clear(o->b.lo, o->b.hi);
-        o->buf = bufs + (size_t)i * cap;
-        o->held = 0;
-        o->cap = cap;
-        b->spill_end += sizes[i];
-    }
-    r = for_each_record(b, bk, scatter_record, s, err);
-    for (i = 0; i < children && r == BRT_OK; i++) r = spill_flush(b, &s->children[i], err);
-    free(bufs);
-    for (i = 0; i < children && r == BRT_OK; i++) r = process_bucket(b, &s->children[i].b, err);
-    return r;
-}
-
-static brt_result split_bucket(scene_builder *b, const bucket *bk, brt_error *err)
-{
-    split_state s;
-    uint32_t *sizes, largest = 0, i;
-    brt_result r;
-    if (!b->cells && !(b->cells = malloc(CELL_COUNT * sizeof *b->cells)))
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
-    cell_frame_init(bk, &s.frame);
-    memset(b->cells, 0, s.frame.cells * sizeof *b->cells);
-    r = for_each_record(b, bk, count_cell, &s, err);
-    if (r != BRT_OK) return r;
-    for (i = 0; i < s.frame.cells; i++)
-        if (b->cells[i] > largest) largest = b->cells[i];
-    if (largest == bk->count) return cut_in_order(b, bk, err);
-    sizes = malloc(((size_t)bk->count / b->bucket_tris * 2 + 2) * sizeof *sizes);
-    s.children = sizes ? malloc(((size_t)bk->count / b->bucket_tris * 2 + 2) * sizeof *s.children) : NULL;
-    if (!s.children) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
-    else r = scatter(b, bk, &s, sizes, plan_children(b, s.frame.cells, sizes), err);
-    free(sizes);
-    free(s.children);
-    return r;
-}
-
-static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *err)
-{
-    return bk->count <= b->bucket_tris ? build_bucket(b, bk, err) : split_bucket(b, bk, err);
-}
-
-/* ---- batching points ---- */
-
-/* A new entry of the per-point tables. */
-static batch_entry *batch_append(scene_writer *w)
-{
-    if (w->batch_count == w->batch_cap) {
-        size_t cap = w->batch_cap ? 2 * (size_t)w->batch_cap : 64;
-        batch_entry *batches = realloc(w->batches, cap * sizeof *batches);
-        float *boxes;
-        if (batches) w->batches = batches;
-        boxes = batches ? realloc(w->boxes, cap * 6 * sizeof *boxes) : NULL;
-        if (!boxes || cap > MAX_COUNT) return NULL;
-        w->boxes = boxes;
-        w->batch_cap = (uint32_t)cap;
-    }
-    memset(&w->batches[w->batch_count], 0, sizeof *w->batches);
-    return &w->batches[w->batch_count++];
-}
-
-/*
-** Threads: a bucket's points are built a window at a time (two per
-** thread).  Each point is built whole by one thread into a work slot of
-** its own -- its triangles, box, BVH blob and checksum, and its proxy's
-** voxel grid -- and the caller writes the blobs and adds the grids to the
-** shared DAG in point order, each as soon as the points before it are
-** written (pool_run's commit).  So blob offsets and the DAG's nodes, whose
-** numbers follow the order of the adds, are those of one thread.
-*/
-typedef struct point_work {
-    float *corners;             /* its triangles: 9 floats each */
-    uint32_t *prims;            /* and the number of each */
-    uint32_t first, count;      /* its records: order[first .. first + count) */
-    float lo[3], hi[3];
-    void *blob;                 /* its BVH, as stored */
-    size_t size;
-    uint64_t checksum;
-    brt_grid grid;              /* its proxy's voxels */
-    brt_result bvh_result, grid_result;
-    brt_grid inner;             /* its inner proxy's voxels (svdag.c) */
-} point_work;
-
-/* Builds one point in its slot (any thread: reads the bucket only). */
-static void point_build(const scene_builder *b, point_work *pw)
-{
-    brt_bvh *bvh = NULL;
-    uint32_t i;
-    bounds_clear(pw->lo, pw->hi);
-    for (i = 0; i < pw->count; i++) {
-        const spill_record *rec = &b->records[b->order[pw->first + i]];
-        memcpy(pw->corners + 9 * (size_t)i, rec->v, sizeof rec->v);
-        pw->prims[i] = rec->prim;
-        bounds_grow(pw->lo, pw->hi, rec->v);
-        bounds_grow(pw->lo, pw->hi, rec->v + 3);
-        bounds_grow(pw->lo, pw->hi, rec->v + 6);
-    }
-    pw->blob = NULL;
-    pw->bvh_result = brt_bvh_build(pw->corners, b->indices, pw->count, pw->prims, &bvh);
-    if (pw->bvh_result == BRT_OK) {
-        pw->size = brt_bvh_blob_size(bvh);
-        pw->blob = calloc(1, pw->size ? pw->size : 1);
-        if (pw->blob) brt_bvh_blob_write(bvh, pw->blob);
-        if (pw->blob) pw->checksum = brt_checksum64(pw->blob, pw->size);
-        brt_bvh_free(bvh);
-    }
-    pw->grid_result = brt_grid_init(&pw->grid, pw->lo, pw->hi, b->w.res);
-    if (pw->grid_result == BRT_OK)
-        pw->grid_result = brt_voxelize(&pw->grid, pw->corners, b->indices, pw->count);
-    pw->inner.bits = NULL;
-    if (pw->grid_result == BRT_OK)
-        pw->grid_result = brt_grid_init(&pw->inner, pw->lo, pw->hi, inner_res(b->w.res));
-    if (pw->grid_result == BRT_OK)
-        pw->grid_result = brt_voxelize_inner(&pw->inner, b->solids);
-}
-
-/* Writes one built point: its blob at the next page, its table entry and
-** box, its proxy added to the shared pool (the caller, in point order). */
-static brt_result point_write(scene_builder *b, point_work *pw, brt_error *err)
-{
-    scene_writer *w = &b->w;
-    batch_entry *e;
-    brt_result r = poll_interrupt(b, err);
-    if (r != BRT_OK) return r;
-    if (pw->bvh_result != BRT_OK)
-        return brt_fail(err, pw->bvh_result, "%s: building a batching point's BVH: %s",
-                        w->path, brt_result_string(pw->bvh_result));
-    if (!pw->blob || !(e = batch_append(w))) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
-    memcpy(e->lo, pw->lo, sizeof e->lo);
-    memcpy(e->hi, pw->hi, sizeof e->hi);
-    e->triangles = pw->count;
-    e->size = pw->size;
-    e->checksum = pw->checksum;
-    e->offset = w->offset;
-    if ((r = write_at(w->fd, pw->blob, pw->size, e->offset, w->path, err)) != BRT_OK) return r;
-    w->offset = round_up_page(e->offset + e->size);
-    w->geometry_bytes += e->size;
-    memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1), e->lo, 3 * sizeof(float));
-    memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1) + 3, e->hi, 3 * sizeof(float));
-    r = pw->grid_result;
-    if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->grid, &e->proxy);
-    if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->inner, &e->inner);
-    if (r != BRT_OK) return brt_fail(err, r, "%s: building a proxy: %s", w->path, brt_result_string(r));
-    return BRT_OK;
-}
-
-typedef struct window_job {
-    scene_builder *b;
-    brt_result result;
-    brt_error *err;
-} window_job;
-
-static void window_build(void *ctx, unsigned thread, size_t first, size_t end)
-{
-    const window_job *j = ctx;
-    size_t k;
-    (void)thread;
-    for (k = first; k < end; k++) point_build(j->b, &j->b->work[k]);
-}
-
-static void window_write(void *ctx, size_t first, size_t end)
-{
-    window_job *j = ctx;
-    size_t k;
-    for (k = first; k < end; k++) {
-        point_work *pw = &j->b->work[k];
-        if (j->result == BRT_OK) j->result = point_write(j->b, pw, j->err);
-        free(pw->blob);
-        pw->blob = NULL;
-        brt_grid_free(&pw->grid);
-        brt_grid_free(&pw->inner);
-    }
-}
-
-/* A bucket that fits in memory: read whole, split by medians into
-** batching points (ties by record order, which is number order), built
-** a window at a time.  Its closed components are found over the whole
-** bucket, so a solid that batching points cut still gives each of them
-** inner voxels (svdag.c, "Inner proxies"). */
-static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *err)
-{
-    uint32_t i, k, m;
-    window_job j;
-    brt_result r = spill_read(b, b->records, bk->count, bk->first, err);
-    if (r != BRT_OK) return r;
-    for (i = 0; i < bk->count; i++) {
-        centroid(&b->records[i], b->centroids + 3 * (size_t)i);
-        b->order[i] = i;
-    }
-    b->points.count = 0;
-    b->points.order = b->order;
-    if (partition_split(&b->points, b->centroids, 0, bk->count, b->batch_tris) != BRT_OK ||
-        brt_solids_build(b->records[0].v, sizeof *b->records / sizeof(float), bk->count,
-                         &b->solids) != BRT_OK)
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
-    j.b = b;
-    j.err = err;
-    j.result = BRT_OK;
-    for (i = 0; i < b->points.count && j.result == BRT_OK; i += m) {
-        m = b->points.count - i < b->window ? b->points.count - i : b->window;
-        for (k = 0; k < m; k++) {
-            b->work[k].first = b->points.ranges[i + k].first;
-            b->work[k].count = b->points.ranges[i + k].count;
-        }
-        pool_run(&b->pool, window_build, window_write, &j, m, 1);
-    }
-    brt_solids_free(b->solids);
-    b->solids = NULL;
-    return j.result;
-}
-
-/* ---- the file's tables ---- */
-
-/* Writes a section at the next page and fills in its table entry. */
-static brt_result write_section(scene_writer *w, const void *data, size_t size, section *s,
-                                brt_error *err)
-{
-    s->offset = w->offset;
-    s->size = size;
-    s->checksum = brt_checksum64(data, size);
-    w->offset = round_up_page(w->offset + size);
-    return write_at(w->fd, data, size, s->offset, w->path, err);
-}
-
-/* The batch table, the top-level nodes and the DAG pool, then the header. */
-static brt_result write_tables(scene_writer *w, scene_header *h, brt_error *err)
-{
-    size_t top_bytes, dag_bytes, table_bytes = (size_t)h->batch_count * BATCH_ENTRY_BYTES;
-    top_node *nodes = NULL;
-    unsigned char *buf, header[SCENE_HEADER_BYTES];
-    uint32_t i;
-    brt_result r = top_build(w->boxes, h->batch_count, &nodes, &h->top_node_count);
-    if (r != BRT_OK) return brt_fail(err, r, "%s: out of memory", w->path);
-    top_bytes = (size_t)h->top_node_count * TOP_NODE_BYTES;
-    dag_bytes = brt_svdag_blob_size(w->dag);
-    buf = malloc(table_bytes + top_bytes + dag_bytes + 1);
-    if (!buf) {
-        free(nodes);
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
-    }
-    for (i = 0; i < h->batch_count; i++) batch_entry_pack(&w->batches[i], buf + (size_t)i * BATCH_ENTRY_BYTES);
-    for (i = 0; i < h->top_node_count; i++) top_node_pack(&nodes[i], buf + table_bytes + (size_t)i * TOP_NODE_BYTES);
-    brt_svdag_blob_write(w->dag, buf + table_bytes + top_bytes);
-    free(nodes);
-    r = write_section(w, buf, table_bytes, &h->sections[SECTION_BATCHES], err);
-    if (r == BRT_OK) r = write_section(w, buf + table_bytes, top_bytes, &h->sections[SECTION_TOP], err);
-    if (r == BRT_OK) r = write_section(w, buf + table_bytes + top_bytes, dag_bytes, &h->sections[SECTION_DAG], err);
-    free(buf);
-    if (r != BRT_OK) return r;
-    /* Pad to whole pages so the cache's page-rounded reads stay in the file. */
-    if (ftruncate(w->fd, (off_t)w->offset) != 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", w->path, strerror(errno));
-    header_pack(h, header);
-    return write_at(w->fd, header, sizeof header, 0, w->path, err);
-}
-
-/* ---- the build ---- */
-
-/* The bucket arrays, sized for the largest bucket this stream can have. */
-static brt_result builder_arrays(scene_builder *b, brt_error *err)
-{
-    size_t most = b->root.b.count < b->bucket_tris ? b->root.b.count : b->bucket_tris, i;
-    size_t point = most < b->batch_tris ? most : b->batch_tris;
-    uint32_t k;
-    b->records = malloc(most * sizeof *b->records);
-    b->centroids = malloc(3 * most * sizeof *b->centroids);
-    b->order = malloc(most * sizeof *b->order);
-    b->indices = malloc(3 * point * sizeof *b->indices);
-    b->window = 2 * b->pool.count;
-    b->work = calloc(b->window, sizeof *b->work);
-    if (!b->records || !b->centroids || !b->order || !b->indices || !b->work)
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
-    for (k = 0; k < b->window; k++) {
-        b->work[k].corners = malloc(9 * point * sizeof *b->work[k].corners);
-        b->work[k].prims = malloc(point * sizeof *b->work[k].prims);
-        if (!b->work[k].corners || !b->work[k].prims)
-            return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
-    }
-    for (i = 0; i < 3 * point; i++) b->indices[i] = (uint32_t)i;
-    return BRT_OK;
-}
-
-/* Pass A, the buckets, the tables. */
-static brt_result build_passes(scene_builder *b, const brt_triangle_source *source,
-                               scene_header *h, brt_error *err)
-{
-    brt_result r;
-    b->root.cap = b->chunk;
-    b->root.buf = b->read_buf;
-    bounds_clear(b->root.b.lo, b->root.b.hi);
-    r = source->run(source->user, spill_stream, b, err);
-    if (r == BRT_OK) r = spill_flush(b, &b->root, err);
-    if (r != BRT_OK) return r;
-    if (b->root.b.count == 0)
-        return brt_fail(err, BRT_EARG, "%s: the mesh has no triangles", b->w.path);
-    b->spill_end = b->root.b.count;
-    if ((r = builder_arrays(b, err)) != BRT_OK) return r;
-    if ((r = brt_svdag_create(&b->w.dag)) != BRT_OK)
-        return brt_fail(err, r, "%s: out of memory", b->w.path);
-    b->w.offset = SCENE_PAGE;
-    r = process_bucket(b, &b->root.b, err);
-    if (r != BRT_OK) return r;
-    h->batch_count = b->w.batch_count;
-    h->triangle_count = b->root.b.count;
-    h->geometry_bytes = b->w.geometry_bytes;
-    return write_tables(&b->w, h, err);
-}
-
-static void builder_free(scene_builder *b)
-{
-    uint32_t k;
-    if (b->spill_fd >= 0) close(b->spill_fd);
-    free(b->read_buf);
-    free(b->cells);
-    free(b->records);
-    free(b->centroids);
-    free(b->order);
-    free(b->points.ranges);
-    free(b->indices);
-    for (k = 0; b->work && k < b->window; k++) {
-        free(b->work[k].corners);
-        free(b->work[k].prims);
-    }
-    free(b->work);
-    pool_free(&b->pool);
-    brt_svdag_free(b->w.dag);
-    free(b->w.batches);
-    free(b->w.boxes);
-}
-
-static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
-                               const char *scene_path, brt_error *err)
-{
-    uint32_t cap = opt && opt->test_bucket_tris ? opt->test_bucket_tris
-                                                 : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
-    char spill_path[4096];
-    memset(b, 0, sizeof *b);
-    b->spill_fd = b->w.fd = -1;
-    b->w.path = scene_path;
-    b->interrupt = opt ? opt->interrupt : NULL;
-    pool_init(&b->pool, opt ? opt->threads : 0);
-    scene_options_resolve(opt, &b->batch_tris, &b->w.res);
-    if (b->w.res < 2 || b->w.res > 1024 || (b->w.res & (b->w.res - 1)) != 0)
-        return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", b->w.res);
-    b->bucket_tris = cap / b->batch_tris * b->batch_tris;
-    if (b->bucket_tris < b->batch_tris) b->bucket_tris = b->batch_tris;
-    b->chunk = opt && opt->test_spill_chunk ? opt->test_spill_chunk : SPILL_CHUNK;
-    if (is_special_file(scene_path))
-        return brt_fail(err, BRT_EARG, "%s: not a regular file", scene_path);
-    if (snprintf(spill_path, sizeof spill_path, "%s.spill.%ld", scene_path,
-                 (long)getpid()) >= (int)sizeof spill_path)
-        return brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
-    if (!(b->read_buf = malloc((size_t)b->chunk * sizeof *b->read_buf)))
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
-    /* Unlinked at once: the descriptor keeps it, and nothing can leave it
-    ** behind.  (Messages name the scene, as for the scene's own file.) */
-    b->spill_fd = open(spill_path, O_RDWR | O_CREAT | O_TRUNC, 0600);
-    if (b->spill_fd < 0)
-        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
-    unlink(spill_path);
-    return BRT_OK;
-}
-
-brt_result brt_scene_build_stream(const brt_triangle_source *source,
-                                  const brt_scene_options *opt, uint64_t source_stamp,
-                                  const char *scene_path, brt_error *err)
-{
-    scene_builder b;
-    scene_header h;
-    char tmp[4096];
-    brt_result r;
-    memset(&h, 0, sizeof h);
-    r = builder_init(&b, opt, scene_path, err);
-    if (r == BRT_OK && snprintf(tmp, sizeof tmp, "%s.tmp.%ld", scene_path, (long)getpid()) >= (int)sizeof tmp)
-        r = brt_fail(err, BRT_EARG, "%s: path too long", scene_path);
-    if (r == BRT_OK && (b.w.fd = open(tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644)) < 0)
-        r = brt_fail(err, BRT_EIO, "%s: cannot create: %s", scene_path, strerror(errno));
-    h.batch_tris = b.batch_tris;
-    h.proxy_res = b.w.res;
-    h.stamp = source_stamp;
-    if (r == BRT_OK) r = build_passes(&b, source, &h, err);
-    if (b.w.fd >= 0 && close(b.w.fd) != 0 && r == BRT_OK)
-        r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", scene_path, strerror(errno));
-    if (r == BRT_OK && rename(tmp, scene_path) != 0)
-        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", scene_path, strerror(errno));
-    if (r != BRT_OK && b.w.fd >= 0) unlink(tmp);
-    builder_free(&b);
-    return r;
-}
-
-brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
-                           uint64_t source_stamp, const char *scene_path,
-                           brt_error *err)
-{
-    brt_triangle_source source;
-    brt_mesh_memory_source(mesh, &source);
-    return brt_scene_build_stream(&source, opt, source_stamp, scene_path, err);
-}
-
-brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp, brt_error *err)
+/* Nonzero when path exists and is not a regular file (a device such as
+** /dev/null, a pipe): renaming a file over it would replace it. */
+static int is_special_file(const char *path)
 {
     struct stat st;
-    uint64_t parts[4];
-    if (stat(mesh_path, &st) != 0)
-        return brt_fail(err, BRT_EIO, "%s: %s", mesh_path, strerror(errno));
-    /* Size, modification time to the nanosecond (POSIX.1-2008) and inode,
-    ** hashed into one number: what make trusts, plus a replaced file. */
-    parts[0] = (uint64_t)st.st_size;
-    parts[1] = (uint64_t)st.st_mtim.tv_sec;
-    parts[2] = (uint64_t)st.st_mtim.tv_nsec;
-    parts[3] = (uint64_t)st.st_ino;
-    *stamp = brt_checksum64(parts, sizeof parts);
-    return BRT_OK;
+    return stat(path, &st) == 0 && !S_ISREG(st.st_mode);
 }
 
-/* ---- opening a scene file ------------------------------------------- */
-
-/* One batching point while a trace runs: where its blob is, and the page
-** cache's state for it (SQLite's pcache shape: fetch pins, release
-** unpins, only unpinned entries are evicted, least recently used first). */
-typedef struct cache_entry {
-    void *data;                 /* page-aligned copy of the blob, or NULL */
-    brt_bvh *bvh;               /* a view into data */
-    uint64_t bytes;             /* what data holds (page-rounded) */
-    uint32_t pins;
-    uint32_t lru_prev, lru_next;   /* unpinned resident entries; NO_ENTRY ends */
-} cache_entry;
-
-#define NO_ENTRY 0xFFFFFFFFu
-
-struct brt_scene {
-    char *path;
-    int fd;
-    scene_header header;
-    batch_entry *batches;
-    top_node *top;
-    brt_svdag *dag;
-    void *dag_blob;             /* the pool refers to it */
-    uint64_t file_size;
-};
-
-/* pread until done, through the given reader: short reads and EINTR are
-** retried; an error or an early end of file is reported, never ignored. */
-static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
-                             brt_read_fn read_fn, void *user, uint64_t *bytes_read,
-                             const char *path, brt_error *err)
+/* The one temporary-file-and-rename writer: everything batchrt writes
+** (ray, hit and statistics files, scene files, the programs' images, CSV
+** and mesh files) is written under "path.tmp.<pid>" and renamed over path
+** only when complete, so a failure never leaves a half-written file under
+** the final name. */
+brt_result brt_atomic_open(brt_atomic_file *f, const char *path, brt_error *err)
 {
-    unsigned char *p = buf;
-    while (size > 0) {
-        long n;
-        errno = 0;
-        n = read_fn(fd, p, size, offset, user);
-        if (n < 0 && errno == EINTR) continue;
-        if (n < 0)
-            return brt_fail(err, BRT_EIO, "%s: read at byte %llu failed: %s", path,
-                            (unsigned long long)offset, strerror(errno ? errno : EIO));
-        if (n == 0)
-            return brt_fail(err, BRT_EFORMAT, "%s: truncated (end of file at byte %llu)",
-                            path, (unsigned long long)offset);
-        if ((size_t)n > size) n = (long)size;
-        p += n;
-        size -= (size_t)n;
-        offset += (uint64_t)n;
-        if (bytes_read) *bytes_read += (uint64_t)n;
+    f->path = path;
+    f->fd = -1;
+    if (snprintf(f->tmp, sizeof f->tmp, "%s.tmp.%ld", path, (long)getpid()) >= (int)sizeof f->tmp) {
+        f->tmp[0] = 0;      /* nothing created: brt_atomic_close has nothing to do */
+        return brt_fail(err, BRT_EARG, "%s: path too long", path);
+    }
+    f->fd = open(f->tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    if (f->fd < 0) {
+        f->tmp[0] = 0;
+        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", path, strerror(errno));
     }
     return BRT_OK;
 }
 
-static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user)
+brt_result brt_atomic_close(brt_atomic_file *f, brt_result r, brt_error *err)
 {
-    (void)user;
-    return (long)pread(fd, buf, size, (off_t)offset);
+    if (f->tmp[0] == 0) return r;
+    if (f->fd >= 0 && close(f->fd) != 0 && r == BRT_OK)   /* a failed close may lose data */
+        r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", f->path, strerror(errno));
+    f->fd = -1;
+    if (r == BRT_OK && rename(f->tmp, f->path) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", f->path, strerror(errno));
+    if (r != BRT_OK) unlink(f->tmp);
+    f->tmp[0] = 0;
+    return r;
 }
 
-/* Reads a section into a fresh buffer and checks its checksum. */
-static brt_result read_section(brt_scene *s, int which, const char *what, void **out,
-                               brt_error *err)
+brt_result brt_write_file_atomic(const char *path, const void *data,
+                                 size_t size, brt_error *err)
 {
-    const section *sec = &s->header.sections[which];
-    void *buf;
+    brt_atomic_file f;
     brt_result r;
-    *out = NULL;
-    if (sec->offset > s->file_size || sec->size > s->file_size - sec->offset)
-        return brt_fail(err, BRT_EFORMAT, "%s: %s lies outside the file (truncated?)", s->path, what);
-    buf = malloc(sec->size ? sec->size : 1);
-    if (!buf) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
-    r = read_fully(s->fd, buf, sec->size, sec->offset, pread_reader, NULL, NULL, s->path, err);
-    if (r == BRT_OK && brt_checksum64(buf, sec->size) != sec->checksum)
-        r = brt_fail(err, BRT_EFORMAT, "%s: %s checksum mismatch (corrupt file)", s->path, what);
-    if (r != BRT_OK) {
-        free(buf);
-        return r;
+    if (is_special_file(path)) {
+        int fd = open(path, O_WRONLY), failed;
+        failed = fd < 0 || write_fully(fd, data, size, -1) != 0;
+        if (fd >= 0 && close(fd) != 0) failed = 1;
+        return failed ? brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno)) : BRT_OK;
     }
-    *out = buf;
-    return BRT_OK;
+    r = brt_atomic_open(&f, path, err);
+    if (r == BRT_OK && write_fully(f.fd, data, size, 0) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno ? errno : EIO));
+    return brt_atomic_close(&f, r, err);
 }
 
-/* ---- validating a scene file at open ---------------------------------- */
+/* ===================================================================== */
+/* Threads: a small pool and a split of the work                         */
+/* ===================================================================== */
 /*
-** A checksum tells a damaged file from the one that was written, not a
-** forged or miswritten one: a file whose checksums match may still say
-** anything.  So opening a scene validates every cross-reference once,
-** before anything is traced, one validator per structure:
-**   check_header   counts and section sizes agree with one another
-**   (read_section) each section lies inside the file and matches its sum
-**   brt_svdag_blob_open (svdag.c): the DAG pool, its child indices
-**   check_batch    one table entry: box, blob extent, proxy (proxy_valid)
-**   check_batches  the table against the header: triangles and bytes add up
-**   check_top      the top level: a tree over every batching point, boxes
-**                  ordered, finite and nested
-** and every blob load (blob_read) runs brt_bvh_blob_open (bvh.c: indices,
-** boxes, finite triangles, triangle numbers below the scene's count) and
-** check_blob (its triangle count is its table entry's).  The walk, the
-** proxy cast and the BVH traversal then trust what they read: no test on
-** the hot path.  A failure is BRT_EFORMAT, "FILE: PART: what is wrong".
+** A pool runs one job at a time on its threads, the caller being thread 0.
+** A job hands out [0, total) in chunks from one counter; every output is
+** written per item (a hit, a ray's slot, a batching point's buffers) or
+** summed per thread, so which thread took which chunk changes no byte.
+** The pool lives as long as one trace or one build: the library keeps no
+** global state.  With one thread no thread is created and the job runs
+** in the caller, as the code read before threads.
 */
 
-/* Finite and ordered: what the box tests of the walk rely on. */
-static int box_valid(const float lo[3], const float hi[3])
+unsigned brt_threads_resolve(unsigned threads)
 {
-    int a;
-    for (a = 0; a < 3; a++)
-        if (!isfinite(lo[a]) || !isfinite(hi[a]) || !(lo[a] <= hi[a])) return 0;
+    /* _SC_NPROCESSORS_ONLN is not in POSIX, but glibc, musl, the BSDs
+    ** and macOS all have it; elsewhere one thread. */
+#ifdef _SC_NPROCESSORS_ONLN
+    long online = sysconf(_SC_NPROCESSORS_ONLN);
+#else
+    long online = 1;
+#endif
+    if (threads == 0) threads = online > 0 ? (unsigned)online : 1u;
+    return threads < BRT_MAX_THREADS ? threads : BRT_MAX_THREADS;
+}
+
+/* Takes the next chunk of the current job (lock held); 0: none left. */
+static int pool_take(pool *p, size_t *first, size_t *end)
+{
+    if (p->next >= p->total) return 0;
+    *first = p->next;
+    *end = p->total - p->next < p->chunk ? p->total : p->next + p->chunk;
+    p->next = *end;
     return 1;
 }
 
-/* The counts of the header against one another and the section sizes. */
-static brt_result check_header(const brt_scene *s, brt_error *err)
+/* Runs one chunk (lock held on entry and return) and marks it done. */
+static void pool_chunk(pool *p, unsigned thread, size_t first, size_t end)
 {
-    const scene_header *h = &s->header;
-    if (h->batch_count == 0)
-        return brt_fail(err, BRT_EFORMAT, "%s: header: no batching points", s->path);
-    if (h->top_node_count == 0 || h->top_node_count > h->batch_count)
-        return brt_fail(err, BRT_EFORMAT, "%s: header: %u top-level nodes for %u batching points",
-                        s->path, h->top_node_count, h->batch_count);
-    if (h->sections[SECTION_BATCHES].size != (uint64_t)h->batch_count * BATCH_ENTRY_BYTES)
-        return brt_fail(err, BRT_EFORMAT, "%s: header: batch table has the wrong size", s->path);
-    if (h->sections[SECTION_TOP].size != (uint64_t)h->top_node_count * TOP_NODE_BYTES)
-        return brt_fail(err, BRT_EFORMAT, "%s: header: top-level section has the wrong size", s->path);
-    return BRT_OK;
+    pthread_mutex_unlock(&p->lock);
+    p->job(p->ctx, thread, first, end);
+    pthread_mutex_lock(&p->lock);
+    p->done[first / p->chunk] = 1;
+    pthread_cond_signal(&p->progress);
 }
 
-/* The header's resolution, and all that brt_proxy_raycast relies on:
-** brt_proxy_check (res a power of two, origin and cell finite, cell
-** positive, root a node of the pool at the depth res needs), so the cast
-** need not check again.
-** (The far corner origin + res * cell may overflow a float, at coordinates
-** near FLT_MAX, but the cast maps rays into the grid's frame in double.) */
-static int proxy_valid(const brt_scene *s, const brt_proxy *p)
+/* The caller's part of a job: it commits the chunks in order as they are
+** done, and runs chunks itself while the next one to commit is not. */
+static void pool_commit_in_order(pool *p, pool_commit commit)
 {
-    return p->res == s->header.proxy_res && brt_proxy_check(s->dag, p, NULL) == BRT_OK;
-}
-
-/* An inner proxy: a root of the pool at the resolution inner_res gives. */
-static int inner_valid(const brt_scene *s, const brt_proxy *p)
-{
-    return p->res == inner_res(s->header.proxy_res) && brt_proxy_check(s->dag, p, NULL) == BRT_OK;
-}
-
-/* One batch table entry: its box, its blob inside the file (whole pages,
-** as the cache reads them), its proxy. */
-static brt_result check_batch(const brt_scene *s, uint32_t i, const batch_entry *b, brt_error *err)
-{
-    if (!box_valid(b->lo, b->hi))
-        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: box not finite or inverted",
-                        s->path, i);
-    if (b->offset % SCENE_PAGE != 0 || b->size > s->file_size ||
-        b->offset > s->file_size - round_up_page(b->size))
-        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob outside the file", s->path, i);
-    if (!proxy_valid(s, &b->proxy))
-        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid proxy", s->path, i);
-    if (!inner_valid(s, &b->inner))
-        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid inner proxy", s->path, i);
-    return BRT_OK;
-}
-
-/* The table against the header: the entries' triangles and blob bytes
-** add up to the header's counts. */
-static brt_result check_batches(const brt_scene *s, brt_error *err)
-{
-    uint64_t triangles = 0, bytes = 0;
-    uint32_t i;
-    for (i = 0; i < s->header.batch_count; i++) {
-        brt_result r = check_batch(s, i, &s->batches[i], err);
-        if (r != BRT_OK) return r;
-        triangles += s->batches[i].triangles;
-        bytes += s->batches[i].size;
-    }
-    if (triangles != s->header.triangle_count)
-        return brt_fail(err, BRT_EFORMAT, "%s: batch table: batching points hold %llu triangles, "
-                        "header says %u", s->path, (unsigned long long)triangles,
-                        s->header.triangle_count);
-    if (bytes != s->header.geometry_bytes)
-        return brt_fail(err, BRT_EFORMAT, "%s: batch table: blobs hold %llu bytes, header says %llu",
-                        s->path, (unsigned long long)bytes,
-                        (unsigned long long)s->header.geometry_bytes);
-    return BRT_OK;
-}
-
-/* The frame of a batching point's inner proxy, as the build made it: the
-** grid brt_grid_init fits to its box at inner_res (res 0, which no check
-** passes, when the box is not valid: check_batch names that first). */
-static void inner_frame(batch_entry *b, uint32_t proxy_res)
-{
-    brt_grid g;
-    b->inner.res = 0;
-    if (!box_valid(b->lo, b->hi) || brt_grid_init(&g, b->lo, b->hi, inner_res(proxy_res)) != BRT_OK)
-        return;
-    b->inner.res = g.res;
-    memcpy(b->inner.origin, g.origin, sizeof g.origin);
-    b->inner.cell = g.cell;
-    brt_grid_free(&g);
-}
-
-static brt_result load_batches(brt_scene *s, brt_error *err)
-{
-    unsigned char *table;
-    uint32_t i;
-    brt_result r = read_section(s, SECTION_BATCHES, "batch table", (void **)&table, err);
-    if (r != BRT_OK) return r;
-    s->batches = malloc(((size_t)s->header.batch_count + 1) * sizeof *s->batches);
-    if (!s->batches) {
-        free(table);
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
-    }
-    for (i = 0; i < s->header.batch_count; i++) {
-        batch_entry_unpack(table + (size_t)i * BATCH_ENTRY_BYTES, &s->batches[i]);
-        inner_frame(&s->batches[i], s->header.proxy_res);
-    }
-    free(table);
-    return check_batches(s, err);
-}
-
-/* Lane `lane` of node n holds the box lo, hi (inclusive: the build's lane
-** box is the union of what it holds, so it may equal it). */
-static int lane_holds(const top_node *n, int lane, const float lo[3], const float hi[3])
-{
-    int a;
-    for (a = 0; a < 3; a++)
-        if (!(n->box[a][lane] <= lo[a] && hi[a] <= n->box[3 + a][lane])) return 0;
-    return 1;
-}
-
-/* Lane `lane` of node n holds every box of child node c and c's boxes
-** are valid (they are checked as a lane of c in turn). */
-static int lane_holds_node(const top_node *n, int lane, const top_node *c)
-{
-    int k, a;
-    for (k = 0; k < 4; k++) {
-        float lo[3], hi[3];
-        if (c->child[k] == TOP_EMPTY) continue;
-        for (a = 0; a < 3; a++) {
-            lo[a] = c->box[a][k];
-            hi[a] = c->box[3 + a][k];
+    size_t chunks = (p->total + p->chunk - 1) / p->chunk, c = 0, first, end;
+    pthread_mutex_lock(&p->lock);
+    while (c < chunks) {
+        if (p->done[c]) {
+            pthread_mutex_unlock(&p->lock);
+            end = (c + 1) * p->chunk < p->total ? (c + 1) * p->chunk : p->total;
+            if (commit) commit(p->ctx, c * p->chunk, end);
+            c++;
+            pthread_mutex_lock(&p->lock);
+        } else if (pool_take(p, &first, &end)) {
+            pool_chunk(p, 0, first, end);
+        } else {
+            pthread_cond_wait(&p->progress, &p->lock);
         }
-        if (!lane_holds(n, lane, lo, hi)) return 0;
     }
-    return 1;
+    while (p->busy > 0) pthread_cond_wait(&p->idle, &p->lock);
+    pthread_mutex_unlock(&p->lock);
 }
 
-/* One lane in use of node i: the child's index in range, the lane's box
-** finite, ordered and around what the child holds. */
-static brt_result check_top_lane(const brt_scene *s, uint32_t i, int lane,
-                                 unsigned char *has_parent, unsigned char *seen, brt_error *err)
+typedef struct pool_thread {
+    pool *p;
+    unsigned index;
+} pool_thread;
+
+static void *pool_main(void *arg)
 {
-    const top_node *n = &s->top[i];
-    uint32_t c = n->child[lane];
-    float lo[3], hi[3];
-    int a;
-    for (a = 0; a < 3; a++) {
-        lo[a] = n->box[a][lane];
-        hi[a] = n->box[3 + a][lane];
+    pool *p = ((pool_thread *)arg)->p;
+    unsigned index = ((pool_thread *)arg)->index;
+    unsigned long seen = 0;
+    size_t first, end;
+    free(arg);
+    pthread_mutex_lock(&p->lock);
+    for (;;) {
+        while (p->round == seen && !p->quit) pthread_cond_wait(&p->wake, &p->lock);
+        if (p->quit) break;
+        seen = p->round;
+        while (pool_take(p, &first, &end)) pool_chunk(p, index, first, end);
+        if (--p->busy == 0) pthread_cond_signal(&p->idle);
     }
-    if (c & TOP_LEAF) {
-        c &= ~TOP_LEAF;
-        if (c >= s->header.batch_count || seen[c]++)
-            return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad leaf", s->path, i);
-        if (!lane_holds(n, lane, s->batches[c].lo, s->batches[c].hi))
-            return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box does not hold batching "
-                            "point %u", s->path, i, c);
-    } else if (c <= i || c >= s->header.top_node_count || has_parent[c]++) {
-        return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad child", s->path, i);
-    } else if (!lane_holds_node(n, lane, &s->top[c])) {
-        return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box does not hold node %u",
-                        s->path, i, c);
-    }
-    if (!box_valid(lo, hi))
-        return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box not finite or inverted",
-                        s->path, i);
-    return BRT_OK;
-}
-
-/* Every child index points forward, every node but the root has one
-** parent and every batching point is a leaf exactly once: the nodes form
-** a tree, so a walk terminates, never indexes out of range and meets each
-** node and point at most once (the size of its heap).  Every box holds
-** what is below it, so a subtree is entered no later than anything in it
-** (the walk's skip rule (a) relies on that).  Runs on the file's exact
-** boxes, before top_node_pad. */
-static brt_result check_top(brt_scene *s, brt_error *err)
-{
-    uint32_t n = s->header.top_node_count, count = s->header.batch_count, i;
-    unsigned char *has_parent = calloc((size_t)n + 1, 1), *seen = calloc((size_t)count + 1, 1);
-    brt_result r = BRT_OK;
-    int lane;
-    if (!has_parent || !seen) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
-    for (i = 0; i < n && r == BRT_OK; i++)
-        for (lane = 0; lane < 4 && r == BRT_OK; lane++)
-            if (s->top[i].child[lane] != TOP_EMPTY)
-                r = check_top_lane(s, i, lane, has_parent, seen, err);
-    for (i = 0; i < count && r == BRT_OK; i++)
-        if (!seen[i]) r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u not in the top level", s->path, i);
-    free(has_parent);
-    free(seen);
-    return r;
-}
-
-static brt_result load_top(brt_scene *s, brt_error *err)
-{
-    unsigned char *raw;
-    uint32_t i;
-    brt_result r = read_section(s, SECTION_TOP, "top-level BVH", (void **)&raw, err);
-    if (r != BRT_OK) return r;
-    s->top = malloc(((size_t)s->header.top_node_count + 1) * sizeof *s->top);
-    if (!s->top) {
-        free(raw);
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
-    }
-    for (i = 0; i < s->header.top_node_count; i++)
-        top_node_unpack(raw + (size_t)i * TOP_NODE_BYTES, &s->top[i]);
-    free(raw);
-    r = check_top(s, err);
-    for (i = 0; r == BRT_OK && i < s->header.top_node_count; i++) top_node_pad(&s->top[i]);
-    return r;
-}
-
-static brt_result load_dag(brt_scene *s, brt_error *err)
-{
-    brt_error why;
-    brt_result r = read_section(s, SECTION_DAG, "proxy pool", &s->dag_blob, err);
-    if (r != BRT_OK) return r;
-    r = brt_svdag_blob_open(s->dag_blob, s->header.sections[SECTION_DAG].size, &s->dag, &why);
-    if (r != BRT_OK) return brt_fail(err, BRT_EFORMAT, "%s: proxy pool: %s", s->path, why.message);
-    return BRT_OK;
-}
-
-brt_result brt_scene_open(const char *scene_path, brt_scene **out, brt_error *err)
-{
-    unsigned char header[SCENE_HEADER_BYTES];
-    struct stat st;
-    brt_scene *s = calloc(1, sizeof *s);
-    brt_result r = BRT_OK;
-    *out = NULL;
-    if (!s || !(s->path = malloc(strlen(scene_path) + 1))) {
-        free(s);
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene_path);
-    }
-    strcpy(s->path, scene_path);
-    s->fd = open(scene_path, O_RDONLY);
-    if (s->fd < 0 || fstat(s->fd, &st) != 0)
-        r = brt_fail(err, BRT_EIO, "%s: cannot open: %s", scene_path, strerror(errno));
-    else if ((s->file_size = (uint64_t)st.st_size) < SCENE_HEADER_BYTES)
-        r = brt_fail(err, BRT_EFORMAT, "%s: truncated (%llu bytes, no header)", scene_path,
-                     (unsigned long long)s->file_size);
-    if (r == BRT_OK)
-        r = read_fully(s->fd, header, sizeof header, 0, pread_reader, NULL, NULL, scene_path, err);
-    if (r == BRT_OK) r = header_unpack(scene_path, header, &s->header, err);
-    if (r == BRT_OK) r = check_header(s, err);
-    if (r == BRT_OK) r = load_dag(s, err);
-    if (r == BRT_OK) r = load_batches(s, err);
-    if (r == BRT_OK) r = load_top(s, err);
-    if (r != BRT_OK) {
-        brt_scene_close(s);
-        return r;
-    }
-    *out = s;
-    return BRT_OK;
-}
-
-void brt_scene_close(brt_scene *s)
-{
-    if (!s) return;
-    if (s->fd >= 0) close(s->fd);
-    brt_svdag_free(s->dag);
-    free(s->dag_blob);
-    free(s->batches);
-    free(s->top);
-    free(s->path);
-    free(s);
-}
-
-int brt_scene_matches(const brt_scene *s, uint64_t stamp, const brt_scene_options *opt)
-{
-    uint32_t batch_tris, res;
-    scene_options_resolve(opt, &batch_tris, &res);
-    return s->header.stamp == stamp && s->header.batch_tris == batch_tris &&
-           s->header.proxy_res == res;
-}
-
-uint32_t brt_scene_batch_count(const brt_scene *s) { return s->header.batch_count; }
-uint32_t brt_scene_triangle_count(const brt_scene *s) { return s->header.triangle_count; }
-
-void brt_scene_bounds(const brt_scene *s, float bmin[3], float bmax[3])
-{
-    uint32_t i;
-    int a;
-    for (a = 0; a < 3; a++) {
-        bmin[a] = INFINITY;
-        bmax[a] = -INFINITY;
-    }
-    for (i = 0; i < s->header.batch_count; i++)
-        for (a = 0; a < 3; a++) {
-            if (s->batches[i].lo[a] < bmin[a]) bmin[a] = s->batches[i].lo[a];
-            if (s->batches[i].hi[a] > bmax[a]) bmax[a] = s->batches[i].hi[a];
-        }
-}
-
-brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
-                             const brt_scene_options *opt, brt_scene **out,
-                             int *rebuilt, brt_error *err)
-{
-    uint64_t stamp;
-    brt_triangle_source source;
-    struct stat st;
-    brt_result r = brt_scene_source_stamp(mesh_path, &stamp, err);
-    *out = NULL;
-    if (rebuilt) *rebuilt = 0;
-    if (r != BRT_OK) return r;
-    if (stat(scene_path, &st) == 0) {
-        r = brt_scene_open(scene_path, out, err);
-        if (r != BRT_OK || brt_scene_matches(*out, stamp, opt)) return r;
-        brt_scene_close(*out);   /* stale: the mesh or the settings changed */
-        *out = NULL;
-    }
-    brt_mesh_file_source(mesh_path, &source);   /* never the whole mesh in memory */
-    r = brt_scene_build_stream(&source, opt, stamp, scene_path, err);
-    if (r != BRT_OK) return r;
-    if (rebuilt) *rebuilt = 1;
-    return brt_scene_open(scene_path, out, err);
-}
-
-/* ---- the page cache ---------------------------------------------------- */
-/*
-** Blobs are read whole, with pread, into page-aligned buffers, in requests
-** of at most CACHE_READ_CHUNK bytes.  The budget counts the page-rounded
-** bytes held.  A blob larger than the budget is allowed when it is the
-** only one held (it is counted in stats->oversized_loads).
-**
-** Each buffer is its own anonymous mapping (mmap), returned to the system
-** by munmap on eviction.  Why not malloc: glibc serves blobs below its
-** mmap threshold (which grows up to 32 MiB once a large block is freed)
-** from the heap and keeps freed heap resident, so a render at --memory 1G
-** of a 100 M-triangle landscape peaked at 1222 MiB against a bound of
-** 1099 MiB (README, "Out of core from end to end"); with mappings the
-** resident bytes follow what the cache holds.
-*/
-#define CACHE_READ_CHUNK ((size_t)8 << 20)
-
-typedef struct page_cache {
-    brt_scene *scene;
-    cache_entry *entries;       /* one per batching point */
-    uint64_t budget, held;
-    uint32_t lru_head, lru_tail;   /* least recently used first */
-    brt_read_fn read_fn;
-    void *read_user;
-    int drop_os_cache;          /* brt_trace_options.drop_os_cache */
-    brt_stats *stats;
-    /* Read-ahead (more than one thread): one blob read by a thread of its
-    ** own while the scheduler's threads intersect (cache_read_ahead). */
-    int read_ahead;
-    int ahead_running;
-    pthread_t ahead_thread;
-    uint32_t ahead_id;          /* NO_ENTRY: none */
-    void *ahead_data;
-    brt_bvh *ahead_bvh;
-    uint64_t ahead_bytes;
-    double ahead_seconds;
-    brt_result ahead_result;
-} page_cache;
-
-static void lru_unlink(page_cache *c, uint32_t id)
-{
-    cache_entry *e = &c->entries[id];
-    if (e->lru_prev != NO_ENTRY) c->entries[e->lru_prev].lru_next = e->lru_next;
-    else c->lru_head = e->lru_next;
-    if (e->lru_next != NO_ENTRY) c->entries[e->lru_next].lru_prev = e->lru_prev;
-    else c->lru_tail = e->lru_prev;
-    e->lru_prev = e->lru_next = NO_ENTRY;
-}
-
-static void lru_append(page_cache *c, uint32_t id)
-{
-    cache_entry *e = &c->entries[id];
-    e->lru_prev = c->lru_tail;
-    e->lru_next = NO_ENTRY;
-    if (c->lru_tail != NO_ENTRY) c->entries[c->lru_tail].lru_next = id;
-    else c->lru_head = id;
-    c->lru_tail = id;
-}
-
-/* The bytes of blob id's buffer: its page-rounded size, at least a page. */
-static size_t blob_buffer_bytes(const brt_scene *scene, uint32_t id)
-{
-    uint64_t bytes = round_up_page(scene->batches[id].size);
-    return bytes ? (size_t)bytes : SCENE_PAGE;
-}
-
-static void blob_free(const brt_scene *scene, uint32_t id, void *data)
-{
-    if (data) munmap(data, blob_buffer_bytes(scene, id));
-}
-
-static void cache_evict(page_cache *c, uint32_t id)
-{
-    cache_entry *e = &c->entries[id];
-    lru_unlink(c, id);
-    brt_bvh_free(e->bvh);
-    blob_free(c->scene, id, e->data);
-    c->held -= e->bytes;
-    e->data = NULL;
-    e->bvh = NULL;
-    e->bytes = 0;
-}
-
-static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
-                             const brt_trace_options *opt, brt_stats *stats)
-{
-    uint32_t i, n = scene->header.batch_count;
-    memset(c, 0, sizeof *c);
-    c->entries = calloc(n, sizeof *c->entries);
-    if (!c->entries) return BRT_ENOMEM;
-    for (i = 0; i < n; i++) c->entries[i].lru_prev = c->entries[i].lru_next = NO_ENTRY;
-    c->scene = scene;
-    c->budget = budget;
-    c->lru_head = c->lru_tail = NO_ENTRY;
-    c->ahead_id = NO_ENTRY;
-    c->read_fn = opt && opt->read_fn ? opt->read_fn : pread_reader;
-    c->read_user = opt ? opt->read_user : NULL;
-    c->drop_os_cache = opt && opt->drop_os_cache;
-    c->stats = stats;
-    return BRT_OK;
-}
-
-static int cache_ahead_take(page_cache *c, uint32_t id);
-
-static void cache_free(page_cache *c)
-{
-    uint32_t i;
-    cache_ahead_take(c, NO_ENTRY);
-    for (i = 0; c->entries && i < c->scene->header.batch_count; i++) {
-        brt_bvh_free(c->entries[i].bvh);
-        blob_free(c->scene, i, c->entries[i].data);
-    }
-    free(c->entries);
-}
-
-/* The cache's own sanity check (SQLite's pcache has one too): the held
-** bytes add up, the LRU list holds exactly the unpinned resident entries,
-** and the budget holds unless one entry alone is larger. */
-static brt_result cache_check(const page_cache *c, brt_error *err)
-{
-    uint64_t held = 0, resident = 0, listed = 0;
-    uint32_t i, id;
-    for (i = 0; i < c->scene->header.batch_count; i++) {
-        const cache_entry *e = &c->entries[i];
-        held += e->bytes;
-        resident += e->data != NULL;
-        listed += e->data && e->pins == 0;
-    }
-    for (id = c->lru_head; id != NO_ENTRY; id = c->entries[id].lru_next) {
-        if (!c->entries[id].data || c->entries[id].pins) break;
-        listed--;
-    }
-    if (held != c->held || listed != 0)
-        return brt_fail(err, BRT_ECHECK, "page cache: bookkeeping broken");
-    if (held > c->budget && resident > 1)
-        return brt_fail(err, BRT_ECHECK, "page cache: holds %llu bytes over a budget of %llu",
-                        (unsigned long long)held, (unsigned long long)c->budget);
-    return BRT_OK;
-}
-
-/* Opens blob id's BVH, validated by brt_bvh_blob_open against the scene's
-** triangle count, and checks it holds as many triangles as its table
-** entry says (the entries add up to the header's count, check_batches). */
-static brt_result check_blob(const brt_scene *s, uint32_t id, const void *data, brt_bvh **bvh,
-                             brt_error *err)
-{
-    const batch_entry *b = &s->batches[id];
-    brt_error why;
-    uint32_t held;
-    if (brt_bvh_blob_open(data, b->size, s->header.triangle_count, bvh, &why) != BRT_OK)
-        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: %s", s->path, id, why.message);
-    held = brt_bvh_triangle_count(*bvh);
-    if (held == b->triangles) return BRT_OK;
-    brt_bvh_free(*bvh);
-    *bvh = NULL;
-    return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob holds %u triangles, the batch "
-                    "table says %u", s->path, id, held, b->triangles);
-}
-
-/* Reads blob id whole (its page-rounded size, into a mapping of its own,
-** bytes read added to *bytes_read), checks its checksum and opens it as a
-** BVH; *data is to be freed (blob_free) after the BVH. */
-static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
-                            brt_bvh **bvh, brt_error *err)
-{
-    const batch_entry *b = &c->scene->batches[id];
-    uint64_t bytes = round_up_page(b->size), done = 0;
-    brt_result r = BRT_OK;
-    *data = mmap(NULL, blob_buffer_bytes(c->scene, id), PROT_READ | PROT_WRITE,
-                 MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
-    if (*data == MAP_FAILED) {
-        *data = NULL;
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory for batching point %u", c->scene->path, id);
-    }
-    while (done < bytes && r == BRT_OK) {
-        size_t chunk = bytes - done < CACHE_READ_CHUNK ? (size_t)(bytes - done) : CACHE_READ_CHUNK;
-        r = read_fully(c->scene->fd, (unsigned char *)*data + done, chunk, b->offset + done,
-                       c->read_fn, c->read_user, bytes_read, c->scene->path, err);
-        done += chunk;
-    }
-    if (c->drop_os_cache) posix_fadvise(c->scene->fd, (off_t)b->offset, (off_t)bytes, POSIX_FADV_DONTNEED);
-    if (r == BRT_OK && brt_checksum64(*data, b->size) != b->checksum)
-        r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: checksum mismatch (corrupt file)",
-                     c->scene->path, id);
-    if (r == BRT_OK) r = check_blob(c->scene, id, *data, bvh, err);
-    if (r != BRT_OK) {
-        blob_free(c->scene, id, *data);
-        *data = NULL;
-    }
-    return r;
-}
-
-/* ---- read-ahead ---- */
-/*
-** While the threads intersect the rays of one batching point, a thread of
-** the cache's own reads the blob of the fullest queue left (the likely
-** next load: cache_read_ahead).  The schedule does not change: when the
-** scheduler then asks for that blob, cache_load takes the buffer read
-** ahead instead of reading (the same bytes, counted then, as a load of
-** the same size would be); when it asks for another, the buffer is
-** dropped uncounted.  So every count is the one-thread count, and only
-** the wall time differs.  The buffer is held beside the budget: one blob
-** more at most (README, "Threads").  read_fn is never called by two
-** threads at once: the read-ahead is joined before any other read.
-*/
-static void *ahead_main(void *arg)
-{
-    page_cache *c = arg;
-    double start = brt_seconds();
-    c->ahead_result = blob_read(c, c->ahead_id, &c->ahead_bytes, &c->ahead_data, &c->ahead_bvh, NULL);
-    c->ahead_seconds = brt_seconds() - start;
+    pthread_mutex_unlock(&p->lock);
     return NULL;
 }
 
-/* Starts reading blob id ahead, unless it is in memory or a read-ahead is
-** under way. */
-static void cache_read_ahead(page_cache *c, uint32_t id)
+/* Starts up to threads - 1 threads; fewer when the system refuses (the
+** results do not depend on the count). */
+static void pool_init(pool *p, unsigned threads)
 {
-    if (!c->read_ahead || c->ahead_running || c->entries[id].data) return;
-    c->ahead_id = id;
-    c->ahead_bytes = 0;
-    c->ahead_data = NULL;
-    c->ahead_bvh = NULL;
-    c->ahead_running = pthread_create(&c->ahead_thread, NULL, ahead_main, c) == 0;
-}
-
-/* Waits for the read-ahead, if any: 1 when it read blob id without error
-** (its buffer and BVH are then the caller's), else 0 (dropped). */
-static int cache_ahead_take(page_cache *c, uint32_t id)
-{
-    int ok;
-    if (!c->ahead_running) return 0;
-    pthread_join(c->ahead_thread, NULL);
-    c->ahead_running = 0;
-    ok = c->ahead_id == id && c->ahead_result == BRT_OK;
-    if (!ok) {
-        brt_bvh_free(c->ahead_bvh);
-        blob_free(c->scene, c->ahead_id, c->ahead_data);
-    }
-    c->ahead_id = NO_ENTRY;
-    return ok;
-}
-
-/* Loads blob id into the cache (the caller has made room). */
-static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
-{
-    cache_entry *e = &c->entries[id];
-    uint64_t bytes = round_up_page(c->scene->batches[id].size);
-    double start = brt_seconds();
-    brt_result r = BRT_OK;
-    if (cache_ahead_take(c, id)) {
-        e->data = c->ahead_data;
-        e->bvh = c->ahead_bvh;
-        c->stats->disk_bytes_read += c->ahead_bytes;
-        c->stats->load_seconds += c->ahead_seconds;
-    } else {
-        r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->bvh, err);
-        c->stats->load_seconds += brt_seconds() - start;
-    }
-    if (r != BRT_OK) return r;
-    e->bytes = bytes;
-    c->held += bytes;
-    c->stats->batch_loads++;
-    if (bytes > c->budget) c->stats->oversized_loads++;
-    if (c->held > c->stats->cache_peak_bytes) c->stats->cache_peak_bytes = c->held;
-    return BRT_OK;
-}
-
-/* Fetch pins: makes batching point id resident (evicting least recently
-** used unpinned entries to make room) and returns its BVH. */
-static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err)
-{
-    cache_entry *e = &c->entries[id];
-    if (!e->data) {
-        uint64_t bytes = round_up_page(c->scene->batches[id].size);
-        brt_result r;
-        while (c->lru_head != NO_ENTRY && c->held + bytes > c->budget) cache_evict(c, c->lru_head);
-        r = cache_load(c, id, err);
-        if (r != BRT_OK) return r;
-    } else if (e->pins == 0) {
-        lru_unlink(c, id);
-    }
-    e->pins++;
-    *bvh = e->bvh;
-#ifdef BRT_DEBUG
-    return cache_check(c, err);
-#else
-    return BRT_OK;
-#endif
-}
-
-/* The BVH of batching point id if it is in memory, or NULL.  Never loads
-** and changes nothing, so that threads may ask at once; the scheduler
-** reports the use afterwards with cache_touch. */
-static const brt_bvh *cache_peek(const page_cache *c, uint32_t id)
-{
-    return c->entries[id].data ? c->entries[id].bvh : NULL;
-}
-
-/* Batching point id, resident, counts as just used. */
-static void cache_touch(page_cache *c, uint32_t id)
-{
-    if (c->entries[id].data && c->entries[id].pins == 0) {
-        lru_unlink(c, id);
-        lru_append(c, id);
-    }
-}
-
-/* Release unpins: the entry becomes the most recently used evictable one. */
-static void cache_release(page_cache *c, uint32_t id)
-{
-    if (--c->entries[id].pins == 0) lru_append(c, id);
-}
-
-/* ---- the partition checker ------------------------------------------ */
-
-/* Marks the triangles of blob id in seen[] (one bit each). */
-static brt_result check_point(const page_cache *c, uint32_t id, uint32_t batch_tris,
-                              unsigned char *seen, brt_error *err)
-{
-    const brt_scene *s = c->scene;
-    const uint32_t *prims;
-    uint64_t bytes = 0;
-    void *data = NULL;
-    brt_bvh *bvh = NULL;
-    uint32_t k, n;
-    brt_result r = BRT_OK;
-    if (s->batches[id].triangles > batch_tris)
-        return brt_fail(err, BRT_ECHECK, "%s: batching point %u holds %u triangles, more than %u",
-                        s->path, id, s->batches[id].triangles, batch_tris);
-    if ((r = blob_read(c, id, &bytes, &data, &bvh, err)) != BRT_OK) return r;
-    prims = brt_bvh_prim_ids(bvh);
-    n = brt_bvh_triangle_count(bvh);
-    if (n != s->batches[id].triangles)
-        r = brt_fail(err, BRT_ECHECK, "%s: batching point %u: its BVH holds %u triangles, "
-                     "its table entry %u", s->path, id, n, s->batches[id].triangles);
-    for (k = 0; k < n && r == BRT_OK; k++) {
-        uint32_t p = prims[k];
-        if (p >= s->header.triangle_count)
-            r = brt_fail(err, BRT_ECHECK, "%s: batching point %u: triangle %u out of range "
-                         "(%u triangles)", s->path, id, p, s->header.triangle_count);
-        else if (seen[p >> 3] & (1u << (p & 7)))
-            r = brt_fail(err, BRT_ECHECK, "%s: triangle %u is in two batching points "
-                         "(again in %u)", s->path, p, id);
-        else
-            seen[p >> 3] |= (unsigned char)(1u << (p & 7));
-    }
-    brt_bvh_free(bvh);
-    blob_free(s, id, data);
-    return r;
-}
-
-brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
-                                     brt_error *err)
-{
-    uint32_t n = scene->header.triangle_count, id, t;
-    unsigned char *seen = calloc((size_t)n / 8 + 1, 1);
-    page_cache c;
-    brt_result r = BRT_OK;
-    if (!seen) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene->path);
-    memset(&c, 0, sizeof c);
-    c.scene = (brt_scene *)scene;   /* blob_read only reads through it */
-    c.read_fn = pread_reader;
-    for (id = 0; id < scene->header.batch_count && r == BRT_OK; id++)
-        r = check_point(&c, id, batch_tris, seen, err);
-    for (t = 0; t < n && r == BRT_OK; t++)
-        if (!(seen[t >> 3] & (1u << (t & 7))))
-            r = brt_fail(err, BRT_ECHECK, "%s: triangle %u is in no batching point", scene->path, t);
-    free(seen);
-    return r;
-}
-
-/* ---- ray queues and the scheduler ------------------------------------ */
-/*
-** Rays in flight live in slots; a queue per batching point holds slot
-** numbers.  An indexed binary max-heap orders the non-empty queues by
-** length (ties: lowest id), so the scheduler takes the fullest queue
-** first -- the paper's rule: each disk read serves as many rays as it can.
-**
-** Per-ray state while queued: the ray (32 bytes), its closest hit so far
-** (16) and that triangle's normal (12), its walk key (8), the number of
-** batching points it was queued at (4) and the caller's tag (8): 80 bytes.
-** The tag also says the ray's kind (BRT_TAG_OCCLUSION), so an occlusion
-** ray costs no byte more: it keeps an unused normal, and its hit record
-** turns from the miss record into "occluded" at its first hit.
-**
-** Threads (README, "Threads"): the scheduler works in phases.  A phase is
-** a list of rays -- the queue of the batching point just loaded, or rays
-** new from the source -- each of which is intersected there (a queue) and
-** then walks on until it must be queued or is finished (walk_on).  The
-** rays of a phase are split across the pool's threads; walk_on reads the
-** shared state (top-level BVH, proxies, resident BVHs) and writes only its
-** ray's slot, its outcome and its thread's counters.  One thread then
-** commits the phase in list order (commit): counters summed, the page
-** cache's LRU order updated from the touches as if the rays had walked one
-** after another, rays queued or finished.  So every decision -- which
-** queue is fullest, what is evicted, the order of finished calls -- is the
-** one the one-thread run makes.
-*/
-typedef struct ray_slot {
-    brt_ray ray;
-    brt_hit hit;
-    float normal[3];
-    walk_key key;
-    uint32_t visits;
-    uint64_t tag;
-} ray_slot;
-
-typedef struct ray_queue {
-    uint32_t *slots;
-    uint32_t count, capacity;
-} ray_queue;
-
-/* One thread's part of a phase: its walk, its counters, and the batching
-** points it found in memory with the stamp of its last use of each (the
-** stamp orders uses as a one-thread walk would make them). */
-typedef struct walker {
-    top_walk walk;
-    uint64_t resident_visits, proxy_tests, proxy_culled;
-    uint64_t *used_at;
-    uint64_t inner_stopped;     /* occlusion rays an inner proxy settled */          /* per batching point; 0: not used */
-    uint32_t *used, used_count;
-} walker;
-
-/* A batching point used by a phase and the stamp of its last use. */
-typedef struct point_use {
-    uint64_t stamp;
-    uint32_t id;
-} point_use;
-
-typedef struct scheduler {
-    brt_scene *scene;
-    const brt_ray_source *source;
-    int use_proxies, queue_resident;
-    brt_stats *stats;
-    page_cache cache;
-    ray_slot *slots;
-    uint32_t *free_slots, free_count, capacity;
-    ray_queue *queues;
-    uint32_t *heap, *heap_pos, heap_size;   /* heap_pos[id] = NO_ENTRY when absent */
-    pool pool;
-    walker *walkers;                        /* one per thread of the pool */
-    uint32_t *phase, *outcome;              /* a phase's slots; NO_ENTRY: finished */
-    point_use *uses;                        /* a phase's uses, merged */
-    brt_bvh **exact;                        /* exact_proxies: every BVH, or NULL */
-    void **exact_data;
-    brt_ray *incoming;
-    uint64_t *incoming_tags;
-    int use_inner;              /* consult the inner proxies (not no_inner) */
-} scheduler;
-
-static int queue_fuller(const scheduler *s, uint32_t a, uint32_t b)
-{
-    return s->queues[a].count > s->queues[b].count ||
-           (s->queues[a].count == s->queues[b].count && a < b);
-}
-
-static void heap_swap(scheduler *s, uint32_t i, uint32_t j)
-{
-    uint32_t t = s->heap[i];
-    s->heap[i] = s->heap[j];
-    s->heap[j] = t;
-    s->heap_pos[s->heap[i]] = i;
-    s->heap_pos[s->heap[j]] = j;
-}
-
-static void heap_up(scheduler *s, uint32_t i)
-{
-    while (i > 0 && queue_fuller(s, s->heap[i], s->heap[(i - 1) / 2])) {
-        heap_swap(s, i, (i - 1) / 2);
-        i = (i - 1) / 2;
-    }
-}
-
-static void heap_down(scheduler *s, uint32_t i)
-{
-    for (;;) {
-        uint32_t best = i, l = 2 * i + 1, r = 2 * i + 2;
-        if (l < s->heap_size && queue_fuller(s, s->heap[l], s->heap[best])) best = l;
-        if (r < s->heap_size && queue_fuller(s, s->heap[r], s->heap[best])) best = r;
-        if (best == i) return;
-        heap_swap(s, i, best);
-        i = best;
-    }
-}
-
-/* Removes and returns the batching point with the fullest queue. */
-static uint32_t heap_pop(scheduler *s)
-{
-    uint32_t top = s->heap[0];
-    heap_swap(s, 0, --s->heap_size);
-    s->heap_pos[top] = NO_ENTRY;
-    heap_down(s, 0);
-    return top;
-}
-
-static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
-{
-    ray_queue *q = &s->queues[id];
-    if (q->count == q->capacity) {
-        uint32_t cap = q->capacity ? 2 * q->capacity : 16;
-        uint32_t *grown = realloc(q->slots, cap * sizeof *grown);
-        if (!grown) return BRT_ENOMEM;
-        q->slots = grown;
-        q->capacity = cap;
-    }
-    q->slots[q->count++] = slot;
-    if (s->heap_pos[id] == NO_ENTRY) {
-        s->heap[s->heap_size] = id;
-        s->heap_pos[id] = s->heap_size++;
-    }
-    heap_up(s, s->heap_pos[id]);
-    s->stats->queued_visits++;
-    return BRT_OK;
-}
-
-static int is_occlusion(const ray_slot *r)
-{
-    return (r->tag & BRT_TAG_OCCLUSION) != 0;
-}
-
-/* An occlusion ray is done at its first hit; a closest-hit ray only when
-** its walk ends. */
-static int found_occluder(const ray_slot *r)
-{
-    return is_occlusion(r) && r->hit.prim != BRT_NO_PRIM;
-}
-
-/* Intersects a ray with a batching point's triangles: the closest hit so
-** far, or for an occlusion ray any hit in [tnear, tfar] (the record of
-** brt_ray_source: t = 0, prim = 0 when occluded). */
-static void intersect_slot(const brt_bvh *bvh, ray_slot *r)
-{
-    intersect_ray(bvh, &r->ray, r->tag, &r->hit, r->normal);
-}
-
-/* How far the walk goes: the closest hit so far, or tfar.  (An occlusion
-** ray's record stays the miss record, t = +inf, until it ends the walk.) */
-static float walk_limit(const ray_slot *r)
-{
-    return r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
-}
-
-/* The proxy test: may the ray hit batching point id's triangles in
-** [tnear, tlimit]?  With exact_proxies, the triangles answer. */
-static int proxy_may_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
-{
-    if (s->exact) {
-        brt_ray segment = *ray;
-        segment.tfar = tlimit;
-        return brt_bvh_occluded(s->exact[id], &segment);
-    }
-    return brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear, tlimit, NULL);
-}
-
-/* The inner proxy test, first at every batching point an occlusion ray
-** with tfar = +inf reaches: a hit settles the ray occluded (the record of
-** intersect_slot) with no queue and no load (README, "Inner proxies"). */
-static int inner_stops(const scheduler *s, ray_slot *r)
-{
-    if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
-    if (!brt_inner_occludes(s->scene->dag, &s->scene->batches[r->key.id].inner, &r->ray)) return 0;
-    r->hit.t = 0;
-    r->hit.prim = 0;
-    r->hit.u = r->hit.v = 0;
-    return 1;
-}
-
-/* Continues a ray's top-level walk: stops at the next batching point it
-** enters before its closest hit and whose proxy it hits (returned: the
-** ray is to be queued there), or finishes (NO_ENTRY).  tlimit is the
-** closest hit (a box entered exactly there may still hold an equal-t hit
-** with a lower prim, so the compare is inclusive).  An occlusion ray
-** also finishes at its first hit.  Writes only the ray's
-** slot and the walker w: threads walk different rays at once.
-**
-** A batching point whose geometry is in memory needs no queue: the ray is
-** intersected there at once and walks on (unless queue_resident asks for
-** the paper's plain scheduler).  Its proxy is not consulted: the BVH
-** answers exactly at about the cost of a proxy cast.  Why it matters: a
-** bounce ray starts inside the batching point just processed, which is
-** still in memory; queued, it would wait there until that point might be
-** evicted and read again.  (Landscape, 2 M triangles, 25 % limit: loads
-** 4,309 -> 1,358 without proxies, 3,104 -> 929 with them; README.)
-** stamp: the ray's place in its phase, high word; each use adds one. */
-static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t stamp)
-{
-    brt_ray_prep prep;
-    float tlimit;
-    brt_ray_prepare(&r->ray, &prep);
-    if (!prep.valid) return NO_ENTRY;
-    tlimit = walk_limit(r);
-    top_walk_start(&w->walk);
-    while (!found_occluder(r) && top_walk_next(&w->walk, s->scene->top, &prep, tlimit, &r->key)) {
-        const brt_bvh *resident;
-        if (inner_stops(s, r)) {
-            w->inner_stopped++;
+    memset(p, 0, sizeof *p);
+    p->count = 1;
+    threads = brt_threads_resolve(threads);
+    if (threads < 2) return;
+    pthread_mutex_init(&p->lock, NULL);
+    pthread_cond_init(&p->wake, NULL);
+    pthread_cond_init(&p->idle, NULL);
+    pthread_cond_init(&p->progress, NULL);
+    p->threads = malloc((threads - 1) * sizeof *p->threads);
+    while (p->threads && p->count < threads) {
+        pool_thread *arg = malloc(sizeof *arg);
+        if (!arg) break;
+        arg->p = p;
+        arg->index = p->count;
+        if (pthread_create(&p->threads[p->count - 1], NULL, pool_main, arg) != 0) {
+            free(arg);
             break;
         }
-        resident = s->queue_resident ? NULL : cache_peek(&s->cache, r->key.id);
-        if (resident) {
-            if (w->used_at[r->key.id] == 0) w->used[w->used_count++] = r->key.id;
-            w->used_at[r->key.id] = stamp++;
-            intersect_slot(resident, r);
-            r->visits++;
-            w->resident_visits++;
-            tlimit = walk_limit(r);
-            continue;
-        }
-        if (s->use_proxies) {
-            w->proxy_tests++;
-            if (!proxy_may_hit(s, r->key.id, &r->ray, tlimit)) {
-                w->proxy_culled++;
-                continue;
-            }
-        }
-        r->visits++;
-        return r->key.id;
+        p->count++;
     }
-    return NO_ENTRY;
 }
 
-/* A phase: the rays in slots[0..count), first intersected with bvh when
-** it is not NULL (the batching point whose queue they are). */
-typedef struct phase_job {
-    scheduler *s;
-    const uint32_t *slots;
+static void pool_free(pool *p)
+{
+    unsigned i;
+    if (!p->threads) return;
+    pthread_mutex_lock(&p->lock);
+    p->quit = 1;
+    pthread_cond_broadcast(&p->wake);
+    pthread_mutex_unlock(&p->lock);
+    for (i = 0; i + 1 < p->count; i++) pthread_join(p->threads[i], NULL);
+    free(p->threads);
+    free(p->done);
+    pthread_mutex_destroy(&p->lock);
+    pthread_cond_destroy(&p->wake);
+    pthread_cond_destroy(&p->idle);
+    pthread_cond_destroy(&p->progress);
+}
+
+/* Runs job over [0, total) in chunks of at most chunk items, on every
+** thread of the pool, and, when commit is not NULL, commit over the same
+** chunks in order, in the calling thread, each as soon as it and those
+** before it are done (so one thread's serial work overlaps the others'
+** jobs).  Returns when all is done.  Below two chunks, or without room
+** for the chunk flags, the caller runs it alone. */
+static void pool_run(pool *p, pool_job job, pool_commit commit, void *ctx, size_t total,
+                     size_t chunk)
+{
+    size_t chunks = (total + chunk - 1) / chunk;
+    if (total == 0) return;
+    if (chunks > p->done_cap && p->count > 1 && chunks > 1) {
+        unsigned char *done = realloc(p->done, chunks);
+        if (done) {
+            p->done = done;
+            p->done_cap = chunks;
+        }
+    }
+    if (p->count < 2 || chunks < 2 || chunks > p->done_cap) {
+        job(ctx, 0, 0, total);
+        if (commit) commit(ctx, 0, total);
+        return;
+    }
+    memset(p->done, 0, chunks);
+    pthread_mutex_lock(&p->lock);
+    p->job = job;
+    p->ctx = ctx;
+    p->next = 0;
+    p->total = total;
+    p->chunk = chunk;
+    p->busy = p->count - 1;
+    p->round++;
+    pthread_cond_broadcast(&p->wake);
+    pthread_mutex_unlock(&p->lock);
+    pool_commit_in_order(p, commit);
+}
+
+/* ---- direct tracing: chunks of rays through one BVH ----------------- */
+
+/* One ray of either kind through one BVH, on the record of brt_ray_source:
+** the closest hit so far (and its normal when normal is not NULL), or for
+** an occlusion ray (tag has BRT_TAG_OCCLUSION) t = 0, prim = 0 once any
+** triangle is hit in [tnear, tfar].  The direct trace and the scheduler
+** share it, so both kinds give the same bytes in every mode. */
+static void intersect_ray(const brt_bvh *bvh, const brt_ray *ray, uint64_t tag, brt_hit *hit,
+                          float normal[3])
+{
+    if (tag & BRT_TAG_OCCLUSION) {
+        if (brt_bvh_occluded(bvh, ray)) {
+            hit->t = 0.0f;
+            hit->prim = 0;
+        }
+    } else if (normal) {
+        brt_bvh_intersect_normal(bvh, ray, hit, normal);
+    } else {
+        brt_bvh_intersect(bvh, ray, hit);
+    }
+}
+
+typedef struct bvh_trace_job {
     const brt_bvh *bvh;
-    brt_result result;          /* of the commits: BRT_ENOMEM from a queue */
-} phase_job;
-
-static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
-{
-    const phase_job *j = ctx;
-    scheduler *s = j->s;
-    size_t i;
-    for (i = first; i < end; i++) {
-        ray_slot *r = &s->slots[j->slots[i]];
-        if (j->bvh) intersect_slot(j->bvh, r);
-        s->outcome[i] = walk_on(s, &s->walkers[thread], r, ((uint64_t)(i + 1)) << 32);
-    }
-}
-
-/* Commits rays [first, end) of a phase, in order: each is queued where
-** its walk stopped, or finished. */
-static void phase_commit(void *ctx, size_t first, size_t end)
-{
-    phase_job *j = ctx;
-    scheduler *s = j->s;
-    size_t i;
-    for (i = first; i < end && j->result == BRT_OK; i++) {
-        uint32_t slot = j->slots[i];
-        ray_slot *r = &s->slots[slot];
-        if (s->outcome[i] != NO_ENTRY) {
-            j->result = enqueue(s, s->outcome[i], slot);
-            continue;
-        }
-        s->stats->shadow_occluded += found_occluder(r);
-        s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
-        s->free_slots[s->free_count++] = slot;
-    }
-}
-
-static int use_before(const void *a, const void *b)
-{
-    uint64_t x = ((const point_use *)a)->stamp, y = ((const point_use *)b)->stamp;
-    return (x > y) - (x < y);
-}
-
-/* The LRU order after a phase: each resident batching point it used moves
-** to the back in the order of its last use over all threads -- the order
-** the uses of one thread walking the rays in list order leave. */
-static void commit_uses(scheduler *s)
-{
-    walker *all = &s->walkers[0];   /* thread 0's table gathers the others' */
-    uint32_t t, k, n;
-    for (t = 1; t < s->pool.count; t++) {
-        walker *w = &s->walkers[t];
-        for (k = 0; k < w->used_count; k++) {
-            uint32_t id = w->used[k];
-            if (all->used_at[id] == 0) all->used[all->used_count++] = id;
-            if (w->used_at[id] > all->used_at[id]) all->used_at[id] = w->used_at[id];
-            w->used_at[id] = 0;
-        }
-        w->used_count = 0;
-    }
-    for (n = 0; n < all->used_count; n++) {
-        s->uses[n].id = all->used[n];
-        s->uses[n].stamp = all->used_at[all->used[n]];
-        all->used_at[all->used[n]] = 0;
-    }
-    all->used_count = 0;
-    qsort(s->uses, n, sizeof *s->uses, use_before);
-    for (k = 0; k < n; k++) cache_touch(&s->cache, s->uses[k].id);
-}
-
-/* The end of a phase, its threads idle: the counters and the LRU order. */
-static void phase_end(scheduler *s)
-{
-    uint32_t t;
-    for (t = 0; t < s->pool.count; t++) {
-        walker *w = &s->walkers[t];
-        s->stats->resident_visits += w->resident_visits;
-        s->stats->proxy_tests += w->proxy_tests;
-        s->stats->proxy_culled += w->proxy_culled;
-        s->stats->shadow_inner_stopped += w->inner_stopped;
-        w->inner_stopped = 0;
-        w->resident_visits = w->proxy_tests = w->proxy_culled = 0;
-    }
-    commit_uses(s);
-}
-
-#define PHASE_CHUNK 64   /* rays per chunk: ~0.1-1 ms of walks */
-
-/* Runs a phase (see "Threads" above); id: the batching point whose queue
-** it is, pinned, released before the uses are committed as a one-thread
-** run would (no ray of its queue uses it again: keys only grow), or
-** NO_ENTRY for new rays. */
-static brt_result phase_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
-                            const brt_bvh *bvh)
-{
-    phase_job j;
-    j.s = s;
-    j.slots = slots;
-    j.bvh = bvh;
-    j.result = BRT_OK;
-    pool_run(&s->pool, phase_chunk, phase_commit, &j, count, PHASE_CHUNK);
-    if (id != NO_ENTRY) cache_release(&s->cache, id);
-    phase_end(s);
-    return j.result;
-}
-
-/* Takes new rays from the source while there are free slots. */
-static brt_result refill(scheduler *s)
-{
-    while (s->free_count > 0) {
-        size_t n = s->source->next_rays(s->source->user, s->incoming, s->incoming_tags, s->free_count), i;
-        brt_result res;
-        if (n == 0) return BRT_OK;
-        if (n > s->free_count) n = s->free_count;
-        for (i = 0; i < n; i++) {
-            uint32_t slot = s->free_slots[--s->free_count];
-            ray_slot *r = &s->slots[slot];
-            s->phase[i] = slot;
-            r->ray = s->incoming[i];
-            r->tag = s->incoming_tags[i];
-            brt_hit_clear(&r->hit);
-            r->normal[0] = r->normal[1] = r->normal[2] = 0.0f;
-            r->visits = 0;
-            r->key.t = -INFINITY;
-            r->key.id = TOP_EMPTY;
-            s->stats->rays++;
-            s->stats->shadow_rays += is_occlusion(r);
-        }
-        res = phase_run(s, s->phase, (uint32_t)n, NO_ENTRY, NULL);
-        if (res != BRT_OK) return res;
-    }
-    return BRT_OK;
-}
-
-/* Nonzero when every ray of the queue is an occlusion ray. */
-static int only_occlusion(const scheduler *s, const ray_queue *q)
-{
-    uint32_t i;
-    for (i = 0; i < q->count; i++)
-        if (!is_occlusion(&s->slots[q->slots[i]])) return 0;
-    return 1;
-}
-
-/* Fetches batching point id for its queue, and books the load (if there
-** is one) as the shadow rays' when they alone asked for it. */
-static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const brt_bvh **bvh,
-                            brt_error *err)
-{
-    uint64_t loads = s->stats->batch_loads, bytes = s->stats->disk_bytes_read;
-    brt_result r = cache_fetch(&s->cache, id, bvh, err);
-    if (r == BRT_OK && s->stats->batch_loads != loads && only_occlusion(s, q)) {
-        s->stats->shadow_batch_loads += s->stats->batch_loads - loads;
-        s->stats->shadow_disk_bytes_read += s->stats->disk_bytes_read - bytes;
-    }
-    return r;
-}
-
-/* Intersects every ray queued at batching point id, then moves each on. */
-static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
-{
-    ray_queue q = s->queues[id];
-    const brt_bvh *bvh;
-    brt_result r = fetch_for(s, id, &q, &bvh, err);
-    if (r != BRT_OK) return r;
-    /* Take the queue out first: no ray is queued here again (keys only
-    ** grow), but the commit queues rays elsewhere. */
-    memset(&s->queues[id], 0, sizeof s->queues[id]);
-    if (s->heap_size > 0) cache_read_ahead(&s->cache, s->heap[0]);
-    r = phase_run(s, q.slots, q.count, id, bvh);
-    free(q.slots);
-    return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
-}
-
-/* What the page cache would hold with every batching point in memory. */
-static uint64_t all_blob_bytes(const brt_scene *scene)
-{
-    uint64_t bytes = 0;
-    uint32_t i;
-    for (i = 0; i < scene->header.batch_count; i++) bytes += round_up_page(scene->batches[i].size);
-    return bytes;
-}
-
-/* The pool and one walker per thread (opt->threads: 0 means all cores). */
-static brt_result walkers_init(scheduler *s, const brt_trace_options *opt)
-{
-    uint32_t n = s->scene->header.batch_count, t;
-    pool_init(&s->pool, opt ? opt->threads : 0);
-    s->walkers = calloc(s->pool.count, sizeof *s->walkers);
-    s->uses = malloc((size_t)n * sizeof *s->uses);
-    if (!s->walkers || !s->uses) return BRT_ENOMEM;
-    for (t = 0; t < s->pool.count; t++) {
-        walker *w = &s->walkers[t];
-        w->walk.heap = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.heap);
-        w->used_at = calloc(n, sizeof *w->used_at);
-        w->used = malloc((size_t)n * sizeof *w->used);
-        if (!w->walk.heap || !w->used_at || !w->used) return BRT_ENOMEM;
-    }
-    return BRT_OK;
-}
-
-static void walkers_free(scheduler *s)
-{
-    uint32_t t;
-    for (t = 0; s->walkers && t < s->pool.count; t++) {
-        free(s->walkers[t].walk.heap);
-        free(s->walkers[t].used_at);
-        free(s->walkers[t].used);
-    }
-    free(s->walkers);
-    free(s->uses);
-    pool_free(&s->pool);
-}
-
-/* capacity_hint: the number of rays there will be, when known (0: not),
-** so that 20 rays do not get a million slots. */
-static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace_options *opt,
-                                 const brt_ray_source *source, size_t capacity_hint,
-                                 brt_stats *stats)
-{
-    uint32_t n = scene->header.batch_count, i;
-    uint64_t budget = opt && opt->memory_limit ? opt->memory_limit : UINT64_MAX;
-    memset(s, 0, sizeof *s);
-    s->scene = scene;
-    s->source = source;
-    s->stats = stats;
-    s->use_proxies = !(opt && opt->no_proxy);
-    s->queue_resident = opt && opt->queue_resident;
-    s->use_inner = !(opt && opt->no_inner);
-    s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
-    if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
-    /* With proxies on, they take their bytes from the same budget (the
-    ** paper's Fig. 3 lowers the geometry limit by the proxies' memory). */
-    stats->proxy_bytes = s->use_proxies ? brt_svdag_memory_bytes(scene->dag) : 0;
-    if (budget != UINT64_MAX) budget = budget > stats->proxy_bytes ? budget - stats->proxy_bytes : 0;
-    /* Proxies only spare loads.  When the budget holds every blob nothing
-    ** is ever evicted, so a load a proxy spares is only put off -- unless
-    ** no ray ever needs that batching point.  Measured (landscape, 2 M
-    ** triangles, no limit): 36 of 2.1 M proxy tests were at such points,
-    ** and the tests cost a fifth of the run.  So the default scheduler
-    ** does not consult them then; the paper's (queue_resident) does. */
-    if (!s->queue_resident && budget >= all_blob_bytes(scene)) s->use_proxies = 0;
-    stats->memory_limit = opt ? opt->memory_limit : 0;
-    stats->batching_points = n;
-    stats->geometry_bytes = scene->header.geometry_bytes;
-    s->slots = malloc((size_t)s->capacity * sizeof *s->slots);
-    s->free_slots = malloc((size_t)s->capacity * sizeof *s->free_slots);
-    s->queues = calloc(n, sizeof *s->queues);
-    s->heap = malloc((size_t)n * sizeof *s->heap);
-    s->heap_pos = malloc((size_t)n * sizeof *s->heap_pos);
-    s->incoming = malloc((size_t)s->capacity * sizeof *s->incoming);
-    s->incoming_tags = malloc((size_t)s->capacity * sizeof *s->incoming_tags);
-    s->phase = malloc((size_t)s->capacity * sizeof *s->phase);
-    s->outcome = malloc((size_t)s->capacity * sizeof *s->outcome);
-    if (!s->slots || !s->free_slots || !s->queues || !s->heap || !s->heap_pos || !s->incoming ||
-        !s->incoming_tags || !s->phase || !s->outcome || walkers_init(s, opt) != BRT_OK)
-        return BRT_ENOMEM;
-    for (i = 0; i < n; i++) s->heap_pos[i] = NO_ENTRY;
-    for (i = 0; i < s->capacity; i++) s->free_slots[i] = s->capacity - 1 - i;
-    s->free_count = s->capacity;
-    if (cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK) return BRT_ENOMEM;
-    s->cache.read_ahead = s->pool.count > 1;
-    return BRT_OK;
-}
-
-static void scheduler_free(scheduler *s)
-{
-    uint32_t i;
-    for (i = 0; s->queues && i < s->scene->header.batch_count; i++) free(s->queues[i].slots);
-    cache_free(&s->cache);
-    free(s->slots);
-    free(s->free_slots);
-    free(s->queues);
-    free(s->heap);
-    free(s->heap_pos);
-    free(s->incoming);
-    free(s->incoming_tags);
-    free(s->phase);
-    free(s->outcome);
-    walkers_free(s);
-    for (i = 0; s->exact && i < s->scene->header.batch_count; i++) {
-        brt_bvh_free(s->exact[i]);
-        blob_free(s->scene, i, s->exact_data[i]);
-    }
-    free(s->exact);
-    free(s->exact_data);
-}
-
-/* exact_proxies: every batching point's BVH, read once, outside the cache
-** and its statistics (an analysis, not a way to trace). */
-static brt_result exact_load(scheduler *s, brt_error *err)
-{
-    uint32_t n = s->scene->header.batch_count, i;
-    uint64_t uncounted = 0;
-    brt_result r = BRT_OK;
-    s->exact = calloc(n, sizeof *s->exact);
-    s->exact_data = calloc(n, sizeof *s->exact_data);
-    if (!s->exact || !s->exact_data)
-        return brt_fail(err, BRT_ENOMEM, "out of memory for the exact proxies");
-    for (i = 0; i < n && r == BRT_OK; i++)
-        r = blob_read(&s->cache, i, &uncounted, &s->exact_data[i], &s->exact[i], err);
-    return r;
-}
-
-static brt_result schedule(scheduler *s, brt_error *err)
-{
-    brt_result r = refill(s);
-    while (r == BRT_OK && s->heap_size > 0) {
-        r = process_batch(s, heap_pop(s), err);
-        if (r == BRT_OK) r = refill(s);
-    }
-    if (r == BRT_ENOMEM) return brt_fail(err, r, "out of memory in the ray queues");
-    return r == BRT_OK ? cache_check(&s->cache, err) : r;
-}
-
-static brt_result trace_source(brt_scene *scene, const brt_trace_options *opt,
-                               const brt_ray_source *source, size_t capacity_hint,
-                               brt_stats *stats, brt_error *err)
-{
-    scheduler s;
-    brt_stats local;
-    double start = brt_seconds();
-    brt_result r;
-    if (!stats) stats = &local;
-    memset(stats, 0, sizeof *stats);
-    if (opt && opt->drop_os_cache) posix_fadvise(scene->fd, 0, 0, POSIX_FADV_DONTNEED);
-    r = scheduler_init(&s, scene, opt, source, capacity_hint, stats);
-    if (r != BRT_OK) r = brt_fail(err, r, "out of memory for %u rays in flight", s.capacity);
-    else if (opt && opt->exact_proxies && s.use_proxies) r = exact_load(&s, err);
-    if (r == BRT_OK) r = schedule(&s, err);
-    scheduler_free(&s);
-    stats->visits = stats->queued_visits + stats->resident_visits;
-    stats->seconds = brt_seconds() - start;
-    if (stats->seconds > 0) stats->mrays_per_second = (double)stats->rays / stats->seconds * 1e-6;
-    return r;
-}
-
-brt_result brt_scene_trace_stream(brt_scene *scene, const brt_trace_options *opt,
-                                  const brt_ray_source *source, brt_stats *stats,
-                                  brt_error *err)
-{
-    return trace_source(scene, opt, source, 0, stats, err);
-}
-
-/* brt_scene_trace and brt_scene_occluded on top of the stream: rays are
-** handed out in order and the tag is the index of the answer to write
-** (with BRT_TAG_OCCLUSION when the answers are occlusion bytes). */
-typedef struct array_source {
     const brt_ray *rays;
-    brt_hit *hits;              /* closest hits, or NULL */
-    uint8_t *occluded;          /* or occlusion bytes */
-    size_t count, next;
-} array_source;
+    const uint64_t *tags;
+    brt_hit *hits;
+    float *normals;
+} bvh_trace_job;
 
-static size_t array_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+static void bvh_trace_chunk(void *ctx, unsigned thread, size_t first, size_t end)
 {
-    array_source *a = user;
-    size_t n = a->count - a->next < max ? a->count - a->next : max, i;
-    for (i = 0; i < n; i++) {
-        rays[i] = a->rays[a->next];
-        tags[i] = a->next++ | (a->occluded ? BRT_TAG_OCCLUSION : 0);
+    const bvh_trace_job *j = ctx;
+    size_t i;
+    (void)thread;
+    for (i = first; i < end; i++) {
+        float *normal = j->normals ? j->normals + 3 * i : NULL;
+        if (normal) normal[0] = normal[1] = normal[2] = 0.0f;
+        brt_hit_clear(&j->hits[i]);
+        intersect_ray(j->bvh, &j->rays[i], j->tags ? j->tags[i] : 0, &j->hits[i], normal);
     }
-    return n;
 }
 
-static void array_finished(void *user, const brt_ray *ray, const brt_hit *hit,
-                           const float normal[3], uint32_t visits, uint64_t tag)
-{
-    array_source *a = user;
-    (void)ray;
-    (void)normal;
-    (void)visits;
-    if (a->occluded) a->occluded[tag & ~BRT_TAG_OCCLUSION] = hit->prim != BRT_NO_PRIM;
-    else a->hits[tag] = *hit;
-}
+#define TRACE_CHUNK 1024   /* rays per chunk: ~1 ms, against ~10 us per take */
 
-static brt_result trace_array(brt_scene *scene, const brt_trace_options *opt, array_source *a,
-                              brt_stats *stats, brt_error *err)
+void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags,
+                   size_t count, brt_hit *hits, float *normals, unsigned threads)
 {
-    brt_ray_source source;
-    a->next = 0;
-    source.next_rays = array_next;
-    source.finished = array_finished;
-    source.user = a;
-    return trace_source(scene, opt, &source, a->count > 0 ? a->count : 1, stats, err);
-}
-
-/* The array forms: either hits or occluded is written (the other NULL). */
-static brt_result trace_rays(brt_scene *scene, const brt_trace_options *opt,
-                             const brt_ray *rays, size_t count, brt_hit *hits,
-                             uint8_t *occluded, brt_stats *stats, brt_error *err)
-{
-    array_source a;
-    a.rays = rays;
-    a.hits = hits;
-    a.occluded = occluded;
-    a.count = count;
-    return trace_array(scene, opt, &a, stats, err);
-}
-
-brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
-                           const brt_ray *rays, size_t count, brt_hit *hits,
-                           brt_stats *stats, brt_error *err)
-{
-    return trace_rays(scene, opt, rays, count, hits, NULL, stats, err);
-}
-
-brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
-                              const brt_ray *rays, size_t count, uint8_t *occluded,
-                              brt_stats *stats, brt_error *err)
-{
-    return trace_rays(scene, opt, rays, count, NULL, occluded, stats, err);
+    bvh_trace_job j;
+    pool p;
+    j.bvh = bvh;
+    j.rays = rays;
+    j.tags = tags;
+    j.hits = hits;
+    j.normals = normals;
+    pool_init(&p, count > TRACE_CHUNK ? threads : 1);
+    pool_run(&p, bvh_trace_chunk, NULL, &j, count, TRACE_CHUNK);
+    pool_free(&p);
 }

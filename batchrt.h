@@ -1,5 +1,5 @@
 /*
-** batchrt.h -- the one public header of batchrt.
+** batchrt.h -- the one public header of batchrt, and its manual.
 **
 ** batchrt is a small, dependency-free C99 reference implementation of
 ** "Conservative Ray Batching using Geometry Proxies" (Molenaar and Eisemann,
@@ -10,22 +10,50 @@
 ** cause a disk load.  A proxy never misses a ray that hits real geometry.
 **
 ** DATA FLOW
-**   mesh (OBJ/PLY) -> triangle BVH (bvh.c)            direct mode
-**   mesh -> batching points -> scene file + proxies   batched mode
-**        (batchrt.c)           (svdag.c: voxelize -> SVO -> shared DAG)
+**   mesh (OBJ/PLY) -> batching points -> scene file + proxies   batched mode
+**        (batchrt.c)                    (svdag.c: voxelize -> SVO -> shared DAG)
 **   rays -> top-level walk -> (geometry in memory: intersect at once)
 **        -> proxy test -> queues -> page cache -> hits
+**   mesh -> triangle BVH (bvh.c)                                direct mode
 **
-** USAGE (see examples/minimal.c for a complete program)
+** USAGE: THE BATCHED METHOD (examples/minimal_batched.c: a whole program)
 **
-**   brt_mesh mesh; brt_error err; brt_bvh *bvh;
-**   if (brt_mesh_load("bunny.obj", &mesh, &err) != BRT_OK)
-**       { fprintf(stderr, "%s\n", err.message); return 1; }
+**   brt_mesh mesh; brt_scene *scene; brt_stats stats; brt_error err;
+**   brt_trace_options opt = {0};             // zeroed: the defaults, proxies on
+**   if (brt_mesh_load("city.obj", &mesh, &err) != BRT_OK       // 1. the mesh
+**       || brt_scene_build(&mesh, NULL, 0, "city.brs", &err)   // 2. batching points,
+**          != BRT_OK                                           //    BVH blobs, proxies
+**       || brt_scene_open("city.brs", &scene, &err) != BRT_OK) // 3. boxes and proxies
+**       { fprintf(stderr, "%s\n", err.message); return 1; }    //    in memory
+**   opt.memory_limit = 64 << 20;             // at most 64 MiB of geometry in memory
+**   brt_scene_trace(scene, &opt, rays, n, hits, &stats, &err); // 4. hits[i] for rays[i]
+**   printf("%llu loads, %llu of %llu proxy tests culled\n",    // 5. what it cost
+**          (unsigned long long)stats.batch_loads,
+**          (unsigned long long)stats.proxy_culled, (unsigned long long)stats.proxy_tests);
+**   brt_scene_close(scene); brt_mesh_free(&mesh);
+**
+** Every hit is byte for byte the one brt_bvh_intersect finds over the whole
+** mesh, whatever the options.  brt_scene_prepare builds a scene file only
+** when it is missing or stale; brt_scene_trace_stream keeps a constant
+** number of rays in flight (a path tracer).
+**
+** USAGE: ONE BVH IN MEMORY (examples/minimal.c)
+**
+**   brt_bvh *bvh; brt_hit hit; brt_ray ray = {{0,0,5}, {0,0,-1}, 0, INFINITY};
 **   brt_bvh_build(mesh.positions, mesh.indices, mesh.triangle_count, NULL, &bvh);
-**   brt_ray ray = {{0,0,5}, {0,0,-1}, 0, INFINITY};
-**   brt_hit hit; brt_hit_clear(&hit);
+**   brt_hit_clear(&hit);
 **   brt_bvh_intersect(bvh, &ray, &hit);   // hit.prim == BRT_NO_PRIM on a miss
-**   brt_bvh_free(bvh); brt_mesh_free(&mesh);
+**   brt_bvh_free(bvh);
+**
+** CONTENTS
+**   Results and errors; rays and hits (the records every call takes)
+**   1. Batched traversal: scene files, tracing, statistics (batchrt.c)
+**   2. Meshes and triangle streams (batchrt.c)
+**   3. Ray and hit files (batchrt.c)
+**   4. Ray/triangle test, ray/box test and triangle BVH (bvh.c)
+**   5. Conservative voxel proxies: voxelizer, shared DAG, ray cast (svdag.c)
+**   6. Small utilities: numbers, files, threads, time (batchrt.c)
+**   7. For tests and fuzzers only: declared with BRT_TESTING defined
 **
 ** ERRORS
 **   Every fallible function returns a brt_result (BRT_OK is 0) and, when
@@ -91,116 +119,7 @@ brt_result brt_fail(brt_error *err, brt_result r, const char *fmt, ...)
     ;
 
 /* ===================================================================== */
-/* Small utilities shared by the library, the programs and the tests     */
-/* ===================================================================== */
-
-/* Parses a size such as "512", "64K", "512M", "2G" (powers of 1024).
-** Rejects empty, negative, zero, overflowing and trailing-garbage text. */
-brt_result brt_parse_size(const char *text, uint64_t *bytes);
-
-/* SplitMix64: a tiny deterministic generator for raygen and the tests.
-** brt_random_float returns a float uniformly in [0, 1). */
-uint64_t brt_random_u64(uint64_t *state);
-float brt_random_float(uint64_t *state);
-
-/* The 64-bit checksum of scene files (header, sections, blobs): a
-** word-wise multiply-xorshift hash, not cryptographic. */
-uint64_t brt_checksum64(const void *data, size_t size);
-
-/* Seconds from a monotonic clock, for statistics only. */
-double brt_seconds(void);
-
-/* The process's peak resident set so far, in bytes (getrusage's ru_maxrss);
-** 0 where the system does not say. */
-uint64_t brt_peak_rss_bytes(void);
-
-/* Threads (README, "Threads"): every option named threads means that many
-** POSIX threads, the caller's included; 0 means one per online core.  No
-** output byte and no count depends on it.  brt_threads_resolve returns
-** the number a request stands for (at least 1, at most BRT_MAX_THREADS). */
-#define BRT_MAX_THREADS 256u
-unsigned brt_threads_resolve(unsigned threads);
-
-/* Writes size bytes to path through "path.tmp.<pid>" and rename(), so a
-** failure never leaves a half-written file under the final name. */
-brt_result brt_write_file_atomic(const char *path, const void *data,
-                                 size_t size, brt_error *err);
-
-/* ===================================================================== */
-/* Meshes (batchrt.c)                                                    */
-/* ===================================================================== */
-
-/* An indexed triangle mesh.  Triangles are numbered from 0 in file order;
-** an OBJ polygon "f a b c d" becomes the fan (a,b,c), (a,c,d).  Degenerate
-** triangles keep their number (they never report a hit). */
-typedef struct brt_mesh {
-    float *positions;         /* 3 floats per vertex */
-    uint32_t *indices;        /* 3 vertex indices per triangle */
-    uint32_t vertex_count;
-    uint32_t triangle_count;
-} brt_mesh;
-
-/* Loads a Wavefront OBJ ("v", "f" with i, i/t, i//n, i/t/n, negative
-** indices) or a PLY (ascii, binary_little_endian, binary_big_endian; float
-** or double x y z; face lists of any integer types), chosen by content.
-** Streams the file: the text is never held in memory as a whole.
-** Errors name the file and line (OBJ, ascii PLY) or element and record
-** (binary PLY).  A file without triangles is an error (BRT_EPARSE, "no
-** triangles"): every program needs some.  A missing file is BRT_EIO.
-** On error *mesh is zeroed; otherwise free it with brt_mesh_free. */
-brt_result brt_mesh_load(const char *path, brt_mesh *mesh, brt_error *err);
-
-/* The same parsers on a memory buffer; name is used in messages.
-** Entry points for tests and fuzzers. */
-brt_result brt_mesh_parse_obj(const char *name, const void *data, size_t size,
-                              brt_mesh *mesh, brt_error *err);
-brt_result brt_mesh_parse_ply(const char *name, const void *data, size_t size,
-                              brt_mesh *mesh, brt_error *err);
-
-void brt_mesh_free(brt_mesh *mesh);
-
-/* Axis-aligned bounds of the referenced vertices; an empty mesh gives
-** bmin = +inf, bmax = -inf. */
-void brt_mesh_bounds(const brt_mesh *mesh, float bmin[3], float bmax[3]);
-
-/* ---- Triangle streams: meshes that are never held whole ---------------- */
-/*
-** A producer hands triangles to a consumer in chunks, in file order:
-** corners holds 9 floats per triangle (v0, v1, v2) and first is the
-** file-order number of the chunk's first triangle, so chunk after chunk
-** first runs 0, c0, c0 + c1, ...  The consumer returns BRT_OK to go on; any
-** other result stops the producer, which returns it (the consumer wrote the
-** message into err).  Numbering and error messages are brt_mesh_load's.
-*/
-typedef brt_result (*brt_triangle_fn)(void *user, const float *corners,
-                                      uint32_t count, uint32_t first,
-                                      brt_error *err);
-
-/* Something that can produce the same triangles again and again: run
-** delivers every triangle once, in order; a build may run it more than once
-** (each pass sees the same triangles and the same chunks). */
-typedef struct brt_triangle_source {
-    brt_result (*run)(const void *user, brt_triangle_fn emit, void *emit_user,
-                      brt_error *err);
-    const void *user;
-} brt_triangle_source;
-
-/* Streams a mesh file (OBJ or PLY, as brt_mesh_load) to emit in chunks of
-** 65536 triangles.  Holds the vertex positions of an indexed file (12 bytes
-** per vertex) and one chunk, never the triangles (except a PLY whose faces
-** come before its vertices: its index array, emitted after the vertices).
-** Errors as brt_mesh_load (with "no triangles"), possibly after chunks
-** were emitted. */
-brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit,
-                           void *emit_user, brt_error *err);
-
-/* Sources over a mesh file (path must outlive the source) and over a mesh
-** in memory (likewise). */
-void brt_mesh_file_source(const char *path, brt_triangle_source *source);
-void brt_mesh_memory_source(const brt_mesh *mesh, brt_triangle_source *source);
-
-/* ===================================================================== */
-/* Rays and hits (batchrt.c)                                             */
+/* Rays and hits: the records every call takes (batchrt.c)               */
 /* ===================================================================== */
 
 typedef struct brt_ray {
@@ -220,6 +139,12 @@ typedef struct brt_hit {
 #define BRT_RAY_BYTES 32
 #define BRT_HIT_BYTES 16
 
+/* The one ray-validity rule: nonzero when org and dir are finite, dir is
+** not zero and tnear <= tfar (false for a NaN).  The BVH and the batched
+** traversal answer "miss" for any other ray; the proxy cast "may hit" (a
+** proxy errs only that way). */
+int brt_ray_valid(const brt_ray *ray);
+
 /* Sets a hit to the miss record. */
 void brt_hit_clear(brt_hit *hit);
 
@@ -227,314 +152,14 @@ void brt_hit_clear(brt_hit *hit);
 ** beats the current one (smaller t; equal t and lower prim). */
 int brt_hit_is_closer(float t, uint32_t prim, const brt_hit *current);
 
-/* Little-endian files of records with no header.  Reading a file whose
-** size is not a multiple of the record size is BRT_EPARSE.  Writing goes
-** through brt_write_file_atomic.  *rays / *hits are malloc'd (free()). */
-brt_result brt_rays_read(const char *path, brt_ray **rays, size_t *count,
-                         brt_error *err);
-brt_result brt_rays_write(const char *path, const brt_ray *rays, size_t count,
-                          brt_error *err);
-brt_result brt_hits_read(const char *path, brt_hit **hits, size_t *count,
-                         brt_error *err);
-brt_result brt_hits_write(const char *path, const brt_hit *hits, size_t count,
-                          brt_error *err);
+/* Taken by the batched API, defined further on: a trace's statistics at
+** the end of section 1, meshes and triangle sources in section 2. */
+typedef struct brt_stats brt_stats;
+typedef struct brt_mesh brt_mesh;
+typedef struct brt_triangle_source brt_triangle_source;
 
 /* ===================================================================== */
-/* Ray/triangle test and triangle BVH (bvh.c)                            */
-/* ===================================================================== */
-
-/* Watertight ray/triangle test of Woop, Benthin and Wald (2013).  On a hit
-** with tnear <= t <= tfar returns 1 and sets *t, *u, *v (Embree's
-** barycentrics).  Rays with a NaN, an all-zero direction or tnear > tfar
-** never hit.  The BVH uses bit-for-bit the same arithmetic, so a brute-force
-** loop over this function is an exact oracle for the BVH. */
-int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
-                           const float v1[3], const float v2[3],
-                           float *t, float *u, float *v);
-
-/* The one ray/box test of batchrt, used by the triangle BVH, the
-** triangle clamp of brt_intersect_triangle and the top-level walk.  The
-** box is grown by 16 * FLT_EPSILON of its largest |coordinate| and the
-** origin moved by the same share of its own (towards the box for near
-** planes, away for far planes); then per axis t = (plane - origin) * inv,
-** entry = max(tmin, near planes), exit = min(tmax, far planes).  (A zero
-** direction component gives inf * 0 = NaN on a slab plane, which never
-** narrows the interval: a ray in the plane of a closed slab is inside.)
-** Every step rounds monotonically in the box bounds, so a box inside
-** another is entered no earlier and left no later, bit for bit: with the
-** triangle clamp this makes pruning by "entry > closest t" exact. */
-typedef struct brt_ray_prep {
-    float inv[3];        /* 1/dir (+-inf for a zero component) */
-    float org_near[3];   /* origin for near planes, moved towards them */
-    float org_far[3];    /* origin for far planes, moved away from them */
-    int negative[3];     /* dir[a] has its sign bit set: near plane is hi */
-    float tnear, tfar;
-    int valid;     /* 0: NaN or inf in org/dir, zero dir, NaN t, tnear > tfar */
-} brt_ray_prep;
-
-void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep);
-
-/* Grows the box [lo, hi] as above (by 16 * FLT_EPSILON of its largest
-** |coordinate|, every bound rounded outwards by the same float ops);
-** plo/phi may be lo/hi themselves. */
-void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3]);
-
-/* 1 when the ray's segment [tmin, tmax] meets the closed box [lo, hi],
-** which must already be grown with brt_box_pad (so that a caller testing
-** one box many times grows it once), with the entry and exit distances. */
-int brt_box_span(const brt_ray_prep *prep, const float lo[3],
-                 const float hi[3], float tmin, float tmax, float *entry,
-                 float *exit);
-
-/* brt_box_span on four padded boxes at once, laid out as rows of four
-** lanes: box[0..2] the minimum x, y, z and box[3..5] the maximum x, y, z
-** of lanes 0..3 (a 4-wide BVH node).  Bit i of the result is lane i's
-** answer; entry[i] and exit[i] are bit for bit brt_box_span's. */
-unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4],
-                       float tmin, float tmax, float entry[4], float exit[4]);
-
-typedef struct brt_bvh brt_bvh;   /* opaque; layout documented in bvh.c */
-
-/* Builds a BVH over tri_count triangles given by indices into positions.
-** prim_ids[i] is the number reported for triangle i (NULL: i itself).
-** tri_count may be 0 (every ray misses).  A NaN or inf coordinate of a
-** triangle is BRT_EARG. */
-brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
-                         uint32_t tri_count, const uint32_t *prim_ids,
-                         brt_bvh **out);
-void brt_bvh_free(brt_bvh *bvh);
-
-/* Closest hit.  hit is in/out: it is replaced only by a closer hit (in the
-** sense of brt_hit_is_closer) within [ray->tnear, min(ray->tfar, hit->t)],
-** so one hit record can be carried across several BVHs (batching points)
-** and the final bytes do not depend on their order. */
-void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit);
-
-/* The same, and whenever the hit changes, normal becomes the geometric
-** normal (v1-v0) x (v2-v0) of the new hit's triangle (not normalised;
-** its direction follows the triangle's winding).  Shading needs it, and in
-** batched mode the triangle is only in memory while its batching point is. */
-void brt_bvh_intersect_normal(const brt_bvh *bvh, const brt_ray *ray,
-                              brt_hit *hit, float normal[3]);
-
-/* brt_bvh_intersect_normal for count rays from cleared hits: hits[i] (and
-** normals[3i..3i+2] when normals is not NULL, zero on a miss) for rays[i],
-** in chunks spread over threads threads (0: all cores).  tags may be NULL;
-** otherwise a ray whose tags[i] has BRT_TAG_OCCLUSION is an occlusion ray
-** and gets brt_ray_source's record (t = 0, prim = 0 when occluded, else the
-** miss record).  Out of memory for the threads, it runs on fewer; the bytes
-** are the same either way. */
-void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags,
-                   size_t count, brt_hit *hits, float *normals, unsigned threads);
-
-/* Any hit in [tnear, tfar]: 1 if occluded. */
-int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
-
-/* Structural checker: every triangle in exactly one leaf, indices in
-** range, slots ordered, and every triangle's grown box inside the decoded
-** (quantized) box of every slot on its path from the root -- what makes
-** pruning exact.  BRT_ECHECK with a message naming the first violation. */
-brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
-
-uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
-/* The number reported for each stored triangle, in storage order
-** (brt_bvh_triangle_count of them; checkers read it). */
-const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh);
-/* Nodes, vertices, prim ids and corner indices: the blob less its
-** 64-byte header (the same bytes in memory and on disk). */
-size_t brt_bvh_memory_bytes(const brt_bvh *bvh);
-/* Bounds of the root's decoded boxes: the triangles' bounds grown by a
-** few ulps of their magnitude (bvh.c: the pad that makes box tests
-** conservative for the rounding of the triangle test), then rounded
-** outward to the root's 8-bit planes; +inf/-inf when empty. */
-void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
-
-/* A BVH as one relocatable blob (indices, no pointers, little-endian) for
-** the scene file.  brt_bvh_blob_open makes a BVH that refers to the blob's
-** memory (which must stay alive and be 16-byte aligned) after validating
-** its sizes, indices and slot order, its decoded boxes (ordered) and
-** vertices (finite), and that every triangle number it reports is below
-** prim_limit (a scene's triangle count; UINT32_MAX when there is none); a
-** corrupt blob is BRT_EFORMAT, never a crash or a wrong hit record later
-** (a big-endian host refuses blobs: they are read in place). */
-size_t brt_bvh_blob_size(const brt_bvh *bvh);
-void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
-brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
-                             brt_bvh **out, brt_error *err);
-
-/* ===================================================================== */
-/* Conservative voxel proxies: voxelizer, shared SVDAG, ray cast (svdag.c) */
-/* ===================================================================== */
-
-/* A dense binary voxel grid with cubic cells, fitted to a box.
-** Voxel (x,y,z) covers origin + cell*[x,x+1] x [y,y+1] x [z,z+1]; its bit is
-** bits[i >> 6] >> (i & 63) with i = x + res*(y + res*z). */
-typedef struct brt_grid {
-    uint32_t res;       /* 2^k, k = 1..10 */
-    float origin[3];
-    float cell;         /* edge length of a voxel */
-    uint64_t *bits;
-} brt_grid;
-
-/* Allocates an empty grid of res^3 voxels whose cubic cells cover the box
-** [bmin, bmax] (the grid is as long as the longest side). */
-brt_result brt_grid_init(brt_grid *grid, const float bmin[3],
-                         const float bmax[3], uint32_t res);
-void brt_grid_free(brt_grid *grid);
-int brt_grid_get(const brt_grid *grid, uint32_t x, uint32_t y, uint32_t z);
-void brt_grid_set(brt_grid *grid, uint32_t x, uint32_t y, uint32_t z);
-uint64_t brt_grid_count(const brt_grid *grid);   /* voxels set */
-
-/* Conservative voxelization: marks every voxel whose closed box a triangle
-** touches (under rounding: never misses one; may add a few neighbours).
-** Degenerate triangles mark the voxels they touch.  Visits only voxels in
-** each triangle's bounding box. */
-brt_result brt_voxelize(brt_grid *grid, const float *positions,
-                        const uint32_t *indices, uint32_t tri_count);
-
-typedef struct brt_svdag brt_svdag;  /* a node pool shared by many proxies */
-
-/* One proxy: a root in the shared pool plus the grid frame it came from. */
-typedef struct brt_proxy {
-    uint32_t root;      /* node index, or BRT_EMPTY_ROOT for an empty grid */
-    uint32_t res;
-    float origin[3];
-    float cell;
-} brt_proxy;
-#define BRT_EMPTY_ROOT 0xFFFFFFFFu
-
-brt_result brt_svdag_create(brt_svdag **out);
-void brt_svdag_free(brt_svdag *dag);
-
-/* Adds a grid as a proxy: SVO built bottom-up, every node deduplicated
-** against the whole pool (hash plus full comparison), so identical
-** sub-blocks -- also across proxies -- are stored once. */
-brt_result brt_svdag_add(brt_svdag *dag, const brt_grid *grid,
-                         brt_proxy *proxy);
-
-/* Decodes a proxy back into a dense grid (allocated here). */
-brt_result brt_svdag_decode(const brt_svdag *dag, const brt_proxy *proxy,
-                            brt_grid *grid);
-
-/* Laine-Karras ray cast adapted to the DAG, on the world-space segment
-** [tnear, tfar] along ray (ray->tnear/tfar are ignored).  Returns 1 when the
-** segment touches the closed box of a set voxel, with *t_entry no greater
-** than where it first touches one (clamped to tnear).  Conservative under
-** rounding; NaN rays return 1 with *t_entry = tnear (a proxy may only err
-** towards "hit").  t_entry may be NULL: the cast then stops at the first
-** set voxel it touches (the yes/no question the batched traversal asks).
-** The proxy must have passed brt_proxy_check against this pool (done once,
-** when a proxy is built or read: the cast does not check it again; an
-** unchecked proxy may read outside the pool). */
-int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
-                      const brt_ray *ray, float tnear, float tfar,
-                      float *t_entry);
-
-/* The same cast written for reading: plain Laine-Karras (phases INITIALIZE,
-** PUSH, ADVANCE, POP, the paper's names), about 3x slower; same contract.
-** It answers hit or miss exactly as brt_proxy_raycast does, with the same
-** *t_entry (the same plane distances; tests check both). */
-int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
-                                const brt_ray *ray, float tnear, float tfar,
-                                float *t_entry);
-
-/* Pool checker: child indices in range and pointing to earlier nodes,
-** masks consistent, no two identical nodes. */
-brt_result brt_svdag_check(const brt_svdag *dag, brt_error *err);
-
-/* Checks a proxy against a pool (e.g. one read from a scene file): res a
-** power of two in 2..1024, finite origin, finite positive cell, and root
-** an empty root or a node of the pool of the depth res needs.
-** BRT_ECHECK with a message. */
-brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
-                           brt_error *err);
-
-/* Nodes of the proxy's tree before deduplication (the SVO: interior nodes
-** plus 4x4x4 leaves), counted through the DAG; 0 for an empty or invalid
-** proxy or when memory runs out. */
-uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy);
-
-/* Inner voxelization (svdag.c, "Inner proxies").  A solids set: the
-** closed components of a set of triangles (every edge used an even number
-** of times by triangles with exactly equal vertex positions, none
-** degenerate); triangle t's corners are the 9 floats at corners + stride * t,
-** which the set refers to: keep them until brt_solids_free. */
-typedef struct brt_solids brt_solids;
-brt_result brt_solids_build(const float *corners, size_t stride, uint32_t tri_count,
-                            brt_solids **out);
-uint32_t brt_solids_triangles(const brt_solids *solids);   /* in closed components */
-void brt_solids_free(brt_solids *solids);
-
-/* Into an allocated, empty grid: the voxels whose closed box lies inside a
-** closed component of solids (odd crossing parity), so that a ray from any
-** of them to infinity hits a triangle of solids. */
-brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids);
-
-/* 1 only when the ray, with tfar = +inf, certainly hits a triangle at
-** t >= tnear: it passes through the core of an inner voxel of the proxy
-** (a root from brt_voxelize_inner's grid, checked like an outer proxy).
-** 0 for any other ray, or when unsure: it may under-report, never
-** over-report. */
-int brt_inner_occludes(const brt_svdag *dag, const brt_proxy *inner,
-                       const brt_ray *ray);
-
-uint32_t brt_svdag_node_count(const brt_svdag *dag);
-size_t brt_svdag_memory_bytes(const brt_svdag *dag);
-
-/* The pool as one relocatable blob, for the scene file (little-endian,
-** layout in svdag.c).  brt_svdag_blob_open copies the blob (any alignment)
-** and runs brt_svdag_check: a corrupt blob is BRT_EFORMAT.  Proxies read
-** from the same file are then validated with brt_proxy_check. */
-size_t brt_svdag_blob_size(const brt_svdag *dag);
-void brt_svdag_blob_write(const brt_svdag *dag, void *dst);
-brt_result brt_svdag_blob_open(const void *blob, size_t size,
-                               brt_svdag **out, brt_error *err);
-
-/* ===================================================================== */
-/* Statistics (batchrt.c)                                                */
-/* ===================================================================== */
-
-/* The fields of the statistics contract (README.md, "Batched mode"); fields that do not apply
-** to a mode are 0. */
-typedef struct brt_stats {
-    uint64_t rays;
-    uint64_t batching_points;
-    uint64_t geometry_bytes;    /* all batching-point blobs, as stored */
-    uint64_t disk_bytes_read;
-    uint64_t batch_loads;
-    uint64_t cache_peak_bytes;
-    uint64_t memory_limit;
-    uint64_t proxy_bytes;
-    uint64_t proxy_tests;
-    uint64_t proxy_culled;
-    uint64_t visits;            /* batching points visited by rays: the two below */
-    uint64_t queued_visits;     /* rays queued at a batching point */
-    uint64_t resident_visits;   /* rays intersected at once: the geometry was in memory */
-    uint64_t oversized_loads;   /* loads of a blob larger than the budget */
-    uint64_t shadow_rays;       /* occlusion rays traced (counted in rays too) */
-    uint64_t shadow_occluded;   /* of those, the ones that found a hit */
-    uint64_t shadow_batch_loads;     /* loads for a queue of occlusion rays only */
-    uint64_t shadow_disk_bytes_read; /* the bytes those loads read: what the
-                                ** shadow rays alone made the cache read (a
-                                ** load for a mixed queue counts for neither) */
-    double seconds;             /* tracing */
-    double load_seconds;        /* of those, loading batching points (read,
-                                ** checksum, open), wall clock */
-    double build_seconds;       /* BVH or scene build */
-    double bvh_bytes_per_triangle;
-    double mrays_per_second;
-    uint64_t peak_rss_bytes;    /* the process's, when the stats were taken
-                                ** (programs set it: brt_peak_rss_bytes) */
-    uint64_t shadow_inner_stopped;   /* occlusion rays settled occluded by an
-                                ** inner proxy: no queue, no load */
-} brt_stats;
-
-/* Writes the statistics as one JSON object (atomically). */
-brt_result brt_stats_write_json(const char *path, const brt_stats *stats,
-                                brt_error *err);
-
-/* ===================================================================== */
-/* Out-of-core batched traversal (batchrt.c)                             */
+/* 1. Batched traversal: scene files, tracing, statistics (batchrt.c)   */
 /* ===================================================================== */
 /*
 ** A scene file holds a mesh split into batching points.  Each batching
@@ -587,13 +212,6 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
                                   const brt_scene_options *opt,
                                   uint64_t source_stamp, const char *scene_path,
                                   brt_error *err);
-
-/* Partition checker: every triangle number below the scene's triangle
-** count is in exactly one batching point, and no batching point holds more
-** than batch_tris triangles (it reads every blob).  BRT_ECHECK with a
-** message naming the first violation. */
-brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
-                                     brt_error *err);
 
 /* A stamp of a mesh file (size and modification time), as make uses them. */
 brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp,
@@ -708,6 +326,481 @@ brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
 brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
                               const brt_ray *rays, size_t count, uint8_t *occluded,
                               brt_stats *stats, brt_error *err);
+
+/* ---- Statistics ------------------------------------------------------ */
+
+/* The fields of the statistics contract (README.md, "Batched mode"); fields that do not apply
+** to a mode are 0. */
+struct brt_stats {
+    uint64_t rays;
+    uint64_t batching_points;
+    uint64_t geometry_bytes;    /* all batching-point blobs, as stored */
+    uint64_t disk_bytes_read;
+    uint64_t batch_loads;
+    uint64_t cache_peak_bytes;
+    uint64_t memory_limit;
+    uint64_t proxy_bytes;
+    uint64_t proxy_tests;
+    uint64_t proxy_culled;
+    uint64_t visits;            /* batching points visited by rays: the two below */
+    uint64_t queued_visits;     /* rays queued at a batching point */
+    uint64_t resident_visits;   /* rays intersected at once: the geometry was in memory */
+    uint64_t oversized_loads;   /* loads of a blob larger than the budget */
+    uint64_t shadow_rays;       /* occlusion rays traced (counted in rays too) */
+    uint64_t shadow_occluded;   /* of those, the ones that found a hit */
+    uint64_t shadow_batch_loads;     /* loads for a queue of occlusion rays only */
+    uint64_t shadow_disk_bytes_read; /* the bytes those loads read: what the
+                                ** shadow rays alone made the cache read (a
+                                ** load for a mixed queue counts for neither) */
+    double seconds;             /* tracing */
+    double load_seconds;        /* of those, loading batching points (read,
+                                ** checksum, open), wall clock */
+    double build_seconds;       /* BVH or scene build */
+    double bvh_bytes_per_triangle;
+    double mrays_per_second;
+    uint64_t peak_rss_bytes;    /* the process's, when the stats were taken
+                                ** (programs set it: brt_peak_rss_bytes) */
+    uint64_t shadow_inner_stopped;   /* occlusion rays settled occluded by an
+                                ** inner proxy: no queue, no load */
+};
+
+/* Writes the statistics as one JSON object (atomically). */
+brt_result brt_stats_write_json(const char *path, const brt_stats *stats,
+                                brt_error *err);
+
+/* ===================================================================== */
+/* 2. Meshes and triangle streams (batchrt.c)                            */
+/* ===================================================================== */
+
+/* An indexed triangle mesh.  Triangles are numbered from 0 in file order;
+** an OBJ polygon "f a b c d" becomes the fan (a,b,c), (a,c,d).  Degenerate
+** triangles keep their number (they never report a hit). */
+struct brt_mesh {
+    float *positions;         /* 3 floats per vertex */
+    uint32_t *indices;        /* 3 vertex indices per triangle */
+    uint32_t vertex_count;
+    uint32_t triangle_count;
+};
+
+/* Loads a Wavefront OBJ ("v", "f" with i, i/t, i//n, i/t/n, negative
+** indices) or a PLY (ascii, binary_little_endian, binary_big_endian; float
+** or double x y z; face lists of any integer types), chosen by content.
+** Streams the file: the text is never held in memory as a whole.
+** Errors name the file and line (OBJ, ascii PLY) or element and record
+** (binary PLY).  A file without triangles is an error (BRT_EPARSE, "no
+** triangles"): every program needs some.  A missing file is BRT_EIO.
+** On error *mesh is zeroed; otherwise free it with brt_mesh_free. */
+brt_result brt_mesh_load(const char *path, brt_mesh *mesh, brt_error *err);
+
+void brt_mesh_free(brt_mesh *mesh);
+
+/* Axis-aligned bounds of the referenced vertices; an empty mesh gives
+** bmin = +inf, bmax = -inf. */
+void brt_mesh_bounds(const brt_mesh *mesh, float bmin[3], float bmax[3]);
+
+/* ---- Triangle streams: meshes that are never held whole ---------------- */
+/*
+** A producer hands triangles to a consumer in chunks, in file order:
+** corners holds 9 floats per triangle (v0, v1, v2) and first is the
+** file-order number of the chunk's first triangle, so chunk after chunk
+** first runs 0, c0, c0 + c1, ...  The consumer returns BRT_OK to go on; any
+** other result stops the producer, which returns it (the consumer wrote the
+** message into err).  Numbering and error messages are brt_mesh_load's.
+*/
+typedef brt_result (*brt_triangle_fn)(void *user, const float *corners,
+                                      uint32_t count, uint32_t first,
+                                      brt_error *err);
+
+/* Something that can produce the same triangles again and again: run
+** delivers every triangle once, in order; a build may run it more than once
+** (each pass sees the same triangles and the same chunks). */
+struct brt_triangle_source {
+    brt_result (*run)(const void *user, brt_triangle_fn emit, void *emit_user,
+                      brt_error *err);
+    const void *user;
+};
+
+/* Streams a mesh file (OBJ or PLY, as brt_mesh_load) to emit in chunks of
+** 65536 triangles.  Holds the vertex positions of an indexed file (12 bytes
+** per vertex) and one chunk, never the triangles (except a PLY whose faces
+** come before its vertices: its index array, emitted after the vertices).
+** Errors as brt_mesh_load (with "no triangles"), possibly after chunks
+** were emitted. */
+brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit,
+                           void *emit_user, brt_error *err);
+
+/* Sources over a mesh file (path must outlive the source) and over a mesh
+** in memory (likewise). */
+void brt_mesh_file_source(const char *path, brt_triangle_source *source);
+void brt_mesh_memory_source(const brt_mesh *mesh, brt_triangle_source *source);
+
+/* ===================================================================== */
+/* 3. Ray and hit files (batchrt.c)                                      */
+/* ===================================================================== */
+
+/* Little-endian files of records with no header.  Reading a file whose
+** size is not a multiple of the record size is BRT_EPARSE.  Writing goes
+** through brt_write_file_atomic.  *rays / *hits are malloc'd (free()). */
+brt_result brt_rays_read(const char *path, brt_ray **rays, size_t *count,
+                         brt_error *err);
+brt_result brt_rays_write(const char *path, const brt_ray *rays, size_t count,
+                          brt_error *err);
+brt_result brt_hits_read(const char *path, brt_hit **hits, size_t *count,
+                         brt_error *err);
+brt_result brt_hits_write(const char *path, const brt_hit *hits, size_t count,
+                          brt_error *err);
+
+/* ===================================================================== */
+/* 4. Ray/triangle test, ray/box test and triangle BVH (bvh.c)           */
+/* ===================================================================== */
+
+/* Watertight ray/triangle test of Woop, Benthin and Wald (2013).  On a hit
+** with tnear <= t <= tfar returns 1 and sets *t, *u, *v (Embree's
+** barycentrics).  Rays with a NaN, an all-zero direction or tnear > tfar
+** never hit.  The BVH uses bit-for-bit the same arithmetic, so a brute-force
+** loop over this function is an exact oracle for the BVH. */
+int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
+                           const float v1[3], const float v2[3],
+                           float *t, float *u, float *v);
+
+/* The one ray/box test of batchrt, used by the triangle BVH, the
+** triangle clamp of brt_intersect_triangle and the top-level walk.  The
+** box is grown by 16 * FLT_EPSILON of its largest |coordinate| and the
+** origin moved by the same share of its own (towards the box for near
+** planes, away for far planes); then per axis t = (plane - origin) * inv,
+** entry = max(tmin, near planes), exit = min(tmax, far planes).  (A zero
+** direction component gives inf * 0 = NaN on a slab plane, which never
+** narrows the interval: a ray in the plane of a closed slab is inside.)
+** Every step rounds monotonically in the box bounds, so a box inside
+** another is entered no earlier and left no later, bit for bit: with the
+** triangle clamp this makes pruning by "entry > closest t" exact. */
+typedef struct brt_ray_prep {
+    float inv[3];        /* 1/dir (+-inf for a zero component) */
+    float org_near[3];   /* origin for near planes, moved towards them */
+    float org_far[3];    /* origin for far planes, moved away from them */
+    int negative[3];     /* dir[a] has its sign bit set: near plane is hi */
+    float tnear, tfar;
+    int valid;     /* 0: NaN or inf in org/dir, zero dir, NaN t, tnear > tfar */
+} brt_ray_prep;
+
+void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep);
+
+/* Grows the box [lo, hi] as above (by 16 * FLT_EPSILON of its largest
+** |coordinate|, every bound rounded outwards by the same float ops);
+** plo/phi may be lo/hi themselves. */
+void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3]);
+
+/* brt_box_span (section 7) on four padded boxes at once, laid out as rows of four
+** lanes: box[0..2] the minimum x, y, z and box[3..5] the maximum x, y, z
+** of lanes 0..3 (a 4-wide BVH node).  Bit i of the result is lane i's
+** answer; entry[i] and exit[i] are bit for bit brt_box_span's. */
+unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4],
+                       float tmin, float tmax, float entry[4], float exit[4]);
+
+typedef struct brt_bvh brt_bvh;   /* opaque; layout documented in bvh.c */
+
+/* Builds a BVH over tri_count triangles given by indices into positions.
+** prim_ids[i] is the number reported for triangle i (NULL: i itself).
+** tri_count may be 0 (every ray misses).  A NaN or inf coordinate of a
+** triangle is BRT_EARG. */
+brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
+                         uint32_t tri_count, const uint32_t *prim_ids,
+                         brt_bvh **out);
+void brt_bvh_free(brt_bvh *bvh);
+
+/* Closest hit.  hit is in/out: it is replaced only by a closer hit (in the
+** sense of brt_hit_is_closer) within [ray->tnear, min(ray->tfar, hit->t)],
+** so one hit record can be carried across several BVHs (batching points)
+** and the final bytes do not depend on their order. */
+void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit);
+
+/* The same, and whenever the hit changes, normal becomes the geometric
+** normal (v1-v0) x (v2-v0) of the new hit's triangle (not normalised;
+** its direction follows the triangle's winding).  Shading needs it, and in
+** batched mode the triangle is only in memory while its batching point is. */
+void brt_bvh_intersect_normal(const brt_bvh *bvh, const brt_ray *ray,
+                              brt_hit *hit, float normal[3]);
+
+/* brt_bvh_intersect_normal for count rays from cleared hits: hits[i] (and
+** normals[3i..3i+2] when normals is not NULL, zero on a miss) for rays[i],
+** in chunks spread over threads threads (0: all cores).  tags may be NULL;
+** otherwise a ray whose tags[i] has BRT_TAG_OCCLUSION is an occlusion ray
+** and gets brt_ray_source's record (t = 0, prim = 0 when occluded, else the
+** miss record).  Out of memory for the threads, it runs on fewer; the bytes
+** are the same either way. */
+void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags,
+                   size_t count, brt_hit *hits, float *normals, unsigned threads);
+
+/* Any hit in [tnear, tfar]: 1 if occluded. */
+int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
+
+uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
+/* The number reported for each stored triangle, in storage order
+** (brt_bvh_triangle_count of them; checkers read it). */
+const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh);
+/* Nodes, vertices, prim ids and corner indices: the blob less its
+** 64-byte header (the same bytes in memory and on disk). */
+size_t brt_bvh_memory_bytes(const brt_bvh *bvh);
+/* A BVH as one relocatable blob (indices, no pointers, little-endian) for
+** the scene file.  brt_bvh_blob_open makes a BVH that refers to the blob's
+** memory (which must stay alive and be 16-byte aligned) after validating
+** its sizes, indices and slot order, its decoded boxes (ordered) and
+** vertices (finite), and that every triangle number it reports is below
+** prim_limit (a scene's triangle count; UINT32_MAX when there is none); a
+** corrupt blob is BRT_EFORMAT, never a crash or a wrong hit record later
+** (a big-endian host refuses blobs: they are read in place). */
+size_t brt_bvh_blob_size(const brt_bvh *bvh);
+void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
+brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
+                             brt_bvh **out, brt_error *err);
+
+/* ===================================================================== */
+/* 5. Voxel proxies: voxelizer, shared DAG, ray cast (svdag.c)           */
+/* ===================================================================== */
+
+/* Nonzero when res is a resolution a grid or proxy may have: 2^k,
+** k = 1..10 (the one rule; brt_proxy_check and the scene build use it). */
+int brt_proxy_res_valid(uint32_t res);
+
+/* A dense binary voxel grid with cubic cells, fitted to a box.
+** Voxel (x,y,z) covers origin + cell*[x,x+1] x [y,y+1] x [z,z+1]; its bit is
+** bits[i >> 6] >> (i & 63) with i = x + res*(y + res*z). */
+typedef struct brt_grid {
+    uint32_t res;       /* 2^k, k = 1..10 */
+    float origin[3];
+    float cell;         /* edge length of a voxel */
+    uint64_t *bits;
+} brt_grid;
+
+/* Allocates an empty grid of res^3 voxels whose cubic cells cover the box
+** [bmin, bmax] (the grid is as long as the longest side). */
+brt_result brt_grid_init(brt_grid *grid, const float bmin[3],
+                         const float bmax[3], uint32_t res);
+void brt_grid_free(brt_grid *grid);
+int brt_grid_get(const brt_grid *grid, uint32_t x, uint32_t y, uint32_t z);
+void brt_grid_set(brt_grid *grid, uint32_t x, uint32_t y, uint32_t z);
+uint64_t brt_grid_count(const brt_grid *grid);   /* voxels set */
+
+/* Conservative voxelization: marks every voxel whose closed box a triangle
+** touches (under rounding: never misses one; may add a few neighbours).
+** Degenerate triangles mark the voxels they touch.  Visits only voxels in
+** each triangle's bounding box. */
+brt_result brt_voxelize(brt_grid *grid, const float *positions,
+                        const uint32_t *indices, uint32_t tri_count);
+
+typedef struct brt_svdag brt_svdag;  /* a node pool shared by many proxies */
+
+/* One proxy: a root in the shared pool plus the grid frame it came from. */
+typedef struct brt_proxy {
+    uint32_t root;      /* node index, or BRT_EMPTY_ROOT for an empty grid */
+    uint32_t res;
+    float origin[3];
+    float cell;
+} brt_proxy;
+#define BRT_EMPTY_ROOT 0xFFFFFFFFu
+
+brt_result brt_svdag_create(brt_svdag **out);
+void brt_svdag_free(brt_svdag *dag);
+
+/* Adds a grid as a proxy: SVO built bottom-up, every node deduplicated
+** against the whole pool (hash plus full comparison), so identical
+** sub-blocks -- also across proxies -- are stored once. */
+brt_result brt_svdag_add(brt_svdag *dag, const brt_grid *grid,
+                         brt_proxy *proxy);
+
+/* Laine-Karras ray cast adapted to the DAG, on the world-space segment
+** [tnear, tfar] along ray (ray->tnear/tfar are ignored).  Returns 1 when the
+** segment touches the closed box of a set voxel, with *t_entry no greater
+** than where it first touches one (clamped to tnear).  Conservative under
+** rounding; NaN rays return 1 with *t_entry = tnear (a proxy may only err
+** towards "hit").  t_entry may be NULL: the cast then stops at the first
+** set voxel it touches (the yes/no question the batched traversal asks).
+** The proxy must have passed brt_proxy_check against this pool (done once,
+** when a proxy is built or read: the cast does not check it again; an
+** unchecked proxy may read outside the pool). */
+int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
+                      const brt_ray *ray, float tnear, float tfar,
+                      float *t_entry);
+
+/* Checks a proxy against a pool (e.g. one read from a scene file): res a
+** power of two in 2..1024, finite origin, finite positive cell, and root
+** an empty root or a node of the pool of the depth res needs.
+** BRT_ECHECK with a message. */
+brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
+                           brt_error *err);
+
+/* Nodes of the proxy's tree before deduplication (the SVO: interior nodes
+** plus 4x4x4 leaves), counted through the DAG; 0 for an empty or invalid
+** proxy or when memory runs out. */
+uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy);
+
+/* Inner voxelization (svdag.c, "Inner proxies").  A solids set: the
+** closed components of a set of triangles (every edge used an even number
+** of times by triangles with exactly equal vertex positions, none
+** degenerate); triangle t's corners are the 9 floats at corners + stride * t,
+** which the set refers to: keep them until brt_solids_free. */
+typedef struct brt_solids brt_solids;
+brt_result brt_solids_build(const float *corners, size_t stride, uint32_t tri_count,
+                            brt_solids **out);
+uint32_t brt_solids_triangles(const brt_solids *solids);   /* in closed components */
+void brt_solids_free(brt_solids *solids);
+
+/* Into an allocated, empty grid: the voxels whose closed box lies inside a
+** closed component of solids (odd crossing parity), so that a ray from any
+** of them to infinity hits a triangle of solids. */
+brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids);
+
+/* 1 only when the ray, with tfar = +inf, certainly hits a triangle at
+** t >= tnear: it passes through the core of an inner voxel of the proxy
+** (a root from brt_voxelize_inner's grid, checked like an outer proxy).
+** 0 for any other ray, or when unsure: it may under-report, never
+** over-report. */
+int brt_inner_occludes(const brt_svdag *dag, const brt_proxy *inner,
+                       const brt_ray *ray);
+
+uint32_t brt_svdag_node_count(const brt_svdag *dag);
+size_t brt_svdag_memory_bytes(const brt_svdag *dag);
+
+/* The pool as one relocatable blob, for the scene file (little-endian,
+** layout in svdag.c).  brt_svdag_blob_open copies the blob (any alignment)
+** and runs brt_svdag_check: a corrupt blob is BRT_EFORMAT.  Proxies read
+** from the same file are then validated with brt_proxy_check. */
+size_t brt_svdag_blob_size(const brt_svdag *dag);
+void brt_svdag_blob_write(const brt_svdag *dag, void *dst);
+brt_result brt_svdag_blob_open(const void *blob, size_t size,
+                               brt_svdag **out, brt_error *err);
+
+/* ===================================================================== */
+/* 6. Small utilities: numbers, files, threads, time (batchrt.c)         */
+/* ===================================================================== */
+
+/* Parses a size such as "512", "64K", "512M", "2G" (powers of 1024).
+** Rejects empty, negative, zero, overflowing and trailing-garbage text. */
+brt_result brt_parse_size(const char *text, uint64_t *bytes);
+
+/* The one 64-bit mixer (SplitMix64's finaliser): a bijection whose
+** outputs for neighbouring inputs look independent; hashes and
+** counter-based random numbers are built on it. */
+uint64_t brt_mix64(uint64_t x);
+
+/* SplitMix64: a tiny deterministic generator for raygen and the tests.
+** brt_random_float returns a float uniformly in [0, 1). */
+uint64_t brt_random_u64(uint64_t *state);
+float brt_random_float(uint64_t *state);
+
+/* The 64-bit checksum of scene files (header, sections, blobs): a
+** word-wise multiply-xorshift hash, not cryptographic. */
+uint64_t brt_checksum64(const void *data, size_t size);
+
+/* Little-endian numbers, the byte order of every file batchrt writes. */
+void brt_put_le32(unsigned char *p, uint32_t v);
+void brt_put_le64(unsigned char *p, uint64_t v);
+uint32_t brt_get_le32(const unsigned char *p);
+uint64_t brt_get_le64(const unsigned char *p);
+
+/* The growable array: returns items with room for need elements of size
+** bytes (*cap elements: at least doubled, or to need, and updated), or
+** NULL when out of memory, items then untouched (still the caller's to
+** free).  With need <= *cap it returns items as they are. */
+void *brt_grow(void *items, size_t *cap, size_t need, size_t size);
+
+/* Seconds from a monotonic clock, for statistics only. */
+double brt_seconds(void);
+
+/* The process's peak resident set so far, in bytes (getrusage's ru_maxrss);
+** 0 where the system does not say. */
+uint64_t brt_peak_rss_bytes(void);
+
+/* Threads (README, "Threads"): every option named threads means that many
+** POSIX threads, the caller's included; 0 means one per online core.  No
+** output byte and no count depends on it.  brt_threads_resolve returns
+** the number a request stands for (at least 1, at most BRT_MAX_THREADS). */
+#define BRT_MAX_THREADS 256u
+unsigned brt_threads_resolve(unsigned threads);
+
+/* Writes size bytes to path through "path.tmp.<pid>" and rename(), so a
+** failure never leaves a half-written file under the final name.  A path
+** that names a device or a pipe (/dev/null, /dev/stdout) is written in
+** place instead: renaming over it would replace it. */
+brt_result brt_write_file_atomic(const char *path, const void *data,
+                                 size_t size, brt_error *err);
+
+/* The same for a file written piece by piece: brt_atomic_open creates
+** "path.tmp.<pid>" (fd open for writing; fdopen it for stdio, and set fd to
+** -1 after fclose); brt_atomic_close(f, r, err) closes fd, then renames
+** the file over path when r is BRT_OK, else removes it, and returns r or
+** the close or rename failure.  Call it after every brt_atomic_open,
+** failed or not. */
+typedef struct brt_atomic_file {
+    const char *path;           /* the final name */
+    char tmp[4096];             /* the temporary name; "" when none was created */
+    int fd;                     /* -1 once closed */
+} brt_atomic_file;
+brt_result brt_atomic_open(brt_atomic_file *f, const char *path, brt_error *err);
+brt_result brt_atomic_close(brt_atomic_file *f, brt_result r, brt_error *err);
+
+/* ===================================================================== */
+/* 7. For tests and fuzzers only (BRT_TESTING)                           */
+/* ===================================================================== */
+/*
+** Oracles, structural checkers and entry points that only the tests and
+** the fuzz targets call, as SQLite fences its test interfaces: declared
+** when BRT_TESTING is defined (the Makefile defines it for tests/ and the
+** fuzz targets; the library's own sources define it to see their
+** prototypes).  The library always contains them.
+*/
+#ifdef BRT_TESTING
+
+/* brt_mesh_load's parsers on a memory buffer; name is used in messages. */
+brt_result brt_mesh_parse_obj(const char *name, const void *data, size_t size,
+                              brt_mesh *mesh, brt_error *err);
+brt_result brt_mesh_parse_ply(const char *name, const void *data, size_t size,
+                              brt_mesh *mesh, brt_error *err);
+
+/* The one-box form of brt_box_span4 (section 4), the tests' oracle for it:
+** 1 when the ray's segment [tmin, tmax] meets the closed box [lo, hi],
+** which must already be grown with brt_box_pad (so that a caller testing
+** one box many times grows it once), with the entry and exit distances. */
+int brt_box_span(const brt_ray_prep *prep, const float lo[3],
+                 const float hi[3], float tmin, float tmax, float *entry,
+                 float *exit);
+
+/* Bounds of the root's decoded boxes: the triangles' bounds grown by a
+** few ulps of their magnitude (bvh.c: the pad that makes box tests
+** conservative for the rounding of the triangle test), then rounded
+** outward to the root's 8-bit planes; +inf/-inf when empty. */
+void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
+
+/* Structural checker: every triangle in exactly one leaf, indices in
+** range, slots ordered, and every triangle's grown box inside the decoded
+** (quantized) box of every slot on its path from the root -- what makes
+** pruning exact.  BRT_ECHECK with a message naming the first violation. */
+brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
+
+/* Pool checker: child indices in range and pointing to earlier nodes,
+** masks consistent, no two identical nodes. */
+brt_result brt_svdag_check(const brt_svdag *dag, brt_error *err);
+
+/* Decodes a proxy back into a dense grid (allocated here). */
+brt_result brt_svdag_decode(const brt_svdag *dag, const brt_proxy *proxy,
+                            brt_grid *grid);
+
+/* brt_proxy_raycast written for reading: plain Laine-Karras (INITIALIZE,
+** PUSH, ADVANCE, POP, the paper's names), about 3x slower; same contract.
+** It answers hit or miss exactly as brt_proxy_raycast does, with the same
+** *t_entry (the same plane distances; tests check both). */
+int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
+                                const brt_ray *ray, float tnear, float tfar,
+                                float *t_entry);
+
+/* Partition checker: every triangle number below the scene's triangle
+** count is in exactly one batching point, and no batching point holds more
+** than batch_tris triangles (it reads every blob).  BRT_ECHECK with a
+** message naming the first violation. */
+brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
+                                     brt_error *err);
+
+#endif /* BRT_TESTING */
 
 #ifdef __cplusplus
 }

@@ -99,6 +99,10 @@
 **
 ** PERFORMANCE NOTES (what was tried) are at the end of the file.
 */
+/* The library defines the entry points for tests too (batchrt.h, 7). */
+#ifndef BRT_TESTING
+#define BRT_TESTING 1
+#endif
 #include "batchrt.h"
 
 #include <float.h>
@@ -146,18 +150,6 @@ struct brt_bvh {
 /* Conservative ray/box test of four slots at once                       */
 /* ===================================================================== */
 
-/* Rays with a NaN, an inf in org or dir, a zero dir, or tnear > tfar
-** never hit (tnear <= tfar is false for NaN too). */
-static int ray_is_valid(const brt_ray *ray)
-{
-    int a;
-    for (a = 0; a < 3; a++)
-        if (!isfinite(ray->org[a]) || !isfinite(ray->dir[a])) return 0;
-    if (ray->dir[0] == 0.0f && ray->dir[1] == 0.0f && ray->dir[2] == 0.0f)
-        return 0;
-    return ray->tnear <= ray->tfar;   /* false for NaN too */
-}
-
 /* The per-ray constants of the box test: brt_ray_prep's 1/dir and padded
 ** origins repeated in four lanes (so box_test4 loads them as vectors
 ** instead of broadcasting nine scalars at every node), and, for the node
@@ -192,7 +184,7 @@ void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
     }
     prep->tnear = ray->tnear;
     prep->tfar = ray->tfar;
-    prep->valid = ray_is_valid(ray);
+    prep->valid = brt_ray_valid(ray);
 }
 
 /* The four-lane copy of an already prepared ray. */
@@ -370,7 +362,7 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
 {
     tri_ray r;
     brt_ray_prep bp;
-    if (!ray_is_valid(ray)) return 0;
+    if (!brt_ray_valid(ray)) return 0;
     tri_ray_setup(ray, &r);
     brt_ray_prepare(ray, &bp);
     return tri_intersect(&r, &bp, v0, v1, v2, ray->tnear, ray->tfar, t, u, v);
@@ -1008,11 +1000,11 @@ static uint32_t vertex_index(emitter *e, const float *p, uint32_t base)
     if (j < e->vert_count && j >= base && memcmp(e->verts + 3 * (size_t)j, p, 12) == 0)
         return j;
     if (e->vert_count == e->vert_cap) {
-        const uint32_t cap = e->vert_cap < 0x3FFFFFFFu ? 2 * e->vert_cap : 0xFFFFFFFEu;
-        float *v = realloc(e->verts, 12 * (size_t)cap);
+        size_t cap = e->vert_cap;
+        float *v = brt_grow(e->verts, &cap, (size_t)e->vert_count + 1, 12);
         if (!v) return NO_VERTEX;
         e->verts = v;
-        e->vert_cap = cap;
+        e->vert_cap = cap < 0xFFFFFFFEu ? (uint32_t)cap : 0xFFFFFFFEu;   /* uint32 numbers */
     }
     memcpy(e->verts + 3 * (size_t)e->vert_count, p, 12);
     e->recent[h] = e->vert_count;

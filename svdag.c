@@ -44,6 +44,10 @@
 ** table is confirmed by comparing the whole node, since a hash is not
 ** equality.  A pool opened from a blob rebuilds them on its first add.
 */
+/* The library defines the entry points for tests too (batchrt.h, 7). */
+#ifndef BRT_TESTING
+#define BRT_TESTING 1
+#endif
 #include "batchrt.h"
 
 #include <float.h>
@@ -105,6 +109,11 @@ static int resolution_log2(uint32_t res)
 {
     if (res < 2 || res > (1u << MAX_LEVEL) || (res & (res - 1))) return -1;
     return (int)(popcount8(res - 1) + popcount8((res - 1) >> 8));
+}
+
+int brt_proxy_res_valid(uint32_t res)
+{
+    return resolution_log2(res) > 0;
 }
 
 /* ===================================================================== */
@@ -317,11 +326,19 @@ static void voxelize_triangle(brt_grid *grid, double q[3][3])
                     brt_grid_set(grid, x, y, z);
 }
 
+/* The one check of a grid frame, a grid's (grid_frame_valid) or a
+** proxy's (brt_proxy_check): res a power of two in 2..1024, origin
+** finite, cell finite and positive -- what the voxelization and the cast
+** divide and scale by. */
+static int frame_valid(uint32_t res, const float origin[3], float cell)
+{
+    return brt_proxy_res_valid(res) && isfinite(origin[0]) && isfinite(origin[1]) &&
+           isfinite(origin[2]) && isfinite(cell) && cell > 0;
+}
+
 static int grid_frame_valid(const brt_grid *grid)
 {
-    return resolution_log2(grid->res) > 0 && grid->bits &&
-           isfinite(grid->origin[0]) && isfinite(grid->origin[1]) &&
-           isfinite(grid->origin[2]) && isfinite(grid->cell) && grid->cell > 0;
+    return grid->bits && frame_valid(grid->res, grid->origin, grid->cell);
 }
 
 brt_result brt_voxelize(brt_grid *grid, const float *positions,
@@ -356,9 +373,11 @@ typedef struct hash_table {
 
 struct brt_svdag {
     uint32_t *words;       /* interior nodes (layout at the top) */
-    uint32_t word_count, word_cap;
+    uint32_t word_count;
+    size_t word_cap;
     uint64_t *leaves;
-    uint32_t leaf_count, leaf_cap;
+    uint32_t leaf_count;
+    size_t leaf_cap;
     uint32_t *starts;      /* bit per word: a node starts here */
     uint32_t node_count;   /* interior nodes */
     hash_table nodes, leaf_set;   /* dedup index; empty until needed */
@@ -369,20 +388,11 @@ static uint32_t node_length(const uint32_t *node)
     return 1 + popcount8(node[0] & 0xFFu);
 }
 
-static uint64_t mix64(uint64_t h)
-{
-    h ^= h >> 33;
-    h *= 0xff51afd7ed558ccdull;
-    h ^= h >> 33;
-    h *= 0xc4ceb9fe1a85ec53ull;
-    return h ^ (h >> 33);
-}
-
 static uint64_t node_hash(const uint32_t *node)
 {
     uint64_t h = 0x9E3779B97F4A7C15ull;
     uint32_t i, n = node_length(node);
-    for (i = 0; i < n; i++) h = mix64(h ^ node[i]);
+    for (i = 0; i < n; i++) h = brt_mix64(h ^ node[i]);
     return h;
 }
 
@@ -407,7 +417,7 @@ static int node_item_same(const brt_svdag *dag, uint32_t item, const void *key)
 
 static uint64_t leaf_item_hash(const brt_svdag *dag, uint32_t item)
 {
-    return mix64(dag->leaves[item]);
+    return brt_mix64(dag->leaves[item]);
 }
 
 static int leaf_item_same(const brt_svdag *dag, uint32_t item, const void *key)
@@ -532,24 +542,23 @@ static int is_node_start(const brt_svdag *dag, uint32_t o)
     return o < dag->word_count && ((dag->starts[o >> 5] >> (o & 31)) & 1);
 }
 
-/* Grows words (and the start bitmap with it) to hold extra more words. */
+/* Grows words (brt_grow) and the start bitmap with it, a bit per word of
+** capacity, to hold extra more words.  Offsets are uint32 node ids. */
 static brt_result reserve_words(brt_svdag *dag, uint32_t extra)
 {
+    size_t need = (size_t)dag->word_count + extra, cap = dag->word_cap;
+    size_t had = dag->word_cap ? dag->word_cap / 32 + 1 : 0;
     uint32_t *words, *starts;
-    uint64_t cap = dag->word_cap;
-    if ((uint64_t)dag->word_count + extra <= cap) return BRT_OK;
-    while (cap < (uint64_t)dag->word_count + extra) cap = cap ? cap * 2 : 4096;
-    if (cap > 0xFFFFFFF0u) return BRT_ENOMEM;
-    words = (uint32_t *)realloc(dag->words, cap * sizeof(uint32_t));
+    if (need <= cap) return BRT_OK;
+    if (need > 0xFFFFFFF0u) return BRT_ENOMEM;
+    words = (uint32_t *)brt_grow(dag->words, &cap, need, sizeof(uint32_t));
     if (!words) return BRT_ENOMEM;
     dag->words = words;
     starts = (uint32_t *)realloc(dag->starts, (cap / 32 + 1) * sizeof(uint32_t));
     if (!starts) return BRT_ENOMEM;
-    memset(starts + dag->word_cap / 32 + (dag->word_cap ? 1 : 0), 0,
-           (cap / 32 + 1 - dag->word_cap / 32 - (dag->word_cap ? 1 : 0)) *
-               sizeof(uint32_t));
+    memset(starts + had, 0, (cap / 32 + 1 - had) * sizeof(uint32_t));
     dag->starts = starts;
-    dag->word_cap = (uint32_t)cap;
+    dag->word_cap = cap;
     return BRT_OK;
 }
 
@@ -559,16 +568,15 @@ static brt_result intern_leaf(brt_svdag *dag, uint64_t mask, uint32_t *id)
     uint32_t *slot;
     brt_result r = table_reserve(dag, &dag->leaf_set, &leaf_kind);
     if (r != BRT_OK) return r;
-    slot = table_probe(dag, &dag->leaf_set, &leaf_kind, mix64(mask), &mask);
+    slot = table_probe(dag, &dag->leaf_set, &leaf_kind, brt_mix64(mask), &mask);
     if (!*slot) {
         if (dag->leaf_count == dag->leaf_cap) {
-            uint32_t cap = dag->leaf_cap ? dag->leaf_cap * 2 : 1024;
             uint64_t *leaves;
-            if (cap > 0x7FFFFFFFu) return BRT_ENOMEM;
-            leaves = (uint64_t *)realloc(dag->leaves, cap * sizeof(uint64_t));
+            if (dag->leaf_count >= 0x7FFFFFFFu) return BRT_ENOMEM;   /* leaf ids */
+            leaves = (uint64_t *)brt_grow(dag->leaves, &dag->leaf_cap, (size_t)dag->leaf_count + 1,
+                                          sizeof(uint64_t));
             if (!leaves) return BRT_ENOMEM;
             dag->leaves = leaves;
-            dag->leaf_cap = cap;
         }
         dag->leaves[dag->leaf_count] = mask;
         *slot = ++dag->leaf_count;
@@ -746,14 +754,11 @@ static int node_level(const brt_svdag *dag, uint32_t o)
 brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
                            brt_error *err)
 {
-    int k = resolution_log2(proxy->res), i;
-    if (k < 0)
-        return brt_fail(err, BRT_ECHECK, "svdag: proxy res %u is not 2^k, k=1..10", proxy->res);
-    for (i = 0; i < 3; i++)
-        if (!isfinite(proxy->origin[i]))
-            return brt_fail(err, BRT_ECHECK, "svdag: proxy origin not finite");
-    if (!isfinite(proxy->cell) || !(proxy->cell > 0))
-        return brt_fail(err, BRT_ECHECK, "svdag: proxy cell not finite and positive");
+    int k = resolution_log2(proxy->res);
+    if (!frame_valid(proxy->res, proxy->origin, proxy->cell))
+        return brt_fail(err, BRT_ECHECK, "svdag: proxy frame res %u, origin %g %g %g, cell %g: "
+                        "wants res 2^k (k = 1..10), a finite origin and a finite cell > 0",
+                        proxy->res, proxy->origin[0], proxy->origin[1], proxy->origin[2], proxy->cell);
     if (proxy->root == BRT_EMPTY_ROOT) return BRT_OK;
     if (k <= 2) {
         if (proxy->root >= dag->leaf_count)
@@ -896,27 +901,13 @@ uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy)
 /* ===================================================================== */
 
 /*
-** Little-endian, no pointers:
+** Little-endian (brt_put_le32 and its kin, batchrt.c), no pointers:
 **   0  "BRTSVDAG"   8  u32 version (1)   12  u32 word count
 **   16 u32 leaf count   20 u32 zero   24 leaves (u64 each)   then words (u32)
 ** The dedup index is not stored; it is rebuilt if proxies are added later.
 */
 #define BLOB_HEADER 24
 static const char blob_magic[8] = {'B', 'R', 'T', 'S', 'V', 'D', 'A', 'G'};
-
-static void put_le(unsigned char *p, uint64_t v, int bytes)
-{
-    int i;
-    for (i = 0; i < bytes; i++) p[i] = (unsigned char)(v >> (8 * i));
-}
-
-static uint64_t get_le(const unsigned char *p, int bytes)
-{
-    uint64_t v = 0;
-    int i;
-    for (i = bytes - 1; i >= 0; i--) v = (v << 8) | p[i];
-    return v;
-}
 
 size_t brt_svdag_blob_size(const brt_svdag *dag)
 {
@@ -928,14 +919,14 @@ void brt_svdag_blob_write(const brt_svdag *dag, void *dst)
     unsigned char *p = (unsigned char *)dst;
     uint32_t i;
     memcpy(p, blob_magic, 8);
-    put_le(p + 8, 1, 4);
-    put_le(p + 12, dag->word_count, 4);
-    put_le(p + 16, dag->leaf_count, 4);
-    put_le(p + 20, 0, 4);
+    brt_put_le32(p + 8, 1);
+    brt_put_le32(p + 12, dag->word_count);
+    brt_put_le32(p + 16, dag->leaf_count);
+    brt_put_le32(p + 20, 0);
     p += BLOB_HEADER;
-    for (i = 0; i < dag->leaf_count; i++, p += 8) put_le(p, dag->leaves[i], 8);
+    for (i = 0; i < dag->leaf_count; i++, p += 8) brt_put_le64(p, dag->leaves[i]);
     for (i = 0; i < dag->word_count; i++, p += 4)
-        put_le(p, is_node_start(dag, i) ? dag->words[i] & HEADER_STORED : dag->words[i], 4);
+        brt_put_le32(p, is_node_start(dag, i) ? dag->words[i] & HEADER_STORED : dag->words[i]);
 }
 
 /* Copies the blob's arrays into a new pool and marks node starts by
@@ -948,8 +939,8 @@ static brt_result blob_load(const unsigned char *p, uint32_t words,
     dag->leaves = (uint64_t *)malloc(((size_t)leaves + 1) * sizeof(uint64_t));
     if (!dag->leaves || reserve_words(dag, words + 1) != BRT_OK) return BRT_ENOMEM;
     dag->leaf_count = dag->leaf_cap = leaves;
-    for (i = 0; i < leaves; i++, p += 8) dag->leaves[i] = get_le(p, 8);
-    for (i = 0; i < words; i++, p += 4) dag->words[i] = (uint32_t)get_le(p, 4);
+    for (i = 0; i < leaves; i++, p += 8) dag->leaves[i] = brt_get_le64(p);
+    for (i = 0; i < words; i++, p += 4) dag->words[i] = brt_get_le32(p);
     dag->word_count = words;
     for (o = 0; o < words; o += node_length(dag->words + o)) {
         dag->starts[o >> 5] |= 1u << (o & 31);
@@ -981,10 +972,10 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
     *out = NULL;
     if (size < BLOB_HEADER || memcmp(p, blob_magic, 8) != 0)
         return brt_fail(err, BRT_EFORMAT, "svdag blob: bad magic or too short");
-    if (get_le(p + 8, 4) != 1 || get_le(p + 20, 4) != 0)
+    if (brt_get_le32(p + 8) != 1 || brt_get_le32(p + 20) != 0)
         return brt_fail(err, BRT_EFORMAT, "svdag blob: unknown version");
-    words = get_le(p + 12, 4);
-    leaves = get_le(p + 16, 4);
+    words = brt_get_le32(p + 12);
+    leaves = brt_get_le32(p + 16);
     if (words >= 0xFFFFFFF0u || leaves > 0x7FFFFFFFu ||
         size != BLOB_HEADER + leaves * 8 + words * 4)
         return brt_fail(err, BRT_EFORMAT, "svdag blob: size %lu does not match its counts",
@@ -1037,36 +1028,10 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 ** grown sibling may start before the hit.  Before it descends into a node
 ** the walk tests the box of the node's set voxels (BOUNDS TEST).
 **
-** COST, per culled cast and per hit, in instructions (callgrind, exact):
-** the render's proxy tests, `bench_svdag --scene landscape|island` at
-** scale 2 (21 batching points of 10 000 triangles, 128^3, 100 000 rays:
-** 19 181 and 157 112 culled casts), yes/no casts as the render asks them.
-**                                     landscape        island
-**                                   culled    hit   culled    hit
-**   rank order, checked proxy        5089    4335    2711    3673
-**   far-side-set order                3694    3176    1972    2699
-**   + node bounds, called             2743    3495    1642    3061
-**   + inlined by force                2533    3260    1530    2861
-**   + cheaper set-up                  2365    3097    1370    2702
-** - rank order: the walk of the previous sessions (rank sort of the centre
-**   entries, a rank gather of the child mask, brt_proxy_check on every
-**   cast, about 100 instructions).
-** - far-side-set order: no sort; children by increasing far-side set k
-**   (push_node), the LIVE masks fixed at compile time.  Rank order let a
-**   hit end its scale; without it each child is compared with the best hit,
-**   which costs nothing for the yes/no casts the render makes.
-** - node bounds: 3.0 of the 7.2 pushes of an island miss (6.8 of 14.7 on
-**   the landscape) found no child to visit -- a ray skimming a terrain
-**   enters nodes whose voxels lie below it.  The box of a node's set voxels
-**   (header bits, no memory) cuts the pushes to 2.6 (4.7); hits pay for
-**   the test at every descent and gain less from it.
-** - inlined by force: GCC -O2 kept clip_to_bounds and child_fetch as calls.
-** - cheaper set-up: the root's bounds instead of the root cube, finiteness
-**   by one sum, the frame written out per axis (GCC kept 3-step loops).
-** Tried and dropped: each child's interval stored at PUSH (7 max, 7 min,
-** 16 stores: +570 a landscape culled cast), bounds tested only from level 5 up
-** (island -7, landscape +140).  With an entry wanted (bench_svdag's
-** throughput run, bunny_tiny, 200 000 rays) a cast costs 3051 -> 2263.
+** COST: a culled cast takes x0.46 (landscape) and x0.51 (island) of the
+** instructions of the rank-sorted walk before it; the steps, each
+** measured, and what was tried and dropped are in the README ("The proxy
+** cast").
 ** Every step answers bit for bit as the reference cast on the tests' rays.
 **
 ** CONSERVATIVE IN FLOAT.  Every box is grown by g on each side, in frame
@@ -1128,16 +1093,6 @@ static double enter_t(const ray_frame *r, int axis, uint32_t u)
 static double leave_t(const ray_frame *r, int axis, uint32_t u)
 {
     return enter_t(r, axis, u) + r->gap[axis];
-}
-
-/* NaN bounds, a NaN or infinite coordinate (x - x is then NaN, and the
-** sum is 0 only when all are finite), or a zero direction. */
-static int ray_is_degenerate(const brt_ray *ray, float tnear, float tfar)
-{
-    const float *o = ray->org, *d = ray->dir;
-    double finite = ((double)o[0] - o[0]) + ((double)o[1] - o[1]) + ((double)o[2] - o[2]) +
-                    ((double)d[0] - d[0]) + ((double)d[1] - d[1]) + ((double)d[2] - d[2]);
-    return isnan(tnear) || isnan(tfar) || finite != 0 || (d[0] == 0 && d[1] == 0 && d[2] == 0);
 }
 
 /* One axis of the frame (written out per axis: GCC -O2 kept the loops,
@@ -1232,8 +1187,9 @@ static unsigned by_far_set(unsigned m, unsigned x)
 ** ORDER: the children are visited by increasing k.  A child's entry only
 ** grows when axes join its far-side set, so k comes after every subset of
 ** itself; child 0 (entered at tin) is first, child 7 last.  It is not
-** ESVO's ray order (the entries are not sorted: see COST for why), so a
-** hit does not end a scale: each child is compared with the best hit.
+** ESVO's ray order (the entries are not sorted; README, "The proxy
+** cast", says why), so a hit does not end a scale: each child is compared
+** with the best hit.
 */
 static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
                       unsigned m, const uint32_t corner[3], int level,
@@ -1417,6 +1373,15 @@ static int walk(const brt_svdag *dag, ray_frame *r, uint64_t node, unsigned m)
     }
 }
 
+/* brt_ray_valid for the segment [tnear, tfar] of the ray. */
+static int cast_valid(const brt_ray *ray, float tnear, float tfar)
+{
+    brt_ray segment = *ray;
+    segment.tnear = tnear;
+    segment.tfar = tfar;
+    return brt_ray_valid(&segment);
+}
+
 /* The walk of a cast: fills r->found and r->hi; 0 when it gave up. */
 typedef int (*cast_walk)(const brt_svdag *dag, ray_frame *r, uint64_t root, unsigned m);
 
@@ -1431,8 +1396,8 @@ static int proxy_cast(const brt_svdag *dag, const brt_proxy *proxy, const brt_ra
     unsigned m;
     if (!t_entry) t_entry = &unused;
     *t_entry = tnear;
-    if (ray_is_degenerate(ray, tnear, tfar)) return 1;
-    if (tnear > tfar) return 0;
+    if (tnear > tfar) return 0;                 /* an empty segment holds nothing */
+    if (!cast_valid(ray, tnear, tfar)) return 1;   /* no frame for it: may hit */
     if (proxy->root == BRT_EMPTY_ROOT) return 0;
     frame_setup(&r, proxy, ray);
     r.any = t_entry == &unused;
@@ -1596,7 +1561,7 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 }
 
 /* ===================================================================== */
-/* Inner proxies: voxels that prove a shadow ray occluded (issue 18)      */
+/* Inner proxies: voxels that prove a shadow ray occluded                */
 /* ===================================================================== */
 /*
 ** The paper's future work (section 4.3): a second voxelization whose set
@@ -1730,7 +1695,7 @@ static brt_result weld(const float *corners, size_t stride, uint32_t n, uint32_t
         uint32_t b[3], o[3];
         size_t h;
         corner_bits(corner_ref(corners, stride, (uint32_t)c), b);
-        h = (size_t)mix64(((uint64_t)b[0] << 32 | b[1]) ^ mix64(b[2])) & (cap - 1);
+        h = (size_t)brt_mix64(((uint64_t)b[0] << 32 | b[1]) ^ brt_mix64(b[2])) & (cap - 1);
         for (;; h = (h + 1) & (cap - 1)) {
             if (!slot[h]) {
                 first[*unique] = (uint32_t)c;
@@ -1747,7 +1712,12 @@ static brt_result weld(const float *corners, size_t stride, uint32_t n, uint32_t
     return BRT_OK;
 }
 
-/* Sorts in place (heapsort): no second array, unlike qsort. */
+/* Sorts in place (heapsort): no second array, unlike qsort.  A second
+** binary heap beside batchrt.c's key_heap, for a stated reason: that one
+** is static there so that it inlines into the top-level walk (out of
+** line, and with a decoded compare, a batched trace ran 1.1 % more
+** instructions; callgrind), and sharing it across files would
+** put its code in the public header. */
 static void sift_down(uint64_t *a, size_t i, size_t n)
 {
     for (;;) {
@@ -2169,9 +2139,8 @@ static int inner_frame(const brt_proxy *p, const brt_ray *ray, double g[3], doub
 {
     double limit = INNER_MAX_CELLS * p->cell, moving = 0;
     int a;
-    if (!(ray->tfar == INFINITY) || !isfinite(ray->tnear)) return 0;
+    if (!(ray->tfar == INFINITY) || !isfinite(ray->tnear) || !brt_ray_valid(ray)) return 0;
     for (a = 0; a < 3; a++) {
-        if (!isfinite(ray->org[a]) || !isfinite(ray->dir[a])) return 0;
         if (!(fabs(ray->org[a]) < limit && fabs(p->origin[a]) + (double)p->res * p->cell < limit))
             return 0;
         g[a] = ((double)ray->org[a] - p->origin[a]) / p->cell;

@@ -22,7 +22,6 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
-#include <time.h>
 #include <unistd.h>
 
 static const char *prog = "bench_bvh";
@@ -109,11 +108,6 @@ static void load_mesh(const char *path, brt_mesh *m)
 
 /* CPU seconds of this process: on a busy machine, wall time would
 ** measure the other processes too. */
-static double cpu_seconds(void)
-{
-    return (double)clock() / CLOCKS_PER_SEC;
-}
-
 /* Traces rays [begin, end) one at a time; returns how many hit. */
 static size_t trace_range(const brt_bvh *bvh, const brt_ray *rays, brt_hit *hits,
                           size_t begin, size_t end)
@@ -139,9 +133,9 @@ static double trace_warm(const brt_bvh *bvh, const brt_ray *rays, brt_hit *hits,
         const size_t end = n - b < 256 ? n : b + 256;
         double t0;
         trace_range(bvh, rays, hits, b, end);
-        t0 = cpu_seconds();
+        t0 = ex_cpu_seconds();
         trace_range(bvh, rays, hits, b, end);
-        seconds += cpu_seconds() - t0;
+        seconds += ex_cpu_seconds() - t0;
     }
     return seconds;
 }
@@ -149,9 +143,9 @@ static double trace_warm(const brt_bvh *bvh, const brt_ray *rays, brt_hit *hits,
 static void measure(const char *kind, const brt_bvh *bvh, const brt_ray *rays,
                     brt_hit *hits, size_t n)
 {
-    const double t0 = cpu_seconds();
+    const double t0 = ex_cpu_seconds();
     const size_t hit_count = trace_range(bvh, rays, hits, 0, n);
-    const double cold = cpu_seconds() - t0, warm = trace_warm(bvh, rays, hits, n);
+    const double cold = ex_cpu_seconds() - t0, warm = trace_warm(bvh, rays, hits, n);
     printf("%-7s %8zu rays  %6.3f s  %6.2f Mrays/s  (%.1f%% hit)  warm %6.2f Mrays/s\n",
            kind, n, cold, (double)n / cold * 1e-6, 100.0 * (double)hit_count / (double)n,
            (double)n / warm * 1e-6);
@@ -191,10 +185,10 @@ int main(int argc, char **argv)
     load_mesh(path, &mesh);
     if (mesh.triangle_count == 0) ex_die(prog, "the mesh has no triangles");
     brt_mesh_bounds(&mesh, lo, hi);
-    t0 = cpu_seconds();
+    t0 = ex_cpu_seconds();
     if (brt_bvh_build(mesh.positions, mesh.indices, mesh.triangle_count, NULL, &bvh) != BRT_OK)
         ex_die(prog, "BVH build failed");
-    seconds = cpu_seconds() - t0;
+    seconds = ex_cpu_seconds() - t0;
     printf("triangles %u  build %.3f s (%.3f s per million)  %.1f bytes/triangle\n",
            (unsigned)mesh.triangle_count, seconds, seconds * 1e6 / mesh.triangle_count,
            (double)brt_bvh_memory_bytes(bvh) / mesh.triangle_count);

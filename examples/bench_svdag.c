@@ -29,7 +29,6 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
-#include <time.h>
 
 static const char *const prog = "bench_svdag";
 
@@ -172,11 +171,6 @@ static brt_ray *make_rays(const brt_mesh *mesh, uint64_t count, uint64_t seed)
 /* ===================================================================== */
 
 /* Seconds of CPU time used by this process. */
-static double cpu_seconds(void)
-{
-    return (double)clock() / CLOCKS_PER_SEC;
-}
-
 typedef struct build_figures {
     double voxelize_seconds, dag_seconds;
     uint64_t voxels;
@@ -217,13 +211,13 @@ static void throughput(const brt_mesh *mesh, const options *o)
     if (!hits) ex_die(prog, "out of memory for hits");
     ex_check(prog, brt_bvh_build(mesh->positions, mesh->indices, mesh->triangle_count, NULL, &bvh), NULL);
     build_proxy(mesh, o->res, &dag, &proxy, &f);
-    start = cpu_seconds();
+    start = ex_cpu_seconds();
     for (n = 0; n < o->rays; n++) {
         brt_hit_clear(&hits[n]);
         brt_bvh_intersect(bvh, &rays[n], &hits[n]);
     }
-    bvh_seconds = cpu_seconds() - start;
-    start = cpu_seconds();
+    bvh_seconds = ex_cpu_seconds() - start;
+    start = ex_cpu_seconds();
     for (n = 0; n < o->rays; n++) {
         float t;
         int got = brt_proxy_raycast(dag, &proxy, &rays[n], 0, INFINITY, &t);
@@ -231,7 +225,7 @@ static void throughput(const brt_mesh *mesh, const options *o)
         /* Stored in the ray's tnear slot so the check below is outside the timing. */
         rays[n].tnear = got ? t : -INFINITY;
     }
-    proxy_seconds = cpu_seconds() - start;
+    proxy_seconds = ex_cpu_seconds() - start;
     for (n = 0; n < o->rays; n++)
         if (hits[n].prim != BRT_NO_PRIM) {
             bvh_hits++;
@@ -417,7 +411,7 @@ static size_t make_tasks(const brt_mesh *mesh, const batches *b, const brt_ray *
         brt_bvh_intersect(bvh, &rays[i], &hit);
         for (k = 0; k < b->count && out; k++) {
             if (!box_entered(&rays[i], b->box[k], hit.t)) continue;
-            if (n == cap) out = realloc(out, (cap *= 2) * sizeof *out);
+            if (n == cap) out = brt_grow(out, &cap, n + 1, sizeof *out);   /* NULL: dies below */
             if (!out) break;
             out[n].ray = rays[i];
             out[n].ray.tfar = fminf(rays[i].tfar, hit.t);
@@ -505,12 +499,12 @@ static void scene_mode(const options *o)
     }
     n = make_tasks(&mesh, &b, rays, o->rays, &tasks);
     culled = split_by_answer(&b, tasks, n);
-    start = cpu_seconds();
+    start = ex_cpu_seconds();
     if (cast_culled(&b, tasks, culled) != culled) ex_die(prog, "a culled cast hit on the second try");
-    culled_s = cpu_seconds() - start;
-    start = cpu_seconds();
+    culled_s = ex_cpu_seconds() - start;
+    start = ex_cpu_seconds();
     hits = cast_hits(&b, tasks + culled, n - culled);
-    hit_s = cpu_seconds() - start;
+    hit_s = ex_cpu_seconds() - start;
     if (hits != n - culled) ex_die(prog, "a hit cast missed on the second try");
     printf("\n== %s at scale %g: %u triangles in %u batching points of at most %u, "
            "proxies %u^3, DAG %lu bytes\n", o->scene, o->scale, mesh.triangle_count, b.count,

@@ -20,6 +20,7 @@
 #include <string.h>
 #include <limits.h>
 #include <signal.h>
+#include <time.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -94,7 +95,7 @@ uint64_t ex_parse_size(const char *prog, const char *option, const char *text)
 uint32_t ex_parse_resolution(const char *prog, const char *option, const char *text)
 {
     uint64_t res = ex_parse_u64(prog, option, text, 2, 1024);
-    if (res & (res - 1))
+    if (!brt_proxy_res_valid((uint32_t)res))
         ex_die(prog, "%s: expected a power of two in 2..1024, got '%s'", option, text);
     return (uint32_t)res;
 }
@@ -261,6 +262,8 @@ uint32_t ex_adler32(const unsigned char *data, size_t size)
 
 #define STORED_BLOCK_MAX 65535u   /* LEN is a 16-bit field (RFC 1951 3.2.4) */
 
+/* PNG's numbers are big-endian (its specification, section 7.1): the one
+** file batchrt's programs write in that order, so not brt_put_le32. */
 static unsigned char *put_be32(unsigned char *p, uint32_t x)
 {
     p[0] = (unsigned char)(x >> 24); p[1] = (unsigned char)(x >> 16);
@@ -403,4 +406,9 @@ void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tr
     if (snprintf(path, size, "%s/%s-%08x-b%u-r%u.brs", dir, base, (unsigned)hash, (unsigned)batch_tris,
                  (unsigned)res) >= (int)size)
         ex_die(prog, "%s: scene path too long", dir);
+}
+
+double ex_cpu_seconds(void)
+{
+    return (double)clock() / CLOCKS_PER_SEC;
 }

@@ -8,6 +8,7 @@
 
 #include "batchrt.h"
 
+#include <math.h>
 #include <signal.h>
 #include <stddef.h>
 #include <stdint.h>
@@ -91,5 +92,29 @@ brt_result ex_png_write_rgb(const char *path, int width, int height,
                             const unsigned char *rgb, brt_error *err);
 uint32_t ex_crc32(const unsigned char *data, size_t size);
 uint32_t ex_adler32(const unsigned char *data, size_t size);
+
+/* Vectors in double (rays, scenes and the referee round once, at the end):
+** a . b, a x b, and v scaled to length 1 (a zero v stays zero).  Inline:
+** the scene generators call them per vertex. */
+static inline double ex_dot3(const double a[3], const double b[3])
+{
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+}
+
+static inline void ex_cross3(const double a[3], const double b[3], double out[3])
+{
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static inline void ex_normalize3(double v[3])
+{
+    double len = sqrt(ex_dot3(v, v));
+    if (len > 0) { v[0] /= len; v[1] /= len; v[2] /= len; }
+}
+
+/* CPU seconds of the process so far (clock()), for benchmarks. */
+double ex_cpu_seconds(void);
 
 #endif

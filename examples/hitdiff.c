@@ -184,10 +184,8 @@ static uint8_t *read_occlusion(const char *path, size_t *count)
     size_t cap = 0, n = 0, i;
     if (!f) ex_die(prog, "%s: cannot open: %s", path, strerror(errno));
     for (;;) {
-        if (n == cap) {
-            cap = cap ? 2 * cap : 65536;
-            if (!(bytes = realloc(bytes, cap))) ex_die(prog, "%s: out of memory", path);
-        }
+        if (n == cap && !(bytes = brt_grow(bytes, &cap, n + 65536, 1)))
+            ex_die(prog, "%s: out of memory", path);
         i = fread(bytes + n, 1, cap - n, f);
         n += i;
         if (i == 0) break;
@@ -298,16 +296,18 @@ static int referee_ray(const referee_run *run, size_t i, ex_verdict *verdict)
 ** a temporary file renamed at the end (never a half-written FILE.csv). */
 static void referee_all(referee_run *run)
 {
-    char tmp[4096];
+    brt_atomic_file file;
+    brt_error err;
     ex_verdict verdict;
     FILE *csv = NULL;
     size_t i;
     if (run->explain_path) {
-        if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", run->explain_path, (long)getpid())
-            >= (int)sizeof tmp)
-            ex_die(prog, "%s: path too long", run->explain_path);
-        if (!(csv = fopen(tmp, "w")))
-            ex_die(prog, "%s: cannot create: %s", run->explain_path, strerror(errno));
+        ex_check(prog, brt_atomic_open(&file, run->explain_path, &err), &err);
+        if (!(csv = fdopen(file.fd, "w"))) {
+            brt_result r = brt_fail(&err, BRT_EIO, "%s: cannot create: %s", run->explain_path,
+                                    strerror(errno));
+            ex_check(prog, brt_atomic_close(&file, r, &err), &err);
+        }
         fprintf(csv, run->occluded[0] ? "ray,class,a,b,verdict\n"
                      : "ray,class,a_t,a_prim,a_u,a_v,b_t,b_prim,b_u,b_v,verdict\n");
     }
@@ -331,14 +331,14 @@ static void referee_all(referee_run *run)
         }
     }
     if (csv) {
+        brt_result r = BRT_OK;
         int failed = ferror(csv);
         failed |= fclose(csv) != 0;   /* closes in any case */
-        if (failed || rename(tmp, run->explain_path) != 0) {
-            const int saved = errno;
-            remove(tmp);
-            ex_die(prog, "%s: cannot write: %s", run->explain_path,
-                   saved ? strerror(saved) : "write error");
-        }
+        file.fd = -1;
+        if (failed)
+            r = brt_fail(&err, BRT_EIO, "%s: cannot write: %s", run->explain_path,
+                         errno ? strerror(errno) : "write error");
+        ex_check(prog, brt_atomic_close(&file, r, &err), &err);
     }
 }
 

@@ -64,14 +64,6 @@ static int has_suffix(const char *s, const char *suffix)
     return n >= m && strcmp(s + n - m, suffix) == 0;
 }
 
-static void put_u32(unsigned char *p, uint32_t v)
-{
-    p[0] = (unsigned char)v;
-    p[1] = (unsigned char)(v >> 8);
-    p[2] = (unsigned char)(v >> 16);
-    p[3] = (unsigned char)(v >> 24);
-}
-
 /* ===================================================================== */
 /* The writer: an ex_mesh_sink over two files                            */
 /* ===================================================================== */
@@ -79,11 +71,11 @@ static void put_u32(unsigned char *p, uint32_t v)
 typedef struct writer {
     const char *path;            /* the final name, for messages */
     int ply;                     /* else OBJ */
-    FILE *main, *faces;          /* OUT.tmp.<pid> and OUT.faces.tmp.<pid> */
-    char main_tmp[4096], faces_tmp[4096];
+    brt_atomic_file file;        /* the main part: OUT.tmp.<pid>, renamed at the end */
+    FILE *main, *faces;          /* stdio over file.fd, and OUT.faces.tmp.<pid> */
+    char faces_tmp[4096];        /* "" until named */
     uint64_t triangles_total, triangles_done;
     float lo[3], hi[3];          /* bounds of the vertices so far */
-    int created;                 /* the two temporary files exist */
 } writer;
 
 static brt_result write_error(const writer *w, brt_error *err)
@@ -109,7 +101,7 @@ static brt_result write_vertices(void *user, const float *xyz, uint32_t count, b
         for (k = 0; k < 3; k++) {
             uint32_t bits;   /* little-endian records, whatever the host */
             memcpy(&bits, p + k, 4);
-            put_u32(record + 4 * k, bits);
+            brt_put_le32(record + 4 * k, bits);
             if (p[k] < w->lo[k]) w->lo[k] = p[k];
             if (p[k] > w->hi[k]) w->hi[k] = p[k];
         }
@@ -129,7 +121,7 @@ static brt_result write_triangles(void *user, const uint32_t *abc, uint32_t coun
     record[0] = 3;
     for (i = 0; i < count; i++) {
         const uint32_t *t = abc + 3 * (size_t)i;
-        for (k = 0; k < 3; k++) put_u32(record + 1 + 4 * k, t[k]);
+        for (k = 0; k < 3; k++) brt_put_le32(record + 1 + 4 * k, t[k]);
         if (w->ply ? fwrite(record, 13, 1, w->faces) != 1
                    : fprintf(w->faces, "f %lu %lu %lu\n", (unsigned long)t[0] + 1,
                              (unsigned long)t[1] + 1, (unsigned long)t[2] + 1) < 0)
@@ -177,36 +169,30 @@ static brt_result join(writer *w, brt_error *err)
     return r;
 }
 
-/* Closes both files (a failed close is a failed write: data may be lost)
-** and, when r failed, removes them. */
+/* Closes both files (a failed close is a failed write: data may be lost),
+** removes the faces part and, when r is BRT_OK, renames the main part over
+** the output (else removes it). */
 static brt_result finish(writer *w, brt_result r, brt_error *err)
 {
-    int k;
-    FILE **files[2];
-    files[0] = &w->main;
-    files[1] = &w->faces;
-    for (k = 0; k < 2; k++) {
-        if (*files[k] && fclose(*files[k]) != 0 && r == BRT_OK) r = write_error(w, err);
-        *files[k] = NULL;
-    }
-    if (!w->created) return r;
-    unlink(w->faces_tmp);
-    if (r == BRT_OK && rename(w->main_tmp, w->path) != 0)
-        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", w->path, strerror(errno));
-    if (r != BRT_OK) unlink(w->main_tmp);
-    return r;
+    if (w->main && fclose(w->main) != 0 && r == BRT_OK) r = write_error(w, err);
+    if (w->main) w->file.fd = -1;       /* fclose closed it */
+    if (w->faces && fclose(w->faces) != 0 && r == BRT_OK) r = write_error(w, err);
+    w->main = w->faces = NULL;
+    if (w->faces_tmp[0]) unlink(w->faces_tmp);
+    return brt_atomic_close(&w->file, r, err);
 }
 
 static brt_result open_parts(writer *w, brt_error *err)
 {
-    long pid = (long)getpid();
-    if (snprintf(w->main_tmp, sizeof w->main_tmp, "%s.tmp.%ld", w->path, pid)
-            >= (int)sizeof w->main_tmp
-        || snprintf(w->faces_tmp, sizeof w->faces_tmp, "%s.faces.tmp.%ld", w->path, pid)
-            >= (int)sizeof w->faces_tmp)
+    brt_result r;
+    if (snprintf(w->faces_tmp, sizeof w->faces_tmp, "%s.faces.tmp.%ld", w->path, (long)getpid())
+        >= (int)sizeof w->faces_tmp) {
+        w->faces_tmp[0] = 0;
         return brt_fail(err, BRT_EARG, "%s: path too long", w->path);
-    w->created = 1;
-    w->main = fopen(w->main_tmp, "wb");
+    }
+    r = brt_atomic_open(&w->file, w->path, err);
+    if (r != BRT_OK) return r;
+    w->main = fdopen(w->file.fd, "wb");
     w->faces = w->main ? fopen(w->faces_tmp, "w+b") : NULL;
     if (!w->faces) return brt_fail(err, BRT_EIO, "%s: cannot create: %s", w->path, strerror(errno));
     return BRT_OK;

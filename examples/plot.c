@@ -52,11 +52,9 @@ static void put(text *t, const char *fmt, ...)
     va_end(ap);
     if (n < 0) { t->failed = 1; return; }
     if (!t->data || t->used + (size_t)n >= t->capacity) {
-        size_t cap = 2 * (t->capacity + (size_t)n) + 256;
-        char *grown = realloc(t->data, cap);
+        char *grown = brt_grow(t->data, &t->capacity, t->used + (size_t)n + 1, 1);
         if (!grown) { t->failed = 1; return; }
         t->data = grown;
-        t->capacity = cap;
         va_start(ap, fmt);
         vsnprintf(t->data + t->used, t->capacity - t->used, fmt, ap);
         va_end(ap);

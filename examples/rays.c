@@ -16,32 +16,14 @@
 
 #define PI 3.14159265358979323846
 
-/* ---- small vector helpers (double, so rays round once, at the end) ---- */
-
-static double dot3(const double a[3], const double b[3])
-{
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-}
-
-static void cross3(const double a[3], const double b[3], double out[3])
-{
-    out[0] = a[1] * b[2] - a[2] * b[1];
-    out[1] = a[2] * b[0] - a[0] * b[2];
-    out[2] = a[0] * b[1] - a[1] * b[0];
-}
-
-static void normalize3(double v[3])
-{
-    double len = sqrt(dot3(v, v));
-    if (len > 0) { v[0] /= len; v[1] /= len; v[2] /= len; }
-}
+/* ---- small vector helpers: ex_dot3, ex_cross3, ex_normalize3 (common.c) */
 
 static void set_ray(brt_ray *ray, const double org[3], const double dir[3])
 {
     double d[3];
     int k;
     memcpy(d, dir, sizeof d);
-    normalize3(d);
+    ex_normalize3(d);
     for (k = 0; k < 3; k++) {
         ray->org[k] = (float)org[k];
         ray->dir[k] = (float)d[k];
@@ -57,10 +39,10 @@ static void camera_frame(ex_camera *cam, const double forward[3], uint32_t width
 {
     double world_up[3] = {0, 1, 0};
     memcpy(cam->forward, forward, sizeof cam->forward);
-    cross3(cam->forward, world_up, cam->right);
-    if (dot3(cam->right, cam->right) == 0) cam->right[0] = 1;   /* looking straight up or down */
-    normalize3(cam->right);
-    cross3(cam->right, cam->forward, cam->up);
+    ex_cross3(cam->forward, world_up, cam->right);
+    if (ex_dot3(cam->right, cam->right) == 0) cam->right[0] = 1;   /* looking straight up or down */
+    ex_normalize3(cam->right);
+    ex_cross3(cam->right, cam->forward, cam->up);
     cam->width = width;
     cam->height = height;
 }
@@ -80,7 +62,7 @@ void ex_camera_look(ex_camera *cam, const float eye[3], const float target[3],
     double forward[3], tan_x, tan_y;
     int k;
     for (k = 0; k < 3; k++) forward[k] = (double)target[k] - (double)eye[k];
-    normalize3(forward);
+    ex_normalize3(forward);
     camera_frame(cam, forward, width, height);
     view_tangents(cam, fov_degrees, &tan_x, &tan_y);
     for (k = 0; k < 3; k++) {
@@ -96,7 +78,7 @@ void ex_camera_fit(ex_camera *cam, const float bmin[3], const float bmax[3], uin
     double centre[3], back[3] = {0.0, 0.35, 1.0}, forward[3], tan_x, tan_y, distance = 0;
     int k, corner;
     for (k = 0; k < 3; k++) centre[k] = 0.5 * ((double)bmin[k] + (double)bmax[k]);
-    normalize3(back);
+    ex_normalize3(back);
     for (k = 0; k < 3; k++) forward[k] = -back[k];
     camera_frame(cam, forward, width, height);
     view_tangents(cam, EX_CAMERA_FOV, &tan_x, &tan_y);
@@ -108,8 +90,8 @@ void ex_camera_fit(ex_camera *cam, const float bmin[3], const float bmax[3], uin
         double o[3];
         for (k = 0; k < 3; k++)
             o[k] = ((corner >> k) & 1 ? (double)bmax[k] : (double)bmin[k]) - centre[k];
-        distance = fmax(distance, dot3(o, back) + fmax(fabs(dot3(o, cam->right)) / tan_x,
-                                                       fabs(dot3(o, cam->up)) / tan_y));
+        distance = fmax(distance, ex_dot3(o, back) + fmax(fabs(ex_dot3(o, cam->right)) / tan_x,
+                                                       fabs(ex_dot3(o, cam->up)) / tan_y));
     }
     distance = distance > 0 ? 1.05 * distance : 1.0;   /* a one-point "box" */
     for (k = 0; k < 3; k++) {
@@ -203,7 +185,7 @@ static void tangent_frame(const double n[3], double t[3], double b[3])
 int ex_surface_point(const double point[3], const double normal[3], const float incoming[3],
                      double diagonal, double n[3], double p[3])
 {
-    double len = sqrt(dot3(normal, normal)), scale = 0;
+    double len = sqrt(ex_dot3(normal, normal)), scale = 0;
     int k;
     if (!(len > 0)) return 0;
     if (normal[0] * incoming[0] + normal[1] * incoming[1] + normal[2] * incoming[2] > 0) len = -len;
@@ -257,7 +239,7 @@ void ex_bounce_ray(const brt_mesh *mesh, double diagonal, const brt_ray *in,
         e2[k] = v[2][k] - v[0][k];
         p[k] = (1.0 - hit->u - hit->v) * v[0][k] + hit->u * v[1][k] + hit->v * v[2][k];
     }
-    cross3(e1, e2, n);
+    ex_cross3(e1, e2, n);
     ex_lambert_bounce(p, n, in->dir, diagonal, u1, u2, out);
 }
 

@@ -87,6 +87,7 @@
 ** or tfar); such a ray comes out unexplained, never wrongly explained.
 */
 #include "referee.h"
+#include "common.h"
 
 #include <float.h>
 #include <math.h>
@@ -343,13 +344,6 @@ typedef struct facts {
 
 static double norm3(const double v[3]) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
 
-static void cross3(const double a[3], const double b[3], double out[3])
-{
-    out[0] = a[1] * b[2] - a[2] * b[1];
-    out[1] = a[2] * b[0] - a[0] * b[2];
-    out[2] = a[0] * b[1] - a[1] * b[0];
-}
-
 /* The edge band of edge (a, b), in double (see the top of the file). */
 static double edge_band(const brt_ray *ray, const float *a, const float *b)
 {
@@ -360,8 +354,8 @@ static double edge_band(const brt_ray *ray, const float *a, const float *b)
         B[k] = (double)b[k] - ray->org[k];
         d[k] = ray->dir[k];
     }
-    cross3(A, d, Ad);
-    cross3(B, d, Bd);
+    ex_cross3(A, d, Ad);
+    ex_cross3(B, d, Bd);
     return EDGE_ULPS * FLT_EPSILON * (norm3(A) * norm3(Bd) + norm3(B) * norm3(Ad));
 }
 
@@ -542,17 +536,6 @@ static ex_class classify(const side *a, const side *b)
     return a->hits && b->hits ? EX_TIE : EX_UNEXPLAINED;
 }
 
-/* Rays that no tracer may hit (batchrt's rule, and undefined in Embree). */
-static int ray_is_valid(const brt_ray *r)
-{
-    int k, zero = 1;
-    for (k = 0; k < 3; k++) {
-        if (!isfinite(r->org[k]) || !isfinite(r->dir[k])) return 0;
-        zero &= r->dir[k] == 0.0f;
-    }
-    return !zero && !isnan(r->tnear) && !isnan(r->tfar) && r->tnear <= r->tfar;
-}
-
 int ex_hits_disagree(const brt_hit *a, const brt_hit *b)
 {
     if (a->prim == BRT_NO_PRIM && b->prim == BRT_NO_PRIM) return 0;
@@ -570,7 +553,7 @@ ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
     sa.hit = a;
     sb.hit = b;
     out->t_ratio = out->edge_ratio = 0.0;
-    if (!ray_is_valid(ray)) {
+    if (!brt_ray_valid(ray)) {
         snprintf(out->text, sizeof out->text, "invalid ray (NaN; inf; zero direction or "
                  "tnear > tfar): no tracer may hit it");
         return out->cls = EX_UNEXPLAINED;
@@ -715,7 +698,7 @@ ex_class ex_referee_occlusion(const brt_mesh *mesh, const brt_ray *ray, int a, i
 {
     occlusion_facts o;
     out->t_ratio = out->edge_ratio = 0.0;
-    if (!ray_is_valid(ray)) {
+    if (!brt_ray_valid(ray)) {
         snprintf(out->text, sizeof out->text, "invalid ray (NaN; inf; zero direction or "
                  "tnear > tfar): no tracer may report it occluded");
         return out->cls = EX_UNEXPLAINED;

@@ -305,27 +305,18 @@ static void parse_options(int argc, char **argv, options *o)
 /* Deterministic random numbers                                          */
 /* ===================================================================== */
 
-/* The SplitMix64 finaliser (Steele, Lea, Flood 2014): a bijection of 64-bit
-** integers whose outputs for neighbouring inputs look independent. */
-static uint64_t mix64(uint64_t z)
-{
-    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9u;
-    z = (z ^ (z >> 27)) * 0x94D049BB133111EBu;
-    return z ^ (z >> 31);
-}
-
 /* Random dimensions of one bounce. */
 enum { DIM_PIXEL_X, DIM_PIXEL_Y, DIM_DIRECTION_R, DIM_DIRECTION_PHI, DIM_ROULETTE,
        DIM_SUN_Z, DIM_SUN_PHI };
 
 /* A counter-based generator: the number of (pixel, sample, bounce,
-** dimension) is a hash of that key alone, uniform in [0, 1) with 24 bits,
-** so it is the same whatever order the paths are traced in.  Chained
-** mixing keeps keys that differ in one field apart. */
+** dimension) is a hash of that key alone (brt_mix64), uniform in [0, 1)
+** with 24 bits, so it is the same whatever order the paths are traced in.
+** Chained mixing keeps keys that differ in one field apart. */
 static double random_at(uint32_t pixel, uint32_t sample, uint32_t bounce, uint32_t dim)
 {
-    uint64_t h = mix64(((uint64_t)pixel << 32 | sample) + 0x9E3779B97F4A7C15u);
-    h = mix64(h ^ ((uint64_t)bounce << 32 | dim));
+    uint64_t h = brt_mix64(((uint64_t)pixel << 32 | sample) + 0x9E3779B97F4A7C15u);
+    h = brt_mix64(h ^ ((uint64_t)bounce << 32 | dim));
     return (double)(h >> 40) * (1.0 / 16777216.0);
 }
 
@@ -881,10 +872,7 @@ static void write_pfm(const char *path, const render_job *job, const uint64_t *s
                 float v = (float)pixel_mean(job, sums, 3 * (y * w + x) + k);
                 uint32_t bits;
                 memcpy(&bits, &v, 4);
-                data[at] = (unsigned char)bits;
-                data[at + 1] = (unsigned char)(bits >> 8);
-                data[at + 2] = (unsigned char)(bits >> 16);
-                data[at + 3] = (unsigned char)(bits >> 24);
+                brt_put_le32(data + at, bits);
             }
     ex_check(prog, brt_write_file_atomic(path, data, at, &err), &err);
     free(data);
@@ -913,7 +901,7 @@ static double rmse_against(const char *path, const render_job *job, const uint64
                 float v;
                 double d;
                 if (fread(b, 1, 4, f) != 4) ex_die(prog, "%s: truncated", path);
-                bits = (uint32_t)b[0] | (uint32_t)b[1] << 8 | (uint32_t)b[2] << 16 | (uint32_t)b[3] << 24;
+                bits = brt_get_le32(b);
                 memcpy(&v, &bits, 4);
                 d = pixel_mean(job, sums, 3 * (y * w + x) + k) - v;
                 sum += d * d;

@@ -32,6 +32,7 @@
 ** their density stays natural) or into finer grids (crown, terrain).
 */
 #include "scenes.h"
+#include "common.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -52,21 +53,6 @@ typedef struct xform {
     double t[3];
 } xform;
 
-static void cross3(const double a[3], const double b[3], double out[3])
-{
-    out[0] = a[1] * b[2] - a[2] * b[1];
-    out[1] = a[2] * b[0] - a[0] * b[2];
-    out[2] = a[0] * b[1] - a[1] * b[0];
-}
-
-static void normalize3(double v[3])
-{
-    double len = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
-    v[0] /= len;
-    v[1] /= len;
-    v[2] /= len;
-}
-
 /* Local x goes to x_axis, local y to y_axis (orthonormal), local z to their
 ** cross product; then scale and move to `at`. */
 static xform xform_frame(const double x_axis[3], const double y_axis[3],
@@ -75,7 +61,7 @@ static xform xform_frame(const double x_axis[3], const double y_axis[3],
     xform x;
     double z_axis[3];
     int r;
-    cross3(x_axis, y_axis, z_axis);
+    ex_cross3(x_axis, y_axis, z_axis);
     for (r = 0; r < 3; r++) {
         x.m[r][0] = scale * x_axis[r];
         x.m[r][1] = scale * y_axis[r];
@@ -94,11 +80,11 @@ static xform xform_along(const double axis[3], double roll, double scale,
     double y[3], x[3], side[3], helper[3] = {0, 1, 0};
     int k;
     memcpy(y, axis, sizeof y);
-    normalize3(y);
+    ex_normalize3(y);
     if (fabs(y[1]) > 0.99) { helper[0] = 1; helper[1] = 0; }
-    cross3(helper, y, x);
-    normalize3(x);
-    cross3(y, x, side);
+    ex_cross3(helper, y, x);
+    ex_normalize3(x);
+    ex_cross3(y, x, side);
     for (k = 0; k < 3; k++) x[k] = x[k] * cos(roll) + side[k] * sin(roll);
     return xform_frame(x, y, scale, at);
 }
@@ -536,7 +522,7 @@ static void tube_point(const void *shape, double u, double v, double p[3])
     n[0] = t->ay * cos(theta);
     n[1] = t->ax * sin(theta);
     n[2] = 0;
-    normalize3(n);
+    ex_normalize3(n);
     if (t->capped) f *= pow(sin(PI * v), 0.3);
     p[0] = t->ax * cos(theta) + n[0] * t->width * f * cx;
     p[1] = t->ay * sin(theta) + n[1] * t->width * f * cx;
@@ -1423,34 +1409,26 @@ uint64_t ex_scene_stamp(const ex_scene_recipe *recipe)
 
 typedef struct collector {
     void *positions, *indices;     /* 12 bytes per vertex, 12 per triangle */
-    uint64_t vertex_cap, triangle_cap;
+    size_t vertex_cap, triangle_cap;
     uint32_t vertex_count, triangle_count;
     const char *name;
     double scale;
 } collector;
 
-/* Grows one array (by half, or to `need`) unless it has room for `need`;
-** need never passes 2^32 - 1 (emit_surface refuses more). */
-static int grow(void **array, uint64_t *cap, uint64_t need, size_t item_bytes)
+/* Grows one array unless it has room for `need` (brt_grow); need never
+** passes 2^32 - 1 (emit_surface refuses more). */
+static int grow(void **array, size_t *cap, uint64_t need)
 {
-    uint64_t next = *cap + *cap / 2;
-    void *bigger;
-    if (need <= *cap) return 1;
-    if (next < need) next = need;
-    if (next > UINT32_MAX) next = UINT32_MAX;
-    if (next > SIZE_MAX / item_bytes) return 0;
-    bigger = realloc(*array, (size_t)next * item_bytes);
-    if (!bigger) return 0;
-    *array = bigger;
-    *cap = next;
-    return 1;
+    void *bigger = brt_grow(*array, cap, (size_t)need, 12);
+    if (bigger) *array = bigger;
+    return bigger != NULL;
 }
 
 /* Appends n items of 12 bytes (vertices or index triples) to an array. */
-static brt_result append(const collector *c, void **array, uint64_t *cap, uint32_t *count,
+static brt_result append(const collector *c, void **array, size_t *cap, uint32_t *count,
                          const void *items, uint32_t n, brt_error *err)
 {
-    if (!grow(array, cap, (uint64_t)*count + n, 12)) {
+    if (!grow(array, cap, (uint64_t)*count + n)) {
         out_of_memory(err, c->name, c->scale);
         return BRT_ENOMEM;
     }
@@ -1491,9 +1469,8 @@ brt_result ex_scene_generate(const char *name, double scale, uint64_t seed,
     ** than 1.25 vertices per triangle, so the arrays are rarely grown;
     ** pages never written cost no memory. */
     if (scale > 0 && scale <= EX_SCENE_MAX_SCALE
-        && (!grow(&c.positions, &c.vertex_cap, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * scale) + 4096, 12)
-            || !grow(&c.indices, &c.triangle_cap,
-                     (uint64_t)(1.05 * TRIANGLES_PER_SCALE * scale) + 4096, 12))) {
+        && (!grow(&c.positions, &c.vertex_cap, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * scale) + 4096)
+            || !grow(&c.indices, &c.triangle_cap, (uint64_t)(1.05 * TRIANGLES_PER_SCALE * scale) + 4096))) {
         out_of_memory(err, name, scale);
         r = BRT_ENOMEM;
     } else {

@@ -19,6 +19,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 /* ===================================================================== */
 /* Helpers                                                               */
@@ -1110,6 +1111,82 @@ static void test_io_parse_size(void)
     }
 }
 
+/* The one copy of each small utility against references written
+** apart from it: byte layouts spelled out, SplitMix64's published first
+** outputs for seed 0 (from the algorithm as Steele, Lea and Flood give it,
+** computed in Python), the growth rule and the validity rule as stated. */
+static void test_io_utilities(void)
+{
+    static const unsigned char le[12] = {0x78, 0x56, 0x34, 0x12, 0xEF, 0xCD, 0xAB, 0x89,
+                                         0x67, 0x45, 0x23, 0x01};
+    static const uint64_t splitmix0[3] = {0xE220A8397B1DCDAFull, 0x6E789E6AA1B965F4ull,
+                                          0x06C45D188009454Full};
+    unsigned char buf[12];
+    uint64_t state = 0;
+    size_t cap = 0, i;
+    uint32_t *items = NULL, *grown;
+    brt_ray ray = {{0, 0, 0}, {0, 0, 1}, 0, INFINITY};
+    brt_put_le32(buf, 0x12345678u);
+    brt_put_le64(buf + 4, 0x0123456789ABCDEFull);
+    EXPECT(memcmp(buf, le, sizeof le) == 0, "brt_put_le32/64: not little-endian");
+    EXPECT(brt_get_le32(le) == 0x12345678u && brt_get_le64(le + 4) == 0x0123456789ABCDEFull,
+           "brt_get_le32/64: not little-endian");
+    for (i = 0; i < 3; i++)
+        EXPECT(brt_random_u64(&state) == splitmix0[i], "SplitMix64 output %lu differs",
+               (unsigned long)i);
+    EXPECT(brt_mix64(1) == 0x5692161D100B05E5ull && brt_mix64(0) == 0, "brt_mix64 differs");
+    for (i = 0; i < 1000; i++) {
+        size_t old = cap;
+        grown = brt_grow(items, &cap, i + 1, sizeof *items);
+        CHECK(grown != NULL, "brt_grow failed at %lu", (unsigned long)i);
+        EXPECT(cap >= i + 1 && (cap == old || cap >= 2 * old), "brt_grow: capacity %lu after %lu",
+               (unsigned long)cap, (unsigned long)old);
+        EXPECT(i + 1 > old || grown == items, "brt_grow moved an array that had room");
+        items = grown;
+        items[i] = (uint32_t)i * 7u;
+    }
+    for (i = 0; i < 1000; i++) EXPECT(items[i] == (uint32_t)i * 7u, "brt_grow lost item %lu", (unsigned long)i);
+    free(items);
+    EXPECT(brt_ray_valid(&ray), "a valid ray refused");
+    ray.tfar = -1;
+    EXPECT(!brt_ray_valid(&ray), "tnear > tfar accepted");
+    ray.tfar = NAN;
+    EXPECT(!brt_ray_valid(&ray), "NaN tfar accepted");
+    ray.tfar = 1;
+    ray.dir[2] = 0;
+    EXPECT(!brt_ray_valid(&ray), "zero direction accepted");
+    ray.dir[2] = 1;
+    ray.org[1] = INFINITY;
+    EXPECT(!brt_ray_valid(&ray), "infinite origin accepted");
+}
+
+/* brt_atomic_open/close: the file appears under its name only when
+** complete; a failure leaves neither it nor the temporary file. */
+static void test_io_atomic_file(void)
+{
+    const char *path = tu_scratch("atomic.bin");
+    brt_atomic_file f;
+    brt_error err;
+    size_t size = 0;
+    unsigned char *back;
+    CHECK(brt_atomic_open(&f, path, &err) == BRT_OK, "%s", err.message);
+    CHECK(write(f.fd, "abc", 3) == 3, "write failed");
+    EXPECT(!tu_file_exists(path), "the file has its name before it is complete");
+    EXPECT(brt_atomic_close(&f, BRT_EIO, &err) == BRT_EIO, "a failure was not passed on");
+    EXPECT(!tu_file_exists(path) && !tu_temporary_file_left(), "a failed write left a file");
+    CHECK(brt_atomic_open(&f, path, &err) == BRT_OK, "%s", err.message);
+    CHECK(write(f.fd, "abc", 3) == 3, "write failed");
+    EXPECT(brt_atomic_close(&f, BRT_OK, &err) == BRT_OK, "%s", err.message);
+    back = tu_slurp(path, &size);
+    EXPECT(back && size == 3 && memcmp(back, "abc", 3) == 0, "the file does not hold what was written");
+    EXPECT(!tu_temporary_file_left(), "the temporary file is left");
+    free(back);
+    EXPECT(brt_atomic_open(&f, tu_scratch("no/such/dir/x.bin"), &err) == BRT_EIO &&
+               strstr(err.message, "cannot create"), "a missing folder: %s", err.message);
+    EXPECT(brt_atomic_close(&f, BRT_EIO, &err) == BRT_EIO, "closing a failed open");
+    remove(path);
+}
+
 static void test_io_stats_json(void)
 {
     static const char *const fields[] = {"\"rays\": 18446744073709551615,",
@@ -1198,5 +1275,7 @@ void suite_mesh(void)
     test_run("io: empty and missing files", test_io_empty_and_missing);
     test_run("io: write into missing directory", test_io_write_into_missing_directory);
     test_run("io: parse size", test_io_parse_size);
+    test_run("io: one of each utility", test_io_utilities);
+    test_run("io: atomic file", test_io_atomic_file);
     test_run("io: stats json", test_io_stats_json);
 }
