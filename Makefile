@@ -272,7 +272,7 @@ valgrind:
 # reference): one table, the image and the two heatmaps in $(BUILD)/demo.
 # Its loads read cold (--drop-os-cache) from a disk modelled at 100 MiB/s
 # (--disk-speed), so that the table shows what proxies save in time.
-# figures: the paper's Figs. 1-3 (PNG, CSV, SVG) in $(BUILD)/fig.
+# figures: the paper's Figs. 1-3 and Fig. 4, inner proxies (PNG, CSV, SVG) in $(BUILD)/fig.
 # bench-render: the landscape and the island at 20M triangles, 16 spp at
 # 640x360, proxies off and on, at 25 % of the geometry bytes (read cold, and
 # from a modelled 100 MiB/s disk) and in core.

@@ -780,11 +780,12 @@ static int proxy_test(const scheduler *s, walker *w, uint32_t id, const brt_ray 
 ** at about the cost of a proxy cast.  Why it matters: a bounce ray starts
 ** inside the batching point just processed, still in memory; queued, it
 ** would wait there until that point might be evicted and read again.
-** Measured: landscape, 2 M triangles, 25 % limit: loads 4,309 -> 1,358
-** without proxies, 3,104 -> 929 with them; make bench-render at 25 %:
+** Measured (render landscape --scale 20 --memory 25%, 2 M triangles,
+** with --queue-resident against without): loads 2,718 -> 894 without
+** proxies (--no-proxy), 1,785 -> 607 with them; make bench-render at 25 %:
 ** 3.5-3.9x fewer bytes than the paper's scheduler, about half the time
 ** (README, Batched mode); render landscape --scale 0.3 --width 64
-** --height 36 --spp 2 --memory 25% --batch-tris 3000: 88 -> 59 loads.
+** --height 36 --spp 2 --memory 25% --batch-tris 3000: 79 -> 59 loads.
 ** Returns 0 when the point is not resident.  The use is stamped for the
 ** LRU order (commit_uses); *stamp counts the ray's uses. */
 static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, uint64_t *stamp)

@@ -10,10 +10,17 @@
 **   Fig. 3  total disk bytes read against the memory limit, 10 %..100 % of
 **           the geometry bytes, without and with proxies, and with exact
 **           proxies (render --exact-proxy: the bound on what any
-**           conservative proxy can save) (fig3.csv, SVG).
+**           conservative proxy can save) (fig3.csv, SVG);
+**   Fig. 4  (not in the paper: its section 4.3's future work, README "Inner
+**           proxies") disk bytes read at 25 % of the geometry bytes on the
+**           landscape and the island with next-event estimation, outer
+**           proxies alone (render --no-inner) against outer + inner, and the
+**           share of occluded shadow rays that inner proxies stopped before
+**           any queue (fig4.csv, a bar chart).
 **
-**   build/figures [--out DIR] [--scale S] [--batch-tris N] [--spp N]
-**                 [--width W] [--height H] [--rays-in-flight N] [--threads N]
+**   build/figures [--out DIR] [--only N] [--scale S] [--batch-tris N]
+**                 [--spp N] [--width W] [--height H] [--rays-in-flight N]
+**                 [--threads N]
 **
 ** Every number comes from build/render (the program next to this one) and
 ** its statistics JSON, so the figures measure exactly what a user runs.
@@ -28,7 +35,8 @@
 ** Fig. 1 is a picture, rendered with the sun's shadow rays (next-event
 ** estimation, render's default, whose rays count among the visits);
 ** Figs. 2 and 3 trace the paths alone (render --no-nee), the workload
-** their README tables were measured on.
+** their README tables were measured on; Fig. 4 needs the shadow rays.
+** Figs. 3 and 4 are drawn for both schedulers.
 */
 #include "plot.h"
 #include "scenes.h"
@@ -44,12 +52,14 @@ static const char *const prog = "figures";
 #define RES_COUNT 6
 #define LIMIT_COUNT 10
 #define SCENE_COUNT 3
+#define FIGURE_COUNT 4
 
 static const char *const scene_names[SCENE_COUNT] = {"crown", "landscape", "island"};
 static const double resolutions[RES_COUNT] = {16, 32, 64, 128, 256, 512};
 
 typedef struct settings {
     const char *out;
+    int only;                 /* 1..FIGURE_COUNT: that figure alone; 0: all */
     double scale;
     uint64_t batch_tris, spp, width, height, rays_in_flight, threads;
     char render[4096];        /* path of build/render */
@@ -59,9 +69,12 @@ static void usage(void)
 {
     printf("usage: build/figures [options]\n"
            "The paper's Figs. 1-3 on the built-in scenes (crown, landscape, island),\n"
-           "measured with build/render: PNG heatmaps, CSV tables and SVG plots.\n"
+           "and Fig. 4, inner proxies (landscape, island: disk bytes at 25 %% memory with\n"
+           "and without them, shadow rays they stop), measured with build/render:\n"
+           "PNG heatmaps, CSV tables and SVG plots.\n"
            "\n"
            "  --out DIR            output folder (default figures)\n"
+           "  --only N             figure N (1-4) alone (default: all four)\n"
            "  --scale S            scene size, about 100000*S triangles (default 4)\n"
            "  --batch-tris N       triangles per batching point (default 5000)\n"
            "  --spp N              samples per pixel (default 4)\n"
@@ -95,6 +108,7 @@ static void parse_options(int argc, char **argv, settings *s)
         const char *a = argv[i];
 #define VALUE ex_option_value(prog, argc, argv, &i)
         if (strcmp(a, "--out") == 0) s->out = VALUE;
+        else if (strcmp(a, "--only") == 0) s->only = (int)ex_parse_u64(prog, a, VALUE, 1, FIGURE_COUNT);
         else if (strcmp(a, "--scale") == 0) s->scale = ex_parse_double(prog, a, VALUE, 0.001, EX_SCENE_MAX_SCALE);
         else if (strcmp(a, "--batch-tris") == 0) s->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
         else if (strcmp(a, "--spp") == 0) s->spp = ex_parse_u64(prog, a, VALUE, 1, 65536);
@@ -352,16 +366,90 @@ static void figure3(const settings *s)
     close_csv(s, csv, "fig3.csv");
 }
 
+/* ---- Fig. 4 ---- */
+
+/* The two scenes with closed geometry enough to matter (README "Inner
+** proxies"); the crown's solids shadow little of itself under the sun. */
+#define FIG4_SCENES 2
+#define FIG4_GROUPS (2 * FIG4_SCENES)
+static const char *const fig4_scenes[FIG4_SCENES] = {"landscape", "island"};
+
+/* One render at 25 % with shadow rays, inner proxies off or on: its disk
+** MiB, and the share of occluded shadow rays they stopped (in %), into
+** a row of fig4.csv. */
+static void figure4_run(const settings *s, FILE *csv, int i, int scheduler, int inner, double *mib,
+                        double *stopped)
+{
+    static const char *const scheduler_names[2] = {"paper", "batchrt"};
+    char extra[12288], stats[4096];
+    double occluded, inner_stopped;
+    snprintf(stats, sizeof stats, "%s", out_path(s, "fig4_run.json"));
+    snprintf(extra, sizeof extra, "--memory 25%% %s --out '%s/run.png' --stats '%s'",
+             inner ? "" : "--no-inner", s->out, stats);
+    run_render(s, fig4_scenes[i], scheduler, extra);
+    occluded = json_number(stats, "shadow_occluded");
+    inner_stopped = json_number(stats, "shadow_inner_stopped");
+    *mib = json_number(stats, "disk_bytes_read") / 1048576.0;
+    *stopped = occluded > 0 ? 100.0 * inner_stopped / occluded : 0;
+    fprintf(csv, "%s,%s,%s,%.0f,%.0f,%.0f,%.0f,%.0f,%.4f,%.0f,%.0f\n", fig4_scenes[i],
+            scheduler_names[scheduler], inner ? "outer+inner" : "outer",
+            json_number(stats, "disk_bytes_read"), json_number(stats, "batch_loads"),
+            json_number(stats, "shadow_rays"), occluded, inner_stopped, *stopped / 100.0,
+            json_number(stats, "shadow_disk_bytes_read"), json_number(stats, "proxy_bytes"));
+    remove(stats);
+}
+
+static void figure4(const settings *s)
+{
+    static const char *const groups[FIG4_GROUPS] = {
+        "landscape, paper", "landscape, batchrt", "island, paper", "island, batchrt"};
+    static const char *const bars[2] = {"outer proxies", "outer + inner"};
+    FILE *csv = open_csv(s, "fig4.csv", "scene,scheduler,proxies,disk_bytes_read,batch_loads,shadow_rays,"
+                                        "shadow_occluded,shadow_inner_stopped,stopped_share,shadow_disk_bytes_read,"
+                                        "proxy_bytes");
+    double mib[2 * FIG4_GROUPS], stopped[2 * FIG4_GROUPS];
+    static char note_text[FIG4_GROUPS][32];
+    const char *notes[2 * FIG4_GROUPS];
+    ex_bar_chart chart;
+    brt_error err;
+    int g, inner;
+    for (g = 0; g < FIG4_GROUPS; g++) {
+        printf("Fig. 4: %s's scheduler", groups[g]);
+        for (inner = 0; inner < 2; inner++)
+            figure4_run(s, csv, g / 2, g % 2, inner, &mib[2 * g + inner], &stopped[2 * g + inner]);
+        snprintf(note_text[g], sizeof note_text[g], "%.1f %%", stopped[2 * g + 1]);
+        notes[2 * g] = NULL;
+        notes[2 * g + 1] = note_text[g];
+        printf(": disk MiB %.1f outer, %.1f outer + inner (x%.3f); inner proxies stopped %.1f %% "
+               "of the occluded shadow rays\n", mib[2 * g], mib[2 * g + 1], mib[2 * g + 1] / mib[2 * g],
+               stopped[2 * g + 1]);
+    }
+    close_csv(s, csv, "fig4.csv");
+    remove(out_path(s, "run.png"));
+    memset(&chart, 0, sizeof chart);
+    chart.title = "Fig. 4: disk bytes read at 25 %, outer against outer + inner proxies";
+    chart.x_label = "scene, scheduler (above a bar: occluded shadow rays stopped by inner proxies)";
+    chart.y_label = "disk bytes read (MiB)";
+    chart.groups = groups;
+    chart.group_count = FIG4_GROUPS;
+    chart.bar_labels = bars;
+    chart.bar_count = 2;
+    chart.values = mib;
+    chart.notes = notes;
+    ex_check(prog, ex_bar_write_svg(out_path(s, "fig4.svg"), &chart, &err), &err);
+}
+
 int main(int argc, char **argv)
 {
+    static void (*const figures[FIGURE_COUNT])(const settings *) = {figure1, figure2, figure3, figure4};
     settings s;
     double start = brt_seconds();
+    int f;
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &s);
     remove(out_path(&s, "render.log"));
-    figure1(&s);
-    figure2(&s);
-    figure3(&s);
+    for (f = 0; f < FIGURE_COUNT; f++)
+        if (s.only == 0 || s.only == f + 1) figures[f](&s);
     printf("figures: done in %.0f s; PNG, CSV and SVG in %s\n", brt_seconds() - start, s.out);
     return 0;
 }

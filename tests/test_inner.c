@@ -140,18 +140,6 @@ static void make_solids(tu_scene *s, int kind, uint64_t *st)
 
 /* ---- rays and the reference -------------------------------------------- */
 
-static int brute_occluded(const tu_scene *s, const brt_ray *ray)
-{
-    uint32_t i;
-    for (i = 0; i < s->tcount; i++) {
-        float t, u, v;
-        if (brt_intersect_triangle(ray, tu_vertex(s, i, 0), tu_vertex(s, i, 1), tu_vertex(s, i, 2),
-                                   &t, &u, &v))
-            return 1;
-    }
-    return 0;
-}
-
 /* Shadow-like rays: origins anywhere in the box around the solids (many
 ** inside them), on the surfaces, or at their vertices; tnear 0, small or
 ** past the solid's middle; tfar +inf but for one ray in eight. */
@@ -260,9 +248,9 @@ static void test_one_sided_api(void)
                 int says;
                 make_ray(&s, &st, &r);
                 says = brt_inner_occludes(dag, &p, &r);
-                occluded += brute_occluded(&s, &r);
+                occluded += tu_brute_occluded(&s, &r);
                 stopped += (uint32_t)says;
-                if (says && !brute_occluded(&s, &r))
+                if (says && !tu_brute_occluded(&s, &r))
                     test_fail_at(__FILE__, __LINE__, "%s, res %u, seed %llu, ray %u: inner proxy says "
                                  "occluded, brute force says clear: org %a %a %a dir %a %a %a tnear %a",
                                  solid_name[kind], resolutions[q], (unsigned long long)test_seed(), i,
@@ -398,7 +386,7 @@ static void check_scene(const tu_scene *s, uint32_t batch_tris, uint32_t bucket_
     CHECK(rays && exact && got, "out of memory");
     for (i = 0; i < 6000; i++) {
         make_ray(s, &st, &rays[i]);
-        exact[i] = (uint8_t)brute_occluded(s, &rays[i]);
+        exact[i] = (uint8_t)tu_brute_occluded(s, &rays[i]);
     }
     memset(&sopt, 0, sizeof sopt);
     sopt.batch_tris = batch_tris;

@@ -23,18 +23,6 @@
 
 /* ---- references ------------------------------------------------------- */
 
-static int brute_occluded(const tu_scene *s, const brt_ray *ray)
-{
-    uint32_t i;
-    for (i = 0; i < s->tcount; i++) {
-        float t, u, v;
-        if (brt_intersect_triangle(ray, tu_vertex(s, i, 0), tu_vertex(s, i, 1), tu_vertex(s, i, 2),
-                                   &t, &u, &v))
-            return 1;
-    }
-    return 0;
-}
-
 #define CUT_NONE 2   /* cut[i]: no closest-hit answer; else the answer, 1 or 0 */
 
 /* Rays of every kind around the scene, and for each that hits, the same
@@ -80,7 +68,7 @@ static void check_direct(const tu_scene *s, size_t per_kind, int degenerate, con
     rays = make_rays(s, bvh, per_kind, test_seed(), &count, &cut);
     for (i = 0; i < count && !test_failed(); i++) {
         const brt_ray *r = &rays[i];
-        int got = brt_bvh_occluded(bvh, r), want = brute_occluded(s, r);
+        int got = brt_bvh_occluded(bvh, r), want = tu_brute_occluded(s, r);
         EXPECT(got == want, "%s: ray %zu (o %a %a %a d %a %a %a, t %a..%a): BVH says %d, brute "
                "force %d", what, i, r->org[0], r->org[1], r->org[2], r->dir[0], r->dir[1],
                r->dir[2], r->tnear, r->tfar, got, want);

@@ -11,6 +11,8 @@
 ** Every built-in scene goes through the streamed build (the generator feeds
 ** brt_scene_build_stream) and must give --direct's image; and a reused
 ** built-in scene file is rendered without making the scene (peak RSS).
+** `figures --only 4` is run on a tiny scene and its table checked for the
+** invariants of its runs.
 ** Programs run from $BRT_BUILD (default build) through system().
 */
 #include "test.h"
@@ -414,6 +416,108 @@ static void test_plot_svg(void)
            "no positive y on a log axis: not refused");
 }
 
+/* The k-th bar of an SVG bar chart; 0 when there is none. */
+static int bar(const char *svg, int k, double *x, double *y, double *w, double *h)
+{
+    const char *p = svg;
+    while ((p = strstr(p, "<rect class=\"bar\"")) != NULL && k-- > 0) p++;
+    return p && sscanf(p, "<rect class=\"bar\" x=\"%lf\" y=\"%lf\" width=\"%lf\" height=\"%lf\"", x, y, w,
+                       h) == 4;
+}
+
+static void test_bar_svg(void)
+{
+    /* Two groups of two bars, values 0..100 on whole tick steps: each group
+    ** gets 240 units of the 480-wide area, its bars 0.7 of that (84 each),
+    ** from 36 units in; y maps 0..100 to 360..40 exactly.  Bars come out
+    ** bar by bar (one colour each), group by group within.  The NaN is
+    ** skipped. */
+    static const double values[] = {40, 100, 25, NAN}, all_nan[] = {NAN, NAN, NAN, NAN};
+    static const double expect_x[] = {116, 356, 200}, expect_v[] = {40, 25, 100};
+    static const char *const groups[] = {"g0", "g1"}, *const bars[] = {"a", "b"};
+    static const char *const notes[] = {NULL, "5 % & <", "", "n"};
+    ex_bar_chart chart;
+    brt_error err;
+    char *svg = NULL;
+    double x, y, w, h;
+    int k;
+    memset(&chart, 0, sizeof chart);
+    chart.title = "t";
+    chart.groups = groups;
+    chart.group_count = 2;
+    chart.bar_labels = bars;
+    chart.bar_count = 2;
+    chart.values = values;
+    chart.notes = notes;
+    CHECK(ex_bar_svg(&chart, &svg, &err) == BRT_OK, "%s", err.message);
+    for (k = 0; k < 3; k++)
+        EXPECT(bar(svg, k, &x, &y, &w, &h) && fabs(x - expect_x[k]) < 0.06 && fabs(w - 84) < 0.06 &&
+               fabs(y - (360 - 3.2 * expect_v[k])) < 0.06 && fabs(h - 3.2 * expect_v[k]) < 0.06,
+               "bar %d at x %g y %g, %g x %g", k, x, y, w, h);
+    EXPECT(!bar(svg, 3, &x, &y, &w, &h), "the NaN got a bar");
+    EXPECT(strstr(svg, ">5 % &amp; &lt;</text>") && !strstr(svg, ">n</text>"),
+           "the note of a drawn bar is missing or not escaped, or a skipped bar's is drawn");
+    free(svg);
+    chart.values = all_nan;
+    EXPECT(ex_bar_svg(&chart, &svg, &err) == BRT_EARG && !svg, "no finite value: not refused");
+}
+
+/* One row of fig4.csv. */
+typedef struct fig4_row {
+    char scene[32], scheduler[32], proxies[32];
+    double bytes, loads, shadow_rays, occluded, stopped, share, shadow_bytes, proxy_bytes;
+} fig4_row;
+
+/* `figures --only 4` on a tiny scene: fig4.csv holds, per scene and
+** scheduler, an outer run (no ray stopped by inner proxies) and an outer +
+** inner one; the two trace the same shadow rays with the same occluded
+** count (inner proxies never change a result), stop at most the occluded
+** ones, and the share column is stopped / occluded.  No other figure is
+** made.  (Whether inner proxies read fewer bytes is a measurement, not a
+** promise: a different load order can cost bytes.) */
+static void test_figure4(void)
+{
+    static const char *const scenes[] = {"landscape", "island"}, *const schedulers[] = {"paper", "batchrt"};
+    static const char header[] = "scene,scheduler,proxies,disk_bytes_read,batch_loads,shadow_rays,"
+                                 "shadow_occluded,shadow_inner_stopped,stopped_share,shadow_disk_bytes_read,"
+                                 "proxy_bytes\n";
+    fig4_row rows[8];
+    char *csv, *line, *svg;
+    int n = 0, k;
+    CHECK(tu_run("figures --only 4 --out @/fig --scale 0.05 --batch-tris 400 --width 16 --height 10 --spp 1 "
+                 "--rays-in-flight 256") == 0, "figures --only 4 failed");
+    csv = (char *)tu_slurp(tu_scratch("fig/fig4.csv"), NULL);
+    CHECK(csv && strncmp(csv, header, strlen(header)) == 0, "fig4.csv missing or its header wrong");
+    for (line = strchr(csv, '\n'); line && line[1] && n < 8; line = strchr(line + 1, '\n')) {
+        fig4_row *r = &rows[n++];
+        CHECK(sscanf(line + 1, "%31[^,],%31[^,],%31[^,],%lf,%lf,%lf,%lf,%lf,%lf,%lf,%lf", r->scene,
+                     r->scheduler, r->proxies, &r->bytes, &r->loads, &r->shadow_rays, &r->occluded, &r->stopped,
+                     &r->share, &r->shadow_bytes, &r->proxy_bytes) == 11, "fig4.csv row %d unreadable", n);
+    }
+    EXPECT(n == 8 && (!line || !line[1]), "fig4.csv: %d rows, expected 8", n);
+    for (k = 0; k + 1 < n; k += 2) {
+        const fig4_row *o = &rows[k], *i = &rows[k + 1];
+        EXPECT(strcmp(o->scene, scenes[k / 4]) == 0 && strcmp(i->scene, o->scene) == 0 &&
+               strcmp(o->scheduler, schedulers[k / 2 % 2]) == 0 && strcmp(i->scheduler, o->scheduler) == 0 &&
+               strcmp(o->proxies, "outer") == 0 && strcmp(i->proxies, "outer+inner") == 0,
+               "fig4.csv rows %d-%d: %s %s %s / %s %s %s", k, k + 1, o->scene, o->scheduler, o->proxies,
+               i->scene, i->scheduler, i->proxies);
+        EXPECT(o->stopped == 0 && o->share == 0 && o->shadow_rays > 0 && i->shadow_rays == o->shadow_rays &&
+               i->occluded == o->occluded && i->stopped <= i->occluded && o->bytes > 0 && i->bytes > 0 &&
+               o->shadow_bytes <= o->bytes && i->shadow_bytes <= i->bytes &&
+               o->proxy_bytes == i->proxy_bytes &&
+               fabs(i->share - (i->occluded > 0 ? i->stopped / i->occluded : 0)) < 6e-5,
+               "%s %s: shadow rays %g/%g, occluded %g/%g, stopped %g/%g, share %g", o->scene, o->scheduler,
+               o->shadow_rays, i->shadow_rays, o->occluded, i->occluded, o->stopped, i->stopped, i->share);
+    }
+    svg = (char *)tu_slurp(tu_scratch("fig/fig4.svg"), NULL);
+    EXPECT(svg && strstr(svg, "<rect class=\"bar\"") && strstr(svg, "Fig. 4"), "fig4.svg missing or has no bars");
+    EXPECT(!tu_file_exists(tu_scratch("fig/fig1.csv")) && !tu_file_exists(tu_scratch("fig/fig3.csv")),
+           "--only 4 made other figures");
+    free(csv);
+    free(svg);
+}
+
 void suite_render(void)
 {
     test_run("render: help", test_help);
@@ -431,4 +535,6 @@ void suite_render(void)
     test_run("render: every built-in scene, streamed build == --direct", test_builtin_scenes_streamed);
     test_run("render: a reused built-in scene file holds no mesh", test_reused_builtin_holds_no_mesh);
     test_run("render: plot svg", test_plot_svg);
+    test_run("render: bar chart svg", test_bar_svg);
+    test_run("render: figures --only 4 (inner proxies' table)", test_figure4);
 }

@@ -158,6 +158,18 @@ void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids,
     }
 }
 
+int tu_brute_occluded(const tu_scene *s, const brt_ray *ray)
+{
+    uint32_t i;
+    for (i = 0; i < s->tcount; i++) {
+        float t, u, v;
+        if (brt_intersect_triangle(ray, tu_vertex(s, i, 0), tu_vertex(s, i, 1), tu_vertex(s, i, 2),
+                                   &t, &u, &v))
+            return 1;
+    }
+    return 0;
+}
+
 /* ---- files and processes ---- */
 
 /* NAME inside the scratch directory (a few rotating buffers). */

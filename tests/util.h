@@ -40,6 +40,10 @@ void tu_make_ray(const tu_scene *s, const float lo[3], const float hi[3], int ki
 void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids, const brt_ray *ray,
                     brt_hit *hit);
 
+/* The brute-force occlusion answer: 1 when any triangle of s is hit
+** (brt_intersect_triangle within the ray's [tnear, tfar]). */
+int tu_brute_occluded(const tu_scene *s, const brt_ray *ray);
+
 /* ---- files and processes (for the command-line tests) ---- */
 
 /* NAME inside the scratch directory (a few rotating buffers). */
