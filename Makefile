@@ -147,8 +147,7 @@ $(BUILD)/embree_trace: $(BUILD)/examples/embree_trace.o $(EX_COMMON) $(LIB)
 # of EMBREE_REPEAT runs each (the machine may be shared), then their
 # agreement from build/hitdiff.  Figures only, never pass/fail.  trace
 # runs with --threads 1, as Embree does (its default, all cores, had
-# given batchrt two cores against Embree's one until the quantized
-# traversal was tuned).
+# given batchrt two cores against Embree's one since the thread pool).
 EMBREE_MESH   ?= ../shared/data/meshes/dragon.obj.gz
 EMBREE_RAYS   ?= 1000000
 EMBREE_REPEAT ?= 3
