@@ -1671,76 +1671,67 @@ static const float *corner_ref(const float *corners, size_t stride, uint32_t ref
     return corner_at(corners, stride, ref / 3, (int)(ref % 3));
 }
 
+/* Corner c's position hash; its bits in b. */
+static size_t corner_hash(const float *corners, size_t stride, uint32_t c, uint32_t b[3])
+{
+    corner_bits(corner_ref(corners, stride, c), b);
+    return (size_t)brt_mix64(((uint64_t)b[0] << 32 | b[1]) ^ brt_mix64(b[2]));
+}
+
+/* The weld's table at twice its capacity (NULL when out of memory). */
+static uint32_t *weld_grow(const float *corners, size_t stride, uint32_t *slot, size_t *cap)
+{
+    size_t bigger = 2 * *cap, i, h;
+    uint32_t *to = calloc(bigger, sizeof *to), b[3];
+    for (i = 0; to && i < *cap; i++) {
+        if (!slot[i]) continue;
+        h = corner_hash(corners, stride, slot[i] - 1, b) & (bigger - 1);
+        while (to[h]) h = (h + 1) & (bigger - 1);
+        to[h] = slot[i];
+    }
+    free(slot);
+    *cap = bigger;
+    return to;
+}
+
 /*
-** Vertex ids by exact position: vid[3t + k] for corner k of triangle t.
-** An open-addressing table of ids (load at most 3/4), each id remembered
-** by its first corner: 20 bytes a corner at most, where a sort would take
-** twice the corners' positions (glibc's qsort copies its array).
+** Vertex ids by exact position: vid[3t + k] for corner k of triangle t,
+** numbered in the order of their first corners.  An open-addressing table
+** (load at most 3/4) holds each position's first corner + 1; a corner
+** first takes the first corner of its position as vid, and one pass in
+** corner order then compacts: a corner that is its own first gets the next
+** id, any other (an earlier corner) the id already given to that one.  The
+** table starts at a third of the corners (a closed mesh has about half as
+** many vertices as triangles) and doubles when full: 4 bytes a corner and
+** about 8 a vertex, where a sort would take twice the corners' positions
+** (glibc's qsort copies its array).
 */
 static brt_result weld(const float *corners, size_t stride, uint32_t n, uint32_t *vid,
                        uint32_t *unique)
 {
-    size_t count = 3 * (size_t)n, cap = 4, c;
-    uint32_t *slot, *first;
-    while (cap < count + count / 3 + 1) cap *= 2;
+    size_t count = 3 * (size_t)n, cap = 64, used = 0, c;
+    uint32_t *slot;
+    while (cap < count / 3) cap *= 2;
     slot = calloc(cap, sizeof *slot);
-    first = malloc((count + 1) * sizeof *first);
     *unique = 0;
-    if (!slot || !first) {
-        free(slot);
-        free(first);
-        return BRT_ENOMEM;
-    }
-    for (c = 0; c < count; c++) {
+    for (c = 0; slot && c < count; c++) {
         uint32_t b[3], o[3];
-        size_t h;
-        corner_bits(corner_ref(corners, stride, (uint32_t)c), b);
-        h = (size_t)brt_mix64(((uint64_t)b[0] << 32 | b[1]) ^ brt_mix64(b[2])) & (cap - 1);
+        size_t h = corner_hash(corners, stride, (uint32_t)c, b) & (cap - 1);
         for (;; h = (h + 1) & (cap - 1)) {
             if (!slot[h]) {
-                first[*unique] = (uint32_t)c;
-                slot[h] = ++*unique;
+                slot[h] = (uint32_t)c + 1;
                 break;
             }
-            corner_bits(corner_ref(corners, stride, first[slot[h] - 1]), o);
+            corner_bits(corner_ref(corners, stride, slot[h] - 1), o);
             if (memcmp(b, o, sizeof b) == 0) break;
         }
         vid[c] = slot[h] - 1;
+        if (vid[c] == c && ++used > cap / 4 * 3) slot = weld_grow(corners, stride, slot, &cap);
     }
     free(slot);
-    free(first);
+    if (c < count) return BRT_ENOMEM;   /* a table that failed to grow */
+    for (c = 0; c < count; c++) vid[c] = vid[c] == c ? (*unique)++ : vid[vid[c]];
     return BRT_OK;
-}
-
-/* Sorts in place (heapsort): no second array, unlike qsort.  A second
-** binary heap beside batchrt.c's key_heap, for a stated reason: that one
-** is static there so that it inlines into the top-level walk (out of
-** line, and with a decoded compare, a batched trace ran 1.1 % more
-** instructions; callgrind), and sharing it across files would
-** put its code in the public header. */
-static void sift_down(uint64_t *a, size_t i, size_t n)
-{
-    for (;;) {
-        size_t c = 2 * i + 1;
-        uint64_t t;
-        if (c >= n) return;
-        if (c + 1 < n && a[c + 1] > a[c]) c++;
-        if (a[i] >= a[c]) return;
-        t = a[i]; a[i] = a[c]; a[c] = t;
-        i = c;
-    }
-}
-
-static void heap_sort64(uint64_t *a, size_t n)
-{
-    size_t i;
-    for (i = n / 2; i-- > 0;) sift_down(a, i, n);
-    while (n > 1) {
-        uint64_t t = a[0];
-        a[0] = a[--n];
-        a[n] = t;
-        sift_down(a, 0, n);
-    }
 }
 
 static uint32_t uf_find(uint32_t *parent, uint32_t v)
@@ -1767,22 +1758,60 @@ static int triangle_degenerate(const float *tri, const uint32_t *vid)
     return lx <= 0x1p-80 * l1 * l2;
 }
 
+/* Each edge {a, b}, a < b, listed under a: adj[start[a] .. start[a + 1])
+** holds the b of every triangle's edge (a vertex's edges by their lower
+** end, 4 bytes a corner).  start has unique + 1 entries, zeroed. */
+static void edge_lists(const uint32_t *vid, uint32_t n, uint32_t unique, uint32_t *start,
+                       uint32_t *adj)
+{
+    size_t c, e;
+    uint32_t a;
+    for (c = 0; c < 3 * (size_t)n; c++) {
+        uint32_t u = vid[c], v = vid[c % 3 == 2 ? c - 2 : c + 1];
+        start[(u < v ? u : v) + 1]++;
+    }
+    for (a = 0; a < unique; a++) start[a + 1] += start[a];
+    for (c = 0; c < 3 * (size_t)n; c++) {   /* moves start[a] to the end of a's list ... */
+        uint32_t u = vid[c], v = vid[c % 3 == 2 ? c - 2 : c + 1];
+        adj[start[u < v ? u : v]++] = u < v ? v : u;
+    }
+    for (e = unique; e > 0; e--) start[e] = start[e - 1];
+    start[0] = 0;                           /* ... so shift back by one vertex */
+}
+
+/* bad[root] = 1 for the components with an edge used an odd number of
+** times: a's list toggles odd[b] per use, a second walk reads and clears
+** it (linear in the corners; odd is zero before and after). */
+static void odd_edges(const uint32_t *start, const uint32_t *adj, uint32_t unique,
+                      uint32_t *parent, unsigned char *odd, unsigned char *bad)
+{
+    uint32_t a, e;
+    for (a = 0; a < unique; a++) {
+        for (e = start[a]; e < start[a + 1]; e++) odd[adj[e]] ^= 1;
+        for (e = start[a]; e < start[a + 1]; e++) {
+            if (odd[adj[e]]) bad[uf_find(parent, a)] = 1;
+            odd[adj[e]] = 0;
+        }
+    }
+}
+
 /* closed[t] = 1 for the triangles of closed components (header above). */
 static brt_result closed_triangles(const float *corners, size_t stride, uint32_t n,
                                    unsigned char *closed)
 {
     uint32_t *vid = malloc((3 * (size_t)n + 1) * sizeof *vid), unique = 0, *parent = NULL, t;
-    uint64_t *edges = NULL;
+    uint32_t *start = NULL, *adj = NULL;
     unsigned char *bad = NULL;
-    size_t e, run;
-    /* weld's table is freed before the edges are taken: the peak is about
-    ** 16 bytes a corner (a full bucket, 1.68 M triangles: about 80 MB) */
+    /* weld's table is freed before the edges are listed: the peak is 8
+    ** bytes a corner and 10 a vertex (a full bucket, 1.68 M triangles and
+    ** about 1 M vertices: about 50 MB) */
     brt_result r = vid ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
     if (r == BRT_OK) {
-        edges = malloc((3 * (size_t)n + 1) * sizeof *edges);
+        start = calloc((size_t)unique + 1, sizeof *start);
+        adj = malloc((3 * (size_t)n + 1) * sizeof *adj);
         parent = malloc(((size_t)unique + 1) * sizeof *parent);
-        bad = calloc((size_t)unique + 1, 1);
-        if (!edges || !parent || !bad) r = BRT_ENOMEM;
+        bad = calloc(2 * (size_t)unique + 1, 1);   /* bad[v], then odd[v] */
+        if (!start || !adj || !parent || !bad) r = BRT_ENOMEM;
     }
     if (r != BRT_OK) goto done;
     for (t = 0; t < unique; t++) parent[t] = t;
@@ -1791,24 +1820,16 @@ static brt_result closed_triangles(const float *corners, size_t stride, uint32_t
         parent[uf_find(parent, v[1])] = uf_find(parent, v[0]);
         parent[uf_find(parent, v[2])] = uf_find(parent, v[0]);
     }
-    for (t = 0; t < n; t++) {
-        const uint32_t *v = vid + 3 * (size_t)t;
-        int k;
-        if (triangle_degenerate(corner_at(corners, stride, t, 0), v)) bad[uf_find(parent, v[0])] = 1;
-        for (k = 0; k < 3; k++) {
-            uint32_t a = v[k], b = v[(k + 1) % 3];
-            edges[3 * (size_t)t + k] = a < b ? (uint64_t)a << 32 | b : (uint64_t)b << 32 | a;
-        }
-    }
-    heap_sort64(edges, 3 * (size_t)n);
-    for (e = 0; e < 3 * (size_t)n; e += run) {   /* an edge used an odd number of times */
-        for (run = 1; e + run < 3 * (size_t)n && edges[e + run] == edges[e]; run++) {}
-        if (run & 1) bad[uf_find(parent, (uint32_t)(edges[e] >> 32))] = 1;
-    }
+    for (t = 0; t < n; t++)
+        if (triangle_degenerate(corner_at(corners, stride, t, 0), vid + 3 * (size_t)t))
+            bad[uf_find(parent, vid[3 * (size_t)t])] = 1;
+    edge_lists(vid, n, unique, start, adj);
+    odd_edges(start, adj, unique, parent, bad + unique, bad);
     for (t = 0; t < n; t++) closed[t] = !bad[uf_find(parent, vid[3 * (size_t)t])];
 done:
     free(vid);
-    free(edges);
+    free(start);
+    free(adj);
     free(parent);
     free(bad);
     return r;
