@@ -1758,41 +1758,94 @@ static int triangle_degenerate(const float *tri, const uint32_t *vid)
     return lx <= 0x1p-80 * l1 * l2;
 }
 
-/* Each edge {a, b}, a < b, listed under a: adj[start[a] .. start[a + 1])
-** holds the b of every triangle's edge (a vertex's edges by their lower
-** end, 4 bytes a corner).  start has unique + 1 entries, zeroed. */
-static void edge_lists(const uint32_t *vid, uint32_t n, uint32_t unique, uint32_t *start,
-                       uint32_t *adj)
+#define EDGE_PASSES 4u   /* the edges are listed about a quarter at a time */
+
+/* Corner c's edge (to the next corner of its triangle): lower end, upper end. */
+static void corner_edge(const uint32_t *vid, size_t c, uint32_t *lo, uint32_t *hi)
 {
-    size_t c, e;
-    uint32_t a;
-    for (c = 0; c < 3 * (size_t)n; c++) {
-        uint32_t u = vid[c], v = vid[c % 3 == 2 ? c - 2 : c + 1];
-        start[(u < v ? u : v) + 1]++;
-    }
-    for (a = 0; a < unique; a++) start[a + 1] += start[a];
-    for (c = 0; c < 3 * (size_t)n; c++) {   /* moves start[a] to the end of a's list ... */
-        uint32_t u = vid[c], v = vid[c % 3 == 2 ? c - 2 : c + 1];
-        adj[start[u < v ? u : v]++] = u < v ? v : u;
-    }
-    for (e = unique; e > 0; e--) start[e] = start[e - 1];
-    start[0] = 0;                           /* ... so shift back by one vertex */
+    uint32_t u = vid[c], v = vid[c % 3 == 2 ? c - 2 : c + 1];
+    *lo = u < v ? u : v;
+    *hi = u < v ? v : u;
 }
 
-/* bad[root] = 1 for the components with an edge used an odd number of
-** times: a's list toggles odd[b] per use, a second walk reads and clears
-** it (linear in the corners; odd is zero before and after). */
-static void odd_edges(const uint32_t *start, const uint32_t *adj, uint32_t unique,
+/* The edges of the set listed by lower end a, every use once: their
+** places, start[a] .. start[a + 1] (start: unique + 1 entries, zeroed). */
+static void edge_offsets(const uint32_t *vid, uint32_t n, uint32_t unique, uint32_t *start)
+{
+    size_t c;
+    uint32_t a, b;
+    for (c = 0; c < 3 * (size_t)n; c++) {
+        corner_edge(vid, c, &a, &b);
+        start[a + 1]++;
+    }
+    for (a = 0; a < unique; a++) start[a + 1] += start[a];
+}
+
+/* The end of a pass's range of lower ends from lo: at most chunk edges,
+** or one vertex's edges when they are more. */
+static uint32_t edge_range(const uint32_t *start, uint32_t unique, uint32_t lo, size_t chunk)
+{
+    uint32_t hi = lo + 1;
+    while (hi < unique && start[hi + 1] - start[lo] <= chunk) hi++;
+    return hi;
+}
+
+/* The upper ends of the edges with lower ends lo .. hi - 1, at
+** adj[start[a] - start[lo] ..]: one scan of the corners per pass, so that
+** adj holds a pass's edges (4 bytes each), not all of them. */
+static void edge_lists(const uint32_t *vid, uint32_t n, uint32_t lo, uint32_t hi, uint32_t *start,
+                       uint32_t *adj)
+{
+    uint32_t base = start[lo], a, b;
+    size_t c;
+    for (c = 0; c < 3 * (size_t)n; c++) {   /* moves start[a] to the end of a's list ... */
+        corner_edge(vid, c, &a, &b);
+        if (a >= lo && a < hi) adj[start[a]++ - base] = b;
+    }
+    for (a = hi - 1; a > lo; a--) start[a] = start[a - 1];
+    start[lo] = base;                       /* ... so shift back by one vertex */
+}
+
+/* bad[root] = 1 for the components with an edge of lower end lo .. hi - 1
+** used an odd number of times: a's list toggles odd[b] per use, a second
+** walk reads and clears it (linear; odd is zero before and after). */
+static void odd_edges(const uint32_t *start, const uint32_t *adj, uint32_t lo, uint32_t hi,
                       uint32_t *parent, unsigned char *odd, unsigned char *bad)
 {
-    uint32_t a, e;
-    for (a = 0; a < unique; a++) {
-        for (e = start[a]; e < start[a + 1]; e++) odd[adj[e]] ^= 1;
-        for (e = start[a]; e < start[a + 1]; e++) {
+    uint32_t a, e, base = start[lo];
+    for (a = lo; a < hi; a++) {
+        for (e = start[a] - base; e < start[a + 1] - base; e++) odd[adj[e]] ^= 1;
+        for (e = start[a] - base; e < start[a + 1] - base; e++) {
             if (odd[adj[e]]) bad[uf_find(parent, a)] = 1;
             odd[adj[e]] = 0;
         }
     }
+}
+
+/* The edges of odd use (odd_edges), listed EDGE_PASSES ranges at a time. */
+static brt_result odd_edges_all(const uint32_t *vid, uint32_t n, uint32_t unique,
+                                uint32_t *parent, unsigned char *bad)
+{
+    size_t chunk = 3 * (size_t)n / EDGE_PASSES + 1, most = 0;
+    uint32_t *start = calloc((size_t)unique + 1, sizeof *start), *adj = NULL, lo, hi;
+    unsigned char *odd = calloc((size_t)unique + 1, 1);
+    brt_result r;
+    if (start) edge_offsets(vid, n, unique, start);
+    for (lo = 0; start && lo < unique; lo = hi) {
+        hi = edge_range(start, unique, lo, chunk);
+        most = most > start[hi] - start[lo] ? most : start[hi] - start[lo];
+    }
+    if (start && odd) adj = malloc((most + 1) * sizeof *adj);
+    for (lo = 0; adj && lo < unique; lo = hi) {
+        hi = edge_range(start, unique, lo, chunk);
+        edge_lists(vid, n, lo, hi, start, adj);
+        odd_edges(start, adj, lo, hi, parent, odd, bad);
+    }
+    r = adj ? BRT_OK : BRT_ENOMEM;
+    free(start);
+    free(odd);
+    free(adj);
+    return r;
 }
 
 /* closed[t] = 1 for the triangles of closed components (header above). */
@@ -1800,18 +1853,15 @@ static brt_result closed_triangles(const float *corners, size_t stride, uint32_t
                                    unsigned char *closed)
 {
     uint32_t *vid = malloc((3 * (size_t)n + 1) * sizeof *vid), unique = 0, *parent = NULL, t;
-    uint32_t *start = NULL, *adj = NULL;
     unsigned char *bad = NULL;
-    /* weld's table is freed before the edges are listed: the peak is 8
+    /* weld's table is freed before the edges are listed: the peak is 5
     ** bytes a corner and 10 a vertex (a full bucket, 1.68 M triangles and
-    ** about 1 M vertices: about 50 MB) */
+    ** about 1 M vertices: about 35 MB) */
     brt_result r = vid ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
     if (r == BRT_OK) {
-        start = calloc((size_t)unique + 1, sizeof *start);
-        adj = malloc((3 * (size_t)n + 1) * sizeof *adj);
         parent = malloc(((size_t)unique + 1) * sizeof *parent);
-        bad = calloc(2 * (size_t)unique + 1, 1);   /* bad[v], then odd[v] */
-        if (!start || !adj || !parent || !bad) r = BRT_ENOMEM;
+        bad = calloc((size_t)unique + 1, 1);
+        if (!parent || !bad) r = BRT_ENOMEM;
     }
     if (r != BRT_OK) goto done;
     for (t = 0; t < unique; t++) parent[t] = t;
@@ -1823,13 +1873,11 @@ static brt_result closed_triangles(const float *corners, size_t stride, uint32_t
     for (t = 0; t < n; t++)
         if (triangle_degenerate(corner_at(corners, stride, t, 0), vid + 3 * (size_t)t))
             bad[uf_find(parent, vid[3 * (size_t)t])] = 1;
-    edge_lists(vid, n, unique, start, adj);
-    odd_edges(start, adj, unique, parent, bad + unique, bad);
+    r = odd_edges_all(vid, n, unique, parent, bad);
+    if (r != BRT_OK) goto done;
     for (t = 0; t < n; t++) closed[t] = !bad[uf_find(parent, vid[3 * (size_t)t])];
 done:
     free(vid);
-    free(start);
-    free(adj);
     free(parent);
     free(bad);
     return r;
