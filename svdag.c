@@ -2060,41 +2060,61 @@ static int component_inside(const brt_grid *g, const brt_solids *s, const uint32
     return 0;
 }
 
-/* The 6-connected unmarked voxels from queue[0..count), marked seen. */
-static uint32_t flood(const brt_grid *walls, unsigned char *seen, uint32_t *queue, uint32_t count)
+/* Voxel j of a grid (index x + res (y + res z), as voxel_index), in its
+** words: read, or set. */
+static int voxel_bit(const uint64_t *bits, uint32_t j)
 {
-    uint32_t res = walls->res, head;
+    return (int)((bits[j >> 6] >> (j & 63)) & 1);
+}
+
+static void voxel_mark(uint64_t *bits, uint32_t j)
+{
+    bits[j >> 6] |= 1ull << (j & 63);
+}
+
+/* Voxel j into the flood's queue unless seen (a wall, or queued before). */
+static uint32_t flood_visit(uint64_t *seen, uint32_t *queue, uint32_t count, uint32_t j)
+{
+    if (voxel_bit(seen, j)) return count;
+    voxel_mark(seen, j);
+    queue[count] = j;
+    return count + 1;
+}
+
+/* The 6-connected voxels not seen from queue[0..count), marked seen; res
+** = 2^shift.  Neighbours in the order -x, +x, -y, +y, -z, +z (the queue's
+** order picks the voxels component_inside tries). */
+static uint32_t flood(uint64_t *seen, uint32_t shift, uint32_t *queue, uint32_t count)
+{
+    uint32_t res = 1u << shift, head, a;
     for (head = 0; head < count; head++) {
-        uint32_t i = queue[head], at[3], a;
-        at[0] = i % res; at[1] = i / res % res; at[2] = i / res / res;
-        for (a = 0; a < 6; a++) {
-            uint32_t n[3], j;
-            memcpy(n, at, sizeof n);
-            if (a & 1 ? n[a >> 1] + 1 >= res : n[a >> 1] == 0) continue;
-            n[a >> 1] += a & 1 ? 1 : (uint32_t)-1;
-            j = n[0] + res * (n[1] + res * n[2]);
-            if (seen[j] || brt_grid_get(walls, n[0], n[1], n[2])) continue;
-            seen[j] = 1;
-            queue[count++] = j;
+        uint32_t i = queue[head];
+        for (a = 0; a < 3; a++) {
+            uint32_t at = (i >> (shift * a)) & (res - 1), step = 1u << (shift * a);
+            if (at > 0) count = flood_visit(seen, queue, count, i - step);
+            if (at + 1 < res) count = flood_visit(seen, queue, count, i + step);
         }
     }
     return count;
 }
 
-/* Each component of unmarked voxels, set in inner when its parity is odd. */
+/* Each component of the voxels not seen (seen: the walls' bits, which it
+** fills), set in inner when its parity is odd. */
 static void inner_components(const brt_grid *walls, brt_grid *inner, const brt_solids *s,
-                             unsigned char *seen, uint32_t *queue)
+                             uint64_t *seen, uint32_t *queue)
 {
-    uint32_t res = walls->res, j, count, components = 0, k;
-    for (j = 0; j < res * res * res; j++) {
-        if (seen[j] || brt_grid_get(walls, j % res, j / res % res, j / res / res)) continue;
-        seen[j] = 1;
-        queue[0] = j;
-        count = flood(walls, seen, queue, 1);
-        if (++components > INNER_MAX_COMPONENTS || !component_inside(walls, s, queue, count))
-            continue;
-        for (k = 0; k < count; k++)
-            brt_grid_set(inner, queue[k] % res, queue[k] / res % res, queue[k] / res / res);
+    uint32_t res = walls->res, voxels = res * res * res, j, count, components = 0, k;
+    uint32_t shift = (uint32_t)resolution_log2(res);
+    for (j = 0; j < voxels; j++) {
+        if ((j & 63) == 0 && seen[j >> 6] == ~(uint64_t)0) j += 63;   /* a word all seen */
+        else if (!voxel_bit(seen, j)) {
+            voxel_mark(seen, j);
+            queue[0] = j;
+            count = flood(seen, shift, queue, 1);
+            if (++components > INNER_MAX_COMPONENTS || !component_inside(walls, s, queue, count))
+                continue;
+            for (k = 0; k < count; k++) voxel_mark(inner->bits, queue[k]);
+        }
     }
 }
 
@@ -2138,23 +2158,19 @@ static brt_result voxelize_walls(brt_grid *walls, const brt_solids *s)
 
 brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids)
 {
-    size_t voxels;
-    unsigned char *seen;
     uint32_t *queue;
     brt_grid walls;
     brt_result r;
     if (!grid_frame_valid(inner) || !solids) return BRT_EARG;
     if (solids->count == 0) return BRT_OK;
-    voxels = (size_t)inner->res * inner->res * inner->res;
-    seen = calloc(voxels, 1);
-    queue = malloc(voxels * sizeof *queue);
-    r = seen && queue ? grid_alloc(&walls, inner->res, inner->origin, inner->cell) : BRT_ENOMEM;
+    queue = malloc((size_t)inner->res * inner->res * inner->res * sizeof *queue);
+    r = queue ? grid_alloc(&walls, inner->res, inner->origin, inner->cell) : BRT_ENOMEM;
     if (r == BRT_OK) {
         r = voxelize_walls(&walls, solids);
-        if (r == BRT_OK) inner_components(&walls, inner, solids, seen, queue);
+        /* the walls' bits become the flood's "seen" marks */
+        if (r == BRT_OK) inner_components(&walls, inner, solids, walls.bits, queue);
         free(walls.bits);
     }
-    free(seen);
     free(queue);
     return r;
 }
