@@ -145,13 +145,16 @@ $(BUILD)/embree_trace: $(BUILD)/examples/embree_trace.o $(EX_COMMON) $(LIB)
 # embree_trace (default and --robust) on the same ray files (camera,
 # random, bounce; 1M each) of the shared dragon (871K triangles), the best
 # of EMBREE_REPEAT runs each (the machine may be shared), then their
-# agreement from build/hitdiff.  Figures only, never pass/fail.
+# agreement from build/hitdiff.  Figures only, never pass/fail.  trace
+# runs with --threads 1, as Embree does (its default, all cores, had
+# given batchrt two cores against Embree's one since the thread pool).
 EMBREE_MESH   ?= ../shared/data/meshes/dragon.obj.gz
 EMBREE_RAYS   ?= 1000000
 EMBREE_REPEAT ?= 3
 EMBREE_BENCH  ?= /tmp/batchrt-bench-embree
 bench-embree: all embree
 	@mkdir -p $(EMBREE_BENCH)
+	@rm -f $(EMBREE_BENCH)/scene.brs   # built afresh by the first batched run (not timed)
 	@m=$(EMBREE_BENCH)/$$(basename $(EMBREE_MESH) .gz); \
 	test -s $$m || gzip -dc $(EMBREE_MESH) > $$m || exit 1; \
 	best() { out=$$1; shift; for i in $$(seq $(EMBREE_REPEAT)); do \
@@ -162,8 +165,8 @@ bench-embree: all embree
 	printf '%-7s %9s %9s %9s %9s %7s %7s %7s\n' kind "direct" "batched" "Embree" "robust" "d/E" "b/E" "E/d"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
 	  ./$(BUILD)/raygen $$m $$d.rays --kind $$k --count $(EMBREE_RAYS) || exit 1; \
-	  b=$$(best $$d.brt ./$(BUILD)/trace $$m $$d.rays $$d.brt.hits); \
-	  bb=$$(best $$d.bat ./$(BUILD)/trace $$m $$d.rays $$d.bat.hits --batched --scene $(EMBREE_BENCH)/scene.brs); \
+	  b=$$(best $$d.brt ./$(BUILD)/trace $$m $$d.rays $$d.brt.hits --threads 1); \
+	  bb=$$(best $$d.bat ./$(BUILD)/trace $$m $$d.rays $$d.bat.hits --threads 1 --batched --scene $(EMBREE_BENCH)/scene.brs); \
 	  cmp -s $$d.brt.hits $$d.bat.hits || { echo "$$k: batched hits differ from direct"; exit 1; }; \
 	  e=$$(best $$d.emb ./$(BUILD)/embree_trace $$m $$d.rays $$d.emb.hits); \
 	  r=$$(best $$d.rob ./$(BUILD)/embree_trace $$m $$d.rays $$d.rob.hits --robust); \

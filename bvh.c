@@ -97,7 +97,8 @@
 ** Rays with a NaN anywhere, an inf in the origin or direction, an all-zero
 ** direction, or tnear > tfar never hit (checked once per ray).
 **
-** PERFORMANCE NOTES (what was tried) are at the end of the file.
+** PERFORMANCE NOTES (what was tried) are at the end of the file; the
+** full diary is in the README, "The BVH: what was tried".
 */
 /* The library defines the entry points for tests too (batchrt.h, 7). */
 #ifndef BRT_TESTING
@@ -109,6 +110,14 @@
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+
+/* GCC's -O2 would call box_span4 rather than inline it into traverse(),
+** which cost the BVH walk a sixth of its speed; other compilers decide. */
+#if defined(__GNUC__)
+#define ALWAYS_INLINE __attribute__((always_inline))
+#else
+#define ALWAYS_INLINE
+#endif
 
 #define BINS 16
 #define MAX_LEAF 8
@@ -187,8 +196,10 @@ void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
     prep->valid = brt_ray_valid(ray);
 }
 
-/* The four-lane copy of an already prepared ray. */
-static void box_ray_from_prep(const brt_ray_prep *prep, box_ray *b)
+/* The four-lane copy of an already prepared ray.  Inlined: as a call it
+** cost the top-level walk (one brt_box_span4 per node) 66 instructions a
+** node (callgrind, batched camera rays on the dragon). */
+static inline ALWAYS_INLINE void box_ray_from_prep(const brt_ray_prep *prep, box_ray *b)
 {
     int a, i;
     for (a = 0; a < 3; a++) {
@@ -312,8 +323,10 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
     return 1;
 }
 
-/* The watertight test proper (Woop et al., Fig. 4 with culling off). */
-static inline int tri_intersect(const tri_ray *r, const brt_ray_prep *bp,
+/* The watertight test proper (Woop et al., Fig. 4 with culling off).
+** Forced inline: as a call with its eleven arguments it cost the BVH walk
+** 2-4 % more instructions (callgrind, dragon). */
+static inline ALWAYS_INLINE int tri_intersect(const tri_ray *r, const brt_ray_prep *bp,
                                 const float *p0, const float *p1, const float *p2,
                                 float tnear, float tfar,
                                 float *t, float *u, float *v)
@@ -370,49 +383,43 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
 
 /* ---- four slots at once ---- */
 
-/* Entry and exit distance of four boxes given as rows (min x, y, z, max
-** x, y, z) of four lanes; returns a mask of lanes whose interval meets
+/* Entry and exit distance of four boxes given by their near planes nr
+** and far planes fr (per axis, four lanes: the rows box_ray's near_row
+** and far_row pick); returns a mask of lanes whose interval meets
 ** [tnear, tfar] (inclusive).  NaN never narrows.  Each lane is slab_span's
 ** arithmetic in slab_span's order, so every caller -- the triangle BVHs
 ** here, the top level in batchrt.c -- gets the same bits for the same box.
 ** Written lane-wise with the mask bits as a select of constants, so that
 ** GCC -O2 turns the whole test into vector instructions (a per-lane shift
-** loop cost a quarter of the node's instructions). */
-/* GCC's -O2 would call box_span4 rather than inline it into traverse(),
-** which cost the BVH walk a sixth of its speed; other compilers decide. */
-#if defined(__GNUC__)
-#define ALWAYS_INLINE __attribute__((always_inline))
-#else
-#define ALWAYS_INLINE
-#endif
-
-static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float box[6][4],
-                                 float tnear, float tfar, float lo[4], float hi[4])
+** loop cost a quarter of the node's instructions).  The distances go to
+** local arrays first: written straight to lo and hi, which might alias
+** the inputs, the loop stayed scalar in brt_box_span4 (194 instructions a
+** call instead of about 40). */
+static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float nr[3][4],
+                                               const float fr[3][4], float tnear, float tfar,
+                                               float lo[4], float hi[4])
 {
     static const unsigned lane_bit[4] = {1u, 2u, 4u, 8u};
-    const float *nx = box[b->near_row[0]], *fx = box[b->far_row[0]];
-    const float *ny = box[b->near_row[1]], *fy = box[b->far_row[1]];
-    const float *nz = box[b->near_row[2]], *fz = box[b->far_row[2]];
+    float tl[4], th[4];
     unsigned bit[4];
     int i;
     for (i = 0; i < 4; i++) {
-        float tl = tnear, th = tfar;
-        const float x0 = (nx[i] - b->org_near[0][i]) * b->inv[0][i];
-        const float y0 = (ny[i] - b->org_near[1][i]) * b->inv[1][i];
-        const float z0 = (nz[i] - b->org_near[2][i]) * b->inv[2][i];
-        const float x1 = (fx[i] - b->org_far[0][i]) * b->inv[0][i];
-        const float y1 = (fy[i] - b->org_far[1][i]) * b->inv[1][i];
-        const float z1 = (fz[i] - b->org_far[2][i]) * b->inv[2][i];
-        tl = x0 > tl ? x0 : tl;
-        tl = y0 > tl ? y0 : tl;
-        tl = z0 > tl ? z0 : tl;
-        th = x1 < th ? x1 : th;
-        th = y1 < th ? y1 : th;
-        th = z1 < th ? z1 : th;
-        lo[i] = tl;
-        hi[i] = th;
-        bit[i] = tl <= th ? lane_bit[i] : 0u;
+        const float x0 = (nr[0][i] - b->org_near[0][i]) * b->inv[0][i];
+        const float y0 = (nr[1][i] - b->org_near[1][i]) * b->inv[1][i];
+        const float z0 = (nr[2][i] - b->org_near[2][i]) * b->inv[2][i];
+        const float x1 = (fr[0][i] - b->org_far[0][i]) * b->inv[0][i];
+        const float y1 = (fr[1][i] - b->org_far[1][i]) * b->inv[1][i];
+        const float z1 = (fr[2][i] - b->org_far[2][i]) * b->inv[2][i];
+        tl[i] = x0 > tnear ? x0 : tnear;
+        tl[i] = y0 > tl[i] ? y0 : tl[i];
+        tl[i] = z0 > tl[i] ? z0 : tl[i];
+        th[i] = x1 < tfar ? x1 : tfar;
+        th[i] = y1 < th[i] ? y1 : th[i];
+        th[i] = z1 < th[i] ? z1 : th[i];
+        bit[i] = tl[i] <= th[i] ? lane_bit[i] : 0u;
     }
+    memcpy(lo, tl, sizeof tl);
+    memcpy(hi, th, sizeof th);
     return bit[0] | bit[1] | bit[2] | bit[3];
 }
 
@@ -428,26 +435,33 @@ static inline float decode_plane(float org, float scale, unsigned q)
 }
 
 /* One row of four slots' planes along axis a: decode_plane of each lane,
-** written so that GCC -O2 makes it a few vector instructions: each lane's
-** byte is masked in place (lane 3 shifted down 8 bits first so that the
-** word stays positive as an int), converted, and scaled by a power of
-** two back to the byte's value -- every step exact, so each lane is
-** exactly the float of its byte, (row >> 8i) & 0xFF.  (A loop that
-** extracted each byte that way stayed scalar: traversal then ran 3.6 times
-** the instructions of the float nodes.) */
+** written so that GCC -O2 makes it a few vector instructions (a broadcast
+** of the row's word, an and, a conversion, a fix-up, three arithmetic
+** operations).  Each lane's byte is masked in place, so lane i holds
+** q * 2^(8i); read as int32_t (memcpy: exact-width types are two's
+** complement) lane 3 is negative when q >= 128, i.e. (q - 256) * 2^24,
+** and adding 2^32 there gives q * 2^24 back.  Every step is exact (at
+** most 8 significant bits), and the power of two unit[i] brings each lane
+** to the float of its byte: the same decode_plane arithmetic after it.
+** (A loop that extracted each byte by shifting stayed scalar: 3.6 times
+** the instructions of the float nodes; shifting lane 3 alone down by 8
+** bits first cost 118 instructions a node for the six rows, this 96:
+** callgrind, random rays on the dragon.) */
 static inline ALWAYS_INLINE void decode_row(const qnode *n, int row, int a, float out[4])
 {
-    static const uint32_t mask[4] = {0xFFu, 0xFF00u, 0xFF0000u, 0xFF0000u};
-    static const float unit[4] = {1.0f, 1.0f / 256.0f, 1.0f / 65536.0f, 1.0f / 65536.0f};
+    static const uint32_t mask[4] = {0xFFu, 0xFF00u, 0xFF0000u, 0xFF000000u};
+    static const float unit[4] = {1.0f, 1.0f / 256.0f, 1.0f / 65536.0f, 1.0f / 16777216.0f};
     const float o = n->org[a], s = n->scale[a];
     const uint32_t w = n->q[row];
+    uint32_t m[4];
     int32_t v[4];
     int i;
-    v[0] = (int32_t)(w & mask[0]);
-    v[1] = (int32_t)(w & mask[1]);
-    v[2] = (int32_t)(w & mask[2]);
-    v[3] = (int32_t)((w >> 8) & mask[3]);
-    for (i = 0; i < 4; i++) out[i] = o + ((float)v[i] * unit[i]) * s;
+    for (i = 0; i < 4; i++) m[i] = w & mask[i];
+    memcpy(v, m, sizeof v);
+    for (i = 0; i < 4; i++) {
+        const float f = (float)v[i];
+        out[i] = o + ((f + (f < 0.0f ? 4294967296.0f : 0.0f)) * unit[i]) * s;
+    }
 }
 
 /* The four slots' boxes as brt_box_span4 rows.  Row by row, four lanes
@@ -464,21 +478,35 @@ static inline ALWAYS_INLINE void decode_boxes(const qnode *n, float box[6][4])
 }
 
 /* A node's slots: only the entries are wanted (the exits are dead stores
-** the compiler drops).  Empty slots are masked out by the caller. */
+** the compiler drops).  Only the near and far rows the ray needs are
+** decoded, picked by their 32-bit words: indexing the decoded floats
+** instead made the compiler store all 24 to the stack and load them back.
+** Empty slots are masked out by the caller. */
 static inline unsigned box_test4(const box_ray *b, const qnode *n,
                                  float tnear, float tfar, float lo[4])
 {
-    float box[6][4], hi[4];
-    decode_boxes(n, box);
-    return box_span4(b, (const float (*)[4])box, tnear, tfar, lo, hi);
+    float nr[3][4], fr[3][4], hi[4];
+    decode_row(n, b->near_row[0], 0, nr[0]);
+    decode_row(n, b->far_row[0], 0, fr[0]);
+    decode_row(n, b->near_row[1], 1, nr[1]);
+    decode_row(n, b->far_row[1], 1, fr[1]);
+    decode_row(n, b->near_row[2], 2, nr[2]);
+    decode_row(n, b->far_row[2], 2, fr[2]);
+    return box_span4(b, (const float (*)[4])nr, (const float (*)[4])fr, tnear, tfar, lo, hi);
 }
 
 unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tmin,
                        float tmax, float entry[4], float exit[4])
 {
     box_ray b;
+    float nr[3][4], fr[3][4];
+    int a;
     box_ray_from_prep(prep, &b);
-    return box_span4(&b, box, tmin, tmax, entry, exit);
+    for (a = 0; a < 3; a++) {
+        memcpy(nr[a], box[b.near_row[a]], sizeof nr[a]);
+        memcpy(fr[a], box[b.far_row[a]], sizeof fr[a]);
+    }
+    return box_span4(&b, (const float (*)[4])nr, (const float (*)[4])fr, tmin, tmax, entry, exit);
 }
 
 /* The mask of non-empty slots. */
@@ -532,7 +560,7 @@ static void prefetch_slots(const brt_bvh *bvh, const qnode *n, unsigned mask)
 #endif
 }
 
-static stack_entry slot_entry(const qnode *n, unsigned i, const float lo[4])
+static inline ALWAYS_INLINE stack_entry slot_entry(const qnode *n, unsigned i, const float lo[4])
 {
     stack_entry e;
     e.child = slot_target(n, i);
@@ -1524,100 +1552,25 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 }
 
 /*
-** PERFORMANCE NOTES (examples/bench_bvh.c and "make bench-embree" on this
-** 2-core EPYC VM, -O2, no -march, one thread, while other jobs shared the
-** machine, so figures moved by +-30 % between runs).
-**   - Bench mesh: bunny_tiny subdivided 4 times (940,544 triangles),
-**     raygen's rays, CPU seconds: camera 3.2-3.6, random 0.9-1.2, bounce
-**     0.5-0.7 Mrays/s; build 0.7-0.85 s per million triangles; 63 bytes
-**     per triangle.  The goal quotes Embree at 9 / 3.4 / 4 on it.
-**   - make bench-embree (dragon, same ray files, wall clock, two runs):
-**     Embree over batchrt 1.4-1.7 camera, 2.5-3.4 random, 1.5-2.5 bounce.
-**     So camera meets "half of Embree", random does not.
-**   - Why: the same random rays each traced 8 times in a row (warm
-**     caches) run at 3.3 Mrays/s, Embree's cold speed; cold, a ray visits
-**     only 6.8 nodes and 2.1 triangles (counted) but waits ~150 ns on each
-**     node, i.e. on DRAM and page walks over the 55 MB structure.  Embree
-**     allocates with madvise(MADV_HUGEPAGE); trying that here (not POSIX,
-**     not kept) gained about 25 %.  Quantized 64-byte nodes (one cache
-**     line) are the next step; not done.
-**   - A first version (branchy sorted push of all hit slots, preorder
-**     nodes, C_TRAV 1) ran 2.6 / 0.8 / 0.4.  Kept since: descending into
-**     the nearest hit child without a push, siblings at consecutive
-**     indices, 64-byte aligned nodes, C_TRAV = 2 (63 instead of 77 bytes
-**     per triangle).  No gain: 32 bins, MAX_LEAF 4, C_TRAV 1.5 or 3 (node
-**     and triangle counts per ray within 2 %).
-**   - Build: bins of all three axes in one pass over a contiguous array of
-**     triangle boxes, boxes as 4 floats so growing one is a minps and a
-**     maxps, children's bounds gathered while partitioning, fewer bins in
-**     small nodes: from 3.5 s to about 0.8 s per million triangles.
-**   - Second round (traversal; A/B = both versions built in one process
-**     and run alternately on the same rays, CPU time, 3 passes; and
-**     callgrind instruction counts, which the load does not blur):
-**     * Counted per ray: camera 5.5 nodes, 0.63 leaves, 1.9 triangles,
-**       0.31 passing the 2D edge test; random 7.1 / 0.78 / 2.3 / 0.36;
-**       bounce 14.9 / 2.34 / 7.0 / 1.05, of which 0.056 accepted.  Why
-**       bounce is slower than random: 94 % of bounce rays escape, so
-**       nothing is pruned, and a ray that starts on the surface is inside
-**       every box around its origin down to the leaves, so it opens twice
-**       the nodes, each a DRAM wait.  Its 1.05 2D passes are the
-**       triangle it leaves (behind the origin): hit_distance then runs
-**       once and tnear rejects it, about 3 % of the ray's instructions.
-**       Skipping that work when the triangle's box interval misses
-**       [tnear, tfar] (exact, since t is clamped into it) caught only
-**       0.5 % of those calls: not kept.
-**     * bench_bvh's "warm" figure (blocks of 256 rays traced twice, the
-**       second pass timed): 5.3 / 3.0 / 1.2 Mrays/s against cold 3.9 /
-**       1.0 / 0.67, so waiting on memory is about 25 % of a camera ray,
-**       65 % of a random one and 45 % of a bounce one (which also does
-**       twice the work: ~15 node tests and 7 triangle tests).
-**     * Kept: box_test4 reading per-ray constants already repeated in 4
-**       lanes (the compiler had reloaded and broadcast 9 scalars per
-**       node) and forming the hit mask with one vector compare (the
-**       per-lane shift loop was a quarter of the node's instructions);
-**       next_child sorting slot numbers, not 12-byte entries; the ray
-**       checked once, not twice: same arithmetic, 14 % fewer
-**       instructions (callgrind: 735 M -> 633 M for the same rays).
-**       And prefetch_slots: without it the A/B was 0.97 random, 0.93
-**       bounce (escaping rays visit every hit child, so their misses can
-**       overlap).  All together against the first round: A/B camera
-**       1.03-1.17, random 1.00-1.06, bounce 1.03-1.05.
-**     * Tried, not kept (A/B within noise or worse): 4096-byte instead
-**       of 64-byte alignment (1.00); numbering each node's children and
-**       grandchildren together so three levels share a 4 KB page (dTLB
-**       misses -6 %, time 0.96-1.16 random, 0.97-1.08 bounce, 0.94-1.01
-**       camera); C_TRAV 4 (0.90 camera, 0.91-1.0 others) and with
-**       MAX_LEAF 16 (0.90 camera); tri_intersect's 2D test inlined into
-**       the leaf loop with the rest out of line (needs GCC attributes:
-**       only 2 % fewer instructions).
-**     * make bench-embree after this round (dragon, wall clock, loaded
-**       machine): Embree over batchrt 1.27 camera, 1.92 random, 2.56
-**       bounce (2.19 / 2.81 / 4.46 in a more loaded run before it).  The
-**       chain of dependent node misses (~9 levels) is what is left; an
-**       8-wide node (256 bytes, 4 lines fetched in parallel, ~6.5
-**       levels) is the next thing to try.
-**   - Third round (issue 15: bytes first, then speed).  Bytes per
-**     triangle of a blob, `trace --batched` / `render --stats`
-**     geometry_bytes over the triangle count:
-**     * quantized 64-byte nodes + shared vertices with 16-bit offsets
-**       (C_TRAV 2): bunny x4 62.9 -> 27.6; shared meshes 25.2-27.5
-**       (58-63 before); landscape at 1 M triangles (10,000 per batching
-**       point) 58.3 -> 26.8, island 60.6 -> 32.2 (its small objects
-**       share few corners: 0.97 vertices per triangle);
-**     * C_TRAV 3 then: island 29.3, landscape 24.1, bunny x4 23.1, with
-**       no measurable change in speed.
-**     Kept as one layout for the direct mode and the blobs (a decoded
-**     in-memory copy would cost the load time and twice the cache bytes).
-**     Traversal instructions (callgrind, bench_bvh on the bunny, 20 k rays
-**     per kind; the float layout took 172 M): first decode loop over 24
-**     planes with row % 3, scalar: 795 M; a row of 4 lanes with the 2^23
-**     float trick: 629 M; rows as words masked in place and scaled by
-**     powers of two (vectorized): 462 M; inner slots first, so a slot's
-**     target is arithmetic instead of a loop over the counts at every
-**     node (which took about 76 M): 413 M with C_TRAV 3 (whose larger
-**     leaves add 30 M of triangle tests).  The decode is most of the rest.  Cold
-**     speed on the sphere mesh against the float layout: camera 0.76-0.90,
-**     random 0.85-0.93, bounce 0.64-0.82 (two runs; the warm figures lose
-**     more, 0.6-0.8).  Not done for lack of time: 8-wide nodes, leaves
-**     laid out for the vectorizer, prefetching a leaf's vertices.
+** PERFORMANCE NOTES: what was tried, one figure each (the full diary with
+** its measurements: README, "The BVH: what was tried"; make bench-embree
+** and callgrind on the 2-core VM, one thread).
+**   - Float nodes (v1): binned build 3.5 -> 0.8 s per million triangles;
+**     nearest child without a push, siblings consecutive, prefetching hit
+**     children, box test as vectors: 735 M -> 633 M instructions; not
+**     kept: 4 KB alignment, page-grouped node order, MAX_LEAF 4/16, 32 bins.
+**   - Quantized 64-byte nodes + shared vertices (v2): 58-63 -> 23-29.5
+**     bytes per triangle; decode as vector rows: 795 M -> 413 M (float
+**     nodes: 172 M); C_TRAV 3: island 32.2 -> 29.3 bytes per triangle.
+**   - Fourth round: brt_box_span4 vectorized and the near/far rows
+**     decoded from their words (batched x0.88), decode_row's lane-3
+**     fix-up (decoding 118 -> 96 instructions a node), tri_intersect
+**     inlined (x0.97): together x0.83-0.87 instructions direct and
+**     batched.  Not kept: slot_valid as one word (+0.2 %), lazy
+**     tri_ray_setup (bounce +1.8 %), a xor-and-bias decode (+16 %), huge
+**     pages (not POSIX; cold random x0.92-1.27, noise).
+**   - Ratio to Embree (make bench-embree, --threads 1): 0.51-0.57 camera,
+**     0.32-0.38 random and bounce direct, 0.28-0.41 batched.  Warm speed
+**     is near Embree's cold, so random and bounce rays wait on memory;
+**     not done: 8-wide nodes, SoA leaves of 4 (a format v3).
 */
