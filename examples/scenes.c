@@ -615,7 +615,8 @@ static void patch_point(const void *shape, double u, double v, double p[3])
 typedef struct island {
     double cx, cz, radius, peak;
     uint64_t seed;
-    double v_rim;               /* v of the grid's last ring: the rim */
+    double v_rim;               /* v of the dome's last ring: the rim */
+    uint32_t under_rings;       /* R: the underside's rings below the rim */
 } island;
 
 #define ISLAND_RIM 1.35   /* the grid reaches this many radii out */
@@ -628,24 +629,45 @@ static double island_height(const island *s, double x, double z)
 }
 
 /* The land mass is closed (inner proxies, svdag.c): the dome's rings run
-** out to the rim at the last ring (v = v_rim), and the end pole at v = 1
-** lies under the peak, ISLAND_BASE peaks below the sea: the rim ring fans
-** in to it, a cone closing the mass from below. */
+** out to the rim (v = v_rim), and the grid goes on below it, down and in:
+** underside ring j = 1 .. R at radius (1 - j/(R+1)) times the rim's, its
+** height going linearly from the rim's height to ISLAND_BASE peaks below
+** the sea, and the end pole at v = 1 under the peak at that depth.  The
+** rim ring itself is the dome's (v = v_rim gives r = the rim's radius by
+** the dome's formula), so the underside starts on the very same vertices.
+**
+** Why rings and not one cone from the rim to the pole: a batching point's
+** box holds all of its triangles, and a cone's triangles each span the
+** island's radius, so the points holding them would cover the island and
+** every ray near it would visit them.  With ISLAND_UNDER_STEPS dome ring
+** steps per underside ring step, the underside's triangles stay local. */
 #define ISLAND_BASE 1.5
+#define ISLAND_UNDER_STEPS 2
+
+/* R for a dome of `rings` rings (pole not counted). */
+static uint32_t island_under_rings(uint32_t rings)
+{
+    return rings / ISLAND_UNDER_STEPS < 1 ? 1 : rings / ISLAND_UNDER_STEPS;
+}
 
 static void island_point(const void *shape, double u, double v, double p[3])
 {
     const island *s = shape;
-    double a = 2 * PI * u, r = v / s->v_rim * ISLAND_RIM * s->radius;   /* +u: normals up */
-    if (v >= 1) {
-        p[0] = s->cx;
-        p[1] = -ISLAND_BASE * s->peak;
-        p[2] = s->cz;
+    double a = 2 * PI * u, rim = ISLAND_RIM * s->radius, r, t, rim_y;
+    if (v <= s->v_rim) {   /* the dome */
+        r = v / s->v_rim * rim;   /* +u: normals up */
+        p[0] = s->cx + r * cos(a);
+        p[2] = s->cz + r * sin(a);
+        p[1] = island_height(s, p[0], p[2]);
         return;
     }
+    /* the underside: t = j/(R+1), exactly 1 at the pole (v = 1) */
+    t = (v - s->v_rim) / (1 - s->v_rim);
+    rim_y = island_height(s, s->cx + rim * cos(a), s->cz + rim * sin(a));
+    r = (1 - t) * rim;
     p[0] = s->cx + r * cos(a);
     p[2] = s->cz + r * sin(a);
-    p[1] = island_height(s, p[0], p[2]);
+    p[1] = (1 - t) * rim_y - t * ISLAND_BASE * s->peak;
 }
 
 /* ===================================================================== */
@@ -1114,13 +1136,33 @@ static void landscape_rocks(builder *b, uint64_t *rng, const terrain *ground,
 ** patch's border vertex by vertex (WRAP_U), ring 0 is the border itself --
 ** the very points patch_point gives the terrain grid (same u, v, same
 ** function, so equal bits and shared edges) -- ring 1 is the border
-** dropped to the floor, and the end pole the floor's centre.
+** dropped to the floor, rings 2 .. R+1 the dropped border scaled toward
+** the floor's centre by 1 - j/(R+1) (j = ring - 1), and the end pole the
+** centre itself.
+**
+** Why rings and not one fan from the border to the centre: a batching
+** point's box holds all of its triangles, and a fan's triangles each span
+** half the scene, so the points holding them would be as big as the scene
+** and every ray would visit them.  With a ring step of FLOOR_RING_CELLS
+** terrain cells, a floor triangle is about that long radially and at most
+** one cell wide (each ring has the border's vertex count).
 */
+#define FLOOR_RING_CELLS 3
+
 typedef struct skirt {
     const patch *land;
     const grid *top;            /* the terrain's grid */
     double floor;
+    uint32_t floor_rings;       /* R: the rings on the floor inside the dropped border */
 } skirt;
+
+/* R for a terrain grid: the floor's half width, (top->segs - 1) / 2 cells,
+** in steps of about FLOOR_RING_CELLS cells. */
+static uint32_t skirt_floor_rings(const grid *top)
+{
+    uint32_t steps = (top->segs - 1) / (2 * FLOOR_RING_CELLS);
+    return steps < 2 ? 1 : steps - 1;
+}
 
 static uint32_t skirt_segments(const grid *top)
 {
@@ -1141,17 +1183,20 @@ static void skirt_border(const skirt *s, uint32_t k, double p[3])
     patch_point(s->land, seg * du, grid_v(s->top, row), p);
 }
 
+/* v = level / (R + 2) (grid_v with an end pole, level = the ring's
+** number); the rounding recovers the level, as it recovers the border
+** vertex from u. */
 static void skirt_point(const void *shape, double u, double v, double p[3])
 {
     const skirt *s = shape;
-    if (v >= 1) {
-        p[0] = s->land->x0 + 0.5 * s->land->size;
-        p[1] = s->floor;
-        p[2] = s->land->z0 + 0.5 * s->land->size;
-        return;
-    }
+    double cx = s->land->x0 + 0.5 * s->land->size, cz = s->land->z0 + 0.5 * s->land->size;
+    uint32_t level = (uint32_t)(v * (s->floor_rings + 2) + 0.5);
+    double keep = 1 - (level < 2 ? 0.0 : (double)(level - 1) / (s->floor_rings + 1));
     skirt_border(s, (uint32_t)(u * skirt_segments(s->top) + 0.5), p);
-    if (v > 0) p[1] = s->floor;
+    if (level == 0) return;   /* the terrain's own border: not a bit changed */
+    p[0] = cx + keep * (p[0] - cx);
+    p[1] = s->floor;
+    p[2] = cz + keep * (p[2] - cz);
 }
 
 static void build_landscape(builder *b, double scale, uint64_t seed)
@@ -1175,11 +1220,14 @@ static void build_landscape(builder *b, double scale, uint64_t seed)
     below.land = &land;
     below.top = &g;
     below.floor = -2 * ground.hills - 1;   /* fbm > -2: under every point */
+    below.floor_rings = skirt_floor_rings(&g);
     around.segs = skirt_segments(&g);
-    around.rings = 2;
+    around.rings = 2 + below.floor_rings;
     around.flags = WRAP_U | POLE_END;
     emit_surface(b, &around, skirt_point, &below, &world);
-    landscape_trees(b, &rng, &ground, side, 0.70 * budget);
+    /* the floor's rings come out of the trees' share: the total stays put */
+    landscape_trees(b, &rng, &ground, side,
+                    0.70 * budget - 2.0 * around.segs * below.floor_rings);
     landscape_rocks(b, &rng, &ground, side, 0.10 * budget);
 }
 
@@ -1282,10 +1330,15 @@ static void build_island(builder *b, double scale, uint64_t seed)
     emit_sea(b, half_side + 150);
     for (i = 0; i < count; i++) {
         grid g = grid_for_budget(0.2 * budget / count, 2 * PI, SPHERE_LIKE);
+        uint32_t dome_rings = g.rings;
         place_island(&rng, all, i, half_side);
-        all[i].v_rim = grid_v(&g, g.rings - 1);
+        all[i].under_rings = island_under_rings(dome_rings);
+        g.rings += all[i].under_rings;
+        all[i].v_rim = grid_v(&g, dome_rings - 1);
         emit_surface(b, &g, island_point, &all[i], &world);
-        island_plants(b, &rng, &all[i], 0.8 * budget / count);
+        /* the underside's rings come out of the plants' share */
+        island_plants(b, &rng, &all[i],
+                      0.8 * budget / count - 2.0 * g.segs * all[i].under_rings);
     }
     free(all);
 }

@@ -28,7 +28,7 @@
 /* Changed whenever a generator changes its triangles: it is part of a
 ** built-in scene's stamp (ex_scene_stamp), so scene files made by an
 ** older generator are rebuilt, never reused. */
-#define EX_SCENE_GENERATOR_VERSION 2   /* 2: closed island land masses, closed terrain */
+#define EX_SCENE_GENERATOR_VERSION 3   /* 2: closed island land masses, closed terrain; 3: closing triangles local */
 
 /* A built-in scene: name, scale and seed determine its triangles. */
 typedef struct ex_scene_recipe {
