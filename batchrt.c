@@ -781,8 +781,8 @@ static int proxy_test(const scheduler *s, walker *w, uint32_t id, const brt_ray 
 ** inside the batching point just processed, still in memory; queued, it
 ** would wait there until that point might be evicted and read again.
 ** Measured (render landscape --scale 20 --memory 25%, 2 M triangles,
-** with --queue-resident against without): loads 2,718 -> 894 without
-** proxies (--no-proxy), 1,785 -> 607 with them; make bench-render at 25 %:
+** with --queue-resident against without): loads 1,925 -> 516 without
+** proxies (--no-proxy), 1,552 -> 482 with them; make bench-render at 25 %:
 ** 3.5-3.9x fewer bytes than the paper's scheduler, about half the time
 ** (README, Batched mode); render landscape --scale 0.3 --width 64
 ** --height 36 --spp 2 --memory 25% --batch-tris 3000: 79 -> 59 loads.

@@ -1671,76 +1671,67 @@ static const float *corner_ref(const float *corners, size_t stride, uint32_t ref
     return corner_at(corners, stride, ref / 3, (int)(ref % 3));
 }
 
+/* Corner c's position hash; its bits in b. */
+static size_t corner_hash(const float *corners, size_t stride, uint32_t c, uint32_t b[3])
+{
+    corner_bits(corner_ref(corners, stride, c), b);
+    return (size_t)brt_mix64(((uint64_t)b[0] << 32 | b[1]) ^ brt_mix64(b[2]));
+}
+
+/* The weld's table at twice its capacity (NULL when out of memory). */
+static uint32_t *weld_grow(const float *corners, size_t stride, uint32_t *slot, size_t *cap)
+{
+    size_t bigger = 2 * *cap, i, h;
+    uint32_t *to = calloc(bigger, sizeof *to), b[3];
+    for (i = 0; to && i < *cap; i++) {
+        if (!slot[i]) continue;
+        h = corner_hash(corners, stride, slot[i] - 1, b) & (bigger - 1);
+        while (to[h]) h = (h + 1) & (bigger - 1);
+        to[h] = slot[i];
+    }
+    free(slot);
+    *cap = bigger;
+    return to;
+}
+
 /*
-** Vertex ids by exact position: vid[3t + k] for corner k of triangle t.
-** An open-addressing table of ids (load at most 3/4), each id remembered
-** by its first corner: 20 bytes a corner at most, where a sort would take
-** twice the corners' positions (glibc's qsort copies its array).
+** Vertex ids by exact position: vid[3t + k] for corner k of triangle t,
+** numbered in the order of their first corners.  An open-addressing table
+** (load at most 3/4) holds each position's first corner + 1; a corner
+** first takes the first corner of its position as vid, and one pass in
+** corner order then compacts: a corner that is its own first gets the next
+** id, any other (an earlier corner) the id already given to that one.  The
+** table starts at a third of the corners (a closed mesh has about half as
+** many vertices as triangles) and doubles when full: 4 bytes a corner and
+** about 8 a vertex, where a sort would take twice the corners' positions
+** (glibc's qsort copies its array).
 */
 static brt_result weld(const float *corners, size_t stride, uint32_t n, uint32_t *vid,
                        uint32_t *unique)
 {
-    size_t count = 3 * (size_t)n, cap = 4, c;
-    uint32_t *slot, *first;
-    while (cap < count + count / 3 + 1) cap *= 2;
+    size_t count = 3 * (size_t)n, cap = 64, used = 0, c;
+    uint32_t *slot;
+    while (cap < count / 3) cap *= 2;
     slot = calloc(cap, sizeof *slot);
-    first = malloc((count + 1) * sizeof *first);
     *unique = 0;
-    if (!slot || !first) {
-        free(slot);
-        free(first);
-        return BRT_ENOMEM;
-    }
-    for (c = 0; c < count; c++) {
+    for (c = 0; slot && c < count; c++) {
         uint32_t b[3], o[3];
-        size_t h;
-        corner_bits(corner_ref(corners, stride, (uint32_t)c), b);
-        h = (size_t)brt_mix64(((uint64_t)b[0] << 32 | b[1]) ^ brt_mix64(b[2])) & (cap - 1);
+        size_t h = corner_hash(corners, stride, (uint32_t)c, b) & (cap - 1);
         for (;; h = (h + 1) & (cap - 1)) {
             if (!slot[h]) {
-                first[*unique] = (uint32_t)c;
-                slot[h] = ++*unique;
+                slot[h] = (uint32_t)c + 1;
                 break;
             }
-            corner_bits(corner_ref(corners, stride, first[slot[h] - 1]), o);
+            corner_bits(corner_ref(corners, stride, slot[h] - 1), o);
             if (memcmp(b, o, sizeof b) == 0) break;
         }
         vid[c] = slot[h] - 1;
+        if (vid[c] == c && ++used > cap / 4 * 3) slot = weld_grow(corners, stride, slot, &cap);
     }
     free(slot);
-    free(first);
+    if (c < count) return BRT_ENOMEM;   /* a table that failed to grow */
+    for (c = 0; c < count; c++) vid[c] = vid[c] == c ? (*unique)++ : vid[vid[c]];
     return BRT_OK;
-}
-
-/* Sorts in place (heapsort): no second array, unlike qsort.  A second
-** binary heap beside batchrt.c's key_heap, for a stated reason: that one
-** is static there so that it inlines into the top-level walk (out of
-** line, and with a decoded compare, a batched trace ran 1.1 % more
-** instructions; callgrind), and sharing it across files would
-** put its code in the public header. */
-static void sift_down(uint64_t *a, size_t i, size_t n)
-{
-    for (;;) {
-        size_t c = 2 * i + 1;
-        uint64_t t;
-        if (c >= n) return;
-        if (c + 1 < n && a[c + 1] > a[c]) c++;
-        if (a[i] >= a[c]) return;
-        t = a[i]; a[i] = a[c]; a[c] = t;
-        i = c;
-    }
-}
-
-static void heap_sort64(uint64_t *a, size_t n)
-{
-    size_t i;
-    for (i = n / 2; i-- > 0;) sift_down(a, i, n);
-    while (n > 1) {
-        uint64_t t = a[0];
-        a[0] = a[--n];
-        a[n] = t;
-        sift_down(a, 0, n);
-    }
 }
 
 static uint32_t uf_find(uint32_t *parent, uint32_t v)
@@ -1767,22 +1758,110 @@ static int triangle_degenerate(const float *tri, const uint32_t *vid)
     return lx <= 0x1p-80 * l1 * l2;
 }
 
+#define EDGE_PASSES 4u   /* the edges are listed about a quarter at a time */
+
+/* Corner c's edge (to the next corner of its triangle): lower end, upper end. */
+static void corner_edge(const uint32_t *vid, size_t c, uint32_t *lo, uint32_t *hi)
+{
+    uint32_t u = vid[c], v = vid[c % 3 == 2 ? c - 2 : c + 1];
+    *lo = u < v ? u : v;
+    *hi = u < v ? v : u;
+}
+
+/* The edges of the set listed by lower end a, every use once: their
+** places, start[a] .. start[a + 1] (start: unique + 1 entries, zeroed). */
+static void edge_offsets(const uint32_t *vid, uint32_t n, uint32_t unique, uint32_t *start)
+{
+    size_t c;
+    uint32_t a, b;
+    for (c = 0; c < 3 * (size_t)n; c++) {
+        corner_edge(vid, c, &a, &b);
+        start[a + 1]++;
+    }
+    for (a = 0; a < unique; a++) start[a + 1] += start[a];
+}
+
+/* The end of a pass's range of lower ends from lo: at most chunk edges,
+** or one vertex's edges when they are more. */
+static uint32_t edge_range(const uint32_t *start, uint32_t unique, uint32_t lo, size_t chunk)
+{
+    uint32_t hi = lo + 1;
+    while (hi < unique && start[hi + 1] - start[lo] <= chunk) hi++;
+    return hi;
+}
+
+/* The upper ends of the edges with lower ends lo .. hi - 1, at
+** adj[start[a] - start[lo] ..]: one scan of the corners per pass, so that
+** adj holds a pass's edges (4 bytes each), not all of them. */
+static void edge_lists(const uint32_t *vid, uint32_t n, uint32_t lo, uint32_t hi, uint32_t *start,
+                       uint32_t *adj)
+{
+    uint32_t base = start[lo], a, b;
+    size_t c;
+    for (c = 0; c < 3 * (size_t)n; c++) {   /* moves start[a] to the end of a's list ... */
+        corner_edge(vid, c, &a, &b);
+        if (a >= lo && a < hi) adj[start[a]++ - base] = b;
+    }
+    for (a = hi - 1; a > lo; a--) start[a] = start[a - 1];
+    start[lo] = base;                       /* ... so shift back by one vertex */
+}
+
+/* bad[root] = 1 for the components with an edge of lower end lo .. hi - 1
+** used an odd number of times: a's list toggles odd[b] per use, a second
+** walk reads and clears it (linear; odd is zero before and after). */
+static void odd_edges(const uint32_t *start, const uint32_t *adj, uint32_t lo, uint32_t hi,
+                      uint32_t *parent, unsigned char *odd, unsigned char *bad)
+{
+    uint32_t a, e, base = start[lo];
+    for (a = lo; a < hi; a++) {
+        for (e = start[a] - base; e < start[a + 1] - base; e++) odd[adj[e]] ^= 1;
+        for (e = start[a] - base; e < start[a + 1] - base; e++) {
+            if (odd[adj[e]]) bad[uf_find(parent, a)] = 1;
+            odd[adj[e]] = 0;
+        }
+    }
+}
+
+/* The edges of odd use (odd_edges), listed EDGE_PASSES ranges at a time. */
+static brt_result odd_edges_all(const uint32_t *vid, uint32_t n, uint32_t unique,
+                                uint32_t *parent, unsigned char *bad)
+{
+    size_t chunk = 3 * (size_t)n / EDGE_PASSES + 1, most = 0;
+    uint32_t *start = calloc((size_t)unique + 1, sizeof *start), *adj = NULL, lo, hi;
+    unsigned char *odd = calloc((size_t)unique + 1, 1);
+    brt_result r;
+    if (start) edge_offsets(vid, n, unique, start);
+    for (lo = 0; start && lo < unique; lo = hi) {
+        hi = edge_range(start, unique, lo, chunk);
+        most = most > start[hi] - start[lo] ? most : start[hi] - start[lo];
+    }
+    if (start && odd) adj = malloc((most + 1) * sizeof *adj);
+    for (lo = 0; adj && lo < unique; lo = hi) {
+        hi = edge_range(start, unique, lo, chunk);
+        edge_lists(vid, n, lo, hi, start, adj);
+        odd_edges(start, adj, lo, hi, parent, odd, bad);
+    }
+    r = adj ? BRT_OK : BRT_ENOMEM;
+    free(start);
+    free(odd);
+    free(adj);
+    return r;
+}
+
 /* closed[t] = 1 for the triangles of closed components (header above). */
 static brt_result closed_triangles(const float *corners, size_t stride, uint32_t n,
                                    unsigned char *closed)
 {
     uint32_t *vid = malloc((3 * (size_t)n + 1) * sizeof *vid), unique = 0, *parent = NULL, t;
-    uint64_t *edges = NULL;
     unsigned char *bad = NULL;
-    size_t e, run;
-    /* weld's table is freed before the edges are taken: the peak is about
-    ** 16 bytes a corner (a full bucket, 1.68 M triangles: about 80 MB) */
+    /* weld's table is freed before the edges are listed: the peak is 5
+    ** bytes a corner and 10 a vertex (a full bucket, 1.68 M triangles and
+    ** about 1 M vertices: about 35 MB) */
     brt_result r = vid ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
     if (r == BRT_OK) {
-        edges = malloc((3 * (size_t)n + 1) * sizeof *edges);
         parent = malloc(((size_t)unique + 1) * sizeof *parent);
         bad = calloc((size_t)unique + 1, 1);
-        if (!edges || !parent || !bad) r = BRT_ENOMEM;
+        if (!parent || !bad) r = BRT_ENOMEM;
     }
     if (r != BRT_OK) goto done;
     for (t = 0; t < unique; t++) parent[t] = t;
@@ -1791,24 +1870,14 @@ static brt_result closed_triangles(const float *corners, size_t stride, uint32_t
         parent[uf_find(parent, v[1])] = uf_find(parent, v[0]);
         parent[uf_find(parent, v[2])] = uf_find(parent, v[0]);
     }
-    for (t = 0; t < n; t++) {
-        const uint32_t *v = vid + 3 * (size_t)t;
-        int k;
-        if (triangle_degenerate(corner_at(corners, stride, t, 0), v)) bad[uf_find(parent, v[0])] = 1;
-        for (k = 0; k < 3; k++) {
-            uint32_t a = v[k], b = v[(k + 1) % 3];
-            edges[3 * (size_t)t + k] = a < b ? (uint64_t)a << 32 | b : (uint64_t)b << 32 | a;
-        }
-    }
-    heap_sort64(edges, 3 * (size_t)n);
-    for (e = 0; e < 3 * (size_t)n; e += run) {   /* an edge used an odd number of times */
-        for (run = 1; e + run < 3 * (size_t)n && edges[e + run] == edges[e]; run++) {}
-        if (run & 1) bad[uf_find(parent, (uint32_t)(edges[e] >> 32))] = 1;
-    }
+    for (t = 0; t < n; t++)
+        if (triangle_degenerate(corner_at(corners, stride, t, 0), vid + 3 * (size_t)t))
+            bad[uf_find(parent, vid[3 * (size_t)t])] = 1;
+    r = odd_edges_all(vid, n, unique, parent, bad);
+    if (r != BRT_OK) goto done;
     for (t = 0; t < n; t++) closed[t] = !bad[uf_find(parent, vid[3 * (size_t)t])];
 done:
     free(vid);
-    free(edges);
     free(parent);
     free(bad);
     return r;
@@ -1991,41 +2060,61 @@ static int component_inside(const brt_grid *g, const brt_solids *s, const uint32
     return 0;
 }
 
-/* The 6-connected unmarked voxels from queue[0..count), marked seen. */
-static uint32_t flood(const brt_grid *walls, unsigned char *seen, uint32_t *queue, uint32_t count)
+/* Voxel j of a grid (index x + res (y + res z), as voxel_index), in its
+** words: read, or set. */
+static int voxel_bit(const uint64_t *bits, uint32_t j)
 {
-    uint32_t res = walls->res, head;
+    return (int)((bits[j >> 6] >> (j & 63)) & 1);
+}
+
+static void voxel_mark(uint64_t *bits, uint32_t j)
+{
+    bits[j >> 6] |= 1ull << (j & 63);
+}
+
+/* Voxel j into the flood's queue unless seen (a wall, or queued before). */
+static uint32_t flood_visit(uint64_t *seen, uint32_t *queue, uint32_t count, uint32_t j)
+{
+    if (voxel_bit(seen, j)) return count;
+    voxel_mark(seen, j);
+    queue[count] = j;
+    return count + 1;
+}
+
+/* The 6-connected voxels not seen from queue[0..count), marked seen; res
+** = 2^shift.  Neighbours in the order -x, +x, -y, +y, -z, +z (the queue's
+** order picks the voxels component_inside tries). */
+static uint32_t flood(uint64_t *seen, uint32_t shift, uint32_t *queue, uint32_t count)
+{
+    uint32_t res = 1u << shift, head, a;
     for (head = 0; head < count; head++) {
-        uint32_t i = queue[head], at[3], a;
-        at[0] = i % res; at[1] = i / res % res; at[2] = i / res / res;
-        for (a = 0; a < 6; a++) {
-            uint32_t n[3], j;
-            memcpy(n, at, sizeof n);
-            if (a & 1 ? n[a >> 1] + 1 >= res : n[a >> 1] == 0) continue;
-            n[a >> 1] += a & 1 ? 1 : (uint32_t)-1;
-            j = n[0] + res * (n[1] + res * n[2]);
-            if (seen[j] || brt_grid_get(walls, n[0], n[1], n[2])) continue;
-            seen[j] = 1;
-            queue[count++] = j;
+        uint32_t i = queue[head];
+        for (a = 0; a < 3; a++) {
+            uint32_t at = (i >> (shift * a)) & (res - 1), step = 1u << (shift * a);
+            if (at > 0) count = flood_visit(seen, queue, count, i - step);
+            if (at + 1 < res) count = flood_visit(seen, queue, count, i + step);
         }
     }
     return count;
 }
 
-/* Each component of unmarked voxels, set in inner when its parity is odd. */
+/* Each component of the voxels not seen (seen: the walls' bits, which it
+** fills), set in inner when its parity is odd. */
 static void inner_components(const brt_grid *walls, brt_grid *inner, const brt_solids *s,
-                             unsigned char *seen, uint32_t *queue)
+                             uint64_t *seen, uint32_t *queue)
 {
-    uint32_t res = walls->res, j, count, components = 0, k;
-    for (j = 0; j < res * res * res; j++) {
-        if (seen[j] || brt_grid_get(walls, j % res, j / res % res, j / res / res)) continue;
-        seen[j] = 1;
-        queue[0] = j;
-        count = flood(walls, seen, queue, 1);
-        if (++components > INNER_MAX_COMPONENTS || !component_inside(walls, s, queue, count))
-            continue;
-        for (k = 0; k < count; k++)
-            brt_grid_set(inner, queue[k] % res, queue[k] / res % res, queue[k] / res / res);
+    uint32_t res = walls->res, voxels = res * res * res, j, count, components = 0, k;
+    uint32_t shift = (uint32_t)resolution_log2(res);
+    for (j = 0; j < voxels; j++) {
+        if ((j & 63) == 0 && seen[j >> 6] == ~(uint64_t)0) j += 63;   /* a word all seen */
+        else if (!voxel_bit(seen, j)) {
+            voxel_mark(seen, j);
+            queue[0] = j;
+            count = flood(seen, shift, queue, 1);
+            if (++components > INNER_MAX_COMPONENTS || !component_inside(walls, s, queue, count))
+                continue;
+            for (k = 0; k < count; k++) voxel_mark(inner->bits, queue[k]);
+        }
     }
 }
 
@@ -2069,23 +2158,19 @@ static brt_result voxelize_walls(brt_grid *walls, const brt_solids *s)
 
 brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids)
 {
-    size_t voxels;
-    unsigned char *seen;
     uint32_t *queue;
     brt_grid walls;
     brt_result r;
     if (!grid_frame_valid(inner) || !solids) return BRT_EARG;
     if (solids->count == 0) return BRT_OK;
-    voxels = (size_t)inner->res * inner->res * inner->res;
-    seen = calloc(voxels, 1);
-    queue = malloc(voxels * sizeof *queue);
-    r = seen && queue ? grid_alloc(&walls, inner->res, inner->origin, inner->cell) : BRT_ENOMEM;
+    queue = malloc((size_t)inner->res * inner->res * inner->res * sizeof *queue);
+    r = queue ? grid_alloc(&walls, inner->res, inner->origin, inner->cell) : BRT_ENOMEM;
     if (r == BRT_OK) {
         r = voxelize_walls(&walls, solids);
-        if (r == BRT_OK) inner_components(&walls, inner, solids, seen, queue);
+        /* the walls' bits become the flood's "seen" marks */
+        if (r == BRT_OK) inner_components(&walls, inner, solids, walls.bits, queue);
         free(walls.bits);
     }
-    free(seen);
     free(queue);
     return r;
 }
