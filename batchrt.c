@@ -728,6 +728,14 @@ static int found_occluder(const ray_slot *r)
     return is_occlusion(r) && r->hit.prim != BRT_NO_PRIM;
 }
 
+/* The record of an occluded occlusion ray (brt_ray_source): t = 0,
+** prim = 0, u = v = 0 kept from the miss record it starts as. */
+static void hit_mark_occluded(brt_hit *hit)
+{
+    hit->t = 0.0f;
+    hit->prim = 0;
+}
+
 /* Intersects a ray with a batching point's triangles: the closest hit so
 ** far, or for an occlusion ray any hit in [tnear, tfar] (the record of
 ** brt_ray_source: t = 0, prim = 0 when occluded). */
@@ -810,9 +818,7 @@ static int inner_stops(const scheduler *s, ray_slot *r)
 {
     if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
     if (!brt_inner_occludes(s->scene->dag, &s->scene->batches[r->key.id].inner, &r->ray)) return 0;
-    r->hit.t = 0;
-    r->hit.prim = 0;
-    r->hit.u = r->hit.v = 0;
+    hit_mark_occluded(&r->hit);
     return 1;
 }
 
@@ -4687,10 +4693,7 @@ static void intersect_ray(const brt_bvh *bvh, const brt_ray *ray, uint64_t tag, 
                           float normal[3])
 {
     if (tag & BRT_TAG_OCCLUSION) {
-        if (brt_bvh_occluded(bvh, ray)) {
-            hit->t = 0.0f;
-            hit->prim = 0;
-        }
+        if (brt_bvh_occluded(bvh, ray)) hit_mark_occluded(hit);
     } else if (normal) {
         brt_bvh_intersect_normal(bvh, ray, hit, normal);
     } else {
