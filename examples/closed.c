@@ -3,9 +3,9 @@
 ** triangles that lie in closed components (svdag.c, "Inner proxies":
 ** components joined by exactly equal vertex positions in which every edge
 ** is used an even number of times, no triangle degenerate).  The whole
-** mesh is one component set here; inside a scene file each batching point
-** is judged alone, so a closed component that a batching point cuts counts
-** here but gets no inner voxels there.
+** mesh is one component set here; a scene build judges each bucket (up to
+** 1.68 M triangles) alone, so a closed component that a bucket boundary
+** cuts counts here but gets no inner voxels there.
 **
 **   build/closed MESH|SCENE [--scale S] [--seed N]
 **
@@ -36,12 +36,15 @@ int main(int argc, char **argv)
                "  prints the triangles in closed components (inner proxies' material)\n");
         return argc < 2;
     }
-    for (i = 2; i + 1 < argc; i += 2) {
-        if (strcmp(argv[i], "--scale") == 0) scale = atof(argv[i + 1]);
-        else if (strcmp(argv[i], "--seed") == 0) seed = strtoull(argv[i + 1], NULL, 10);
-        else ex_die(prog, "unknown option '%s'", argv[i]);
+    for (i = 2; i < argc; i++) {
+        if (strcmp(argv[i], "--scale") == 0)
+            scale = ex_parse_double(prog, "--scale", ex_option_value(prog, argc, argv, &i), 0.001,
+                                    EX_SCENE_MAX_SCALE);
+        else if (strcmp(argv[i], "--seed") == 0)
+            seed = ex_parse_u64(prog, "--seed", ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX);
+        else
+            ex_die(prog, "unknown option '%s' (see --help)", argv[i]);
     }
-    if (i != argc) ex_die(prog, "option '%s' needs a value", argv[i]);
     r = ex_scene_generate(argv[1], scale, seed, &mesh, &err);
     if (r == BRT_EARG) r = brt_mesh_load(argv[1], &mesh, &err);
     ex_check(prog, r, &err);

@@ -207,7 +207,8 @@ static int write_lumpy_mesh(tu_scene *m, const char *name)
 
 static void test_help(void)
 {
-    static const char *const programs[] = {"trace", "raygen", "hitdiff", "minimal", "minimal_batched"};
+    static const char *const programs[] = {"trace", "raygen", "hitdiff", "minimal", "minimal_batched",
+                                           "closed"};
     size_t i;
     for (i = 0; i < sizeof programs / sizeof *programs; i++) {
         char *out;
