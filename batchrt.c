@@ -17,7 +17,7 @@
 **                                          proxy_test, enqueue, schedule,
 **                                          process_batch), then batchrt's
 **                                          layers, each named and measured
-**   the page cache                         pread, LRU (SQLite's pcache
+**   the geometry cache                         pread, LRU (SQLite's pcache
 **                                          shape), and read-ahead
 ** PART II -- SUPPORT, NOT THE PAPER
 **   the scene file                         format (little-endian), the out-
@@ -36,9 +36,9 @@
 **   threads                                a small pool, and the direct
 **                                          mode's chunks of rays
 ** Data flow: mesh stream -> batching points -> scene file and proxies ->
-** rays -> queues -> page cache -> hits.
+** rays -> queues -> geometry cache -> hits.
 */
-/* MAP_ANONYMOUS (POSIX.1-2024) for the page cache's buffers: glibc shows
+/* MAP_ANONYMOUS (POSIX.1-2024) for the geometry cache's buffers: glibc shows
 ** it only beyond the Makefile's _POSIX_C_SOURCE=200809L, hence this file's
 ** one feature macro (nothing else here uses what it adds). */
 #define _DEFAULT_SOURCE
@@ -74,7 +74,7 @@
 **        (median splits)  (BVH blob + box + proxy each)
 **   rays --top-level walk--> geometry in memory? intersect at once;
 **        else proxy test --> queue at a batching point
-**   scheduler: fullest queue first --> page cache (pread, LRU) --> BVH
+**   scheduler: fullest queue first --> geometry cache (pread, LRU) --> BVH
 **        --> the ray resumes its walk, or finishes.
 */
 
@@ -468,7 +468,7 @@ static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep 
 ** What the scheduler works on.  An open scene (struct brt_scene) holds the
 ** scene file's small parts in memory -- per batching point its box, blob
 ** place and proxies (batch_entry), the top-level nodes, the DAG pool --
-** and leaves the blobs on disk.  The page cache keeps some blobs resident
+** and leaves the blobs on disk.  The geometry cache keeps some blobs resident
 ** (cache_entry per batching point); a pool of threads runs the walks.  The
 ** code that fills these structures is in Part II (the scene file, threads).
 */
@@ -534,7 +534,7 @@ struct brt_scene {
     uint64_t file_size;
 };
 
-typedef struct page_cache {
+typedef struct geometry_cache {
     brt_scene *scene;
     cache_entry *entries;       /* one per batching point */
     uint64_t budget, held;
@@ -554,21 +554,21 @@ typedef struct page_cache {
     uint64_t ahead_bytes;
     double ahead_seconds;
     brt_result ahead_result;
-} page_cache;
+} geometry_cache;
 
 #define SCENE_PAGE 4096u   /* blobs start at multiples of it (the scene file) */
 
-/* The page cache's interface: its section follows the scheduler's. */
-static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
+/* The geometry cache's interface: its section follows the scheduler's. */
+static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budget,
                              const brt_trace_options *opt, brt_stats *stats);
-static void cache_free(page_cache *c);
-static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err);
-static const brt_bvh *cache_peek(const page_cache *c, uint32_t id);
-static void cache_touch(page_cache *c, uint32_t id);
-static void cache_release(page_cache *c, uint32_t id);
-static void cache_read_ahead(page_cache *c, uint32_t id);
-static brt_result cache_check(const page_cache *c, brt_error *err);
-static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
+static void cache_free(geometry_cache *c);
+static brt_result cache_fetch(geometry_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err);
+static const brt_bvh *cache_peek(const geometry_cache *c, uint32_t id);
+static void cache_touch(geometry_cache *c, uint32_t id);
+static void cache_release(geometry_cache *c, uint32_t id);
+static void cache_read_ahead(geometry_cache *c, uint32_t id);
+static brt_result cache_check(const geometry_cache *c, brt_error *err);
+static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
                             brt_bvh **bvh, brt_error *err);
 static void blob_free(const brt_scene *scene, uint32_t id, void *data);
 
@@ -592,7 +592,7 @@ static uint64_t round_up_page(uint64_t n);
 ** 2020 use it with proxies) is the plain path through this section:
 **   schedule       take new rays (refill); then, while a queue is not
 **                  empty, process the fullest (key_heap, queue_key)
-**   process_batch  fetch its batching point through the LRU page cache
+**   process_batch  fetch its batching point through the LRU geometry cache
 **                  (cache_fetch), intersect each ray of its queue there,
 **                  and walk each on
 **   walk_on        the ray's top-level walk: at the next batching point it
@@ -611,7 +611,7 @@ static uint64_t round_up_page(uint64_t n);
 **   6. fetch_for           statistics: the loads only shadow rays asked for
 **   7. inner_stops         inner proxies: an occlusion ray settled occluded
 **                          without a queue (the paper's future work)
-** queue_resident turns layers 1 and 2 off (the paper's scheduler, which
+** paper_scheduler turns layers 1 and 2 off (the paper's scheduler, which
 ** make figures measures); exact_proxies turns 3 on; one thread turns 4
 ** off and makes 5 a plain loop; no_inner turns 7 off.  No layer changes a
 ** hit; 1-3 and 7 change which loads happen, 4-6 none.
@@ -677,9 +677,9 @@ typedef struct point_use {
 typedef struct scheduler {
     brt_scene *scene;
     const brt_ray_source *source;
-    int use_proxies, queue_resident;
+    int use_proxies, paper_scheduler;
     brt_stats *stats;
-    page_cache cache;
+    geometry_cache cache;
     ray_slot *slots;
     uint32_t *free_slots, free_count, capacity;
     ray_queue *queues;
@@ -782,14 +782,14 @@ static int proxy_test(const scheduler *s, walker *w, uint32_t id, const brt_ray 
 }
 
 /* Layer 1, intersecting at once in memory: at a batching point whose
-** geometry is resident (and unless queue_resident asks for the paper's
+** geometry is resident (and unless paper_scheduler asks for the paper's
 ** plain scheduler) the ray needs no queue: it is intersected there at
 ** once and walks on.  Its proxy is not consulted: the BVH answers exactly
 ** at about the cost of a proxy cast.  Why it matters: a bounce ray starts
 ** inside the batching point just processed, still in memory; queued, it
 ** would wait there until that point might be evicted and read again.
 ** Measured (render landscape --scale 20 --memory 25%, 2 M triangles,
-** with --queue-resident against without): loads 1,925 -> 516 without
+** with --paper-scheduler against without): loads 1,925 -> 516 without
 ** proxies (--no-proxy), 1,552 -> 482 with them; make bench-render at 25 %:
 ** 3.5-3.9x fewer bytes than the paper's scheduler, about half the time
 ** (README, Batched mode); render landscape --scale 0.3 --width 64
@@ -798,7 +798,7 @@ static int proxy_test(const scheduler *s, walker *w, uint32_t id, const brt_ray 
 ** LRU order (commit_uses); *stamp counts the ray's uses. */
 static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, uint64_t *stamp)
 {
-    const brt_bvh *resident = s->queue_resident ? NULL : cache_peek(&s->cache, r->key.id);
+    const brt_bvh *resident = s->paper_scheduler ? NULL : cache_peek(&s->cache, r->key.id);
     if (!resident) return 0;
     if (w->used_at[r->key.id] == 0) w->used[w->used_count++] = r->key.id;
     w->used_at[r->key.id] = (*stamp)++;
@@ -1003,7 +1003,7 @@ static int only_occlusion(const scheduler *s, const ray_queue *q)
 }
 
 /* Fetches batching point id for its queue (cache_fetch: the paper's LRU
-** page cache), and, layer 6 (statistics only), books the load, if there
+** geometry cache), and, layer 6 (statistics only), books the load, if there
 ** is one, as the shadow rays' when they alone asked for it. */
 static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const brt_bvh **bvh,
                             brt_error *err)
@@ -1043,7 +1043,7 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
 }
 
-/* What the page cache would hold with every batching point in memory. */
+/* What the geometry cache would hold with every batching point in memory. */
 static uint64_t all_blob_bytes(const brt_scene *scene)
 {
     uint64_t bytes = 0;
@@ -1059,10 +1059,10 @@ static uint64_t all_blob_bytes(const brt_scene *scene)
 ** 2 M triangles, no limit): 36 of 2.1 M proxy tests were at such points,
 ** and the tests cost a fifth of the run (0.71 s against 0.49 s without;
 ** README, Batched mode).  So the default scheduler does not consult them
-** then; the paper's (queue_resident) does. */
+** then; the paper's (paper_scheduler) does. */
 static int proxies_pay(const scheduler *s, uint64_t budget)
 {
-    return s->queue_resident || budget < all_blob_bytes(s->scene);
+    return s->paper_scheduler || budget < all_blob_bytes(s->scene);
 }
 
 /* The pool and one walker per thread (opt->threads: 0 means all cores). */
@@ -1109,7 +1109,7 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->source = source;
     s->stats = stats;
     s->use_proxies = !(opt && opt->no_proxy);
-    s->queue_resident = opt && opt->queue_resident;
+    s->paper_scheduler = opt && opt->paper_scheduler;
     s->use_inner = !(opt && opt->no_inner);
     s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
     if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
@@ -1290,7 +1290,7 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
     return trace_rays(scene, opt, rays, count, NULL, occluded, stats, err);
 }
 
-/* ---- the page cache ---------------------------------------------------- */
+/* ---- the geometry cache ---------------------------------------------------- */
 /*
 ** Blobs are read whole, with pread, into page-aligned buffers, in requests
 ** of at most CACHE_READ_CHUNK bytes.  The budget counts the page-rounded
@@ -1307,7 +1307,7 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
 */
 #define CACHE_READ_CHUNK ((size_t)8 << 20)
 
-static void lru_unlink(page_cache *c, uint32_t id)
+static void lru_unlink(geometry_cache *c, uint32_t id)
 {
     cache_entry *e = &c->entries[id];
     if (e->lru_prev != NO_ENTRY) c->entries[e->lru_prev].lru_next = e->lru_next;
@@ -1317,7 +1317,7 @@ static void lru_unlink(page_cache *c, uint32_t id)
     e->lru_prev = e->lru_next = NO_ENTRY;
 }
 
-static void lru_append(page_cache *c, uint32_t id)
+static void lru_append(geometry_cache *c, uint32_t id)
 {
     cache_entry *e = &c->entries[id];
     e->lru_prev = c->lru_tail;
@@ -1339,7 +1339,7 @@ static void blob_free(const brt_scene *scene, uint32_t id, void *data)
     if (data) munmap(data, blob_buffer_bytes(scene, id));
 }
 
-static void cache_evict(page_cache *c, uint32_t id)
+static void cache_evict(geometry_cache *c, uint32_t id)
 {
     cache_entry *e = &c->entries[id];
     lru_unlink(c, id);
@@ -1351,7 +1351,7 @@ static void cache_evict(page_cache *c, uint32_t id)
     e->bytes = 0;
 }
 
-static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
+static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budget,
                              const brt_trace_options *opt, brt_stats *stats)
 {
     uint32_t i, n = scene->header.batch_count;
@@ -1370,9 +1370,9 @@ static brt_result cache_init(page_cache *c, brt_scene *scene, uint64_t budget,
     return BRT_OK;
 }
 
-static int cache_ahead_take(page_cache *c, uint32_t id);
+static int cache_ahead_take(geometry_cache *c, uint32_t id);
 
-static void cache_free(page_cache *c)
+static void cache_free(geometry_cache *c)
 {
     uint32_t i;
     cache_ahead_take(c, NO_ENTRY);
@@ -1386,7 +1386,7 @@ static void cache_free(page_cache *c)
 /* The cache's own sanity check (SQLite's pcache has one too): the held
 ** bytes add up, the LRU list holds exactly the unpinned resident entries,
 ** and the budget holds unless one entry alone is larger. */
-static brt_result cache_check(const page_cache *c, brt_error *err)
+static brt_result cache_check(const geometry_cache *c, brt_error *err)
 {
     uint64_t held = 0, resident = 0, listed = 0;
     uint32_t i, id;
@@ -1401,9 +1401,9 @@ static brt_result cache_check(const page_cache *c, brt_error *err)
         listed--;
     }
     if (held != c->held || listed != 0)
-        return brt_fail(err, BRT_ECHECK, "page cache: bookkeeping broken");
+        return brt_fail(err, BRT_ECHECK, "geometry cache: bookkeeping broken");
     if (held > c->budget && resident > 1)
-        return brt_fail(err, BRT_ECHECK, "page cache: holds %llu bytes over a budget of %llu",
+        return brt_fail(err, BRT_ECHECK, "geometry cache: holds %llu bytes over a budget of %llu",
                         (unsigned long long)held, (unsigned long long)c->budget);
     return BRT_OK;
 }
@@ -1430,7 +1430,7 @@ static brt_result check_blob(const brt_scene *s, uint32_t id, const void *data, 
 /* Reads blob id whole (its page-rounded size, into a mapping of its own,
 ** bytes read added to *bytes_read), checks its checksum and opens it as a
 ** BVH; *data is to be freed (blob_free) after the BVH. */
-static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
+static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
                             brt_bvh **bvh, brt_error *err)
 {
     const batch_entry *b = &c->scene->batches[id];
@@ -1475,7 +1475,7 @@ static brt_result blob_read(const page_cache *c, uint32_t id, uint64_t *bytes_re
 */
 static void *ahead_main(void *arg)
 {
-    page_cache *c = arg;
+    geometry_cache *c = arg;
     double start = brt_seconds();
     c->ahead_result = blob_read(c, c->ahead_id, &c->ahead_bytes, &c->ahead_data, &c->ahead_bvh, NULL);
     c->ahead_seconds = brt_seconds() - start;
@@ -1484,7 +1484,7 @@ static void *ahead_main(void *arg)
 
 /* Starts reading blob id ahead, unless it is in memory or a read-ahead is
 ** under way. */
-static void cache_read_ahead(page_cache *c, uint32_t id)
+static void cache_read_ahead(geometry_cache *c, uint32_t id)
 {
     if (!c->read_ahead || c->ahead_running || c->entries[id].data) return;
     c->ahead_id = id;
@@ -1496,7 +1496,7 @@ static void cache_read_ahead(page_cache *c, uint32_t id)
 
 /* Waits for the read-ahead, if any: 1 when it read blob id without error
 ** (its buffer and BVH are then the caller's), else 0 (dropped). */
-static int cache_ahead_take(page_cache *c, uint32_t id)
+static int cache_ahead_take(geometry_cache *c, uint32_t id)
 {
     int ok;
     if (!c->ahead_running) return 0;
@@ -1512,7 +1512,7 @@ static int cache_ahead_take(page_cache *c, uint32_t id)
 }
 
 /* Loads blob id into the cache (the caller has made room). */
-static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
+static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
 {
     cache_entry *e = &c->entries[id];
     uint64_t bytes = round_up_page(c->scene->batches[id].size);
@@ -1538,7 +1538,7 @@ static brt_result cache_load(page_cache *c, uint32_t id, brt_error *err)
 
 /* Fetch pins: makes batching point id resident (evicting least recently
 ** used unpinned entries to make room) and returns its BVH. */
-static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err)
+static brt_result cache_fetch(geometry_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err)
 {
     cache_entry *e = &c->entries[id];
     if (!e->data) {
@@ -1562,13 +1562,13 @@ static brt_result cache_fetch(page_cache *c, uint32_t id, const brt_bvh **bvh, b
 /* The BVH of batching point id if it is in memory, or NULL.  Never loads
 ** and changes nothing, so that threads may ask at once; the scheduler
 ** reports the use afterwards with cache_touch. */
-static const brt_bvh *cache_peek(const page_cache *c, uint32_t id)
+static const brt_bvh *cache_peek(const geometry_cache *c, uint32_t id)
 {
     return c->entries[id].data ? c->entries[id].bvh : NULL;
 }
 
 /* Batching point id, resident, counts as just used. */
-static void cache_touch(page_cache *c, uint32_t id)
+static void cache_touch(geometry_cache *c, uint32_t id)
 {
     if (c->entries[id].data && c->entries[id].pins == 0) {
         lru_unlink(c, id);
@@ -1577,7 +1577,7 @@ static void cache_touch(page_cache *c, uint32_t id)
 }
 
 /* Release unpins: the entry becomes the most recently used evictable one. */
-static void cache_release(page_cache *c, uint32_t id)
+static void cache_release(geometry_cache *c, uint32_t id)
 {
     if (--c->entries[id].pins == 0) lru_append(c, id);
 }
@@ -2978,7 +2978,7 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
 /* ---- the partition checker ------------------------------------------ */
 
 /* Marks the triangles of blob id in seen[] (one bit each). */
-static brt_result check_point(const page_cache *c, uint32_t id, uint32_t batch_tris,
+static brt_result check_point(const geometry_cache *c, uint32_t id, uint32_t batch_tris,
                               unsigned char *seen, brt_error *err)
 {
     const brt_scene *s = c->scene;
@@ -3018,7 +3018,7 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 {
     uint32_t n = scene->header.triangle_count, id, t;
     unsigned char *seen = calloc((size_t)n / 8 + 1, 1);
-    page_cache c;
+    geometry_cache c;
     brt_result r = BRT_OK;
     if (!seen) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene->path);
     memset(&c, 0, sizeof c);

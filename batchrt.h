@@ -13,7 +13,7 @@
 **   mesh (OBJ/PLY) -> batching points -> scene file + proxies   batched mode
 **        (batchrt.c)                    (svdag.c: voxelize -> SVO -> shared DAG)
 **   rays -> top-level walk -> (geometry in memory: intersect at once)
-**        -> proxy test -> queues -> page cache -> hits
+**        -> proxy test -> queues -> geometry cache -> hits
 **   mesh -> triangle BVH (bvh.c)                                direct mode
 **
 ** USAGE: THE BATCHED METHOD (examples/minimal_batched.c: a whole program)
@@ -166,7 +166,7 @@ typedef struct brt_triangle_source brt_triangle_source;
 ** point has a triangle BVH stored as one blob on disk, a box, and a
 ** conservative proxy in a DAG pool shared by all of them.  The boxes (in a
 ** 4-wide top-level BVH), the blob table and the DAG pool are read at open;
-** blobs are read on demand through the page cache.  See README.md for the
+** blobs are read on demand through the geometry cache.  See README.md for the
 ** byte layout.
 */
 
@@ -242,7 +242,7 @@ uint32_t brt_scene_triangle_count(const brt_scene *scene);
 /* The scene's bounds: the union of the batching points' exact boxes. */
 void brt_scene_bounds(const brt_scene *scene, float bmin[3], float bmax[3]);
 
-/* The reader behind the page cache: pread's contract (it may return short
+/* The reader behind the geometry cache: pread's contract (it may return short
 ** counts or fail with errno EINTR; the cache retries both).  Replaceable
 ** so that tests can inject faults.  With more than one thread the cache
 ** also reads ahead: the reader may then be called from a thread of the
@@ -260,7 +260,7 @@ typedef struct brt_trace_options {
                              ** blob read again comes from the device, as when
                              ** the file is larger than RAM (otherwise the OS
                              ** keeps the file and hides the memory limit) */
-    int queue_resident;      /* queue at batching points in memory too and
+    int paper_scheduler;     /* queue at batching points in memory too and
                              ** always consult the proxies (the paper's
                              ** scheduler); 0: intersect at once in memory,
                              ** and leave the proxies alone when the limit

@@ -10,7 +10,7 @@
 ** triangles), 1M rays (half camera rays from the scene's default view, half
 ** bounce rays from their hits), the memory limit at 25 % of the geometry
 ** bytes, the scene file's pages dropped from the OS cache before each
-** out-of-core run so that the disk is read, not the page cache.
+** out-of-core run so that the disk is read, not the OS page cache.
 **
 ** Prints one table; every batched run is also compared with the direct
 ** hits, byte for byte (a benchmark that returned wrong hits would be

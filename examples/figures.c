@@ -26,7 +26,7 @@
 ** its statistics JSON, so the figures measure exactly what a user runs.
 ** Its output goes to DIR/render.log.  As in the paper, with proxies
 ** on the memory limit also pays for the proxies, and every ray is queued
-** (render --queue-resident: the paper's scheduler; by default render
+** (render --paper-scheduler: the paper's scheduler; by default render
 ** intersects rays at once at batching points in memory, which skips their
 ** proxies, so the figures would no longer measure what the proxies cull).
 ** Fig. 3 is drawn for batchrt's own scheduler as well (three more lines), so
@@ -152,7 +152,7 @@ static void run_render(const settings *s, const char *scene, int scheduler, cons
              s->render, scene, s->scale, (unsigned long long)s->batch_tris,
              (unsigned long long)s->spp, (unsigned long long)s->width,
              (unsigned long long)s->height, (unsigned long long)s->rays_in_flight,
-             (unsigned long long)s->threads, scheduler == PAPER_SCHEDULER ? "--queue-resident" : "", extra,
+             (unsigned long long)s->threads, scheduler == PAPER_SCHEDULER ? "--paper-scheduler" : "", extra,
              out_path(s, "render.log"));
     if (system(command) != 0)
         ex_die(prog, "build/render failed on %s (see %s)", scene, out_path(s, "render.log"));

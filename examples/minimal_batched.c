@@ -1,7 +1,7 @@
 /*
 ** examples/minimal_batched.c -- the batched API of batchrt in one page:
 ** build a scene file (batching points, their BVH blobs and voxel proxies),
-** open it, trace rays through proxies, queues and the page cache under a
+** open it, trace rays through proxies, queues and the geometry cache under a
 ** memory limit, and check the hits against the direct mode (one BVH in
 ** memory), byte for byte.  The mesh is a built-in icosahedron cut into
 ** batching points of two triangles; the scene file goes to $TMPDIR (else

@@ -116,7 +116,7 @@ typedef struct options {
     uint64_t threads;             /* --threads; 0: all cores */
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
     int no_inner;
-    int no_proxy, queue_resident, exact_proxy, direct, compare, have_camera, drop_os_cache;
+    int no_proxy, paper_scheduler, exact_proxy, direct, compare, have_camera, drop_os_cache;
     int no_nee, have_sun;
     float eye[3], target[3], fov;
     float sun[3];                 /* --sun: toward the sun (any length) */
@@ -150,7 +150,7 @@ static void usage(void)
            "  --res R              proxy resolution, a power of two (default 128)\n"
            "  --no-proxy           queue rays at every box they enter (Pharr et al.)\n"
            "  --no-inner           shadow rays do not consult the inner proxies\n"
-           "  --queue-resident     queue rays at batching points in memory too (the paper's\n"
+           "  --paper-scheduler    queue rays at batching points in memory too (the paper's\n"
            "                       scheduler; default: intersect there at once)\n"
            "  --exact-proxy        analysis: a perfect proxy (an exact test against the\n"
            "                       triangles, all read first and not counted)\n"
@@ -280,7 +280,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--scene")) o->scene = VALUE;
         else if (is_option(a, "--no-proxy")) o->no_proxy = 1;
         else if (is_option(a, "--no-inner")) o->no_inner = 1;
-        else if (is_option(a, "--queue-resident")) o->queue_resident = 1;
+        else if (is_option(a, "--paper-scheduler")) o->paper_scheduler = 1;
         else if (is_option(a, "--exact-proxy")) o->exact_proxy = 1;
         else if (is_option(a, "--direct")) o->direct = 1;
         else if (is_option(a, "--batched")) o->direct = 0;
@@ -801,7 +801,7 @@ static uint64_t scene_geometry_bytes(brt_scene *scene)
 /* --disk-speed: a slower disk, modelled                                 */
 /* ===================================================================== */
 
-/* The page cache reads through brt_trace_options.read_fn.  This reader
+/* The geometry cache reads through brt_trace_options.read_fn.  This reader
 ** makes each read last at least its bytes / speed: it reads, then sleeps
 ** out the rest.  That models a hard disk or a network share on a fast
 ** SSD -- the setting the method was made for, where reading dominates and
@@ -1200,7 +1200,7 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
            runs[2].stats.seconds / runs[1].stats.seconds);
     if (runs[2].stats.proxy_tests == 0)
         printf("(every batching point fits in memory, so the scheduler leaves the proxies\n"
-               " alone: they could only put loads off; --queue-resident consults them)\n");
+               " alone: they could only put loads off; --paper-scheduler consults them)\n");
     write_image(o, job, &runs[2]);
     if (o->heatmap) {
         /* One colour scale for both, so that they can be compared. */
@@ -1262,7 +1262,7 @@ int main(int argc, char **argv)
     memset(&topt, 0, sizeof topt);
     topt.no_proxy = o.no_proxy;
     topt.no_inner = o.no_inner;
-    topt.queue_resident = o.queue_resident;
+    topt.paper_scheduler = o.paper_scheduler;
     topt.exact_proxies = o.exact_proxy;
     topt.rays_in_flight = (uint32_t)o.rays_in_flight;
     topt.threads = (unsigned)o.threads;

@@ -9,7 +9,7 @@
 ** must match byte for byte.  --batched splits the mesh into batching points
 ** stored in a scene file (built once, reused while the mesh and settings
 ** are unchanged), casts each ray against the voxel proxies before queueing
-** it, and reads geometry through the page cache (Pharr et al. 1997;
+** it, and reads geometry through the geometry cache (Pharr et al. 1997;
 ** Molenaar and Eisemann 2020).  It never holds the mesh: the scene file is
 ** built from the mesh file as a triangle stream (brt_scene_build_stream),
 ** and a scene file that matches is used without reading the mesh at all.
@@ -67,7 +67,7 @@ static void usage(void)
            "                    one byte per ray, 1 when a triangle is hit within\n"
            "                    [tnear, tfar], else 0 (Embree's rtcOccluded1)\n"
            "  --direct          one BVH over the whole mesh in memory (default)\n"
-           "  --batched         batching points, proxies and page cache\n"
+           "  --batched         batching points, proxies and geometry cache\n"
            "  --batch-tris N    triangles per batching point, N >= 1 (batched; default 100000)\n"
            "  --res R           proxy voxel resolution, a power of two in 2..1024 (default 128)\n"
            "  --no-proxy        batched mode without voxel proxies\n"

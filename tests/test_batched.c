@@ -4,7 +4,7 @@
 ** for byte: across batch sizes down to one triangle per batching point,
 ** memory limits down to less than one batching point, proxies on and off,
 ** proxy resolutions 2 to 256, and rays in flight from 1 up.  Also: the
-** page cache's budget, what proxies may and may not change, the scene
+** geometry cache's budget, what proxies may and may not change, the scene
 ** file's reuse and its errors, and injected read faults.
 */
 #include "test.h"
@@ -113,7 +113,7 @@ static int trace_matches(const fixture *f, brt_scene *scene, const brt_trace_opt
 /* Which batching points a ray visits does not depend on the schedule: its
 ** walk goes in key order, and a point the proxy culls holds no hit that
 ** would change the closest hit so far.  So without proxies, or with them
-** and every ray queued (queue_resident), the visits are the same under
+** and every ray queued (paper_scheduler), the visits are the same under
 ** every limit; intersecting at once in memory (the default) skips the
 ** proxy there, so it visits at least what the proxies leave and at most
 ** what no proxy culls. */
@@ -123,10 +123,10 @@ static void check_visits(const brt_stats *stats, const brt_trace_options *opt,
     const uint64_t paper[2] = {paper_runs[0].visits, paper_runs[1].visits};
     uint64_t v = stats->visits;
     int proxy = !opt->no_proxy;
-    EXPECT(!opt->queue_resident || stats->resident_visits == 0,
+    EXPECT(!opt->paper_scheduler || stats->resident_visits == 0,
            "%s: %llu resident visits while queueing them all", what,
            (unsigned long long)stats->resident_visits);
-    if (!proxy || opt->queue_resident)
+    if (!proxy || opt->paper_scheduler)
         EXPECT(v == paper[proxy], "%s: %llu visits, not %llu", what, (unsigned long long)v,
                (unsigned long long)paper[proxy]);
     else
@@ -147,14 +147,14 @@ static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, 
     int l;
     if (!scene) return;
     memset(&opt, 0, sizeof opt);
-    opt.queue_resident = 1;
+    opt.paper_scheduler = 1;
     for (proxy = 0; proxy < 2; proxy++) {
         opt.no_proxy = !proxy;
         snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, proxies %s, all queued", name,
                  batch_tris, res, proxy ? "on" : "off");
         if (!trace_matches(f, scene, &opt, &paper[proxy], what)) goto done;
     }
-    opt.queue_resident = 0;
+    opt.paper_scheduler = 0;
     opt.no_proxy = 1;
     snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, no proxy", name, batch_tris, res);
     if (!trace_matches(f, scene, &opt, &none, what)) goto done;
@@ -185,10 +185,10 @@ static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, 
             proxy = setting & 1;
             opt.memory_limit = limits[l];
             opt.no_proxy = !proxy;
-            opt.queue_resident = setting >> 1;
+            opt.paper_scheduler = setting >> 1;
             snprintf(what, sizeof what, "%s, batch %u, res %u, limit %llu, proxies %s%s", name,
                      batch_tris, res, (unsigned long long)limits[l], proxy ? "on" : "off",
-                     opt.queue_resident ? ", all queued" : "");
+                     opt.paper_scheduler ? ", all queued" : "");
             if (!trace_matches(f, scene, &opt, &stats, what)) break;
             check_visits(&stats, &opt, paper, what);
             budget = limits[l] > stats.proxy_bytes ? limits[l] - stats.proxy_bytes : 0;
@@ -259,7 +259,7 @@ static void test_exact_proxies(void)
     CHECK(fixture_rays(&f, 400, st), "direct BVH build failed");
     scene = build_scene(&f.scene, 150, 16, tu_scratch("exact.brs"));
     memset(&opt, 0, sizeof opt);
-    opt.queue_resident = 1;   /* the paper's scheduler: every visit meets a proxy */
+    opt.paper_scheduler = 1;   /* the paper's scheduler: every visit meets a proxy */
     if (scene && trace_matches(&f, scene, &opt, &voxel, "voxel proxies")) {
         opt.exact_proxies = 1;
         if (trace_matches(&f, scene, &opt, &exact, "exact proxies"))
@@ -268,7 +268,7 @@ static void test_exact_proxies(void)
                    "exact proxies: %llu visits, %llu culled; voxel proxies: %llu, %llu",
                    (unsigned long long)exact.visits, (unsigned long long)exact.proxy_culled,
                    (unsigned long long)voxel.visits, (unsigned long long)voxel.proxy_culled);
-        opt.queue_resident = 0;
+        opt.paper_scheduler = 0;
         opt.memory_limit = exact.geometry_bytes / 3;
         trace_matches(&f, scene, &opt, &limited, "exact proxies, a third of the geometry");
     }
@@ -334,7 +334,7 @@ static void equal_t_tie(float mirror)
         memset(&opt, 0, sizeof opt);
         opt.no_proxy = setting % 3 == 0;
         opt.exact_proxies = setting % 3 == 2;
-        opt.queue_resident = setting / 3;
+        opt.paper_scheduler = setting / 3;
         opt.memory_limit = 1;   /* below one blob: B is on disk when the ray reaches it */
         snprintf(what, sizeof what, "x %+g, %s, %s scheduler", mirror, names[setting % 3],
                  setting / 3 ? "paper's" : "batchrt's");
@@ -574,7 +574,7 @@ static void test_fullest_queue_first(void)
         brt_error err;
         uint32_t want = 7;
         memset(&opt, 0, sizeof opt);
-        opt.queue_resident = setting;   /* batchrt's scheduler and the paper's */
+        opt.paper_scheduler = setting;   /* batchrt's scheduler and the paper's */
         memset(&st, 0, sizeof st);
         st.rays = rays;
         st.count = n;

@@ -821,7 +821,7 @@ static void sweep_limits(bench *b, const uint32_t *batch, int nbatch, const char
                     /* the exact proxies of the analysis mode must give the
                     ** direct hits too; queueing every ray makes every
                     ** visit meet the test */
-                    opt.exact_proxies = opt.queue_resident = proxy == 2;
+                    opt.exact_proxies = opt.paper_scheduler = proxy == 2;
                     snprintf(what, sizeof what, "%s: batch %u, memory %llu, %u in flight, "
                              "proxies %s", name, batch[i], (unsigned long long)memory[m],
                              in_flight[f], kind[proxy]);

@@ -210,7 +210,7 @@ static void sweep(const tu_scene *s, const brt_ray *rays, const uint8_t *want, s
             memset(&opt, 0, sizeof opt);
             opt.memory_limit = limits[l];
             opt.no_proxy = setting & 1;
-            opt.queue_resident = setting >> 1;
+            opt.paper_scheduler = setting >> 1;
             memset(got, 0xAA, count);
             CHECK(brt_scene_occluded(scene, &opt, rays, count, got, &stats, &err) == BRT_OK,
                   "%s: %s", what, err.message);

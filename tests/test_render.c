@@ -81,8 +81,8 @@ static const char *const batched_settings[] = {
     "--memory 10% --no-proxy --rays-in-flight 7",
     "--memory 1K --rays-in-flight 1",      /* smaller than any batching point */
     "--rays-in-flight 33 --res 16",
-    "--memory 10% --queue-resident",       /* the paper's scheduler */
-    "--queue-resident",                    /* ... which consults proxies in core too */
+    "--memory 10% --paper-scheduler",       /* the paper's scheduler */
+    "--paper-scheduler",                    /* ... which consults proxies in core too */
     "--memory 10% --disk-speed 1G",        /* reads through render's own reader */
 };
 
@@ -117,7 +117,7 @@ static void test_same_image_every_mode(void)
 static void test_nee_same_image_every_mode(void)
 {
     static const char *const settings[] = {"--memory 10%", "--memory 1K --no-proxy --rays-in-flight 5",
-                                           "--memory 10% --queue-resident"};
+                                           "--memory 10% --paper-scheduler"};
     static const char *const estimator[] = {"", "--no-nee"};
     double shadow, occluded;
     size_t i, e;

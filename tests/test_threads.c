@@ -4,7 +4,7 @@
 ** more than some runs have work), every hit equals the direct mode's, the
 ** scheduler's counts and the order of its finished calls are equal, scene
 ** files are equal byte for byte, and the programs write equal hit files,
-** images and statistics counts.  Also the page cache's resident memory
+** images and statistics counts.  Also the geometry cache's resident memory
 ** under a limit (its buffers go back to the system on eviction).  "make
 ** tsan" runs the tests named "threads" under ThreadSanitizer.
 */
@@ -231,7 +231,7 @@ static void log_free(logging_source *l)
 typedef struct setting {
     const char *name;
     uint64_t memory;            /* in batching points' average bytes; 0: none */
-    int no_proxy, queue_resident;
+    int no_proxy, paper_scheduler;
     uint32_t in_flight;
 } setting;
 
@@ -269,7 +269,7 @@ static void test_batched_counts(void)
             memset(&opt, 0, sizeof opt);
             opt.threads = thread_counts[run];
             opt.no_proxy = set->no_proxy;
-            opt.queue_resident = set->queue_resident;
+            opt.paper_scheduler = set->paper_scheduler;
             opt.rays_in_flight = set->in_flight;
             if (set->memory > 0) {
                 /* The geometry bytes are known after a first trace. */
@@ -441,7 +441,7 @@ static void test_programs(void)
                  "--out @/r.png --stats @/r.json", render_files, 2);
 }
 
-/* ---- the page cache's resident memory ------------------------------------ */
+/* ---- the geometry cache's resident memory ------------------------------------ */
 
 /* A render from a scene file at --memory 3M that reads its ~0.9 MiB blobs
 ** (40,000 triangles of scene format 2) about 90 times: peak RSS at most the
