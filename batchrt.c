@@ -48,6 +48,12 @@
 #endif
 #include "batchrt.h"
 
+/* Invariants are assert()ed, compiled in by make debug (BRT_DEBUG) only:
+** in the release build they cost nothing. */
+#if !defined(BRT_DEBUG) && !defined(NDEBUG)
+#define NDEBUG
+#endif
+#include <assert.h>
 #include <errno.h>
 #include <fcntl.h>
 #include <float.h>
@@ -209,6 +215,21 @@ static inline void heap_place(key_heap *h, uint32_t i, uint64_t key)
     if (h->pos) h->pos[(uint32_t)key] = i;
 }
 
+/* Invariant (make debug): the heap order holds around place i, where a
+** push or a pop left a key: no smaller than its parent's, no larger than
+** its children's, and pos (when kept) points back at it. */
+#ifndef NDEBUG
+static int heap_ordered_at(const key_heap *h, uint32_t i)
+{
+    uint32_t c = 2 * i + 1;
+    if (i >= h->size) return 1;
+    if (i > 0 && h->keys[(i - 1) / 2] > h->keys[i]) return 0;
+    if (c < h->size && h->keys[c] < h->keys[i]) return 0;
+    if (c + 1 < h->size && h->keys[c + 1] < h->keys[i]) return 0;
+    return !h->pos || h->pos[(uint32_t)h->keys[i]] == i;
+}
+#endif
+
 /* Puts key at hole i or above it (every key above i is no larger). */
 static inline void heap_up(key_heap *h, uint32_t i, uint64_t key)
 {
@@ -217,6 +238,7 @@ static inline void heap_up(key_heap *h, uint32_t i, uint64_t key)
         i = (i - 1) / 2;
     }
     heap_place(h, i, key);
+    assert(heap_ordered_at(h, i));
 }
 
 static inline void heap_push(key_heap *h, uint64_t key)
@@ -247,6 +269,7 @@ static inline uint64_t heap_pop(key_heap *h)
         i = c;
     }
     heap_place(h, i, last);
+    assert(heap_ordered_at(h, i) && top <= h->keys[0]);
     return top;
 }
 
@@ -442,18 +465,25 @@ static void walk_expand(top_walk *w, const top_node *node, const brt_ray_prep *r
 
 /* The next batching point after *key that the ray enters no later than
 ** tlimit (which may have shrunk since the last call): 1 and *key updated,
-** or 0 when there is none. */
+** or 0 when there is none.  Invariants (make debug): what the heap hands
+** out only grows (a box inside another is entered no sooner), so walk
+** keys only grow, and a batching point handed out is entered by tlimit. */
 static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep *ray, float tlimit,
                          walk_key *key)
 {
     const uint64_t stop = walk_key_of(tlimit, 0xFFFFFFFFu);   /* entry <= tlimit */
+    uint64_t last = 0;
     while (w->size > 0 && w->keys[0] <= stop) {
         uint64_t next = heap_pop(w);
         uint32_t code = (uint32_t)next;
         float entry = walk_entry_of(next);
+        assert(next >= last);
+        last = next;
+        (void)last;                     /* read by the assert only */
         if (code & TOP_LEAF) {
             uint32_t id = code & ~TOP_LEAF;
             if (!key_after(entry, id, *key)) continue;
+            assert(entry <= tlimit);
             key->t = entry;
             key->id = id;
             return 1;
@@ -468,28 +498,10 @@ static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep 
 ** What the scheduler works on.  An open scene (struct brt_scene) holds the
 ** scene file's small parts in memory -- per batching point its box, blob
 ** place and proxies (batch_entry), the top-level nodes, the DAG pool --
-** and leaves the blobs on disk.  The geometry cache keeps some blobs resident
-** (cache_entry per batching point); a pool of threads runs the walks.  The
-** code that fills these structures is in Part II (the scene file, threads).
+** and leaves the blobs on disk.  The geometry cache keeps some blobs
+** resident (cache_entry per batching point).  The code that fills these
+** structures is in Part II (the scene file).
 */
-typedef void (*pool_job)(void *ctx, unsigned thread, size_t first, size_t end);
-typedef void (*pool_commit)(void *ctx, size_t first, size_t end);
-
-typedef struct pool {
-    pthread_mutex_t lock;
-    pthread_cond_t wake, idle, progress;
-    pthread_t *threads;
-    unsigned count;             /* threads that run jobs, the caller included */
-    unsigned long round;        /* incremented for each job */
-    unsigned busy;              /* threads still in the current job */
-    int quit;
-    pool_job job;
-    void *ctx;
-    size_t next, total, chunk;  /* the split of the current job */
-    unsigned char *done;        /* per chunk of the job: finished */
-    size_t done_cap;
-} pool;
-
 typedef struct batch_entry {
     float lo[3], hi[3];
     uint64_t offset, size, checksum;
@@ -510,8 +522,8 @@ typedef struct scene_header {
     section sections[3];
 } scene_header;
 
-/* One batching point while a trace runs: where its blob is, and the page
-** cache's state for it (SQLite's pcache shape: fetch pins, release
+/* One batching point while a trace runs: where its blob is, and the
+** geometry cache's state for it (SQLite's pcache shape: fetch pins, release
 ** unpins, only unpinned entries are evicted, least recently used first). */
 typedef struct cache_entry {
     void *data;                 /* page-aligned copy of the blob, or NULL */
@@ -572,16 +584,12 @@ static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *byte
                             brt_bvh **bvh, brt_error *err);
 static void blob_free(const brt_scene *scene, uint32_t id, void *data);
 
-/* From Part II: reading the scene file, the thread pool, one ray through
-** one BVH (the direct mode), page rounding. */
+/* From Part II: reading the scene file, one ray through one BVH (the
+** direct mode), page rounding. */
 static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
                              brt_read_fn read_fn, void *user, uint64_t *bytes_read,
                              const char *path, brt_error *err);
 static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user);
-static void pool_init(pool *p, unsigned threads);
-static void pool_run(pool *p, pool_job job, pool_commit commit, void *ctx, size_t total,
-                     size_t chunk);
-static void pool_free(pool *p);
 static void intersect_ray(const brt_bvh *bvh, const brt_ray *ray, uint64_t tag, brt_hit *hit,
                           float normal[3]);
 static uint64_t round_up_page(uint64_t n);
@@ -589,32 +597,37 @@ static uint64_t round_up_page(uint64_t n);
 /* ---- ray queues and the scheduler ------------------------------------ */
 /*
 ** THE PAPER'S SCHEDULER (Pharr et al. 1997, as Molenaar and Eisemann
-** 2020 use it with proxies) is the plain path through this section:
+** 2020 use it with proxies) is the plain loop of this section, with one
+** thread:
 **   schedule       take new rays (refill); then, while a queue is not
-**                  empty, process the fullest (key_heap, queue_key)
-**   process_batch  fetch its batching point through the LRU geometry cache
-**                  (cache_fetch), intersect each ray of its queue there,
-**                  and walk each on
+**                  empty, process the fullest (key_heap, queue_key), and
+**                  take new rays again
+**   process_batch  fetch its batching point through the LRU geometry
+**                  cache (cache_fetch), intersect each ray of its queue
+**                  there, release the point, and let each ray walk on
 **   walk_on        the ray's top-level walk: at the next batching point it
-**                  enters whose proxy it hits (proxy_test) it is queued
-**                  (enqueue); when there is none, it is finished
+**                  enters whose proxy it hits (proxy_test) it stops
+**   settle         a stopped ray is queued there (enqueue); a ray whose
+**                  walk is over is finished and its slot takes a new ray
 ** Each disk read serves as many rays as it can: the fullest queue first.
 **
-** batchrt's improvements are LAYERS on that path: each is one named
-** function that the plain path calls, with what it was measured to do.
+** batchrt's improvements are LAYERS on that loop: each is one named
+** function that the loop calls, and each says why it is there and which
+** command measures it.
 **   1. intersect_resident  geometry in memory: intersect at once, no queue
 **   2. proxies_pay         no proxy tests when the budget holds every blob
 **   3. exact_proxy_hit     analysis: the triangles themselves as the proxy
-**   4. read_ahead          the next load read while a phase runs (threads)
-**   5. phase_run           threads: a phase's walks in parallel, committed
-**                          in order ("Threads" below)
+**   4. read_ahead          threads: the next load read while a phase runs
+**   5. phases_run          threads: the loop's rays walked in parallel and
+**                          settled in order (Part II, "Threads")
 **   6. fetch_for           statistics: the loads only shadow rays asked for
 **   7. inner_stops         inner proxies: an occlusion ray settled occluded
 **                          without a queue (the paper's future work)
-** paper_scheduler turns layers 1 and 2 off (the paper's scheduler, which
-** make figures measures); exact_proxies turns 3 on; one thread turns 4
-** off and makes 5 a plain loop; no_inner turns 7 off.  No layer changes a
-** hit; 1-3 and 7 change which loads happen, 4-6 none.
+** paper_scheduler turns layers 1 and 2 off (what make figures measures as
+** the paper's scheduler); exact_proxies turns 3 on; one thread turns 4
+** and 5 off; no_inner turns 7 off.  No layer changes a hit; 1-3 and 7
+** change which loads happen, 4-6 none: the threads: tests hold the
+** phases byte-equal to the plain loop.
 **
 ** Rays in flight live in slots; a queue per batching point holds slot
 ** numbers; a min-heap of queue keys (key_heap) orders the non-empty
@@ -626,21 +639,6 @@ static uint64_t round_up_page(uint64_t n);
 ** The tag also says the ray's kind (BRT_TAG_OCCLUSION), so an occlusion
 ** ray costs no byte more: it keeps an unused normal, and its hit record
 ** turns from the miss record into "occluded" at its first hit.
-**
-** Threads (README, "Threads"): the scheduler works in phases.  A phase is
-** a list of rays -- the queue of the batching point just loaded, or rays
-** new from the source -- each of which is intersected there (a queue) and
-** then walks on until it must be queued or is finished (walk_on).  The
-** rays of a phase are split across the pool's threads; walk_on reads the
-** shared state (top-level BVH, proxies, resident BVHs) and writes only its
-** ray's slot, its outcome and its thread's counters.  One thread then
-** commits the phase in list order (commit): counters summed, the page
-** cache's LRU order updated from the touches as if the rays had walked one
-** after another, rays queued or finished.  So every decision -- which
-** queue is fullest, what is evicted, the order of finished calls -- is the
-** one the one-thread run makes.  Measured (make bench-threads, 2 threads
-** against 1; README, Threads): render in core 1.5-1.7x, from a modelled
-** 100 MiB/s disk 1.4x, the same counts.
 */
 typedef struct ray_slot {
     brt_ray ray;
@@ -657,63 +655,76 @@ typedef struct ray_queue {
     size_t capacity;
 } ray_queue;
 
-/* One thread's part of a phase: its walk, its counters, and the batching
-** points it found in memory with the stamp of its last use of each (the
-** stamp orders uses as a one-thread walk would make them). */
+/* The threaded variant's state (layers 4 and 5) and its record of the
+** resident batching points a walk used: Part II, "Threads". */
+typedef struct phase_threads phase_threads;
+typedef struct use_log use_log;
+
+/* What one walk needs of its own: the heap of its top-level walk, its
+** counters (added to the statistics after each batch), and where its uses
+** of resident batching points go for the LRU order: straight to the cache
+** in the plain loop (cache), or to a log that the threaded variant
+** replays in the order the plain loop would have made them (uses). */
 typedef struct walker {
     top_walk walk;
     uint64_t resident_visits, proxy_tests, proxy_culled;
     uint64_t inner_stopped;     /* occlusion rays an inner proxy settled */
-    uint64_t *used_at;          /* per batching point; 0: not used */
-    uint32_t *used, used_count;
+    geometry_cache *cache;      /* the plain loop; NULL: log the uses */
+    use_log *uses;
 } walker;
-
-/* A batching point used by a phase and the stamp of its last use. */
-typedef struct point_use {
-    uint64_t stamp;
-    uint32_t id;
-} point_use;
 
 typedef struct scheduler {
     brt_scene *scene;
     const brt_ray_source *source;
     int use_proxies, paper_scheduler;
+    int use_inner;              /* consult the inner proxies (not no_inner) */
     brt_stats *stats;
     geometry_cache cache;
     ray_slot *slots;
     uint32_t *free_slots, free_count, capacity;
     ray_queue *queues;
     key_heap fullest;                       /* the non-empty queues (queue_key) */
-    pool pool;
-    walker *walkers;                        /* one per thread of the pool */
-    uint32_t *phase, *outcome;              /* a phase's slots; NO_ENTRY: finished */
-    point_use *uses;                        /* a phase's uses, merged */
+    walker walker;                          /* the plain loop's walk */
+    phase_threads *threads;                 /* layers 4-5; NULL: one thread */
     brt_bvh **exact;                        /* exact_proxies: every BVH, or NULL */
     void **exact_data;
     brt_ray *incoming;
     uint64_t *incoming_tags;
-    int use_inner;              /* consult the inner proxies (not no_inner) */
+    uint32_t *fresh;                        /* the slots refill just filled */
+    const brt_trace_options *follow;        /* trace --follow: steps reported, or NULL */
+    uint64_t fetch_bytes;                   /* bytes the last fetch read (its step) */
 } scheduler;
+
+/* The threaded variant, Part II. */
+static brt_result threads_init(scheduler *s, unsigned threads);
+static void threads_free(scheduler *s);
+static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
+                             const brt_bvh *bvh);
+static void use_log_record(use_log *log, uint32_t id);
+
+/* ---- following one ray (trace --follow) ---- */
+
+/* Reports a step of ray r when it is the ray followed (brt_trace_options
+** follow_tag); costs one compare otherwise. */
+static void follow_step(const scheduler *s, const ray_slot *r, brt_step_kind kind, uint32_t point,
+                        float t)
+{
+    brt_step step;
+    if (!s->follow || r->tag != s->follow->follow_tag) return;
+    step.kind = kind;
+    step.point = point;
+    step.t = t;
+    step.bytes = kind == BRT_STEP_LOAD ? s->fetch_bytes : 0;
+    step.hit = r->hit;
+    step.visits = r->visits;
+    s->follow->follow(s->follow->follow_user, r->tag, &step);
+}
 
 /* Heap order: the fullest queue first (the key's high word falls as the
 ** queue grows), at equal lengths the lowest id. */
 static uint64_t queue_key(uint32_t count, uint32_t id)
 {
     return (uint64_t)(UINT32_MAX - count) << 32 | id;
-}
-
-static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
-{
-    ray_queue *q = &s->queues[id];
-    if (q->count == q->capacity) {
-        uint32_t *grown = brt_grow(q->slots, &q->capacity, (size_t)q->count + 1, sizeof *grown);
-        if (!grown) return BRT_ENOMEM;
-        q->slots = grown;
-    }
-    q->slots[q->count++] = slot;
-    heap_lower(&s->fullest, queue_key(q->count, id));
-    s->stats->queued_visits++;
-    return BRT_OK;
 }
 
 static int is_occlusion(const ray_slot *r)
@@ -736,14 +747,6 @@ static void hit_mark_occluded(brt_hit *hit)
     hit->prim = 0;
 }
 
-/* Intersects a ray with a batching point's triangles: the closest hit so
-** far, or for an occlusion ray any hit in [tnear, tfar] (the record of
-** brt_ray_source: t = 0, prim = 0 when occluded). */
-static void intersect_slot(const brt_bvh *bvh, ray_slot *r)
-{
-    intersect_ray(bvh, &r->ray, r->tag, &r->hit, r->normal);
-}
-
 /* How far the walk goes: the closest hit so far, or tfar.  (An occlusion
 ** ray's record stays the miss record, t = +inf, until it ends the walk.) */
 static float walk_limit(const ray_slot *r)
@@ -751,13 +754,20 @@ static float walk_limit(const ray_slot *r)
     return r->hit.t < r->ray.tfar ? r->hit.t : r->ray.tfar;
 }
 
+/* Intersects a ray with a batching point's triangles: the closest hit so
+** far, or for an occlusion ray any hit in [tnear, tfar] (the record of
+** brt_ray_source: t = 0, prim = 0 when occluded). */
+static void intersect_slot(const scheduler *s, const brt_bvh *bvh, ray_slot *r)
+{
+    intersect_ray(bvh, &r->ray, r->tag, &r->hit, r->normal);
+    follow_step(s, r, BRT_STEP_TRIANGLES, r->key.id, r->hit.t);
+}
+
 /* Layer 3, exact proxies (exact_proxies; analysis, not a way to trace):
 ** the batching point's triangles answer the proxy test exactly, every
 ** BVH read once at the start outside the cache and its counts
-** (exact_load).  It gives the bound no voxel proxy can beat.  Measured
-** (make bench-render, 25 % limit; README, Batched mode): exact proxies read
-** x0.68 of the no-proxy bytes on the landscape and x0.53 on the island,
-** the 128^3 voxels x0.79 and x0.75. */
+** (exact_load).  It gives the bound no voxel proxy can beat: make
+** bench-render prints both. */
 static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
 {
     brt_ray segment = *ray;
@@ -765,20 +775,38 @@ static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, 
     return brt_bvh_occluded(s->exact[id], &segment);
 }
 
-/* The paper's proxy test: may the ray hit batching point id's triangles
-** in [tnear, tlimit]?  A miss culls the visit: no queue, no load.  With
-** proxies off (no_proxy, or layer 2) every batching point reached is
-** queued, as in Pharr et al. */
-static int proxy_test(const scheduler *s, walker *w, uint32_t id, const brt_ray *ray, float tlimit)
+/* The paper's proxy question: may the ray hit batching point id's
+** triangles in [tnear, tlimit]?  *t (when not NULL): where the proxy
+** cast met its first set voxel, or tnear for an exact proxy. */
+static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit, float *t)
 {
+    if (s->exact) {
+        if (t) *t = ray->tnear;
+        return exact_proxy_hit(s, id, ray, tlimit);
+    }
+    return brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear, tlimit, t);
+}
+
+/* The paper's proxy test at the batching point where the walk stands: a
+** miss culls the visit (no queue, no load).  With proxies off (no_proxy,
+** or layer 2) every batching point reached is queued, as in Pharr et al. */
+static int proxy_test(const scheduler *s, walker *w, ray_slot *r, float tlimit)
+{
+    float t = r->key.t;
     int hit;
     if (!s->use_proxies) return 1;
     w->proxy_tests++;
-    hit = s->exact ? exact_proxy_hit(s, id, ray, tlimit)
-                   : brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear,
-                                       tlimit, NULL);
+    hit = proxy_admits(s, r->key.id, &r->ray, tlimit, s->follow ? &t : NULL);
     w->proxy_culled += !hit;
+    follow_step(s, r, hit ? BRT_STEP_PROXY_HIT : BRT_STEP_PROXY_MISS, r->key.id, t);
     return hit;
+}
+
+/* A resident batching point was just used: the LRU order hears of it. */
+static void walker_used(walker *w, uint32_t id)
+{
+    if (w->cache) cache_touch(w->cache, id);
+    else use_log_record(w->uses, id);                       /* layer 5 */
 }
 
 /* Layer 1, intersecting at once in memory: at a batching point whose
@@ -788,37 +816,30 @@ static int proxy_test(const scheduler *s, walker *w, uint32_t id, const brt_ray 
 ** at about the cost of a proxy cast.  Why it matters: a bounce ray starts
 ** inside the batching point just processed, still in memory; queued, it
 ** would wait there until that point might be evicted and read again.
-** Measured (render landscape --scale 20 --memory 25%, 2 M triangles,
-** with --paper-scheduler against without): loads 1,925 -> 516 without
-** proxies (--no-proxy), 1,552 -> 482 with them; make bench-render at 25 %:
-** 3.5-3.9x fewer bytes than the paper's scheduler, about half the time
-** (README, Batched mode); render landscape --scale 0.3 --width 64
-** --height 36 --spp 2 --memory 25% --batch-tris 3000: 79 -> 59 loads.
-** Returns 0 when the point is not resident.  The use is stamped for the
-** LRU order (commit_uses); *stamp counts the ray's uses. */
-static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, uint64_t *stamp)
+** make bench-render and make figures print the loads with and without it
+** (--paper-scheduler).  Returns 0 when the point is not resident. */
+static int intersect_resident(const scheduler *s, walker *w, ray_slot *r)
 {
     const brt_bvh *resident = s->paper_scheduler ? NULL : cache_peek(&s->cache, r->key.id);
     if (!resident) return 0;
-    if (w->used_at[r->key.id] == 0) w->used[w->used_count++] = r->key.id;
-    w->used_at[r->key.id] = (*stamp)++;
-    intersect_slot(resident, r);
+    walker_used(w, r->key.id);
+    follow_step(s, r, BRT_STEP_RESIDENT, r->key.id, r->key.t);
     r->visits++;
     w->resident_visits++;
+    intersect_slot(s, resident, r);
     return 1;
 }
 
 /* Layer 7, inner proxies: the inner proxy test, first at every batching
 ** point an occlusion ray with tfar = +inf reaches: a hit settles the ray
 ** occluded (the record of intersect_slot) with no queue and no load.
-** Measured (make bench-inner, 1 M triangles; README, "Inner proxies"): on
-** the island 7,538 of 26,751 occluded shadow rays settled, 8.9 % fewer
-** bytes in 9 % fewer loads; on the landscape 120 of 10,914. */
+** make bench-inner prints how many rays it settles and the bytes spared. */
 static int inner_stops(const scheduler *s, ray_slot *r)
 {
     if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
     if (!brt_inner_occludes(s->scene->dag, &s->scene->batches[r->key.id].inner, &r->ray)) return 0;
     hit_mark_occluded(&r->hit);
+    follow_step(s, r, BRT_STEP_INNER, r->key.id, r->key.t);
     return 1;
 }
 
@@ -828,9 +849,8 @@ static int inner_stops(const scheduler *s, ray_slot *r)
 ** closest hit (a box entered exactly there may still hold an equal-t hit
 ** with a lower prim, so the compare is inclusive).  An occlusion ray
 ** also finishes at its first hit.  Writes only the ray's slot and the
-** walker w: threads walk different rays at once.
-** stamp: the ray's place in its phase, high word; each use adds one. */
-static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t stamp)
+** walker w: threads walk different rays at once. */
+static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r)
 {
     brt_ray_prep prep;
     float tlimit;
@@ -839,133 +859,88 @@ static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r, uint64_t sta
     tlimit = walk_limit(r);
     top_walk_start(&w->walk);
     while (!found_occluder(r) && top_walk_next(&w->walk, s->scene->top, &prep, tlimit, &r->key)) {
+        follow_step(s, r, BRT_STEP_ENTER, r->key.id, r->key.t);
         if (inner_stops(s, r)) {                            /* layer 7 */
             w->inner_stopped++;
             break;
         }
-        if (intersect_resident(s, w, r, &stamp)) {          /* layer 1 */
+        if (intersect_resident(s, w, r)) {                  /* layer 1 */
             tlimit = walk_limit(r);
             continue;
         }
-        if (!proxy_test(s, w, r->key.id, &r->ray, tlimit)) continue;
+        if (!proxy_test(s, w, r, tlimit)) continue;
         r->visits++;
         return r->key.id;
     }
     return NO_ENTRY;
 }
 
-/* A phase: the rays in slots[0..count), first intersected with bvh when
-** it is not NULL (the batching point whose queue they are). */
-typedef struct phase_job {
-    scheduler *s;
-    const uint32_t *slots;
-    const brt_bvh *bvh;
-    brt_result result;          /* of the commits: BRT_ENOMEM from a queue */
-} phase_job;
-
-static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
+/* Queues slot's ray at batching point id.  Invariant (make debug): the
+** ray's walk stopped there because the proxy admits it. */
+static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
 {
-    const phase_job *j = ctx;
-    scheduler *s = j->s;
-    size_t i;
-    for (i = first; i < end; i++) {
-        ray_slot *r = &s->slots[j->slots[i]];
-        if (j->bvh) intersect_slot(j->bvh, r);
-        s->outcome[i] = walk_on(s, &s->walkers[thread], r, ((uint64_t)(i + 1)) << 32);
+    ray_queue *q = &s->queues[id];
+    assert(!s->use_proxies ||
+           proxy_admits(s, id, &s->slots[slot].ray, walk_limit(&s->slots[slot]), NULL));
+    if (q->count == q->capacity) {
+        uint32_t *grown = brt_grow(q->slots, &q->capacity, (size_t)q->count + 1, sizeof *grown);
+        if (!grown) return BRT_ENOMEM;
+        q->slots = grown;
     }
+    q->slots[q->count++] = slot;
+    heap_lower(&s->fullest, queue_key(q->count, id));
+    s->stats->queued_visits++;
+    follow_step(s, &s->slots[slot], BRT_STEP_QUEUED, id, s->slots[slot].key.t);
+    return BRT_OK;
 }
 
-/* Commits rays [first, end) of a phase, in order: each is queued where
-** its walk stopped, or finished. */
-static void phase_commit(void *ctx, size_t first, size_t end)
+/* A ray whose walk stopped: queued at batching point id, or, when id is
+** NO_ENTRY, finished (the source hears of it; its slot is free). */
+static brt_result settle(scheduler *s, uint32_t slot, uint32_t id)
 {
-    phase_job *j = ctx;
-    scheduler *s = j->s;
-    size_t i;
-    for (i = first; i < end && j->result == BRT_OK; i++) {
-        uint32_t slot = j->slots[i];
-        ray_slot *r = &s->slots[slot];
-        if (s->outcome[i] != NO_ENTRY) {
-            j->result = enqueue(s, s->outcome[i], slot);
-            continue;
-        }
-        s->stats->shadow_occluded += found_occluder(r);
-        s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
-        s->free_slots[s->free_count++] = slot;
+    ray_slot *r = &s->slots[slot];
+    if (id != NO_ENTRY) return enqueue(s, id, slot);
+    s->stats->shadow_occluded += found_occluder(r);
+    follow_step(s, r, BRT_STEP_FINISHED, NO_ENTRY, r->hit.t);
+    s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
+    s->free_slots[s->free_count++] = slot;
+    return BRT_OK;
+}
+
+/* A walker's counters go to the statistics. */
+static void walker_count(scheduler *s, walker *w)
+{
+    s->stats->resident_visits += w->resident_visits;
+    s->stats->proxy_tests += w->proxy_tests;
+    s->stats->proxy_culled += w->proxy_culled;
+    s->stats->shadow_inner_stopped += w->inner_stopped;
+    w->resident_visits = w->proxy_tests = w->proxy_culled = w->inner_stopped = 0;
+}
+
+/* The rays of slots[0..count): first intersected at batching point id
+** (bvh; id is NO_ENTRY for new rays), then each walks on and is settled.
+** Releasing the point before the walks makes its place in the LRU order
+** come before the points the walks use (no ray of its queue enters it
+** again: walk keys only grow).  With threads, layer 5 does the same in
+** phases. */
+static brt_result run_rays(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
+                           const brt_bvh *bvh)
+{
+    brt_result r = BRT_OK;
+    uint32_t i;
+    if (s->threads) return phases_run(s, slots, count, id, bvh);     /* layer 5 */
+    if (id != NO_ENTRY) {
+        for (i = 0; i < count; i++) intersect_slot(s, bvh, &s->slots[slots[i]]);
+        cache_release(&s->cache, id);
     }
+    for (i = 0; i < count && r == BRT_OK; i++)
+        r = settle(s, slots[i], walk_on(s, &s->walker, &s->slots[slots[i]]));
+    walker_count(s, &s->walker);
+    return r;
 }
 
-static int use_before(const void *a, const void *b)
-{
-    uint64_t x = ((const point_use *)a)->stamp, y = ((const point_use *)b)->stamp;
-    return (x > y) - (x < y);
-}
-
-/* The LRU order after a phase: each resident batching point it used moves
-** to the back in the order of its last use over all threads -- the order
-** the uses of one thread walking the rays in list order leave. */
-static void commit_uses(scheduler *s)
-{
-    walker *all = &s->walkers[0];   /* thread 0's table gathers the others' */
-    uint32_t t, k, n;
-    for (t = 1; t < s->pool.count; t++) {
-        walker *w = &s->walkers[t];
-        for (k = 0; k < w->used_count; k++) {
-            uint32_t id = w->used[k];
-            if (all->used_at[id] == 0) all->used[all->used_count++] = id;
-            if (w->used_at[id] > all->used_at[id]) all->used_at[id] = w->used_at[id];
-            w->used_at[id] = 0;
-        }
-        w->used_count = 0;
-    }
-    for (n = 0; n < all->used_count; n++) {
-        s->uses[n].id = all->used[n];
-        s->uses[n].stamp = all->used_at[all->used[n]];
-        all->used_at[all->used[n]] = 0;
-    }
-    all->used_count = 0;
-    qsort(s->uses, n, sizeof *s->uses, use_before);
-    for (k = 0; k < n; k++) cache_touch(&s->cache, s->uses[k].id);
-}
-
-/* The end of a phase, its threads idle: the counters and the LRU order. */
-static void phase_end(scheduler *s)
-{
-    uint32_t t;
-    for (t = 0; t < s->pool.count; t++) {
-        walker *w = &s->walkers[t];
-        s->stats->resident_visits += w->resident_visits;
-        s->stats->proxy_tests += w->proxy_tests;
-        s->stats->proxy_culled += w->proxy_culled;
-        s->stats->shadow_inner_stopped += w->inner_stopped;
-        w->inner_stopped = 0;
-        w->resident_visits = w->proxy_tests = w->proxy_culled = 0;
-    }
-    commit_uses(s);
-}
-
-#define PHASE_CHUNK 64   /* rays per chunk: ~0.1-1 ms of walks */
-
-/* Runs a phase, layer 5 (see "Threads" above: with one thread, a plain
-** loop over the rays, then the commits); id: the batching point whose queue
-** it is, pinned, released before the uses are committed as a one-thread
-** run would (no ray of its queue uses it again: keys only grow), or
-** NO_ENTRY for new rays. */
-static brt_result phase_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
-                            const brt_bvh *bvh)
-{
-    phase_job j;
-    j.s = s;
-    j.slots = slots;
-    j.bvh = bvh;
-    j.result = BRT_OK;
-    pool_run(&s->pool, phase_chunk, phase_commit, &j, count, PHASE_CHUNK);
-    if (id != NO_ENTRY) cache_release(&s->cache, id);
-    phase_end(s);
-    return j.result;
-}
-
-/* Takes new rays from the source while there are free slots. */
+/* Takes new rays from the source while there are free slots; each walks
+** from the root. */
 static brt_result refill(scheduler *s)
 {
     while (s->free_count > 0) {
@@ -976,7 +951,7 @@ static brt_result refill(scheduler *s)
         for (i = 0; i < n; i++) {
             uint32_t slot = s->free_slots[--s->free_count];
             ray_slot *r = &s->slots[slot];
-            s->phase[i] = slot;
+            s->fresh[i] = slot;
             r->ray = s->incoming[i];
             r->tag = s->incoming_tags[i];
             brt_hit_clear(&r->hit);
@@ -987,7 +962,7 @@ static brt_result refill(scheduler *s)
             s->stats->rays++;
             s->stats->shadow_rays += is_occlusion(r);
         }
-        res = phase_run(s, s->phase, (uint32_t)n, NO_ENTRY, NULL);
+        res = run_rays(s, s->fresh, (uint32_t)n, NO_ENTRY, NULL);
         if (res != BRT_OK) return res;
     }
     return BRT_OK;
@@ -1003,28 +978,19 @@ static int only_occlusion(const scheduler *s, const ray_queue *q)
 }
 
 /* Fetches batching point id for its queue (cache_fetch: the paper's LRU
-** geometry cache), and, layer 6 (statistics only), books the load, if there
-** is one, as the shadow rays' when they alone asked for it. */
+** geometry cache), and, layer 6 (statistics only), books the load, if
+** there is one, as the shadow rays' when they alone asked for it. */
 static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const brt_bvh **bvh,
                             brt_error *err)
 {
     uint64_t loads = s->stats->batch_loads, bytes = s->stats->disk_bytes_read;
     brt_result r = cache_fetch(&s->cache, id, bvh, err);
+    s->fetch_bytes = s->stats->disk_bytes_read - bytes;
     if (r == BRT_OK && s->stats->batch_loads != loads && only_occlusion(s, q)) {
         s->stats->shadow_batch_loads += s->stats->batch_loads - loads;
-        s->stats->shadow_disk_bytes_read += s->stats->disk_bytes_read - bytes;
+        s->stats->shadow_disk_bytes_read += s->fetch_bytes;
     }
     return r;
-}
-
-/* Layer 4, read-ahead (more than one thread): while a phase runs, the
-** cache's own thread reads the blob of the fullest queue left, the likely
-** next load (cache_read_ahead).  It changes no count and no decision, only
-** the wall time.  Measured (landscape, 25 %; README, Threads): 148 of 166
-** read-aheads were used. */
-static void read_ahead(scheduler *s)
-{
-    if (s->fullest.size > 0) cache_read_ahead(&s->cache, (uint32_t)s->fullest.keys[0]);
 }
 
 /* Intersects every ray queued at batching point id, then moves each on. */
@@ -1032,15 +998,29 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
 {
     ray_queue q = s->queues[id];
     const brt_bvh *bvh;
+    uint32_t i;
     brt_result r = fetch_for(s, id, &q, &bvh, err);
     if (r != BRT_OK) return r;
+    for (i = 0; i < q.count; i++) follow_step(s, &s->slots[q.slots[i]], BRT_STEP_LOAD, id, 0.0f);
     /* Take the queue out first: no ray is queued here again (keys only
-    ** grow), but the commit queues rays elsewhere. */
+    ** grow), but the walks queue rays elsewhere. */
     memset(&s->queues[id], 0, sizeof s->queues[id]);
-    read_ahead(s);
-    r = phase_run(s, q.slots, q.count, id, bvh);
+    r = run_rays(s, q.slots, q.count, id, bvh);
     free(q.slots);
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
+}
+
+/* The scheduler's loop: the fullest queue first, until every ray is
+** finished; new rays whenever slots are free. */
+static brt_result schedule(scheduler *s, brt_error *err)
+{
+    brt_result r = refill(s);
+    while (r == BRT_OK && s->fullest.size > 0) {
+        r = process_batch(s, (uint32_t)heap_pop(&s->fullest), err);
+        if (r == BRT_OK) r = refill(s);
+    }
+    if (r == BRT_ENOMEM) return brt_fail(err, r, "out of memory in the ray queues");
+    return r == BRT_OK ? cache_check(&s->cache, err) : r;
 }
 
 /* What the geometry cache would hold with every batching point in memory. */
@@ -1055,45 +1035,13 @@ static uint64_t all_blob_bytes(const brt_scene *scene)
 /* Layer 2, proxies off when everything fits: proxies only spare loads.
 ** When the budget (what is left of it after the proxies) holds every
 ** blob nothing is ever evicted, so a load a proxy spares is only put off
-** -- unless no ray ever needs that batching point.  Measured (landscape,
-** 2 M triangles, no limit): 36 of 2.1 M proxy tests were at such points,
-** and the tests cost a fifth of the run (0.71 s against 0.49 s without;
-** README, Batched mode).  So the default scheduler does not consult them
-** then; the paper's (paper_scheduler) does. */
+** -- unless no ray ever needs that batching point -- while every test
+** costs a cast.  So the default scheduler does not consult them then;
+** the paper's (paper_scheduler) does.  render --compare without a limit
+** prints the run's time with and without them. */
 static int proxies_pay(const scheduler *s, uint64_t budget)
 {
     return s->paper_scheduler || budget < all_blob_bytes(s->scene);
-}
-
-/* The pool and one walker per thread (opt->threads: 0 means all cores). */
-static brt_result walkers_init(scheduler *s, const brt_trace_options *opt)
-{
-    uint32_t n = s->scene->header.batch_count, t;
-    pool_init(&s->pool, opt ? opt->threads : 0);
-    s->walkers = calloc(s->pool.count, sizeof *s->walkers);
-    s->uses = malloc((size_t)n * sizeof *s->uses);
-    if (!s->walkers || !s->uses) return BRT_ENOMEM;
-    for (t = 0; t < s->pool.count; t++) {
-        walker *w = &s->walkers[t];
-        w->walk.keys = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.keys);
-        w->used_at = calloc(n, sizeof *w->used_at);
-        w->used = malloc((size_t)n * sizeof *w->used);
-        if (!w->walk.keys || !w->used_at || !w->used) return BRT_ENOMEM;
-    }
-    return BRT_OK;
-}
-
-static void walkers_free(scheduler *s)
-{
-    uint32_t t;
-    for (t = 0; s->walkers && t < s->pool.count; t++) {
-        free(s->walkers[t].walk.keys);
-        free(s->walkers[t].used_at);
-        free(s->walkers[t].used);
-    }
-    free(s->walkers);
-    free(s->uses);
-    pool_free(&s->pool);
 }
 
 /* capacity_hint: the number of rays there will be, when known (0: not),
@@ -1111,6 +1059,7 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->use_proxies = !(opt && opt->no_proxy);
     s->paper_scheduler = opt && opt->paper_scheduler;
     s->use_inner = !(opt && opt->no_inner);
+    s->follow = opt && opt->follow ? opt : NULL;
     s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
     if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
     /* With proxies on, they take their bytes from the same budget (the
@@ -1128,22 +1077,24 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->fullest.pos = malloc((size_t)n * sizeof *s->fullest.pos);
     s->incoming = malloc((size_t)s->capacity * sizeof *s->incoming);
     s->incoming_tags = malloc((size_t)s->capacity * sizeof *s->incoming_tags);
-    s->phase = malloc((size_t)s->capacity * sizeof *s->phase);
-    s->outcome = malloc((size_t)s->capacity * sizeof *s->outcome);
+    s->fresh = malloc((size_t)s->capacity * sizeof *s->fresh);
+    s->walker.walk.keys = malloc(((size_t)n + scene->header.top_node_count) * sizeof *s->walker.walk.keys);
+    s->walker.cache = &s->cache;
     if (!s->slots || !s->free_slots || !s->queues || !s->fullest.keys || !s->fullest.pos || !s->incoming ||
-        !s->incoming_tags || !s->phase || !s->outcome || walkers_init(s, opt) != BRT_OK)
+        !s->incoming_tags || !s->fresh || !s->walker.walk.keys ||
+        cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK ||
+        threads_init(s, opt ? opt->threads : 0) != BRT_OK)
         return BRT_ENOMEM;
     for (i = 0; i < n; i++) s->fullest.pos[i] = HEAP_ABSENT;
     for (i = 0; i < s->capacity; i++) s->free_slots[i] = s->capacity - 1 - i;
     s->free_count = s->capacity;
-    if (cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK) return BRT_ENOMEM;
-    s->cache.read_ahead = s->pool.count > 1;
     return BRT_OK;
 }
 
 static void scheduler_free(scheduler *s)
 {
     uint32_t i;
+    threads_free(s);
     for (i = 0; s->queues && i < s->scene->header.batch_count; i++) free(s->queues[i].slots);
     cache_free(&s->cache);
     free(s->slots);
@@ -1153,9 +1104,8 @@ static void scheduler_free(scheduler *s)
     free(s->fullest.pos);
     free(s->incoming);
     free(s->incoming_tags);
-    free(s->phase);
-    free(s->outcome);
-    walkers_free(s);
+    free(s->fresh);
+    free(s->walker.walk.keys);
     for (i = 0; s->exact && i < s->scene->header.batch_count; i++) {
         brt_bvh_free(s->exact[i]);
         blob_free(s->scene, i, s->exact_data[i]);
@@ -1178,17 +1128,6 @@ static brt_result exact_load(scheduler *s, brt_error *err)
     for (i = 0; i < n && r == BRT_OK; i++)
         r = blob_read(&s->cache, i, &uncounted, &s->exact_data[i], &s->exact[i], err);
     return r;
-}
-
-static brt_result schedule(scheduler *s, brt_error *err)
-{
-    brt_result r = refill(s);
-    while (r == BRT_OK && s->fullest.size > 0) {
-        r = process_batch(s, (uint32_t)heap_pop(&s->fullest), err);
-        if (r == BRT_OK) r = refill(s);
-    }
-    if (r == BRT_ENOMEM) return brt_fail(err, r, "out of memory in the ray queues");
-    return r == BRT_OK ? cache_check(&s->cache, err) : r;
 }
 
 static brt_result trace_source(brt_scene *scene, const brt_trace_options *opt,
@@ -1384,23 +1323,26 @@ static void cache_free(geometry_cache *c)
 }
 
 /* The cache's own sanity check (SQLite's pcache has one too): the held
-** bytes add up, the LRU list holds exactly the unpinned resident entries,
-** and the budget holds unless one entry alone is larger. */
+** bytes add up, only resident entries are pinned, the LRU list holds
+** exactly the unpinned resident entries, and the budget holds unless one
+** entry alone is larger.  At the end of every trace, and after every
+** fetch and release in make debug. */
 static brt_result cache_check(const geometry_cache *c, brt_error *err)
 {
-    uint64_t held = 0, resident = 0, listed = 0;
+    uint64_t held = 0, resident = 0, listed = 0, stray_pins = 0;
     uint32_t i, id;
     for (i = 0; i < c->scene->header.batch_count; i++) {
         const cache_entry *e = &c->entries[i];
         held += e->bytes;
         resident += e->data != NULL;
         listed += e->data && e->pins == 0;
+        stray_pins += !e->data && e->pins;
     }
     for (id = c->lru_head; id != NO_ENTRY; id = c->entries[id].lru_next) {
         if (!c->entries[id].data || c->entries[id].pins) break;
         listed--;
     }
-    if (held != c->held || listed != 0)
+    if (held != c->held || listed != 0 || stray_pins != 0)
         return brt_fail(err, BRT_ECHECK, "geometry cache: bookkeeping broken");
     if (held > c->budget && resident > 1)
         return brt_fail(err, BRT_ECHECK, "geometry cache: holds %llu bytes over a budget of %llu",
@@ -1552,11 +1494,8 @@ static brt_result cache_fetch(geometry_cache *c, uint32_t id, const brt_bvh **bv
     }
     e->pins++;
     *bvh = e->bvh;
-#ifdef BRT_DEBUG
-    return cache_check(c, err);
-#else
+    assert(cache_check(c, NULL) == BRT_OK);
     return BRT_OK;
-#endif
 }
 
 /* The BVH of batching point id if it is in memory, or NULL.  Never loads
@@ -1579,7 +1518,9 @@ static void cache_touch(geometry_cache *c, uint32_t id)
 /* Release unpins: the entry becomes the most recently used evictable one. */
 static void cache_release(geometry_cache *c, uint32_t id)
 {
+    assert(c->entries[id].pins > 0);
     if (--c->entries[id].pins == 0) lru_append(c, id);
+    assert(cache_check(c, NULL) == BRT_OK);
 }
 
 /* ##################################################################### */
@@ -1592,6 +1533,31 @@ static void cache_release(geometry_cache *c, uint32_t id)
 ** and threads.  The method's sections above call into these through the
 ** declarations that follow.
 */
+
+/* The pool of threads (its code: "Threads", at the end of this part): the
+** scene build and the scheduler's phases run their jobs on it. */
+typedef void (*pool_job)(void *ctx, unsigned thread, size_t first, size_t end);
+typedef void (*pool_commit)(void *ctx, size_t first, size_t end);
+
+typedef struct pool {
+    pthread_mutex_t lock;
+    pthread_cond_t wake, idle, progress;
+    pthread_t *threads;
+    unsigned count;             /* threads that run jobs, the caller included */
+    unsigned long round;        /* incremented for each job */
+    unsigned busy;              /* threads still in the current job */
+    int quit;
+    pool_job job;
+    void *ctx;
+    size_t next, total, chunk;  /* the split of the current job */
+    unsigned char *done;        /* per chunk of the job: finished */
+    size_t done_cap;
+} pool;
+
+static void pool_init(pool *p, unsigned threads);
+static void pool_run(pool *p, pool_job job, pool_commit commit, void *ctx, size_t total,
+                     size_t chunk);
+static void pool_free(pool *p);
 
 #define MAX_COUNT 0xFFFFFFFEu   /* largest vertex or triangle count */
 
@@ -4680,6 +4646,197 @@ static void pool_run(pool *p, pool_job job, pool_commit commit, void *ctx, size_
     pthread_cond_broadcast(&p->wake);
     pthread_mutex_unlock(&p->lock);
     pool_commit_in_order(p, commit);
+}
+
+/* ---- the scheduler's loop on threads: layers 4 and 5 ---------------- */
+/*
+** The plain loop of Part I (run_rays) intersects a batch's rays, releases
+** the batching point and walks each ray on and settles it, one after
+** another.  With more than one thread the same work runs in PHASES: a
+** phase is the list of rays that run_rays would loop over.  The rays are
+** split across the pool's threads; walk_on reads the shared state (top-
+** level BVH, proxies, resident BVHs) and writes only its ray's slot, its
+** outcome and its thread's walker.  The calling thread settles the rays
+** in list order as their chunks finish (phase_settle), and after the
+** phase the LRU order is updated from a log of the walks' uses of
+** resident batching points (use_log), as if the rays had walked one after
+** another.  So every decision -- which queue is fullest, what is evicted,
+** the order of finished calls -- is the plain loop's; the threads: tests
+** hold the two byte-equal, and make bench-threads measures the speed-up.
+**
+** Layer 4, read-ahead: while a phase runs, the cache's own thread reads
+** the blob of the fullest queue left, the likely next load
+** (cache_read_ahead).  It changes no count and no decision, only the wall
+** time; make bench-threads prints how many read-aheads were used.
+*/
+struct use_log {
+    uint64_t stamp;             /* the current ray's place in its phase (high
+                                ** word) and its uses so far (low word) */
+    uint64_t *used_at;          /* per batching point: stamp of its last use; 0: none */
+    uint32_t *used, used_count; /* the points used, in first-use order */
+};
+
+/* A batching point used by a phase and the stamp of its last use. */
+typedef struct point_use {
+    uint64_t stamp;
+    uint32_t id;
+} point_use;
+
+struct phase_threads {
+    pool pool;
+    walker *walkers;            /* one per thread of the pool */
+    use_log *logs;              /* one per walker */
+    uint32_t *outcome;          /* per ray of a phase: where its walk stopped */
+    point_use *uses;            /* a phase's uses, merged */
+};
+
+/* The walker of a thread records a use, stamped in walk order. */
+static void use_log_record(use_log *log, uint32_t id)
+{
+    if (log->used_at[id] == 0) log->used[log->used_count++] = id;
+    log->used_at[id] = log->stamp++;
+}
+
+static void use_log_free(use_log *log)
+{
+    free(log->used_at);
+    free(log->used);
+}
+
+/* A phase: the rays in slots[0..count), first intersected with bvh when
+** it is not NULL (the batching point whose queue they are). */
+typedef struct phase_job {
+    scheduler *s;
+    const uint32_t *slots;
+    const brt_bvh *bvh;
+    brt_result result;          /* of the settling: BRT_ENOMEM from a queue */
+} phase_job;
+
+static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
+{
+    const phase_job *j = ctx;
+    scheduler *s = j->s;
+    walker *w = &s->threads->walkers[thread];
+    size_t i;
+    for (i = first; i < end; i++) {
+        ray_slot *r = &s->slots[j->slots[i]];
+        w->uses->stamp = (uint64_t)(i + 1) << 32;   /* ray i's uses come after ray i-1's */
+        if (j->bvh) intersect_slot(s, j->bvh, r);
+        s->threads->outcome[i] = walk_on(s, w, r);
+    }
+}
+
+/* Settles rays [first, end) of a phase, in order. */
+static void phase_settle(void *ctx, size_t first, size_t end)
+{
+    phase_job *j = ctx;
+    size_t i;
+    for (i = first; i < end && j->result == BRT_OK; i++)
+        j->result = settle(j->s, j->slots[i], j->s->threads->outcome[i]);
+}
+
+static int use_before(const void *a, const void *b)
+{
+    uint64_t x = ((const point_use *)a)->stamp, y = ((const point_use *)b)->stamp;
+    return (x > y) - (x < y);
+}
+
+/* The LRU order after a phase: each resident batching point it used moves
+** to the back in the order of its last use over all threads -- the order
+** the plain loop's touches leave. */
+static void uses_replay(scheduler *s)
+{
+    phase_threads *t = s->threads;
+    use_log *all = &t->logs[0];   /* thread 0's log gathers the others' */
+    uint32_t i, k, n;
+    for (i = 1; i < t->pool.count; i++) {
+        use_log *log = &t->logs[i];
+        for (k = 0; k < log->used_count; k++) {
+            uint32_t id = log->used[k];
+            if (all->used_at[id] == 0) all->used[all->used_count++] = id;
+            if (log->used_at[id] > all->used_at[id]) all->used_at[id] = log->used_at[id];
+            log->used_at[id] = 0;
+        }
+        log->used_count = 0;
+    }
+    for (n = 0; n < all->used_count; n++) {
+        t->uses[n].id = all->used[n];
+        t->uses[n].stamp = all->used_at[all->used[n]];
+        all->used_at[all->used[n]] = 0;
+    }
+    all->used_count = 0;
+    qsort(t->uses, n, sizeof *t->uses, use_before);
+    for (k = 0; k < n; k++) cache_touch(&s->cache, t->uses[k].id);
+}
+
+#define PHASE_CHUNK 64   /* rays per chunk: many chunks per phase, each far
+                         ** longer than a take (make bench-threads) */
+
+/* Layer 5: run_rays in a phase (id: the batching point whose queue it is,
+** pinned, or NO_ENTRY for new rays).  Released before the uses are
+** replayed, as the plain loop releases it before the walks. */
+static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
+                             const brt_bvh *bvh)
+{
+    phase_job j;
+    unsigned i;
+    if (id != NO_ENTRY && s->fullest.size > 0)                          /* layer 4 */
+        cache_read_ahead(&s->cache, (uint32_t)s->fullest.keys[0]);
+    j.s = s;
+    j.slots = slots;
+    j.bvh = bvh;
+    j.result = BRT_OK;
+    pool_run(&s->threads->pool, phase_chunk, phase_settle, &j, count, PHASE_CHUNK);
+    if (id != NO_ENTRY) cache_release(&s->cache, id);
+    for (i = 0; i < s->threads->pool.count; i++) walker_count(s, &s->threads->walkers[i]);
+    uses_replay(s);
+    return j.result;
+}
+
+/* The pool and one walker and use log per thread, when there is more
+** than one thread (threads: 0 means all cores); else s->threads stays
+** NULL and the plain loop runs. */
+static brt_result threads_init(scheduler *s, unsigned threads)
+{
+    uint32_t n = s->scene->header.batch_count, i;
+    phase_threads *t;
+    if (brt_threads_resolve(threads) < 2) return BRT_OK;
+    t = s->threads = calloc(1, sizeof *t);
+    if (!t) return BRT_ENOMEM;
+    pool_init(&t->pool, threads);
+    t->walkers = calloc(t->pool.count, sizeof *t->walkers);
+    t->logs = calloc(t->pool.count, sizeof *t->logs);
+    t->outcome = malloc((size_t)s->capacity * sizeof *t->outcome);
+    t->uses = malloc((size_t)n * sizeof *t->uses);
+    if (!t->walkers || !t->logs || !t->outcome || !t->uses) return BRT_ENOMEM;
+    for (i = 0; i < t->pool.count; i++) {
+        walker *w = &t->walkers[i];
+        w->walk.keys = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.keys);
+        w->uses = &t->logs[i];
+        w->uses->used_at = calloc(n, sizeof *w->uses->used_at);
+        w->uses->used = malloc((size_t)n * sizeof *w->uses->used);
+        if (!w->walk.keys || !w->uses->used_at || !w->uses->used) return BRT_ENOMEM;
+    }
+    s->cache.read_ahead = t->pool.count > 1;
+    return BRT_OK;
+}
+
+static void threads_free(scheduler *s)
+{
+    phase_threads *t = s->threads;
+    uint32_t i;
+    if (!t) return;
+    for (i = 0; t->walkers && i < t->pool.count; i++) {
+        free(t->walkers[i].walk.keys);
+        if (t->logs) use_log_free(&t->logs[i]);
+    }
+    free(t->walkers);
+    free(t->logs);
+    free(t->outcome);
+    free(t->uses);
+    pool_free(&t->pool);
+    free(t);
+    s->threads = NULL;
 }
 
 /* ---- direct tracing: chunks of rays through one BVH ----------------- */

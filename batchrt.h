@@ -251,6 +251,36 @@ void brt_scene_bounds(const brt_scene *scene, float bmin[3], float bmax[3]);
 typedef long (*brt_read_fn)(int fd, void *buf, size_t size, uint64_t offset,
                             void *user);
 
+/* Following one ray through the method (trace --follow): the scheduler
+** reports each step of the ray whose tag is follow_tag as it happens.
+** point: the batching point; t: where the step happens along the ray;
+** hit and visits: the ray's record after the step. */
+typedef enum brt_step_kind {
+    BRT_STEP_ENTER,         /* the walk enters point's box at t */
+    BRT_STEP_INNER,         /* its inner proxy settles the ray occluded */
+    BRT_STEP_RESIDENT,      /* its geometry is in memory: intersected at once */
+    BRT_STEP_PROXY_HIT,     /* its proxy may hold a hit: first set voxel at t */
+    BRT_STEP_PROXY_MISS,    /* its proxy proves a miss: skipped, no load */
+    BRT_STEP_QUEUED,        /* queued at point, to wait for its geometry */
+    BRT_STEP_LOAD,          /* point's queue is served: bytes read from
+                            ** disk for it (0: it was in memory) */
+    BRT_STEP_TRIANGLES,     /* point's triangles answered: hit is the
+                            ** closest so far (t = +inf: none yet) */
+    BRT_STEP_FINISHED       /* the walk is over: hit is the answer */
+} brt_step_kind;
+
+typedef struct brt_step {
+    brt_step_kind kind;
+    uint32_t point;         /* BRT_STEP_FINISHED: 0xFFFFFFFF */
+    float t;
+    uint64_t bytes;
+    brt_hit hit;
+    uint32_t visits;        /* batching points visited so far (queued at,
+                            ** or intersected at once): brt_ray_source's */
+} brt_step;
+
+typedef void (*brt_follow_fn)(void *user, uint64_t tag, const brt_step *step);
+
 /* How a trace runs; a zeroed struct means the defaults. */
 typedef struct brt_trace_options {
     uint64_t memory_limit;   /* bytes for geometry (+ proxies); 0: no limit */
@@ -278,6 +308,11 @@ typedef struct brt_trace_options {
                              ** the same for any number (README, "Threads") */
     int no_inner;            /* do not consult the inner proxies (occlusion
                              ** rays with tfar = +inf; README "Inner proxies") */
+    brt_follow_fn follow;    /* NULL, or called at each step of the ray whose
+                             ** tag is follow_tag (possibly from a thread of
+                             ** the trace's own, never two at once) */
+    void *follow_user;
+    uint64_t follow_tag;
 } brt_trace_options;
 
 /* Ray kinds.  A ray of a stream is a closest-hit ray, or an occlusion ray
