@@ -21,6 +21,11 @@
 ** ray (1 occluded, 0 clear), Embree's rtcOccluded1; both modes write the
 ** same bytes (brt_bvh_occluded, brt_scene_occluded).
 **
+** --follow N tells ray N's journey through the method on stdout, one line
+** a step (brt_trace_options.follow): each batching point its walk enters,
+** the proxy's verdict, intersected in memory or queued, the load that
+** serves its queue, the triangles' answer, and the final hit.
+**
 ** SIGINT and SIGTERM stop the scene build (which removes its temporary
 ** files) or, at the latest, the program before it writes any output; the
 ** exit status is then 128 + the signal number.
@@ -46,7 +51,7 @@ typedef struct trace_options {
     uint64_t res;                    /* proxy resolution, a power of two */
     int no_proxy;                    /* batched without proxies */
     int no_inner;                    /* batched without inner proxies */
-    uint64_t memory;                 /* page-cache budget in bytes */
+    uint64_t memory;                 /* geometry-cache budget in bytes */
     int memory_given;                /* --memory was on the command line */
     const char *scene;               /* scene file of the batched mode */
     int rebuild;                     /* rebuild the scene file even if current */
@@ -55,6 +60,9 @@ typedef struct trace_options {
     int verbose;                     /* summary line even when not a tty */
     int occlusion;                   /* --occlusion: one byte per ray */
     unsigned threads;                /* --threads; 0: all cores */
+    int paper_scheduler;             /* --paper-scheduler (brt_trace_options) */
+    int follow_given;                /* --follow N */
+    uint64_t follow;                 /* the ray followed */
 } trace_options;
 
 static void usage(void)
@@ -72,12 +80,16 @@ static void usage(void)
            "  --res R           proxy voxel resolution, a power of two in 2..1024 (default 128)\n"
            "  --no-proxy        batched mode without voxel proxies\n"
            "  --no-inner        batched occlusion rays without inner proxies\n"
-           "  --memory SIZE     page-cache budget, e.g. 512M (suffix K, M, G; default 1G)\n"
+           "  --memory SIZE     geometry-cache budget, e.g. 512M (suffix K, M, G; default 1G)\n"
            "  --scene FILE      scene file for the batched mode (default: in $BRT_SCENE_DIR,\n"
            "                    $XDG_CACHE_HOME/batchrt or ~/.cache/batchrt)\n"
            "  --rebuild         rebuild the scene file even when it is up to date\n"
            "  --drop-os-cache   cold reads: keep the scene file out of the OS cache, so\n"
            "                    every load reads the device\n"
+           "  --paper-scheduler queue rays at batching points in memory too (the paper's\n"
+           "                    scheduler; default: intersect there at once)\n"
+           "  --follow N        print ray N's journey through the method on stdout, one\n"
+           "                    line a step (batched; N counts from 0)\n"
            "  --threads N       threads (default 0: all cores); no byte or count changes\n"
            "  --stats FILE      write statistics as JSON\n"
            "  --verbose         print the summary line even when stderr is not a terminal\n"
@@ -108,6 +120,11 @@ static void parse_options(int argc, char **argv, trace_options *o)
         else if (strcmp(a, "--occlusion") == 0) o->occlusion = 1;
         else if (strcmp(a, "--rebuild") == 0) o->rebuild = 1;
         else if (strcmp(a, "--drop-os-cache") == 0) o->drop_os_cache = 1;
+        else if (strcmp(a, "--paper-scheduler") == 0) o->paper_scheduler = 1;
+        else if (strcmp(a, "--follow") == 0) {
+            o->follow = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX >> 1);
+            o->follow_given = 1;
+        }
         else if (strcmp(a, "--batch-tris") == 0)
             o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i),
                                          1, UINT32_MAX);
@@ -129,6 +146,72 @@ static void parse_options(int argc, char **argv, trace_options *o)
     if (npos < 3)
         ex_die(prog, "expected MESH RAYS HITS, got %d file name%s (see --help)",
                npos, npos == 1 ? "" : "s");
+    if (o->follow_given && !o->batched)
+        ex_die(prog, "--follow needs --batched (the direct mode has no batching points)");
+}
+
+/* ---- --follow: one ray's journey ---- */
+
+static void print_hit(const brt_hit *hit)
+{
+    if (hit->prim == BRT_NO_PRIM) printf("no hit");
+    else printf("triangle %u at t = %.9g", hit->prim, hit->t);
+}
+
+/* One line per step (brt_step_kind), in the method's words. */
+static void follow_print(void *user, uint64_t tag, const brt_step *s)
+{
+    int occlusion = (tag & BRT_TAG_OCCLUSION) != 0;
+    (void)user;
+    switch (s->kind) {
+    case BRT_STEP_ENTER:
+        printf("  enter      point %u, its box entered at t = %.9g\n", s->point, s->t);
+        break;
+    case BRT_STEP_INNER:
+        printf("  inner      point %u: its inner proxy is hit, the ray is occluded\n", s->point);
+        break;
+    case BRT_STEP_RESIDENT:
+        printf("  resident   point %u: in memory, intersected at once (visit %u)\n", s->point,
+               s->visits + 1);
+        break;
+    case BRT_STEP_PROXY_HIT:
+        printf("  proxy      point %u: hit, first voxel at t = %.9g\n", s->point, s->t);
+        break;
+    case BRT_STEP_PROXY_MISS:
+        printf("  proxy      point %u: miss, skipped without a load\n", s->point);
+        break;
+    case BRT_STEP_QUEUED:
+        printf("  queued     at point %u (visit %u)\n", s->point, s->visits);
+        break;
+    case BRT_STEP_LOAD:
+        if (s->bytes) printf("  load       point %u: %llu bytes read from disk\n", s->point,
+                             (unsigned long long)s->bytes);
+        else printf("  load       point %u: already in memory\n", s->point);
+        break;
+    case BRT_STEP_TRIANGLES:
+        printf("  triangles  point %u: ", s->point);
+        if (occlusion) printf(s->hit.prim == BRT_NO_PRIM ? "not occluded\n" : "occluded\n");
+        else if (s->hit.prim == BRT_NO_PRIM) printf("no hit so far\n");
+        else {
+            printf("closest so far ");
+            print_hit(&s->hit);
+            printf("\n");
+        }
+        break;
+    case BRT_STEP_FINISHED:
+        printf("  finished   ");
+        if (occlusion) printf(s->hit.prim == BRT_NO_PRIM ? "not occluded" : "occluded");
+        else print_hit(&s->hit);
+        printf(", %u visit%s\n", s->visits, s->visits == 1 ? "" : "s");
+        break;
+    }
+}
+
+static void follow_header(uint64_t n, const brt_ray *r, int occlusion)
+{
+    printf("ray %llu (%s): origin %.9g %.9g %.9g, direction %.9g %.9g %.9g, t in [%.9g, %.9g]\n",
+           (unsigned long long)n, occlusion ? "occlusion" : "closest hit", r->org[0], r->org[1],
+           r->org[2], r->dir[0], r->dir[1], r->dir[2], r->tnear, r->tfar);
 }
 
 #define SLICE ((size_t)1 << 18)
@@ -220,6 +303,15 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     trace_opt.no_inner = o->no_inner;
     trace_opt.drop_os_cache = o->drop_os_cache;
     trace_opt.threads = o->threads;
+    trace_opt.paper_scheduler = o->paper_scheduler;
+    if (o->follow_given) {
+        if (o->follow >= count)
+            ex_die(prog, "%s: --follow %llu: the file holds %lu rays", o->rays,
+                   (unsigned long long)o->follow, (unsigned long)count);
+        trace_opt.follow = follow_print;
+        trace_opt.follow_tag = o->follow | (occluded ? BRT_TAG_OCCLUSION : 0);
+        follow_header(o->follow, &rays[o->follow], occluded != NULL);
+    }
     ex_progress("tracing", 0, 1);
     if (occluded)
         r = brt_scene_occluded(scene, &trace_opt, rays, count, occluded, stats, &err);

@@ -67,5 +67,6 @@ void suite_build(void);
 void suite_occlusion(void);
 void suite_threads(void);
 void suite_inner(void);
+void suite_follow(void);
 
 #endif
