@@ -13,10 +13,10 @@
 **                                          (one binary heap, shared with
 **                                          the scheduler)
 **   the scene in memory                    the types the scheduler works on
-**   ray queues and the scheduler           the paper's path (walk_on,
-**                                          proxy_test, enqueue, schedule,
-**                                          process_batch), then batchrt's
-**                                          layers, each named and measured
+**   ray queues and the scheduler           the paper's loop (schedule,
+**                                          process_batch, walk_on,
+**                                          proxy_test, settle), and
+**                                          batchrt's layers, each named
 **   the geometry cache                         pread, LRU (SQLite's pcache
 **                                          shape), and read-ahead
 ** PART II -- SUPPORT, NOT THE PAPER
@@ -33,10 +33,10 @@
 **                                          64-bit mixer and SplitMix64,
 **                                          little-endian numbers, the
 **                                          growable array, the atomic writer
-**   threads                                a small pool, and the direct
-**                                          mode's chunks of rays
-** Data flow: mesh stream -> batching points -> scene file and proxies ->
-** rays -> queues -> geometry cache -> hits.
+**   threads                                a small pool, the scheduler's
+**                                          loop in phases (layers 4-5),
+**                                          and the direct mode's chunks
+** The data flow is drawn once, in batchrt.h's opening comment.
 */
 /* MAP_ANONYMOUS (POSIX.1-2024) for the geometry cache's buffers: glibc shows
 ** it only beyond the Makefile's _POSIX_C_SOURCE=200809L, hence this file's
@@ -73,15 +73,10 @@
 /* PART I -- THE METHOD: out-of-core batched traversal                   */
 /* ##################################################################### */
 /*
-** The data flow of Pharr et al. 1997 with the proxies of Molenaar and
-** Eisemann 2020:
-**
-**   mesh --partition--> batching points --build--> scene file
-**        (median splits)  (BVH blob + box + proxy each)
-**   rays --top-level walk--> geometry in memory? intersect at once;
-**        else proxy test --> queue at a batching point
-**   scheduler: fullest queue first --> geometry cache (pread, LRU) --> BVH
-**        --> the ray resumes its walk, or finishes.
+** Pharr et al. 1997 with the proxies of Molenaar and Eisemann 2020, in the
+** order of the data flow (drawn in batchrt.h): the partition into batching
+** points, the top-level BVH and its walk, the scene in memory, the queues
+** and the scheduler, the geometry cache.
 */
 
 /* ---- median splits (the partition and the top-level build share them) -- */
@@ -303,9 +298,10 @@ static inline uint64_t heap_pop(key_heap *h)
 ** again at the root, skipping
 **  (a) subtrees the ray leaves before the key's t: every box inside is
 **      entered no later than it is left, so its key would be smaller,
-** and the batching points at or before the key.  (It replaced a fresh
-** descent from the root per batching point: an in-core landscape render
-** went from 40.0 G to 30.2 G instructions; README, Batched mode.)
+** and the batching points at or before the key.  Why one walk and not a
+** fresh descent from the root per batching point: a ray passing many
+** resident or culled points would repeat the descent at each; callgrind
+** over an in-core render (make bench-render) counts the difference.
 */
 #define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
 #define TOP_LEAF 0x80000000u    /* child code of batching point (code & ~TOP_LEAF) */
@@ -1238,11 +1234,10 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
 **
 ** Each buffer is its own anonymous mapping (mmap), returned to the system
 ** by munmap on eviction.  Why not malloc: glibc serves blobs below its
-** mmap threshold (which grows up to 32 MiB once a large block is freed)
-** from the heap and keeps freed heap resident, so a render at --memory 1G
-** of a 100 M-triangle landscape peaked at 1222 MiB against a bound of
-** 1099 MiB (README, "Out of core from end to end"); with mappings the
-** resident bytes follow what the cache holds.
+** mmap threshold (which grows once a large block is freed) from the heap
+** and keeps freed heap resident, so the peak RSS of a long render would
+** exceed the memory bound; with mappings the resident bytes follow what
+** the cache holds (make bench-scale checks the bound).
 */
 #define CACHE_READ_CHUNK ((size_t)8 << 20)
 
@@ -1631,10 +1626,9 @@ static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); flo
 #define SECTION_DAG 2
 
 /* Inner proxies are stored at half the proxy resolution (at least 2), a
-** choice measured with make bench-inner (README, "Inner proxies"): at full
-** resolution their surface nodes, unique like the outer proxy's, doubled
-** the pool (landscape, 1M triangles: 0.64 -> 1.41 MB) and the geometry
-** budget paid for it; at a quarter they stopped too few rays. */
+** choice measured with make bench-inner: at full resolution their surface
+** nodes, unique like the outer proxy's, about double the pool, and the
+** geometry budget pays for it; at a quarter they stop too few rays. */
 static uint32_t inner_res(uint32_t proxy_res)
 {
     return proxy_res >= 4 ? proxy_res / 2 : 2;
@@ -4879,7 +4873,7 @@ static void bvh_trace_chunk(void *ctx, unsigned thread, size_t first, size_t end
     }
 }
 
-#define TRACE_CHUNK 1024   /* rays per chunk: ~1 ms, against ~10 us per take */
+#define TRACE_CHUNK 1024   /* rays per chunk: far longer than a take of the lock */
 
 void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags,
                    size_t count, brt_hit *hits, float *normals, unsigned threads)

@@ -213,7 +213,9 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
                                   uint64_t source_stamp, const char *scene_path,
                                   brt_error *err);
 
-/* A stamp of a mesh file (size and modification time), as make uses them. */
+/* A stamp of a mesh file: its size, modification time (to the nanosecond)
+** and inode, hashed into one number -- what make trusts, plus a file
+** replaced by another. */
 brt_result brt_scene_source_stamp(const char *mesh_path, uint64_t *stamp,
                                   brt_error *err);
 
