@@ -937,13 +937,15 @@ static brt_result run_rays(scheduler *s, const uint32_t *slots, uint32_t count, 
 
 /* Takes new rays from the source while there are free slots; each walks
 ** from the root. */
-static brt_result refill(scheduler *s)
+static brt_result refill(scheduler *s, brt_error *err)
 {
     while (s->free_count > 0) {
         size_t n = s->source->next_rays(s->source->user, s->incoming, s->incoming_tags, s->free_count), i;
         brt_result res;
         if (n == 0) return BRT_OK;
-        if (n > s->free_count) n = s->free_count;
+        if (n > s->free_count)      /* it may have written past the room it was given */
+            return brt_fail(err, BRT_EARG, "ray source: next_rays returned %lu rays for room for %lu",
+                            (unsigned long)n, (unsigned long)s->free_count);
         for (i = 0; i < n; i++) {
             uint32_t slot = s->free_slots[--s->free_count];
             ray_slot *r = &s->slots[slot];
@@ -959,7 +961,7 @@ static brt_result refill(scheduler *s)
             s->stats->shadow_rays += is_occlusion(r);
         }
         res = run_rays(s, s->fresh, (uint32_t)n, NO_ENTRY, NULL);
-        if (res != BRT_OK) return res;
+        if (res != BRT_OK) return brt_fail(err, res, "out of memory in the ray queues");
     }
     return BRT_OK;
 }
@@ -1010,12 +1012,11 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
 ** finished; new rays whenever slots are free. */
 static brt_result schedule(scheduler *s, brt_error *err)
 {
-    brt_result r = refill(s);
+    brt_result r = refill(s, err);
     while (r == BRT_OK && s->fullest.size > 0) {
         r = process_batch(s, (uint32_t)heap_pop(&s->fullest), err);
-        if (r == BRT_OK) r = refill(s);
+        if (r == BRT_OK) r = refill(s, err);
     }
-    if (r == BRT_ENOMEM) return brt_fail(err, r, "out of memory in the ray queues");
     return r == BRT_OK ? cache_check(&s->cache, err) : r;
 }
 

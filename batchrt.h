@@ -329,8 +329,9 @@ typedef struct brt_trace_options {
 #define BRT_TAG_OCCLUSION ((uint64_t)1 << 63)
 
 /* Stream mode, so a path tracer keeps a constant number of rays in flight:
-** the scheduler calls next_rays when it has room (return 0 when there are
-** no more for now) and finished for every completed ray, in an order that
+** the scheduler calls next_rays when it has room for max rays (return how
+** many it wrote, at most max -- more is a BRT_EARG error of the trace --
+** and 0 when there are no more for now) and finished for every completed ray, in an order that
 ** depends on the schedule, with the hit triangle's geometric normal (as
 ** brt_bvh_intersect_normal; zero on a miss) and the number of batching
 ** points the ray visited: queued at, or intersected at once because their

@@ -68,5 +68,6 @@ void suite_occlusion(void);
 void suite_threads(void);
 void suite_inner(void);
 void suite_follow(void);
+void suite_layers(void);
 
 #endif

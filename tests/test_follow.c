@@ -15,6 +15,7 @@
 #include "test.h"
 #include "util.h"
 
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -33,6 +34,7 @@ static double stats_number(const char *json, const char *name)
 typedef struct journey {
     unsigned queued, resident, proxy_hits, proxy_misses, loads, finished;
     unsigned final_visits;      /* the "finished" line's count */
+    unsigned late_enters;       /* boxes entered beyond the closest hit so far */
     int final_hit;              /* 1: a triangle (or occluded), 0: none */
     unsigned final_prim;
     float final_t;
@@ -41,13 +43,22 @@ typedef struct journey {
 static int read_journey(const char *text, journey *j)
 {
     const char *line = text;
+    float closest = (float)INFINITY;
     memset(j, 0, sizeof *j);
     if (!text || strncmp(text, "ray ", 4) != 0) return 0;
     while ((line = strchr(line, '\n')) != NULL) {
         char word[16];
         line++;
         if (sscanf(line, " %15s", word) != 1) continue;
-        if (strcmp(word, "queued") == 0) j->queued++;
+        if (strcmp(word, "enter") == 0) {
+            const char *at = strstr(line, "t = ");
+            j->late_enters += at && strtof(at + 4, NULL) > closest;
+        } else if (strcmp(word, "triangles") == 0) {
+            unsigned prim;
+            float t;
+            const char *at = strstr(line, "closest so far triangle");
+            if (at && sscanf(at, "closest so far triangle %u at t = %g", &prim, &t) == 2) closest = t;
+        } else if (strcmp(word, "queued") == 0) j->queued++;
         else if (strcmp(word, "resident") == 0) j->resident++;
         else if (strcmp(word, "load") == 0) j->loads++;
         else if (strcmp(word, "proxy") == 0) {
@@ -89,6 +100,10 @@ static void follow_all(const char *options, int occlusion)
               "trace --follow %d %s: exit %d, no journey", i, options, status);
         EXPECT(j.queued + j.resident == j.final_visits, "ray %d (%s): %u queued + %u resident lines, "
                "finished says %u visits", i, options, j.queued, j.resident, j.final_visits);
+        /* Pharr et al.: only boxes entered beyond the current closest hit
+        ** are skipped -- and those always are. */
+        EXPECT(j.late_enters == 0, "ray %d (%s): %u boxes entered beyond the closest hit so far", i,
+               options, j.late_enters);
         EXPECT(j.loads == j.queued, "ray %d (%s): %u queues, %u loads served them", i, options, j.queued,
                j.loads);
         if (occlusion) {

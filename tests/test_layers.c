@@ -1,0 +1,141 @@
+/*
+** tests/test_layers.c -- the rules of the scheduler's layers and of its
+** ray-source contract that no hit can show (batchrt.c, "ray queues and
+** the scheduler").
+**
+** Every layer keeps the hits, so the byte-equality tests cannot see a
+** layer that switches on at the wrong moment.  These tests pin each rule
+** at its boundary instead, against numbers the library reports for
+** another reason (the cache's peak bytes, the proxies' bytes).
+*/
+#include "test.h"
+#include "util.h"
+
+#include <stdlib.h>
+#include <string.h>
+
+static brt_scene *layers_scene(tu_scene *s, const char *name)
+{
+    brt_scene_options opt;
+    brt_mesh mesh;
+    brt_scene *scene = NULL;
+    brt_error err;
+    uint64_t st = test_seed() + 41;
+    memset(s, 0, sizeof *s);
+    tu_random_soup(s, &st, 3000, 0.04f);
+    mesh = tu_mesh_view(s);
+    memset(&opt, 0, sizeof opt);
+    opt.batch_tris = 200;
+    opt.proxy_res = 16;
+    if (brt_scene_build(&mesh, &opt, 1, tu_scratch(name), &err) != BRT_OK ||
+        brt_scene_open(tu_scratch(name), &scene, &err) != BRT_OK)
+        test_fail_at(__FILE__, __LINE__, "scene: %s", err.message);
+    return scene;
+}
+
+static brt_ray *layers_rays(const tu_scene *s, size_t count)
+{
+    brt_ray *rays = malloc(count * sizeof *rays);
+    float lo[3], hi[3];
+    uint64_t st = test_seed() + 42;
+    size_t i;
+    tu_scene_bounds(s, lo, hi);
+    for (i = 0; rays && i < count; i++) tu_make_ray(s, lo, hi, TU_RANDOM, &st, &rays[i]);
+    return rays;
+}
+
+/* Layer 2: the default scheduler leaves the proxies alone exactly when
+** the budget after the proxies holds every blob (what the cache holds at
+** its peak when nothing is evicted). */
+static void test_layer2_boundary(void)
+{
+    enum { COUNT = 4000 };
+    tu_scene s;
+    brt_scene *scene = layers_scene(&s, "layer2.brs");
+    brt_ray *rays = layers_rays(&s, COUNT);
+    brt_hit *hits = malloc(COUNT * sizeof *hits);
+    brt_trace_options opt;
+    brt_stats all, at, below;
+    brt_error err;
+    CHECK(scene && rays && hits, "set-up failed");
+    memset(&opt, 0, sizeof opt);
+    opt.threads = 1;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &all, &err) == BRT_OK, "%s", err.message);
+    CHECK(all.batch_loads == all.batching_points, "unlimited: %llu loads of %llu points; the rays must "
+          "reach every point once", (unsigned long long)all.batch_loads,
+          (unsigned long long)all.batching_points);
+    opt.memory_limit = all.cache_peak_bytes + all.proxy_bytes;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &at, &err) == BRT_OK, "%s", err.message);
+    opt.memory_limit--;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &below, &err) == BRT_OK, "%s", err.message);
+    EXPECT(at.proxy_tests == 0, "a budget holding every blob still consulted the proxies (%llu tests)",
+           (unsigned long long)at.proxy_tests);
+    EXPECT(below.proxy_tests > 0, "a byte less and the proxies were not consulted");
+    brt_scene_close(scene);
+    tu_scene_free(&s);
+    free(rays);
+    free(hits);
+}
+
+/* A ray source that claims more rays than it was given room for. */
+typedef struct greedy_source {
+    const brt_ray *rays;
+    size_t count, next, finished;
+} greedy_source;
+
+static size_t greedy_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+{
+    greedy_source *g = user;
+    size_t n = g->count - g->next < max ? g->count - g->next : max, i;
+    for (i = 0; i < n; i++) {
+        rays[i] = g->rays[g->next];
+        tags[i] = g->next++;
+    }
+    return n == max && n > 0 ? n + 7 : n;   /* the lie, only when full */
+}
+
+static void greedy_finished(void *user, const brt_ray *ray, const brt_hit *hit, const float normal[3],
+                            uint32_t visits, uint64_t tag)
+{
+    (void)ray; (void)hit; (void)normal; (void)visits; (void)tag;
+    ((greedy_source *)user)->finished++;
+}
+
+/* The source contract: more rays than room is an error of the trace, not
+** a slot count that wraps around. */
+static void test_source_contract(void)
+{
+    enum { COUNT = 300 };
+    tu_scene s;
+    brt_scene *scene = layers_scene(&s, "source.brs");
+    brt_ray *rays = layers_rays(&s, COUNT);
+    greedy_source g;
+    brt_ray_source source;
+    brt_trace_options opt;
+    brt_error err;
+    brt_result r;
+    CHECK(scene && rays, "set-up failed");
+    memset(&g, 0, sizeof g);
+    g.rays = rays;
+    g.count = COUNT;
+    source.next_rays = greedy_next;
+    source.finished = greedy_finished;
+    source.user = &g;
+    memset(&opt, 0, sizeof opt);
+    opt.rays_in_flight = 64;
+    err.message[0] = 0;
+    r = brt_scene_trace_stream(scene, &opt, &source, NULL, &err);
+    EXPECT(r == BRT_EARG && strstr(err.message, "next_rays"), "a source over its room: result %d, '%s'",
+           (int)r, err.message);
+    EXPECT(g.finished == 0, "%lu rays finished from a source that broke the contract",
+           (unsigned long)g.finished);
+    brt_scene_close(scene);
+    tu_scene_free(&s);
+    free(rays);
+}
+
+void suite_layers(void)
+{
+    test_run("layers: 2, proxies off exactly when the budget holds every blob", test_layer2_boundary);
+    test_run("layers: a ray source over its room is an error", test_source_contract);
+}
