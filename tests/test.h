@@ -69,5 +69,6 @@ void suite_threads(void);
 void suite_inner(void);
 void suite_follow(void);
 void suite_layers(void);
+void suite_sampling(void);
 
 #endif
