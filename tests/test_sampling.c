@@ -13,6 +13,9 @@
 **   the sphere (random rays): E[d] = 0, E[d_k^2] = 1/3 for every axis
 **   origins uniform in the box grown by 5 % of its longest side: the means
 **     are the centre, and the extremes reach the grown box's faces
+**   camera ray i through pixel (i mod width, i div width), jittered
+**     uniformly in it: the offset in the pixel has mean 1/2 and variance
+**     1/12 on each axis
 */
 #include "test.h"
 #include "util.h"
@@ -136,9 +139,52 @@ static void test_random_rays(void)
     free(rays);
 }
 
+/* Where ray r meets the image plane of cam, in pixels from the top left. */
+static void pixel_of(const ex_camera *cam, const brt_ray *r, double *px, double *py)
+{
+    double d[3] = {r->dir[0], r->dir[1], r->dir[2]};
+    double f = ex_dot3(d, cam->forward);
+    double x = ex_dot3(d, cam->right) / f / ex_dot3(cam->right, cam->right);
+    double y = ex_dot3(d, cam->up) / f / ex_dot3(cam->up, cam->up);
+    *px = 0.5 * (x + 1.0) * cam->width;
+    *py = 0.5 * (1.0 - y) * cam->height;
+}
+
+static void test_camera_jitter(void)
+{
+    static const float lo[3] = {-2, -1, -3}, hi[3] = {4, 2, 1};
+    enum { W = 160, H = 90, COUNT = W * H };
+    brt_ray *rays = malloc(COUNT * sizeof *rays);
+    ex_camera cam;
+    uint64_t rng = test_seed() + 3;
+    moments fx = {0, 0, 0}, fy = {0, 0, 0};
+    long i, misplaced = 0;
+    CHECK(rays, "out of memory");
+    ex_camera_fit(&cam, lo, hi, W, H);
+    ex_rays_camera(&cam, rays, COUNT, &rng);
+    for (i = 0; i < COUNT; i++) {
+        double px, py, want_x = (double)(i % W), want_y = (double)(i / W);   /* rows past H lie below the image, as documented */
+        pixel_of(&cam, &rays[i], &px, &py);
+        /* The float direction moves the point by far less than 1e-3 pixel. */
+        misplaced += px < want_x - 1e-3 || px > want_x + 1 + 1e-3 || py < want_y - 1e-3 || py > want_y + 1 + 1e-3;
+        moments_add(&fx, px - want_x);
+        moments_add(&fy, py - want_y);
+    }
+    EXPECT(misplaced == 0, "camera: %ld of %d rays outside their pixel", misplaced, (int)COUNT);
+    mean_near(&fx, 0.5, "camera: offset in the pixel, x");
+    mean_near(&fy, 0.5, "camera: offset in the pixel, y");
+    /* A uniform offset's variance is 1/12; its estimate's standard error
+    ** here is sqrt((1/80 - 1/144) / COUNT), under 7e-4. */
+    EXPECT(fabs(fx.m2 / (fx.n - 1) - 1.0 / 12) < 3.5e-3 && fabs(fy.m2 / (fy.n - 1) - 1.0 / 12) < 3.5e-3,
+           "camera: offsets in the pixel vary by %g and %g, uniform ones by 1/12", fx.m2 / (fx.n - 1),
+           fy.m2 / (fy.n - 1));
+    free(rays);
+}
+
 void suite_sampling(void)
 {
     test_run("sampling: cone directions uniform in solid angle (the sun)", test_cone);
     test_run("sampling: Lambert bounces cosine-weighted", test_lambert);
     test_run("sampling: random rays uniform on the sphere, origins in the grown box", test_random_rays);
+    test_run("sampling: camera rays jittered uniformly in their pixels", test_camera_jitter);
 }
