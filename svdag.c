@@ -1393,11 +1393,12 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 ** start before the hit.  Before it descends into a node the walk tests the
 ** box of the node's set voxels (BOUNDS TEST).
 **
-** COST.  Each of these steps cut the instructions of a culled cast:
-** bench_svdag --scene landscape (or island) under callgrind with
-** --toggle-collect=cast_culled measures it; the README ("The proxy cast")
-** lists the steps and what was tried and dropped.  Every step answers bit
-** for bit as the reference cast on the tests' rays.
+** COST.  Each of these steps cut the instructions of a culled cast, as
+** build/bench_svdag --scene landscape (or island) measures it under
+** callgrind with --toggle-collect=cast_culled (its header says how); what
+** each step gave, and what was tried and dropped, is in its commit message
+** (git log -- svdag.c).  Every step answers bit for bit as the reference
+** cast on the tests' rays.
 */
 
 /* One scale of the parent stack: a node, its mirrored corner in voxels,
@@ -1454,9 +1455,10 @@ static unsigned by_far_set(unsigned m, unsigned x)
 ** ORDER: the children are visited by increasing k.  A child's entry only
 ** grows when axes join its far-side set, so k comes after every subset of
 ** itself; child 0 (entered at tin) is first, child 7 last.  It is not
-** ESVO's ray order (the entries are not sorted; README, "The proxy
-** cast", says why), so a hit does not end a scale: each child is compared
-** with the best hit.
+** ESVO's ray order: the entries are not sorted, because a sorted order
+** pays off only when a hit ends its scale, and the render's casts are
+** yes/no casts that stop at the first set voxel anyway.  So each child is
+** compared with the best hit instead.
 */
 static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
                       unsigned m, const uint32_t corner[3], int level,
@@ -1673,11 +1675,13 @@ int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
 ** query as well (it leaves the solid); with tnear > 0 only core points at
 ** t_s >= tnear are used, so the hit beyond is at t > tnear too.
 **
-** STORAGE (measured, README "Inner proxies"): a second root per batching
-** point in the shared pool, deduplicated with the outer proxies, at half
-** their resolution (batchrt.c, inner_res): interiors are mostly solid
-** blocks, which dedup to few nodes, but their surfaces are as unique as
-** the outer proxies', and at full resolution they doubled the pool.
+** STORAGE: a second root per batching point in the shared pool,
+** deduplicated with the outer proxies, at half their resolution
+** (batchrt.c, inner_res): interiors are mostly solid blocks, which dedup
+** to few nodes, but their surfaces are as unique as the outer proxies',
+** so at full resolution their surface nodes would add about as many
+** unique nodes as the outer proxies hold (make bench-inner prints the
+** pool's bytes, proxy_bytes, beside the shadow rays they stop).
 */
 
 #define INNER_MAX_COMPONENTS 1024u  /* parity decisions per grid */
@@ -1899,8 +1903,8 @@ static brt_result closed_triangles(const float *corners, size_t stride, uint32_t
     uint32_t *vid = malloc((3 * (size_t)n + 1) * sizeof *vid), unique = 0, *parent = NULL, t;
     unsigned char *bad = NULL;
     /* weld's table is freed before the edges are listed: the peak is 5
-    ** bytes a corner and 10 a vertex (a full bucket, 1.68 M triangles and
-    ** about 1 M vertices: about 35 MB) */
+    ** bytes a corner and 10 a vertex, 15 T + 10 V bytes for T triangles
+    ** with V distinct positions (V is about T / 2 on a closed mesh) */
     brt_result r = vid ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
     if (r == BRT_OK) {
         parent = malloc(((size_t)unique + 1) * sizeof *parent);
