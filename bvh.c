@@ -346,11 +346,20 @@ static inline ALWAYS_INLINE int tri_intersect(const tri_ray *r, const brt_ray_pr
     float det, tt, rcp;
 
     /* An edge function of exactly 0 may be a rounding artefact: redo all
-    ** three in double so shared edges are decided consistently. */
+    ** three in double so shared edges are decided consistently.  Their
+    ** signs are read in double: a product of two floats is exact there,
+    ** but a value below half float's smallest subnormal (the sheared
+    ** coordinates of a ray all but in the triangle's plane, with a
+    ** subnormal shear) would round to a 0 that reads as "on the edge",
+    ** and a triangle the ray passes beside would report a hit. */
     if (eu == 0.0f || ev == 0.0f || ew == 0.0f) {
-        eu = (float)((double)cx * by - (double)cy * bx);
-        ev = (float)((double)ax * cy - (double)ay * cx);
-        ew = (float)((double)bx * ay - (double)by * ax);
+        const double du = (double)cx * by - (double)cy * bx;
+        const double dv = (double)ax * cy - (double)ay * cx;
+        const double dw = (double)bx * ay - (double)by * ax;
+        if ((du < 0.0 || dv < 0.0 || dw < 0.0) && (du > 0.0 || dv > 0.0 || dw > 0.0)) return 0;
+        eu = (float)du;
+        ev = (float)dv;
+        ew = (float)dw;
     }
     if ((eu < 0.0f || ev < 0.0f || ew < 0.0f) &&
         (eu > 0.0f || ev > 0.0f || ew > 0.0f))

@@ -1030,7 +1030,9 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 ** double; the bias folds in the box growth g of the entry or exit side.
 **
 ** CONSERVATIVE IN FLOAT.  Every box is grown by g on each side, in frame
-** units (the root cube has side 1):  g = 2^-18 (P + 3), P = max |p_i|.
+** units (the root cube has side 1):  g = 2^-18 (P + 3 + A), P = max |p_i|,
+** and A = (max |o_i| + max |origin_i|) / (N cell) + 1 bounds the ray
+** origin's and the root cube's largest world |coordinate| in frame units.
 ** - rounding: the world->frame transform errs by a few 2^-53 (P + 1);
 **   a plane's t = bias - u * step errs by a few 2^-53 (|bias| + |u step|),
 **   which is the t error of moving the plane along its axis by a few
@@ -1050,6 +1052,15 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 **   meant for callers that compare with a float ray/triangle test, whose
 **   hit point is off by some float ulps of the distance from the ray
 **   origin -- a few 2^-24 (P + 3) at most, still well inside g.
+** - that test's t, though, is clamped into the triangle's box as the box
+**   test pads it (bvh.c, rules 2 and 3): the box grown by 2^-19 of its
+**   largest world |coordinate| and the origin moved by 2^-19 of its own.
+**   A ray the test calls a hit while it only grazes the triangle (all but
+**   in its plane, a shear that underflows to 0) gets the padded box's
+**   entry as t, up to 2^-19 (max |o_i| + max |box_i|) in space before the
+**   triangle; far from the world's origin that exceeds 2^-18 (P + 3).
+**   The term A covers it twice over: 2^-18 A (N cell) >= 2^-18 (max |o_i|
+**   + max |box_i|), since the triangle's box lies in the root cube.
 ** The entry is rounded down to float and clamped to tnear.  Rays with a NaN
 ** or an infinity, zero directions, and a walk that hits the iteration cap
 ** all answer "hit at tnear", the conservative answer; tnear = tfar is a
@@ -1103,7 +1114,7 @@ static double frame_point(double p, double d)
 ** and tx_bias (r->enter_bias), and the growth g of CONSERVATIVE IN FLOAT. */
 static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray)
 {
-    double unit, scale, p0, p1, p2, d0, d1, d2, dmax, g;
+    double unit, scale, p0, p1, p2, d0, d1, d2, dmax, g, a;
     r->levels = tree_levels(proxy->res);
     unit = 1.0 / (1u << r->levels);                     /* exact */
     scale = unit / proxy->cell;     /* world -> frame; one rounding */
@@ -1117,7 +1128,9 @@ static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray
     r->bounds_flip = (0x3Fu & (0u - (r->mirror & 1u))) | (0xFC0u & (0u - ((r->mirror >> 1) & 1u))) |
                      (0x3F000u & (0u - (r->mirror >> 2)));
     dmax = max2(fabs(d0), max2(fabs(d1), fabs(d2)));
-    g = 0x1p-18 * (max2(fabs(p0), max2(fabs(p1), fabs(p2))) + 3);
+    a = (max2(fabs(ray->org[0]), max2(fabs(ray->org[1]), fabs(ray->org[2]))) +
+         max2(fabs(proxy->origin[0]), max2(fabs(proxy->origin[1]), fabs(proxy->origin[2])))) * scale + 1;
+    g = 0x1p-18 * (max2(fabs(p0), max2(fabs(p1), fabs(p2))) + 3 + a);
     frame_axis(r, 0, p0, d0, dmax, g, unit);
     frame_axis(r, 1, p1, d1, dmax, g, unit);
     frame_axis(r, 2, p2, d2, dmax, g, unit);
