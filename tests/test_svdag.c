@@ -1440,6 +1440,42 @@ static int grazing_check_voxels(const brt_grid *grid, const voxel_list *list,
     return 0;
 }
 
+/* The same ray with the sign of every zero flipped (origin, direction,
+** tnear): 1 when there was one.  It is the same segment, so the triangle
+** test and the cast must answer alike. */
+static int signed_zero_twin(const brt_ray *ray, brt_ray *twin)
+{
+    int i, any = 0;
+    *twin = *ray;
+    for (i = 0; i < 3; i++) {
+        if (ray->org[i] == 0) { twin->org[i] = signbit(ray->org[i]) ? 0.0f : -0.0f; any = 1; }
+        if (ray->dir[i] == 0) { twin->dir[i] = signbit(ray->dir[i]) ? 0.0f : -0.0f; any = 1; }
+    }
+    if (ray->tnear == 0) { twin->tnear = signbit(ray->tnear) ? 0.0f : -0.0f; any = 1; }
+    return any;
+}
+
+/* Signed zeros (issue 32, class 9): the twin gets the same triangle hit
+** (t and triangle; u and v may differ in the sign of a zero) and the same
+** cast answer and entry as the ray (got, t_entry). */
+static void check_signed_zeros(const soup *s, const brt_svdag *dag, const brt_proxy *proxy,
+                               const brt_ray *ray, int got, float t_entry, const char *label)
+{
+    brt_ray twin;
+    float t1 = 0, t2 = 0, e2 = 0;
+    uint32_t p1 = 0, p2 = 0;
+    int h1, h2, g2;
+    if (!signed_zero_twin(ray, &twin)) return;
+    h1 = brute_hit(s, ray, &t1, &p1);
+    h2 = brute_hit(s, &twin, &t2, &p2);
+    g2 = brt_proxy_raycast(dag, proxy, &twin, twin.tnear, twin.tfar, &e2);
+    EXPECT(h1 == h2 && (!h1 || (t1 == t2 && p1 == p2)) && got == g2 && (!got || t_entry == e2),
+           "%s res %u: ray (%a %a %a) dir (%a %a %a) [%a %a] and its signed-zero twin differ: "
+           "triangles %d t %a (%u) / %d t %a (%u), proxy %d t %a / %d t %a", label, proxy->res,
+           ray->org[0], ray->org[1], ray->org[2], ray->dir[0], ray->dir[1], ray->dir[2], ray->tnear,
+           ray->tfar, h1, t1, p1, h2, t2, p2, got, t_entry, g2, e2);
+}
+
 /* Triangles in and near axis planes (9 floats each). */
 typedef struct grazing_case {
     const char *label;
@@ -1508,6 +1544,7 @@ static void grazing_run(const grazing_case *c, uint32_t res, uint32_t rays, uint
             break;
         EXPECT(brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, NULL) == got,
                "%s res %u: the yes/no cast disagrees", c->label, res);
+        check_signed_zeros(&s, dag, &proxy, &ray, got, t_entry, c->label);
     }
     free(list.at);
     soup_free(&s);
@@ -1529,6 +1566,131 @@ static void test_grazing_directions(void)
     printf("  svdag: grazing: %llu of the rays hit a triangle\n", (unsigned long long)hits);
 }
 
+/* The 12 triangles of the closed box [lo, hi] (9 floats each) into tri;
+** zeros as -0 in every second triangle when negative_zeros (the same
+** solid: a weld takes -0 = +0). */
+static void closed_box(const float lo[3], const float hi[3], int negative_zeros, float tri[12][9])
+{
+    static const unsigned char quads[6][4] = {{0, 2, 6, 4}, {1, 5, 7, 3}, {0, 4, 5, 1},
+                                              {2, 3, 7, 6}, {0, 1, 3, 2}, {4, 6, 7, 5}};
+    static const unsigned char halves[2][3] = {{0, 1, 2}, {0, 2, 3}};
+    int f, h, k, a;
+    for (f = 0; f < 6; f++)
+        for (h = 0; h < 2; h++)
+            for (k = 0; k < 3; k++)
+                for (a = 0; a < 3; a++) {
+                    unsigned corner = quads[f][halves[h][k]];
+                    float v = (corner >> a) & 1 ? hi[a] : lo[a];
+                    tri[2 * f + h][3 * k + a] = v == 0 && negative_zeros && h ? -0.0f : v;
+                }
+}
+
+/* The inner proxy of the 12 triangles tri at res, in a grid over [lo, hi]. */
+static int inner_of_box(float tri[12][9], const float lo[3], const float hi[3], uint32_t res,
+                        brt_svdag *dag, brt_proxy *proxy, brt_grid *grid)
+{
+    brt_solids *solids = NULL;
+    int ok = brt_grid_init(grid, lo, hi, res) == BRT_OK;
+    ok = ok && brt_solids_build(&tri[0][0], 9, 12, &solids) == BRT_OK &&
+         brt_voxelize_inner(grid, solids) == BRT_OK && brt_svdag_add(dag, grid, proxy) == BRT_OK;
+    brt_solids_free(solids);
+    return ok;
+}
+
+/*
+** Inner proxies at grazing directions: boxes near and far from the world
+** origin, rays along the axes from far away (some past the cast's
+** magnitude limit, which it must refuse) that graze the faces, edges and
+** the voxel cores' planes.  An occluded verdict needs a triangle hit at t
+** >= tnear by brute force; signed zeros do not change a verdict.
+*/
+static void test_grazing_inner(void)
+{
+    static const float boxes[2][2][3] = {{{0, 0, 0}, {1, 1, 1}}, {{500, 3, -2}, {501, 4.5f, -1}}};
+    static const uint32_t resolutions[] = {8, 16, 32};
+    uint64_t rng = test_seed() + 33, occluded = 0, rays = 0;
+    size_t b, r;
+    for (b = 0; b < 2; b++)
+        for (r = 0; r < 3 && !test_failed(); r++) {
+            float tri[12][9];
+            soup s = {NULL, NULL, 36, 12};
+            uint32_t idx[36], k, n;
+            brt_svdag *dag;
+            brt_proxy proxy;
+            brt_grid grid;
+            closed_box(boxes[b][0], boxes[b][1], 0, tri);
+            for (k = 0; k < 36; k++) idx[k] = k;
+            s.pos = &tri[0][0];
+            s.idx = idx;
+            CHECK(brt_svdag_create(&dag) == BRT_OK, "create");
+            if (!inner_of_box(tri, boxes[b][0], boxes[b][1], resolutions[r], dag, &proxy, &grid)) {
+                brt_svdag_free(dag);
+                CHECK(0, "box %u res %u: inner proxy", (unsigned)b, resolutions[r]);
+            }
+            for (n = 0; n < 4000 && !test_failed(); n++) {
+                brt_ray ray, twin;
+                float t;
+                uint32_t prim;
+                int occ;
+                grazing_ray(&rng, &s, &grid, boxes[b][0], boxes[b][1], &ray);
+                if (rand_below(&rng, 2))        /* through the inside, along the main axis */
+                    for (k = 0; k < 3; k++)
+                        if (fabsf(ray.dir[k]) < 0.25f)
+                            ray.org[k] = rand_range(&rng, boxes[b][0][k], boxes[b][1][k]);
+                if (rand_below(&rng, 4) == 0) ray.tnear = rand_range(&rng, 0, 2000);
+                occ = brt_inner_occludes(dag, &proxy, &ray);
+                occluded += occ;
+                rays++;
+                EXPECT(!occ || brute_hit(&s, &ray, &t, &prim),
+                       "box %u res %u: ray (%a %a %a) dir (%a %a %a) [%a inf] called occluded, "
+                       "no triangle hit", (unsigned)b, resolutions[r], ray.org[0], ray.org[1],
+                       ray.org[2], ray.dir[0], ray.dir[1], ray.dir[2], ray.tnear);
+                if (signed_zero_twin(&ray, &twin))
+                    EXPECT(brt_inner_occludes(dag, &proxy, &twin) == occ,
+                           "box %u res %u: the signed-zero twin of ray (%a %a %a) dir (%a %a %a) "
+                           "differs", (unsigned)b, resolutions[r], ray.org[0], ray.org[1],
+                           ray.org[2], ray.dir[0], ray.dir[1], ray.dir[2]);
+            }
+            brt_grid_free(&grid);
+            brt_svdag_free(dag);
+        }
+    /* enough of the rays pass through an inner voxel's core to test something */
+    EXPECT(occluded * 50 > rays, "only %llu of %llu rays occluded", (unsigned long long)occluded,
+           (unsigned long long)rays);
+    printf("  svdag: grazing inner: %llu of %llu rays occluded\n", (unsigned long long)occluded,
+           (unsigned long long)rays);
+}
+
+/* Signed zeros in a weld (issue 32, class 9): a closed box whose corners
+** at 0 are written -0 in half of its triangles is the same solid, with the
+** same inner voxels, at every resolution. */
+static void test_inner_signed_zeros(void)
+{
+    static const float lo[3] = {0, 0, 0}, hi[3] = {1, 2, 1};
+    uint32_t res;
+    for (res = 8; res <= 32; res *= 2) {
+        float plain[12][9], signed_zeros[12][9];
+        brt_svdag *dag;
+        brt_proxy a, b;
+        brt_grid ga, gb;
+        closed_box(lo, hi, 0, plain);
+        closed_box(lo, hi, 1, signed_zeros);
+        CHECK(brt_svdag_create(&dag) == BRT_OK, "create");
+        if (!inner_of_box(plain, lo, hi, res, dag, &a, &ga) ||
+            !inner_of_box(signed_zeros, lo, hi, res, dag, &b, &gb)) {
+            brt_svdag_free(dag);
+            CHECK(0, "res %u: inner proxies", res);
+        }
+        EXPECT(brt_grid_count(&ga) > 0 && brt_grid_count(&ga) == brt_grid_count(&gb) &&
+                   memcmp(ga.bits, gb.bits, ((size_t)res * res * res + 63) / 64 * 8) == 0,
+               "res %u: inner voxels %llu with +0, %llu with -0 corners", res,
+               (unsigned long long)brt_grid_count(&ga), (unsigned long long)brt_grid_count(&gb));
+        brt_grid_free(&ga);
+        brt_grid_free(&gb);
+        brt_svdag_free(dag);
+    }
+}
+
 void suite_svdag(void)
 {
     test_run("svdag: grid frame covers the box", test_grid_frame);
@@ -1546,4 +1708,6 @@ void suite_svdag(void)
     test_run("svdag: corrupt blobs", test_blob_corrupt);
     test_run("svdag: voxelize program", test_voxelize_program);
     test_run("svdag: grazing directions, far origins", test_grazing_directions);
+    test_run("svdag: grazing directions, inner proxies", test_grazing_inner);
+    test_run("svdag: inner proxies, signed zeros in the weld", test_inner_signed_zeros);
 }
