@@ -4315,7 +4315,8 @@ brt_result brt_parse_size(const char *text, uint64_t *bytes)
 ** bijection whose outputs for neighbouring inputs look independent: the
 ** generator below, the DAG's dedup tables (svdag.c) and the renderer's
 ** counter-based samples (examples/render.c) all use it.  (brt_checksum64
-** is not built on it: its steps are fixed by the scene files written.) */
+** and bvh.c's vertex_hash are not built on it: their steps are fixed by
+** the scene files written.) */
 uint64_t brt_mix64(uint64_t z)
 {
     z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;

@@ -38,9 +38,8 @@
 **   vertices (3 floats each, exactly as given; equal bits stored once as
 **   far as a node can reach them), the reported triangle numbers prim[]
 **   (read only on a hit), and per triangle 3 uint16 corner offsets from
-**   its node's vertex_base.  Bytes per triangle: 64 per node, 12 per
-**   vertex, 10 per triangle: 23-29 on the shared meshes and built-in
-**   scenes (the float layout before it: 58-63).
+**   its node's vertex_base.  Bytes: 64 per node, 12 per vertex, 10 per
+**   triangle; build/bench_bvh MESH prints the total per triangle.
 **
 ** WHY THE QUANTIZED BOXES KEEP PRUNING EXACT.  The build quantizes each
 ** padded child box outward (min planes down, max planes up, checked by
@@ -61,10 +60,11 @@
 ** Embree does).  16 bins per axis (fewer, one per triangle, in nodes of
 ** under 16): Wald reports 16 bins within a few percent of the full-sweep
 ** SAH, and more bins cost build time.  Costs C_TRAV = 3, C_ISECT = 1: a
-** 4-wide quantized node test costs about three scalar triangle tests
-** here, and the larger leaves cut bytes (island at 1 M triangles: 32.0 ->
-** 29.3 per triangle, landscape 26.8 -> 24.1; float nodes: C_TRAV 2 took
-** 77 -> 63 and 1 or 3 were no faster).  A leaf holds at most
+** 4-wide quantized node test (decoding included) costs a few scalar
+** triangle tests, and a higher C_TRAV makes larger leaves, whose
+** triangles share more vertices, so the blob has fewer bytes per triangle
+** (build/bench_bvh prints them, and its speed; callgrind on it counts
+** both tests' instructions).  A leaf holds at most
 ** MAX_LEAF = 8 triangles.  Below depth SAH_DEPTH the split is the SAH one;
 ** deeper (pathological inputs only) the range is halved, so the binary
 ** depth is at most SAH_DEPTH + 32 = MAX_DEPTH and the 4-wide depth no
@@ -97,8 +97,8 @@
 ** Rays with a NaN anywhere, an inf in the origin or direction, an all-zero
 ** direction, or tnear > tfar never hit (checked once per ray).
 **
-** PERFORMANCE NOTES (what was tried) are at the end of the file; the
-** full diary is in the README, "The BVH: what was tried".
+** PERFORMANCE NOTES (what was tried) are at the end of the file; what
+** each change measured is in its commit message (git log -- bvh.c).
 */
 /* The library defines the entry points for tests too (batchrt.h, 7). */
 #ifndef BRT_TESTING
@@ -112,7 +112,8 @@
 #include <string.h>
 
 /* GCC's -O2 would call box_span4 rather than inline it into traverse(),
-** which cost the BVH walk a sixth of its speed; other compilers decide. */
+** a call at every node of the BVH walk (make bench measures the walk's
+** speed); other compilers decide. */
 #if defined(__GNUC__)
 #define ALWAYS_INLINE __attribute__((always_inline))
 #else
@@ -163,9 +164,8 @@ struct brt_bvh {
 ** origins repeated in four lanes (so box_test4 loads them as vectors
 ** instead of broadcasting nine scalars at every node), and, for the node
 ** layout, the row of box[] that holds each axis's near and far plane.
-** (It used to carry a copy of the brt_ray_prep too, which the top-level
-** walk paid for at every node: a landscape render at 25 % went from 38.4 G
-** to 37.6 G instructions without it.) */
+** It holds no copy of the brt_ray_prep: the top-level walk would pay for
+** the copy at every node. */
 typedef struct box_ray {
     float org_near[3][4], org_far[3][4], inv[3][4];
     int near_row[3];
@@ -197,8 +197,8 @@ void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
 }
 
 /* The four-lane copy of an already prepared ray.  Inlined: as a call it
-** cost the top-level walk (one brt_box_span4 per node) 66 instructions a
-** node (callgrind, batched camera rays on the dragon). */
+** would cost the top-level walk (one brt_box_span4 per node) a call at
+** every node (callgrind on a batched trace counts it). */
 static inline ALWAYS_INLINE void box_ray_from_prep(const brt_ray_prep *prep, box_ray *b)
 {
     int a, i;
@@ -324,8 +324,8 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
 }
 
 /* The watertight test proper (Woop et al., Fig. 4 with culling off).
-** Forced inline: as a call with its eleven arguments it cost the BVH walk
-** 2-4 % more instructions (callgrind, dragon). */
+** Forced inline: as a call, its eleven arguments are passed at every leaf
+** triangle (callgrind on build/bench_bvh counts the instructions). */
 static inline ALWAYS_INLINE int tri_intersect(const tri_ray *r, const brt_ray_prep *bp,
                                 const float *p0, const float *p1, const float *p2,
                                 float tnear, float tfar,
@@ -346,11 +346,20 @@ static inline ALWAYS_INLINE int tri_intersect(const tri_ray *r, const brt_ray_pr
     float det, tt, rcp;
 
     /* An edge function of exactly 0 may be a rounding artefact: redo all
-    ** three in double so shared edges are decided consistently. */
+    ** three in double so shared edges are decided consistently.  Their
+    ** signs are read in double: a product of two floats is exact there,
+    ** but a value below half float's smallest subnormal (the sheared
+    ** coordinates of a ray all but in the triangle's plane, with a
+    ** subnormal shear) would round to a 0 that reads as "on the edge",
+    ** and a triangle the ray passes beside would report a hit. */
     if (eu == 0.0f || ev == 0.0f || ew == 0.0f) {
-        eu = (float)((double)cx * by - (double)cy * bx);
-        ev = (float)((double)ax * cy - (double)ay * cx);
-        ew = (float)((double)bx * ay - (double)by * ax);
+        const double du = (double)cx * by - (double)cy * bx;
+        const double dv = (double)ax * cy - (double)ay * cx;
+        const double dw = (double)bx * ay - (double)by * ax;
+        if ((du < 0.0 || dv < 0.0 || dw < 0.0) && (du > 0.0 || dv > 0.0 || dw > 0.0)) return 0;
+        eu = (float)du;
+        ev = (float)dv;
+        ew = (float)dw;
     }
     if ((eu < 0.0f || ev < 0.0f || ew < 0.0f) &&
         (eu > 0.0f || ev > 0.0f || ew > 0.0f))
@@ -391,10 +400,10 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
 ** here, the top level in batchrt.c -- gets the same bits for the same box.
 ** Written lane-wise with the mask bits as a select of constants, so that
 ** GCC -O2 turns the whole test into vector instructions (a per-lane shift
-** loop cost a quarter of the node's instructions).  The distances go to
-** local arrays first: written straight to lo and hi, which might alias
-** the inputs, the loop stayed scalar in brt_box_span4 (194 instructions a
-** call instead of about 40). */
+** loop stayed scalar).  The distances go to local arrays first: written
+** straight to lo and hi, which might alias the inputs, the loop stayed
+** scalar in brt_box_span4 (callgrind on build/bench_bvh counts a node's
+** instructions). */
 static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float nr[3][4],
                                                const float fr[3][4], float tnear, float tfar,
                                                float lo[4], float hi[4])
@@ -443,10 +452,9 @@ static inline float decode_plane(float org, float scale, unsigned q)
 ** and adding 2^32 there gives q * 2^24 back.  Every step is exact (at
 ** most 8 significant bits), and the power of two unit[i] brings each lane
 ** to the float of its byte: the same decode_plane arithmetic after it.
-** (A loop that extracted each byte by shifting stayed scalar: 3.6 times
-** the instructions of the float nodes; shifting lane 3 alone down by 8
-** bits first cost 118 instructions a node for the six rows, this 96:
-** callgrind, random rays on the dragon.) */
+** (A loop that extracted each byte by shifting stayed scalar, and
+** shifting lane 3 alone down by 8 bits first took more instructions than
+** this fix-up: callgrind on build/bench_bvh with the dragon counts them.) */
 static inline ALWAYS_INLINE void decode_row(const qnode *n, int row, int a, float out[4])
 {
     static const uint32_t mask[4] = {0xFFu, 0xFF00u, 0xFF0000u, 0xFF000000u};
@@ -466,8 +474,7 @@ static inline ALWAYS_INLINE void decode_row(const qnode *n, int row, int a, floa
 
 /* The four slots' boxes as brt_box_span4 rows.  Row by row, four lanes
 ** each, so that GCC -O2 turns each row into a few vector instructions
-** (one loop over all 24 planes with row % 3 stayed scalar: traversal
-** then ran 4.6 times the instructions of the float nodes). */
+** (one loop over all 24 planes with row % 3 stayed scalar). */
 static inline ALWAYS_INLINE void decode_boxes(const qnode *n, float box[6][4])
 {
     int a;
@@ -1010,6 +1017,12 @@ typedef struct emitter {
     uint32_t *recent;     /* VERTEX_TABLE entries: a vertex with that hash */
 } emitter;
 
+/* A vertex's slot in the table: a multiplicative hash of its bits (the
+** three 32-bit primes of xxHash32, then a fold of the high half), not
+** brt_mix64, batchrt's one mixer: a slot holds one vertex, so the slots
+** decide which corners a blob shares and which it stores twice, and so
+** every blob's bytes.  Like brt_checksum64's steps, these are fixed by
+** the scene files written. */
 static uint32_t vertex_hash(const float *p)
 {
     uint32_t w[3], h;
@@ -1552,25 +1565,24 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 }
 
 /*
-** PERFORMANCE NOTES: what was tried, one figure each (the full diary with
-** its measurements: README, "The BVH: what was tried"; make bench-embree
-** and callgrind on the 2-core VM, one thread).
-**   - Float nodes (v1): binned build 3.5 -> 0.8 s per million triangles;
-**     nearest child without a push, siblings consecutive, prefetching hit
-**     children, box test as vectors: 735 M -> 633 M instructions; not
-**     kept: 4 KB alignment, page-grouped node order, MAX_LEAF 4/16, 32 bins.
-**   - Quantized 64-byte nodes + shared vertices (v2): 58-63 -> 23-29.5
-**     bytes per triangle; decode as vector rows: 795 M -> 413 M (float
-**     nodes: 172 M); C_TRAV 3: island 32.2 -> 29.3 bytes per triangle.
-**   - Fourth round: brt_box_span4 vectorized and the near/far rows
-**     decoded from their words (batched x0.88), decode_row's lane-3
-**     fix-up (decoding 118 -> 96 instructions a node), tri_intersect
-**     inlined (x0.97): together x0.83-0.87 instructions direct and
-**     batched.  Not kept: slot_valid as one word (+0.2 %), lazy
-**     tri_ray_setup (bounce +1.8 %), a xor-and-bias decode (+16 %), huge
-**     pages (not POSIX; cold random x0.92-1.27, noise).
-**   - Ratio to Embree (make bench-embree, --threads 1): 0.51-0.57 camera,
-**     0.32-0.38 random and bounce direct, 0.28-0.41 batched.  Warm speed
-**     is near Embree's cold, so random and bounce rays wait on memory;
-**     not done: 8-wide nodes, SoA leaves of 4 (a format v3).
+** PERFORMANCE NOTES: what was tried, kept or not.  What each change
+** measured is in its commit message (git log -- bvh.c); make bench
+** (build/bench_bvh: build time, bytes per triangle, speed) and make
+** bench-embree (against Embree, one thread) measure the current state,
+** and callgrind on either counts instructions.
+**   - Build: binned SAH.  Walk: nearest child without a push, siblings
+**     consecutive in memory, prefetching hit children, the box test as
+**     vectors.  Not kept: 4 KB alignment, a page-grouped node order,
+**     MAX_LEAF 4 or 16, 32 bins.
+**   - Quantized 64-byte nodes and shared vertices with 16-bit offsets
+**     (the BVH2 blob); decoding as vector rows; C_TRAV 3 for larger
+**     leaves.
+**   - brt_box_span4 vectorized, the near and far rows decoded from their
+**     words, decode_row's lane-3 fix-up, tri_intersect inlined.  Not
+**     kept: slot_valid as one word, a lazy tri_ray_setup, a xor-and-bias
+**     decode, huge pages (not POSIX).
+**   - Random and bounce rays wait on memory: the speed with the nodes
+**     already in cache (bench_bvh's "warm") is far above the cold one.
+**     Not done: 8-wide nodes, leaves of 4 triangles as structures of
+**     arrays (each a new blob layout).
 */

@@ -2,18 +2,27 @@
 ** svdag.c -- conservative voxel proxies: the paper's contribution
 ** (Molenaar and Eisemann 2020, section 3).
 **
+** In the order of the file:
 **   1. brt_voxelize: conservative triangle/box overlap with the 13-axis
 **      separating-axis test of Akenine-Moller (2001), evaluated per voxel
 **      of each triangle's bounding box, in double precision in grid-local
 **      coordinates with every box grown by a bound on the rounding error.
 **   2. brt_svdag_add: the grid becomes a sparse voxel octree, built bottom
 **      up, whose nodes are deduplicated against one pool shared by every
-**      proxy -- the sparse voxel DAG of Kampe, Sintorn and Assarsson (2013).
-**   3. brt_proxy_raycast: the ray cast of Laine and Karras (2010) -- octant
-**      mirroring, the [1,2] coordinate frame, a parent stack per scale --
-**      adapted to the DAG and made conservative for closed, grown boxes;
-**      brt_proxy_raycast_reference: the same cast as their plain
-**      algorithm, written for reading, that the tests hold the fast one to.
+**      proxy -- the sparse voxel DAG of Kampe, Sintorn and Assarsson (2013)
+**      -- with its checks, decoder and blob for the scene file.
+**   3. The ray cast of Laine and Karras (2010) -- octant mirroring, the
+**      [1,2] coordinate frame, a parent stack per scale -- adapted to the
+**      DAG and made conservative for closed, grown boxes:
+**      the frame both casts share, then
+**      brt_proxy_raycast_reference: their algorithm as one function, its
+**      phases in order (INITIALIZE, PUSH, ADVANCE, POP), written for
+**      reading; then
+**      brt_proxy_raycast: the fast cast, which the tests hold to the
+**      reference bit for bit.
+**   4. Beyond the paper: inner proxies (its section 4.3, future work):
+**      brt_solids_build, brt_voxelize_inner, brt_inner_occludes -- voxels
+**      certainly inside closed geometry, which settle a shadow ray.
 **
 ** NODE LAYOUT (the pool; also the blob, see brt_svdag_blob_write)
 **   leaves[]  uint64 per leaf: a 4x4x4 block of voxels, bit x+4*(y+4*z).
@@ -1000,42 +1009,30 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 }
 
 /* ===================================================================== */
-/* Ray cast (Laine and Karras 2010), conservative                          */
+/* Ray cast (Laine and Karras 2010), conservative: the frame               */
 /* ===================================================================== */
 
 /*
+** Two casts answer the same question -- the least entry of the segment
+** [tnear, tfar] into a set voxel's closed box, grown as below -- and share
+** this section: the reference cast (brt_proxy_raycast_reference), their
+** algorithm as one function with the paper's phases in order, and the fast
+** cast (brt_proxy_raycast), which visits the same voxels in an order of its
+** own.  The tests hold the two to the same answers, bit for bit.
+**
 ** THE FRAME.  As in Laine and Karras, the root cube is mapped to [1,2]^3
 ** and the ray is mirrored so that every direction component is negative
 ** (octant_mask), so the ray runs towards smaller coordinates and meets a
-** cube's upper children first.  Where ESVO reads cube positions out of float mantissas,
-** we keep them as the integers those mantissas hold (leaf-voxel units,
-** x = 1 + u / N), which is exact in double.  As in ESVO a plane's t is
-** a bias minus u times a per-voxel step (tx_bias - x * tx_coef), in
+** cube's upper children first.  Where ESVO reads cube positions out of float
+** mantissas, we keep them as the integers those mantissas hold (leaf-voxel
+** units, x = 1 + u / N), which is exact in double.  As in ESVO a plane's t
+** is a bias minus u times a per-voxel step (tx_bias - x * tx_coef), in
 ** double; the bias folds in the box growth g of the entry or exit side.
 **
-** WHY NOT ESVO'S ADVANCE STEP.  ESVO steps from a cube to its neighbour
-** through the face the ray leaves by.  When the ray leaves through an edge
-** or a corner it steps diagonally and never visits the cubes that it only
-** touches there -- but a proxy must report closed boxes it touches (the
-** reference cast below shows where, in ESVO's own structure).  So PUSH
-** finds, from the node's three centre planes, every child whose grown box
-** the segment touches (push_node), ADVANCE takes the next of them, POP
-** returns to the parent scale.  The two bit-mask levels of a leaf are
-** walked the same way (a leaf's octants, an octant's voxels).  A set voxel
-** becomes the best hit; from then on a child entered at or behind it is
-** passed over, and the walk only finishes the children (siblings of the
-** hit and of its ancestors) that the segment enters sooner, because a
-** grown sibling may start before the hit.  Before it descends into a node
-** the walk tests the box of the node's set voxels (BOUNDS TEST).
-**
-** COST: a culled cast takes x0.46 (landscape) and x0.51 (island) of the
-** instructions of the rank-sorted walk before it; the steps, each
-** measured, and what was tried and dropped are in the README ("The proxy
-** cast").
-** Every step answers bit for bit as the reference cast on the tests' rays.
-**
 ** CONSERVATIVE IN FLOAT.  Every box is grown by g on each side, in frame
-** units (the root cube has side 1):  g = 2^-18 (P + 3), P = max |p_i|.
+** units (the root cube has side 1):  g = 2^-18 (P + 3 + A), P = max |p_i|,
+** and A = (max |o_i| + max |origin_i|) / (N cell) + 1 bounds the ray
+** origin's and the root cube's largest world |coordinate| in frame units.
 ** - rounding: the world->frame transform errs by a few 2^-53 (P + 1);
 **   a plane's t = bias - u * step errs by a few 2^-53 (|bias| + |u step|),
 **   which is the t error of moving the plane along its axis by a few
@@ -1046,14 +1043,28 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 ** - near-parallel rays: components below 2^-40 of the largest are replaced
 **   by 2^-40 of it (ESVO's epsilon trick, which also handles 0).  Within the
 **   root cube |t| <= (P + 2) / max|d|, so the tilted ray stays within
-**   2^-40 (P + 2) < g of the true one.
-** - the margin beyond these 2^-40-sized terms (g is about 2^22 times
-**   larger) is meant for callers that compare with a float ray/triangle
-**   test, whose hit point is off by some float ulps of the distance from
-**   the ray origin -- a few 2^-24 (P + 3) at most, still well inside g.
+**   2^-40 (P + 2) < g of the true one.  The tilt is towards smaller frame
+**   coordinates, as every direction is after mirroring; a zero component
+**   of either sign (+0, -0) is not mirrored (d > 0 is false for both).
+**   Rays far from the box have a large P, and so a large g: their tilt,
+**   proportional to P, stays inside it at any distance.
+** - the margin beyond these 2^-40-sized terms (g is 2^22 times larger) is
+**   meant for callers that compare with a float ray/triangle test, whose
+**   hit point is off by some float ulps of the distance from the ray
+**   origin -- a few 2^-24 (P + 3) at most, still well inside g.
+** - that test's t, though, is clamped into the triangle's box as the box
+**   test pads it (bvh.c, rules 2 and 3): the box grown by 2^-19 of its
+**   largest world |coordinate| and the origin moved by 2^-19 of its own.
+**   A ray the test calls a hit while it only grazes the triangle (all but
+**   in its plane, a shear that underflows to 0) gets the padded box's
+**   entry as t, up to 2^-19 (max |o_i| + max |box_i|) in space before the
+**   triangle; far from the world's origin that exceeds 2^-18 (P + 3).
+**   The term A covers it twice over: 2^-18 A (N cell) >= 2^-18 (max |o_i|
+**   + max |box_i|), since the triangle's box lies in the root cube.
 ** The entry is rounded down to float and clamped to tnear.  Rays with a NaN
 ** or an infinity, zero directions, and a walk that hits the iteration cap
-** all answer "hit at tnear", the conservative answer.  The proxy is not
+** all answer "hit at tnear", the conservative answer; tnear = tfar is a
+** segment of one point, which a box touches or not.  The proxy is not
 ** checked here (brt_proxy_check, once, when it is built or read).
 */
 typedef struct ray_frame {
@@ -1068,21 +1079,6 @@ typedef struct ray_frame {
     int any;                /* stop at the first set voxel: no entry wanted */
 } ray_frame;
 
-/* One scale of the parent stack: a node, its mirrored corner in voxels,
-** its live interval [tin, tout], its three centre planes' entries and
-** exits, and the children still to visit, as a set of far-side sets (see
-** push_node).  Above the leaves a node is a pool word offset; at level 2
-** it is a leaf's 64 bits, and at level 1 the 8 voxels of one 2x2x2 octant
-** of a leaf, so the bit-mask levels are walked like any other. */
-typedef struct scale_entry {
-    uint64_t node;
-    uint32_t corner[3];
-    double tin, tout;
-    double e[3];            /* centre plane of axis a: the far half entered */
-    double l[3];            /* ... and the near half left (e + gap) */
-    unsigned pending;       /* bit k: child of far-side set k still to visit */
-} scale_entry;
-
 /* t where the ray enters / leaves the grown slab face at voxel plane u
 ** (mirrored frame: the ray runs towards smaller u). */
 static double enter_t(const ray_frame *r, int axis, uint32_t u)
@@ -1095,8 +1091,9 @@ static double leave_t(const ray_frame *r, int axis, uint32_t u)
     return enter_t(r, axis, u) + r->gap[axis];
 }
 
-/* One axis of the frame (written out per axis: GCC -O2 kept the loops,
-** whose counters were a tenth of a culled cast). */
+/* One axis of the frame (frame_setup calls it three times, written out:
+** GCC -O2 kept a loop over the axes, counter and all; bench_svdag --scene
+** under callgrind measures the cast). */
 static void frame_axis(ray_frame *r, int i, double p, double d, double dmax, double g,
                        double unit)
 {
@@ -1113,9 +1110,11 @@ static double frame_point(double p, double d)
     return d > 0 ? 3.0 - p : p;
 }
 
+/* INITIALIZE's frame: ESVO's octant_mask (r->mirror), tx_coef (r->step)
+** and tx_bias (r->enter_bias), and the growth g of CONSERVATIVE IN FLOAT. */
 static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray)
 {
-    double unit, scale, p0, p1, p2, d0, d1, d2, dmax, g;
+    double unit, scale, p0, p1, p2, d0, d1, d2, dmax, g, a;
     r->levels = tree_levels(proxy->res);
     unit = 1.0 / (1u << r->levels);                     /* exact */
     scale = unit / proxy->cell;     /* world -> frame; one rounding */
@@ -1129,15 +1128,17 @@ static void frame_setup(ray_frame *r, const brt_proxy *proxy, const brt_ray *ray
     r->bounds_flip = (0x3Fu & (0u - (r->mirror & 1u))) | (0xFC0u & (0u - ((r->mirror >> 1) & 1u))) |
                      (0x3F000u & (0u - (r->mirror >> 2)));
     dmax = max2(fabs(d0), max2(fabs(d1), fabs(d2)));
-    g = 0x1p-18 * (max2(fabs(p0), max2(fabs(p1), fabs(p2))) + 3);
+    a = (max2(fabs(ray->org[0]), max2(fabs(ray->org[1]), fabs(ray->org[2]))) +
+         max2(fabs(proxy->origin[0]), max2(fabs(proxy->origin[1]), fabs(proxy->origin[2])))) * scale + 1;
+    g = 0x1p-18 * (max2(fabs(p0), max2(fabs(p1), fabs(p2))) + 3 + a);
     frame_axis(r, 0, p0, d0, dmax, g, unit);
     frame_axis(r, 1, p1, d1, dmax, g, unit);
     frame_axis(r, 2, p2, d2, dmax, g, unit);
     r->found = 0;
 }
 
-/* The segment [r->lo, r->hi] clipped to the root cube's grown box; 0 when
-** it misses. */
+/* The segment [r->lo, r->hi] clipped to the root cube's grown box (ESVO's
+** t_min, t_max of the root); 0 when it misses. */
 static int clip_to_root(ray_frame *r)
 {
     int a;
@@ -1147,6 +1148,286 @@ static int clip_to_root(ray_frame *r)
     }
     return r->lo <= r->hi;
 }
+
+/* Bit o of the result: octant o of a leaf (2x2x2 voxels) is not empty. */
+static unsigned leaf_octants(uint64_t leaf)
+{
+    uint64_t f = leaf | (leaf >> 1);     /* pairs along x, y, z folded onto */
+    f |= f >> 4;                         /* the octant's lowest voxel */
+    f |= f >> 16;
+    return (unsigned)((f & 1u) | ((f >> 1) & 2u) | ((f >> 6) & 4u) | ((f >> 7) & 8u) |
+                      ((f >> 28) & 16u) | ((f >> 29) & 32u) | ((f >> 34) & 64u) |
+                      ((f >> 35) & 128u));
+}
+
+/* The voxels of octant w (world child index) of a leaf, as a 2x2x2 mask
+** with bit x + 2y + 4z. */
+static uint64_t octant_voxels(uint64_t leaf, unsigned w)
+{
+    uint64_t m = leaf >> (2 * (w & 1) + 8 * ((w >> 1) & 1) + 32 * (w >> 2));
+    return (m & 0x3u) | ((m >> 2) & 0xCu) | ((m >> 12) & 0x30u) | ((m >> 14) & 0xC0u);
+}
+
+/* Inlined by force where the compiler allows: GCC -O2 kept child_fetch
+** and clip_to_bounds out of line (two call sites each), and the calls
+** showed in the fast cast's profile (bench_svdag --scene under
+** callgrind). */
+#if defined(__GNUC__)
+#define WALK_INLINE __attribute__((always_inline)) inline
+#else
+#define WALK_INLINE inline
+#endif
+
+/* Child w (world index, known to be set) of a node of the given level and
+** its own world child mask: a pool node, a leaf, an octant's voxels.  So
+** the two bit-mask levels of a leaf are walked like any other. */
+static WALK_INLINE uint64_t child_fetch(const brt_svdag *dag, uint64_t node, int level,
+                            unsigned w, unsigned *m)
+{
+    uint32_t h, slot;
+    uint64_t leaf;
+    if (level == 2) {
+        *m = (unsigned)octant_voxels(node, w);
+        return *m;
+    }
+    h = dag->words[node];
+    slot = dag->words[node + 1 + popcount8(h & ((1u << w) - 1))];
+    if (level > 3) {
+        *m = dag->words[slot] & 0xFFu;
+        return slot;
+    }
+    leaf = dag->leaves[slot];
+    *m = leaf_octants(leaf);
+    return leaf;
+}
+
+/* brt_ray_valid for the segment [tnear, tfar] of the ray. */
+static int cast_valid(const brt_ray *ray, float tnear, float tfar)
+{
+    brt_ray segment = *ray;
+    segment.tnear = tnear;
+    segment.tfar = tfar;
+    return brt_ray_valid(&segment);
+}
+
+/* What both casts do first.  The rays and proxies that need no walk get
+** their answer here (0 or 1; *t_entry = tnear); for the rest it sets up
+** the frame with the segment [tnear, tfar], the root (a pool node, or a
+** leaf when the root spans 4 voxels) and its world child mask, and
+** returns -1. */
+static int cast_begin(const brt_svdag *dag, const brt_proxy *proxy, const brt_ray *ray,
+                      float tnear, float tfar, float *t_entry, ray_frame *r, uint64_t *root,
+                      unsigned *m)
+{
+    if (t_entry) *t_entry = tnear;
+    if (tnear > tfar) return 0;                 /* an empty segment holds nothing */
+    if (!cast_valid(ray, tnear, tfar)) return 1;   /* no frame for it: may hit */
+    if (proxy->root == BRT_EMPTY_ROOT) return 0;
+    frame_setup(r, proxy, ray);
+    r->any = !t_entry;
+    r->lo = tnear;
+    r->hi = tfar;
+    if (r->levels == 2) {
+        *root = dag->leaves[proxy->root];
+        *m = leaf_octants(*root);
+    } else {
+        *root = proxy->root;
+        *m = dag->words[proxy->root] & 0xFFu;
+    }
+    return -1;
+}
+
+/* What both casts do last: the best entry, rounded down to float and
+** clamped to tnear, when a set voxel was touched. */
+static int cast_end(const ray_frame *r, float tnear, float *t_entry)
+{
+    float t;
+    if (!r->found) return 0;
+    t = (float)r->hi;
+    if ((double)t > r->hi) t = nextafterf(t, -INFINITY);
+    if (t_entry) *t_entry = t > tnear ? t : tnear;
+    return 1;
+}
+
+/* ===================================================================== */
+/* The reference cast: Laine and Karras, written for reading               */
+/* ===================================================================== */
+
+/*
+** The plain traversal of Laine and Karras (2010, section 3 and the castRay
+** listing of their technical report) in one function, one phase after
+** another with the paper's names:
+**   INITIALIZE  the frame (frame_setup: the root cube mapped to [1,2]^3,
+**               the ray mirrored so that it runs towards smaller
+**               coordinates, octant_mask = r.mirror; tx_coef and tx_bias
+**               are r.step and r.enter_bias) and the root's [t_min, t_max]
+**               (clip_to_root);
+**   PUSH        descend into the current child: it is not empty, and the
+**               segment touches it (ADVANCE chose it so);
+**   ADVANCE     step to the sibling the ray enters next;
+**   POP         when no sibling is left, return to the parent's scale.
+** Positions are integers in voxels of the finest level (the numbers ESVO
+** keeps in float mantissas), so `pos` is exact; `scale` is the level of the
+** parent (its side is 2^scale voxels; ESVO counts the same levels).  A
+** child's interval is a plain slab test of its grown box (the box of the
+** voxels it spans, grown by g on every side, see CONSERVATIVE IN FLOAT
+** above), so the rounding argument holds for every number here.  ESVO's
+** h (the stack entry that is still valid) only saves stack writes; here
+** the stack is written at every PUSH.
+**
+** ADVANCE.  ESVO steps from the current child across the face through which
+** the ray leaves it: step_mask holds every axis whose exit plane comes
+** first.  When two (three) exit planes are crossed at the same t the ray
+** leaves through an edge (a corner) and ESVO flips two (three) bits at once,
+** stepping diagonally -- and never visits the cubes that share only that
+** edge or corner with the current one.  A closed box contains its edges and
+** corners, so the ray touches those cubes; and the grown boxes overlap, so
+** a ray that passes within g of an edge touches both cubes beside it as
+** well.  A proxy must report them all.  So ADVANCE does not step across a
+** face: it takes, among all eight children, the non-empty one whose grown
+** box the segment enters next -- the least (t_min, idx) after the current
+** child's, in lexicographic order so that children entered at the same t
+** are each taken once.  Which child comes first among equal t_min does not
+** change the answer: it is the least entry over every touched voxel.
+** "Touched" is t_min <= t_max, and a child entered at or after the best
+** hit so far (r.hi once r.found) can not beat it and is skipped.
+**
+** Not for speed: every ADVANCE tests all eight siblings.  The fast cast
+** below visits the same children in an order of its own; the tests check
+** that the two answer alike.
+*/
+typedef struct lk_scale {
+    uint64_t parent;        /* a pool node, a leaf's 64 bits, an octant's 8 */
+    unsigned child_mask;    /* the parent's non-empty children (world index) */
+    uint32_t pos[3];        /* the parent's mirrored corner, in voxels */
+    unsigned idx;           /* the current child (mirrored index; 8: none) */
+    double t_min;           /* ... and where the segment enters it */
+} lk_scale;
+
+/* The segment's interval in the grown box of the child idx of a parent of
+** side 2^scale at mirrored corner pos: bit a of idx says "upper half on
+** axis a", which the ray (running to smaller coordinates) meets first. */
+static void lk_child_interval(const ray_frame *r, const uint32_t pos[3], int scale,
+                              unsigned idx, double *t_min, double *t_max)
+{
+    uint32_t half = 1u << (scale - 1);
+    int a;
+    *t_min = r->lo;
+    *t_max = r->hi;
+    for (a = 0; a < 3; a++) {
+        uint32_t low = pos[a] + ((idx >> a) & 1) * half;
+        *t_min = max2(*t_min, enter_t(r, a, low + half));
+        *t_max = min2(*t_max, leave_t(r, a, low));
+    }
+}
+
+int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
+                                const brt_ray *ray, float tnear, float tfar,
+                                float *t_entry)
+{
+    lk_scale stack[MAX_LEVEL + 1], *s;
+    ray_frame r;
+    uint64_t root;
+    unsigned root_mask, idx, next;
+    int scale, popped = 0, a;
+    double t_next;
+    /* INITIALIZE: the frame and the root's [t_min, t_max]; the root is the
+    ** parent of the first scale, with no current child yet (idx 8) */
+    int early = cast_begin(dag, proxy, ray, tnear, tfar, t_entry, &r, &root, &root_mask);
+    if (early >= 0) return early;
+    if (!clip_to_root(&r)) return 0;
+    scale = r.levels;
+    s = &stack[scale];
+    s->parent = root;
+    s->child_mask = root_mask;
+    s->pos[0] = s->pos[1] = s->pos[2] = 0;
+    s->idx = 8;
+    s->t_min = -INFINITY;
+    for (;;) {
+        if (s->idx < 8 && scale == 1) {
+            /* the current child is a set voxel: the best hit so far */
+            r.hi = s->t_min;
+            r.found = 1;
+            if (r.any) break;           /* yes/no: nothing more to learn */
+        } else if (s->idx < 8 && !popped) {
+            /* PUSH: the current child becomes the parent, with no current
+            ** child yet (a child just popped from is not entered again) */
+            lk_scale *child = &stack[scale - 1];
+            uint32_t half = 1u << (scale - 1);
+            child->parent = child_fetch(dag, s->parent, scale, s->idx ^ r.mirror,
+                                        &child->child_mask);
+            for (a = 0; a < 3; a++) child->pos[a] = s->pos[a] + ((s->idx >> a) & 1) * half;
+            child->idx = 8;
+            child->t_min = -INFINITY;
+            scale--;
+            s = child;
+        }
+        /* ADVANCE: the touched non-empty sibling with the least (t_min, idx)
+        ** after the current one's (see ADVANCE above) */
+        next = 8;
+        t_next = INFINITY;
+        for (idx = 0; idx < 8; idx++) {
+            double t_min, t_max;
+            if (!((s->child_mask >> (idx ^ r.mirror)) & 1)) continue;      /* empty */
+            lk_child_interval(&r, s->pos, scale, idx, &t_min, &t_max);
+            if (t_min > t_max || (r.found && t_min >= r.hi)) continue;    /* missed */
+            if (t_min < s->t_min || (t_min == s->t_min && idx <= s->idx)) continue;  /* done */
+            if (next == 8 || t_min < t_next) {
+                next = idx;
+                t_next = t_min;
+            }
+        }
+        s->idx = next;
+        s->t_min = t_next;
+        /* POP: no sibling left; the parent's current child is finished */
+        popped = next == 8;
+        if (popped && ++scale > r.levels) break;
+        s = &stack[scale];
+    }
+    return cast_end(&r, tnear, t_entry);
+}
+
+/* ===================================================================== */
+/* The fast cast                                                           */
+/* ===================================================================== */
+
+/*
+** WHY NOT ESVO'S ADVANCE STEP.  ESVO steps from a cube to its neighbour
+** through the face the ray leaves by, and misses the cubes that the ray
+** only touches at an edge or a corner (the reference cast's ADVANCE above
+** shows where, in ESVO's own structure).  So PUSH finds, from the node's
+** three centre planes, every child whose grown box the segment touches
+** (push_node), ADVANCE takes the next of them, POP returns to the parent
+** scale.  The two bit-mask levels of a leaf are walked the same way (a
+** leaf's octants, an octant's voxels).  A set voxel becomes the best hit;
+** from then on a child entered at or behind it is passed over, and the
+** walk only finishes the children (siblings of the hit and of its
+** ancestors) that the segment enters sooner, because a grown sibling may
+** start before the hit.  Before it descends into a node the walk tests the
+** box of the node's set voxels (BOUNDS TEST).
+**
+** COST.  Each of these steps cut the instructions of a culled cast, as
+** build/bench_svdag --scene landscape (or island) measures it under
+** callgrind with --toggle-collect=cast_culled (its header says how); what
+** each step gave, and what was tried and dropped, is in its commit message
+** (git log -- svdag.c).  Every step answers bit for bit as the reference
+** cast on the tests' rays.
+*/
+
+/* One scale of the parent stack: a node, its mirrored corner in voxels,
+** its live interval [tin, tout], its three centre planes' entries and
+** exits, and the children still to visit, as a set of far-side sets (see
+** push_node).  Above the leaves a node is a pool word offset; at level 2
+** it is a leaf's 64 bits, and at level 1 the 8 voxels of one 2x2x2 octant
+** of a leaf, so the bit-mask levels are walked like any other. */
+typedef struct scale_entry {
+    uint64_t node;
+    uint32_t corner[3];
+    double tin, tout;
+    double e[3];            /* centre plane of axis a: the far half entered */
+    double l[3];            /* ... and the near half left (e + gap) */
+    unsigned pending;       /* bit k: child of far-side set k still to visit */
+} scale_entry;
 
 /* All children when keep, else those of mask (a select, not a branch). */
 static unsigned all_or(int keep, unsigned mask)
@@ -1187,9 +1468,10 @@ static unsigned by_far_set(unsigned m, unsigned x)
 ** ORDER: the children are visited by increasing k.  A child's entry only
 ** grows when axes join its far-side set, so k comes after every subset of
 ** itself; child 0 (entered at tin) is first, child 7 last.  It is not
-** ESVO's ray order (the entries are not sorted; README, "The proxy
-** cast", says why), so a hit does not end a scale: each child is compared
-** with the best hit.
+** ESVO's ray order: the entries are not sorted, because a sorted order
+** pays off only when a hit ends its scale, and the render's casts are
+** yes/no casts that stop at the first set voxel anyway.  So each child is
+** compared with the best hit instead.
 */
 static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
                       unsigned m, const uint32_t corner[3], int level,
@@ -1220,56 +1502,6 @@ static void push_node(const ray_frame *r, scale_entry *s, uint64_t node,
            all_or(e0 <= l1, ~(FAR0 & ~FAR1)) & all_or(e2 <= l1, ~(FAR2 & ~FAR1)) &
            all_or(e0 <= l2, ~(FAR0 & ~FAR2)) & all_or(e1 <= l2, ~(FAR1 & ~FAR2));
     s->pending = live & by_far_set(m, 7u ^ r->mirror);
-}
-
-/* Bit o of the result: octant o of a leaf (2x2x2 voxels) is not empty. */
-static unsigned leaf_octants(uint64_t leaf)
-{
-    uint64_t f = leaf | (leaf >> 1);     /* pairs along x, y, z folded onto */
-    f |= f >> 4;                         /* the octant's lowest voxel */
-    f |= f >> 16;
-    return (unsigned)((f & 1u) | ((f >> 1) & 2u) | ((f >> 6) & 4u) | ((f >> 7) & 8u) |
-                      ((f >> 28) & 16u) | ((f >> 29) & 32u) | ((f >> 34) & 64u) |
-                      ((f >> 35) & 128u));
-}
-
-/* The voxels of octant w (world child index) of a leaf, as a 2x2x2 mask
-** with bit x + 2y + 4z. */
-static uint64_t octant_voxels(uint64_t leaf, unsigned w)
-{
-    uint64_t m = leaf >> (2 * (w & 1) + 8 * ((w >> 1) & 1) + 32 * (w >> 2));
-    return (m & 0x3u) | ((m >> 2) & 0xCu) | ((m >> 12) & 0x30u) | ((m >> 14) & 0xC0u);
-}
-
-/* Inlined by force where the compiler allows: GCC -O2 kept child_fetch
-** and clip_to_bounds out of line (two call sites each), and the calls
-** were a fifth of a culled cast. */
-#if defined(__GNUC__)
-#define WALK_INLINE __attribute__((always_inline)) inline
-#else
-#define WALK_INLINE inline
-#endif
-
-/* Child w (world index, known to be set) of a node of the given level and
-** its own world child mask: a pool node, a leaf, an octant's voxels. */
-static WALK_INLINE uint64_t child_fetch(const brt_svdag *dag, uint64_t node, int level,
-                            unsigned w, unsigned *m)
-{
-    uint32_t h, slot;
-    uint64_t leaf;
-    if (level == 2) {
-        *m = (unsigned)octant_voxels(node, w);
-        return *m;
-    }
-    h = dag->words[node];
-    slot = dag->words[node + 1 + popcount8(h & ((1u << w) - 1))];
-    if (level > 3) {
-        *m = dag->words[slot] & 0xFFu;
-        return slot;
-    }
-    leaf = dag->leaves[slot];
-    *m = leaf_octants(leaf);
-    return leaf;
 }
 
 /* Subtracted from a centre entry: nothing when the child is beyond that
@@ -1373,198 +1605,25 @@ static int walk(const brt_svdag *dag, ray_frame *r, uint64_t node, unsigned m)
     }
 }
 
-/* brt_ray_valid for the segment [tnear, tfar] of the ray. */
-static int cast_valid(const brt_ray *ray, float tnear, float tfar)
-{
-    brt_ray segment = *ray;
-    segment.tnear = tnear;
-    segment.tfar = tfar;
-    return brt_ray_valid(&segment);
-}
-
-/* The walk of a cast: fills r->found and r->hi; 0 when it gave up. */
-typedef int (*cast_walk)(const brt_svdag *dag, ray_frame *r, uint64_t root, unsigned m);
-
-/* What both casts share: the rays and proxies that need no walk, the
-** frame, the root and its child mask, and the entry rounded down to float. */
-static int proxy_cast(const brt_svdag *dag, const brt_proxy *proxy, const brt_ray *ray,
-                      float tnear, float tfar, float *t_entry, cast_walk walk_fn)
-{
-    ray_frame r;
-    float t, unused;
-    uint64_t root = proxy->root;
-    unsigned m;
-    if (!t_entry) t_entry = &unused;
-    *t_entry = tnear;
-    if (tnear > tfar) return 0;                 /* an empty segment holds nothing */
-    if (!cast_valid(ray, tnear, tfar)) return 1;   /* no frame for it: may hit */
-    if (proxy->root == BRT_EMPTY_ROOT) return 0;
-    frame_setup(&r, proxy, ray);
-    r.any = t_entry == &unused;
-    r.lo = tnear;
-    r.hi = tfar;
-    if (r.levels == 2) {
-        root = dag->leaves[proxy->root];
-        m = leaf_octants(root);
-    } else {
-        m = dag->words[proxy->root] & 0xFFu;
-    }
-    if (!walk_fn(dag, &r, root, m)) return 1;
-    if (!r.found) return 0;
-    t = (float)r.hi;
-    if ((double)t > r.hi) t = nextafterf(t, -INFINITY);
-    *t_entry = t > tnear ? t : tnear;
-    return 1;
-}
-
 int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
                       const brt_ray *ray, float tnear, float tfar,
                       float *t_entry)
 {
-    return proxy_cast(dag, proxy, ray, tnear, tfar, t_entry, walk);
+    ray_frame r;
+    uint64_t root;
+    unsigned m;
+    int early = cast_begin(dag, proxy, ray, tnear, tfar, t_entry, &r, &root, &m);
+    if (early >= 0) return early;
+    if (!walk(dag, &r, root, m)) return 1;      /* gave up: may hit, at tnear */
+    return cast_end(&r, tnear, t_entry);
 }
 
 /* ===================================================================== */
-/* The reference cast: Laine and Karras, written for reading               */
-/* ===================================================================== */
-
-/*
-** The same question as brt_proxy_raycast, answered by the plain traversal
-** of Laine and Karras (2010, section 3 and the castRay listing of their
-** technical report), one phase after another with the paper's names:
-**   INITIALIZE  the frame (frame_setup: the root cube mapped to [1,2]^3,
-**               the ray mirrored so that it runs towards smaller
-**               coordinates, octant_mask = r->mirror; tx_coef and tx_bias
-**               are r->step and r->enter_bias) and the root's [t_min,
-**               t_max] (clip_to_root);
-**   PUSH        descend into the current child when the segment touches it
-**               and it is not empty;
-**   ADVANCE     step to the sibling the ray enters next;
-**   POP         when no sibling is left, return to the parent's scale.
-** Positions are integers in voxels of the finest level (the numbers ESVO
-** keeps in float mantissas), so `pos` is exact; `scale` is the level of the
-** parent (its side is 2^scale voxels; ESVO counts the same levels).  A
-** child's interval is a plain slab test of its grown box (the box of the
-** voxels it spans, grown by g on every side, see CONSERVATIVE IN FLOAT
-** above), so the rounding argument of the fast cast holds for every number
-** here: they are the same plane distances.  ESVO's h (the stack entry that
-** is still valid) only saves stack writes; here the stack is written at
-** every PUSH.
-**
-** Not for speed: every ADVANCE tests all eight siblings.  The fast cast
-** (walk) visits the same children, in an order of its own, at about a
-** third of the cost; tests check that the two answer alike.
-*/
-typedef struct lk_scale {
-    uint64_t parent;        /* a pool node, a leaf's 64 bits, an octant's 8 */
-    unsigned child_mask;    /* the parent's non-empty children (world index) */
-    uint32_t pos[3];        /* the parent's mirrored corner, in voxels */
-    unsigned idx;           /* the current child (mirrored index) ... */
-    double t_min;           /* ... and where the segment enters it */
-} lk_scale;
-
-/* The segment's interval in the grown box of the child idx of a parent of
-** side 2^scale at mirrored corner pos: bit a of idx says "upper half on
-** axis a", which the ray (running to smaller coordinates) meets first. */
-static void lk_child_interval(const ray_frame *r, const uint32_t pos[3], int scale,
-                              unsigned idx, double *t_min, double *t_max)
-{
-    uint32_t half = 1u << (scale - 1);
-    int a;
-    *t_min = r->lo;
-    *t_max = r->hi;
-    for (a = 0; a < 3; a++) {
-        uint32_t low = pos[a] + ((idx >> a) & 1) * half;
-        *t_min = max2(*t_min, enter_t(r, a, low + half));
-        *t_max = min2(*t_max, leave_t(r, a, low));
-    }
-}
-
-/*
-** ADVANCE.  ESVO steps from the current child across the face through which
-** the ray leaves it: step_mask holds every axis whose exit plane comes
-** first.  When two (three) exit planes are crossed at the same t the ray
-** leaves through an edge (a corner) and ESVO flips two (three) bits at once,
-** stepping diagonally -- and never visits the cubes that share only that
-** edge or corner with the current one.  A closed box contains its edges and
-** corners, so the ray touches those cubes; and the grown boxes overlap, so
-** a ray that passes within g of an edge touches both cubes beside it as
-** well.  A proxy must report them all.  So ADVANCE does not step across a
-** face: it takes, among all eight children, the non-empty one whose grown
-** box the segment enters next -- the least (t_min, idx) after the current
-** child's, in lexicographic order so that children entered at the same t
-** are each taken once.  Which child comes first among equal t_min does not
-** change the answer: it is the least entry over every touched voxel.
-** Returns 8 when no child is left.  "Touched" is t_min <= t_max, and a
-** child entered at or after the best hit so far (r->hi once r->found) can
-** not beat it and is skipped.
-*/
-static unsigned lk_advance(const ray_frame *r, const lk_scale *s, int scale,
-                           unsigned after, double t_after, double *t_next)
-{
-    unsigned idx, next = 8;
-    for (idx = 0; idx < 8; idx++) {
-        double t_min, t_max;
-        if (!((s->child_mask >> (idx ^ r->mirror)) & 1)) continue;   /* empty */
-        lk_child_interval(r, s->pos, scale, idx, &t_min, &t_max);
-        if (t_min > t_max || (r->found && t_min >= r->hi)) continue;  /* missed */
-        if (t_min < t_after || (t_min == t_after && idx <= after)) continue;  /* done */
-        if (next == 8 || t_min < *t_next) {
-            next = idx;
-            *t_next = t_min;
-        }
-    }
-    return next;
-}
-
-/* The traversal; the root is a pool node (or a leaf when the root spans
-** 4 voxels) with its world child mask m.  Always completes: 1. */
-static int reference_walk(const brt_svdag *dag, ray_frame *r, uint64_t root, unsigned m)
-{
-    lk_scale stack[MAX_LEVEL + 1];
-    int scale = r->levels;                           /* INITIALIZE */
-    lk_scale *s = &stack[scale];
-    if (!clip_to_root(r)) return 1;
-    s->parent = root;
-    s->child_mask = m;
-    s->pos[0] = s->pos[1] = s->pos[2] = 0;
-    s->idx = lk_advance(r, s, scale, 8, -INFINITY, &s->t_min);   /* the first child */
-    for (;;) {
-        if (s->idx == 8) {                                          /* POP */
-            if (++scale > r->levels) return 1;
-            s = &stack[scale];
-        } else if (scale == 1) {      /* the current child is a set voxel: a hit */
-            r->hi = s->t_min;
-            r->found = 1;
-            if (r->any) return 1;
-        } else {                                                    /* PUSH */
-            lk_scale *child = &stack[scale - 1];
-            uint32_t half = 1u << (scale - 1);
-            int a;
-            child->parent = child_fetch(dag, s->parent, scale, s->idx ^ r->mirror,
-                                        &child->child_mask);
-            for (a = 0; a < 3; a++) child->pos[a] = s->pos[a] + ((s->idx >> a) & 1) * half;
-            scale--;
-            s = child;
-            s->idx = lk_advance(r, s, scale, 8, -INFINITY, &s->t_min);
-            continue;
-        }
-        s->idx = lk_advance(r, s, scale, s->idx, s->t_min, &s->t_min);   /* ADVANCE */
-    }
-}
-
-int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
-                                const brt_ray *ray, float tnear, float tfar,
-                                float *t_entry)
-{
-    return proxy_cast(dag, proxy, ray, tnear, tfar, t_entry, reference_walk);
-}
-
-/* ===================================================================== */
-/* Inner proxies: voxels that prove a shadow ray occluded                */
+/* Beyond the paper: inner proxies (its section 4.3)                       */
 /* ===================================================================== */
 /*
-** The paper's future work (section 4.3): a second voxelization whose set
+** Voxels that prove a shadow ray occluded.  The paper names them as
+** future work (section 4.3): a second voxelization whose set
 ** voxels lie certainly inside solid geometry, so that an occlusion ray
 ** with tfar = +inf that passes through one is occluded without a load.
 ** The inner grid of a batching point is fitted to its box like the outer
@@ -1629,11 +1688,13 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 ** query as well (it leaves the solid); with tnear > 0 only core points at
 ** t_s >= tnear are used, so the hit beyond is at t > tnear too.
 **
-** STORAGE (measured, README "Inner proxies"): a second root per batching
-** point in the shared pool, deduplicated with the outer proxies, at half
-** their resolution (batchrt.c, inner_res): interiors are mostly solid
-** blocks, which dedup to few nodes, but their surfaces are as unique as
-** the outer proxies', and at full resolution they doubled the pool.
+** STORAGE: a second root per batching point in the shared pool,
+** deduplicated with the outer proxies, at half their resolution
+** (batchrt.c, inner_res): interiors are mostly solid blocks, which dedup
+** to few nodes, but their surfaces are as unique as the outer proxies',
+** so at full resolution their surface nodes would add about as many
+** unique nodes as the outer proxies hold (make bench-inner prints the
+** pool's bytes, proxy_bytes, beside the shadow rays they stop).
 */
 
 #define INNER_MAX_COMPONENTS 1024u  /* parity decisions per grid */
@@ -1855,8 +1916,8 @@ static brt_result closed_triangles(const float *corners, size_t stride, uint32_t
     uint32_t *vid = malloc((3 * (size_t)n + 1) * sizeof *vid), unique = 0, *parent = NULL, t;
     unsigned char *bad = NULL;
     /* weld's table is freed before the edges are listed: the peak is 5
-    ** bytes a corner and 10 a vertex (a full bucket, 1.68 M triangles and
-    ** about 1 M vertices: about 35 MB) */
+    ** bytes a corner and 10 a vertex, 15 T + 10 V bytes for T triangles
+    ** with V distinct positions (V is about T / 2 on a closed mesh) */
     brt_result r = vid ? weld(corners, stride, n, vid, &unique) : BRT_ENOMEM;
     if (r == BRT_OK) {
         parent = malloc(((size_t)unique + 1) * sizeof *parent);

@@ -467,24 +467,34 @@ static int oracle_box(const brt_ray *ray, const double lo[3], const double hi[3]
     return enter <= leave;
 }
 
+/* Entry of the ray's segment into voxel c of the grid, its closed box
+** grown by grow cells on every side; 0 when it misses. */
+static int oracle_voxel(const brt_grid *grid, const uint32_t c[3], const brt_ray *ray,
+                        double grow, double *t)
+{
+    double lo[3], hi[3];
+    int i;
+    for (i = 0; i < 3; i++) {
+        lo[i] = grid->origin[i] + (double)grid->cell * (c[i] - grow);
+        hi[i] = grid->origin[i] + (double)grid->cell * (c[i] + 1 + grow);
+    }
+    return oracle_box(ray, lo, hi, ray->tnear, ray->tfar, t);
+}
+
 /* First touched set voxel over all voxels of the grid, each grown by grow
 ** cells on every side. */
 static int oracle_grid(const brt_grid *grid, const brt_ray *ray, double grow,
                        double *t_best)
 {
     uint32_t x, y, z, c[3];
-    int hit = 0, i;
+    int hit = 0;
     for (z = 0; z < grid->res; z++)
         for (y = 0; y < grid->res; y++)
             for (x = 0; x < grid->res; x++) {
-                double lo[3], hi[3], t;
+                double t;
                 if (!brt_grid_get(grid, x, y, z)) continue;
                 c[0] = x; c[1] = y; c[2] = z;
-                for (i = 0; i < 3; i++) {
-                    lo[i] = grid->origin[i] + (double)grid->cell * (c[i] - grow);
-                    hi[i] = grid->origin[i] + (double)grid->cell * (c[i] + 1 + grow);
-                }
-                if (oracle_box(ray, lo, hi, ray->tnear, ray->tfar, &t) && (!hit || t < *t_best)) {
+                if (oracle_voxel(grid, c, ray, grow, &t) && (!hit || t < *t_best)) {
                     *t_best = t;
                     hit = 1;
                 }
@@ -492,23 +502,37 @@ static int oracle_grid(const brt_grid *grid, const brt_ray *ray, double grow,
     return hit;
 }
 
-/* Twice the box growth of brt_proxy_raycast, in cells: g = 2^-18 (P + 3)
-** in units of the root cube (N = 2^levels cells, levels >= 2), where P is
-** the largest |coordinate| of the (mirrored) origin in the [1,2] frame,
-** at most |1 + (o - origin) / (N cell)| + 3. */
+/* A = (max |o_i| + max |origin_i|) / (N cell) + 1 of svdag.c's growth:
+** the largest world |coordinate| of the ray's origin and of the root
+** cube, in root-cube units. */
+static double world_term(const float org[3], const float origin[3], double n, float cell)
+{
+    double o = 0, c = 0;
+    int i;
+    for (i = 0; i < 3; i++) {
+        o = fmax(o, fabs(org[i]));
+        c = fmax(c, fabs(origin[i]));
+    }
+    return (o + c) / (n * cell) + 1;
+}
+
+/* Twice the box growth of brt_proxy_raycast, in cells: g = 2^-18 (P + 3 +
+** A) in units of the root cube (N = 2^levels cells, levels >= 2), where P
+** is the largest |coordinate| of the (mirrored) origin in the [1,2] frame,
+** at most |1 + (o - origin) / (N cell)| + 3, and A is world_term. */
 static double documented_grow(const brt_grid *grid, const brt_ray *ray)
 {
     double n = grid->res < 4 ? 4 : grid->res, p = 0;
     int i;
     for (i = 0; i < 3; i++)
         p = fmax(p, fabs(1 + (ray->org[i] - (double)grid->origin[i]) / (n * grid->cell)) + 3);
-    return 2 * 0x1p-18 * (p + 3) * n;
+    return 2 * 0x1p-18 * (p + 3 + world_term(ray->org, grid->origin, n, grid->cell)) * n;
 }
 
 /* The box growth of brt_proxy_raycast exactly as svdag.c states it, in
-** cells: g = 2^-18 (P + 3) root-cube units, P the largest |coordinate| of
-** the mirrored origin in the [1,2] frame, computed as the cast computes it
-** (root cube of N = 2^levels cells, levels >= 2). */
+** cells: g = 2^-18 (P + 3 + A) root-cube units, P the largest |coordinate|
+** of the mirrored origin in the [1,2] frame, computed as the cast computes
+** it (root cube of N = 2^levels cells, levels >= 2), A world_term. */
 static double stated_grow(const brt_proxy *proxy, const brt_ray *ray)
 {
     const double n = proxy->res < 4 ? 4 : proxy->res, scale = (1.0 / n) / proxy->cell;
@@ -519,7 +543,7 @@ static double stated_grow(const brt_proxy *proxy, const brt_ray *ray)
         if (ray->dir[i] * scale > 0) p = 3.0 - p;
         pmax = fmax(pmax, fabs(p));
     }
-    return 0x1p-18 * (pmax + 3) * n;
+    return 0x1p-18 * (pmax + 3 + world_term(ray->org, proxy->origin, n, proxy->cell)) * n;
 }
 
 /* Oracle-friendly rays in cell units: random, axis-parallel, grazing along
@@ -1260,6 +1284,413 @@ static void test_voxelize_program(void)
     EXPECT(run_status(cmd) == 1, "--res 24 accepted");
 }
 
+/* ===================================================================== */
+/* Grazing directions and float edge values (issue 32, classes 1 and 9)   */
+/* ===================================================================== */
+
+/*
+** Rays parallel and nearly parallel to the grid's axes and planes, from
+** far outside the box, at triangles lying in and near axis planes, against
+** two independent references: the brute-force triangle test (a triangle
+** the segment hits must lie in a voxel that both casts report, entered no
+** later) and exact slabs over the set voxels (every closed voxel box the
+** segment touches is reported; every box grown by the g that svdag.c
+** states, too).  Direction components: +-0, subnormals, 2^-40 (the cast's
+** tilt threshold) and values either side of it; coordinates on the
+** triangles' planes and edges, on voxel planes, one float either side.
+*/
+
+/* The set voxels of a grid, listed once for oracles over many rays. */
+typedef struct voxel_list {
+    uint32_t (*at)[3];
+    size_t count;
+} voxel_list;
+
+static void voxel_list_of(const brt_grid *grid, voxel_list *list)
+{
+    uint32_t x, y, z;
+    list->count = 0;
+    list->at = malloc((size_t)brt_grid_count(grid) * sizeof *list->at + 1);
+    if (!list->at) return;
+    for (z = 0; z < grid->res; z++)
+        for (y = 0; y < grid->res; y++)
+            for (x = 0; x < grid->res; x++)
+                if (brt_grid_get(grid, x, y, z)) {
+                    list->at[list->count][0] = x;
+                    list->at[list->count][1] = y;
+                    list->at[list->count++][2] = z;
+                }
+}
+
+/* oracle_grid over a list of the set voxels. */
+static int oracle_list(const brt_grid *grid, const voxel_list *list, const brt_ray *ray,
+                       double grow, double *t_best)
+{
+    size_t i;
+    int hit = 0;
+    for (i = 0; i < list->count; i++) {
+        double t;
+        if (oracle_voxel(grid, list->at[i], ray, grow, &t) && (!hit || t < *t_best)) {
+            *t_best = t;
+            hit = 1;
+        }
+    }
+    return hit;
+}
+
+/* Direction components of grazing rays: signed zeros, subnormals, the
+** cast's tilt threshold 2^-40 (relative to the main component 1) and
+** values on either side of it, and small normal ones. */
+static const float grazing_components[] = {
+    0.0f, -0.0f, 0x1p-149f, -0x1p-149f, 1e-40f, -1e-40f, 0x1p-126f, 1e-20f, -1e-20f,
+    0x1p-41f, 0x1p-40f, -0x1p-40f, 0x1p-39f, 1e-7f, -1e-7f, 0x1p-20f, -0x1p-16f};
+
+/* A coordinate on axis a of a grazing ray's origin: that of the point p
+** on a triangle (aimed, or by chance), a plane of the box or of a voxel,
+** one float either side of it, -0 for 0, or anywhere near. */
+static float grazing_coordinate(uint64_t *rng, const brt_grid *grid, const float lo[3],
+                                const float hi[3], const float p[3], int aimed, int a)
+{
+    float v;
+    switch (aimed ? 4 : rand_below(rng, 6)) {
+    case 0: v = lo[a]; break;
+    case 1: v = hi[a]; break;
+    case 2: v = grid->origin[a] + grid->cell * (float)rand_below(rng, grid->res + 1); break;
+    case 3: v = rand_range(rng, lo[a] - grid->cell, hi[a] + grid->cell); break;
+    default: v = p[a]; break;
+    }
+    switch (rand_below(rng, 4)) {
+    case 0: return nextafterf(v, INFINITY);
+    case 1: return nextafterf(v, -INFINITY);
+    default: return v == 0 && rand_below(rng, 2) ? -0.0f : v;
+    }
+}
+
+/* A ray along axis a (either sign), from far outside [lo, hi] (1000, 10^6
+** or a small distance, in units of the box), its other components from
+** grazing_components, aimed at a vertex, an edge or the inside of a
+** triangle of s or near it; segment [0, inf] unless the caller cuts it. */
+static void grazing_ray(uint64_t *rng, const soup *s, const brt_grid *grid, const float lo[3],
+                        const float hi[3], brt_ray *ray)
+{
+    static const float distances[] = {1000, 1e6f, 2, 0.5f};
+    const size_t nc = sizeof grazing_components / sizeof grazing_components[0];
+    const float *v = s->pos + 9 * (size_t)rand_below(rng, s->tri_count);
+    float b1 = brt_random_float(rng), b2 = brt_random_float(rng), p[3];
+    float sign = rand_below(rng, 2) ? 1.0f : -1.0f, far = distances[rand_below(rng, 4)];
+    int a = (int)rand_below(rng, 3), aimed = (int)rand_below(rng, 2), i;
+    if (b1 + b2 > 1) { b1 = 1 - b1; b2 = 1 - b2; }
+    if (rand_below(rng, 3) == 0) b2 = 0;                   /* an edge */
+    if (rand_below(rng, 4) == 0) b1 = b2 = 0;              /* a vertex */
+    for (i = 0; i < 3; i++) p[i] = v[i] + b1 * (v[3 + i] - v[i]) + b2 * (v[6 + i] - v[i]);
+    for (i = 0; i < 3; i++) {
+        ray->org[i] = grazing_coordinate(rng, grid, lo, hi, p, aimed, i);
+        ray->dir[i] = grazing_components[rand_below(rng, (uint32_t)nc)];
+    }
+    ray->org[a] = sign > 0 ? lo[a] - far : hi[a] + far;
+    ray->dir[a] = sign * (rand_below(rng, 2) ? 1.0f : 0.375f);
+    ray->tnear = 0;
+    ray->tfar = INFINITY;
+}
+
+/* Cuts the segment around the triangles' hit at t: a segment of one point
+** [t, t], one ending at t, one starting before it; or leaves [0, inf]. */
+static void grazing_segment(uint64_t *rng, const soup *s, brt_ray *ray)
+{
+    float t;
+    uint32_t prim;
+    unsigned kind = rand_below(rng, 8);
+    if (kind > 2 || !brute_hit(s, ray, &t, &prim)) return;
+    if (kind == 0) ray->tnear = t;
+    if (kind == 2) ray->tnear = t * rand_range(rng, 0, 1);
+    if (kind <= 1) ray->tfar = t;
+}
+
+/* The triangle test's verdict for the cast's answer (got, t_entry): a hit
+** must be reported, entered no later; 0 after reporting a failure. */
+static int grazing_check_triangles(const soup *s, const brt_ray *ray, int got, float t_entry,
+                                   uint32_t res, const char *label)
+{
+    float t_hit = 0;
+    uint32_t prim = 0;
+    if (!brute_hit(s, ray, &t_hit, &prim) || (got && t_entry <= t_hit)) return 1;
+    test_fail_at(__FILE__, __LINE__, "%s res %u: ray (%a %a %a) dir (%a %a %a) [%a %a] hits "
+                 "triangle %u at t %a, proxy %d t %a", label, res, ray->org[0], ray->org[1],
+                 ray->org[2], ray->dir[0], ray->dir[1], ray->dir[2], ray->tnear, ray->tfar, prim,
+                 t_hit, got, t_entry);
+    return 0;
+}
+
+/* The exact slabs' verdict: every set voxel's closed box, and every one
+** grown by the stated g (less 2^-20 of it, as in the ray-cast oracle
+** test), that the segment touches is reported, entered no later. */
+static int grazing_check_voxels(const brt_grid *grid, const voxel_list *list,
+                                const brt_proxy *proxy, const brt_ray *ray, int got,
+                                float t_entry, const char *label)
+{
+    double t_exact = 0, t_stated = 0;
+    int exact = oracle_list(grid, list, ray, 0, &t_exact);
+    int stated = oracle_list(grid, list, ray, stated_grow(proxy, ray) * (1 - 0x1p-20), &t_stated);
+    if ((!exact || (got && t_entry <= t_exact)) && (!stated || (got && t_entry <= t_stated)))
+        return 1;
+    test_fail_at(__FILE__, __LINE__, "%s res %u: ray (%a %a %a) dir (%a %a %a) [%a %a]: voxel "
+                 "touched %d at t %a, grown by the stated g %d at t %a; proxy %d t %a", label,
+                 grid->res, ray->org[0], ray->org[1], ray->org[2], ray->dir[0], ray->dir[1],
+                 ray->dir[2], ray->tnear, ray->tfar, exact, t_exact, stated, t_stated, got, t_entry);
+    return 0;
+}
+
+/* The same ray with the sign of every zero flipped (origin, direction,
+** tnear): 1 when there was one.  It is the same segment, so the triangle
+** test and the cast must answer alike. */
+static int signed_zero_twin(const brt_ray *ray, brt_ray *twin)
+{
+    int i, any = 0;
+    *twin = *ray;
+    for (i = 0; i < 3; i++) {
+        if (ray->org[i] == 0) { twin->org[i] = signbit(ray->org[i]) ? 0.0f : -0.0f; any = 1; }
+        if (ray->dir[i] == 0) { twin->dir[i] = signbit(ray->dir[i]) ? 0.0f : -0.0f; any = 1; }
+    }
+    if (ray->tnear == 0) { twin->tnear = signbit(ray->tnear) ? 0.0f : -0.0f; any = 1; }
+    return any;
+}
+
+/* Signed zeros (issue 32, class 9): the twin gets the same triangle hit
+** (t and triangle; u and v may differ in the sign of a zero) and the same
+** cast answer and entry as the ray (got, t_entry). */
+static void check_signed_zeros(const soup *s, const brt_svdag *dag, const brt_proxy *proxy,
+                               const brt_ray *ray, int got, float t_entry, const char *label)
+{
+    brt_ray twin;
+    float t1 = 0, t2 = 0, e2 = 0;
+    uint32_t p1 = 0, p2 = 0;
+    int h1, h2, g2;
+    if (!signed_zero_twin(ray, &twin)) return;
+    h1 = brute_hit(s, ray, &t1, &p1);
+    h2 = brute_hit(s, &twin, &t2, &p2);
+    g2 = brt_proxy_raycast(dag, proxy, &twin, twin.tnear, twin.tfar, &e2);
+    EXPECT(h1 == h2 && (!h1 || (t1 == t2 && p1 == p2)) && got == g2 && (!got || t_entry == e2),
+           "%s res %u: ray (%a %a %a) dir (%a %a %a) [%a %a] and its signed-zero twin differ: "
+           "triangles %d t %a (%u) / %d t %a (%u), proxy %d t %a / %d t %a", label, proxy->res,
+           ray->org[0], ray->org[1], ray->org[2], ray->dir[0], ray->dir[1], ray->dir[2], ray->tnear,
+           ray->tfar, h1, t1, p1, h2, t2, p2, got, t_entry, g2, e2);
+}
+
+/* Triangles in and near axis planes (9 floats each). */
+typedef struct grazing_case {
+    const char *label;
+    uint32_t tri_count;
+    float tri[3][9];
+} grazing_case;
+
+static const grazing_case grazing_cases[] = {
+    {"in x = 0", 1, {{0, 0, 0, 0, 1, 0, 0, 0, 1}}},
+    {"a corner, one per axis plane", 3,
+     {{0, 0, 0, 0, 1, 0, 0, 0, 1}, {0, 0, 0, 1, 0, 0, 0, 0, 1}, {0, 0, 0, 1, 0, 0, 0, 1, 0}}},
+    {"near x = 0 (tilted by 2^-20)", 1, {{0, 0, 0, 0x1p-20f, 1, 0, 0, 0, 1}}},
+    {"in x = 0, signed zeros", 1, {{-0.0f, 0, 0, -0.0f, 1, -0.0f, 0, -0.0f, 1}}},
+    {"in y = 5, far from the origin", 2,
+     {{-3, 5, 1000, 4, 5, 1000, -3, 5, 1007}, {4, 5, 1000, 4, 5, 1007, -3, 5, 1007}}}};
+
+/* A soup of the case's triangles (3 corners each, not shared). */
+static void soup_of_case(const grazing_case *c, soup *s)
+{
+    uint32_t k;
+    s->tri_count = c->tri_count;
+    s->vertex_count = 3 * c->tri_count;
+    s->pos = malloc(9 * (size_t)c->tri_count * sizeof *s->pos);
+    s->idx = malloc(3 * (size_t)c->tri_count * sizeof *s->idx);
+    if (!s->pos || !s->idx) { soup_free(s); return; }
+    for (k = 0; k < 3 * c->tri_count; k++) s->idx[k] = k;
+    for (k = 0; k < c->tri_count; k++) memcpy(s->pos + 9 * (size_t)k, c->tri[k], 9 * sizeof(float));
+}
+
+/* One case at one resolution: its proxy, in a grid fitted to its box as
+** the scene build fits it, cast with rays grazing_ray makes. */
+static void grazing_run(const grazing_case *c, uint32_t res, uint32_t rays, uint64_t *rng,
+                        uint64_t *hits)
+{
+    brt_grid grid;
+    brt_svdag *dag = NULL;
+    brt_proxy proxy;
+    voxel_list list = {NULL, 0};
+    soup s = {NULL, NULL, 0, 0};
+    float lo[3], hi[3];
+    uint32_t n;
+    soup_of_case(c, &s);
+    CHECK(s.pos && brt_svdag_create(&dag) == BRT_OK, "%s: out of memory", c->label);
+    mesh_bounds(s.pos, s.vertex_count, lo, hi);
+    if (brt_grid_init(&grid, lo, hi, res) != BRT_OK ||
+        brt_voxelize(&grid, s.pos, s.idx, s.tri_count) != BRT_OK ||
+        brt_svdag_add(dag, &grid, &proxy) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "%s res %u: proxy", c->label, res);
+        rays = 0;
+    } else {
+        voxel_list_of(&grid, &list);
+    }
+    for (n = 0; n < rays && !test_failed(); n++) {
+        brt_ray ray;
+        float t_entry = 0, t_hit = 0;
+        uint32_t prim;
+        int got, want;
+        grazing_ray(rng, &s, &grid, lo, hi, &ray);
+        grazing_segment(rng, &s, &ray);
+        want = brute_hit(&s, &ray, &t_hit, &prim);
+        *hits += want;
+        got = brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, &t_entry);
+        if (!grazing_check_triangles(&s, &ray, got, t_entry, res, c->label) ||
+            !check_reference_cast(dag, &proxy, &ray, got, t_entry, want, t_hit) ||
+            !grazing_check_voxels(&grid, &list, &proxy, &ray, got, t_entry, c->label))
+            break;
+        EXPECT(brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, NULL) == got,
+               "%s res %u: the yes/no cast disagrees", c->label, res);
+        check_signed_zeros(&s, dag, &proxy, &ray, got, t_entry, c->label);
+    }
+    free(list.at);
+    soup_free(&s);
+    if (rays) brt_grid_free(&grid);
+    brt_svdag_free(dag);
+}
+
+static void test_grazing_directions(void)
+{
+    static const uint32_t resolutions[] = {2, 4, 16, 128};
+    uint64_t rng = test_seed() + 32, hits = 0;
+    size_t c, r;
+    for (c = 0; c < sizeof grazing_cases / sizeof grazing_cases[0]; c++)
+        for (r = 0; r < 4 && !test_failed(); r++)
+            grazing_run(&grazing_cases[c], resolutions[r], resolutions[r] == 128 ? 1500 : 3000,
+                        &rng, &hits);
+    /* the rays are aimed well enough to test something */
+    EXPECT(hits > 10000, "only %llu rays hit a triangle", (unsigned long long)hits);
+    printf("  svdag: grazing: %llu of the rays hit a triangle\n", (unsigned long long)hits);
+}
+
+/* The 12 triangles of the closed box [lo, hi] (9 floats each) into tri;
+** zeros as -0 in every second triangle when negative_zeros (the same
+** solid: a weld takes -0 = +0). */
+static void closed_box(const float lo[3], const float hi[3], int negative_zeros, float tri[12][9])
+{
+    static const unsigned char quads[6][4] = {{0, 2, 6, 4}, {1, 5, 7, 3}, {0, 4, 5, 1},
+                                              {2, 3, 7, 6}, {0, 1, 3, 2}, {4, 6, 7, 5}};
+    static const unsigned char halves[2][3] = {{0, 1, 2}, {0, 2, 3}};
+    int f, h, k, a;
+    for (f = 0; f < 6; f++)
+        for (h = 0; h < 2; h++)
+            for (k = 0; k < 3; k++)
+                for (a = 0; a < 3; a++) {
+                    unsigned corner = quads[f][halves[h][k]];
+                    float v = (corner >> a) & 1 ? hi[a] : lo[a];
+                    tri[2 * f + h][3 * k + a] = v == 0 && negative_zeros && h ? -0.0f : v;
+                }
+}
+
+/* The inner proxy of the 12 triangles tri at res, in a grid over [lo, hi]. */
+static int inner_of_box(float tri[12][9], const float lo[3], const float hi[3], uint32_t res,
+                        brt_svdag *dag, brt_proxy *proxy, brt_grid *grid)
+{
+    brt_solids *solids = NULL;
+    int ok = brt_grid_init(grid, lo, hi, res) == BRT_OK;
+    ok = ok && brt_solids_build(&tri[0][0], 9, 12, &solids) == BRT_OK &&
+         brt_voxelize_inner(grid, solids) == BRT_OK && brt_svdag_add(dag, grid, proxy) == BRT_OK;
+    brt_solids_free(solids);
+    return ok;
+}
+
+/*
+** Inner proxies at grazing directions: boxes near and far from the world
+** origin, rays along the axes from far away (some past the cast's
+** magnitude limit, which it must refuse) that graze the faces, edges and
+** the voxel cores' planes.  An occluded verdict needs a triangle hit at t
+** >= tnear by brute force; signed zeros do not change a verdict.
+*/
+static void test_grazing_inner(void)
+{
+    static const float boxes[2][2][3] = {{{0, 0, 0}, {1, 1, 1}}, {{500, 3, -2}, {501, 4.5f, -1}}};
+    static const uint32_t resolutions[] = {8, 16, 32};
+    uint64_t rng = test_seed() + 33, occluded = 0, rays = 0;
+    size_t b, r;
+    for (b = 0; b < 2; b++)
+        for (r = 0; r < 3 && !test_failed(); r++) {
+            float tri[12][9];
+            soup s = {NULL, NULL, 36, 12};
+            uint32_t idx[36], k, n;
+            brt_svdag *dag;
+            brt_proxy proxy;
+            brt_grid grid;
+            closed_box(boxes[b][0], boxes[b][1], 0, tri);
+            for (k = 0; k < 36; k++) idx[k] = k;
+            s.pos = &tri[0][0];
+            s.idx = idx;
+            CHECK(brt_svdag_create(&dag) == BRT_OK, "create");
+            if (!inner_of_box(tri, boxes[b][0], boxes[b][1], resolutions[r], dag, &proxy, &grid)) {
+                brt_svdag_free(dag);
+                CHECK(0, "box %u res %u: inner proxy", (unsigned)b, resolutions[r]);
+            }
+            for (n = 0; n < 4000 && !test_failed(); n++) {
+                brt_ray ray, twin;
+                float t;
+                uint32_t prim;
+                int occ;
+                grazing_ray(&rng, &s, &grid, boxes[b][0], boxes[b][1], &ray);
+                if (rand_below(&rng, 2))        /* through the inside, along the main axis */
+                    for (k = 0; k < 3; k++)
+                        if (fabsf(ray.dir[k]) < 0.25f)
+                            ray.org[k] = rand_range(&rng, boxes[b][0][k], boxes[b][1][k]);
+                if (rand_below(&rng, 4) == 0) ray.tnear = rand_range(&rng, 0, 2000);
+                occ = brt_inner_occludes(dag, &proxy, &ray);
+                occluded += occ;
+                rays++;
+                EXPECT(!occ || brute_hit(&s, &ray, &t, &prim),
+                       "box %u res %u: ray (%a %a %a) dir (%a %a %a) [%a inf] called occluded, "
+                       "no triangle hit", (unsigned)b, resolutions[r], ray.org[0], ray.org[1],
+                       ray.org[2], ray.dir[0], ray.dir[1], ray.dir[2], ray.tnear);
+                if (signed_zero_twin(&ray, &twin))
+                    EXPECT(brt_inner_occludes(dag, &proxy, &twin) == occ,
+                           "box %u res %u: the signed-zero twin of ray (%a %a %a) dir (%a %a %a) "
+                           "differs", (unsigned)b, resolutions[r], ray.org[0], ray.org[1],
+                           ray.org[2], ray.dir[0], ray.dir[1], ray.dir[2]);
+            }
+            brt_grid_free(&grid);
+            brt_svdag_free(dag);
+        }
+    /* enough of the rays pass through an inner voxel's core to test something */
+    EXPECT(occluded * 50 > rays, "only %llu of %llu rays occluded", (unsigned long long)occluded,
+           (unsigned long long)rays);
+    printf("  svdag: grazing inner: %llu of %llu rays occluded\n", (unsigned long long)occluded,
+           (unsigned long long)rays);
+}
+
+/* Signed zeros in a weld (issue 32, class 9): a closed box whose corners
+** at 0 are written -0 in half of its triangles is the same solid, with the
+** same inner voxels, at every resolution. */
+static void test_inner_signed_zeros(void)
+{
+    static const float lo[3] = {0, 0, 0}, hi[3] = {1, 2, 1};
+    uint32_t res;
+    for (res = 8; res <= 32; res *= 2) {
+        float plain[12][9], signed_zeros[12][9];
+        brt_svdag *dag;
+        brt_proxy a, b;
+        brt_grid ga, gb;
+        closed_box(lo, hi, 0, plain);
+        closed_box(lo, hi, 1, signed_zeros);
+        CHECK(brt_svdag_create(&dag) == BRT_OK, "create");
+        if (!inner_of_box(plain, lo, hi, res, dag, &a, &ga) ||
+            !inner_of_box(signed_zeros, lo, hi, res, dag, &b, &gb)) {
+            brt_svdag_free(dag);
+            CHECK(0, "res %u: inner proxies", res);
+        }
+        EXPECT(brt_grid_count(&ga) > 0 && brt_grid_count(&ga) == brt_grid_count(&gb) &&
+                   memcmp(ga.bits, gb.bits, ((size_t)res * res * res + 63) / 64 * 8) == 0,
+               "res %u: inner voxels %llu with +0, %llu with -0 corners", res,
+               (unsigned long long)brt_grid_count(&ga), (unsigned long long)brt_grid_count(&gb));
+        brt_grid_free(&ga);
+        brt_grid_free(&gb);
+        brt_svdag_free(dag);
+    }
+}
+
 void suite_svdag(void)
 {
     test_run("svdag: grid frame covers the box", test_grid_frame);
@@ -1276,4 +1707,7 @@ void suite_svdag(void)
     test_run("svdag: blob round trip", test_blob_round_trip);
     test_run("svdag: corrupt blobs", test_blob_corrupt);
     test_run("svdag: voxelize program", test_voxelize_program);
+    test_run("svdag: grazing directions, far origins", test_grazing_directions);
+    test_run("svdag: grazing directions, inner proxies", test_grazing_inner);
+    test_run("svdag: inner proxies, signed zeros in the weld", test_inner_signed_zeros);
 }
