@@ -99,7 +99,7 @@ test: all $(TEST_BIN) $(if $(T),,install-check)
 # Mutation testing (tests/mutants/): each mutant in tests/mutants/mutants.txt
 # weakens one mechanism in a copy of the tree and must make its tests fail;
 # prints a table (README, Tests).  M=NAME runs the mutants whose names
-# contain NAME.  Not part of "make test": about 5 minutes on 2 cores.
+# contain NAME.  Not part of "make test": it runs the suite once per mutant.
 mutants: all $(TEST_BIN)
 	sh tests/mutants/run.sh $(M)
 
@@ -114,7 +114,7 @@ sanitize:
 	  XCFLAGS="-DBRT_DEBUG -fsanitize=address,undefined -fno-sanitize-recover=all"
 
 # The threaded tests (names starting "threads") under ThreadSanitizer: any
-# report fails (halt_on_error).  About 1 minute on 2 cores.
+# report fails (halt_on_error).
 tsan:
 	$(MAKE) --no-print-directory all build/tsan/run_tests BUILD=build/tsan OPT="-O1 -g" \
 	  XCFLAGS="-fsanitize=thread"
@@ -164,8 +164,9 @@ bench-embree: all embree
 	    "$$@" --stats $$out.json || exit 1; \
 	    sed -n 's/.*"mrays_per_second": *\([0-9.eE+-]*\).*/\1/p' $$out.json; \
 	  done | sort -g | tail -1; }; \
-	echo "$$m, $(EMBREE_RAYS) rays per kind, one thread, best of $(EMBREE_REPEAT) (cold: one trace run each)"; \
-	printf '%-7s %9s %9s %9s %9s %7s %7s %7s\n' kind "direct" "batched" "Embree" "robust" "d/E" "b/E" "E/d"; \
+	echo "$$m, $(EMBREE_RAYS) rays per kind, one thread, best of $(EMBREE_REPEAT) (cold: one trace run each), Mrays/s"; \
+	echo; echo "| rays | direct | batched | Embree | robust | direct / Embree | batched / Embree |"; \
+	echo "|---|---:|---:|---:|---:|---:|---:|"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
 	  ./$(BUILD)/raygen $$m $$d.rays --kind $$k --count $(EMBREE_RAYS) || exit 1; \
 	  b=$$(best $$d.brt ./$(BUILD)/trace $$m $$d.rays $$d.brt.hits --threads 1); \
@@ -174,9 +175,8 @@ bench-embree: all embree
 	  e=$$(best $$d.emb ./$(BUILD)/embree_trace $$m $$d.rays $$d.emb.hits); \
 	  r=$$(best $$d.rob ./$(BUILD)/embree_trace $$m $$d.rays $$d.rob.hits --robust); \
 	  awk -v k=$$k -v b=$$b -v bb=$$bb -v e=$$e -v r=$$r 'BEGIN { \
-	    printf "%-7s %9.2f %9.2f %9.2f %9.2f %7.2f %7.2f %7.2f\n", k, b, bb, e, r, b / e, bb / e, e / b }'; \
-	done; \
-	echo "Mrays/s; d/E, b/E: batchrt direct and batched (in core, hits byte-identical) over Embree; E/d: the old ratio"; \
+	    printf "| %s | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f |\n", k, b, bb, e, r, b / e, bb / e }'; \
+	done; echo; \
 	sed -n 's/.*"bvh_bytes_per_triangle": *\([0-9.eE+-]*\).*/batchrt BVH bytes per triangle: \1/p; s/.*"build_seconds": *\([0-9.eE+-]*\).*/batchrt BVH build seconds: \1/p' $(EMBREE_BENCH)/bounce.brt.json; \
 	echo "warm (cached) figures: make bench (build/bench_bvh)"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
@@ -304,21 +304,23 @@ bench-render: all
 # bench-inner: inner proxies (README "Inner proxies"): the landscape and the
 # island at 1M triangles, 25 % of the geometry bytes, next-event estimation,
 # outer proxies alone (--no-inner) against outer + inner; one JSON each in
-# $(BUILD)/inner, a table of the counts, and the two images compared.
+# $(BUILD)/inner, a Markdown table of the counts, and the two images compared.
 BENCH_INNER = --scale 10 --batch-tris 10000 --spp 4 --width 320 --height 180 --memory 25%
-INNER_FIELDS = disk_bytes_read batch_loads shadow_rays shadow_occluded shadow_disk_bytes_read \
-  shadow_inner_stopped proxy_bytes
 .PHONY: bench-inner
 bench-inner: all
-	mkdir -p $(BUILD)/inner
-	for scene in landscape island; do \
+	@mkdir -p $(BUILD)/inner
+	@echo "| scene | proxies | disk MiB | loads | occluded shadow rays | settled by inner proxies | pool KB |"
+	@echo "|---|---|---:|---:|---:|---:|---:|"
+	@for scene in landscape island; do \
 	  for run in outer inner; do \
+	    j=$(BUILD)/inner/$$scene-$$run.json; \
 	    ./$(BUILD)/render $$scene $(BENCH_INNER) $$( [ $$run = outer ] && echo --no-inner ) \
-	      --out $(BUILD)/inner/$$scene-$$run.png --stats $(BUILD)/inner/$$scene-$$run.json || exit 1; \
-	    printf '%s %s:' $$scene $$run; \
-	    for f in $(INNER_FIELDS); do \
-	      printf ' %s %s' $$f $$(sed -n "s/^ *\"$$f\": \([0-9]*\),*$$/\1/p" $(BUILD)/inner/$$scene-$$run.json); \
-	    done; echo; \
+	      --out $(BUILD)/inner/$$scene-$$run.png --stats $$j > /dev/null 2>&1 || exit 1; \
+	    awk -v scene=$$scene -v run=$$run -F'[:,]' '{ gsub(/[ "]/, "", $$1); v[$$1] = $$2 } END { \
+	      printf "| %s | %s | %.1f | %d | %d | %s | %.0f |\n", scene, run == "outer" ? "outer" : "outer + inner", \
+	        v["disk_bytes_read"] / 1048576, v["batch_loads"], v["shadow_occluded"], \
+	        run == "outer" ? "-" : sprintf("%d (%.1f %%)", v["shadow_inner_stopped"], \
+	          100 * v["shadow_inner_stopped"] / v["shadow_occluded"]), v["proxy_bytes"] / 1000 }' $$j; \
 	  done; \
 	  cmp $(BUILD)/inner/$$scene-outer.png $(BUILD)/inner/$$scene-inner.png || exit 1; \
 	done
@@ -375,7 +377,7 @@ bench-threads: all
 # 12 B per vertex of an indexed input + the DAG; a render at no more than
 # its limit + 280 B per path in flight + 512 B per batching point + 40 B
 # per pixel + 16 MiB.  Exit status 1 when a statement fails.  The files
-# (about 60 B per triangle of scene file, and the OBJ) go to SCALE_DIR and
+# (the scene files and the OBJ) go to SCALE_DIR and
 # are removed at the end unless SCALE_KEEP=1.
 SCALE_LAND   ?= 1000
 SCALE_OBJ    ?= 200

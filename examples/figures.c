@@ -24,6 +24,9 @@
 **
 ** Every number comes from build/render (the program next to this one) and
 ** its statistics JSON, so the figures measure exactly what a user runs.
+** Each figure's table is printed on stdout as Markdown, the paper's values
+** beside it (the README's tables are this output); progress goes to
+** stderr.
 ** Its output goes to DIR/render.log.  As in the paper, with proxies
 ** on the memory limit also pays for the proxies, and every ray is queued
 ** (render --paper-scheduler: the paper's scheduler; by default render
@@ -202,6 +205,7 @@ static void figure1(const settings *s)
 {
     FILE *csv = open_csv(s, "fig1.csv", "scene,visits_per_sample_no_proxy,visits_per_sample_proxy,ratio");
     char extra[16384], name[64];
+    double ratios[SCENE_COUNT][2];
     int i;
     for (i = 0; i < SCENE_COUNT; i++) {
         double without, with;
@@ -210,18 +214,22 @@ static void figure1(const settings *s)
                  "--heatmap '%s/fig1_%s_heat.png' --stats '%s/fig1_%s.json'",
                  2 * (unsigned long long)s->width, 2 * (unsigned long long)s->height, s->out,
                  scene_names[i], s->out, scene_names[i], s->out, scene_names[i]);
-        printf("Fig. 1: %s\n", scene_names[i]);
-        fflush(stdout);
+        fprintf(stderr, "Fig. 1: %s\n", scene_names[i]);
         run_render(s, scene_names[i], PAPER_SCHEDULER, extra);
         snprintf(name, sizeof name, "fig1_%s-noproxy.json", scene_names[i]);
         without = json_number(out_path(s, name), "visits_per_sample");
         snprintf(name, sizeof name, "fig1_%s.json", scene_names[i]);
         with = json_number(out_path(s, name), "visits_per_sample");
         fprintf(csv, "%s,%.4f,%.4f,%.4f\n", scene_names[i], without, with, with / without);
-        printf("  batching points visited per sample: %.3f without proxies, %.3f with (x%.2f)\n",
-               without, with, with / without);
+        ratios[i][0] = without;
+        ratios[i][1] = with;
     }
     close_csv(s, csv, "fig1.csv");
+    printf("\nFig. 1, batching points visited per sample (the paper: roughly halved)\n\n"
+           "| scene | without proxies | with proxies | ratio |\n|---|---:|---:|---:|\n");
+    for (i = 0; i < SCENE_COUNT; i++)
+        printf("| %s | %.2f | %.2f | %.2f |\n", scene_names[i], ratios[i][0], ratios[i][1],
+               ratios[i][1] / ratios[i][0]);
 }
 
 /* ---- Fig. 2 ---- */
@@ -237,11 +245,10 @@ static void figure2(const settings *s)
     int i, r;
     snprintf(stats, sizeof stats, "%s", out_path(s, "fig2_run.json"));
     for (i = 0; i < SCENE_COUNT; i++) {
-        printf("Fig. 2: %s, resolution", scene_names[i]);
+        fprintf(stderr, "Fig. 2: %s, resolution", scene_names[i]);
         for (r = 0; r < RES_COUNT; r++) {
             double bytes, tests, culls;
-            printf(" %g", resolutions[r]);
-            fflush(stdout);
+            fprintf(stderr, " %g", resolutions[r]);
             snprintf(extra, sizeof extra, "--res %g --no-nee --out '%s/run.png' --stats '%s'", resolutions[r], s->out,
                      stats);
             run_render(s, scene_names[i], PAPER_SCHEDULER, extra);
@@ -253,8 +260,7 @@ static void figure2(const settings *s)
             fprintf(csv, "%s,%g,%.0f,%.0f,%.0f,%.4f,%.4f\n", scene_names[i], resolutions[r], bytes,
                     tests, culls, culled[i][r] / 100.0, json_number(stats, "visits_per_sample"));
         }
-        printf("\n  proxy MiB %.3f .. %.3f, culled %.1f %% .. %.1f %%\n", memory[i][0],
-               memory[i][RES_COUNT - 1], culled[i][0], culled[i][RES_COUNT - 1]);
+        fprintf(stderr, "\n");
         mem_series[i].label = cull_series[i].label = scene_names[i];
         mem_series[i].x = cull_series[i].x = resolutions;
         mem_series[i].y = memory[i];
@@ -263,6 +269,17 @@ static void figure2(const settings *s)
         mem_series[i].dashed = cull_series[i].dashed = 0;
     }
     close_csv(s, csv, "fig2.csv");
+    printf("\nFig. 2, proxy memory (the shared DAG, MiB) and share of proxy tests culled, against "
+           "resolution\n\n| resolution |");
+    for (i = 0; i < SCENE_COUNT; i++) printf(" %s MiB | %s culled |", scene_names[i], scene_names[i]);
+    printf("\n|---:|");
+    for (i = 0; i < SCENE_COUNT; i++) printf("---:|---:|");
+    printf("\n");
+    for (r = 0; r < RES_COUNT; r++) {
+        printf("| %g |", resolutions[r]);
+        for (i = 0; i < SCENE_COUNT; i++) printf(" %.2f | %.0f %% |", memory[i][r], culled[i][r]);
+        printf("\n");
+    }
     remove(stats);
     remove(out_path(s, "run.png"));
     memset(&plot, 0, sizeof plot);
@@ -298,11 +315,10 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
     char extra[12288], stats[4096];
     int l, run, scheduler;
     snprintf(stats, sizeof stats, "%s", out_path(s, "fig3_run.json"));
-    printf("Fig. 3: %s, limit %%", scene_names[i]);
+    fprintf(stderr, "Fig. 3: %s, limit %%", scene_names[i]);
     for (l = 0; l < LIMIT_COUNT; l++) {
         limits[l] = 10.0 * (l + 1);
-        printf(" %g", limits[l]);
-        fflush(stdout);
+        fprintf(stderr, " %g", limits[l]);
         for (run = 0; run < FIG3_SERIES; run++) {
             int kind = run % PROXY_KINDS;
             scheduler = run / PROXY_KINDS;
@@ -317,17 +333,33 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
                     json_number(stats, "seconds"));
         }
     }
-    for (scheduler = 0; scheduler < 2; scheduler++) {
-        const double *none = disk[PROXY_KINDS * scheduler];
-        printf("\n  %s's scheduler, disk bytes with proxies / without (exact proxies):",
-               scheduler_names[scheduler]);
-        for (l = 5; l < 9; l++)   /* 60..90 %, the paper's range */
-            printf(" %g%%: x%.2f (x%.2f)", limits[l], disk[PROXY_KINDS * scheduler + 1][l] / none[l],
-                   disk[PROXY_KINDS * scheduler + 2][l] / none[l]);
-    }
-    printf("\n");
+    fprintf(stderr, "\n");
     remove(stats);
     remove(out_path(s, "run.png"));
+}
+
+/* The paper's range, 60..90 %: voxel and (exact) proxies over none, for
+** each scheduler, with the paper's ratios (its Fig. 3). */
+static void figure3_table(const double limits[LIMIT_COUNT],
+                          double ratio[SCENE_COUNT][FIG3_SERIES][LIMIT_COUNT])
+{
+    static const char *const paper[SCENE_COUNT] = {"0.73-0.81", "0.60-0.77", "0.46-0.52"};
+    int scheduler, i, l;
+    printf("\nFig. 3, disk bytes with proxies / without, proxies paid out of the limit (in "
+           "brackets: exact proxies, the bound)\n\n| scheduler | limit |");
+    for (i = 0; i < SCENE_COUNT; i++) printf(" %s |", scene_names[i]);
+    printf("\n|---|---:|---:|---:|---:|\n");
+    for (scheduler = 0; scheduler < 2; scheduler++)
+        for (l = 5; l < 9; l++) {
+            printf("| %s | %g %% |", scheduler ? "batchrt's" : "paper's", limits[l]);
+            for (i = 0; i < SCENE_COUNT; i++)
+                printf(" %.2f (%.2f) |", ratio[i][PROXY_KINDS * scheduler + 1][l],
+                       ratio[i][PROXY_KINDS * scheduler + 2][l]);
+            printf("\n");
+        }
+    printf("| the paper | 60-90 %% |");
+    for (i = 0; i < SCENE_COUNT; i++) printf(" %s |", paper[i]);
+    printf("\n");
 }
 
 static void figure3(const settings *s)
@@ -338,12 +370,18 @@ static void figure3(const settings *s)
     FILE *csv = open_csv(s, "fig3.csv", "scene,scheduler,limit_percent,proxies,disk_bytes_read,"
                                         "batch_loads,geometry_bytes,proxy_bytes,seconds");
     double limits[LIMIT_COUNT], disk[FIG3_SERIES][LIMIT_COUNT];
+    static double ratio[SCENE_COUNT][FIG3_SERIES][LIMIT_COUNT];   /* over no proxies */
     ex_plot_series series[FIG3_SERIES];
     ex_plot plot;
     char title[128], name[64];
     int i, k;
     for (i = 0; i < SCENE_COUNT; i++) {
         figure3_scene(s, csv, i, limits, disk);
+        for (k = 0; k < FIG3_SERIES; k++) {
+            int l;
+            for (l = 0; l < LIMIT_COUNT; l++)
+                ratio[i][k][l] = disk[k][l] / disk[k - k % PROXY_KINDS][l];
+        }
         memset(series, 0, sizeof series);
         for (k = 0; k < FIG3_SERIES; k++) {
             series[k].label = labels[k];
@@ -364,6 +402,7 @@ static void figure3(const settings *s)
         write_plot(s, name, &plot);
     }
     close_csv(s, csv, "fig3.csv");
+    figure3_table(limits, ratio);
 }
 
 /* ---- Fig. 4 ---- */
@@ -408,22 +447,26 @@ static void figure4(const settings *s)
                                         "shadow_occluded,shadow_inner_stopped,stopped_share,shadow_disk_bytes_read,"
                                         "proxy_bytes");
     double mib[2 * FIG4_GROUPS], stopped[2 * FIG4_GROUPS];
+    static char rows[FIG4_GROUPS][160];
     static char note_text[FIG4_GROUPS][32];
     const char *notes[2 * FIG4_GROUPS];
     ex_bar_chart chart;
     brt_error err;
     int g, inner;
     for (g = 0; g < FIG4_GROUPS; g++) {
-        printf("Fig. 4: %s's scheduler", groups[g]);
+        fprintf(stderr, "Fig. 4: %s's scheduler\n", groups[g]);
         for (inner = 0; inner < 2; inner++)
             figure4_run(s, csv, g / 2, g % 2, inner, &mib[2 * g + inner], &stopped[2 * g + inner]);
         snprintf(note_text[g], sizeof note_text[g], "%.1f %%", stopped[2 * g + 1]);
         notes[2 * g] = NULL;
         notes[2 * g + 1] = note_text[g];
-        printf(": disk MiB %.1f outer, %.1f outer + inner (x%.3f); inner proxies stopped %.1f %% "
-               "of the occluded shadow rays\n", mib[2 * g], mib[2 * g + 1], mib[2 * g + 1] / mib[2 * g],
-               stopped[2 * g + 1]);
+        snprintf(rows[g], sizeof rows[g], "| %s | %.1f | %.1f | %.3f | %.1f %% |\n", groups[g],
+                 mib[2 * g], mib[2 * g + 1], mib[2 * g + 1] / mib[2 * g], stopped[2 * g + 1]);
     }
+    printf("\nFig. 4 (inner proxies, beyond the paper), disk MiB at 25 %% with shadow rays\n\n"
+           "| scene, scheduler | outer | outer + inner | ratio | occluded shadow rays stopped |\n"
+           "|---|---:|---:|---:|---:|\n");
+    for (g = 0; g < FIG4_GROUPS; g++) fputs(rows[g], stdout);
     close_csv(s, csv, "fig4.csv");
     remove(out_path(s, "run.png"));
     memset(&chart, 0, sizeof chart);
@@ -450,6 +493,6 @@ int main(int argc, char **argv)
     remove(out_path(&s, "render.log"));
     for (f = 0; f < FIGURE_COUNT; f++)
         if (s.only == 0 || s.only == f + 1) figures[f](&s);
-    printf("figures: done in %.0f s; PNG, CSV and SVG in %s\n", brt_seconds() - start, s.out);
+    fprintf(stderr, "figures: done in %.0f s; PNG, CSV and SVG in %s\n", brt_seconds() - start, s.out);
     return 0;
 }
