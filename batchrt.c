@@ -54,6 +54,7 @@
 #define NDEBUG
 #endif
 #include <assert.h>
+#include <dirent.h>
 #include <errno.h>
 #include <fcntl.h>
 #include <float.h>
@@ -4424,7 +4425,63 @@ static int is_special_file(const char *path)
 ** (ray, hit and statistics files, scene files, the programs' images, CSV
 ** and mesh files) is written under "path.tmp.<pid>" and renamed over path
 ** only when complete, so a failure never leaves a half-written file under
-** the final name. */
+** the final name.
+**
+** A process that is killed (SIGKILL, the OOM killer, a power loss) cannot
+** remove its temporary file, and a scene's can be gigabytes.  So a writer
+** holds its temporary file under a POSIX advisory lock (fcntl, a write
+** lock on the whole file) from creation to rename; the system releases
+** the lock however the process ends.  Before it creates its own, a writer
+** removes every "path.tmp.<pid>" that nobody holds (reclaim_stale).  On a
+** file system without locks (ENOLCK) nothing is locked and nothing is
+** reclaimed, which is safe. */
+static int lock_whole_file(int fd)
+{
+    struct flock lock;
+    memset(&lock, 0, sizeof lock);
+    lock.l_type = F_WRLCK;
+    lock.l_whence = SEEK_SET;   /* l_start = l_len = 0: the whole file, however long */
+    return fcntl(fd, F_SETLK, &lock);
+}
+
+/* Whether name is base + ".tmp." + a process number other than ours. */
+static int is_stale_candidate(const char *name, const char *base, size_t base_len)
+{
+    const char *digits = name + base_len + 5;
+    if (strncmp(name, base, base_len) != 0 || strncmp(name + base_len, ".tmp.", 5) != 0 || !*digits)
+        return 0;
+    if (strspn(digits, "0123456789") != strlen(digits)) return 0;
+    return strtol(digits, NULL, 10) != (long)getpid();
+}
+
+/* Removes the temporary files of path that no live writer holds.  Our own
+** process number is skipped: probing that file would open and close a
+** file we may hold, and closing any descriptor of a file drops this
+** process's locks on it (POSIX).  Taking the lock before unlinking means
+** a writer that is alive keeps its file. */
+static void reclaim_stale(const char *path)
+{
+    const char *slash = strrchr(path, '/'), *base = slash ? slash + 1 : path;
+    char dir[4096], full[4096];
+    size_t base_len = strlen(base);
+    struct dirent *entry;
+    DIR *d;
+    if (slash) snprintf(dir, sizeof dir, "%.*s", (int)(slash == path ? 1 : slash - path), path);
+    else snprintf(dir, sizeof dir, ".");
+    d = opendir(dir);
+    if (!d) return;             /* the create below reports what is wrong */
+    while ((entry = readdir(d)) != NULL) {
+        int fd;
+        if (!is_stale_candidate(entry->d_name, base, base_len)) continue;
+        if (snprintf(full, sizeof full, "%s/%s", dir, entry->d_name) >= (int)sizeof full) continue;
+        fd = open(full, O_RDWR);
+        if (fd < 0) continue;
+        if (lock_whole_file(fd) == 0) unlink(full);
+        close(fd);
+    }
+    closedir(d);
+}
+
 brt_result brt_atomic_open(brt_atomic_file *f, const char *path, brt_error *err)
 {
     f->path = path;
@@ -4433,23 +4490,31 @@ brt_result brt_atomic_open(brt_atomic_file *f, const char *path, brt_error *err)
         f->tmp[0] = 0;      /* nothing created: brt_atomic_close has nothing to do */
         return brt_fail(err, BRT_EARG, "%s: path too long", path);
     }
+    reclaim_stale(path);
     f->fd = open(f->tmp, O_WRONLY | O_CREAT | O_TRUNC, 0644);
     if (f->fd < 0) {
         f->tmp[0] = 0;
         return brt_fail(err, BRT_EIO, "%s: cannot create: %s", path, strerror(errno));
     }
+    lock_whole_file(f->fd);     /* ENOLCK: unlocked, never reclaimed (above) */
     return BRT_OK;
 }
 
+/* The rename comes before the close, so the lock covers the temporary
+** file until it has its final name (a close first would leave a moment
+** in which another writer's reclaim_stale could take it).  A close that
+** fails after the rename (it may have lost data) removes the file again. */
 brt_result brt_atomic_close(brt_atomic_file *f, brt_result r, brt_error *err)
 {
+    int renamed = 0;
     if (f->tmp[0] == 0) return r;
+    if (r == BRT_OK && rename(f->tmp, f->path) != 0)
+        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", f->path, strerror(errno));
+    renamed = r == BRT_OK;
     if (f->fd >= 0 && close(f->fd) != 0 && r == BRT_OK)   /* a failed close may lose data */
         r = brt_fail(err, BRT_EIO, "%s: cannot write: %s", f->path, strerror(errno));
     f->fd = -1;
-    if (r == BRT_OK && rename(f->tmp, f->path) != 0)
-        r = brt_fail(err, BRT_EIO, "%s: cannot rename: %s", f->path, strerror(errno));
-    if (r != BRT_OK) unlink(f->tmp);
+    if (r != BRT_OK) unlink(renamed ? f->path : f->tmp);
     f->tmp[0] = 0;
     return r;
 }

@@ -135,6 +135,7 @@ int main(int argc, char **argv)
     suite_follow();
     suite_layers();
     suite_sampling();
+    suite_reclaim();
     if (failed == 0) remove_tmpdir();
     else if (tmpdir[0]) printf("scratch files kept in %s\n", tmpdir);
     if (skipped) printf("(%d skipped, see SKIP lines above)\n", skipped);

@@ -70,5 +70,6 @@ void suite_inner(void);
 void suite_follow(void);
 void suite_layers(void);
 void suite_sampling(void);
+void suite_reclaim(void);
 
 #endif
