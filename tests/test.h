@@ -71,5 +71,6 @@ void suite_follow(void);
 void suite_layers(void);
 void suite_sampling(void);
 void suite_reclaim(void);
+void suite_runner(void);
 
 #endif

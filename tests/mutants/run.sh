@@ -81,7 +81,11 @@ run_one() {
     [ "${MUTANTS_ALL:-0}" = 1 ] && run=
     old_ifs=$IFS; IFS='|'; set -f; set -- $run; set +f; IFS=$old_ifs
     # (run by an inner shell, so its "Segmentation fault" note goes to the log)
-    sh -c 'limit=$2; cd "$1" && shift 3 && BRT_BUILD=build BRT_SHARED=$0 $limit ./build/run_tests "$@"; exit $?' \
+    # Each mutant's run gets a scratch root of its own (TMPDIR), removed
+    # with its copy of the tree: a mutant that crashes or hangs the runner
+    # leaves nothing behind in the system's temporary folder.
+    mkdir "$dir/tmp"
+    sh -c 'limit=$2; d=$1; cd "$d" && shift 3 && TMPDIR=$d/tmp BRT_BUILD=build BRT_SHARED=$0 $limit ./build/run_tests "$@"; exit $?' \
         "$shared" "$dir" "$limit" - "$@" >"$dir/test.log" 2>&1
     status=$?
     by=$(awk '/^FAIL / { i = index($0, ": tests/"); if (i > 6) print substr($0, 6, i - 6) }' \

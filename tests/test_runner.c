@@ -1,0 +1,129 @@
+/*
+** tests/test_runner.c -- the runner leaves nothing behind (tests/main.c).
+**
+** Runs build/run_tests itself with TMPDIR pointing at a fresh folder and
+** its hidden test "runner: self-check", which leaves a file in its scratch
+** folder and then fails, crashes or dies of SIGINT or SIGTERM.  Each time
+** the runner must end as it should (exit 1, or killed by that signal) and
+** the folder must end up empty.  The watcher that removes the scratch
+** folder runs after the runner has died, so the test waits for it, up to
+** a generous bound: a liveness check, not a timing.
+*/
+#include "test.h"
+#include "util.h"
+
+#include <dirent.h>
+#include <fcntl.h>
+#include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
+#include <time.h>
+#include <unistd.h>
+
+static int is_empty(const char *dir)
+{
+    DIR *d = opendir(dir);
+    struct dirent *e;
+    int empty = 1;
+    if (!d) return 0;
+    while ((e = readdir(d)) != NULL)
+        if (strcmp(e->d_name, ".") != 0 && strcmp(e->d_name, "..") != 0) empty = 0;
+    closedir(d);
+    return empty;
+}
+
+/* Waits up to a minute for dir to be empty. */
+static int becomes_empty(const char *dir)
+{
+    struct timespec pause = {0, 20 * 1000 * 1000};
+    int i;
+    for (i = 0; i < 3000; i++) {
+        if (is_empty(dir)) return 1;
+        nanosleep(&pause, NULL);
+    }
+    return 0;
+}
+
+/* Runs the runner's self-check in mode with TMPDIR = dir (and
+** BRT_TEST_KEEP when keep): its status. */
+static pid_t last_pid;          /* the runner run_selfcheck started last */
+
+static int run_selfcheck(const char *mode, const char *dir, int keep)
+{
+    const char *build = getenv("BRT_BUILD");
+    char runner[1024];
+    int status = -1;
+    pid_t pid;
+    snprintf(runner, sizeof runner, "%s/run_tests", build ? build : "build");
+    fflush(stdout);
+    pid = fork();
+    if (pid == 0) {
+        int null = open("/dev/null", O_WRONLY);
+        if (null >= 0) {
+            dup2(null, 1);
+            dup2(null, 2);
+        }
+        setpgid(0, 0);          /* a group of its own, for the group's SIGINT */
+        setenv("TMPDIR", dir, 1);
+        setenv("BRT_TEST_SELFCHECK", mode, 1);
+        if (keep) setenv("BRT_TEST_KEEP", "1", 1);
+        else unsetenv("BRT_TEST_KEEP");
+        execl(runner, runner, "runner: self-check", (char *)NULL);
+        _exit(127);
+    }
+    if (pid > 0) waitpid(pid, &status, 0);
+    last_pid = pid;
+    return status;
+}
+
+static void test_scratch_removed(void)
+{
+    static const struct { const char *mode; int signal; } cases[] = {
+        {"fail", 0}, {"segv", SIGSEGV}, {"abort", SIGABRT}, {"int", SIGINT}, {"term", SIGTERM}};
+    size_t i;
+    for (i = 0; i < sizeof cases / sizeof *cases; i++) {
+        char dir[1024];
+        int status, as_expected;
+        snprintf(dir, sizeof dir, "%s/runner-%s", test_tmpdir(), cases[i].mode);
+        CHECK(mkdir(dir, 0700) == 0 || is_empty(dir), "cannot make %s", dir);
+        status = run_selfcheck(cases[i].mode, dir, 0);
+        if (cases[i].signal == 0)
+            as_expected = WIFEXITED(status) && WEXITSTATUS(status) == 1;
+        else if (cases[i].signal == SIGINT || cases[i].signal == SIGTERM)
+            as_expected = WIFSIGNALED(status) && WTERMSIG(status) == cases[i].signal;
+        else   /* a sanitizer may catch the crash and exit non-zero instead */
+            as_expected = (WIFSIGNALED(status) && WTERMSIG(status) == cases[i].signal) ||
+                          (WIFEXITED(status) && WEXITSTATUS(status) != 0);
+        EXPECT(as_expected, "self-check '%s': status %d", cases[i].mode, status);
+        EXPECT(becomes_empty(dir), "self-check '%s' left its scratch folder in %s", cases[i].mode, dir);
+    }
+}
+
+/* BRT_TEST_KEEP keeps the folder, and it is where TMPDIR says. */
+static void test_scratch_kept_in_tmpdir(void)
+{
+    char dir[1024], cmd[2200];
+    int status, found;
+    snprintf(dir, sizeof dir, "%s/runner-keep", test_tmpdir());
+    CHECK(mkdir(dir, 0700) == 0 || is_empty(dir), "cannot make %s", dir);
+    status = run_selfcheck("fail", dir, 1);
+    EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 1, "kept self-check: status %d", status);
+    snprintf(cmd, sizeof cmd, "test -f %s/batchrt-test-*/left-behind", dir);
+    found = system(cmd) == 0;
+    EXPECT(found, "no scratch folder with the test's file under TMPDIR=%s", dir);
+    snprintf(cmd, sizeof cmd, "rm -rf %s/batchrt-test-*", dir);
+    EXPECT(system(cmd) == 0 && is_empty(dir), "could not clean %s", dir);
+    /* Where a runner that ignored TMPDIR would have kept it. */
+    snprintf(cmd, sizeof cmd, "rm -rf /tmp/batchrt-test-%ld", (long)last_pid);
+    EXPECT(system(cmd) == 0, "could not clean /tmp");
+}
+
+void suite_runner(void)
+{
+    test_run("runner: the scratch folder is removed on failure, crash, SIGINT and SIGTERM",
+             test_scratch_removed);
+    test_run("runner: the scratch folder goes to TMPDIR, kept with BRT_TEST_KEEP", test_scratch_kept_in_tmpdir);
+}
