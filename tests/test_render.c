@@ -213,7 +213,7 @@ static void test_same_image_mesh_file(void)
 /* The heatmap counts every visit of the render exactly once, it
 ** decodes (an independent decoder, tests/util.c) to the map plus a 24-row
 ** legend, the map is not flat, and proxies only ever remove visits
-** (proxies never change a result; README, "Batched mode").  Under a memory limit, so that proxies are
+** (proxies never change a result; README, "What batchrt promises").  Under a memory limit, so that proxies are
 ** consulted at all: a culled batching point holds no hit in the ray's
 ** segment, so every ray reaches the same points with or without proxies,
 ** and the visits with them plus the culls are exactly the visits without. */
@@ -341,7 +341,7 @@ static void test_builtin_scenes_streamed(void)
 static void test_reused_builtin_holds_no_mesh(void)
 {
     /* --no-nee: no shadow rays, fewer loads (29, not 35), so that glibc's
-    ** heap slack from blobs freed and read again (README, Out of core)
+    ** heap slack from blobs freed and read again (README, "Memory")
     ** stays out of a measure meant for the mesh. */
     const char *args = "--width 16 --height 16 --spp 1 --res 16 --rays-in-flight 256 --memory 1M "
                        "--no-nee";

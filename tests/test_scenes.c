@@ -9,7 +9,7 @@
 ** (brute force over brt_intersect_triangle), and mkscene's files read back
 ** by brt_mesh_load to the same floats and indices.
 **
-** The streamed outputs (README, "Out of core from end to end") against the collector: the triangle
+** The streamed outputs (README, "Building scene files out of core") against the collector: the triangle
 ** stream's corners equal the indexed arrays' triangles in order, in the
 ** same chunks on every run; counts equal; a scene file built from the
 ** stream has the mesh's bounds bit for bit (render's camera comes from
