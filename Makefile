@@ -373,7 +373,7 @@ bench-threads: all
 # whose scene file render builds straight from the generator, then a render
 # of that landscape at 640x360, 16 spp, --memory SCALE_MEMORY.  Prints time,
 # disk and peak RSS of each step and checks the README's two statements
-# ("Out of core from end to end"): a build peaks at no more than 256 MiB +
+# ("Memory"): a build peaks at no more than 256 MiB +
 # 12 B per vertex of an indexed input + the DAG; a render at no more than
 # its limit + 280 B per path in flight + 512 B per batching point + 40 B
 # per pixel + 16 MiB.  Exit status 1 when a statement fails.  The files

@@ -942,22 +942,6 @@ static pid_t spawn(const char *const *argv, const char *err_name)
     return pid;
 }
 
-/* The number of entries of a directory (without . and ..), and the name of
-** one of them. */
-static int directory_entries(const char *dir, char *name, size_t size)
-{
-    DIR *d = opendir(dir);
-    struct dirent *e;
-    int n = 0;
-    if (!d) return -1;
-    while ((e = readdir(d)) != NULL) {
-        if (strcmp(e->d_name, ".") == 0 || strcmp(e->d_name, "..") == 0) continue;
-        if (name) snprintf(name, size, "%s", e->d_name);
-        n++;
-    }
-    closedir(d);
-    return n;
-}
 
 static void sleep_ms(long ms)
 {
@@ -981,7 +965,7 @@ static void check_interrupted(const char *const *argv, const char *dir, int sign
     CHECK(mkdir(dir, 0755) == 0, "cannot create %s", dir);
     pid = spawn(argv, "spawn.err");
     CHECK(pid > 0, "cannot start %s", argv[0]);
-    while (waited < max_wait_ms && directory_entries(dir, NULL, 0) == 0) {
+    while (waited < max_wait_ms && tu_dir_entries(dir, NULL, NULL, NULL, 0) == 0) {
         sleep_ms(10);
         waited += 10;
     }
@@ -995,7 +979,7 @@ static void check_interrupted(const char *const *argv, const char *dir, int sign
            "%s after signal %d: status %#x, stderr '%s'", argv[0], signo, (unsigned)status,
            err ? err : "(none)");
     free(err);
-    entries = directory_entries(dir, left, sizeof left);
+    entries = tu_dir_entries(dir, NULL, NULL, left, sizeof left);
     EXPECT(entries == 0 || (entries == 1 && allowed && strcmp(left, allowed) == 0),
            "%s left %d files in %s after signal %d, e.g. '%s'", argv[0], entries, dir, signo, left);
 }
@@ -1077,7 +1061,7 @@ static void test_minimal_batched(void)
            culled > 0 && culled < tests && queued > 0 && loads > 0 && bytes >= 4096u * loads,
            "minimal_batched: proxy tests %u, culled %u, queued %u, loads %u, %u bytes read",
            tests, culled, queued, loads, bytes);
-    EXPECT(directory_entries(tu_scratch("minimal-tmp"), NULL, 0) == 0, "minimal_batched left files in $TMPDIR");
+    EXPECT(tu_dir_entries(tu_scratch("minimal-tmp"), NULL, NULL, NULL, 0) == 0, "minimal_batched left files in $TMPDIR");
     free(out);
     status = tu_run("minimal_batched --bogus");
     out = tu_last_stderr();

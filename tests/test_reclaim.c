@@ -12,7 +12,6 @@
 #include "test.h"
 #include "util.h"
 
-#include <dirent.h>
 #include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -30,21 +29,10 @@ static const char *fresh_dir(const char *name)
     return dir;
 }
 
-/* The number of entries of dir (without . and ..); *tmp: of them "*.tmp.*". */
+/* The number of entries of dir; *tmp: of them "*.tmp.*". */
 static int count_entries(const char *dir, int *tmp)
 {
-    DIR *d = opendir(dir);
-    struct dirent *e;
-    int n = 0;
-    *tmp = 0;
-    if (!d) return -1;
-    while ((e = readdir(d)) != NULL) {
-        if (strcmp(e->d_name, ".") == 0 || strcmp(e->d_name, "..") == 0) continue;
-        n++;
-        *tmp += strstr(e->d_name, ".tmp.") != NULL;
-    }
-    closedir(d);
-    return n;
+    return tu_dir_entries(dir, ".tmp.", tmp, NULL, 0);
 }
 
 static brt_result build_into(const char *path, brt_error *err)

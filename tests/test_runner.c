@@ -12,7 +12,6 @@
 #include "test.h"
 #include "util.h"
 
-#include <dirent.h>
 #include <fcntl.h>
 #include <signal.h>
 #include <stdio.h>
@@ -25,14 +24,7 @@
 
 static int is_empty(const char *dir)
 {
-    DIR *d = opendir(dir);
-    struct dirent *e;
-    int empty = 1;
-    if (!d) return 0;
-    while ((e = readdir(d)) != NULL)
-        if (strcmp(e->d_name, ".") != 0 && strcmp(e->d_name, "..") != 0) empty = 0;
-    closedir(d);
-    return empty;
+    return tu_dir_entries(dir, NULL, NULL, NULL, 0) == 0;
 }
 
 /* Waits up to a minute for dir to be empty. */

@@ -248,18 +248,28 @@ char *tu_last_stderr(void) { return (char *)tu_slurp(tu_scratch("cli.err"), NULL
 
 /* Nonzero when the scratch directory holds a "*.tmp.*" file, the trace an
 ** interrupted atomic write would leave. */
-int tu_temporary_file_left(void)
+int tu_dir_entries(const char *dir, const char *part, int *with_part, char *name, size_t size)
 {
-    DIR *d = opendir(test_tmpdir());
+    DIR *d = opendir(dir);
     struct dirent *e;
-    int found = 0;
-    if (!d) return 1;
-    while ((e = readdir(d)) != NULL)
-        if (strstr(e->d_name, ".tmp.")) found = 1;
+    int n = 0;
+    if (with_part) *with_part = 0;
+    if (!d) return -1;
+    while ((e = readdir(d)) != NULL) {
+        if (strcmp(e->d_name, ".") == 0 || strcmp(e->d_name, "..") == 0) continue;
+        n++;
+        if (with_part && part && strstr(e->d_name, part)) (*with_part)++;
+        if (name) snprintf(name, size, "%s", e->d_name);
+    }
     closedir(d);
-    return found;
+    return n;
 }
 
+int tu_temporary_file_left(void)
+{
+    int temporary;
+    return tu_dir_entries(test_tmpdir(), ".tmp.", &temporary, NULL, 0) < 0 || temporary > 0;
+}
 
 /* ---- an independent PNG decoder for the stored-block subset ---- */
 

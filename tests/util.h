@@ -71,6 +71,10 @@ char *tu_last_stderr(void);
 /* Nonzero when the scratch directory holds a "*.tmp.*" file, the trace an
 ** interrupted atomic write would leave. */
 int tu_temporary_file_left(void);
+/* The number of entries of dir (without . and ..), or -1 when it cannot be
+** read; *with_part (when not NULL): how many have part in their name;
+** name (when not NULL): one entry's name. */
+int tu_dir_entries(const char *dir, const char *part, int *with_part, char *name, size_t size);
 
 /* Decodes an 8-bit RGB PNG made of stored deflate blocks and filter type
 ** None (what examples/common.c writes), checking every CRC-32 and the
