@@ -68,18 +68,7 @@ static void fixture_free(fixture *f)
 
 static brt_scene *build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, const char *path)
 {
-    brt_scene_options opt;
-    brt_mesh mesh = tu_mesh_view(s);
-    brt_scene *scene = NULL;
-    brt_error err;
-    brt_result r;
-    memset(&opt, 0, sizeof opt);   /* fields added later mean defaults */
-    opt.batch_tris = batch_tris;
-    opt.proxy_res = res;
-    r = brt_scene_build(&mesh, &opt, 1, path, &err);
-    if (r == BRT_OK) r = brt_scene_open(path, &scene, &err);
-    if (r != BRT_OK) test_fail_at(__FILE__, __LINE__, "scene: %s", err.message);
-    return scene;
+    return tu_build_scene(s, batch_tris, res, 0, path);
 }
 
 /* Traces the fixture's rays in batched mode and compares every hit. */

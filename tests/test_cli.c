@@ -461,19 +461,6 @@ static void test_trace_equals_brute_force(void)
     tu_scene_free(&m);
 }
 
-/* The number after "NAME": in a flat JSON object, or NaN when absent. */
-static double json_number(const char *json, const char *name)
-{
-    char key[64];
-    const char *p;
-    snprintf(key, sizeof key, "\"%s\"", name);
-    p = strstr(json, key);
-    if (!p) return NAN;
-    p += strlen(key);
-    while (*p == ' ') p++;
-    return *p == ':' ? strtod(p + 1, NULL) : NAN;
-}
-
 /* The statistics of direct mode, and the summary line on stderr only when
 ** asked for (stderr is not a terminal under system()). */
 static void test_trace_stats(void)
@@ -493,11 +480,11 @@ static void test_trace_stats(void)
     CHECK(json, "no statistics file");
     /* timings: present (NAN when absent fails every compare), not
     ** negative, and the speed is the rays over the time (%.17g round-trips) */
-    seconds = json_number(json, "seconds");
-    EXPECT(json_number(json, "rays") == 777 && json_number(json, "bvh_bytes_per_triangle") > 0
-           && seconds >= 0 && json_number(json, "build_seconds") >= 0
-           && json_number(json, "mrays_per_second") == (seconds > 0 ? 777 / seconds * 1e-6 : 0)
-           && json_number(json, "memory_limit") == 0 && json_number(json, "batch_loads") == 0,
+    seconds = tu_json_number(json, "seconds");
+    EXPECT(tu_json_number(json, "rays") == 777 && tu_json_number(json, "bvh_bytes_per_triangle") > 0
+           && seconds >= 0 && tu_json_number(json, "build_seconds") >= 0
+           && tu_json_number(json, "mrays_per_second") == (seconds > 0 ? 777 / seconds * 1e-6 : 0)
+           && tu_json_number(json, "memory_limit") == 0 && tu_json_number(json, "batch_loads") == 0,
            "statistics of direct mode: %s", json);
     free(json);
     status = tu_run("trace @/cube.obj @/stats.rays @/stats.hits --verbose");
@@ -538,13 +525,13 @@ static void test_trace_batched(void)
         free(batched);
     }
     json = (char *)tu_slurp(tu_scratch("batched.json"), NULL);
-    EXPECT(json && json_number(json, "rays") == 3000 && json_number(json, "batch_loads") > 0 &&
-           json_number(json, "disk_bytes_read") > 0 && json_number(json, "queued_visits") > 0 &&
-           json_number(json, "proxy_tests") > 0 && json_number(json, "memory_limit") == 20480 &&
-           json_number(json, "geometry_bytes") > 0 && json_number(json, "proxy_bytes") > 0 &&
-           json_number(json, "cache_peak_bytes") > 0 && json_number(json, "proxy_culled") > 0 &&
-           json_number(json, "proxy_culled") <= json_number(json, "proxy_tests") &&
-           json_number(json, "batching_points") >= (double)m.tcount / 40.0,
+    EXPECT(json && tu_json_number(json, "rays") == 3000 && tu_json_number(json, "batch_loads") > 0 &&
+           tu_json_number(json, "disk_bytes_read") > 0 && tu_json_number(json, "queued_visits") > 0 &&
+           tu_json_number(json, "proxy_tests") > 0 && tu_json_number(json, "memory_limit") == 20480 &&
+           tu_json_number(json, "geometry_bytes") > 0 && tu_json_number(json, "proxy_bytes") > 0 &&
+           tu_json_number(json, "cache_peak_bytes") > 0 && tu_json_number(json, "proxy_culled") > 0 &&
+           tu_json_number(json, "proxy_culled") <= tu_json_number(json, "proxy_tests") &&
+           tu_json_number(json, "batching_points") >= (double)m.tcount / 40.0,
            "batched statistics: %s", json ? json : "(none)");
     free(json);
     status = tu_run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --scene @/b.brs "
@@ -914,9 +901,9 @@ static void test_peak_rss_in_statistics(void)
         char *json;
         int status = tu_run("%s", runs[i][0]);
         json = (char *)tu_slurp(tu_scratch(runs[i][1]), NULL);
-        EXPECT(status == 0 && json && json_number(json, "peak_rss_bytes") > 0,
+        EXPECT(status == 0 && json && tu_json_number(json, "peak_rss_bytes") > 0,
                "'%s': exit %d, peak_rss_bytes %g", runs[i][0], status,
-               json ? json_number(json, "peak_rss_bytes") : NAN);
+               json ? tu_json_number(json, "peak_rss_bytes") : NAN);
         free(json);
     }
 }

@@ -20,16 +20,6 @@
 #include <stdlib.h>
 #include <string.h>
 
-/* A number of the statistics JSON (the "name": value form it writes). */
-static double stats_number(const char *json, const char *name)
-{
-    char key[64];
-    const char *at;
-    snprintf(key, sizeof key, "\"%s\":", name);
-    at = json ? strstr(json, key) : NULL;
-    return at ? strtod(at + strlen(key), NULL) : -1.0;
-}
-
 /* What one journey says, counted line by line. */
 typedef struct journey {
     unsigned queued, resident, proxy_hits, proxy_misses, loads, finished;
@@ -122,14 +112,14 @@ static void follow_all(const char *options, int occlusion)
         tests += j.proxy_hits + j.proxy_misses;
         culled += j.proxy_misses;
     }
-    EXPECT(queued == (unsigned long long)stats_number(stats, "queued_visits") &&
-           resident == (unsigned long long)stats_number(stats, "resident_visits"),
+    EXPECT(queued == (unsigned long long)tu_json_number(stats, "queued_visits") &&
+           resident == (unsigned long long)tu_json_number(stats, "resident_visits"),
            "%s: journeys show %llu queued and %llu resident visits, the statistics %g and %g", options,
-           queued, resident, stats_number(stats, "queued_visits"), stats_number(stats, "resident_visits"));
-    EXPECT(tests == (unsigned long long)stats_number(stats, "proxy_tests") &&
-           culled == (unsigned long long)stats_number(stats, "proxy_culled"),
+           queued, resident, tu_json_number(stats, "queued_visits"), tu_json_number(stats, "resident_visits"));
+    EXPECT(tests == (unsigned long long)tu_json_number(stats, "proxy_tests") &&
+           culled == (unsigned long long)tu_json_number(stats, "proxy_culled"),
            "%s: journeys show %llu proxy tests, %llu culled; the statistics %g and %g", options, tests,
-           culled, stats_number(stats, "proxy_tests"), stats_number(stats, "proxy_culled"));
+           culled, tu_json_number(stats, "proxy_tests"), tu_json_number(stats, "proxy_culled"));
     free(answers);
     free(stats);
 }

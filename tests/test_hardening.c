@@ -460,19 +460,9 @@ static int bench_rays(bench *b, size_t per_kind, uint64_t seed)
 
 static int bench_scene(bench *b, uint32_t batch_tris, uint32_t res, const char *name)
 {
-    brt_scene_options opt;
-    brt_mesh mesh = tu_mesh_view(&b->mesh);
-    brt_error err;
-    memset(&opt, 0, sizeof opt);   /* fields added later mean defaults */
-    opt.batch_tris = batch_tris;
-    opt.proxy_res = res;
     brt_scene_close(b->scene);
-    b->scene = NULL;
-    if (brt_scene_build(&mesh, &opt, 1, scratch(name), &err) == BRT_OK
-        && brt_scene_open(scratch(name), &b->scene, &err) == BRT_OK)
-        return 1;
-    test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
-    return 0;
+    b->scene = tu_build_scene(&b->mesh, batch_tris, res, 0, scratch(name));
+    return b->scene != NULL;
 }
 
 static void bench_free(bench *b)

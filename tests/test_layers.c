@@ -16,21 +16,10 @@
 
 static brt_scene *layers_scene(tu_scene *s, const char *name)
 {
-    brt_scene_options opt;
-    brt_mesh mesh;
-    brt_scene *scene = NULL;
-    brt_error err;
     uint64_t st = test_seed() + 41;
     memset(s, 0, sizeof *s);
     tu_random_soup(s, &st, 3000, 0.04f);
-    mesh = tu_mesh_view(s);
-    memset(&opt, 0, sizeof opt);
-    opt.batch_tris = 200;
-    opt.proxy_res = 16;
-    if (brt_scene_build(&mesh, &opt, 1, tu_scratch(name), &err) != BRT_OK ||
-        brt_scene_open(tu_scratch(name), &scene, &err) != BRT_OK)
-        test_fail_at(__FILE__, __LINE__, "scene: %s", err.message);
-    return scene;
+    return tu_build_scene(s, 200, 16, 0, tu_scratch(name));
 }
 
 static brt_ray *layers_rays(const tu_scene *s, size_t count)

@@ -175,19 +175,7 @@ static void test_shared_meshes_brute_force(void)
 
 static brt_scene *build_scene(const tu_scene *s, uint32_t batch_tris, const char *name)
 {
-    char path[512];
-    brt_scene_options opt;
-    brt_mesh mesh = tu_mesh_view(s);
-    brt_scene *scene = NULL;
-    brt_error err;
-    memset(&opt, 0, sizeof opt);
-    opt.batch_tris = batch_tris;
-    opt.proxy_res = 32;
-    snprintf(path, sizeof path, "%s/%s", test_tmpdir(), name);
-    if (brt_scene_build(&mesh, &opt, 1, path, &err) != BRT_OK ||
-        brt_scene_open(path, &scene, &err) != BRT_OK)
-        test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
-    return scene;
+    return tu_build_scene(s, batch_tris, 32, 0, tu_scratch(name));
 }
 
 /* brt_scene_occluded == brt_bvh_occluded for every ray, over memory limits

@@ -34,17 +34,6 @@
 
 /* ---- running build/render ---- */
 
-/* A number field of a statistics JSON file, NAN when absent. */
-static double json_number(const char *path, const char *name)
-{
-    char *json = (char *)tu_slurp(path, NULL), key[128], *p;
-    double value = NAN;
-    snprintf(key, sizeof key, "\"%s\":", name);
-    if (json && (p = strstr(json, key)) != NULL) value = strtod(p + strlen(key), NULL);
-    free(json);
-    return value;
-}
-
 /* 1 when the two files exist and hold the same bytes. */
 static int same_bytes(const char *a, const char *b)
 {
@@ -96,8 +85,8 @@ static void test_same_image_every_mode(void)
     err = (char *)tu_slurp(tu_scratch("cli.err"), NULL);
     EXPECT(err && err[0] == 0, "stderr is not a terminal, yet render wrote '%s' there", err ? err : "");
     free(err);
-    rays = json_number(tu_scratch("direct.json"), "rays");
-    paths = json_number(tu_scratch("direct.json"), "paths");
+    rays = tu_json_file_number(tu_scratch("direct.json"), "rays");
+    paths = tu_json_file_number(tu_scratch("direct.json"), "paths");
     CHECK(paths == 40 * 24 * 3 && rays > 1.5 * paths,
           "direct: %g rays for %g paths: the paths do not bounce", rays, paths);
     for (i = 0; i < sizeof batched_settings / sizeof *batched_settings; i++) {
@@ -105,9 +94,9 @@ static void test_same_image_every_mode(void)
                   batched_settings[i], i) == 0, "render %s failed", batched_settings[i]);
         EXPECT(same_bytes(tu_scratch("direct.png"), tu_scratch("batched.png")),
                "'%s': the image differs from --direct", batched_settings[i]);
-        EXPECT(json_number(tu_scratch("b.json"), "rays") == rays,
+        EXPECT(tu_json_file_number(tu_scratch("b.json"), "rays") == rays,
                "'%s': %g rays traced, --direct traced %g", batched_settings[i],
-               json_number(tu_scratch("b.json"), "rays"), rays);
+               tu_json_file_number(tu_scratch("b.json"), "rays"), rays);
     }
 }
 
@@ -124,8 +113,8 @@ static void test_nee_same_image_every_mode(void)
     for (e = 0; e < 2 && !test_failed(); e++) {
         CHECK(tu_run("render " SMALL " %s --direct --out @/nee-direct.png --stats @/nee-direct.json",
                      estimator[e]) == 0, "render --direct %s failed", estimator[e]);
-        shadow = json_number(tu_scratch("nee-direct.json"), "shadow_rays");
-        occluded = json_number(tu_scratch("nee-direct.json"), "shadow_occluded");
+        shadow = tu_json_file_number(tu_scratch("nee-direct.json"), "shadow_rays");
+        occluded = tu_json_file_number(tu_scratch("nee-direct.json"), "shadow_occluded");
         CHECK(e == 1 ? shadow == 0 : shadow > 1000 && occluded > 0 && occluded < shadow,
               "'%s': %g shadow rays, %g occluded", estimator[e], shadow, occluded);
         for (i = 0; i < sizeof settings / sizeof *settings; i++) {
@@ -133,11 +122,11 @@ static void test_nee_same_image_every_mode(void)
                          estimator[e], settings[i]) == 0, "render %s %s failed", estimator[e], settings[i]);
             EXPECT(same_bytes(tu_scratch("nee-direct.png"), tu_scratch("nee.png")),
                    "'%s %s': the image differs from --direct", estimator[e], settings[i]);
-            EXPECT(json_number(tu_scratch("nee.json"), "shadow_rays") == shadow &&
-                   json_number(tu_scratch("nee.json"), "shadow_occluded") == occluded,
+            EXPECT(tu_json_file_number(tu_scratch("nee.json"), "shadow_rays") == shadow &&
+                   tu_json_file_number(tu_scratch("nee.json"), "shadow_occluded") == occluded,
                    "'%s %s': %g shadow rays, %g occluded; --direct %g, %g", estimator[e], settings[i],
-                   json_number(tu_scratch("nee.json"), "shadow_rays"),
-                   json_number(tu_scratch("nee.json"), "shadow_occluded"), shadow, occluded);
+                   tu_json_file_number(tu_scratch("nee.json"), "shadow_rays"),
+                   tu_json_file_number(tu_scratch("nee.json"), "shadow_occluded"), shadow, occluded);
         }
     }
 }
@@ -165,8 +154,8 @@ static void test_nee_converges_to_no_nee(void)
     for (k = 0; k < 3; k++) {
         CHECK(tu_run("render %s --sun-radiance 60 %s --out @/mean.png --stats @/mean.json", scene,
                      runs[k]) == 0, "render %s failed", runs[k]);
-        mean[k] = json_number(tu_scratch("mean.json"), "mean_luminance");
-        se[k] = json_number(tu_scratch("mean.json"), "mean_luminance_se");
+        mean[k] = tu_json_file_number(tu_scratch("mean.json"), "mean_luminance");
+        se[k] = tu_json_file_number(tu_scratch("mean.json"), "mean_luminance_se");
         CHECK(mean[k] > 0 && se[k] > 0, "%s: mean %g, se %g", runs[k], mean[k], se[k]);
     }
     bound = 4.0 * sqrt(se[0] * se[0] + se[1] * se[1]);
@@ -188,10 +177,10 @@ static void test_pfm_reference(void)
     CHECK(tu_run("render " SMALL " --direct --pfm @/ref.pfm --out @/ref.png") == 0, "render --pfm failed");
     CHECK(tu_run("render " SMALL " --scene @/pfm.brs --memory 10%% --reference @/ref.pfm "
                  "--out @/p.png --stats @/p.json") == 0, "render --reference failed");
-    same = json_number(tu_scratch("p.json"), "rmse");
+    same = tu_json_file_number(tu_scratch("p.json"), "rmse");
     CHECK(tu_run("render " SMALL " --no-nee --scene @/pfm.brs --reference @/ref.pfm --out @/p.png "
                  "--stats @/p.json") == 0, "render --no-nee --reference failed");
-    other = json_number(tu_scratch("p.json"), "rmse");
+    other = tu_json_file_number(tu_scratch("p.json"), "rmse");
     EXPECT(same < 1e-6 && other > 0.01, "RMSE %g against its own image, %g against --no-nee's", same, other);
     EXPECT(tu_run("render " SMALL " --width 41 --reference @/ref.pfm --out @/never.png") == 1 &&
            !tu_file_exists(tu_scratch("never.png")), "a reference of another size was accepted");
@@ -225,9 +214,9 @@ static void test_heatmap(void)
     unsigned char *png, *rgb;
     CHECK(tu_run("render " SMALL " --memory 20%% --scene @/heat.brs --heatmap @/heat.png --stats @/heat.json "
               "--out @/img.png") == 0, "render --heatmap failed");
-    with = json_number(tu_scratch("heat.json"), "heatmap_visits");
-    EXPECT(with > 0 && with == json_number(tu_scratch("heat.json"), "visits"),
-           "heatmap total %g, visits %g", with, json_number(tu_scratch("heat.json"), "visits"));
+    with = tu_json_file_number(tu_scratch("heat.json"), "heatmap_visits");
+    EXPECT(with > 0 && with == tu_json_file_number(tu_scratch("heat.json"), "visits"),
+           "heatmap total %g, visits %g", with, tu_json_file_number(tu_scratch("heat.json"), "visits"));
     png = tu_slurp(tu_scratch("heat.png"), &size);
     rgb = png ? tu_png_decode(png, size, &w, &h) : NULL;
     EXPECT(rgb && w == 40 && h == 24 + 24, "heat.png does not decode to 40x48 pixels");
@@ -237,9 +226,9 @@ static void test_heatmap(void)
     free(png);
     CHECK(tu_run("render " SMALL " --memory 20%% --no-proxy --scene @/heat.brs --heatmap @/heat0.png "
               "--stats @/heat0.json --out @/img.png") == 0, "render --no-proxy --heatmap failed");
-    without = json_number(tu_scratch("heat0.json"), "heatmap_visits");
-    culled = json_number(tu_scratch("heat.json"), "proxy_culled");
-    EXPECT(without == json_number(tu_scratch("heat0.json"), "visits") && culled > 0 &&
+    without = tu_json_file_number(tu_scratch("heat0.json"), "heatmap_visits");
+    culled = tu_json_file_number(tu_scratch("heat.json"), "proxy_culled");
+    EXPECT(without == tu_json_file_number(tu_scratch("heat0.json"), "visits") && culled > 0 &&
                with + culled == without,
            "visits: %g with proxies (%g culled), %g without", with, culled, without);
 }
@@ -270,13 +259,13 @@ static void test_disk_speed(void)
     double speed = 32.0 * 1048576, bytes, seconds;
     CHECK(tu_run("render " SMALL " --memory 10%% --disk-speed 32M --scene @/disk.brs "
               "--out @/disk.png --stats @/disk.json") == 0, "render --disk-speed failed");
-    bytes = json_number(json, "disk_bytes_read");
-    seconds = json_number(json, "load_seconds");
-    CHECK(bytes > 0 && json_number(json, "disk_speed") == speed,
-          "--disk-speed 32M: %g bytes read, disk_speed %g", bytes, json_number(json, "disk_speed"));
-    EXPECT(seconds >= bytes / speed && seconds <= json_number(json, "seconds"),
+    bytes = tu_json_file_number(json, "disk_bytes_read");
+    seconds = tu_json_file_number(json, "load_seconds");
+    CHECK(bytes > 0 && tu_json_file_number(json, "disk_speed") == speed,
+          "--disk-speed 32M: %g bytes read, disk_speed %g", bytes, tu_json_file_number(json, "disk_speed"));
+    EXPECT(seconds >= bytes / speed && seconds <= tu_json_file_number(json, "seconds"),
            "--disk-speed 32M: %g bytes loaded in %g s (at least %g s expected), trace %g s", bytes,
-           seconds, bytes / speed, json_number(json, "seconds"));
+           seconds, bytes / speed, tu_json_file_number(json, "seconds"));
 }
 
 /* Each bad command exits 1 with one line "render: ..." and writes nothing. */
@@ -354,17 +343,17 @@ static void test_reused_builtin_holds_no_mesh(void)
     mesh_bytes = 12.0 * (double)(vertices + triangles);
     CHECK(tu_run("render crown --scale 0.01 %s --scene @/tiny.brs --out @/tiny.png "
                  "--stats @/tiny.json", args) == 0, "render crown failed");
-    base = json_number(tu_scratch("tiny.json"), "peak_rss_bytes");
+    base = tu_json_file_number(tu_scratch("tiny.json"), "peak_rss_bytes");
     CHECK(tu_run("render landscape --scale 5 %s --scene @/l5.brs --out @/l5.png", args) == 0,
           "render landscape (build) failed");
     CHECK(tu_run("render landscape --scale 5 %s --scene @/l5.brs --out @/l5.png "
                  "--stats @/l5.json", args) == 0, "render landscape (reuse) failed");
-    peak = json_number(tu_scratch("l5.json"), "peak_rss_bytes");
+    peak = tu_json_file_number(tu_scratch("l5.json"), "peak_rss_bytes");
     EXPECT(base > 0 && peak > 0 && peak < base + mesh_bytes / 2 &&
-           json_number(tu_scratch("l5.json"), "build_seconds") == 0,
+           tu_json_file_number(tu_scratch("l5.json"), "build_seconds") == 0,
            "reused scene file: peak RSS %.1f MiB, tiny scene %.1f MiB, the mesh %.1f MiB, "
            "build %g s", peak / 1048576, base / 1048576, mesh_bytes / 1048576,
-           json_number(tu_scratch("l5.json"), "build_seconds"));
+           tu_json_file_number(tu_scratch("l5.json"), "build_seconds"));
 }
 
 /* ---- the plot writer ---- */

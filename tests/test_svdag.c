@@ -16,6 +16,7 @@
 ** false hit is only counted and printed.
 */
 #include "test.h"
+#include "util.h"
 #include "batchrt.h"
 
 #include <math.h>
@@ -1218,16 +1219,6 @@ static char *read_text(const char *path)
     return text;
 }
 
-/* The integer after "name": in a JSON text, or -1. */
-static long long json_integer(const char *json, const char *name)
-{
-    char key[64];
-    const char *at;
-    snprintf(key, sizeof key, "\"%s\":", name);
-    at = json ? strstr(json, key) : NULL;
-    return at ? strtoll(at + strlen(key), NULL, 10) : -1;
-}
-
 static void test_voxelize_program(void)
 {
     static const char obj[] = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 2 3 4\n";
@@ -1252,10 +1243,10 @@ static void test_voxelize_program(void)
     json = read_text(path);
     CHECK(brt_grid_init(&grid, bmin, bmax, 16) == BRT_OK && brt_voxelize(&grid, pos, idx, 3) == BRT_OK,
           "library voxelize");
-    EXPECT(json_integer(json, "triangles") == 3 && json_integer(json, "resolution") == 16 &&
-               json_integer(json, "voxels") == (long long)brt_grid_count(&grid) &&
-               json_integer(json, "svo_nodes") > 0 && json_integer(json, "dag_nodes") > 0 &&
-               json_integer(json, "dag_bytes") > 0 && json && strstr(json, "\"seconds\":"),
+    EXPECT(tu_json_number(json, "triangles") == 3 && tu_json_number(json, "resolution") == 16 &&
+               tu_json_number(json, "voxels") == (double)brt_grid_count(&grid) &&
+               tu_json_number(json, "svo_nodes") > 0 && tu_json_number(json, "dag_nodes") > 0 &&
+               tu_json_number(json, "dag_bytes") > 0 && json && strstr(json, "\"seconds\":"),
            "stats JSON: %s", json ? json : "(missing)");
     free(json);
     brt_grid_free(&grid);

@@ -118,19 +118,7 @@ static void test_bvh_trace(void)
 
 static brt_scene *soup_scene(const soup *s, uint32_t batch_tris, unsigned threads, const char *name)
 {
-    brt_scene_options opt;
-    brt_mesh mesh = tu_mesh_view(&s->scene);
-    brt_scene *scene = NULL;
-    brt_error err;
-    brt_result r;
-    memset(&opt, 0, sizeof opt);
-    opt.batch_tris = batch_tris;
-    opt.proxy_res = 32;
-    opt.threads = threads;
-    r = brt_scene_build(&mesh, &opt, 1, tu_scratch(name), &err);
-    if (r == BRT_OK) r = brt_scene_open(tu_scratch(name), &scene, &err);
-    if (r != BRT_OK) test_fail_at(__FILE__, __LINE__, "scene: %s", err.message);
-    return scene;
+    return tu_build_scene(&s->scene, batch_tris, 32, threads, tu_scratch(name));
 }
 
 /* Every count of the statistics (times vary; nothing else may). */

@@ -248,6 +248,42 @@ char *tu_last_stderr(void) { return (char *)tu_slurp(tu_scratch("cli.err"), NULL
 
 /* Nonzero when the scratch directory holds a "*.tmp.*" file, the trace an
 ** interrupted atomic write would leave. */
+brt_scene *tu_build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, unsigned threads,
+                          const char *path)
+{
+    brt_scene_options opt;
+    brt_mesh mesh = tu_mesh_view(s);
+    brt_scene *scene = NULL;
+    brt_error err;
+    memset(&opt, 0, sizeof opt);   /* fields added later mean defaults */
+    opt.batch_tris = batch_tris;
+    opt.proxy_res = res;
+    opt.threads = threads;
+    if (brt_scene_build(&mesh, &opt, 1, path, &err) != BRT_OK || brt_scene_open(path, &scene, &err) != BRT_OK)
+        test_fail_at(__FILE__, __LINE__, "%s: %s", path, err.message);
+    return scene;
+}
+
+double tu_json_number(const char *json, const char *name)
+{
+    char key[128];
+    const char *p;
+    snprintf(key, sizeof key, "\"%s\"", name);
+    p = json ? strstr(json, key) : NULL;
+    if (!p) return NAN;
+    p += strlen(key);
+    while (*p == ' ') p++;
+    return *p == ':' ? strtod(p + 1, NULL) : NAN;
+}
+
+double tu_json_file_number(const char *path, const char *name)
+{
+    char *json = (char *)tu_slurp(path, NULL);
+    double value = tu_json_number(json, name);
+    free(json);
+    return value;
+}
+
 int tu_dir_entries(const char *dir, const char *part, int *with_part, char *name, size_t size)
 {
     DIR *d = opendir(dir);

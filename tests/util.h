@@ -44,6 +44,16 @@ void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids, const brt_ray *
 ** (brt_intersect_triangle within the ray's [tnear, tfar]). */
 int tu_brute_occluded(const tu_scene *s, const brt_ray *ray);
 
+/* Builds a scene file of s at path (brt_scene_build, source stamp 1) and
+** opens it; a failure is a test failure, and NULL. */
+brt_scene *tu_build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, unsigned threads,
+                          const char *path);
+
+/* A number of a statistics JSON text ("name": value), NaN when absent; and
+** the same from a file. */
+double tu_json_number(const char *json, const char *name);
+double tu_json_file_number(const char *path, const char *name);
+
 /* ---- files and processes (for the command-line tests) ---- */
 
 /* NAME inside the scratch directory (a few rotating buffers). */
