@@ -353,11 +353,12 @@ bench-threads: all
 	    /usr/bin/time -f "%U %S" -o $$d/cpu "$$@" --threads $$t --stats $$d/s$$t.json > /dev/null; \
 	    awk -v n="$$name" -v t=$$t -v w=$$(num $$d/s$$t.json $$field) \
 	      -v l=$$(num $$d/s$$t.json load_seconds) -v c="$$(cat $$d/cpu)" \
-	      'BEGIN { split(c, u, " "); printf "%-28s %2d threads: %7.2f s wall (%s), %7.2f s CPU, loads %.2f s\n", \
-	        n, t, w, "'$$field'", u[1] + u[2], l }'; \
+	      'BEGIN { split(c, u, " "); printf "| %s | %d | %.2f | %.2f | %.2f |\n", \
+	        n, t, w, u[1] + u[2], l }'; \
 	  done; done; \
 	  counts $$d/s1.json > $$d/c1; counts $$d/s$(THREADS_N).json > $$d/c2; \
-	  cmp -s $$d/c1 $$d/c2 && echo "  counts equal" || echo "  COUNTS DIFFER"; }; \
+	  cmp -s $$d/c1 $$d/c2 && echo "| (counts equal) | | | | |" || echo "| COUNTS DIFFER | | | | |"; }; \
+	echo "| run | threads | wall s (timed part) | CPU s (process) | loads s |"; echo "|---|---:|---:|---:|---:|"; \
 	run "trace --direct" seconds $$b/trace $$m $$d/rays $$d/hits --direct; \
 	run "render in core" seconds $$b/render $$land $$img --scene $$d/land.brs --out $$d/x.png; \
 	run "render 25%, --disk-speed 100M" seconds $$b/render $$land $$img --scene $$d/land.brs \

@@ -146,9 +146,8 @@ static void measure(const char *kind, const brt_bvh *bvh, const brt_ray *rays,
     const double t0 = ex_cpu_seconds();
     const size_t hit_count = trace_range(bvh, rays, hits, 0, n);
     const double cold = ex_cpu_seconds() - t0, warm = trace_warm(bvh, rays, hits, n);
-    printf("%-7s %8zu rays  %6.3f s  %6.2f Mrays/s  (%.1f%% hit)  warm %6.2f Mrays/s\n",
-           kind, n, cold, (double)n / cold * 1e-6, 100.0 * (double)hit_count / (double)n,
-           (double)n / warm * 1e-6);
+    printf("| %s | %zu | %.3f | %.2f | %.2f | %.1f %% |\n", kind, n, cold, (double)n / cold * 1e-6,
+           (double)n / warm * 1e-6, 100.0 * (double)hit_count / (double)n);
 }
 
 int main(int argc, char **argv)
@@ -199,6 +198,8 @@ int main(int argc, char **argv)
     side = (uint32_t)ceil(sqrt((double)n));
     ex_camera_fit(&cam, lo, hi, side, (uint32_t)((n + side - 1) / side));
     ex_rays_camera(&cam, rays, n, &seed);
+    printf("\n| rays | count | cold CPU s | cold Mrays/s | warm Mrays/s | hit |\n"
+           "|---|---:|---:|---:|---:|---:|\n");
     measure("camera", bvh, rays, hits, n);
     ex_rays_random(lo, hi, rays, n, &seed);
     measure("random", bvh, rays, hits, n);
