@@ -689,6 +689,7 @@ typedef struct scheduler {
     uint64_t *incoming_tags;
     uint32_t *fresh;                        /* the slots refill just filled */
     const brt_trace_options *follow;        /* trace --follow: steps reported, or NULL */
+    const volatile sig_atomic_t *interrupt; /* brt_trace_options.interrupt */
     uint64_t fetch_bytes;                   /* bytes the last fetch read (its step) */
 } scheduler;
 
@@ -1009,12 +1010,19 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
 }
 
+/* Whether the caller asked the trace to stop (brt_trace_options.interrupt). */
+static int interrupted(const scheduler *s)
+{
+    return s->interrupt && *s->interrupt;
+}
+
 /* The scheduler's loop: the fullest queue first, until every ray is
 ** finished; new rays whenever slots are free. */
 static brt_result schedule(scheduler *s, brt_error *err)
 {
     brt_result r = refill(s, err);
     while (r == BRT_OK && s->fullest.size > 0) {
+        if (interrupted(s)) return brt_fail(err, BRT_EINTR, "%s: trace interrupted", s->scene->path);
         r = process_batch(s, (uint32_t)heap_pop(&s->fullest), err);
         if (r == BRT_OK) r = refill(s, err);
     }
@@ -1058,6 +1066,7 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->paper_scheduler = opt && opt->paper_scheduler;
     s->use_inner = !(opt && opt->no_inner);
     s->follow = opt && opt->follow ? opt : NULL;
+    s->interrupt = opt ? opt->interrupt : NULL;
     s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
     if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
     /* With proxies on, they take their bytes from the same budget (the

@@ -310,6 +310,9 @@ typedef struct brt_trace_options {
                              ** the same for any number (README, "Threads") */
     int no_inner;            /* do not consult the inner proxies (occlusion
                              ** rays with tfar = +inf; README "Inner proxies") */
+    const volatile sig_atomic_t *interrupt;   /* polled before each batch: once
+                             ** nonzero (a program's signal handler sets it),
+                             ** the trace stops with BRT_EINTR; NULL: never */
     brt_follow_fn follow;    /* NULL, or called at each step of the ray whose
                              ** tag is follow_tag (possibly from a thread of
                              ** the trace's own, never two at once) */

@@ -628,10 +628,13 @@ static void render_batched(brt_scene *scene, const brt_trace_options *topt, rend
 {
     brt_ray_source source;
     brt_error err;
+    brt_result res;
     source.next_rays = next_rays;
     source.finished = finished;
     source.user = r;
-    ex_check(prog, brt_scene_trace_stream(scene, topt, &source, stats, &err), &err);
+    res = brt_scene_trace_stream(scene, topt, &source, stats, &err);
+    if (res == BRT_EINTR) ex_die_interrupted(prog);   /* between batches (topt->interrupt) */
+    ex_check(prog, res, &err);
 }
 
 /* ===================================================================== */
@@ -1267,6 +1270,7 @@ int main(int argc, char **argv)
     topt.rays_in_flight = (uint32_t)o.rays_in_flight;
     topt.threads = (unsigned)o.threads;
     topt.drop_os_cache = o.drop_os_cache;
+    topt.interrupt = interrupt;
     if (o.disk_speed) {
         topt.read_fn = slow_disk_read;
         topt.read_user = &o.disk_speed;

@@ -27,8 +27,9 @@
 ** serves its queue, the triangles' answer, and the final hit.
 **
 ** SIGINT and SIGTERM stop the scene build (which removes its temporary
-** files) or, at the latest, the program before it writes any output; the
-** exit status is then 128 + the signal number.
+** files), the batched trace before its next batch (brt_trace_options
+** .interrupt), or, at the latest, the program before it writes any
+** output; the exit status is then 128 + the signal number.
 **
 ** Everything is validated (options, mesh, ray file) before any output file
 ** is written, and outputs are written atomically, so a failed run never
@@ -304,6 +305,7 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     trace_opt.drop_os_cache = o->drop_os_cache;
     trace_opt.threads = o->threads;
     trace_opt.paper_scheduler = o->paper_scheduler;
+    trace_opt.interrupt = scene_opt.interrupt;
     if (o->follow_given) {
         if (o->follow >= count)
             ex_die(prog, "%s: --follow %llu: the file holds %lu rays", o->rays,
@@ -317,6 +319,7 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
         r = brt_scene_occluded(scene, &trace_opt, rays, count, occluded, stats, &err);
     else
         r = brt_scene_trace(scene, &trace_opt, rays, count, hits, stats, &err);
+    if (r == BRT_EINTR) ex_die_interrupted(prog);
     ex_check(prog, r, &err);
     ex_progress_end();
     stats->build_seconds = rebuilt ? brt_seconds() - start - stats->seconds : 0.0;

@@ -22,6 +22,7 @@
 #include <stdarg.h>
 #include <stdlib.h>
 #include <string.h>
+#include <errno.h>
 #include <fcntl.h>
 #include <signal.h>
 #include <sys/stat.h>
@@ -949,7 +950,7 @@ static void check_interrupted(const char *const *argv, const char *dir, int sign
     long waited = 0;
     int status = 0, entries;
     pid_t pid;
-    CHECK(mkdir(dir, 0755) == 0, "cannot create %s", dir);
+    CHECK(mkdir(dir, 0755) == 0 || errno == EEXIST, "cannot create %s", dir);
     pid = spawn(argv, "spawn.err");
     CHECK(pid > 0, "cannot start %s", argv[0]);
     while (waited < max_wait_ms && tu_dir_entries(dir, NULL, NULL, NULL, 0) == 0) {
@@ -991,6 +992,44 @@ static void test_interrupts_leave_nothing(void)
     snprintf(r_out, sizeof r_out, "%s/image.png", r_dir);
     /* A build that has already finished leaves its (complete) scene file. */
     check_interrupted(render, r_dir, SIGINT, 500, "scene.brs");
+}
+
+/* The other phases: render while it traces paths (batched, and --direct
+** in memory) and trace --batched while it traces rays, each from a scene
+** file built beforehand (so the program is tracing from its first
+** milliseconds, for seconds), stop on SIGINT and SIGTERM with no output:
+** the scene file alone stays. */
+static void test_interrupts_while_tracing(void)
+{
+    char dir[512], scene[600], out[600], tdir[512], tscene[600], tout[600], mesh[600], rays[600];
+    const char *render[] = {"render", "landscape", "--scale", "10", "--res", "16", "--width", "320",
+                            "--height", "200", "--spp", "64", "--memory", "10%", "--threads", "1",
+                            "--scene", scene, "--out", out, NULL};
+    const char *direct[] = {"render", "landscape", "--scale", "10", "--width", "320", "--height", "200",
+                            "--spp", "64", "--direct", "--threads", "1", "--out", out, NULL};
+    const char *trace[] = {"trace", mesh, rays, tout, "--batched", "--memory", "1M", "--threads", "1",
+                           "--scene", tscene, NULL};
+    snprintf(dir, sizeof dir, "%s", tu_scratch("render-tracing"));
+    snprintf(scene, sizeof scene, "%s/scene.brs", dir);
+    snprintf(out, sizeof out, "%s/out.png", dir);
+    CHECK(mkdir(dir, 0755) == 0, "cannot create %s", dir);
+    CHECK(tu_run("render landscape --scale 10 --res 16 --width 8 --height 8 --spp 1 --scene %s --out %s",
+                 scene, out) == 0 && unlink(out) == 0, "could not build the render's scene file");
+    check_interrupted(render, dir, SIGINT, 0, "scene.brs");
+    check_interrupted(render, dir, SIGTERM, 0, "scene.brs");
+    check_interrupted(direct, dir, SIGINT, 0, "scene.brs");
+    snprintf(tdir, sizeof tdir, "%s", tu_scratch("trace-tracing"));
+    snprintf(tscene, sizeof tscene, "%s/scene.brs", tdir);
+    snprintf(tout, sizeof tout, "%s/out.hits", tdir);
+    snprintf(mesh, sizeof mesh, "%s", tu_scratch("interrupt.ply"));
+    snprintf(rays, sizeof rays, "%s", tu_scratch("interrupt.rays"));
+    CHECK(mkdir(tdir, 0755) == 0, "cannot create %s", tdir);
+    CHECK(tu_run("mkscene landscape %s --scale 10", mesh) == 0 &&
+          tu_run("raygen %s %s --kind bounce --count 4000000", mesh, rays) == 0 &&
+          tu_run("trace %s %s %s --batched --scene %s", mesh, rays, tout, tscene) == 0 && unlink(tout) == 0,
+          "could not make the trace's mesh, rays and scene file");
+    check_interrupted(trace, tdir, SIGINT, 0, "scene.brs");
+    check_interrupted(trace, tdir, SIGTERM, 0, "scene.brs");
 }
 
 /* trace --batched writes the bytes of --direct on every built-in scene,
@@ -1078,6 +1117,7 @@ void suite_cli(void)
     test_run("cli: --direct says when the mesh exceeds --memory", test_direct_notes_memory);
     test_run("cli: peak_rss_bytes in every program's statistics", test_peak_rss_in_statistics);
     test_run("cli: SIGINT and SIGTERM leave no temporary file", test_interrupts_leave_nothing);
+    test_run("cli: SIGINT and SIGTERM while tracing leave no output", test_interrupts_while_tracing);
     test_run("cli: trace --batched equals --direct on every built-in scene",
              test_builtin_scenes_batched_equals_direct);
 }

@@ -11,6 +11,7 @@
 #include "test.h"
 #include "util.h"
 
+#include <signal.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -123,8 +124,42 @@ static void test_source_contract(void)
     free(rays);
 }
 
+/* brt_trace_options.interrupt: a flag already set stops the trace before
+** its first batch, with BRT_EINTR and rays left unfinished. */
+static void test_interrupt_between_batches(void)
+{
+    enum { COUNT = 2000 };
+    tu_scene s;
+    brt_scene *scene = layers_scene(&s, "interrupt.brs");
+    brt_ray *rays = layers_rays(&s, COUNT);
+    brt_hit *hits = malloc(COUNT * sizeof *hits);
+    volatile sig_atomic_t flag = 1;
+    brt_trace_options opt;
+    brt_stats stats;
+    brt_error err;
+    brt_result r;
+    CHECK(scene && rays && hits, "set-up failed");
+    memset(&opt, 0, sizeof opt);
+    opt.threads = 1;
+    opt.paper_scheduler = 1;      /* every ray reaching a point is queued there */
+    opt.interrupt = &flag;
+    err.message[0] = 0;
+    r = brt_scene_trace(scene, &opt, rays, COUNT, hits, &stats, &err);
+    EXPECT(r == BRT_EINTR && strstr(err.message, "interrupted"), "an interrupted trace: result %d, '%s'",
+           (int)r, err.message);
+    EXPECT(stats.batch_loads == 0, "%llu loads after the interrupt", (unsigned long long)stats.batch_loads);
+    flag = 0;
+    EXPECT(brt_scene_trace(scene, &opt, rays, COUNT, hits, &stats, &err) == BRT_OK && stats.batch_loads > 0,
+           "the same trace, not interrupted: %s", err.message);
+    brt_scene_close(scene);
+    tu_scene_free(&s);
+    free(rays);
+    free(hits);
+}
+
 void suite_layers(void)
 {
     test_run("layers: 2, proxies off exactly when the budget holds every blob", test_layer2_boundary);
     test_run("layers: a ray source over its room is an error", test_source_contract);
+    test_run("layers: an interrupt stops the trace between batches", test_interrupt_between_batches);
 }
