@@ -13,6 +13,7 @@
 #define _DEFAULT_SOURCE   /* setitimer */
 #include "test.h"
 #include "util.h"
+#include "fuzz/targets.h"
 
 #include <dirent.h>
 #include <math.h>
@@ -513,6 +514,62 @@ static void test_write_failure(void)
     }
 }
 
+/* ---- forged blob extents (issue 32, class 4) ----------------------------- */
+
+/* The fixed scene of the fuzz targets with batching point 1's blob moved
+** to (offset, size), every checksum repaired as a forger would: only the
+** extent check of scene open stands between it and a read past the end
+** (a size near 2^64 wraps offset + size; mapped, it would be SIGBUS). */
+static brt_result open_with_blob_extent(const unsigned char *base, size_t size, uint64_t offset,
+                                        uint64_t blob_size, brt_error *err)
+{
+    unsigned char *f = malloc(size);
+    uint64_t entry;
+    brt_scene *scene = NULL;
+    brt_result r;
+    if (!f) return BRT_ENOMEM;
+    memcpy(f, base, size);
+    entry = brt_get_le64(f + 56) + 80;              /* batch table entry 1 */
+    brt_put_le64(f + entry + 24, offset);
+    brt_put_le64(f + entry + 32, blob_size);
+    fuzz_repair_scene_checksums(f, size);
+    r = tu_spill(tu_scratch("extent.brs"), f, size) ? BRT_OK : BRT_EIO;
+    free(f);
+    if (r == BRT_OK) r = brt_scene_open(tu_scratch("extent.brs"), &scene, err);
+    brt_scene_close(scene);
+    return r;
+}
+
+static void test_forged_blob_extents(void)
+{
+    const struct { uint64_t offset, size; const char *what; } cases[] = {
+        {0, UINT64_MAX, "size 2^64-1"},
+        {0, UINT64_MAX - 4095, "size 2^64-4096 (rounds up to 0 pages)"},
+        {4096, 0, "offset past the end (set below)"},
+        {0, 0, "size one byte past the end (set below)"},
+        {1, 16, "offset not on a page"},
+    };
+    unsigned char *base;
+    size_t size, i;
+    brt_error err;
+    CHECK(fuzz_fixed_scene_build(tu_scratch("extent_base.brs"), &err) == BRT_OK, "%s", err.message);
+    base = tu_slurp(tu_scratch("extent_base.brs"), &size);
+    CHECK(base && size >= 256 && brt_get_le32(base + 32) >= 2, "no fixed scene of 2 points");
+    EXPECT(open_with_blob_extent(base, size, brt_get_le64(base + brt_get_le64(base + 56) + 104),
+                                 brt_get_le64(base + brt_get_le64(base + 56) + 112), &err) == BRT_OK,
+           "unforged: %s", err.message);
+    for (i = 0; i < sizeof cases / sizeof cases[0]; i++) {
+        uint64_t offset = cases[i].offset, blob = cases[i].size;
+        brt_result r;
+        if (i == 2) offset = ((uint64_t)size + 4095) / 4096 * 4096, blob = 1;
+        if (i == 3) blob = (uint64_t)size + 1;
+        r = open_with_blob_extent(base, size, offset, blob, &err);
+        EXPECT(r == BRT_EFORMAT && strstr(err.message, "extent.brs: batching point 1: blob outside the file"),
+               "%s: %s, '%s'", cases[i].what, brt_result_string(r), err.message);
+    }
+    free(base);
+}
+
 /* A mesh file whose error comes after a whole chunk was spilled: the
 ** build returns the reader's message (as brt_mesh_load gives it) and
 ** leaves the directory empty. */
@@ -674,5 +731,6 @@ void suite_build(void)
     test_run("build: write failures leave nothing", test_write_failure);
     test_run("build: a bad mesh file leaves nothing", test_source_error);
     test_run("build: interrupts leave nothing", test_interrupt);
+    test_run("build: forged blob extents (2^64-1, past the end, off a page)", test_forged_blob_extents);
     test_run("build: memory does not grow with the triangle count", test_memory_bound);
 }
