@@ -570,6 +570,91 @@ static void test_forged_blob_extents(void)
     free(base);
 }
 
+/* ---- the out-of-core build's own invariants (issue 32, class 5) ---------- */
+
+/* Four clusters of 1000 small triangles, 100 apart along the diagonal
+** (each one cell of the spill's Morton histogram on every axis), streamed
+** round robin (triangle j in cluster j % 4); with renumber, the second
+** chunk claims to start where the first did. */
+typedef struct clusters {
+    int renumber;
+} clusters;
+
+static brt_result emit_clusters(const void *user, brt_triangle_fn emit, void *emit_user,
+                                brt_error *err)
+{
+    const clusters *c = user;
+    float corners[9 * 1000];
+    uint64_t st = 7;
+    uint32_t first, i;
+    brt_result r = BRT_OK;
+    for (first = 0; first < 4000 && r == BRT_OK; first += 1000) {
+        for (i = 0; i < 1000; i++) {
+            float base = 100.0f * (float)((first + i) % 4);
+            int k;
+            for (k = 0; k < 9; k++) corners[9 * i + k] = base + tu_rnd(&st, 0, 1);
+        }
+        r = emit(emit_user, corners, 1000, c->renumber && first > 0 ? first - 1000 : first, err);
+    }
+    return r;
+}
+
+/* Buckets of 1000 (smaller than the 4000 triangles, so the spill splits
+** the stream by its centroids) and batching points of 100: a spatial split
+** gives each cluster its own bucket, so every batching point's box (read
+** from the file's batch table) lies in one cluster, less than 2 wide in x;
+** full buckets give exactly 40 points.  A split that fell back to stream
+** order would mix the clusters in every point. */
+static void test_buckets_spatial_and_full(void)
+{
+    const char *path = tu_scratch("clusters.brs");
+    brt_scene_options opt = build_options(100, 8, 1000, 0);
+    brt_triangle_source source;
+    clusters c = {0};
+    unsigned char *f;
+    size_t size;
+    uint32_t n, i, wide = 0;
+    brt_error err;
+    source.run = emit_clusters;
+    source.user = &c;
+    CHECK(brt_scene_build_stream(&source, &opt, 1, path, &err) == BRT_OK, "%s", err.message);
+    f = tu_slurp(path, &size);
+    CHECK(f && size >= 256, "no scene file");
+    n = brt_get_le32(f + 32);
+    EXPECT(n == 40, "%u batching points for 4000 triangles in full buckets of 1000, expected 40", n);
+    for (i = 0; i < n && brt_get_le64(f + 56) + 80 * (uint64_t)(i + 1) <= size; i++) {
+        const unsigned char *e = f + brt_get_le64(f + 56) + 80 * (uint64_t)i;
+        union { uint32_t u; float x; } lo, hi;
+        lo.u = brt_get_le32(e);
+        hi.u = brt_get_le32(e + 12);
+        if (!(hi.x - lo.x < 2.0f)) wide++;
+    }
+    EXPECT(wide == 0, "%u of %u batching points span more than one cluster in x", wide, n);
+    free(f);
+}
+
+/* A source that numbers its second chunk 0 again is refused with a
+** message naming the scene and both numbers, and leaves nothing. */
+static void test_misnumbered_chunks(void)
+{
+    const char *dir = fresh_dir("misnumbered");
+    char path[600], left[256];
+    brt_scene_options opt = build_options(100, 8, 1000, 0);
+    brt_triangle_source source;
+    clusters c = {1};
+    brt_error err;
+    brt_result r;
+    int n;
+    source.run = emit_clusters;
+    source.user = &c;
+    snprintf(path, sizeof path, "%s/scene.brs", dir);
+    r = brt_scene_build_stream(&source, &opt, 1, path, &err);
+    EXPECT(r == BRT_EARG && strstr(err.message, "scene.brs: the triangle source numbered a chunk 0, "
+                                                "not 1000"), "%s: '%s'", brt_result_string(r), err.message);
+    n = dir_entries(dir, left);
+    EXPECT(n == 0, "%d files left, such as %s", n, left);
+}
+
 /* A mesh file whose error comes after a whole chunk was spilled: the
 ** build returns the reader's message (as brt_mesh_load gives it) and
 ** leaves the directory empty. */
@@ -732,5 +817,7 @@ void suite_build(void)
     test_run("build: a bad mesh file leaves nothing", test_source_error);
     test_run("build: interrupts leave nothing", test_interrupt);
     test_run("build: forged blob extents (2^64-1, past the end, off a page)", test_forged_blob_extents);
+    test_run("build: buckets are spatial and full (clusters streamed round robin)", test_buckets_spatial_and_full);
+    test_run("build: a source that misnumbers its chunks is refused", test_misnumbered_chunks);
     test_run("build: memory does not grow with the triangle count", test_memory_bound);
 }
