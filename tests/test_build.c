@@ -9,12 +9,10 @@
 ** file behind after a write error or an interrupt, depend on its chunk
 ** size, or hold memory that grows with the triangle count (peak RSS of a
 ** child process, reset through /proc/self/clear_refs, with small buckets).
-** Issue 32: a build killed by SIGKILL leaves its locked temporary file and
-** the next build reclaims it, while a live build's file survives a second
-** build beside it (a pausing triangle source makes both deterministic);
-** forged blob extents with repaired checksums (2^64-1, past the end, off a
-** page); the spill's own invariants (buckets spatial and full, chunks
-** numbered in order).
+** Issue 32: forged blob extents with repaired checksums (2^64-1, past the
+** end, off a page); the spill's own invariants (buckets spatial and full,
+** chunks numbered in order).  (Temporary files of killed builds:
+** tests/test_reclaim.c.)
 */
 #define _DEFAULT_SOURCE   /* setitimer */
 #include "test.h"
