@@ -85,9 +85,13 @@ static void follow_all(const char *options, int occlusion)
     CHECK(answers && stats && size == (size_t)FOLLOW_RAYS * (occlusion ? 1 : 16), "no answers or statistics");
     for (i = 0; i < FOLLOW_RAYS; i++) {
         journey j;
+        char *told;
+        int read;
         status = tu_run("trace @/l.ply @/rays.rays @/one.out --batched %s %s --follow %d", mode, options, i);
-        CHECK(status == 0 && read_journey(tu_last_stdout(), &j),
-              "trace --follow %d %s: exit %d, no journey", i, options, status);
+        told = tu_last_stdout();
+        read = read_journey(told, &j);
+        free(told);
+        CHECK(status == 0 && read, "trace --follow %d %s: exit %d, no journey", i, options, status);
         EXPECT(j.queued + j.resident == j.final_visits, "ray %d (%s): %u queued + %u resident lines, "
                "finished says %u visits", i, options, j.queued, j.resident, j.final_visits);
         /* Pharr et al.: only boxes entered beyond the current closest hit
@@ -174,12 +178,16 @@ static void test_follow_occlusion(void)
 
 static void test_follow_errors(void)
 {
+    char *err;
+    int status;
     CHECK(make_landscape(), "could not make the landscape and its rays");
     EXPECT(tu_run("trace @/l.ply @/rays.rays @/x.hits --follow 1") == 1 && !tu_file_exists(tu_scratch("x.hits")),
            "--follow without --batched accepted");
-    EXPECT(tu_run("trace @/l.ply @/rays.rays @/x.hits --batched --follow %d --scene @/f.brs", FOLLOW_RAYS) == 1 &&
-           strstr(tu_last_stderr(), "--follow") && !tu_file_exists(tu_scratch("x.hits")),
+    status = tu_run("trace @/l.ply @/rays.rays @/x.hits --batched --follow %d --scene @/f.brs", FOLLOW_RAYS);
+    err = tu_last_stderr();
+    EXPECT(status == 1 && err && strstr(err, "--follow") && !tu_file_exists(tu_scratch("x.hits")),
            "--follow past the last ray accepted");
+    free(err);
 }
 
 void suite_follow(void)
