@@ -627,7 +627,7 @@ static void triangle_normal(const float *const p[3], float n[3])
 ** hit.  Empty slots are masked out.  The tree is checked acyclic with
 ** depth <= MAX_DEPTH at build/open time, so each node is entered at most
 ** once and the stack (3 entries per level) never overflows. */
-static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
+static int traverse(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst, brt_hit *hit,
                     float normal[3], int any)
 {
     stack_entry stack[STACK_SIZE], cur;
@@ -664,11 +664,12 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
             if (!tri_intersect(&tr, &prep, p[0], p[1], p[2], ray->tnear, tfar, &t, &u, &v))
                 continue;
             if (any) return 1;
-            if (brt_hit_is_closer(t, bvh->prim[k], hit)) {
+            if (brt_hit_is_closer(t, inst, bvh->prim[k], hit)) {
                 hit->t = t;
                 hit->prim = bvh->prim[k];
                 hit->u = u;
                 hit->v = v;
+                hit->inst = inst;
                 tfar = t;
                 if (normal) triangle_normal(p, normal);
             }
@@ -683,18 +684,208 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
 
 void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit)
 {
-    traverse(bvh, ray, hit, NULL, 0);
+    traverse(bvh, ray, BRT_NO_INST, hit, NULL, 0);
 }
 
 void brt_bvh_intersect_normal(const brt_bvh *bvh, const brt_ray *ray,
                               brt_hit *hit, float normal[3])
 {
-    traverse(bvh, ray, hit, normal, 0);
+    traverse(bvh, ray, BRT_NO_INST, hit, normal, 0);
 }
 
 int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray)
 {
-    return traverse(bvh, ray, NULL, NULL, 1);
+    return traverse(bvh, ray, BRT_NO_INST, NULL, NULL, 1);
+}
+
+/* ===================================================================== */
+/* Instances: one level, the ray carried into the prototype               */
+/* ===================================================================== */
+/*
+** As in Embree, an instance is intersected by moving the ray, not the
+** triangles: o' = M^-1 (o - d) and dir' = M^-1 dir, each computed in
+** double and rounded once to float, and the prototype's BVH is traversed
+** with (o', dir').  The transform is affine, so the object ray's parameter
+** is the world ray's: the hit's t is the object-space test's t, bit for
+** bit, in every mode (one function, brt_instance_intersect, does it).
+**
+** THE MARGIN.  A box of instances in world space (an instance's box, a
+** node of boxes above it, a batching point) is tested with the world
+** ray, and pruning by "entry > closest t" must never drop an instance
+** whose object-space test would report a closer hit.  The object ray is
+** not exactly the world ray moved, so the world point p = o + t' dir of an
+** object-space hit at t' may lie outside the instance's world box W (the
+** prototype's box B, grown by bvh.c's pads, through the transform in
+** double, rounded outwards).  How far (infinity norms, u = 2^-24, k =
+** ||M|| ||M^-1|| <= BRT_MAX_CONDITION = 2^10, R = reach of brt_instance_
+** bounds >= |d| + max |W - d|):
+**   1. The rounded object ray differs from the exact one by
+**      |o' - o*| <= (u + 2^-50) ||M^-1|| |o - d| (one rounding to float
+**      plus the double arithmetic), and likewise dir'.
+**   2. The triangle clamp keeps t' inside the slab test's span of the
+**      triangle's padded box, whose rounding leaves the object point
+**      o' + t' dir' inside B grown by 2 PAD_REL (|B| + |o'|) at most
+**      (PAD_REL = 32u: the box pad, the origin pad and 3 roundings).
+**   3. p - d = M (o' + t' dir') - M (o' - o*) - t' M (dir' - dir*), so p
+**      lies within  k [64u (R + |o - d|) + 1.01 u (|o - d| + t'|dir|)]
+**      of W, using |M| |B| <= k R and |M| |o'| <= 1.01 k |o - d|; and
+**      t'|dir| = |p - o| <= R + |o - d| + that distance itself.
+**   4. With k u <= 2^-14 this solves to a distance below
+**      68 k u (|o| + R)  <=  margin = 64 FLT_EPSILON k (|o| + R)
+**      (64 FLT_EPSILON = 128 u: twice the bound, which also covers the
+**      float rounding of the margin itself).
+** Growing every box of instances by the margin (brt_ray_prepare_margin)
+** makes the world point of every object-space hit lie inside the grown
+** box, so the box test enters it no later than t' and pruning stays
+** exact.  Underflow adds at most ||M|| 2^-149 per coordinate; the reach
+** carries ||M|| 2^-100 to cover it.  A scene without instances has
+** condition 0 and margin 0: its traversal is bit for bit unchanged.
+** The tests (bvh: instances) pit this against brute force on
+** translations of 1e6, scales of 1e-3 and 1e3, mirrors and shears.
+*/
+
+#define MARGIN_REL (64.0f * FLT_EPSILON)
+
+void brt_ray_prepare_margin(const brt_ray *ray, float margin, brt_ray_prep *prep)
+{
+    int a;
+    brt_ray_prepare(ray, prep);
+    if (margin == 0.0f) return;
+    for (a = 0; a < 3; a++) {
+        /* Rounded away from the origin by nextafter so the grown box is
+        ** never smaller than the margin says. */
+        const float move = margin;
+        prep->org_near[a] = prep->negative[a] ? nextafterf(prep->org_near[a] - move, -INFINITY)
+                                              : nextafterf(prep->org_near[a] + move, INFINITY);
+        prep->org_far[a] = prep->negative[a] ? nextafterf(prep->org_far[a] + move, INFINITY)
+                                             : nextafterf(prep->org_far[a] - move, -INFINITY);
+    }
+}
+
+float brt_instance_margin(float condition, float reach, const brt_ray *ray)
+{
+    if (condition == 0.0f) return 0.0f;
+    return MARGIN_REL * condition * (max_abs3(ray->org) + reach);
+}
+
+static double row_sum(const double *m, int row)
+{
+    return fabs(m[3 * row]) + fabs(m[3 * row + 1]) + fabs(m[3 * row + 2]);
+}
+
+static double matrix_norm(const double *m)
+{
+    double n = row_sum(m, 0);
+    if (row_sum(m, 1) > n) n = row_sum(m, 1);
+    if (row_sum(m, 2) > n) n = row_sum(m, 2);
+    return n;
+}
+
+brt_result brt_instance_frame_init(const brt_instance *instance, uint32_t inst,
+                                   brt_instance_frame *f, brt_error *err)
+{
+    double m[9], cof[9], det, cond;
+    int i, j;
+    for (i = 0; i < 12; i++)
+        if (!isfinite(instance->xform[i]))
+            return brt_fail(err, BRT_EARG, "instance %u: transform has a non-finite entry",
+                            (unsigned)inst);
+    for (i = 0; i < 3; i++) {
+        for (j = 0; j < 3; j++) m[3 * i + j] = instance->xform[4 * i + j];
+        f->translation[i] = instance->xform[4 * i + 3];
+    }
+    /* Cofactors: C_ij = (-1)^(i+j) minor_ij, written cyclically. */
+    for (i = 0; i < 3; i++)
+        for (j = 0; j < 3; j++) {
+            const int i1 = (i + 1) % 3, i2 = (i + 2) % 3, j1 = (j + 1) % 3, j2 = (j + 2) % 3;
+            cof[3 * i + j] = m[3 * i1 + j1] * m[3 * i2 + j2] - m[3 * i1 + j2] * m[3 * i2 + j1];
+        }
+    det = m[0] * cof[0] + m[1] * cof[1] + m[2] * cof[2];
+    if (det == 0.0 || !isfinite(det))
+        return brt_fail(err, BRT_EARG, "instance %u: transform is singular", (unsigned)inst);
+    for (i = 0; i < 3; i++)   /* M^-1 = adj(M) / det, adj = cof^T */
+        for (j = 0; j < 3; j++) f->inverse[3 * i + j] = cof[3 * j + i] / det;
+    cond = matrix_norm(m) * matrix_norm(f->inverse);
+    if (!(cond <= BRT_MAX_CONDITION))
+        return brt_fail(err, BRT_EARG,
+                        "instance %u: transform's condition number %.4g exceeds %g",
+                        (unsigned)inst, cond, BRT_MAX_CONDITION);
+    for (i = 0; i < 9; i++) f->cofactor[i] = (float)cof[i];
+    /* Rounded up: the margin's bound needs no less. */
+    f->condition = nextafterf((float)cond, INFINITY);
+    f->norm = nextafterf((float)matrix_norm(m), INFINITY);
+    return BRT_OK;
+}
+
+void brt_instance_ray(const brt_instance_frame *f, const brt_ray *ray, brt_ray *object_ray)
+{
+    double w[3];
+    int i;
+    /* o - d first: an origin near an instance far from the world's origin
+    ** keeps its digits (a translation of 1e6). */
+    for (i = 0; i < 3; i++) w[i] = (double)ray->org[i] - f->translation[i];
+    for (i = 0; i < 3; i++) {
+        const double *r = f->inverse + 3 * i;
+        object_ray->org[i] = (float)(r[0] * w[0] + r[1] * w[1] + r[2] * w[2]);
+        object_ray->dir[i] = (float)(r[0] * ray->dir[0] + r[1] * ray->dir[1] + r[2] * ray->dir[2]);
+    }
+    object_ray->tnear = ray->tnear;
+    object_ray->tfar = ray->tfar;
+}
+
+void brt_instance_intersect(const brt_bvh *prototype, const brt_instance_frame *f,
+                            uint32_t inst, const brt_ray *ray, brt_hit *hit, float normal[3])
+{
+    brt_ray object_ray;
+    brt_hit before = *hit;
+    float n[3];
+    int a;
+    brt_instance_ray(f, ray, &object_ray);
+    traverse(prototype, &object_ray, inst, hit, normal ? n : NULL, 0);
+    if (!normal || memcmp(&before, hit, sizeof before) == 0) return;
+    /* The world triangle's (v1-v0) x (v2-v0) is cof(M) times the object one. */
+    for (a = 0; a < 3; a++)
+        normal[a] = f->cofactor[3 * a] * n[0] + f->cofactor[3 * a + 1] * n[1] + f->cofactor[3 * a + 2] * n[2];
+}
+
+int brt_instance_occluded(const brt_bvh *prototype, const brt_instance_frame *f,
+                          const brt_ray *ray)
+{
+    brt_ray object_ray;
+    brt_instance_ray(f, ray, &object_ray);
+    return traverse(prototype, &object_ray, BRT_NO_INST, NULL, NULL, 1);
+}
+
+void brt_instance_bounds(const brt_instance *instance, const brt_instance_frame *f,
+                         const float obj_lo[3], const float obj_hi[3],
+                         float lo[3], float hi[3], float *reach)
+{
+    double far = 0.0;
+    int corner, a;
+    for (a = 0; a < 3; a++) { lo[a] = INFINITY; hi[a] = -INFINITY; }
+    if (!(obj_lo[0] <= obj_hi[0])) { *reach = 0.0f; return; }   /* empty prototype */
+    for (corner = 0; corner < 8; corner++) {
+        double p[3];
+        for (a = 0; a < 3; a++) p[a] = (corner >> a & 1) ? obj_hi[a] : obj_lo[a];
+        for (a = 0; a < 3; a++) {
+            const float *r = instance->xform + 4 * a;
+            const double rel = r[0] * p[0] + r[1] * p[1] + r[2] * p[2];
+            const double w = rel + r[3];
+            /* float(w) may round inwards: step outwards once more. */
+            const float down = nextafterf((float)w, -INFINITY), up = nextafterf((float)w, INFINITY);
+            if (down < lo[a]) lo[a] = down;
+            if (up > hi[a]) hi[a] = up;
+            if (fabs(rel) > far) far = fabs(rel);
+        }
+    }
+    {
+        double d = fabs(f->translation[0]);
+        if (fabs(f->translation[1]) > d) d = fabs(f->translation[1]);
+        if (fabs(f->translation[2]) > d) d = fabs(f->translation[2]);
+        /* A relative 2^-20 covers the rounding of the box outwards and of
+        ** this sum; the last term is the underflow's (see the margin). */
+        *reach = nextafterf((float)((d + far) * (1.0 + 0x1p-20) + f->norm * 0x1p-100), INFINITY);
+    }
 }
 
 /* ===================================================================== */
