@@ -490,6 +490,145 @@ static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep 
     return 0;
 }
 
+/* ---- instances: the level below a batching point ---------------------- */
+/*
+** A batching point of an instanced scene holds world triangles (one
+** triangle BVH) and instances of prototypes (each prototype one triangle
+** BVH, shared by all its instances and, in batched mode, by all batching
+** points).  The instances sit under the same 4-wide box tree as the
+** batching points (top_build, over their world boxes), descended here
+** depth first, nearest child first, and pruned by the closest hit so far.
+** Its boxes are tested grown by the margin of bvh.c ("Instances"), so the
+** rounding of the ray's transform never prunes a hit.  direct mode (a
+** brt_world) and batched mode intersect through the same two functions,
+** geometry_intersect and geometry_occluded, so they write the same bytes.
+*/
+static void top_node_pad(top_node *n);
+static void hit_mark_occluded(brt_hit *hit);
+
+typedef struct instance_set {
+    uint32_t count;
+    uint32_t *ids;                  /* the instances' numbers (hit.inst) */
+    uint32_t *prototypes;           /* their prototypes */
+    brt_instance_frame *frames;
+    top_node *nodes;                /* boxes grown by top_node_pad */
+    uint32_t node_count;
+    float condition, reach;         /* the largest: brt_instance_margin's */
+} instance_set;
+
+/* What a ray is intersected with: a batching point's geometry, or the
+** whole scene's (direct mode).  Either part may be absent (NULL). */
+typedef struct geometry {
+    const brt_bvh *triangles;
+    const instance_set *instances;
+    const brt_bvh *const *prototypes;   /* by prototype id */
+} geometry;
+
+/* A median-split tree of four groups per node is at most about
+** log4(count) + 1 deep (17 for 2^32 instances); each level leaves at most
+** three siblings on the stack. */
+#define SET_STACK 64
+
+typedef struct set_entry {
+    uint32_t code;                  /* node index, or TOP_LEAF | instance slot */
+    float entry;
+} set_entry;
+
+/* Pushes the children of node the ray enters by tlimit, farthest first,
+** so the nearest is popped next. */
+static int set_expand(const top_node *node, const brt_ray_prep *prep, float tnear, float tlimit,
+                      set_entry *stack, int sp)
+{
+    float entries[4], exits[4];
+    const unsigned lanes = brt_box_span4(prep, node->box, tnear, tlimit, entries, exits);
+    int order[4], n = 0, i, j;
+    for (i = 0; i < 4; i++) {
+        if (node->child[i] == TOP_EMPTY || !(lanes & (1u << i))) continue;
+        for (j = n++; j > 0 && entries[order[j - 1]] < entries[i]; j--) order[j] = order[j - 1];
+        order[j] = i;
+    }
+    for (i = 0; i < n; i++) {
+        assert(sp < SET_STACK);
+        stack[sp].code = node->child[order[i]];
+        stack[sp++].entry = entries[order[i]];
+    }
+    return sp;
+}
+
+/* Closest hit (any_hit = 0) or any hit (any_hit = 1, returns 1) among the
+** instances of set. */
+static int set_trace(const geometry *g, const brt_ray *ray, brt_hit *hit, float normal[3],
+                     int any_hit)
+{
+    const instance_set *set = g->instances;
+    set_entry stack[SET_STACK];
+    brt_ray_prep prep;
+    int sp = 0;
+    if (!set || set->node_count == 0) return 0;
+    brt_ray_prepare_margin(ray, brt_instance_margin(set->condition, set->reach, ray), &prep);
+    if (!prep.valid) return 0;
+    stack[sp].code = 0;
+    stack[sp++].entry = ray->tnear;
+    while (sp > 0) {
+        const set_entry e = stack[--sp];
+        const float tlimit = !any_hit && hit->t < ray->tfar ? hit->t : ray->tfar;
+        if (e.entry > tlimit) continue;
+        if (!(e.code & TOP_LEAF)) {
+            sp = set_expand(&set->nodes[e.code], &prep, ray->tnear, tlimit, stack, sp);
+            continue;
+        } else {
+            const uint32_t k = e.code & ~TOP_LEAF;
+            const brt_bvh *proto = g->prototypes[set->prototypes[k]];
+            if (!any_hit)
+                brt_instance_intersect(proto, &set->frames[k], set->ids[k], ray, hit, normal);
+            else if (brt_instance_occluded(proto, &set->frames[k], ray))
+                return 1;
+        }
+    }
+    return 0;
+}
+
+/* The record of brt_ray_source for one ray against geometry: the closest
+** hit so far (and its normal, unless NULL), or for an occlusion ray t = 0,
+** prim = 0 once anything is hit in [tnear, tfar].  Direct mode and the
+** scheduler share it, so both kinds give the same bytes in every mode. */
+static void intersect_ray(const geometry *g, const brt_ray *ray, uint64_t tag, brt_hit *hit,
+                          float normal[3])
+{
+    if (tag & BRT_TAG_OCCLUSION) {
+        if ((g->triangles && brt_bvh_occluded(g->triangles, ray)) || set_trace(g, ray, hit, NULL, 1))
+            hit_mark_occluded(hit);
+        return;
+    }
+    if (g->triangles) {
+        if (normal) brt_bvh_intersect_normal(g->triangles, ray, hit, normal);
+        else brt_bvh_intersect(g->triangles, ray, hit);
+    }
+    set_trace(g, ray, hit, normal, 0);
+}
+
+/* Builds the box tree over a set's instances, whose world boxes are
+** boxes[6i..6i+5] (lo, hi). */
+static brt_result set_build_tree(instance_set *set, const float *boxes)
+{
+    uint32_t i;
+    set->nodes = NULL;
+    set->node_count = 0;
+    if (set->count == 0) return BRT_OK;
+    if (top_build(boxes, set->count, &set->nodes, &set->node_count) != BRT_OK) return BRT_ENOMEM;
+    for (i = 0; i < set->node_count; i++) top_node_pad(&set->nodes[i]);
+    return BRT_OK;
+}
+
+static void set_free(instance_set *set)
+{
+    free(set->ids);
+    free(set->prototypes);
+    free(set->frames);
+    free(set->nodes);
+    memset(set, 0, sizeof *set);
+}
+
 /* ---- the scene in memory ---------------------------------------------- */
 /*
 ** What the scheduler works on.  An open scene (struct brt_scene) holds the
@@ -587,8 +726,6 @@ static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
                              brt_read_fn read_fn, void *user, uint64_t *bytes_read,
                              const char *path, brt_error *err);
 static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user);
-static void intersect_ray(const brt_bvh *bvh, const brt_ray *ray, uint64_t tag, brt_hit *hit,
-                          float normal[3]);
 static uint64_t round_up_page(uint64_t n);
 
 /* ---- ray queues and the scheduler ------------------------------------ */
@@ -757,7 +894,11 @@ static float walk_limit(const ray_slot *r)
 ** brt_ray_source: t = 0, prim = 0 when occluded). */
 static void intersect_slot(const scheduler *s, const brt_bvh *bvh, ray_slot *r)
 {
-    intersect_ray(bvh, &r->ray, r->tag, &r->hit, r->normal);
+    geometry g;
+    g.triangles = bvh;
+    g.instances = NULL;
+    g.prototypes = NULL;
+    intersect_ray(&g, &r->ray, r->tag, &r->hit, r->normal);
     follow_step(s, r, BRT_STEP_TRIANGLES, r->key.id, r->hit.t);
 }
 
@@ -5001,59 +5142,303 @@ static void threads_free(scheduler *s)
     s->threads = NULL;
 }
 
-/* ---- direct tracing: chunks of rays through one BVH ----------------- */
+/* ---- direct tracing: chunks of rays through geometry in memory ------ */
 
-/* One ray of either kind through one BVH, on the record of brt_ray_source:
-** the closest hit so far (and its normal when normal is not NULL), or for
-** an occlusion ray (tag has BRT_TAG_OCCLUSION) t = 0, prim = 0 once any
-** triangle is hit in [tnear, tfar].  The direct trace and the scheduler
-** share it, so both kinds give the same bytes in every mode. */
-static void intersect_ray(const brt_bvh *bvh, const brt_ray *ray, uint64_t tag, brt_hit *hit,
-                          float normal[3])
-{
-    if (tag & BRT_TAG_OCCLUSION) {
-        if (brt_bvh_occluded(bvh, ray)) hit_mark_occluded(hit);
-    } else if (normal) {
-        brt_bvh_intersect_normal(bvh, ray, hit, normal);
-    } else {
-        brt_bvh_intersect(bvh, ray, hit);
-    }
-}
-
-typedef struct bvh_trace_job {
-    const brt_bvh *bvh;
+typedef struct trace_job {
+    geometry geometry;
     const brt_ray *rays;
     const uint64_t *tags;
     brt_hit *hits;
     float *normals;
-} bvh_trace_job;
+} trace_job;
 
-static void bvh_trace_chunk(void *ctx, unsigned thread, size_t first, size_t end)
+static void trace_chunk(void *ctx, unsigned thread, size_t first, size_t end)
 {
-    const bvh_trace_job *j = ctx;
+    const trace_job *j = ctx;
     size_t i;
     (void)thread;
     for (i = first; i < end; i++) {
         float *normal = j->normals ? j->normals + 3 * i : NULL;
         if (normal) normal[0] = normal[1] = normal[2] = 0.0f;
         brt_hit_clear(&j->hits[i]);
-        intersect_ray(j->bvh, &j->rays[i], j->tags ? j->tags[i] : 0, &j->hits[i], normal);
+        intersect_ray(&j->geometry, &j->rays[i], j->tags ? j->tags[i] : 0, &j->hits[i], normal);
     }
 }
 
 #define TRACE_CHUNK 1024   /* rays per chunk: far longer than a take of the lock */
 
-void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags,
-                   size_t count, brt_hit *hits, float *normals, unsigned threads)
+static void trace_geometry(const geometry *g, const brt_ray *rays, const uint64_t *tags,
+                           size_t count, brt_hit *hits, float *normals, unsigned threads)
 {
-    bvh_trace_job j;
+    trace_job j;
     pool p;
-    j.bvh = bvh;
+    j.geometry = *g;
     j.rays = rays;
     j.tags = tags;
     j.hits = hits;
     j.normals = normals;
     pool_init(&p, count > TRACE_CHUNK ? threads : 1);
-    pool_run(&p, bvh_trace_chunk, NULL, &j, count, TRACE_CHUNK);
+    pool_run(&p, trace_chunk, NULL, &j, count, TRACE_CHUNK);
     pool_free(&p);
+}
+
+void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags,
+                   size_t count, brt_hit *hits, float *normals, unsigned threads)
+{
+    geometry g;
+    g.triangles = bvh;
+    g.instances = NULL;
+    g.prototypes = NULL;
+    trace_geometry(&g, rays, tags, count, hits, normals, threads);
+}
+
+/* ---- the direct mode's world: an instanced scene in memory ------------ */
+
+struct brt_world {
+    brt_bvh *triangles;             /* the world triangles' BVH (prim: file order) */
+    brt_bvh **prototypes;
+    uint32_t prototype_count;
+    instance_set set;               /* instances of non-empty prototypes */
+    uint32_t instance_count;        /* every instance streamed */
+    uint64_t unique, instanced;
+    float lo[3], hi[3];
+};
+
+/* Triangles of a stream gathered as corners (9 floats each), checked to
+** arrive numbered in order. */
+typedef struct corner_list {
+    float *corners;
+    size_t capacity;
+    uint32_t count;
+} corner_list;
+
+static brt_result gather_corners(void *user, const float *corners, uint32_t count,
+                                 uint32_t first, brt_error *err)
+{
+    corner_list *l = user;
+    float *grown;
+    if (first != l->count || count > UINT32_MAX - l->count)
+        return brt_fail(err, BRT_EARG, "triangle stream: chunk numbered %u after %u triangles",
+                        (unsigned)first, (unsigned)l->count);
+    grown = brt_grow(l->corners, &l->capacity, 9 * ((size_t)l->count + count), sizeof *grown);
+    if (!grown) return brt_fail(err, BRT_ENOMEM, "out of memory for %u triangles",
+                                (unsigned)(l->count + count));
+    l->corners = grown;
+    memcpy(l->corners + 9 * (size_t)l->count, corners, 9 * (size_t)count * sizeof *corners);
+    l->count += count;
+    return BRT_OK;
+}
+
+/* The BVH of gathered corners (triangle i numbered i). */
+static brt_result corners_bvh(const corner_list *l, brt_bvh **out, brt_error *err)
+{
+    uint32_t *indices = malloc(3 * (size_t)l->count * sizeof *indices + 1), i;
+    brt_result rc;
+    if (!indices) return brt_fail(err, BRT_ENOMEM, "out of memory for a BVH");
+    for (i = 0; i < 3 * l->count; i++) indices[i] = i;
+    rc = brt_bvh_build(l->corners, indices, l->count, NULL, out);
+    free(indices);
+    return rc == BRT_OK ? BRT_OK
+                        : brt_fail(err, rc, "cannot build a BVH of %u triangles: %s",
+                                   (unsigned)l->count, brt_result_string(rc));
+}
+
+/* Runs a triangle stream into a BVH; *count gets its triangles. */
+static brt_result stream_bvh(brt_result (*run)(const void *, uint32_t, brt_triangle_fn, void *,
+                                               brt_error *),
+                             const void *user, uint32_t id, brt_bvh **out, uint32_t *count,
+                             brt_error *err)
+{
+    corner_list l = {NULL, 0, 0};
+    brt_result rc = run(user, id, gather_corners, &l, err);
+    if (rc == BRT_OK) rc = corners_bvh(&l, out, err);
+    *count = l.count;
+    free(l.corners);
+    return rc;
+}
+
+static brt_result run_world_stream(const void *user, uint32_t id, brt_triangle_fn emit,
+                                   void *emit_user, brt_error *err)
+{
+    const brt_triangle_source *world = user;
+    (void)id;
+    return world->run(world->user, emit, emit_user, err);
+}
+
+static brt_result run_prototype_stream(const void *user, uint32_t id, brt_triangle_fn emit,
+                                       void *emit_user, brt_error *err)
+{
+    const brt_scene_source *source = user;
+    return source->prototype(source->user, id, emit, emit_user, err);
+}
+
+/* Instances gathered into a world: checked, framed and boxed. */
+typedef struct instance_gather {
+    brt_world *world;
+    const uint32_t *proto_tris;     /* triangles per prototype */
+    float *boxes;                   /* 6 per instance of the set */
+    size_t id_cap, proto_cap, frame_cap, box_cap;
+} instance_gather;
+
+static brt_result gather_instance(instance_gather *g, const brt_instance *in, uint32_t inst,
+                                  brt_error *err)
+{
+    brt_world *w = g->world;
+    instance_set *set = &w->set;
+    brt_instance_frame frame;
+    float olo[3], ohi[3], reach;
+    brt_result rc;
+    int a;
+    if (in->prototype >= w->prototype_count)
+        return brt_fail(err, BRT_EARG, "instance %u: prototype %u out of range (%u prototypes)",
+                        (unsigned)inst, (unsigned)in->prototype, (unsigned)w->prototype_count);
+    if ((rc = brt_instance_frame_init(in, inst, &frame, err)) != BRT_OK) return rc;
+    w->instanced += g->proto_tris[in->prototype];
+    if (g->proto_tris[in->prototype] == 0) return BRT_OK;   /* never hit */
+    if (!(set->ids = brt_grow(set->ids, &g->id_cap, (size_t)set->count + 1, sizeof *set->ids))
+        || !(set->prototypes = brt_grow(set->prototypes, &g->proto_cap, (size_t)set->count + 1,
+                                        sizeof *set->prototypes))
+        || !(set->frames = brt_grow(set->frames, &g->frame_cap, (size_t)set->count + 1,
+                                    sizeof *set->frames))
+        || !(g->boxes = brt_grow(g->boxes, &g->box_cap, 6 * ((size_t)set->count + 1),
+                                 sizeof *g->boxes)))
+        return brt_fail(err, BRT_ENOMEM, "out of memory for %u instances", (unsigned)inst + 1);
+    brt_bvh_bounds(w->prototypes[in->prototype], olo, ohi);
+    brt_instance_bounds(in, &frame, olo, ohi, g->boxes + 6 * (size_t)set->count,
+                        g->boxes + 6 * (size_t)set->count + 3, &reach);
+    for (a = 0; a < 3; a++) {
+        if (g->boxes[6 * (size_t)set->count + a] < w->lo[a]) w->lo[a] = g->boxes[6 * (size_t)set->count + a];
+        if (g->boxes[6 * (size_t)set->count + 3 + a] > w->hi[a]) w->hi[a] = g->boxes[6 * (size_t)set->count + 3 + a];
+    }
+    if (frame.condition > set->condition) set->condition = frame.condition;
+    if (reach > set->reach) set->reach = reach;
+    set->ids[set->count] = inst;
+    set->prototypes[set->count] = in->prototype;
+    set->frames[set->count++] = frame;
+    return BRT_OK;
+}
+
+static brt_result gather_instances(void *user, const brt_instance *instances, uint32_t count,
+                                   uint32_t first, brt_error *err)
+{
+    instance_gather *g = user;
+    uint32_t i;
+    if (first != g->world->instance_count || count > UINT32_MAX - first)
+        return brt_fail(err, BRT_EARG, "instance stream: chunk numbered %u after %u instances",
+                        (unsigned)first, (unsigned)g->world->instance_count);
+    for (i = 0; i < count; i++) {
+        brt_result rc = gather_instance(g, &instances[i], first + i, err);
+        if (rc != BRT_OK) return rc;
+        g->world->instance_count++;
+    }
+    return BRT_OK;
+}
+
+static brt_result world_prototypes(brt_world *w, const brt_scene_source *source,
+                                   uint32_t *proto_tris, brt_error *err)
+{
+    uint32_t p;
+    for (p = 0; p < w->prototype_count; p++) {
+        brt_result rc = stream_bvh(run_prototype_stream, source, p, &w->prototypes[p],
+                                   &proto_tris[p], err);
+        if (rc != BRT_OK) return rc;
+        w->unique += proto_tris[p];
+    }
+    return BRT_OK;
+}
+
+static brt_result world_fill(brt_world *w, const brt_scene_source *source, brt_error *err)
+{
+    instance_gather g;
+    uint32_t *proto_tris = calloc((size_t)w->prototype_count + 1, sizeof *proto_tris), n = 0;
+    brt_result rc = BRT_OK;
+    memset(&g, 0, sizeof g);
+    if (!proto_tris) return brt_fail(err, BRT_ENOMEM, "out of memory for the prototypes");
+    if (source->world.run)
+        rc = stream_bvh(run_world_stream, &source->world, 0, &w->triangles, &n, err);
+    w->unique = w->instanced = n;
+    if (w->triangles) brt_bvh_bounds(w->triangles, w->lo, w->hi);
+    if (rc == BRT_OK) rc = world_prototypes(w, source, proto_tris, err);
+    g.world = w;
+    g.proto_tris = proto_tris;
+    if (rc == BRT_OK && source->instances) rc = source->instances(source->user, gather_instances, &g, err);
+    if (rc == BRT_OK && set_build_tree(&w->set, g.boxes) != BRT_OK)
+        rc = brt_fail(err, BRT_ENOMEM, "out of memory for the instances' tree");
+    free(g.boxes);
+    free(proto_tris);
+    return rc;
+}
+
+brt_result brt_world_build(const brt_scene_source *source, brt_world **out, brt_error *err)
+{
+    brt_world *w = calloc(1, sizeof *w);
+    brt_result rc;
+    int a;
+    *out = NULL;
+    if (!w) return brt_fail(err, BRT_ENOMEM, "out of memory for a world");
+    for (a = 0; a < 3; a++) { w->lo[a] = INFINITY; w->hi[a] = -INFINITY; }
+    w->prototype_count = source->prototype_count;
+    w->prototypes = calloc((size_t)w->prototype_count + 1, sizeof *w->prototypes);
+    rc = w->prototypes ? world_fill(w, source, err)
+                       : brt_fail(err, BRT_ENOMEM, "out of memory for %u prototypes",
+                                  (unsigned)w->prototype_count);
+    if (rc != BRT_OK) {
+        brt_world_free(w);
+        return rc;
+    }
+    *out = w;
+    return BRT_OK;
+}
+
+void brt_world_free(brt_world *w)
+{
+    uint32_t p;
+    if (!w) return;
+    brt_bvh_free(w->triangles);
+    for (p = 0; w->prototypes && p < w->prototype_count; p++) brt_bvh_free(w->prototypes[p]);
+    free(w->prototypes);
+    set_free(&w->set);
+    free(w);
+}
+
+static geometry world_geometry(const brt_world *w)
+{
+    geometry g;
+    g.triangles = w->triangles;
+    g.instances = &w->set;
+    g.prototypes = (const brt_bvh *const *)w->prototypes;
+    return g;
+}
+
+void brt_world_intersect(const brt_world *w, const brt_ray *ray, brt_hit *hit, float normal[3])
+{
+    const geometry g = world_geometry(w);
+    intersect_ray(&g, ray, 0, hit, normal);
+}
+
+int brt_world_occluded(const brt_world *w, const brt_ray *ray)
+{
+    const geometry g = world_geometry(w);
+    brt_hit hit;
+    brt_hit_clear(&hit);
+    intersect_ray(&g, ray, BRT_TAG_OCCLUSION, &hit, NULL);
+    return hit.t == 0.0f;
+}
+
+void brt_world_trace(const brt_world *w, const brt_ray *rays, const uint64_t *tags,
+                     size_t count, brt_hit *hits, float *normals, unsigned threads)
+{
+    const geometry g = world_geometry(w);
+    trace_geometry(&g, rays, tags, count, hits, normals, threads);
+}
+
+uint32_t brt_world_instance_count(const brt_world *w) { return w->instance_count; }
+uint32_t brt_world_prototype_count(const brt_world *w) { return w->prototype_count; }
+uint64_t brt_world_unique_triangles(const brt_world *w) { return w->unique; }
+uint64_t brt_world_instanced_triangles(const brt_world *w) { return w->instanced; }
+
+void brt_world_bounds(const brt_world *w, float bmin[3], float bmax[3])
+{
+    memcpy(bmin, w->lo, sizeof w->lo);
+    memcpy(bmax, w->hi, sizeof w->hi);
 }

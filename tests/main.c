@@ -207,6 +207,7 @@ int main(int argc, char **argv)
     suite_threads();
     suite_inner();
     suite_follow();
+    suite_instances();
     suite_layers();
     suite_sampling();
     suite_reclaim();

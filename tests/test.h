@@ -68,6 +68,7 @@ void suite_occlusion(void);
 void suite_threads(void);
 void suite_inner(void);
 void suite_follow(void);
+void suite_instances(void);
 void suite_layers(void);
 void suite_sampling(void);
 void suite_reclaim(void);

@@ -143,8 +143,8 @@ void tu_make_ray(const tu_scene *s, const float lo[3], const float hi[3], int ki
 
 /* The oracle of the BVH: every triangle through brt_intersect_triangle,
 ** the closest by brt_hit_is_closer. */
-void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids,
-                        const brt_ray *ray, brt_hit *hit)
+static void brute_force_named(const tu_scene *s, const uint32_t *prim_ids, uint32_t inst,
+                              const brt_ray *ray, brt_hit *hit)
 {
     uint32_t i;
     for (i = 0; i < s->tcount; i++) {
@@ -152,10 +152,118 @@ void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids,
         const uint32_t prim = prim_ids ? prim_ids[i] : i;
         if (!brt_intersect_triangle(ray, tu_vertex(s, i, 0), tu_vertex(s, i, 1), tu_vertex(s, i, 2), &t, &u, &v))
             continue;
-        if (brt_hit_is_closer(t, BRT_NO_INST, prim, hit)) {
-            hit->t = t; hit->prim = prim; hit->u = u; hit->v = v;
+        if (brt_hit_is_closer(t, inst, prim, hit)) {
+            hit->t = t; hit->prim = prim; hit->u = u; hit->v = v; hit->inst = inst;
         }
     }
+}
+
+void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids,
+                        const brt_ray *ray, brt_hit *hit)
+{
+    brute_force_named(s, prim_ids, BRT_NO_INST, ray, hit);
+}
+
+/* ---- instanced scenes in memory ---- */
+
+brt_instance *tu_add_instance(tu_instanced *s, uint32_t prototype, const float xform[12])
+{
+    if (s->instance_count == s->instance_cap) {
+        s->instance_cap = s->instance_cap ? 2 * s->instance_cap : 16;
+        s->instances = realloc(s->instances, s->instance_cap * sizeof *s->instances);
+        if (!s->instances) abort();
+    }
+    s->instances[s->instance_count].prototype = prototype;
+    memcpy(s->instances[s->instance_count].xform, xform, 12 * sizeof *xform);
+    return &s->instances[s->instance_count++];
+}
+
+void tu_instanced_free(tu_instanced *s)
+{
+    uint32_t p;
+    tu_scene_free(&s->world);
+    for (p = 0; p < s->proto_count; p++) tu_scene_free(&s->protos[p]);
+    free(s->instances);
+    memset(s, 0, sizeof *s);
+}
+
+/* A tu_scene's triangles as corners, in chunks of 5 (so that chunking is
+** exercised). */
+static brt_result emit_scene(const tu_scene *s, brt_triangle_fn emit, void *emit_user,
+                             brt_error *err)
+{
+    float corners[5 * 9];
+    uint32_t first, k;
+    int c;
+    for (first = 0; first < s->tcount; first += 5) {
+        const uint32_t n = s->tcount - first < 5 ? s->tcount - first : 5;
+        brt_result rc;
+        for (k = 0; k < n; k++)
+            for (c = 0; c < 3; c++) memcpy(corners + 9 * k + 3 * c, tu_vertex(s, first + k, c), 12);
+        if ((rc = emit(emit_user, corners, n, first, err)) != BRT_OK) return rc;
+    }
+    return BRT_OK;
+}
+
+static brt_result run_world(const void *user, brt_triangle_fn emit, void *emit_user, brt_error *err)
+{
+    return emit_scene(&((const tu_instanced *)user)->world, emit, emit_user, err);
+}
+
+static brt_result run_prototype(const void *user, uint32_t id, brt_triangle_fn emit,
+                                void *emit_user, brt_error *err)
+{
+    return emit_scene(&((const tu_instanced *)user)->protos[id], emit, emit_user, err);
+}
+
+static brt_result run_instances(const void *user, brt_instance_fn emit, void *emit_user,
+                                brt_error *err)
+{
+    const tu_instanced *s = user;
+    uint32_t first;
+    for (first = 0; first < s->instance_count; first += 7) {
+        const uint32_t n = s->instance_count - first < 7 ? s->instance_count - first : 7;
+        brt_result rc = emit(emit_user, s->instances + first, n, first, err);
+        if (rc != BRT_OK) return rc;
+    }
+    return BRT_OK;
+}
+
+void tu_instanced_source(const tu_instanced *s, brt_scene_source *source)
+{
+    source->world.run = run_world;
+    source->world.user = s;
+    source->prototype_count = s->proto_count;
+    source->prototype = run_prototype;
+    source->instances = run_instances;
+    source->user = s;
+}
+
+void tu_instanced_brute(const tu_instanced *s, const brt_ray *ray, brt_hit *hit)
+{
+    uint32_t i;
+    brute_force_named(&s->world, NULL, BRT_NO_INST, ray, hit);
+    for (i = 0; i < s->instance_count; i++) {
+        brt_instance_frame f;
+        brt_ray object_ray;
+        if (brt_instance_frame_init(&s->instances[i], i, &f, NULL) != BRT_OK) abort();
+        brt_instance_ray(&f, ray, &object_ray);
+        brute_force_named(&s->protos[s->instances[i].prototype], NULL, i, &object_ray, hit);
+    }
+}
+
+int tu_instanced_brute_occluded(const tu_instanced *s, const brt_ray *ray)
+{
+    uint32_t i;
+    if (tu_brute_occluded(&s->world, ray)) return 1;
+    for (i = 0; i < s->instance_count; i++) {
+        brt_instance_frame f;
+        brt_ray object_ray;
+        if (brt_instance_frame_init(&s->instances[i], i, &f, NULL) != BRT_OK) abort();
+        brt_instance_ray(&f, ray, &object_ray);
+        if (tu_brute_occluded(&s->protos[s->instances[i].prototype], &object_ray)) return 1;
+    }
+    return 0;
 }
 
 int tu_brute_occluded(const tu_scene *s, const brt_ray *ray)

@@ -44,6 +44,25 @@ void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids, const brt_ray *
 ** (brt_intersect_triangle within the ray's [tnear, tfar]). */
 int tu_brute_occluded(const tu_scene *s, const brt_ray *ray);
 
+/* An instanced scene in memory: world triangles, up to TU_MAX_PROTOS
+** prototypes and instances of them, as a brt_scene_source (chunks of 5
+** triangles and 7 instances), and its brute force: every world triangle
+** and every instance's every triangle, the ray carried into object space
+** by brt_instance_ray (the same transform of the ray as the library's). */
+#define TU_MAX_PROTOS 8
+typedef struct tu_instanced {
+    tu_scene world;
+    tu_scene protos[TU_MAX_PROTOS];
+    uint32_t proto_count;
+    brt_instance *instances;
+    uint32_t instance_count, instance_cap;
+} tu_instanced;
+brt_instance *tu_add_instance(tu_instanced *s, uint32_t prototype, const float xform[12]);
+void tu_instanced_free(tu_instanced *s);
+void tu_instanced_source(const tu_instanced *s, brt_scene_source *source);
+void tu_instanced_brute(const tu_instanced *s, const brt_ray *ray, brt_hit *hit);
+int tu_instanced_brute_occluded(const tu_instanced *s, const brt_ray *ray);
+
 /* Builds a scene file of s at path (brt_scene_build, source stamp 1) and
 ** opens it; a failure is a test failure, and NULL. */
 brt_scene *tu_build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, unsigned threads,

@@ -1,0 +1,499 @@
+/*
+** tests/test_instances.c -- instancing in direct mode (issue 28, parts 1
+** and 3): a brt_world against brute force "evaluated with the same
+** transform of the ray" (tu_instanced_brute: every instance, every
+** triangle, the ray carried into object space by brt_instance_ray) on
+** adversarial transforms; the tie-break by (t, inst, prim); world normals;
+** the checks of instances at build; instanced hit files.
+*/
+#include "test.h"
+#include "util.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+static void identity(float m[12])
+{
+    memset(m, 0, 12 * sizeof *m);
+    m[0] = m[5] = m[10] = 1.0f;
+}
+
+/* m = (rotation by angle about a unit axis) * diag(s), then translated. */
+static void rotation(float m[12], const float axis[3], float angle, const float s[3],
+                     const float t[3])
+{
+    const float c = cosf(angle), n = sinf(angle), k = 1.0f - c;
+    const float x = axis[0], y = axis[1], z = axis[2];
+    const float r[9] = {c + x * x * k, x * y * k - z * n, x * z * k + y * n,
+                        y * x * k + z * n, c + y * y * k, y * z * k - x * n,
+                        z * x * k - y * n, z * y * k + x * n, c + z * z * k};
+    int i, j;
+    for (i = 0; i < 3; i++) {
+        for (j = 0; j < 3; j++) m[4 * i + j] = r[3 * i + j] * s[j];
+        m[4 * i + 3] = t[i];
+    }
+}
+
+/* The adversarial scene: a world soup, three prototypes (a soup, a
+** closed box, one small triangle) and instances under every kind of
+** transform the issue names.  Returns the number of "kinds" placed. */
+static void adversarial_scene(tu_instanced *s, uint64_t *st)
+{
+    float m[12];
+    uint32_t i;
+    memset(s, 0, sizeof *s);
+    tu_random_soup(&s->world, st, 200, 0.1f);
+    s->proto_count = 3;
+    tu_random_soup(&s->protos[0], st, 300, 0.15f);
+    {   /* a closed unit cube: shared edges, watertightness across them */
+        static const float v[8][3] = {{0,0,0},{1,0,0},{1,1,0},{0,1,0},{0,0,1},{1,0,1},{1,1,1},{0,1,1}};
+        static const uint32_t f[12][3] = {{0,2,1},{0,3,2},{4,5,6},{4,6,7},{0,1,5},{0,5,4},
+                                          {1,2,6},{1,6,5},{2,3,7},{2,7,6},{3,0,4},{3,4,7}};
+        for (i = 0; i < 8; i++) tu_add_vertex(&s->protos[1], v[i][0], v[i][1], v[i][2]);
+        for (i = 0; i < 12; i++) tu_add_triangle(&s->protos[1], f[i][0], f[i][1], f[i][2]);
+    }
+    tu_add_vertex(&s->protos[2], 0, 0, 0);
+    tu_add_vertex(&s->protos[2], 1, 0, 0);
+    tu_add_vertex(&s->protos[2], 0, 1, 0.25f);
+    tu_add_triangle(&s->protos[2], 0, 1, 2);
+    /* 0: identity over the world's own cube: ties with world triangles? no
+    ** (different triangles), but shares its space. */
+    identity(m);
+    tu_add_instance(s, 0, m);
+    /* 1: a translation of 1e6 */
+    identity(m);
+    m[3] = 1e6f; m[7] = -1e6f; m[11] = 5e5f;
+    tu_add_instance(s, 0, m);
+    /* 2, 3: scales 1e-3 and 1e3 (the first thinner than any voxel) */
+    {
+        const float ax[3] = {0, 0, 1}, s1[3] = {1e-3f, 1e-3f, 1e-3f}, s2[3] = {1e3f, 1e3f, 1e3f};
+        const float t1[3] = {0.5f, 0.5f, 0.5f}, t2[3] = {3e3f, 0, 0};
+        rotation(m, ax, 0.3f, s1, t1);
+        tu_add_instance(s, 1, m);
+        rotation(m, ax, 1.1f, s2, t2);
+        tu_add_instance(s, 0, m);
+    }
+    /* 4: a rotation; 5: a mirror (negative determinant); 6: a shear */
+    {
+        const float ax[3] = {0.48f, 0.6f, 0.64f}, one[3] = {1, 1, 1}, t[3] = {2, 0, 0};
+        const float mirror[3] = {-1, 1, 1}, t5[3] = {4, 0, 0};
+        rotation(m, ax, 2.0f, one, t);
+        tu_add_instance(s, 1, m);
+        rotation(m, ax, 0.7f, mirror, t5);
+        tu_add_instance(s, 0, m);
+        identity(m);
+        m[1] = 0.5f; m[6] = 0.3f; m[2] = -0.2f; m[3] = 6;
+        tu_add_instance(s, 1, m);
+    }
+    /* 7: condition number near the bound (a flat scale of 1000:1) */
+    identity(m);
+    m[10] = 1e-3f; m[3] = 8;
+    tu_add_instance(s, 0, m);
+    /* 8..27: many instances of one prototype in one place, the first ten
+    ** identical (exact ties: the lowest instance must win), then small
+    ** rotations of it */
+    for (i = 0; i < 20; i++) {
+        const float ax[3] = {0, 1, 0}, one[3] = {1, 1, 1}, t[3] = {10, 0, 0};
+        rotation(m, ax, i < 10 ? 0.0f : 0.01f * (float)i, one, t);
+        tu_add_instance(s, i % 2 ? 1 : 2, m);
+    }
+}
+
+/* A ray at instance k (or at the world when k == instance_count): from a
+** random point a few box sizes away (sometimes a thousand) towards a
+** random point of one of its triangles, a tenth of them on an edge. */
+static void ray_at(const tu_instanced *s, uint32_t k, uint64_t *st, brt_ray *r)
+{
+    const tu_scene *mesh = k < s->instance_count ? &s->protos[s->instances[k].prototype] : &s->world;
+    const uint32_t tri = (uint32_t)(brt_random_u64(st) % mesh->tcount);
+    float u = brt_random_float(st), v = brt_random_float(st), p[3], w[3], d[3];
+    float span = 1.0f;
+    int a;
+    if (u + v > 1.0f) { u = 1.0f - u; v = 1.0f - v; }
+    if (brt_random_float(st) < 0.1f) v = 0.0f;   /* on an edge: watertightness */
+    for (a = 0; a < 3; a++)
+        p[a] = (1 - u - v) * tu_vertex(mesh, tri, 0)[a] + u * tu_vertex(mesh, tri, 1)[a] +
+               v * tu_vertex(mesh, tri, 2)[a];
+    if (k < s->instance_count) {
+        const float *x = s->instances[k].xform;
+        for (a = 0; a < 3; a++) w[a] = x[4 * a] * p[0] + x[4 * a + 1] * p[1] + x[4 * a + 2] * p[2] + x[4 * a + 3];
+        span = fabsf(x[0]) + fabsf(x[1]) + fabsf(x[2]) + fabsf(x[5]) + fabsf(x[10]);
+    } else {
+        memcpy(w, p, sizeof w);
+    }
+    tu_random_unit(st, d);
+    if (brt_random_float(st) < 0.2f) span *= 1000.0f;
+    for (a = 0; a < 3; a++) {
+        r->org[a] = w[a] + span * (1.0f + 3.0f * brt_random_float(st)) * d[a];
+        r->dir[a] = w[a] - r->org[a];
+    }
+    r->tnear = 0.0f;
+    r->tfar = brt_random_float(st) < 0.1f ? 0.9f : INFINITY;
+}
+
+static int same_hit(const brt_hit *a, const brt_hit *b)
+{
+    return memcmp(a, b, sizeof *a) == 0;
+}
+
+static void test_direct_equals_brute_force(void)
+{
+    tu_instanced s;
+    brt_scene_source src;
+    brt_world *w = NULL;
+    brt_error err;
+    uint64_t st = test_seed() + 2801;
+    uint32_t k, on_instances = 0, ties = 0, n = 0, bad = 0;
+    adversarial_scene(&s, &st);
+    tu_instanced_source(&s, &src);
+    CHECK(brt_world_build(&src, &w, &err) == BRT_OK, "%s", err.message);
+    EXPECT(brt_world_instance_count(w) == s.instance_count && brt_world_prototype_count(w) == 3,
+           "counts");
+    for (k = 0; k <= s.instance_count; k++) {
+        int i;
+        for (i = 0; i < 80; i++, n++) {
+            brt_ray r;
+            brt_hit want, got;
+            ray_at(&s, k, &st, &r);
+            brt_hit_clear(&want);
+            brt_hit_clear(&got);
+            tu_instanced_brute(&s, &r, &want);
+            brt_world_intersect(w, &r, &got, NULL);
+            if (!same_hit(&want, &got) && bad++ < 5)
+                test_fail_at(__FILE__, __LINE__,
+                             "instance %u ray %d: world t=%a inst %u prim %u, brute force t=%a inst %u prim %u",
+                             (unsigned)k, i, got.t, (unsigned)got.inst, (unsigned)got.prim, want.t,
+                             (unsigned)want.inst, (unsigned)want.prim);
+            on_instances += want.inst != BRT_NO_INST;
+            ties += k >= 8 && k < 18 && want.inst == 8u + k % 2u;
+            EXPECT(brt_world_occluded(w, &r) == tu_instanced_brute_occluded(&s, &r),
+                   "instance %u ray %d: occlusion differs", (unsigned)k, i);
+        }
+    }
+    EXPECT(on_instances > n / 2, "only %u of %u rays hit an instance", (unsigned)on_instances, (unsigned)n);
+    EXPECT(ties > 100, "only %u rays at the identical instances were won by the lowest", (unsigned)ties);
+    brt_world_free(w);
+    tu_instanced_free(&s);
+}
+
+/* brt_world_trace over threads writes what brt_world_intersect does. */
+static void test_trace_threads(void)
+{
+    enum { N = 3000 };
+    tu_instanced s;
+    brt_scene_source src;
+    brt_world *w = NULL;
+    brt_error err;
+    uint64_t st = test_seed() + 2802;
+    brt_ray *rays = malloc(N * sizeof *rays);
+    brt_hit *one = malloc(N * sizeof *one), *two = malloc(N * sizeof *two), h;
+    float *n1 = malloc(3 * N * sizeof *n1), *n2 = malloc(3 * N * sizeof *n2);
+    size_t i;
+    CHECK(rays && one && two && n1 && n2, "out of memory");
+    adversarial_scene(&s, &st);
+    tu_instanced_source(&s, &src);
+    CHECK(brt_world_build(&src, &w, &err) == BRT_OK, "%s", err.message);
+    for (i = 0; i < N; i++) ray_at(&s, (uint32_t)(i % (s.instance_count + 1)), &st, &rays[i]);
+    brt_world_trace(w, rays, NULL, N, one, n1, 1);
+    brt_world_trace(w, rays, NULL, N, two, n2, 7);
+    EXPECT(memcmp(one, two, N * sizeof *one) == 0 && memcmp(n1, n2, 3 * N * sizeof *n1) == 0,
+           "1 and 7 threads differ");
+    for (i = 0; i < N; i++) {
+        brt_hit_clear(&h);
+        brt_world_intersect(w, &rays[i], &h, NULL);
+        if (!same_hit(&h, &one[i])) {
+            test_fail_at(__FILE__, __LINE__, "ray %zu: trace differs from intersect", i);
+            break;
+        }
+    }
+    brt_world_free(w);
+    tu_instanced_free(&s);
+    free(rays); free(one); free(two); free(n1); free(n2);
+}
+
+/* An instance's normal is its world triangle's (v1-v0) x (v2-v0): the
+** cross product of the transformed corners, in double, points the same
+** way (a mirror flips the winding, and the normal with it). */
+static void test_world_normals(void)
+{
+    tu_instanced s;
+    brt_scene_source src;
+    brt_world *w = NULL;
+    brt_error err;
+    uint64_t st = test_seed() + 2803;
+    uint32_t k, checked = 0;
+    adversarial_scene(&s, &st);
+    tu_instanced_source(&s, &src);
+    CHECK(brt_world_build(&src, &w, &err) == BRT_OK, "%s", err.message);
+    for (k = 0; k < 8; k++) {
+        int i;
+        for (i = 0; i < 20; i++) {
+            brt_ray r;
+            brt_hit h;
+            float n[3];
+            double c[3][3], e1[3], e2[3], x[3], dot = 0, nn = 0, xx = 0;
+            int a, j;
+            ray_at(&s, k, &st, &r);
+            brt_hit_clear(&h);
+            brt_world_intersect(w, &r, &h, n);
+            if (h.inst != k) continue;
+            for (j = 0; j < 3; j++) {
+                const float *v = tu_vertex(&s.protos[s.instances[k].prototype], h.prim, j);
+                const float *m = s.instances[k].xform;
+                for (a = 0; a < 3; a++)
+                    c[j][a] = (double)m[4 * a] * v[0] + (double)m[4 * a + 1] * v[1] + (double)m[4 * a + 2] * v[2];
+            }
+            for (a = 0; a < 3; a++) { e1[a] = c[1][a] - c[0][a]; e2[a] = c[2][a] - c[0][a]; }
+            x[0] = e1[1] * e2[2] - e1[2] * e2[1];
+            x[1] = e1[2] * e2[0] - e1[0] * e2[2];
+            x[2] = e1[0] * e2[1] - e1[1] * e2[0];
+            for (a = 0; a < 3; a++) { dot += x[a] * n[a]; nn += (double)n[a] * n[a]; xx += x[a] * x[a]; }
+            EXPECT(dot > 0.999 * sqrt(nn * xx), "instance %u prim %u: normal off the world triangle's",
+                   (unsigned)k, (unsigned)h.prim);
+            checked++;
+        }
+    }
+    EXPECT(checked > 40, "only %u normals checked", (unsigned)checked);
+    brt_world_free(w);
+    tu_instanced_free(&s);
+}
+
+/* At equal t the instance beats the world triangle, and the lower
+** instance the higher: a world triangle and two instances of the same
+** triangle under the identity all meet the ray at the same t. */
+static void test_tie_break(void)
+{
+    tu_instanced s;
+    brt_scene_source src;
+    brt_world *w = NULL;
+    brt_error err;
+    brt_hit h;
+    float m[12];
+    const brt_ray r = {{0.25f, 0.25f, 1}, {0, 0, -1}, 0, INFINITY};
+    memset(&s, 0, sizeof s);
+    tu_add_vertex(&s.world, 0, 0, 0);
+    tu_add_vertex(&s.world, 1, 0, 0);
+    tu_add_vertex(&s.world, 0, 1, 0);
+    tu_add_triangle(&s.world, 0, 1, 2);
+    s.proto_count = 1;
+    tu_add_vertex(&s.protos[0], 0, 0, 0);
+    tu_add_vertex(&s.protos[0], 1, 0, 0);
+    tu_add_vertex(&s.protos[0], 0, 1, 0);
+    tu_add_triangle(&s.protos[0], 0, 1, 2);
+    identity(m);
+    tu_add_instance(&s, 0, m);
+    tu_add_instance(&s, 0, m);
+    tu_instanced_source(&s, &src);
+    CHECK(brt_world_build(&src, &w, &err) == BRT_OK, "%s", err.message);
+    brt_hit_clear(&h);
+    brt_world_intersect(w, &r, &h, NULL);
+    EXPECT(h.t == 1.0f && h.inst == 0 && h.prim == 0, "t=%g inst %u prim %u: instance 0 should win",
+           h.t, (unsigned)h.inst, (unsigned)h.prim);
+    brt_world_free(w);
+    s.instance_count = 0;   /* the world triangle alone */
+    tu_instanced_source(&s, &src);
+    CHECK(brt_world_build(&src, &w, &err) == BRT_OK, "%s", err.message);
+    brt_hit_clear(&h);
+    brt_world_intersect(w, &r, &h, NULL);
+    EXPECT(h.t == 1.0f && h.inst == BRT_NO_INST && h.prim == 0, "world triangle: inst %u",
+           (unsigned)h.inst);
+    brt_world_free(w);
+    tu_instanced_free(&s);
+}
+
+/* Each check of an instance at build, by its message. */
+static void test_bad_instances(void)
+{
+    static const struct { int entry; float value; uint32_t proto; const char *words; } cases[] = {
+        {0, 0.0f, 0, "singular"},             /* with m[5], m[10] zeroed below: rank 1 */
+        {3, NAN, 0, "non-finite"},
+        {10, 1.0f / 2048.0f, 0, "condition number"},
+        {-1, 0, 5, "prototype 5 out of range"},
+    };
+    size_t c;
+    for (c = 0; c < sizeof cases / sizeof cases[0]; c++) {
+        tu_instanced s;
+        brt_scene_source src;
+        brt_world *w = (brt_world *)&s;
+        brt_error err;
+        float m[12];
+        memset(&s, 0, sizeof s);
+        s.proto_count = 1;
+        tu_add_vertex(&s.protos[0], 0, 0, 0);
+        tu_add_vertex(&s.protos[0], 1, 0, 0);
+        tu_add_vertex(&s.protos[0], 0, 1, 0);
+        tu_add_triangle(&s.protos[0], 0, 1, 2);
+        identity(m);
+        tu_add_instance(&s, 0, m);
+        tu_add_instance(&s, 0, m);
+        tu_add_instance(&s, 0, m);
+        if (cases[c].entry == 0) m[5] = m[10] = 0.0f;
+        if (cases[c].entry >= 0) m[cases[c].entry] = cases[c].value;
+        tu_add_instance(&s, cases[c].proto, m);
+        tu_instanced_source(&s, &src);
+        EXPECT(brt_world_build(&src, &w, &err) == BRT_EARG && w == NULL &&
+                   strstr(err.message, "instance 3") && strstr(err.message, cases[c].words),
+               "case %zu: '%s'", c, err.message);
+        tu_instanced_free(&s);
+    }
+}
+
+/* The instanced hit file: header, 20-byte records, read back; the short
+** writer refuses an instanced hit; a bad header or size is refused. */
+static void test_hit_files(void)
+{
+    brt_hit hits[3], *back = NULL;
+    const char *path = tu_scratch("inst.hits");
+    unsigned char *bytes;
+    size_t size = 0, count = 0;
+    int instanced = -1;
+    brt_error err;
+    static const unsigned char header[16] = {0xE5, 0xA5, 0xB1, 0x7F, 'I', 'N', 'S', 'T', 1, 0, 0, 0, 20, 0, 0, 0};
+    brt_hit_clear(&hits[0]);
+    hits[1].t = 2.5f; hits[1].prim = 7; hits[1].u = 0.25f; hits[1].v = 0.5f; hits[1].inst = 3;
+    hits[2] = hits[1];
+    hits[2].inst = BRT_NO_INST;
+    EXPECT(brt_hits_write(path, hits, 3, &err) == BRT_EARG && strstr(err.message, "hit 1"),
+           "short form took an instanced hit: '%s'", err.message);
+    CHECK(brt_hits_write_instanced(path, hits, 3, &err) == BRT_OK, "%s", err.message);
+    bytes = tu_slurp(path, &size);
+    EXPECT(bytes && size == 16 + 3 * 20 && memcmp(bytes, header, 16) == 0 &&
+               bytes[16 + 20 + 16] == 3 && bytes[16 + 2 * 20 + 16] == 0xFF,
+           "instanced file bytes");
+    CHECK(brt_hits_read(path, &back, &count, &instanced, &err) == BRT_OK, "%s", err.message);
+    EXPECT(count == 3 && instanced == 1 && memcmp(back, hits, sizeof hits) == 0, "read back differs");
+    free(back);
+    if (bytes && size > 20) {
+        EXPECT(tu_spill(path, bytes, size - 1), "cannot write");
+        EXPECT(brt_hits_read(path, &back, &count, NULL, &err) == BRT_EPARSE, "truncated record read");
+        bytes[8] = 2;   /* version 2 */
+        EXPECT(tu_spill(path, bytes, size), "cannot write");
+        EXPECT(brt_hits_read(path, &back, &count, NULL, &err) == BRT_EPARSE &&
+                   strstr(err.message, "header"), "version 2 read: '%s'", err.message);
+    }
+    free(bytes);
+}
+
+/* The margin (bvh.c, "Instances"): a rotated cube squashed to a
+** thousandth in z (condition number about 1000).  The inverse stretches
+** z by 1000 before it rotates, so rounding the object ray's origin, about
+** ten thousand units out for an origin ten units away along z, moves the
+** world ray sideways by 1000 u |o| -- far more than the box tests' own
+** pads, so object-space hits lie outside the instance's world box and
+** only the margin keeps them.  Rays come from ten units away, mostly
+** along z, at points around the cube up to a third of its width off it. */
+static void test_margin_keeps_far_rays(void)
+{
+    tu_instanced s;
+    brt_scene_source src;
+    brt_world *w = NULL;
+    brt_error err;
+    uint64_t st = test_seed() + 2804;
+    const float ax[3] = {0.6f, 0.0f, 0.8f}, one[3] = {1, 1, 1}, at[3] = {0, 0, 0};
+    float m[12], corner[3] = {0, 0, 0};
+    uint32_t i, hits = 0, bad = 0;
+    int a;
+    memset(&s, 0, sizeof s);
+    adversarial_scene(&s, &st);   /* for its cube prototype (1) */
+    s.instance_count = 0;
+    rotation(m, ax, 0.4f, one, at);
+    for (a = 0; a < 4; a++) m[8 + a] *= 2e-3f;   /* squash the rotated cube in z */
+    tu_add_instance(&s, 1, m);
+    tu_instanced_source(&s, &src);
+    CHECK(brt_world_build(&src, &w, &err) == BRT_OK, "%s", err.message);
+    {   /* the cube's corner farthest in +x: the silhouette the rays graze */
+        float best = -INFINITY;
+        int c;
+        for (c = 0; c < 8; c++) {
+            const float q[3] = {(float)(c & 1), (float)(c >> 1 & 1), (float)(c >> 2 & 1)};
+            float p[3];
+            for (a = 0; a < 3; a++) p[a] = m[4 * a] * q[0] + m[4 * a + 1] * q[1] + m[4 * a + 2] * q[2];
+            if (p[0] > best) { best = p[0]; memcpy(corner, p, sizeof p); }
+        }
+    }
+    for (i = 0; i < 20000; i++) {
+        brt_ray r;
+        brt_hit want, got;
+        float d[3], target[3];
+        tu_random_unit(&st, d);
+        d[0] *= 0.1f;
+        d[1] *= 0.1f;
+        d[2] = d[2] < 0 ? -1.0f : 1.0f;   /* mostly along z */
+        target[0] = corner[0] + tu_rnd(&st, -2e-4f, 5e-4f);
+        target[1] = corner[1] + tu_rnd(&st, -1e-3f, 1e-3f);
+        target[2] = corner[2];
+        for (a = 0; a < 3; a++) {
+            r.org[a] = target[a] + 10.0f * d[a];
+            r.dir[a] = target[a] - r.org[a];
+        }
+        r.tnear = 0.0f;
+        r.tfar = INFINITY;
+        brt_hit_clear(&want);
+        brt_hit_clear(&got);
+        tu_instanced_brute(&s, &r, &want);
+        brt_world_intersect(w, &r, &got, NULL);
+        hits += want.inst == 0;
+        if (!same_hit(&want, &got) && bad++ < 3)
+            test_fail_at(__FILE__, __LINE__, "ray %u: world t=%a inst %u, brute force t=%a inst %u",
+                         (unsigned)i, got.t, (unsigned)got.inst, want.t, (unsigned)want.inst);
+    }
+    EXPECT(hits > 1000, "only %u rays hit the cube", (unsigned)hits);
+    brt_world_free(w);
+    tu_instanced_free(&s);
+}
+
+/* brt_instance_ray rounds each component once: against long double, the
+** error is at most half an ulp (u |exact|) plus what the double
+** arithmetic adds, for origins near instances translated by 1e6. */
+static void test_object_ray_rounded_once(void)
+{
+    uint64_t st = test_seed() + 2805;
+    int i, bad = 0;
+    for (i = 0; i < 20000; i++) {
+        brt_instance in;
+        brt_instance_frame f;
+        brt_ray r, o;
+        float d[3];
+        int a, j;
+        const float ax[3] = {0.0f, 0.6f, 0.8f}, sc[3] = {tu_rnd(&st, 0.5f, 2), 1, tu_rnd(&st, 0.5f, 2)};
+        const float at[3] = {1e6f, -1e6f, tu_rnd(&st, -1e6f, 1e6f)};
+        in.prototype = 0;
+        rotation(in.xform, ax, tu_rnd(&st, 0, 6.28f), sc, at);
+        if (brt_instance_frame_init(&in, 0, &f, NULL) != BRT_OK) continue;
+        tu_random_unit(&st, d);
+        for (a = 0; a < 3; a++) {
+            r.org[a] = at[a] + tu_rnd(&st, -3, 3);
+            r.dir[a] = d[a];
+        }
+        r.tnear = 0;
+        r.tfar = INFINITY;
+        brt_instance_ray(&f, &r, &o);
+        for (a = 0; a < 3; a++) {
+            long double exact = 0, mag = 0;
+            for (j = 0; j < 3; j++) {
+                const long double term = (long double)f.inverse[3 * a + j] *
+                                         ((long double)r.org[j] - (long double)f.translation[j]);
+                exact += term;
+                mag += term < 0 ? -term : term;
+            }
+            if (fabsl((long double)o.org[a] - exact) > 0x1p-24L * fabsl(exact) + 0x1p-50L * mag &&
+                bad++ < 3)
+                test_fail_at(__FILE__, __LINE__, "ray %d axis %d: %a, exact %La", i, a,
+                             o.org[a], exact);
+        }
+    }
+}
+
+void suite_instances(void)
+{
+    test_run("instances: direct equals brute force on adversarial transforms",
+             test_direct_equals_brute_force);
+    test_run("instances: brt_world_trace at 1 and 7 threads", test_trace_threads);
+    test_run("instances: world normals", test_world_normals);
+    test_run("instances: the margin keeps far rays' hits", test_margin_keeps_far_rays);
+    test_run("instances: tie-break (t, inst, prim)", test_tie_break);
+    test_run("instances: the object ray is rounded once", test_object_ray_rounded_once);
+    test_run("instances: bad instances refused, naming the instance", test_bad_instances);
+    test_run("instances: instanced hit files", test_hit_files);
+}
