@@ -186,6 +186,33 @@ static brt_result partition_split(partition *p, const float *centroids, uint32_t
     return r;
 }
 
+/* Instances are partitioned the same way, by the centres of their world
+** boxes, but a batching point's size is what its load reads: the
+** triangles of the distinct prototypes it references, each counted once,
+** as pandora counts them.  A range is split at its median while it is
+** larger than batch_tris and references more than one prototype: a
+** prototype larger than batch_tris then gets points of its own instances,
+** its blob shared by them all and cached once (splitting the prototype
+** into pieces, as pandora does, would save no bytes: each piece would
+** still be read whole).  size_of(user, ids, n, &distinct) measures a range. */
+typedef uint64_t (*range_size_fn)(void *user, const uint32_t *ids, uint32_t n,
+                                  uint32_t *distinct);
+
+static brt_result partition_by_size(partition *p, const float *centres, uint32_t first,
+                                    uint32_t count, uint32_t batch_tris, range_size_fn size_of,
+                                    void *user)
+{
+    uint32_t distinct, k = count / 2;
+    brt_result r;
+    if (count <= 1 || size_of(user, p->order + first, count, &distinct) <= batch_tris ||
+        distinct <= 1)
+        return partition_push(p, first, count);
+    median_split(centres, p->order + first, count, k);
+    r = partition_by_size(p, centres, first, k, batch_tris, size_of, user);
+    if (r == BRT_OK) r = partition_by_size(p, centres, first + k, count - k, batch_tris, size_of, user);
+    return r;
+}
+
 /* ---- one binary heap (the top-level walk and the scheduler share it) -- */
 /*
 ** A binary min-heap (Williams 1964) of 64-bit keys whose low word names
@@ -506,6 +533,41 @@ static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep 
 static void top_node_pad(top_node *n);
 static void hit_mark_occluded(brt_hit *hit);
 
+/* The margin of a box of instances (bvh.c, "Instances"), taken about the
+** box's centre, so that it is as small as the box's neighbourhood allows
+** wherever the box lies: the largest condition number of its instances,
+** and the largest |d - center| + radius (brt_instance_bounds). */
+typedef struct instance_margin {
+    float condition, reach;
+    float center[3];
+} instance_margin;
+
+static float margin_of(const instance_margin *m, const brt_ray *ray)
+{
+    return brt_instance_margin(m->condition, m->reach, m->center, ray);
+}
+
+/* Starts a margin about the centre of the box lo..hi (no instances yet). */
+static void margin_begin(instance_margin *m, const float lo[3], const float hi[3])
+{
+    int a;
+    m->condition = m->reach = 0.0f;
+    for (a = 0; a < 3; a++) m->center[a] = 0.5f * lo[a] + 0.5f * hi[a];
+}
+
+/* Takes in an instance: its frame and its radius. */
+static void margin_add(instance_margin *m, const brt_instance_frame *f, float radius)
+{
+    double far = 0.0;
+    float reach;
+    int a;
+    for (a = 0; a < 3; a++)
+        if (fabs(f->translation[a] - m->center[a]) > far) far = fabs(f->translation[a] - m->center[a]);
+    reach = nextafterf((float)((far + radius) * (1.0 + 0x1p-20)), INFINITY);   /* rounded up */
+    if (reach > m->reach) m->reach = reach;
+    if (f->condition > m->condition) m->condition = f->condition;
+}
+
 typedef struct instance_set {
     uint32_t count;
     uint32_t *ids;                  /* the instances' numbers (hit.inst) */
@@ -513,7 +575,9 @@ typedef struct instance_set {
     brt_instance_frame *frames;
     top_node *nodes;                /* boxes grown by top_node_pad */
     uint32_t node_count;
-    float condition, reach;         /* the largest: brt_instance_margin's */
+    instance_margin margin;         /* about the centre of all their boxes */
+    uint32_t *uses;                 /* batched mode: the distinct prototypes, */
+    uint32_t use_count;             /* ascending (what a load must make resident) */
 } instance_set;
 
 /* What a ray is intersected with: a batching point's geometry, or the
@@ -523,6 +587,13 @@ typedef struct geometry {
     const instance_set *instances;
     const brt_bvh *const *prototypes;   /* by prototype id */
 } geometry;
+
+/* A point of instances' proxy marks what lies within this share of a
+** voxel of its instances' triangles: the rounding of the ray's transform
+** it covers (proxy_admits, brt_voxelize_instance).  A small share keeps
+** the proxy tight; rays from farther away than it covers are admitted
+** untested. */
+#define INSTANCE_DILATION (1.0f / 64.0f)
 
 /* A median-split tree of four groups per node is at most about
 ** log4(count) + 1 deep (17 for 2^32 instances); each level leaves at most
@@ -565,7 +636,7 @@ static int set_trace(const geometry *g, const brt_ray *ray, brt_hit *hit, float 
     brt_ray_prep prep;
     int sp = 0;
     if (!set || set->node_count == 0) return 0;
-    brt_ray_prepare_margin(ray, brt_instance_margin(set->condition, set->reach, ray), &prep);
+    brt_ray_prepare_margin(ray, margin_of(&set->margin, ray), &prep);
     if (!prep.valid) return 0;
     stack[sp].code = 0;
     stack[sp++].entry = ray->tnear;
@@ -620,8 +691,24 @@ static brt_result set_build_tree(instance_set *set, const float *boxes)
     return BRT_OK;
 }
 
+/* The set's margin, about the centre of its instances' boxes. */
+static void set_fit_margin(instance_set *set, const float *boxes, const float *radii)
+{
+    float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    uint32_t i;
+    int a;
+    for (i = 0; i < set->count; i++)
+        for (a = 0; a < 3; a++) {
+            if (boxes[6 * (size_t)i + a] < lo[a]) lo[a] = boxes[6 * (size_t)i + a];
+            if (boxes[6 * (size_t)i + 3 + a] > hi[a]) hi[a] = boxes[6 * (size_t)i + 3 + a];
+        }
+    margin_begin(&set->margin, lo, hi);
+    for (i = 0; i < set->count; i++) margin_add(&set->margin, &set->frames[i], radii[i]);
+}
+
 static void set_free(instance_set *set)
 {
+    free(set->uses);
     free(set->ids);
     free(set->prototypes);
     free(set->frames);
@@ -641,11 +728,25 @@ static void set_free(instance_set *set)
 typedef struct batch_entry {
     float lo[3], hi[3];
     uint64_t offset, size, checksum;
-    uint32_t triangles;
+    uint32_t triangles;         /* world triangles; for a point of instances,
+                                ** its distinct prototypes' triangles */
     brt_proxy proxy;
     brt_proxy inner;            /* inner proxy; the file holds its root, its
                                 ** frame follows from the box (inner_frame) */
+    uint32_t instances;         /* 0: a point of world triangles (its blob a
+                                ** BVH); else a point of instances (its blob
+                                ** an instance table, "instance points") */
+    uint64_t instanced;         /* the triangles of its instances */
+    instance_margin margin;     /* its instances', about its box's centre */
 } batch_entry;
+
+/* A prototype of an instanced scene: its BVH blob, stored once and cached
+** once whichever batching points use it, and its object-space box. */
+typedef struct proto_entry {
+    uint64_t offset, size, checksum;
+    uint32_t triangles;
+    float lo[3], hi[3];         /* brt_bvh_bounds of its BVH */
+} proto_entry;
 
 typedef struct section {
     uint64_t offset, size, checksum;
@@ -655,15 +756,28 @@ typedef struct section {
 typedef struct scene_header {
     uint64_t stamp, geometry_bytes;
     uint32_t batch_tris, proxy_res, batch_count, triangle_count, top_node_count;
-    section sections[3];
+    section sections[4];        /* the fourth: prototypes (instanced files) */
+    /* Instanced scenes (version 4) only: */
+    uint32_t prototype_count, instance_count;
+    uint64_t instanced_triangles;
+    instance_margin margin;     /* of all instances: the walk's */
 } scene_header;
 
-/* One batching point while a trace runs: where its blob is, and the
-** geometry cache's state for it (SQLite's pcache shape: fetch pins, release
-** unpins, only unpinned entries are evicted, least recently used first). */
+/* A blob opened: a BVH (a point of world triangles, or a prototype) or
+** an instance table (a point of instances), referring into the blob. */
+typedef struct blob_view {
+    brt_bvh *bvh;
+    instance_set *set;
+} blob_view;
+
+/* One blob while a trace runs -- a batching point's or a prototype's --
+** and the geometry cache's state for it (SQLite's pcache shape: fetch
+** pins, release unpins, only unpinned entries are evicted, least recently
+** used first). */
 typedef struct cache_entry {
     void *data;                 /* page-aligned copy of the blob, or NULL */
-    brt_bvh *bvh;               /* a view into data */
+    blob_view view;             /* into data */
+    geometry geometry;          /* a batching point's, for intersect_ray */
     uint64_t bytes;             /* what data holds (page-rounded) */
     uint32_t pins;
     uint32_t lru_prev, lru_next;   /* unpinned resident entries; NO_ENTRY ends */
@@ -671,11 +785,19 @@ typedef struct cache_entry {
 
 #define NO_ENTRY 0xFFFFFFFFu
 
+/* Where a blob lies: the blobs are the batching points' (ids 0 ..
+** batch_count - 1) and then the prototypes'. */
+typedef struct blob_place {
+    uint64_t offset, size, checksum;
+} blob_place;
+
 struct brt_scene {
     char *path;
     int fd;
     scene_header header;
     batch_entry *batches;
+    proto_entry *prototypes;    /* instanced scenes, else NULL */
+    blob_place *blobs;          /* batch_count + prototype_count */
     top_node *top;
     brt_svdag *dag;
     void *dag_blob;             /* the pool refers to it */
@@ -684,7 +806,10 @@ struct brt_scene {
 
 typedef struct geometry_cache {
     brt_scene *scene;
-    cache_entry *entries;       /* one per batching point */
+    cache_entry *entries;       /* per blob: batching points, then prototypes */
+    uint32_t entry_count;
+    const brt_bvh **prototypes; /* per prototype: its BVH while resident, else NULL */
+    uint32_t working_set;       /* blobs the last fetch needed (cache_check) */
     uint64_t budget, held;
     uint32_t lru_head, lru_tail;   /* least recently used first */
     brt_read_fn read_fn;
@@ -698,7 +823,7 @@ typedef struct geometry_cache {
     pthread_t ahead_thread;
     uint32_t ahead_id;          /* NO_ENTRY: none */
     void *ahead_data;
-    brt_bvh *ahead_bvh;
+    blob_view ahead_view;
     uint64_t ahead_bytes;
     double ahead_seconds;
     brt_result ahead_result;
@@ -710,14 +835,18 @@ typedef struct geometry_cache {
 static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budget,
                              const brt_trace_options *opt, brt_stats *stats);
 static void cache_free(geometry_cache *c);
-static brt_result cache_fetch(geometry_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err);
-static const brt_bvh *cache_peek(const geometry_cache *c, uint32_t id);
+static brt_result cache_fetch(geometry_cache *c, uint32_t id, const geometry **g, brt_error *err);
+static const geometry *cache_peek(const geometry_cache *c, uint32_t id);
 static void cache_touch(geometry_cache *c, uint32_t id);
 static void cache_release(geometry_cache *c, uint32_t id);
+static void cache_release_blob(geometry_cache *c, uint32_t id);
 static void cache_read_ahead(geometry_cache *c, uint32_t id);
 static brt_result cache_check(const geometry_cache *c, brt_error *err);
 static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
-                            brt_bvh **bvh, brt_error *err);
+                            blob_view *view, brt_error *err);
+static void view_free(blob_view *view);
+static brt_result instance_table_open(const brt_scene *s, uint32_t id, const unsigned char *data,
+                                      uint64_t size, instance_set **out, brt_error *err);
 static void blob_free(const brt_scene *scene, uint32_t id, void *data);
 
 /* From Part II: reading the scene file, one ray through one BVH (the
@@ -820,8 +949,10 @@ typedef struct scheduler {
     key_heap fullest;                       /* the non-empty queues (queue_key) */
     walker walker;                          /* the plain loop's walk */
     phase_threads *threads;                 /* layers 4-5; NULL: one thread */
-    brt_bvh **exact;                        /* exact_proxies: every BVH, or NULL */
+    geometry *exact;                        /* exact_proxies: every point's, or NULL */
+    blob_view *exact_views;                 /* every blob's, opened */
     void **exact_data;
+    const brt_bvh **exact_prototypes;
     brt_ray *incoming;
     uint64_t *incoming_tags;
     uint32_t *fresh;                        /* the slots refill just filled */
@@ -834,7 +965,7 @@ typedef struct scheduler {
 static brt_result threads_init(scheduler *s, unsigned threads);
 static void threads_free(scheduler *s);
 static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
-                             const brt_bvh *bvh);
+                             const geometry *g);
 static void use_log_record(use_log *log, uint32_t id);
 
 /* ---- following one ray (trace --follow) ---- */
@@ -892,13 +1023,9 @@ static float walk_limit(const ray_slot *r)
 /* Intersects a ray with a batching point's triangles: the closest hit so
 ** far, or for an occlusion ray any hit in [tnear, tfar] (the record of
 ** brt_ray_source: t = 0, prim = 0 when occluded). */
-static void intersect_slot(const scheduler *s, const brt_bvh *bvh, ray_slot *r)
+static void intersect_slot(const scheduler *s, const geometry *g, ray_slot *r)
 {
-    geometry g;
-    g.triangles = bvh;
-    g.instances = NULL;
-    g.prototypes = NULL;
-    intersect_ray(&g, &r->ray, r->tag, &r->hit, r->normal);
+    intersect_ray(g, &r->ray, r->tag, &r->hit, r->normal);
     follow_step(s, r, BRT_STEP_TRIANGLES, r->key.id, r->hit.t);
 }
 
@@ -910,20 +1037,32 @@ static void intersect_slot(const scheduler *s, const brt_bvh *bvh, ray_slot *r)
 static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
 {
     brt_ray segment = *ray;
+    brt_hit hit;
     segment.tfar = tlimit;
-    return brt_bvh_occluded(s->exact[id], &segment);
+    brt_hit_clear(&hit);
+    intersect_ray(&s->exact[id], &segment, BRT_TAG_OCCLUSION, &hit, NULL);
+    return hit.t == 0.0f;
 }
 
 /* The paper's proxy question: may the ray hit batching point id's
 ** triangles in [tnear, tlimit]?  *t (when not NULL): where the proxy
 ** cast met its first set voxel, or tnear for an exact proxy. */
+/* A point of instances' proxy is dilated by INSTANCE_DILATION of a voxel
+** (instance points), which covers the rounding of the ray's transform
+** while the ray's margin does not exceed it; a ray from farther away (a
+** larger margin) is admitted untested. */
 static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit, float *t)
 {
+    const batch_entry *b = &s->scene->batches[id];
     if (s->exact) {
         if (t) *t = ray->tnear;
         return exact_proxy_hit(s, id, ray, tlimit);
     }
-    return brt_proxy_raycast(s->scene->dag, &s->scene->batches[id].proxy, ray, ray->tnear, tlimit, t);
+    if (b->instances && !(margin_of(&b->margin, ray) <= INSTANCE_DILATION * b->proxy.cell)) {
+        if (t) *t = ray->tnear;
+        return 1;
+    }
+    return brt_proxy_raycast(s->scene->dag, &b->proxy, ray, ray->tnear, tlimit, t);
 }
 
 /* The paper's proxy test at the batching point where the walk stands: a
@@ -959,7 +1098,7 @@ static void walker_used(walker *w, uint32_t id)
 ** (--paper-scheduler).  Returns 0 when the point is not resident. */
 static int intersect_resident(const scheduler *s, walker *w, ray_slot *r)
 {
-    const brt_bvh *resident = s->paper_scheduler ? NULL : cache_peek(&s->cache, r->key.id);
+    const geometry *resident = s->paper_scheduler ? NULL : cache_peek(&s->cache, r->key.id);
     if (!resident) return 0;
     walker_used(w, r->key.id);
     follow_step(s, r, BRT_STEP_RESIDENT, r->key.id, r->key.t);
@@ -993,7 +1132,8 @@ static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r)
 {
     brt_ray_prep prep;
     float tlimit;
-    brt_ray_prepare(&r->ray, &prep);
+    /* Boxes grown by the margin of instances (0 without: bvh.c) */
+    brt_ray_prepare_margin(&r->ray, margin_of(&s->scene->header.margin, &r->ray), &prep);
     if (!prep.valid) return NO_ENTRY;
     tlimit = walk_limit(r);
     top_walk_start(&w->walk);
@@ -1057,19 +1197,20 @@ static void walker_count(scheduler *s, walker *w)
 }
 
 /* The rays of slots[0..count): first intersected at batching point id
-** (bvh; id is NO_ENTRY for new rays), then each walks on and is settled.
+** (its geometry g; id is NO_ENTRY for new rays), then each walks on and is
+** settled.
 ** Releasing the point before the walks makes its place in the LRU order
 ** come before the points the walks use (no ray of its queue enters it
 ** again: walk keys only grow).  With threads, layer 5 does the same in
 ** phases. */
 static brt_result run_rays(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
-                           const brt_bvh *bvh)
+                           const geometry *g)
 {
     brt_result r = BRT_OK;
     uint32_t i;
-    if (s->threads) return phases_run(s, slots, count, id, bvh);     /* layer 5 */
+    if (s->threads) return phases_run(s, slots, count, id, g);       /* layer 5 */
     if (id != NO_ENTRY) {
-        for (i = 0; i < count; i++) intersect_slot(s, bvh, &s->slots[slots[i]]);
+        for (i = 0; i < count; i++) intersect_slot(s, g, &s->slots[slots[i]]);
         cache_release(&s->cache, id);
     }
     for (i = 0; i < count && r == BRT_OK; i++)
@@ -1121,11 +1262,11 @@ static int only_occlusion(const scheduler *s, const ray_queue *q)
 /* Fetches batching point id for its queue (cache_fetch: the paper's LRU
 ** geometry cache), and, layer 6 (statistics only), books the load, if
 ** there is one, as the shadow rays' when they alone asked for it. */
-static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const brt_bvh **bvh,
+static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const geometry **g,
                             brt_error *err)
 {
     uint64_t loads = s->stats->batch_loads, bytes = s->stats->disk_bytes_read;
-    brt_result r = cache_fetch(&s->cache, id, bvh, err);
+    brt_result r = cache_fetch(&s->cache, id, g, err);
     s->fetch_bytes = s->stats->disk_bytes_read - bytes;
     if (r == BRT_OK && s->stats->batch_loads != loads && only_occlusion(s, q)) {
         s->stats->shadow_batch_loads += s->stats->batch_loads - loads;
@@ -1138,15 +1279,15 @@ static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const
 static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
 {
     ray_queue q = s->queues[id];
-    const brt_bvh *bvh;
+    const geometry *g;
     uint32_t i;
-    brt_result r = fetch_for(s, id, &q, &bvh, err);
+    brt_result r = fetch_for(s, id, &q, &g, err);
     if (r != BRT_OK) return r;
     for (i = 0; i < q.count; i++) follow_step(s, &s->slots[q.slots[i]], BRT_STEP_LOAD, id, 0.0f);
     /* Take the queue out first: no ray is queued here again (keys only
     ** grow), but the walks queue rays elsewhere. */
     memset(&s->queues[id], 0, sizeof s->queues[id]);
-    r = run_rays(s, q.slots, q.count, id, bvh);
+    r = run_rays(s, q.slots, q.count, id, g);
     free(q.slots);
     return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
 }
@@ -1254,27 +1395,38 @@ static void scheduler_free(scheduler *s)
     free(s->incoming_tags);
     free(s->fresh);
     free(s->walker.walk.keys);
-    for (i = 0; s->exact && i < s->scene->header.batch_count; i++) {
-        brt_bvh_free(s->exact[i]);
+    for (i = 0; s->exact_views && i < s->cache.entry_count; i++) {
+        view_free(&s->exact_views[i]);
         blob_free(s->scene, i, s->exact_data[i]);
     }
     free(s->exact);
+    free(s->exact_views);
     free(s->exact_data);
+    free(s->exact_prototypes);
 }
 
 /* Layer 3's set-up (exact_proxies): every batching point's BVH, read
 ** once, outside the cache and its statistics (exact_proxy_hit). */
 static brt_result exact_load(scheduler *s, brt_error *err)
 {
-    uint32_t n = s->scene->header.batch_count, i;
+    const uint32_t b = s->scene->header.batch_count, n = s->cache.entry_count;
     uint64_t uncounted = 0;
+    uint32_t i;
     brt_result r = BRT_OK;
-    s->exact = calloc(n, sizeof *s->exact);
+    s->exact = calloc(b, sizeof *s->exact);
+    s->exact_views = calloc(n, sizeof *s->exact_views);
     s->exact_data = calloc(n, sizeof *s->exact_data);
-    if (!s->exact || !s->exact_data)
+    s->exact_prototypes = calloc((size_t)n - b + 1, sizeof *s->exact_prototypes);
+    if (!s->exact || !s->exact_views || !s->exact_data || !s->exact_prototypes)
         return brt_fail(err, BRT_ENOMEM, "out of memory for the exact proxies");
     for (i = 0; i < n && r == BRT_OK; i++)
-        r = blob_read(&s->cache, i, &uncounted, &s->exact_data[i], &s->exact[i], err);
+        r = blob_read(&s->cache, i, &uncounted, &s->exact_data[i], &s->exact_views[i], err);
+    for (i = b; i < n; i++) s->exact_prototypes[i - b] = s->exact_views[i].bvh;
+    for (i = 0; i < b; i++) {
+        s->exact[i].triangles = s->exact_views[i].bvh;
+        s->exact[i].instances = s->exact_views[i].set;
+        s->exact[i].prototypes = s->exact_prototypes;
+    }
     return r;
 }
 
@@ -1416,7 +1568,7 @@ static void lru_append(geometry_cache *c, uint32_t id)
 /* The bytes of blob id's buffer: its page-rounded size, at least a page. */
 static size_t blob_buffer_bytes(const brt_scene *scene, uint32_t id)
 {
-    uint64_t bytes = round_up_page(scene->batches[id].size);
+    uint64_t bytes = round_up_page(scene->blobs[id].size);
     return bytes ? (size_t)bytes : SCENE_PAGE;
 }
 
@@ -1425,26 +1577,48 @@ static void blob_free(const brt_scene *scene, uint32_t id, void *data)
     if (data) munmap(data, blob_buffer_bytes(scene, id));
 }
 
+static void view_free(blob_view *view)
+{
+    brt_bvh_free(view->bvh);
+    if (view->set) set_free(view->set);
+    free(view->set);
+    view->bvh = NULL;
+    view->set = NULL;
+}
+
+/* Entry id's blob is a prototype's: its BVH leaves or joins the table. */
+static void cache_note_prototype(geometry_cache *c, uint32_t id)
+{
+    const uint32_t b = c->scene->header.batch_count;
+    if (id >= b) c->prototypes[id - b] = c->entries[id].view.bvh;
+}
+
 static void cache_evict(geometry_cache *c, uint32_t id)
 {
     cache_entry *e = &c->entries[id];
     lru_unlink(c, id);
-    brt_bvh_free(e->bvh);
+    view_free(&e->view);
+    cache_note_prototype(c, id);
     blob_free(c->scene, id, e->data);
     c->held -= e->bytes;
     e->data = NULL;
-    e->bvh = NULL;
     e->bytes = 0;
 }
 
 static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budget,
                              const brt_trace_options *opt, brt_stats *stats)
 {
-    uint32_t i, n = scene->header.batch_count;
+    uint32_t i, n = scene->header.batch_count + scene->header.prototype_count;
     memset(c, 0, sizeof *c);
     c->entries = calloc(n, sizeof *c->entries);
-    if (!c->entries) return BRT_ENOMEM;
+    c->prototypes = calloc((size_t)scene->header.prototype_count + 1, sizeof *c->prototypes);
+    if (!c->entries || !c->prototypes) {
+        free(c->entries);
+        free(c->prototypes);
+        return BRT_ENOMEM;
+    }
     for (i = 0; i < n; i++) c->entries[i].lru_prev = c->entries[i].lru_next = NO_ENTRY;
+    c->entry_count = n;
     c->scene = scene;
     c->budget = budget;
     c->lru_head = c->lru_tail = NO_ENTRY;
@@ -1462,23 +1636,25 @@ static void cache_free(geometry_cache *c)
 {
     uint32_t i;
     cache_ahead_take(c, NO_ENTRY);
-    for (i = 0; c->entries && i < c->scene->header.batch_count; i++) {
-        brt_bvh_free(c->entries[i].bvh);
+    for (i = 0; c->entries && i < c->entry_count; i++) {
+        view_free(&c->entries[i].view);
         blob_free(c->scene, i, c->entries[i].data);
     }
     free(c->entries);
+    free(c->prototypes);
 }
 
 /* The cache's own sanity check (SQLite's pcache has one too): the held
 ** bytes add up, only resident entries are pinned, the LRU list holds
-** exactly the unpinned resident entries, and the budget holds unless one
-** entry alone is larger.  At the end of every trace, and after every
-** fetch and release in make debug. */
+** exactly the unpinned resident entries, and the budget holds unless what
+** the last fetch needed alone is larger (one blob; a point of instances
+** and its prototypes).  At the end of every trace, and after every fetch
+** and release in make debug. */
 static brt_result cache_check(const geometry_cache *c, brt_error *err)
 {
     uint64_t held = 0, resident = 0, listed = 0, stray_pins = 0;
     uint32_t i, id;
-    for (i = 0; i < c->scene->header.batch_count; i++) {
+    for (i = 0; i < c->entry_count; i++) {
         const cache_entry *e = &c->entries[i];
         held += e->bytes;
         resident += e->data != NULL;
@@ -1491,45 +1667,56 @@ static brt_result cache_check(const geometry_cache *c, brt_error *err)
     }
     if (held != c->held || listed != 0 || stray_pins != 0)
         return brt_fail(err, BRT_ECHECK, "geometry cache: bookkeeping broken");
-    if (held > c->budget && resident > 1)
+    if (held > c->budget && resident > (c->working_set > 1 ? c->working_set : 1))
         return brt_fail(err, BRT_ECHECK, "geometry cache: holds %llu bytes over a budget of %llu",
                         (unsigned long long)held, (unsigned long long)c->budget);
     return BRT_OK;
 }
 
-/* Opens blob id's BVH, validated by brt_bvh_blob_open against the scene's
-** triangle count, and checks it holds as many triangles as its table
-** entry says (the entries add up to the header's count, check_batches). */
-static brt_result check_blob(const brt_scene *s, uint32_t id, const void *data, brt_bvh **bvh,
+/* Opens blob id, validated: a batching point's BVH by brt_bvh_blob_open
+** against the scene's triangle count, holding as many triangles as its
+** table entry says (the entries add up to the header's count,
+** check_batches); a point of instances' table by instance_table_open; a
+** prototype's BVH against its own triangle count. */
+static brt_result check_blob(const brt_scene *s, uint32_t id, const void *data, blob_view *view,
                              brt_error *err)
 {
-    const batch_entry *b = &s->batches[id];
+    const uint32_t b = s->header.batch_count;
+    const uint32_t expect = id < b ? s->batches[id].triangles : s->prototypes[id - b].triangles;
     brt_error why;
     uint32_t held;
-    if (brt_bvh_blob_open(data, b->size, s->header.triangle_count, bvh, &why) != BRT_OK)
-        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: %s", s->path, id, why.message);
-    held = brt_bvh_triangle_count(*bvh);
-    if (held == b->triangles) return BRT_OK;
-    brt_bvh_free(*bvh);
-    *bvh = NULL;
-    return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob holds %u triangles, the batch "
-                    "table says %u", s->path, id, held, b->triangles);
+    view->bvh = NULL;
+    view->set = NULL;
+    if (id < b && s->batches[id].instances)
+        return instance_table_open(s, id, data, s->blobs[id].size, &view->set, err);
+    if (brt_bvh_blob_open(data, s->blobs[id].size, id < b ? s->header.triangle_count : expect,
+                          &view->bvh, &why) != BRT_OK)
+        return brt_fail(err, BRT_EFORMAT, "%s: %s %u: %s", s->path,
+                        id < b ? "batching point" : "prototype", id < b ? id : id - b, why.message);
+    held = brt_bvh_triangle_count(view->bvh);
+    if (held == expect) return BRT_OK;
+    view_free(view);
+    return brt_fail(err, BRT_EFORMAT, "%s: %s %u: blob holds %u triangles, its table says %u",
+                    s->path, id < b ? "batching point" : "prototype", id < b ? id : id - b, held,
+                    expect);
 }
 
 /* Reads blob id whole (its page-rounded size, into a mapping of its own,
-** bytes read added to *bytes_read), checks its checksum and opens it as a
-** BVH; *data is to be freed (blob_free) after the BVH. */
+** bytes read added to *bytes_read), checks its checksum and opens it
+** (check_blob); *data is to be freed (blob_free) after the view. */
 static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
-                            brt_bvh **bvh, brt_error *err)
+                            blob_view *view, brt_error *err)
 {
-    const batch_entry *b = &c->scene->batches[id];
+    const blob_place *b = &c->scene->blobs[id];
     uint64_t bytes = round_up_page(b->size), done = 0;
     brt_result r = BRT_OK;
+    view->bvh = NULL;
+    view->set = NULL;
     *data = mmap(NULL, blob_buffer_bytes(c->scene, id), PROT_READ | PROT_WRITE,
                  MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
     if (*data == MAP_FAILED) {
         *data = NULL;
-        return brt_fail(err, BRT_ENOMEM, "%s: out of memory for batching point %u", c->scene->path, id);
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory for blob %u", c->scene->path, id);
     }
     while (done < bytes && r == BRT_OK) {
         size_t chunk = bytes - done < CACHE_READ_CHUNK ? (size_t)(bytes - done) : CACHE_READ_CHUNK;
@@ -1539,9 +1726,10 @@ static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *byte
     }
     if (c->drop_os_cache) posix_fadvise(c->scene->fd, (off_t)b->offset, (off_t)bytes, POSIX_FADV_DONTNEED);
     if (r == BRT_OK && brt_checksum64(*data, b->size) != b->checksum)
-        r = brt_fail(err, BRT_EFORMAT, "%s: batching point %u: checksum mismatch (corrupt file)",
-                     c->scene->path, id);
-    if (r == BRT_OK) r = check_blob(c->scene, id, *data, bvh, err);
+        r = brt_fail(err, BRT_EFORMAT, "%s: %s %u: checksum mismatch (corrupt file)", c->scene->path,
+                     id < c->scene->header.batch_count ? "batching point" : "prototype",
+                     id < c->scene->header.batch_count ? id : id - c->scene->header.batch_count);
+    if (r == BRT_OK) r = check_blob(c->scene, id, *data, view, err);
     if (r != BRT_OK) {
         blob_free(c->scene, id, *data);
         *data = NULL;
@@ -1560,13 +1748,14 @@ static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *byte
 ** dropped uncounted.  So every count is the one-thread count, and only
 ** the wall time differs.  The buffer is held beside the budget: one blob
 ** more at most (README, "Threads").  read_fn is never called by two
-** threads at once: the read-ahead is joined before any other read.
+** threads at once: the read-ahead is joined before any other read.  (A
+** point of instances' prototypes are not read ahead.)
 */
 static void *ahead_main(void *arg)
 {
     geometry_cache *c = arg;
     double start = brt_seconds();
-    c->ahead_result = blob_read(c, c->ahead_id, &c->ahead_bytes, &c->ahead_data, &c->ahead_bvh, NULL);
+    c->ahead_result = blob_read(c, c->ahead_id, &c->ahead_bytes, &c->ahead_data, &c->ahead_view, NULL);
     c->ahead_seconds = brt_seconds() - start;
     return NULL;
 }
@@ -1579,12 +1768,13 @@ static void cache_read_ahead(geometry_cache *c, uint32_t id)
     c->ahead_id = id;
     c->ahead_bytes = 0;
     c->ahead_data = NULL;
-    c->ahead_bvh = NULL;
+    c->ahead_view.bvh = NULL;
+    c->ahead_view.set = NULL;
     c->ahead_running = pthread_create(&c->ahead_thread, NULL, ahead_main, c) == 0;
 }
 
 /* Waits for the read-ahead, if any: 1 when it read blob id without error
-** (its buffer and BVH are then the caller's), else 0 (dropped). */
+** (its buffer and view are then the caller's), else 0 (dropped). */
 static int cache_ahead_take(geometry_cache *c, uint32_t id)
 {
     int ok;
@@ -1593,7 +1783,7 @@ static int cache_ahead_take(geometry_cache *c, uint32_t id)
     c->ahead_running = 0;
     ok = c->ahead_id == id && c->ahead_result == BRT_OK;
     if (!ok) {
-        brt_bvh_free(c->ahead_bvh);
+        view_free(&c->ahead_view);
         blob_free(c->scene, c->ahead_id, c->ahead_data);
     }
     c->ahead_id = NO_ENTRY;
@@ -1604,34 +1794,39 @@ static int cache_ahead_take(geometry_cache *c, uint32_t id)
 static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
 {
     cache_entry *e = &c->entries[id];
-    uint64_t bytes = round_up_page(c->scene->batches[id].size);
+    uint64_t bytes = round_up_page(c->scene->blobs[id].size);
     double start = brt_seconds();
     brt_result r = BRT_OK;
     if (cache_ahead_take(c, id)) {
         e->data = c->ahead_data;
-        e->bvh = c->ahead_bvh;
+        e->view = c->ahead_view;
         c->stats->disk_bytes_read += c->ahead_bytes;
         c->stats->load_seconds += c->ahead_seconds;
     } else {
-        r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->bvh, err);
+        r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->view, err);
         c->stats->load_seconds += brt_seconds() - start;
     }
     if (r != BRT_OK) return r;
+    e->geometry.triangles = e->view.bvh;
+    e->geometry.instances = e->view.set;
+    e->geometry.prototypes = c->prototypes;
+    cache_note_prototype(c, id);
     e->bytes = bytes;
     c->held += bytes;
-    c->stats->batch_loads++;
+    if (id < c->scene->header.batch_count) c->stats->batch_loads++;
+    else c->stats->prototype_loads++;
     if (bytes > c->budget) c->stats->oversized_loads++;
     if (c->held > c->stats->cache_peak_bytes) c->stats->cache_peak_bytes = c->held;
     return BRT_OK;
 }
 
-/* Fetch pins: makes batching point id resident (evicting least recently
-** used unpinned entries to make room) and returns its BVH. */
-static brt_result cache_fetch(geometry_cache *c, uint32_t id, const brt_bvh **bvh, brt_error *err)
+/* Pins blob id, resident (evicting least recently used unpinned entries
+** to make room). */
+static brt_result cache_pin(geometry_cache *c, uint32_t id, brt_error *err)
 {
     cache_entry *e = &c->entries[id];
     if (!e->data) {
-        uint64_t bytes = round_up_page(c->scene->batches[id].size);
+        uint64_t bytes = round_up_page(c->scene->blobs[id].size);
         brt_result r;
         while (c->lru_head != NO_ENTRY && c->held + bytes > c->budget) cache_evict(c, c->lru_head);
         r = cache_load(c, id, err);
@@ -1640,21 +1835,46 @@ static brt_result cache_fetch(geometry_cache *c, uint32_t id, const brt_bvh **bv
         lru_unlink(c, id);
     }
     e->pins++;
-    *bvh = e->bvh;
+    return BRT_OK;
+}
+
+/* Fetch pins: makes batching point id resident -- and for a point of
+** instances every prototype it uses -- and returns its geometry. */
+static brt_result cache_fetch(geometry_cache *c, uint32_t id, const geometry **g, brt_error *err)
+{
+    const instance_set *set;
+    uint32_t k;
+    brt_result r = cache_pin(c, id, err);
+    if (r != BRT_OK) return r;
+    set = c->entries[id].view.set;
+    c->working_set = 1 + (set ? set->use_count : 0);
+    for (k = 0; set && k < set->use_count; k++) {
+        if ((r = cache_pin(c, c->scene->header.batch_count + set->uses[k], err)) != BRT_OK) {
+            while (k-- > 0) cache_release_blob(c, c->scene->header.batch_count + set->uses[k]);
+            cache_release_blob(c, id);
+            return r;
+        }
+    }
+    *g = &c->entries[id].geometry;
     assert(cache_check(c, NULL) == BRT_OK);
     return BRT_OK;
 }
 
-/* The BVH of batching point id if it is in memory, or NULL.  Never loads
-** and changes nothing, so that threads may ask at once; the scheduler
-** reports the use afterwards with cache_touch. */
-static const brt_bvh *cache_peek(const geometry_cache *c, uint32_t id)
+/* The geometry of batching point id if it is in memory (with every
+** prototype it uses), or NULL.  Never loads and changes nothing, so that
+** threads may ask at once; the scheduler reports the use afterwards with
+** cache_touch. */
+static const geometry *cache_peek(const geometry_cache *c, uint32_t id)
 {
-    return c->entries[id].data ? c->entries[id].bvh : NULL;
+    const instance_set *set = c->entries[id].view.set;
+    uint32_t k;
+    if (!c->entries[id].data) return NULL;
+    for (k = 0; set && k < set->use_count; k++)
+        if (!c->prototypes[set->uses[k]]) return NULL;
+    return &c->entries[id].geometry;
 }
 
-/* Batching point id, resident, counts as just used. */
-static void cache_touch(geometry_cache *c, uint32_t id)
+static void cache_touch_blob(geometry_cache *c, uint32_t id)
 {
     if (c->entries[id].data && c->entries[id].pins == 0) {
         lru_unlink(c, id);
@@ -1662,11 +1882,31 @@ static void cache_touch(geometry_cache *c, uint32_t id)
     }
 }
 
-/* Release unpins: the entry becomes the most recently used evictable one. */
-static void cache_release(geometry_cache *c, uint32_t id)
+/* Batching point id, resident, counts as just used (its prototypes too). */
+static void cache_touch(geometry_cache *c, uint32_t id)
+{
+    const instance_set *set = c->entries[id].view.set;
+    uint32_t k;
+    cache_touch_blob(c, id);
+    for (k = 0; set && k < set->use_count; k++)
+        cache_touch_blob(c, c->scene->header.batch_count + set->uses[k]);
+}
+
+static void cache_release_blob(geometry_cache *c, uint32_t id)
 {
     assert(c->entries[id].pins > 0);
     if (--c->entries[id].pins == 0) lru_append(c, id);
+}
+
+/* Release unpins (a point of instances, its prototypes too): each becomes
+** the most recently used evictable entry. */
+static void cache_release(geometry_cache *c, uint32_t id)
+{
+    const instance_set *set = c->entries[id].view.set;
+    uint32_t k;
+    cache_release_blob(c, id);
+    for (k = 0; set && k < set->use_count; k++)
+        cache_release_blob(c, c->scene->header.batch_count + set->uses[k]);
     assert(cache_check(c, NULL) == BRT_OK);
 }
 
@@ -1767,9 +2007,30 @@ static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); flo
 **   top-level nodes: TOP_NODE_BYTES each (f32 lo[3][4] hi[3][4], u32 child[4])
 **   DAG pool: brt_svdag_blob_write
 ** The file is padded to a multiple of SCENE_PAGE.
+**
+** Version 4, a scene with instances, adds to version 3:
+**   header: 44 u32 prototypes; 128 a fourth section {offset, size,
+**     checksum}: the prototype table; 152 u32 instances; 156 f32 largest
+**     condition number; 160 f32 reach (instance_margin); 164 u32 0;
+**     168 u64 instanced triangles; 176 f32 the margin's centre[3]
+**   batch table entries of BATCH_ENTRY_BYTES_V4: the 80 bytes above, then
+**     u32 instances (0: a point of world triangles), f32 condition, u64
+**     instanced triangles, f32 reach, u32 0 (the margin of its instances,
+**     about its box's centre)
+**   prototype table: PROTO_ENTRY_BYTES per prototype: u64 blob offset,
+**     u64 blob size, u64 blob checksum, u32 triangles, f32 lo[3] hi[3],
+**     u32 0
+**   blobs: a prototype's BVH (brt_bvh_blob_write, triangles numbered in
+**     its stream's order); a point of instances' instance table
+**     ("instance points" below)
+** A file without instances is written as version 3, byte for byte.
 */
 #define SCENE_MAGIC "BRTSCENE"
 #define SCENE_VERSION 3u   /* 3: inner proxy roots (README "Inner proxies") */
+#define SCENE_VERSION_INSTANCED 4u
+#define BATCH_ENTRY_BYTES_V4 104
+#define PROTO_ENTRY_BYTES 56
+#define SECTION_PROTOTYPES 3
 #define SCENE_ENDIAN_MARK 0x01020304u
 #define SCENE_HEADER_BYTES 256
 #define BATCH_ENTRY_BYTES 80
@@ -1810,6 +2071,44 @@ static void batch_entry_pack(const batch_entry *b, unsigned char *p)
     brt_put_le32(p + 76, b->inner.root);
 }
 
+/* The instanced table's entry: version 3's, then the instance fields. */
+static void batch_entry_pack_v4(const batch_entry *b, unsigned char *p)
+{
+    memset(p, 0, BATCH_ENTRY_BYTES_V4);
+    batch_entry_pack(b, p);
+    brt_put_le32(p + 80, b->instances);
+    put_f32(p + 84, b->margin.condition);
+    brt_put_le64(p + 88, b->instanced);
+    put_f32(p + 96, b->margin.reach);
+}
+
+static void proto_entry_pack(const proto_entry *e, unsigned char *p)
+{
+    int a;
+    memset(p, 0, PROTO_ENTRY_BYTES);
+    brt_put_le64(p, e->offset);
+    brt_put_le64(p + 8, e->size);
+    brt_put_le64(p + 16, e->checksum);
+    brt_put_le32(p + 24, e->triangles);
+    for (a = 0; a < 3; a++) {
+        put_f32(p + 28 + 4 * a, e->lo[a]);
+        put_f32(p + 40 + 4 * a, e->hi[a]);
+    }
+}
+
+static void proto_entry_unpack(const unsigned char *p, proto_entry *e)
+{
+    int a;
+    e->offset = brt_get_le64(p);
+    e->size = brt_get_le64(p + 8);
+    e->checksum = brt_get_le64(p + 16);
+    e->triangles = brt_get_le32(p + 24);
+    for (a = 0; a < 3; a++) {
+        e->lo[a] = get_f32(p + 28 + 4 * a);
+        e->hi[a] = get_f32(p + 40 + 4 * a);
+    }
+}
+
 static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
 {
     int a;
@@ -1826,6 +2125,9 @@ static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
     b->proxy.res = brt_get_le32(p + 56);
     b->proxy.cell = get_f32(p + 72);
     b->inner.root = brt_get_le32(p + 76);
+    b->instances = 0;
+    b->instanced = 0;
+    memset(&b->margin, 0, sizeof b->margin);
 }
 
 static void top_node_pack(const top_node *n, unsigned char *p)
@@ -1864,12 +2166,17 @@ static void top_node_unpack(const unsigned char *p, top_node *n)
     for (lane = 0; lane < 4; lane++) n->child[lane] = brt_get_le32(p + 96 + 4 * lane);
 }
 
+static int header_instanced(const scene_header *h)
+{
+    return h->prototype_count > 0;
+}
+
 static void header_pack(const scene_header *h, unsigned char *p)
 {
     int s;
     memset(p, 0, SCENE_HEADER_BYTES);
     memcpy(p, SCENE_MAGIC, 8);
-    brt_put_le32(p + 8, SCENE_VERSION);
+    brt_put_le32(p + 8, header_instanced(h) ? SCENE_VERSION_INSTANCED : SCENE_VERSION);
     brt_put_le32(p + 12, SCENE_ENDIAN_MARK);
     brt_put_le64(p + 16, h->stamp);
     brt_put_le32(p + 24, h->batch_tris);
@@ -1883,6 +2190,19 @@ static void header_pack(const scene_header *h, unsigned char *p)
         brt_put_le64(p + 64 + 24 * s, h->sections[s].size);
         brt_put_le64(p + 72 + 24 * s, h->sections[s].checksum);
     }
+    if (header_instanced(h)) {
+        brt_put_le32(p + 44, h->prototype_count);
+        brt_put_le64(p + 128, h->sections[SECTION_PROTOTYPES].offset);
+        brt_put_le64(p + 136, h->sections[SECTION_PROTOTYPES].size);
+        brt_put_le64(p + 144, h->sections[SECTION_PROTOTYPES].checksum);
+        brt_put_le32(p + 152, h->instance_count);
+        put_f32(p + 156, h->margin.condition);
+        put_f32(p + 160, h->margin.reach);
+        put_f32(p + 176, h->margin.center[0]);
+        put_f32(p + 180, h->margin.center[1]);
+        put_f32(p + 184, h->margin.center[2]);
+        brt_put_le64(p + 168, h->instanced_triangles);
+    }
     brt_put_le64(p + 248, brt_checksum64(p, 248));
 }
 
@@ -1891,16 +2211,17 @@ static void header_pack(const scene_header *h, unsigned char *p)
 static brt_result header_unpack(const char *path, const unsigned char *p, scene_header *h,
                                 brt_error *err)
 {
-    uint32_t mark = brt_get_le32(p + 12);
+    uint32_t mark = brt_get_le32(p + 12), version = brt_get_le32(p + 8);
     int s;
     if (memcmp(p, SCENE_MAGIC, 8) != 0)
         return brt_fail(err, BRT_EFORMAT, "%s: not a batchrt scene file (bad magic)", path);
     if (mark != SCENE_ENDIAN_MARK)
         return brt_fail(err, BRT_EFORMAT, "%s: a version-1 scene file written on a machine of the other "
                         "byte order (delete the file to rebuild it)", path);
-    if (brt_get_le32(p + 8) != SCENE_VERSION)
-        return brt_fail(err, BRT_EFORMAT, "%s: scene file version %u, this build reads version %u"
-                        " (delete the file to rebuild it)", path, brt_get_le32(p + 8), SCENE_VERSION);
+    if (version != SCENE_VERSION && version != SCENE_VERSION_INSTANCED)
+        return brt_fail(err, BRT_EFORMAT, "%s: scene file version %u, this build reads versions "
+                        "%u and %u (delete the file to rebuild it)", path, version, SCENE_VERSION,
+                        SCENE_VERSION_INSTANCED);
     if (brt_get_le64(p + 248) != brt_checksum64(p, 248))
         return brt_fail(err, BRT_EFORMAT, "%s: header checksum mismatch (corrupt file)", path);
     h->stamp = brt_get_le64(p + 16);
@@ -1914,6 +2235,25 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
         h->sections[s].offset = brt_get_le64(p + 56 + 24 * s);
         h->sections[s].size = brt_get_le64(p + 64 + 24 * s);
         h->sections[s].checksum = brt_get_le64(p + 72 + 24 * s);
+    }
+    memset(&h->sections[SECTION_PROTOTYPES], 0, sizeof h->sections[SECTION_PROTOTYPES]);
+    h->prototype_count = h->instance_count = 0;
+    h->instanced_triangles = 0;
+    memset(&h->margin, 0, sizeof h->margin);
+    if (version == SCENE_VERSION_INSTANCED) {
+        h->prototype_count = brt_get_le32(p + 44);
+        h->sections[SECTION_PROTOTYPES].offset = brt_get_le64(p + 128);
+        h->sections[SECTION_PROTOTYPES].size = brt_get_le64(p + 136);
+        h->sections[SECTION_PROTOTYPES].checksum = brt_get_le64(p + 144);
+        h->instance_count = brt_get_le32(p + 152);
+        h->margin.condition = get_f32(p + 156);
+        h->margin.reach = get_f32(p + 160);
+        h->margin.center[0] = get_f32(p + 176);
+        h->margin.center[1] = get_f32(p + 180);
+        h->margin.center[2] = get_f32(p + 184);
+        h->instanced_triangles = brt_get_le64(p + 168);
+        if (h->prototype_count == 0)
+            return brt_fail(err, BRT_EFORMAT, "%s: header: version 4 without prototypes", path);
     }
     return BRT_OK;
 }
@@ -2486,6 +2826,345 @@ static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *er
     return j.result;
 }
 
+/* The direct mode's stream helpers (Part II, "the direct mode's world"):
+** a triangle stream gathered into a BVH. */
+static brt_result stream_bvh(brt_result (*run)(const void *, uint32_t, brt_triangle_fn, void *,
+                                               brt_error *),
+                             const void *user, uint32_t id, brt_bvh **out, uint32_t *count,
+                             brt_error *err);
+static brt_result run_prototype_stream(const void *user, uint32_t id, brt_triangle_fn emit,
+                                       void *emit_user, brt_error *err);
+
+/* ---- instance points ---- */
+/*
+** An instanced scene (brt_scene_build_source) gets, after the batching
+** points of its world triangles, the blobs of its prototypes (one BVH
+** each, written once) and batching points of instances.  The instances
+** are gathered in memory (a brt_instance, its number, box and centre:
+** 92 bytes each) and split by partition_by_size; each point's blob is its
+** instance table:
+**   0 "BRTINSTS"  8 u32 instances n  12 u32 tree nodes m  16 u32
+**   distinct prototypes k  20 u32 0  24 u64 instanced triangles
+**   32 k u32 prototype ids, ascending, then zeros to a multiple of 8
+**   n records of INSTANCE_RECORD_BYTES: u32 instance number, u32 prototype,
+**     f32 xform[12]
+**   m tree nodes of 16 bytes: u32 child[4] (TOP_EMPTY, a node index, or
+**     TOP_LEAF | record), the 4-wide tree of top_build over the
+**     instances' world boxes
+** The tree's boxes are not stored: a load recomputes them from the
+** instances and the prototypes' boxes (instance_table_open), so no table,
+** however forged, can make the tree prune a hit.  Its proxy voxelizes
+** every instance by descending its prototype's BVH (brt_voxelize_
+** instance), dilated by INSTANCE_DILATION of a voxel: the rounding of a
+** ray's transform that the proxy admits (proxy_admits).
+*/
+#define INSTANCE_TABLE_MAGIC "BRTINSTS"
+#define INSTANCE_TABLE_HEADER 32
+#define INSTANCE_RECORD_BYTES 56
+#define INSTANCE_NODE_BYTES 16
+#define SET_MAX_DEPTH 20   /* a stored tree deeper than this is refused: SET_STACK */
+
+static size_t instance_table_bytes(uint32_t n, uint32_t m, uint32_t k)
+{
+    return INSTANCE_TABLE_HEADER + ((size_t)k * 4 + 7) / 8 * 8 + (size_t)n * INSTANCE_RECORD_BYTES +
+           (size_t)m * INSTANCE_NODE_BYTES;
+}
+
+/* A batching point of instances, as the build holds it before writing. */
+typedef struct instance_point {
+    const brt_instance *items;  /* the scene's instances, by slot */
+    const uint32_t *numbers;
+    const uint32_t *slots;      /* this point's n slots */
+    uint32_t n;
+    const top_node *nodes;      /* its tree, over its records 0 .. n - 1 */
+    uint32_t m;
+    const uint32_t *uses;       /* its distinct prototypes, ascending */
+    uint32_t k;
+    uint64_t instanced;
+} instance_point;
+
+static void instance_table_pack(const instance_point *ip, unsigned char *p)
+{
+    size_t at = INSTANCE_TABLE_HEADER;
+    uint32_t i;
+    int a;
+    memset(p, 0, instance_table_bytes(ip->n, ip->m, ip->k));
+    memcpy(p, INSTANCE_TABLE_MAGIC, 8);
+    brt_put_le32(p + 8, ip->n);
+    brt_put_le32(p + 12, ip->m);
+    brt_put_le32(p + 16, ip->k);
+    brt_put_le64(p + 24, ip->instanced);
+    for (i = 0; i < ip->k; i++, at += 4) brt_put_le32(p + at, ip->uses[i]);
+    at = (at + 7) / 8 * 8;
+    for (i = 0; i < ip->n; i++, at += INSTANCE_RECORD_BYTES) {
+        const brt_instance *in = &ip->items[ip->slots[i]];
+        brt_put_le32(p + at, ip->numbers[ip->slots[i]]);
+        brt_put_le32(p + at + 4, in->prototype);
+        for (a = 0; a < 12; a++) put_f32(p + at + 8 + 4 * a, in->xform[a]);
+    }
+    for (i = 0; i < ip->m; i++, at += INSTANCE_NODE_BYTES)
+        for (a = 0; a < 4; a++) brt_put_le32(p + at + 4 * a, ip->nodes[i].child[a]);
+}
+
+/* The instances of an instanced build, held in memory (see above). */
+typedef struct instance_build {
+    brt_instance *items;        /* instances of non-empty prototypes, by slot */
+    uint32_t *numbers;          /* their instance numbers */
+    float *boxes, *centres;     /* 6 and 3 floats per slot */
+    uint32_t count, streamed;   /* slots; instances streamed (all of them) */
+    size_t cap[4];
+    brt_bvh **protos;           /* every prototype's BVH, for the proxies */
+    proto_entry *entries;       /* the prototype table */
+    uint32_t proto_count;
+    uint32_t *stamp, stamp_now; /* range_size's marks, per prototype */
+    float *radii;               /* per slot: brt_instance_bounds's radius */
+    size_t radius_cap;
+    uint64_t instanced;         /* instanced triangles of the whole scene */
+} instance_build;
+
+static brt_result gather_build_instance(instance_build *ib, const brt_instance *in, uint32_t number,
+                                        brt_error *err)
+{
+    brt_instance_frame frame;
+    proto_entry *pe;
+    brt_result r;
+    int a;
+    if (in->prototype >= ib->proto_count)
+        return brt_fail(err, BRT_EARG, "instance %u: prototype %u out of range (%u prototypes)",
+                        (unsigned)number, (unsigned)in->prototype, (unsigned)ib->proto_count);
+    if ((r = brt_instance_frame_init(in, number, &frame, err)) != BRT_OK) return r;
+    pe = &ib->entries[in->prototype];
+    ib->instanced += pe->triangles;
+    if (pe->triangles == 0) return BRT_OK;   /* nothing to hit: in no batching point */
+    if (!(ib->items = brt_grow(ib->items, &ib->cap[0], (size_t)ib->count + 1, sizeof *ib->items)) ||
+        !(ib->numbers = brt_grow(ib->numbers, &ib->cap[1], (size_t)ib->count + 1, sizeof *ib->numbers)) ||
+        !(ib->boxes = brt_grow(ib->boxes, &ib->cap[2], 6 * ((size_t)ib->count + 1), sizeof *ib->boxes)) ||
+        !(ib->centres = brt_grow(ib->centres, &ib->cap[3], 3 * ((size_t)ib->count + 1), sizeof *ib->centres)) ||
+        !(ib->radii = brt_grow(ib->radii, &ib->radius_cap, (size_t)ib->count + 1, sizeof *ib->radii)))
+        return brt_fail(err, BRT_ENOMEM, "out of memory for %u instances", (unsigned)number + 1);
+    ib->items[ib->count] = *in;
+    ib->numbers[ib->count] = number;
+    brt_instance_bounds(in, &frame, pe->lo, pe->hi, ib->boxes + 6 * (size_t)ib->count,
+                        ib->boxes + 6 * (size_t)ib->count + 3, &ib->radii[ib->count]);
+    for (a = 0; a < 3; a++)
+        ib->centres[3 * (size_t)ib->count + a] = 0.5f * ib->boxes[6 * (size_t)ib->count + a] +
+                                                 0.5f * ib->boxes[6 * (size_t)ib->count + 3 + a];
+    ib->count++;
+    return BRT_OK;
+}
+
+static brt_result gather_build_instances(void *user, const brt_instance *instances, uint32_t count,
+                                         uint32_t first, brt_error *err)
+{
+    instance_build *ib = user;
+    uint32_t i;
+    if (first != ib->streamed || count > UINT32_MAX - 1 - first)
+        return brt_fail(err, BRT_EARG, "instance stream: chunk numbered %u after %u instances",
+                        (unsigned)first, (unsigned)ib->streamed);
+    for (i = 0; i < count; i++, ib->streamed++) {
+        brt_result r = gather_build_instance(ib, &instances[i], first + i, err);
+        if (r != BRT_OK) return r;
+    }
+    return BRT_OK;
+}
+
+/* range_size_fn: the distinct prototypes' triangles of some slots. */
+static uint64_t instance_range_size(void *user, const uint32_t *slots, uint32_t n, uint32_t *distinct)
+{
+    instance_build *ib = user;
+    uint64_t size = 0;
+    uint32_t i;
+    *distinct = 0;
+    ib->stamp_now++;
+    for (i = 0; i < n; i++) {
+        const uint32_t p = ib->items[slots[i]].prototype;
+        if (ib->stamp[p] == ib->stamp_now) continue;
+        ib->stamp[p] = ib->stamp_now;
+        size += ib->entries[p].triangles;
+        ++*distinct;
+    }
+    return size;
+}
+
+/* Writes the prototypes' blobs and fills the prototype table, keeping
+** each BVH for the proxies of the points of instances. */
+static brt_result build_prototypes(scene_builder *b, const brt_scene_source *source,
+                                   instance_build *ib, brt_error *err)
+{
+    uint32_t p;
+    for (p = 0; p < ib->proto_count; p++) {
+        proto_entry *e = &ib->entries[p];
+        void *blob;
+        brt_result r = stream_bvh(run_prototype_stream, source, p, &ib->protos[p], &e->triangles, err);
+        if (r == BRT_OK) r = poll_interrupt(b, err);
+        if (r != BRT_OK) return r;
+        e->size = brt_bvh_blob_size(ib->protos[p]);
+        if (!(blob = calloc(1, e->size ? e->size : 1)))
+            return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+        brt_bvh_blob_write(ib->protos[p], blob);
+        e->checksum = brt_checksum64(blob, e->size);
+        e->offset = b->w.offset;
+        brt_bvh_bounds(ib->protos[p], e->lo, e->hi);
+        r = write_at(b->w.fd, blob, e->size, e->offset, b->w.path, err);
+        free(blob);
+        if (r != BRT_OK) return r;
+        b->w.offset = round_up_page(e->offset + e->size);
+        b->w.geometry_bytes += e->size;
+    }
+    return BRT_OK;
+}
+
+/* The margin of some slots about the centre of lo..hi (their frames are
+** made again: they passed brt_instance_frame_init when gathered). */
+static void slots_margin(const instance_build *ib, const uint32_t *slots, uint32_t n,
+                         const float lo[3], const float hi[3], instance_margin *m)
+{
+    uint32_t i;
+    margin_begin(m, lo, hi);
+    for (i = 0; i < n; i++) {
+        const uint32_t k = slots ? slots[i] : i;
+        brt_instance_frame f;
+        if (brt_instance_frame_init(&ib->items[k], 0, &f, NULL) == BRT_OK) margin_add(m, &f, ib->radii[k]);
+    }
+}
+
+/* The proxy of a point of instances: each instance voxelized through its
+** prototype's BVH, dilated by INSTANCE_DILATION of a voxel.  The grid
+** covers the point's box grown by a sixteenth of a voxel, more than the
+** dilation, so that what the dilation marks beyond the box is inside. */
+static brt_result instance_point_proxy(const instance_build *ib, const instance_point *ip,
+                                       const float lo[3], const float hi[3], uint32_t res,
+                                       brt_grid *grid)
+{
+    float glo[3], ghi[3], extent = 0.0f;
+    uint32_t i;
+    brt_result r;
+    int a;
+    for (a = 0; a < 3; a++)
+        if (hi[a] - lo[a] > extent) extent = hi[a] - lo[a];
+    for (a = 0; a < 3; a++) {
+        glo[a] = lo[a] - extent / (16.0f * (float)res);
+        ghi[a] = hi[a] + extent / (16.0f * (float)res);
+    }
+    r = brt_grid_init(grid, glo, ghi, res);
+    for (i = 0; i < ip->n && r == BRT_OK; i++) {
+        const brt_instance *in = &ib->items[ip->slots[i]];
+        r = brt_voxelize_instance(grid, ib->protos[in->prototype], in->xform,
+                                  INSTANCE_DILATION * grid->cell);
+    }
+    return r;
+}
+
+/* The distinct prototypes of a point, ascending (a bitmap pass). */
+static uint32_t *instance_point_uses(instance_build *ib, instance_point *ip)
+{
+    uint32_t *uses = malloc((size_t)ip->n * sizeof *uses), i, p;
+    if (!uses) return NULL;
+    ib->stamp_now++;
+    for (i = 0; i < ip->n; i++) ib->stamp[ib->items[ip->slots[i]].prototype] = ib->stamp_now;
+    ip->k = 0;
+    ip->instanced = 0;
+    for (p = 0; p < ib->proto_count; p++)
+        if (ib->stamp[p] == ib->stamp_now) uses[ip->k++] = p;
+    for (i = 0; i < ip->n; i++) ip->instanced += ib->entries[ib->items[ip->slots[i]].prototype].triangles;
+    return uses;
+}
+
+/* Writes one point of instances: its table blob, entry, box and proxy. */
+static brt_result instance_point_write(scene_builder *b, instance_build *ib, const uint32_t *slots,
+                                       uint32_t n, brt_error *err)
+{
+    scene_writer *w = &b->w;
+    instance_point ip;
+    float *boxes = malloc(6 * (size_t)n * sizeof *boxes);
+    uint32_t *uses = NULL, i, distinct;
+    top_node *nodes = NULL;
+    unsigned char *blob = NULL;
+    batch_entry *e = NULL;
+    brt_grid grid;
+    brt_result r = poll_interrupt(b, err);
+    grid.bits = NULL;
+    ip.items = ib->items;
+    ip.numbers = ib->numbers;
+    ip.slots = slots;
+    ip.n = n;
+    for (i = 0; boxes && i < n; i++) memcpy(boxes + 6 * (size_t)i, ib->boxes + 6 * (size_t)slots[i], 6 * sizeof *boxes);
+    if (r == BRT_OK && (!boxes || !(uses = instance_point_uses(ib, &ip)) ||
+                        top_build(boxes, n, &nodes, &ip.m) != BRT_OK ||
+                        !(blob = malloc(instance_table_bytes(n, ip.m, ip.k))) || !(e = batch_append(w))))
+        r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    if (r == BRT_OK) {
+        ip.nodes = nodes;
+        ip.uses = uses;
+        instance_table_pack(&ip, blob);
+        bounds_clear(e->lo, e->hi);
+        for (i = 0; i < n; i++) {
+            bounds_grow(e->lo, e->hi, boxes + 6 * (size_t)i);
+            bounds_grow(e->lo, e->hi, boxes + 6 * (size_t)i + 3);
+        }
+        slots_margin(ib, slots, n, e->lo, e->hi, &e->margin);
+        e->triangles = (uint32_t)instance_range_size(ib, slots, n, &distinct);
+        e->instances = n;
+        e->instanced = ip.instanced;
+        e->size = instance_table_bytes(n, ip.m, ip.k);
+        e->checksum = brt_checksum64(blob, e->size);
+        e->offset = w->offset;
+        r = write_at(w->fd, blob, e->size, e->offset, w->path, err);
+    }
+    if (r == BRT_OK) {
+        w->offset = round_up_page(e->offset + e->size);
+        w->geometry_bytes += e->size;
+        memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1), e->lo, 3 * sizeof(float));
+        memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1) + 3, e->hi, 3 * sizeof(float));
+        r = instance_point_proxy(ib, &ip, e->lo, e->hi, w->res, &grid);
+        if (r == BRT_OK) r = brt_svdag_add(w->dag, &grid, &e->proxy);
+        e->inner.root = BRT_EMPTY_ROOT;   /* no inner proxies for instances */
+        if (r != BRT_OK) r = brt_fail(err, r, "%s: building a proxy: %s", w->path, brt_result_string(r));
+    }
+    brt_grid_free(&grid);
+    free(boxes);
+    free(uses);
+    free(nodes);
+    free(blob);
+    return r;
+}
+
+/* Gathers the instances, partitions them and writes their points. */
+static brt_result build_instance_points(scene_builder *b, const brt_scene_source *source,
+                                        instance_build *ib, brt_error *err)
+{
+    partition parts;
+    uint32_t i;
+    brt_result r = source->instances ? source->instances(source->user, gather_build_instances, ib, err)
+                                     : BRT_OK;
+    memset(&parts, 0, sizeof parts);
+    if (r != BRT_OK || ib->count == 0) return r;
+    if (!(parts.order = malloc((size_t)ib->count * sizeof *parts.order)))
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    for (i = 0; i < ib->count; i++) parts.order[i] = i;
+    r = partition_by_size(&parts, ib->centres, 0, ib->count, b->batch_tris, instance_range_size, ib);
+    if (r != BRT_OK) r = brt_fail(err, r, "%s: out of memory", b->w.path);
+    for (i = 0; i < parts.count && r == BRT_OK; i++)
+        r = instance_point_write(b, ib, parts.order + parts.ranges[i].first, parts.ranges[i].count, err);
+    free(parts.order);
+    free(parts.ranges);
+    return r;
+}
+
+static void instance_build_free(instance_build *ib)
+{
+    uint32_t p;
+    for (p = 0; ib->protos && p < ib->proto_count; p++) brt_bvh_free(ib->protos[p]);
+    free(ib->protos);
+    free(ib->entries);
+    free(ib->stamp);
+    free(ib->items);
+    free(ib->numbers);
+    free(ib->boxes);
+    free(ib->centres);
+    free(ib->radii);
+}
+
 /* ---- the file's tables ---- */
 
 /* Writes a section at the next page and fills in its table entry. */
@@ -2499,10 +3178,14 @@ static brt_result write_section(scene_writer *w, const void *data, size_t size, 
     return write_at(w->fd, data, size, s->offset, w->path, err);
 }
 
-/* The batch table, the top-level nodes and the DAG pool, then the header. */
-static brt_result write_tables(scene_writer *w, scene_header *h, brt_error *err)
+/* The batch table, the top-level nodes and the DAG pool, (instanced:
+** the prototype table,) then the header. */
+static brt_result write_tables(scene_writer *w, scene_header *h, const proto_entry *protos,
+                               brt_error *err)
 {
-    size_t top_bytes, dag_bytes, table_bytes = (size_t)h->batch_count * BATCH_ENTRY_BYTES;
+    const size_t entry_bytes = header_instanced(h) ? BATCH_ENTRY_BYTES_V4 : BATCH_ENTRY_BYTES;
+    const size_t proto_bytes = (size_t)h->prototype_count * PROTO_ENTRY_BYTES;
+    size_t top_bytes, dag_bytes, table_bytes = (size_t)h->batch_count * entry_bytes;
     top_node *nodes = NULL;
     unsigned char *buf, header[SCENE_HEADER_BYTES];
     uint32_t i;
@@ -2510,18 +3193,26 @@ static brt_result write_tables(scene_writer *w, scene_header *h, brt_error *err)
     if (r != BRT_OK) return brt_fail(err, r, "%s: out of memory", w->path);
     top_bytes = (size_t)h->top_node_count * TOP_NODE_BYTES;
     dag_bytes = brt_svdag_blob_size(w->dag);
-    buf = malloc(table_bytes + top_bytes + dag_bytes + 1);
+    buf = malloc(table_bytes + top_bytes + dag_bytes + proto_bytes + 1);
     if (!buf) {
         free(nodes);
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
     }
-    for (i = 0; i < h->batch_count; i++) batch_entry_pack(&w->batches[i], buf + (size_t)i * BATCH_ENTRY_BYTES);
+    for (i = 0; i < h->batch_count; i++) {
+        if (header_instanced(h)) batch_entry_pack_v4(&w->batches[i], buf + (size_t)i * entry_bytes);
+        else batch_entry_pack(&w->batches[i], buf + (size_t)i * entry_bytes);
+    }
+    for (i = 0; i < h->prototype_count; i++)
+        proto_entry_pack(&protos[i], buf + table_bytes + top_bytes + dag_bytes + (size_t)i * PROTO_ENTRY_BYTES);
     for (i = 0; i < h->top_node_count; i++) top_node_pack(&nodes[i], buf + table_bytes + (size_t)i * TOP_NODE_BYTES);
     brt_svdag_blob_write(w->dag, buf + table_bytes + top_bytes);
     free(nodes);
     r = write_section(w, buf, table_bytes, &h->sections[SECTION_BATCHES], err);
     if (r == BRT_OK) r = write_section(w, buf + table_bytes, top_bytes, &h->sections[SECTION_TOP], err);
     if (r == BRT_OK) r = write_section(w, buf + table_bytes + top_bytes, dag_bytes, &h->sections[SECTION_DAG], err);
+    if (r == BRT_OK && proto_bytes)
+        r = write_section(w, buf + table_bytes + top_bytes + dag_bytes, proto_bytes,
+                          &h->sections[SECTION_PROTOTYPES], err);
     free(buf);
     if (r != BRT_OK) return r;
     /* Pad to whole pages so the cache's page-rounded reads stay in the file. */
@@ -2557,9 +3248,10 @@ static brt_result builder_arrays(scene_builder *b, brt_error *err)
     return BRT_OK;
 }
 
-/* Pass A, the buckets, the tables. */
-static brt_result build_passes(scene_builder *b, const brt_triangle_source *source,
-                               scene_header *h, brt_error *err)
+/* Pass A and the buckets: the batching points of the (world) triangles,
+** none when the stream has none. */
+static brt_result build_triangle_points(scene_builder *b, const brt_triangle_source *source,
+                                        brt_error *err)
 {
     brt_result r;
     b->root.cap = b->chunk;
@@ -2567,20 +3259,78 @@ static brt_result build_passes(scene_builder *b, const brt_triangle_source *sour
     bounds_clear(b->root.b.lo, b->root.b.hi);
     r = source->run(source->user, spill_stream, b, err);
     if (r == BRT_OK) r = spill_flush(b, &b->root, err);
+    if (r != BRT_OK || b->root.b.count == 0) return r;
+    b->spill_end = b->root.b.count;
+    if ((r = builder_arrays(b, err)) != BRT_OK) return r;
+    return process_bucket(b, &b->root.b, err);
+}
+
+static brt_result builder_start(scene_builder *b, brt_error *err)
+{
+    brt_result r = brt_svdag_create(&b->w.dag);
+    b->w.offset = SCENE_PAGE;
+    return r == BRT_OK ? BRT_OK : brt_fail(err, r, "%s: out of memory", b->w.path);
+}
+
+/* Pass A, the buckets, the tables. */
+static brt_result build_passes(scene_builder *b, const brt_triangle_source *source,
+                               scene_header *h, brt_error *err)
+{
+    brt_result r = builder_start(b, err);
+    if (r == BRT_OK) r = build_triangle_points(b, source, err);
     if (r != BRT_OK) return r;
     if (b->root.b.count == 0)
         return brt_fail(err, BRT_EARG, "%s: the mesh has no triangles", b->w.path);
-    b->spill_end = b->root.b.count;
-    if ((r = builder_arrays(b, err)) != BRT_OK) return r;
-    if ((r = brt_svdag_create(&b->w.dag)) != BRT_OK)
-        return brt_fail(err, r, "%s: out of memory", b->w.path);
-    b->w.offset = SCENE_PAGE;
-    r = process_bucket(b, &b->root.b, err);
-    if (r != BRT_OK) return r;
     h->batch_count = b->w.batch_count;
     h->triangle_count = b->root.b.count;
     h->geometry_bytes = b->w.geometry_bytes;
-    return write_tables(&b->w, h, err);
+    return write_tables(&b->w, h, NULL, err);
+}
+
+/* The walk's margin: every instance's, about the centre of the scene. */
+static void scene_margin(const scene_writer *w, const instance_build *ib, instance_margin *m)
+{
+    float lo[3], hi[3];
+    uint32_t i;
+    bounds_clear(lo, hi);
+    for (i = 0; i < w->batch_count; i++) {
+        bounds_grow(lo, hi, w->boxes + 6 * (size_t)i);
+        bounds_grow(lo, hi, w->boxes + 6 * (size_t)i + 3);
+    }
+    slots_margin(ib, NULL, ib->count, lo, hi, m);
+}
+
+/* An instanced scene: the world triangles' points, the prototypes, the
+** points of instances, the tables. */
+static brt_result build_instanced_passes(scene_builder *b, const brt_scene_source *source,
+                                         scene_header *h, brt_error *err)
+{
+    instance_build ib;
+    brt_result r;
+    memset(&ib, 0, sizeof ib);
+    ib.proto_count = source->prototype_count;
+    ib.protos = calloc(ib.proto_count, sizeof *ib.protos);
+    ib.entries = calloc(ib.proto_count, sizeof *ib.entries);
+    ib.stamp = calloc(ib.proto_count, sizeof *ib.stamp);
+    r = ib.protos && ib.entries && ib.stamp ? builder_start(b, err)
+                                            : brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    if (r == BRT_OK && source->world.run) r = build_triangle_points(b, &source->world, err);
+    if (r == BRT_OK) r = build_prototypes(b, source, &ib, err);
+    if (r == BRT_OK) r = build_instance_points(b, source, &ib, err);
+    if (r == BRT_OK && b->w.batch_count == 0)
+        r = brt_fail(err, BRT_EARG, "%s: the scene has no triangles", b->w.path);
+    if (r == BRT_OK) {
+        h->batch_count = b->w.batch_count;
+        h->triangle_count = b->root.b.count;
+        h->geometry_bytes = b->w.geometry_bytes;
+        h->prototype_count = ib.proto_count;
+        h->instance_count = ib.streamed;
+        h->instanced_triangles = ib.instanced + b->root.b.count;
+        scene_margin(&b->w, &ib, &h->margin);
+        r = write_tables(&b->w, h, ib.entries, err);
+    }
+    instance_build_free(&ib);
+    return r;
 }
 
 static void builder_free(scene_builder *b)
@@ -2638,9 +3388,11 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     return BRT_OK;
 }
 
-brt_result brt_scene_build_stream(const brt_triangle_source *source,
-                                  const brt_scene_options *opt, uint64_t source_stamp,
-                                  const char *scene_path, brt_error *err)
+/* Either build: a triangle stream (instanced NULL) or an instanced scene. */
+static brt_result build_scene_file(const brt_triangle_source *source,
+                                   const brt_scene_source *instanced,
+                                   const brt_scene_options *opt, uint64_t source_stamp,
+                                   const char *scene_path, brt_error *err)
 {
     scene_builder b;
     scene_header h;
@@ -2654,10 +3406,29 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
     h.batch_tris = b.batch_tris;
     h.proxy_res = b.w.res;
     h.stamp = source_stamp;
-    if (r == BRT_OK) r = build_passes(&b, source, &h, err);
+    if (r == BRT_OK)
+        r = instanced ? build_instanced_passes(&b, instanced, &h, err) : build_passes(&b, source, &h, err);
     r = brt_atomic_close(&file, r, err);
     builder_free(&b);
     return r;
+}
+
+brt_result brt_scene_build_stream(const brt_triangle_source *source,
+                                  const brt_scene_options *opt, uint64_t source_stamp,
+                                  const char *scene_path, brt_error *err)
+{
+    return build_scene_file(source, NULL, opt, source_stamp, scene_path, err);
+}
+
+brt_result brt_scene_build_source(const brt_scene_source *source, const brt_scene_options *opt,
+                                  uint64_t source_stamp, const char *scene_path, brt_error *err)
+{
+    if (source->prototype_count == 0) {
+        if (!source->world.run)
+            return brt_fail(err, BRT_EARG, "%s: the scene has no triangles", scene_path);
+        return build_scene_file(&source->world, NULL, opt, source_stamp, scene_path, err);
+    }
+    return build_scene_file(NULL, source, opt, source_stamp, scene_path, err);
 }
 
 brt_result brt_scene_build(const brt_mesh *mesh, const brt_scene_options *opt,
@@ -2772,6 +3543,14 @@ static int box_valid(const float lo[3], const float hi[3])
     return 1;
 }
 
+/* A margin a file may hold: finite, condition within the bound. */
+static int margin_valid(const instance_margin *m)
+{
+    return m->condition >= 0 && m->condition <= nextafterf((float)BRT_MAX_CONDITION, INFINITY) &&
+           m->reach >= 0 && m->reach <= FLT_MAX && isfinite(m->center[0]) &&
+           isfinite(m->center[1]) && isfinite(m->center[2]);
+}
+
 /* The counts of the header against one another and the section sizes. */
 static brt_result check_header(const brt_scene *s, brt_error *err)
 {
@@ -2781,8 +3560,13 @@ static brt_result check_header(const brt_scene *s, brt_error *err)
     if (h->top_node_count == 0 || h->top_node_count > h->batch_count)
         return brt_fail(err, BRT_EFORMAT, "%s: header: %u top-level nodes for %u batching points",
                         s->path, h->top_node_count, h->batch_count);
-    if (h->sections[SECTION_BATCHES].size != (uint64_t)h->batch_count * BATCH_ENTRY_BYTES)
+    if (h->sections[SECTION_BATCHES].size !=
+        (uint64_t)h->batch_count * (header_instanced(h) ? BATCH_ENTRY_BYTES_V4 : BATCH_ENTRY_BYTES))
         return brt_fail(err, BRT_EFORMAT, "%s: header: batch table has the wrong size", s->path);
+    if (h->sections[SECTION_PROTOTYPES].size != (uint64_t)h->prototype_count * PROTO_ENTRY_BYTES)
+        return brt_fail(err, BRT_EFORMAT, "%s: header: prototype table has the wrong size", s->path);
+    if (header_instanced(h) && !margin_valid(&h->margin))
+        return brt_fail(err, BRT_EFORMAT, "%s: header: margin out of range", s->path);
     if (h->sections[SECTION_TOP].size != (uint64_t)h->top_node_count * TOP_NODE_BYTES)
         return brt_fail(err, BRT_EFORMAT, "%s: header: top-level section has the wrong size", s->path);
     return BRT_OK;
@@ -2805,6 +3589,13 @@ static int inner_valid(const brt_scene *s, const brt_proxy *p)
     return p->res == inner_res(s->header.proxy_res) && brt_proxy_check(s->dag, p, NULL) == BRT_OK;
 }
 
+/* A blob lies inside the file, in whole pages (as the cache reads it). */
+static int blob_inside(const brt_scene *s, uint64_t offset, uint64_t size)
+{
+    return offset % SCENE_PAGE == 0 && size <= s->file_size &&
+           offset <= s->file_size - round_up_page(size);
+}
+
 /* One batch table entry: its box, its blob inside the file (whole pages,
 ** as the cache reads them), its proxy. */
 static brt_result check_batch(const brt_scene *s, uint32_t i, const batch_entry *b, brt_error *err)
@@ -2812,9 +3603,12 @@ static brt_result check_batch(const brt_scene *s, uint32_t i, const batch_entry 
     if (!box_valid(b->lo, b->hi))
         return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: box not finite or inverted",
                         s->path, i);
-    if (b->offset % SCENE_PAGE != 0 || b->size > s->file_size ||
-        b->offset > s->file_size - round_up_page(b->size))
+    if (!blob_inside(s, b->offset, b->size))
         return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: blob outside the file", s->path, i);
+    if (b->instances && (!header_instanced(&s->header) || b->instances > s->header.instance_count ||
+                         !margin_valid(&b->margin)))
+        return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: %u instances or margin out of range",
+                        s->path, i, b->instances);
     if (!proxy_valid(s, &b->proxy))
         return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: invalid proxy", s->path, i);
     if (!inner_valid(s, &b->inner))
@@ -2831,9 +3625,10 @@ static brt_result check_batches(const brt_scene *s, brt_error *err)
     for (i = 0; i < s->header.batch_count; i++) {
         brt_result r = check_batch(s, i, &s->batches[i], err);
         if (r != BRT_OK) return r;
-        triangles += s->batches[i].triangles;
+        if (!s->batches[i].instances) triangles += s->batches[i].triangles;
         bytes += s->batches[i].size;
     }
+    for (i = 0; i < s->header.prototype_count; i++) bytes += s->prototypes[i].size;
     if (triangles != s->header.triangle_count)
         return brt_fail(err, BRT_EFORMAT, "%s: batch table: batching points hold %llu triangles, "
                         "header says %u", s->path, (unsigned long long)triangles,
@@ -2872,7 +3667,17 @@ static brt_result load_batches(brt_scene *s, brt_error *err)
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
     }
     for (i = 0; i < s->header.batch_count; i++) {
-        batch_entry_unpack(table + (size_t)i * BATCH_ENTRY_BYTES, &s->batches[i]);
+        const size_t bytes = header_instanced(&s->header) ? BATCH_ENTRY_BYTES_V4 : BATCH_ENTRY_BYTES;
+        const unsigned char *p = table + (size_t)i * bytes;
+        batch_entry_unpack(p, &s->batches[i]);
+        if (header_instanced(&s->header)) {
+            batch_entry *e = &s->batches[i];
+            e->instances = brt_get_le32(p + 80);
+            e->instanced = brt_get_le64(p + 88);
+            margin_begin(&e->margin, e->lo, e->hi);
+            e->margin.condition = get_f32(p + 84);
+            e->margin.reach = get_f32(p + 96);
+        }
         inner_frame(&s->batches[i], s->header.proxy_res);
     }
     free(table);
@@ -2982,6 +3787,49 @@ static brt_result load_top(brt_scene *s, brt_error *err)
     return r;
 }
 
+/* The prototype table (instanced files): each blob inside the file, each
+** box valid (or empty, for a prototype without triangles). */
+static brt_result load_prototypes(brt_scene *s, brt_error *err)
+{
+    unsigned char *table = NULL;
+    uint32_t i, n = s->header.prototype_count;
+    brt_result r = n ? read_section(s, SECTION_PROTOTYPES, "prototype table", (void **)&table, err)
+                     : BRT_OK;
+    if (r != BRT_OK) return r;
+    s->prototypes = malloc(((size_t)n + 1) * sizeof *s->prototypes);
+    if (!s->prototypes) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    for (i = 0; i < n && r == BRT_OK; i++) {
+        proto_entry *e = &s->prototypes[i];
+        proto_entry_unpack(table + (size_t)i * PROTO_ENTRY_BYTES, e);
+        if (!blob_inside(s, e->offset, e->size))
+            r = brt_fail(err, BRT_EFORMAT, "%s: prototype %u: blob outside the file", s->path, i);
+        else if (e->triangles ? !box_valid(e->lo, e->hi) : e->lo[0] <= e->hi[0])
+            r = brt_fail(err, BRT_EFORMAT, "%s: prototype %u: box not finite or inverted", s->path, i);
+    }
+    free(table);
+    return r;
+}
+
+/* Where every blob lies: the batching points', then the prototypes'. */
+static brt_result place_blobs(brt_scene *s, brt_error *err)
+{
+    const uint32_t b = s->header.batch_count;
+    uint32_t i;
+    s->blobs = malloc(((size_t)b + s->header.prototype_count) * sizeof *s->blobs);
+    if (!s->blobs) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    for (i = 0; i < b; i++) {
+        s->blobs[i].offset = s->batches[i].offset;
+        s->blobs[i].size = s->batches[i].size;
+        s->blobs[i].checksum = s->batches[i].checksum;
+    }
+    for (i = 0; i < s->header.prototype_count; i++) {
+        s->blobs[b + i].offset = s->prototypes[i].offset;
+        s->blobs[b + i].size = s->prototypes[i].size;
+        s->blobs[b + i].checksum = s->prototypes[i].checksum;
+    }
+    return BRT_OK;
+}
+
 static brt_result load_dag(brt_scene *s, brt_error *err)
 {
     brt_error why;
@@ -3015,8 +3863,10 @@ brt_result brt_scene_open(const char *scene_path, brt_scene **out, brt_error *er
     if (r == BRT_OK) r = header_unpack(scene_path, header, &s->header, err);
     if (r == BRT_OK) r = check_header(s, err);
     if (r == BRT_OK) r = load_dag(s, err);
+    if (r == BRT_OK) r = load_prototypes(s, err);
     if (r == BRT_OK) r = load_batches(s, err);
     if (r == BRT_OK) r = load_top(s, err);
+    if (r == BRT_OK) r = place_blobs(s, err);
     if (r != BRT_OK) {
         brt_scene_close(s);
         return r;
@@ -3032,6 +3882,8 @@ void brt_scene_close(brt_scene *s)
     brt_svdag_free(s->dag);
     free(s->dag_blob);
     free(s->batches);
+    free(s->prototypes);
+    free(s->blobs);
     free(s->top);
     free(s->path);
     free(s);
@@ -3087,61 +3939,285 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
     return brt_scene_open(scene_path, out, err);
 }
 
+/* ---- opening an instance table (a load of a point of instances) ---- */
+
+static brt_result table_fail(const brt_scene *s, uint32_t id, brt_error *err, const char *what)
+{
+    return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: instance table: %s", s->path, id, what);
+}
+
+/* The distinct prototypes: ascending, each a prototype of the scene. */
+static brt_result table_uses(const brt_scene *s, uint32_t id, const unsigned char *p,
+                             instance_set *set, brt_error *err)
+{
+    uint32_t i;
+    for (i = 0; i < set->use_count; i++) {
+        set->uses[i] = brt_get_le32(p + 4 * (size_t)i);
+        if (set->uses[i] >= s->header.prototype_count || (i > 0 && set->uses[i] <= set->uses[i - 1]))
+            return table_fail(s, id, err, "prototype list not ascending or out of range");
+    }
+    return BRT_OK;
+}
+
+static int uses_prototype(const instance_set *set, uint32_t proto)
+{
+    uint32_t lo = 0, hi = set->use_count;
+    while (lo < hi) {
+        const uint32_t mid = lo + (hi - lo) / 2;
+        if (set->uses[mid] < proto) lo = mid + 1;
+        else hi = mid;
+    }
+    return lo < set->use_count && set->uses[lo] == proto;
+}
+
+/* The records: numbers in range, prototypes among the listed ones, and
+** transforms that brt_instance_frame_init accepts; their world boxes into
+** boxes (6 floats each) and the margin's maxima into the set. */
+static brt_result table_records(const brt_scene *s, uint32_t id, const unsigned char *p,
+                                instance_set *set, float *boxes, brt_error *err)
+{
+    uint32_t i;
+    int a;
+    for (i = 0; i < set->count; i++, p += INSTANCE_RECORD_BYTES) {
+        const proto_entry *pe;
+        brt_instance in;
+        brt_error why;
+        float radius;
+        set->ids[i] = brt_get_le32(p);
+        set->prototypes[i] = in.prototype = brt_get_le32(p + 4);
+        for (a = 0; a < 12; a++) in.xform[a] = get_f32(p + 8 + 4 * a);
+        if (set->ids[i] >= s->header.instance_count || !uses_prototype(set, in.prototype))
+            return table_fail(s, id, err, "instance number or prototype out of range");
+        if (brt_instance_frame_init(&in, set->ids[i], &set->frames[i], &why) != BRT_OK)
+            return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: %s", s->path, id, why.message);
+        pe = &s->prototypes[in.prototype];
+        brt_instance_bounds(&in, &set->frames[i], pe->lo, pe->hi, boxes + 6 * (size_t)i,
+                            boxes + 6 * (size_t)i + 3, &radius);
+        margin_add(&set->margin, &set->frames[i], radius);
+    }
+    /* The entry's margin gated the proxy before this load: it must cover
+    ** the instances (a smaller one would have let rays through that the
+    ** proxy's dilation does not cover). */
+    if (set->margin.condition > s->batches[id].margin.condition ||
+        set->margin.reach > s->batches[id].margin.reach)
+        return table_fail(s, id, err, "margin smaller than its instances'");
+    return BRT_OK;
+}
+
+/* The tree: children point forward (to nodes) or at records, every node
+** but the root has one parent, every record is one leaf, depth at most
+** SET_MAX_DEPTH (so SET_STACK holds a descent). */
+static brt_result table_tree(const brt_scene *s, uint32_t id, const unsigned char *p,
+                             instance_set *set, unsigned char *seen, unsigned char *depth,
+                             brt_error *err)
+{
+    uint32_t i, c;
+    int lane;
+    for (i = 0; i < set->node_count; i++)
+        for (lane = 0; lane < 4; lane++) set->nodes[i].child[lane] = brt_get_le32(p + 16 * (size_t)i + 4 * (size_t)lane);
+    for (i = 0; i < set->node_count; i++)
+        for (lane = 0; lane < 4; lane++) {
+            c = set->nodes[i].child[lane];
+            if (c == TOP_EMPTY) continue;
+            if (c & TOP_LEAF) {
+                if ((c & ~TOP_LEAF) >= set->count || seen[c & ~TOP_LEAF]++)
+                    return table_fail(s, id, err, "tree leaf out of range or repeated");
+            } else if (c <= i || c >= set->node_count || depth[c] || depth[i] >= SET_MAX_DEPTH) {
+                return table_fail(s, id, err, "tree child out of range, shared or too deep");
+            } else {
+                depth[c] = (unsigned char)(depth[i] + 1);
+            }
+        }
+    for (i = 0; i < set->count; i++)
+        if (!seen[i]) return table_fail(s, id, err, "an instance outside the tree");
+    for (i = 1; i < set->node_count; i++)
+        if (!depth[i]) return table_fail(s, id, err, "a tree node without a parent");
+    return BRT_OK;
+}
+
+/* The tree's boxes from the records' boxes, bottom up (children come
+** after their parents), then grown for the box test. */
+static void table_boxes(instance_set *set, const float *boxes)
+{
+    uint32_t i = set->node_count;
+    while (i-- > 0) {
+        top_node *n = &set->nodes[i];
+        int lane, k, a;
+        for (lane = 0; lane < 4; lane++) {
+            const uint32_t c = n->child[lane];
+            if (c == TOP_EMPTY) continue;
+            top_lane_clear(n, lane);
+            n->child[lane] = c;
+            if (c & TOP_LEAF) {
+                top_lane_grow(n, lane, boxes + 6 * (size_t)(c & ~TOP_LEAF));
+                continue;
+            }
+            for (k = 0; k < 4; k++) {
+                float box[6];
+                if (set->nodes[c].child[k] == TOP_EMPTY) continue;
+                for (a = 0; a < 6; a++) box[a] = set->nodes[c].box[a][k];
+                top_lane_grow(n, lane, box);
+            }
+        }
+    }
+    for (i = 0; i < set->node_count; i++) top_node_pad(&set->nodes[i]);
+}
+
+static brt_result table_alloc(instance_set *set, uint32_t n, uint32_t m, uint32_t k)
+{
+    set->count = n;
+    set->node_count = m;
+    set->use_count = k;
+    set->ids = malloc((size_t)n * sizeof *set->ids);
+    set->prototypes = malloc((size_t)n * sizeof *set->prototypes);
+    set->frames = malloc((size_t)n * sizeof *set->frames);
+    set->nodes = malloc((size_t)m * sizeof *set->nodes);
+    set->uses = malloc((size_t)k * sizeof *set->uses);
+    return set->ids && set->prototypes && set->frames && set->nodes && set->uses ? BRT_OK : BRT_ENOMEM;
+}
+
+/* Opens point id's instance table (size bytes at data, checksum already
+** checked): every field validated, the boxes recomputed. */
+static brt_result instance_table_open(const brt_scene *s, uint32_t id, const unsigned char *data,
+                                      uint64_t size, instance_set **out, brt_error *err)
+{
+    instance_set *set = calloc(1, sizeof *set);
+    uint32_t n, m, k;
+    unsigned char *marks = NULL;
+    float *boxes = NULL;
+    brt_result r = BRT_OK;
+    *out = NULL;
+    if (!set) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    if (size < INSTANCE_TABLE_HEADER || memcmp(data, INSTANCE_TABLE_MAGIC, 8) != 0) {
+        free(set);
+        return table_fail(s, id, err, "bad magic");
+    }
+    n = brt_get_le32(data + 8);
+    m = brt_get_le32(data + 12);
+    k = brt_get_le32(data + 16);
+    if (n == 0 || m == 0 || m > n || k == 0 || k > n || n != s->batches[id].instances ||
+        size != instance_table_bytes(n, m, k))
+        r = table_fail(s, id, err, "counts disagree with its size or its table entry");
+    else if (table_alloc(set, n, m, k) != BRT_OK || !(marks = calloc((size_t)n + m, 1)) ||
+             !(boxes = malloc(6 * (size_t)n * sizeof *boxes)))
+        r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    margin_begin(&set->margin, s->batches[id].lo, s->batches[id].hi);
+    if (r == BRT_OK) r = table_uses(s, id, data + INSTANCE_TABLE_HEADER, set, err);
+    data += INSTANCE_TABLE_HEADER + ((size_t)k * 4 + 7) / 8 * 8;
+    if (r == BRT_OK) r = table_records(s, id, data, set, boxes, err);
+    if (r == BRT_OK)
+        r = table_tree(s, id, data + (size_t)n * INSTANCE_RECORD_BYTES, set, marks, marks + n, err);
+    if (r == BRT_OK) table_boxes(set, boxes);
+    free(marks);
+    free(boxes);
+    if (r != BRT_OK) {
+        set_free(set);
+        free(set);
+        return r;
+    }
+    *out = set;
+    return BRT_OK;
+}
+
 /* ---- the partition checker ------------------------------------------ */
 
-/* Marks the triangles of blob id in seen[] (one bit each). */
+/* Marks number k in a bitmap: 0 when it was marked already. */
+static int mark_once(unsigned char *seen, uint32_t k)
+{
+    if (seen[k >> 3] & (1u << (k & 7))) return 0;
+    seen[k >> 3] |= (unsigned char)(1u << (k & 7));
+    return 1;
+}
+
+/* Marks the triangles of a point of world triangles in seen[]. */
+static brt_result check_triangles(const brt_scene *s, uint32_t id, const brt_bvh *bvh,
+                                  unsigned char *seen, brt_error *err)
+{
+    const uint32_t *prims = brt_bvh_prim_ids(bvh);
+    uint32_t k, n = brt_bvh_triangle_count(bvh);
+    if (n != s->batches[id].triangles)
+        return brt_fail(err, BRT_ECHECK, "%s: batching point %u: its BVH holds %u triangles, "
+                        "its table entry %u", s->path, id, n, s->batches[id].triangles);
+    for (k = 0; k < n; k++) {
+        if (prims[k] >= s->header.triangle_count)
+            return brt_fail(err, BRT_ECHECK, "%s: batching point %u: triangle %u out of range "
+                            "(%u triangles)", s->path, id, prims[k], s->header.triangle_count);
+        if (!mark_once(seen, prims[k]))
+            return brt_fail(err, BRT_ECHECK, "%s: triangle %u is in two batching points "
+                            "(again in %u)", s->path, prims[k], id);
+    }
+    return BRT_OK;
+}
+
+/* Marks the instances of a point of instances in seen_inst[]; its size,
+** the triangles of its distinct prototypes, may exceed batch_tris only
+** when it uses one prototype. */
+static brt_result check_instances(const brt_scene *s, uint32_t id, const instance_set *set,
+                                  uint32_t batch_tris, unsigned char *seen_inst, brt_error *err)
+{
+    uint64_t size = 0;
+    uint32_t k;
+    for (k = 0; k < set->use_count; k++) size += s->prototypes[set->uses[k]].triangles;
+    if (size > batch_tris && set->use_count > 1)
+        return brt_fail(err, BRT_ECHECK, "%s: batching point %u: %llu triangles of %u prototypes, "
+                        "more than %u", s->path, id, (unsigned long long)size, set->use_count, batch_tris);
+    for (k = 0; k < set->count; k++)
+        if (!mark_once(seen_inst, set->ids[k]))
+            return brt_fail(err, BRT_ECHECK, "%s: instance %u is in two batching points (again in %u)",
+                            s->path, set->ids[k], id);
+    return BRT_OK;
+}
+
+/* Reads point id and marks what it holds. */
 static brt_result check_point(const geometry_cache *c, uint32_t id, uint32_t batch_tris,
-                              unsigned char *seen, brt_error *err)
+                              unsigned char *seen, unsigned char *seen_inst, brt_error *err)
 {
     const brt_scene *s = c->scene;
-    const uint32_t *prims;
     uint64_t bytes = 0;
     void *data = NULL;
-    brt_bvh *bvh = NULL;
-    uint32_t k, n;
-    brt_result r = BRT_OK;
-    if (s->batches[id].triangles > batch_tris)
+    blob_view view;
+    brt_result r;
+    if (!s->batches[id].instances && s->batches[id].triangles > batch_tris)
         return brt_fail(err, BRT_ECHECK, "%s: batching point %u holds %u triangles, more than %u",
                         s->path, id, s->batches[id].triangles, batch_tris);
-    if ((r = blob_read(c, id, &bytes, &data, &bvh, err)) != BRT_OK) return r;
-    prims = brt_bvh_prim_ids(bvh);
-    n = brt_bvh_triangle_count(bvh);
-    if (n != s->batches[id].triangles)
-        r = brt_fail(err, BRT_ECHECK, "%s: batching point %u: its BVH holds %u triangles, "
-                     "its table entry %u", s->path, id, n, s->batches[id].triangles);
-    for (k = 0; k < n && r == BRT_OK; k++) {
-        uint32_t p = prims[k];
-        if (p >= s->header.triangle_count)
-            r = brt_fail(err, BRT_ECHECK, "%s: batching point %u: triangle %u out of range "
-                         "(%u triangles)", s->path, id, p, s->header.triangle_count);
-        else if (seen[p >> 3] & (1u << (p & 7)))
-            r = brt_fail(err, BRT_ECHECK, "%s: triangle %u is in two batching points "
-                         "(again in %u)", s->path, p, id);
-        else
-            seen[p >> 3] |= (unsigned char)(1u << (p & 7));
-    }
-    brt_bvh_free(bvh);
+    if ((r = blob_read(c, id, &bytes, &data, &view, err)) != BRT_OK) return r;
+    r = view.set ? check_instances(s, id, view.set, batch_tris, seen_inst, err)
+                 : check_triangles(s, id, view.bvh, seen, err);
+    view_free(&view);
     blob_free(s, id, data);
     return r;
+}
+
+/* Every instance is in one point, except those of empty prototypes. */
+static int instance_may_be_absent(const brt_scene *s)
+{
+    uint32_t p;
+    for (p = 0; p < s->header.prototype_count; p++)
+        if (s->prototypes[p].triangles == 0) return 1;
+    return 0;
 }
 
 brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
                                      brt_error *err)
 {
-    uint32_t n = scene->header.triangle_count, id, t;
-    unsigned char *seen = calloc((size_t)n / 8 + 1, 1);
+    uint32_t n = scene->header.triangle_count, m = scene->header.instance_count, id, t;
+    unsigned char *seen = calloc((size_t)n / 8 + 1, 1), *seen_inst = calloc((size_t)m / 8 + 1, 1);
     geometry_cache c;
     brt_result r = BRT_OK;
-    if (!seen) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene->path);
+    if (!seen || !seen_inst) r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", scene->path);
     memset(&c, 0, sizeof c);
     c.scene = (brt_scene *)scene;   /* blob_read only reads through it */
     c.read_fn = pread_reader;
     for (id = 0; id < scene->header.batch_count && r == BRT_OK; id++)
-        r = check_point(&c, id, batch_tris, seen, err);
+        r = check_point(&c, id, batch_tris, seen, seen_inst, err);
     for (t = 0; t < n && r == BRT_OK; t++)
         if (!(seen[t >> 3] & (1u << (t & 7))))
             r = brt_fail(err, BRT_ECHECK, "%s: triangle %u is in no batching point", scene->path, t);
+    for (t = 0; t < m && r == BRT_OK && !instance_may_be_absent(scene); t++)
+        if (!(seen_inst[t >> 3] & (1u << (t & 7))))
+            r = brt_fail(err, BRT_ECHECK, "%s: instance %u is in no batching point", scene->path, t);
     free(seen);
+    free(seen_inst);
     return r;
 }
 
@@ -4472,7 +5548,8 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
         {"shadow_occluded", s->shadow_occluded}, {"shadow_batch_loads", s->shadow_batch_loads},
         {"shadow_disk_bytes_read", s->shadow_disk_bytes_read},
         {"peak_rss_bytes", s->peak_rss_bytes},
-        {"shadow_inner_stopped", s->shadow_inner_stopped}};
+        {"shadow_inner_stopped", s->shadow_inner_stopped},
+        {"prototype_loads", s->prototype_loads}};
     const struct { const char *name; double value; } measures[] = {
         {"seconds", s->seconds}, {"load_seconds", s->load_seconds},
         {"build_seconds", s->build_seconds},
@@ -5011,7 +6088,7 @@ static void use_log_free(use_log *log)
 typedef struct phase_job {
     scheduler *s;
     const uint32_t *slots;
-    const brt_bvh *bvh;
+    const geometry *g;
     brt_result result;          /* of the settling: BRT_ENOMEM from a queue */
 } phase_job;
 
@@ -5024,7 +6101,7 @@ static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
     for (i = first; i < end; i++) {
         ray_slot *r = &s->slots[j->slots[i]];
         w->uses->stamp = (uint64_t)(i + 1) << 32;   /* ray i's uses come after ray i-1's */
-        if (j->bvh) intersect_slot(s, j->bvh, r);
+        if (j->g) intersect_slot(s, j->g, r);
         s->threads->outcome[i] = walk_on(s, w, r);
     }
 }
@@ -5079,7 +6156,7 @@ static void uses_replay(scheduler *s)
 ** pinned, or NO_ENTRY for new rays).  Released before the uses are
 ** replayed, as the plain loop releases it before the walks. */
 static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
-                             const brt_bvh *bvh)
+                             const geometry *g)
 {
     phase_job j;
     unsigned i;
@@ -5087,7 +6164,7 @@ static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count
         cache_read_ahead(&s->cache, (uint32_t)s->fullest.keys[0]);
     j.s = s;
     j.slots = slots;
-    j.bvh = bvh;
+    j.g = g;
     j.result = BRT_OK;
     pool_run(&s->threads->pool, phase_chunk, phase_settle, &j, count, PHASE_CHUNK);
     if (id != NO_ENTRY) cache_release(&s->cache, id);
@@ -5277,7 +6354,8 @@ typedef struct instance_gather {
     brt_world *world;
     const uint32_t *proto_tris;     /* triangles per prototype */
     float *boxes;                   /* 6 per instance of the set */
-    size_t id_cap, proto_cap, frame_cap, box_cap;
+    float *radii;                   /* 1 per instance of the set */
+    size_t id_cap, proto_cap, frame_cap, box_cap, radius_cap;
 } instance_gather;
 
 static brt_result gather_instance(instance_gather *g, const brt_instance *in, uint32_t inst,
@@ -5286,7 +6364,7 @@ static brt_result gather_instance(instance_gather *g, const brt_instance *in, ui
     brt_world *w = g->world;
     instance_set *set = &w->set;
     brt_instance_frame frame;
-    float olo[3], ohi[3], reach;
+    float olo[3], ohi[3];
     brt_result rc;
     int a;
     if (in->prototype >= w->prototype_count)
@@ -5301,17 +6379,16 @@ static brt_result gather_instance(instance_gather *g, const brt_instance *in, ui
         || !(set->frames = brt_grow(set->frames, &g->frame_cap, (size_t)set->count + 1,
                                     sizeof *set->frames))
         || !(g->boxes = brt_grow(g->boxes, &g->box_cap, 6 * ((size_t)set->count + 1),
-                                 sizeof *g->boxes)))
+                                 sizeof *g->boxes))
+        || !(g->radii = brt_grow(g->radii, &g->radius_cap, (size_t)set->count + 1, sizeof *g->radii)))
         return brt_fail(err, BRT_ENOMEM, "out of memory for %u instances", (unsigned)inst + 1);
     brt_bvh_bounds(w->prototypes[in->prototype], olo, ohi);
     brt_instance_bounds(in, &frame, olo, ohi, g->boxes + 6 * (size_t)set->count,
-                        g->boxes + 6 * (size_t)set->count + 3, &reach);
+                        g->boxes + 6 * (size_t)set->count + 3, &g->radii[set->count]);
     for (a = 0; a < 3; a++) {
         if (g->boxes[6 * (size_t)set->count + a] < w->lo[a]) w->lo[a] = g->boxes[6 * (size_t)set->count + a];
         if (g->boxes[6 * (size_t)set->count + 3 + a] > w->hi[a]) w->hi[a] = g->boxes[6 * (size_t)set->count + 3 + a];
     }
-    if (frame.condition > set->condition) set->condition = frame.condition;
-    if (reach > set->reach) set->reach = reach;
     set->ids[set->count] = inst;
     set->prototypes[set->count] = in->prototype;
     set->frames[set->count++] = frame;
@@ -5364,7 +6441,9 @@ static brt_result world_fill(brt_world *w, const brt_scene_source *source, brt_e
     if (rc == BRT_OK && source->instances) rc = source->instances(source->user, gather_instances, &g, err);
     if (rc == BRT_OK && set_build_tree(&w->set, g.boxes) != BRT_OK)
         rc = brt_fail(err, BRT_ENOMEM, "out of memory for the instances' tree");
+    if (rc == BRT_OK) set_fit_margin(&w->set, g.boxes, g.radii);
     free(g.boxes);
+    free(g.radii);
     free(proto_tris);
     return rc;
 }

@@ -166,6 +166,7 @@ int brt_hit_is_closer(float t, uint32_t inst, uint32_t prim, const brt_hit *curr
 typedef struct brt_stats brt_stats;
 typedef struct brt_mesh brt_mesh;
 typedef struct brt_triangle_source brt_triangle_source;
+typedef struct brt_scene_source brt_scene_source;
 
 /* ===================================================================== */
 /* 1. Batched traversal: scene files, tracing, statistics (batchrt.c)   */
@@ -221,6 +222,20 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
                                   const brt_scene_options *opt,
                                   uint64_t source_stamp, const char *scene_path,
                                   brt_error *err);
+
+/* The same for an instanced scene (brt_scene_source): batching points of
+** world triangles as above, every prototype's BVH stored once, and
+** batching points of instances, each at most batch_tris triangles of
+** distinct prototypes (counted once however many instances use them;
+** more only when a point's instances share one prototype larger than
+** that).  A source without prototypes builds brt_scene_build_stream's
+** file of its world triangles, byte for byte.  Instances are checked as
+** brt_world_build checks them.  The build holds the instances (92 bytes
+** each) and the prototypes' BVHs in memory; the world triangles are
+** spilled as above. */
+brt_result brt_scene_build_source(const brt_scene_source *source,
+                                  const brt_scene_options *opt, uint64_t source_stamp,
+                                  const char *scene_path, brt_error *err);
 
 /* A stamp of a mesh file: its size, modification time (to the nanosecond)
 ** and inode, hashed into one number -- what make trusts, plus a file
@@ -412,6 +427,9 @@ struct brt_stats {
                                 ** (programs set it: brt_peak_rss_bytes) */
     uint64_t shadow_inner_stopped;   /* occlusion rays settled occluded by an
                                 ** inner proxy: no queue, no load */
+    uint64_t prototype_loads;   /* loads of a prototype's blob (instanced
+                                ** scenes; counted in disk_bytes_read, not
+                                ** in batch_loads) */
 };
 
 /* Writes the statistics as one JSON object (atomically). */
@@ -520,7 +538,7 @@ typedef brt_result (*brt_instance_fn)(void *user, const brt_instance *instances,
 ** order: the prim of a hit on an instance of it), and the instances.
 ** Nested instances cannot be expressed.  brt_scene_source_of_mesh makes
 ** the source of a plain mesh (no prototypes). */
-typedef struct brt_scene_source {
+struct brt_scene_source {
     brt_triangle_source world;
     uint32_t prototype_count;
     brt_result (*prototype)(const void *user, uint32_t id, brt_triangle_fn emit,
@@ -528,7 +546,7 @@ typedef struct brt_scene_source {
     brt_result (*instances)(const void *user, brt_instance_fn emit,
                             void *emit_user, brt_error *err);
     const void *user;
-} brt_scene_source;
+};
 
 /* ---- Direct mode over an instanced scene: the whole scene in memory ---- */
 /*
@@ -691,6 +709,17 @@ void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
 brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
                              brt_bvh **out, brt_error *err);
 
+/* Visits a BVH's boxes depth first, for voxelizing an instance without
+** visiting every triangle: box(user, lo, hi) gets every slot's decoded box
+** (which holds its triangles' grown boxes, brt_bvh_check); when it returns
+** nonzero, an inner slot's children are visited, and triangle() gets each
+** triangle of a leaf slot. */
+typedef int (*brt_bvh_box_fn)(void *user, const float lo[3], const float hi[3]);
+typedef void (*brt_bvh_corner_fn)(void *user, const float *v0, const float *v1,
+                                  const float *v2);
+void brt_bvh_visit(const brt_bvh *bvh, brt_bvh_box_fn box, brt_bvh_corner_fn triangle,
+                   void *user);
+
 /* ---- Instances: one function carries a ray into a prototype ---------- */
 
 /* What intersection needs of an instance, derived once from its transform
@@ -724,19 +753,21 @@ int brt_instance_occluded(const brt_bvh *prototype,
 
 /* An instance's world box: the 8 corners of the prototype's box
 ** (brt_bvh_bounds) through the transform in double, rounded outwards;
-** and its reach, which the margin below needs: |d| plus the largest
-** distance from d to the box plus a term for underflow (infinity norms,
-** rounded up). */
+** and its radius, which the margin below needs: the largest distance
+** from d to the box plus a term for underflow (infinity norms, rounded
+** up). */
 void brt_instance_bounds(const brt_instance *instance, const brt_instance_frame *frame,
                          const float obj_lo[3], const float obj_hi[3],
-                         float lo[3], float hi[3], float *reach);
+                         float lo[3], float hi[3], float *radius);
 
 /* The margin by which a box of instances grows for one ray so that pruning
 ** stays exact under the rounding of the ray's transform (bvh.c,
-** "Instances", proves the bound): condition and reach are the largest of
-** the boxes' instances.  0 when condition is 0 (no instances), so a plain
-** scene's traversal is unchanged. */
-float brt_instance_margin(float condition, float reach, const brt_ray *ray);
+** "Instances", proves the bound): condition is the largest of the box's
+** instances, and reach, about center, the largest |d - center| + radius.
+** 0 when condition is 0 (no instances), so a plain scene's traversal is
+** unchanged. */
+float brt_instance_margin(float condition, float reach, const float center[3],
+                          const brt_ray *ray);
 
 /* brt_ray_prepare with every box it tests grown by margin >= 0 on all
 ** sides (the origin moved by margin more, which is the same). */
@@ -775,6 +806,17 @@ uint64_t brt_grid_count(const brt_grid *grid);   /* voxels set */
 ** each triangle's bounding box. */
 brt_result brt_voxelize(brt_grid *grid, const float *positions,
                         const uint32_t *indices, uint32_t tri_count);
+
+/* Conservative voxelization of an instance (prototype under an object-to-
+** world xform, brt_instance's layout): marks every voxel whose closed box
+** grown by dilation (world units, >= 0) touches a transformed triangle,
+** descending the prototype's BVH (brt_bvh_visit) and marking the voxels of
+** a whole node box once it is at most one voxel wide, so the work grows
+** with the voxels the instance covers, not with its triangles.  The
+** transform is evaluated in double and is inside the voxelizer's bound
+** (svdag.c, "Instances"). */
+brt_result brt_voxelize_instance(brt_grid *grid, const brt_bvh *prototype,
+                                 const float xform[12], float dilation);
 
 typedef struct brt_svdag brt_svdag;  /* a node pool shared by many proxies */
 

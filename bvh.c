@@ -718,7 +718,11 @@ int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray)
 ** prototype's box B, grown by bvh.c's pads, through the transform in
 ** double, rounded outwards).  How far (infinity norms, u = 2^-24, k =
 ** ||M|| ||M^-1|| <= BRT_MAX_CONDITION = 2^10, R = reach of brt_instance_
-** bounds >= |d| + max |W - d|):
+** reach >= |d - c| + max |W - d|, about a centre c):
+** (Distances from the origin may be taken from any centre c instead:
+** |o - d| <= |o - c| + |d - c|, so a reach of |d - c| + the radius of
+** brt_instance_bounds about c serves, and far from the world's origin a
+** margin stays as small as the instance's neighbourhood.)
 **   1. The rounded object ray differs from the exact one by
 **      |o' - o*| <= (u + 2^-50) ||M^-1|| |o - d| (one rounding to float
 **      plus the double arithmetic), and likewise dir'.
@@ -731,7 +735,7 @@ int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray)
 **      of W, using |M| |B| <= k R and |M| |o'| <= 1.01 k |o - d|; and
 **      t'|dir| = |p - o| <= R + |o - d| + that distance itself.
 **   4. With k u <= 2^-14 this solves to a distance below
-**      68 k u (|o| + R)  <=  margin = 64 FLT_EPSILON k (|o| + R)
+**      68 k u (|o - c| + R)  <=  margin = 64 FLT_EPSILON k (|o - c| + R)
 **      (64 FLT_EPSILON = 128 u: twice the bound, which also covers the
 **      float rounding of the margin itself).
 ** Growing every box of instances by the margin (brt_ray_prepare_margin)
@@ -762,10 +766,15 @@ void brt_ray_prepare_margin(const brt_ray *ray, float margin, brt_ray_prep *prep
     }
 }
 
-float brt_instance_margin(float condition, float reach, const brt_ray *ray)
+float brt_instance_margin(float condition, float reach, const float center[3],
+                          const brt_ray *ray)
 {
+    float far = 0.0f;
+    int a;
     if (condition == 0.0f) return 0.0f;
-    return MARGIN_REL * condition * (max_abs3(ray->org) + reach);
+    for (a = 0; a < 3; a++)
+        if (fabsf(ray->org[a] - center[a]) > far) far = fabsf(ray->org[a] - center[a]);
+    return MARGIN_REL * condition * (far + reach);
 }
 
 static double row_sum(const double *m, int row)
@@ -858,12 +867,12 @@ int brt_instance_occluded(const brt_bvh *prototype, const brt_instance_frame *f,
 
 void brt_instance_bounds(const brt_instance *instance, const brt_instance_frame *f,
                          const float obj_lo[3], const float obj_hi[3],
-                         float lo[3], float hi[3], float *reach)
+                         float lo[3], float hi[3], float *radius)
 {
     double far = 0.0;
     int corner, a;
     for (a = 0; a < 3; a++) { lo[a] = INFINITY; hi[a] = -INFINITY; }
-    if (!(obj_lo[0] <= obj_hi[0])) { *reach = 0.0f; return; }   /* empty prototype */
+    if (!(obj_lo[0] <= obj_hi[0])) { *radius = 0.0f; return; }   /* empty prototype */
     for (corner = 0; corner < 8; corner++) {
         double p[3];
         for (a = 0; a < 3; a++) p[a] = (corner >> a & 1) ? obj_hi[a] : obj_lo[a];
@@ -878,14 +887,42 @@ void brt_instance_bounds(const brt_instance *instance, const brt_instance_frame 
             if (fabs(rel) > far) far = fabs(rel);
         }
     }
-    {
-        double d = fabs(f->translation[0]);
-        if (fabs(f->translation[1]) > d) d = fabs(f->translation[1]);
-        if (fabs(f->translation[2]) > d) d = fabs(f->translation[2]);
-        /* A relative 2^-20 covers the rounding of the box outwards and of
-        ** this sum; the last term is the underflow's (see the margin). */
-        *reach = nextafterf((float)((d + far) * (1.0 + 0x1p-20) + f->norm * 0x1p-100), INFINITY);
+    /* A relative 2^-20 covers the rounding of the box outwards; the last
+    ** term is the underflow's (see the margin). */
+    *radius = nextafterf((float)(far * (1.0 + 0x1p-20) + f->norm * 0x1p-100), INFINITY);
+}
+
+/* ---- visiting the boxes (the proxies of instances, svdag.c) ---- */
+
+/* Depth first over the slots of node (a subtree the caller has accepted).
+** Recursion is bounded: built and opened trees are at most MAX_DEPTH deep. */
+static void visit_node(const brt_bvh *bvh, uint32_t node, brt_bvh_box_fn box,
+                       brt_bvh_corner_fn triangle, void *user)
+{
+    const qnode *n = &bvh->nodes[node];
+    float b[6][4];
+    unsigned i;
+    decode_boxes(n, b);
+    for (i = 0; i < 4; i++) {
+        const float lo[3] = {b[0][i], b[1][i], b[2][i]}, hi[3] = {b[3][i], b[4][i], b[5][i]};
+        uint32_t k;
+        if (n->count[i] == EMPTY_COUNT || !box(user, lo, hi)) continue;
+        if (n->count[i] == 0) {
+            visit_node(bvh, slot_target(n, i), box, triangle, user);
+            continue;
+        }
+        for (k = slot_target(n, i); k < slot_target(n, i) + n->count[i]; k++) {
+            const float *p[3];
+            triangle_corners(bvh, k, n->vertex_base, p);
+            triangle(user, p[0], p[1], p[2]);
+        }
     }
+}
+
+void brt_bvh_visit(const brt_bvh *bvh, brt_bvh_box_fn box, brt_bvh_corner_fn triangle,
+                   void *user)
+{
+    if (bvh->node_count > 0) visit_node(bvh, 0, box, triangle, user);
 }
 
 /* ===================================================================== */

@@ -214,7 +214,7 @@ static const bad_run bad_runs[] = {
     {"trace @/tri.obj @/odd.rays @/b15.hits --batched --scene @/b15.brs", 1,
      "trace: @/odd.rays: size 65 is not a multiple of the 32-byte ray record", "b15.hits"},
     {"trace @/tri.obj @/good.rays @/b16.hits --batched --scene @/version.brs", 1,
-     "trace: @/version.brs: scene file version 2, this build reads version 3 (delete the "
+     "trace: @/version.brs: scene file version 2, this build reads versions 3 and 4 (delete the "
      "file to rebuild it)", "b16.hits"},
     /* option values */
     {"trace @/tri.obj @/good.rays @/b17.hits --res 0", 1,

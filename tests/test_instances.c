@@ -383,56 +383,65 @@ static void test_hit_files(void)
 ** pads, so object-space hits lie outside the instance's world box and
 ** only the margin keeps them.  Rays come from ten units away, mostly
 ** along z, at points around the cube up to a third of its width off it. */
+/* The scene and rays of the margin tests (above): n silhouette rays. */
+static brt_ray *margin_case(tu_instanced *s, uint64_t *st, size_t n)
+{
+    const float ax[3] = {0.6f, 0.0f, 0.8f}, one[3] = {1, 1, 1}, at[3] = {0, 0, 0};
+    float m[12], corner[3] = {0, 0, 0}, best = -INFINITY;
+    brt_ray *rays = malloc(n * sizeof *rays);
+    size_t i;
+    int a, c;
+    memset(s, 0, sizeof *s);
+    adversarial_scene(s, st);   /* for its cube prototype (1) and world */
+    s->instance_count = 0;
+    rotation(m, ax, 0.4f, one, at);
+    for (a = 0; a < 4; a++) m[8 + a] *= 2e-3f;   /* squash the rotated cube in z */
+    tu_add_instance(s, 1, m);
+    for (c = 0; c < 8; c++) {   /* the corner farthest in +x: the silhouette */
+        const float q[3] = {(float)(c & 1), (float)(c >> 1 & 1), (float)(c >> 2 & 1)};
+        float p[3];
+        for (a = 0; a < 3; a++) p[a] = m[4 * a] * q[0] + m[4 * a + 1] * q[1] + m[4 * a + 2] * q[2];
+        if (p[0] > best) { best = p[0]; memcpy(corner, p, sizeof p); }
+    }
+    for (i = 0; rays && i < n; i++) {
+        brt_ray *r = &rays[i];
+        float d[3], target[3];
+        tu_random_unit(st, d);
+        d[0] *= 0.1f;
+        d[1] *= 0.1f;
+        d[2] = d[2] < 0 ? -1.0f : 1.0f;   /* mostly along z */
+        target[0] = corner[0] + tu_rnd(st, -5e-4f, 2e-3f);
+        target[1] = corner[1] + tu_rnd(st, -1e-3f, 1e-3f);
+        target[2] = corner[2];
+        for (a = 0; a < 3; a++) {
+            r->org[a] = target[a] + 40.0f * d[a];
+            r->dir[a] = target[a] - r->org[a];
+        }
+        r->tnear = 0.0f;
+        r->tfar = INFINITY;
+    }
+    return rays;
+}
+
 static void test_margin_keeps_far_rays(void)
 {
+    enum { N = 20000 };
     tu_instanced s;
     brt_scene_source src;
     brt_world *w = NULL;
     brt_error err;
     uint64_t st = test_seed() + 2804;
-    const float ax[3] = {0.6f, 0.0f, 0.8f}, one[3] = {1, 1, 1}, at[3] = {0, 0, 0};
-    float m[12], corner[3] = {0, 0, 0};
+    brt_ray *rays = margin_case(&s, &st, N);
     uint32_t i, hits = 0, bad = 0;
-    int a;
-    memset(&s, 0, sizeof s);
-    adversarial_scene(&s, &st);   /* for its cube prototype (1) */
-    s.instance_count = 0;
-    rotation(m, ax, 0.4f, one, at);
-    for (a = 0; a < 4; a++) m[8 + a] *= 2e-3f;   /* squash the rotated cube in z */
-    tu_add_instance(&s, 1, m);
+    CHECK(rays, "out of memory");
     tu_instanced_source(&s, &src);
     CHECK(brt_world_build(&src, &w, &err) == BRT_OK, "%s", err.message);
-    {   /* the cube's corner farthest in +x: the silhouette the rays graze */
-        float best = -INFINITY;
-        int c;
-        for (c = 0; c < 8; c++) {
-            const float q[3] = {(float)(c & 1), (float)(c >> 1 & 1), (float)(c >> 2 & 1)};
-            float p[3];
-            for (a = 0; a < 3; a++) p[a] = m[4 * a] * q[0] + m[4 * a + 1] * q[1] + m[4 * a + 2] * q[2];
-            if (p[0] > best) { best = p[0]; memcpy(corner, p, sizeof p); }
-        }
-    }
-    for (i = 0; i < 20000; i++) {
-        brt_ray r;
+    for (i = 0; i < N; i++) {
         brt_hit want, got;
-        float d[3], target[3];
-        tu_random_unit(&st, d);
-        d[0] *= 0.1f;
-        d[1] *= 0.1f;
-        d[2] = d[2] < 0 ? -1.0f : 1.0f;   /* mostly along z */
-        target[0] = corner[0] + tu_rnd(&st, -2e-4f, 5e-4f);
-        target[1] = corner[1] + tu_rnd(&st, -1e-3f, 1e-3f);
-        target[2] = corner[2];
-        for (a = 0; a < 3; a++) {
-            r.org[a] = target[a] + 10.0f * d[a];
-            r.dir[a] = target[a] - r.org[a];
-        }
-        r.tnear = 0.0f;
-        r.tfar = INFINITY;
         brt_hit_clear(&want);
         brt_hit_clear(&got);
-        tu_instanced_brute(&s, &r, &want);
-        brt_world_intersect(w, &r, &got, NULL);
+        tu_instanced_brute(&s, &rays[i], &want);
+        brt_world_intersect(w, &rays[i], &got, NULL);
         hits += want.inst == 0;
         if (!same_hit(&want, &got) && bad++ < 3)
             test_fail_at(__FILE__, __LINE__, "ray %u: world t=%a inst %u, brute force t=%a inst %u",
@@ -441,6 +450,43 @@ static void test_margin_keeps_far_rays(void)
     EXPECT(hits > 1000, "only %u rays hit the cube", (unsigned)hits);
     brt_world_free(w);
     tu_instanced_free(&s);
+    free(rays);
+}
+
+/* The same rays batched, at a resolution whose dilation is below their
+** margin: the walk's boxes must grow by the margin, and the proxy must
+** admit such rays untested (proxy_admits); the paper's scheduler asks
+** the proxy at every visit. */
+static void test_batched_margin(void)
+{
+    enum { N = 20000 };
+    tu_instanced s;
+    brt_scene_source src;
+    brt_scene_options so;
+    brt_trace_options opt;
+    brt_world *w = NULL;
+    brt_scene *scene = NULL;
+    brt_error err;
+    uint64_t st = test_seed() + 2804;
+    brt_ray *rays = margin_case(&s, &st, N);
+    brt_hit *want = malloc(N * sizeof *want), *got = malloc(N * sizeof *got);
+    CHECK(rays && want && got, "out of memory");
+    tu_instanced_source(&s, &src);
+    memset(&so, 0, sizeof so);
+    so.batch_tris = 1000;
+    so.proxy_res = 512;
+    CHECK(brt_world_build(&src, &w, &err) == BRT_OK && brt_scene_build_source(&src, &so, 1,
+              tu_scratch("margin.brs"), &err) == BRT_OK &&
+              brt_scene_open(tu_scratch("margin.brs"), &scene, &err) == BRT_OK, "%s", err.message);
+    brt_world_trace(w, rays, NULL, N, want, NULL, 1);
+    memset(&opt, 0, sizeof opt);
+    opt.paper_scheduler = 1;
+    CHECK(brt_scene_trace(scene, &opt, rays, N, got, NULL, &err) == BRT_OK, "%s", err.message);
+    EXPECT(memcmp(want, got, N * sizeof *got) == 0, "batched differs from direct");
+    brt_scene_close(scene);
+    brt_world_free(w);
+    tu_instanced_free(&s);
+    free(rays); free(want); free(got);
 }
 
 /* brt_instance_ray rounds each component once: against long double, the
@@ -485,6 +531,168 @@ static void test_object_ray_rounded_once(void)
     }
 }
 
+/* ===================================================================== */
+/* Batched mode (issue 28, part 2)                                       */
+/* ===================================================================== */
+
+/* Builds and opens the scene file of an instanced scene. */
+static brt_scene *build_instanced(const tu_instanced *s, uint32_t batch_tris, const char *name)
+{
+    brt_scene_source src;
+    brt_scene_options opt;
+    brt_scene *scene = NULL;
+    brt_error err;
+    memset(&opt, 0, sizeof opt);
+    opt.batch_tris = batch_tris;
+    opt.proxy_res = 32;
+    tu_instanced_source(s, &src);
+    if (brt_scene_build_source(&src, &opt, 7, tu_scratch(name), &err) != BRT_OK ||
+        brt_scene_open(tu_scratch(name), &scene, &err) != BRT_OK)
+        test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
+    return scene;
+}
+
+/* Rays for the batched tests: ray_at every instance and the world. */
+static brt_ray *instanced_rays(const tu_instanced *s, uint64_t *st, size_t n)
+{
+    brt_ray *rays = malloc(n * sizeof *rays);
+    const uint32_t targets = s->instance_count + (s->world.tcount > 0);
+    size_t i;
+    for (i = 0; rays && i < n; i++) ray_at(s, (uint32_t)(i % targets), st, &rays[i]);
+    return rays;
+}
+
+/* Batched == direct byte for byte over batch sizes, memory limits,
+** proxies on and off, both schedulers and 1, 2 and 7 threads; the
+** partition checker passes and culls happen (the proxies are asked). */
+static void test_batched_equals_direct(void)
+{
+    enum { N = 4000 };
+    static const uint32_t sizes[] = {40, 400, 100000};
+    tu_instanced s;
+    brt_scene_source src;
+    brt_world *w = NULL;
+    brt_error err;
+    uint64_t st = test_seed() + 2810, culled = 0;
+    brt_ray *rays;
+    brt_hit *want = malloc(N * sizeof *want), *got = malloc(N * sizeof *got);
+    size_t z;
+    adversarial_scene(&s, &st);
+    rays = instanced_rays(&s, &st, N);
+    CHECK(rays && want && got, "out of memory");
+    tu_instanced_source(&s, &src);
+    CHECK(brt_world_build(&src, &w, &err) == BRT_OK, "%s", err.message);
+    brt_world_trace(w, rays, NULL, N, want, NULL, 1);
+    for (z = 0; z < sizeof sizes / sizeof sizes[0]; z++) {
+        brt_scene *scene = build_instanced(&s, sizes[z], "inst.brs");
+        int variant;
+        if (!scene) break;
+        EXPECT(brt_scene_check_partition(scene, sizes[z], &err) == BRT_OK, "batch %u: %s",
+               (unsigned)sizes[z], err.message);
+        for (variant = 0; variant < 12; variant++) {
+            brt_trace_options opt;
+            brt_stats stats;
+            static const unsigned threads[3] = {1, 2, 7};
+            memset(&opt, 0, sizeof opt);
+            opt.memory_limit = variant % 3 == 0 ? 0 : variant % 3 == 1 ? 16384 : 200000;
+            opt.no_proxy = variant % 4 == 3;
+            opt.paper_scheduler = variant % 2;
+            opt.threads = threads[variant % 3 == 0 ? (unsigned)variant / 3 % 3 : (unsigned)variant % 3];
+            opt.rays_in_flight = 256;
+            if (brt_scene_trace(scene, &opt, rays, N, got, &stats, &err) != BRT_OK) {
+                test_fail_at(__FILE__, __LINE__, "batch %u variant %d: %s", (unsigned)sizes[z], variant,
+                             err.message);
+                break;
+            }
+            culled += stats.proxy_culled;
+            if (memcmp(want, got, N * sizeof *got) != 0) {
+                size_t i;
+                for (i = 0; i < N && !memcmp(&want[i], &got[i], sizeof *got); i++) {}
+                test_fail_at(__FILE__, __LINE__, "batch %u variant %d ray %zu: batched t=%a inst %u "
+                             "prim %u, direct t=%a inst %u prim %u", (unsigned)sizes[z], variant, i,
+                             got[i].t, (unsigned)got[i].inst, (unsigned)got[i].prim, want[i].t,
+                             (unsigned)want[i].inst, (unsigned)want[i].prim);
+                break;
+            }
+        }
+        brt_scene_close(scene);
+    }
+    EXPECT(culled > 1000, "only %llu proxy culls: the proxies were hardly asked",
+           (unsigned long long)culled);
+    brt_world_free(w);
+    tu_instanced_free(&s);
+    free(rays); free(want); free(got);
+}
+
+/* A prototype's blob is read once however many points use it (no
+** limit), prototype_loads counts it, and a point of instances holds at
+** most batch_tris triangles of distinct prototypes, unless it uses one. */
+static void test_prototypes_loaded_once(void)
+{
+    enum { N = 3000 };
+    tu_instanced s;
+    brt_scene *scene;
+    brt_trace_options opt;
+    brt_stats stats;
+    brt_error err;
+    uint64_t st = test_seed() + 2811;
+    brt_ray *rays;
+    brt_hit *hits = malloc(N * sizeof *hits);
+    adversarial_scene(&s, &st);
+    rays = instanced_rays(&s, &st, N);
+    scene = build_instanced(&s, 40, "once.brs");
+    CHECK(scene && rays && hits, "set-up");
+    EXPECT(brt_scene_batch_count(scene) > 8, "only %u batching points", brt_scene_batch_count(scene));
+    memset(&opt, 0, sizeof opt);
+    CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &stats, &err) == BRT_OK, "%s", err.message);
+    EXPECT(stats.prototype_loads == 3, "%llu prototype loads for 3 prototypes and no limit",
+           (unsigned long long)stats.prototype_loads);
+    opt.memory_limit = 8192;
+    CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &stats, &err) == BRT_OK, "%s", err.message);
+    EXPECT(stats.prototype_loads > 3, "a tight limit reloads prototypes: %llu loads",
+           (unsigned long long)stats.prototype_loads);
+    brt_scene_close(scene);
+    tu_instanced_free(&s);
+    free(rays);
+    free(hits);
+}
+
+/* The exact test of the proxies: with --exact-proxy every point's culls
+** are exact, and a voxel proxy culls no ray the exact test keeps (it
+** errs only towards "may hit"), counted over a scene whose points are
+** instances only, so that every cull is an instance point's. */
+static void test_proxy_culls_are_exact(void)
+{
+    enum { N = 4000 };
+    tu_instanced s;
+    brt_scene *scene;
+    brt_trace_options opt;
+    brt_stats voxel, exact;
+    brt_error err;
+    uint64_t st = test_seed() + 2812;
+    brt_ray *rays;
+    brt_hit *a = malloc(N * sizeof *a), *b = malloc(N * sizeof *b);
+    adversarial_scene(&s, &st);
+    tu_scene_free(&s.world);        /* instances only */
+    rays = instanced_rays(&s, &st, N);
+    scene = build_instanced(&s, 40, "exact.brs");
+    CHECK(scene && rays && a && b, "set-up");
+    memset(&opt, 0, sizeof opt);
+    opt.paper_scheduler = 1;        /* every visit consults the proxy */
+    CHECK(brt_scene_trace(scene, &opt, rays, N, a, &voxel, &err) == BRT_OK, "%s", err.message);
+    opt.exact_proxies = 1;
+    CHECK(brt_scene_trace(scene, &opt, rays, N, b, &exact, &err) == BRT_OK, "%s", err.message);
+    EXPECT(memcmp(a, b, N * sizeof *a) == 0, "exact and voxel proxies give different hits");
+    EXPECT(voxel.proxy_culled > 0 && voxel.proxy_culled <= exact.proxy_culled &&
+               exact.proxy_tests >= exact.proxy_culled,
+           "voxel proxies culled %llu of %llu, exact %llu of %llu",
+           (unsigned long long)voxel.proxy_culled, (unsigned long long)voxel.proxy_tests,
+           (unsigned long long)exact.proxy_culled, (unsigned long long)exact.proxy_tests);
+    brt_scene_close(scene);
+    tu_instanced_free(&s);
+    free(rays); free(a); free(b);
+}
+
 void suite_instances(void)
 {
     test_run("instances: direct equals brute force on adversarial transforms",
@@ -496,4 +704,9 @@ void suite_instances(void)
     test_run("instances: the object ray is rounded once", test_object_ray_rounded_once);
     test_run("instances: bad instances refused, naming the instance", test_bad_instances);
     test_run("instances: instanced hit files", test_hit_files);
+    test_run("instances: batched equals direct over sizes, limits, proxies, threads",
+             test_batched_equals_direct);
+    test_run("instances: a prototype is read once", test_prototypes_loaded_once);
+    test_run("instances: batched margin: far rays keep their hits", test_batched_margin);
+    test_run("instances: proxy culls within the exact test's", test_proxy_culls_are_exact);
 }
