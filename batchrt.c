@@ -4093,21 +4093,24 @@ void brt_hit_clear(brt_hit *hit)
     hit->t = INFINITY;
     hit->prim = BRT_NO_PRIM;
     hit->u = hit->v = 0.0f;
+    hit->inst = BRT_NO_INST;
 }
 
-int brt_hit_is_closer(float t, uint32_t prim, const brt_hit *current)
+int brt_hit_is_closer(float t, uint32_t inst, uint32_t prim, const brt_hit *current)
 {
-    return t < current->t || (t == current->t && prim < current->prim);
+    if (t != current->t) return t < current->t;
+    return inst < current->inst || (inst == current->inst && prim < current->prim);
 }
 
 /*
 ** Ray and hit files are arrays of little-endian 32-bit words (floats as
-** their IEEE bit patterns, prim as an integer), so one pair of word
-** converters serves both record types on any host byte order.  Both
-** structs are exactly their records, with no padding:
+** their IEEE bit patterns, prim and inst as integers), so one pair of word
+** converters serves every record type on any host byte order.  A ray is
+** exactly its record, and a hit exactly the long (instanced) record; the
+** short hit record is its first four words.
 */
 typedef char brt_ray_is_its_record[sizeof(brt_ray) == BRT_RAY_BYTES ? 1 : -1];
-typedef char brt_hit_is_its_record[sizeof(brt_hit) == BRT_HIT_BYTES ? 1 : -1];
+typedef char brt_hit_is_its_record[sizeof(brt_hit) == BRT_INST_HIT_BYTES ? 1 : -1];
 
 /* Little-endian words to host words, in place. */
 static void words_from_le(void *buffer, size_t words)
@@ -4131,36 +4134,44 @@ static void words_to_le(const void *source, unsigned char *le, size_t words)
     }
 }
 
-static brt_result read_records(const char *path, size_t record_bytes, const char *what,
-                               void **records, size_t *count, brt_error *err)
+/* The header of an instanced hit file (batchrt.h, section 3): its first
+** word is a NaN, which no hit's t is, so it never begins a short file. */
+#define INST_HITS_MAGIC 0x7FB1A5E5u
+#define INST_HITS_HEADER 16
+
+static void inst_hits_header(unsigned char h[INST_HITS_HEADER])
+{
+    brt_put_le32(h, INST_HITS_MAGIC);
+    memcpy(h + 4, "INST", 4);
+    brt_put_le32(h + 8, 1);
+    brt_put_le32(h + 12, BRT_INST_HIT_BYTES);
+}
+
+/* The whole file into a malloc'd buffer (+ 1 byte, so an empty file is
+** not a NULL buffer). */
+static brt_result read_whole(const char *path, unsigned char **data, size_t *size,
+                             brt_error *err)
 {
     struct stat st;
     unsigned char *buffer;
-    size_t size, done = 0;
+    size_t done = 0;
     int fd = open(path, O_RDONLY);
-    *records = NULL;
-    *count = 0;
+    *data = NULL;
+    *size = 0;
     if (fd < 0) return brt_fail(err, BRT_EIO, "%s: cannot open: %s", path, strerror(errno));
     if (fstat(fd, &st) != 0) {
         int saved = errno;
         close(fd);
         return brt_fail(err, BRT_EIO, "%s: cannot stat: %s", path, strerror(saved));
     }
-    if ((uint64_t)st.st_size % record_bytes != 0) {
-        close(fd);
-        return brt_fail(err, BRT_EPARSE,
-                        "%s: size %llu is not a multiple of the %zu-byte %s record",
-                        path, (unsigned long long)st.st_size, record_bytes, what);
-    }
-    size = (size_t)st.st_size;
-    buffer = ((uint64_t)st.st_size == size) ? malloc(size ? size : 1) : NULL;
+    buffer = ((uint64_t)st.st_size == (size_t)st.st_size) ? malloc((size_t)st.st_size + 1) : NULL;
     if (!buffer) {
         close(fd);
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory for %llu bytes", path,
                         (unsigned long long)st.st_size);
     }
-    while (done < size) {
-        ssize_t n = read(fd, buffer + done, size - done);
+    while (done < (size_t)st.st_size) {
+        ssize_t n = read(fd, buffer + done, (size_t)st.st_size - done);
         if (n < 0 && errno == EINTR) continue;
         if (n <= 0) {
             int saved = n < 0 ? errno : EIO;
@@ -4172,23 +4183,66 @@ static brt_result read_records(const char *path, size_t record_bytes, const char
         done += (size_t)n;
     }
     close(fd);
-    words_from_le(buffer, size / 4);
-    *records = buffer;
-    *count = size / record_bytes;
+    *data = buffer;
+    *size = done;
     return BRT_OK;
 }
 
-static brt_result write_records(const char *path, const void *records, size_t count,
-                                size_t record_bytes, brt_error *err)
+/* Unpacks size bytes of records of record_bytes into host structs of
+** struct_bytes each (a prefix of the struct; the rest set by the caller). */
+static brt_result unpack_records(const char *path, const unsigned char *le, size_t size,
+                                 size_t record_bytes, size_t struct_bytes, const char *what,
+                                 void **records, size_t *count, brt_error *err)
+{
+    unsigned char *out;
+    size_t i, n = size / record_bytes;
+    if (size % record_bytes != 0)
+        return brt_fail(err, BRT_EPARSE,
+                        "%s: size %zu is not a multiple of the %zu-byte %s record",
+                        path, size, record_bytes, what);
+    out = malloc(n ? n * struct_bytes : 1);
+    if (!out) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", path);
+    for (i = 0; i < n; i++) {
+        memcpy(out + i * struct_bytes, le + i * record_bytes, record_bytes);
+        words_from_le(out + i * struct_bytes, record_bytes / 4);
+    }
+    *records = out;
+    *count = n;
+    return BRT_OK;
+}
+
+static brt_result read_records(const char *path, size_t record_bytes, const char *what,
+                               void **records, size_t *count, brt_error *err)
+{
+    unsigned char *data;
+    size_t size;
+    brt_result rc = read_whole(path, &data, &size, err);
+    *records = NULL;
+    *count = 0;
+    if (rc != BRT_OK) return rc;
+    rc = unpack_records(path, data, size, record_bytes, record_bytes, what, records, count, err);
+    free(data);
+    return rc;
+}
+
+/* Writes header (header_bytes, may be 0) and count records: the first
+** record_bytes of each struct_bytes-long struct, as little-endian words. */
+static brt_result write_records(const char *path, const unsigned char *header,
+                                size_t header_bytes, const void *records, size_t count,
+                                size_t struct_bytes, size_t record_bytes, brt_error *err)
 {
     unsigned char *le;
     brt_result rc;
-    if (count > SIZE_MAX / record_bytes)
+    size_t i;
+    if (count > (SIZE_MAX - header_bytes) / record_bytes)
         return brt_fail(err, BRT_EARG, "%s: too many records", path);
-    le = malloc(count ? count * record_bytes : 1);
+    le = malloc(header_bytes + count * record_bytes + 1);
     if (!le) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", path);
-    words_to_le(records, le, count * record_bytes / 4);
-    rc = brt_write_file_atomic(path, le, count * record_bytes, err);
+    if (header_bytes) memcpy(le, header, header_bytes);
+    for (i = 0; i < count; i++)
+        words_to_le((const unsigned char *)records + i * struct_bytes,
+                    le + header_bytes + i * record_bytes, record_bytes / 4);
+    rc = brt_write_file_atomic(path, le, header_bytes + count * record_bytes, err);
     free(le);
     return rc;
 }
@@ -4203,20 +4257,58 @@ brt_result brt_rays_read(const char *path, brt_ray **rays, size_t *count, brt_er
 
 brt_result brt_rays_write(const char *path, const brt_ray *rays, size_t count, brt_error *err)
 {
-    return write_records(path, rays, count, BRT_RAY_BYTES, err);
+    return write_records(path, NULL, 0, rays, count, BRT_RAY_BYTES, BRT_RAY_BYTES, err);
 }
 
-brt_result brt_hits_read(const char *path, brt_hit **hits, size_t *count, brt_error *err)
+brt_result brt_hits_read(const char *path, brt_hit **hits, size_t *count, int *instanced,
+                         brt_error *err)
 {
-    void *records;
-    brt_result rc = read_records(path, BRT_HIT_BYTES, "hit", &records, count, err);
+    unsigned char *data, header[INST_HITS_HEADER];
+    size_t size, i;
+    void *records = NULL;
+    int long_form;
+    brt_result rc = read_whole(path, &data, &size, err);
+    *hits = NULL;
+    *count = 0;
+    if (rc != BRT_OK) return rc;
+    inst_hits_header(header);
+    long_form = size >= 4 && brt_get_le32(data) == INST_HITS_MAGIC;
+    if (long_form && (size < INST_HITS_HEADER || memcmp(data, header, INST_HITS_HEADER) != 0))
+        rc = brt_fail(err, BRT_EPARSE, "%s: bad instanced hit file header", path);
+    else if (long_form)
+        rc = unpack_records(path, data + INST_HITS_HEADER, size - INST_HITS_HEADER,
+                            BRT_INST_HIT_BYTES, sizeof(brt_hit), "instanced hit", &records,
+                            count, err);
+    else
+        rc = unpack_records(path, data, size, BRT_HIT_BYTES, sizeof(brt_hit), "hit", &records,
+                            count, err);
+    free(data);
+    if (rc != BRT_OK) return rc;
     *hits = records;
-    return rc;
+    if (!long_form)
+        for (i = 0; i < *count; i++) (*hits)[i].inst = BRT_NO_INST;
+    if (instanced) *instanced = long_form;
+    return BRT_OK;
 }
 
 brt_result brt_hits_write(const char *path, const brt_hit *hits, size_t count, brt_error *err)
 {
-    return write_records(path, hits, count, BRT_HIT_BYTES, err);
+    size_t i;
+    for (i = 0; i < count; i++)
+        if (hits[i].inst != BRT_NO_INST)
+            return brt_fail(err, BRT_EARG,
+                            "%s: hit %zu names instance %u: an instanced hit file is needed",
+                            path, i, (unsigned)hits[i].inst);
+    return write_records(path, NULL, 0, hits, count, sizeof(brt_hit), BRT_HIT_BYTES, err);
+}
+
+brt_result brt_hits_write_instanced(const char *path, const brt_hit *hits, size_t count,
+                                    brt_error *err)
+{
+    unsigned char header[INST_HITS_HEADER];
+    inst_hits_header(header);
+    return write_records(path, header, INST_HITS_HEADER, hits, count, sizeof(brt_hit),
+                         BRT_INST_HIT_BYTES, err);
 }
 
 /* ===================================================================== */

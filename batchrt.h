@@ -71,10 +71,13 @@
 ** RAY AND HIT RECORDS (the file formats; see README.md)
 **   ray: float ox,oy,oz, dx,dy,dz, tnear,tfar         (32 bytes)
 **   hit: float t; uint32 prim; float u,v               (16 bytes)
+**   instanced hit file: a 16-byte header, then per hit
+**        float t; uint32 prim; float u,v; uint32 inst  (20 bytes)
 **   A hit counts when tnear <= t <= tfar.  The closest hit wins; among
-**   equal t the lowest prim wins, so every traversal order writes the same
-**   bytes.  A miss is t=+inf, prim=0xFFFFFFFF, u=v=0.  Barycentrics follow
-**   Embree: hit point = (1-u-v)*v0 + u*v1 + v*v2.
+**   equal t the lowest (inst, prim) wins, so every traversal order writes
+**   the same bytes.  A miss is t=+inf, prim=inst=0xFFFFFFFF, u=v=0.
+**   Barycentrics follow Embree: hit point = (1-u-v)*v0 + u*v1 + v*v2, in
+**   the prototype's object space for an instance.
 */
 #ifndef BATCHRT_H
 #define BATCHRT_H
@@ -131,13 +134,18 @@ typedef struct brt_ray {
 
 typedef struct brt_hit {
     float t;        /* +inf on a miss */
-    uint32_t prim;  /* BRT_NO_PRIM on a miss */
+    uint32_t prim;  /* BRT_NO_PRIM on a miss; a world triangle's number, or
+                    ** the triangle's number within inst's prototype */
     float u, v;     /* 0 on a miss */
+    uint32_t inst;  /* the instance hit (Embree's instID); BRT_NO_INST for
+                    ** a world triangle and on a miss */
 } brt_hit;
 
 #define BRT_NO_PRIM 0xFFFFFFFFu
+#define BRT_NO_INST 0xFFFFFFFFu
 #define BRT_RAY_BYTES 32
-#define BRT_HIT_BYTES 16
+#define BRT_HIT_BYTES 16        /* a hit record without the instance */
+#define BRT_INST_HIT_BYTES 20   /* a hit record of an instanced hit file */
 
 /* The one ray-validity rule: nonzero when org and dir are finite, dir is
 ** not zero and tnear <= tfar (false for a NaN).  The BVH and the batched
@@ -148,9 +156,10 @@ int brt_ray_valid(const brt_ray *ray);
 /* Sets a hit to the miss record. */
 void brt_hit_clear(brt_hit *hit);
 
-/* The one ordering rule of closest hits: nonzero when a hit at (t, prim)
-** beats the current one (smaller t; equal t and lower prim). */
-int brt_hit_is_closer(float t, uint32_t prim, const brt_hit *current);
+/* The one ordering rule of closest hits: nonzero when a hit at (t, inst,
+** prim) beats the current one: smaller t; at equal t the lower instance
+** (a world triangle's BRT_NO_INST is the highest), then the lower prim. */
+int brt_hit_is_closer(float t, uint32_t inst, uint32_t prim, const brt_hit *current);
 
 /* Taken by the batched API, defined further on: a trace's statistics at
 ** the end of section 1, meshes and triangle sources in section 2. */
@@ -475,21 +484,108 @@ brt_result brt_mesh_stream(const char *path, brt_triangle_fn emit,
 void brt_mesh_file_source(const char *path, brt_triangle_source *source);
 void brt_mesh_memory_source(const brt_mesh *mesh, brt_triangle_source *source);
 
+/* ---- Instanced scenes: world triangles plus instances of prototypes ---- */
+/*
+** An instance places a prototype (a triangle mesh in its own object space)
+** in the world with an affine transform, object to world.  One level
+** only: a prototype holds triangles, never instances.  A ray meets an
+** instance as in Embree: the ray is carried into object space
+** (brt_instance_ray), the watertight test runs there, and t stays the
+** world ray's parameter (the transform is affine, so it is the same
+** parameter; the hit is the object-space test's t, bit for bit).
+*/
+typedef struct brt_instance {
+    uint32_t prototype;
+    /* Object to world, row-major 3x4 (Embree's FLOAT3X4_ROW_MAJOR):
+    ** world = M p + d with M's rows xform[0..2], xform[4..6], xform[8..10]
+    ** and d = (xform[3], xform[7], xform[11]). */
+    float xform[12];
+} brt_instance;
+
+/* The largest condition number ||M|| ||M^-1|| (infinity norms) an
+** instance's transform may have: the rounding bounds of the ray's transform
+** (bvh.c, "Instances") grow with it, and beyond this they stop being
+** useful.  Mirrors, shears and scales are all allowed within it. */
+#define BRT_MAX_CONDITION 1024.0
+
+/* Instances in chunks, in file order: first is the number of the chunk's
+** first instance (instances are numbered 0, 1, ... as triangles are). */
+typedef brt_result (*brt_instance_fn)(void *user, const brt_instance *instances,
+                                      uint32_t count, uint32_t first,
+                                      brt_error *err);
+
+/* A scene as streams, like brt_triangle_source, run as often as a build
+** needs: world triangles (world.run may be NULL: none), prototype_count
+** prototypes whose triangles prototype() streams (numbered from 0 in its
+** order: the prim of a hit on an instance of it), and the instances.
+** Nested instances cannot be expressed.  brt_scene_source_of_mesh makes
+** the source of a plain mesh (no prototypes). */
+typedef struct brt_scene_source {
+    brt_triangle_source world;
+    uint32_t prototype_count;
+    brt_result (*prototype)(const void *user, uint32_t id, brt_triangle_fn emit,
+                            void *emit_user, brt_error *err);
+    brt_result (*instances)(const void *user, brt_instance_fn emit,
+                            void *emit_user, brt_error *err);
+    const void *user;
+} brt_scene_source;
+
+/* ---- Direct mode over an instanced scene: the whole scene in memory ---- */
+/*
+** A world is what --direct traces: one triangle BVH over the world
+** triangles, one per prototype, and a BVH over the instances' world boxes
+** (bvh.c, "Instances").  It is the reference the batched mode of an
+** instanced scene matches byte for byte.  Building checks every instance:
+** a prototype id out of range, a non-finite or singular transform, or one
+** whose condition number exceeds BRT_MAX_CONDITION is BRT_EARG naming the
+** instance ("instance 12: ...").
+*/
+typedef struct brt_world brt_world;
+brt_result brt_world_build(const brt_scene_source *source, brt_world **out,
+                           brt_error *err);
+void brt_world_free(brt_world *world);
+/* brt_bvh_intersect_normal's contract over the world (normal may be NULL;
+** an instance's normal is its world triangle's (v1-v0) x (v2-v0)). */
+void brt_world_intersect(const brt_world *world, const brt_ray *ray,
+                         brt_hit *hit, float normal[3]);
+int brt_world_occluded(const brt_world *world, const brt_ray *ray);
+/* brt_bvh_trace's contract over the world. */
+void brt_world_trace(const brt_world *world, const brt_ray *rays,
+                     const uint64_t *tags, size_t count, brt_hit *hits,
+                     float *normals, unsigned threads);
+uint32_t brt_world_instance_count(const brt_world *world);
+uint32_t brt_world_prototype_count(const brt_world *world);
+/* Unique triangles (world and prototypes, each once) and instanced ones
+** (world triangles plus every instance's prototype triangles). */
+uint64_t brt_world_unique_triangles(const brt_world *world);
+uint64_t brt_world_instanced_triangles(const brt_world *world);
+void brt_world_bounds(const brt_world *world, float bmin[3], float bmax[3]);
+
 /* ===================================================================== */
 /* 3. Ray and hit files (batchrt.c)                                      */
 /* ===================================================================== */
 
-/* Little-endian files of records with no header.  Reading a file whose
-** size is not a multiple of the record size is BRT_EPARSE.  Writing goes
-** through brt_write_file_atomic.  *rays / *hits are malloc'd (free()). */
+/* Little-endian files of records.  Ray files and the hit files of scenes
+** without instances have no header; an instanced hit file starts with the
+** 16-byte header le32 0x7FB1A5E5 (a NaN, which no hit's t ever is, so the
+** two forms cannot be confused), "INST", le32 1 (version), le32 20 (record
+** bytes), then 20-byte records.  Reading a file whose size does not fit
+** its form is BRT_EPARSE; brt_hits_read reads either form (*instanced,
+** when not NULL, says which; a short record's inst is BRT_NO_INST).
+** brt_hits_write writes the short form and refuses (BRT_EARG) a hit that
+** names an instance; brt_hits_write_instanced writes the long form.
+** Writing goes through brt_write_file_atomic.  *rays / *hits are
+** malloc'd (free()). */
 brt_result brt_rays_read(const char *path, brt_ray **rays, size_t *count,
                          brt_error *err);
 brt_result brt_rays_write(const char *path, const brt_ray *rays, size_t count,
                           brt_error *err);
 brt_result brt_hits_read(const char *path, brt_hit **hits, size_t *count,
-                         brt_error *err);
+                         int *instanced, brt_error *err);
 brt_result brt_hits_write(const char *path, const brt_hit *hits, size_t count,
                           brt_error *err);
+brt_result brt_hits_write_instanced(const char *path, const brt_hit *hits,
+                                    size_t count, brt_error *err);
 
 /* ===================================================================== */
 /* 4. Ray/triangle test, ray/box test and triangle BVH (bvh.c)           */
@@ -594,6 +690,52 @@ size_t brt_bvh_blob_size(const brt_bvh *bvh);
 void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
 brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
                              brt_bvh **out, brt_error *err);
+
+/* ---- Instances: one function carries a ray into a prototype ---------- */
+
+/* What intersection needs of an instance, derived once from its transform
+** by brt_instance_frame_init (which checks it: finite, non-singular,
+** condition number at most BRT_MAX_CONDITION; else BRT_EARG naming
+** instance number inst). */
+typedef struct brt_instance_frame {
+    double inverse[12];   /* world to object, row-major 3x4 like xform */
+    float cofactor[9];    /* det(M) M^-T, row-major: world normals */
+    float condition;      /* ||M|| ||M^-1||, infinity norms */
+} brt_instance_frame;
+
+brt_result brt_instance_frame_init(const brt_instance *instance, uint32_t inst,
+                                   brt_instance_frame *frame, brt_error *err);
+
+/* The world ray in object space: origin and direction through the inverse
+** in double, each rounded once to float; tnear and tfar unchanged. */
+void brt_instance_ray(const brt_instance_frame *frame, const brt_ray *ray,
+                      brt_ray *object_ray);
+
+/* The one instance intersection of every mode: brt_bvh_intersect_normal
+** of the prototype's BVH with the object ray, the hit naming inst (normal
+** may be NULL; it becomes the world normal). */
+void brt_instance_intersect(const brt_bvh *prototype,
+                            const brt_instance_frame *frame, uint32_t inst,
+                            const brt_ray *ray, brt_hit *hit, float normal[3]);
+int brt_instance_occluded(const brt_bvh *prototype,
+                          const brt_instance_frame *frame, const brt_ray *ray);
+
+/* An instance's world box: the 8 corners of the prototype's box
+** (brt_bvh_bounds) through the transform in double, rounded outwards. */
+void brt_instance_bounds(const brt_instance *instance, const float obj_lo[3],
+                         const float obj_hi[3], float lo[3], float hi[3]);
+
+/* The margin by which a box of instances grows for one ray so that pruning
+** stays exact under the rounding of the ray's transform (bvh.c,
+** "Instances", proves the bound): condition is the largest of the boxes'
+** instances and reach bounds |d| + the distance from d to any point of
+** the instance's world box (infinity norms).  0 when condition is 0 (no
+** instances): a plain scene's traversal is unchanged. */
+float brt_instance_margin(float condition, float reach, const brt_ray *ray);
+
+/* brt_ray_prepare with every box it tests grown by margin >= 0 on all
+** sides (the origin moved by margin more, which is the same). */
+void brt_ray_prepare_margin(const brt_ray *ray, float margin, brt_ray_prep *prep);
 
 /* ===================================================================== */
 /* 5. Voxel proxies: voxelizer, shared DAG, ray cast (svdag.c)           */

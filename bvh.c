@@ -627,7 +627,7 @@ static void triangle_normal(const float *const p[3], float n[3])
 ** hit.  Empty slots are masked out.  The tree is checked acyclic with
 ** depth <= MAX_DEPTH at build/open time, so each node is entered at most
 ** once and the stack (3 entries per level) never overflows. */
-static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
+static int traverse(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst, brt_hit *hit,
                     float normal[3], int any)
 {
     stack_entry stack[STACK_SIZE], cur;
@@ -664,11 +664,12 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
             if (!tri_intersect(&tr, &prep, p[0], p[1], p[2], ray->tnear, tfar, &t, &u, &v))
                 continue;
             if (any) return 1;
-            if (brt_hit_is_closer(t, bvh->prim[k], hit)) {
+            if (brt_hit_is_closer(t, inst, bvh->prim[k], hit)) {
                 hit->t = t;
                 hit->prim = bvh->prim[k];
                 hit->u = u;
                 hit->v = v;
+                hit->inst = inst;
                 tfar = t;
                 if (normal) triangle_normal(p, normal);
             }
@@ -683,18 +684,18 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit,
 
 void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit)
 {
-    traverse(bvh, ray, hit, NULL, 0);
+    traverse(bvh, ray, BRT_NO_INST, hit, NULL, 0);
 }
 
 void brt_bvh_intersect_normal(const brt_bvh *bvh, const brt_ray *ray,
                               brt_hit *hit, float normal[3])
 {
-    traverse(bvh, ray, hit, normal, 0);
+    traverse(bvh, ray, BRT_NO_INST, hit, normal, 0);
 }
 
 int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray)
 {
-    return traverse(bvh, ray, NULL, NULL, 1);
+    return traverse(bvh, ray, BRT_NO_INST, NULL, NULL, 1);
 }
 
 /* ===================================================================== */

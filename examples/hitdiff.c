@@ -469,8 +469,8 @@ int main(int argc, char **argv)
     if (occlusion && run.mesh_path) return occlusion_referee_main(&run, path_a, path_b);
     if (occlusion) return occlusion_main(path_a, path_b, max_disagree);
 
-    ex_check(prog, brt_hits_read(path_a, &a, &count_a, &err), &err);
-    ex_check(prog, brt_hits_read(path_b, &b, &count_b, &err), &err);
+    ex_check(prog, brt_hits_read(path_a, &a, &count_a, NULL, &err), &err);
+    ex_check(prog, brt_hits_read(path_b, &b, &count_b, NULL, &err), &err);
     if (!same_count(path_a, count_a, path_b, count_b)) {
         free(a);
         free(b);

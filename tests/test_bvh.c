@@ -1241,7 +1241,7 @@ static void test_blob(void)
                 EXPECT(h.prim < s.tcount &&
                        brt_intersect_triangle(&ray, tu_vertex(&s, h.prim, 0), tu_vertex(&s, h.prim, 1),
                                               tu_vertex(&s, h.prim, 2), &t, &u, &v) &&
-                       t == h.t && u == h.u && v == h.v && !brt_hit_is_closer(h.t, h.prim, &want),
+                       t == h.t && u == h.u && v == h.v && !brt_hit_is_closer(h.t, h.inst, h.prim, &want),
                        "damaged byte %zu: hit t=%a prim %u is not a hit of that triangle, or beats "
                        "brute force (t=%a prim %u)", at, h.t, (unsigned)h.prim, want.t, (unsigned)want.prim);
             }

@@ -84,7 +84,7 @@ static brt_hit *read_hits(const char *path, size_t count)
     brt_hit *hits;
     size_t n;
     brt_error err;
-    if (brt_hits_read(path, &hits, &n, &err) != BRT_OK) {
+    if (brt_hits_read(path, &hits, &n, NULL, &err) != BRT_OK) {
         test_fail_at(__FILE__, __LINE__, "%s", err.message);
         return NULL;
     }

@@ -1017,7 +1017,10 @@ static void test_io_hits_round_trip(void)
     brt_error err;
     CHECK(words && expected && hits, "out of memory");
     for (i = 0; i < N * 4; i++) words[i] = (uint32_t)brt_random_u64(&seed);
-    for (i = 0; i < N; i++) memcpy(&hits[i], words + 4 * i, 16);
+    for (i = 0; i < N; i++) {
+        memcpy(&hits[i], words + 4 * i, 16);
+        hits[i].inst = BRT_NO_INST;   /* the short form: no instances */
+    }
     brt_hit_clear(&hits[0]); /* the miss record: inf, 0xFFFFFFFF, 0, 0 */
     memcpy(words, &hits[0], 16);
     le_words(words, N * 4, expected);
@@ -1027,7 +1030,7 @@ static void test_io_hits_round_trip(void)
     bytes = tu_slurp(path, &size);
     EXPECT(bytes && size == N * 16 && memcmp(bytes, expected, size) == 0, "hit file bytes differ");
     free(bytes);
-    CHECK(brt_hits_read(path, &back, &count, &err) == BRT_OK, "%s", err.message);
+    CHECK(brt_hits_read(path, &back, &count, NULL, &err) == BRT_OK, "%s", err.message);
     EXPECT(count == N && memcmp(back, hits, N * sizeof *hits) == 0, "hits read back differ");
     free(back);
     free(hits);
@@ -1048,11 +1051,11 @@ static void test_io_bad_sizes(void)
     EXPECT(brt_rays_read(rays, &r, &count, &err) == BRT_EPARSE && strstr(err.message, rays) &&
                strstr(err.message, "size 33"),
            "33-byte ray file: '%s'", err.message);
-    EXPECT(brt_hits_read(hits, &h, &count, &err) == BRT_EPARSE && strstr(err.message, hits) &&
+    EXPECT(brt_hits_read(hits, &h, &count, NULL, &err) == BRT_EPARSE && strstr(err.message, hits) &&
                strstr(err.message, "size 17"),
            "17-byte hit file: '%s'", err.message);
     hits = write_scratch("32.hits", zeros, 32); /* a whole number of hits */
-    CHECK(brt_hits_read(hits, &h, &count, &err) == BRT_OK && count == 2, "32-byte hit file");
+    CHECK(brt_hits_read(hits, &h, &count, NULL, &err) == BRT_OK && count == 2, "32-byte hit file");
     free(h);
 }
 

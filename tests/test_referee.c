@@ -27,7 +27,7 @@ static float square_positions[] = {0, 0, 0, 1, 0, 0, 1, 1, 0, 0, 1, 0,
 static uint32_t square_indices[] = {0, 1, 2, 0, 2, 3, 4, 5, 6, 7, 8, 9};
 static const brt_mesh square = {square_positions, square_indices, 10, 4};
 
-static const brt_hit miss = {INFINITY, BRT_NO_PRIM, 0, 0};
+static const brt_hit miss = {INFINITY, BRT_NO_PRIM, 0, 0, BRT_NO_INST};
 
 static brt_hit hit(uint32_t prim, float t)
 {
@@ -344,7 +344,7 @@ static void expect_bad(int expected_status, const char *args, const char *words)
 
 static void test_hitdiff_bad_input(void)
 {
-    brt_hit far_prim = {1, 7, 0, 0};
+    brt_hit far_prim = {1, 7, 0, 0, BRT_NO_INST};
     CHECK(write_case(0), "cannot write the files");
     CHECK(brt_hits_write(tu_scratch("ref_short.hits"), &far_prim, 1, NULL) == BRT_OK
           && brt_hits_write(tu_scratch("ref_prim.hits"), &far_prim, 1, NULL) == BRT_OK

@@ -152,7 +152,7 @@ void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids,
         const uint32_t prim = prim_ids ? prim_ids[i] : i;
         if (!brt_intersect_triangle(ray, tu_vertex(s, i, 0), tu_vertex(s, i, 1), tu_vertex(s, i, 2), &t, &u, &v))
             continue;
-        if (brt_hit_is_closer(t, prim, hit)) {
+        if (brt_hit_is_closer(t, BRT_NO_INST, prim, hit)) {
             hit->t = t; hit->prim = prim; hit->u = u; hit->v = v;
         }
     }
