@@ -91,8 +91,11 @@ static int scan_float(const char *s, size_t n, float *out)
     if (digits <= 15 && exp10 >= -22 && exp10 <= 22) {
         double d = exp10 < 0 ? (double)m / tens[-exp10] : (double)m * tens[exp10];
         float f = (float)d;
-        double g = nextafterf(f, d > f ? INFINITY : -INFINITY);
-        if (m == 0 || (d > 1e-30 && d < 1e30 && ((double)f == d || d - f != g - d))) {
+        uint64_t bits;
+        memcpy(&bits, &d, sizeof bits);
+        /* A normal float's midpoint is a double whose 29 bits below the
+        ** float's 23 are exactly 1 followed by 28 zeros. */
+        if (m == 0 || (d > 1e-30 && d < 1e30 && (bits & 0x1FFFFFFFu) != 0x10000000u)) {
             *out = negative ? -f : f;
             return NUM_OK;
         }
@@ -233,11 +236,11 @@ static int reader_seek(reader *r, uint64_t offset, uint64_t line)
     return 0;
 }
 
-static int is_delimiter(char c)
-{
-    return c == ' ' || c == '\n' || c == '\t' || c == '\r' || c == '"' || c == '[' || c == ']'
-        || c == '#' || c == '\f' || c == '\v';
-}
+/* Characters that end a bare word: white space, a quote, a bracket, '#'.
+** A table, because the tokenizer asks for every byte of the numbers. */
+static const unsigned char delimiter[256] = {
+    ['\t'] = 1, ['\n'] = 1, ['\v'] = 1, ['\f'] = 1, ['\r'] = 1, [' '] = 1,
+    ['"'] = 1, ['#'] = 1, ['['] = 1, [']'] = 1};
 
 /* Skips white space and comments; 1 when a token starts at pos, 0 at the
 ** end of the file, -1 on a read error. */
@@ -281,7 +284,7 @@ static long token_length(const reader *r)
         }
         return r->eof ? -1 : 0;
     }
-    while (c < e && !is_delimiter(*c)) c++;
+    while (c < e && !delimiter[(unsigned char)*c]) c++;
     return (c < e || r->eof) ? (long)(c - s) : 0;
 }
 
@@ -391,12 +394,25 @@ static int xf_invert(const double m[12], double out[12])
     return xf_finite(out);
 }
 
-/* A float point through m, in double, rounded once. */
+/* A float point through m, in double, rounded once.  Terms whose
+** coefficient is 0 are left out rather than added as +0: the identity
+** then gives back every float bit for bit, -0 included (as the OBJ
+** reader reads the same text); other sums are unchanged. */
 static void xf_point(const double m[12], const float p[3], float out[3])
 {
-    double x = p[0], y = p[1], z = p[2];
-    int i;
-    for (i = 0; i < 3; i++) out[i] = (float)(m[4 * i] * x + m[4 * i + 1] * y + m[4 * i + 2] * z + m[4 * i + 3]);
+    double v[4];
+    int i, j;
+    v[0] = p[0]; v[1] = p[1]; v[2] = p[2]; v[3] = 1;
+    for (i = 0; i < 3; i++) {
+        double acc = 0;
+        int any = 0;
+        for (j = 0; j < 4; j++) {
+            if (m[4 * i + j] == 0) continue;
+            acc = any ? acc + m[4 * i + j] * v[j] : m[4 * i + j] * v[j];
+            any = 1;
+        }
+        out[i] = (float)acc;
+    }
 }
 
 /* pbrt's Rotate(theta, axis): about the unit axis, right-handed. */

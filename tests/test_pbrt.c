@@ -443,13 +443,14 @@ static void test_forward_instance(void)
 {
     ex_pbrt *s = open_text("forward.pbrt",
         "WorldBegin\nTranslate 0 4 0\nObjectInstance \"later\"\nIdentity\n"
-        "ObjectBegin \"later\"\n"
+        "ObjectBegin \"first\"\nObjectEnd\nObjectBegin \"later\"\n"
         "Shape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0]\nObjectEnd\n");
     insts in;
     if (!s) return;
+    /* "later" is mentioned first but defined second: prototype 1 */
     if (instances(s, &in))
-        EXPECT(in.n == 1 && in.v[0].prototype == 0 && in.v[0].xform[7] == 4,
-               "an instance named before its ObjectBegin was not resolved");
+        EXPECT(in.n == 1 && in.v[0].prototype == 1 && in.v[0].xform[7] == 4,
+               "an instance named before its ObjectBegin was not resolved to prototype 1");
     free(in.v);
     ex_pbrt_close(s);
 }
@@ -683,6 +684,51 @@ static void test_chunks_and_reruns(void)
     ex_pbrt_close(s);
 }
 
+/* Numbers read as strtof reads them (pbrt reads floats): random decimals
+** of every form -- signs, leading and trailing points, long mantissas,
+** exponents -- as a P array, against strtof of the same text. */
+static void test_numbers_as_strtof(void)
+{
+    static const char *const fixed[] = {"1.", ".5", "-0", "+2.5e-3", "0.1", "16777217", "3.4028235e38",
+                                        "1e-45", "1.17549435e-38", "0.000000000000000000000000000001",
+                                        "123456789012345678901234567890", "7.038531e-26", "33554431"};
+    const size_t count = 3000;
+    size_t cap = count * 48 + 256, n = 0, i, nf = sizeof fixed / sizeof *fixed;
+    char *text = malloc(cap), (*words)[40] = malloc(count * sizeof *words);
+    uint64_t st = test_seed();
+    uint32_t bad = 0;
+    ex_pbrt *s;
+    tris t;
+    CHECK(text && words, "out of memory");
+    for (i = 0; i < count; i++) {
+        uint64_t r = brt_random_u64(&st);
+        if (i < nf) snprintf(words[i], sizeof words[i], "%s", fixed[i]);
+        else if (r % 3 == 0) snprintf(words[i], sizeof words[i], "%.*g", 1 + (int)(r >> 8) % 17,
+                                      (double)(brt_random_float(&st) - 0.5f) * pow(10, (int)(r >> 16) % 60 - 30));
+        else if (r % 3 == 1) snprintf(words[i], sizeof words[i], "%s%llu.%llue%d", (r >> 7) & 1 ? "-" : "",
+                                      (unsigned long long)(brt_random_u64(&st) % 100000000000ull),
+                                      (unsigned long long)(brt_random_u64(&st) % 1000000000ull), (int)(r >> 20) % 40 - 20);
+        else snprintf(words[i], sizeof words[i], "%.9g", (double)(brt_random_float(&st) * 1000 - 500));
+    }
+    n += (size_t)snprintf(text, cap, "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [");
+    for (i = 0; i < count; i++) n += (size_t)snprintf(text + n, cap - n, " %s", words[i]);
+    n += (size_t)snprintf(text + n, cap - n, " ] \"integer indices\" [");
+    for (i = 0; i < count / 9 * 3; i++) n += (size_t)snprintf(text + n, cap - n, " %u", (unsigned)i);
+    snprintf(text + n, cap - n, " ]\n");
+    s = open_text("numbers.pbrt", text);
+    free(text);
+    if (s && world(s, &t) && t.n == count / 9) {
+        for (i = 0; i < count / 9 * 9; i++) {   /* the vertices the triangles use */
+            float want = strtof(words[i], NULL);
+            if (memcmp(&want, &t.c[i], sizeof want) != 0 && bad++ < 5)
+                EXPECT(0, "'%s' read as %.9g, strtof gives %.9g", words[i], t.c[i], want);
+        }
+        free(t.c);
+    } else EXPECT(0, "the numbers did not come back as %u triangles", (unsigned)(count / 9));
+    free(words);
+    ex_pbrt_close(s);
+}
+
 /* ---- errors ---------------------------------------------------------- */
 
 static void test_structure_errors(void)
@@ -776,6 +822,7 @@ void suite_pbrt(void)
     test_run("pbrt: skipped directives consumed and summarized", test_skipped);
     test_run("pbrt: world triangles hit as the same OBJ's", test_same_hits_as_obj);
     test_run("pbrt: chunks of 65536, reruns, a changed file", test_chunks_and_reruns);
+    test_run("pbrt: numbers read as strtof reads them", test_numbers_as_strtof);
     test_run("pbrt: errors: structure", test_structure_errors);
     test_run("pbrt: errors: instances and transforms", test_instance_errors);
     test_run("pbrt: errors: includes and files", test_include_errors);
