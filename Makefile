@@ -51,7 +51,7 @@ LIB      = $(BUILD)/libbatchrt.a
 # options, errors, PNG; plot.c: SVG plots; rays.c: camera, random and bounce rays; scenes.c:
 # the built-in procedural scenes) and the
 # optional Embree tracer (built by "make embree" only).
-EX_SHARED = examples/common.c examples/plot.c examples/rays.c examples/referee.c examples/scenes.c
+EX_SHARED = examples/common.c examples/pbrt.c examples/plot.c examples/rays.c examples/referee.c examples/scenes.c
 EX_COMMON = $(EX_SHARED:%.c=$(BUILD)/%.o)
 EX_SRC   = $(filter-out $(EX_SHARED) examples/embree_trace.c, $(wildcard examples/*.c))
 PROGRAMS = $(EX_SRC:examples/%.c=$(BUILD)/%)

@@ -211,6 +211,7 @@ int main(int argc, char **argv)
     suite_layers();
     suite_sampling();
     suite_reclaim();
+    suite_pbrt();
     suite_runner();
     if (!keep) remove_tmpdir();
     else printf("scratch files kept in %s\n", tmpdir);

@@ -73,5 +73,6 @@ void suite_layers(void);
 void suite_sampling(void);
 void suite_reclaim(void);
 void suite_runner(void);
+void suite_pbrt(void);
 
 #endif

@@ -1,0 +1,139 @@
+/*
+** examples/pbrt.h -- a streaming reader of pbrt-v4 scene files (the
+** triangle geometry, its transforms, object instancing and the camera),
+** feeding batchrt's scene stream (brt_scene_source, batchrt.h section 2).
+** It follows the pbrt-v4 file format (pbrt.org/fileformat-v4) and, where
+** the text is silent, pbrt-v4's parser.cpp and scene.cpp.
+**
+** USAGE
+**
+**   ex_pbrt *pbrt; brt_scene_source source; brt_error err;
+**   float eye[3], target[3], up[3], fov;
+**   if (ex_pbrt_open("view-0.pbrt", &pbrt, &err) != BRT_OK)   // reads the
+**       { fprintf(stderr, "%s\n", err.message); return 1; }  // structure once
+**   ex_pbrt_source(pbrt, &source);        // world triangles, prototypes,
+**                                         // instances: streams, run as often
+**                                         // as a build needs
+**   if (ex_pbrt_camera(pbrt, eye, target, up, &fov, NULL)) ...
+**   if (*ex_pbrt_skipped(pbrt)) fprintf(stderr, "%s\n", ex_pbrt_skipped(pbrt));
+**   ...
+**   ex_pbrt_close(pbrt);                  // after the last run of source
+**
+** STREAMING.  ex_pbrt_open tokenizes the whole file tree once and keeps,
+** per triangle shape, where its numbers are (file and byte offset) and the
+** transform in force; per object its shapes; per instance its object and
+** transform (a brt_instance each, 52 bytes).  The streams read the numbers
+** again from disk when run.  Memory grows with the number of shapes and
+** instances, never with triangles: a run holds one shape's vertex
+** positions (12 bytes a vertex) and one chunk of 65536 triangles.
+**
+** WHAT IS READ
+**   Shape "trianglemesh"  "point3 P" and "integer indices" (indices may be
+**                         left out when P has exactly 3 points).
+**   Shape "bilinearmesh"  "point3 P", "integer indices", 4 per patch (may
+**                         be left out for exactly 4 points).  pbrt's patch
+**                         corners are p00, p10, p01, p11; patch (a,b,c,d)
+**                         becomes the triangles (a,b,d) and (a,d,c), in
+**                         that order: (p00,p10,p11), (p00,p11,p01).
+**   Shape "plymesh"       "string filename", read by brt_mesh_stream; a
+**                         name ending in ".gz" is unpacked first by the
+**                         system's "gzip -dc" into a temporary file under
+**                         $TMPDIR (default /tmp), removed however the
+**                         read ends; without gzip it is an error.
+**   Identity Translate Scale Rotate LookAt Transform ConcatTransform
+**   CoordinateSystem CoordSysTransform ("camera" too) ActiveTransform
+**   AttributeBegin/End TransformBegin/End ObjectBegin/End ObjectInstance
+**   Include Import (read as Include) WorldBegin Camera "perspective".
+**   Every other directive and shape is read (its parameters consumed) and
+**   skipped, and counted in ex_pbrt_skipped's summary.
+**
+** SEMANTICS (pbrt-v4's)
+**   - The current transform (CTM) is post-multiplied: Translate makes
+**     CTM = CTM * T, so the last transform written acts first on a point.
+**     Transform and ConcatTransform list a matrix column by column (pbrt
+**     transposes what it reads): the translation is numbers 13, 14, 15.
+**     Rotate is in degrees about an axis, right-handed as pbrt's Rotate.
+**     Only affine matrices are read (last row 0 0 0 1).
+**   - Only the start-time transform is kept: under "ActiveTransform
+**     EndTime" transforms change nothing (motion blur is ignored).
+**   - WorldBegin resets the CTM to the identity.  A file without
+**     WorldBegin (a geometry file opened on its own) is all world.
+**   - World shapes are baked to world space with the CTM at the shape;
+**     their triangles are numbered from 0 in file order across shapes.
+**   - Object instancing, one level.  A prototype is one ObjectBegin's
+**     shapes, each baked with the full CTM in force at the shape (pbrt's
+**     renderFromObject of the shape, world-relative: the CTM before
+**     ObjectBegin included), triangles numbered in file order within the
+**     object.  Prototypes are numbered in ObjectBegin order.  An instance
+**     is (prototype, the CTM at ObjectInstance): pbrt-v4 puts an
+**     instance's shapes at renderFromInstance * renderFromShape, which in
+**     world space is CTM(ObjectInstance) * CTM(shape).  ObjectInstance may
+**     name an object defined further on (pbrt-v4 resolves names at the
+**     end), never one that is not defined at all.
+**   - Relative paths (Include, Import, plymesh) resolve against the folder
+**     of the main scene file, as pbrt does, not the including file's.
+**   - Camera "perspective": the CTM at Camera is camera-from-world (pbrt's
+**     camera looks down +z, +y up, and the image's right is camera +x).
+**     ex_pbrt_camera gives eye, target = eye + the unit view direction,
+**     up = the unit world image of camera +y, and pbrt's "fov" (default
+**     90), which spans the SHORTER image axis (examples/rays.h's camera
+**     spans the longer: 2 atan(tan(fov/2) * long/short)).
+**     Handedness: examples/rays.h's camera has right = forward x up.  A
+**     file whose CTM makes camera +x that vector (files from right-handed
+**     tools start "Scale -1 1 1" before LookAt for this) gives pbrt's
+**     picture; otherwise (*mirrored = 1; a bare LookAt does this) pbrt's
+**     picture is the mirror image of what eye/target/up show.
+**   - Materials, lights, normals, uv, ReverseOrientation and alpha are
+**     ignored: they do not change which triangle a ray hits first.
+**
+** ERRORS.  BRT_EPARSE (or BRT_EIO for files that cannot be read, BRT_ENOMEM)
+** with one line naming the file and line, e.g.
+** "scene.pbrt:12: ObjectInstance of unknown object \"tree\"": unknown
+** directive or parameter type, unbalanced AttributeEnd/ObjectEnd (or an
+** AttributeBegin never closed), nested ObjectBegin, ObjectInstance inside
+** ObjectBegin, an Include cycle, a missing file, P not a multiple of 3,
+** indices not a multiple of 3 (4 for bilinearmesh) or out of range, a
+** non-finite number, a non-affine matrix, a singular transform at a shape,
+** an instance or the camera.  (The condition-number limit of instances,
+** BRT_MAX_CONDITION, is the library's to check.)  The streams report
+** errors the same way (a PLY file's are brt_mesh_stream's), and BRT_EIO
+** when a file changed after ex_pbrt_open read it.
+*/
+#ifndef BRT_EXAMPLES_PBRT_H
+#define BRT_EXAMPLES_PBRT_H
+
+#include "batchrt.h"
+
+typedef struct ex_pbrt ex_pbrt;   /* a parsed scene description: opaque */
+
+/* Reads the structure of the scene file at path and every file it
+** includes (see above).  On error *out is NULL. */
+brt_result ex_pbrt_open(const char *path, ex_pbrt **out, brt_error *err);
+
+/* Frees the description; the sources made from it must not be run again. */
+void ex_pbrt_close(ex_pbrt *scene);
+
+/* The scene as streams: world triangles (world.run is NULL when there is
+** no world triangle shape), one prototype per ObjectBegin, the instances
+** in file order (prototype numbers are ObjectBegin order).  A run reads
+** the files again; runs may happen at once from several threads. */
+void ex_pbrt_source(const ex_pbrt *scene, brt_scene_source *source);
+
+/* Counts of what ex_pbrt_open found: triangle shapes in the world (not
+** counting shapes inside ObjectBegin), prototypes and instances. */
+void ex_pbrt_counts(const ex_pbrt *scene, uint64_t *world_shapes,
+                    uint32_t *prototypes, uint32_t *instances);
+
+/* The perspective camera, when the file has one (returns 1; 0 and the
+** outputs untouched when not): eye, target, up, pbrt's fov in degrees
+** across the shorter image axis, and *mirrored (may be NULL) as explained
+** above. */
+int ex_pbrt_camera(const ex_pbrt *scene, float eye[3], float target[3],
+                   float up[3], float *fov_degrees, int *mirrored);
+
+/* What was read and skipped, in order of first appearance, e.g.
+** "skipped: 120 MakeNamedMaterial, 6 AreaLightSource, 1 Shape \"sphere\"";
+** "" when nothing was skipped.  Lives as long as the scene. */
+const char *ex_pbrt_skipped(const ex_pbrt *scene);
+
+#endif
