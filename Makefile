@@ -47,11 +47,12 @@ endif
 LIB_SRC  = batchrt.c bvh.c svdag.c
 LIB_OBJ  = $(LIB_SRC:%.c=$(BUILD)/%.o)
 LIB      = $(BUILD)/libbatchrt.a
-# Every examples/*.c is a program, except the shared helpers (common.c:
+# Every examples/*.c is a program, except the shared helpers (input.c and
+# pbrt.c: mesh and pbrt-v4 input; common.c:
 # options, errors, PNG; plot.c: SVG plots; rays.c: camera, random and bounce rays; scenes.c:
 # the built-in procedural scenes) and the
 # optional Embree tracer (built by "make embree" only).
-EX_SHARED = examples/common.c examples/pbrt.c examples/plot.c examples/rays.c examples/referee.c examples/scenes.c
+EX_SHARED = examples/common.c examples/input.c examples/pbrt.c examples/plot.c examples/rays.c examples/referee.c examples/scenes.c
 EX_COMMON = $(EX_SHARED:%.c=$(BUILD)/%.o)
 EX_SRC   = $(filter-out $(EX_SHARED) examples/embree_trace.c, $(wildcard examples/*.c))
 PROGRAMS = $(EX_SRC:examples/%.c=$(BUILD)/%)

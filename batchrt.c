@@ -3898,6 +3898,7 @@ int brt_scene_matches(const brt_scene *s, uint64_t stamp, const brt_scene_option
 }
 
 uint32_t brt_scene_batch_count(const brt_scene *s) { return s->header.batch_count; }
+uint32_t brt_scene_prototype_count(const brt_scene *s) { return s->header.prototype_count; }
 uint32_t brt_scene_triangle_count(const brt_scene *s) { return s->header.triangle_count; }
 
 void brt_scene_bounds(const brt_scene *s, float bmin[3], float bmax[3])
@@ -3915,28 +3916,39 @@ void brt_scene_bounds(const brt_scene *s, float bmin[3], float bmax[3])
         }
 }
 
+brt_result brt_scene_prepare_source(const brt_scene_source *source, uint64_t source_stamp,
+                                    const char *scene_path, const brt_scene_options *opt,
+                                    brt_scene **out, int *rebuilt, brt_error *err)
+{
+    struct stat st;
+    brt_result r;
+    *out = NULL;
+    if (rebuilt) *rebuilt = 0;
+    if (stat(scene_path, &st) == 0) {
+        r = brt_scene_open(scene_path, out, err);
+        if (r != BRT_OK || brt_scene_matches(*out, source_stamp, opt)) return r;
+        brt_scene_close(*out);   /* stale: the input or the settings changed */
+        *out = NULL;
+    }
+    r = brt_scene_build_source(source, opt, source_stamp, scene_path, err);
+    if (r != BRT_OK) return r;
+    if (rebuilt) *rebuilt = 1;
+    return brt_scene_open(scene_path, out, err);
+}
+
 brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
                              const brt_scene_options *opt, brt_scene **out,
                              int *rebuilt, brt_error *err)
 {
     uint64_t stamp;
-    brt_triangle_source source;
-    struct stat st;
+    brt_scene_source source;
     brt_result r = brt_scene_source_stamp(mesh_path, &stamp, err);
     *out = NULL;
     if (rebuilt) *rebuilt = 0;
     if (r != BRT_OK) return r;
-    if (stat(scene_path, &st) == 0) {
-        r = brt_scene_open(scene_path, out, err);
-        if (r != BRT_OK || brt_scene_matches(*out, stamp, opt)) return r;
-        brt_scene_close(*out);   /* stale: the mesh or the settings changed */
-        *out = NULL;
-    }
-    brt_mesh_file_source(mesh_path, &source);   /* never the whole mesh in memory */
-    r = brt_scene_build_stream(&source, opt, stamp, scene_path, err);
-    if (r != BRT_OK) return r;
-    if (rebuilt) *rebuilt = 1;
-    return brt_scene_open(scene_path, out, err);
+    memset(&source, 0, sizeof source);
+    brt_mesh_file_source(mesh_path, &source.world);   /* never the whole mesh in memory */
+    return brt_scene_prepare_source(&source, stamp, scene_path, opt, out, rebuilt, err);
 }
 
 /* ---- opening an instance table (a load of a point of instances) ---- */

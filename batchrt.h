@@ -263,7 +263,15 @@ brt_result brt_scene_prepare(const char *mesh_path, const char *scene_path,
                              const brt_scene_options *opt, brt_scene **out,
                              int *rebuilt, brt_error *err);
 
+/* brt_scene_prepare for a scene source whose input the caller stamps. */
+brt_result brt_scene_prepare_source(const brt_scene_source *source, uint64_t source_stamp,
+                                    const char *scene_path, const brt_scene_options *opt,
+                                    brt_scene **out, int *rebuilt, brt_error *err);
+
 uint32_t brt_scene_batch_count(const brt_scene *scene);
+/* Prototypes of an instanced scene (0 for a plain one): its hit files
+** name instances (brt_hits_write_instanced). */
+uint32_t brt_scene_prototype_count(const brt_scene *scene);
 uint32_t brt_scene_triangle_count(const brt_scene *scene);
 /* The scene's bounds: the union of the batching points' exact boxes. */
 void brt_scene_bounds(const brt_scene *scene, float bmin[3], float bmax[3]);

@@ -36,6 +36,7 @@
 ** leaves a half-written file behind.
 */
 #include "common.h"
+#include "input.h"
 
 #include <errno.h>
 #include <stdio.h>
@@ -70,7 +71,9 @@ static void usage(void)
 {
     printf("usage: build/trace MESH RAYS HITS [options]\n"
            "Intersects every ray of RAYS (32-byte records) with the triangles of MESH\n"
-           "(OBJ or PLY) and writes the closest hits to HITS (16-byte records).\n"
+           "(OBJ, PLY or a pbrt-v4 .pbrt scene, instances included) and writes the closest\n"
+           "hits to HITS (16-byte records; with instances, the instanced hit file: a\n"
+           "16-byte header and 20-byte records that name the instance).\n"
            "\n"
            "  --occlusion       occlusion queries instead: HITS becomes an occlusion file,\n"
            "                    one byte per ray, 1 when a triangle is hit within\n"
@@ -217,25 +220,49 @@ static void follow_header(uint64_t n, const brt_ray *r, int occlusion)
 
 #define SLICE ((size_t)1 << 18)
 
-/* Direct mode: one BVH over the whole mesh, then every ray through it,
-** with the statistics of README.md (cache fields stay 0). */
-static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count,
-                         brt_hit *hits, uint8_t *occluded, brt_stats *stats,
-                         unsigned threads)
+/* What the direct mode traces with: a mesh's BVH or a pbrt scene's world. */
+typedef struct direct_tracer {
+    const brt_bvh *bvh;
+    const brt_world *world;
+} direct_tracer;
+
+static void direct_trace(const direct_tracer *d, const brt_ray *rays, const uint64_t *tags,
+                         size_t n, brt_hit *hits, unsigned threads)
 {
-    brt_bvh *bvh;
+    if (d->world) brt_world_trace(d->world, rays, tags, n, hits, NULL, threads);
+    else brt_bvh_trace(d->bvh, rays, tags, n, hits, NULL, threads);
+}
+
+/* Direct mode: one BVH over the whole mesh (or the world of a pbrt
+** scene), then every ray through it, with the statistics of README.md
+** (cache fields stay 0). */
+static void trace_direct(const ex_input *in, const trace_options *o, const brt_ray *rays,
+                         size_t count, brt_hit *hits, uint8_t *occluded, brt_stats *stats)
+{
+    direct_tracer d = {NULL, NULL};
+    brt_bvh *bvh = NULL;
+    brt_world *world = NULL;
+    brt_mesh mesh;
     brt_hit *scratch = NULL;
     uint64_t *tags = NULL;
     double start = brt_seconds();
     size_t i;
+    brt_error err;
 
     ex_progress("building BVH", 0, 1);
-    ex_check(prog, brt_bvh_build(mesh->positions, mesh->indices, mesh->triangle_count,
-                                 NULL, &bvh), NULL);
+    if (in->pbrt) {
+        d.world = world = ex_input_world(prog, in);
+    } else {
+        ex_check(prog, brt_mesh_load(in->path, &mesh, &err), &err);
+        ex_note_mesh_memory(prog, &mesh, o->memory_given ? o->memory : 0);
+        ex_check(prog, brt_bvh_build(mesh.positions, mesh.indices, mesh.triangle_count, NULL, &bvh),
+                 NULL);
+        if (mesh.triangle_count > 0)
+            stats->bvh_bytes_per_triangle = (double)brt_bvh_memory_bytes(bvh) / (double)mesh.triangle_count;
+        brt_mesh_free(&mesh);
+        d.bvh = bvh;
+    }
     stats->build_seconds = brt_seconds() - start;
-    if (mesh->triangle_count > 0)
-        stats->bvh_bytes_per_triangle =
-            (double)brt_bvh_memory_bytes(bvh) / (double)mesh->triangle_count;
 
     start = brt_seconds();
     /* Occlusion rays are traced as such (tags) into scratch records, which
@@ -253,7 +280,7 @@ static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count
         size_t n = count - i < SLICE ? count - i : SLICE, k;
         if (ex_interrupted()) ex_die_interrupted(prog);
         ex_progress("tracing", i, count);
-        brt_bvh_trace(bvh, rays + i, tags, n, occluded ? scratch : hits + i, NULL, threads);
+        direct_trace(&d, rays + i, tags, n, occluded ? scratch : hits + i, o->threads);
         for (k = 0; occluded && k < n; k++) {
             occluded[i + k] = scratch[k].prim != BRT_NO_PRIM;
             stats->shadow_occluded += occluded[i + k];
@@ -264,14 +291,15 @@ static void trace_direct(const brt_mesh *mesh, const brt_ray *rays, size_t count
     ex_progress("tracing", count, count);
     ex_progress_end();
     brt_bvh_free(bvh);
+    brt_world_free(world);
     free(scratch);
     free(tags);
 }
 
 /* Batched mode: the scene file (reused, or built from the mesh file as a
 ** stream by brt_scene_prepare), then the scheduler. */
-static void trace_batched(const trace_options *o, const brt_ray *rays, size_t count,
-                          brt_hit *hits, uint8_t *occluded, brt_stats *stats)
+static void trace_batched(const ex_input *in, const trace_options *o, const brt_ray *rays,
+                          size_t count, brt_hit *hits, uint8_t *occluded, brt_stats *stats)
 {
     brt_scene_options scene_opt;
     brt_trace_options trace_opt;
@@ -295,9 +323,7 @@ static void trace_batched(const trace_options *o, const brt_ray *rays, size_t co
     if (o->rebuild && unlink(path) != 0 && errno != ENOENT)
         ex_die(prog, "%s: cannot remove: %s", path, strerror(errno));
     ex_progress("preparing scene", 0, 1);
-    r = brt_scene_prepare(o->mesh, path, &scene_opt, &scene, &rebuilt, &err);
-    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
-    ex_check(prog, r, &err);
+    scene = ex_input_scene(prog, in, path, &scene_opt, &rebuilt);
     memset(&trace_opt, 0, sizeof trace_opt);
     trace_opt.memory_limit = o->memory;
     trace_opt.no_proxy = o->no_proxy;
@@ -346,7 +372,7 @@ int main(int argc, char **argv)
 {
     trace_options o;
     brt_error err;
-    brt_mesh mesh;
+    ex_input in;
     brt_ray *rays;
     brt_hit *hits = NULL;
     uint8_t *occluded = NULL;
@@ -362,20 +388,19 @@ int main(int argc, char **argv)
     if (!hits && !occluded) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
 
     memset(&stats, 0, sizeof stats);
+    ex_input_open(prog, o.mesh, &in);
     if (o.batched) {
-        trace_batched(&o, rays, count, hits, occluded, &stats);
+        trace_batched(&in, &o, rays, count, hits, occluded, &stats);
     } else {
-        ex_check(prog, brt_mesh_load(o.mesh, &mesh, &err), &err);
-        ex_note_mesh_memory(prog, &mesh, o.memory_given ? o.memory : 0);
         stats.rays = count;
-        trace_direct(&mesh, rays, count, hits, occluded, &stats, o.threads);
-        brt_mesh_free(&mesh);
+        trace_direct(&in, &o, rays, count, hits, occluded, &stats);
         if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
     }
 
     if (ex_interrupted()) ex_die_interrupted(prog);
     if (occluded) ex_check(prog, brt_write_file_atomic(o.hits, occluded, count, &err), &err);
-    else ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
+    else ex_check(prog, ex_input_write_hits(&in, o.hits, hits, count, &err), &err);
+    ex_input_close(&in);
     /* A run that fails leaves no output at all: the hits go if the
     ** statistics cannot be written. */
     stats.peak_rss_bytes = brt_peak_rss_bytes();

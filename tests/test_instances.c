@@ -693,6 +693,98 @@ static void test_proxy_culls_are_exact(void)
     free(rays); free(a); free(b);
 }
 
+/* ===================================================================== */
+/* From outside: build/trace on a pbrt file with instances               */
+/* ===================================================================== */
+
+/* A pbrt-v4 file in the style of the paper's scenes: a ground of world
+** triangles, a tree-like object of separate small triangles, instanced
+** under translations, rotations and scales (and one mirror). */
+static int write_pbrt_scene(void)
+{
+    static const char text[] =
+        "# a small instanced scene\n"
+        "LookAt 0 5 -20  0 0 0  0 1 0\n"
+        "Camera \"perspective\" \"float fov\" 45\n"
+        "WorldBegin\n"
+        "Shape \"trianglemesh\" \"point3 P\" [-10 0 -10 10 0 -10 10 0 10 -10 0 10]\n"
+        "  \"integer indices\" [0 1 2 0 2 3]\n"
+        "ObjectBegin \"plant\"\n"
+        "  Shape \"trianglemesh\" \"point3 P\" [0 0 0 0.2 1 0 -0.2 1 0]\n"
+        "  Translate 0 1 0\n"
+        "  Shape \"trianglemesh\" \"point3 P\" [0 0 0 0.5 0.3 0.1 0.1 0.5 -0.3 0 0 0 -0.4 0.4 0.2 0.1 0.6 0.3]\n"
+        "    \"integer indices\" [0 1 2 3 4 5]\n"
+        "ObjectEnd\n"
+        "AttributeBegin Translate -3 0 2 ObjectInstance \"plant\" AttributeEnd\n"
+        "AttributeBegin Translate 1 0 -1 Rotate 40 0 1 0 Scale 2 2 2 ObjectInstance \"plant\" AttributeEnd\n"
+        "AttributeBegin Translate 4 0 3 Rotate 90 1 0 0 ObjectInstance \"plant\" AttributeEnd\n"
+        "AttributeBegin Translate 0 0 5 Scale -1 1 1 ObjectInstance \"plant\" AttributeEnd\n"
+        "AttributeBegin Translate 0 0 5 Scale 1 1.5 1 ObjectInstance \"plant\" AttributeEnd\n";
+    return tu_spill(tu_scratch("plants.pbrt"), text, sizeof text - 1);
+}
+
+/* Rays from above and from the side, across the plants. */
+static int write_pbrt_rays(size_t n)
+{
+    brt_ray *rays = malloc(n * sizeof *rays);
+    uint64_t st = test_seed() + 2820;
+    size_t i;
+    int ok;
+    for (i = 0; rays && i < n; i++) {
+        brt_ray *r = &rays[i];
+        const float x = tu_rnd(&st, -6, 6), z = tu_rnd(&st, -4, 8), y = tu_rnd(&st, 0.1f, 3);
+        if (i % 2) {
+            r->org[0] = x; r->org[1] = 8; r->org[2] = z;
+            r->dir[0] = tu_rnd(&st, -0.1f, 0.1f); r->dir[1] = -1; r->dir[2] = tu_rnd(&st, -0.1f, 0.1f);
+        } else {
+            r->org[0] = -12; r->org[1] = y; r->org[2] = z;
+            r->dir[0] = 1; r->dir[1] = tu_rnd(&st, -0.05f, 0.05f); r->dir[2] = tu_rnd(&st, -0.2f, 0.2f);
+        }
+        r->tnear = 0;
+        r->tfar = INFINITY;
+    }
+    ok = rays && brt_rays_write(tu_scratch("plants.rays"), rays, n, NULL) == BRT_OK;
+    free(rays);
+    return ok;
+}
+
+/* trace --direct and --batched (tiny points, a tight memory limit, 1 and
+** 2 threads) write the same instanced hit file, and it names instances. */
+static void test_trace_pbrt_instances(void)
+{
+    enum { N = 5000 };
+    brt_hit *hits = NULL;
+    size_t count = 0, i, on_instances = 0, inst_seen[5] = {0, 0, 0, 0, 0};
+    int instanced = 0;
+    unsigned char *a, *b;
+    size_t na = 0, nb = 0;
+    brt_error err;
+    CHECK(write_pbrt_scene() && write_pbrt_rays(N), "cannot write the files");
+    CHECK(tu_run("trace @/plants.pbrt @/plants.rays @/d.hits --direct") == 0, "direct: %s",
+          tu_last_stderr());
+    CHECK(tu_run("trace @/plants.pbrt @/plants.rays @/b.hits --batched --batch-tris 3 --res 16 "
+                 "--memory 8K --threads 2 --scene @/plants.brs") == 0, "batched: %s", tu_last_stderr());
+    a = tu_slurp(tu_scratch("d.hits"), &na);
+    b = tu_slurp(tu_scratch("b.hits"), &nb);
+    EXPECT(a && b && na == nb && na == 16 + 20 * (size_t)N && memcmp(a, b, na) == 0,
+           "direct and batched hit files differ (%zu and %zu bytes)", na, nb);
+    free(a);
+    free(b);
+    CHECK(brt_hits_read(tu_scratch("d.hits"), &hits, &count, &instanced, &err) == BRT_OK, "%s",
+          err.message);
+    for (i = 0; i < count; i++)
+        if (hits[i].inst != BRT_NO_INST) {
+            on_instances++;
+            if (hits[i].inst < 5) inst_seen[hits[i].inst]++;
+        }
+    EXPECT(instanced && count == N && on_instances > N / 100 && inst_seen[0] && inst_seen[1] &&
+               inst_seen[2] && inst_seen[3] + inst_seen[4],
+           "instanced %d, %zu of %zu hits on instances (%zu %zu %zu %zu %zu)", instanced,
+           on_instances, count, inst_seen[0], inst_seen[1], inst_seen[2], inst_seen[3],
+           inst_seen[4]);
+    free(hits);
+}
+
 void suite_instances(void)
 {
     test_run("instances: direct equals brute force on adversarial transforms",
@@ -709,4 +801,5 @@ void suite_instances(void)
     test_run("instances: a prototype is read once", test_prototypes_loaded_once);
     test_run("instances: batched margin: far rays keep their hits", test_batched_margin);
     test_run("instances: proxy culls within the exact test's", test_proxy_culls_are_exact);
+    test_run("instances: trace on a pbrt file, direct == batched", test_trace_pbrt_instances);
 }
