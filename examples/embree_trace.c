@@ -27,8 +27,18 @@
 ** --occlusion: rtcOccluded1 instead, and an occlusion file out (one byte
 ** per ray, 1 occluded, 0 clear; Embree sets tfar to -inf on a hit), the
 ** file of build/trace --occlusion.
+**
+** A pbrt-v4 file (".pbrt", examples/pbrt.h) with instances becomes what
+** Embree-based builds of the method make of it: the world triangles as
+** geometry 0, one scene per prototype (its triangles in stream order, so
+** primID is the prototype's triangle number), and one RTC_GEOMETRY_TYPE_
+** INSTANCE per instance, attached as geometry 1 + its number, with
+** rtcSetGeometryTransform (FLOAT3X4_ROW_MAJOR, brt_instance's layout).
+** Embree's instID[0] - 1 is then batchrt's hit.inst, and the hit file the
+** instanced one of build/trace.
 */
 #include "common.h"
+#include "input.h"
 
 #include <embree3/rtcore.h>
 
@@ -52,8 +62,9 @@ static void usage(void)
 {
     printf("usage: build/embree_trace MESH RAYS HITS [options]\n"
            "Intersects every ray of RAYS (32-byte records) with the triangles of MESH\n"
-           "(OBJ or PLY) using Embree %s and writes the closest hits to HITS (16-byte\n"
-           "records), in the formats and triangle numbering of build/trace.\n"
+           "(OBJ, PLY or a pbrt-v4 .pbrt scene, one rtcInstance per instance) using\n"
+           "Embree %s and writes the closest hits to HITS, in the formats and numbering\n"
+           "of build/trace.\n"
            "\n"
            "  --direct          accepted for symmetry with build/trace (the only mode)\n"
            "  --occlusion       rtcOccluded1: HITS becomes an occlusion file, one byte per\n"
@@ -167,6 +178,107 @@ static RTCScene build_scene(RTCDevice device, const brt_mesh *mesh, int robust)
     return scene;
 }
 
+/* ---- instanced input ---- */
+
+/* A triangle stream gathered into one Embree triangle geometry (three
+** vertices per triangle, triangle i = primID i). */
+typedef struct gathered {
+    float *corners;
+    size_t count, cap;
+} gathered;
+
+static brt_result gather(void *user, const float *corners, uint32_t count, uint32_t first,
+                         brt_error *err)
+{
+    gathered *g = user;
+    (void)first;
+    if (!(g->corners = brt_grow(g->corners, &g->cap, 9 * (g->count + count), sizeof *g->corners)))
+        return brt_fail(err, BRT_ENOMEM, "out of memory for %lu triangles",
+                        (unsigned long)(g->count + count));
+    memcpy(g->corners + 9 * g->count, corners, 9 * (size_t)count * sizeof *corners);
+    g->count += count;
+    return BRT_OK;
+}
+
+static RTCGeometry triangle_geometry(RTCDevice device, const gathered *g)
+{
+    RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
+    float *vertices = rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                              3 * sizeof(float), 3 * g->count);
+    uint32_t *indices = rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
+                                                3 * sizeof(uint32_t), g->count);
+    size_t i;
+    memcpy(vertices, g->corners, 9 * g->count * sizeof(float));
+    for (i = 0; i < 3 * g->count; i++) indices[i] = (uint32_t)i;
+    rtcCommitGeometry(geom);
+    return geom;
+}
+
+typedef struct instancer {
+    RTCDevice device;
+    RTCScene scene;
+    RTCScene *prototypes;
+    uint32_t prototype_count;
+} instancer;
+
+static brt_result attach_instances(void *user, const brt_instance *instances, uint32_t count,
+                                   uint32_t first, brt_error *err)
+{
+    const instancer *in = user;
+    uint32_t i;
+    for (i = 0; i < count; i++) {
+        RTCGeometry geom;
+        if (instances[i].prototype >= in->prototype_count)
+            return brt_fail(err, BRT_EARG, "instance %u: prototype %u out of range",
+                            (unsigned)(first + i), (unsigned)instances[i].prototype);
+        geom = rtcNewGeometry(in->device, RTC_GEOMETRY_TYPE_INSTANCE);
+        rtcSetGeometryInstancedScene(geom, in->prototypes[instances[i].prototype]);
+        rtcSetGeometryTransform(geom, 0, RTC_FORMAT_FLOAT3X4_ROW_MAJOR, instances[i].xform);
+        rtcCommitGeometry(geom);
+        rtcAttachGeometryByID(in->scene, geom, 1 + first + i);
+        rtcReleaseGeometry(geom);
+    }
+    return BRT_OK;
+}
+
+/* The scene of an instanced input (see the header comment). */
+static RTCScene build_instanced_scene(RTCDevice device, const brt_scene_source *src, int robust,
+                                      uint64_t *triangles)
+{
+    instancer in;
+    gathered g = {NULL, 0, 0};
+    brt_error err;
+    uint32_t p;
+    in.device = device;
+    in.scene = rtcNewScene(device);
+    in.prototype_count = src->prototype_count;
+    in.prototypes = calloc(src->prototype_count + 1, sizeof *in.prototypes);
+    if (!in.prototypes) ex_die(prog, "out of memory for %u prototypes", (unsigned)src->prototype_count);
+    *triangles = 0;
+    if (src->world.run) {
+        ex_check(prog, src->world.run(src->world.user, gather, &g, &err), &err);
+        rtcAttachGeometryByID(in.scene, triangle_geometry(device, &g), 0);
+        *triangles += g.count;
+    }
+    for (p = 0; p < src->prototype_count; p++) {
+        g.count = 0;
+        ex_check(prog, src->prototype(src->user, p, gather, &g, &err), &err);
+        in.prototypes[p] = rtcNewScene(device);
+        if (robust) rtcSetSceneFlags(in.prototypes[p], RTC_SCENE_FLAG_ROBUST);
+        rtcAttachGeometry(in.prototypes[p], triangle_geometry(device, &g));
+        rtcCommitScene(in.prototypes[p]);
+        *triangles += g.count;
+    }
+    free(g.corners);
+    if (src->instances) ex_check(prog, src->instances(src->user, attach_instances, &in, &err), &err);
+    if (robust) rtcSetSceneFlags(in.scene, RTC_SCENE_FLAG_ROBUST);
+    embree_bytes = 0;
+    rtcCommitScene(in.scene);
+    for (p = 0; p < src->prototype_count; p++) rtcReleaseScene(in.prototypes[p]);
+    free(in.prototypes);
+    return in.scene;
+}
+
 /* A negative tnear is a valid batchrt ray but not a valid Embree ray. */
 static void check_rays(const char *path, const brt_ray *rays, size_t count)
 {
@@ -224,27 +336,38 @@ static void trace_ray(RTCScene scene, const brt_ray *ray, brt_hit *hit)
     embree_ray(ray, &rh.ray);
     rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
     rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
     rtcIntersect1(scene, &context, &rh);
     if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return;
     hit->t = rh.ray.tfar;   /* Embree shortens the ray to its hit */
     hit->prim = rh.hit.primID;
     hit->u = rh.hit.u;
     hit->v = rh.hit.v;
+    if (rh.hit.instID[0] != RTC_INVALID_GEOMETRY_ID) hit->inst = rh.hit.instID[0] - 1;
 }
 
-static void trace_all(const embree_options *o, const brt_mesh *mesh, const brt_ray *rays,
+static void trace_all(const embree_options *o, const ex_input *input, const brt_ray *rays,
                       size_t count, brt_hit *hits, uint8_t *occluded, brt_stats *stats)
 {
     RTCDevice device = open_device();
     RTCScene scene;
     double start = brt_seconds();
+    uint64_t triangles;
     size_t i;
+    brt_error err;
 
     ex_progress("building Embree BVH", 0, 1);
-    scene = build_scene(device, mesh, o->robust);
+    if (input->pbrt) {
+        scene = build_instanced_scene(device, &input->source, o->robust, &triangles);
+    } else {
+        brt_mesh mesh;
+        ex_check(prog, brt_mesh_load(input->path, &mesh, &err), &err);
+        scene = build_scene(device, &mesh, o->robust);
+        triangles = mesh.triangle_count;
+        brt_mesh_free(&mesh);
+    }
     stats->build_seconds = brt_seconds() - start;
-    if (mesh->triangle_count > 0)
-        stats->bvh_bytes_per_triangle = (double)embree_bytes / (double)mesh->triangle_count;
+    if (triangles > 0) stats->bvh_bytes_per_triangle = (double)embree_bytes / (double)triangles;
 
     start = brt_seconds();
     for (i = 0; i < count; i++) {
@@ -265,7 +388,7 @@ int main(int argc, char **argv)
 {
     embree_options o;
     brt_error err;
-    brt_mesh mesh;
+    ex_input input;
     brt_ray *rays;
     brt_hit *hits = NULL;
     uint8_t *occluded = NULL;
@@ -280,16 +403,16 @@ int main(int argc, char **argv)
     if (o.occlusion) occluded = malloc(count ? count : 1);
     else hits = malloc((count ? count : 1) * sizeof *hits);
     if (!hits && !occluded) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
-    ex_check(prog, brt_mesh_load(o.mesh, &mesh, &err), &err);
+    ex_input_open(prog, o.mesh, &input);
 
     memset(&stats, 0, sizeof stats);
     stats.rays = count;
-    trace_all(&o, &mesh, rays, count, hits, occluded, &stats);
-    brt_mesh_free(&mesh);
+    trace_all(&o, &input, rays, count, hits, occluded, &stats);
     if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
 
     if (occluded) ex_check(prog, brt_write_file_atomic(o.hits, occluded, count, &err), &err);
-    else ex_check(prog, brt_hits_write(o.hits, hits, count, &err), &err);
+    else ex_check(prog, ex_input_write_hits(&input, o.hits, hits, count, &err), &err);
+    ex_input_close(&input);
     stats.peak_rss_bytes = brt_peak_rss_bytes();
     if (o.stats) ex_check(prog, brt_stats_write_json(o.stats, &stats, &err), &err);
     if (o.verbose || isatty(2)) {
