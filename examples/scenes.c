@@ -1199,35 +1199,57 @@ static void skirt_point(const void *shape, double u, double v, double p[3])
     p[2] = cz + keep * (p[2] - cz);
 }
 
-static void build_landscape(builder *b, double scale, uint64_t seed)
+/* Hills and mountain ranges under a square of the given side centred on
+** the origin; draws the terrain's seed from rng. */
+static void landscape_terrain(uint64_t *rng, double side, terrain *ground, patch *land)
+{
+    ground->seed = brt_random_u64(rng);
+    ground->hills = 20;
+    ground->mountains = 250;
+    land->x0 = land->z0 = -0.5 * side;
+    land->size = side;
+    land->ground = ground;
+}
+
+/* The terrain grid g over land, then its skirt and floor (closed below);
+** returns the triangles of the floor's inner rings (the budget the
+** landscape takes them from). */
+static double emit_ground(builder *b, const patch *land, const grid *g)
 {
     skirt below;
     grid around;
-    double budget = TRIANGLES_PER_SCALE * scale, side = LANDSCAPE_SIDE * sqrt(scale);
-    uint64_t rng = seed;
-    terrain ground;
-    patch land;
-    grid g;
-    ground.seed = brt_random_u64(&rng);
-    ground.hills = 20;
-    ground.mountains = 250;
-    land.x0 = land.z0 = -0.5 * side;
-    land.size = side;
-    land.ground = &ground;
-    g.segs = g.rings = (uint32_t)sqrt(0.20 * budget / 2) + 2;
-    g.flags = 0;
-    emit_surface(b, &g, patch_point, &land, &world);
-    below.land = &land;
-    below.top = &g;
-    below.floor = -2 * ground.hills - 1;   /* fbm > -2: under every point */
-    below.floor_rings = skirt_floor_rings(&g);
-    around.segs = skirt_segments(&g);
+    emit_surface(b, g, patch_point, land, &world);
+    below.land = land;
+    below.top = g;
+    below.floor = -2 * land->ground->hills - 1;   /* fbm > -2: under every point */
+    below.floor_rings = skirt_floor_rings(g);
+    around.segs = skirt_segments(g);
     around.rings = 2 + below.floor_rings;
     around.flags = WRAP_U | POLE_END;
     emit_surface(b, &around, skirt_point, &below, &world);
+    return 2.0 * around.segs * below.floor_rings;
+}
+
+/* A square terrain grid of about `triangles` triangles. */
+static grid terrain_grid(double triangles)
+{
+    grid g;
+    g.segs = g.rings = (uint32_t)sqrt(triangles / 2) + 2;
+    g.flags = 0;
+    return g;
+}
+
+static void build_landscape(builder *b, double scale, uint64_t seed)
+{
+    double budget = TRIANGLES_PER_SCALE * scale, side = LANDSCAPE_SIDE * sqrt(scale), floor_tris;
+    uint64_t rng = seed;
+    terrain ground;
+    patch land;
+    grid g = terrain_grid(0.20 * budget);
+    landscape_terrain(&rng, side, &ground, &land);
+    floor_tris = emit_ground(b, &land, &g);
     /* the floor's rings come out of the trees' share: the total stays put */
-    landscape_trees(b, &rng, &ground, side,
-                    0.70 * budget - 2.0 * around.segs * below.floor_rings);
+    landscape_trees(b, &rng, &ground, side, 0.70 * budget - floor_tris);
     landscape_rocks(b, &rng, &ground, side, 0.10 * budget);
 }
 
@@ -1313,15 +1335,37 @@ static void island_plants(builder *b, uint64_t *rng, const island *s, double bud
     }
 }
 
+/* The grid of an island of about `triangles` triangles: a dome, then the
+** underside's rings (sets the island's under_rings and v_rim). */
+static grid island_grid(island *s, double triangles)
+{
+    grid g = grid_for_budget(triangles, 2 * PI, SPHERE_LIKE);
+    uint32_t dome_rings = g.rings;
+    s->under_rings = island_under_rings(dome_rings);
+    g.rings += s->under_rings;
+    s->v_rim = grid_v(&g, dome_rings - 1);
+    return g;
+}
+
+/* 3 * sqrt(scale) islands, at least 3. */
+static uint32_t island_count(double scale)
+{
+    uint32_t count = (uint32_t)(3 * sqrt(scale) + 0.5);
+    return count < 3 ? 3 : count;
+}
+
+static double island_half_side(uint32_t count)
+{
+    return 0.5 * ISLAND_SPACING * sqrt((double)count);
+}
+
 static void build_island(builder *b, double scale, uint64_t seed)
 {
     double budget = TRIANGLES_PER_SCALE * scale;
-    uint32_t count = (uint32_t)(3 * sqrt(scale) + 0.5), i;
-    double half_side;
+    uint32_t count = island_count(scale), i;
+    double half_side = island_half_side(count);
     uint64_t rng = seed;
     island *all;
-    if (count < 3) count = 3;
-    half_side = 0.5 * ISLAND_SPACING * sqrt((double)count);
     all = malloc(count * sizeof *all);
     if (!all) {
         fail_out_of_memory(b);
@@ -1329,12 +1373,9 @@ static void build_island(builder *b, double scale, uint64_t seed)
     }
     emit_sea(b, half_side + 150);
     for (i = 0; i < count; i++) {
-        grid g = grid_for_budget(0.2 * budget / count, 2 * PI, SPHERE_LIKE);
-        uint32_t dome_rings = g.rings;
+        grid g;
         place_island(&rng, all, i, half_side);
-        all[i].under_rings = island_under_rings(dome_rings);
-        g.rings += all[i].under_rings;
-        all[i].v_rim = grid_v(&g, dome_rings - 1);
+        g = island_grid(&all[i], 0.2 * budget / count);
         emit_surface(b, &g, island_point, &all[i], &world);
         /* the underside's rings come out of the plants' share */
         island_plants(b, &rng, &all[i],
@@ -1370,6 +1411,35 @@ int ex_scene_is_builtin(const char *name)
     return scene_index(name) >= 0;
 }
 
+/* The batches of the builder's output; 0 (and b->failed) when they
+** cannot be allocated. */
+static int builder_start(builder *b, const char *name, double scale)
+{
+    b->name = name;
+    b->scale = scale;
+    if (b->out == OUT_INDEXED) b->vertex_batch = malloc(12 * (size_t)BATCH);
+    if (b->out != OUT_COUNT)
+        b->triangle_batch = malloc((b->out == OUT_INDEXED ? 12 : 36) * (size_t)BATCH);
+    if ((b->out == OUT_INDEXED && !b->vertex_batch) || (b->out != OUT_COUNT && !b->triangle_batch)) {
+        fail_out_of_memory(b);
+        return 0;
+    }
+    return 1;
+}
+
+/* Hands on what is left in the batches, frees them; the first failure. */
+static brt_result builder_finish(builder *b)
+{
+    flush_vertices(b);
+    flush_triangles(b);
+    free(b->vertex_batch);
+    free(b->triangle_batch);
+    free(b->rings[0]);
+    free(b->rings[1]);
+    free(b->rings[2]);
+    return b->failed;
+}
+
 /* Checks the recipe, runs its scene's builder into the given output and
 ** hands on what is left in the batches. */
 static brt_result run_builder(builder *b, const ex_scene_recipe *recipe)
@@ -1381,23 +1451,9 @@ static brt_result run_builder(builder *b, const ex_scene_recipe *recipe)
     if (!(recipe->scale > 0 && recipe->scale <= EX_SCENE_MAX_SCALE))
         return brt_fail(b->err, BRT_EARG, "%s: scale %g outside (0, %g]", recipe->name,
                         recipe->scale, EX_SCENE_MAX_SCALE);
-    b->name = recipe->name;
-    b->scale = recipe->scale;
-    if (b->out == OUT_INDEXED) b->vertex_batch = malloc(12 * (size_t)BATCH);
-    if (b->out != OUT_COUNT)
-        b->triangle_batch = malloc((b->out == OUT_INDEXED ? 12 : 36) * (size_t)BATCH);
-    if ((b->out == OUT_INDEXED && !b->vertex_batch) || (b->out != OUT_COUNT && !b->triangle_batch))
-        fail_out_of_memory(b);
-    else
+    if (builder_start(b, recipe->name, recipe->scale))
         scene_builders[index](b, recipe->scale, recipe->seed);
-    flush_vertices(b);
-    flush_triangles(b);
-    free(b->vertex_batch);
-    free(b->triangle_batch);
-    free(b->rings[0]);
-    free(b->rings[1]);
-    free(b->rings[2]);
-    return b->failed;
+    return builder_finish(b);
 }
 
 static void builder_init(builder *b, enum output out, brt_error *err)

@@ -61,7 +61,7 @@ static brt_hit brute_force_hit(const brt_mesh *m, const brt_ray *ray)
         if (brt_intersect_triangle(ray, m->positions + 3 * (size_t)t[0],
                                    m->positions + 3 * (size_t)t[1],
                                    m->positions + 3 * (size_t)t[2], &d, &u, &v)
-            && brt_hit_is_closer(d, i, &hit)) {
+            && brt_hit_is_closer(d, BRT_NO_INST, i, &hit)) {
             hit.t = d;
             hit.prim = i;
             hit.u = u;
