@@ -1841,9 +1841,9 @@ static void make_conifer(builder *b, uint64_t *rng, double detail, const void *s
             for (j = 0; j < 3; j++) centre[j] = limbs[k].at[j] + along * limbs[k].dir[j];
             for (m = 0; m < needles; m++) {
                 double at[3], dir[3];
-                ball_point(rng, centre, 0.15, at);
+                ball_point(rng, centre, 0.25, at);
                 random_up(rng, PI, dir);
-                emit_lone_leaf(b, rng, at, dir, 0.2, 0.025, &world);
+                emit_lone_leaf(b, rng, at, dir, 0.35, 0.03, &world);
             }
         }
 }
@@ -1879,7 +1879,7 @@ static uint32_t broadleaf_limbs(uint64_t *rng, const broadleaf_shape *t, limb *l
     uint32_t n = 0, k;
     int side;
     fork[1] = t->fork * t->height;
-    limbs[n++] = branch_from(fork, 0, 1e6, (1 - t->fork) * t->height);
+    limbs[n++] = branch_from(fork, 0, 1e6, 0.7 * (1 - t->fork) * t->height);
     for (k = 0; k < t->branches; k++) {
         double a = 2 * PI * k / t->branches + rnd(rng, 0, 0.5), mid[3];
         limb main = branch_from(fork, a, t->rise * rnd(rng, 0.8, 1.2), t->spread * rnd(rng, 0.8, 1.1));
@@ -1903,10 +1903,12 @@ static void make_broadleaf(builder *b, uint64_t *rng, double detail, const void 
     for (k = 0; k < n; k++) emit_limb(b, &limbs[k], 0.5 * t->trunk_radius, &twig_grid);
     mark_material(b, EX_MAT_LEAVES);
     for (k = 0; k < leaves; k++) {
-        double tip[3];
-        /* the leader has no more leaves than a branch */
-        limb_tip(&limbs[(uint32_t)rnd(rng, 0, n - 1e-9)], tip);
-        emit_cluster_leaf(b, rng, tip, t->cluster, t->leaf_size);
+        /* about the outer two thirds of a random branch: a full crown */
+        limb l = limbs[(uint32_t)rnd(rng, 0, n - 1e-9)];
+        double at[3];
+        l.length *= rnd(rng, 0.3, 1);
+        limb_tip(&l, at);
+        emit_cluster_leaf(b, rng, at, t->cluster, t->leaf_size);
     }
 }
 
@@ -2024,10 +2026,10 @@ typedef struct proto_def {
     double window[2];     /* GROUP_FOREST: the share of the forests it grows in */
 } proto_def;
 
-static const conifer_shape spruce = {16, 0.3, 0.12, 3.5, 0.35, 14, 5, 4, 6};
-static const conifer_shape pine = {18, 0.35, 0.55, 3.0, 0.05, 8, 6, 5, 8};
-static const broadleaf_shape oak = {11, 0.4, 0.4, 4.5, 0.6, 6, 2400, 0.16, 1.4};
-static const broadleaf_shape birch = {14, 0.18, 0.45, 2.6, 1.6, 5, 1600, 0.12, 1.0};
+static const conifer_shape spruce = {16, 0.3, 0.12, 3.5, 0.35, 14, 5, 5, 8};
+static const conifer_shape pine = {18, 0.35, 0.55, 3.0, 0.05, 8, 6, 6, 10};
+static const broadleaf_shape oak = {11, 0.4, 0.4, 4.5, 0.6, 6, 2400, 0.3, 1.0};
+static const broadleaf_shape birch = {14, 0.18, 0.45, 2.6, 1.6, 5, 1600, 0.2, 0.8};
 static const broadleaf_shape shrub = {1, 0.04, 0.05, 1.0, 1.2, 5, 500, 0.1, 0.45};
 static const broadleaf_shape tropical_bush = {1.2, 0.05, 0.05, 1.2, 1.0, 5, 400, 0.25, 0.5};
 static const rock_shape boulder = {1.5, 300}, stone = {0.6, 120};

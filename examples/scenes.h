@@ -107,7 +107,7 @@ void ex_scene_camera(const char *name, const float bmin[3],
 **              above).  Prototypes, in this order: 0 spruce, 1 pine (conifers:
 **              a trunk, whorls of branches and clusters of lone needle
 **              triangles), 2 oak, 3 birch (a trunk, branches and lone leaf
-**              triangles in clusters at the twigs), 4 bush, 5 grass tuft,
+**              triangles about their outer parts), 4 bush, 5 grass tuft,
 **              6 boulder, 7 stone.  Trees and bushes grow in forests, each
 **              species in its own share of the forests (pure and mixed
 **              stands); tufts in meadows; rocks in groups.
@@ -116,28 +116,41 @@ void ex_scene_camera(const char *name, const float bmin[3],
 **              triangles), 2 bush, 3 grass tuft, 4 rock, spread over dry land.
 **
 ** Each prototype stands in its own object space: y up, its base point at
-** the origin, metres; trunks, stems and rocks reach ROOT (0.4 m) or more
-** below it into the ground.  An instance is rotation about y times a
+** the origin, metres; trunks and stems reach 0.4 m below it into the
+** ground, rocks a third of their height.  An instance is rotation about y times a
 ** uniform scale in [EX_INSTANCE_SCALE_MIN, EX_INSTANCE_SCALE_MAX] (a share
 ** EX_INSTANCE_TILTED_SHARE of them also tilted by at most
 ** EX_INSTANCE_MAX_TILT radians), translated to its base point, which lies
 ** on the world triangles themselves (the plane of the world triangle
-** under it, not the smooth height function): its condition number is 1 up
-** to float rounding.
+** under it, not the smooth height function).  Its condition number is 1
+** in the 2-norm up to float rounding, at most 3 in batchrt.h's infinity
+** norm: far within BRT_MAX_CONDITION.  A prototype's box is at most about
+** 10 m wide and 20 m tall (29 m scaled): no instance spans the scene.
 **
-** SIZE.  With s the scale and d = max(1, s^(1/4)) the prototypes' detail:
-**   world triangles     W(s) ~ 80000 s (the terrain grid gets 80 % of the
-**                       100000 s budget; the island's grids share it);
-**   prototype k         P_k(d) = a_k + b_k d triangles (leaves, needles
-**                       and leaflets are counted per unit of d; trunks,
-**                       branches and grass stay; a rock's grid grows with d);
-**   instances of k      n_k(s) = round(r_k s);
-**   unique              U = W + sum_k P_k(d);
-**   instanced           I = W + sum_k n_k P_k(d)  ~ 5.6 M s d (landscape)
-**                       and ~ 1.1 M s d (island).
-** The landscape's instance density stays the same (its side grows as
-** sqrt(s)); the island's grows as sqrt(s) (3 sqrt(s) islands), as in the
-** baked island.  ex_instanced_counts gives the exact figures.
+** SIZE.  With s the scale and d = max(1, s^(1/4)) the prototypes' detail
+** (so instances grow as s, prototype detail more slowly):
+**   world triangles     W(s) ~ 92000 s (landscape: its terrain grid gets
+**                       55 % of the baked scenes' 100000 s budget, the
+**                       skirt and floor the rest) or ~ 82000 s (island:
+**                       the islands' grids share the 55 %);
+**   prototype k         P_k(d) ~ a_k + b_k d triangles: leaves, needles
+**                       and leaflets (and a rock's grid) grow with d;
+**                       trunks, branches and grass tufts stay;
+**   instances of k      n_k(s) = round(r_k s), r_k per unit of scale:
+**                       landscape 500, 350, 450, 400, 800, 3000, 150, 100
+**                       (5750 in all); island 1500, 1000, 2000, 5000, 400
+**                       (9900);
+**   unique              U = W(s) + sum_k P_k(d)  ~ W(s) at large scales;
+**   instanced           I = W(s) + sum_k n_k(s) P_k(d)
+**                         ~ W(s) + s (1.8 M + 4.6 M d)   (landscape)
+**                         ~ W(s) + s (1.8 M + 2.2 M d)   (island).
+** So the paper's sizes: landscape at scale 285 (U about 26 M, I about
+** 5.9 G; Table 1: 26 M and 4.3 G), island at scale 1750 (U about 144 M,
+** I about 28 G; Table 1: 143 M and 31 G).  Scale 1: about 100 thousand
+** unique and a few million instanced triangles.  The landscape's
+** instance density stays the same (its side grows as sqrt(s)); the
+** island's grows as sqrt(s) (3 sqrt(s) islands), as in the baked island.
+** ex_instanced_counts gives the exact figures of any scale.
 **
 ** MEMORY.  An open scene holds the placements of its parts (the islands,
 ** the prototypes' triangle counts and material parts), never triangles
