@@ -35,6 +35,7 @@ static brt_hit hit(uint32_t prim, float t)
     h.t = t;
     h.prim = prim;
     h.u = h.v = 0.25f;
+    h.inst = BRT_NO_INST;   /* a world triangle: brt_hits_write refuses instances */
     return h;
 }
 
