@@ -191,8 +191,8 @@ void ex_instanced_source(const ex_instanced_scene *s, brt_scene_source *source);
 
 /* Unique triangles (world and each prototype once), instanced triangles
 ** (world plus every instance's prototype) and instances, without making
-** any geometry (the cost of ex_instanced_open); zeros for an unknown name
-** or a scale out of range. */
+** any geometry (the cost of ex_instanced_open); they do not depend on the
+** seed.  Zeros for an unknown name or a scale out of range. */
 void ex_instanced_counts(const char *name, double scale, uint64_t *unique,
                          uint64_t *instanced, uint32_t *instances);
 
