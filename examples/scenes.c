@@ -30,6 +30,16 @@
 ** its parts; a part turns its share into instance counts (landscape,
 ** island: more instances as the scale grows, and a larger world so that
 ** their density stays natural) or into finer grids (crown, terrain).
+**
+** INSTANCED SCENES (the last sections)
+** The same builders make the instanced landscape and island part by
+** part: the world (terrain, or sea and islands) and each prototype are a
+** builder run of their own, counted (OUT_COUNT, with mark_material's part
+** log for the colours) when the scene is opened and streamed
+** (OUT_TRIANGLES) on demand.  Instances are never built as geometry:
+** instance i is a transform drawn from (seed, i), standing on the world's
+** own triangles (grid_vertex recomputes the very floats emit_surface
+** makes, so the base point lies on the plane that is rendered).
 */
 #include "scenes.h"
 #include "common.h"
