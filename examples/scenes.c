@@ -1928,6 +1928,7 @@ static void make_broadleaf(builder *b, uint64_t *rng, double detail, const void 
 
 static void make_tuft(builder *b, uint64_t *rng, double detail, const void *shape)
 {
+    static const double tuft_foot[3] = {0, -0.1, 0};   /* in the ground on a slope too */
     int k;
     (void)detail;   /* a tuft is as simple at every scale */
     (void)shape;
@@ -1941,7 +1942,7 @@ static void make_tuft(builder *b, uint64_t *rng, double detail, const void *shap
         blade.taper = 0.8;
         blade.bend = rnd(rng, 0.1, 0.5);
         random_up(rng, 0.6, dir);
-        x = xform_along(dir, rnd(rng, 0, 2 * PI), 1, origin);
+        x = xform_along(dir, rnd(rng, 0, 2 * PI), 1, tuft_foot);
         emit_surface(b, &blade_grid, card_point, &blade, &x);
     }
 }

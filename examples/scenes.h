@@ -117,7 +117,7 @@ void ex_scene_camera(const char *name, const float bmin[3],
 **
 ** Each prototype stands in its own object space: y up, its base point at
 ** the origin, metres; trunks and stems reach 0.4 m below it into the
-** ground, rocks a third of their height.  An instance is rotation about y times a
+** ground, grass 0.1 m, rocks a third of their height.  An instance is rotation about y times a
 ** uniform scale in [EX_INSTANCE_SCALE_MIN, EX_INSTANCE_SCALE_MAX] (a share
 ** EX_INSTANCE_TILTED_SHARE of them also tilted by at most
 ** EX_INSTANCE_MAX_TILT radians), translated to its base point, which lies
@@ -125,7 +125,7 @@ void ex_scene_camera(const char *name, const float bmin[3],
 ** under it, not the smooth height function).  Its condition number is 1
 ** in the 2-norm up to float rounding, at most 3 in batchrt.h's infinity
 ** norm: far within BRT_MAX_CONDITION.  A prototype's box is at most about
-** 10 m wide and 20 m tall (29 m scaled): no instance spans the scene.
+** 10 m wide and 19 m tall (30 m scaled): no instance spans the scene.
 **
 ** SIZE.  With s the scale and d = max(1, s^(1/4)) the prototypes' detail
 ** (so instances grow as s, prototype detail more slowly):
