@@ -30,6 +30,16 @@
 ** its parts; a part turns its share into instance counts (landscape,
 ** island: more instances as the scale grows, and a larger world so that
 ** their density stays natural) or into finer grids (crown, terrain).
+**
+** INSTANCED SCENES (the last sections)
+** The same builders make the instanced landscape and island part by
+** part: the world (terrain, or sea and islands) and each prototype are a
+** builder run of their own, counted (OUT_COUNT, with mark_material's part
+** log for the colours) when the scene is opened and streamed
+** (OUT_TRIANGLES) on demand.  Instances are never built as geometry:
+** instance i is a transform drawn from (seed, i), standing on the world's
+** own triangles (grid_vertex recomputes the very floats emit_surface
+** makes, so the base point lies on the plane that is rendered).
 */
 #include "scenes.h"
 #include "common.h"
@@ -144,6 +154,15 @@ enum output { OUT_COUNT, OUT_INDEXED, OUT_TRIANGLES };
 
 #define BATCH 8192   /* vertices, index triples or corner triples per hand-over */
 
+/* The parts of a mesh by material (instanced scenes' colours): part k
+** starts at triangle start[k] and runs to the next part's start. */
+#define MAX_PARTS 8
+typedef struct part_log {
+    uint32_t count;
+    uint64_t start[MAX_PARTS];
+    unsigned char material[MAX_PARTS];   /* ex_material */
+} part_log;
+
 typedef struct builder {
     enum output out;
     ex_mesh_sink sink;             /* OUT_INDEXED */
@@ -159,6 +178,7 @@ typedef struct builder {
     uint32_t triangle_pending;
     float *rings[3];               /* one surface's first ring and two rolling ones */
     uint32_t ring_cap;             /* vertices each ring buffer holds */
+    part_log *parts;               /* NULL, or where mark_material records parts */
     brt_result failed;             /* the first failure (err says what) */
 } builder;
 
@@ -356,6 +376,19 @@ static void put_fan(builder *b, uint32_t segs, const ring *pole, const ring *r, 
     }
 }
 
+/* Whether nv more vertices and nt more triangles keep the numbers within
+** 32 bits (else b->failed); 0 after an earlier failure too. */
+static int builder_room(builder *b, uint64_t nv, uint64_t nt)
+{
+    if (b->failed) return 0;
+    if (b->vertices + nv > UINT32_MAX || b->triangles + nt > UINT32_MAX) {
+        b->failed = brt_fail(b->err, BRT_EARG, "%s: scale %g needs more than 2^32 - 1 vertices "
+                             "or triangles", b->name, b->scale);
+        return 0;
+    }
+    return 1;
+}
+
 /*
 ** Adds one surface.  Vertex (ring i, segment j) is base + i*segs + j, the
 ** poles follow the rings.  Each quad (i,j)-(i,j+1)-(i+1,j+1)-(i+1,j) is
@@ -380,12 +413,7 @@ static void emit_surface(builder *b, const grid *g, surface_fn fn,
     ring first, lo, hi, poles[2];
     double p[3];
 
-    if (b->failed) return;
-    if (base + nv > UINT32_MAX || b->triangles + nt > UINT32_MAX) {
-        b->failed = brt_fail(b->err, BRT_EARG, "%s: scale %g needs more than 2^32 - 1 vertices "
-                             "or triangles", b->name, b->scale);
-        return;
-    }
+    if (!builder_room(b, nv, nt)) return;
     b->vertices += nv;
     if (b->out == OUT_COUNT) {
         b->triangles += nt;
@@ -425,6 +453,38 @@ static void emit_surface(builder *b, const grid *g, surface_fn fn,
     /* lo is now the last ring (with WRAP_V the last band ends on ring 0) */
     if (g->flags & POLE_START) put_fan(b, g->segs, &poles[0], &first, 1);
     if (g->flags & POLE_END) put_fan(b, g->segs, &poles[grid_poles(g) - 1], &lo, 0);
+}
+
+/* Starts a part of material m at the next triangle (instanced scenes'
+** colours); nothing unless the builder logs parts, or when m goes on. */
+static void mark_material(builder *b, ex_material m)
+{
+    part_log *log = b->parts;
+    if (!log || (log->count > 0 && log->material[log->count - 1] == m)) return;
+    if (log->count == MAX_PARTS) return;   /* never: no mesh has that many parts */
+    log->start[log->count] = b->triangles;
+    log->material[log->count++] = (unsigned char)m;
+}
+
+/* One lone triangle with three vertices of its own (a leaf, a needle):
+** it shares no vertex, so foliage is separate triangles with empty space
+** between them, as in the paper's scenes. */
+static void emit_triangle(builder *b, const double p[9], const xform *x)
+{
+    float xyz[9];
+    ring r;
+    int k;
+    if (!builder_room(b, 3, 1)) return;
+    b->vertices += 3;
+    if (b->out == OUT_COUNT) {
+        b->triangles++;
+        return;
+    }
+    for (k = 0; k < 3; k++) put_vertex(xyz + 3 * k, x, p + 3 * k);
+    r.xyz = xyz;
+    r.first = b->vertices - 3;
+    put_vertices(b, xyz, 3);
+    put_triangle(b, ring_corner(&r, 0), ring_corner(&r, 1), ring_corner(&r, 2));
 }
 
 /* ===================================================================== */
@@ -1199,35 +1259,59 @@ static void skirt_point(const void *shape, double u, double v, double p[3])
     p[2] = cz + keep * (p[2] - cz);
 }
 
-static void build_landscape(builder *b, double scale, uint64_t seed)
+/* Hills and mountain ranges under a square of the given side centred on
+** the origin; draws the terrain's seed from rng. */
+static void landscape_terrain(uint64_t *rng, double side, terrain *ground, patch *land)
+{
+    ground->seed = brt_random_u64(rng);
+    ground->hills = 20;
+    ground->mountains = 250;
+    land->x0 = land->z0 = -0.5 * side;
+    land->size = side;
+    land->ground = ground;
+}
+
+/* The terrain grid g over land, then its skirt and floor (closed below);
+** returns the triangles of the floor's inner rings (the budget the
+** landscape takes them from). */
+static double emit_ground(builder *b, const patch *land, const grid *g)
 {
     skirt below;
     grid around;
-    double budget = TRIANGLES_PER_SCALE * scale, side = LANDSCAPE_SIDE * sqrt(scale);
-    uint64_t rng = seed;
-    terrain ground;
-    patch land;
-    grid g;
-    ground.seed = brt_random_u64(&rng);
-    ground.hills = 20;
-    ground.mountains = 250;
-    land.x0 = land.z0 = -0.5 * side;
-    land.size = side;
-    land.ground = &ground;
-    g.segs = g.rings = (uint32_t)sqrt(0.20 * budget / 2) + 2;
-    g.flags = 0;
-    emit_surface(b, &g, patch_point, &land, &world);
-    below.land = &land;
-    below.top = &g;
-    below.floor = -2 * ground.hills - 1;   /* fbm > -2: under every point */
-    below.floor_rings = skirt_floor_rings(&g);
-    around.segs = skirt_segments(&g);
+    mark_material(b, EX_MAT_TERRAIN);
+    emit_surface(b, g, patch_point, land, &world);
+    mark_material(b, EX_MAT_ROCK);
+    below.land = land;
+    below.top = g;
+    below.floor = -2 * land->ground->hills - 1;   /* fbm > -2: under every point */
+    below.floor_rings = skirt_floor_rings(g);
+    around.segs = skirt_segments(g);
     around.rings = 2 + below.floor_rings;
     around.flags = WRAP_U | POLE_END;
     emit_surface(b, &around, skirt_point, &below, &world);
+    return 2.0 * around.segs * below.floor_rings;
+}
+
+/* A square terrain grid of about `triangles` triangles. */
+static grid terrain_grid(double triangles)
+{
+    grid g;
+    g.segs = g.rings = (uint32_t)sqrt(triangles / 2) + 2;
+    g.flags = 0;
+    return g;
+}
+
+static void build_landscape(builder *b, double scale, uint64_t seed)
+{
+    double budget = TRIANGLES_PER_SCALE * scale, side = LANDSCAPE_SIDE * sqrt(scale), floor_tris;
+    uint64_t rng = seed;
+    terrain ground;
+    patch land;
+    grid g = terrain_grid(0.20 * budget);
+    landscape_terrain(&rng, side, &ground, &land);
+    floor_tris = emit_ground(b, &land, &g);
     /* the floor's rings come out of the trees' share: the total stays put */
-    landscape_trees(b, &rng, &ground, side,
-                    0.70 * budget - 2.0 * around.segs * below.floor_rings);
+    landscape_trees(b, &rng, &ground, side, 0.70 * budget - floor_tris);
     landscape_rocks(b, &rng, &ground, side, 0.10 * budget);
 }
 
@@ -1313,15 +1397,37 @@ static void island_plants(builder *b, uint64_t *rng, const island *s, double bud
     }
 }
 
+/* The grid of an island of about `triangles` triangles: a dome, then the
+** underside's rings (sets the island's under_rings and v_rim). */
+static grid island_grid(island *s, double triangles)
+{
+    grid g = grid_for_budget(triangles, 2 * PI, SPHERE_LIKE);
+    uint32_t dome_rings = g.rings;
+    s->under_rings = island_under_rings(dome_rings);
+    g.rings += s->under_rings;
+    s->v_rim = grid_v(&g, dome_rings - 1);
+    return g;
+}
+
+/* 3 * sqrt(scale) islands, at least 3. */
+static uint32_t island_count(double scale)
+{
+    uint32_t count = (uint32_t)(3 * sqrt(scale) + 0.5);
+    return count < 3 ? 3 : count;
+}
+
+static double island_half_side(uint32_t count)
+{
+    return 0.5 * ISLAND_SPACING * sqrt((double)count);
+}
+
 static void build_island(builder *b, double scale, uint64_t seed)
 {
     double budget = TRIANGLES_PER_SCALE * scale;
-    uint32_t count = (uint32_t)(3 * sqrt(scale) + 0.5), i;
-    double half_side;
+    uint32_t count = island_count(scale), i;
+    double half_side = island_half_side(count);
     uint64_t rng = seed;
     island *all;
-    if (count < 3) count = 3;
-    half_side = 0.5 * ISLAND_SPACING * sqrt((double)count);
     all = malloc(count * sizeof *all);
     if (!all) {
         fail_out_of_memory(b);
@@ -1329,12 +1435,9 @@ static void build_island(builder *b, double scale, uint64_t seed)
     }
     emit_sea(b, half_side + 150);
     for (i = 0; i < count; i++) {
-        grid g = grid_for_budget(0.2 * budget / count, 2 * PI, SPHERE_LIKE);
-        uint32_t dome_rings = g.rings;
+        grid g;
         place_island(&rng, all, i, half_side);
-        all[i].under_rings = island_under_rings(dome_rings);
-        g.rings += all[i].under_rings;
-        all[i].v_rim = grid_v(&g, dome_rings - 1);
+        g = island_grid(&all[i], 0.2 * budget / count);
         emit_surface(b, &g, island_point, &all[i], &world);
         /* the underside's rings come out of the plants' share */
         island_plants(b, &rng, &all[i],
@@ -1370,6 +1473,35 @@ int ex_scene_is_builtin(const char *name)
     return scene_index(name) >= 0;
 }
 
+/* The batches of the builder's output; 0 (and b->failed) when they
+** cannot be allocated. */
+static int builder_start(builder *b, const char *name, double scale)
+{
+    b->name = name;
+    b->scale = scale;
+    if (b->out == OUT_INDEXED) b->vertex_batch = malloc(12 * (size_t)BATCH);
+    if (b->out != OUT_COUNT)
+        b->triangle_batch = malloc((b->out == OUT_INDEXED ? 12 : 36) * (size_t)BATCH);
+    if ((b->out == OUT_INDEXED && !b->vertex_batch) || (b->out != OUT_COUNT && !b->triangle_batch)) {
+        fail_out_of_memory(b);
+        return 0;
+    }
+    return 1;
+}
+
+/* Hands on what is left in the batches, frees them; the first failure. */
+static brt_result builder_finish(builder *b)
+{
+    flush_vertices(b);
+    flush_triangles(b);
+    free(b->vertex_batch);
+    free(b->triangle_batch);
+    free(b->rings[0]);
+    free(b->rings[1]);
+    free(b->rings[2]);
+    return b->failed;
+}
+
 /* Checks the recipe, runs its scene's builder into the given output and
 ** hands on what is left in the batches. */
 static brt_result run_builder(builder *b, const ex_scene_recipe *recipe)
@@ -1381,23 +1513,9 @@ static brt_result run_builder(builder *b, const ex_scene_recipe *recipe)
     if (!(recipe->scale > 0 && recipe->scale <= EX_SCENE_MAX_SCALE))
         return brt_fail(b->err, BRT_EARG, "%s: scale %g outside (0, %g]", recipe->name,
                         recipe->scale, EX_SCENE_MAX_SCALE);
-    b->name = recipe->name;
-    b->scale = recipe->scale;
-    if (b->out == OUT_INDEXED) b->vertex_batch = malloc(12 * (size_t)BATCH);
-    if (b->out != OUT_COUNT)
-        b->triangle_batch = malloc((b->out == OUT_INDEXED ? 12 : 36) * (size_t)BATCH);
-    if ((b->out == OUT_INDEXED && !b->vertex_batch) || (b->out != OUT_COUNT && !b->triangle_batch))
-        fail_out_of_memory(b);
-    else
+    if (builder_start(b, recipe->name, recipe->scale))
         scene_builders[index](b, recipe->scale, recipe->seed);
-    flush_vertices(b);
-    flush_triangles(b);
-    free(b->vertex_batch);
-    free(b->triangle_batch);
-    free(b->rings[0]);
-    free(b->rings[1]);
-    free(b->rings[2]);
-    return b->failed;
+    return builder_finish(b);
 }
 
 static void builder_init(builder *b, enum output out, brt_error *err)
@@ -1587,4 +1705,889 @@ void ex_scene_camera(const char *name, const float bmin[3], const float bmax[3],
         set3(eye, c[0], c[1] + 0.4 * dist, c[2] + 0.92 * dist);
         break;
     }
+}
+
+/* ===================================================================== */
+/* Instanced scenes: prototypes                                          */
+/* ===================================================================== */
+/*
+** A prototype is made by a builder like any scene, in its object space
+** (y up, base point at the origin, metres), from its own random numbers;
+** mark_material splits it into parts (bark first, then foliage).  Foliage
+** is lone triangles (emit_triangle) in clusters, with empty space between
+** them.  `detail` (d in scenes.h) multiplies the number of leaves,
+** needles and leaflets, and a rock's triangles.
+*/
+
+#define ROOT 0.4   /* metres a trunk or stem reaches below the base point */
+
+static const grid bole_grid = {10, 6, SPHERE_LIKE};   /* a trunk: 120 triangles */
+static const grid twig_grid = {4, 2, SPHERE_LIKE};    /* a branch: 16 triangles */
+static const grid palm_grid = {8, 12, SPHERE_LIKE};   /* a bent palm trunk */
+
+/* A branch: from `at` along the unit direction dir for length metres. */
+typedef struct limb {
+    double at[3], dir[3], length;
+} limb;
+
+#define MAX_LIMBS 128
+
+static void limb_tip(const limb *l, double tip[3])
+{
+    int k;
+    for (k = 0; k < 3; k++) tip[k] = l->at[k] + l->length * l->dir[k];
+}
+
+static void emit_limb(builder *b, const limb *l, double radius, const grid *g)
+{
+    lathe shape = capped_lathe(radius, l->length, 0.7, 0);
+    xform x = xform_along(l->dir, 0, 1, l->at);
+    emit_surface(b, g, lathe_point, &shape, &x);
+}
+
+/* A trunk of the given radius from ROOT below the origin up to height. */
+static void emit_trunk(builder *b, double radius, double height, double bend, const grid *g)
+{
+    const double foot[3] = {0, -ROOT, 0};
+    lathe shape = capped_lathe(radius, height + ROOT, 0.8, bend);
+    xform x = xform_along(up, 0, 1, foot);
+    emit_surface(b, g, lathe_point, &shape, &x);
+}
+
+/* A point uniformly in the ball of radius r about c. */
+static void ball_point(uint64_t *rng, const double c[3], double r, double out[3])
+{
+    double d[3], s;
+    int k;
+    do {
+        for (k = 0; k < 3; k++) d[k] = rnd(rng, -1, 1);
+        s = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    } while (s > 1);
+    for (k = 0; k < 3; k++) out[k] = c[k] + r * d[k];
+}
+
+/* A lone leaf or needle: a triangle with its base (width across) at `at`
+** and its tip `length` along dir (unit), turned at random about dir. */
+static void emit_lone_leaf(builder *b, uint64_t *rng, const double at[3], const double dir[3],
+                           double length, double width, const xform *x)
+{
+    double side[3], r[3], p[9];
+    int k;
+    do {   /* any direction not along dir gives the leaf's side */
+        random_up(rng, PI, r);
+        ex_cross3(dir, r, side);
+    } while (ex_dot3(side, side) < 1e-6);
+    ex_normalize3(side);
+    for (k = 0; k < 3; k++) {
+        p[k] = at[k] - 0.5 * width * side[k];
+        p[3 + k] = at[k] + 0.5 * width * side[k];
+        p[6 + k] = at[k] + length * dir[k];
+    }
+    emit_triangle(b, p, x);
+}
+
+/* A leaf in the ball of radius r about c, leaning upwards. */
+static void emit_cluster_leaf(builder *b, uint64_t *rng, const double c[3], double r,
+                              double size)
+{
+    double at[3], dir[3];
+    ball_point(rng, c, r, at);
+    random_up(rng, PI, dir);
+    dir[1] += 0.4;   /* leaves lean upwards rather than down */
+    if (ex_dot3(dir, dir) < 1e-6) dir[1] = 1;
+    ex_normalize3(dir);
+    emit_lone_leaf(b, rng, at, dir, size, 0.6 * size, &world);
+}
+
+static uint32_t detailed(double per_detail, double detail)
+{
+    return (uint32_t)(per_detail * detail + 0.5);
+}
+
+/* ---- conifers: whorls of drooping branches with needle clusters ---- */
+
+typedef struct conifer_shape {
+    double height, trunk_radius;
+    double crown_base;            /* the first whorl, as a share of the height */
+    double spread, droop;         /* the longest branch; its fall per unit length */
+    uint32_t whorls, per_whorl;   /* whorls * per_whorl <= MAX_LIMBS */
+    uint32_t clusters;            /* needle clusters per branch */
+    double needles;               /* needles per cluster at detail 1 */
+} conifer_shape;
+
+static limb conifer_branch(uint64_t *rng, const conifer_shape *c, uint32_t w, uint32_t k)
+{
+    double rise = c->crown_base + (1 - c->crown_base) * (w + 0.5) / c->whorls;
+    double a = 2 * PI * (k + 0.5 * (w % 2)) / c->per_whorl + rnd(rng, 0, 0.4);
+    limb l;
+    l.at[0] = l.at[2] = 0;
+    l.at[1] = c->height * rise;
+    l.dir[0] = cos(a);
+    l.dir[1] = -c->droop;
+    l.dir[2] = sin(a);
+    ex_normalize3(l.dir);
+    /* longest at the bottom of the crown, shortest at the top: a cone */
+    l.length = (c->spread * (1 - rise) / (1 - c->crown_base) + 0.3) * rnd(rng, 0.85, 1.1);
+    return l;
+}
+
+static void make_conifer(builder *b, uint64_t *rng, double detail, const void *shape)
+{
+    const conifer_shape *c = shape;
+    limb limbs[MAX_LIMBS];
+    uint32_t n = 0, w, k, cl, m, needles = detailed(c->needles, detail);
+    mark_material(b, EX_MAT_BARK);
+    emit_trunk(b, c->trunk_radius, c->height, 0, &bole_grid);
+    for (w = 0; w < c->whorls; w++)
+        for (k = 0; k < c->per_whorl; k++) {
+            limbs[n] = conifer_branch(rng, c, w, k);
+            emit_limb(b, &limbs[n++], 0.05, &twig_grid);
+        }
+    mark_material(b, EX_MAT_NEEDLES);
+    for (k = 0; k < n; k++)
+        for (cl = 0; cl < c->clusters; cl++) {
+            double centre[3], along = limbs[k].length * (cl + 1) / c->clusters;
+            int j;
+            for (j = 0; j < 3; j++) centre[j] = limbs[k].at[j] + along * limbs[k].dir[j];
+            for (m = 0; m < needles; m++) {
+                double at[3], dir[3];
+                ball_point(rng, centre, 0.25, at);
+                random_up(rng, PI, dir);
+                emit_lone_leaf(b, rng, at, dir, 0.35, 0.03, &world);
+            }
+        }
+}
+
+/* ---- broadleaf trees and bushes: branches, leaves at the twigs ---- */
+
+typedef struct broadleaf_shape {
+    double height, trunk_radius;
+    double fork;                  /* where the branches leave the trunk (share of height) */
+    double spread, rise;          /* branch length; its upward slope */
+    uint32_t branches;            /* main branches, two twigs each (3 * branches + 1 <= MAX_LIMBS) */
+    double leaves, leaf_size;     /* leaves at detail 1; their length */
+    double cluster;               /* radius of the leaves' ball about each branch end */
+} broadleaf_shape;
+
+/* A branch from `from` turned `turn` radians about y from direction a. */
+static limb branch_from(const double from[3], double a, double rise, double length)
+{
+    limb l;
+    memcpy(l.at, from, sizeof l.at);
+    l.dir[0] = cos(a);
+    l.dir[1] = rise;
+    l.dir[2] = sin(a);
+    ex_normalize3(l.dir);
+    l.length = length;
+    return l;
+}
+
+/* The leader (straight up), the main branches and two twigs on each. */
+static uint32_t broadleaf_limbs(uint64_t *rng, const broadleaf_shape *t, limb *limbs)
+{
+    double fork[3] = {0, 0, 0};
+    uint32_t n = 0, k;
+    int side;
+    fork[1] = t->fork * t->height;
+    limbs[n++] = branch_from(fork, 0, 1e6, 0.7 * (1 - t->fork) * t->height);
+    for (k = 0; k < t->branches; k++) {
+        double a = 2 * PI * k / t->branches + rnd(rng, 0, 0.5), mid[3];
+        limb main = branch_from(fork, a, t->rise * rnd(rng, 0.8, 1.2), t->spread * rnd(rng, 0.8, 1.1));
+        limbs[n++] = main;
+        main.length *= 0.5;
+        limb_tip(&main, mid);
+        for (side = -1; side <= 1; side += 2)
+            limbs[n++] = branch_from(mid, a + 0.7 * side, 1.5 * t->rise, 0.6 * t->spread);
+    }
+    return n;
+}
+
+static void make_broadleaf(builder *b, uint64_t *rng, double detail, const void *shape)
+{
+    const broadleaf_shape *t = shape;
+    limb limbs[MAX_LIMBS];
+    uint32_t n, k, leaves = detailed(t->leaves, detail);
+    mark_material(b, EX_MAT_BARK);
+    emit_trunk(b, t->trunk_radius, t->fork * t->height, 0, &bole_grid);
+    n = broadleaf_limbs(rng, t, limbs);
+    for (k = 0; k < n; k++) emit_limb(b, &limbs[k], 0.5 * t->trunk_radius, &twig_grid);
+    mark_material(b, EX_MAT_LEAVES);
+    for (k = 0; k < leaves; k++) {
+        /* about the outer two thirds of a random branch: a full crown */
+        limb l = limbs[(uint32_t)rnd(rng, 0, n - 1e-9)];
+        double at[3];
+        l.length *= rnd(rng, 0.3, 1);
+        limb_tip(&l, at);
+        emit_cluster_leaf(b, rng, at, t->cluster, t->leaf_size);
+    }
+}
+
+/* ---- grass tufts, rocks, palms ---- */
+
+#define TUFT_BLADES_INSTANCED 12
+
+static void make_tuft(builder *b, uint64_t *rng, double detail, const void *shape)
+{
+    static const double tuft_foot[3] = {0, -0.1, 0};   /* in the ground on a slope too */
+    int k;
+    (void)detail;   /* a tuft is as simple at every scale */
+    (void)shape;
+    mark_material(b, EX_MAT_GRASS);
+    for (k = 0; k < TUFT_BLADES_INSTANCED; k++) {
+        double dir[3];
+        card blade;
+        xform x;
+        blade.width = 0.03;
+        blade.length = rnd(rng, 0.35, 0.7);
+        blade.taper = 0.8;
+        blade.bend = rnd(rng, 0.1, 0.5);
+        random_up(rng, 0.6, dir);
+        x = xform_along(dir, rnd(rng, 0, 2 * PI), 1, tuft_foot);
+        emit_surface(b, &blade_grid, card_point, &blade, &x);
+    }
+}
+
+typedef struct rock_shape {
+    double radius, triangles;     /* triangles at detail 1 */
+} rock_shape;
+
+/* A rough ellipsoid sunk to a third of its height. */
+static void make_rock(builder *b, uint64_t *rng, double detail, const void *shape)
+{
+    const rock_shape *r = shape;
+    lathe rock = ellipsoid(r->radius, r->radius * rnd(rng, 0.9, 1.5));
+    grid g = grid_for_budget(r->triangles * detail, 2.0, SPHERE_LIKE);
+    double foot[3] = {0, 0, 0};
+    xform x;
+    int k;
+    rock.rough = rnd(rng, 0.15, 0.3);
+    for (k = 0; k < 3; k++) {
+        random_up(rng, PI, rock.lobes[k]);
+        rock.lobes[k][3] = rnd(rng, 0, 2 * PI);
+    }
+    foot[1] = -rock.height / 3;
+    x = xform_along(up, 0, 1, foot);
+    mark_material(b, EX_MAT_ROCK);
+    emit_surface(b, &g, lathe_point, &rock, &x);
+}
+
+typedef struct palm_shape {
+    double height, bend;          /* the trunk's top leans bend * its length sideways */
+    double frond_length;
+    uint32_t fronds;
+    double leaflets;              /* per frond at detail 1 */
+} palm_shape;
+
+/* A frond: a drooping rachis (a card) with lone leaflets on both sides,
+** made in the rachis's frame x. */
+static void emit_frond(builder *b, uint64_t *rng, const palm_shape *p, const xform *x,
+                       uint32_t leaflets)
+{
+    card rachis;
+    uint32_t m;
+    rachis.width = 0.06;
+    rachis.length = p->frond_length;
+    rachis.taper = 0.8;
+    rachis.bend = 0.45;
+    emit_surface(b, &frond_grid, card_point, &rachis, x);
+    for (m = 0; m < leaflets; m++) {
+        double v = 0.1 + 0.9 * (m + 0.5) / leaflets, at[3], dir[3];
+        double side = m % 2 ? -1 : 1;
+        card_point(&rachis, 0.5, v, at);
+        dir[0] = side;
+        dir[1] = 0.3;
+        dir[2] = rnd(rng, 0.2, 0.6);   /* leaflets droop too */
+        ex_normalize3(dir);
+        emit_lone_leaf(b, rng, at, dir, 0.35 * p->frond_length * (1 - 0.6 * v), 0.06, x);
+    }
+}
+
+static void make_palm(builder *b, uint64_t *rng, double detail, const void *shape)
+{
+    const palm_shape *p = shape;
+    double top[3];
+    uint32_t k, leaflets = detailed(p->leaflets, detail);
+    mark_material(b, EX_MAT_BARK);
+    emit_trunk(b, 0.22, p->height, p->bend, &palm_grid);
+    top[0] = p->bend * (p->height + ROOT);   /* lathe_point's bend at the top */
+    top[1] = p->height;
+    top[2] = 0;
+    mark_material(b, EX_MAT_FRONDS);
+    for (k = 0; k < p->fronds; k++) {
+        double a = 2 * PI * k / p->fronds + rnd(rng, 0, 0.5), dir[3];
+        xform x;
+        dir[0] = cos(a);
+        dir[1] = rnd(rng, 0.1, 0.7);
+        dir[2] = sin(a);
+        x = xform_along(dir, 0, 1, top);
+        emit_frond(b, rng, p, &x, leaflets);
+    }
+}
+
+/* ---- the prototypes of each scene ---- */
+
+enum { GROUP_FOREST, GROUP_MEADOW, GROUP_ROCKS, GROUP_DRY_LAND, GROUPS };
+
+typedef struct proto_def {
+    const char *name;
+    void (*make)(builder *b, uint64_t *rng, double detail, const void *shape);
+    const void *shape;
+    double per_scale;     /* instances per unit of scale (r_k in scenes.h) */
+    int group;            /* where its instances stand */
+    double window[2];     /* GROUP_FOREST: the share of the forests it grows in */
+} proto_def;
+
+static const conifer_shape spruce = {16, 0.3, 0.12, 3.5, 0.35, 14, 5, 5, 8};
+static const conifer_shape pine = {18, 0.35, 0.55, 3.0, 0.05, 8, 6, 6, 10};
+static const broadleaf_shape oak = {11, 0.4, 0.4, 4.5, 0.6, 6, 2400, 0.3, 1.0};
+static const broadleaf_shape birch = {14, 0.18, 0.45, 2.6, 1.6, 5, 1600, 0.2, 0.8};
+static const broadleaf_shape shrub = {1, 0.04, 0.05, 1.0, 1.2, 5, 500, 0.1, 0.45};
+static const broadleaf_shape tropical_bush = {1.2, 0.05, 0.05, 1.2, 1.0, 5, 400, 0.25, 0.5};
+static const rock_shape boulder = {1.5, 300}, stone = {0.6, 120};
+static const palm_shape palm = {9, 0.03, 3.5, 9, 60}, leaning_palm = {7, 0.18, 3.0, 8, 60};
+
+/* Instances come in runs of one prototype, in this order.  Forests: the
+** species' windows overlap, so there are pure and mixed stands. */
+static const proto_def landscape_protos[] = {
+    {"spruce", make_conifer, &spruce, 500, GROUP_FOREST, {0.0, 0.6}},
+    {"pine", make_conifer, &pine, 350, GROUP_FOREST, {0.2, 0.7}},
+    {"oak", make_broadleaf, &oak, 450, GROUP_FOREST, {0.4, 1.0}},
+    {"birch", make_broadleaf, &birch, 400, GROUP_FOREST, {0.5, 1.0}},
+    {"bush", make_broadleaf, &shrub, 800, GROUP_FOREST, {0.0, 1.0}},
+    {"grass", make_tuft, NULL, 3000, GROUP_MEADOW, {0, 1}},
+    {"boulder", make_rock, &boulder, 150, GROUP_ROCKS, {0, 1}},
+    {"stone", make_rock, &stone, 100, GROUP_ROCKS, {0, 1}},
+};
+
+static const proto_def island_protos[] = {
+    {"palm", make_palm, &palm, 1500, GROUP_DRY_LAND, {0, 1}},
+    {"leaning palm", make_palm, &leaning_palm, 1000, GROUP_DRY_LAND, {0, 1}},
+    {"bush", make_broadleaf, &tropical_bush, 2000, GROUP_DRY_LAND, {0, 1}},
+    {"grass", make_tuft, NULL, 5000, GROUP_DRY_LAND, {0, 1}},
+    {"rock", make_rock, &boulder, 400, GROUP_DRY_LAND, {0, 1}},
+};
+
+#define MAX_PROTOS 8
+
+/* Groups on the landscape: members per group (so their number follows
+** the instances) and the range of their radii in metres. */
+typedef struct group_kind {
+    uint64_t key;                 /* the group centres' random numbers */
+    double members, radius_lo, radius_hi;
+} group_kind;
+
+static const group_kind group_kinds[GROUPS] = {
+    {0x466F72657374ull, 60, 30, 80},     /* forests */
+    {0x4D6561646F77ull, 200, 15, 45},    /* meadows */
+    {0x526F636B73ull, 5, 3, 9},          /* groups of rocks */
+    {0, 1, 0, 0},                        /* dry land: the island's, no groups */
+};
+
+/* ===================================================================== */
+/* Instanced scenes: the scene                                           */
+/* ===================================================================== */
+
+#define WORLD_SHARE 0.55         /* of the budget 100000 * scale: world triangles */
+#define INSTANCE_KEY 0x496E7374616E6365ull
+#define PROTOTYPE_KEY 0x50726F746F747970ull
+
+typedef struct instanced_kind instanced_kind;
+
+struct ex_instanced_scene {
+    const instanced_kind *kind;
+    double scale, detail;
+    uint64_t seed;
+    uint32_t first[MAX_PROTOS + 1];        /* prototype k's instances: first[k] .. first[k+1]-1 */
+    uint64_t proto_triangles[MAX_PROTOS];
+    part_log proto_parts[MAX_PROTOS];
+    uint64_t world_triangles;
+    part_log world_parts;
+    /* the landscape */
+    double side;
+    terrain ground;
+    patch land;
+    grid terrain;
+    uint32_t groups[GROUPS];
+    /* the island */
+    island *islands;
+    uint32_t island_count;
+    double half_side;
+    grid island;                           /* every island's grid */
+};
+
+struct instanced_kind {
+    const char *name;
+    const proto_def *protos;
+    uint32_t proto_count;
+    int (*setup)(ex_instanced_scene *s);                    /* 0: out of memory */
+    void (*world)(builder *b, const ex_instanced_scene *s);
+    void (*base)(const ex_instanced_scene *s, const proto_def *d, uint64_t *rng, double at[3]);
+};
+
+/* ---- heights on the world's own triangles ---- */
+
+/* Vertex (ring, seg) of a gridded surface exactly as emit_surface makes it
+** (the float, widened); ring -1 is the start pole. */
+static void grid_vertex(const grid *g, surface_fn fn, const void *shape, int64_t row,
+                        uint32_t seg, double out[3])
+{
+    double p[3], du = 1.0 / ((g->flags & WRAP_U) ? g->segs : g->segs - 1);
+    float f[3];
+    int k;
+    if (row < 0) fn(shape, 0, 0, p);
+    else fn(shape, (seg % g->segs) * du, grid_v(g, (uint32_t)row), p);
+    put_vertex(f, &world, p);
+    for (k = 0; k < 3; k++) out[k] = f[k];
+}
+
+/* The height of the plane of triangle (a, b, c) at (x, z) into *h when
+** (x, z) lies deeper inside the triangle's shadow on the xz plane than
+** *best (the smallest barycentric coordinate: < 0 outside). */
+static void triangle_height(const double a[3], const double b[3], const double c[3],
+                            double x, double z, double *best, double *h)
+{
+    double e1x = b[0] - a[0], e1z = b[2] - a[2], e2x = c[0] - a[0], e2z = c[2] - a[2];
+    double px = x - a[0], pz = z - a[2], d = e1x * e2z - e2x * e1z, u, v, inside;
+    if (d == 0) return;   /* seen edge-on: never the one under a point */
+    u = (px * e2z - e2x * pz) / d;
+    v = (e1x * pz - px * e1z) / d;
+    inside = fmin(1 - u - v, fmin(u, v));
+    if (inside <= *best) return;
+    *best = inside;
+    *h = a[1] + u * (b[1] - a[1]) + v * (c[1] - a[1]);
+}
+
+/* The triangles of the cell between rings lo and lo + 1 at segment seg (lo
+** = -1: the start pole's fan), as put_band and put_fan make them. */
+static void cell_height(const grid *g, surface_fn fn, const void *shape, int64_t lo,
+                        uint32_t seg, double x, double z, double *best, double *h)
+{
+    uint32_t seg2 = (seg + 1) % g->segs;
+    double lo1[3], lo2[3], hi1[3], hi2[3];
+    grid_vertex(g, fn, shape, lo + 1, seg, hi1);
+    grid_vertex(g, fn, shape, lo + 1, seg2, hi2);
+    if (lo < 0) {
+        grid_vertex(g, fn, shape, -1, 0, lo1);
+        triangle_height(lo1, hi2, hi1, x, z, best, h);
+        return;
+    }
+    grid_vertex(g, fn, shape, lo, seg, lo1);
+    grid_vertex(g, fn, shape, lo, seg2, lo2);
+    triangle_height(lo1, lo2, hi2, x, z, best, h);
+    triangle_height(lo1, hi2, hi1, x, z, best, h);
+}
+
+static int64_t clamp_index(double i, int64_t lo, int64_t hi)
+{
+    return i < (double)lo ? lo : i > (double)hi ? hi : (int64_t)i;
+}
+
+/* The terrain grid's height at (x, z): ring runs along x, segment along z
+** (patch_point). */
+static double landscape_height(const ex_instanced_scene *s, double x, double z)
+{
+    const grid *g = &s->terrain;
+    double best = -INFINITY, h = 0;
+    int64_t row = clamp_index(floor((x - s->land.x0) / s->land.size * (g->rings - 1)), 0,
+                              (int64_t)g->rings - 2);
+    int64_t seg = clamp_index(floor((z - s->land.z0) / s->land.size * (g->segs - 1)), 0,
+                              (int64_t)g->segs - 2);
+    cell_height(g, patch_point, &s->land, row, (uint32_t)seg, x, z, &best, &h);
+    return h;
+}
+
+/* An island's dome at (x, z).  Ring i of the dome lies at radius (i + 1) /
+** D * rim (D dome rings; grid_v with two poles), segment j at angle 2 pi j
+** / segs, and the edges between rings are radial; a ring's chords cut
+** inside its circle, so a point between rings i and i + 1 lies in that
+** band or, near the outer ring, in the next one: both are tried. */
+static double island_surface_height(const ex_instanced_scene *s, const island *isl, double x,
+                                    double z)
+{
+    const grid *g = &s->island;
+    double dx = x - isl->cx, dz = z - isl->cz, a = atan2(dz, dx), best = -INFINITY, h = 0;
+    uint32_t dome = g->rings - isl->under_rings, seg;
+    int64_t row, lo;
+    if (a < 0) a += 2 * PI;
+    seg = (uint32_t)(a / (2 * PI) * g->segs) % g->segs;
+    row = clamp_index(floor(sqrt(dx * dx + dz * dz) / (ISLAND_RIM * isl->radius) * dome) - 1, -1,
+                       (int64_t)g->rings - 2);
+    for (lo = row; lo <= row + 1 && lo <= (int64_t)g->rings - 2; lo++)
+        cell_height(g, island_point, isl, lo, seg, x, z, &best, &h);
+    return h;
+}
+
+/* ---- the landscape ---- */
+
+static int landscape_setup(ex_instanced_scene *s)
+{
+    uint64_t rng = s->seed;
+    s->side = LANDSCAPE_SIDE * sqrt(s->scale);
+    landscape_terrain(&rng, s->side, &s->ground, &s->land);
+    s->terrain = terrain_grid(WORLD_SHARE * TRIANGLES_PER_SCALE * s->scale);
+    return 1;
+}
+
+static void landscape_world(builder *b, const ex_instanced_scene *s)
+{
+    emit_ground(b, &s->land, &s->terrain);
+}
+
+/* A random point of a random group of the prototype's kind (within its
+** window of the groups), on the terrain. */
+static void landscape_base(const ex_instanced_scene *s, const proto_def *d, uint64_t *rng,
+                           double at[3])
+{
+    const group_kind *kind = &group_kinds[d->group];
+    uint32_t n = s->groups[d->group];
+    double lo = floor(d->window[0] * n), hi = fmax(lo + 1, floor(d->window[1] * n));
+    uint64_t centre = s->seed ^ kind->key ^ brt_mix64((uint64_t)(lo + floor(rnd(rng, 0, hi - lo))));
+    double cx = rnd(&centre, -0.45, 0.45) * s->side, cz = rnd(&centre, -0.45, 0.45) * s->side;
+    double radius = rnd(&centre, kind->radius_lo, kind->radius_hi);
+    double a = rnd(rng, 0, 2 * PI), r = radius * sqrt(rnd(rng, 0, 1));
+    /* on the terrain: a group at the edge is cut off there */
+    at[0] = clamp(cx + r * cos(a), -0.49 * s->side, 0.49 * s->side);
+    at[2] = clamp(cz + r * sin(a), -0.49 * s->side, 0.49 * s->side);
+    at[1] = landscape_height(s, at[0], at[2]);
+}
+
+/* ---- the island ---- */
+
+static int island_setup(ex_instanced_scene *s)
+{
+    uint64_t rng = s->seed;
+    uint32_t i;
+    s->island_count = island_count(s->scale);
+    s->half_side = island_half_side(s->island_count);
+    s->islands = malloc(s->island_count * sizeof *s->islands);
+    if (!s->islands) return 0;
+    for (i = 0; i < s->island_count; i++) {
+        place_island(&rng, s->islands, i, s->half_side);
+        s->island = island_grid(&s->islands[i], WORLD_SHARE * TRIANGLES_PER_SCALE * s->scale
+                                / s->island_count);
+    }
+    return 1;
+}
+
+static void island_world(builder *b, const ex_instanced_scene *s)
+{
+    uint32_t i;
+    mark_material(b, EX_MAT_SEA);
+    emit_sea(b, s->half_side + 150);
+    mark_material(b, EX_MAT_SAND);
+    for (i = 0; i < s->island_count; i++)
+        emit_surface(b, &s->island, island_point, &s->islands[i], &world);
+}
+
+/* A random spot on dry land of a random island, on its triangles.  After a
+** few misses the island's centre: it is always dry (the peak is at least
+** 15 m, the coast's noise at most 0.35 * 1.875 of it). */
+static void island_base(const ex_instanced_scene *s, const proto_def *d, uint64_t *rng,
+                        double at[3])
+{
+    uint32_t j = (uint32_t)rnd(rng, 0, s->island_count);
+    const island *isl = &s->islands[j < s->island_count ? j : s->island_count - 1];
+    (void)d;
+    if (!dry_spot(rng, isl, at)) {
+        at[0] = isl->cx;
+        at[2] = isl->cz;
+    }
+    at[1] = island_surface_height(s, isl, at[0], at[2]);
+}
+
+static const instanced_kind instanced_kinds[] = {
+    {"landscape", landscape_protos, sizeof landscape_protos / sizeof *landscape_protos,
+     landscape_setup, landscape_world, landscape_base},
+    {"island", island_protos, sizeof island_protos / sizeof *island_protos,
+     island_setup, island_world, island_base},
+};
+
+/* ---- making parts: the world or one prototype, to a builder ---- */
+
+typedef void (*part_fn)(builder *b, const ex_instanced_scene *s, uint32_t id);
+
+static void world_part(builder *b, const ex_instanced_scene *s, uint32_t id)
+{
+    (void)id;
+    s->kind->world(b, s);
+}
+
+static void prototype_part(builder *b, const ex_instanced_scene *s, uint32_t id)
+{
+    const proto_def *d = &s->kind->protos[id];
+    uint64_t rng = s->seed ^ PROTOTYPE_KEY ^ brt_mix64(id);
+    d->make(b, &rng, s->detail, d->shape);
+}
+
+/* Runs one part into emit (out OUT_TRIANGLES) or counts it (OUT_COUNT),
+** logging its material parts when parts is not NULL. */
+static brt_result run_part(const ex_instanced_scene *s, enum output out, part_fn fn, uint32_t id,
+                           brt_triangle_fn emit, void *emit_user, part_log *parts,
+                           uint64_t *triangles, brt_error *err)
+{
+    builder b;
+    brt_result r;
+    builder_init(&b, out, err);
+    b.emit = emit;
+    b.emit_user = emit_user;
+    b.parts = parts;
+    if (builder_start(&b, s->kind->name, s->scale)) fn(&b, s, id);
+    r = builder_finish(&b);
+    if (triangles) *triangles = b.triangles;
+    return r;
+}
+
+/* The number of groups of each kind: their members' instances / members. */
+static void count_groups(ex_instanced_scene *s)
+{
+    double members[GROUPS] = {0, 0, 0, 0};
+    uint32_t k;
+    int g;
+    for (k = 0; k < s->kind->proto_count; k++)
+        members[s->kind->protos[k].group] += s->first[k + 1] - s->first[k];
+    for (g = 0; g < GROUPS; g++) {
+        double n = floor(members[g] / group_kinds[g].members);
+        s->groups[g] = n < 1 ? 1 : (uint32_t)n;
+    }
+}
+
+/* Instances, groups and the parts' triangle counts and materials. */
+static brt_result instanced_place(ex_instanced_scene *s, brt_error *err)
+{
+    brt_result r;
+    uint32_t k;
+    s->first[0] = 0;
+    for (k = 0; k < s->kind->proto_count; k++)
+        s->first[k + 1] = s->first[k] + (uint32_t)(s->kind->protos[k].per_scale * s->scale + 0.5);
+    count_groups(s);
+    if (!s->kind->setup(s)) {
+        out_of_memory(err, s->kind->name, s->scale);
+        return BRT_ENOMEM;
+    }
+    r = run_part(s, OUT_COUNT, world_part, 0, NULL, NULL, &s->world_parts, &s->world_triangles,
+                 err);
+    for (k = 0; k < s->kind->proto_count && r == BRT_OK; k++)
+        r = run_part(s, OUT_COUNT, prototype_part, k, NULL, NULL, &s->proto_parts[k],
+                     &s->proto_triangles[k], err);
+    return r;
+}
+
+brt_result ex_instanced_open(const char *name, double scale, uint64_t seed,
+                             ex_instanced_scene **out, brt_error *err)
+{
+    ex_instanced_scene *s;
+    brt_result r;
+    size_t k;
+    *out = NULL;
+    for (k = 0; k < sizeof instanced_kinds / sizeof *instanced_kinds; k++)
+        if (name && strcmp(name, instanced_kinds[k].name) == 0) break;
+    if (k == sizeof instanced_kinds / sizeof *instanced_kinds)
+        return brt_fail(err, BRT_EARG, "unknown instanced scene '%s' (built-in: landscape, island)",
+                        name ? name : "(null)");
+    if (!(scale > 0 && scale <= EX_SCENE_MAX_SCALE))
+        return brt_fail(err, BRT_EARG, "%s: scale %g outside (0, %g]", name, scale,
+                        EX_SCENE_MAX_SCALE);
+    s = calloc(1, sizeof *s);
+    if (!s) {
+        out_of_memory(err, name, scale);
+        return BRT_ENOMEM;
+    }
+    s->kind = &instanced_kinds[k];
+    s->scale = scale;
+    s->detail = scale < 1 ? 1 : pow(scale, 0.25);
+    s->seed = seed;
+    r = instanced_place(s, err);
+    if (r != BRT_OK) {
+        ex_instanced_close(s);
+        return r;
+    }
+    *out = s;
+    return BRT_OK;
+}
+
+void ex_instanced_close(ex_instanced_scene *s)
+{
+    if (!s) return;
+    free(s->islands);
+    free(s);
+}
+
+/* ---- instances ---- */
+
+int ex_instanced_instance_prototype(const ex_instanced_scene *s, uint32_t inst)
+{
+    uint32_t k;
+    for (k = 0; k < s->kind->proto_count; k++)
+        if (inst < s->first[k + 1]) return (int)k;
+    return -1;
+}
+
+/* Counter-based: instance inst's random numbers come from (seed, inst)
+** alone, so any instance is made without the others. */
+void ex_instanced_instance(const ex_instanced_scene *s, uint32_t inst, brt_instance *out)
+{
+    int proto = ex_instanced_instance_prototype(s, inst);
+    uint64_t rng = s->seed ^ INSTANCE_KEY ^ brt_mix64(inst);
+    double at[3], axis[3] = {0, 1, 0}, turn, size;
+    xform x;
+    int r, c;
+    if (proto < 0) proto = 0;   /* never: callers stay below the count */
+    s->kind->base(s, &s->kind->protos[proto], &rng, at);
+    turn = rnd(&rng, 0, 2 * PI);
+    size = rnd(&rng, EX_INSTANCE_SCALE_MIN, EX_INSTANCE_SCALE_MAX);
+    if (rnd(&rng, 0, 1) < EX_INSTANCE_TILTED_SHARE) random_up(&rng, EX_INSTANCE_MAX_TILT, axis);
+    x = xform_along(axis, turn, size, at);
+    out->prototype = (uint32_t)proto;
+    for (r = 0; r < 3; r++) {
+        for (c = 0; c < 3; c++) out->xform[4 * r + c] = (float)x.m[r][c];
+        out->xform[4 * r + 3] = (float)x.t[r];
+    }
+}
+
+/* ---- the streams ---- */
+
+static brt_result source_world(const void *user, brt_triangle_fn emit, void *emit_user,
+                               brt_error *err)
+{
+    return run_part(user, OUT_TRIANGLES, world_part, 0, emit, emit_user, NULL, NULL, err);
+}
+
+static brt_result source_prototype(const void *user, uint32_t id, brt_triangle_fn emit,
+                                   void *emit_user, brt_error *err)
+{
+    const ex_instanced_scene *s = user;
+    if (id >= s->kind->proto_count)
+        return brt_fail(err, BRT_EARG, "%s: no prototype %lu (%lu prototypes)", s->kind->name,
+                        (unsigned long)id, (unsigned long)s->kind->proto_count);
+    return run_part(s, OUT_TRIANGLES, prototype_part, id, emit, emit_user, NULL, NULL, err);
+}
+
+static brt_result source_instances(const void *user, brt_instance_fn emit, void *emit_user,
+                                   brt_error *err)
+{
+    const ex_instanced_scene *s = user;
+    uint32_t total = ex_instanced_instance_count(s), first, i, n;
+    brt_instance *chunk = malloc(EX_INSTANCE_CHUNK * sizeof *chunk);
+    brt_result r = BRT_OK;
+    if (!chunk) {
+        out_of_memory(err, s->kind->name, s->scale);
+        return BRT_ENOMEM;
+    }
+    for (first = 0; first < total && r == BRT_OK; first += n) {
+        n = total - first < EX_INSTANCE_CHUNK ? total - first : EX_INSTANCE_CHUNK;
+        for (i = 0; i < n; i++) ex_instanced_instance(s, first + i, &chunk[i]);
+        r = emit(emit_user, chunk, n, first, err);
+    }
+    free(chunk);
+    return r;
+}
+
+void ex_instanced_source(const ex_instanced_scene *s, brt_scene_source *source)
+{
+    source->world.run = source_world;
+    source->world.user = s;
+    source->prototype_count = s->kind->proto_count;
+    source->prototype = source_prototype;
+    source->instances = source_instances;
+    source->user = s;
+}
+
+/* ---- counts ---- */
+
+uint32_t ex_instanced_instance_count(const ex_instanced_scene *s)
+{
+    return s->first[s->kind->proto_count];
+}
+
+uint64_t ex_instanced_world_triangles(const ex_instanced_scene *s)
+{
+    return s->world_triangles;
+}
+
+uint32_t ex_instanced_prototype_count(const ex_instanced_scene *s)
+{
+    return s->kind->proto_count;
+}
+
+uint64_t ex_instanced_prototype_triangles(const ex_instanced_scene *s, uint32_t id)
+{
+    return id < s->kind->proto_count ? s->proto_triangles[id] : 0;
+}
+
+const char *ex_instanced_prototype_name(const ex_instanced_scene *s, uint32_t id)
+{
+    return id < s->kind->proto_count ? s->kind->protos[id].name : NULL;
+}
+
+uint64_t ex_instanced_unique(const ex_instanced_scene *s)
+{
+    uint64_t sum = s->world_triangles;
+    uint32_t k;
+    for (k = 0; k < s->kind->proto_count; k++) sum += s->proto_triangles[k];
+    return sum;
+}
+
+uint64_t ex_instanced_instanced(const ex_instanced_scene *s)
+{
+    uint64_t sum = s->world_triangles;
+    uint32_t k;
+    for (k = 0; k < s->kind->proto_count; k++)
+        sum += (uint64_t)(s->first[k + 1] - s->first[k]) * s->proto_triangles[k];
+    return sum;
+}
+
+void ex_instanced_counts(const char *name, double scale, uint64_t *unique, uint64_t *instanced,
+                         uint32_t *instances)
+{
+    ex_instanced_scene *s;
+    brt_error err;
+    *unique = *instanced = 0;
+    *instances = 0;
+    if (ex_instanced_open(name, scale, 1, &s, &err) != BRT_OK) return;
+    *unique = ex_instanced_unique(s);
+    *instanced = ex_instanced_instanced(s);
+    *instances = ex_instanced_instance_count(s);
+    ex_instanced_close(s);
+}
+
+/* ---- colours ---- */
+
+static ex_material part_material(const part_log *log, uint64_t total, uint32_t prim)
+{
+    uint32_t k = log->count;
+    if (prim >= total) return EX_MAT_NONE;
+    while (k > 0 && log->start[k - 1] > prim) k--;
+    return k > 0 ? (ex_material)log->material[k - 1] : EX_MAT_NONE;
+}
+
+ex_material ex_instanced_material(const ex_instanced_scene *s, uint32_t inst, uint32_t prim)
+{
+    int proto;
+    if (inst == BRT_NO_INST) return part_material(&s->world_parts, s->world_triangles, prim);
+    proto = ex_instanced_instance_prototype(s, inst);
+    if (proto < 0) return EX_MAT_NONE;
+    return part_material(&s->proto_parts[proto], s->proto_triangles[proto], prim);
+}
+
+void ex_material_colour(ex_material m, float rgb[3])
+{
+    static const float table[EX_MAT_COUNT][3] = {
+        {0.30f, 0.42f, 0.18f},   /* terrain: grassland */
+        {0.45f, 0.43f, 0.40f},   /* rock */
+        {0.80f, 0.72f, 0.52f},   /* sand */
+        {0.05f, 0.20f, 0.35f},   /* sea */
+        {0.30f, 0.20f, 0.12f},   /* bark */
+        {0.20f, 0.45f, 0.10f},   /* leaves */
+        {0.08f, 0.25f, 0.12f},   /* conifer needles */
+        {0.25f, 0.50f, 0.15f},   /* palm fronds */
+        {0.45f, 0.60f, 0.20f},   /* grass */
+        {1.00f, 0.00f, 1.00f},   /* none */
+    };
+    if ((int)m < 0 || m >= EX_MAT_COUNT) m = EX_MAT_NONE;
+    memcpy(rgb, table[m], sizeof table[m]);
+}
+
+void ex_instanced_colour(const ex_instanced_scene *s, uint32_t inst, uint32_t prim, float rgb[3])
+{
+    ex_material_colour(ex_instanced_material(s, inst, prim), rgb);
 }

@@ -198,6 +198,7 @@ int main(int argc, char **argv)
     suite_batched();
     suite_cli();
     suite_scenes();
+    suite_instanced_scenes();
     suite_render();
     suite_referee();
     suite_embree();

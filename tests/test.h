@@ -59,6 +59,7 @@ void suite_svdag(void);
 void suite_batched(void);
 void suite_cli(void);
 void suite_scenes(void);
+void suite_instanced_scenes(void);
 void suite_render(void);
 void suite_referee(void);
 void suite_embree(void);
