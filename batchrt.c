@@ -2831,7 +2831,7 @@ static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *er
 static brt_result stream_bvh(brt_result (*run)(const void *, uint32_t, brt_triangle_fn, void *,
                                                brt_error *),
                              const void *user, uint32_t id, brt_bvh **out, uint32_t *count,
-                             brt_error *err);
+                             float *lo, float *hi, brt_error *err);
 static brt_result run_prototype_stream(const void *user, uint32_t id, brt_triangle_fn emit,
                                        void *emit_user, brt_error *err);
 
@@ -2995,7 +2995,8 @@ static brt_result build_prototypes(scene_builder *b, const brt_scene_source *sou
     for (p = 0; p < ib->proto_count; p++) {
         proto_entry *e = &ib->entries[p];
         void *blob;
-        brt_result r = stream_bvh(run_prototype_stream, source, p, &ib->protos[p], &e->triangles, err);
+        brt_result r = stream_bvh(run_prototype_stream, source, p, &ib->protos[p], &e->triangles,
+                                  NULL, NULL, err);
         if (r == BRT_OK) r = poll_interrupt(b, err);
         if (r != BRT_OK) return r;
         e->size = brt_bvh_blob_size(ib->protos[p]);
@@ -6332,15 +6333,18 @@ static brt_result corners_bvh(const corner_list *l, brt_bvh **out, brt_error *er
                                    (unsigned)l->count, brt_result_string(rc));
 }
 
-/* Runs a triangle stream into a BVH; *count gets its triangles. */
+/* Runs a triangle stream into a BVH; *count gets its triangles, and lo,
+** hi (when not NULL) grow by their exact bounds. */
 static brt_result stream_bvh(brt_result (*run)(const void *, uint32_t, brt_triangle_fn, void *,
                                                brt_error *),
                              const void *user, uint32_t id, brt_bvh **out, uint32_t *count,
-                             brt_error *err)
+                             float *lo, float *hi, brt_error *err)
 {
     corner_list l = {NULL, 0, 0};
     brt_result rc = run(user, id, gather_corners, &l, err);
+    size_t i;
     if (rc == BRT_OK) rc = corners_bvh(&l, out, err);
+    for (i = 0; lo && i < 3 * (size_t)l.count; i++) bounds_grow(lo, hi, l.corners + 3 * i);
     *count = l.count;
     free(l.corners);
     return rc;
@@ -6429,7 +6433,7 @@ static brt_result world_prototypes(brt_world *w, const brt_scene_source *source,
     uint32_t p;
     for (p = 0; p < w->prototype_count; p++) {
         brt_result rc = stream_bvh(run_prototype_stream, source, p, &w->prototypes[p],
-                                   &proto_tris[p], err);
+                                   &proto_tris[p], NULL, NULL, err);
         if (rc != BRT_OK) return rc;
         w->unique += proto_tris[p];
     }
@@ -6444,9 +6448,8 @@ static brt_result world_fill(brt_world *w, const brt_scene_source *source, brt_e
     memset(&g, 0, sizeof g);
     if (!proto_tris) return brt_fail(err, BRT_ENOMEM, "out of memory for the prototypes");
     if (source->world.run)
-        rc = stream_bvh(run_world_stream, &source->world, 0, &w->triangles, &n, err);
+        rc = stream_bvh(run_world_stream, &source->world, 0, &w->triangles, &n, w->lo, w->hi, err);
     w->unique = w->instanced = n;
-    if (w->triangles) brt_bvh_bounds(w->triangles, w->lo, w->hi);
     if (rc == BRT_OK) rc = world_prototypes(w, source, proto_tris, err);
     g.world = w;
     g.proto_tris = proto_tris;

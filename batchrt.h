@@ -585,6 +585,9 @@ uint32_t brt_world_prototype_count(const brt_world *world);
 ** (world triangles plus every instance's prototype triangles). */
 uint64_t brt_world_unique_triangles(const brt_world *world);
 uint64_t brt_world_instanced_triangles(const brt_world *world);
+/* The world's bounds: its triangles' exact bounds and its instances'
+** boxes (brt_instance_bounds) -- the same floats as brt_scene_bounds of
+** the scene file built from the same source. */
 void brt_world_bounds(const brt_world *world, float bmin[3], float bmax[3]);
 
 /* ===================================================================== */

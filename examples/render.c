@@ -7,13 +7,19 @@
 **   build/render [SCENE] [--scale S] [--spp N] [--width W] [--height H]
 **                [--memory SIZE|P%] [--no-proxy] [--direct] [--compare] ...
 **
-** SCENE is an OBJ/PLY file or a built-in scene (crown, landscape, island;
-** default: the landscape at scale 1, about 100 thousand triangles).
+** SCENE is an OBJ/PLY file, a pbrt-v4 file (.pbrt, instances included) or
+** a built-in scene: the crown, or the instanced landscape and island
+** (examples/scenes.h; default: the landscape at scale 1, about 100
+** thousand unique and 6 million instanced triangles).
 **
 ** THE RENDERER
-** Homogeneous Lambert material (albedo 0.8) lit by a sky and a sun: a disc
-** of a given direction, angular radius and radiance.  A path ends when it
-** escapes, after MAX_DEPTH bounces, or by Russian roulette.
+** Lambert materials lit by a sky and a sun: a disc of a given direction,
+** angular radius and radiance.  The built-in instanced scenes colour each
+** prototype and world part by the hit's (instance, prim)
+** (ex_instanced_colour: bark, leaves, grass, rock, sand, sea); everything
+** else, and every scene with --grey, is the paper's homogeneous grey
+** (albedo 0.8).  A path ends when it escapes, after MAX_DEPTH bounces, or
+** by Russian roulette.
 **
 ** Next-event estimation (the default): at every hit that may go on (below
 ** MAX_DEPTH) one shadow ray -- an occlusion ray, BRT_TAG_OCCLUSION -- goes
@@ -71,6 +77,7 @@
 ** polls it and removes its temporary files; the renderer stops starting
 ** paths, and the program exits non-zero before writing any output.
 */
+#include "input.h"
 #include "rays.h"
 #include "scenes.h"
 
@@ -117,7 +124,7 @@ typedef struct options {
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
     int no_inner;
     int no_proxy, paper_scheduler, exact_proxy, direct, compare, have_camera, drop_os_cache;
-    int no_nee, have_sun;
+    int no_nee, have_sun, grey;
     float eye[3], target[3], fov;
     float sun[3];                 /* --sun: toward the sun (any length) */
     double sun_radius, sun_radiance;
@@ -129,10 +136,12 @@ typedef struct options {
 static void usage(void)
 {
     printf("usage: build/render [SCENE] [options]\n"
-           "Path traces a mesh file (OBJ/PLY) or a built-in scene (crown, landscape,\n"
-           "island; default landscape) on the out-of-core batched traversal.\n"
+           "Path traces a mesh file (OBJ/PLY), a pbrt-v4 file (.pbrt) or a built-in scene\n"
+           "(crown; landscape and island, instanced; default landscape) on the out-of-core\n"
+           "batched traversal.\n"
            "\n"
-           "  --scale S            size of a built-in scene: about 100000*S triangles (default 1)\n"
+           "  --scale S            size of a built-in scene: about 100000*S unique triangles\n"
+           "                       (the instanced scenes: about 6 million instanced per unit)\n"
            "  --seed N             seed of a built-in scene (default 1)\n"
            "  --spp N              samples per pixel (default 8)\n"
            "  --width W            image width (default 320)\n"
@@ -143,6 +152,8 @@ static void usage(void)
            "  --sun-radius DEG     the sun's angular radius (default 3)\n"
            "  --sun-radiance V     its radiance (default 500; sky about 0.5)\n"
            "  --no-nee             no shadow rays: only escaping rays find the sun\n"
+           "  --grey               the paper's homogeneous grey Lambert (albedo 0.8) instead\n"
+           "                       of the built-in scenes' colours\n"
            "                       (default: next-event estimation toward the sun)\n"
            "  --memory SIZE|P%%     geometry memory limit, e.g. 64M, or P %% of the geometry\n"
            "                       bytes (default: no limit); proxies count against it\n"
@@ -265,6 +276,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--sun-radius")) o->sun_radius = ex_parse_double(prog, a, VALUE, 0.01, 45);
         else if (is_option(a, "--sun-radiance")) o->sun_radiance = ex_parse_double(prog, a, VALUE, 0, 1000);
         else if (is_option(a, "--no-nee")) o->no_nee = 1;
+        else if (is_option(a, "--grey")) o->grey = 1;
         else if (is_option(a, "--memory")) parse_memory(VALUE, o);
         else if (is_option(a, "--batch-tris")) o->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
         else if (is_option(a, "--res")) o->res = ex_parse_resolution(prog, a, VALUE);
@@ -372,7 +384,7 @@ static int lambert_bounce(const brt_ray *in, const brt_hit *hit, const float nor
 
 typedef struct path_state {
     uint32_t pixel, sample, bounce;   /* the random key; bounce = hits so far */
-    double weight;                    /* throughput: albedo^bounce / roulette survival */
+    double weight[3];                 /* throughput: product of albedos / roulette survival */
     brt_ray ray;                      /* the next ray, while the path is pending */
     brt_ray shadow;                   /* the shadow ray, while it is pending */
     double light[3];                  /* what the shadow ray adds when clear */
@@ -393,6 +405,7 @@ typedef struct render_job {
     double sun_radius;                /* degrees (sun.cos_max is what renders) */
     int nee;                          /* next-event estimation (shadow rays) */
     unsigned threads;                 /* --threads (0: all cores) */
+    const ex_instanced_scene *palette; /* colours by (inst, prim), or NULL: grey */
 } render_job;
 
 /* Sums over finished samples of their luminance (the mean of r, g, b of
@@ -451,7 +464,7 @@ static void start_path(const render_job *job, uint64_t number, path_state *p)
     p->pixel = (uint32_t)(number % pixels);
     p->sample = (uint32_t)(number / pixels);
     p->bounce = 0;
-    p->weight = 1.0;
+    p->weight[0] = p->weight[1] = p->weight[2] = 1.0;
     p->in_shadow_step = 0;
     p->luminance = 0.0;
     px = p->pixel % job->camera.width;
@@ -484,12 +497,12 @@ static size_t next_rays(void *user, brt_ray *rays, uint64_t *tags, size_t max)
     return n;
 }
 
-/* Adds weight * radiance to the path's pixel, in fixed point. */
-static void add_radiance(renderer *r, path_state *p, double weight, const double radiance[3])
+/* Adds weight * radiance (per channel) to the path's pixel, in fixed point. */
+static void add_radiance(renderer *r, path_state *p, const double weight[3], const double radiance[3])
 {
     int k;
     for (k = 0; k < 3; k++) {
-        double v = fmin(weight * radiance[k], SAMPLE_CLAMP);
+        double v = fmin(weight[k] * radiance[k], SAMPLE_CLAMP);
         r->sums[3 * (size_t)p->pixel + k] += (uint64_t)(v * FIXED_ONE + 0.5);
         p->luminance += v / 3.0;
     }
@@ -526,7 +539,7 @@ static int sun_sample(const render_job *job, path_state *p, const brt_ray *ray,
     cosine = n[0] * p->shadow.dir[0] + n[1] * p->shadow.dir[1] + n[2] * p->shadow.dir[2];
     if (!(cosine > 0)) return 0;
     for (k = 0; k < 3; k++)
-        p->light[k] = p->weight / PI * job->sun.radiance[k] * cosine * job->sun.solid_angle;
+        p->light[k] = p->weight[k] / PI * job->sun.radiance[k] * cosine * job->sun.solid_angle;
     return 1;
 }
 
@@ -536,16 +549,19 @@ static int sun_sample(const render_job *job, path_state *p, const brt_ray *ray,
 static int scatter(const render_job *job, path_state *p, const brt_ray *ray, const brt_hit *hit,
                    const float normal[3])
 {
+    float albedo[3] = {ALBEDO, ALBEDO, ALBEDO};
+    int k;
     p->bounce++;
     if (p->bounce >= MAX_DEPTH) return 0;
-    p->weight *= ALBEDO;   /* Lambert, cosine sampled: f cos / pdf = albedo */
+    if (job->palette) ex_instanced_colour(job->palette, hit->inst, hit->prim, albedo);
+    for (k = 0; k < 3; k++) p->weight[k] *= albedo[k];   /* Lambert, cosine sampled: f cos / pdf = albedo */
     /* Before the roulette: the shadow ray stands for the bounce ray that
     ** would find the sun, whose weight the roulette only rescales. */
     p->in_shadow_step = job->nee && sun_sample(job, p, ray, hit, normal);
     if (p->bounce >= ROULETTE_DEPTH) {
-        double survive = fmin(0.95, p->weight);
+        double survive = fmin(0.95, fmax(p->weight[0], fmax(p->weight[1], p->weight[2])));
         if (random_at(p->pixel, p->sample, p->bounce, DIM_ROULETTE) >= survive) return 0;
-        p->weight /= survive;
+        for (k = 0; k < 3; k++) p->weight[k] /= survive;
     }
     return lambert_bounce(ray, hit, normal, job->diagonal,
                           random_at(p->pixel, p->sample, p->bounce, DIM_DIRECTION_R),
@@ -564,7 +580,8 @@ static void finished(void *user, const brt_ray *ray, const brt_hit *hit, const f
     int goes_on;
     if (r->visits) r->visits[p->pixel] += visits;
     if (tag & BRT_TAG_OCCLUSION) {
-        if (hit->prim == BRT_NO_PRIM) add_radiance(r, p, 1.0, p->light);
+        static const double one[3] = {1.0, 1.0, 1.0};
+        if (hit->prim == BRT_NO_PRIM) add_radiance(r, p, one, p->light);
         p->in_shadow_step = 0;
         goes_on = p->goes_on;
     } else if (hit->prim == BRT_NO_PRIM) {
@@ -601,8 +618,16 @@ static void end_progress(const renderer *r)
 /* The two tracers                                                       */
 /* ===================================================================== */
 
-/* The reference: the same paths against one BVH in memory. */
-static void render_direct(const brt_bvh *bvh, renderer *r, brt_stats *stats)
+/* --direct's scene in memory: a mesh's BVH, or the world of an instanced
+** scene (brt_world: its prototypes' BVHs under the instances). */
+typedef struct direct_scene {
+    brt_bvh *bvh;
+    brt_world *world;
+    double build_seconds;
+} direct_scene;
+
+/* The reference: the same paths against the scene in memory. */
+static void render_direct(const direct_scene *d, renderer *r, brt_stats *stats)
 {
     static brt_ray rays[DIRECT_CHUNK];
     static uint64_t tags[DIRECT_CHUNK];
@@ -611,7 +636,8 @@ static void render_direct(const brt_bvh *bvh, renderer *r, brt_stats *stats)
     double start = brt_seconds();
     size_t n, i;
     while ((n = next_rays(r, rays, tags, DIRECT_CHUNK)) > 0) {
-        brt_bvh_trace(bvh, rays, tags, n, hits, normals, r->job->threads);
+        if (d->world) brt_world_trace(d->world, rays, tags, n, hits, normals, r->job->threads);
+        else brt_bvh_trace(d->bvh, rays, tags, n, hits, normals, r->job->threads);
         for (i = 0; i < n; i++) {
             int shadow = (tags[i] & BRT_TAG_OCCLUSION) != 0;
             stats->shadow_rays += shadow;
@@ -641,16 +667,77 @@ static void render_batched(brt_scene *scene, const brt_trace_options *topt, rend
 /* The scene                                                             */
 /* ===================================================================== */
 
-/* The whole mesh in memory: only --direct and the direct run of --compare
-** need it (they say so when it is larger than the memory limit). */
-static void load_mesh(const options *o, uint64_t limit, brt_mesh *mesh)
+/* What render reads: a built-in instanced scene (landscape, island), a
+** pbrt file (both as a brt_scene_source), or a mesh: the built-in crown
+** or a mesh file. */
+typedef struct render_input {
+    ex_instanced_scene *instanced;
+    ex_input file;                  /* a mesh or pbrt file named on the command line */
+    const brt_scene_source *source; /* instanced or pbrt, else NULL */
+    brt_scene_source streams;
+} render_input;
+
+static int is_instanced_builtin(const char *name)
+{
+    return strcmp(name, "landscape") == 0 || strcmp(name, "island") == 0;
+}
+
+static void open_input(const options *o, render_input *in)
 {
     brt_error err;
+    memset(in, 0, sizeof *in);
+    if (is_instanced_builtin(o->input)) {
+        ex_check(prog, ex_instanced_open(o->input, o->scale, o->seed, &in->instanced, &err), &err);
+        ex_instanced_source(in->instanced, &in->streams);
+        in->source = &in->streams;
+    } else if (!ex_scene_is_builtin(o->input)) {
+        ex_input_open(prog, o->input, &in->file);
+        if (in->file.pbrt) in->source = &in->file.source;
+    }
+}
+
+static void close_input(render_input *in)
+{
+    ex_instanced_close(in->instanced);
+    ex_input_close(&in->file);
+}
+
+/* The whole scene in memory: only --direct and the direct run of --compare
+** need it (a mesh says so when it is larger than the memory limit);
+** *triangles: the unique ones. */
+static void load_direct(const options *o, const render_input *in, uint64_t limit, direct_scene *d,
+                        float bmin[3], float bmax[3], uint64_t *triangles)
+{
+    brt_mesh mesh;
+    brt_error err;
+    double start = brt_seconds();
+    memset(d, 0, sizeof *d);
+    if (in->source) {
+        brt_result r = brt_world_build(in->source, &d->world, &err);
+        if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
+        ex_check(prog, r, &err);
+        brt_world_bounds(d->world, bmin, bmax);
+        *triangles = brt_world_unique_triangles(d->world);
+        d->build_seconds = brt_seconds() - start;
+        return;
+    }
     if (ex_scene_is_builtin(o->input))
-        ex_check(prog, ex_scene_generate(o->input, o->scale, o->seed, mesh, &err), &err);
+        ex_check(prog, ex_scene_generate(o->input, o->scale, o->seed, &mesh, &err), &err);
     else
-        ex_check(prog, brt_mesh_load(o->input, mesh, &err), &err);
-    ex_note_mesh_memory(prog, mesh, limit);
+        ex_check(prog, brt_mesh_load(o->input, &mesh, &err), &err);
+    ex_note_mesh_memory(prog, &mesh, limit);
+    ex_check(prog, brt_bvh_build(mesh.positions, mesh.indices, mesh.triangle_count, NULL, &d->bvh),
+             NULL);
+    brt_mesh_bounds(&mesh, bmin, bmax);
+    *triangles = mesh.triangle_count;
+    brt_mesh_free(&mesh);
+    d->build_seconds = brt_seconds() - start;
+}
+
+static void free_direct(direct_scene *d)
+{
+    brt_bvh_free(d->bvh);
+    brt_world_free(d->world);
 }
 
 /* The sun of --sun, --sun-radius and --sun-radiance: a warm white disc.
@@ -718,10 +805,10 @@ static void builtin_scene_path(const options *o, char *path, size_t size)
 
 /* The scene file at path, opened when it was built from stamp with sopt
 ** (brt_scene_matches); otherwise built from source with
-** brt_scene_build_stream and opened.  A file there that does not open
+** brt_scene_build_source and opened.  A file there that does not open
 ** (corrupt, another format version) is an error, as in brt_scene_prepare,
 ** unless replace_unreadable (render's own cache of built-in scenes). */
-static brt_scene *prepare_scene(const brt_triangle_source *source, uint64_t stamp,
+static brt_scene *prepare_scene(const brt_scene_source *source, uint64_t stamp,
                                 const char *path, const brt_scene_options *sopt,
                                 int replace_unreadable, int *rebuilt)
 {
@@ -738,7 +825,7 @@ static brt_scene *prepare_scene(const brt_triangle_source *source, uint64_t stam
     }
     *rebuilt = 1;
     ex_progress("building scene", 0, 1);
-    r = brt_scene_build_stream(source, sopt, stamp, path, &err);
+    r = brt_scene_build_source(source, sopt, stamp, path, &err);
     if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
     ex_check(prog, r, &err);
     ex_progress("building scene", 1, 1);
@@ -750,11 +837,11 @@ static brt_scene *prepare_scene(const brt_triangle_source *source, uint64_t stam
 /* The scene file: reused when it matches the input (a mesh file's stamp,
 ** or a built-in scene's recipe), else built from a triangle stream -- the
 ** mesh file read, or the built-in scene made, as the build consumes it. */
-static brt_scene *open_scene(const options *o, const volatile sig_atomic_t *interrupt,
-                             double *build_seconds)
+static brt_scene *open_scene(const options *o, const render_input *in,
+                             const volatile sig_atomic_t *interrupt, double *build_seconds)
 {
     brt_scene_options sopt;
-    brt_triangle_source source;
+    brt_scene_source source;
     ex_scene_recipe recipe;
     brt_scene *scene;
     brt_error err;
@@ -770,14 +857,21 @@ static brt_scene *open_scene(const options *o, const volatile sig_atomic_t *inte
     if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
     else if (builtin) builtin_scene_path(o, path, sizeof path);
     else ex_default_scene_path(prog, o->input, sopt.batch_tris, sopt.proxy_res, path, sizeof path);
+    memset(&source, 0, sizeof source);
     if (builtin) {
         recipe.name = o->input;
         recipe.scale = o->scale;
         recipe.seed = o->seed;
-        ex_scene_source(&recipe, &source);
         stamp = ex_scene_stamp(&recipe);
+        if (in->source) {
+            source = *in->source;
+            stamp = brt_mix64(stamp ^ 0x696E7374616E6365u);   /* "instance": not the baked scene's */
+        } else {
+            ex_scene_source(&recipe, &source.world);
+        }
     } else {
-        brt_mesh_file_source(o->input, &source);
+        if (in->source) source = *in->source;
+        else brt_mesh_file_source(o->input, &source.world);
         ex_check(prog, brt_scene_source_stamp(o->input, &stamp, &err), &err);
     }
     /* The folder of built-in scene files is render's own cache: a file
@@ -1039,23 +1133,18 @@ static void run_batched(brt_scene *scene, const render_job *job, const brt_trace
     renderer_free(&r);
 }
 
-static void run_direct(const brt_mesh *mesh, const render_job *job, run *out)
+static void run_direct(const direct_scene *d, const render_job *job, run *out)
 {
     renderer r;
-    brt_bvh *bvh;
-    double start = brt_seconds();
-    ex_check(prog, brt_bvh_build(mesh->positions, mesh->indices, mesh->triangle_count, NULL, &bvh),
-             NULL);
-    out->stats.build_seconds = brt_seconds() - start;
+    out->stats.build_seconds = d->build_seconds;
     renderer_init(&r, job, 0);
-    render_direct(bvh, &r, &out->stats);
+    render_direct(d, &r, &out->stats);
     end_progress(&r);
     if (out->stats.seconds > 0) out->stats.mrays_per_second = out->stats.rays / out->stats.seconds * 1e-6;
     out->sums = r.sums;
     out->moments = r.moments;
     r.sums = NULL;
     renderer_free(&r);
-    brt_bvh_free(bvh);
 }
 
 static double visits_per_sample(const render_job *job, const brt_stats *s)
@@ -1158,9 +1247,9 @@ static void write_image(const options *o, const render_job *job, run *x)
     free(rgb);
 }
 
-static void describe(const options *o, uint32_t triangles, brt_scene *scene, uint64_t limit)
+static void describe(const options *o, uint64_t triangles, brt_scene *scene, uint64_t limit)
 {
-    printf("%s: %u triangles", o->input, triangles);
+    printf("%s: %llu triangles", o->input, (unsigned long long)triangles);
     if (scene) {
         printf(", %u batching points of <= %llu, proxies %llu^3, ", brt_scene_batch_count(scene),
                (unsigned long long)o->batch_tris, (unsigned long long)o->res);
@@ -1173,10 +1262,9 @@ static void describe(const options *o, uint32_t triangles, brt_scene *scene, uin
 
 /* --compare: batched without and with proxies at the same limit, and the
 ** direct reference; one table, the image, the two heatmaps. */
-static void compare(const options *o, const render_job *job, brt_scene *scene,
-                    const brt_trace_options *topt)
+static void compare(const options *o, const render_input *in, const render_job *job,
+                    brt_scene *scene, const brt_trace_options *topt)
 {
-    brt_mesh mesh;
     run runs[3];
     brt_trace_options without = *topt, with = *topt;
     char path[4096];
@@ -1189,9 +1277,14 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
     runs[2].label = with.exact_proxies ? "batched, exact proxies" : "batched, proxies";
     without.no_proxy = 1;
     with.no_proxy = 0;
-    load_mesh(o, topt->memory_limit, &mesh);
-    run_direct(&mesh, job, &runs[0]);
-    brt_mesh_free(&mesh);
+    {
+        direct_scene d;
+        float bmin[3], bmax[3];
+        uint64_t triangles;
+        load_direct(o, in, topt->memory_limit, &d, bmin, bmax, &triangles);
+        run_direct(&d, job, &runs[0]);
+        free_direct(&d);
+    }
     run_batched(scene, job, &without, o->heatmap != NULL, &runs[1]);
     run_batched(scene, job, &with, o->heatmap != NULL, &runs[2]);
     print_header();
@@ -1223,13 +1316,13 @@ static void compare(const options *o, const render_job *job, brt_scene *scene,
     for (i = 0; i < 3; i++) free_run(&runs[i]);
 }
 
-static void render_once(const options *o, const render_job *job, brt_scene *scene,
-                        const brt_mesh *mesh, const brt_trace_options *topt)
+static void render_once(const options *o, const direct_scene *d, const render_job *job,
+                        brt_scene *scene, const brt_trace_options *topt)
 {
     run x;
     memset(&x, 0, sizeof x);
     x.rmse = NAN;
-    if (o->direct) run_direct(mesh, job, &x);
+    if (o->direct) run_direct(d, job, &x);
     else run_batched(scene, job, topt, o->heatmap != NULL, &x);
     x.stats.peak_rss_bytes = brt_peak_rss_bytes();
     printf("%s: %.2f s, %.3f Mrays/s, %llu rays; read %.2f MiB in %llu loads (%.2f s); "
@@ -1249,20 +1342,21 @@ static void render_once(const options *o, const render_job *job, brt_scene *scen
 int main(int argc, char **argv)
 {
     options o;
-    brt_mesh mesh;
+    render_input in;
+    direct_scene direct;
     brt_scene *scene = NULL;
     brt_trace_options topt;
     render_job job;
     const volatile sig_atomic_t *interrupt;
     float bmin[3], bmax[3];
-    uint32_t triangles;
+    uint64_t triangles;
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
     interrupt = ex_catch_interrupts();
     memset(&job, 0, sizeof job);
-    memset(&mesh, 0, sizeof mesh);
     memset(&topt, 0, sizeof topt);
+    open_input(&o, &in);
     topt.no_proxy = o.no_proxy;
     topt.no_inner = o.no_inner;
     topt.paper_scheduler = o.paper_scheduler;
@@ -1275,12 +1369,11 @@ int main(int argc, char **argv)
         topt.read_fn = slow_disk_read;
         topt.read_user = &o.disk_speed;
     }
+    memset(&direct, 0, sizeof direct);
     if (o.direct) {
-        load_mesh(&o, o.memory, &mesh);
-        brt_mesh_bounds(&mesh, bmin, bmax);
-        triangles = mesh.triangle_count;
+        load_direct(&o, &in, o.memory, &direct, bmin, bmax, &triangles);
     } else {
-        scene = open_scene(&o, interrupt, &job.scene_seconds);
+        scene = open_scene(&o, &in, interrupt, &job.scene_seconds);
         brt_scene_bounds(scene, bmin, bmax);
         triangles = brt_scene_triangle_count(scene);
         topt.memory_limit = o.memory_percent > 0
@@ -1288,11 +1381,13 @@ int main(int argc, char **argv)
             : o.memory;
     }
     make_job(&o, bmin, bmax, &job);
+    if (!o.grey) job.palette = in.instanced;
     describe(&o, triangles, scene, topt.memory_limit);
     fflush(stdout);
-    if (o.compare) compare(&o, &job, scene, &topt);
-    else render_once(&o, &job, scene, &mesh, &topt);
+    if (o.compare) compare(&o, &in, &job, scene, &topt);
+    else render_once(&o, &direct, &job, scene, &topt);
     if (scene) brt_scene_close(scene);
-    brt_mesh_free(&mesh);
+    free_direct(&direct);
+    close_input(&in);
     return 0;
 }
