@@ -194,22 +194,34 @@ static brt_result partition_split(partition *p, const float *centroids, uint32_t
 ** prototype larger than batch_tris then gets points of its own instances,
 ** its blob shared by them all and cached once (splitting the prototype
 ** into pieces, as pandora does, would save no bytes: each piece would
-** still be read whole).  size_of(user, ids, n, &distinct) measures a range. */
+** still be read whole).  Optionally (brt_scene_options.batch_instanced)
+** a range is split too while its instances hold more triangles than that,
+** which gives points of the paper's sizes (10-25 M instanced triangles)
+** whatever the prototypes.  size_of(user, ids, n, &distinct, &instanced)
+** measures a range. */
 typedef uint64_t (*range_size_fn)(void *user, const uint32_t *ids, uint32_t n,
-                                  uint32_t *distinct);
+                                  uint32_t *distinct, uint64_t *instanced);
+
+typedef struct size_limits {
+    uint32_t batch_tris;          /* distinct prototype triangles */
+    uint64_t batch_instanced;     /* instanced triangles; 0: none */
+} size_limits;
 
 static brt_result partition_by_size(partition *p, const float *centres, uint32_t first,
-                                    uint32_t count, uint32_t batch_tris, range_size_fn size_of,
-                                    void *user)
+                                    uint32_t count, const size_limits *limits,
+                                    range_size_fn size_of, void *user)
 {
     uint32_t distinct, k = count / 2;
+    uint64_t instanced, unique;
     brt_result r;
-    if (count <= 1 || size_of(user, p->order + first, count, &distinct) <= batch_tris ||
-        distinct <= 1)
+    if (count <= 1) return partition_push(p, first, count);
+    unique = size_of(user, p->order + first, count, &distinct, &instanced);
+    if ((unique <= limits->batch_tris || distinct <= 1) &&
+        (limits->batch_instanced == 0 || instanced <= limits->batch_instanced))
         return partition_push(p, first, count);
     median_split(centres, p->order + first, count, k);
-    r = partition_by_size(p, centres, first, k, batch_tris, size_of, user);
-    if (r == BRT_OK) r = partition_by_size(p, centres, first + k, count - k, batch_tris, size_of, user);
+    r = partition_by_size(p, centres, first, k, limits, size_of, user);
+    if (r == BRT_OK) r = partition_by_size(p, centres, first + k, count - k, limits, size_of, user);
     return r;
 }
 
@@ -761,6 +773,7 @@ typedef struct scene_header {
     uint32_t prototype_count, instance_count;
     uint64_t instanced_triangles;
     instance_margin margin;     /* of all instances: the walk's */
+    uint64_t batch_instanced;   /* brt_scene_options.batch_instanced */
 } scene_header;
 
 /* A blob opened: a BVH (a point of world triangles, or a prototype) or
@@ -1577,6 +1590,20 @@ static void blob_free(const brt_scene *scene, uint32_t id, void *data)
     if (data) munmap(data, blob_buffer_bytes(scene, id));
 }
 
+/* What blob id costs the budget: its page-rounded buffer, and for a point
+** of instances what instance_table_open allocates beside it, bounded from
+** its table entry (a frame, two numbers and at most one tree node per
+** instance, a prototype number per distinct prototype), so that the limit
+** bounds the resident bytes. */
+static uint64_t cache_bytes(const brt_scene *scene, uint32_t id)
+{
+    uint64_t bytes = round_up_page(scene->blobs[id].size);
+    if (id < scene->header.batch_count && scene->batches[id].instances)
+        bytes += (uint64_t)scene->batches[id].instances *
+                 (sizeof(brt_instance_frame) + 3 * sizeof(uint32_t) + sizeof(top_node));
+    return bytes;
+}
+
 static void view_free(blob_view *view)
 {
     brt_bvh_free(view->bvh);
@@ -1794,7 +1821,7 @@ static int cache_ahead_take(geometry_cache *c, uint32_t id)
 static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
 {
     cache_entry *e = &c->entries[id];
-    uint64_t bytes = round_up_page(c->scene->blobs[id].size);
+    uint64_t bytes = cache_bytes(c->scene, id);
     double start = brt_seconds();
     brt_result r = BRT_OK;
     if (cache_ahead_take(c, id)) {
@@ -1826,7 +1853,7 @@ static brt_result cache_pin(geometry_cache *c, uint32_t id, brt_error *err)
 {
     cache_entry *e = &c->entries[id];
     if (!e->data) {
-        uint64_t bytes = round_up_page(c->scene->blobs[id].size);
+        uint64_t bytes = cache_bytes(c->scene, id);
         brt_result r;
         while (c->lru_head != NO_ENTRY && c->held + bytes > c->budget) cache_evict(c, c->lru_head);
         r = cache_load(c, id, err);
@@ -2012,7 +2039,8 @@ static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); flo
 **   header: 44 u32 prototypes; 128 a fourth section {offset, size,
 **     checksum}: the prototype table; 152 u32 instances; 156 f32 largest
 **     condition number; 160 f32 reach (instance_margin); 164 u32 0;
-**     168 u64 instanced triangles; 176 f32 the margin's centre[3]
+**     168 u64 instanced triangles; 176 f32 the margin's centre[3];
+**     192 u64 batch_instanced (brt_scene_options)
 **   batch table entries of BATCH_ENTRY_BYTES_V4: the 80 bytes above, then
 **     u32 instances (0: a point of world triangles), f32 condition, u64
 **     instanced triangles, f32 reach, u32 0 (the margin of its instances,
@@ -2201,6 +2229,7 @@ static void header_pack(const scene_header *h, unsigned char *p)
         put_f32(p + 176, h->margin.center[0]);
         put_f32(p + 180, h->margin.center[1]);
         put_f32(p + 184, h->margin.center[2]);
+        brt_put_le64(p + 192, h->batch_instanced);
         brt_put_le64(p + 168, h->instanced_triangles);
     }
     brt_put_le64(p + 248, brt_checksum64(p, 248));
@@ -2240,6 +2269,7 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
     h->prototype_count = h->instance_count = 0;
     h->instanced_triangles = 0;
     memset(&h->margin, 0, sizeof h->margin);
+    h->batch_instanced = 0;
     if (version == SCENE_VERSION_INSTANCED) {
         h->prototype_count = brt_get_le32(p + 44);
         h->sections[SECTION_PROTOTYPES].offset = brt_get_le64(p + 128);
@@ -2251,6 +2281,7 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
         h->margin.center[0] = get_f32(p + 176);
         h->margin.center[1] = get_f32(p + 180);
         h->margin.center[2] = get_f32(p + 184);
+        h->batch_instanced = brt_get_le64(p + 192);
         h->instanced_triangles = brt_get_le64(p + 168);
         if (h->prototype_count == 0)
             return brt_fail(err, BRT_EFORMAT, "%s: header: version 4 without prototypes", path);
@@ -2367,6 +2398,7 @@ typedef struct scene_builder {
     uint64_t spill_end;         /* records in the spill file */
     const volatile sig_atomic_t *interrupt;
     uint32_t batch_tris, bucket_tris, chunk;
+    uint64_t batch_instanced;   /* brt_scene_options.batch_instanced */
     spill_out root;             /* pass A's output: the whole stream */
     spill_record *read_buf;     /* chunk records */
     uint32_t *cells;            /* CELL_COUNT: a histogram, then each cell's child */
@@ -2969,15 +3001,18 @@ static brt_result gather_build_instances(void *user, const brt_instance *instanc
 }
 
 /* range_size_fn: the distinct prototypes' triangles of some slots. */
-static uint64_t instance_range_size(void *user, const uint32_t *slots, uint32_t n, uint32_t *distinct)
+static uint64_t instance_range_size(void *user, const uint32_t *slots, uint32_t n, uint32_t *distinct,
+                                    uint64_t *instanced)
 {
     instance_build *ib = user;
     uint64_t size = 0;
     uint32_t i;
     *distinct = 0;
+    *instanced = 0;
     ib->stamp_now++;
     for (i = 0; i < n; i++) {
         const uint32_t p = ib->items[slots[i]].prototype;
+        *instanced += ib->entries[p].triangles;
         if (ib->stamp[p] == ib->stamp_now) continue;
         ib->stamp[p] = ib->stamp_now;
         size += ib->entries[p].triangles;
@@ -3079,6 +3114,7 @@ static brt_result instance_point_write(scene_builder *b, instance_build *ib, con
     instance_point ip;
     float *boxes = malloc(6 * (size_t)n * sizeof *boxes);
     uint32_t *uses = NULL, i, distinct;
+    uint64_t instanced;
     top_node *nodes = NULL;
     unsigned char *blob = NULL;
     batch_entry *e = NULL;
@@ -3104,7 +3140,7 @@ static brt_result instance_point_write(scene_builder *b, instance_build *ib, con
             bounds_grow(e->lo, e->hi, boxes + 6 * (size_t)i + 3);
         }
         slots_margin(ib, slots, n, e->lo, e->hi, &e->margin);
-        e->triangles = (uint32_t)instance_range_size(ib, slots, n, &distinct);
+        e->triangles = (uint32_t)instance_range_size(ib, slots, n, &distinct, &instanced);
         e->instances = n;
         e->instanced = ip.instanced;
         e->size = instance_table_bytes(n, ip.m, ip.k);
@@ -3135,15 +3171,18 @@ static brt_result build_instance_points(scene_builder *b, const brt_scene_source
                                         instance_build *ib, brt_error *err)
 {
     partition parts;
+    size_limits limits;
     uint32_t i;
     brt_result r = source->instances ? source->instances(source->user, gather_build_instances, ib, err)
                                      : BRT_OK;
+    limits.batch_tris = b->batch_tris;
+    limits.batch_instanced = b->batch_instanced;
     memset(&parts, 0, sizeof parts);
     if (r != BRT_OK || ib->count == 0) return r;
     if (!(parts.order = malloc((size_t)ib->count * sizeof *parts.order)))
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
     for (i = 0; i < ib->count; i++) parts.order[i] = i;
-    r = partition_by_size(&parts, ib->centres, 0, ib->count, b->batch_tris, instance_range_size, ib);
+    r = partition_by_size(&parts, ib->centres, 0, ib->count, &limits, instance_range_size, ib);
     if (r != BRT_OK) r = brt_fail(err, r, "%s: out of memory", b->w.path);
     for (i = 0; i < parts.count && r == BRT_OK; i++)
         r = instance_point_write(b, ib, parts.order + parts.ranges[i].first, parts.ranges[i].count, err);
@@ -3366,6 +3405,7 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->spill_fd = b->w.fd = -1;
     b->w.path = scene_path;
     b->interrupt = opt ? opt->interrupt : NULL;
+    b->batch_instanced = opt ? opt->batch_instanced : 0;
     pool_init(&b->pool, opt ? opt->threads : 0);
     scene_options_resolve(opt, &b->batch_tris, &b->w.res);
     if (!brt_proxy_res_valid(b->w.res))
@@ -3407,6 +3447,7 @@ static brt_result build_scene_file(const brt_triangle_source *source,
     h.batch_tris = b.batch_tris;
     h.proxy_res = b.w.res;
     h.stamp = source_stamp;
+    h.batch_instanced = instanced ? b.batch_instanced : 0;
     if (r == BRT_OK)
         r = instanced ? build_instanced_passes(&b, instanced, &h, err) : build_passes(&b, source, &h, err);
     r = brt_atomic_close(&file, r, err);
@@ -3895,11 +3936,25 @@ int brt_scene_matches(const brt_scene *s, uint64_t stamp, const brt_scene_option
     uint32_t batch_tris, res;
     scene_options_resolve(opt, &batch_tris, &res);
     return s->header.stamp == stamp && s->header.batch_tris == batch_tris &&
-           s->header.proxy_res == res;
+           s->header.proxy_res == res &&
+           s->header.batch_instanced == (opt && s->header.prototype_count ? opt->batch_instanced : 0);
 }
 
 uint32_t brt_scene_batch_count(const brt_scene *s) { return s->header.batch_count; }
 uint32_t brt_scene_prototype_count(const brt_scene *s) { return s->header.prototype_count; }
+
+uint64_t brt_scene_unique_triangles(const brt_scene *s)
+{
+    uint64_t n = s->header.triangle_count;
+    uint32_t p;
+    for (p = 0; p < s->header.prototype_count; p++) n += s->prototypes[p].triangles;
+    return n;
+}
+
+uint64_t brt_scene_instanced_triangles(const brt_scene *s)
+{
+    return s->header.prototype_count ? s->header.instanced_triangles : s->header.triangle_count;
+}
 uint32_t brt_scene_triangle_count(const brt_scene *s) { return s->header.triangle_count; }
 
 void brt_scene_bounds(const brt_scene *s, float bmin[3], float bmax[3])

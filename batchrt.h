@@ -202,6 +202,10 @@ typedef struct brt_scene_options {
     /* Threads building batching points' BVHs and proxies (0: all cores);
     ** the file's bytes do not depend on it. */
     unsigned threads;
+    /* Instanced scenes: a batching point of instances is also split while
+    ** its instances hold more triangles than this (0: no such limit; the
+    ** paper's points hold 10-25 M). */
+    uint64_t batch_instanced;
 } brt_scene_options;
 
 /* Builds the scene file for mesh at scene_path (written under a temporary
@@ -272,6 +276,10 @@ uint32_t brt_scene_batch_count(const brt_scene *scene);
 /* Prototypes of an instanced scene (0 for a plain one): its hit files
 ** name instances (brt_hits_write_instanced). */
 uint32_t brt_scene_prototype_count(const brt_scene *scene);
+/* Triangles stored (world and prototypes, each once) and traced (world
+** plus every instance's prototype): equal without instances. */
+uint64_t brt_scene_unique_triangles(const brt_scene *scene);
+uint64_t brt_scene_instanced_triangles(const brt_scene *scene);
 uint32_t brt_scene_triangle_count(const brt_scene *scene);
 /* The scene's bounds: the union of the batching points' exact boxes. */
 void brt_scene_bounds(const brt_scene *scene, float bmin[3], float bmax[3]);

@@ -63,8 +63,10 @@ static const double resolutions[RES_COUNT] = {16, 32, 64, 128, 256, 512};
 typedef struct settings {
     const char *out;
     int only;                 /* 1..FIGURE_COUNT: that figure alone; 0: all */
+    int paper;                /* --paper: Fig. 3 alone, in the paper's regime */
     double scale;
     uint64_t batch_tris, spp, width, height, rays_in_flight, threads;
+    uint64_t batch_instanced; /* render --batch-instanced; 0: not given */
     char render[4096];        /* path of build/render */
 } settings;
 
@@ -85,6 +87,9 @@ static void usage(void)
            "  --height H           image height (default 90)\n"
            "  --rays-in-flight N   paths traced at once (default 16384)\n"
            "  --threads N          threads of each render (default 0: all cores)\n"
+           "  --batch-instanced N  instanced triangles per batching point (render's option)\n"
+           "  --paper              Fig. 3 alone in the paper's regime: the instanced landscape\n"
+           "                       and island, limits 60-90 %% (make bench-paper)\n"
            "  --help               this text\n");
 }
 
@@ -120,6 +125,9 @@ static void parse_options(int argc, char **argv, settings *s)
         else if (strcmp(a, "--rays-in-flight") == 0)
             s->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
         else if (strcmp(a, "--threads") == 0) s->threads = ex_parse_u64(prog, a, VALUE, 0, BRT_MAX_THREADS);
+        else if (strcmp(a, "--batch-instanced") == 0)
+            s->batch_instanced = ex_parse_u64(prog, a, VALUE, 1, UINT64_MAX);
+        else if (strcmp(a, "--paper") == 0) s->paper = s->only = 3;
         else ex_die(prog, "unknown argument '%s' (see --help)", a);
 #undef VALUE
     }
@@ -148,11 +156,14 @@ enum { PAPER_SCHEDULER, BATCHRT_SCHEDULER };
 ** DIR/render.log. */
 static void run_render(const settings *s, const char *scene, int scheduler, const char *extra)
 {
-    char command[32768];
+    char command[32768], instanced[64] = "";
+    if (s->batch_instanced)
+        snprintf(instanced, sizeof instanced, "--batch-instanced %llu",
+                 (unsigned long long)s->batch_instanced);
     snprintf(command, sizeof command,
-             "'%s' %s --scale %g --batch-tris %llu --spp %llu --width %llu --height %llu "
+             "'%s' %s --grey %s --scale %g --batch-tris %llu --spp %llu --width %llu --height %llu "
              "--rays-in-flight %llu --threads %llu %s %s >>'%s' 2>&1",
-             s->render, scene, s->scale, (unsigned long long)s->batch_tris,
+             s->render, scene, instanced, s->scale, (unsigned long long)s->batch_tris,
              (unsigned long long)s->spp, (unsigned long long)s->width,
              (unsigned long long)s->height, (unsigned long long)s->rays_in_flight,
              (unsigned long long)s->threads, scheduler == PAPER_SCHEDULER ? "--paper-scheduler" : "", extra,
@@ -318,6 +329,8 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
     fprintf(stderr, "Fig. 3: %s, limit %%", scene_names[i]);
     for (l = 0; l < LIMIT_COUNT; l++) {
         limits[l] = 10.0 * (l + 1);
+        for (run = 0; run < FIG3_SERIES; run++) disk[run][l] = NAN;
+        if (s->paper && (l < 5 || l > 8)) continue;   /* the paper's 60..90 % */
         fprintf(stderr, " %g", limits[l]);
         for (run = 0; run < FIG3_SERIES; run++) {
             int kind = run % PROXY_KINDS;
@@ -352,9 +365,11 @@ static void figure3_table(const double limits[LIMIT_COUNT],
     for (scheduler = 0; scheduler < 2; scheduler++)
         for (l = 5; l < 9; l++) {
             printf("| %s | %g %% |", scheduler ? "batchrt's" : "paper's", limits[l]);
-            for (i = 0; i < SCENE_COUNT; i++)
-                printf(" %.2f (%.2f) |", ratio[i][PROXY_KINDS * scheduler + 1][l],
-                       ratio[i][PROXY_KINDS * scheduler + 2][l]);
+            for (i = 0; i < SCENE_COUNT; i++) {
+                if (isnan(ratio[i][PROXY_KINDS * scheduler + 1][l])) printf(" - |");
+                else printf(" %.2f (%.2f) |", ratio[i][PROXY_KINDS * scheduler + 1][l],
+                            ratio[i][PROXY_KINDS * scheduler + 2][l]);
+            }
             printf("\n");
         }
     printf("| the paper | 60-90 %% |");
@@ -376,6 +391,13 @@ static void figure3(const settings *s)
     char title[128], name[64];
     int i, k;
     for (i = 0; i < SCENE_COUNT; i++) {
+        if (s->paper && i == 0) {   /* the crown is not instanced: not the paper's regime */
+            for (k = 0; k < FIG3_SERIES; k++) {
+                int l;
+                for (l = 0; l < LIMIT_COUNT; l++) ratio[i][k][l] = NAN;
+            }
+            continue;
+        }
         figure3_scene(s, csv, i, limits, disk);
         for (k = 0; k < FIG3_SERIES; k++) {
             int l;
@@ -399,7 +421,7 @@ static void figure3(const settings *s)
         plot.series = series;
         plot.series_count = FIG3_SERIES;
         snprintf(name, sizeof name, "fig3_%s.svg", scene_names[i]);
-        write_plot(s, name, &plot);
+        if (!s->paper) write_plot(s, name, &plot);
     }
     close_csv(s, csv, "fig3.csv");
     figure3_table(limits, ratio);

@@ -118,6 +118,7 @@ typedef struct options {
     const char *input;            /* mesh file or built-in scene name */
     double scale;
     uint64_t seed, spp, width, height, batch_tris, res, rays_in_flight;
+    uint64_t batch_instanced;     /* --batch-instanced; 0: no such limit */
     uint64_t memory;              /* bytes; 0: no limit */
     uint64_t disk_speed;          /* --disk-speed, bytes per second; 0: the device's */
     uint64_t threads;             /* --threads; 0: all cores */
@@ -157,7 +158,10 @@ static void usage(void)
            "                       (default: next-event estimation toward the sun)\n"
            "  --memory SIZE|P%%     geometry memory limit, e.g. 64M, or P %% of the geometry\n"
            "                       bytes (default: no limit); proxies count against it\n"
-           "  --batch-tris N       triangles per batching point (default 10000)\n"
+           "  --batch-tris N       triangles per batching point (default 10000; instanced:\n"
+           "                       those of the distinct prototypes it uses)\n"
+           "  --batch-instanced N  instanced scenes: a batching point holds at most N\n"
+           "                       instanced triangles (default: no such limit)\n"
            "  --res R              proxy resolution, a power of two (default 128)\n"
            "  --no-proxy           queue rays at every box they enter (Pharr et al.)\n"
            "  --no-inner           shadow rays do not consult the inner proxies\n"
@@ -279,6 +283,8 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--grey")) o->grey = 1;
         else if (is_option(a, "--memory")) parse_memory(VALUE, o);
         else if (is_option(a, "--batch-tris")) o->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
+        else if (is_option(a, "--batch-instanced"))
+            o->batch_instanced = ex_parse_u64(prog, a, VALUE, 1, UINT64_MAX);
         else if (is_option(a, "--res")) o->res = ex_parse_resolution(prog, a, VALUE);
         else if (is_option(a, "--rays-in-flight"))
             o->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
@@ -792,14 +798,15 @@ static void make_job(const options *o, const float bmin[3], const float bmax[3],
     job->nee = !o->no_nee;
 }
 
-/* DIR/NAME-sSCALE-seedSEED-bBATCH-rRES.brs in the scene folder (ex_scene_folder). */
+/* DIR/NAME-sSCALE-seedSEED-bBATCH-iINSTANCED-rRES.brs in the scene folder
+** (ex_scene_folder). */
 static void builtin_scene_path(const options *o, char *path, size_t size)
 {
     char dir[4096];
     ex_scene_folder(prog, dir, sizeof dir);
-    if (snprintf(path, size, "%s/%s-s%g-seed%llu-b%llu-r%llu.brs", dir, o->input, o->scale,
+    if (snprintf(path, size, "%s/%s-s%g-seed%llu-b%llu-i%llu-r%llu.brs", dir, o->input, o->scale,
                  (unsigned long long)o->seed, (unsigned long long)o->batch_tris,
-                 (unsigned long long)o->res) >= (int)size)
+                 (unsigned long long)o->batch_instanced, (unsigned long long)o->res) >= (int)size)
         ex_die(prog, "%s: scene path too long", dir);
 }
 
@@ -854,6 +861,7 @@ static brt_scene *open_scene(const options *o, const render_input *in,
     sopt.proxy_res = (uint32_t)o->res;
     sopt.interrupt = interrupt;
     sopt.threads = (unsigned)o->threads;
+    sopt.batch_instanced = o->batch_instanced;
     if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
     else if (builtin) builtin_scene_path(o, path, sizeof path);
     else ex_default_scene_path(prog, o->input, sopt.batch_tris, sopt.proxy_res, path, sizeof path);
@@ -1249,7 +1257,12 @@ static void write_image(const options *o, const render_job *job, run *x)
 
 static void describe(const options *o, uint64_t triangles, brt_scene *scene, uint64_t limit)
 {
-    printf("%s: %llu triangles", o->input, (unsigned long long)triangles);
+    if (scene && brt_scene_prototype_count(scene))
+        printf("%s: %llu unique, %llu instanced triangles", o->input,
+               (unsigned long long)brt_scene_unique_triangles(scene),
+               (unsigned long long)brt_scene_instanced_triangles(scene));
+    else
+        printf("%s: %llu triangles", o->input, (unsigned long long)triangles);
     if (scene) {
         printf(", %u batching points of <= %llu, proxies %llu^3, ", brt_scene_batch_count(scene),
                (unsigned long long)o->batch_tris, (unsigned long long)o->res);

@@ -431,8 +431,8 @@ static void test_programs(void)
 
 /* ---- the geometry cache's resident memory ------------------------------------ */
 
-/* A render from a scene file at --memory 3M that reads its ~0.9 MiB blobs
-** (40,000 triangles of scene format 2) about 90 times: peak RSS at most the
+/* A render of the crown (a plain scene) from a scene file at --memory 3M
+** that reads its ~0.9 MiB blobs (40,000 triangles) many times: peak RSS at most the
 ** limit + the README's fixed costs (280 B per path in flight, 512 B per
 ** batching point, 40 B per pixel) + 8 MiB of program, libraries and stacks
 ** (measured: 7.8 MiB in all).  With the blobs posix_memalign'd and freed,
@@ -446,9 +446,9 @@ static void test_cache_rss(void)
     const char *p;
     double bound;
     if (!tu_rss_is_meaningful()) return;
-    CHECK(tu_run("render landscape --scale 6 --batch-tris 40000 --width 1 --height 1 --spp 1 "
+    CHECK(tu_run("render crown --scale 6 --batch-tris 40000 --width 1 --height 1 --spp 1 "
                  "--scene @/rss.brs --out @/rss.png") == 0, "build: %s", tu_last_stderr());
-    CHECK(tu_run("render landscape --scale 6 --batch-tris 40000 --width 240 --height 135 --spp 4 "
+    CHECK(tu_run("render crown --scale 6 --batch-tris 40000 --width 240 --height 135 --spp 4 "
                  "--memory 3M --rays-in-flight 1024 --scene @/rss.brs --out @/rss.png "
                  "--stats @/rss.json") == 0, "render: %s", tu_last_stderr());
     CHECK((json = (char *)slurp_scratch("rss.json", NULL)) != NULL, "stats");
