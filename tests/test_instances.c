@@ -785,6 +785,161 @@ static void test_trace_pbrt_instances(void)
     free(hits);
 }
 
+/* ===================================================================== */
+/* Forged instanced scene files: every validator, each by its message    */
+/* ===================================================================== */
+
+static uint64_t le64(const unsigned char *p) { return brt_get_le64(p); }
+
+/* Repairs every checksum of a version-4 file after a forgery: each point's
+** and prototype's blob, the four sections, the header (inner first). */
+static void repair_v4(unsigned char *f, size_t size)
+{
+    const uint64_t table = le64(f + 56), protos = le64(f + 128);
+    const uint32_t points = brt_get_le32(f + 32), nproto = brt_get_le32(f + 44);
+    uint32_t i;
+    int sec;
+    for (i = 0; i < points; i++) {
+        unsigned char *e = f + table + 104 * (size_t)i;
+        if (le64(e + 24) + le64(e + 32) <= size) brt_put_le64(e + 40, brt_checksum64(f + le64(e + 24), le64(e + 32)));
+    }
+    for (i = 0; i < nproto; i++) {
+        unsigned char *e = f + protos + 56 * (size_t)i;
+        if (le64(e) + le64(e + 8) <= size) brt_put_le64(e + 16, brt_checksum64(f + le64(e), le64(e + 8)));
+    }
+    for (sec = 0; sec < 4; sec++) {
+        unsigned char *at = f + (sec < 3 ? 56 + 24 * sec : 128);
+        if (le64(at) + le64(at + 8) <= size) brt_put_le64(at + 16, brt_checksum64(f + le64(at), le64(at + 8)));
+    }
+    brt_put_le64(f + 248, brt_checksum64(f, 248));
+}
+
+/* The first point of instances: its entry and its table. */
+static unsigned char *instance_entry(unsigned char *f)
+{
+    uint32_t i, points = brt_get_le32(f + 32);
+    for (i = 0; i < points; i++) {
+        unsigned char *e = f + le64(f + 56) + 104 * (size_t)i;
+        if (brt_get_le32(e + 80) > 1) return e;
+    }
+    return NULL;
+}
+
+typedef void (*forgery)(unsigned char *f, unsigned char *entry, unsigned char *table);
+
+static void forge_magic(unsigned char *f, unsigned char *e, unsigned char *t) { (void)f; (void)e; t[3] ^= 1; }
+static void forge_count(unsigned char *f, unsigned char *e, unsigned char *t) { (void)f; (void)e; brt_put_le32(t + 8, brt_get_le32(t + 8) + 1); }
+/* The last listed prototype: one past the scene's (still ascending). */
+static void forge_uses(unsigned char *f, unsigned char *e, unsigned char *t)
+{
+    (void)e;
+    brt_put_le32(t + 32 + 4 * (size_t)(brt_get_le32(t + 16) - 1), brt_get_le32(f + 44));
+}
+/* The entry's count of instances one short of its table's. */
+static void forge_entry_count(unsigned char *f, unsigned char *e, unsigned char *t)
+{
+    (void)f; (void)t;
+    brt_put_le32(e + 80, brt_get_le32(e + 80) - 1);
+}
+/* The first record: its instance number beyond the scene's. */
+static unsigned char *first_record(unsigned char *t)
+{
+    return t + 32 + ((size_t)brt_get_le32(t + 16) * 4 + 7) / 8 * 8;
+}
+static void forge_number(unsigned char *f, unsigned char *e, unsigned char *t) { (void)e; brt_put_le32(first_record(t), brt_get_le32(f + 152)); }
+static void forge_singular(unsigned char *f, unsigned char *e, unsigned char *t)
+{
+    unsigned char *r = first_record(t) + 8;
+    int k;
+    (void)f; (void)e;
+    for (k = 0; k < 4; k++) brt_put_le32(r + 16 + 4 * k, 0);   /* the second row: zero */
+}
+static unsigned char *first_node(unsigned char *t)
+{
+    return first_record(t) + 56 * (size_t)brt_get_le32(t + 8);
+}
+static void forge_leaf(unsigned char *f, unsigned char *e, unsigned char *t)
+{
+    unsigned char *n = first_node(t);
+    uint32_t nodes = brt_get_le32(t + 12), k;
+    (void)f; (void)e;
+    for (k = 0; k < 4 * nodes; k++)   /* the first leaf names a record past the last */
+        if (brt_get_le32(n + 4 * (size_t)k) & 0x80000000u) {
+            brt_put_le32(n + 4 * (size_t)k, 0x80000000u | brt_get_le32(t + 8));
+            return;
+        }
+}
+static void forge_child(unsigned char *f, unsigned char *e, unsigned char *t)
+{
+    (void)f; (void)e;
+    brt_put_le32(first_node(t), 0);   /* the root names itself */
+}
+static void forge_margin(unsigned char *f, unsigned char *e, unsigned char *t)
+{
+    (void)f; (void)t;
+    brt_put_le32(e + 96, 0);   /* reach 0: smaller than the instances' */
+}
+
+/* Each forgery of an instance table is refused at its load with a message
+** naming the point and the part; the file is otherwise intact (checksums
+** repaired), and a fresh copy traces without error. */
+static void test_forged_instance_tables(void)
+{
+    static const struct { forgery forge; const char *words; } cases[] = {
+        {forge_magic, "bad magic"},
+        {forge_count, "counts disagree"},
+        {forge_entry_count, "counts disagree"},
+        {forge_uses, "prototype list"},
+        {forge_number, "instance number or prototype out of range"},
+        {forge_singular, "singular"},
+        {forge_leaf, "tree leaf"},
+        {forge_child, "tree child"},
+        {forge_margin, "margin smaller"},
+    };
+    enum { N = 2000 };
+    tu_instanced s;
+    uint64_t st = test_seed() + 2830;
+    brt_scene *scene;
+    brt_ray *rays;
+    brt_hit *hits = malloc(N * sizeof *hits);
+    unsigned char *good;
+    size_t size = 0, c;
+    adversarial_scene(&s, &st);
+    rays = instanced_rays(&s, &st, N);
+    scene = build_instanced(&s, 100000, "forged.brs");
+    CHECK(scene && rays && hits, "set-up");
+    brt_scene_close(scene);
+    good = tu_slurp(tu_scratch("forged.brs"), &size);
+    CHECK(good && instance_entry(good), "no point of instances in the file");
+    for (c = 0; c < sizeof cases / sizeof cases[0]; c++) {
+        unsigned char *f = malloc(size), *e;
+        brt_trace_options opt;
+        brt_error err;
+        brt_result r;
+        memcpy(f, good, size);
+        err.message[0] = 0;
+        e = instance_entry(f);
+        cases[c].forge(f, e, f + le64(e + 24));
+        repair_v4(f, size);
+        CHECK(tu_spill(tu_scratch("forged2.brs"), f, size), "cannot write");
+        free(f);
+        r = brt_scene_open(tu_scratch("forged2.brs"), &scene, &err);
+        if (r == BRT_OK) {
+            memset(&opt, 0, sizeof opt);
+            opt.no_proxy = 1;   /* every point is loaded */
+            r = brt_scene_trace(scene, &opt, rays, N, hits, NULL, &err);
+            brt_scene_close(scene);
+        }
+        EXPECT(r == BRT_EFORMAT && strstr(err.message, cases[c].words) &&
+                   strstr(err.message, "forged2.brs"),
+               "case %zu: result %d, '%s' (expected '%s')", c, (int)r, err.message, cases[c].words);
+    }
+    free(good);
+    tu_instanced_free(&s);
+    free(rays);
+    free(hits);
+}
+
 void suite_instances(void)
 {
     test_run("instances: direct equals brute force on adversarial transforms",
@@ -802,4 +957,5 @@ void suite_instances(void)
     test_run("instances: batched margin: far rays keep their hits", test_batched_margin);
     test_run("instances: proxy culls within the exact test's", test_proxy_culls_are_exact);
     test_run("instances: trace on a pbrt file, direct == batched", test_trace_pbrt_instances);
+    test_run("instances: forged instance tables refused at load", test_forged_instance_tables);
 }
