@@ -71,7 +71,7 @@ $(BUILD)/examples/%.o: examples/%.c batchrt.h $(wildcard examples/*.h) | $(BUILD
 	$(SAY) CC $<
 	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
 
-$(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) batchrt.h | $(BUILD)/tests
+$(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) $(wildcard examples/*.h) batchrt.h | $(BUILD)/tests
 	$(SAY) CC $<
 	$(Q)$(CC) $(CFLAGS) $(TESTING) -I. -c $< -o $@
 

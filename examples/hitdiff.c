@@ -32,6 +32,7 @@
 ** mesh, so each disagreeing ray costs one box test per triangle).
 */
 #include "common.h"
+#include "input.h"
 #include "referee.h"
 
 #include <errno.h>
@@ -248,6 +249,7 @@ typedef struct referee_run {
     const uint8_t *occluded[2];   /* occlusion files instead of hits[] */
     const char *mesh_path, *rays_path, *explain_path;
     const brt_mesh *mesh;
+    const ex_instanced_mesh *instanced;   /* a .pbrt scene, else NULL */
     const brt_ray *rays;
     size_t count;
     uint64_t disagree, classes[EX_CLASSES];
@@ -259,7 +261,8 @@ static void check_prims(const referee_run *run)
 {
     size_t i;
     int f;
-    if (run->occluded[0]) return;   /* an occlusion byte names no prim */
+    if (run->occluded[0] || run->instanced) return;   /* an occlusion byte names no prim;
+                                                       ** the instanced referee checks its own */
     for (f = 0; f < 2; f++)
         for (i = 0; i < run->count; i++) {
             const uint32_t prim = run->hits[f][i].prim;
@@ -287,7 +290,8 @@ static int referee_ray(const referee_run *run, size_t i, ex_verdict *verdict)
     } else {
         const brt_hit *a = &run->hits[0][i], *b = &run->hits[1][i];
         if (!ex_hits_disagree(a, b)) return 0;
-        ex_referee(run->mesh, &run->rays[i], a, b, verdict);
+        if (run->instanced) ex_referee_instanced(run->instanced, &run->rays[i], a, b, verdict);
+        else ex_referee(run->mesh, &run->rays[i], a, b, verdict);
     }
     return 1;
 }
@@ -373,17 +377,33 @@ static void print_referee_table(const referee_run *run)
 static int referee_main(referee_run *run)
 {
     brt_mesh mesh;
+    ex_instanced_mesh instanced;
+    ex_input input;
     brt_ray *rays;
     size_t ray_count;
     brt_error err;
-    ex_check(prog, brt_mesh_load(run->mesh_path, &mesh, &err), &err);
+    memset(&mesh, 0, sizeof mesh);
+    memset(&instanced, 0, sizeof instanced);
+    ex_input_open(prog, run->mesh_path, &input);
+    if (input.pbrt) {
+        if (run->occluded[0])
+            ex_die(prog, "%s: --occlusion is refereed on meshes only, not on pbrt scenes",
+                   run->mesh_path);
+        ex_check(prog, ex_instanced_mesh_load(&input.source, &instanced, &err), &err);
+        run->instanced = &instanced;
+        mesh = instanced.world;
+    } else {
+        ex_check(prog, brt_mesh_load(run->mesh_path, &mesh, &err), &err);
+    }
     ex_check(prog, brt_rays_read(run->rays_path, &rays, &ray_count, &err), &err);
     if (ray_count != run->count) {
         fprintf(stderr, "%s: %s has %lu rays but %s has %lu records: not the same rays\n",
                 prog, run->rays_path, (unsigned long)ray_count, run->path[0],
                 (unsigned long)run->count);
         free(rays);
-        brt_mesh_free(&mesh);
+        if (run->instanced) ex_instanced_mesh_free(&instanced);
+        else brt_mesh_free(&mesh);
+        ex_input_close(&input);
         return 2;
     }
     run->mesh = &mesh;
@@ -392,7 +412,9 @@ static int referee_main(referee_run *run)
     referee_all(run);
     print_referee_table(run);
     free(rays);
-    brt_mesh_free(&mesh);
+    if (run->instanced) ex_instanced_mesh_free(&instanced);
+    else brt_mesh_free(&mesh);
+    ex_input_close(&input);
     return run->classes[EX_UNEXPLAINED] ? 1 : 0;
 }
 

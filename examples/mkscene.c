@@ -25,9 +25,19 @@
 ** does not grow with the scale, and the disk holds at most the file and
 ** its faces once more.  A failure (a full disk) or SIGINT/SIGTERM removes
 ** both temporary files.  Long runs show a progress line on a terminal.
+**
+** .pbrt: the instanced landscape or island (examples/scenes.h) as a pbrt-v4
+** file that build/trace, build/embree_trace and build/hitdiff read back
+** exactly: the world triangles as trianglemesh shapes in stream order, each
+** prototype as ObjectBegin "pK" .. ObjectEnd, each instance as
+** AttributeBegin Transform [...] ObjectInstance "pK" AttributeEnd, with
+** every number printed with 9 significant digits (the same floats back,
+** and a Transform after WorldBegin is its own matrix, exactly).  Written
+** as the streams run, through a temporary file renamed at the end.
 */
 #include "common.h"
 #include "scenes.h"
+#include "input.h"
 
 #include <errno.h>
 #include <math.h>
@@ -43,13 +53,15 @@ static const char *const prog = "mkscene";
 
 static void usage(void)
 {
-    printf("usage: build/mkscene NAME OUT.ply|OUT.obj [--scale S] [--seed N]\n"
+    printf("usage: build/mkscene NAME OUT.ply|OUT.obj|OUT.pbrt [--scale S] [--seed N]\n"
            "Writes a built-in procedural scene as a mesh file.\n"
            "\n"
            "  NAME        crown      one closed, heavily subdivided ornate object\n"
            "              landscape  terrain with forests and rocks (open geometry)\n"
            "              island     islands with dense vegetation in a sea\n"
-           "  OUT         .ply: binary little-endian PLY; .obj: Wavefront OBJ\n"
+           "  OUT         .ply: binary little-endian PLY; .obj: Wavefront OBJ; .pbrt: the\n"
+           "              instanced landscape or island as a pbrt-v4 file (objects and\n"
+           "              instances)\n"
            "  --scale S   size: about 100000 * S triangles, S in 0.001..%g (default 1)\n"
            "  --seed N    random seed (default 1); the same seed gives the same bytes\n"
            "  --help      this text\n"
@@ -198,6 +210,86 @@ static brt_result open_parts(writer *w, brt_error *err)
     return BRT_OK;
 }
 
+/* ---- .pbrt: the instanced scenes ---- */
+
+static brt_result pbrt_error(const char *path, brt_error *err)
+{
+    return brt_fail(err, BRT_EIO, "%s: cannot write: %s", path, strerror(errno));
+}
+
+/* One chunk of triangles as one trianglemesh shape. */
+static brt_result pbrt_shape(void *user, const float *corners, uint32_t count, uint32_t first,
+                             brt_error *err)
+{
+    FILE *f = user;
+    uint32_t i;
+    (void)first;
+    fprintf(f, "Shape \"trianglemesh\" \"point3 P\" [");
+    for (i = 0; i < 9 * count; i++) fprintf(f, "%s%.9g", i % 9 ? " " : "\n  ", corners[i]);
+    fprintf(f, " ]\n  \"integer indices\" [");
+    for (i = 0; i < 3 * count; i++) fprintf(f, "%s%u", i % 24 ? " " : "\n  ", i);
+    fprintf(f, " ]\n");
+    return ferror(f) ? brt_fail(err, BRT_EIO, "write error") : check_interrupt(err);
+}
+
+/* Instances: the column-major 4x4 of pbrt's Transform, then the object. */
+static brt_result pbrt_instances(void *user, const brt_instance *in, uint32_t count, uint32_t first,
+                                 brt_error *err)
+{
+    FILE *f = user;
+    uint32_t i;
+    (void)first;
+    for (i = 0; i < count; i++) {
+        const float *m = in[i].xform;
+        fprintf(f, "AttributeBegin Transform [%.9g %.9g %.9g 0 %.9g %.9g %.9g 0 %.9g %.9g %.9g 0 "
+                "%.9g %.9g %.9g 1] ObjectInstance \"p%u\" AttributeEnd\n", m[0], m[4], m[8], m[1],
+                m[5], m[9], m[2], m[6], m[10], m[3], m[7], m[11], (unsigned)in[i].prototype);
+    }
+    return ferror(f) ? brt_fail(err, BRT_EIO, "write error") : check_interrupt(err);
+}
+
+static brt_result pbrt_body(const brt_scene_source *src, FILE *f, brt_error *err)
+{
+    brt_result r = BRT_OK;
+    uint32_t p;
+    fprintf(f, "# written by build/mkscene: an instanced scene of batchrt (examples/scenes.h)\n"
+               "WorldBegin\n");
+    if (src->world.run) r = src->world.run(src->world.user, pbrt_shape, f, err);
+    for (p = 0; p < src->prototype_count && r == BRT_OK; p++) {
+        fprintf(f, "ObjectBegin \"p%u\"\n", (unsigned)p);
+        r = src->prototype(src->user, p, pbrt_shape, f, err);
+        fprintf(f, "ObjectEnd\n");
+    }
+    if (r == BRT_OK) r = src->instances(src->user, pbrt_instances, f, err);
+    return r;
+}
+
+static void write_pbrt(const ex_scene_recipe *recipe, const char *out)
+{
+    ex_instanced_scene *scene;
+    brt_scene_source src;
+    brt_atomic_file file;
+    brt_error err;
+    brt_result r;
+    FILE *f;
+    ex_check(prog, ex_instanced_open(recipe->name, recipe->scale, recipe->seed, &scene, &err), &err);
+    ex_instanced_source(scene, &src);
+    ex_check(prog, brt_atomic_open(&file, out, &err), &err);
+    f = fdopen(file.fd, "w");
+    r = f ? pbrt_body(&src, f, &err) : pbrt_error(out, &err);
+    if (f) {
+        if (fclose(f) != 0 && r == BRT_OK) r = pbrt_error(out, &err);
+        file.fd = -1;
+    }
+    r = brt_atomic_close(&file, r, &err);
+    if (r == BRT_EINTR) ex_die_interrupted(prog);
+    ex_check(prog, r, &err);
+    printf("%s: %llu unique, %llu instanced triangles, %u instances\n", recipe->name,
+           (unsigned long long)ex_instanced_unique(scene),
+           (unsigned long long)ex_instanced_instanced(scene), ex_instanced_instance_count(scene));
+    ex_instanced_close(scene);
+}
+
 /* The three steps of the file comment. */
 static brt_result write_scene(const ex_scene_recipe *recipe, writer *w, uint64_t *vertices,
                               brt_error *err)
@@ -246,8 +338,13 @@ int main(int argc, char **argv)
     if (!out) ex_die(prog, "expected NAME and OUT.ply|OUT.obj (see --help)");
     if (!ex_scene_is_builtin(recipe.name))
         ex_die(prog, "unknown scene '%s' (built-in: crown, landscape, island)", recipe.name);
+    if (ex_input_is_pbrt(out)) {
+        ex_catch_interrupts();
+        write_pbrt(&recipe, out);
+        return 0;
+    }
     if (!has_suffix(out, ".ply") && !has_suffix(out, ".obj"))
-        ex_die(prog, "%s: the output name must end in .ply or .obj", out);
+        ex_die(prog, "%s: the output name must end in .ply, .obj or .pbrt", out);
 
     memset(&w, 0, sizeof w);
     w.path = out;

@@ -23,6 +23,7 @@
 ** machines too, as long as their libm rounds sin, cos and tan alike: C99
 ** does not promise correctly rounded transcendental functions.)
 */
+#include "input.h"
 #include "rays.h"
 
 #include <math.h>
@@ -37,7 +38,7 @@ enum ray_kind { KIND_CAMERA, KIND_RANDOM, KIND_BOUNCE };
 static void usage(void)
 {
     printf("usage: build/raygen MESH OUT.rays --kind camera|random|bounce [--count N] [--seed S]\n"
-           "Writes N test rays for MESH (OBJ or PLY) as 32-byte records.\n"
+           "Writes N test rays for MESH (OBJ, PLY or a pbrt-v4 .pbrt scene) as 32-byte records.\n"
            "\n"
            "  --kind camera   pinhole camera, fov 45 degrees, looking at the bounding-box\n"
            "                  centre from +z and a little above, jittered pixel grid\n"
@@ -79,6 +80,8 @@ int main(int argc, char **argv)
     uint64_t count = 1000000, seed = 1, rng;
     enum ray_kind kind;
     brt_mesh mesh;
+    brt_world *world = NULL;
+    ex_input input;
     brt_error err;
     brt_ray *rays;
     float bmin[3], bmax[3];
@@ -103,9 +106,18 @@ int main(int argc, char **argv)
     if (!kind_text) ex_die(prog, "--kind camera|random|bounce is required (see --help)");
     kind = parse_kind(kind_text);
 
-    /* The loader refuses a mesh without triangles, so the box is not empty. */
-    ex_check(prog, brt_mesh_load(mesh_path, &mesh, &err), &err);
-    brt_mesh_bounds(&mesh, bmin, bmax);
+    /* The loader refuses a mesh without triangles, so the box is not empty;
+    ** a pbrt scene is traced through its world (an empty one has no rays). */
+    ex_input_open(prog, mesh_path, &input);
+    memset(&mesh, 0, sizeof mesh);
+    if (input.pbrt) {
+        world = ex_input_world(prog, &input);
+        brt_world_bounds(world, bmin, bmax);
+        if (!(bmin[0] <= bmax[0])) ex_die(prog, "%s: no triangles", mesh_path);
+    } else {
+        ex_check(prog, brt_mesh_load(mesh_path, &mesh, &err), &err);
+        brt_mesh_bounds(&mesh, bmin, bmax);
+    }
     rays = malloc((size_t)count * sizeof *rays);
     if (!rays) ex_die(prog, "out of memory for %llu rays", (unsigned long long)count);
 
@@ -115,10 +127,16 @@ int main(int argc, char **argv)
     ex_camera_fit(&cam, bmin, bmax, width, (uint32_t)((count + width - 1) / width));
     if (kind == KIND_CAMERA) ex_rays_camera(&cam, rays, (size_t)count, &rng);
     else if (kind == KIND_RANDOM) ex_rays_random(bmin, bmax, rays, (size_t)count, &rng);
-    else make_bounce_rays(mesh_path, &mesh, &cam, rays, (size_t)count, &rng);
+    else if (world) {
+        if (!ex_rays_bounce_world(world, &cam, rays, (size_t)count, &rng))
+            ex_die(prog, "%s: no camera ray hit the scene in %d attempts: nothing to bounce from",
+                   mesh_path, EX_MAX_CAMERA_ATTEMPTS);
+    } else make_bounce_rays(mesh_path, &mesh, &cam, rays, (size_t)count, &rng);
 
     ex_check(prog, brt_rays_write(out_path, rays, (size_t)count, &err), &err);
     free(rays);
     brt_mesh_free(&mesh);
+    brt_world_free(world);
+    ex_input_close(&input);
     return 0;
 }

@@ -160,14 +160,26 @@ void ex_rays_random(const float bmin[3], const float bmax[3], brt_ray *rays, siz
 
 /* A camera ray for bounce ray i that hits the mesh: pixel i first, then
 ** random image points until one hits.  Returns 0 when none does. */
-static int camera_hit(const ex_camera *cam, const brt_bvh *bvh, size_t i, uint64_t *rng,
-                      brt_ray *ray, brt_hit *hit)
+/* The closest hit of a mesh's BVH or of a world (with its normal). */
+typedef struct hit_scene {
+    const brt_bvh *bvh;
+    const brt_world *world;
+} hit_scene;
+
+static void scene_intersect(const hit_scene *sc, const brt_ray *ray, brt_hit *hit, float normal[3])
+{
+    brt_hit_clear(hit);
+    if (sc->world) brt_world_intersect(sc->world, ray, hit, normal);
+    else brt_bvh_intersect(sc->bvh, ray, hit);
+}
+
+static int camera_hit(const ex_camera *cam, const hit_scene *sc, size_t i, uint64_t *rng,
+                      brt_ray *ray, brt_hit *hit, float normal[3])
 {
     int attempt;
     camera_pixel_ray(cam, i, rng, ray);
     for (attempt = 0; attempt < EX_MAX_CAMERA_ATTEMPTS; attempt++) {
-        brt_hit_clear(hit);
-        brt_bvh_intersect(bvh, ray, hit);
+        scene_intersect(sc, ray, hit, normal);
         if (hit->prim != BRT_NO_PRIM) return 1;
         ex_camera_ray(cam, brt_random_float(rng), brt_random_float(rng), ray);
     }
@@ -262,13 +274,49 @@ int ex_rays_bounce(const brt_mesh *mesh, const brt_bvh *bvh, const ex_camera *ca
                    brt_ray *rays, size_t count, uint64_t *rng)
 {
     double diagonal = ex_mesh_diagonal(mesh);
+    hit_scene sc;
     size_t i;
+    sc.bvh = bvh;
+    sc.world = NULL;
     for (i = 0; i < count; i++) {
         brt_ray in;
         brt_hit hit;
+        float normal[3];
         if ((i & 0xFFFF) == 0) ex_progress("bounce rays", i, count);
-        if (!camera_hit(cam, bvh, i, rng, &in, &hit)) return 0;
+        if (!camera_hit(cam, &sc, i, rng, &in, &hit, normal)) return 0;
         ex_bounce_ray(mesh, diagonal, &in, &hit, rng, &rays[i]);
+    }
+    ex_progress("bounce rays", count, count);
+    ex_progress_end();
+    return 1;
+}
+
+int ex_rays_bounce_world(const brt_world *world, const ex_camera *cam, brt_ray *rays,
+                         size_t count, uint64_t *rng)
+{
+    float bmin[3], bmax[3];
+    double diagonal;
+    hit_scene sc;
+    size_t i;
+    brt_world_bounds(world, bmin, bmax);
+    diagonal = ex_box_diagonal(bmin, bmax);
+    sc.bvh = NULL;
+    sc.world = world;
+    for (i = 0; i < count; i++) {
+        brt_ray in;
+        brt_hit hit;
+        float normal[3];
+        double p[3], n[3], u1, u2;
+        int k;
+        if ((i & 0xFFFF) == 0) ex_progress("bounce rays", i, count);
+        if (!camera_hit(cam, &sc, i, rng, &in, &hit, normal)) return 0;
+        u1 = brt_random_float(rng);
+        u2 = brt_random_float(rng);
+        for (k = 0; k < 3; k++) {
+            p[k] = (double)in.org[k] + (double)hit.t * in.dir[k];
+            n[k] = normal[k];
+        }
+        ex_lambert_bounce(p, n, in.dir, diagonal, u1, u2, &rays[i]);
     }
     ex_progress("bounce rays", count, count);
     ex_progress_end();

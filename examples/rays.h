@@ -60,7 +60,11 @@ void ex_cone_ray(const double origin[3], const double axis[3], double cos_max, d
 void ex_bounce_ray(const brt_mesh *mesh, double diagonal, const brt_ray *in,
                    const brt_hit *hit, uint64_t *rng, brt_ray *out);
 /* count bounce rays from camera rays that hit (pixel i first, then random
-** image points); 0 when no camera ray hits the mesh at all. */
+** image points); 0 when no camera ray hits the mesh at all.  The same for
+** a world (an instanced scene): the hit point from t, the normal the
+** world's. */
+int ex_rays_bounce_world(const brt_world *world, const ex_camera *cam, brt_ray *rays,
+                         size_t count, uint64_t *rng);
 int ex_rays_bounce(const brt_mesh *mesh, const brt_bvh *bvh, const ex_camera *cam,
                    brt_ray *rays, size_t count, uint64_t *rng);
 

@@ -92,6 +92,7 @@
 #include <float.h>
 #include <math.h>
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 
 #define EDGE_ULPS 16.0
@@ -99,7 +100,7 @@
 
 const char *const ex_class_id[EX_CLASSES] = {
     "tie", "near_tie", "t_bound", "leak_a", "leak_b", "outside_a", "outside_b", "boundary",
-    "unexplained"};
+    "transform", "unexplained"};
 const char *const ex_class_label[EX_CLASSES] = {
     "tie (both right, same exact t)",
     "near tie (exact t within the bound)",
@@ -109,6 +110,7 @@ const char *const ex_class_label[EX_CLASSES] = {
     "A hits just outside an edge",
     "B hits just outside an edge",
     "tnear/tfar boundary",
+    "within the instance transform",
     "unexplained"};
 
 /* ===================================================================== */
@@ -539,7 +541,8 @@ static ex_class classify(const side *a, const side *b)
 int ex_hits_disagree(const brt_hit *a, const brt_hit *b)
 {
     if (a->prim == BRT_NO_PRIM && b->prim == BRT_NO_PRIM) return 0;
-    return a->prim != b->prim || !(a->t == b->t) || !(a->u == b->u) || !(a->v == b->v);
+    return a->prim != b->prim || a->inst != b->inst || !(a->t == b->t) || !(a->u == b->u) ||
+           !(a->v == b->v);
 }
 
 ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
@@ -720,4 +723,322 @@ ex_class ex_referee_occlusion(const brt_mesh *mesh, const brt_ray *ray, int a, i
                  a, b, o.candidates, o.inside, o.inside_limit, o.at_edge, o.just_outside,
                  o.near_limit, (unsigned long)o.example, o.t, o.edge_ratio, o.limit_ratio);
     return out->cls;
+}
+
+/* ===================================================================== */
+/* Instanced hits                                                        */
+/* ===================================================================== */
+
+typedef struct corner_gather {
+    float *corners;
+    size_t count, cap;
+} corner_gather;
+
+static brt_result gather(void *user, const float *corners, uint32_t count, uint32_t first,
+                         brt_error *err)
+{
+    corner_gather *g = user;
+    (void)first;
+    if (!(g->corners = brt_grow(g->corners, &g->cap, 9 * (g->count + count), sizeof *g->corners)))
+        return brt_fail(err, BRT_ENOMEM, "out of memory for the referee's triangles");
+    memcpy(g->corners + 9 * g->count, corners, 9 * (size_t)count * sizeof *corners);
+    g->count += count;
+    return BRT_OK;
+}
+
+/* A stream as a mesh: three vertices per triangle, in order. */
+static brt_result mesh_of(brt_result (*run)(const void *, uint32_t, brt_triangle_fn, void *, brt_error *),
+                          const void *user, uint32_t id, brt_mesh *mesh, brt_error *err)
+{
+    corner_gather g = {NULL, 0, 0};
+    brt_result r = run(user, id, gather, &g, err);
+    size_t i;
+    memset(mesh, 0, sizeof *mesh);
+    if (r != BRT_OK) {
+        free(g.corners);
+        return r;
+    }
+    mesh->positions = g.corners;
+    mesh->indices = malloc(3 * g.count * sizeof *mesh->indices + 1);
+    if (!mesh->indices) return brt_fail(err, BRT_ENOMEM, "out of memory for the referee's triangles");
+    for (i = 0; i < 3 * g.count; i++) mesh->indices[i] = (uint32_t)i;
+    mesh->vertex_count = (uint32_t)(3 * g.count);
+    mesh->triangle_count = (uint32_t)g.count;
+    return BRT_OK;
+}
+
+static brt_result run_world(const void *user, uint32_t id, brt_triangle_fn emit, void *emit_user,
+                            brt_error *err)
+{
+    const brt_scene_source *s = user;
+    (void)id;
+    return s->world.run ? s->world.run(s->world.user, emit, emit_user, err) : BRT_OK;
+}
+
+static brt_result run_prototype(const void *user, uint32_t id, brt_triangle_fn emit,
+                                void *emit_user, brt_error *err)
+{
+    const brt_scene_source *s = user;
+    return s->prototype(s->user, id, emit, emit_user, err);
+}
+
+static brt_result gather_instances(void *user, const brt_instance *in, uint32_t count,
+                                   uint32_t first, brt_error *err)
+{
+    ex_instanced_mesh *m = user;
+    size_t cap = m->instance_count;
+    (void)first;
+    if (!(m->instances = brt_grow(m->instances, &cap, (size_t)m->instance_count + count,
+                                  sizeof *m->instances)))
+        return brt_fail(err, BRT_ENOMEM, "out of memory for the referee's instances");
+    memcpy(m->instances + m->instance_count, in, count * sizeof *in);
+    m->instance_count += count;
+    return BRT_OK;
+}
+
+brt_result ex_instanced_mesh_load(const brt_scene_source *source, ex_instanced_mesh *m,
+                                  brt_error *err)
+{
+    brt_result r;
+    uint32_t p;
+    memset(m, 0, sizeof *m);
+    r = mesh_of(run_world, source, 0, &m->world, err);
+    m->prototypes = calloc((size_t)source->prototype_count + 1, sizeof *m->prototypes);
+    if (r == BRT_OK && !m->prototypes) r = brt_fail(err, BRT_ENOMEM, "out of memory");
+    for (p = 0; p < source->prototype_count && r == BRT_OK; p++, m->prototype_count++)
+        r = mesh_of(run_prototype, source, p, &m->prototypes[p], err);
+    if (r == BRT_OK && source->instances) r = source->instances(source->user, gather_instances, m, err);
+    if (r != BRT_OK) ex_instanced_mesh_free(m);
+    return r;
+}
+
+void ex_instanced_mesh_free(ex_instanced_mesh *m)
+{
+    uint32_t p;
+    brt_mesh_free(&m->world);
+    for (p = 0; m->prototypes && p < m->prototype_count; p++) brt_mesh_free(&m->prototypes[p]);
+    free(m->prototypes);
+    free(m->instances);
+    memset(m, 0, sizeof *m);
+}
+
+/* A record's triangle in world space (double) and its margin. */
+typedef struct world_triangle {
+    double v[3][3];
+    double margin;
+} world_triangle;
+
+static int world_triangle_of(const ex_instanced_mesh *m, const brt_ray *ray, const brt_hit *h,
+                             world_triangle *w)
+{
+    const brt_mesh *mesh = &m->world;
+    const brt_instance *in = NULL;
+    int j, a;
+    w->margin = 0.0;
+    if (h->inst != BRT_NO_INST) {
+        brt_instance_frame f;
+        float olo[3], ohi[3], lo[3], hi[3], radius, centre[3];
+        if (h->inst >= m->instance_count) return 0;
+        in = &m->instances[h->inst];
+        if (in->prototype >= m->prototype_count ||
+            brt_instance_frame_init(in, h->inst, &f, NULL) != BRT_OK)
+            return 0;
+        mesh = &m->prototypes[in->prototype];
+        brt_mesh_bounds(mesh, olo, ohi);
+        brt_instance_bounds(in, &f, olo, ohi, lo, hi, &radius);
+        for (a = 0; a < 3; a++) centre[a] = in->xform[4 * a + 3];
+        w->margin = brt_instance_margin(f.condition, radius, centre, ray);
+    }
+    if (h->prim >= mesh->triangle_count) return 0;
+    for (j = 0; j < 3; j++) {
+        const float *v = mesh->positions + 3 * (size_t)mesh->indices[3 * (size_t)h->prim + j];
+        for (a = 0; a < 3; a++)
+            w->v[j][a] = in ? (double)in->xform[4 * a] * v[0] + (double)in->xform[4 * a + 1] * v[1] +
+                                  (double)in->xform[4 * a + 2] * v[2] + in->xform[4 * a + 3]
+                            : v[a];
+    }
+    return 1;
+}
+
+static double dot3(const double a[3], const double b[3]) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+static void sub3(const double a[3], const double b[3], double c[3])
+{
+    int k;
+    for (k = 0; k < 3; k++) c[k] = a[k] - b[k];
+}
+
+/* Distance from p to segment ab. */
+static double segment_distance(const double p[3], const double a[3], const double b[3])
+{
+    double ab[3], ap[3], q[3], s;
+    int k;
+    sub3(b, a, ab);
+    sub3(p, a, ap);
+    s = dot3(ab, ab) > 0 ? fmin(1.0, fmax(0.0, dot3(ap, ab) / dot3(ab, ab))) : 0.0;
+    for (k = 0; k < 3; k++) q[k] = a[k] + s * ab[k] - p[k];
+    return sqrt(dot3(q, q));
+}
+
+/* Distance from p to the triangle (Ericson's region test, plainly: the
+** plane when p projects inside, else the nearest edge); *edge gets the
+** distance to the nearest edge, *inside whether p projects inside. */
+static double triangle_distance(const world_triangle *w, const double p[3], double *edge, int *inside)
+{
+    double e1[3], e2[3], n[3], d[3], len;
+    int j, in = 1;
+    sub3(w->v[1], w->v[0], e1);
+    sub3(w->v[2], w->v[0], e2);
+    ex_cross3(e1, e2, n);
+    len = sqrt(dot3(n, n));
+    *edge = INFINITY;
+    for (j = 0; j < 3; j++) *edge = fmin(*edge, segment_distance(p, w->v[j], w->v[(j + 1) % 3]));
+    if (len == 0) { *inside = 0; return *edge; }
+    for (j = 0; j < 3; j++) {
+        double ej[3], pj[3], c[3];
+        sub3(w->v[(j + 1) % 3], w->v[j], ej);
+        sub3(p, w->v[j], pj);
+        ex_cross3(ej, pj, c);
+        if (dot3(c, n) < 0) in = 0;
+    }
+    *inside = in;
+    sub3(p, w->v[0], d);
+    return in ? fabs(dot3(d, n)) / len : *edge;
+}
+
+static void point_at(const brt_ray *ray, double t, double p[3])
+{
+    int k;
+    for (k = 0; k < 3; k++) p[k] = (double)ray->org[k] + t * ray->dir[k];
+}
+
+/* The exact world ray meets the plane of w inside it, farther than band
+** from every edge: a miss there is not the transform's. */
+static int ray_crosses_interior(const brt_ray *ray, const world_triangle *w, double band)
+{
+    double e1[3], e2[3], n[3], o[3], d[3], w0[3], t, p[3], edge;
+    int k, inside;
+    sub3(w->v[1], w->v[0], e1);
+    sub3(w->v[2], w->v[0], e2);
+    ex_cross3(e1, e2, n);
+    for (k = 0; k < 3; k++) { o[k] = ray->org[k]; d[k] = ray->dir[k]; }
+    if (dot3(n, d) == 0) return 0;
+    sub3(w->v[0], o, w0);
+    t = dot3(w0, n) / dot3(n, d);
+    if (!(t >= ray->tnear && t <= ray->tfar)) return 0;
+    point_at(ray, t, p);
+    triangle_distance(w, p, &edge, &inside);
+    return inside && edge > band;
+}
+
+/* |cos| between the ray and the triangle's normal. */
+static double incidence(const brt_ray *ray, const world_triangle *w)
+{
+    double e1[3], e2[3], n[3], d[3];
+    int k;
+    sub3(w->v[1], w->v[0], e1);
+    sub3(w->v[2], w->v[0], e2);
+    ex_cross3(e1, e2, n);
+    for (k = 0; k < 3; k++) d[k] = ray->dir[k];
+    if (dot3(n, n) == 0 || dot3(d, d) == 0) return 0;
+    return fabs(dot3(n, d)) / sqrt(dot3(n, n) * dot3(d, d));
+}
+
+/* A record judged alone in its own space (against a miss): right, or a
+** hit just outside an edge within rounding (ex_referee's classes). */
+static int own_space_explains(const ex_instanced_mesh *m, const brt_ray *ray, const brt_hit *h)
+{
+    brt_hit alone = *h, miss;
+    brt_ray object_ray = *ray;
+    const brt_mesh *mesh = &m->world;
+    ex_verdict v;
+    ex_class c;
+    brt_hit_clear(&miss);
+    if (h->inst != BRT_NO_INST) {
+        brt_instance_frame f;
+        if (brt_instance_frame_init(&m->instances[h->inst], h->inst, &f, NULL) != BRT_OK) return 0;
+        brt_instance_ray(&f, ray, &object_ray);
+        mesh = &m->prototypes[m->instances[h->inst].prototype];
+    }
+    alone.inst = BRT_NO_INST;
+    c = ex_referee(mesh, &object_ray, &alone, &miss, &v);
+    return c == EX_LEAK_B || c == EX_OUTSIDE_A || c == EX_BOUNDARY;
+}
+
+static ex_class unexplained(ex_verdict *out, const char *why)
+{
+    snprintf(out->text, sizeof out->text, "instanced: %s", why);
+    return out->cls = EX_UNEXPLAINED;
+}
+
+/* The transform class: see the header. */
+static ex_class transform_class(const ex_instanced_mesh *m, const brt_ray *ray, const brt_hit *h[2],
+                                ex_verdict *out)
+{
+    world_triangle w[2];
+    int hits[2], i;
+    const double dir = sqrt((double)ray->dir[0] * ray->dir[0] + (double)ray->dir[1] * ray->dir[1] +
+                            (double)ray->dir[2] * ray->dir[2]);
+    for (i = 0; i < 2; i++) {
+        double p[3], edge, dist;
+        int inside;
+        double rounding;
+        hits[i] = h[i]->prim != BRT_NO_PRIM;
+        if (!hits[i]) continue;
+        /* The record's own rounding: t and the point it names, in float. */
+        point_at(ray, 0.0, p);
+        rounding = 0x1p-20 * (sqrt(dot3(p, p)) + fabs((double)h[i]->t) * dir);
+        if (!world_triangle_of(m, ray, h[i], &w[i]))
+            return unexplained(out, "a record names an instance or prim the scene lacks");
+        point_at(ray, h[i]->t, p);
+        dist = triangle_distance(&w[i], p, &edge, &inside);
+        out->t_ratio = fmax(out->t_ratio, w[i].margin > 0 ? dist / (2 * w[i].margin) : INFINITY);
+        if (!(dist <= 2 * w[i].margin + rounding) && !own_space_explains(m, ray, h[i]))
+            return unexplained(out, "a hit farther from its triangle than the transform's bound");
+    }
+    for (i = 0; i < 2; i++) {
+        if (hits[i] || !hits[1 - i]) continue;
+        if (ray_crosses_interior(ray, &w[1 - i], 2 * w[1 - i].margin))
+            return unexplained(out, "a miss where the ray crosses a triangle's interior");
+    }
+    if (hits[0] && hits[1]) {
+        /* Two hits: equal within the bound, or the farther record passed
+        ** the nearer one's triangle within the bound of an edge. */
+        const int near = h[0]->t <= h[1]->t ? 0 : 1;
+        const double c = fmax(incidence(ray, &w[near]), 1e-3);
+        const double gap = fabs((double)h[0]->t - h[1]->t) * dir, bound = 2 * (w[0].margin + w[1].margin) / c;
+        if (!(gap <= bound) && ray_crosses_interior(ray, &w[near], 2 * w[near].margin))
+            return unexplained(out, "a farther hit where the ray crosses a nearer triangle's interior");
+    }
+    snprintf(out->text, sizeof out->text, "instanced: both records within the rounding of the "
+             "ray's transform into object space (%.3g of its bound)", out->t_ratio);
+    return out->cls = EX_TRANSFORM;
+}
+
+ex_class ex_referee_instanced(const ex_instanced_mesh *m, const brt_ray *ray, const brt_hit *a,
+                              const brt_hit *b, ex_verdict *out)
+{
+    const brt_hit *h[2];
+    uint32_t space = a->prim != BRT_NO_PRIM ? a->inst : b->inst;
+    int one_space = (a->prim == BRT_NO_PRIM || b->prim == BRT_NO_PRIM) || a->inst == b->inst;
+    h[0] = a;
+    h[1] = b;
+    if (one_space && (space == BRT_NO_INST ||
+                      (space < m->instance_count && m->instances[space].prototype < m->prototype_count))) {
+        brt_hit sa = *a, sb = *b;
+        brt_ray object_ray = *ray;
+        const brt_mesh *mesh = &m->world;
+        brt_instance_frame f;
+        if (space != BRT_NO_INST) {
+            if (brt_instance_frame_init(&m->instances[space], space, &f, NULL) != BRT_OK)
+                return out->cls = EX_UNEXPLAINED;
+            brt_instance_ray(&f, ray, &object_ray);
+            mesh = &m->prototypes[m->instances[space].prototype];
+        }
+        sa.inst = sb.inst = BRT_NO_INST;
+        if (ex_referee(mesh, &object_ray, &sa, &sb, out) != EX_UNEXPLAINED || space == BRT_NO_INST)
+            return out->cls;
+    }
+    out->t_ratio = out->edge_ratio = 0.0;
+    return transform_class(m, ray, h, out);
 }

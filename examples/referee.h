@@ -33,6 +33,8 @@ typedef enum ex_class {
                      ** within rounding of an edge or vertex */
     EX_OUTSIDE_B,
     EX_BOUNDARY,     /* the hit's exact t is within rounding of tnear or tfar */
+    EX_TRANSFORM,    /* instances: both records within the rounding of the ray's
+                     ** transform into object space (ex_referee_instanced) */
     EX_UNEXPLAINED,
     EX_CLASSES
 } ex_class;
@@ -40,8 +42,9 @@ typedef enum ex_class {
 extern const char *const ex_class_id[EX_CLASSES];     /* "tie", "leak_a", ... (CSV) */
 extern const char *const ex_class_label[EX_CLASSES];  /* table rows */
 
-/* Nonzero when the two records of one ray disagree: a different prim, hit
-** against miss, or a different t, u or v (two misses always agree). */
+/* Nonzero when the two records of one ray disagree: a different instance
+** or prim, hit against miss, or a different t, u or v (two misses always
+** agree). */
 int ex_hits_disagree(const brt_hit *a, const brt_hit *b);
 
 /* The referee's answer for one ray. */
@@ -70,5 +73,35 @@ ex_class ex_referee(const brt_mesh *mesh, const brt_ray *ray, const brt_hit *a,
 ** tfar / t bound. */
 ex_class ex_referee_occlusion(const brt_mesh *mesh, const brt_ray *ray, int a, int b,
                               ex_verdict *out);
+
+/* An instanced scene for the referee (a pbrt file's): the world
+** triangles and each prototype as meshes, numbered as hit files number
+** them, and the instances. */
+typedef struct ex_instanced_mesh {
+    brt_mesh world;
+    brt_mesh *prototypes;
+    uint32_t prototype_count;
+    brt_instance *instances;
+    uint32_t instance_count;
+} ex_instanced_mesh;
+
+brt_result ex_instanced_mesh_load(const brt_scene_source *source, ex_instanced_mesh *out,
+                                  brt_error *err);
+void ex_instanced_mesh_free(ex_instanced_mesh *m);
+
+/* Referees one ray of an instanced scene (records naming instances).  When
+** every record that hits lies in one space -- the world, or one instance
+** -- ex_referee judges them exactly there, the ray carried into the
+** instance by brt_instance_ray (batchrt's transform).  Otherwise, or when
+** that leaves them unexplained, EX_TRANSFORM when each hit lies within
+** 2 d of its world triangle (d: the instance's margin, batchrt.h
+** brt_instance_margin, 0 for the world), a miss faces a hit that the
+** exact world ray takes within 2 d of an edge, and two hits are closer in
+** t than 2 (d_a + d_b) / |cos| along the ray (cos between the ray and the
+** nearer triangle): differences another transform of the same ray (an
+** Embree build's, in float) can make.  t_ratio: the largest of these
+** distances over its bound. */
+ex_class ex_referee_instanced(const ex_instanced_mesh *m, const brt_ray *ray, const brt_hit *a,
+                              const brt_hit *b, ex_verdict *out);
 
 #endif

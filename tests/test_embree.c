@@ -440,6 +440,51 @@ static void check_shared_mesh(const char *file)
     check_mesh(path, file);
 }
 
+/* An instanced scene (mkscene's .pbrt: one Object per prototype, an
+** ObjectInstance per instance): trace --direct == --batched byte for byte,
+** embree_trace with one rtcInstance per instance, and hitdiff --mesh
+** explains every difference, the transform's rounding included. */
+static void check_instanced_scene(const char *name)
+{
+    static const char *const kinds[3] = {"camera", "random", "bounce"};
+    char scene[512], rays[512], d[512], b[512], e[512], log[512], brs[512];
+    int k;
+    scratch(scene, "inst.pbrt");
+    scratch(rays, "inst.rays");
+    scratch(d, "inst_d.hits");
+    scratch(b, "inst_b.hits");
+    scratch(e, "inst_e.hits");
+    scratch(brs, "inst.brs");
+    CHECK(run("mkscene %s '%s' --scale 0.3 --seed %llu", name, scene,
+              (unsigned long long)test_seed()) == 0, "mkscene %s .pbrt failed", name);
+    for (k = 0; k < 3; k++) {
+        unsigned char *hd, *hb, *out;
+        size_t nd = 0, nb = 0;
+        CHECK(run("raygen '%s' '%s' --kind %s --count 40000 --seed %d", scene, rays, kinds[k], k + 1)
+              == 0, "raygen %s", kinds[k]);
+        CHECK(run("trace '%s' '%s' '%s' --direct", scene, rays, d) == 0, "trace --direct");
+        CHECK(run("trace '%s' '%s' '%s' --batched --batch-tris 3000 --memory 300K --scene '%s' "
+                  "--rebuild", scene, rays, b, brs) == 0, "trace --batched");
+        CHECK(run("embree_trace '%s' '%s' '%s'", scene, rays, e) == 0, "embree_trace");
+        hd = tu_slurp(d, &nd);
+        hb = tu_slurp(b, &nb);
+        EXPECT(hd && hb && nd == nb && memcmp(hd, hb, nd) == 0, "%s %s: direct and batched differ",
+               name, kinds[k]);
+        free(hd);
+        free(hb);
+        EXPECT(run("hitdiff '%s' '%s' --mesh '%s' --rays '%s'", d, e, scene, rays) == 0,
+               "%s %s: hitdiff --mesh left differences unexplained", name, kinds[k]);
+        out = tu_slurp(scratch(log, "embree.log"), NULL);
+        EXPECT(out && strstr((char *)out, "EXPLAINED: all"), "%s %s: %s", name, kinds[k],
+               out ? (char *)out : "(no output)");
+        if (out) printf("  embree: %s %s: %s", name, kinds[k], strstr((char *)out, "EXPLAINED") ? strstr((char *)out, "EXPLAINED") : "\n");
+        free(out);
+    }
+}
+
+static void test_instanced_landscape(void) { check_instanced_scene("landscape"); }
+static void test_instanced_island(void) { check_instanced_scene("island"); }
+
 static void test_crown(void) { check_builtin_scene("crown"); }
 static void test_landscape(void) { check_builtin_scene("landscape"); }
 static void test_island(void) { check_builtin_scene("island"); }
@@ -520,6 +565,10 @@ void suite_embree(void)
     test_run("embree: landscape scene, direct == batched == Embree", test_landscape);
     test_run("embree: island scene, direct == batched == Embree", test_island);
     test_run("embree: bunny scan, direct == batched == Embree", test_bunny);
+    test_run("embree: instanced landscape (pbrt), direct == batched, Embree refereed",
+             test_instanced_landscape);
+    test_run("embree: instanced island (pbrt), direct == batched, Embree refereed",
+             test_instanced_island);
     test_run("embree: hitdiff --mesh explains every disagreement, bunny_tiny",
              test_referee_bunny_tiny);
     test_run("embree: hitdiff --mesh explains every disagreement, bunny", test_referee_bunny);

@@ -8,6 +8,7 @@
 */
 #include "test.h"
 #include "util.h"
+#include "../examples/referee.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -940,6 +941,61 @@ static void test_forged_instance_tables(void)
     free(hits);
 }
 
+/* The referee's transform class (examples/referee.h): a record within
+** the rounding of the ray's transform is explained, a fabricated one is
+** not.  One instance of a unit square, moved and rotated; a ray through
+** its inside from fifty units away. */
+static void test_referee_transform_class(void)
+{
+    tu_instanced s;
+    brt_scene_source src;
+    ex_instanced_mesh m;
+    brt_error err;
+    ex_verdict v;
+    brt_hit right, shifted, far, miss, world;
+    const float ax[3] = {0, 1, 0}, one[3] = {1, 1, 1}, at[3] = {100, 0, 0};
+    float xf[12];
+    brt_ray r = {{100.5f, 50, 0.5f}, {0, -1, 0}, 0, INFINITY};
+    memset(&s, 0, sizeof s);
+    s.proto_count = 1;
+    tu_add_vertex(&s.protos[0], 0, 0, 0);
+    tu_add_vertex(&s.protos[0], 1, 0, 0);
+    tu_add_vertex(&s.protos[0], 1, 0, 1);
+    tu_add_vertex(&s.protos[0], 0, 0, 1);
+    tu_add_triangle(&s.protos[0], 0, 1, 2);
+    tu_add_triangle(&s.protos[0], 0, 2, 3);
+    tu_add_vertex(&s.world, 90, -5, -10);   /* a floor far below */
+    tu_add_vertex(&s.world, 110, -5, -10);
+    tu_add_vertex(&s.world, 100, -5, 10);
+    tu_add_triangle(&s.world, 0, 1, 2);
+    rotation(xf, ax, 0.3f, one, at);
+    tu_add_instance(&s, 0, xf);
+    tu_instanced_source(&s, &src);
+    CHECK(ex_instanced_mesh_load(&src, &m, &err) == BRT_OK, "%s", err.message);
+    r.org[0] = 100.0f + 0.25f * xf[0] + 0.6f * xf[2];   /* (0.25, 0.6): inside, off the diagonal */
+    r.org[2] = 0.25f * xf[8] + 0.6f * xf[10];
+    brt_hit_clear(&right);
+    tu_instanced_brute(&s, &r, &right);
+    CHECK(right.inst == 0, "the ray misses the instance");
+    shifted = right;
+    shifted.t = nextafterf(nextafterf(right.t, INFINITY), INFINITY);
+    far = right;
+    far.t = right.t + 1.0f;
+    brt_hit_clear(&miss);
+    brt_hit_clear(&world);
+    tu_brute_force(&s.world, NULL, &r, &world);
+    EXPECT(ex_referee_instanced(&m, &r, &right, &shifted, &v) != EX_UNEXPLAINED,
+           "two ulps of t: %s", v.text);
+    EXPECT(ex_referee_instanced(&m, &r, &right, &far, &v) == EX_UNEXPLAINED, "t one unit off: %s",
+           v.text);
+    EXPECT(ex_referee_instanced(&m, &r, &right, &miss, &v) == EX_UNEXPLAINED,
+           "a miss through the square's middle: %s", v.text);
+    EXPECT(world.prim == 0 && ex_referee_instanced(&m, &r, &right, &world, &v) == EX_UNEXPLAINED,
+           "the floor instead of the nearer square: %s", v.text);
+    ex_instanced_mesh_free(&m);
+    tu_instanced_free(&s);
+}
+
 void suite_instances(void)
 {
     test_run("instances: direct equals brute force on adversarial transforms",
@@ -958,4 +1014,5 @@ void suite_instances(void)
     test_run("instances: proxy culls within the exact test's", test_proxy_culls_are_exact);
     test_run("instances: trace on a pbrt file, direct == batched", test_trace_pbrt_instances);
     test_run("instances: forged instance tables refused at load", test_forged_instance_tables);
+    test_run("instances: the referee's transform class", test_referee_transform_class);
 }
