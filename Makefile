@@ -186,6 +186,32 @@ bench-embree: all embree
 	  done; \
 	done
 
+# The cost of instancing (issue 28): trace --direct, one thread, on a mesh
+# and on the same mesh as the one instance of a pbrt file under the
+# identity; hits equal but for the instance number (checked).  Mrays/s,
+# best of INSTANCING_REPEAT; a Markdown table.
+INSTANCING_SCALE  ?= 10
+INSTANCING_RAYS   ?= 1000000
+INSTANCING_REPEAT ?= 3
+INSTANCING_BENCH  ?= /tmp/batchrt-bench-instancing
+.PHONY: bench-instancing
+bench-instancing: all
+	@mkdir -p $(INSTANCING_BENCH); d=$(INSTANCING_BENCH); \
+	./$(BUILD)/mkscene crown $$d/crown.ply --scale $(INSTANCING_SCALE) > /dev/null || exit 1; \
+	printf 'WorldBegin\nObjectBegin "crown"\nShape "plymesh" "string filename" "crown.ply"\nObjectEnd\nObjectInstance "crown"\n' > $$d/crown.pbrt; \
+	best() { out=$$1; shift; for i in $$(seq $(INSTANCING_REPEAT)); do \
+	    "$$@" --threads 1 --stats $$out.json > /dev/null || exit 1; \
+	    sed -n 's/.*"mrays_per_second": *\([0-9.eE+-]*\).*/\1/p' $$out.json; \
+	  done | sort -g | tail -1; }; \
+	echo "the crown at scale $(INSTANCING_SCALE), $(INSTANCING_RAYS) rays per kind, trace --direct, one thread, best of $(INSTANCING_REPEAT), Mrays/s"; \
+	echo; echo "| rays | mesh | one instance | instance / mesh |"; echo "|---|---:|---:|---:|"; \
+	for k in camera random bounce; do \
+	  ./$(BUILD)/raygen $$d/crown.ply $$d/$$k.rays --kind $$k --count $(INSTANCING_RAYS) || exit 1; \
+	  m=$$(best $$d/m ./$(BUILD)/trace $$d/crown.ply $$d/$$k.rays $$d/m.hits); \
+	  i=$$(best $$d/i ./$(BUILD)/trace $$d/crown.pbrt $$d/$$k.rays $$d/i.hits); \
+	  awk -v k=$$k -v m=$$m -v i=$$i 'BEGIN { printf "| %s | %.2f | %.2f | %.2f |\n", k, m, i, i / m }'; \
+	done
+
 # == END EMBREE ===========================================================
 
 # == HARDENING (valgrind, fuzzing) ========================================

@@ -81,13 +81,14 @@ static void usage(void)
            "  --out DIR            output folder (default figures)\n"
            "  --only N             figure N (1-4) alone (default: all four)\n"
            "  --scale S            scene size, about 100000*S triangles (default 4)\n"
-           "  --batch-tris N       triangles per batching point (default 5000)\n"
+           "  --batch-tris N       triangles per batching point (default 30000)\n"
            "  --spp N              samples per pixel (default 4)\n"
            "  --width W            image width (default 160)\n"
            "  --height H           image height (default 90)\n"
            "  --rays-in-flight N   paths traced at once (default 16384)\n"
            "  --threads N          threads of each render (default 0: all cores)\n"
-           "  --batch-instanced N  instanced triangles per batching point (render's option)\n"
+           "  --batch-instanced N  instanced triangles per batching point (render's option;\n"
+           "                       default 2000000)\n"
            "  --paper              Fig. 3 alone in the paper's regime: the instanced landscape\n"
            "                       and island, limits 60-90 %% (make bench-paper)\n"
            "  --help               this text\n");
@@ -107,7 +108,8 @@ static void parse_options(int argc, char **argv, settings *s)
     memset(s, 0, sizeof *s);
     s->out = "figures";
     s->scale = 4;
-    s->batch_tris = 5000;
+    s->batch_tris = 30000;
+    s->batch_instanced = 2000000;   /* the instanced scenes' points: see the README */
     s->spp = 4;
     s->width = 160;
     s->height = 90;

@@ -996,6 +996,51 @@ static void test_referee_transform_class(void)
     tu_instanced_free(&s);
 }
 
+/* One instance under the identity is the mesh itself: the object ray is
+** the world ray, float for float (o - 0 and the identity, in double, round
+** back to the same floats), so every hit is the mesh's but for inst. */
+static void test_identity_instance_is_the_mesh(void)
+{
+    enum { N = 20000 };
+    tu_instanced mesh_scene, inst_scene;
+    brt_scene_source a, b;
+    brt_world *wa = NULL, *wb = NULL;
+    brt_error err;
+    uint64_t st = test_seed() + 2840;
+    float m[12], lo[3], hi[3];
+    size_t i, bad = 0, hits = 0;
+    memset(&mesh_scene, 0, sizeof mesh_scene);
+    memset(&inst_scene, 0, sizeof inst_scene);
+    tu_random_soup(&mesh_scene.world, &st, 2000, 0.05f);
+    inst_scene.proto_count = 1;
+    st = test_seed() + 2840;   /* the same soup again */
+    tu_random_soup(&inst_scene.protos[0], &st, 2000, 0.05f);
+    identity(m);
+    tu_add_instance(&inst_scene, 0, m);
+    tu_instanced_source(&mesh_scene, &a);
+    tu_instanced_source(&inst_scene, &b);
+    CHECK(brt_world_build(&a, &wa, &err) == BRT_OK && brt_world_build(&b, &wb, &err) == BRT_OK,
+          "%s", err.message);
+    tu_scene_bounds(&mesh_scene.world, lo, hi);
+    for (i = 0; i < N; i++) {
+        brt_ray r;
+        brt_hit x, y;
+        tu_make_ray(&mesh_scene.world, lo, hi, (int)(i % TU_RAY_KINDS), &st, &r);
+        brt_hit_clear(&x);
+        brt_hit_clear(&y);
+        brt_world_intersect(wa, &r, &x, NULL);
+        brt_world_intersect(wb, &r, &y, NULL);
+        hits += x.prim != BRT_NO_PRIM;
+        if (x.prim != BRT_NO_PRIM) y.inst = y.inst == 0 ? BRT_NO_INST : 7;
+        bad += memcmp(&x, &y, sizeof x) != 0;
+    }
+    EXPECT(bad == 0 && hits > N / 4, "%zu of %zu rays differ (%zu hits)", bad, (size_t)N, hits);
+    brt_world_free(wa);
+    brt_world_free(wb);
+    tu_instanced_free(&mesh_scene);
+    tu_instanced_free(&inst_scene);
+}
+
 void suite_instances(void)
 {
     test_run("instances: direct equals brute force on adversarial transforms",
@@ -1015,4 +1060,5 @@ void suite_instances(void)
     test_run("instances: trace on a pbrt file, direct == batched", test_trace_pbrt_instances);
     test_run("instances: forged instance tables refused at load", test_forged_instance_tables);
     test_run("instances: the referee's transform class", test_referee_transform_class);
+    test_run("instances: one identity instance is the mesh", test_identity_instance_is_the_mesh);
 }
