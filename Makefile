@@ -304,8 +304,8 @@ valgrind:
 # Its loads read cold (--drop-os-cache) from a disk modelled at 100 MiB/s
 # (--disk-speed), so that the table shows what proxies save in time.
 # figures: the paper's Figs. 1-3 and Fig. 4, inner proxies (PNG, CSV, SVG) in $(BUILD)/fig.
-# bench-render: the landscape and the island at 20M triangles, 16 spp at
-# 640x360, proxies off and on, at 25 % of the geometry bytes (read cold, and
+# bench-render: the instanced landscape and island at scale 200, 16 spp at
+# 640x360, proxies off and on, at 60 % of the geometry bytes (read cold, and
 # from a modelled 100 MiB/s disk) and in core.
 .PHONY: demo figures bench-render
 DEMO_DISK = --drop-os-cache --disk-speed 100M
@@ -334,26 +334,28 @@ bench-paper: all
 	./$(BUILD)/figures --paper --out $(BUILD)/paper --scale $(PAPER_SCALE) --batch-tris 200000 \
 	  --batch-instanced $(PAPER_INSTANCED)
 
-BENCH_RENDER = --scale 200 --batch-tris 10000 --spp 16 --width 640 --height 360 --compare
+BENCH_RENDER = --scale 200 --batch-tris 100000 --batch-instanced 20000000 --spp 16 --width 640 \
+  --height 360 --compare
 bench-render: all
 	for scene in landscape island; do \
-	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --memory 25% --drop-os-cache \
+	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --memory 60% --drop-os-cache \
 	    --out $(BUILD)/bench-render-$$scene.png || exit 1; \
-	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --memory 25% --disk-speed 100M \
+	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --memory 60% --disk-speed 100M \
 	    --out $(BUILD)/bench-render-$$scene.png || exit 1; \
 	  ./$(BUILD)/render $$scene $(BENCH_RENDER) --out $(BUILD)/bench-render-$$scene.png || exit 1; \
 	done
-# bench-inner: inner proxies (README "Inner proxies"): the landscape and the
-# island at 1M triangles, 25 % of the geometry bytes, next-event estimation,
+# bench-inner: inner proxies (README "Inner proxies"): the crown and the
+# island at scale 10 (the crown closed, the island's land masses closed; the
+# instances have no inner proxies), 25 % of the geometry bytes, next-event estimation,
 # outer proxies alone (--no-inner) against outer + inner; one JSON each in
 # $(BUILD)/inner, a Markdown table of the counts, and the two images compared.
-BENCH_INNER = --scale 10 --batch-tris 10000 --spp 4 --width 320 --height 180 --memory 25%
+BENCH_INNER = --scale 10 --batch-tris 30000 --batch-instanced 2000000 --spp 4 --width 320 --height 180 --memory 25%
 .PHONY: bench-inner
 bench-inner: all
 	@mkdir -p $(BUILD)/inner
 	@echo "| scene | proxies | disk MiB | loads | occluded shadow rays | settled by inner proxies | pool KB |"
 	@echo "|---|---|---:|---:|---:|---:|---:|"
-	@for scene in landscape island; do \
+	@for scene in crown island; do \
 	  for run in outer inner; do \
 	    j=$(BUILD)/inner/$$scene-$$run.json; \
 	    ./$(BUILD)/render $$scene $(BENCH_INNER) $$( [ $$run = outer ] && echo --no-inner ) \
@@ -412,17 +414,20 @@ bench-threads: all
 # == SCALE (out of core from end to end; not part of CI) ==================
 # bench-scale: an OBJ of SCALE_OBJ * 100K triangles written by mkscene and
 # its scene file built by trace --batched (a mesh file: the build holds its
-# vertex positions), the built-in landscape at SCALE_LAND * 100K triangles
-# whose scene file render builds straight from the generator, then a render
-# of that landscape at 640x360, 16 spp, --memory SCALE_MEMORY.  Prints time,
-# disk and peak RSS of each step and checks the README's two statements
-# ("Memory"): a build peaks at no more than 256 MiB +
-# 12 B per vertex of an indexed input + the DAG; a render at no more than
+# vertex positions), the instanced landscape at SCALE_LAND (285: the
+# paper's 26 M unique triangles, 5.9 G instanced) whose scene file render
+# builds straight from its streams, then a render of that landscape at
+# 640x360, 16 spp, --memory SCALE_MEMORY.  Prints time, disk and peak RSS
+# of each step and checks the README's two statements ("Memory"): a build
+# peaks at no more than 256 MiB + 12 B per vertex of an indexed input + the
+# DAG (+ 92 B per instance and 64 B per prototype triangle, held while an
+# instanced scene is built); a render at no more than
 # its limit + 280 B per path in flight + 512 B per batching point + 40 B
 # per pixel + 16 MiB.  Exit status 1 when a statement fails.  The files
 # (the scene files and the OBJ) go to SCALE_DIR and
 # are removed at the end unless SCALE_KEEP=1.
-SCALE_LAND   ?= 1000
+SCALE_LAND   ?= 285
+SCALE_INSTANCED ?= 20000000
 SCALE_OBJ    ?= 200
 SCALE_MEMORY ?= 1G
 SCALE_BATCH  ?= 100000
@@ -457,18 +462,23 @@ bench-scale: all
 	check "build from the OBJ" $$(num $$d/obj.json peak_rss_bytes) $$(awk -v v=$$verts \
 	  -v dag=$$(num $$d/obj.json proxy_bytes) 'BEGIN { printf "%.0f", 256 * 1048576 + 12 * v + dag }') || :; \
 	rm -f $$d/big.obj $$d/obj.brs; \
-	echo "== render landscape --scale $(SCALE_LAND): the scene file from the generator"; \
+	echo "== render landscape --scale $(SCALE_LAND): the scene file from the instanced scene's streams"; \
 	rm -f $$d/land.brs; \
-	cpu $$d/land.cpu $$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) --width 1 --height 1 \
+	cpu $$d/land.cpu $$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) \
+	  --batch-instanced $(SCALE_INSTANCED) --width 1 --height 1 \
 	  --spp 1 --scene $$d/land.brs \
 	  --out $$d/one.png --stats $$d/land-build.json | tee $$d/land.txt; \
-	tris=$$(sed -n 's/^landscape: \([0-9]*\) triangles.*/\1/p' $$d/land.txt); \
-	echo "  $$tris triangles: $$(speed $$tris $$(num $$d/land-build.json build_seconds) $$d/land.cpu),"\
+	tris=$$(sed -n 's/^landscape: \([0-9]*\) unique.*/\1/p' $$d/land.txt); \
+	proto=$$(sed -n 's/.*(\([0-9]*\) in prototypes).*/\1/p' $$d/land.txt); \
+	inst=$$(sed -n 's/.* \([0-9]*\) instances.*/\1/p' $$d/land.txt); \
+	echo "  $$tris unique triangles: $$(speed $$tris $$(num $$d/land-build.json build_seconds) $$d/land.cpu),"\
 	  "scene file $$(stat -c %s $$d/land.brs) bytes"; \
 	check "build from the generator" $$(num $$d/land-build.json peak_rss_bytes) \
-	  $$(awk -v dag=$$(num $$d/land-build.json proxy_bytes) 'BEGIN { printf "%.0f", 256 * 1048576 + dag }') || :; \
+	  $$(awk -v dag=$$(num $$d/land-build.json proxy_bytes) -v i=$$inst -v p=$$proto \
+	    'BEGIN { printf "%.0f", 256 * 1048576 + dag + 92 * i + 64 * p }') || :; \
 	echo "== render landscape --scale $(SCALE_LAND) 640x360, 16 spp, --memory $(SCALE_MEMORY)"; \
-	render="$$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) --width 640 \
+	render="$$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) \
+	  --batch-instanced $(SCALE_INSTANCED) --width 640 \
 	  --height 360 --spp 16 --memory $(SCALE_MEMORY) --scene $$d/land.brs --out $$d/land.png"; \
 	$$render --stats $$d/render.json; \
 	j=$$d/render.json; \

@@ -3951,6 +3951,8 @@ uint64_t brt_scene_unique_triangles(const brt_scene *s)
     return n;
 }
 
+uint32_t brt_scene_instance_count(const brt_scene *s) { return s->header.instance_count; }
+
 uint64_t brt_scene_instanced_triangles(const brt_scene *s)
 {
     return s->header.prototype_count ? s->header.instanced_triangles : s->header.triangle_count;

@@ -280,6 +280,7 @@ uint32_t brt_scene_prototype_count(const brt_scene *scene);
 ** plus every instance's prototype): equal without instances. */
 uint64_t brt_scene_unique_triangles(const brt_scene *scene);
 uint64_t brt_scene_instanced_triangles(const brt_scene *scene);
+uint32_t brt_scene_instance_count(const brt_scene *scene);
 uint32_t brt_scene_triangle_count(const brt_scene *scene);
 /* The scene's bounds: the union of the batching points' exact boxes. */
 void brt_scene_bounds(const brt_scene *scene, float bmin[3], float bmax[3]);

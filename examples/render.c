@@ -1258,9 +1258,10 @@ static void write_image(const options *o, const render_job *job, run *x)
 static void describe(const options *o, uint64_t triangles, brt_scene *scene, uint64_t limit)
 {
     if (scene && brt_scene_prototype_count(scene))
-        printf("%s: %llu unique, %llu instanced triangles", o->input,
-               (unsigned long long)brt_scene_unique_triangles(scene),
-               (unsigned long long)brt_scene_instanced_triangles(scene));
+        printf("%s: %llu unique (%llu in prototypes), %llu instanced triangles, %u instances",
+               o->input, (unsigned long long)brt_scene_unique_triangles(scene),
+               (unsigned long long)(brt_scene_unique_triangles(scene) - brt_scene_triangle_count(scene)),
+               (unsigned long long)brt_scene_instanced_triangles(scene), brt_scene_instance_count(scene));
     else
         printf("%s: %llu triangles", o->input, (unsigned long long)triangles);
     if (scene) {
