@@ -2392,13 +2392,21 @@ typedef struct scene_writer {
     uint64_t geometry_bytes;
 } scene_writer;
 
+struct instance_build;
+
 typedef struct scene_builder {
     scene_writer w;
     int spill_fd;
     uint64_t spill_end;         /* records in the spill file */
     const volatile sig_atomic_t *interrupt;
     uint32_t batch_tris, bucket_tris, chunk;
+    uint32_t instance_bucket;   /* instances of one bucket of the instance pass */
     uint64_t batch_instanced;   /* brt_scene_options.batch_instanced */
+    /* What a bucket that fits is made into: build_bucket (triangles), or
+    ** instance_bucket (the instance pass, "instance points"). */
+    brt_result (*leaf)(struct scene_builder *b, const bucket *bk, brt_error *err);
+    int instance_fd;            /* the instance pass's records, by slot */
+    struct instance_build *ib;
     spill_out root;             /* pass A's output: the whole stream */
     spill_record *read_buf;     /* chunk records */
     uint32_t *cells;            /* CELL_COUNT: a histogram, then each cell's child */
@@ -2628,7 +2636,7 @@ static brt_result cut_in_order(scene_builder *b, const bucket *bk, brt_error *er
     for (done = 0; done < bk->count && r == BRT_OK; done += part.count) {
         part.first = bk->first + done;
         part.count = bk->count - done < b->bucket_tris ? bk->count - done : b->bucket_tris;
-        r = build_bucket(b, &part, err);
+        r = b->leaf(b, &part, err);
     }
     return r;
 }
@@ -2686,7 +2694,7 @@ static brt_result split_bucket(scene_builder *b, const bucket *bk, brt_error *er
 
 static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *err)
 {
-    return bk->count <= b->bucket_tris ? build_bucket(b, bk, err) : split_bucket(b, bk, err);
+    return bk->count <= b->bucket_tris ? b->leaf(b, bk, err) : split_bucket(b, bk, err);
 }
 
 /* ---- batching points ---- */
@@ -2871,10 +2879,9 @@ static brt_result run_prototype_stream(const void *user, uint32_t id, brt_triang
 /*
 ** An instanced scene (brt_scene_build_source) gets, after the batching
 ** points of its world triangles, the blobs of its prototypes (one BVH
-** each, written once) and batching points of instances.  The instances
-** are gathered in memory (a brt_instance, its number, box and centre:
-** 92 bytes each) and split by partition_by_size; each point's blob is its
-** instance table:
+** each, written once) and batching points of instances, cut a bucket at
+** a time by partition_by_size (the instance pass, below); each point's
+** blob is its instance table:
 **   0 "BRTINSTS"  8 u32 instances n  12 u32 tree nodes m  16 u32
 **   distinct prototypes k  20 u32 0  24 u64 instanced triangles
 **   32 k u32 prototype ids, ascending, then zeros to a multiple of 8
@@ -2938,66 +2945,124 @@ static void instance_table_pack(const instance_point *ip, unsigned char *p)
         for (a = 0; a < 4; a++) brt_put_le32(p + at + 4 * a, ip->nodes[i].child[a]);
 }
 
-/* The instances of an instanced build, held in memory (see above). */
+/* The instance pass.  Pass A of the instances: each instance, checked,
+** becomes an INSTANCE_DATA_BYTES record of the instance file (its number,
+** prototype, transform and radius) at its slot -- the instances of non-
+** empty prototypes, numbered in stream order -- and a 40-byte spill record
+** whose three corners are the centre of its world box and whose number is
+** its slot.  The spill records then go through the buckets of the
+** triangles (split by Morton cells, scattered), so that a bucket holds the
+** instances of one region; each bucket that fits (instance_bucket) reads
+** its slots' records back and is cut into batching points in memory.  So
+** the build holds one bucket of instances (at most bucket_tris / 4: 96
+** bytes of arrays and a spill record each), never all of them.
+*/
+#define INSTANCE_DATA_BYTES 64
+
 typedef struct instance_build {
-    brt_instance *items;        /* instances of non-empty prototypes, by slot */
-    uint32_t *numbers;          /* their instance numbers */
-    float *boxes, *centres;     /* 6 and 3 floats per slot */
-    uint32_t count, streamed;   /* slots; instances streamed (all of them) */
-    size_t cap[4];
-    brt_bvh **protos;           /* every prototype's BVH, for the proxies */
-    proto_entry *entries;       /* the prototype table */
+    /* one bucket, by its local slot */
+    brt_instance *items;
+    uint32_t *numbers;
+    float *boxes, *centres, *radii; /* 6, 3 and 1 floats each */
+    uint32_t count, cap;
+    spill_record *recs;             /* the bucket's spill records */
+    /* the whole scene */
+    uint32_t streamed, slots;       /* instances streamed; slots (non-empty prototypes) */
+    brt_bvh **protos;               /* every prototype's BVH, for the proxies */
+    proto_entry *entries;           /* the prototype table */
     uint32_t proto_count;
-    uint32_t *stamp, stamp_now; /* range_size's marks, per prototype */
-    float *radii;               /* per slot: brt_instance_bounds's radius */
-    size_t radius_cap;
-    uint64_t instanced;         /* instanced triangles of the whole scene */
+    uint32_t *stamp, stamp_now;     /* range_size's marks, per prototype */
+    uint64_t instanced;             /* instanced triangles of the whole scene */
+    float condition, radius;        /* the largest: the walk's margin (scene_margin) */
+    double dlo[3], dhi[3];          /* the bounds of the translations */
+    spill_out root;                 /* pass A's spill records */
 } instance_build;
 
-static brt_result gather_build_instance(instance_build *ib, const brt_instance *in, uint32_t number,
-                                        brt_error *err)
+/* The centre of an instance's world box (and box and radius). */
+static void instance_box(const instance_build *ib, const brt_instance *in,
+                         const brt_instance_frame *f, float box[6], float centre[3], float *radius)
+{
+    const proto_entry *pe = &ib->entries[in->prototype];
+    int a;
+    brt_instance_bounds(in, f, pe->lo, pe->hi, box, box + 3, radius);
+    for (a = 0; a < 3; a++) centre[a] = 0.5f * box[a] + 0.5f * box[3 + a];
+}
+
+static brt_result spill_instance(scene_builder *b, instance_build *ib, const brt_instance *in,
+                                 uint32_t number, brt_error *err)
 {
     brt_instance_frame frame;
-    proto_entry *pe;
+    unsigned char data[INSTANCE_DATA_BYTES];
+    spill_record rec;
+    float box[6], c[3], radius;
     brt_result r;
     int a;
     if (in->prototype >= ib->proto_count)
         return brt_fail(err, BRT_EARG, "instance %u: prototype %u out of range (%u prototypes)",
                         (unsigned)number, (unsigned)in->prototype, (unsigned)ib->proto_count);
     if ((r = brt_instance_frame_init(in, number, &frame, err)) != BRT_OK) return r;
-    pe = &ib->entries[in->prototype];
-    ib->instanced += pe->triangles;
-    if (pe->triangles == 0) return BRT_OK;   /* nothing to hit: in no batching point */
-    if (!(ib->items = brt_grow(ib->items, &ib->cap[0], (size_t)ib->count + 1, sizeof *ib->items)) ||
-        !(ib->numbers = brt_grow(ib->numbers, &ib->cap[1], (size_t)ib->count + 1, sizeof *ib->numbers)) ||
-        !(ib->boxes = brt_grow(ib->boxes, &ib->cap[2], 6 * ((size_t)ib->count + 1), sizeof *ib->boxes)) ||
-        !(ib->centres = brt_grow(ib->centres, &ib->cap[3], 3 * ((size_t)ib->count + 1), sizeof *ib->centres)) ||
-        !(ib->radii = brt_grow(ib->radii, &ib->radius_cap, (size_t)ib->count + 1, sizeof *ib->radii)))
-        return brt_fail(err, BRT_ENOMEM, "out of memory for %u instances", (unsigned)number + 1);
-    ib->items[ib->count] = *in;
-    ib->numbers[ib->count] = number;
-    brt_instance_bounds(in, &frame, pe->lo, pe->hi, ib->boxes + 6 * (size_t)ib->count,
-                        ib->boxes + 6 * (size_t)ib->count + 3, &ib->radii[ib->count]);
-    for (a = 0; a < 3; a++)
-        ib->centres[3 * (size_t)ib->count + a] = 0.5f * ib->boxes[6 * (size_t)ib->count + a] +
-                                                 0.5f * ib->boxes[6 * (size_t)ib->count + 3 + a];
-    ib->count++;
-    return BRT_OK;
+    ib->instanced += ib->entries[in->prototype].triangles;
+    if (ib->entries[in->prototype].triangles == 0) return BRT_OK;   /* in no batching point */
+    if (ib->slots == MAX_COUNT)
+        return brt_fail(err, BRT_EARG, "%s: more than %u instances", b->w.path, MAX_COUNT);
+    instance_box(ib, in, &frame, box, c, &radius);
+    memset(data, 0, sizeof data);
+    brt_put_le32(data, number);
+    brt_put_le32(data + 4, in->prototype);
+    for (a = 0; a < 12; a++) put_f32(data + 8 + 4 * a, in->xform[a]);
+    put_f32(data + 56, radius);
+    if (write_fully(b->instance_fd, data, sizeof data, (int64_t)ib->slots * INSTANCE_DATA_BYTES) != 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot write: %s", b->w.path, strerror(errno));
+    for (a = 0; a < 3; a++) {
+        rec.v[a] = rec.v[3 + a] = rec.v[6 + a] = c[a];
+        if (frame.translation[a] < ib->dlo[a]) ib->dlo[a] = frame.translation[a];
+        if (frame.translation[a] > ib->dhi[a]) ib->dhi[a] = frame.translation[a];
+    }
+    if (frame.condition > ib->condition) ib->condition = frame.condition;
+    if (radius > ib->radius) ib->radius = radius;
+    rec.prim = ib->slots++;
+    return spill_put(b, &ib->root, &rec, c, err);
 }
 
-static brt_result gather_build_instances(void *user, const brt_instance *instances, uint32_t count,
-                                         uint32_t first, brt_error *err)
+static brt_result spill_instances(void *user, const brt_instance *instances, uint32_t count,
+                                  uint32_t first, brt_error *err)
 {
-    instance_build *ib = user;
+    scene_builder *b = user;
+    instance_build *ib = b->ib;
     uint32_t i;
-    if (first != ib->streamed || count > UINT32_MAX - 1 - first)
-        return brt_fail(err, BRT_EARG, "instance stream: chunk numbered %u after %u instances",
-                        (unsigned)first, (unsigned)ib->streamed);
-    for (i = 0; i < count; i++, ib->streamed++) {
-        brt_result r = gather_build_instance(ib, &instances[i], first + i, err);
-        if (r != BRT_OK) return r;
+    brt_result r = poll_interrupt(b, err);
+    if (r == BRT_OK && (first != ib->streamed || count > UINT32_MAX - 1 - first))
+        r = brt_fail(err, BRT_EARG, "instance stream: chunk numbered %u after %u instances",
+                     (unsigned)first, (unsigned)ib->streamed);
+    for (i = 0; i < count && r == BRT_OK; i++, ib->streamed++)
+        r = spill_instance(b, ib, &instances[i], first + i, err);
+    return r;
+}
+
+/* Reads a bucket's instances back into the arrays, by local slot. */
+static brt_result instance_bucket_read(scene_builder *b, instance_build *ib, const bucket *bk,
+                                       brt_error *err)
+{
+    uint32_t i;
+    brt_result r = spill_read(b, ib->recs, bk->count, bk->first, err);
+    for (i = 0; i < bk->count && r == BRT_OK; i++) {
+        unsigned char data[INSTANCE_DATA_BYTES];
+        brt_instance_frame frame;
+        int a;
+        r = read_fully(b->instance_fd, data, sizeof data,
+                       (uint64_t)ib->recs[i].prim * INSTANCE_DATA_BYTES, pread_reader, NULL, NULL,
+                       b->w.path, err);
+        if (r != BRT_OK) break;
+        ib->numbers[i] = brt_get_le32(data);
+        ib->items[i].prototype = brt_get_le32(data + 4);
+        for (a = 0; a < 12; a++) ib->items[i].xform[a] = get_f32(data + 8 + 4 * a);
+        if (brt_instance_frame_init(&ib->items[i], ib->numbers[i], &frame, err) != BRT_OK)
+            return BRT_EIO;   /* the instance file changed under the build */
+        instance_box(ib, &ib->items[i], &frame, ib->boxes + 6 * (size_t)i, ib->centres + 3 * (size_t)i,
+                     &ib->radii[i]);
     }
-    return BRT_OK;
+    ib->count = bk->count;
+    return r;
 }
 
 /* range_size_fn: the distinct prototypes' triangles of some slots. */
@@ -3166,19 +3231,19 @@ static brt_result instance_point_write(scene_builder *b, instance_build *ib, con
     return r;
 }
 
-/* Gathers the instances, partitions them and writes their points. */
-static brt_result build_instance_points(scene_builder *b, const brt_scene_source *source,
-                                        instance_build *ib, brt_error *err)
+/* scene_builder.leaf of the instance pass: a bucket of instances read
+** back, partitioned by partition_by_size, each part written as a point. */
+static brt_result instance_bucket(scene_builder *b, const bucket *bk, brt_error *err)
 {
+    instance_build *ib = b->ib;
     partition parts;
     size_limits limits;
     uint32_t i;
-    brt_result r = source->instances ? source->instances(source->user, gather_build_instances, ib, err)
-                                     : BRT_OK;
+    brt_result r = instance_bucket_read(b, ib, bk, err);
+    memset(&parts, 0, sizeof parts);
+    if (r != BRT_OK) return r;
     limits.batch_tris = b->batch_tris;
     limits.batch_instanced = b->batch_instanced;
-    memset(&parts, 0, sizeof parts);
-    if (r != BRT_OK || ib->count == 0) return r;
     if (!(parts.order = malloc((size_t)ib->count * sizeof *parts.order)))
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
     for (i = 0; i < ib->count; i++) parts.order[i] = i;
@@ -3189,6 +3254,55 @@ static brt_result build_instance_points(scene_builder *b, const brt_scene_source
     free(parts.order);
     free(parts.ranges);
     return r;
+}
+
+/* The arrays of one bucket of instances, and the instance file beside the
+** scene (unlinked at once, like the spill file). */
+static brt_result instance_pass_init(scene_builder *b, instance_build *ib, brt_error *err)
+{
+    char path[4096];
+    const uint32_t cap = b->instance_bucket;
+    int a;
+    ib->cap = cap;
+    ib->items = malloc((size_t)cap * sizeof *ib->items);
+    ib->numbers = malloc((size_t)cap * sizeof *ib->numbers);
+    ib->boxes = malloc(6 * (size_t)cap * sizeof *ib->boxes);
+    ib->centres = malloc(3 * (size_t)cap * sizeof *ib->centres);
+    ib->radii = malloc((size_t)cap * sizeof *ib->radii);
+    ib->recs = malloc((size_t)cap * sizeof *ib->recs);
+    if (!ib->items || !ib->numbers || !ib->boxes || !ib->centres || !ib->radii || !ib->recs)
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
+    for (a = 0; a < 3; a++) {
+        ib->dlo[a] = INFINITY;
+        ib->dhi[a] = -INFINITY;
+    }
+    if (snprintf(path, sizeof path, "%s.instances.%ld", b->w.path, (long)getpid()) >= (int)sizeof path)
+        return brt_fail(err, BRT_EARG, "%s: path too long", b->w.path);
+    b->instance_fd = open(path, O_RDWR | O_CREAT | O_TRUNC, 0600);
+    if (b->instance_fd < 0)
+        return brt_fail(err, BRT_EIO, "%s: cannot create: %s", b->w.path, strerror(errno));
+    unlink(path);
+    return BRT_OK;
+}
+
+/* Pass A of the instances, then their buckets (see above). */
+static brt_result build_instance_points(scene_builder *b, const brt_scene_source *source,
+                                        instance_build *ib, brt_error *err)
+{
+    brt_result r = instance_pass_init(b, ib, err);
+    if (r != BRT_OK || !source->instances) return r;
+    b->ib = ib;
+    ib->root.b.first = b->spill_end;
+    ib->root.buf = b->read_buf;
+    ib->root.cap = b->chunk;
+    bounds_clear(ib->root.b.lo, ib->root.b.hi);
+    r = source->instances(source->user, spill_instances, b, err);
+    if (r == BRT_OK) r = spill_flush(b, &ib->root, err);
+    if (r != BRT_OK || ib->root.b.count == 0) return r;
+    b->spill_end += ib->root.b.count;
+    b->leaf = instance_bucket;
+    b->bucket_tris = ib->cap;
+    return process_bucket(b, &ib->root.b, err);
 }
 
 static void instance_build_free(instance_build *ib)
@@ -3203,6 +3317,7 @@ static void instance_build_free(instance_build *ib)
     free(ib->boxes);
     free(ib->centres);
     free(ib->radii);
+    free(ib->recs);
 }
 
 /* ---- the file's tables ---- */
@@ -3327,17 +3442,29 @@ static brt_result build_passes(scene_builder *b, const brt_triangle_source *sour
     return write_tables(&b->w, h, NULL, err);
 }
 
-/* The walk's margin: every instance's, about the centre of the scene. */
+/* The walk's margin, about the centre of the scene: the largest condition
+** number, and a reach from the bounds of the translations and the largest
+** radius, which is no less than any instance's |d - centre| + radius
+** (pass A kept these, not the instances). */
 static void scene_margin(const scene_writer *w, const instance_build *ib, instance_margin *m)
 {
     float lo[3], hi[3];
+    double far = 0.0;
     uint32_t i;
+    int a;
     bounds_clear(lo, hi);
     for (i = 0; i < w->batch_count; i++) {
         bounds_grow(lo, hi, w->boxes + 6 * (size_t)i);
         bounds_grow(lo, hi, w->boxes + 6 * (size_t)i + 3);
     }
-    slots_margin(ib, NULL, ib->count, lo, hi, m);
+    margin_begin(m, lo, hi);
+    if (ib->slots == 0) return;
+    for (a = 0; a < 3; a++) {
+        far = fmax(far, fabs(ib->dlo[a] - m->center[a]));
+        far = fmax(far, fabs(ib->dhi[a] - m->center[a]));
+    }
+    m->condition = ib->condition;
+    m->reach = nextafterf((float)((far + ib->radius) * (1.0 + 0x1p-20)), INFINITY);
 }
 
 /* An instanced scene: the world triangles' points, the prototypes, the
@@ -3377,6 +3504,7 @@ static void builder_free(scene_builder *b)
 {
     uint32_t k;
     if (b->spill_fd >= 0) close(b->spill_fd);
+    if (b->instance_fd >= 0) close(b->instance_fd);
     free(b->read_buf);
     free(b->cells);
     free(b->records);
@@ -3402,7 +3530,8 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
                                                  : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
     char spill_path[4096];
     memset(b, 0, sizeof *b);
-    b->spill_fd = b->w.fd = -1;
+    b->spill_fd = b->w.fd = b->instance_fd = -1;
+    b->leaf = build_bucket;
     b->w.path = scene_path;
     b->interrupt = opt ? opt->interrupt : NULL;
     b->batch_instanced = opt ? opt->batch_instanced : 0;
@@ -3410,6 +3539,9 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     scene_options_resolve(opt, &b->batch_tris, &b->w.res);
     if (!brt_proxy_res_valid(b->w.res))
         return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", b->w.res);
+    /* A bucket of instances holds about four times the bytes of a spill
+    ** record per instance, so it holds a quarter as many. */
+    b->instance_bucket = cap / 4 > 0 ? cap / 4 : 1;
     b->bucket_tris = cap / b->batch_tris * b->batch_tris;
     if (b->bucket_tris < b->batch_tris) b->bucket_tris = b->batch_tris;
     b->chunk = opt && opt->test_spill_chunk ? opt->test_spill_chunk : SPILL_CHUNK;

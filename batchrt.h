@@ -196,7 +196,9 @@ typedef struct brt_scene_options {
     ** held in memory, rounded down to a multiple of batch_tris and at least
     ** batch_tris (default 64 MiB of 40-byte records).  Small values run
     ** the out-of-core paths of the build on small meshes.  Neither changes
-    ** what a scene file built from a mesh that fits one bucket holds. */
+    ** what a scene file built from a mesh that fits one bucket holds.  (The
+    ** instance pass of an instanced scene takes buckets of a quarter of
+    ** test_bucket_tris instances, whatever batch_tris.) */
     uint32_t test_spill_chunk;
     uint32_t test_bucket_tris;
     /* Threads building batching points' BVHs and proxies (0: all cores);
@@ -234,9 +236,10 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
 ** more only when a point's instances share one prototype larger than
 ** that).  A source without prototypes builds brt_scene_build_stream's
 ** file of its world triangles, byte for byte.  Instances are checked as
-** brt_world_build checks them.  The build holds the instances (92 bytes
-** each) and the prototypes' BVHs in memory; the world triangles are
-** spilled as above. */
+** brt_world_build checks them.  The build spills the instances as it
+** spills triangles and cuts them a bucket at a time (batchrt.c, "instance
+** points"): it holds one bucket of instances and the prototypes' BVHs,
+** never all the instances. */
 brt_result brt_scene_build_source(const brt_scene_source *source,
                                   const brt_scene_options *opt, uint64_t source_stamp,
                                   const char *scene_path, brt_error *err);

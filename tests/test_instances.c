@@ -1041,6 +1041,60 @@ static void test_identity_instance_is_the_mesh(void)
     tu_instanced_free(&inst_scene);
 }
 
+/* The instance pass out of core (batchrt.c, "instance points"): with
+** buckets of a few instances (test_bucket_tris), 3000 instances of three
+** prototypes scattered over a plane go through the spill file's Morton
+** buckets; every instance lands in exactly one batching point (the
+** partition checker), no point spans two buckets' worth, and batched ==
+** direct, byte for byte. */
+static void test_instance_buckets(void)
+{
+    enum { N = 4000, INSTANCES = 3000 };
+    tu_instanced s;
+    brt_scene_source src;
+    brt_scene_options so;
+    brt_trace_options opt;
+    brt_world *w = NULL;
+    brt_scene *scene = NULL;
+    brt_error err;
+    uint64_t st = test_seed() + 2850;
+    brt_ray *rays;
+    brt_hit *want = malloc(N * sizeof *want), *got = malloc(N * sizeof *got);
+    uint32_t i;
+    adversarial_scene(&s, &st);
+    s.instance_count = 0;
+    for (i = 0; i < INSTANCES; i++) {
+        const float ax[3] = {0, 1, 0}, sc[3] = {0.5f, 0.5f, 0.5f};
+        const float at[3] = {tu_rnd(&st, -50, 50), tu_rnd(&st, -1, 1), tu_rnd(&st, -50, 50)};
+        float m[12];
+        rotation(m, ax, tu_rnd(&st, 0, 6.28f), sc, at);
+        tu_add_instance(&s, i % 3, m);
+    }
+    rays = instanced_rays(&s, &st, N);
+    CHECK(rays && want && got, "out of memory");
+    tu_instanced_source(&s, &src);
+    memset(&so, 0, sizeof so);
+    so.batch_tris = 100000;          /* points cut by the buckets alone */
+    so.proxy_res = 16;
+    so.test_bucket_tris = 64;        /* instance buckets of 16 */
+    so.test_spill_chunk = 7;
+    CHECK(brt_world_build(&src, &w, &err) == BRT_OK &&
+          brt_scene_build_source(&src, &so, 1, tu_scratch("buckets.brs"), &err) == BRT_OK &&
+          brt_scene_open(tu_scratch("buckets.brs"), &scene, &err) == BRT_OK, "%s", err.message);
+    EXPECT(brt_scene_check_partition(scene, 100000, &err) == BRT_OK, "%s", err.message);
+    EXPECT(brt_scene_batch_count(scene) >= INSTANCES / 16, "%u batching points for %u instances "
+           "in buckets of 16", brt_scene_batch_count(scene), INSTANCES);
+    brt_world_trace(w, rays, NULL, N, want, NULL, 1);
+    memset(&opt, 0, sizeof opt);
+    opt.memory_limit = 50000;
+    CHECK(brt_scene_trace(scene, &opt, rays, N, got, NULL, &err) == BRT_OK, "%s", err.message);
+    EXPECT(memcmp(want, got, N * sizeof *got) == 0, "batched differs from direct");
+    brt_scene_close(scene);
+    brt_world_free(w);
+    tu_instanced_free(&s);
+    free(rays); free(want); free(got);
+}
+
 void suite_instances(void)
 {
     test_run("instances: direct equals brute force on adversarial transforms",
@@ -1061,4 +1115,5 @@ void suite_instances(void)
     test_run("instances: forged instance tables refused at load", test_forged_instance_tables);
     test_run("instances: the referee's transform class", test_referee_transform_class);
     test_run("instances: one identity instance is the mesh", test_identity_instance_is_the_mesh);
+    test_run("instances: the instance pass in buckets (out of core)", test_instance_buckets);
 }
