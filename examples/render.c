@@ -774,16 +774,23 @@ static void make_sun(const options *o, sun_light *sun)
     sun->solid_angle = 2.0 * PI * (1.0 - sun->cos_max);
 }
 
-/* The camera (given, or the scene's default view) and the offset scale,
+/* The camera (given, a pbrt file's, or the scene's default view) and the offset scale,
 ** from the scene's bounds: the mesh's (--direct) or the scene file's,
 ** which are the same floats (README: "Out of core from end to end"). */
-static void make_job(const options *o, const float bmin[3], const float bmax[3], render_job *job)
+static void make_job(const options *o, const render_input *in, const float bmin[3],
+                     const float bmax[3], render_job *job)
 {
-    float eye[3], target[3], fov;
+    float eye[3], target[3], up[3], fov;
     if (o->have_camera) {
         memcpy(eye, o->eye, sizeof eye);
         memcpy(target, o->target, sizeof target);
         fov = o->fov;
+    } else if (in->file.pbrt && ex_pbrt_camera(in->file.pbrt, eye, target, up, &fov, NULL)) {
+        /* pbrt's fov spans the shorter image side, ours the longer (rays.h);
+        ** the view's up is taken as y (ex_camera_look). */
+        const double ratio = o->width >= o->height ? (double)o->width / (double)o->height
+                                                   : (double)o->height / (double)o->width;
+        fov = (float)(360.0 / PI * atan(tan(fov * PI / 360.0) * ratio));
     } else {
         ex_scene_camera(o->input, bmin, bmax, eye, target, &fov);
     }
@@ -1394,7 +1401,7 @@ int main(int argc, char **argv)
             ? (uint64_t)(o.memory_percent / 100.0 * (double)scene_geometry_bytes(scene)) + 1
             : o.memory;
     }
-    make_job(&o, bmin, bmax, &job);
+    make_job(&o, &in, bmin, bmax, &job);
     if (!o.grey) job.palette = in.instanced;
     describe(&o, triangles, scene, topt.memory_limit);
     fflush(stdout);

@@ -1095,6 +1095,30 @@ static void test_instance_buckets(void)
     free(rays); free(want); free(got);
 }
 
+/* render's default view of a pbrt file is the file's camera: pbrt's fov
+** spans the shorter side, render's the longer, so the file's fov 45 on a
+** 64x32 image is --camera with 2 atan(2 tan 22.5 deg) = 79.28 degrees; the
+** images agree but for the last bits of the camera's arithmetic. */
+static void test_render_pbrt_camera(void)
+{
+    unsigned char *a, *b, *pa = NULL, *pb = NULL;
+    size_t na = 0, nb = 0, i, close = 0;
+    int wa = 0, ha = 0, wb = 0, hb = 0;
+    CHECK(write_pbrt_scene(), "cannot write the scene");
+    CHECK(tu_run("render @/plants.pbrt --width 64 --height 32 --spp 2 --direct --out @/cam_a.png") == 0,
+          "render: %s", tu_last_stderr());
+    CHECK(tu_run("render @/plants.pbrt --width 64 --height 32 --spp 2 --direct --out @/cam_b.png "
+                 "--camera 0,5,-20:0,0,0:79.27854") == 0, "render --camera: %s", tu_last_stderr());
+    a = tu_slurp(tu_scratch("cam_a.png"), &na);
+    b = tu_slurp(tu_scratch("cam_b.png"), &nb);
+    if (a) pa = tu_png_decode(a, na, &wa, &ha);
+    if (b) pb = tu_png_decode(b, nb, &wb, &hb);
+    CHECK(pa && pb && wa == 64 && ha == 32 && wb == 64 && hb == 32, "cannot decode the images");
+    for (i = 0; i < 3 * 64 * 32; i++) close += abs((int)pa[i] - (int)pb[i]) <= 2;
+    EXPECT(close >= 3 * 64 * 32 * 98 / 100, "only %zu of %d channels agree", close, 3 * 64 * 32);
+    free(a); free(b); free(pa); free(pb);
+}
+
 void suite_instances(void)
 {
     test_run("instances: direct equals brute force on adversarial transforms",
@@ -1116,4 +1140,5 @@ void suite_instances(void)
     test_run("instances: the referee's transform class", test_referee_transform_class);
     test_run("instances: one identity instance is the mesh", test_identity_instance_is_the_mesh);
     test_run("instances: the instance pass in buckets (out of core)", test_instance_buckets);
+    test_run("instances: render's view of a pbrt file is its camera", test_render_pbrt_camera);
 }
