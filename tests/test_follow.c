@@ -105,7 +105,8 @@ static void follow_all(const char *options, int occlusion)
                    j.final_hit ? "occluded" : "clear", answers[i]);
         } else {
             brt_hit h;
-            memcpy(&h, answers + 16 * (size_t)i, sizeof h);   /* little-endian host (bvh tests) */
+            memcpy(&h, answers + 16 * (size_t)i, 16);   /* a 16-byte record; little-endian host */
+            h.inst = BRT_NO_INST;
             EXPECT(j.final_hit == (h.prim != BRT_NO_PRIM) &&
                    (!j.final_hit || (j.final_prim == h.prim && j.final_t == h.t)),
                    "ray %d (%s): journey ends at prim %u t %.9g, the hit file at prim %u t %.9g", i,
