@@ -15,6 +15,11 @@
 **   rays -> top-level walk -> (geometry in memory: intersect at once)
 **        -> proxy test -> queues -> geometry cache -> hits
 **   mesh -> triangle BVH (bvh.c)                                direct mode
+**   An instanced scene (brt_scene_source: world triangles, prototypes,
+**   instances) takes the same paths: batching points of world triangles
+**   and of instances, prototypes' BVHs stored and cached once, the ray
+**   carried into each instance it meets (bvh.c, "Instances"); brt_world
+**   is its direct mode.
 **
 ** USAGE: THE BATCHED METHOD (examples/minimal_batched.c: a whole program)
 **
