@@ -59,6 +59,16 @@ void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tr
 uint64_t ex_mesh_bytes(const brt_mesh *mesh);
 void ex_note_mesh_memory(const char *prog, const brt_mesh *mesh, uint64_t limit);
 
+/* Writes the statistics JSON of brt_stats_write_json with the program's
+** own fields after the library's (extra: "  \"name\": value" lines joined
+** by ",\n", or NULL), atomically. */
+brt_result ex_stats_write(const char *path, const brt_stats *stats, const char *extra,
+                          brt_error *err);
+
+/* s as a JSON string body: quotes and backslashes escaped, control
+** characters dropped, cut to fit size. */
+void ex_json_escape(const char *s, char *out, size_t size);
+
 /* A progress line on stderr, shown only when stderr is a terminal (or
 ** BRT_PROGRESS=1): "label  42% ...".  done <= total. */
 void ex_progress(const char *label, uint64_t done, uint64_t total);

@@ -1172,7 +1172,8 @@ static double visits_per_sample(const render_job *job, const brt_stats *s)
 static void write_stats(const char *path, const render_job *job, const run *x, int direct,
                         int proxies)
 {
-    char extra[2048], *text;
+    char extra[2048];
+    brt_error err;
     const sample_moments *m = &x->moments;
     double n = m->count > 1 ? (double)m->count : 2.0, mean = m->sum / n;
     /* The standard error of the mean: the samples are independent (each
@@ -1181,33 +1182,19 @@ static void write_stats(const char *path, const render_job *job, const run *x, i
     char rmse[64];
     if (isnan(x->rmse)) snprintf(rmse, sizeof rmse, "null");
     else snprintf(rmse, sizeof rmse, "%.17g", x->rmse);
-    FILE *f;
-    long size;
-    brt_error err;
-    ex_check(prog, brt_stats_write_json(path, &x->stats, &err), &err);
     snprintf(extra, sizeof extra,
-             ",\n  \"mode\": \"%s\",\n  \"proxies\": %d,\n  \"width\": %u,\n  \"height\": %u,\n"
+             "  \"mode\": \"%s\",\n  \"proxies\": %d,\n  \"width\": %u,\n  \"height\": %u,\n"
              "  \"spp\": %u,\n  \"max_depth\": %d,\n  \"paths\": %llu,\n"
              "  \"paths_in_flight\": %u,\n  \"visits_per_sample\": %.17g,\n"
              "  \"heatmap_visits\": %llu,\n  \"disk_speed\": %llu,\n  \"nee\": %d,\n"
              "  \"sun_radius_degrees\": %.17g,\n  \"sun_radiance\": %.17g,\n"
-             "  \"mean_luminance\": %.17g,\n  \"mean_luminance_se\": %.17g,\n  \"rmse\": %s\n}\n",
+             "  \"mean_luminance\": %.17g,\n  \"mean_luminance_se\": %.17g,\n  \"rmse\": %s",
              direct ? "direct" : "batched", proxies, job->camera.width, job->camera.height, job->spp,
              MAX_DEPTH, (unsigned long long)job->camera.width * job->camera.height * job->spp,
              job->paths_in_flight, visits_per_sample(job, &x->stats),
              (unsigned long long)x->heat_visits, (unsigned long long)job->disk_speed, job->nee,
              job->sun_radius, job->sun.radiance[0], mean, se, rmse);
-    f = fopen(path, "rb");
-    if (!f || fseek(f, 0, SEEK_END) != 0 || (size = ftell(f)) < 3)
-        ex_die(prog, "%s: cannot read back: %s", path, strerror(errno));
-    text = malloc((size_t)size + strlen(extra) + 1);
-    if (!text || fseek(f, 0, SEEK_SET) != 0 || fread(text, 1, (size_t)size, f) != (size_t)size)
-        ex_die(prog, "%s: cannot read back", path);
-    fclose(f);
-    /* Drop the closing "\n}\n" and append. */
-    strcpy(text + size - 3, extra);
-    ex_check(prog, brt_write_file_atomic(path, text, strlen(text), &err), &err);
-    free(text);
+    ex_check(prog, ex_stats_write(path, &x->stats, extra, &err), &err);
 }
 
 static void print_header(void)

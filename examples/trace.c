@@ -359,6 +359,23 @@ static void trace_batched(const ex_input *in, const trace_options *o, const brt_
     brt_scene_close(scene);
 }
 
+/* The statistics, and for a pbrt file what it skipped ("skipped"); a
+** failure removes the hits too (a run that fails leaves no output). */
+static void write_stats(const ex_input *in, const char *path, const char *hits_path,
+                        const brt_stats *stats)
+{
+    char skipped[1024] = "", extra[1100] = "";
+    brt_error err;
+    if (in->pbrt) {
+        ex_json_escape(ex_pbrt_skipped(in->pbrt), skipped, sizeof skipped);
+        snprintf(extra, sizeof extra, "  \"skipped\": \"%s\"", skipped);
+    }
+    if (ex_stats_write(path, stats, extra, &err) != BRT_OK) {
+        unlink(hits_path);
+        ex_die(prog, "%s", err.message);
+    }
+}
+
 static void print_summary(const brt_hit *hits, const brt_stats *stats)
 {
     uint64_t i, hit_count = stats->shadow_occluded;
@@ -400,14 +417,11 @@ int main(int argc, char **argv)
     if (ex_interrupted()) ex_die_interrupted(prog);
     if (occluded) ex_check(prog, brt_write_file_atomic(o.hits, occluded, count, &err), &err);
     else ex_check(prog, ex_input_write_hits(&in, o.hits, hits, count, &err), &err);
-    ex_input_close(&in);
     /* A run that fails leaves no output at all: the hits go if the
     ** statistics cannot be written. */
     stats.peak_rss_bytes = brt_peak_rss_bytes();
-    if (o.stats && brt_stats_write_json(o.stats, &stats, &err) != BRT_OK) {
-        unlink(o.hits);
-        ex_die(prog, "%s", err.message);
-    }
+    if (o.stats) write_stats(&in, o.stats, o.hits, &stats);
+    ex_input_close(&in);
     if (o.verbose || isatty(2)) print_summary(hits, &stats);
     free(hits);
     free(occluded);

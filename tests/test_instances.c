@@ -708,6 +708,8 @@ static int write_pbrt_scene(void)
         "LookAt 0 5 -20  0 0 0  0 1 0\n"
         "Camera \"perspective\" \"float fov\" 45\n"
         "WorldBegin\n"
+        "LightSource \"distant\" \"point3 from\" [0 10 0]\n"
+        "Shape \"sphere\" \"float radius\" 2\n"
         "Shape \"trianglemesh\" \"point3 P\" [-10 0 -10 10 0 -10 10 0 10 -10 0 10]\n"
         "  \"integer indices\" [0 1 2 0 2 3]\n"
         "ObjectBegin \"plant\"\n"
@@ -761,8 +763,15 @@ static void test_trace_pbrt_instances(void)
     size_t na = 0, nb = 0;
     brt_error err;
     CHECK(write_pbrt_scene() && write_pbrt_rays(N), "cannot write the files");
-    CHECK(tu_run("trace @/plants.pbrt @/plants.rays @/d.hits --direct") == 0, "direct: %s",
-          tu_last_stderr());
+    CHECK(tu_run("trace @/plants.pbrt @/plants.rays @/d.hits --direct --stats @/d.json") == 0,
+          "direct: %s", tu_last_stderr());
+    {   /* what the file had that batchrt skips, in the statistics too */
+        char *json = (char *)tu_slurp(tu_scratch("d.json"), NULL);
+        EXPECT(json && strstr(json, "\"skipped\": \"skipped: 1 LightSource, 1 Shape \\\"sphere\\\"\"") &&
+                   tu_json_number(json, "rays") == N,
+               "statistics: %s", json ? json : "(none)");
+        free(json);
+    }
     CHECK(tu_run("trace @/plants.pbrt @/plants.rays @/b.hits --batched --batch-tris 3 --res 16 "
                  "--memory 8K --threads 2 --scene @/plants.brs") == 0, "batched: %s", tu_last_stderr());
     a = tu_slurp(tu_scratch("d.hits"), &na);
