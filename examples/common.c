@@ -447,3 +447,18 @@ void ex_json_escape(const char *s, char *out, size_t size)
     }
     out[n] = 0;
 }
+
+/* ---- triangle streams gathered ---- */
+
+brt_result ex_corners_append(void *corners, const float *triangles, uint32_t count, uint32_t first,
+                             brt_error *err)
+{
+    ex_corners *g = corners;
+    (void)first;
+    if (!(g->corners = brt_grow(g->corners, &g->cap, 9 * (g->count + count), sizeof *g->corners)))
+        return brt_fail(err, BRT_ENOMEM, "out of memory for %lu triangles",
+                        (unsigned long)(g->count + count));
+    memcpy(g->corners + 9 * g->count, triangles, 9 * (size_t)count * sizeof *triangles);
+    g->count += count;
+    return BRT_OK;
+}

@@ -59,6 +59,15 @@ void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tr
 uint64_t ex_mesh_bytes(const brt_mesh *mesh);
 void ex_note_mesh_memory(const char *prog, const brt_mesh *mesh, uint64_t limit);
 
+/* Triangles of a stream gathered as corners (9 floats each), in order:
+** ex_corners_append is a brt_triangle_fn over an ex_corners. */
+typedef struct ex_corners {
+    float *corners;
+    size_t count, cap;
+} ex_corners;
+brt_result ex_corners_append(void *corners, const float *triangles, uint32_t count, uint32_t first,
+                             brt_error *err);
+
 /* Writes the statistics JSON of brt_stats_write_json with the program's
 ** own fields after the library's (extra: "  \"name\": value" lines joined
 ** by ",\n", or NULL), atomically. */

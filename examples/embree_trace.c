@@ -180,27 +180,9 @@ static RTCScene build_scene(RTCDevice device, const brt_mesh *mesh, int robust)
 
 /* ---- instanced input ---- */
 
-/* A triangle stream gathered into one Embree triangle geometry (three
+/* A gathered triangle stream as one Embree triangle geometry (three
 ** vertices per triangle, triangle i = primID i). */
-typedef struct gathered {
-    float *corners;
-    size_t count, cap;
-} gathered;
-
-static brt_result gather(void *user, const float *corners, uint32_t count, uint32_t first,
-                         brt_error *err)
-{
-    gathered *g = user;
-    (void)first;
-    if (!(g->corners = brt_grow(g->corners, &g->cap, 9 * (g->count + count), sizeof *g->corners)))
-        return brt_fail(err, BRT_ENOMEM, "out of memory for %lu triangles",
-                        (unsigned long)(g->count + count));
-    memcpy(g->corners + 9 * g->count, corners, 9 * (size_t)count * sizeof *corners);
-    g->count += count;
-    return BRT_OK;
-}
-
-static RTCGeometry triangle_geometry(RTCDevice device, const gathered *g)
+static RTCGeometry triangle_geometry(RTCDevice device, const ex_corners *g)
 {
     RTCGeometry geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
     float *vertices = rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
@@ -246,7 +228,7 @@ static RTCScene build_instanced_scene(RTCDevice device, const brt_scene_source *
                                       uint64_t *triangles)
 {
     instancer in;
-    gathered g = {NULL, 0, 0};
+    ex_corners g = {NULL, 0, 0};
     brt_error err;
     uint32_t p;
     in.device = device;
@@ -256,13 +238,13 @@ static RTCScene build_instanced_scene(RTCDevice device, const brt_scene_source *
     if (!in.prototypes) ex_die(prog, "out of memory for %u prototypes", (unsigned)src->prototype_count);
     *triangles = 0;
     if (src->world.run) {
-        ex_check(prog, src->world.run(src->world.user, gather, &g, &err), &err);
+        ex_check(prog, src->world.run(src->world.user, ex_corners_append, &g, &err), &err);
         rtcAttachGeometryByID(in.scene, triangle_geometry(device, &g), 0);
         *triangles += g.count;
     }
     for (p = 0; p < src->prototype_count; p++) {
         g.count = 0;
-        ex_check(prog, src->prototype(src->user, p, gather, &g, &err), &err);
+        ex_check(prog, src->prototype(src->user, p, ex_corners_append, &g, &err), &err);
         in.prototypes[p] = rtcNewScene(device);
         if (robust) rtcSetSceneFlags(in.prototypes[p], RTC_SCENE_FLAG_ROBUST);
         rtcAttachGeometry(in.prototypes[p], triangle_geometry(device, &g));

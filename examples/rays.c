@@ -270,55 +270,52 @@ double ex_mesh_diagonal(const brt_mesh *mesh)
     return ex_box_diagonal(bmin, bmax);
 }
 
-int ex_rays_bounce(const brt_mesh *mesh, const brt_bvh *bvh, const ex_camera *cam,
-                   brt_ray *rays, size_t count, uint64_t *rng)
+/* count bounce rays from camera hits: a mesh's (the hit point from the
+** barycentrics, the triangle's normal) or a world's (the point from t,
+** the world's normal). */
+static int bounce_rays(const hit_scene *sc, const brt_mesh *mesh, double diagonal,
+                       const ex_camera *cam, brt_ray *rays, size_t count, uint64_t *rng)
 {
-    double diagonal = ex_mesh_diagonal(mesh);
-    hit_scene sc;
     size_t i;
-    sc.bvh = bvh;
-    sc.world = NULL;
     for (i = 0; i < count; i++) {
         brt_ray in;
         brt_hit hit;
         float normal[3];
         if ((i & 0xFFFF) == 0) ex_progress("bounce rays", i, count);
-        if (!camera_hit(cam, &sc, i, rng, &in, &hit, normal)) return 0;
-        ex_bounce_ray(mesh, diagonal, &in, &hit, rng, &rays[i]);
+        if (!camera_hit(cam, sc, i, rng, &in, &hit, normal)) return 0;
+        if (mesh) {
+            ex_bounce_ray(mesh, diagonal, &in, &hit, rng, &rays[i]);
+        } else {
+            double p[3], n[3], u1 = brt_random_float(rng), u2 = brt_random_float(rng);
+            int k;
+            for (k = 0; k < 3; k++) {
+                p[k] = (double)in.org[k] + (double)hit.t * in.dir[k];
+                n[k] = normal[k];
+            }
+            ex_lambert_bounce(p, n, in.dir, diagonal, u1, u2, &rays[i]);
+        }
     }
     ex_progress("bounce rays", count, count);
     ex_progress_end();
     return 1;
 }
 
+int ex_rays_bounce(const brt_mesh *mesh, const brt_bvh *bvh, const ex_camera *cam,
+                   brt_ray *rays, size_t count, uint64_t *rng)
+{
+    hit_scene sc;
+    sc.bvh = bvh;
+    sc.world = NULL;
+    return bounce_rays(&sc, mesh, ex_mesh_diagonal(mesh), cam, rays, count, rng);
+}
+
 int ex_rays_bounce_world(const brt_world *world, const ex_camera *cam, brt_ray *rays,
                          size_t count, uint64_t *rng)
 {
     float bmin[3], bmax[3];
-    double diagonal;
     hit_scene sc;
-    size_t i;
-    brt_world_bounds(world, bmin, bmax);
-    diagonal = ex_box_diagonal(bmin, bmax);
     sc.bvh = NULL;
     sc.world = world;
-    for (i = 0; i < count; i++) {
-        brt_ray in;
-        brt_hit hit;
-        float normal[3];
-        double p[3], n[3], u1, u2;
-        int k;
-        if ((i & 0xFFFF) == 0) ex_progress("bounce rays", i, count);
-        if (!camera_hit(cam, &sc, i, rng, &in, &hit, normal)) return 0;
-        u1 = brt_random_float(rng);
-        u2 = brt_random_float(rng);
-        for (k = 0; k < 3; k++) {
-            p[k] = (double)in.org[k] + (double)hit.t * in.dir[k];
-            n[k] = normal[k];
-        }
-        ex_lambert_bounce(p, n, in.dir, diagonal, u1, u2, &rays[i]);
-    }
-    ex_progress("bounce rays", count, count);
-    ex_progress_end();
-    return 1;
+    brt_world_bounds(world, bmin, bmax);
+    return bounce_rays(&sc, NULL, ex_box_diagonal(bmin, bmax), cam, rays, count, rng);
 }

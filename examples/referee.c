@@ -729,29 +729,12 @@ ex_class ex_referee_occlusion(const brt_mesh *mesh, const brt_ray *ray, int a, i
 /* Instanced hits                                                        */
 /* ===================================================================== */
 
-typedef struct corner_gather {
-    float *corners;
-    size_t count, cap;
-} corner_gather;
-
-static brt_result gather(void *user, const float *corners, uint32_t count, uint32_t first,
-                         brt_error *err)
-{
-    corner_gather *g = user;
-    (void)first;
-    if (!(g->corners = brt_grow(g->corners, &g->cap, 9 * (g->count + count), sizeof *g->corners)))
-        return brt_fail(err, BRT_ENOMEM, "out of memory for the referee's triangles");
-    memcpy(g->corners + 9 * g->count, corners, 9 * (size_t)count * sizeof *corners);
-    g->count += count;
-    return BRT_OK;
-}
-
 /* A stream as a mesh: three vertices per triangle, in order. */
 static brt_result mesh_of(brt_result (*run)(const void *, uint32_t, brt_triangle_fn, void *, brt_error *),
                           const void *user, uint32_t id, brt_mesh *mesh, brt_error *err)
 {
-    corner_gather g = {NULL, 0, 0};
-    brt_result r = run(user, id, gather, &g, err);
+    ex_corners g = {NULL, 0, 0};
+    brt_result r = run(user, id, ex_corners_append, &g, err);
     size_t i;
     memset(mesh, 0, sizeof *mesh);
     if (r != BRT_OK) {
