@@ -9,10 +9,12 @@
 **
 **   build/closed MESH|SCENE [--scale S] [--seed N]
 **
-** SCENE is a built-in scene name (crown, landscape, island).
+** SCENE is a built-in scene name (crown, landscape, island: the baked
+** meshes of mkscene).  A pbrt file is flattened (ex_input_load_mesh).
 */
 #include "batchrt.h"
 #include "common.h"
+#include "input.h"
 #include "scenes.h"
 
 #include <stdio.h>
@@ -46,8 +48,8 @@ int main(int argc, char **argv)
             ex_die(prog, "unknown option '%s' (see --help)", argv[i]);
     }
     r = ex_scene_generate(argv[1], scale, seed, &mesh, &err);
-    if (r == BRT_EARG) r = brt_mesh_load(argv[1], &mesh, &err);
-    ex_check(prog, r, &err);
+    if (r == BRT_EARG) ex_input_load_mesh(prog, argv[1], &mesh);   /* a pbrt file flattened */
+    else ex_check(prog, r, &err);
     corners = malloc((9 * (size_t)mesh.triangle_count + 1) * sizeof *corners);
     if (!corners) ex_die(prog, "out of memory for %u triangles", mesh.triangle_count);
     for (t = 0; t < mesh.triangle_count; t++)

@@ -38,6 +38,13 @@ brt_world *ex_input_world(const char *prog, const ex_input *in);
 brt_scene *ex_input_scene(const char *prog, const ex_input *in, const char *scene_path,
                           const brt_scene_options *opt, int *rebuilt);
 
+/* The whole input as one mesh in memory, for the analysis programs
+** (voxelize, closed): a mesh file as brt_mesh_load reads it; a pbrt file
+** flattened: its world triangles, then each instance's prototype
+** triangles through its transform (in double, rounded once), instance
+** after instance.  Dies on bad input. */
+void ex_input_load_mesh(const char *prog, const char *path, brt_mesh *mesh);
+
 /* Writes hits in the form the input calls for: the instanced hit file
 ** when it has prototypes, else the plain one (batchrt.h section 3). */
 brt_result ex_input_write_hits(const ex_input *in, const char *path, const brt_hit *hits,

@@ -16,6 +16,7 @@
 ** atomically: a failed run leaves nothing behind.
 */
 #include "common.h"
+#include "input.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -316,7 +317,7 @@ int main(int argc, char **argv)
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
-    ex_check(prog, brt_mesh_load(o.mesh, &mesh, &err), &err);
+    ex_input_load_mesh(prog, o.mesh, &mesh);   /* a pbrt file flattened */
     if (mesh.triangle_count == 0) ex_die(prog, "%s: the mesh has no triangles", o.mesh);
 
     ex_check(prog, brt_svdag_create(&dag), NULL);
