@@ -1128,6 +1128,19 @@ static void test_render_pbrt_camera(void)
     free(a); free(b); free(pa); free(pb);
 }
 
+/* The analysis programs read a pbrt file flattened: the plants scene's 2
+** world triangles and 5 instances of a 3-triangle object are 17. */
+static void test_flattened_pbrt(void)
+{
+    char *out;
+    CHECK(write_pbrt_scene(), "cannot write the scene");
+    CHECK(tu_run("closed @/plants.pbrt") == 0, "closed: %s", tu_last_stderr());
+    out = tu_last_stdout();
+    EXPECT(out && strstr(out, ": 17 triangles"), "closed says: %s", out ? out : "(nothing)");
+    free(out);
+    EXPECT(tu_run("voxelize @/plants.pbrt --res 16") == 0, "voxelize: %s", tu_last_stderr());
+}
+
 void suite_instances(void)
 {
     test_run("instances: direct equals brute force on adversarial transforms",
@@ -1150,4 +1163,5 @@ void suite_instances(void)
     test_run("instances: one identity instance is the mesh", test_identity_instance_is_the_mesh);
     test_run("instances: the instance pass in buckets (out of core)", test_instance_buckets);
     test_run("instances: render's view of a pbrt file is its camera", test_render_pbrt_camera);
+    test_run("instances: voxelize and closed read a pbrt file flattened", test_flattened_pbrt);
 }
