@@ -273,7 +273,7 @@ static const bad_run bad_runs[] = {
      "mkscene: --seed: expected an integer in 0..18446744073709551615, got '-1'", "b36.ply"},
     {"mkscene teapot @/b37.ply", 1,
      "mkscene: unknown scene 'teapot' (built-in: crown, landscape, island)", "b37.ply"},
-    {"mkscene crown @/b38.stl", 1, "mkscene: @/b38.stl: the output name must end in .ply or .obj",
+    {"mkscene crown @/b38.stl", 1, "mkscene: @/b38.stl: the output name must end in .ply, .obj or .pbrt",
      "b38.stl"},
     {"mkscene crown @/no_such_dir/b39.ply --scale 0.001", 1,
      "mkscene: @/no_such_dir/b39.ply: cannot create: No such file or directory", NULL},
