@@ -12,6 +12,9 @@
 **   the top-level BVH over batching points and its restartable walk
 **                                          (one binary heap, shared with
 **                                          the scheduler)
+**   instances                              the level below a batching
+**                                          point: instance sets, one
+**                                          intersect_ray for every mode
 **   the scene in memory                    the types the scheduler works on
 **   ray queues and the scheduler           the paper's loop (schedule,
 **                                          process_batch, walk_on,
@@ -22,7 +25,8 @@
 ** PART II -- SUPPORT, NOT THE PAPER
 **   the scene file                         format (little-endian), the out-
 **                                          of-core build (spill file,
-**                                          buckets, batching points),
+**                                          buckets, batching points, the
+**                                          instance pass),
 **                                          opening, validation at open, the
 **                                          partition checker
 **   meshes                                 Wavefront OBJ and PLY, streamed
@@ -36,6 +40,8 @@
 **   threads                                a small pool, the scheduler's
 **                                          loop in phases (layers 4-5),
 **                                          and the direct mode's chunks
+**   the direct mode's world                an instanced scene in memory
+**                                          (brt_world)
 ** The data flow is drawn once, in batchrt.h's opening comment.
 */
 /* MAP_ANONYMOUS (POSIX.1-2024) for the geometry cache's buffers: glibc shows
@@ -2911,7 +2917,7 @@ static size_t instance_table_bytes(uint32_t n, uint32_t m, uint32_t k)
 
 /* A batching point of instances, as the build holds it before writing. */
 typedef struct instance_point {
-    const brt_instance *items;  /* the scene's instances, by slot */
+    const brt_instance *items;  /* the bucket's instances, by local slot */
     const uint32_t *numbers;
     const uint32_t *slots;      /* this point's n slots */
     uint32_t n;
@@ -3116,7 +3122,7 @@ static brt_result build_prototypes(scene_builder *b, const brt_scene_source *sou
 }
 
 /* The margin of some slots about the centre of lo..hi (their frames are
-** made again: they passed brt_instance_frame_init when gathered). */
+** made again: they passed brt_instance_frame_init in pass A). */
 static void slots_margin(const instance_build *ib, const uint32_t *slots, uint32_t n,
                          const float lo[3], const float hi[3], instance_margin *m)
 {
