@@ -1001,6 +1001,14 @@ static void test_referee_transform_class(void)
            "a miss through the square's middle: %s", v.text);
     EXPECT(world.prim == 0 && ex_referee_instanced(&m, &r, &right, &world, &v) == EX_UNEXPLAINED,
            "the floor instead of the nearer square: %s", v.text);
+    {   /* a ray three units beside the square, and a record claiming it */
+        brt_ray beside = r;
+        brt_hit none;
+        beside.org[0] += 3.0f;
+        brt_hit_clear(&none);
+        EXPECT(ex_referee_instanced(&m, &beside, &right, &none, &v) == EX_UNEXPLAINED,
+               "a hit on a square the ray passes three units from: %s", v.text);
+    }
     ex_instanced_mesh_free(&m);
     tu_instanced_free(&s);
 }
