@@ -454,6 +454,41 @@ static void test_margin_keeps_far_rays(void)
     free(rays);
 }
 
+/* Builds s's scene file with so, traces rays through it with opt and
+** expects brt_world's hits byte for byte; checks the partition when
+** batch_tris is given (0: not).  Returns the scene's batching points. */
+static uint32_t expect_batched_equals_direct(const tu_instanced *s, const brt_scene_options *so,
+                                             const brt_trace_options *opt, const brt_ray *rays,
+                                             size_t n, const char *name, uint32_t batch_tris)
+{
+    brt_scene_source src;
+    brt_world *w = NULL;
+    brt_scene *scene = NULL;
+    brt_error err;
+    brt_hit *want = malloc(n * sizeof *want), *got = malloc(n * sizeof *got);
+    uint32_t points = 0;
+    tu_instanced_source(s, &src);
+    if (!want || !got || brt_world_build(&src, &w, &err) != BRT_OK ||
+        brt_scene_build_source(&src, so, 1, tu_scratch(name), &err) != BRT_OK ||
+        brt_scene_open(tu_scratch(name), &scene, &err) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "%s: %s", name, want && got ? err.message : "out of memory");
+    } else {
+        points = brt_scene_batch_count(scene);
+        if (batch_tris && brt_scene_check_partition(scene, batch_tris, &err) != BRT_OK)
+            test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
+        brt_world_trace(w, rays, NULL, n, want, NULL, 1);
+        if (brt_scene_trace(scene, opt, rays, n, got, NULL, &err) != BRT_OK)
+            test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
+        else if (memcmp(want, got, n * sizeof *got) != 0)
+            test_fail_at(__FILE__, __LINE__, "%s: batched differs from direct", name);
+    }
+    brt_scene_close(scene);
+    brt_world_free(w);
+    free(want);
+    free(got);
+    return points;
+}
+
 /* The same rays batched, at a resolution whose dilation is below their
 ** margin: the walk's boxes must grow by the margin, and the proxy must
 ** admit such rays untested (proxy_admits); the paper's scheduler asks
@@ -462,32 +497,19 @@ static void test_batched_margin(void)
 {
     enum { N = 20000 };
     tu_instanced s;
-    brt_scene_source src;
     brt_scene_options so;
     brt_trace_options opt;
-    brt_world *w = NULL;
-    brt_scene *scene = NULL;
-    brt_error err;
     uint64_t st = test_seed() + 2804;
     brt_ray *rays = margin_case(&s, &st, N);
-    brt_hit *want = malloc(N * sizeof *want), *got = malloc(N * sizeof *got);
-    CHECK(rays && want && got, "out of memory");
-    tu_instanced_source(&s, &src);
+    CHECK(rays, "out of memory");
     memset(&so, 0, sizeof so);
     so.batch_tris = 1000;
     so.proxy_res = 512;
-    CHECK(brt_world_build(&src, &w, &err) == BRT_OK && brt_scene_build_source(&src, &so, 1,
-              tu_scratch("margin.brs"), &err) == BRT_OK &&
-              brt_scene_open(tu_scratch("margin.brs"), &scene, &err) == BRT_OK, "%s", err.message);
-    brt_world_trace(w, rays, NULL, N, want, NULL, 1);
     memset(&opt, 0, sizeof opt);
     opt.paper_scheduler = 1;
-    CHECK(brt_scene_trace(scene, &opt, rays, N, got, NULL, &err) == BRT_OK, "%s", err.message);
-    EXPECT(memcmp(want, got, N * sizeof *got) == 0, "batched differs from direct");
-    brt_scene_close(scene);
-    brt_world_free(w);
+    expect_batched_equals_direct(&s, &so, &opt, rays, N, "margin.brs", 0);
     tu_instanced_free(&s);
-    free(rays); free(want); free(got);
+    free(rays);
 }
 
 /* brt_instance_ray rounds each component once: against long double, the
@@ -1068,16 +1090,11 @@ static void test_instance_buckets(void)
 {
     enum { N = 4000, INSTANCES = 3000 };
     tu_instanced s;
-    brt_scene_source src;
     brt_scene_options so;
     brt_trace_options opt;
-    brt_world *w = NULL;
-    brt_scene *scene = NULL;
-    brt_error err;
     uint64_t st = test_seed() + 2850;
     brt_ray *rays;
-    brt_hit *want = malloc(N * sizeof *want), *got = malloc(N * sizeof *got);
-    uint32_t i;
+    uint32_t i, points;
     adversarial_scene(&s, &st);
     s.instance_count = 0;
     for (i = 0; i < INSTANCES; i++) {
@@ -1088,28 +1105,19 @@ static void test_instance_buckets(void)
         tu_add_instance(&s, i % 3, m);
     }
     rays = instanced_rays(&s, &st, N);
-    CHECK(rays && want && got, "out of memory");
-    tu_instanced_source(&s, &src);
+    CHECK(rays, "out of memory");
     memset(&so, 0, sizeof so);
     so.batch_tris = 100000;          /* points cut by the buckets alone */
     so.proxy_res = 16;
     so.test_bucket_tris = 64;        /* instance buckets of 16 */
     so.test_spill_chunk = 7;
-    CHECK(brt_world_build(&src, &w, &err) == BRT_OK &&
-          brt_scene_build_source(&src, &so, 1, tu_scratch("buckets.brs"), &err) == BRT_OK &&
-          brt_scene_open(tu_scratch("buckets.brs"), &scene, &err) == BRT_OK, "%s", err.message);
-    EXPECT(brt_scene_check_partition(scene, 100000, &err) == BRT_OK, "%s", err.message);
-    EXPECT(brt_scene_batch_count(scene) >= INSTANCES / 16, "%u batching points for %u instances "
-           "in buckets of 16", brt_scene_batch_count(scene), INSTANCES);
-    brt_world_trace(w, rays, NULL, N, want, NULL, 1);
     memset(&opt, 0, sizeof opt);
     opt.memory_limit = 50000;
-    CHECK(brt_scene_trace(scene, &opt, rays, N, got, NULL, &err) == BRT_OK, "%s", err.message);
-    EXPECT(memcmp(want, got, N * sizeof *got) == 0, "batched differs from direct");
-    brt_scene_close(scene);
-    brt_world_free(w);
+    points = expect_batched_equals_direct(&s, &so, &opt, rays, N, "buckets.brs", 100000);
+    EXPECT(points >= INSTANCES / 16, "%u batching points for %u instances in buckets of 16", points,
+           INSTANCES);
     tu_instanced_free(&s);
-    free(rays); free(want); free(got);
+    free(rays);
 }
 
 /* render's default view of a pbrt file is the file's camera: pbrt's fov
