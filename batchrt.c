@@ -654,6 +654,12 @@ static int set_trace(const geometry *g, const brt_ray *ray, brt_hit *hit, float 
     brt_ray_prep prep;
     int sp = 0;
     if (!set || set->node_count == 0) return 0;
+    if (set->count == 1) {   /* one instance: its prototype's root box is the only test needed */
+        const brt_bvh *proto = g->prototypes[set->prototypes[0]];
+        if (any_hit) return brt_instance_occluded(proto, &set->frames[0], ray);
+        brt_instance_intersect(proto, &set->frames[0], set->ids[0], ray, hit, normal);
+        return 0;
+    }
     brt_ray_prepare_margin(ray, margin_of(&set->margin, ray), &prep);
     if (!prep.valid) return 0;
     stack[sp].code = 0;

@@ -398,6 +398,9 @@ static brt_ray *margin_case(tu_instanced *s, uint64_t *st, size_t n)
     rotation(m, ax, 0.4f, one, at);
     for (a = 0; a < 4; a++) m[8 + a] *= 2e-3f;   /* squash the rotated cube in z */
     tu_add_instance(s, 1, m);
+    m[3] += 1000.0f;   /* a second one far off: a tree of instances, not one alone */
+    tu_add_instance(s, 1, m);
+    m[3] -= 1000.0f;
     for (c = 0; c < 8; c++) {   /* the corner farthest in +x: the silhouette */
         const float q[3] = {(float)(c & 1), (float)(c >> 1 & 1), (float)(c >> 2 & 1)};
         float p[3];
@@ -504,6 +507,7 @@ static void test_batched_margin(void)
     CHECK(rays, "out of memory");
     memset(&so, 0, sizeof so);
     so.batch_tris = 1000;
+    so.batch_instanced = 12;   /* one instance per point: its box is the cube's */
     so.proxy_res = 512;
     memset(&opt, 0, sizeof opt);
     opt.paper_scheduler = 1;
