@@ -702,6 +702,18 @@ static void intersect_ray(const geometry *g, const brt_ray *ray, uint64_t tag, b
     set_trace(g, ray, hit, normal, 0);
 }
 
+/* The one check of an instance as a scene source hands it over (the
+** direct mode's world and the build both): its prototype in range, its
+** transform accepted by brt_instance_frame_init, whose frame it returns. */
+static brt_result instance_admit(const brt_instance *in, uint32_t number, uint32_t prototypes,
+                                 brt_instance_frame *frame, brt_error *err)
+{
+    if (in->prototype >= prototypes)
+        return brt_fail(err, BRT_EARG, "instance %u: prototype %u out of range (%u prototypes)",
+                        (unsigned)number, (unsigned)in->prototype, (unsigned)prototypes);
+    return brt_instance_frame_init(in, number, frame, err);
+}
+
 /* Builds the box tree over a set's instances, whose world boxes are
 ** boxes[6i..6i+5] (lo, hi). */
 static brt_result set_build_tree(instance_set *set, const float *boxes)
@@ -1921,14 +1933,21 @@ static void cache_touch_blob(geometry_cache *c, uint32_t id)
     }
 }
 
-/* Batching point id, resident, counts as just used (its prototypes too). */
-static void cache_touch(geometry_cache *c, uint32_t id)
+/* fn on batching point id's blob and, for a point of instances, on each
+** prototype it uses: what a touch and a release act on. */
+static void for_point_blobs(geometry_cache *c, uint32_t id,
+                            void (*fn)(geometry_cache *c, uint32_t blob))
 {
     const instance_set *set = c->entries[id].view.set;
     uint32_t k;
-    cache_touch_blob(c, id);
-    for (k = 0; set && k < set->use_count; k++)
-        cache_touch_blob(c, c->scene->header.batch_count + set->uses[k]);
+    fn(c, id);
+    for (k = 0; set && k < set->use_count; k++) fn(c, c->scene->header.batch_count + set->uses[k]);
+}
+
+/* Batching point id, resident, counts as just used (its prototypes too). */
+static void cache_touch(geometry_cache *c, uint32_t id)
+{
+    for_point_blobs(c, id, cache_touch_blob);
 }
 
 static void cache_release_blob(geometry_cache *c, uint32_t id)
@@ -1941,11 +1960,7 @@ static void cache_release_blob(geometry_cache *c, uint32_t id)
 ** the most recently used evictable entry. */
 static void cache_release(geometry_cache *c, uint32_t id)
 {
-    const instance_set *set = c->entries[id].view.set;
-    uint32_t k;
-    cache_release_blob(c, id);
-    for (k = 0; set && k < set->use_count; k++)
-        cache_release_blob(c, c->scene->header.batch_count + set->uses[k]);
+    for_point_blobs(c, id, cache_release_blob);
     assert(cache_check(c, NULL) == BRT_OK);
 }
 
@@ -3009,10 +3024,7 @@ static brt_result spill_instance(scene_builder *b, instance_build *ib, const brt
     float box[6], c[3], radius;
     brt_result r;
     int a;
-    if (in->prototype >= ib->proto_count)
-        return brt_fail(err, BRT_EARG, "instance %u: prototype %u out of range (%u prototypes)",
-                        (unsigned)number, (unsigned)in->prototype, (unsigned)ib->proto_count);
-    if ((r = brt_instance_frame_init(in, number, &frame, err)) != BRT_OK) return r;
+    if ((r = instance_admit(in, number, ib->proto_count, &frame, err)) != BRT_OK) return r;
     ib->instanced += ib->entries[in->prototype].triangles;
     if (ib->entries[in->prototype].triangles == 0) return BRT_OK;   /* in no batching point */
     if (ib->slots == MAX_COUNT)
@@ -6584,10 +6596,7 @@ static brt_result gather_instance(instance_gather *g, const brt_instance *in, ui
     float olo[3], ohi[3];
     brt_result rc;
     int a;
-    if (in->prototype >= w->prototype_count)
-        return brt_fail(err, BRT_EARG, "instance %u: prototype %u out of range (%u prototypes)",
-                        (unsigned)inst, (unsigned)in->prototype, (unsigned)w->prototype_count);
-    if ((rc = brt_instance_frame_init(in, inst, &frame, err)) != BRT_OK) return rc;
+    if ((rc = instance_admit(in, inst, w->prototype_count, &frame, err)) != BRT_OK) return rc;
     w->instanced += g->proto_tris[in->prototype];
     if (g->proto_tris[in->prototype] == 0) return BRT_OK;   /* never hit */
     if (!(set->ids = brt_grow(set->ids, &g->id_cap, (size_t)set->count + 1, sizeof *set->ids))
