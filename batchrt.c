@@ -923,6 +923,9 @@ static uint64_t round_up_page(uint64_t n);
 **   6. fetch_for           statistics: the loads only shadow rays asked for
 **   7. inner_stops         inner proxies: an occlusion ray settled occluded
 **                          without a queue (the paper's future work)
+**   8. forward, take_rays  other processes (brt_exchange): a ray stopping
+**                          at a point owned elsewhere is sent there, and
+**                          rays sent here are queued where they stopped
 ** paper_scheduler turns layers 1 and 2 off (what make figures measures as
 ** the paper's scheduler); exact_proxies turns 3 on; one thread turns 4
 ** and 5 off; no_inner turns 7 off.  No layer changes a hit; 1-3 and 7
@@ -996,6 +999,8 @@ typedef struct scheduler {
     const brt_trace_options *follow;        /* trace --follow: steps reported, or NULL */
     const volatile sig_atomic_t *interrupt; /* brt_trace_options.interrupt */
     uint64_t fetch_bytes;                   /* bytes the last fetch read (its step) */
+    const brt_exchange *exchange;           /* layer 8, or NULL */
+    brt_ray_state *arrivals;                /* rays received (layer 8) */
 } scheduler;
 
 /* The threaded variant, Part II. */
@@ -1210,12 +1215,77 @@ static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
     return BRT_OK;
 }
 
-/* A ray whose walk stopped: queued at batching point id, or, when id is
-** NO_ENTRY, finished (the source hears of it; its slot is free). */
+/* ---- layer 8: batching points owned by other processes ---- */
+
+#define ARRIVALS_PER_TAKE 1024u   /* rays taken from the exchange per call */
+
+static int owned_elsewhere(const scheduler *s, uint32_t id)
+{
+    return s->exchange && s->exchange->foreign[id];
+}
+
+/* Sends slot's ray to the process owning batching point id (where its
+** walk stopped), with all it carries; the slot is free again. */
+static brt_result forward(scheduler *s, uint32_t slot, uint32_t id)
+{
+    const ray_slot *r = &s->slots[slot];
+    brt_ray_state state;
+    memset(&state, 0, sizeof state);
+    state.ray = r->ray;
+    state.hit = r->hit;
+    memcpy(state.normal, r->normal, sizeof state.normal);
+    state.key_t = r->key.t;
+    state.key_point = id;
+    state.visits = r->visits;
+    state.tag = r->tag;
+    s->free_slots[s->free_count++] = slot;
+    return s->exchange->send(s->exchange->user, &state) == 0 ? BRT_OK : BRT_EIO;
+}
+
+/* Queues rays sent here by other processes at the points they stopped at
+** (their proxies admitted them there): waits for them when idle.  Returns
+** how many came; 0 with idle means every process is done. */
+static size_t take_rays(scheduler *s, int idle, brt_result *res, brt_error *err)
+{
+    const uint32_t points = s->scene->header.batch_count;
+    size_t max = s->free_count < ARRIVALS_PER_TAKE ? s->free_count : ARRIVALS_PER_TAKE, n, i;
+    if (!s->exchange || max == 0) return 0;
+    n = s->exchange->receive(s->exchange->user, s->arrivals, max, idle);
+    if (n > max) {
+        *res = brt_fail(err, BRT_EARG, "ray exchange: receive returned %lu rays for room for %lu",
+                        (unsigned long)n, (unsigned long)max);
+        return 0;
+    }
+    for (i = 0; i < n && *res == BRT_OK; i++) {
+        const brt_ray_state *a = &s->arrivals[i];
+        uint32_t slot;
+        ray_slot *r;
+        if (a->key_point >= points || owned_elsewhere(s, a->key_point)) {
+            *res = brt_fail(err, BRT_EFORMAT, "ray exchange: a ray for batching point %lu, not owned here",
+                            (unsigned long)a->key_point);
+            return 0;
+        }
+        slot = s->free_slots[--s->free_count];
+        r = &s->slots[slot];
+        r->ray = a->ray;
+        r->hit = a->hit;
+        memcpy(r->normal, a->normal, sizeof r->normal);
+        r->key.t = a->key_t;
+        r->key.id = a->key_point;
+        r->visits = a->visits;
+        r->tag = a->tag;
+        *res = enqueue(s, a->key_point, slot);
+    }
+    return n;
+}
+
+/* A ray whose walk stopped: queued at batching point id (or sent to the
+** process owning it: layer 8), or, when id is NO_ENTRY, finished (the
+** source hears of it; its slot is free). */
 static brt_result settle(scheduler *s, uint32_t slot, uint32_t id)
 {
     ray_slot *r = &s->slots[slot];
-    if (id != NO_ENTRY) return enqueue(s, id, slot);
+    if (id != NO_ENTRY) return owned_elsewhere(s, id) ? forward(s, slot, id) : enqueue(s, id, slot);
     s->stats->shadow_occluded += found_occluder(r);
     follow_step(s, r, BRT_STEP_FINISHED, NO_ENTRY, r->hit.t);
     s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
@@ -1256,10 +1326,21 @@ static brt_result run_rays(scheduler *s, const uint32_t *slots, uint32_t count, 
     return r;
 }
 
-/* Takes new rays from the source while there are free slots; each walks
-** from the root. */
+/* Why settling rays failed: a full memory, or an exchange that could
+** not send (layer 8). */
+static brt_result settle_failure(brt_result r, brt_error *err)
+{
+    if (r == BRT_EIO) return brt_fail(err, r, "ray exchange: a ray could not be sent");
+    return brt_fail(err, r, "out of memory in the ray queues");
+}
+
+/* Takes the rays other processes sent (layer 8), then new rays from the
+** source while there are free slots; each new ray walks from the root. */
 static brt_result refill(scheduler *s, brt_error *err)
 {
+    brt_result taken = BRT_OK;
+    take_rays(s, 0, &taken, err);
+    if (taken != BRT_OK) return taken;
     while (s->free_count > 0) {
         size_t n = s->source->next_rays(s->source->user, s->incoming, s->incoming_tags, s->free_count), i;
         brt_result res;
@@ -1282,7 +1363,7 @@ static brt_result refill(scheduler *s, brt_error *err)
             s->stats->shadow_rays += is_occlusion(r);
         }
         res = run_rays(s, s->fresh, (uint32_t)n, NO_ENTRY, NULL);
-        if (res != BRT_OK) return brt_fail(err, res, "out of memory in the ray queues");
+        if (res != BRT_OK) return settle_failure(res, err);
     }
     return BRT_OK;
 }
@@ -1326,7 +1407,7 @@ static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
     memset(&s->queues[id], 0, sizeof s->queues[id]);
     r = run_rays(s, q.slots, q.count, id, g);
     free(q.slots);
-    return r == BRT_OK ? BRT_OK : brt_fail(err, r, "out of memory in the ray queues");
+    return r == BRT_OK ? BRT_OK : settle_failure(r, err);
 }
 
 /* Whether the caller asked the trace to stop (brt_trace_options.interrupt). */
@@ -1335,12 +1416,20 @@ static int interrupted(const scheduler *s)
     return s->interrupt && *s->interrupt;
 }
 
+/* Whether a queue waits.  When none does, other processes may still send
+** rays here: wait for them (layer 8; at once false without an exchange). */
+static int queues_waiting(scheduler *s, brt_result *r, brt_error *err)
+{
+    if (s->fullest.size == 0) take_rays(s, 1, r, err);
+    return *r == BRT_OK && s->fullest.size > 0;
+}
+
 /* The scheduler's loop: the fullest queue first, until every ray is
 ** finished; new rays whenever slots are free. */
 static brt_result schedule(scheduler *s, brt_error *err)
 {
     brt_result r = refill(s, err);
-    while (r == BRT_OK && s->fullest.size > 0) {
+    while (r == BRT_OK && queues_waiting(s, &r, err)) {
         if (interrupted(s)) return brt_fail(err, BRT_EINTR, "%s: trace interrupted", s->scene->path);
         r = process_batch(s, (uint32_t)heap_pop(&s->fullest), err);
         if (r == BRT_OK) r = refill(s, err);
@@ -1362,11 +1451,12 @@ static uint64_t all_blob_bytes(const brt_scene *scene)
 ** blob nothing is ever evicted, so a load a proxy spares is only put off
 ** -- unless no ray ever needs that batching point -- while every test
 ** costs a cast.  So the default scheduler does not consult them then;
-** the paper's (paper_scheduler) does.  render --compare without a limit
+** the paper's (paper_scheduler) does, and so does a trace over several
+** processes (layer 8), where a proxy miss also spares a message.  render --compare without a limit
 ** prints the run's time with and without them. */
 static int proxies_pay(const scheduler *s, uint64_t budget)
 {
-    return s->paper_scheduler || budget < all_blob_bytes(s->scene);
+    return s->paper_scheduler || s->exchange || budget < all_blob_bytes(s->scene);
 }
 
 /* capacity_hint: the number of rays there will be, when known (0: not),
@@ -1386,6 +1476,7 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->use_inner = !(opt && opt->no_inner);
     s->follow = opt && opt->follow ? opt : NULL;
     s->interrupt = opt ? opt->interrupt : NULL;
+    s->exchange = opt ? opt->exchange : NULL;
     s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
     if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
     /* With proxies on, they take their bytes from the same budget (the
@@ -1408,6 +1499,7 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->walker.cache = &s->cache;
     if (!s->slots || !s->free_slots || !s->queues || !s->fullest.keys || !s->fullest.pos || !s->incoming ||
         !s->incoming_tags || !s->fresh || !s->walker.walk.keys ||
+        (s->exchange && !(s->arrivals = malloc(ARRIVALS_PER_TAKE * sizeof *s->arrivals))) ||
         cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK ||
         threads_init(s, opt ? opt->threads : 0) != BRT_OK)
         return BRT_ENOMEM;
@@ -1432,6 +1524,7 @@ static void scheduler_free(scheduler *s)
     free(s->incoming_tags);
     free(s->fresh);
     free(s->walker.walk.keys);
+    free(s->arrivals);
     for (i = 0; s->exact_views && i < s->cache.entry_count; i++) {
         view_free(&s->exact_views[i]);
         blob_free(s->scene, i, s->exact_data[i]);
@@ -1564,6 +1657,75 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
                               brt_stats *stats, brt_error *err)
 {
     return trace_rays(scene, opt, rays, count, NULL, occluded, stats, err);
+}
+
+/* ---- owners of batching points (layer 8) ---- */
+
+static uint64_t cache_bytes(const brt_scene *scene, uint32_t id);
+
+/* What a load of point id reads: its blob (cache_bytes) and, for a point
+** of instances, its triangles' share of the prototypes' bytes -- an
+** estimate: which prototypes it uses is in its blob, on disk. */
+static double point_weight(const brt_scene *s, uint32_t id)
+{
+    double bytes = (double)cache_bytes(s, id), proto_bytes = 0.0, proto_tris = 0.0;
+    uint32_t i;
+    if (!s->batches[id].instances) return bytes;
+    for (i = 0; i < s->header.prototype_count; i++) {
+        proto_bytes += (double)s->prototypes[i].size;
+        proto_tris += (double)s->prototypes[i].triangles;
+    }
+    return proto_tris > 0.0 ? bytes + (double)s->batches[id].triangles * proto_bytes / proto_tris : bytes;
+}
+
+/* The batching points in the top-level BVH's leaf order (depth first,
+** lanes in order): neighbours in it are neighbours in space.  stack has
+** room for every node and point code. */
+static uint32_t top_leaf_order(const brt_scene *s, uint32_t *order, uint32_t *stack)
+{
+    uint32_t depth = 0, n = 0;
+    int lane;
+    if (s->header.top_node_count > 0) stack[depth++] = 0;
+    while (depth > 0) {
+        uint32_t code = stack[--depth];
+        if (code & TOP_LEAF) {
+            order[n++] = code & ~TOP_LEAF;
+            continue;
+        }
+        for (lane = 3; lane >= 0; lane--)           /* popped in lane order */
+            if (s->top[code].child[lane] != TOP_EMPTY) stack[depth++] = s->top[code].child[lane];
+    }
+    return n;
+}
+
+brt_result brt_scene_assign(const brt_scene *scene, uint32_t processes, int round_robin,
+                            uint32_t *owner, brt_error *err)
+{
+    const uint32_t points = scene->header.batch_count;
+    uint32_t *order = malloc(((size_t)points + 1) * sizeof *order), n, k;
+    uint32_t *stack = malloc(((size_t)points + scene->header.top_node_count + 1) * sizeof *stack);
+    double total = 0.0, before = 0.0;
+    brt_result r = BRT_OK;
+    if (processes == 0) r = brt_fail(err, BRT_EARG, "%s: batching points for 0 processes", scene->path);
+    else if (!order || !stack)
+        r = brt_fail(err, BRT_ENOMEM, "out of memory for the owners of %lu batching points",
+                     (unsigned long)points);
+    else {
+        n = top_leaf_order(scene, order, stack);
+        assert(n == points);   /* check_top: every point is one leaf */
+        for (k = 0; k < n; k++) total += point_weight(scene, order[k]);
+        /* A run ends where the bytes before a point's middle pass the next
+        ** multiple of total / processes. */
+        for (k = 0; k < n; k++) {
+            double w = point_weight(scene, order[k]);
+            uint32_t run = total > 0.0 ? (uint32_t)((before + 0.5 * w) / total * processes) : 0;
+            owner[order[k]] = round_robin ? k % processes : (run < processes ? run : processes - 1);
+            before += w;
+        }
+    }
+    free(order);
+    free(stack);
+    return r;
 }
 
 /* ---- the geometry cache ---------------------------------------------------- */

@@ -367,6 +367,9 @@ typedef struct brt_trace_options {
                              ** the trace's own, never two at once) */
     void *follow_user;
     uint64_t follow_tag;
+    const struct brt_exchange *exchange;   /* batching points owned by other
+                             ** processes (below, "Beyond one process");
+                             ** NULL: this process owns them all */
 } brt_trace_options;
 
 /* Ray kinds.  A ray of a stream is a closest-hit ray, or an occlusion ray
@@ -416,6 +419,64 @@ brt_result brt_scene_trace(brt_scene *scene, const brt_trace_options *opt,
 brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
                               const brt_ray *rays, size_t count, uint8_t *occluded,
                               brt_stats *stats, brt_error *err);
+
+/* ---- Beyond one process: batching points owned elsewhere ------------- */
+/*
+** Batched traversal spreads over processes (MPI ranks: examples/mpi_trace.c)
+** as it spreads over time: each process owns some batching points, reads
+** only their blobs, and holds the top-level BVH and every proxy.  When a
+** ray's walk stops at a point another process owns -- after its proxy
+** admitted it, so a proxy miss costs no message -- the ray travels there
+** with all of its state and is queued there; its walk goes on from there
+** and it finishes wherever it ends, its tag unchanged.  Hits stay byte for
+** byte those of one process: a hit does not depend on where a ray was
+** intersected or in which order (the tie rule is total).
+**
+** The library knows no transport.  A brt_exchange, named in
+** brt_trace_options, gives per batching point whether another process
+** owns it, and two calls, both made by the thread that called the trace:
+**   send     take one ray for the process that owns ray->key_point (copy
+**            it: the record is reused); 0 on success, else the trace fails
+**            with BRT_EIO;
+**   receive  write up to max rays sent to this process (each queued at its
+**            key_point, which this process must own: else BRT_EFORMAT) and
+**            return how many.  idle = 0: at once, 0 when none is there.
+**            idle = 1: this process has no ray left to work on; block until
+**            rays come, and return 0 only when every process is done.
+** Whether everyone is done is the transport's to know: mpi_trace counts
+** finished rays against the known total (README, "Beyond one machine").
+** With an exchange the proxies are always consulted (layer 2 does not turn
+** them off): a proxy miss spares a message even when every blob fits.
+*/
+typedef struct brt_ray_state {
+    brt_ray ray;
+    brt_hit hit;                /* the closest hit so far (or an occlusion
+                                ** ray's record) */
+    float normal[3];            /* of that hit's triangle */
+    float key_t;                /* the walk's key: entry distance into */
+    uint32_t key_point;         /* the batching point it waits at */
+    uint32_t visits;            /* batching points visited so far */
+    uint32_t pad;               /* 0: the record has no holes */
+    uint64_t tag;
+} brt_ray_state;
+
+typedef struct brt_exchange {
+    const uint8_t *foreign;     /* per batching point: nonzero when another
+                                ** process owns it */
+    int (*send)(void *user, const brt_ray_state *ray);
+    size_t (*receive)(void *user, brt_ray_state *rays, size_t max, int idle);
+    void *user;
+} brt_exchange;
+
+/* Which of `processes` processes owns each batching point (owner[id], for
+** brt_scene_batch_count ids): contiguous runs of the top-level BVH's leaf
+** order, so that neighbours in space share a process, balanced by the
+** bytes each point's loads read (its blob and, for a point of instances,
+** its share of the prototypes' bytes); or, with round_robin, the k-th
+** point of that order to process k mod processes (the alternative make
+** bench-mpi measures).  processes >= 1. */
+brt_result brt_scene_assign(const brt_scene *scene, uint32_t processes, int round_robin,
+                            uint32_t *owner, brt_error *err);
 
 /* ---- Statistics ------------------------------------------------------ */
 

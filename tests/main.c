@@ -196,6 +196,7 @@ int main(int argc, char **argv)
     suite_bvh();
     suite_svdag();
     suite_batched();
+    suite_exchange();
     suite_cli();
     suite_scenes();
     suite_instanced_scenes();
