@@ -51,10 +51,10 @@ LIB      = $(BUILD)/libbatchrt.a
 # pbrt.c: mesh and pbrt-v4 input; common.c:
 # options, errors, PNG; plot.c: SVG plots; rays.c: camera, random and bounce rays; scenes.c:
 # the built-in procedural scenes) and the
-# optional Embree tracer (built by "make embree" only).
+# optional Embree and MPI tracers (built by "make embree" and "make mpi" only).
 EX_SHARED = examples/common.c examples/input.c examples/pbrt.c examples/plot.c examples/rays.c examples/referee.c examples/scenes.c
 EX_COMMON = $(EX_SHARED:%.c=$(BUILD)/%.o)
-EX_SRC   = $(filter-out $(EX_SHARED) examples/embree_trace.c, $(wildcard examples/*.c))
+EX_SRC   = $(filter-out $(EX_SHARED) examples/embree_trace.c examples/mpi_trace.c, $(wildcard examples/*.c))
 PROGRAMS = $(EX_SRC:examples/%.c=$(BUILD)/%)
 TEST_SRC = $(wildcard tests/*.c)
 TEST_OBJ = $(TEST_SRC:%.c=$(BUILD)/%.o)
@@ -144,6 +144,22 @@ embree: $(LIB) $(EX_COMMON)
 $(BUILD)/embree_trace: $(BUILD)/examples/embree_trace.o $(EX_COMMON) $(LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS) $(EMBREE_LIBS)
+
+# MPI (README, "Beyond one machine"): build/mpi_trace with $(MPICC), only
+# when it exists; the library and the other programs never need MPI.
+# Open MPI's headers are included as system headers (-isystem), so that
+# our warning flags apply to our code only.
+MPICC ?= mpicc
+.PHONY: mpi bench-mpi
+mpi: $(LIB) $(EX_COMMON)
+	@command -v $(MPICC) >/dev/null 2>&1 || { echo "mpi: $(MPICC) not found;" \
+	  "install openmpi-bin and libopenmpi-dev (Debian) to build $(BUILD)/mpi_trace"; exit 1; }
+	@$(MAKE) --no-print-directory $(BUILD)/mpi_trace
+
+$(BUILD)/mpi_trace: examples/mpi_trace.c $(EX_COMMON) $(LIB) batchrt.h $(wildcard examples/*.h)
+	$(SAY) MPICC $@
+	$(Q)$(MPICC) $(CFLAGS) -I. $$($(MPICC) --showme:incdirs 2>/dev/null | sed 's/[^ ]*/-isystem &/g') \
+	  examples/mpi_trace.c $(EX_COMMON) $(LIB) -o $@ $(LDLIBS)
 
 # Speed side by side: single-thread Mrays/s of trace --direct and
 # embree_trace (default and --robust) on the same ray files (camera,
