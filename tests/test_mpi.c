@@ -22,7 +22,7 @@
 #include <sys/wait.h>
 
 /* Seconds a run may take before it counts as a hang. */
-#define HANG_SECONDS 120
+#define HANG_SECONDS 60
 
 static const char *build_dir(void)
 {
@@ -67,7 +67,7 @@ static int mpi_run(int ranks, const char *env, const char *fmt, ...)
     expanded[n] = 0;
     snprintf(cmd, sizeof cmd,
              "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_btl=self,vader %s "
-             "timeout %d mpirun --oversubscribe -np %d %s/mpi_trace %s > '%s/cli.out' 2> '%s/cli.err'",
+             "timeout %d mpirun --oversubscribe -np %d %s/mpi_trace %s < /dev/null > '%s/cli.out' 2> '%s/cli.err'",
              env, HANG_SECONDS, ranks, build_dir(), expanded, dir, dir);
     status = system(cmd);
     if (status == -1 || !WIFEXITED(status)) return -1;

@@ -72,7 +72,10 @@ run_one() {
         printf '| %s | %s | ERROR | original text found %s times in %s |\n' "$name" "$mech" "${n:-0}" "$file"
         return
     fi
-    if ! make -C "$dir" --no-print-directory -j2 all build/run_tests >"$dir/build.log" 2>&1; then
+    # build/mpi_trace too when the pristine tree has it (make mpi): the MPI
+    # mutants are killed only where MPI runs (tests/test_mpi.c skips else).
+    if ! make -C "$dir" --no-print-directory -j2 all build/run_tests \
+            $([ -x "$root/build/mpi_trace" ] && echo build/mpi_trace) >"$dir/build.log" 2>&1; then
         errors=$((errors + 1))
         printf '| %s | %s | ERROR | does not build |\n' "$name" "$mech"
         return
@@ -86,7 +89,7 @@ run_one() {
     # leaves nothing behind in the system's temporary folder.
     mkdir "$dir/tmp"
     sh -c 'limit=$2; d=$1; cd "$d" && shift 3 && TMPDIR=$d/tmp BRT_BUILD=build BRT_SHARED=$0 $limit ./build/run_tests "$@"; exit $?' \
-        "$shared" "$dir" "$limit" - "$@" >"$dir/test.log" 2>&1
+        "$shared" "$dir" "$limit" - "$@" </dev/null >"$dir/test.log" 2>&1
     status=$?
     by=$(awk '/^FAIL / { i = index($0, ": tests/"); if (i > 6) print substr($0, 6, i - 6) }' \
              "$dir/test.log" | sort -u | awk 'NR > 1 { printf ", " } { printf "%s", $0 }')
