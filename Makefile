@@ -165,11 +165,13 @@ $(BUILD)/mpi_trace: examples/mpi_trace.c $(EX_COMMON) $(LIB) batchrt.h $(wildcar
 # mpi_trace over the instanced landscape at 2, 4 and 8 ranks (on this
 # machine's cores: --oversubscribe), camera and bounce rays, each rank's
 # geometry cache at MPI_MEMORY, a modelled network of MPI_NET per second
-# (--net-speed).  Prints a Markdown table; figures only, never pass/fail.
+# (--net-speed) and disk of MPI_DISK (--disk-speed).  Prints a Markdown
+# table; figures only, never pass/fail.
 MPI_SCALE  ?= 20
 MPI_RAYS   ?= 200000
 MPI_MEMORY ?= 16M
 MPI_NET    ?= 1G
+MPI_DISK   ?= 200M
 MPI_BENCH  ?= /tmp/batchrt-bench-mpi
 # Open MPI refuses root unless told; told here, for this command only.
 MPI_AS_ROOT = $(shell test "$$(id -u)" = 0 && echo env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1)
@@ -180,14 +182,14 @@ bench-mpi: all mpi
 	@for k in camera bounce; do ./$(BUILD)/raygen $(MPI_BENCH)/land.pbrt $(MPI_BENCH)/$$k.rays \
 	  --kind $$k --count $(MPI_RAYS) >/dev/null || exit 1; done
 	@echo "Instanced landscape, scale $(MPI_SCALE), $(MPI_RAYS) camera + $(MPI_RAYS) bounce rays," \
-	  "--memory $(MPI_MEMORY) per rank, --net-speed $(MPI_NET):"; echo; \
+	  "--memory $(MPI_MEMORY) per rank, --net-speed $(MPI_NET), --disk-speed $(MPI_DISK):"; echo; \
 	echo "| ranks | proxies | rays sent | messages | network MB | loads | disk MB | seconds |"; \
 	echo "|---:|---|---:|---:|---:|---:|---:|---:|"; \
 	for n in 2 4 8; do for p in on off; do sent=0; msgs=0; net=0; loads=0; disk=0; secs=0; \
 	  for k in camera bounce; do \
 	    $(MPIRUN) -np $$n ./$(BUILD)/mpi_trace $(MPI_BENCH)/land.pbrt $(MPI_BENCH)/$$k.rays \
 	      $(MPI_BENCH)/out.hits --scene $(MPI_BENCH)/land.brs --memory $(MPI_MEMORY) \
-	      --net-speed $(MPI_NET) --stats $(MPI_BENCH)/s.json $$(test $$p = off && echo --no-proxy) \
+	      --net-speed $(MPI_NET) --disk-speed $(MPI_DISK) --stats $(MPI_BENCH)/s.json $$(test $$p = off && echo --no-proxy) \
 	      || exit 1; \
 	    v() { sed -n "/\"total\"/,/}/s/.*\"$$1\": \([0-9.]*\).*/\1/p" $(MPI_BENCH)/s.json; }; \
 	    sent=$$((sent + $$(v rays_sent))); msgs=$$((msgs + $$(v messages_sent))); \

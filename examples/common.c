@@ -462,3 +462,27 @@ brt_result ex_corners_append(void *corners, const float *triangles, uint32_t cou
     g->count += count;
     return BRT_OK;
 }
+
+/* ---- modelled devices ---- */
+
+void ex_sleep_until(double when)
+{
+    double left;
+    while ((left = when - brt_seconds()) > 0) {
+        struct timespec ts;
+        ts.tv_sec = (time_t)left;
+        ts.tv_nsec = (long)((left - (double)ts.tv_sec) * 1e9);
+        nanosleep(&ts, NULL);   /* early on a signal: the loop sleeps the rest */
+    }
+}
+
+long ex_slow_disk_read(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    const uint64_t *bytes_per_second = user;
+    double start = brt_seconds();
+    long n = (long)pread(fd, buf, size, (off_t)offset);
+    int saved = errno;          /* pread's errno is the cache's to read */
+    if (n > 0) ex_sleep_until(start + (double)n / (double)*bytes_per_second);
+    errno = saved;
+    return n;
+}

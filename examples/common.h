@@ -103,6 +103,18 @@ void ex_die_interrupted(const char *prog)
 #endif
     ;
 
+/* --disk-speed and --net-speed: slower devices, modelled.  ex_sleep_until
+** sleeps until brt_seconds() reaches when (a signal only shortens one
+** nap).  ex_slow_disk_read is a brt_read_fn (user: a const uint64_t, the
+** bytes per second) that makes each read last at least its bytes / speed:
+** it reads, then sleeps out the rest.  That models a hard disk or a
+** network share on a fast SSD -- the setting the method was made for,
+** where reading dominates and the time a proxy saves follows the bytes it
+** saves.  (Latency is not modelled: proxies cut loads and bytes in about
+** the same ratio.) */
+void ex_sleep_until(double when);
+long ex_slow_disk_read(int fd, void *buf, size_t size, uint64_t offset, void *user);
+
 /* PNG of 8-bit RGB pixels (row-major, top row first), encoded with stored
 ** deflate blocks, CRC-32 and Adler-32.  encode: *png is malloc'd. */
 brt_result ex_png_encode_rgb(int width, int height, const unsigned char *rgb,

@@ -28,7 +28,7 @@
 **             it runs idle; when rank 0's sum reaches the total, no ray is
 **             queued or in flight anywhere, and rank 0 tells every rank so
 **   the model --net-speed S makes each message last at least its bytes / S
-**             (its sender sleeps), as --disk-speed does for reads
+**             (its sender sleeps), as --disk-speed S does each read
 ** Idle ranks poll (MPI_Iprobe and a short sleep) rather than block in
 ** MPI_Probe: Open MPI's blocking calls spin, which starves the other
 ** ranks when there are more ranks than cores (mpirun --oversubscribe).
@@ -70,7 +70,7 @@ enum { TAG_RAYS = 1, TAG_FINISHED, TAG_DONE, TAG_RESULTS };
 
 typedef struct options {
     const char *input, *rays, *hits, *scene, *stats;
-    uint64_t memory, batch_tris, res, net_speed;
+    uint64_t memory, batch_tris, res, net_speed, disk_speed;
     int no_proxy, occlusion, round_robin, paper_scheduler, verbose;
     unsigned threads;
 } options;
@@ -90,6 +90,8 @@ static void usage(void)
            "                    by bytes) or round-robin (point k to rank k mod N)\n"
            "  --net-speed SIZE  model a network: each message lasts at least its bytes\n"
            "                    divided by SIZE per second, e.g. 1G (default: unmodelled)\n"
+           "  --disk-speed SIZE model a slower disk: each read lasts at least its bytes\n"
+           "                    divided by SIZE per second (as render's)\n"
            "  --batch-tris N    triangles per batching point when building (default 100000)\n"
            "  --res R           proxy resolution when building, 2..1024 (default 128)\n"
            "  --scene FILE      the scene file to build from a mesh (default as trace's)\n"
@@ -122,6 +124,8 @@ static void parse_options(int argc, char **argv, options *o)
         else if (strcmp(a, "--verbose") == 0) o->verbose = 1;
         else if (strcmp(a, "--memory") == 0)
             o->memory = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
+        else if (strcmp(a, "--disk-speed") == 0)
+            o->disk_speed = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
         else if (strcmp(a, "--net-speed") == 0)
             o->net_speed = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
         else if (strcmp(a, "--batch-tris") == 0)
@@ -227,12 +231,7 @@ static void *must_grow(void *p, size_t *capacity, size_t need, size_t size)
 /* Modelled network (--net-speed): the message lasts bytes / speed. */
 static void model_transfer(const network *n, size_t bytes)
 {
-    double seconds = n->net_speed > 0 ? (double)bytes / n->net_speed : 0.0;
-    struct timespec ts;
-    if (seconds <= 0.0) return;
-    ts.tv_sec = (time_t)seconds;
-    ts.tv_nsec = (long)((seconds - (double)ts.tv_sec) * 1e9);
-    while (nanosleep(&ts, &ts) != 0 && errno == EINTR) {}
+    if (n->net_speed > 0) ex_sleep_until(brt_seconds() + (double)bytes / n->net_speed);
 }
 
 /* Sends data (malloc'd, freed once sent) without blocking. */
@@ -671,6 +670,10 @@ int main(int argc, char **argv)
     opt.threads = o.threads;
     opt.exchange = &exchange;
     opt.interrupt = ex_catch_interrupts();
+    if (o.disk_speed) {
+        opt.read_fn = ex_slow_disk_read;
+        opt.read_user = &o.disk_speed;
+    }
     source.next_rays = share_next;
     source.finished = share_finished;
     source.user = &sh;

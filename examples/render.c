@@ -910,38 +910,6 @@ static uint64_t scene_geometry_bytes(brt_scene *scene)
 }
 
 /* ===================================================================== */
-/* --disk-speed: a slower disk, modelled                                 */
-/* ===================================================================== */
-
-/* The geometry cache reads through brt_trace_options.read_fn.  This reader
-** makes each read last at least its bytes / speed: it reads, then sleeps
-** out the rest.  That models a hard disk or a network share on a fast
-** SSD -- the setting the method was made for, where reading dominates and
-** the time a proxy saves follows the bytes it saves.  (Latency is not
-** modelled: proxies cut loads and bytes in about the same ratio.) */
-static void sleep_until(double when)
-{
-    double left;
-    while ((left = when - brt_seconds()) > 0) {
-        struct timespec ts;
-        ts.tv_sec = (time_t)left;
-        ts.tv_nsec = (long)((left - (double)ts.tv_sec) * 1e9);
-        nanosleep(&ts, NULL);   /* early on a signal: the loop sleeps the rest */
-    }
-}
-
-static long slow_disk_read(int fd, void *buf, size_t size, uint64_t offset, void *user)
-{
-    const uint64_t *bytes_per_second = user;
-    double start = brt_seconds();
-    long n = (long)pread(fd, buf, size, (off_t)offset);
-    int saved = errno;          /* pread's errno is the cache's to read */
-    if (n > 0) sleep_until(start + (double)n / (double)*bytes_per_second);
-    errno = saved;
-    return n;
-}
-
-/* ===================================================================== */
 /* Images                                                                */
 /* ===================================================================== */
 
@@ -1374,7 +1342,7 @@ int main(int argc, char **argv)
     topt.drop_os_cache = o.drop_os_cache;
     topt.interrupt = interrupt;
     if (o.disk_speed) {
-        topt.read_fn = slow_disk_read;
+        topt.read_fn = ex_slow_disk_read;
         topt.read_user = &o.disk_speed;
     }
     memset(&direct, 0, sizeof direct);
