@@ -4,7 +4,7 @@
 #   make test         build and run the test suite (last line: "N passed, N failed")
 #   make debug        the same with the library's assert()ed invariants (BRT_DEBUG)
 #   make sanitize     the test suite under AddressSanitizer + UBSan
-#   make tsan         the threaded tests under ThreadSanitizer
+#   make tsan         the threaded tests (and layer 8's processes as threads) under ThreadSanitizer
 #   make bench        benchmarks (figures printed, never pass/fail)
 #   make bench-threads  speed-ups at 1 and 2 threads (README, "Threads")
 #   make mutants      mutation testing of the suite (tests/mutants/)
@@ -119,7 +119,7 @@ sanitize:
 tsan:
 	$(MAKE) --no-print-directory all build/tsan/run_tests BUILD=build/tsan OPT="-O1 -g" \
 	  XCFLAGS="-fsanitize=thread"
-	BRT_BUILD=build/tsan TSAN_OPTIONS="halt_on_error=1 exitcode=66" ./build/tsan/run_tests threads
+	BRT_BUILD=build/tsan TSAN_OPTIONS="halt_on_error=1 exitcode=66" ./build/tsan/run_tests threads exchange:
 
 bench: all
 	./$(BUILD)/bench_bvh
