@@ -1224,23 +1224,42 @@ static int owned_elsewhere(const scheduler *s, uint32_t id)
     return s->exchange && s->exchange->foreign[id];
 }
 
-/* Sends slot's ray to the process owning batching point id (where its
-** walk stopped), with all it carries; the slot is free again. */
-static brt_result forward(scheduler *s, uint32_t slot, uint32_t id)
+/* A ray slot as it travels (brt_ray_state), and back: the whole of a
+** waiting ray's state, so its walk resumes where it stopped. */
+static void state_of_slot(const ray_slot *r, brt_ray_state *state)
 {
-    const ray_slot *r = &s->slots[slot];
+    memset(state, 0, sizeof *state);
+    state->ray = r->ray;
+    state->hit = r->hit;
+    memcpy(state->normal, r->normal, sizeof state->normal);
+    state->key_t = r->key.t;
+    state->key_point = r->key.id;
+    state->visits = r->visits;
+    state->tag = r->tag;
+}
+
+static void slot_of_state(const brt_ray_state *state, ray_slot *r)
+{
+    r->ray = state->ray;
+    r->hit = state->hit;
+    memcpy(r->normal, state->normal, sizeof r->normal);
+    r->key.t = state->key_t;
+    r->key.id = state->key_point;
+    r->visits = state->visits;
+    r->tag = state->tag;
+}
+
+/* Sends slot's ray to the process owning the batching point where its
+** walk stopped (its key's); the slot is free again. */
+static brt_result forward(scheduler *s, uint32_t slot)
+{
     brt_ray_state state;
-    memset(&state, 0, sizeof state);
-    state.ray = r->ray;
-    state.hit = r->hit;
-    memcpy(state.normal, r->normal, sizeof state.normal);
-    state.key_t = r->key.t;
-    state.key_point = id;
-    state.visits = r->visits;
-    state.tag = r->tag;
+    state_of_slot(&s->slots[slot], &state);
     s->free_slots[s->free_count++] = slot;
     return s->exchange->send(s->exchange->user, &state) == 0 ? BRT_OK : BRT_EIO;
 }
+
+static brt_result settle_failure(brt_result r, brt_error *err);
 
 /* Queues rays sent here by other processes at the points they stopped at
 ** (their proxies admitted them there): waits for them when idle.  Returns
@@ -1259,22 +1278,14 @@ static size_t take_rays(scheduler *s, int idle, brt_result *res, brt_error *err)
     for (i = 0; i < n && *res == BRT_OK; i++) {
         const brt_ray_state *a = &s->arrivals[i];
         uint32_t slot;
-        ray_slot *r;
         if (a->key_point >= points || owned_elsewhere(s, a->key_point)) {
             *res = brt_fail(err, BRT_EFORMAT, "ray exchange: a ray for batching point %lu, not owned here",
                             (unsigned long)a->key_point);
             return 0;
         }
         slot = s->free_slots[--s->free_count];
-        r = &s->slots[slot];
-        r->ray = a->ray;
-        r->hit = a->hit;
-        memcpy(r->normal, a->normal, sizeof r->normal);
-        r->key.t = a->key_t;
-        r->key.id = a->key_point;
-        r->visits = a->visits;
-        r->tag = a->tag;
-        *res = enqueue(s, a->key_point, slot);
+        slot_of_state(a, &s->slots[slot]);
+        if ((*res = enqueue(s, a->key_point, slot)) != BRT_OK) *res = settle_failure(*res, err);
     }
     return n;
 }
@@ -1285,7 +1296,7 @@ static size_t take_rays(scheduler *s, int idle, brt_result *res, brt_error *err)
 static brt_result settle(scheduler *s, uint32_t slot, uint32_t id)
 {
     ray_slot *r = &s->slots[slot];
-    if (id != NO_ENTRY) return owned_elsewhere(s, id) ? forward(s, slot, id) : enqueue(s, id, slot);
+    if (id != NO_ENTRY) return owned_elsewhere(s, id) ? forward(s, slot) : enqueue(s, id, slot);
     s->stats->shadow_occluded += found_occluder(r);
     follow_step(s, r, BRT_STEP_FINISHED, NO_ENTRY, r->hit.t);
     s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
