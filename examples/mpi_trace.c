@@ -49,6 +49,7 @@
 #include "input.h"
 
 #include <errno.h>
+#include <fcntl.h>
 #include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -70,7 +71,7 @@ enum { TAG_RAYS = 1, TAG_FINISHED, TAG_DONE, TAG_RESULTS };
 
 typedef struct options {
     const char *input, *rays, *hits, *scene, *stats;
-    uint64_t memory, batch_tris, res, net_speed, disk_speed;
+    uint64_t memory, batch_tris, res, net_speed, disk_speed, rays_in_flight;
     int no_proxy, occlusion, round_robin, paper_scheduler, verbose;
     unsigned threads;
 } options;
@@ -97,6 +98,8 @@ static void usage(void)
            "  --scene FILE      the scene file to build from a mesh (default as trace's)\n"
            "  --paper-scheduler the paper's scheduler on every rank\n"
            "  --threads N       threads per rank (default 1)\n"
+           "  --rays-in-flight N  rays each rank works on at once (default 262144); more\n"
+           "                    wait in its inbox\n"
            "  --stats FILE      statistics JSON: totals and one object per rank\n"
            "  --verbose         the summary line even when stderr is not a terminal\n"
            "  --help            this text\n"
@@ -113,6 +116,7 @@ static void parse_options(int argc, char **argv, options *o)
     o->batch_tris = 100000;
     o->res = 128;
     o->threads = 1;
+    o->rays_in_flight = (uint64_t)1 << 18;
     positional[0] = &o->input;
     positional[1] = &o->rays;
     positional[2] = &o->hits;
@@ -132,6 +136,8 @@ static void parse_options(int argc, char **argv, options *o)
             o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, UINT32_MAX);
         else if (strcmp(a, "--res") == 0)
             o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
+        else if (strcmp(a, "--rays-in-flight") == 0)
+            o->rays_in_flight = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, (uint64_t)1 << 24);
         else if (strcmp(a, "--threads") == 0)
             o->threads = (unsigned)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 0,
                                                 BRT_MAX_THREADS);
@@ -152,6 +158,18 @@ static void parse_options(int argc, char **argv, options *o)
 }
 
 /* ---- failures --------------------------------------------------------------- */
+
+/* Every rank reads the same command line: only rank 0 says what is wrong
+** with it (the others' stderr is closed meanwhile), and all exit 1. */
+static void parse_options_once(int argc, char **argv, options *o, int rank)
+{
+    int saved = dup(2), null = open("/dev/null", O_WRONLY);
+    if (rank != 0 && saved >= 0 && null >= 0) dup2(null, 2);
+    parse_options(argc, argv, o);
+    if (rank != 0 && saved >= 0) dup2(saved, 2);
+    if (saved >= 0) close(saved);
+    if (null >= 0) close(null);
+}
 
 static int my_rank, rank_count;
 
@@ -645,7 +663,7 @@ int main(int argc, char **argv)
         MPI_Finalize();
         return 0;
     }
-    parse_options(argc, argv, &o);
+    parse_options_once(argc, argv, &o, my_rank);
     ex_catch_interrupts();
     scene = open_everything(&o, &rays, &count, &owner);
 
@@ -668,6 +686,7 @@ int main(int argc, char **argv)
     opt.no_proxy = o.no_proxy;
     opt.paper_scheduler = o.paper_scheduler;
     opt.threads = o.threads;
+    opt.rays_in_flight = (uint32_t)o.rays_in_flight;
     opt.exchange = &exchange;
     opt.interrupt = ex_catch_interrupts();
     if (o.disk_speed) {

@@ -193,6 +193,21 @@ static void test_crossings_and_proxies(void)
            bytes[1], bytes[0]);
 }
 
+/* The last run's stderr has exactly one line of mpi_trace's, holding what. */
+static void expect_one_line(const char *when, const char *what)
+{
+    char *err = tu_last_stderr();
+    const char *p = err;
+    int lines = 0;
+    while (p && (p = strstr(p, "mpi_trace: ")) != NULL) {
+        lines++;
+        p++;
+    }
+    EXPECT(lines == 1 && strstr(err, what), "%s: %d lines of mpi_trace's, want one with '%s': %s", when,
+           lines, what, err ? err : "");
+    free(err);
+}
+
 /* A failed rank -- at open, at a send, killed by a signal -- ends the run
 ** with a non-zero status and no output file, within the time limit. */
 static void test_failures(void)
@@ -210,14 +225,14 @@ static void test_failures(void)
         EXPECT(status != 0 && status != 124, "%s: exit status %d", when[i], status);
         EXPECT(!tu_file_exists(tu_scratch("mpi-fail.out")), "%s: an output file was left", when[i]);
         EXPECT(!tu_temporary_file_left(), "%s: a temporary file was left", when[i]);
-        if (i < 2) {
-            char *err = tu_last_stderr();
-            EXPECT(err && strstr(err, "mpi_trace: rank 1: "), "%s: no line naming rank 1: %s", when[i], err);
-            free(err);
-        }
+        if (i < 2) expect_one_line(when[i], "mpi_trace: rank 1: ");
     }
     status = mpi_run(2, "", "@/mpi-crown.obj @/missing.rays @/mpi-fail.out --scene @/mpi-50.brs");
     EXPECT(status == 1 && !tu_file_exists(tu_scratch("mpi-fail.out")), "missing rays: status %d", status);
+    expect_one_line("missing rays", "missing.rays");
+    status = mpi_run(3, "", "@/mpi-crown.obj @/mpi-0-bounce.rays @/mpi-fail.out --assign diagonal");
+    EXPECT(status == 1 && !tu_file_exists(tu_scratch("mpi-fail.out")), "bad option: status %d", status);
+    expect_one_line("a bad option", "--assign: expected runs or round-robin, got 'diagonal'");
 }
 
 void suite_mpi(void)
