@@ -5,10 +5,10 @@
 ** carries the rays, and counts finished rays against the total, as
 ** examples/mpi_trace.c does over MPI.  Hits and occlusion bytes are held
 ** against the direct mode (one BVH over the whole mesh), byte for byte, at
-** 1 to 4 processes, both ownerships, proxies on and off and several memory
-** limits; a stream that crosses between processes many times; the
-** ownership's balance; and the exchange's errors.  tests/test_mpi.c runs
-** the same over MPI when mpirun exists.
+** 1 to 4 processes, both ownerships, proxies on and off, several memory
+** limits, one and two threads each; a stream that crosses between
+** processes many times; the ownership's balance; and the exchange's
+** errors.  tests/test_mpi.c runs the same over MPI when mpirun exists.
 */
 #include "test.h"
 #include "util.h"
@@ -140,6 +140,7 @@ typedef struct run_setup {
     int round_robin, no_proxy, occlusion;
     uint64_t memory;
     uint32_t rays_in_flight;
+    unsigned threads;           /* per process (layer 5 with layer 8) */
     int corrupt, refuse;
 } run_setup;
 
@@ -193,7 +194,7 @@ static brt_result run_processes(const char *path, const run_setup *setup, const 
         p->opt.exchange = &p->exchange;
         p->opt.no_proxy = setup->no_proxy;
         p->opt.memory_limit = setup->memory;
-        p->opt.threads = 1;
+        p->opt.threads = setup->threads ? setup->threads : 1;
         p->opt.rays_in_flight = setup->rays_in_flight;
     }
     for (i = 0; i < setup->processes && r == BRT_OK; i++)
@@ -316,6 +317,7 @@ static void test_equal_direct(void)
             s.occlusion = (variant >> 2) & 1;
             s.memory = variant % 3 == 0 ? 0 : 8192;   /* all, or about one point */
             s.rays_in_flight = variant % 3 == 1 ? 7 : 0;
+            s.threads = variant % 4 == 3 ? 2 : 1;
             expect_direct(&f, &s);
         }
     fixture_free(&f);
