@@ -19,7 +19,9 @@
 **   instances) takes the same paths: batching points of world triangles
 **   and of instances, prototypes' BVHs stored and cached once, the ray
 **   carried into each instance it meets (bvh.c, "Instances"); brt_world
-**   is its direct mode.
+**   is its direct mode.  Over several processes (MPI ranks:
+**   examples/mpi_trace.c), each owns some batching points, and a ray whose
+**   walk stops at a point another owns travels there (brt_exchange).
 **
 ** USAGE: THE BATCHED METHOD (examples/minimal_batched.c: a whole program)
 **
