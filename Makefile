@@ -217,7 +217,7 @@ bench-instancing: all
 # == HARDENING (valgrind, fuzzing) ========================================
 #   make valgrind      the test suite, and the programs it runs, under
 #                      memcheck: any error or leak fails (T=... filters)
-#   make fuzz          libFuzzer + ASan + UBSan builds of the four readers
+#   make fuzz          libFuzzer + ASan + UBSan builds of the five readers
 #                      (tests/fuzz/fuzz_*.c) in $(BUILD)/fuzz, each run for
 #                      FUZZ_SECONDS from tests/corpus/NAME; new inputs go to
 #                      $(BUILD)/fuzz/corpus/NAME, crashes to $(BUILD)/fuzz/
@@ -228,7 +228,7 @@ bench-instancing: all
 #                      libFuzzer programs
 # The targets (tests/fuzz/targets.c) are also linked into run_tests, whose
 # "hardening:" tests replay tests/corpus on every "make test".
-FUZZ_TARGETS = obj ply scene rays
+FUZZ_TARGETS = obj ply scene rays pbrt
 FUZZ_SECONDS ?= 600
 FUZZ_CC ?= clang
 FUZZ_FLAGS = $(STD) $(WARN) $(TESTING) -O1 -g -fno-omit-frame-pointer \
@@ -257,17 +257,17 @@ $(BUILD)/tests/fuzz/targets.o $(BUILD)/tests/fuzz/replay.o: tests/fuzz/targets.h
 $(BUILD)/tests/fuzz:
 	$(Q)mkdir -p $@
 
-$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(LIB)
+$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/pbrt.o $(LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 fuzz-replay: $(BUILD)/tests/fuzz/replay
 	$(Q)for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
 
-$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h $(LIB_SRC) batchrt.h
+$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/pbrt.c examples/pbrt.h $(LIB_SRC) batchrt.h
 	$(SAY) FUZZ $@
 	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
-	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
+	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/pbrt.c tests/fuzz/targets.c $< -o $@ -lm
 
 fuzz: $(FUZZ_BINS)
 	$(Q)for t in $(FUZZ_TARGETS); do $(call FUZZ_RUN,$(FUZZ_SECONDS)) || exit 1; done

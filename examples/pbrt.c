@@ -318,6 +318,14 @@ static brt_result next_token(reader *r, token *t, brt_error *err)
     return BRT_OK;
 }
 
+/* Control characters of text (a name may hold "\n" escapes) become '?',
+** so that a message or the summary stays one line. */
+static void printable(char *text)
+{
+    for (; *text; text++)
+        if ((unsigned char)*text < 32 || *text == 127) *text = '?';
+}
+
 /* A string token's text with escapes resolved, into out (size bytes);
 ** 0 when it does not fit. */
 static int unescape(const token *t, char *out, size_t size)
@@ -651,6 +659,7 @@ static brt_result count_skipped(parser *p, const char *key)
         if (strcmp(s->skipped[i].key, key) == 0) { s->skipped[i].count++; return BRT_OK; }
     if (GROW(p, s->skipped, s->skip_count, s->skip_cap)) return BRT_ENOMEM;
     snprintf(s->skipped[s->skip_count].key, sizeof s->skipped->key, "%s", key);
+    printable(s->skipped[s->skip_count].key);
     s->skipped[s->skip_count++].count = 1;
     return BRT_OK;
 }
@@ -1060,9 +1069,12 @@ static brt_result do_object_instance(parser *p, const token *d)
         s->objects[slot].use_file = d->file;
         s->objects[slot].use_line = (uint32_t)d->line;
     }
-    inst = &s->instances[s->instance_count++];
+    inst = &s->instances[s->instance_count];
     inst->prototype = slot;   /* a slot until the end of pass 1 (finish) */
-    for (k = 0; k < 12; k++) inst->xform[k] = (float)p->g.ctm[k];
+    for (k = 0; k < 12; k++)
+        if (!isfinite(inst->xform[k] = (float)p->g.ctm[k]))
+            return fail_at(p, d, BRT_EPARSE, "ObjectInstance: the transform is not finite in float");
+    s->instance_count++;
     return BRT_OK;
 }
 
@@ -1174,6 +1186,8 @@ static brt_result do_camera(parser *p, const token *d)
         s->eye[k] = (float)w2c[4 * k + 3];
         s->target[k] = (float)(w2c[4 * k + 3] + dir[k]);
         s->up[k] = (float)up[k];
+        if (!isfinite(s->eye[k]) || !isfinite(s->target[k]))
+            return fail_at(p, d, BRT_EPARSE, "Camera: the camera position is not finite in float");
     }
     /* Mirrored when camera +x (pbrt's image right) opposes forward x up. */
     s->mirrored = right[0] * (dir[1] * up[2] - dir[2] * up[1]) + right[1] * (dir[2] * up[0] - dir[0] * up[2])
@@ -1425,13 +1439,24 @@ static brt_result run_numbers(run *u, const shape *sh, uint32_t file, uint64_t o
     return BRT_OK;
 }
 
+/* A point through a shape's transform may overflow the float range,
+** which pass 1 (numbers only) cannot see: the shape is refused then. */
+static brt_result transform_point(brt_error *err, const ex_pbrt *scene, const shape *sh, const float p[3],
+                                  float out[3])
+{
+    xf_point(sh->xform, p, out);
+    if (isfinite(out[0]) && isfinite(out[1]) && isfinite(out[2])) return BRT_OK;
+    return brt_fail(err, BRT_EPARSE, "%s:%lu: Shape: a point is not finite in float after the transform in force",
+                    scene->files[sh->file], (unsigned long)sh->line);
+}
+
 static brt_result number_position(run *u, const token *t, uint64_t i, const shape *sh)
 {
     float f;
     if (scan_float(t->s, t->n, &f) != NUM_OK) return run_changed(u, sh);
     u->positions[i] = f;
-    if (i % 3 == 2) xf_point(sh->xform, &u->positions[i - 2], &u->positions[i - 2]);
-    return BRT_OK;
+    if (i % 3 != 2) return BRT_OK;
+    return transform_point(u->out.err, u->scene, sh, &u->positions[i - 2], &u->positions[i - 2]);
 }
 
 /* Indices are handed on a patch at a time: 3 (a triangle) or 4 (a
@@ -1485,11 +1510,11 @@ static brt_result ply_chunk(void *user, const float *corners, uint32_t count, ui
     (void)err;
     for (i = 0; i < count; i++) {
         float c[9];
-        brt_result r;
-        xf_point(pp->sh->xform, corners + 9 * (size_t)i, c);
-        xf_point(pp->sh->xform, corners + 9 * (size_t)i + 3, c + 3);
-        xf_point(pp->sh->xform, corners + 9 * (size_t)i + 6, c + 6);
-        if ((r = sink_add(&pp->u->out, c, c + 3, c + 6)) != BRT_OK) return r;
+        brt_result r = BRT_OK;
+        int k;
+        for (k = 0; k < 3 && r == BRT_OK; k++)
+            r = transform_point(pp->u->out.err, pp->u->scene, pp->sh, corners + 9 * (size_t)i + 3 * k, c + 3 * k);
+        if (r != BRT_OK || (r = sink_add(&pp->u->out, c, c + 3, c + 6)) != BRT_OK) return r;
     }
     return BRT_OK;
 }
@@ -1565,6 +1590,7 @@ static brt_result run_shapes(const ex_pbrt *scene, size_t first, size_t count, u
         r = sh->kind == SHAPE_PLY ? run_ply(&u, sh) : run_mesh(&u, sh);
     }
     if (r == BRT_OK) r = sink_flush(&u.out);
+    if (r != BRT_OK && err) printable(err->message);
     if (u.in.buf) reader_close(&u.in);
     free(u.positions);
     free(u.out.corners);
@@ -1618,6 +1644,7 @@ brt_result ex_pbrt_open(const char *path, ex_pbrt **out, brt_error *err)
     xf_identity(p.g.ctm);
     if (!(p.scene = calloc(1, sizeof *p.scene))) return brt_fail(err, BRT_ENOMEM, "out of memory");
     r = parse(&p, path);
+    if (r != BRT_OK && err) printable(err->message);
     while (p.depth > 0) reader_close(&p.files[--p.depth]);
     for (i = 0; i < p.named_count; i++) free(p.named[i].name);
     free(p.named);

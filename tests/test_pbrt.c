@@ -803,6 +803,41 @@ static void test_mesh_errors(void)
                  "e_noP.pbrt:2: Shape \"trianglemesh\" without \"point3 P\"");
 }
 
+/* The fuzz target's findings (tests/corpus/pbrt/crash-*): a name with a
+** "\n" escape kept messages and the summary one line; numbers finite in
+** float that overflow through a transform refused -- a world shape's
+** point (at stream time: pass 1 reads numbers, not points), an
+** instance's transform, the camera's position. */
+static void test_float_range_and_one_line(void)
+{
+    ex_pbrt *s;
+    brt_scene_source src;
+    brt_error err;
+    tris t;
+    brt_result r;
+    expect_error("e_nl.pbrt", "Include \"a\\nb\"\n", BRT_EIO, "e_nl.pbrt:1: cannot read included file");
+    expect_error("e_nl.pbrt", "Include \"a\\nb\"\n", BRT_EIO, "a?b");
+    expect_error("e_inst_inf.pbrt", "Scale 1e30 1e30 1e30\nScale 1e30 1e30 1e30\nObjectBegin \"a\"\n" "ObjectEnd\n"
+                 "ObjectInstance \"a\"\n", BRT_EPARSE, "e_inst_inf.pbrt:5: ObjectInstance: the transform is not finite in float");
+    expect_error("e_cam_inf.pbrt", "Translate 1e38 0 0\nScale 1e-38 1 1\nCamera \"perspective\"\n", BRT_EPARSE,
+                 "e_cam_inf.pbrt:3: Camera: the camera position is not finite in float");
+    if ((s = open_text("e_nl_skip.pbrt", "WorldBegin\nShape \"x\\ny\"\nCoordSysTransform \"p\\rq\"\n")) != NULL) {
+        EXPECT(strcmp(ex_pbrt_skipped(s), "skipped: 1 Shape \"x?y\", 1 CoordSysTransform \"p?q\" (unknown)") == 0,
+               "summary \"%s\"", ex_pbrt_skipped(s));
+        ex_pbrt_close(s);
+    }
+    s = open_text("e_corner_inf.pbrt", "WorldBegin\n" "Shape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0]\n"
+                  "Scale 1e30 1e30 1e30\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1e30 0 0 0 1 0]\n");
+    if (!s) return;
+    memset(&t, 0, sizeof t);
+    ex_pbrt_source(s, &src);
+    r = src.world.run(src.world.user, collect, &t, &err);
+    EXPECT(r == BRT_EPARSE && strstr(err.message, "e_corner_inf.pbrt:4: Shape: a point is not finite in float"),
+           "stream: %s (%s)", brt_result_string(r), r == BRT_OK ? "streamed" : err.message);
+    free(t.c);
+    ex_pbrt_close(s);
+}
+
 void suite_pbrt(void)
 {
     test_run("pbrt: trianglemesh: P and indices become world triangles in file order", test_trianglemesh);
@@ -827,4 +862,5 @@ void suite_pbrt(void)
     test_run("pbrt: errors: instances and transforms", test_instance_errors);
     test_run("pbrt: errors: includes and files", test_include_errors);
     test_run("pbrt: errors: mesh data and numbers", test_mesh_errors);
+    test_run("pbrt: errors: float overflow through transforms; one-line messages", test_float_range_and_one_line);
 }
