@@ -691,7 +691,10 @@ static void test_numbers_as_strtof(void)
 {
     static const char *const fixed[] = {"1.", ".5", "-0", "+2.5e-3", "0.1", "16777217", "3.4028235e38",
                                         "1e-45", "1.17549435e-38", "0.000000000000000000000000000001",
-                                        "123456789012345678901234567890", "7.038531e-26", "33554431"};
+                                        "123456789012345678901234567890", "7.038531e-26", "33554431",
+                                        /* past 18 significant digits, leading zeros */
+                                        "0.00012345678901234567890123", "1.23456789012345678901234",
+                                        "12345678901234567.5", "00000.5", "-000123.4500", "9.99999999999999999999e37"};
     const size_t count = 3000;
     size_t cap = count * 48 + 256, n = 0, i, nf = sizeof fixed / sizeof *fixed;
     char *text = malloc(cap), (*words)[40] = malloc(count * sizeof *words);
