@@ -48,9 +48,10 @@
 
 enum { NUM_OK, NUM_BAD, NUM_NOT_FINITE };
 
-/* A decimal number as scanned: value = m * 10^exp10, m holding the first
-** 18 significant digits (more digits of the integer part raise exp10,
-** more of the fraction are dropped: digits > 15 takes strtof anyway). */
+/* A decimal number as scanned: value = m * 10^exp10 with up to 18
+** significant digits.  Past 18, m is not kept (decimal_float reads the
+** text with strtof past 15) and exp10 keeps the magnitude: the value
+** lies below 10^(18 + exp10). */
 typedef struct decimal {
     uint64_t m;
     int digits;             /* significant digits, 19 standing for more than 18 */
@@ -60,23 +61,6 @@ typedef struct decimal {
 } decimal;
 
 enum { DEC_OK, DEC_NO_DIGITS, DEC_BAD_EXPONENT };
-
-/* The first 18 significant digits of a longer number, whose digits are
-** [i0, i1) before the point and [f0, f1) after it (i0 past the leading
-** zeros), into d: value = m * 10^exp10 up to the digits dropped. */
-static void long_decimal(const char *i0, const char *i1, const char *f0, const char *f1, decimal *d)
-{
-    const char *c = i0 < i1 ? i0 : f0;
-    int taken = 0, lz = 0;
-    if (i0 == i1) for (; c < f1 && *c == '0'; c++) lz++;   /* 0.000ddd */
-    for (d->m = 0; taken < 18; c++) {
-        if (c == i1) c = f0;
-        d->m = d->m * 10 + (uint64_t)(*c - '0');
-        taken++;
-    }
-    d->digits = 19;
-    d->exp10 = (i0 < i1 ? (int)(i1 - i0) : -lz) - 18;
-}
 
 /* Decimal digits from c into *m (wrapping past 19 digits; skipped when
 ** values is 0, a constant where this is inlined); returns the byte after
@@ -103,9 +87,9 @@ static inline const char *take_digits(const char *c, uint64_t *m, int values)
 ** the tokenizer's fast path (Part II) finds a number's end with it.  No
 ** bound is checked: the bytes must be followed by one that is not part of
 ** a number, as a token in a reader's window is (by a delimiter or the
-** window's 0 sentinel). */
-/* Inlined into the fast path's loops, where its call and the stores into
-** d would cost as much as the scan itself (make bench-pbrt). */
+** window's 0 sentinel).  Inlined into the fast path's loops, where its
+** call and the stores into d would cost as much as the scan itself
+** (make bench-pbrt). */
 #if defined(__GNUC__)
 static inline int scan_decimal(const char **at, decimal *d, int values) __attribute__((always_inline));
 #endif
@@ -115,27 +99,35 @@ static inline int scan_decimal(const char **at, decimal *d, int values)
     ** (they are chars), which would keep the compiler from holding them
     ** in registers over the loops. */
     const char *c = *at, *i0, *i1, *f0 = NULL;
-    uint64_t m = 0;   /* wraps past 19 digits: long_decimal redoes it */
-    int exp10 = 0, k = DEC_OK, sig;
+    uint64_t m = 0;   /* wraps past 19 digits, where it is not kept */
+    int exp10 = 0, k = DEC_OK, sig, lz = 0, int_sig;
     d->negative = 0;
     d->plain = 1;
     if (*c == '-' || *c == '+') { d->negative = *c++ == '-'; d->plain = 0; }
     i0 = c;
     while (*c == '0') c++;   /* leading zeros */
     c = take_digits(i1 = c, &m, values);
-    sig = (int)(c - i1);
+    int_sig = sig = (int)(c - i1);
     if (*c == '.') {
         const char *s0;
         d->plain = 0;
         f0 = ++c;
         if (sig == 0) while (*c == '0') c++;   /* 0.000ddd: leading zeros still */
+        lz = (int)(c - f0);
         c = take_digits(s0 = c, &m, values);
         sig += (int)(c - s0);
         exp10 = -(int)(c - f0);
     }
     if (c - i0 - (f0 != NULL) <= 0) k = DEC_NO_DIGITS;
-    else if (sig > 18) long_decimal(i1, f0 ? f0 - 1 : c, f0 ? f0 : c, c, d);
-    else { d->m = m; d->digits = sig; d->exp10 = exp10; }
+    else if (sig > 18) {   /* the first 18 digits' place: the number's magnitude */
+        d->m = 0;
+        d->digits = 19;
+        d->exp10 = (int_sig > 0 ? int_sig : -lz) - 18;
+    } else {
+        d->m = m;
+        d->digits = sig;
+        d->exp10 = exp10;
+    }
     if (k == DEC_OK && (*c == 'e' || *c == 'E')) {
         int eneg = 0, e = 0;
         d->plain = 0;
@@ -343,7 +335,7 @@ static const unsigned char delimiter[256] = {
     ['\t'] = 1, ['\n'] = 1, ['\v'] = 1, ['\f'] = 1, ['\r'] = 1, [' '] = 1,
     ['"'] = 1, ['#'] = 1, ['['] = 1, [']'] = 1};
 
-/* The blanks peek_number skips (\f and \v are next_token's). */
+/* The blanks number_at skips (\f and \v are next_token's). */
 static const unsigned char blank[256] = {['\t'] = 1, ['\n'] = 1, ['\r'] = 1, [' '] = 1};
 
 /* Skips white space and comments; 1 when a token starts at pos, 0 at the
@@ -936,7 +928,7 @@ static brt_result value_index(parser *p, const token *t, wanted *w)
     return BRT_OK;
 }
 
-/* The numbers of P or indices straight from the window (peek_number),
+/* The numbers of P or indices straight from the window (number_at),
 ** checked as value_point and value_index check them; stops at the first
 ** token those must see (a number not settled here: its error, if any,
 ** is theirs to report, with the same message). */
