@@ -7,6 +7,7 @@
 #   make tsan         the threaded tests under ThreadSanitizer
 #   make bench        benchmarks (figures printed, never pass/fail)
 #   make bench-threads  speed-ups at 1 and 2 threads (README, "Threads")
+#   make bench-pbrt   pbrt and OBJ reading speed on the same triangles
 #   make mutants      mutation testing of the suite (tests/mutants/)
 #   make install      library, header and batchrt.pc under $(DESTDIR)$(PREFIX)
 #   make uninstall    removes them; make install-check: see INSTALL below
@@ -128,6 +129,25 @@ bench: all
 # Out of core: proxies on and off at 25 % of the geometry bytes (README, Benchmarks).
 bench-batched: all
 	./$(BUILD)/bench_batched landscape --scale 50
+
+# Tokenizing speed of the pbrt reader (issue 29): build/bench_pbrt opens
+# and streams the same triangles as an OBJ and as a pbrt file with one
+# inline trianglemesh (written here from the OBJ's own number text: its
+# "v x y z" and "f a b c" lines), PBRT_REPEAT times each, and checks that
+# both stream the same bits.  Wall-clock seconds, best and worst; a
+# Markdown table.  Figures only, never pass/fail.
+PBRT_MESH   ?= ../shared/data/meshes/dragon.obj.gz
+PBRT_REPEAT ?= 7
+PBRT_BENCH  ?= /tmp/batchrt-bench-pbrt
+.PHONY: bench-pbrt
+bench-pbrt: all
+	@mkdir -p $(PBRT_BENCH); d=$(PBRT_BENCH); \
+	gzip -dcf $(PBRT_MESH) > $$d/mesh.obj || exit 1; \
+	{ echo WorldBegin; echo 'Shape "trianglemesh" "point3 P" ['; awk '$$1 == "v" { print $$2, $$3, $$4 }' $$d/mesh.obj; \
+	  echo '] "integer indices" ['; awk '$$1 == "f" { print $$2 - 1, $$3 - 1, $$4 - 1 }' $$d/mesh.obj; echo ']'; \
+	} > $$d/mesh.pbrt || exit 1; \
+	echo "$(PBRT_MESH) as OBJ and as pbrt (one inline trianglemesh)"; \
+	./$(BUILD)/bench_pbrt $$d/mesh.obj $$d/mesh.pbrt --repeat $(PBRT_REPEAT)
 
 # == EMBREE (optional, cross-checking only; see README) ===================
 # "make embree" builds $(BUILD)/embree_trace against Embree 3 (Debian:

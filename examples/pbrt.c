@@ -153,8 +153,17 @@ static int decimal_float(const decimal *d, const char *s, size_t n, float *out)
     static const double tens[23] = {1e0,  1e1,  1e2,  1e3,  1e4,  1e5,  1e6,  1e7,
                                     1e8,  1e9,  1e10, 1e11, 1e12, 1e13, 1e14, 1e15,
                                     1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22};
+    static const float ftens[11] = {1e0f, 1e1f, 1e2f, 1e3f, 1e4f, 1e5f, 1e6f, 1e7f, 1e8f, 1e9f, 1e10f};
     char copy[128];
 #if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD == 0
+    if (d->digits <= 15 && d->m <= (1u << 24) && d->exp10 >= -10 && d->exp10 <= 10) {
+        /* Clinger's path in float (as the OBJ reader's): m and 10^10 are
+        ** exact floats, so one float division or product is correctly
+        ** rounded, and cheaper than the double one. */
+        float f = d->exp10 < 0 ? (float)d->m / ftens[-d->exp10] : (float)d->m * ftens[d->exp10];
+        *out = d->negative ? -f : f;
+        return NUM_OK;
+    }
     if (d->digits <= 15 && d->exp10 >= -22 && d->exp10 <= 22) {
         double v = d->exp10 < 0 ? (double)d->m / tens[-d->exp10] : (double)d->m * tens[d->exp10];
         float f = (float)v;
@@ -169,6 +178,7 @@ static int decimal_float(const decimal *d, const char *s, size_t n, float *out)
     }
 #else
     (void)tens;
+    (void)ftens;
 #endif
     if (n >= sizeof copy) return NUM_BAD;
     memcpy(copy, s, n);
