@@ -24,8 +24,10 @@
 ** transform in force; per object its shapes; per instance its object and
 ** transform (a brt_instance each, 52 bytes).  The streams read the numbers
 ** again from disk when run.  Memory grows with the number of shapes and
-** instances, never with triangles: a run holds one shape's vertex
-** positions (12 bytes a vertex) and one chunk of 65536 triangles.
+** instances, never with triangles: ex_pbrt_open holds a window of 1 MiB
+** per open file, and a run one window, one shape's vertex positions (12
+** bytes a vertex) and one chunk of 65536 triangles (tests/test_pbrt.c
+** checks the peak resident set against a 40 MB mesh).
 **
 ** WHAT IS READ
 **   Shape "trianglemesh"  "point3 P" and "integer indices" (indices may be
