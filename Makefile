@@ -7,6 +7,7 @@
 #   make tsan         the threaded tests (and layer 8's processes as threads) under ThreadSanitizer
 #   make bench        benchmarks (figures printed, never pass/fail)
 #   make bench-threads  speed-ups at 1 and 2 threads (README, "Threads")
+#   make bench-pbrt   pbrt and OBJ reading speed on the same triangles
 #   make mutants      mutation testing of the suite (tests/mutants/)
 #   make install      library, header and batchrt.pc under $(DESTDIR)$(PREFIX)
 #   make uninstall    removes them; make install-check: see INSTALL below
@@ -132,6 +133,25 @@ bench: all
 # Out of core: proxies on and off at 25 % of the geometry bytes (README, Benchmarks).
 bench-batched: all
 	./$(BUILD)/bench_batched landscape --scale 50
+
+# Tokenizing speed of the pbrt reader (issue 29): build/bench_pbrt opens
+# and streams the same triangles as an OBJ and as a pbrt file with one
+# inline trianglemesh (written here from the OBJ's own number text: its
+# "v x y z" and "f a b c" lines), PBRT_REPEAT times each, and checks that
+# both stream the same bits.  Wall-clock seconds, best and worst; a
+# Markdown table.  Figures only, never pass/fail.
+PBRT_MESH   ?= ../shared/data/meshes/dragon.obj.gz
+PBRT_REPEAT ?= 7
+PBRT_BENCH  ?= /tmp/batchrt-bench-pbrt
+.PHONY: bench-pbrt
+bench-pbrt: all
+	@mkdir -p $(PBRT_BENCH); d=$(PBRT_BENCH); \
+	gzip -dcf $(PBRT_MESH) > $$d/mesh.obj || exit 1; \
+	{ echo WorldBegin; echo 'Shape "trianglemesh" "point3 P" ['; awk '$$1 == "v" { print $$2, $$3, $$4 }' $$d/mesh.obj; \
+	  echo '] "integer indices" ['; awk '$$1 == "f" { print $$2 - 1, $$3 - 1, $$4 - 1 }' $$d/mesh.obj; echo ']'; \
+	} > $$d/mesh.pbrt || exit 1; \
+	echo "$(PBRT_MESH) as OBJ and as pbrt (one inline trianglemesh)"; \
+	./$(BUILD)/bench_pbrt $$d/mesh.obj $$d/mesh.pbrt --repeat $(PBRT_REPEAT)
 
 # == EMBREE (optional, cross-checking only; see README) ===================
 # "make embree" builds $(BUILD)/embree_trace against Embree 3 (Debian:
@@ -285,7 +305,7 @@ bench-instancing: all
 # == HARDENING (valgrind, fuzzing) ========================================
 #   make valgrind      the test suite, and the programs it runs, under
 #                      memcheck: any error or leak fails (T=... filters)
-#   make fuzz          libFuzzer + ASan + UBSan builds of the four readers
+#   make fuzz          libFuzzer + ASan + UBSan builds of the five readers
 #                      (tests/fuzz/fuzz_*.c) in $(BUILD)/fuzz, each run for
 #                      FUZZ_SECONDS from tests/corpus/NAME; new inputs go to
 #                      $(BUILD)/fuzz/corpus/NAME, crashes to $(BUILD)/fuzz/
@@ -296,7 +316,7 @@ bench-instancing: all
 #                      libFuzzer programs
 # The targets (tests/fuzz/targets.c) are also linked into run_tests, whose
 # "hardening:" tests replay tests/corpus on every "make test".
-FUZZ_TARGETS = obj ply scene rays
+FUZZ_TARGETS = obj ply scene rays pbrt
 FUZZ_SECONDS ?= 600
 FUZZ_CC ?= clang
 FUZZ_FLAGS = $(STD) $(WARN) $(TESTING) -O1 -g -fno-omit-frame-pointer \
@@ -325,17 +345,17 @@ $(BUILD)/tests/fuzz/targets.o $(BUILD)/tests/fuzz/replay.o: tests/fuzz/targets.h
 $(BUILD)/tests/fuzz:
 	$(Q)mkdir -p $@
 
-$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(LIB)
+$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/pbrt.o $(LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 fuzz-replay: $(BUILD)/tests/fuzz/replay
 	$(Q)for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
 
-$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h $(LIB_SRC) batchrt.h
+$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/pbrt.c examples/pbrt.h $(LIB_SRC) batchrt.h
 	$(SAY) FUZZ $@
 	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
-	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) tests/fuzz/targets.c $< -o $@ -lm
+	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/pbrt.c tests/fuzz/targets.c $< -o $@ -lm
 
 fuzz: $(FUZZ_BINS)
 	$(Q)for t in $(FUZZ_TARGETS); do $(call FUZZ_RUN,$(FUZZ_SECONDS)) || exit 1; done

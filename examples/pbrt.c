@@ -37,7 +37,7 @@
 #define CHUNK_TRIS 65536u           /* triangles per emitted chunk */
 #define MAX_TOKEN ((size_t)1 << 16) /* the longest token (a string, a number) */
 #define PASS1_WINDOW ((size_t)1 << 20)
-#define PASS2_WINDOW ((size_t)1 << 18)
+#define PASS2_WINDOW ((size_t)1 << 20)
 #define MAX_DEPTH 64                /* nested Includes */
 #define NO_OBJECT 0xFFFFFFFFu
 #define PI 3.14159265358979323846
@@ -48,60 +48,137 @@
 
 enum { NUM_OK, NUM_BAD, NUM_NOT_FINITE };
 
-/* The float strtof gives for the n characters at s.  pbrt reads every
-** number into a float, so we do too; transforms then run in double from
-** those floats.  The fast path is Clinger's (1990): with at most 15
-** significant digits and a power of ten of at most 22, one double
+/* A decimal number as scanned: value = m * 10^exp10 with up to 18
+** significant digits.  Past 18, m is not kept (decimal_float reads the
+** text with strtof past 15) and exp10 keeps the magnitude: the value
+** lies below 10^(18 + exp10). */
+typedef struct decimal {
+    uint64_t m;
+    int digits;             /* significant digits, 19 standing for more than 18 */
+    int exp10;
+    int negative;
+    int plain;              /* digits only: no sign, point or exponent */
+} decimal;
+
+enum { DEC_OK, DEC_NO_DIGITS, DEC_BAD_EXPONENT };
+
+/* Decimal digits from c into *m (wrapping past 19 digits; skipped when
+** values is 0, a constant where this is inlined); returns the byte after
+** them.  Two digits a round: half the loop's tests. */
+#if defined(__GNUC__)
+static inline const char *take_digits(const char *c, uint64_t *m, int values) __attribute__((always_inline));
+#endif
+static inline const char *take_digits(const char *c, uint64_t *m, int values)
+{
+    uint64_t v = *m;
+    unsigned a, b;
+    while ((a = (unsigned)(unsigned char)c[0] - '0') <= 9) {
+        if ((b = (unsigned)(unsigned char)c[1] - '0') > 9) { if (values) v = v * 10 + a; c++; break; }
+        if (values) v = v * 100 + a * 10 + b;
+        c += 2;
+    }
+    *m = v;
+    return c;
+}
+
+/* Scans [sign] digits [. digits] [(e|E) [sign] digits] from *at, stopping
+** at the first byte that cannot go on (*at then points there; with no
+** digit, just after the sign and the point).  One pass over the bytes:
+** the tokenizer's fast path (Part II) finds a number's end with it.  No
+** bound is checked: the bytes must be followed by one that is not part of
+** a number, as a token in a reader's window is (by a delimiter or the
+** window's 0 sentinel).  Inlined into the fast path's loops, where its
+** call and the stores into d would cost as much as the scan itself
+** (make bench-pbrt). */
+#if defined(__GNUC__)
+static inline int scan_decimal(const char **at, decimal *d, int values) __attribute__((always_inline));
+#endif
+static inline int scan_decimal(const char **at, decimal *d, int values)
+{
+    /* Locals, written to d once: stores through d might alias the bytes
+    ** (they are chars), which would keep the compiler from holding them
+    ** in registers over the loops. */
+    const char *c = *at, *i0, *i1, *f0 = NULL;
+    uint64_t m = 0;   /* wraps past 19 digits, where it is not kept */
+    int exp10 = 0, k = DEC_OK, sig, lz = 0, int_sig;
+    d->negative = 0;
+    d->plain = 1;
+    if (*c == '-' || *c == '+') { d->negative = *c++ == '-'; d->plain = 0; }
+    i0 = c;
+    while (*c == '0') c++;   /* leading zeros */
+    c = take_digits(i1 = c, &m, values);
+    int_sig = sig = (int)(c - i1);
+    if (*c == '.') {
+        const char *s0;
+        d->plain = 0;
+        f0 = ++c;
+        if (sig == 0) while (*c == '0') c++;   /* 0.000ddd: leading zeros still */
+        lz = (int)(c - f0);
+        c = take_digits(s0 = c, &m, values);
+        sig += (int)(c - s0);
+        exp10 = -(int)(c - f0);
+    }
+    if (c - i0 - (f0 != NULL) <= 0) k = DEC_NO_DIGITS;
+    else if (sig > 18) {   /* the first 18 digits' place: the number's magnitude */
+        d->m = 0;
+        d->digits = 19;
+        d->exp10 = (int_sig > 0 ? int_sig : -lz) - 18;
+    } else {
+        d->m = m;
+        d->digits = sig;
+        d->exp10 = exp10;
+    }
+    if (k == DEC_OK && (*c == 'e' || *c == 'E')) {
+        int eneg = 0, e = 0;
+        d->plain = 0;
+        c++;
+        if (*c == '-' || *c == '+') eneg = *c++ == '-';
+        if (*c < '0' || *c > '9') k = DEC_BAD_EXPONENT;
+        for (; *c >= '0' && *c <= '9'; c++) if (e < 100000) e = e * 10 + (*c - '0');
+        d->exp10 += eneg ? -e : e;
+    }
+    *at = c;
+    return k;
+}
+
+/* The float strtof gives for the n characters at s, scanned as d.  pbrt
+** reads every number into a float, so we do too; transforms then run in
+** double from those floats.  The fast path is Clinger's (1990): with at
+** most 15 significant digits and a power of ten of at most 22, one double
 ** division or product is correctly rounded; rounding that double to float
 ** is then right unless it lies exactly between two floats (double
 ** rounding), which, like every other case, goes to strtof. */
-static int scan_float(const char *s, size_t n, float *out)
+static int decimal_float(const decimal *d, const char *s, size_t n, float *out)
 {
     static const double tens[23] = {1e0,  1e1,  1e2,  1e3,  1e4,  1e5,  1e6,  1e7,
                                     1e8,  1e9,  1e10, 1e11, 1e12, 1e13, 1e14, 1e15,
                                     1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22};
-    const char *c = s, *end = s + n;
-    uint64_t m = 0;
-    int digits = 0, exp10 = 0, negative = 0, any = 0;
+    static const float ftens[11] = {1e0f, 1e1f, 1e2f, 1e3f, 1e4f, 1e5f, 1e6f, 1e7f, 1e8f, 1e9f, 1e10f};
     char copy[128];
-    if (c < end && (*c == '-' || *c == '+')) negative = *c++ == '-';
-    /* m holds the first 18 significant digits; exp10 scales it. */
-    for (; c < end && *c >= '0' && *c <= '9'; c++, any = 1) {
-        if (m == 0 && *c == '0') continue;
-        if (++digits <= 18) m = m * 10 + (uint64_t)(*c - '0');
-        else exp10++;
-    }
-    if (c < end && *c == '.') {
-        for (c++; c < end && *c >= '0' && *c <= '9'; c++, any = 1) {
-            if (m == 0 && *c == '0') { exp10--; continue; }
-            if (++digits <= 18) { m = m * 10 + (uint64_t)(*c - '0'); exp10--; }
-        }
-    }
-    if (!any) return (n >= 3 && (strchr("iInN", c[0]) != NULL)) ? NUM_NOT_FINITE : NUM_BAD;
-    if (c < end && (*c == 'e' || *c == 'E')) {
-        int eneg = 0, e = 0;
-        c++;
-        if (c < end && (*c == '-' || *c == '+')) eneg = *c++ == '-';
-        if (c >= end || *c < '0' || *c > '9') return NUM_BAD;
-        for (; c < end && *c >= '0' && *c <= '9'; c++) if (e < 100000) e = e * 10 + (*c - '0');
-        exp10 += eneg ? -e : e;
-    }
-    if (c != end) return NUM_BAD;
 #if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD == 0
-    if (digits <= 15 && exp10 >= -22 && exp10 <= 22) {
-        double d = exp10 < 0 ? (double)m / tens[-exp10] : (double)m * tens[exp10];
-        float f = (float)d;
+    if (d->digits <= 15 && d->m <= (1u << 24) && d->exp10 >= -10 && d->exp10 <= 10) {
+        /* Clinger's path in float (as the OBJ reader's): m and 10^10 are
+        ** exact floats, so one float division or product is correctly
+        ** rounded, and cheaper than the double one. */
+        float f = d->exp10 < 0 ? (float)d->m / ftens[-d->exp10] : (float)d->m * ftens[d->exp10];
+        *out = d->negative ? -f : f;
+        return NUM_OK;
+    }
+    if (d->digits <= 15 && d->exp10 >= -22 && d->exp10 <= 22) {
+        double v = d->exp10 < 0 ? (double)d->m / tens[-d->exp10] : (double)d->m * tens[d->exp10];
+        float f = (float)v;
         uint64_t bits;
-        memcpy(&bits, &d, sizeof bits);
+        memcpy(&bits, &v, sizeof bits);
         /* A normal float's midpoint is a double whose 29 bits below the
         ** float's 23 are exactly 1 followed by 28 zeros. */
-        if (m == 0 || (d > 1e-30 && d < 1e30 && (bits & 0x1FFFFFFFu) != 0x10000000u)) {
-            *out = negative ? -f : f;
+        if (d->m == 0 || (v > 1e-30 && v < 1e30 && (bits & 0x1FFFFFFFu) != 0x10000000u)) {
+            *out = d->negative ? -f : f;
             return NUM_OK;
         }
     }
 #else
     (void)tens;
+    (void)ftens;
 #endif
     if (n >= sizeof copy) return NUM_BAD;
     memcpy(copy, s, n);
@@ -110,20 +187,41 @@ static int scan_float(const char *s, size_t n, float *out)
     return isfinite(*out) ? NUM_OK : NUM_NOT_FINITE;
 }
 
+/* Whether decimal_float will give NUM_OK, without converting (pass 1's
+** check of P): below 10^38 the value rounds to a finite float; larger
+** or longer numbers go the whole way (0: not settled here). */
+static int decimal_surely_finite(const decimal *d, size_t n)
+{
+    return n < 128 && (d->digits < 18 ? d->digits : 18) + d->exp10 <= 38;
+}
+
+/* A vertex index as scan_index reads it (0: not one). */
+static int decimal_index(const decimal *d, size_t n, uint32_t *out)
+{
+    if (!d->plain || n > 10 || d->m > 0xFFFFFFFFu) return 0;
+    *out = (uint32_t)d->m;
+    return 1;
+}
+
+/* A whole token as a float: NUM_OK, NUM_BAD (not a number) or
+** NUM_NOT_FINITE (inf, nan, or beyond the float range). */
+static int scan_float(const char *s, size_t n, float *out)
+{
+    const char *c = s, *end = s + n;
+    decimal d;
+    int k = scan_decimal(&c, &d, 1);
+    if (k == DEC_NO_DIGITS) return (n >= 3 && (strchr("iInN", c[0]) != NULL)) ? NUM_NOT_FINITE : NUM_BAD;
+    if (k != DEC_OK || c != end) return NUM_BAD;
+    return decimal_float(&d, s, n, out);
+}
+
 /* A non-negative decimal integer below 2^32 (pbrt's indices are ints;
 ** a sign, point or exponent is an error). */
 static int scan_index(const char *s, size_t n, uint32_t *out)
 {
-    uint64_t v = 0;
-    size_t i;
-    if (n == 0 || n > 10) return 0;
-    for (i = 0; i < n; i++) {
-        if (s[i] < '0' || s[i] > '9') return 0;
-        v = v * 10 + (uint64_t)(s[i] - '0');
-    }
-    if (v > 0xFFFFFFFFu) return 0;
-    *out = (uint32_t)v;
-    return 1;
+    const char *c = s;
+    decimal d;
+    return n > 0 && scan_decimal(&c, &d, 1) == DEC_OK && c == s + n && decimal_index(&d, n, out);
 }
 
 /* ===================================================================== */
@@ -152,7 +250,8 @@ typedef struct reader {
     int fd;
     uint32_t file;
     const char *name;       /* for messages */
-    char *buf;
+    char *buf;              /* cap + 1 bytes: buf[end] is 0, a sentinel that ends
+                            ** every number scan (scan_decimal) */
     size_t cap, pos, end;   /* unread bytes: buf[pos .. end) */
     uint64_t base;          /* file offset of buf[0]; the fd stands at base + end */
     uint64_t line;
@@ -182,8 +281,9 @@ static brt_result reader_open(reader *r, const char *path, uint32_t file, size_t
     }
     r->dev = st.st_dev;
     r->ino = st.st_ino;
-    r->buf = malloc(cap);
+    r->buf = malloc(cap + 1);   /* + the sentinel */
     if (!r->buf) { close(r->fd); r->fd = -1; return brt_fail(err, BRT_ENOMEM, "out of memory"); }
+    r->buf[0] = 0;
     r->cap = cap;
     r->file = file;
     r->name = path;
@@ -208,6 +308,7 @@ static int reader_fill(reader *r)
         r->base += r->pos;
         r->end -= r->pos;
         r->pos = 0;
+        r->buf[r->end] = 0;
     }
     while (r->end < r->cap && !r->eof) {
         ssize_t got = read(r->fd, r->buf + r->end, r->cap - r->end);
@@ -215,6 +316,7 @@ static int reader_fill(reader *r)
         if (got < 0) return -1;
         if (got == 0) r->eof = 1;
         r->end += (size_t)got;
+        r->buf[r->end] = 0;
         if (r->end - r->pos >= MAX_TOKEN) break;   /* enough for a token: stay fast */
     }
     return 0;
@@ -232,6 +334,7 @@ static int reader_seek(reader *r, uint64_t offset, uint64_t line)
     if (lseek(r->fd, (off_t)offset, SEEK_SET) == (off_t)-1) return -1;
     r->base = offset;
     r->pos = r->end = 0;
+    r->buf[0] = 0;
     r->eof = 0;
     return 0;
 }
@@ -241,6 +344,9 @@ static int reader_seek(reader *r, uint64_t offset, uint64_t line)
 static const unsigned char delimiter[256] = {
     ['\t'] = 1, ['\n'] = 1, ['\v'] = 1, ['\f'] = 1, ['\r'] = 1, [' '] = 1,
     ['"'] = 1, ['#'] = 1, ['['] = 1, [']'] = 1};
+
+/* The blanks number_at skips (\f and \v are next_token's). */
+static const unsigned char blank[256] = {['\t'] = 1, ['\n'] = 1, ['\r'] = 1, [' '] = 1};
 
 /* Skips white space and comments; 1 when a token starts at pos, 0 at the
 ** end of the file, -1 on a read error. */
@@ -316,6 +422,37 @@ static brt_result next_token(reader *r, token *t, brt_error *err)
     default: t->kind = TOK_WORD;
     }
     return BRT_OK;
+}
+
+/* Control characters of text (a name may hold "\n" escapes) become '?',
+** so that a message or the summary stays one line. */
+static void printable(char *text)
+{
+    for (; *text; text++)
+        if ((unsigned char)*text < 32 || *text == 127) *text = '?';
+}
+
+/* The fast path of the number lists (a mesh's P and indices, nearly all
+** of a big file's bytes).  From *at in a window ending at e (its sentinel
+** behind): skips blanks (not comments), counting newlines in *line, and
+** when a number lies whole in the window and a delimiter ends it, scans
+** it into d and returns its length, *at at its first byte; 0 when the
+** next token is for next_token (a comment, ']', the window's end, a word
+** that is not a number), *at there.  One scan of the bytes finds the
+** number's end and its value, where next_token and scan_float would scan
+** them twice; the callers keep *at and *line in registers over a list. */
+#if defined(__GNUC__)
+static inline size_t number_at(const char **at, const char *e, uint64_t *line, decimal *d, int values)
+    __attribute__((always_inline));
+#endif
+static inline size_t number_at(const char **at, const char *e, uint64_t *line, decimal *d, int values)
+{
+    const char *c = *at, *s;
+    if (*c == ' ') c++;   /* the usual one blank, then the rest */
+    for (; blank[(unsigned char)*c]; c++) *line += *c == '\n';   /* the sentinel is no blank */
+    *at = s = c;
+    if (scan_decimal(&c, d, values) != DEC_OK || c == e || !delimiter[(unsigned char)*c]) return 0;
+    return (size_t)(c - s);
 }
 
 /* A string token's text with escapes resolved, into out (size bytes);
@@ -481,6 +618,7 @@ typedef struct shape {
     uint32_t line;          /* of the Shape directive */
     uint32_t file;
     int kind;
+    int identity;           /* xform is the identity: points pass unchanged */
 } shape;
 
 /* An object name: defined by ObjectBegin, used by ObjectInstance. */
@@ -651,6 +789,7 @@ static brt_result count_skipped(parser *p, const char *key)
         if (strcmp(s->skipped[i].key, key) == 0) { s->skipped[i].count++; return BRT_OK; }
     if (GROW(p, s->skipped, s->skip_count, s->skip_cap)) return BRT_ENOMEM;
     snprintf(s->skipped[s->skip_count].key, sizeof s->skipped->key, "%s", key);
+    printable(s->skipped[s->skip_count].key);
     s->skipped[s->skip_count++].count = 1;
     return BRT_OK;
 }
@@ -738,6 +877,10 @@ static int known_type(const char *type)
 ** fn (NULL: skip it).  *first: the first token (the '[' or the value). */
 typedef brt_result (*value_fn)(parser *p, const token *t, wanted *w);
 
+static brt_result value_point(parser *p, const token *t, wanted *w);
+static brt_result value_index(parser *p, const token *t, wanted *w);
+static void take_numbers(parser *p, value_fn fn, wanted *w);
+
 static brt_result read_value(parser *p, const char *name, value_fn fn, wanted *w, token *first)
 {
     token t;
@@ -749,6 +892,7 @@ static brt_result read_value(parser *p, const char *name, value_fn fn, wanted *w
         return fail_at(p, first, BRT_EPARSE, "parameter \"%s\": expected a value, got '%s'", name,
                        shown(first, b, sizeof b));
     for (;;) {
+        if (fn == value_point || fn == value_index) take_numbers(p, fn, w);
         if ((r = next(p, &t)) != BRT_OK) return r;
         if (t.kind == TOK_CLOSE) return BRT_OK;
         if (t.kind != TOK_WORD && t.kind != TOK_STRING)
@@ -769,6 +913,20 @@ static brt_result value_point(parser *p, const token *t, wanted *w)
     return BRT_OK;
 }
 
+/* Counts an index; the largest one's place names it in messages. */
+static void note_index(wanted *w, uint32_t v, uint32_t file, uint64_t line)
+{
+    if (w->i_count == 0 || v > w->i_max) {
+        w->i_max = v;
+        w->i_token.kind = TOK_WORD;
+        w->i_token.s = "";
+        w->i_token.n = 0;
+        w->i_token.file = file;
+        w->i_token.line = line;
+    }
+    w->i_count++;
+}
+
 static brt_result value_index(parser *p, const token *t, wanted *w)
 {
     uint32_t v;
@@ -776,9 +934,32 @@ static brt_result value_index(parser *p, const token *t, wanted *w)
     if (t->kind != TOK_WORD || !scan_index(t->s, t->n, &v))
         return fail_at(p, t, BRT_EPARSE, "\"indices\": expected a vertex index (0 .. 2^32-1), got '%s'",
                        shown(t, b, sizeof b));
-    if (w->i_count == 0 || v > w->i_max) { w->i_max = v; w->i_token = *t; w->i_token.s = ""; w->i_token.n = 0; }
-    w->i_count++;
+    note_index(w, v, t->file, t->line);
     return BRT_OK;
+}
+
+/* The numbers of P or indices straight from the window (number_at),
+** checked as value_point and value_index check them; stops at the first
+** token those must see (a number not settled here: its error, if any,
+** is theirs to report, with the same message). */
+static void take_numbers(parser *p, value_fn fn, wanted *w)
+{
+    reader *r = &p->files[p->depth - 1];
+    const char *c = r->buf + r->pos, *e = r->buf + r->end;
+    uint64_t line = r->line, count = 0;
+    decimal d;
+    size_t n;
+    uint32_t v;
+    if (p->peeked) return;
+    if (fn == value_point) {
+        for (; (n = number_at(&c, e, &line, &d, 0)) != 0 && decimal_surely_finite(&d, n); c += n) count++;
+        w->p_count += count;
+    } else {
+        for (; (n = number_at(&c, e, &line, &d, 1)) != 0 && decimal_index(&d, n, &v); c += n)
+            note_index(w, v, r->file, line);
+    }
+    r->pos = (size_t)(c - r->buf);
+    r->line = line;
 }
 
 static brt_result value_fov(parser *p, const token *t, wanted *w)
@@ -1060,9 +1241,12 @@ static brt_result do_object_instance(parser *p, const token *d)
         s->objects[slot].use_file = d->file;
         s->objects[slot].use_line = (uint32_t)d->line;
     }
-    inst = &s->instances[s->instance_count++];
+    inst = &s->instances[s->instance_count];
     inst->prototype = slot;   /* a slot until the end of pass 1 (finish) */
-    for (k = 0; k < 12; k++) inst->xform[k] = (float)p->g.ctm[k];
+    for (k = 0; k < 12; k++)
+        if (!isfinite(inst->xform[k] = (float)p->g.ctm[k]))
+            return fail_at(p, d, BRT_EPARSE, "ObjectInstance: the transform is not finite in float");
+    s->instance_count++;
     return BRT_OK;
 }
 
@@ -1093,11 +1277,14 @@ static brt_result check_mesh(parser *p, const token *d, wanted *w, const char *n
 static brt_result add_shape(parser *p, const token *d, const wanted *w)
 {
     ex_pbrt *s = p->scene;
+    double identity[12];
     shape *sh;
     if (GROW(p, s->shapes, s->shape_count, s->shape_cap)) return BRT_ENOMEM;
     sh = &s->shapes[s->shape_count++];
     memset(sh, 0, sizeof *sh);
     memcpy(sh->xform, p->g.ctm, sizeof sh->xform);
+    xf_identity(identity);
+    sh->identity = memcmp(identity, sh->xform, sizeof identity) == 0;
     sh->kind = w->shape_kind;
     sh->p_offset = w->p_offset; sh->p_line = w->p_line; sh->p_count = w->p_count; sh->p_file = w->p_file;
     sh->i_offset = w->i_offset; sh->i_line = w->i_line; sh->i_count = w->i_count;
@@ -1174,6 +1361,8 @@ static brt_result do_camera(parser *p, const token *d)
         s->eye[k] = (float)w2c[4 * k + 3];
         s->target[k] = (float)(w2c[4 * k + 3] + dir[k]);
         s->up[k] = (float)up[k];
+        if (!isfinite(s->eye[k]) || !isfinite(s->target[k]))
+            return fail_at(p, d, BRT_EPARSE, "Camera: the camera position is not finite in float");
     }
     /* Mirrored when camera +x (pbrt's image right) opposes forward x up. */
     s->mirrored = right[0] * (dir[1] * up[2] - dir[2] * up[1]) + right[1] * (dir[2] * up[0] - dir[0] * up[2])
@@ -1379,6 +1568,7 @@ typedef struct run {
     float *positions;
     size_t position_cap;
     uint32_t face[4];       /* the patch being read */
+    int corners;            /* of it read so far */
 } run;
 
 static brt_result run_changed(run *u, const shape *sh)
@@ -1402,13 +1592,28 @@ static brt_result run_seek(run *u, uint32_t file, uint64_t offset, uint64_t line
 }
 
 /* Reads count numbers of a value recorded in pass 1 ('[' n... ']' or one
-** number) and hands each to fn through a token. */
-typedef brt_result (*number_fn)(run *u, const token *t, uint64_t i, const shape *sh);
+** number) and hands each to fn: its text (s, n) and its scan d. */
+typedef brt_result (*number_fn)(run *u, const char *s, size_t n, const decimal *d, uint64_t i,
+                                const shape *sh);
 
-static brt_result run_numbers(run *u, const shape *sh, uint32_t file, uint64_t offset, uint64_t line,
-                              uint64_t count, number_fn fn)
+/* A number through next_token (the slow path); 0 when not one. */
+static int token_number(const token *t, decimal *d)
+{
+    const char *c = t->s;
+    return t->kind == TOK_WORD && scan_decimal(&c, d, 1) == DEC_OK && c == t->s + t->n;
+}
+
+/* Inlined at its two calls, so that fn is known there and its call is
+** direct (make bench-pbrt). */
+#if defined(__GNUC__)
+static inline brt_result run_numbers(run *u, const shape *sh, uint32_t file, uint64_t offset, uint64_t line,
+                                     uint64_t count, number_fn fn) __attribute__((always_inline));
+#endif
+static inline brt_result run_numbers(run *u, const shape *sh, uint32_t file, uint64_t offset, uint64_t line,
+                                     uint64_t count, number_fn fn)
 {
     token t;
+    decimal d;
     uint64_t i;
     int bracket;
     brt_result r = run_seek(u, file, offset, line);
@@ -1416,22 +1621,45 @@ static brt_result run_numbers(run *u, const shape *sh, uint32_t file, uint64_t o
     bracket = t.kind == TOK_OPEN;
     if (!bracket && count != 1) return run_changed(u, sh);
     for (i = 0; i < count; i++) {
-        if (bracket && (r = next_token(&u->in, &t, u->out.err)) != BRT_OK) return r;
-        if (t.kind != TOK_WORD) return run_changed(u, sh);
-        if ((r = fn(u, &t, i, sh)) != BRT_OK) return r;
+        size_t n = 0;
+        if (bracket) {
+            const char *c = u->in.buf + u->in.pos;
+            n = number_at(&c, u->in.buf + u->in.end, &u->in.line, &d, 1);
+            u->in.pos = (size_t)(c - u->in.buf) + n;
+            t.s = c;
+            t.n = n;
+        }
+        if (n == 0) {
+            if (bracket && (r = next_token(&u->in, &t, u->out.err)) != BRT_OK) return r;
+            if (!token_number(&t, &d)) return run_changed(u, sh);
+        }
+        if ((r = fn(u, t.s, t.n, &d, i, sh)) != BRT_OK) return r;
     }
     if (bracket && ((r = next_token(&u->in, &t, u->out.err)) != BRT_OK || t.kind != TOK_CLOSE))
         return r != BRT_OK ? r : run_changed(u, sh);
     return BRT_OK;
 }
 
-static brt_result number_position(run *u, const token *t, uint64_t i, const shape *sh)
+/* A point through a shape's transform may overflow the float range,
+** which pass 1 (numbers only) cannot see: the shape is refused then. */
+static brt_result transform_point(brt_error *err, const ex_pbrt *scene, const shape *sh, const float p[3],
+                                  float out[3])
+{
+    xf_point(sh->xform, p, out);
+    if (isfinite(out[0]) && isfinite(out[1]) && isfinite(out[2])) return BRT_OK;
+    return brt_fail(err, BRT_EPARSE, "%s:%lu: Shape: a point is not finite in float after the transform in force",
+                    scene->files[sh->file], (unsigned long)sh->line);
+}
+
+static brt_result number_position(run *u, const char *s, size_t n, const decimal *d, uint64_t i,
+                                  const shape *sh)
 {
     float f;
-    if (scan_float(t->s, t->n, &f) != NUM_OK) return run_changed(u, sh);
+    if (decimal_float(d, s, n, &f) != NUM_OK) return run_changed(u, sh);
     u->positions[i] = f;
-    if (i % 3 == 2) xf_point(sh->xform, &u->positions[i - 2], &u->positions[i - 2]);
-    return BRT_OK;
+    /* xf_point gives an identity's points back bit for bit: skipped. */
+    if (i % 3 != 2 || sh->identity) return BRT_OK;
+    return transform_point(u->out.err, u->scene, sh, &u->positions[i - 2], &u->positions[i - 2]);
 }
 
 /* Indices are handed on a patch at a time: 3 (a triangle) or 4 (a
@@ -1444,14 +1672,17 @@ static brt_result emit_face(run *u, const uint32_t *v, int bilinear)
     return sink_add(&u->out, p + 3 * (size_t)v[0], p + 3 * (size_t)v[3], p + 3 * (size_t)v[2]);
 }
 
-static brt_result number_index(run *u, const token *t, uint64_t i, const shape *sh)
+static brt_result number_index(run *u, const char *s, size_t n, const decimal *d, uint64_t i,
+                               const shape *sh)
 {
-    static const int per_kind[2] = {3, 4};
-    uint32_t *face = u->face;
-    int per = per_kind[sh->kind == SHAPE_BILINEAR];
-    if (!scan_index(t->s, t->n, &face[i % (uint64_t)per]) || face[i % (uint64_t)per] >= sh->p_count / 3)
-        return run_changed(u, sh);
-    return (int)(i % (uint64_t)per) == per - 1 ? emit_face(u, face, per == 4) : BRT_OK;
+    int bilinear = sh->kind == SHAPE_BILINEAR;
+    uint32_t *v = &u->face[u->corners];
+    (void)s;
+    (void)i;
+    if (!decimal_index(d, n, v) || *v >= sh->p_count / 3) return run_changed(u, sh);
+    if (++u->corners < 3 + bilinear) return BRT_OK;
+    u->corners = 0;
+    return emit_face(u, u->face, bilinear);
 }
 
 /* A trianglemesh or bilinearmesh: positions first (they may come after
@@ -1471,6 +1702,7 @@ static brt_result run_mesh(run *u, const shape *sh)
     r = run_numbers(u, sh, sh->p_file, sh->p_offset, sh->p_line, sh->p_count, number_position);
     if (r != BRT_OK) return r;
     if (!sh->has_indices) return emit_face(u, implicit, sh->kind == SHAPE_BILINEAR);
+    u->corners = 0;
     return run_numbers(u, sh, sh->i_file, sh->i_offset, sh->i_line, sh->i_count, number_index);
 }
 
@@ -1485,11 +1717,11 @@ static brt_result ply_chunk(void *user, const float *corners, uint32_t count, ui
     (void)err;
     for (i = 0; i < count; i++) {
         float c[9];
-        brt_result r;
-        xf_point(pp->sh->xform, corners + 9 * (size_t)i, c);
-        xf_point(pp->sh->xform, corners + 9 * (size_t)i + 3, c + 3);
-        xf_point(pp->sh->xform, corners + 9 * (size_t)i + 6, c + 6);
-        if ((r = sink_add(&pp->u->out, c, c + 3, c + 6)) != BRT_OK) return r;
+        brt_result r = BRT_OK;
+        int k;
+        for (k = 0; k < 3 && r == BRT_OK; k++)
+            r = transform_point(pp->u->out.err, pp->u->scene, pp->sh, corners + 9 * (size_t)i + 3 * k, c + 3 * k);
+        if (r != BRT_OK || (r = sink_add(&pp->u->out, c, c + 3, c + 6)) != BRT_OK) return r;
     }
     return BRT_OK;
 }
@@ -1565,6 +1797,7 @@ static brt_result run_shapes(const ex_pbrt *scene, size_t first, size_t count, u
         r = sh->kind == SHAPE_PLY ? run_ply(&u, sh) : run_mesh(&u, sh);
     }
     if (r == BRT_OK) r = sink_flush(&u.out);
+    if (r != BRT_OK && err) printable(err->message);
     if (u.in.buf) reader_close(&u.in);
     free(u.positions);
     free(u.out.corners);
@@ -1618,6 +1851,7 @@ brt_result ex_pbrt_open(const char *path, ex_pbrt **out, brt_error *err)
     xf_identity(p.g.ctm);
     if (!(p.scene = calloc(1, sizeof *p.scene))) return brt_fail(err, BRT_ENOMEM, "out of memory");
     r = parse(&p, path);
+    if (r != BRT_OK && err) printable(err->message);
     while (p.depth > 0) reader_close(&p.files[--p.depth]);
     for (i = 0; i < p.named_count; i++) free(p.named[i].name);
     free(p.named);

@@ -24,8 +24,10 @@
 ** transform in force; per object its shapes; per instance its object and
 ** transform (a brt_instance each, 52 bytes).  The streams read the numbers
 ** again from disk when run.  Memory grows with the number of shapes and
-** instances, never with triangles: a run holds one shape's vertex
-** positions (12 bytes a vertex) and one chunk of 65536 triangles.
+** instances, never with triangles: ex_pbrt_open holds a window of 1 MiB
+** per open file, and a run one window, one shape's vertex positions (12
+** bytes a vertex) and one chunk of 65536 triangles (tests/test_pbrt.c
+** checks the peak resident set against a 40 MB mesh).
 **
 ** WHAT IS READ
 **   Shape "trianglemesh"  "point3 P" and "integer indices" (indices may be
@@ -94,10 +96,14 @@
 ** ObjectBegin, an Include cycle, a missing file, P not a multiple of 3,
 ** indices not a multiple of 3 (4 for bilinearmesh) or out of range, a
 ** non-finite number, a non-affine matrix, a singular transform at a shape,
-** an instance or the camera.  (The condition-number limit of instances,
-** BRT_MAX_CONDITION, is the library's to check.)  The streams report
-** errors the same way (a PLY file's are brt_mesh_stream's), and BRT_EIO
-** when a file changed after ex_pbrt_open read it.
+** an instance or the camera, an instance's transform or the camera's
+** position beyond the float range.  (The condition-number limit of
+** instances, BRT_MAX_CONDITION, is the library's to check.)  The streams
+** report errors the same way (a PLY file's are brt_mesh_stream's): a
+** point that overflows the float range through its shape's transform
+** (BRT_EPARSE), BRT_EIO when a file changed after ex_pbrt_open read it.
+** Control characters of names in messages and in the summary (a "\n"
+** escape in a string) are shown as '?': every message is one line.
 */
 #ifndef BRT_EXAMPLES_PBRT_H
 #define BRT_EXAMPLES_PBRT_H

@@ -18,6 +18,8 @@
 #include <string.h>
 #include <stdio.h>
 #include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 /* ---- helpers --------------------------------------------------------- */
 
@@ -691,7 +693,10 @@ static void test_numbers_as_strtof(void)
 {
     static const char *const fixed[] = {"1.", ".5", "-0", "+2.5e-3", "0.1", "16777217", "3.4028235e38",
                                         "1e-45", "1.17549435e-38", "0.000000000000000000000000000001",
-                                        "123456789012345678901234567890", "7.038531e-26", "33554431"};
+                                        "123456789012345678901234567890", "7.038531e-26", "33554431",
+                                        /* past 18 significant digits, leading zeros */
+                                        "0.00012345678901234567890123", "1.23456789012345678901234",
+                                        "12345678901234567.5", "00000.5", "-000123.4500", "9.99999999999999999999e37"};
     const size_t count = 3000;
     size_t cap = count * 48 + 256, n = 0, i, nf = sizeof fixed / sizeof *fixed;
     char *text = malloc(cap), (*words)[40] = malloc(count * sizeof *words);
@@ -797,10 +802,121 @@ static void test_mesh_errors(void)
                  BRT_EPARSE, "e_neg.pbrt:2: \"indices\": expected a vertex index");
     expect_error("e_inf.pbrt", "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0\n1e39 0 0 0 1 0]\n", BRT_EPARSE,
                  "e_inf.pbrt:3: \"P\": non-finite number '1e39'");
+    /* Past FLT_MAX with a short mantissa: the fast path of pass 1 must not take it. */
+    expect_error("e_inf2.pbrt", "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 3.5e38 0 0 0 1 0]\n", BRT_EPARSE,
+                 "e_inf2.pbrt:2: \"P\": non-finite number '3.5e38'");
+    expect_error("e_inf3.pbrt", "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1\n"
+                 "1234567890123456789012345678901234567890.5]\n", BRT_EPARSE, "e_inf3.pbrt:3: \"P\": non-finite number");
     expect_error("e_nan.pbrt", "WorldBegin\nTranslate 0 nan 0\n", BRT_EPARSE, "e_nan.pbrt:2: non-finite number 'nan'");
     expect_error("e_num.pbrt", "WorldBegin\nScale 1 x 1\n", BRT_EPARSE, "e_num.pbrt:2: expected a number, got 'x'");
     expect_error("e_noP.pbrt", "WorldBegin\nShape \"trianglemesh\" \"integer indices\" [0 1 2]\n", BRT_EPARSE,
                  "e_noP.pbrt:2: Shape \"trianglemesh\" without \"point3 P\"");
+}
+
+/* The fuzz target's findings (tests/corpus/pbrt/crash-*): a name with a
+** "\n" escape kept messages and the summary one line; numbers finite in
+** float that overflow through a transform refused -- a world shape's
+** point (at stream time: pass 1 reads numbers, not points), an
+** instance's transform, the camera's position. */
+static void test_float_range_and_one_line(void)
+{
+    ex_pbrt *s;
+    brt_scene_source src;
+    brt_error err;
+    tris t;
+    brt_result r;
+    expect_error("e_nl.pbrt", "Include \"a\\nb\"\n", BRT_EIO, "e_nl.pbrt:1: cannot read included file");
+    expect_error("e_nl.pbrt", "Include \"a\\nb\"\n", BRT_EIO, "a?b");
+    expect_error("e_inst_inf.pbrt", "Scale 1e30 1e30 1e30\nScale 1e30 1e30 1e30\nObjectBegin \"a\"\n" "ObjectEnd\n"
+                 "ObjectInstance \"a\"\n", BRT_EPARSE, "e_inst_inf.pbrt:5: ObjectInstance: the transform is not finite in float");
+    expect_error("e_cam_inf.pbrt", "Translate 1e38 0 0\nScale 1e-38 1 1\nCamera \"perspective\"\n", BRT_EPARSE,
+                 "e_cam_inf.pbrt:3: Camera: the camera position is not finite in float");
+    if ((s = open_text("e_nl_skip.pbrt", "WorldBegin\nShape \"x\\ny\"\nCoordSysTransform \"p\\rq\"\n")) != NULL) {
+        EXPECT(strcmp(ex_pbrt_skipped(s), "skipped: 1 Shape \"x?y\", 1 CoordSysTransform \"p?q\" (unknown)") == 0,
+               "summary \"%s\"", ex_pbrt_skipped(s));
+        ex_pbrt_close(s);
+    }
+    s = open_text("e_corner_inf.pbrt", "WorldBegin\n" "Shape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0]\n"
+                  "Scale 1e30 1e30 1e30\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1e30 0 0 0 1 0]\n");
+    if (!s) return;
+    memset(&t, 0, sizeof t);
+    ex_pbrt_source(s, &src);
+    r = src.world.run(src.world.user, collect, &t, &err);
+    EXPECT(r == BRT_EPARSE && strstr(err.message, "e_corner_inf.pbrt:4: Shape: a point is not finite in float"),
+           "stream: %s (%s)", brt_result_string(r), r == BRT_OK ? "streamed" : err.message);
+    free(t.c);
+    ex_pbrt_close(s);
+}
+
+/* Counts streamed triangles, nothing kept. */
+static brt_result count_only(void *user, const float *corners, uint32_t count, uint32_t first, brt_error *err)
+{
+    (void)corners;
+    (void)first;
+    (void)err;
+    *(uint64_t *)user += count;
+    return BRT_OK;
+}
+
+/* What the child of test_bounded_memory reports. */
+typedef struct memory_report { uint64_t growth, triangles; int result; } memory_report;
+
+/* The issue's "a 2 GB inline trianglemesh is built in bounded memory,
+** never held whole", at tens of MB: 4 vertices and 6.8M triangles of
+** indices (40.8 MB).  A forked child (whose peak resident set starts at
+** the parent's current one: brt_peak_rss_bytes) opens the file and runs
+** its world stream once; its peak grows by what the reader holds (a
+** window, one shape's positions, one chunk of 65536 triangles: a few MB),
+** and must stay below half the file: a reader holding the file, its
+** indices (82 MB) or its triangles (245 MB) fails.  No timing. */
+static void test_bounded_memory(void)
+{
+    enum { PAIRS = 3400000, BLOCK = 100000 };
+    static const char pattern[] = "0 1 2 1 3 2\n";   /* two triangles */
+    const char *path = tu_scratch("big.pbrt");
+    size_t plen = sizeof pattern - 1, i;
+    char *block = malloc(BLOCK * plen);
+    memory_report rep;
+    struct stat st;
+    int fds[2], status = -1, ok;
+    pid_t pid;
+    FILE *f = fopen(path, "wb");
+    CHECK(f && block, "cannot write %s", path);
+    for (i = 0; i < BLOCK; i++) memcpy(block + i * plen, pattern, plen);
+    ok = fputs("WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0 1 1 0]\n\"integer indices\" [\n", f) >= 0;
+    for (i = 0; ok && i < PAIRS / BLOCK; i++) ok = fwrite(block, plen, BLOCK, f) == BLOCK;
+    ok = fputs("]\n", f) >= 0 && ok;
+    free(block);
+    CHECK(fclose(f) == 0 && ok && stat(path, &st) == 0, "cannot write %s", path);
+    CHECK(pipe(fds) == 0, "pipe");
+    fflush(stdout);
+    pid = fork();
+    if (pid == 0) {
+        brt_scene_source src;
+        brt_error err;
+        ex_pbrt *scene;
+        uint64_t before = brt_peak_rss_bytes();
+        memset(&rep, 0, sizeof rep);
+        rep.result = ex_pbrt_open(path, &scene, &err);
+        if (rep.result == BRT_OK) {
+            ex_pbrt_source(scene, &src);
+            rep.result = src.world.run(src.world.user, count_only, &rep.triangles, &err);
+            ex_pbrt_close(scene);
+        }
+        rep.growth = brt_peak_rss_bytes() - before;
+        _exit(write(fds[1], &rep, sizeof rep) == (ssize_t)sizeof rep ? 0 : 1);
+    }
+    close(fds[1]);
+    ok = pid > 0 && read(fds[0], &rep, sizeof rep) == (ssize_t)sizeof rep;
+    close(fds[0]);
+    if (pid > 0) waitpid(pid, &status, 0);
+    unlink(path);
+    CHECK(ok && status == 0, "the child did not report");
+    if (brt_peak_rss_bytes() == 0) { test_skip("no peak resident set on this system"); return; }
+    EXPECT(rep.result == BRT_OK && rep.triangles == 2 * (uint64_t)PAIRS, "result %d, %llu triangles", rep.result,
+           (unsigned long long)rep.triangles);
+    EXPECT(rep.growth < (uint64_t)st.st_size / 2, "reading a %lld-byte file raised the peak resident set by %llu bytes",
+           (long long)st.st_size, (unsigned long long)rep.growth);
 }
 
 void suite_pbrt(void)
@@ -827,4 +943,6 @@ void suite_pbrt(void)
     test_run("pbrt: errors: instances and transforms", test_instance_errors);
     test_run("pbrt: errors: includes and files", test_include_errors);
     test_run("pbrt: errors: mesh data and numbers", test_mesh_errors);
+    test_run("pbrt: a 40 MB inline trianglemesh read in bounded memory", test_bounded_memory);
+    test_run("pbrt: errors: float overflow through transforms; one-line messages", test_float_range_and_one_line);
 }

@@ -3,7 +3,7 @@
 ** every file of each folder (or each file) given runs through one target
 ** of targets.h, so CI checks tests/corpus/ with the plain compiler.
 **
-**   build/tests/fuzz/replay TARGET DIR|FILE...   (TARGET: obj ply scene rays)
+**   build/tests/fuzz/replay TARGET DIR|FILE...   (TARGET: obj ply scene rays pbrt)
 **
 ** Exit status 0 when every input keeps every property, 1 otherwise.
 */
@@ -24,7 +24,7 @@ int main(int argc, char **argv)
     long inputs = 0, problems = 0;
     int i;
     if (!target) {
-        fprintf(stderr, "usage: replay obj|ply|scene|rays DIR|FILE...\n");
+        fprintf(stderr, "usage: replay obj|ply|scene|rays|pbrt DIR|FILE...\n");
         return 1;
     }
     for (i = 2; i < argc; i++) {

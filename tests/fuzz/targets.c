@@ -1,6 +1,8 @@
 /*
 ** tests/fuzz/targets.c -- the fuzz targets declared in targets.h: OBJ and
-** PLY from memory, scene files and ray files through temporary files.
+** PLY from memory, scene files and ray files through temporary files, and
+** pbrt-v4 scene files (examples/pbrt.c) as a small file tree in a
+** temporary folder.
 **
 ** Every target checks properties, not just survival.  The oracles are the
 ** ones of the test suite: a brute-force loop over brt_intersect_triangle
@@ -11,6 +13,7 @@
 ** the blobs, boxes and proxies behind it would never be reached.
 */
 #include "targets.h"
+#include "../../examples/pbrt.h"
 
 #include <dirent.h>
 #include <math.h>
@@ -431,11 +434,251 @@ static const char *run_scene(const uint8_t *data, size_t size)
 }
 
 /* ===================================================================== */
+/* pbrt-v4 scene files                                                   */
+/* ===================================================================== */
+/*
+** The input is a small file tree: its bytes up to the first line
+** "#FILE name" are main.pbrt, and each such line (a comment to pbrt, so a
+** seed is a scene as it stands) starts the file name, e.g. an included
+** file, a PLY file or a .ply.gz.  The files go into a private folder
+** (mkdtemp under $TMPDIR), which is also $TMPDIR while the reader runs
+** (its gzip scratch files land there), and are removed after; the folder
+** must then be empty: nothing left behind.
+**
+** What no input may do (the reader opens files by path, may run gzip):
+**   - reach outside the folder: inputs holding a '/' are not run, so no
+**     string, escapes resolved or not, names a path with a folder part;
+**     relative names resolve against main.pbrt's folder (".." and "."
+**     are folders there, which the reader refuses);
+**   - hang or fork without end: Include chains multiply the work (a file
+**     read twice by each of the files above it), and each plymesh ".gz"
+**     forks gzip once per run; inputs with more than FUZZ_PBRT_INCLUDES
+**     Include/Import or FUZZ_PBRT_SHAPES Shape words are not run (words
+**     have no escapes, so counting the bytes counts the directives).
+*/
+
+enum { FUZZ_PBRT_FILES = 8, FUZZ_PBRT_INCLUDES = 4, FUZZ_PBRT_SHAPES = 24 };
+
+static size_t count_word(const uint8_t *data, size_t size, const char *word)
+{
+    size_t n = strlen(word), i, count = 0;
+    for (i = 0; i + n <= size; i++) count += memcmp(data + i, word, n) == 0;
+    return count;
+}
+
+/* A file name the target may write: 1 to 32 of [A-Za-z0-9._-], not a
+** folder of its own ("." or ".."). */
+static int plain_name(const uint8_t *s, size_t n)
+{
+    size_t i;
+    if (n == 0 || n > 32 || (n <= 2 && s[0] == '.' && s[n - 1] == '.')) return 0;
+    for (i = 0; i < n; i++)
+        if (!((s[i] >= 'a' && s[i] <= 'z') || (s[i] >= 'A' && s[i] <= 'Z')
+              || (s[i] >= '0' && s[i] <= '9') || s[i] == '.' || s[i] == '_' || s[i] == '-'))
+            return 0;
+    return 1;
+}
+
+typedef struct pbrt_tree {
+    char dir[512];
+    char names[FUZZ_PBRT_FILES][40];
+    int count;
+} pbrt_tree;
+
+/* Writes the input's files into tree->dir; 0 when a file cannot be made. */
+static int pbrt_tree_write(pbrt_tree *tree, const uint8_t *data, size_t size)
+{
+    static const char marker[] = "\n#FILE ";
+    const uint8_t *at = data, *end = data + size;
+    const char *name = "main.pbrt";
+    size_t name_len = strlen(name);
+    while (tree->count < FUZZ_PBRT_FILES) {
+        const uint8_t *stop = at;
+        char path[600];
+        while (stop < end && !(end - stop >= 7 && memcmp(stop, marker, 7) == 0)) stop++;
+        if (plain_name((const uint8_t *)name, name_len)) {
+            char *slot = tree->names[tree->count];
+            memcpy(slot, name, name_len);
+            slot[name_len] = 0;
+            snprintf(path, sizeof path, "%s/%s", tree->dir, slot);
+            tree->count++;   /* counted first: removed even when half written */
+            if (!write_file(path, at, (size_t)(stop - at))) return 0;
+        }
+        if (stop == end) break;
+        name = (const char *)stop + 7;
+        for (at = stop + 7; at < end && *at != '\n'; at++) {}
+        name_len = (size_t)((const char *)at - name);
+        if (at < end) at++;
+    }
+    return 1;
+}
+
+/* Removes the files; 0 when the folder is not then empty. */
+static int pbrt_tree_remove(const pbrt_tree *tree)
+{
+    int i;
+    for (i = 0; i < tree->count; i++) {
+        char path[600];
+        snprintf(path, sizeof path, "%s/%s", tree->dir, tree->names[i]);
+        unlink(path);
+    }
+    return rmdir(tree->dir) == 0;
+}
+
+/* What the streams delivered: counts, chunk numbering, a hash of the
+** corners (to compare two runs), and whether all were finite. */
+typedef struct pbrt_tally {
+    uint64_t triangles, hash;
+    uint32_t prototype_count;
+    int misnumbered, not_finite, bad_prototype;
+} pbrt_tally;
+
+static brt_result tally_triangles(void *user, const float *corners, uint32_t count, uint32_t first,
+                                  brt_error *err)
+{
+    pbrt_tally *t = user;
+    size_t i;
+    (void)err;
+    if (first != t->triangles || count == 0) t->misnumbered = 1;
+    for (i = 0; i < 9 * (size_t)count; i++) {
+        uint32_t bits;
+        memcpy(&bits, &corners[i], 4);
+        t->hash = (t->hash ^ bits) * 1099511628211ull;
+        if (!isfinite(corners[i])) t->not_finite = 1;
+    }
+    t->triangles += count;
+    return BRT_OK;
+}
+
+static brt_result tally_instances(void *user, const brt_instance *inst, uint32_t count, uint32_t first,
+                                  brt_error *err)
+{
+    pbrt_tally *t = user;
+    uint32_t i;
+    int k;
+    (void)err;
+    if (first != t->triangles || count == 0) t->misnumbered = 1;
+    for (i = 0; i < count; i++) {
+        if (inst[i].prototype >= t->prototype_count) t->bad_prototype = 1;
+        for (k = 0; k < 12; k++)
+            if (!isfinite(inst[i].xform[k])) t->not_finite = 1;
+    }
+    t->triangles += count;
+    return BRT_OK;
+}
+
+/* A failed run: a documented code and one line naming a file of the tree
+** (its gzip scratch files are in it too); never "changed", since no file
+** did. */
+static const char *check_stream_error(brt_result r, const brt_error *err, const char *dir)
+{
+    if (r != BRT_EPARSE && r != BRT_EIO && r != BRT_ENOMEM)
+        return "a pbrt stream failed with a code other than EPARSE, EIO or ENOMEM";
+    if (strstr(err->message, "changed since")) return "a pbrt stream found a file changed that was not";
+    return r == BRT_ENOMEM ? NULL : check_message(err, dir);
+}
+
+/* One triangle stream, run twice: the same triangles both times. */
+static const char *check_triangle_runs(const brt_scene_source *src, int prototype, uint32_t id,
+                                       const char *dir)
+{
+    pbrt_tally a, b;
+    brt_error err;
+    brt_result ra, rb;
+    memset(&a, 0, sizeof a);
+    memset(&b, 0, sizeof b);
+    ra = prototype ? src->prototype(src->user, id, tally_triangles, &a, &err)
+                   : src->world.run(src->world.user, tally_triangles, &a, &err);
+    if (ra != BRT_OK) return check_stream_error(ra, &err, dir);
+    rb = prototype ? src->prototype(src->user, id, tally_triangles, &b, &err)
+                   : src->world.run(src->world.user, tally_triangles, &b, &err);
+    if (rb != BRT_OK) return "a pbrt stream failed on its second run only";
+    if (a.misnumbered) return "a pbrt stream's chunks are not numbered in order";
+    if (a.not_finite) return "a pbrt stream delivered a non-finite corner";
+    if (a.triangles != b.triangles || a.hash != b.hash) return "two runs of a pbrt stream differ";
+    return NULL;
+}
+
+static const char *check_pbrt_scene(const ex_pbrt *scene, const char *dir)
+{
+    brt_scene_source src;
+    pbrt_tally inst;
+    brt_error err;
+    float eye[3], target[3], up[3], fov;
+    uint64_t world_shapes;
+    uint32_t prototypes, instances, i;
+    const char *problem = NULL;
+    ex_pbrt_counts(scene, &world_shapes, &prototypes, &instances);
+    ex_pbrt_source(scene, &src);
+    if ((src.world.run != NULL) != (world_shapes > 0)) return "world shapes counted but not streamed";
+    if (src.prototype_count != prototypes) return "a prototype count differs from the source's";
+    if (strchr(ex_pbrt_skipped(scene), '\n')) return "the skipped summary is not one line";
+    if (ex_pbrt_camera(scene, eye, target, up, &fov, NULL)) {
+        if (!(fov > 0 && fov < 180)) return "a camera's fov outside (0, 180)";
+        for (i = 0; i < 3; i++)
+            if (!isfinite(eye[i]) || !isfinite(target[i]) || !isfinite(up[i])) return "a camera is not finite";
+    }
+    if (src.world.run) problem = check_triangle_runs(&src, 0, 0, dir);
+    for (i = 0; i < prototypes && !problem; i++) problem = check_triangle_runs(&src, 1, i, dir);
+    if (problem) return problem;
+    memset(&inst, 0, sizeof inst);
+    inst.prototype_count = prototypes;
+    if (src.instances(src.user, tally_instances, &inst, &err) != BRT_OK) return "the instance stream failed";
+    if (inst.triangles != instances || inst.misnumbered) return "the instances streamed differ from the count";
+    if (inst.bad_prototype) return "an instance names a prototype beyond the count";
+    if (inst.not_finite) return "an instance's transform is not finite";
+    return NULL;
+}
+
+static const char *run_pbrt(const uint8_t *data, size_t size)
+{
+    const char *tmp = getenv("TMPDIR");
+    char *saved = tmp ? malloc(strlen(tmp) + 1) : NULL;
+    char main_path[600];
+    pbrt_tree tree;
+    ex_pbrt *scene = (ex_pbrt *)&tree;   /* not NULL: must become NULL on error */
+    brt_error err;
+    brt_result r;
+    const char *problem = NULL;
+    if (memchr(data, '/', size) || count_word(data, size, "Include") + count_word(data, size, "Import")
+        > FUZZ_PBRT_INCLUDES || count_word(data, size, "Shape") > FUZZ_PBRT_SHAPES) {
+        free(saved);
+        return NULL;
+    }
+    if (saved) strcpy(saved, tmp);
+    memset(&tree, 0, sizeof tree);
+    snprintf(tree.dir, sizeof tree.dir, "%s/batchrt-fuzz-pbrt-XXXXXX", tmp && tmp[0] ? tmp : "/tmp");
+    if (!mkdtemp(tree.dir)) { free(saved); return "cannot make a temporary folder"; }
+    if (!pbrt_tree_write(&tree, data, size)) problem = "cannot write a temporary file";
+    snprintf(main_path, sizeof main_path, "%s/main.pbrt", tree.dir);
+    setenv("TMPDIR", tree.dir, 1);
+    if (!problem) {
+        r = ex_pbrt_open(main_path, &scene, &err);
+        if (r == BRT_OK) {
+            problem = check_pbrt_scene(scene, tree.dir);
+            ex_pbrt_close(scene);
+        } else if (scene != NULL) {
+            problem = "ex_pbrt_open failed without setting its scene to NULL";
+        } else if (r != BRT_EPARSE && r != BRT_EIO && r != BRT_ENOMEM) {
+            problem = "ex_pbrt_open failed with a code other than EPARSE, EIO or ENOMEM";
+        } else if (r != BRT_ENOMEM) {
+            problem = check_message(&err, tree.dir);
+        }
+    }
+    if (saved) setenv("TMPDIR", saved, 1);
+    else unsetenv("TMPDIR");
+    free(saved);
+    if (!pbrt_tree_remove(&tree) && !problem) problem = "a file was left in the pbrt folder";
+    return problem;
+}
+
+/* ===================================================================== */
 /* Drivers                                                               */
 /* ===================================================================== */
 
 const fuzz_target fuzz_targets[] = {
-    {"obj", run_obj}, {"ply", run_ply}, {"scene", run_scene}, {"rays", run_rays}, {NULL, NULL}};
+    {"obj", run_obj}, {"ply", run_ply}, {"scene", run_scene}, {"rays", run_rays},
+    {"pbrt", run_pbrt}, {NULL, NULL}};
 
 const fuzz_target *fuzz_find(const char *name)
 {

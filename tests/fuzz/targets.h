@@ -1,7 +1,7 @@
 /*
-** tests/fuzz/targets.h -- the four fuzz targets of batchrt: the OBJ reader,
-** the PLY reader, the scene-file reader and the ray-file reader (README,
-** "Hardening and fuzzing").
+** tests/fuzz/targets.h -- the five fuzz targets of batchrt: the OBJ reader,
+** the PLY reader, the scene-file reader, the ray-file reader (README,
+** "Hardening and fuzzing") and the pbrt-v4 reader of examples/pbrt.c.
 **
 ** One implementation (targets.c) serves three drivers: the libFuzzer entry
 ** points tests/fuzz/fuzz_NAME.c ("make fuzz", clang), the plain replay
@@ -27,7 +27,7 @@
 typedef const char *(*fuzz_fn)(const uint8_t *data, size_t size);
 
 typedef struct fuzz_target {
-    const char *name;   /* "obj", "ply", "scene", "rays": also the corpus folder */
+    const char *name;   /* "obj", "ply", "scene", "rays", "pbrt": also the corpus folder */
     fuzz_fn run;
 } fuzz_target;
 
