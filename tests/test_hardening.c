@@ -32,6 +32,7 @@
 #include <errno.h>
 #include <float.h>
 #include <math.h>
+#include <pthread.h>
 #include <signal.h>
 #include <stdarg.h>
 #include <stdlib.h>
@@ -786,6 +787,163 @@ static void test_full_disk_programs(void)
         expect_run(&full_disk_runs[i], 1);   /* 512 bytes */
 }
 
+
+/* ===================================================================== */
+/* Faults on the read-ahead and on the last steps of a write             */
+/* ===================================================================== */
+
+/* The reader of a threaded trace: reads made by the cache's read-ahead
+** thread (any thread but the one that started the trace) fail as
+** planned; the others are plain preads.  (The read-ahead is the one
+** reader off the calling thread: batchrt.h, brt_read_fn.) */
+typedef struct ahead_plan {
+    pthread_t caller;
+    int mode;           /* 0 clean, 1 EIO, 2 end of file, 3 a byte flipped, 4 short */
+    long ahead_calls;   /* reads made by the read-ahead thread */
+} ahead_plan;
+
+static long ahead_read(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    ahead_plan *p = user;
+    long n;
+    if (pthread_equal(pthread_self(), p->caller)) return (long)pread(fd, buf, size, (off_t)offset);
+    p->ahead_calls++;
+    if (p->mode == 1) {
+        errno = EIO;
+        return -1;
+    }
+    if (p->mode == 2) return 0;
+    n = (long)pread(fd, buf, p->mode == 4 && size > 1 ? size / 2 : size, (off_t)offset);
+    if (p->mode == 3 && n > 100) ((unsigned char *)buf)[100] ^= 0x40;
+    return n;
+}
+
+/* A failed read-ahead is dropped and the blob read again, never used: EIO,
+** an end of file or a corrupt byte on every read-ahead leave the hits the
+** direct mode's and the loads and bytes read the clean run's (a dropped
+** read-ahead is not counted); short read-aheads are completed. */
+static void test_read_ahead_faults(void)
+{
+    static const char *const name[] = {"clean", "EIO", "end of file", "a flipped byte", "short reads"};
+    bench b;
+    brt_trace_options opt;
+    brt_stats clean, st;
+    ahead_plan plan;
+    int mode;
+    CHECK(fault_bench(&b), "cannot build the bench");
+    memset(&opt, 0, sizeof opt);
+    opt.read_fn = ahead_read;
+    opt.read_user = &plan;
+    opt.memory_limit = 16 << 10;
+    opt.rays_in_flight = 50;
+    opt.threads = 2;
+    for (mode = 0; mode < 5 && !test_failed(); mode++) {
+        char what[64];
+        memset(&plan, 0, sizeof plan);
+        plan.caller = pthread_self();
+        plan.mode = mode;
+        snprintf(what, sizeof what, "read-ahead with %s", name[mode]);
+        if (!trace_equals_direct(&b, &opt, mode ? &st : &clean, what)) break;
+        EXPECT(plan.ahead_calls > 5, "%s: only %ld reads ahead: the test is blind", what, plan.ahead_calls);
+        if (mode == 0) continue;
+        EXPECT(st.batch_loads == clean.batch_loads && st.disk_bytes_read == clean.disk_bytes_read,
+               "%s: %llu loads, %llu bytes; clean %llu and %llu", what, (unsigned long long)st.batch_loads,
+               (unsigned long long)st.disk_bytes_read, (unsigned long long)clean.batch_loads,
+               (unsigned long long)clean.disk_bytes_read);
+    }
+    bench_free(&b);
+}
+
+typedef struct write_job {
+    const char *path;
+    int which;          /* 0 hits, 1 rays, 2 statistics, 3 a scene */
+    const brt_mesh *mesh;
+    brt_error err;
+} write_job;
+
+static brt_result write_one(void *arg)
+{
+    write_job *job = arg;
+    brt_hit hits[64];
+    brt_ray rays[64];
+    brt_stats stats;
+    brt_scene_options opt;
+    int i;
+    for (i = 0; i < 64; i++) brt_hit_clear(&hits[i]);
+    memset(rays, 0, sizeof rays);
+    memset(&stats, 0, sizeof stats);
+    memset(&opt, 0, sizeof opt);
+    opt.batch_tris = 50;
+    opt.proxy_res = 8;
+    switch (job->which) {
+    case 0: return brt_hits_write(job->path, hits, 64, &job->err);
+    case 1: return brt_rays_write(job->path, rays, 64, &job->err);
+    case 2: return brt_stats_write_json(job->path, &stats, &job->err);
+    default: return brt_scene_build(job->mesh, &opt, 1, job->path, &job->err);
+    }
+}
+
+/* The last steps of a write.  A device that is full (/dev/full, through
+** a link: ENOSPC on every write) takes the hit, ray and statistics files
+** written to it directly, and each reports "No space left on device"; a file-size limit
+** below a hit file's or a statistics file's size fails it with EFBIG,
+** leaving nothing; and a target that is a directory is refused: the
+** files written in place of a special file fail to open it (BRT_EIO), a
+** scene build refuses it first (BRT_EARG), each naming the path, the
+** directory untouched, no temporary file left.  (The writer does not
+** fsync: there is no fsync to fail; a failing rename needs a target that
+** turns into a directory between the check and the rename, which no test
+** here can arrange.) */
+static void test_write_last_steps(void)
+{
+    static const char *const kind[] = {"hit file", "ray file", "statistics", "scene file"};
+    tu_scene soup = {0};
+    brt_mesh mesh;
+    write_job job;
+    uint64_t seed = test_seed() + 73;
+    struct stat st;
+    int k;
+    brt_result r;
+    tu_random_soup(&soup, &seed, 200, 0.1f);
+    mesh = tu_mesh_view(&soup);
+    job.mesh = &mesh;
+    /* Through a link in the scratch folder: a writer that wrongly renamed
+    ** over its target would replace the link, never the device. */
+    unlink(scratch("full-device"));
+    for (k = 0; k < 3 && file_exists("/dev/full"); k++) {
+        CHECK(symlink("/dev/full", scratch("full-device")) == 0, "cannot link to /dev/full");
+        job.which = k;
+        job.path = scratch("full-device");
+        r = write_one(&job);
+        EXPECT(r == BRT_EIO && strstr(job.err.message, "full-device") && strstr(job.err.message, strerror(ENOSPC)),
+               "%s to /dev/full: %s, '%s'", kind[k], brt_result_string(r), job.err.message);
+        unlink(scratch("full-device"));
+    }
+    for (k = 0; k < 3; k += 2) {
+        job.which = k;
+        job.path = scratch("limited.out");
+        r = with_file_limit(100, write_one, &job);
+        EXPECT(r == BRT_EIO && strstr(job.err.message, strerror(EFBIG)) && !file_exists(job.path) &&
+               !tu_temporary_file_left(), "%s under a limit of 100 bytes: %s, '%s'", kind[k],
+               brt_result_string(r), job.err.message);
+    }
+    for (k = 0; k < 4; k++) {
+        char path[600];
+        snprintf(path, sizeof path, "%s", scratch("a-directory"));
+        CHECK(mkdir(path, 0700) == 0, "cannot make %s", path);
+        job.which = k;
+        job.path = path;
+        r = write_one(&job);
+        EXPECT(r == (k == 3 ? BRT_EARG : BRT_EIO) && strstr(job.err.message, path),
+               "%s onto a directory: %s, '%s'", kind[k],
+               brt_result_string(r), job.err.message);
+        EXPECT(stat(path, &st) == 0 && S_ISDIR(st.st_mode) && !tu_temporary_file_left(),
+               "%s onto a directory: the directory changed or a temporary file is left", kind[k]);
+        rmdir(path);
+    }
+    tu_scene_free(&soup);
+}
+
 /* ===================================================================== */
 /* Limits                                                                */
 /* ===================================================================== */
@@ -1254,6 +1412,8 @@ void suite_hardening(void)
     test_run("hardening: short reads of every size, EINTR", test_short_reads_every_size);
     test_run("hardening: file-size limit, no partial scene or ray file", test_write_faults);
     test_run("hardening: programs on a full disk leave nothing", test_full_disk_programs);
+    test_run("hardening: a failed read-ahead is dropped and read again", test_read_ahead_faults);
+    test_run("hardening: a full device, a size limit, a directory as the target", test_write_last_steps);
     test_run("hardening: one triangle, every limit", test_single_triangle);
     test_run("hardening: a 1x1 render, direct == batched at its limits", test_one_pixel_render);
     test_run("hardening: identical triangles, every limit", test_identical_triangles);
