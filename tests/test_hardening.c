@@ -831,12 +831,10 @@ static void test_read_ahead_faults(void)
     ahead_plan plan;
     int mode;
     CHECK(fault_bench(&b), "cannot build the bench");
-    memset(&opt, 0, sizeof opt);
+    fault_options(&opt, NULL);
     opt.read_fn = ahead_read;
     opt.read_user = &plan;
-    opt.memory_limit = 16 << 10;
-    opt.rays_in_flight = 50;
-    opt.threads = 2;
+    opt.threads = 2;            /* a thread reads ahead */
     for (mode = 0; mode < 5 && !test_failed(); mode++) {
         char what[64];
         memset(&plan, 0, sizeof plan);
