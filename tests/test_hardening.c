@@ -1227,6 +1227,38 @@ static void forge_blob_count(forged *f)
     forge_u32(f, entry_at(f, 2) + 48, forged_u32(f, entry_at(f, 2) + 48) - 1);
 }
 
+/* Every axis (issue 32 class 4): a point's box inverted in y, infinite
+** in z; a root lane's box infinite in y and z (holding its point, so that
+** only the box check refuses it); a root lane narrower than its point in
+** y and z.  Root lanes: f32 lo[axis][lane] at 4 (4 axis + lane), hi 48 on. */
+static void forge_batch_box_y(forged *f)
+{
+    forge_f32(f, entry_at(f, 2) + 4, forged_f32(f, entry_at(f, 2) + 16) + 1);
+}
+static void forge_batch_box_z(forged *f) { forge_f32(f, entry_at(f, 3) + 20, INFINITY); }
+static void forge_top_box_y(forged *f) { forge_f32(f, top_root_at(f) + 4 * (4 + 1), -INFINITY); }
+static void forge_top_box_z(forged *f) { forge_f32(f, top_root_at(f) + 48 + 4 * (8 + 2), INFINITY); }
+static void forge_top_nesting_y(forged *f)
+{
+    forge_f32(f, top_root_at(f) + 48 + 4 * (4 + 1), forged_f32(f, top_root_at(f) + 4 * (4 + 1)));
+}
+static void forge_top_nesting_z(forged *f)
+{
+    forge_f32(f, top_root_at(f) + 4 * (8 + 3), forged_f32(f, top_root_at(f) + 48 + 4 * (8 + 3)));
+}
+/* The header: the other byte order's mark; version 4 without prototypes. */
+static void forge_endian(forged *f) { forge_u32(f, 12, 0x04030201u); }
+static void forge_v4_empty(forged *f) { forge_u32(f, 8, 4); }
+/* Sections (header 56 + 24 s: offset, size): the proxy pool's offset past
+** the end, its size wrapping offset + size around 2^64, its size one byte
+** past the end; the batch table overlapping the end; the top level's
+** offset near 2^64.  (The table sizes themselves are check_header's.) */
+static void forge_pool_offset(forged *f) { forge_u64(f, 104, f->size + 4096); }
+static void forge_pool_wrap(forged *f) { forge_u64(f, 112, UINT64_MAX - forged_u64(f, 104) + 4097); }
+static void forge_pool_past(forged *f) { forge_u64(f, 112, f->size - forged_u64(f, 104) + 1); }
+static void forge_table_end(forged *f) { forge_u64(f, 56, f->size - 8); }
+static void forge_top_offset(forged *f) { forge_u64(f, 80, UINT64_MAX - 8); }
+
 typedef struct forgery {
     const char *name;           /* also the file's name */
     void (*forge)(forged *f);
@@ -1254,29 +1286,54 @@ static const forgery forgeries[] = {
     {"blob_box.brs", forge_blob_box, "batching point 1: bvh blob: node 0 slot 0: box"},
     {"blob_triangle.brs", forge_blob_triangle, "batching point 1: bvh blob: vertex 0: coordinate"},
     {"blob_count.brs", forge_blob_count, "batching point 1: blob holds"},
+    {"batch_box_y.brs", forge_batch_box_y, "batching point 2: box not finite or inverted"},
+    {"batch_box_z.brs", forge_batch_box_z, "batching point 3: box not finite or inverted"},
+    {"top_box_y.brs", forge_top_box_y, "top-level node 0: box not finite or inverted"},
+    {"top_box_z.brs", forge_top_box_z, "top-level node 0: box not finite or inverted"},
+    {"top_nesting_y.brs", forge_top_nesting_y, "top-level node 0: box does not hold batching point"},
+    {"top_nesting_z.brs", forge_top_nesting_z, "top-level node 0: box does not hold batching point"},
+    {"endian.brs", forge_endian, "of the other byte order"},
+    {"v4_empty.brs", forge_v4_empty, "header: version 4 without prototypes"},
+    {"pool_offset.brs", forge_pool_offset, "proxy pool lies outside the file"},
+    {"pool_wrap.brs", forge_pool_wrap, "proxy pool lies outside the file"},
+    {"pool_past.brs", forge_pool_past, "proxy pool lies outside the file"},
+    {"table_end.brs", forge_table_end, "batch table lies outside the file"},
+    {"top_offset.brs", forge_top_offset, "top-level BVH lies outside the file"},
 };
 
 /* Writes base forged by fn (none: unchanged) with repaired checksums as
 ** name, opens it, traces one ray loading every blob; the result, and the
 ** message in err. */
-static brt_result open_forged(const forged *base, const char *name, void (*fn)(forged *),
-                              brt_error *err)
+static void repair_plain(forged *f) { fuzz_repair_scene_checksums(f->file, f->size); }
+
+/* base forged by fn (none: unchanged), its checksums repaired by repair,
+** written as name and opened. */
+static brt_result forged_open(const forged *base, const char *name, void (*fn)(forged *),
+                              void (*repair)(forged *), brt_scene **scene, brt_error *err)
 {
     forged f;
-    brt_scene *scene = NULL;
-    brt_trace_options opt;
-    brt_ray ray = {{0.1f, 0.1f, 3.0f}, {0.0f, 0.0f, -1.0f}, 0.0f, INFINITY};
-    brt_hit hit;
     brt_result r = BRT_ENOMEM;
+    *scene = NULL;
     f.size = base->size;
     f.file = malloc(f.size);
     if (!f.file) return r;
     memcpy(f.file, base->file, f.size);
     if (fn) fn(&f);
-    fuzz_repair_scene_checksums(f.file, f.size);
+    repair(&f);
     err->message[0] = 0;
-    if (spill(name, f.file, f.size)) r = brt_scene_open(scratch(name), &scene, err);
+    r = spill(name, f.file, f.size) ? brt_scene_open(scratch(name), scene, err) : BRT_EIO;
     free(f.file);
+    return r;
+}
+
+static brt_result open_forged(const forged *base, const char *name, void (*fn)(forged *),
+                              brt_error *err)
+{
+    brt_scene *scene;
+    brt_trace_options opt;
+    brt_ray ray = {{0.1f, 0.1f, 3.0f}, {0.0f, 0.0f, -1.0f}, 0.0f, INFINITY};
+    brt_hit hit;
+    brt_result r = forged_open(base, name, fn, repair_plain, &scene, err);
     if (r != BRT_OK) return r;
     memset(&opt, 0, sizeof opt);
     opt.exact_proxies = 1;   /* loads every blob */
@@ -1370,6 +1427,114 @@ static void test_forged_partition(void)
     free(base.file);
 }
 
+/* An instanced scene file (version 4, README "The scene file"): a world
+** triangle, a prototype of two triangles and four instances of it. */
+static int instanced_base(forged *base)
+{
+    static const float corners[4][3] = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}};
+    tu_instanced s;
+    brt_scene_source source;
+    brt_scene_options opt;
+    brt_error err;
+    int k, ok;
+    memset(&s, 0, sizeof s);
+    s.proto_count = 1;
+    for (k = 0; k < 4; k++) tu_add_vertex(&s.protos[0], corners[k][0], corners[k][1], corners[k][2]);
+    tu_add_triangle(&s.protos[0], 0, 1, 2);
+    tu_add_triangle(&s.protos[0], 0, 2, 3);
+    tu_add_triangle(&s.world, tu_add_vertex(&s.world, 0, 0, 5), tu_add_vertex(&s.world, 9, 0, 5),
+                    tu_add_vertex(&s.world, 0, 9, 5));
+    for (k = 0; k < 4; k++) {
+        const float xf[12] = {1, 0, 0, 2.0f * (float)k, 0, 1, 0, 0, 0, 0, 1, 1};
+        tu_add_instance(&s, 0, xf);
+    }
+    tu_instanced_source(&s, &source);
+    memset(&opt, 0, sizeof opt);
+    opt.proxy_res = 8;
+    ok = brt_scene_build_source(&source, &opt, 1, scratch("inst_base.brs"), &err) == BRT_OK;
+    if (!ok) test_fail_at(__FILE__, __LINE__, "%s", err.message);
+    tu_instanced_free(&s);
+    base->file = ok ? tu_slurp(scratch("inst_base.brs"), &base->size) : NULL;
+    return base->file && base->size >= 256 && forged_u32(base, 8) == 4 && forged_u32(base, 44) == 1;
+}
+
+/* Its parts: batch entries of 104 bytes (instances at 80, condition 84),
+** the prototype table (section at 128: 56-byte entries, offset 0, box 28). */
+static uint64_t entry4_at(const forged *f, uint32_t i) { return forged_u64(f, 56) + 104u * i; }
+static uint64_t proto_at(const forged *f) { return forged_u64(f, 128); }
+static uint64_t instance_point_at(const forged *f)
+{
+    uint32_t i;
+    for (i = 0; i < forged_u32(f, 32); i++)
+        if (forged_u32(f, entry4_at(f, i) + 80)) return entry4_at(f, i);
+    return 0;
+}
+
+/* The checksums of a version-4 file after a forgery: every blob's, the
+** four sections', the header's (each only where it lies in the file). */
+static void repair_instanced(forged *f)
+{
+    uint64_t at[16];
+    uint32_t n = 0, i;
+    for (i = 0; i < forged_u32(f, 32) && n < 8; i++) at[n++] = entry4_at(f, i) + 24;
+    at[n++] = proto_at(f);
+    for (i = 0; i < 3; i++) at[n++] = 56 + 24 * (uint64_t)i;
+    at[n++] = 128;
+    for (i = 0; i < n; i++) {
+        const uint64_t off = forged_u64(f, at[i]), size = forged_u64(f, at[i] + 8);
+        if (off <= f->size && size <= f->size - off) forge_u64(f, at[i] + 16, brt_checksum64(f->file + off, size));
+    }
+    forge_u64(f, 248, brt_checksum64(f->file, 248));
+}
+
+static void forge_header_condition(forged *f) { forge_f32(f, 156, -1.0f); }
+static void forge_header_reach(forged *f) { forge_f32(f, 160, INFINITY); }
+static void forge_header_centre(forged *f) { forge_f32(f, 184, NAN); }
+static void forge_proto_table(forged *f) { forge_u64(f, 136, forged_u64(f, 136) + 56); }
+static void forge_proto_blob(forged *f) { forge_u64(f, proto_at(f), (f->size + 4095) / 4096 * 4096); }
+static void forge_proto_box(forged *f) { forge_f32(f, proto_at(f) + 28 + 4, NAN); }
+static void forge_point_instances(forged *f)
+{
+    forge_u32(f, instance_point_at(f) + 80, forged_u32(f, 152) + 1);
+}
+static void forge_point_condition(forged *f) { forge_f32(f, instance_point_at(f) + 84, 2048.0f); }
+static void forge_point_reach(forged *f) { forge_f32(f, instance_point_at(f) + 96, -1.0f); }
+
+/* One forged instanced file per validator of the version-4 parts. */
+static void test_forged_instanced_scenes(void)
+{
+    static const forgery forged_v4[] = {
+        {"inst_condition.brs", forge_header_condition, "header: margin out of range"},
+        {"inst_reach.brs", forge_header_reach, "header: margin out of range"},
+        {"inst_centre.brs", forge_header_centre, "header: margin out of range"},
+        {"inst_proto_table.brs", forge_proto_table, "header: prototype table has the wrong size"},
+        {"inst_proto_blob.brs", forge_proto_blob, "prototype 0: blob outside the file"},
+        {"inst_proto_box.brs", forge_proto_box, "prototype 0: box not finite or inverted"},
+        {"inst_point_count.brs", forge_point_instances, "instances or margin out of range"},
+        {"inst_point_condition.brs", forge_point_condition, "instances or margin out of range"},
+        {"inst_point_reach.brs", forge_point_reach, "instances or margin out of range"},
+    };
+    forged base;
+    size_t i;
+    CHECK(instanced_base(&base), "no instanced scene file of version 4 with one prototype");
+    CHECK(instance_point_at(&base) != 0, "no point of instances in the file");
+    for (i = 0; i < sizeof forged_v4 / sizeof *forged_v4 + 1; i++) {
+        const forgery *g = i ? &forged_v4[i - 1] : NULL;
+        brt_scene *scene;
+        brt_error err;
+        brt_result r = forged_open(&base, g ? g->name : "inst_unforged.brs", g ? g->forge : NULL,
+                                   repair_instanced, &scene, &err);
+        brt_scene_close(scene);
+        if (!g) {
+            EXPECT(r == BRT_OK, "unforged, checksums repaired: %s", err.message);
+            continue;
+        }
+        EXPECT(r == BRT_EFORMAT && strstr(err.message, g->name) && strstr(err.message, g->part),
+               "%s: %s, '%s' (expected '%s')", g->name, brt_result_string(r), err.message, g->part);
+    }
+    free(base.file);
+}
+
 /* The validators refuse forgeries, not extremes: a scene built from
 ** triangles at +-FLT_MAX (padded BVH boxes round out to infinity there,
 ** and a proxy grid's far corner overflows a float) opens, loads every blob
@@ -1424,4 +1589,5 @@ void suite_hardening(void)
     test_run("hardening: forged scene file, a triangle in two batching points (partition checker)",
              test_forged_partition);
     test_run("hardening: a scene at +-FLT_MAX passes the validators", test_extreme_scene_opens);
+    test_run("hardening: forged instanced scene files, one per validator", test_forged_instanced_scenes);
 }
