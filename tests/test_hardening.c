@@ -1427,27 +1427,16 @@ static void test_forged_partition(void)
     free(base.file);
 }
 
-/* An instanced scene file (version 4, README "The scene file"): a world
-** triangle, a prototype of two triangles and four instances of it. */
+/* An instanced scene file (version 4, README "The scene file"):
+** tu_instanced_squares, a world triangle and four instances of a square. */
 static int instanced_base(forged *base)
 {
-    static const float corners[4][3] = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}};
     tu_instanced s;
     brt_scene_source source;
     brt_scene_options opt;
     brt_error err;
-    int k, ok;
-    memset(&s, 0, sizeof s);
-    s.proto_count = 1;
-    for (k = 0; k < 4; k++) tu_add_vertex(&s.protos[0], corners[k][0], corners[k][1], corners[k][2]);
-    tu_add_triangle(&s.protos[0], 0, 1, 2);
-    tu_add_triangle(&s.protos[0], 0, 2, 3);
-    tu_add_triangle(&s.world, tu_add_vertex(&s.world, 0, 0, 5), tu_add_vertex(&s.world, 9, 0, 5),
-                    tu_add_vertex(&s.world, 0, 9, 5));
-    for (k = 0; k < 4; k++) {
-        const float xf[12] = {1, 0, 0, 2.0f * (float)k, 0, 1, 0, 0, 0, 0, 1, 1};
-        tu_add_instance(&s, 0, xf);
-    }
+    int ok;
+    tu_instanced_squares(&s);
     tu_instanced_source(&s, &source);
     memset(&opt, 0, sizeof opt);
     opt.proxy_res = 8;

@@ -451,7 +451,74 @@ static void test_policies_match_model(void)
     policy_scene_free(&ps);
 }
 
+/* ---- the gate of a point of instances ---------------------------------- */
+
+/* A point of instances' proxy answers only for rays whose margin (the
+** rounding of their transform, growing with the origin's distance) fits
+** in its dilation; a ray from farther away is admitted untested
+** (proxy_admits).  Four unit squares in a row, 1 apart, instances of one
+** prototype, form one point (a world triangle far off another); rays
+** straight down through the squares' centres and through the gaps
+** between them.  From 2 units above, each is tested once and the gap
+** rays, half a unit from any square (4.5 cells of res 64), are culled:
+** the count is the number of gap rays.  From 10^5 units above, none is
+** culled (admitted untested; the cast from there, grown for its
+** rounding, would admit them too).  Every hit equals the brute force's. */
+static void test_instance_gate(void)
+{
+    tu_instanced s;
+    brt_scene_source source;
+    brt_scene_options sopt;
+    brt_scene *scene = NULL;
+    brt_error err;
+    brt_ray rays[7];
+    brt_hit hits[7];
+    int k, far;
+    tu_instanced_squares(&s);
+    tu_instanced_source(&s, &source);
+    memset(&sopt, 0, sizeof sopt);
+    sopt.proxy_res = 64;
+    if (brt_scene_build_source(&source, &sopt, 1, tu_scratch("gate.brs"), &err) != BRT_OK ||
+        brt_scene_open(tu_scratch("gate.brs"), &scene, &err) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "gate.brs: %s", err.message);
+        tu_instanced_free(&s);
+        return;
+    }
+    for (far = 0; far < 2 && !test_failed(); far++) {
+        brt_trace_options opt;
+        brt_stats stats;
+        for (k = 0; k < 7; k++) {   /* even k: a square's centre; odd: a gap */
+            brt_ray r = {{0, 0.5f, 0}, {0, 0, -1}, 0, INFINITY};
+            r.org[0] = 0.5f + (float)k;
+            r.org[2] = far ? 1e5f : 3.0f;
+            rays[k] = r;
+        }
+        memset(&opt, 0, sizeof opt);
+        opt.paper_scheduler = 1;        /* proxies consulted whatever the limit */
+        opt.threads = 1;
+        if (brt_scene_trace(scene, &opt, rays, 7, hits, &stats, &err) != BRT_OK) {
+            test_fail_at(__FILE__, __LINE__, "trace: %s", err.message);
+            break;
+        }
+        for (k = 0; k < 7; k++) {
+            brt_hit want;
+            brt_hit_clear(&want);
+            tu_instanced_brute(&s, &rays[k], &want);
+            EXPECT(hits[k].prim == want.prim && hits[k].inst == want.inst && (k % 2 == 1) == (want.prim == BRT_NO_PRIM),
+                   "%s ray %d: prim %u inst %u, brute force %u %u", far ? "far" : "near", k,
+                   (unsigned)hits[k].prim, (unsigned)hits[k].inst, (unsigned)want.prim, (unsigned)want.inst);
+        }
+        EXPECT(stats.batching_points == 2 && stats.proxy_tests == 7 && stats.proxy_culled == (far ? 0u : 3u),
+               "%s rays: %llu points, %llu proxy tests, %llu culled; expected 2, 7 and %u", far ? "far" : "near",
+               (unsigned long long)stats.batching_points, (unsigned long long)stats.proxy_tests,
+               (unsigned long long)stats.proxy_culled, far ? 0u : 3u);
+    }
+    brt_scene_close(scene);
+    tu_instanced_free(&s);
+}
+
 void suite_policy(void)
 {
     test_run("policy: loads and counts equal the model's", test_policies_match_model);
+    test_run("policy: the gate of a point of instances", test_instance_gate);
 }
