@@ -1258,6 +1258,24 @@ static void forge_pool_wrap(forged *f) { forge_u64(f, 112, UINT64_MAX - forged_u
 static void forge_pool_past(forged *f) { forge_u64(f, 112, f->size - forged_u64(f, 104) + 1); }
 static void forge_table_end(forged *f) { forge_u64(f, 56, f->size - 8); }
 static void forge_top_offset(forged *f) { forge_u64(f, 80, UINT64_MAX - 8); }
+/* Blobs apart: point 1's blob made point 0's (counts and sums kept
+** agreeing), or put on the header's page; point 0's a page longer. */
+static void forge_blob_header(forged *f) { forge_u64(f, entry_at(f, 1) + 24, 0); }
+/* point 0's blob a page longer: into point 1's, which follows it */
+static void forge_blob_longer(forged *f)
+{
+    forge_u64(f, entry_at(f, 0) + 32, forged_u64(f, entry_at(f, 0) + 32) + 4096);
+    forge_u64(f, 48, forged_u64(f, 48) + 4096);
+}
+static void forge_blob_overlap(forged *f)
+{
+    const uint32_t moved = forged_u32(f, entry_at(f, 1) + 48), kept = forged_u32(f, entry_at(f, 0) + 48);
+    forge_u64(f, 48, forged_u64(f, 48) - forged_u64(f, entry_at(f, 1) + 32) + forged_u64(f, entry_at(f, 0) + 32));
+    forge_u32(f, 36, forged_u32(f, 36) - moved + kept);
+    forge_u64(f, entry_at(f, 1) + 24, forged_u64(f, entry_at(f, 0) + 24));
+    forge_u64(f, entry_at(f, 1) + 32, forged_u64(f, entry_at(f, 0) + 32));
+    forge_u32(f, entry_at(f, 1) + 48, kept);
+}
 
 typedef struct forgery {
     const char *name;           /* also the file's name */
@@ -1299,6 +1317,9 @@ static const forgery forgeries[] = {
     {"pool_past.brs", forge_pool_past, "proxy pool lies outside the file"},
     {"table_end.brs", forge_table_end, "batch table lies outside the file"},
     {"top_offset.brs", forge_top_offset, "top-level BVH lies outside the file"},
+    {"blob_overlap.brs", forge_blob_overlap, "blob table: blobs overlap at byte 4096"},
+    {"blob_header.brs", forge_blob_header, "blob table: blobs overlap at byte 0"},
+    {"blob_longer.brs", forge_blob_longer, "blob table: blobs overlap at byte"},
 };
 
 /* Writes base forged by fn (none: unchanged) with repaired checksums as
