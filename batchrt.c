@@ -4181,6 +4181,38 @@ static brt_result load_prototypes(brt_scene *s, brt_error *err)
     return r;
 }
 
+static int blob_offset_order(const void *a, const void *b)
+{
+    const uint64_t x = ((const blob_place *)a)->offset, y = ((const blob_place *)b)->offset;
+    return (x > y) - (x < y);
+}
+
+/* No two blobs share a page, and none the header's: each table entry is
+** checked alone (check_batch), so a forged table could point two
+** batching points at one blob holding as many triangles as both say, and
+** a trace would answer with the wrong triangles (tests/test_hardening.c,
+** blob_overlap). */
+static brt_result check_blobs_apart(const brt_scene *s, brt_error *err)
+{
+    const uint32_t n = s->header.batch_count + s->header.prototype_count;
+    blob_place *sorted = malloc((size_t)n * sizeof *sorted);
+    uint64_t free_from = SCENE_PAGE;
+    uint32_t i;
+    if (!sorted) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+    memcpy(sorted, s->blobs, (size_t)n * sizeof *sorted);
+    qsort(sorted, n, sizeof *sorted, blob_offset_order);
+    for (i = 0; i < n && sorted[i].offset >= free_from; i++)
+        free_from = sorted[i].offset + round_up_page(sorted[i].size);   /* blob_inside: no wrap */
+    if (i < n) {
+        const uint64_t at = sorted[i].offset;
+        free(sorted);
+        return brt_fail(err, BRT_EFORMAT, "%s: blob table: blobs overlap at byte %llu", s->path,
+                        (unsigned long long)at);
+    }
+    free(sorted);
+    return BRT_OK;
+}
+
 /* Where every blob lies: the batching points', then the prototypes'. */
 static brt_result place_blobs(brt_scene *s, brt_error *err)
 {
@@ -4198,7 +4230,7 @@ static brt_result place_blobs(brt_scene *s, brt_error *err)
         s->blobs[b + i].size = s->prototypes[i].size;
         s->blobs[b + i].checksum = s->prototypes[i].checksum;
     }
-    return BRT_OK;
+    return check_blobs_apart(s, err);
 }
 
 static brt_result load_dag(brt_scene *s, brt_error *err)

@@ -215,6 +215,7 @@ int main(int argc, char **argv)
     suite_sampling();
     suite_reclaim();
     suite_pbrt();
+    suite_policy();
     suite_runner();
     if (!keep) remove_tmpdir();
     else printf("scratch files kept in %s\n", tmpdir);

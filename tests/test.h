@@ -77,5 +77,6 @@ void suite_sampling(void);
 void suite_reclaim(void);
 void suite_runner(void);
 void suite_pbrt(void);
+void suite_policy(void);
 
 #endif

@@ -32,6 +32,7 @@
 #include <errno.h>
 #include <float.h>
 #include <math.h>
+#include <pthread.h>
 #include <signal.h>
 #include <stdarg.h>
 #include <stdlib.h>
@@ -786,6 +787,161 @@ static void test_full_disk_programs(void)
         expect_run(&full_disk_runs[i], 1);   /* 512 bytes */
 }
 
+
+/* ===================================================================== */
+/* Faults on the read-ahead and on the last steps of a write             */
+/* ===================================================================== */
+
+/* The reader of a threaded trace: reads made by the cache's read-ahead
+** thread (any thread but the one that started the trace) fail as
+** planned; the others are plain preads.  (The read-ahead is the one
+** reader off the calling thread: batchrt.h, brt_read_fn.) */
+typedef struct ahead_plan {
+    pthread_t caller;
+    int mode;           /* 0 clean, 1 EIO, 2 end of file, 3 a byte flipped, 4 short */
+    long ahead_calls;   /* reads made by the read-ahead thread */
+} ahead_plan;
+
+static long ahead_read(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    ahead_plan *p = user;
+    long n;
+    if (pthread_equal(pthread_self(), p->caller)) return (long)pread(fd, buf, size, (off_t)offset);
+    p->ahead_calls++;
+    if (p->mode == 1) {
+        errno = EIO;
+        return -1;
+    }
+    if (p->mode == 2) return 0;
+    n = (long)pread(fd, buf, p->mode == 4 && size > 1 ? size / 2 : size, (off_t)offset);
+    if (p->mode == 3 && n > 100) ((unsigned char *)buf)[100] ^= 0x40;
+    return n;
+}
+
+/* A failed read-ahead is dropped and the blob read again, never used: EIO,
+** an end of file or a corrupt byte on every read-ahead leave the hits the
+** direct mode's and the loads and bytes read the clean run's (a dropped
+** read-ahead is not counted); short read-aheads are completed. */
+static void test_read_ahead_faults(void)
+{
+    static const char *const name[] = {"clean", "EIO", "end of file", "a flipped byte", "short reads"};
+    bench b;
+    brt_trace_options opt;
+    brt_stats clean, st;
+    ahead_plan plan;
+    int mode;
+    CHECK(fault_bench(&b), "cannot build the bench");
+    fault_options(&opt, NULL);
+    opt.read_fn = ahead_read;
+    opt.read_user = &plan;
+    opt.threads = 2;            /* a thread reads ahead */
+    for (mode = 0; mode < 5 && !test_failed(); mode++) {
+        char what[64];
+        memset(&plan, 0, sizeof plan);
+        plan.caller = pthread_self();
+        plan.mode = mode;
+        snprintf(what, sizeof what, "read-ahead with %s", name[mode]);
+        if (!trace_equals_direct(&b, &opt, mode ? &st : &clean, what)) break;
+        EXPECT(plan.ahead_calls > 5, "%s: only %ld reads ahead: the test is blind", what, plan.ahead_calls);
+        if (mode == 0) continue;
+        EXPECT(st.batch_loads == clean.batch_loads && st.disk_bytes_read == clean.disk_bytes_read,
+               "%s: %llu loads, %llu bytes; clean %llu and %llu", what, (unsigned long long)st.batch_loads,
+               (unsigned long long)st.disk_bytes_read, (unsigned long long)clean.batch_loads,
+               (unsigned long long)clean.disk_bytes_read);
+    }
+    bench_free(&b);
+}
+
+typedef struct write_job {
+    const char *path;
+    int which;          /* 0 hits, 1 rays, 2 statistics, 3 a scene */
+    const brt_mesh *mesh;
+    brt_error err;
+} write_job;
+
+static brt_result write_one(void *arg)
+{
+    write_job *job = arg;
+    brt_hit hits[64];
+    brt_ray rays[64];
+    brt_stats stats;
+    brt_scene_options opt;
+    int i;
+    for (i = 0; i < 64; i++) brt_hit_clear(&hits[i]);
+    memset(rays, 0, sizeof rays);
+    memset(&stats, 0, sizeof stats);
+    memset(&opt, 0, sizeof opt);
+    opt.batch_tris = 50;
+    opt.proxy_res = 8;
+    switch (job->which) {
+    case 0: return brt_hits_write(job->path, hits, 64, &job->err);
+    case 1: return brt_rays_write(job->path, rays, 64, &job->err);
+    case 2: return brt_stats_write_json(job->path, &stats, &job->err);
+    default: return brt_scene_build(job->mesh, &opt, 1, job->path, &job->err);
+    }
+}
+
+/* The last steps of a write.  A device that is full (/dev/full, through
+** a link: ENOSPC on every write) takes the hit, ray and statistics files
+** written to it directly, and each reports "No space left on device"; a file-size limit
+** below a hit file's or a statistics file's size fails it with EFBIG,
+** leaving nothing; and a target that is a directory is refused: the
+** files written in place of a special file fail to open it (BRT_EIO), a
+** scene build refuses it first (BRT_EARG), each naming the path, the
+** directory untouched, no temporary file left.  (The writer does not
+** fsync: there is no fsync to fail; a failing rename needs a target that
+** turns into a directory between the check and the rename, which no test
+** here can arrange.) */
+static void test_write_last_steps(void)
+{
+    static const char *const kind[] = {"hit file", "ray file", "statistics", "scene file"};
+    tu_scene soup = {0};
+    brt_mesh mesh;
+    write_job job;
+    uint64_t seed = test_seed() + 73;
+    struct stat st;
+    int k;
+    brt_result r;
+    tu_random_soup(&soup, &seed, 200, 0.1f);
+    mesh = tu_mesh_view(&soup);
+    job.mesh = &mesh;
+    /* Through a link in the scratch folder: a writer that wrongly renamed
+    ** over its target would replace the link, never the device. */
+    unlink(scratch("full-device"));
+    for (k = 0; k < 3 && file_exists("/dev/full"); k++) {
+        CHECK(symlink("/dev/full", scratch("full-device")) == 0, "cannot link to /dev/full");
+        job.which = k;
+        job.path = scratch("full-device");
+        r = write_one(&job);
+        EXPECT(r == BRT_EIO && strstr(job.err.message, "full-device") && strstr(job.err.message, strerror(ENOSPC)),
+               "%s to /dev/full: %s, '%s'", kind[k], brt_result_string(r), job.err.message);
+        unlink(scratch("full-device"));
+    }
+    for (k = 0; k < 3; k += 2) {
+        job.which = k;
+        job.path = scratch("limited.out");
+        r = with_file_limit(100, write_one, &job);
+        EXPECT(r == BRT_EIO && strstr(job.err.message, strerror(EFBIG)) && !file_exists(job.path) &&
+               !tu_temporary_file_left(), "%s under a limit of 100 bytes: %s, '%s'", kind[k],
+               brt_result_string(r), job.err.message);
+    }
+    for (k = 0; k < 4; k++) {
+        char path[600];
+        snprintf(path, sizeof path, "%s", scratch("a-directory"));
+        CHECK(mkdir(path, 0700) == 0, "cannot make %s", path);
+        job.which = k;
+        job.path = path;
+        r = write_one(&job);
+        EXPECT(r == (k == 3 ? BRT_EARG : BRT_EIO) && strstr(job.err.message, path),
+               "%s onto a directory: %s, '%s'", kind[k],
+               brt_result_string(r), job.err.message);
+        EXPECT(stat(path, &st) == 0 && S_ISDIR(st.st_mode) && !tu_temporary_file_left(),
+               "%s onto a directory: the directory changed or a temporary file is left", kind[k]);
+        rmdir(path);
+    }
+    tu_scene_free(&soup);
+}
+
 /* ===================================================================== */
 /* Limits                                                                */
 /* ===================================================================== */
@@ -1071,6 +1227,56 @@ static void forge_blob_count(forged *f)
     forge_u32(f, entry_at(f, 2) + 48, forged_u32(f, entry_at(f, 2) + 48) - 1);
 }
 
+/* Every axis (issue 32 class 4): a point's box inverted in y, infinite
+** in z; a root lane's box infinite in y and z (holding its point, so that
+** only the box check refuses it); a root lane narrower than its point in
+** y and z.  Root lanes: f32 lo[axis][lane] at 4 (4 axis + lane), hi 48 on. */
+static void forge_batch_box_y(forged *f)
+{
+    forge_f32(f, entry_at(f, 2) + 4, forged_f32(f, entry_at(f, 2) + 16) + 1);
+}
+static void forge_batch_box_z(forged *f) { forge_f32(f, entry_at(f, 3) + 20, INFINITY); }
+static void forge_top_box_y(forged *f) { forge_f32(f, top_root_at(f) + 4 * (4 + 1), -INFINITY); }
+static void forge_top_box_z(forged *f) { forge_f32(f, top_root_at(f) + 48 + 4 * (8 + 2), INFINITY); }
+static void forge_top_nesting_y(forged *f)
+{
+    forge_f32(f, top_root_at(f) + 48 + 4 * (4 + 1), forged_f32(f, top_root_at(f) + 4 * (4 + 1)));
+}
+static void forge_top_nesting_z(forged *f)
+{
+    forge_f32(f, top_root_at(f) + 4 * (8 + 3), forged_f32(f, top_root_at(f) + 48 + 4 * (8 + 3)));
+}
+/* The header: the other byte order's mark; version 4 without prototypes. */
+static void forge_endian(forged *f) { forge_u32(f, 12, 0x04030201u); }
+static void forge_v4_empty(forged *f) { forge_u32(f, 8, 4); }
+/* Sections (header 56 + 24 s: offset, size): the proxy pool's offset past
+** the end, its size wrapping offset + size around 2^64, its size one byte
+** past the end; the batch table overlapping the end; the top level's
+** offset near 2^64.  (The table sizes themselves are check_header's.) */
+static void forge_pool_offset(forged *f) { forge_u64(f, 104, f->size + 4096); }
+static void forge_pool_wrap(forged *f) { forge_u64(f, 112, UINT64_MAX - forged_u64(f, 104) + 4097); }
+static void forge_pool_past(forged *f) { forge_u64(f, 112, f->size - forged_u64(f, 104) + 1); }
+static void forge_table_end(forged *f) { forge_u64(f, 56, f->size - 8); }
+static void forge_top_offset(forged *f) { forge_u64(f, 80, UINT64_MAX - 8); }
+/* Blobs apart: point 1's blob made point 0's (counts and sums kept
+** agreeing), or put on the header's page; point 0's a page longer. */
+static void forge_blob_header(forged *f) { forge_u64(f, entry_at(f, 1) + 24, 0); }
+/* point 0's blob a page longer: into point 1's, which follows it */
+static void forge_blob_longer(forged *f)
+{
+    forge_u64(f, entry_at(f, 0) + 32, forged_u64(f, entry_at(f, 0) + 32) + 4096);
+    forge_u64(f, 48, forged_u64(f, 48) + 4096);
+}
+static void forge_blob_overlap(forged *f)
+{
+    const uint32_t moved = forged_u32(f, entry_at(f, 1) + 48), kept = forged_u32(f, entry_at(f, 0) + 48);
+    forge_u64(f, 48, forged_u64(f, 48) - forged_u64(f, entry_at(f, 1) + 32) + forged_u64(f, entry_at(f, 0) + 32));
+    forge_u32(f, 36, forged_u32(f, 36) - moved + kept);
+    forge_u64(f, entry_at(f, 1) + 24, forged_u64(f, entry_at(f, 0) + 24));
+    forge_u64(f, entry_at(f, 1) + 32, forged_u64(f, entry_at(f, 0) + 32));
+    forge_u32(f, entry_at(f, 1) + 48, kept);
+}
+
 typedef struct forgery {
     const char *name;           /* also the file's name */
     void (*forge)(forged *f);
@@ -1098,29 +1304,57 @@ static const forgery forgeries[] = {
     {"blob_box.brs", forge_blob_box, "batching point 1: bvh blob: node 0 slot 0: box"},
     {"blob_triangle.brs", forge_blob_triangle, "batching point 1: bvh blob: vertex 0: coordinate"},
     {"blob_count.brs", forge_blob_count, "batching point 1: blob holds"},
+    {"batch_box_y.brs", forge_batch_box_y, "batching point 2: box not finite or inverted"},
+    {"batch_box_z.brs", forge_batch_box_z, "batching point 3: box not finite or inverted"},
+    {"top_box_y.brs", forge_top_box_y, "top-level node 0: box not finite or inverted"},
+    {"top_box_z.brs", forge_top_box_z, "top-level node 0: box not finite or inverted"},
+    {"top_nesting_y.brs", forge_top_nesting_y, "top-level node 0: box does not hold batching point"},
+    {"top_nesting_z.brs", forge_top_nesting_z, "top-level node 0: box does not hold batching point"},
+    {"endian.brs", forge_endian, "of the other byte order"},
+    {"v4_empty.brs", forge_v4_empty, "header: version 4 without prototypes"},
+    {"pool_offset.brs", forge_pool_offset, "proxy pool lies outside the file"},
+    {"pool_wrap.brs", forge_pool_wrap, "proxy pool lies outside the file"},
+    {"pool_past.brs", forge_pool_past, "proxy pool lies outside the file"},
+    {"table_end.brs", forge_table_end, "batch table lies outside the file"},
+    {"top_offset.brs", forge_top_offset, "top-level BVH lies outside the file"},
+    {"blob_overlap.brs", forge_blob_overlap, "blob table: blobs overlap at byte 4096"},
+    {"blob_header.brs", forge_blob_header, "blob table: blobs overlap at byte 0"},
+    {"blob_longer.brs", forge_blob_longer, "blob table: blobs overlap at byte"},
 };
 
 /* Writes base forged by fn (none: unchanged) with repaired checksums as
 ** name, opens it, traces one ray loading every blob; the result, and the
 ** message in err. */
-static brt_result open_forged(const forged *base, const char *name, void (*fn)(forged *),
-                              brt_error *err)
+static void repair_plain(forged *f) { fuzz_repair_scene_checksums(f->file, f->size); }
+
+/* base forged by fn (none: unchanged), its checksums repaired by repair,
+** written as name and opened. */
+static brt_result forged_open(const forged *base, const char *name, void (*fn)(forged *),
+                              void (*repair)(forged *), brt_scene **scene, brt_error *err)
 {
     forged f;
-    brt_scene *scene = NULL;
-    brt_trace_options opt;
-    brt_ray ray = {{0.1f, 0.1f, 3.0f}, {0.0f, 0.0f, -1.0f}, 0.0f, INFINITY};
-    brt_hit hit;
     brt_result r = BRT_ENOMEM;
+    *scene = NULL;
     f.size = base->size;
     f.file = malloc(f.size);
     if (!f.file) return r;
     memcpy(f.file, base->file, f.size);
     if (fn) fn(&f);
-    fuzz_repair_scene_checksums(f.file, f.size);
+    repair(&f);
     err->message[0] = 0;
-    if (spill(name, f.file, f.size)) r = brt_scene_open(scratch(name), &scene, err);
+    r = spill(name, f.file, f.size) ? brt_scene_open(scratch(name), scene, err) : BRT_EIO;
     free(f.file);
+    return r;
+}
+
+static brt_result open_forged(const forged *base, const char *name, void (*fn)(forged *),
+                              brt_error *err)
+{
+    brt_scene *scene;
+    brt_trace_options opt;
+    brt_ray ray = {{0.1f, 0.1f, 3.0f}, {0.0f, 0.0f, -1.0f}, 0.0f, INFINITY};
+    brt_hit hit;
+    brt_result r = forged_open(base, name, fn, repair_plain, &scene, err);
     if (r != BRT_OK) return r;
     memset(&opt, 0, sizeof opt);
     opt.exact_proxies = 1;   /* loads every blob */
@@ -1214,6 +1448,103 @@ static void test_forged_partition(void)
     free(base.file);
 }
 
+/* An instanced scene file (version 4, README "The scene file"):
+** tu_instanced_squares, a world triangle and four instances of a square. */
+static int instanced_base(forged *base)
+{
+    tu_instanced s;
+    brt_scene_source source;
+    brt_scene_options opt;
+    brt_error err;
+    int ok;
+    tu_instanced_squares(&s);
+    tu_instanced_source(&s, &source);
+    memset(&opt, 0, sizeof opt);
+    opt.proxy_res = 8;
+    ok = brt_scene_build_source(&source, &opt, 1, scratch("inst_base.brs"), &err) == BRT_OK;
+    if (!ok) test_fail_at(__FILE__, __LINE__, "%s", err.message);
+    tu_instanced_free(&s);
+    base->file = ok ? tu_slurp(scratch("inst_base.brs"), &base->size) : NULL;
+    return base->file && base->size >= 256 && forged_u32(base, 8) == 4 && forged_u32(base, 44) == 1;
+}
+
+/* Its parts: batch entries of 104 bytes (instances at 80, condition 84),
+** the prototype table (section at 128: 56-byte entries, offset 0, box 28). */
+static uint64_t entry4_at(const forged *f, uint32_t i) { return forged_u64(f, 56) + 104u * i; }
+static uint64_t proto_at(const forged *f) { return forged_u64(f, 128); }
+static uint64_t instance_point_at(const forged *f)
+{
+    uint32_t i;
+    for (i = 0; i < forged_u32(f, 32); i++)
+        if (forged_u32(f, entry4_at(f, i) + 80)) return entry4_at(f, i);
+    return 0;
+}
+
+/* The checksums of a version-4 file after a forgery: every blob's, the
+** four sections', the header's (each only where it lies in the file). */
+static void repair_instanced(forged *f)
+{
+    uint64_t at[16];
+    uint32_t n = 0, i;
+    for (i = 0; i < forged_u32(f, 32) && n < 8; i++) at[n++] = entry4_at(f, i) + 24;
+    at[n++] = proto_at(f);
+    for (i = 0; i < 3; i++) at[n++] = 56 + 24 * (uint64_t)i;
+    at[n++] = 128;
+    for (i = 0; i < n; i++) {
+        const uint64_t off = forged_u64(f, at[i]), size = forged_u64(f, at[i] + 8);
+        if (off <= f->size && size <= f->size - off) forge_u64(f, at[i] + 16, brt_checksum64(f->file + off, size));
+    }
+    forge_u64(f, 248, brt_checksum64(f->file, 248));
+}
+
+static void forge_header_condition(forged *f) { forge_f32(f, 156, -1.0f); }
+static void forge_header_reach(forged *f) { forge_f32(f, 160, INFINITY); }
+static void forge_header_centre(forged *f) { forge_f32(f, 184, NAN); }
+static void forge_proto_table(forged *f) { forge_u64(f, 136, forged_u64(f, 136) + 56); }
+static void forge_proto_blob(forged *f) { forge_u64(f, proto_at(f), (f->size + 4095) / 4096 * 4096); }
+static void forge_proto_box(forged *f) { forge_f32(f, proto_at(f) + 28 + 4, NAN); }
+static void forge_point_instances(forged *f)
+{
+    forge_u32(f, instance_point_at(f) + 80, forged_u32(f, 152) + 1);
+}
+static void forge_point_condition(forged *f) { forge_f32(f, instance_point_at(f) + 84, 2048.0f); }
+static void forge_point_reach(forged *f) { forge_f32(f, instance_point_at(f) + 96, -1.0f); }
+
+/* One forged instanced file per validator of the version-4 parts. */
+static void test_forged_instanced_scenes(void)
+{
+    static const forgery forged_v4[] = {
+        {"inst_condition.brs", forge_header_condition, "header: margin out of range"},
+        {"inst_reach.brs", forge_header_reach, "header: margin out of range"},
+        {"inst_centre.brs", forge_header_centre, "header: margin out of range"},
+        {"inst_proto_table.brs", forge_proto_table, "header: prototype table has the wrong size"},
+        {"inst_proto_blob.brs", forge_proto_blob, "prototype 0: blob outside the file"},
+        {"inst_proto_box.brs", forge_proto_box, "prototype 0: box not finite or inverted"},
+        {"inst_point_count.brs", forge_point_instances, "instances or margin out of range"},
+        {"inst_point_condition.brs", forge_point_condition, "instances or margin out of range"},
+        {"inst_point_reach.brs", forge_point_reach, "instances or margin out of range"},
+    };
+    forged base;
+    size_t i;
+    CHECK(instanced_base(&base), "no instanced scene file of version 4 with one prototype");
+    CHECK(instance_point_at(&base) != 0, "no point of instances in the file");
+    for (i = 0; i < sizeof forged_v4 / sizeof *forged_v4 + 1; i++) {
+        const forgery *g = i ? &forged_v4[i - 1] : NULL;
+        brt_scene *scene;
+        brt_error err;
+        brt_result r = forged_open(&base, g ? g->name : "inst_unforged.brs", g ? g->forge : NULL,
+                                   repair_instanced, &scene, &err);
+        brt_scene_close(scene);
+        if (!g) {
+            EXPECT(r == BRT_OK, "unforged, checksums repaired: %s", err.message);
+            continue;
+        }
+        EXPECT(r == BRT_EFORMAT && strstr(err.message, g->name) && strstr(err.message, g->part),
+               "%s: %s, '%s' (expected '%s')", g->name, brt_result_string(r), err.message, g->part);
+    }
+    free(base.file);
+}
+
 /* The validators refuse forgeries, not extremes: a scene built from
 ** triangles at +-FLT_MAX (padded BVH boxes round out to infinity there,
 ** and a proxy grid's far corner overflows a float) opens, loads every blob
@@ -1254,6 +1585,8 @@ void suite_hardening(void)
     test_run("hardening: short reads of every size, EINTR", test_short_reads_every_size);
     test_run("hardening: file-size limit, no partial scene or ray file", test_write_faults);
     test_run("hardening: programs on a full disk leave nothing", test_full_disk_programs);
+    test_run("hardening: a failed read-ahead is dropped and read again", test_read_ahead_faults);
+    test_run("hardening: a full device, a size limit, a directory as the target", test_write_last_steps);
     test_run("hardening: one triangle, every limit", test_single_triangle);
     test_run("hardening: a 1x1 render, direct == batched at its limits", test_one_pixel_render);
     test_run("hardening: identical triangles, every limit", test_identical_triangles);
@@ -1266,4 +1599,5 @@ void suite_hardening(void)
     test_run("hardening: forged scene file, a triangle in two batching points (partition checker)",
              test_forged_partition);
     test_run("hardening: a scene at +-FLT_MAX passes the validators", test_extreme_scene_opens);
+    test_run("hardening: forged instanced scene files, one per validator", test_forged_instanced_scenes);
 }

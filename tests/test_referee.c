@@ -14,6 +14,7 @@
 #include "batchrt.h"
 #include "../examples/referee.h"
 
+#include <float.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -184,6 +185,192 @@ static void test_exact_vertex(void)
     }
     expect_class(&mesh, &r, hit(0, 1), hit(1, 1), EX_TIE, "exact vertex tie");
     expect_class(&mesh, &r, hit(1, 1), miss, EX_LEAK_B, "B misses the exact vertex");
+}
+
+
+/* ===================================================================== */
+/* Hard geometry: opposite facing, needles, slivers, each bound's edge   */
+/* ===================================================================== */
+/*
+** The bounds of referee.c, written again here from their definitions
+** (the top of referee.c), so that each class is checked just inside and
+** just outside its bound: 0.9 and 1.1 of it.
+**   edge band of edge ab: 16 FLT_EPSILON (|A| |B x d| + |B| |A x d|),
+**     A = a - o, B = b - o;
+**   t bound: 16 FLT_EPSILON (L1 L2 (R + |t| |d|) / |D| + |t|), L1 and L2
+**     the two longest edges, R the farthest vertex from o, D = d . n.
+*/
+static double len3(const double v[3]) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
+
+static void cross3(const double a[3], const double b[3], double c[3])
+{
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static double band_of(const brt_ray *r, const float *a, const float *b)
+{
+    double A[3], B[3], d[3], Ad[3], Bd[3];
+    int k;
+    for (k = 0; k < 3; k++) {
+        A[k] = (double)a[k] - r->org[k];
+        B[k] = (double)b[k] - r->org[k];
+        d[k] = r->dir[k];
+    }
+    cross3(A, d, Ad);
+    cross3(B, d, Bd);
+    return 16 * FLT_EPSILON * (len3(A) * len3(Bd) + len3(B) * len3(Ad));
+}
+
+static double t_bound_of(const brt_mesh *m, uint32_t prim, const brt_ray *r, double t)
+{
+    const float *v[3];
+    double e[3], n[3], e1[3], e2[3], d[3], far = 0, l1, l2;
+    int i, k;
+    for (i = 0; i < 3; i++) v[i] = m->positions + 3 * (size_t)m->indices[3 * prim + i];
+    for (i = 0; i < 3; i++) {
+        double w[3], f[3];
+        for (k = 0; k < 3; k++) {
+            f[k] = (double)v[(i + 1) % 3][k] - v[i][k];
+            w[k] = (double)v[i][k] - r->org[k];
+        }
+        e[i] = len3(f);
+        far = fmax(far, len3(w));
+    }
+    for (k = 0; k < 3; k++) {
+        e1[k] = (double)v[1][k] - v[0][k];
+        e2[k] = (double)v[2][k] - v[0][k];
+        d[k] = r->dir[k];
+    }
+    cross3(e1, e2, n);
+    l1 = fmax(e[0], fmax(e[1], e[2]));
+    l2 = e[0] + e[1] + e[2] - l1 - fmin(e[0], fmin(e[1], e[2]));
+    return 16 * FLT_EPSILON * (l1 * l2 * (far + fabs(t) * len3(d)) /
+                               fabs(d[0] * n[0] + d[1] * n[1] + d[2] * n[2]) + fabs(t));
+}
+
+/* Opposite-facing triangles: prim 0 at z = 0 wound counter-clockwise seen
+** from above, prim 1 the same square corner at z = -gap wound clockwise
+** (its D has the other sign).  A ray down meets 0 at t = 1, 1 at 1 + gap. */
+static void test_opposite_facing(void)
+{
+    static const float gaps[] = {0.5f, 1e-3f};
+    size_t g;
+    for (g = 0; g < sizeof gaps / sizeof *gaps; g++) {
+        float pos[] = {0, 0, 0, 2, 0, 0, 0, 2, 0, 0, 0, 0, 0, 2, 0, 2, 0, 0};
+        static uint32_t idx[] = {0, 1, 2, 3, 4, 5};
+        const brt_mesh m = {pos, idx, 6, 2};
+        const brt_ray r = down(0.5f, 0.25f);
+        const float far_t = 1 + gaps[g];
+        int k;
+        for (k = 3; k < 6; k++) pos[3 * k + 2] = -gaps[g];
+        expect_class(&m, &r, hit(1, far_t), hit(0, 1), EX_UNEXPLAINED, "A skips the nearer, facing away");
+        expect_class(&m, &r, hit(0, 1), hit(1, far_t), EX_UNEXPLAINED, "B skips the nearer, facing away");
+        /* The nearer one facing away: swap the windings. */
+        pos[3] = 0, pos[4] = 2, pos[6] = 2, pos[7] = 0;
+        pos[12] = 2, pos[13] = 0, pos[15] = 0, pos[16] = 2;
+        expect_class(&m, &r, hit(1, far_t), hit(0, 1), EX_UNEXPLAINED, "A skips the nearer, facing toward");
+        expect_class(&m, &r, hit(0, 1), hit(1, far_t), EX_UNEXPLAINED, "B skips the nearer, facing toward");
+    }
+}
+
+/* Same prim, t off by 0.9 and 1.1 of its t bound: within it, t_bound;
+** beyond it, unexplained.  On a well-shaped triangle, a needle (one edge
+** 1e-3 long), and a sliver (height 1e-3 over a unit edge). */
+static void test_t_bound_edges(void)
+{
+    static float pos[] = {0, 0, 0, 1, 0, 0, 0, 1, 0,            /* well shaped */
+                          0, 0, 0, 1e-3f, 0, 0, 0.5f, 1, 0,     /* needle */
+                          0, 0, 0, 1, 0, 0, 0.5f, 1e-3f, 0};    /* sliver */
+    static uint32_t idx[] = {0, 1, 2, 3, 4, 5, 6, 7, 8};
+    static const float at[3][2] = {{0.25f, 0.25f}, {0.25f, 0.5f}, {0.5f, 2.5e-4f}};
+    static const char *const name[3] = {"well shaped", "needle", "sliver"};
+    const brt_mesh m = {pos, idx, 9, 3};
+    uint32_t p;
+    for (p = 0; p < 3; p++) {
+        const brt_ray r = down(at[p][0], at[p][1]);
+        const double b = t_bound_of(&m, p, &r, 1.0);
+        char what[96];
+        ex_verdict v;
+        brt_hit h = hit(p, (float)(1 + 0.9 * b));
+        snprintf(what, sizeof what, "%s, t off by 0.9 of its bound %.3g", name[p], b);
+        expect_class(&m, &r, hit(p, 1), h, EX_T_BOUND, what);
+        ex_referee(&m, &r, &h, &h, &v);
+        EXPECT(fabs(v.t_ratio - ((double)h.t - 1) / b) < 1e-3, "%s: t ratio %g, expected %g", what,
+               v.t_ratio, ((double)h.t - 1) / b);
+        snprintf(what, sizeof what, "%s, t off by 1.1 of its bound %.3g", name[p], b);
+        expect_class(&m, &r, hit(p, 1), hit(p, (float)(1 + 1.1 * b)), EX_UNEXPLAINED, what);
+    }
+}
+
+/* Two triangles, the second (opposite facing) gap farther: reporting it
+** is a near tie while gap is within 0.9 of the sum of their t bounds,
+** unexplained at 1.1. */
+static void test_near_tie_edges(void)
+{
+    static const double share[2] = {0.9, 1.1};
+    int i;
+    for (i = 0; i < 2; i++) {
+        float pos[] = {0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 0, 0, 1, 0, 1, 0, 0};
+        static uint32_t idx[] = {0, 1, 2, 3, 4, 5};
+        const brt_mesh m = {pos, idx, 6, 2};
+        const brt_ray r = down(0.25f, 0.25f);
+        const double sum = t_bound_of(&m, 0, &r, 1.0) + t_bound_of(&m, 1, &r, 1.0);
+        const float gap = (float)(share[i] * sum);
+        char what[96];
+        int k;
+        for (k = 3; k < 6; k++) pos[3 * k + 2] = -gap;
+        snprintf(what, sizeof what, "the farther of two, %.1f of the bounds' sum %.3g", share[i], sum);
+        expect_class(&m, &r, hit(1, 1 + gap), hit(0, 1), i == 0 ? EX_NEAR_TIE : EX_UNEXPLAINED, what);
+    }
+}
+
+/* A ray inside or outside the edge x = 1 of the triangle (0,0) (1,0)
+** (1,1) by 0.9 and 1.1 of the edge band: a miss inside it is a leak, a hit
+** outside it is rounding; beyond the band, both are unexplained. */
+static void test_edge_band_edges(void)
+{
+    static float pos[] = {0, 0, 0, 1, 0, 0, 1, 1, 0};
+    static uint32_t idx[] = {0, 1, 2};
+    const brt_mesh m = {pos, idx, 3, 1};
+    static const double share[2] = {0.9, 1.1};
+    int i, side;
+    for (side = -1; side <= 1; side += 2)
+        for (i = 0; i < 2; i++) {
+            brt_ray r = down(1, 0.5f);
+            char what[96];
+            int step;
+            /* the float x whose distance from the edge is nearest share * band */
+            for (step = 0; step < 1000; step++) {
+                const float x = nextafterf(r.org[0], side < 0 ? 0.0f : 2.0f);
+                brt_ray next = down(x, 0.5f);
+                if (fabs((double)x - 1) > share[i] * band_of(&next, pos + 3, pos + 6)) break;
+                r = next;
+            }
+            snprintf(what, sizeof what, "%s the edge by %.2f of its band", side < 0 ? "inside" : "outside",
+                     fabs((double)r.org[0] - 1) / band_of(&r, pos + 3, pos + 6));
+            if (side < 0) expect_class(&m, &r, miss, hit(0, 1), i == 0 ? EX_LEAK_A : EX_UNEXPLAINED, what);
+            else expect_class(&m, &r, miss, hit(0, 1), i == 0 ? EX_OUTSIDE_B : EX_UNEXPLAINED, what);
+        }
+}
+
+/* The exact t before tnear by 0.9 and 1.1 of its t bound, the record at
+** tnear: the boundary's rounding, then unexplained. */
+static void test_boundary_edges(void)
+{
+    static float pos[] = {0, 0, 0, 1, 0, 0, 0, 1, 0};
+    static uint32_t idx[] = {0, 1, 2};
+    const brt_mesh m = {pos, idx, 3, 1};
+    static const double share[2] = {0.9, 1.1};
+    int i;
+    for (i = 0; i < 2; i++) {
+        brt_ray r = down(0.25f, 0.25f);
+        char what[96];
+        r.tnear = (float)(1 + share[i] * t_bound_of(&m, 0, &r, 1.0));
+        snprintf(what, sizeof what, "the hit %.1f of its bound before tnear", share[i]);
+        expect_class(&m, &r, hit(0, r.tnear), miss, i == 0 ? EX_BOUNDARY : EX_UNEXPLAINED, what);
+    }
 }
 
 /* ===================================================================== */
@@ -376,6 +563,11 @@ void suite_referee(void)
     test_run("referee: hits at exactly tnear and tfar", test_interval);
     test_run("referee: two surfaces closer than t can tell", test_near_tie);
     test_run("referee: an exact vertex where double arithmetic errs", test_exact_vertex);
+    test_run("referee: hard geometry, opposite-facing triangles", test_opposite_facing);
+    test_run("referee: hard geometry, the t bound on needles and slivers", test_t_bound_edges);
+    test_run("referee: hard geometry, a near tie at its bound", test_near_tie_edges);
+    test_run("referee: hard geometry, the edge band at its bound", test_edge_band_edges);
+    test_run("referee: hard geometry, tnear at its bound", test_boundary_edges);
     test_run("referee: occlusion records: leak, outside, tfar, fabricated 0 and 1",
              test_occlusion_referee);
     test_run("referee: hitdiff --mesh table, exit status and --explain",

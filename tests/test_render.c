@@ -507,6 +507,166 @@ static void test_figure4(void)
     free(svg);
 }
 
+/* ---- exact means: scenes whose expected image mean is known ---- */
+/*
+** The renderer estimates the sky's and the sun's light reflected by grey
+** Lambert surfaces (albedo 0.8) over at most MAX_DEPTH - 1 = 7 bounces.
+** Two scenes have that sum in closed form, computed here from the sky's
+** and the sun's definitions (render.c: sky_radiance's gradient, the sun's
+** colour 1, 0.92, 0.78) and geometry alone:
+**   - a plane under the sky and a sun: every camera ray hits the plane and
+**     every bounce escapes, so the mean is 0.8 times the cosine-weighted
+**     sky plus the sun: with mu = cos(angle from the normal) distributed
+**     2 mu, E[sqrt(mu)] = 4/5, so the sky gives (1/5) horizon + (4/5)
+**     zenith; a disc of radius r at cos(n, s) above the horizon gives
+**     L (n.s) sin^2 r (the cosine over the cap, over pi);
+**   - an open sphere: the inside of a unit sphere without the cap of
+**     half-angle alpha about +y, seen from its centre.  From any point of
+**     a sphere's inside a cosine-weighted ray lands uniformly on the
+**     sphere's area (the form factor between two of its elements is
+**     dA / 4 pi R^2), so each bounce escapes with f = (1 - cos alpha) / 2
+**     through a uniform point of the cap, and from the second hit on the
+**     hit is uniform over the rest: mean = 0.8 f S1 + S sum over k = 2..7
+**     of 0.8^k (1 - f)^(k-1) f, with S1 the sky through the cap from the
+**     bottom point (the camera looks down a 1-degree cone: its rays land
+**     within a degree of it) and S from a uniform point, integrated here.
+**     Two thirds of that light comes after the third hit, where Russian
+**     roulette acts, so a roulette that does not reweight its survivors
+**     shows at once.
+** Each run's mean is checked within 4 standard errors computed from its
+** own samples (render's mean_luminance_se): the random numbers are a
+** fixed hash, so a given build passes or fails the same way every run.
+*/
+static const double sky_horizon = (0.45 + 0.50 + 0.58) / 3, sky_zenith = (0.12 + 0.22 + 0.50) / 3;
+static const double sun_colour = (1.0 + 0.92 + 0.78) / 3;
+
+/* The luminance of the sky above the horizon along a direction whose y
+** component is up (render.c's gradient, independently written). */
+static double sky_up(double up)
+{
+    const double a = sqrt(up);
+    return (1 - a) * sky_horizon + a * sky_zenith;
+}
+
+/* Runs render with args and checks its mean against expect. */
+static void expect_mean(const char *args, double expect)
+{
+    double mean, se;
+    if (tu_run("render %s --stats @/exact.json --out @/exact.png", args) != 0) {
+        test_fail_at(__FILE__, __LINE__, "render %s failed: %s", args, tu_last_stderr());
+        return;
+    }
+    mean = tu_json_file_number(tu_scratch("exact.json"), "mean_luminance");
+    se = tu_json_file_number(tu_scratch("exact.json"), "mean_luminance_se");
+    EXPECT(se > 0 && fabs(mean - expect) <= 4 * se,
+           "render %s: mean %.6f, exact %.6f: %.1f standard errors (se %.6f)", args, mean, expect,
+           fabs(mean - expect) / se, se);
+}
+
+static void test_exact_plane(void)
+{
+    static const char *const obj = "v -1000 0 -1000\nv 1000 0 -1000\nv 1000 0 1000\nv -1000 0 1000\n"
+                                   "f 1 2 3\nf 1 3 4\n";
+    const double radius = 8 * 3.14159265358979323846 / 180, cos_ns = sqrt(0.5);
+    const double sun = 60 * sun_colour * cos_ns * sin(radius) * sin(radius);
+    const double sky = sky_horizon / 5 + 4 * sky_zenith / 5;
+    char args[512];
+    int nee;
+    CHECK(tu_spill(tu_scratch("plane.obj"), obj, strlen(obj)), "could not write plane.obj");
+    for (nee = 0; nee < 2; nee++) {
+        snprintf(args, sizeof args, "@/plane.obj --scene @/plane.brs --camera 0,2,1:0,0,0:30 "
+                 "--width 64 --height 64 --spp %d --sun 1,1,0 --sun-radius 8 --sun-radiance 60 %s",
+                 nee ? 16 : 64, nee ? "" : "--no-nee");
+        expect_mean(args, 0.8 * (sky + sun));
+        snprintf(args, sizeof args, "@/plane.obj --scene @/plane.brs --camera 0,2,1:0,0,0:30 "
+                 "--width 32 --height 32 --spp 16 --sun-radiance 0 %s", nee ? "" : "--no-nee");
+        expect_mean(args, 0.8 * sky);
+    }
+}
+
+/* The open sphere's mesh: NT rings of 2 degrees, NP segments, the rings
+** above alpha = CAP rings left out. */
+#define SPHERE_RINGS 90
+#define SPHERE_SEGMENTS 180
+#define SPHERE_CAP 30           /* 60 degrees */
+
+static int write_open_sphere(const char *path)
+{
+    const double pi = 3.14159265358979323846;
+    FILE *f = fopen(path, "w");
+    int i, j;
+    if (!f) return 0;
+    for (i = SPHERE_CAP; i <= SPHERE_RINGS; i++)
+        for (j = 0; j < SPHERE_SEGMENTS; j++) {
+            const double th = pi * i / SPHERE_RINGS, ph = 2 * pi * j / SPHERE_SEGMENTS;
+            fprintf(f, "v %.9g %.9g %.9g\n", sin(th) * cos(ph), cos(th), sin(th) * sin(ph));
+        }
+    for (i = 0; i < SPHERE_RINGS - SPHERE_CAP; i++)
+        for (j = 0; j < SPHERE_SEGMENTS; j++) {
+            const int a = 1 + i * SPHERE_SEGMENTS + j, b = 1 + i * SPHERE_SEGMENTS + (j + 1) % SPHERE_SEGMENTS;
+            fprintf(f, "f %d %d %d\nf %d %d %d\n", a, b, b + SPHERE_SEGMENTS, a, b + SPHERE_SEGMENTS,
+                    a + SPHERE_SEGMENTS);
+        }
+    return fclose(f) == 0;
+}
+
+/* The sky through the cap (half-angle alpha) seen from the sphere's
+** bottom (first) and from a uniform point of the rest (second): the
+** means over a uniform point Q of the cap, by the midpoint rule (the
+** bottom: the direction to Q at angle th from the top rises at
+** cos(th / 2); a point P at angle tp, azimuth 0 by symmetry). */
+static void open_sphere_sky(double alpha, double *from_bottom, double *from_rest)
+{
+    const double pi = 3.14159265358979323846;
+    const int np = 240, nq = 160, nf = 120;
+    double sum = 0, weight = 0, sum_p = 0, weight_p = 0;
+    int i, j, k;
+    for (j = 0; j < nq; j++) {
+        const double tq = alpha * (j + 0.5) / nq;
+        sum += sin(tq) * sky_up(cos(tq / 2));
+        weight += sin(tq);
+    }
+    *from_bottom = sum / weight;
+    for (i = 0; i < np; i++) {
+        const double tp = alpha + (pi - alpha) * (i + 0.5) / np;
+        const double p[3] = {sin(tp), cos(tp), 0};
+        sum = weight = 0;
+        for (j = 0; j < nq; j++) {
+            const double tq = alpha * (j + 0.5) / nq;
+            for (k = 0; k < nf; k++) {
+                const double fq = pi * (k + 0.5) / nf;   /* symmetric in the azimuth's sign */
+                const double d[3] = {sin(tq) * cos(fq) - p[0], cos(tq) - p[1], sin(tq) * sin(fq)};
+                sum += sin(tq) * sky_up(d[1] / sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]));
+                weight += sin(tq);
+            }
+        }
+        sum_p += sin(tp) * sum / weight;
+        weight_p += sin(tp);
+    }
+    *from_rest = sum_p / weight_p;
+}
+
+static void test_exact_open_sphere(void)
+{
+    const double alpha = 3.14159265358979323846 * SPHERE_CAP / SPHERE_RINGS, f = (1 - cos(alpha)) / 2;
+    double s1, s, expect, stay = 1, albedo = 0.8;
+    int k, nee;
+    CHECK(write_open_sphere(tu_scratch("sphere.obj")), "could not write sphere.obj");
+    open_sphere_sky(alpha, &s1, &s);
+    expect = 0.8 * f * s1;
+    for (k = 2; k <= 7; k++) {
+        albedo *= 0.8;
+        stay *= 1 - f;
+        expect += albedo * stay * f * s;
+    }
+    for (nee = 0; nee < 2; nee++)
+        expect_mean(nee ? "@/sphere.obj --scene @/sphere.brs --camera 0,0,0:0,-1,0:1 --width 16 "
+                          "--height 16 --spp 512 --sun-radiance 0"
+                        : "@/sphere.obj --scene @/sphere.brs --camera 0,0,0:0,-1,0:1 --width 16 "
+                          "--height 16 --spp 512 --sun-radiance 0 --no-nee",
+                    expect);
+}
+
 void suite_render(void)
 {
     test_run("render: help", test_help);
@@ -516,6 +676,8 @@ void suite_render(void)
              test_nee_same_image_every_mode);
     test_run("render: next-event estimation and --no-nee converge to the same mean",
              test_nee_converges_to_no_nee);
+    test_run("render: exact mean, a plane under the sky and a sun", test_exact_plane);
+    test_run("render: exact mean, an open sphere over every depth", test_exact_open_sphere);
     test_run("render: --pfm and --reference (RMSE)", test_pfm_reference);
     test_run("render: heatmap counts every queued visit", test_heatmap);
     test_run("render: compare table", test_compare);

@@ -533,3 +533,20 @@ int tu_rss_is_meaningful(void)
     }
     return 1;
 }
+
+void tu_instanced_squares(tu_instanced *s)
+{
+    static const float square[4][3] = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}};
+    int k;
+    memset(s, 0, sizeof *s);
+    s->proto_count = 1;
+    for (k = 0; k < 4; k++) tu_add_vertex(&s->protos[0], square[k][0], square[k][1], square[k][2]);
+    tu_add_triangle(&s->protos[0], 0, 1, 2);
+    tu_add_triangle(&s->protos[0], 0, 2, 3);
+    tu_add_triangle(&s->world, tu_add_vertex(&s->world, 100, 0, 0), tu_add_vertex(&s->world, 101, 0, 0),
+                    tu_add_vertex(&s->world, 100, 1, 0));
+    for (k = 0; k < 4; k++) {
+        const float xf[12] = {1, 0, 0, 2.0f * (float)k, 0, 1, 0, 0, 0, 0, 1, 1};
+        tu_add_instance(s, 0, xf);
+    }
+}

@@ -62,6 +62,10 @@ void tu_instanced_free(tu_instanced *s);
 void tu_instanced_source(const tu_instanced *s, brt_scene_source *source);
 void tu_instanced_brute(const tu_instanced *s, const brt_ray *ray, brt_hit *hit);
 int tu_instanced_brute_occluded(const tu_instanced *s, const brt_ray *ray);
+/* Four unit squares in the plane z = 1 at x = 0, 2, 4, 6 (y in [0, 1]),
+** instances of one prototype of two triangles, and a world triangle far
+** off (at x = 100). */
+void tu_instanced_squares(tu_instanced *s);
 
 /* Builds a scene file of s at path (brt_scene_build, source stamp 1) and
 ** opens it; a failure is a test failure, and NULL. */

@@ -1,0 +1,524 @@
+/*
+** tests/test_policy.c -- the scheduler's and the geometry cache's policies
+** against a model written apart from batchrt.c (issue 32, class 2).
+**
+** Hits byte-equal to the direct mode do not pin which batching point is
+** loaded when: a cache that evicts the wrong entry, a scheduler that
+** serves the wrong queue or a proxy test over the wrong segment all give
+** the same hits, only more loads.  So this file simulates the method as
+** the paper states it -- Pharr et al.'s scheduler (the fullest queue
+** first, ties to the lowest id; rays queued at each batching point whose
+** box they enter before their closest hit and whose proxy they hit), an
+** LRU cache of page-rounded blobs within the memory limit less the
+** proxies' bytes, and batchrt's layers 1 (resident points intersected at
+** once, touching the LRU order) and 2 (no proxies when the budget holds
+** every blob) -- and compares the sequence of loads, read through
+** brt_trace_options.read_fn (one thread: no read-ahead), and the counts.
+**
+** The scenes are made so that the model needs no proxy of its own: one
+** triangle per batching point, rays along +x, and every ray kept only
+** when each question the method asks has a clear answer -- the ray's
+** (y, z) at least 4 proxy cells inside or outside each triangle's
+** shadow along x (a proxy cell holds the triangle or lies at least a
+** cell from it, so a ray 4 cells off passes no set cell), 0.02 from each
+** box's side, and the crossings of the triangles' planes and the boxes'
+** entries apart along the ray (the triangles tilt at most 60 degrees from
+** the yz plane, so a crossing 8 cells past the segment's end leaves the
+** segment at least 4 cells from the triangle).
+*/
+#include "test.h"
+#include "util.h"
+
+#include <fcntl.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+#define NP 8            /* triangles, each its own batching point */
+#define NR 256          /* rays */
+#define MAX_LOADS 4096
+
+typedef struct point_info {     /* a batching point, from the scene file */
+    float lo[3], hi[3], cell;
+    uint64_t offset, bytes;     /* blob place; bytes page-rounded */
+    uint32_t tri;               /* its triangle (the one at x = 2.5 tri) */
+} point_info;
+
+typedef struct ray_view {       /* what a ray meets at each point */
+    int inbox[NP], inside[NP];
+    double cross[NP];           /* t where it crosses the point's plane */
+} ray_view;
+
+typedef struct policy_scene {
+    tu_scene tris;
+    brt_scene *scene;
+    point_info pts[NP];
+    uint32_t by_tri[NP];        /* the point of each triangle */
+    uint64_t proxy_bytes, all_bytes;
+    brt_ray rays[NR];
+    ray_view views[NR];
+    uint32_t ray_count;
+} policy_scene;
+
+typedef struct load_log {       /* the library's loads, in order */
+    const policy_scene *ps;
+    uint32_t ids[MAX_LOADS];
+    uint32_t count;
+} load_log;
+
+/* ---- the scene ---------------------------------------------------------- */
+
+/* Triangle i: a well-shaped triangle about a random centre in [2, 6]^2,
+** in the plane x = 2.5 i, or tilted up to +3 along x (at most 60 degrees). */
+static void make_triangles(tu_scene *s, uint64_t *st)
+{
+    uint32_t i;
+    int k;
+    for (i = 0; i < NP; i++) {
+        const double cy = tu_rnd(st, 2, 6), cz = tu_rnd(st, 2, 6), a0 = tu_rnd(st, 0, 6.2831853f);
+        double y[3], z[3], x[3], w = brt_random_float(st) < 0.5f ? 0.0 : tu_rnd(st, 1, 3);
+        uint32_t v[3];
+        for (k = 0; k < 3; k++) {
+            const double a = a0 + 2.0943951 * k + tu_rnd(st, -0.3f, 0.3f), r = tu_rnd(st, 2, 3);
+            y[k] = cy + r * cos(a);
+            z[k] = cz + r * sin(a);
+        }
+        for (;;) {      /* flatten until the normal is within 60 degrees of x */
+            double e1[3], e2[3], n[3];
+            x[0] = 2.5 * i;
+            x[1] = 2.5 * i + w;
+            x[2] = 2.5 * i + w * 0.5;
+            e1[0] = x[1] - x[0]; e1[1] = y[1] - y[0]; e1[2] = z[1] - z[0];
+            e2[0] = x[2] - x[0]; e2[1] = y[2] - y[0]; e2[2] = z[2] - z[0];
+            n[0] = e1[1] * e2[2] - e1[2] * e2[1];
+            n[1] = e1[2] * e2[0] - e1[0] * e2[2];
+            n[2] = e1[0] * e2[1] - e1[1] * e2[0];
+            if (fabs(n[0]) >= 0.5 * sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])) break;
+            w *= 0.5;
+        }
+        for (k = 0; k < 3; k++) v[k] = tu_add_vertex(s, (float)x[k], (float)y[k], (float)z[k]);
+        tu_add_triangle(s, v[0], v[1], v[2]);
+    }
+}
+
+static float le_f32(const unsigned char *p)
+{
+    uint32_t w = brt_get_le32(p);
+    float f;
+    memcpy(&f, &w, 4);
+    return f;
+}
+
+/* The batching points' boxes, cells and blobs from the scene file
+** (README's layout: the batch table at the header's first section,
+** 80-byte entries); each point is matched to its triangle by its box's
+** lowest x, 2.5 times the triangle's number. */
+static int read_points(policy_scene *ps, const char *path)
+{
+    size_t size;
+    unsigned char *f = tu_slurp(path, &size);
+    uint32_t j, seen = 0;
+    int a, ok = f && size >= 256 && brt_get_le32(f + 32) == NP;
+    for (j = 0; ok && j < NP; j++) {
+        const unsigned char *e = f + brt_get_le64(f + 56) + 80u * j;
+        point_info *p = &ps->pts[j];
+        for (a = 0; a < 3; a++) {
+            p->lo[a] = le_f32(e + 4 * a);
+            p->hi[a] = le_f32(e + 12 + 4 * a);
+        }
+        p->offset = brt_get_le64(e + 24);
+        p->bytes = (brt_get_le64(e + 32) + 4095) / 4096 * 4096;
+        p->cell = le_f32(e + 72);
+        ps->all_bytes += p->bytes;
+        p->tri = (uint32_t)(p->lo[0] / 2.5f);
+        ok = p->tri < NP && p->lo[0] == (float)(2.5 * p->tri) && p->cell > 0 && !(seen >> p->tri & 1);
+        seen |= 1u << p->tri;
+    }
+    free(f);
+    for (j = 0; ok && j < NP; j++) ps->by_tri[ps->pts[j].tri] = j;
+    return ok;
+}
+
+/* Signed distance of (y, z) from triangle t's shadow along x (positive
+** inside), and the x where the ray at (y, z) crosses its plane. */
+static double shadow_distance(const tu_scene *s, uint32_t t, double y, double z, double *x)
+{
+    const float *v[3];
+    double area, d = INFINITY, b[3];
+    int k;
+    for (k = 0; k < 3; k++) v[k] = tu_vertex(s, t, k);
+    area = (v[1][1] - v[0][1]) * (v[2][2] - v[0][2]) - (v[1][2] - v[0][2]) * (v[2][1] - v[0][1]);
+    for (k = 0; k < 3; k++) {
+        const float *p = v[(k + 1) % 3], *q = v[(k + 2) % 3];
+        const double ey = q[1] - p[1], ez = q[2] - p[2];
+        const double cross = ey * (z - p[2]) - ez * (y - p[1]);
+        b[k] = cross / area;
+        d = fmin(d, (area > 0 ? cross : -cross) / sqrt(ey * ey + ez * ez));
+    }
+    *x = b[0] * v[0][0] + b[1] * v[1][0] + b[2] * v[2][0];
+    return d;
+}
+
+/* What ray (y, z) meets; 0 when some question has no clear answer. */
+static int view_ray(const policy_scene *ps, double y, double z, ray_view *v)
+{
+    uint32_t j, k;
+    for (j = 0; j < NP; j++) {
+        const point_info *p = &ps->pts[j];
+        const double side = fmin(fmin(y - p->lo[1], p->hi[1] - y), fmin(z - p->lo[2], p->hi[2] - z));
+        const double d = shadow_distance(&ps->tris, p->tri, y, z, &v->cross[j]);
+        if (fabs(side) < 0.02 || fabs(d) < 4 * p->cell) return 0;
+        v->inbox[j] = side > 0;
+        v->inside[j] = d > 0;
+        v->cross[j] += 1.0;     /* the origin's x is -1, the direction +x */
+    }
+    for (j = 0; j < NP; j++)
+        for (k = 0; k < NP; k++) {
+            if (j == k || !v->inside[k]) continue;
+            if (v->inside[j] && fabs(v->cross[j] - v->cross[k]) < 8 * fmax(ps->pts[j].cell, ps->pts[k].cell))
+                return 0;
+            if (v->inbox[j] && fabs(ps->pts[j].lo[0] + 1.0 - v->cross[k]) < 0.05) return 0;
+        }
+    return 1;
+}
+
+static int policy_scene_make(policy_scene *ps, const char *name)
+{
+    uint64_t st = test_seed() + 32;
+    int tries = 0;
+    memset(ps, 0, sizeof *ps);
+    make_triangles(&ps->tris, &st);
+    ps->scene = tu_build_scene(&ps->tris, 1, 128, 1, tu_scratch(name));
+    if (!ps->scene || !read_points(ps, tu_scratch(name))) return 0;
+    while (ps->ray_count < NR && tries++ < 100 * NR) {
+        const double y = tu_rnd(&st, 0, 8), z = tu_rnd(&st, 0, 8);
+        brt_ray r = {{-1, 0, 0}, {1, 0, 0}, 0.0f, INFINITY};
+        r.org[1] = (float)y;
+        r.org[2] = (float)z;
+        if (!view_ray(ps, r.org[1], r.org[2], &ps->views[ps->ray_count])) continue;
+        ps->rays[ps->ray_count++] = r;
+    }
+    return ps->ray_count == NR;
+}
+
+static void policy_scene_free(policy_scene *ps)
+{
+    brt_scene_close(ps->scene);
+    tu_scene_free(&ps->tris);
+}
+
+/* ---- the model ------------------------------------------------------------ */
+
+typedef struct model {
+    const policy_scene *ps;
+    int paper, proxies;
+    uint64_t budget, held, peak;
+    int resident[NP];
+    uint32_t lru[NP], lru_count;        /* least recently used first */
+    uint32_t queue[NP][NR], queued[NP];
+    double hit[NR];
+    int last[NR];                       /* the walk's step (triangle), -1: none */
+    uint32_t free_slots, next_ray;
+    uint32_t loads[MAX_LOADS], load_count;
+    uint64_t proxy_tests, proxy_culled, queued_visits, resident_visits;
+} model;
+
+static void lru_remove(model *m, uint32_t id)
+{
+    uint32_t i, k = 0;
+    for (i = 0; i < m->lru_count; i++)
+        if (m->lru[i] != id) m->lru[k++] = m->lru[i];
+    m->lru_count = k;
+}
+
+static void lru_push(model *m, uint32_t id)
+{
+    lru_remove(m, id);
+    m->lru[m->lru_count++] = id;
+}
+
+static void meet(model *m, uint32_t ray, uint32_t id)
+{
+    const ray_view *v = &m->ps->views[ray];
+    if (v->inside[id] && v->cross[id] < m->hit[ray]) m->hit[ray] = v->cross[id];
+}
+
+/* The walk from the box entered at step last[ray] on, in order of box
+** entry (triangle k's box is entered at t = 2.5 k + 1): returns the
+** point it is queued at, or -1 (finished). */
+static int walk(model *m, uint32_t ray)
+{
+    const ray_view *v = &m->ps->views[ray];
+    uint32_t k;
+    for (k = (uint32_t)(m->last[ray] + 1); k < NP; k++) {
+        const uint32_t id = m->ps->by_tri[k];
+        if (!v->inbox[id] || m->ps->pts[id].lo[0] + 1.0 > m->hit[ray]) continue;
+        m->last[ray] = (int)k;
+        if (!m->paper && m->resident[id]) {            /* layer 1 */
+            lru_push(m, id);
+            m->resident_visits++;
+            meet(m, ray, id);
+            continue;
+        }
+        if (m->proxies) {
+            m->proxy_tests++;
+            if (!(v->inside[id] && v->cross[id] <= m->hit[ray])) {
+                m->proxy_culled++;
+                continue;
+            }
+        }
+        m->queue[id][m->queued[id]++] = ray;
+        m->queued_visits++;
+        return (int)id;
+    }
+    return -1;
+}
+
+static void refill(model *m)
+{
+    while (m->free_slots > 0 && m->next_ray < m->ps->ray_count) {
+        uint32_t n = m->ps->ray_count - m->next_ray, i;
+        if (n > m->free_slots) n = m->free_slots;
+        m->free_slots -= n;
+        for (i = 0; i < n; i++, m->next_ray++) {
+            m->hit[m->next_ray] = INFINITY;
+            m->last[m->next_ray] = -1;
+            if (walk(m, m->next_ray) < 0) m->free_slots++;
+        }
+    }
+}
+
+static void fetch(model *m, uint32_t id)
+{
+    const uint64_t bytes = m->ps->pts[id].bytes;
+    if (m->resident[id]) {
+        lru_remove(m, id);
+        return;
+    }
+    while (m->lru_count > 0 && m->held + bytes > m->budget) {
+        m->resident[m->lru[0]] = 0;
+        m->held -= m->ps->pts[m->lru[0]].bytes;
+        lru_remove(m, m->lru[0]);
+    }
+    m->resident[id] = 1;
+    m->held += bytes;
+    if (m->held > m->peak) m->peak = m->held;
+    if (m->load_count < MAX_LOADS) m->loads[m->load_count] = id;
+    m->load_count++;
+}
+
+/* The whole trace of the model with rays_in_flight slots. */
+static void model_run(model *m, const policy_scene *ps, int paper, int no_proxy, uint64_t limit,
+                      uint32_t in_flight)
+{
+    memset(m, 0, sizeof *m);
+    m->ps = ps;
+    m->paper = paper;
+    m->budget = limit ? limit : UINT64_MAX;
+    if (limit && !no_proxy) m->budget = limit > ps->proxy_bytes ? limit - ps->proxy_bytes : 0;
+    m->proxies = !no_proxy && (paper || m->budget < ps->all_bytes);    /* layer 2 */
+    m->free_slots = in_flight;
+    refill(m);
+    for (;;) {
+        uint32_t id, best = NP, q[NR], n, i;
+        for (id = 0; id < NP; id++)
+            if (m->queued[id] > 0 && (best == NP || m->queued[id] > m->queued[best])) best = id;
+        if (best == NP) break;
+        fetch(m, best);
+        n = m->queued[best];
+        memcpy(q, m->queue[best], n * sizeof *q);
+        m->queued[best] = 0;
+        for (i = 0; i < n; i++) meet(m, q[i], best);
+        lru_push(m, best);                              /* released */
+        for (i = 0; i < n; i++)
+            if (walk(m, q[i]) < 0) m->free_slots++;
+        refill(m);
+    }
+}
+
+/* ---- the library ---------------------------------------------------------- */
+
+static long logging_read(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    load_log *log = user;
+    uint32_t j;
+    for (j = 0; j < NP; j++)
+        if (log->ps->pts[j].offset == offset) {
+            if (log->count < MAX_LOADS) log->ids[log->count] = j;
+            log->count++;
+        }
+    return (long)pread(fd, buf, size, (off_t)offset);
+}
+
+static int library_run(const policy_scene *ps, int paper, int no_proxy, uint64_t limit, uint32_t in_flight,
+                       load_log *log, brt_stats *stats, brt_hit *hits)
+{
+    brt_trace_options opt;
+    brt_error err;
+    memset(&opt, 0, sizeof opt);
+    memset(log, 0, sizeof *log);
+    log->ps = ps;
+    opt.paper_scheduler = paper;
+    opt.no_proxy = no_proxy;
+    opt.memory_limit = limit;
+    opt.rays_in_flight = in_flight;
+    opt.threads = 1;            /* no read-ahead: every read is a load */
+    opt.read_fn = logging_read;
+    opt.read_user = log;
+    if (brt_scene_trace(ps->scene, &opt, ps->rays, ps->ray_count, hits, stats, &err) == BRT_OK) return 1;
+    test_fail_at(__FILE__, __LINE__, "trace: %s", err.message);
+    return 0;
+}
+
+static void print_loads(const char *who, const uint32_t *ids, uint32_t n)
+{
+    uint32_t i;
+    printf("  %s:", who);
+    for (i = 0; i < n && i < 60; i++) printf(" %u", (unsigned)ids[i]);
+    printf("%s\n", n > 60 ? " ..." : "");
+}
+
+/* One setting: the library's loads and counts equal the model's, and its
+** hits are the model's (a sanity check of the model's geometry). */
+static void compare_setting(const policy_scene *ps, int paper, int no_proxy, uint64_t half_pages,
+                            uint32_t in_flight)
+{
+    static model m;
+    static load_log log;
+    static brt_hit hits[NR];
+    const uint64_t limit = half_pages ? half_pages * 2048 + (no_proxy ? 0 : ps->proxy_bytes) : 0;
+    brt_stats stats;
+    uint32_t i, first = 0;
+    char what[160];
+    snprintf(what, sizeof what, "%s scheduler%s, %g pages, %u in flight",
+             paper ? "the paper's" : "batchrt's", no_proxy ? " without proxies" : "",
+             0.5 * (double)half_pages, (unsigned)in_flight);
+    model_run(&m, ps, paper, no_proxy, limit, in_flight);
+    if (!library_run(ps, paper, no_proxy, limit, in_flight, &log, &stats, hits)) return;
+    for (i = 0; i < ps->ray_count; i++)
+        if ((isinf(m.hit[i]) != isinf(hits[i].t)) || (!isinf(m.hit[i]) && fabs(hits[i].t - m.hit[i]) > 1e-3))
+            break;
+    EXPECT(i == ps->ray_count, "%s: ray %u: the library's hit t %g, the model's %g", what, (unsigned)i,
+           i < ps->ray_count ? hits[i].t : 0.0, i < ps->ray_count ? m.hit[i] : 0.0);
+    while (first < log.count && first < m.load_count && first < MAX_LOADS && log.ids[first] == m.loads[first])
+        first++;
+    if (log.count != m.load_count || first < log.count) {
+        test_fail_at(__FILE__, __LINE__, "%s: %u loads, the model %u; first difference at load %u", what,
+                     (unsigned)log.count, (unsigned)m.load_count, (unsigned)first);
+        print_loads("library", log.ids, log.count);
+        print_loads("model  ", m.loads, m.load_count);
+        return;
+    }
+    EXPECT(stats.batch_loads == m.load_count, "%s: batch_loads %llu, loads read %u", what,
+           (unsigned long long)stats.batch_loads, (unsigned)m.load_count);
+    EXPECT(stats.proxy_tests == m.proxy_tests && stats.proxy_culled == m.proxy_culled,
+           "%s: proxy tests %llu culled %llu, the model %llu and %llu", what,
+           (unsigned long long)stats.proxy_tests, (unsigned long long)stats.proxy_culled,
+           (unsigned long long)m.proxy_tests, (unsigned long long)m.proxy_culled);
+    EXPECT(stats.queued_visits == m.queued_visits && stats.resident_visits == m.resident_visits,
+           "%s: queued %llu resident %llu, the model %llu and %llu", what,
+           (unsigned long long)stats.queued_visits, (unsigned long long)stats.resident_visits,
+           (unsigned long long)m.queued_visits, (unsigned long long)m.resident_visits);
+    EXPECT(stats.cache_peak_bytes == m.peak, "%s: cache peak %llu bytes, the model %llu", what,
+           (unsigned long long)stats.cache_peak_bytes, (unsigned long long)m.peak);
+}
+
+/* The loads, evictions (through reloads) and counts of both schedulers,
+** with and without proxies, at memory limits of 1 to 5 pages above the
+** proxies' bytes (2.5: not a whole number of blobs) and none, with few
+** and many rays in flight. */
+static void test_policies_match_model(void)
+{
+    static policy_scene ps;
+    static const uint64_t half_pages[] = {2, 4, 5, 6, 10, 0};
+    static const uint32_t in_flight[] = {3, 16, NR};
+    brt_stats stats;
+    load_log log;
+    static brt_hit hits[NR];
+    size_t p, f;
+    int paper, no_proxy;
+    CHECK(policy_scene_make(&ps, "policy.brs"), "could not make the policy scene (%u clear rays)",
+          (unsigned)ps.ray_count);
+    /* The proxies' bytes, which the limit pays for first (the paper's Fig. 3). */
+    if (library_run(&ps, 1, 0, 0, NR, &log, &stats, hits)) ps.proxy_bytes = stats.proxy_bytes;
+    CHECK(ps.proxy_bytes > 0, "no proxy bytes reported");
+    for (paper = 0; paper < 2; paper++)
+        for (no_proxy = 0; no_proxy < 2; no_proxy++)
+            for (p = 0; p < sizeof half_pages / sizeof *half_pages; p++)
+                for (f = 0; f < sizeof in_flight / sizeof *in_flight && !test_failed(); f++)
+                    compare_setting(&ps, paper, no_proxy, half_pages[p], in_flight[f]);
+    policy_scene_free(&ps);
+}
+
+/* ---- the gate of a point of instances ---------------------------------- */
+
+/* A point of instances' proxy answers only for rays whose margin (the
+** rounding of their transform, growing with the origin's distance) fits
+** in its dilation; a ray from farther away is admitted untested
+** (proxy_admits).  Four unit squares in a row, 1 apart, instances of one
+** prototype, form one point (a world triangle far off another); rays
+** straight down through the squares' centres and through the gaps
+** between them.  From 2 units above, each is tested once and the gap
+** rays, half a unit from any square (4.5 cells of res 64), are culled:
+** the count is the number of gap rays.  From 10^5 units above, none is
+** culled (admitted untested; the cast from there, grown for its
+** rounding, would admit them too).  Every hit equals the brute force's. */
+static void test_instance_gate(void)
+{
+    tu_instanced s;
+    brt_scene_source source;
+    brt_scene_options sopt;
+    brt_scene *scene = NULL;
+    brt_error err;
+    brt_ray rays[7];
+    brt_hit hits[7];
+    int k, far;
+    tu_instanced_squares(&s);
+    tu_instanced_source(&s, &source);
+    memset(&sopt, 0, sizeof sopt);
+    sopt.proxy_res = 64;
+    if (brt_scene_build_source(&source, &sopt, 1, tu_scratch("gate.brs"), &err) != BRT_OK ||
+        brt_scene_open(tu_scratch("gate.brs"), &scene, &err) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "gate.brs: %s", err.message);
+        tu_instanced_free(&s);
+        return;
+    }
+    for (far = 0; far < 2 && !test_failed(); far++) {
+        brt_trace_options opt;
+        brt_stats stats;
+        for (k = 0; k < 7; k++) {   /* even k: a square's centre; odd: a gap */
+            brt_ray r = {{0, 0.5f, 0}, {0, 0, -1}, 0, INFINITY};
+            r.org[0] = 0.5f + (float)k;
+            r.org[2] = far ? 1e5f : 3.0f;
+            rays[k] = r;
+        }
+        memset(&opt, 0, sizeof opt);
+        opt.paper_scheduler = 1;        /* proxies consulted whatever the limit */
+        opt.threads = 1;
+        if (brt_scene_trace(scene, &opt, rays, 7, hits, &stats, &err) != BRT_OK) {
+            test_fail_at(__FILE__, __LINE__, "trace: %s", err.message);
+            break;
+        }
+        for (k = 0; k < 7; k++) {
+            brt_hit want;
+            brt_hit_clear(&want);
+            tu_instanced_brute(&s, &rays[k], &want);
+            EXPECT(hits[k].prim == want.prim && hits[k].inst == want.inst && (k % 2 == 1) == (want.prim == BRT_NO_PRIM),
+                   "%s ray %d: prim %u inst %u, brute force %u %u", far ? "far" : "near", k,
+                   (unsigned)hits[k].prim, (unsigned)hits[k].inst, (unsigned)want.prim, (unsigned)want.inst);
+        }
+        EXPECT(stats.batching_points == 2 && stats.proxy_tests == 7 && stats.proxy_culled == (far ? 0u : 3u),
+               "%s rays: %llu points, %llu proxy tests, %llu culled; expected 2, 7 and %u", far ? "far" : "near",
+               (unsigned long long)stats.batching_points, (unsigned long long)stats.proxy_tests,
+               (unsigned long long)stats.proxy_culled, far ? 0u : 3u);
+    }
+    brt_scene_close(scene);
+    tu_instanced_free(&s);
+}
+
+void suite_policy(void)
+{
+    test_run("policy: loads and counts equal the model's", test_policies_match_model);
+    test_run("policy: the gate of a point of instances", test_instance_gate);
+}
