@@ -13,15 +13,20 @@
 **  - read faults injected through brt_trace_options.read_fn: EIO and end
 **    of file at every call, short reads of every size, EINTR; the rays
 **    finished before a fault must carry exactly the direct-mode hit;
+**  - read faults on the read-ahead (two threads): a failed, short or
+**    corrupt read-ahead is dropped or completed, never used, and the
+**    counts stay the clean run's;
 **  - write faults from a file-size limit (RLIMIT_FSIZE with SIGXFSZ
 **    ignored makes write() fail with EFBIG, as a full disk fails with
-**    ENOSPC): the library and the programs must leave no partial file;
+**    ENOSPC), from a full device (ENOSPC) and a directory as the target:
+**    the library and the programs must leave no partial file;
 **  - limits: one triangle, all triangles identical, a memory limit below
 **    one batching point, one ray in flight, no rays at all, a 1x1 image;
 **  - forged scene files (README, "The scene file"): valid checksums, one
 **    cross-reference broken per file, one file per line of the validators
 **    of batchrt.c's scene open and bvh.c's blob open, each refused naming
-**    the part.
+**    the part: every axis, every section's extent, blobs that share a
+**    page, a version-4 file's margins, prototypes and instance counts.
 ** Oracles: the direct mode and brute force over brt_intersect_triangle.
 */
 #include "test.h"

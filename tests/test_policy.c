@@ -25,6 +25,10 @@
 ** entries apart along the ray (the triangles tilt at most 60 degrees from
 ** the yz plane, so a crossing 8 cells past the segment's end leaves the
 ** segment at least 4 cells from the triangle).
+**
+** And the gate of a point of instances' proxy (proxy_admits): rays near
+** enough are cast and culled, rays from far away admitted untested,
+** counted against the number made so by construction.
 */
 #include "test.h"
 #include "util.h"
