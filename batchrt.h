@@ -1035,6 +1035,12 @@ void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
 ** pruning exact.  BRT_ECHECK with a message naming the first violation. */
 brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
 
+/* The resident layout of a BVH built in memory (bvh.c) with one bit
+** flipped: bit at / size % 8 of byte at % size, where size (returned) is
+** the layout's bytes; 0 (nothing flipped) for a BVH without one.  For
+** the tests of brt_bvh_check. */
+size_t brt_bvh_damage_resident(brt_bvh *bvh, uint64_t at);
+
 /* Pool checker: child indices in range and pointing to earlier nodes,
 ** masks consistent, no two identical nodes. */
 brt_result brt_svdag_check(const brt_svdag *dag, brt_error *err);
