@@ -1032,7 +1032,9 @@ void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
 /* Structural checker: every triangle in exactly one leaf, indices in
 ** range, slots ordered, and every triangle's grown box inside the decoded
 ** (quantized) box of every slot on its path from the root -- what makes
-** pruning exact.  BRT_ECHECK with a message naming the first violation. */
+** pruning exact; a BVH built in memory also has its resident layout
+** compared, byte for byte, with the quantized nodes decoded (bvh.c).
+** BRT_ECHECK with a message naming the first violation. */
 brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
 
 /* The resident layout of a BVH built in memory (bvh.c) with one bit

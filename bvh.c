@@ -20,8 +20,7 @@
 ** brt_intersect_triangle is an exact oracle for it.
 **
 ** NODE LAYOUT (4-wide BVH, one flat array, indices only; 64 bytes a node,
-** one cache line; the same layout in memory, in the blob and in the
-** direct mode):
+** one cache line; the blob's layout, walked in place by batching points):
 **   struct qnode { float org[3], scale[3]; uint32_t q[6];
 **                  uint32_t first_node, first_tri, vertex_base;
 **                  uint8_t count[4]; }
@@ -53,6 +52,27 @@
 ** decoded box around a hit at t is entered at or before t: pruning a
 ** slot whose entry exceeds the closest t so far never loses a hit, and
 ** the hits are those of the float boxes, byte for byte.
+**
+** RESIDENT LAYOUT (a BVH built in memory: the direct mode's, and its
+** instance prototypes').  The same tree decoded once at build: node i
+** (struct fnode, 128 bytes) holds decode_boxes of qnode i -- the floats
+** the quantized walk decodes at every visit, by the same decode_row, so
+** each box contains exactly what the quantized box contains and pruning
+** is exact for the same reason -- with each slot's child node or first
+** block stored; a leaf's triangles are copied in slot order into blocks
+** of four (struct tri4: corners as structures of arrays, the stored
+** vertices' bits, and the reported numbers).  The walk tests the four
+** slots' boxes with the one box_span4, and a block's four triangles with
+** a vectorized filter of tri_intersect's own edge functions; the lanes it
+** keeps run tri_intersect itself, so hits are bit for bit those of the
+** quantized walk (brt_bvh_check compares the resident layout, byte for
+** byte, with what the quantized nodes decode to).  WHY TWO LAYOUTS: the
+** blob stays quantized for its bytes on disk (blob bytes per triangle:
+** make bench-embree), and decoding it costs the walk several times the
+** box test itself at every node, which the resident walk does not pay
+** (callgrind on trace counts both; make bench-embree times them).  A blob
+** opened in place (brt_bvh_blob_open) keeps the quantized walk: a
+** batching point in the cache is charged its blob's bytes only.
 **
 ** BUILD: binned SAH (Wald 2007, "On fast construction of SAH-based
 ** bounding volume hierarchies") into a binary tree, then collapsed into the
@@ -689,6 +709,14 @@ static int walk_begin(walk *w, const brt_ray *ray, uint32_t inst, brt_hit *hit,
     return 1;
 }
 
+/* Whether a popped entry, entered at lo, can be skipped: inclusive, so a
+** box entered at exactly the closest hit's t is visited (an equal t with
+** a lower number wins). */
+static inline int walk_prunes(const walk *w, float lo)
+{
+    return lo > w->tfar;
+}
+
 /* One stored triangle (corners p, reported number prim) in a walk:
 ** returns 1 when an any-hit walk may stop; a closest-hit walk keeps the
 ** hit if it is closer (brt_hit_is_closer: ties go to the lower number,
@@ -748,7 +776,7 @@ static int traverse_quantized(const brt_bvh *bvh, const brt_ray *ray, uint32_t i
         do {
             if (sp == 0) return 0;
             cur = stack[--sp];
-        } while (cur.lo > w.tfar);
+        } while (walk_prunes(&w, cur.lo));
     }
 }
 
@@ -875,7 +903,7 @@ static int traverse_resident(const brt_bvh *bvh, const brt_ray *ray, uint32_t in
         do {
             if (sp == 0) return 0;
             cur = stack[--sp];
-        } while (cur.lo > w.tfar);
+        } while (walk_prunes(&w, cur.lo));
     }
 }
 
