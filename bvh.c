@@ -210,6 +210,7 @@ typedef struct box_ray {
     float org_near[3][4], org_far[3][4], inv[3][4];
     int near_row[3];
     int far_row[3];
+    size_t near_off[3], far_off[3];   /* the same rows' byte offsets in a [6][4] box */
 } box_ray;
 
 static float max_abs3(const float p[3])
@@ -250,6 +251,8 @@ static inline ALWAYS_INLINE void box_ray_from_prep(const brt_ray_prep *prep, box
         }
         b->near_row[a] = prep->negative[a] ? a + 3 : a;
         b->far_row[a] = prep->negative[a] ? a : a + 3;
+        b->near_off[a] = (size_t)b->near_row[a] * sizeof(float[4]);
+        b->far_off[a] = (size_t)b->far_row[a] * sizeof(float[4]);
     }
 }
 
@@ -549,8 +552,13 @@ static inline unsigned box_test4(const box_ray *b, const qnode *n,
 static inline ALWAYS_INLINE unsigned box_rows4(const box_ray *b, const float box[6][4],
                                                float tnear, float tfar, float lo[4], float hi[4])
 {
-    const float *const near[3] = {box[b->near_row[0]], box[b->near_row[1]], box[b->near_row[2]]};
-    const float *const far[3] = {box[b->far_row[0]], box[b->far_row[1]], box[b->far_row[2]]};
+    const char *const rows = (const char *)box;
+    const float *const near[3] = {(const float *)(const void *)(rows + b->near_off[0]),
+                                  (const float *)(const void *)(rows + b->near_off[1]),
+                                  (const float *)(const void *)(rows + b->near_off[2])};
+    const float *const far[3] = {(const float *)(const void *)(rows + b->far_off[0]),
+                                 (const float *)(const void *)(rows + b->far_off[1]),
+                                 (const float *)(const void *)(rows + b->far_off[2])};
     return box_span4(b, near, far, tnear, tfar, lo, hi);
 }
 
@@ -678,9 +686,19 @@ static void triangle_normal(const float *const p[3], float n[3])
 
 /* The per-ray state of a walk: the prepared ray, its box and triangle
 ** constants, and the segment's far end (the closest hit so far). */
+/* tri_ray's constants for a block of four triangles: the origin's and
+** the shear's components in four lanes, and the byte offsets in a tri4's
+** corner of the rows of axes kx, ky, kz (set once per ray, so that a
+** block's test only loads). */
+typedef struct block_ray {
+    float ox[4], oy[4], oz[4], sx[4], sy[4];
+    size_t offx, offy, offz;
+} block_ray;
+
 typedef struct walk {
-    brt_ray_prep prep;
     box_ray br;
+    block_ray kr;
+    brt_ray_prep prep;
     tri_ray tr;
     float tnear, tfar;
     uint32_t inst;
@@ -688,6 +706,21 @@ typedef struct walk {
     float *normal;
     int any;
 } walk;
+
+static void block_ray_setup(const tri_ray *r, block_ray *k)
+{
+    int i;
+    for (i = 0; i < 4; i++) {
+        k->ox[i] = r->org[r->kx];
+        k->oy[i] = r->org[r->ky];
+        k->oz[i] = r->org[r->kz];
+        k->sx[i] = r->sx;
+        k->sy[i] = r->sy;
+    }
+    k->offx = (size_t)r->kx * sizeof(float[4]);
+    k->offy = (size_t)r->ky * sizeof(float[4]);
+    k->offz = (size_t)r->kz * sizeof(float[4]);
+}
 
 /* Sets a walk up; 0 when the ray cannot hit anything (invalid, or an
 ** empty segment). */
@@ -702,6 +735,7 @@ static int walk_begin(walk *w, const brt_ray *ray, uint32_t inst, brt_hit *hit,
     if (!any && hit->t < w->tfar) w->tfar = hit->t;
     if (!(w->tnear <= w->tfar)) return 0;
     tri_ray_setup(ray, &w->tr);
+    block_ray_setup(&w->tr, &w->kr);
     w->inst = inst;
     w->hit = hit;
     w->normal = normal;
@@ -823,21 +857,29 @@ static inline ALWAYS_INLINE void prefetch_resident(const brt_bvh *bvh, const fno
 ** runs tri_intersect itself, so the answers are its own.  Written
 ** lane-wise with a select of constants, so GCC -O2 turns it into vector
 ** instructions (callgrind on trace counts them). */
-static inline ALWAYS_INLINE unsigned tri4_candidates(const tri_ray *r, const tri4 *b)
+static inline ALWAYS_INLINE const float *block_row(const tri4 *b, int corner, size_t off)
+{
+    return (const float *)(const void *)((const char *)b->v[corner] + off);
+}
+
+static inline ALWAYS_INLINE unsigned tri4_candidates(const block_ray *r, const tri4 *b)
 {
     static const unsigned lane_bit[4] = {1u, 2u, 4u, 8u};
-    const int kx = r->kx, ky = r->ky, kz = r->kz;
-    const float ox = r->org[kx], oy = r->org[ky], oz = r->org[kz], sx = r->sx, sy = r->sy;
+    const float *const x0 = block_row(b, 0, r->offx), *const y0 = block_row(b, 0, r->offy);
+    const float *const z0 = block_row(b, 0, r->offz), *const x1 = block_row(b, 1, r->offx);
+    const float *const y1 = block_row(b, 1, r->offy), *const z1 = block_row(b, 1, r->offz);
+    const float *const x2 = block_row(b, 2, r->offx), *const y2 = block_row(b, 2, r->offy);
+    const float *const z2 = block_row(b, 2, r->offz);
     unsigned bit[4];
     int i;
     for (i = 0; i < 4; i++) {
-        const float az = b->v[0][kz][i] - oz, bz = b->v[1][kz][i] - oz, cz = b->v[2][kz][i] - oz;
-        const float ax = (b->v[0][kx][i] - ox) - sx * az;
-        const float ay = (b->v[0][ky][i] - oy) - sy * az;
-        const float bx = (b->v[1][kx][i] - ox) - sx * bz;
-        const float by = (b->v[1][ky][i] - oy) - sy * bz;
-        const float cx = (b->v[2][kx][i] - ox) - sx * cz;
-        const float cy = (b->v[2][ky][i] - oy) - sy * cz;
+        const float az = z0[i] - r->oz[i], bz = z1[i] - r->oz[i], cz = z2[i] - r->oz[i];
+        const float ax = (x0[i] - r->ox[i]) - r->sx[i] * az;
+        const float ay = (y0[i] - r->oy[i]) - r->sy[i] * az;
+        const float bx = (x1[i] - r->ox[i]) - r->sx[i] * bz;
+        const float by = (y1[i] - r->oy[i]) - r->sy[i] * bz;
+        const float cx = (x2[i] - r->ox[i]) - r->sx[i] * cz;
+        const float cy = (y2[i] - r->oy[i]) - r->sy[i] * cz;
         const float eu = cx * by - cy * bx;
         const float ev = ax * cy - ay * cx;
         const float ew = bx * ay - by * ax;
@@ -857,7 +899,7 @@ static int resident_leaf(const brt_bvh *bvh, walk *w, uint32_t first, uint32_t c
     for (j = 0; 4 * j < count; j++) {
         const tri4 *b = &bvh->blocks[first + j];
         const unsigned live = count - 4 * j >= 4 ? 15u : (1u << (count - 4 * j)) - 1u;
-        unsigned m = tri4_candidates(&w->tr, b) & live;
+        unsigned m = tri4_candidates(&w->kr, b) & live;
         for (; m != 0; m &= m - 1) {
             const unsigned i = lowest_bit[m];
             float c[3][3];
@@ -893,8 +935,8 @@ static int traverse_resident(const brt_bvh *bvh, const brt_ray *ray, uint32_t in
             unsigned order[4];
             int k, j;
             if (mask == 0) goto pop;
-            prefetch_resident(bvh, n, mask);
             k = order_slots(mask, lo, order);
+            if (k > 1) prefetch_resident(bvh, n, mask);
             for (j = 0; j < k - 1; j++) stack[sp++] = resident_slot(n, order[j], lo);
             cur = resident_slot(n, order[k - 1], lo);
         }
