@@ -850,12 +850,16 @@ static inline ALWAYS_INLINE void prefetch_resident(const brt_bvh *bvh, const fno
 #endif
 }
 
-/* The lanes of a block that may hold a hit: all but those whose three
-** edge functions are all nonzero with mixed signs, which tri_intersect
-** rejects.  The edge functions are tri_intersect's arithmetic in its
-** order (-ffp-contract=off), so the same bits; each remaining lane then
-** runs tri_intersect itself, so the answers are its own.  Written
-** lane-wise with a select of constants, so GCC -O2 turns it into vector
+/* The lanes of a block that may hold a hit: all but those with a
+** negative and a positive edge function, which tri_intersect rejects.
+** The edge functions are tri_intersect's arithmetic in its order
+** (-ffp-contract=off), so the same bits.  A third edge function of 0
+** changes nothing: tri_intersect then redoes all three in double, and
+** rounding is monotone (a float product or difference keeps the order
+** of the exact values), so a float edge function below or above 0 is so
+** in double too, and the signs still mix.  Each remaining lane then runs
+** tri_intersect itself, so the answers are its own.  Written lane-wise
+** with a select of constants, so GCC -O2 turns it into vector
 ** instructions (callgrind on trace counts them). */
 static inline ALWAYS_INLINE const float *block_row(const tri4 *b, int corner, size_t off)
 {
@@ -883,10 +887,9 @@ static inline ALWAYS_INLINE unsigned tri4_candidates(const block_ray *r, const t
         const float eu = cx * by - cy * bx;
         const float ev = ax * cy - ay * cx;
         const float ew = bx * ay - by * ax;
-        const int zero = (eu == 0.0f) | (ev == 0.0f) | (ew == 0.0f);
         const int neg = (eu < 0.0f) | (ev < 0.0f) | (ew < 0.0f);
         const int pos = (eu > 0.0f) | (ev > 0.0f) | (ew > 0.0f);
-        bit[i] = (zero | !(neg & pos)) ? lane_bit[i] : 0u;
+        bit[i] = (neg & pos) ? 0u : lane_bit[i];
     }
     return bit[0] | bit[1] | bit[2] | bit[3];
 }

@@ -969,6 +969,10 @@ static int float_cross_is_zero(const float p[2], const float q[2])
 ** the sign test's strict compares are for (an exact 0 counts as
 ** inside).  The test counts the float zeros it met, so that it fails if
 ** the generator stops making them. */
+/* Edge rays also traced through a BVH of their one triangle (a build
+** each, so fewer). */
+#define EDGE_BVH_RAYS 6000
+
 static void test_edge_rays(void)
 {
     uint64_t st = test_seed() ^ 53;
@@ -990,6 +994,18 @@ static void test_edge_rays(void)
         r.dir[axis] = (float)sign;
         want = exact_axis_hit((const float(*)[2])p);
         got = brt_intersect_triangle(&r, vert[0], vert[1], vert[2], &t, &u, &v);
+        if (n < EDGE_BVH_RAYS) {   /* the BVH's filter of four triangles at once too */
+            static const uint32_t corners[3] = {0, 1, 2};
+            brt_bvh *bvh = NULL;
+            brt_hit h;
+            brt_hit_clear(&h);
+            CHECK(brt_bvh_build(&vert[0][0], corners, 1, NULL, &bvh) == BRT_OK, "build");
+            brt_bvh_intersect(bvh, &r, &h);
+            EXPECT((h.prim != BRT_NO_PRIM) == want, "BVH: axis %d dir %+d, projected (%a %a) (%a %a) "
+                   "(%a %a): %s, exactly %s", axis, sign, p[0][0], p[0][1], p[1][0], p[1][1],
+                   p[2][0], p[2][1], h.prim != BRT_NO_PRIM ? "hit" : "miss", want ? "hit" : "miss");
+            brt_bvh_free(bvh);
+        }
         for (k = 0; k < 3; k++)
             if (float_cross_is_zero(p[k], p[(k + 1) % 3])) {
                 if (exact_cross_sign(p[k], p[(k + 1) % 3]) == 0) exact_zeros++;
