@@ -2207,6 +2207,18 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     decode, huge pages (not POSIX).
 **   - Random and bounce rays wait on memory: the speed with the nodes
 **     already in cache (bench_bvh's "warm") is far above the cold one.
-**     Not done: 8-wide nodes, leaves of 4 triangles as structures of
-**     arrays (each a new blob layout).
+**     Not done: 8-wide nodes (a new blob layout).
+**   - The resident layout (issue 30): the quantized nodes decoded once
+**     into float nodes, leaves as blocks of four triangles with a
+**     vectorized edge-function filter; per ray, the box rows and the
+**     blocks' axes as byte offsets; no prefetch when one slot is hit.
+**     Not kept: the leaf walk as a call (fewer instructions per node,
+**     more per leaf: no gain), the block and box constants broadcast per
+**     ray in separate loops, brt_box_pad inlined into hit_distance.
+**   - Where a bounce ray's instructions still go: its own triangle, just
+**     behind its origin, passes the edge test (a line test) and is only
+**     rejected after hit_distance (its double plane and padded box); an
+**     exact cheaper rejection would need an error-bounded plane test.
+**     Not done: decoding batching points at load (resident points): the
+**     geometry cache would have to charge the resident bytes too.
 */
