@@ -702,6 +702,8 @@ typedef struct walk {
     tri_ray tr;
     float tnear, tfar;
     uint32_t inst;
+    const brt_ray *ray;
+    int tri_ready;        /* tr and kr set (at the first leaf: most rays reach few) */
     brt_hit *hit;
     float *normal;
     int any;
@@ -722,6 +724,15 @@ static void block_ray_setup(const tri_ray *r, block_ray *k)
     k->offz = (size_t)r->kz * sizeof(float[4]);
 }
 
+/* The triangle test's per-ray constants, at a walk's first leaf. */
+static inline void walk_leaf(walk *w)
+{
+    if (w->tri_ready) return;
+    tri_ray_setup(w->ray, &w->tr);
+    block_ray_setup(&w->tr, &w->kr);
+    w->tri_ready = 1;
+}
+
 /* Sets a walk up; 0 when the ray cannot hit anything (invalid, or an
 ** empty segment). */
 static int walk_begin(walk *w, const brt_ray *ray, uint32_t inst, brt_hit *hit,
@@ -734,8 +745,8 @@ static int walk_begin(walk *w, const brt_ray *ray, uint32_t inst, brt_hit *hit,
     w->tfar = ray->tfar;
     if (!any && hit->t < w->tfar) w->tfar = hit->t;
     if (!(w->tnear <= w->tfar)) return 0;
-    tri_ray_setup(ray, &w->tr);
-    block_ray_setup(&w->tr, &w->kr);
+    w->ray = ray;
+    w->tri_ready = 0;
     w->inst = inst;
     w->hit = hit;
     w->normal = normal;
@@ -801,6 +812,7 @@ static int traverse_quantized(const brt_bvh *bvh, const brt_ray *ray, uint32_t i
             prefetch_slots(bvh, n, mask);
             sp = next_child(n, mask, lo, stack, sp, &cur);
         }
+        walk_leaf(&w);
         for (k = cur.child; k < cur.child + cur.count; k++) {
             const float *p[3];
             triangle_corners(bvh, k, cur.vbase, p);
@@ -909,6 +921,7 @@ static inline ALWAYS_INLINE unsigned tri4_candidates(const block_ray *r, const t
 static int resident_leaf(const brt_bvh *bvh, walk *w, uint32_t first, uint32_t count)
 {
     uint32_t j;
+    walk_leaf(w);
     for (j = 0; 4 * j < count; j++) {
         const tri4 *b = &bvh->blocks[first + j];
         const unsigned live = count - 4 * j >= 4 ? 15u : (1u << (count - 4 * j)) - 1u;
@@ -2213,8 +2226,8 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     leaves.
 **   - brt_box_span4 vectorized, the near and far rows decoded from their
 **     words, decode_row's lane-3 fix-up, tri_intersect inlined.  Not
-**     kept: slot_valid as one word, a lazy tri_ray_setup, a xor-and-bias
-**     decode, huge pages (not POSIX).
+**     kept: slot_valid as one word, a xor-and-bias decode, huge pages
+**     (not POSIX).
 **   - Random and bounce rays wait on memory: the speed with the nodes
 **     already in cache (bench_bvh's "warm") is far above the cold one.
 **     Not done: 8-wide nodes (a new blob layout).
@@ -2222,7 +2235,9 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     into float nodes, leaves as blocks of four triangles with a
 **     vectorized edge-function filter; per ray, the box rows and the
 **     blocks' axes as byte offsets; every line of a hit leaf's blocks
-**     prefetched, a lone hit child node not.
+**     prefetched, a lone hit child node not; the triangle test's per-ray
+**     constants set at the first leaf (walk_leaf: camera and random rays
+**     mostly reach none or one).
 **     Not kept: the leaf walk as a call (fewer instructions per node,
 **     more per leaf: no gain), the block and box constants broadcast per
 **     ray in separate loops, brt_box_pad inlined into hit_distance.
