@@ -721,8 +721,9 @@ uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
 /* The number reported for each stored triangle, in storage order
 ** (brt_bvh_triangle_count of them; checkers read it). */
 const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh);
-/* Nodes, vertices, prim ids and corner indices: the blob less its
-** 64-byte header (the same bytes in memory and on disk). */
+/* The bytes the BVH holds: nodes, vertices, prim ids and corner indices
+** (the blob less its 64-byte header), plus, for a BVH built in memory,
+** its resident layout (bvh.c); brt_bvh_blob_size is the blob's. */
 size_t brt_bvh_memory_bytes(const brt_bvh *bvh);
 /* A BVH as one relocatable blob (indices, no pointers, little-endian) for
 ** the scene file.  brt_bvh_blob_open makes a BVH that refers to the blob's
