@@ -237,7 +237,9 @@ bench-mpi: all mpi
 # embree_trace (default and --robust) on the same ray files (camera,
 # random, bounce; 1M each) of the shared dragon (871K triangles), the best
 # of EMBREE_REPEAT runs each (the machine may be shared), then their
-# agreement from build/hitdiff.  Figures only, never pass/fail.  trace
+# agreement from build/hitdiff; then the BVH's bytes per triangle in
+# memory and in the blobs (the batched run's geometry bytes: every point
+# loaded once), and its build time.  Figures only, never pass/fail.  trace
 # runs with --threads 1, as Embree does (its default, all cores, had
 # given batchrt two cores against Embree's one since the thread pool).
 EMBREE_MESH   ?= ../shared/data/meshes/dragon.obj.gz
@@ -266,7 +268,10 @@ bench-embree: all embree
 	  awk -v k=$$k -v b=$$b -v bb=$$bb -v e=$$e -v r=$$r 'BEGIN { \
 	    printf "| %s | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f |\n", k, b, bb, e, r, b / e, bb / e }'; \
 	done; echo; \
-	sed -n 's/.*"bvh_bytes_per_triangle": *\([0-9.eE+-]*\).*/batchrt BVH bytes per triangle: \1/p; s/.*"build_seconds": *\([0-9.eE+-]*\).*/batchrt BVH build seconds: \1/p' $(EMBREE_BENCH)/bounce.brt.json; \
+	sed -n 's/.*"bvh_bytes_per_triangle": *\([0-9.eE+-]*\).*/batchrt BVH bytes per triangle in memory (direct mode: quantized and resident layouts): \1/p; s/.*"build_seconds": *\([0-9.eE+-]*\).*/batchrt BVH build seconds (direct mode): \1/p' $(EMBREE_BENCH)/bounce.brt.json; \
+	tris=$$(awk '/^f /{ t += NF - 3 } END { print t }' $$m); \
+	sed -n 's/.*"geometry_bytes": *\([0-9]*\).*/\1/p' $(EMBREE_BENCH)/bounce.bat.json | \
+	  awk -v t=$$tris '{ printf "batchrt blob bytes per triangle on disk (batching points, %d triangles): %.2f\n", t, $$1 / t }'; \
 	echo "warm (cached) figures: make bench (build/bench_bvh)"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
 	  for x in emb rob; do printf '%s vs %s: ' $$k $$x; \

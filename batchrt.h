@@ -784,8 +784,9 @@ uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
 /* The number reported for each stored triangle, in storage order
 ** (brt_bvh_triangle_count of them; checkers read it). */
 const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh);
-/* Nodes, vertices, prim ids and corner indices: the blob less its
-** 64-byte header (the same bytes in memory and on disk). */
+/* The bytes the BVH holds: nodes, vertices, prim ids and corner indices
+** (the blob less its 64-byte header), plus, for a BVH built in memory,
+** its resident layout (bvh.c); brt_bvh_blob_size is the blob's. */
 size_t brt_bvh_memory_bytes(const brt_bvh *bvh);
 /* A BVH as one relocatable blob (indices, no pointers, little-endian) for
 ** the scene file.  brt_bvh_blob_open makes a BVH that refers to the blob's
@@ -1095,8 +1096,16 @@ void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
 /* Structural checker: every triangle in exactly one leaf, indices in
 ** range, slots ordered, and every triangle's grown box inside the decoded
 ** (quantized) box of every slot on its path from the root -- what makes
-** pruning exact.  BRT_ECHECK with a message naming the first violation. */
+** pruning exact; a BVH built in memory also has its resident layout
+** compared, byte for byte, with the quantized nodes decoded (bvh.c).
+** BRT_ECHECK with a message naming the first violation. */
 brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
+
+/* The resident layout of a BVH built in memory (bvh.c) with one bit
+** flipped: bit at / size % 8 of byte at % size, where size (returned) is
+** the layout's bytes; 0 (nothing flipped) for a BVH without one.  For
+** the tests of brt_bvh_check. */
+size_t brt_bvh_damage_resident(brt_bvh *bvh, uint64_t at);
 
 /* Pool checker: child indices in range and pointing to earlier nodes,
 ** masks consistent, no two identical nodes. */

@@ -20,8 +20,7 @@
 ** brt_intersect_triangle is an exact oracle for it.
 **
 ** NODE LAYOUT (4-wide BVH, one flat array, indices only; 64 bytes a node,
-** one cache line; the same layout in memory, in the blob and in the
-** direct mode):
+** one cache line; the blob's layout, walked in place by batching points):
 **   struct qnode { float org[3], scale[3]; uint32_t q[6];
 **                  uint32_t first_node, first_tri, vertex_base;
 **                  uint8_t count[4]; }
@@ -53,6 +52,27 @@
 ** decoded box around a hit at t is entered at or before t: pruning a
 ** slot whose entry exceeds the closest t so far never loses a hit, and
 ** the hits are those of the float boxes, byte for byte.
+**
+** RESIDENT LAYOUT (a BVH built in memory: the direct mode's, and its
+** instance prototypes').  The same tree decoded once at build: node i
+** (struct fnode, 128 bytes) holds decode_boxes of qnode i -- the floats
+** the quantized walk decodes at every visit, by the same decode_row, so
+** each box contains exactly what the quantized box contains and pruning
+** is exact for the same reason -- with each slot's child node or first
+** block stored; a leaf's triangles are copied in slot order into blocks
+** of four (struct tri4: corners as structures of arrays, the stored
+** vertices' bits, and the reported numbers).  The walk tests the four
+** slots' boxes with the one box_span4, and a block's four triangles with
+** a vectorized filter of tri_intersect's own edge functions; the lanes it
+** keeps run tri_intersect itself, so hits are bit for bit those of the
+** quantized walk (brt_bvh_check compares the resident layout, byte for
+** byte, with what the quantized nodes decode to).  WHY TWO LAYOUTS: the
+** blob stays quantized for its bytes on disk (blob bytes per triangle:
+** make bench-embree), and decoding it costs the walk several times the
+** box test itself at every node, which the resident walk does not pay
+** (callgrind on trace counts both; make bench-embree times them).  A blob
+** opened in place (brt_bvh_blob_open) keeps the quantized walk: a
+** batching point in the cache is charged its blob's bytes only.
 **
 ** BUILD: binned SAH (Wald 2007, "On fast construction of SAH-based
 ** bounding volume hierarchies") into a binary tree, then collapsed into the
@@ -147,6 +167,23 @@ typedef struct qnode {
 
 typedef char qnode_is_one_cache_line[sizeof(qnode) == 64 ? 1 : -1];
 
+/* The resident layout (see RESIDENT LAYOUT above): node i is qnode i
+** decoded, its leaves' triangles copied into blocks of four. */
+typedef struct fnode {
+    float box[6][4];      /* decode_boxes of qnode i, bit for bit (all slots) */
+    uint32_t child[4];    /* inner slot: node index; leaf slot: first block */
+    uint8_t count[4];     /* qnode i's count[] */
+    uint32_t valid;       /* slot_valid of qnode i */
+    uint32_t zero[2];     /* 0: the node fills two cache lines */
+} fnode;
+
+typedef struct tri4 {
+    float v[3][3][4];     /* corner, axis, lane: the vertices' bits as stored */
+    uint32_t prim[4];     /* reported numbers; lanes past the leaf's end 0 */
+} tri4;
+
+typedef char fnode_is_two_cache_lines[sizeof(fnode) == 128 ? 1 : -1];
+
 struct brt_bvh {
     const qnode *nodes;   /* node_count, root first */
     const float *verts;   /* 3 floats per vertex, exactly as given */
@@ -154,6 +191,9 @@ struct brt_bvh {
     const uint16_t *idx;  /* 3 corner offsets per triangle, in leaf order */
     uint32_t node_count, vert_count, tri_count;
     void *owned;          /* one allocation holding all four, or NULL */
+    fnode *fnodes;        /* the resident layout (node_count), or NULL */
+    tri4 *blocks;         /* block_count, in leaf order */
+    uint32_t block_count;
 };
 
 /* ===================================================================== */
@@ -170,6 +210,7 @@ typedef struct box_ray {
     float org_near[3][4], org_far[3][4], inv[3][4];
     int near_row[3];
     int far_row[3];
+    size_t near_off[3], far_off[3];   /* the same rows' byte offsets in a [6][4] box */
 } box_ray;
 
 static float max_abs3(const float p[3])
@@ -210,6 +251,8 @@ static inline ALWAYS_INLINE void box_ray_from_prep(const brt_ray_prep *prep, box
         }
         b->near_row[a] = prep->negative[a] ? a + 3 : a;
         b->far_row[a] = prep->negative[a] ? a : a + 3;
+        b->near_off[a] = (size_t)b->near_row[a] * sizeof(float[4]);
+        b->far_off[a] = (size_t)b->far_row[a] * sizeof(float[4]);
     }
 }
 
@@ -404,8 +447,8 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
 ** straight to lo and hi, which might alias the inputs, the loop stayed
 ** scalar in brt_box_span4 (callgrind on build/bench_bvh counts a node's
 ** instructions). */
-static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float nr[3][4],
-                                               const float fr[3][4], float tnear, float tfar,
+static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float *const nr[3],
+                                               const float *const fr[3], float tnear, float tfar,
                                                float lo[4], float hi[4])
 {
     static const unsigned lane_bit[4] = {1u, 2u, 4u, 8u};
@@ -493,27 +536,38 @@ static inline unsigned box_test4(const box_ray *b, const qnode *n,
                                  float tnear, float tfar, float lo[4])
 {
     float nr[3][4], fr[3][4], hi[4];
+    const float *const near[3] = {nr[0], nr[1], nr[2]}, *const far[3] = {fr[0], fr[1], fr[2]};
     decode_row(n, b->near_row[0], 0, nr[0]);
     decode_row(n, b->far_row[0], 0, fr[0]);
     decode_row(n, b->near_row[1], 1, nr[1]);
     decode_row(n, b->far_row[1], 1, fr[1]);
     decode_row(n, b->near_row[2], 2, nr[2]);
     decode_row(n, b->far_row[2], 2, fr[2]);
-    return box_span4(b, (const float (*)[4])nr, (const float (*)[4])fr, tnear, tfar, lo, hi);
+    return box_span4(b, near, far, tnear, tfar, lo, hi);
+}
+
+/* box_span4 of four boxes already decoded (rows as decode_boxes gives
+** them: min x, y, z, max x, y, z), read in place: the top level's boxes
+** and the resident nodes. */
+static inline ALWAYS_INLINE unsigned box_rows4(const box_ray *b, const float box[6][4],
+                                               float tnear, float tfar, float lo[4], float hi[4])
+{
+    const char *const rows = (const char *)box;
+    const float *const near[3] = {(const float *)(const void *)(rows + b->near_off[0]),
+                                  (const float *)(const void *)(rows + b->near_off[1]),
+                                  (const float *)(const void *)(rows + b->near_off[2])};
+    const float *const far[3] = {(const float *)(const void *)(rows + b->far_off[0]),
+                                 (const float *)(const void *)(rows + b->far_off[1]),
+                                 (const float *)(const void *)(rows + b->far_off[2])};
+    return box_span4(b, near, far, tnear, tfar, lo, hi);
 }
 
 unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tmin,
                        float tmax, float entry[4], float exit[4])
 {
     box_ray b;
-    float nr[3][4], fr[3][4];
-    int a;
     box_ray_from_prep(prep, &b);
-    for (a = 0; a < 3; a++) {
-        memcpy(nr[a], box[b.near_row[a]], sizeof nr[a]);
-        memcpy(fr[a], box[b.far_row[a]], sizeof fr[a]);
-    }
-    return box_span4(&b, (const float (*)[4])nr, (const float (*)[4])fr, tmin, tmax, entry, exit);
+    return box_rows4(&b, box, tmin, tmax, entry, exit);
 }
 
 /* The mask of non-empty slots. */
@@ -577,25 +631,33 @@ static inline ALWAYS_INLINE stack_entry slot_entry(const qnode *n, unsigned i, c
     return e;
 }
 
-/* Chooses the next entry among the hit slots of a node (mask != 0): the
-** nearest, pushing the others farthest first.  One hit -- most nodes --
-** takes the short path; otherwise the slot numbers are insertion-sorted
-** by descending entry distance and only then copied out.  Returns the
-** new stack size. */
-static int next_child(const qnode *n, unsigned mask, const float lo[4],
-                      stack_entry *stack, int sp, stack_entry *next)
+/* Orders the hit slots of a node (mask != 0) by descending entry
+** distance into order[], returning how many: the caller pushes all but
+** the last (the nearest), which it visits next.  One hit -- most nodes --
+** takes the short path; otherwise an insertion sort of at most four. */
+static inline ALWAYS_INLINE int order_slots(unsigned mask, const float lo[4], unsigned order[4])
 {
-    unsigned order[4];
     int k = 0, j;
     if ((mask & (mask - 1)) == 0) {
-        *next = slot_entry(n, lowest_bit[mask], lo);
-        return sp;
+        order[0] = lowest_bit[mask];
+        return 1;
     }
     for (; mask != 0; mask &= mask - 1) {
         const unsigned i = lowest_bit[mask];
         for (j = k++; j > 0 && lo[order[j - 1]] < lo[i]; j--) order[j] = order[j - 1];
         order[j] = i;
     }
+    return k;
+}
+
+/* The next entry of the quantized walk (order_slots); returns the new
+** stack size. */
+static int next_child(const qnode *n, unsigned mask, const float lo[4],
+                      stack_entry *stack, int sp, stack_entry *next)
+{
+    unsigned order[4];
+    const int k = order_slots(mask, lo, order);
+    int j;
     for (j = 0; j < k - 1; j++) stack[sp++] = slot_entry(n, order[j], lo);
     *next = slot_entry(n, order[k - 1], lo);
     return sp;
@@ -622,28 +684,121 @@ static void triangle_normal(const float *const p[3], float n[3])
     }
 }
 
+/* The per-ray state of a walk: the prepared ray, its box and triangle
+** constants, and the segment's far end (the closest hit so far). */
+/* tri_ray's constants for a block of four triangles: the origin's and
+** the shear's components in four lanes, and the byte offsets in a tri4's
+** corner of the rows of axes kx, ky, kz (set once per ray, so that a
+** block's test only loads). */
+typedef struct block_ray {
+    float ox[4], oy[4], oz[4], sx[4], sy[4];
+    size_t offx, offy, offz;
+} block_ray;
+
+typedef struct walk {
+    box_ray br;
+    block_ray kr;
+    brt_ray_prep prep;
+    tri_ray tr;
+    float tnear, tfar;
+    uint32_t inst;
+    const brt_ray *ray;
+    int tri_ready;        /* tr and kr set (at the first leaf: most rays reach few) */
+    brt_hit *hit;
+    float *normal;
+    int any;
+} walk;
+
+static void block_ray_setup(const tri_ray *r, block_ray *k)
+{
+    int i;
+    for (i = 0; i < 4; i++) {
+        k->ox[i] = r->org[r->kx];
+        k->oy[i] = r->org[r->ky];
+        k->oz[i] = r->org[r->kz];
+        k->sx[i] = r->sx;
+        k->sy[i] = r->sy;
+    }
+    k->offx = (size_t)r->kx * sizeof(float[4]);
+    k->offy = (size_t)r->ky * sizeof(float[4]);
+    k->offz = (size_t)r->kz * sizeof(float[4]);
+}
+
+/* The triangle test's per-ray constants, at a walk's first leaf. */
+static inline void walk_leaf(walk *w)
+{
+    if (w->tri_ready) return;
+    tri_ray_setup(w->ray, &w->tr);
+    block_ray_setup(&w->tr, &w->kr);
+    w->tri_ready = 1;
+}
+
+/* Sets a walk up; 0 when the ray cannot hit anything (invalid, or an
+** empty segment). */
+static int walk_begin(walk *w, const brt_ray *ray, uint32_t inst, brt_hit *hit,
+                      float normal[3], int any)
+{
+    brt_ray_prepare(ray, &w->prep);   /* checks the ray too: prep.valid */
+    if (!w->prep.valid) return 0;
+    box_ray_from_prep(&w->prep, &w->br);
+    w->tnear = ray->tnear;
+    w->tfar = ray->tfar;
+    if (!any && hit->t < w->tfar) w->tfar = hit->t;
+    if (!(w->tnear <= w->tfar)) return 0;
+    w->ray = ray;
+    w->tri_ready = 0;
+    w->inst = inst;
+    w->hit = hit;
+    w->normal = normal;
+    w->any = any;
+    return 1;
+}
+
+/* Whether a popped entry, entered at lo, can be skipped: inclusive, so a
+** box entered at exactly the closest hit's t is visited (an equal t with
+** a lower number wins). */
+static inline int walk_prunes(const walk *w, float lo)
+{
+    return lo > w->tfar;
+}
+
+/* One stored triangle (corners p, reported number prim) in a walk:
+** returns 1 when an any-hit walk may stop; a closest-hit walk keeps the
+** hit if it is closer (brt_hit_is_closer: ties go to the lower number,
+** so the order triangles are met in never matters). */
+static inline ALWAYS_INLINE int walk_triangle(walk *w, const float *const p[3], uint32_t prim)
+{
+    float t, u, v;
+    if (!tri_intersect(&w->tr, &w->prep, p[0], p[1], p[2], w->tnear, w->tfar, &t, &u, &v))
+        return 0;
+    if (w->any) return 1;
+    if (brt_hit_is_closer(t, w->inst, prim, w->hit)) {
+        w->hit->t = t;
+        w->hit->prim = prim;
+        w->hit->u = u;
+        w->hit->v = v;
+        w->hit->inst = w->inst;
+        w->tfar = t;
+        if (w->normal) triangle_normal(p, w->normal);
+    }
+    return 0;
+}
+
 /* Closest hit into *hit (and its triangle's normal into normal, unless
 ** NULL, whenever the hit changes), or (any != 0) returns 1 at the first
-** hit.  Empty slots are masked out.  The tree is checked acyclic with
-** depth <= MAX_DEPTH at build/open time, so each node is entered at most
-** once and the stack (3 entries per level) never overflows. */
-static int traverse(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst, brt_hit *hit,
-                    float normal[3], int any)
+** hit: the walk over the quantized nodes (a blob read in place).  Empty
+** slots are masked out.  The tree is checked acyclic with depth <=
+** MAX_DEPTH at build/open time, so each node is entered at most once and
+** the stack (3 entries per level) never overflows. */
+static int traverse_quantized(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst,
+                              brt_hit *hit, float normal[3], int any)
 {
     stack_entry stack[STACK_SIZE], cur;
-    tri_ray tr;
-    brt_ray_prep prep;
-    box_ray br;
-    float tfar = ray->tfar, lo[4];
+    walk w;
+    float lo[4];
     int sp = 0;
 
-    if (bvh->node_count == 0) return 0;
-    brt_ray_prepare(ray, &prep);   /* checks the ray too: prep.valid */
-    if (!prep.valid) return 0;
-    box_ray_from_prep(&prep, &br);
-    if (!any && hit->t < tfar) tfar = hit->t;
-    if (!(ray->tnear <= tfar)) return 0;
-    tri_ray_setup(ray, &tr);
+    if (!walk_begin(&w, ray, inst, hit, normal, any)) return 0;
     cur.child = 0;
     cur.count = 0;
     cur.vbase = 0;
@@ -652,34 +807,183 @@ static int traverse(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst, brt_h
         uint32_t k;
         while (cur.count == 0) {
             const qnode *n = &bvh->nodes[cur.child];
-            const unsigned mask = box_test4(&br, n, ray->tnear, tfar, lo) & slot_valid(n);
+            const unsigned mask = box_test4(&w.br, n, w.tnear, w.tfar, lo) & slot_valid(n);
             if (mask == 0) goto pop;
             prefetch_slots(bvh, n, mask);
             sp = next_child(n, mask, lo, stack, sp, &cur);
         }
+        walk_leaf(&w);
         for (k = cur.child; k < cur.child + cur.count; k++) {
             const float *p[3];
-            float t, u, v;
             triangle_corners(bvh, k, cur.vbase, p);
-            if (!tri_intersect(&tr, &prep, p[0], p[1], p[2], ray->tnear, tfar, &t, &u, &v))
-                continue;
-            if (any) return 1;
-            if (brt_hit_is_closer(t, inst, bvh->prim[k], hit)) {
-                hit->t = t;
-                hit->prim = bvh->prim[k];
-                hit->u = u;
-                hit->v = v;
-                hit->inst = inst;
-                tfar = t;
-                if (normal) triangle_normal(p, normal);
-            }
+            if (walk_triangle(&w, p, bvh->prim[k])) return 1;
         }
     pop:
         do {
             if (sp == 0) return 0;
             cur = stack[--sp];
-        } while (cur.lo > tfar);
+        } while (walk_prunes(&w, cur.lo));
     }
+}
+
+/* ---- the resident walk ---- */
+
+/* The blocks of four that a leaf of count triangles takes. */
+static uint32_t leaf_blocks(unsigned count) { return (count + 3u) / 4u; }
+
+typedef struct resident_entry {
+    uint32_t child;   /* node, or (count > 0) first block */
+    uint32_t count;   /* > 0: a leaf of that many triangles */
+    float lo;         /* entry distance, for pruning when popped */
+} resident_entry;
+
+static inline ALWAYS_INLINE resident_entry resident_slot(const fnode *n, unsigned i,
+                                                         const float lo[4])
+{
+    resident_entry e;
+    e.child = n->child[i];
+    e.count = n->count[i];
+    e.lo = lo[i];
+    return e;
+}
+
+/* Starts fetching what the visits of the slots in mask read: both cache
+** lines of a child node, every line of a leaf's blocks (as prefetch_slots,
+** for the resident layout). */
+static inline ALWAYS_INLINE void prefetch_resident(const brt_bvh *bvh, const fnode *n,
+                                                   unsigned mask)
+{
+#if defined(__GNUC__)
+    for (; mask != 0; mask &= mask - 1) {
+        const unsigned i = lowest_bit[mask];
+        const char *p;
+        size_t bytes, at;
+        if (n->count[i] == 0) {
+            p = (const char *)&bvh->fnodes[n->child[i]];
+            bytes = sizeof(fnode);
+        } else {
+            p = (const char *)&bvh->blocks[n->child[i]];
+            bytes = leaf_blocks(n->count[i]) * sizeof(tri4);
+        }
+        for (at = 0; at < bytes; at += 64) __builtin_prefetch(p + at);
+    }
+#else
+    (void)bvh; (void)n; (void)mask;
+#endif
+}
+
+/* The lanes of a block that may hold a hit: all but those with a
+** negative and a positive edge function, which tri_intersect rejects.
+** The edge functions are tri_intersect's arithmetic in its order
+** (-ffp-contract=off), so the same bits.  A third edge function of 0
+** changes nothing: tri_intersect then redoes all three in double, and
+** rounding is monotone (a float product or difference keeps the order
+** of the exact values), so a float edge function below or above 0 is so
+** in double too, and the signs still mix.  Each remaining lane then runs
+** tri_intersect itself, so the answers are its own.  Written lane-wise
+** with a select of constants, so GCC -O2 turns it into vector
+** instructions (callgrind on trace counts them). */
+static inline ALWAYS_INLINE const float *block_row(const tri4 *b, int corner, size_t off)
+{
+    return (const float *)(const void *)((const char *)b->v[corner] + off);
+}
+
+static inline ALWAYS_INLINE unsigned tri4_candidates(const block_ray *r, const tri4 *b)
+{
+    static const unsigned lane_bit[4] = {1u, 2u, 4u, 8u};
+    const float *const x0 = block_row(b, 0, r->offx), *const y0 = block_row(b, 0, r->offy);
+    const float *const z0 = block_row(b, 0, r->offz), *const x1 = block_row(b, 1, r->offx);
+    const float *const y1 = block_row(b, 1, r->offy), *const z1 = block_row(b, 1, r->offz);
+    const float *const x2 = block_row(b, 2, r->offx), *const y2 = block_row(b, 2, r->offy);
+    const float *const z2 = block_row(b, 2, r->offz);
+    unsigned bit[4];
+    int i;
+    for (i = 0; i < 4; i++) {
+        const float az = z0[i] - r->oz[i], bz = z1[i] - r->oz[i], cz = z2[i] - r->oz[i];
+        const float ax = (x0[i] - r->ox[i]) - r->sx[i] * az;
+        const float ay = (y0[i] - r->oy[i]) - r->sy[i] * az;
+        const float bx = (x1[i] - r->ox[i]) - r->sx[i] * bz;
+        const float by = (y1[i] - r->oy[i]) - r->sy[i] * bz;
+        const float cx = (x2[i] - r->ox[i]) - r->sx[i] * cz;
+        const float cy = (y2[i] - r->oy[i]) - r->sy[i] * cz;
+        const float eu = cx * by - cy * bx;
+        const float ev = ax * cy - ay * cx;
+        const float ew = bx * ay - by * ax;
+        const int neg = (eu < 0.0f) | (ev < 0.0f) | (ew < 0.0f);
+        const int pos = (eu > 0.0f) | (ev > 0.0f) | (ew > 0.0f);
+        bit[i] = (neg & pos) ? 0u : lane_bit[i];
+    }
+    return bit[0] | bit[1] | bit[2] | bit[3];
+}
+
+/* The triangles of a resident leaf (count of them, from block first);
+** 1 when an any-hit walk may stop. */
+static int resident_leaf(const brt_bvh *bvh, walk *w, uint32_t first, uint32_t count)
+{
+    uint32_t j;
+    walk_leaf(w);
+    for (j = 0; 4 * j < count; j++) {
+        const tri4 *b = &bvh->blocks[first + j];
+        const unsigned live = count - 4 * j >= 4 ? 15u : (1u << (count - 4 * j)) - 1u;
+        unsigned m = tri4_candidates(&w->kr, b) & live;
+        for (; m != 0; m &= m - 1) {
+            const unsigned i = lowest_bit[m];
+            float c[3][3];
+            const float *const p[3] = {c[0], c[1], c[2]};
+            int k, a;
+            for (k = 0; k < 3; k++)
+                for (a = 0; a < 3; a++) c[k][a] = b->v[k][a][i];
+            if (walk_triangle(w, p, b->prim[i])) return 1;
+        }
+    }
+    return 0;
+}
+
+/* traverse_quantized's walk over the resident layout: the same slots,
+** boxes and triangles, so the same hits (the tie rule is total). */
+static int traverse_resident(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst,
+                             brt_hit *hit, float normal[3], int any)
+{
+    resident_entry stack[STACK_SIZE], cur;
+    walk w;
+    float lo[4], hi[4];
+    int sp = 0;
+
+    if (!walk_begin(&w, ray, inst, hit, normal, any)) return 0;
+    cur.child = 0;
+    cur.count = 0;
+    cur.lo = ray->tnear;
+    for (;;) {
+        while (cur.count == 0) {
+            const fnode *n = &bvh->fnodes[cur.child];
+            const unsigned mask = box_rows4(&w.br, (const float (*)[4])n->box, w.tnear, w.tfar,
+                                            lo, hi) & n->valid;
+            unsigned order[4];
+            int k, j;
+            if (mask == 0) goto pop;
+            k = order_slots(mask, lo, order);
+            /* One hit node slot is read at once (a prefetch gains nothing);
+            ** a leaf's blocks are read one after another. */
+            if (k > 1 || n->count[order[0]] > 0) prefetch_resident(bvh, n, mask);
+            for (j = 0; j < k - 1; j++) stack[sp++] = resident_slot(n, order[j], lo);
+            cur = resident_slot(n, order[k - 1], lo);
+        }
+        if (resident_leaf(bvh, &w, cur.child, cur.count)) return 1;
+    pop:
+        do {
+            if (sp == 0) return 0;
+            cur = stack[--sp];
+        } while (walk_prunes(&w, cur.lo));
+    }
+}
+
+/* The walk of either layout: the resident one when the BVH has it. */
+static int traverse(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst, brt_hit *hit,
+                    float normal[3], int any)
+{
+    if (bvh->node_count == 0) return 0;
+    if (bvh->fnodes) return traverse_resident(bvh, ray, inst, hit, normal, any);
+    return traverse_quantized(bvh, ray, inst, hit, normal, any);
 }
 
 void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit)
@@ -1425,6 +1729,82 @@ static brt_bvh *bvh_from_emitter(const emitter *e)
     return bvh;
 }
 
+/* ---- the resident layout, decoded from the quantized one ---- */
+
+/* Writes node i of the resident layout and the blocks of its leaves from
+** block *next on (advanced past them) into zeroed memory.  The boxes are
+** decode_boxes' floats, so every box test sees the planes the quantized
+** walk decodes, bit for bit; the corners are the stored vertices' bits. */
+static void resident_node(const brt_bvh *bvh, uint32_t i, fnode *f, tri4 *blocks,
+                          uint32_t *next)
+{
+    const qnode *n = &bvh->nodes[i];
+    unsigned s, k;
+    int j, a;
+    decode_boxes(n, f->box);
+    f->valid = slot_valid(n);
+    for (s = 0; s < 4; s++) {
+        f->count[s] = n->count[s];
+        if (!(f->valid >> s & 1u)) continue;
+        if (n->count[s] == 0) { f->child[s] = slot_target(n, s); continue; }
+        f->child[s] = *next;
+        for (k = 0; k < n->count[s]; k++) {
+            const uint32_t t = slot_target(n, s) + k;
+            tri4 *b = &blocks[*next + k / 4];
+            const float *p[3];
+            triangle_corners(bvh, t, n->vertex_base, p);
+            for (j = 0; j < 3; j++)
+                for (a = 0; a < 3; a++) b->v[j][a][k % 4] = p[j][a];
+            b->prim[k % 4] = bvh->prim[t];
+        }
+        *next += leaf_blocks(n->count[s]);
+    }
+}
+
+static uint32_t resident_block_count(const brt_bvh *bvh)
+{
+    uint32_t i, blocks = 0;
+    unsigned s;
+    for (i = 0; i < bvh->node_count; i++)
+        for (s = 0; s < 4; s++)
+            if ((slot_valid(&bvh->nodes[i]) >> s & 1u) && bvh->nodes[i].count[s] > 0)
+                blocks += leaf_blocks(bvh->nodes[i].count[s]);
+    return blocks;
+}
+
+/* The resident layout of a quantized BVH, in one 64-byte aligned,
+** zeroed allocation (nodes, then blocks); NULL when out of memory. */
+static fnode *resident_layout(const brt_bvh *bvh, uint32_t *block_count)
+{
+    const uint32_t blocks = resident_block_count(bvh);
+    const size_t bytes = (size_t)bvh->node_count * sizeof(fnode) + (size_t)blocks * sizeof(tri4);
+    void *m = NULL;
+    fnode *f;
+    uint32_t i, next = 0;
+    if (posix_memalign(&m, 64, bytes) != 0) return NULL;
+    memset(m, 0, bytes);
+    f = m;
+    for (i = 0; i < bvh->node_count; i++)
+        resident_node(bvh, i, &f[i], (tri4 *)(void *)(f + bvh->node_count), &next);
+    *block_count = blocks;
+    return f;
+}
+
+/* Adds the resident layout to a quantized BVH; 0 when out of memory. */
+static int make_resident(brt_bvh *bvh)
+{
+    if (bvh->node_count == 0) return 1;
+    bvh->fnodes = resident_layout(bvh, &bvh->block_count);
+    bvh->blocks = bvh->fnodes ? (tri4 *)(void *)(bvh->fnodes + bvh->node_count) : NULL;
+    return bvh->fnodes != NULL;
+}
+
+static size_t resident_bytes(const brt_bvh *bvh)
+{
+    if (!bvh->fnodes) return 0;
+    return (size_t)bvh->node_count * sizeof(fnode) + (size_t)bvh->block_count * sizeof(tri4);
+}
+
 static int setup_refs(builder *b, const float *positions,
                       const uint32_t *indices, uint32_t tri_count)
 {
@@ -1499,6 +1879,7 @@ brt_result brt_bvh_build(const float *positions, const uint32_t *indices,
     build_node(&b, 0, tri_count, &box, &cbox, 0);
     if (!emit_wide(&e, 0, 0)) goto done;
     *out = bvh_from_emitter(&e);
+    if (*out && !make_resident(*out)) { brt_bvh_free(*out); *out = NULL; }
     if (*out) r = BRT_OK;
 done:
     free(b.refs); free(b.nodes);
@@ -1510,6 +1891,7 @@ void brt_bvh_free(brt_bvh *bvh)
 {
     if (!bvh) return;
     free(bvh->owned);
+    free(bvh->fnodes);
     free(bvh);
 }
 
@@ -1518,7 +1900,8 @@ const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh) { return bvh->prim; }
 
 size_t brt_bvh_memory_bytes(const brt_bvh *bvh)
 {
-    return (size_t)arrays_bytes(bvh->node_count, bvh->vert_count, bvh->tri_count);
+    return (size_t)arrays_bytes(bvh->node_count, bvh->vert_count, bvh->tri_count) +
+           resident_bytes(bvh);
 }
 
 void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3])
@@ -1674,6 +2057,33 @@ static brt_result check_node(const brt_bvh *bvh, uint32_t i, const aabb *clip, b
     return BRT_OK;
 }
 
+/* The checker of the resident layout: it must be exactly what
+** resident_layout makes of the quantized nodes (checked just before),
+** every byte, padding and unused lanes (zero) included -- so its boxes
+** are the decoded quantized ones and contain what those contain, and its
+** slots reach the same triangles. */
+static brt_result check_resident(const brt_bvh *bvh, brt_error *err)
+{
+    uint32_t blocks = 0, i;
+    fnode *want = resident_layout(bvh, &blocks);
+    const tri4 *want_blocks = want ? (const tri4 *)(const void *)(want + bvh->node_count) : NULL;
+    brt_result r = BRT_OK;
+    if (!want) return brt_fail(err, BRT_ENOMEM, "bvh: out of memory");
+    if (blocks != bvh->block_count || bvh->blocks != (tri4 *)(void *)(bvh->fnodes + bvh->node_count))
+        r = brt_fail(err, BRT_ECHECK, "bvh: resident layout: %u blocks, expected %u",
+                     (unsigned)bvh->block_count, (unsigned)blocks);
+    for (i = 0; r == BRT_OK && i < bvh->node_count; i++)
+        if (memcmp(&want[i], &bvh->fnodes[i], sizeof want[i]) != 0)
+            r = brt_fail(err, BRT_ECHECK, "bvh: resident node %u differs from quantized node %u "
+                         "decoded", (unsigned)i, (unsigned)i);
+    for (i = 0; r == BRT_OK && i < blocks; i++)
+        if (memcmp(&want_blocks[i], &bvh->blocks[i], sizeof want_blocks[i]) != 0)
+            r = brt_fail(err, BRT_ECHECK, "bvh: resident block %u differs from its leaf's "
+                         "triangles", (unsigned)i);
+    free(want);
+    return r;
+}
+
 brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err)
 {
     brt_result r = validate_structure(bvh, BRT_ECHECK, err);
@@ -1681,7 +2091,16 @@ brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err)
     int a;
     for (a = 0; a < 4; a++) { all.lo[a] = -INFINITY; all.hi[a] = INFINITY; }
     if (r == BRT_OK && bvh->node_count > 0) r = check_node(bvh, 0, &all, err);
+    if (r == BRT_OK && bvh->fnodes) r = check_resident(bvh, err);
     return r;
+}
+
+size_t brt_bvh_damage_resident(brt_bvh *bvh, uint64_t at)
+{
+    const size_t bytes = resident_bytes(bvh);
+    if (bytes == 0) return 0;
+    ((unsigned char *)bvh->fnodes)[at % bytes] ^= (unsigned char)(1u << (at / bytes % 8));
+    return bytes;
 }
 
 /* ===================================================================== */
@@ -1807,10 +2226,27 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     leaves.
 **   - brt_box_span4 vectorized, the near and far rows decoded from their
 **     words, decode_row's lane-3 fix-up, tri_intersect inlined.  Not
-**     kept: slot_valid as one word, a lazy tri_ray_setup, a xor-and-bias
-**     decode, huge pages (not POSIX).
+**     kept: slot_valid as one word, a xor-and-bias decode, huge pages
+**     (not POSIX).
 **   - Random and bounce rays wait on memory: the speed with the nodes
 **     already in cache (bench_bvh's "warm") is far above the cold one.
-**     Not done: 8-wide nodes, leaves of 4 triangles as structures of
-**     arrays (each a new blob layout).
+**     Not done: 8-wide nodes (a new blob layout).
+**   - The resident layout (issue 30): the quantized nodes decoded once
+**     into float nodes, leaves as blocks of four triangles with a
+**     vectorized edge-function filter; per ray, the box rows and the
+**     blocks' axes as byte offsets; every line of a hit leaf's blocks
+**     prefetched, a lone hit child node not; the triangle test's per-ray
+**     constants set at the first leaf (walk_leaf: camera and random rays
+**     mostly reach none or one).
+**     Not kept: the leaf walk as a call (fewer instructions per node,
+**     more per leaf: no gain), the block and box constants broadcast per
+**     ray in separate loops, brt_box_pad inlined into hit_distance, the
+**     segment's ends kept in four lanes for box_span4 (each: callgrind
+**     counts no fewer instructions).
+**   - Where a bounce ray's instructions still go: its own triangle, just
+**     behind its origin, passes the edge test (a line test) and is only
+**     rejected after hit_distance (its double plane and padded box); an
+**     exact cheaper rejection would need an error-bounded plane test.
+**     Not done: decoding batching points at load (resident points): the
+**     geometry cache would have to charge the resident bytes too.
 */

@@ -120,29 +120,101 @@ static brt_bvh *build_checked(const tu_scene *s, const uint32_t *prim_ids)
     return bvh;
 }
 
-/* Builds and compares rays_per_kind rays of every kind; stops at the
-** first mismatch. */
+/* The BVH read in place from its blob (the walk over quantized nodes,
+** batching points' walk) against the one built in memory (the resident
+** walk, compared with brute force): the same closest hit, normal and
+** occlusion, byte for byte.  Returns 0 after recording a failure. */
+static int compare_walks(const brt_bvh *built, const brt_bvh *opened, const brt_ray *ray,
+                         const char *what, size_t n)
+{
+    brt_hit a, b;
+    float na[3] = {7, 7, 7}, nb[3] = {7, 7, 7};
+    brt_hit_clear(&a);
+    brt_hit_clear(&b);
+    brt_bvh_intersect_normal(built, ray, &a, na);
+    brt_bvh_intersect_normal(opened, ray, &b, nb);
+    if (memcmp(&a, &b, sizeof a) == 0 && memcmp(na, nb, sizeof na) == 0 &&
+        brt_bvh_occluded(built, ray) == brt_bvh_occluded(opened, ray))
+        return 1;
+    test_fail_at(__FILE__, __LINE__, "%s ray %zu: the blob's walk (t=%a prim %u) differs from "
+                 "the resident walk (t=%a prim %u)", what, n, b.t, (unsigned)b.prim, a.t,
+                 (unsigned)a.prim);
+    return 0;
+}
+
+/* The BVH opened from bvh's blob (blob in *mem, to free), or NULL after
+** recording a failure. */
+static brt_bvh *open_copy(const brt_bvh *bvh, uint32_t prim_limit, void **mem)
+{
+    const size_t size = brt_bvh_blob_size(bvh);
+    brt_bvh *opened = NULL;
+    brt_error err;
+    if (posix_memalign(mem, 64, size) != 0) {
+        test_fail_at(__FILE__, __LINE__, "out of memory for a blob");
+        return NULL;
+    }
+    brt_bvh_blob_write(bvh, *mem);
+    if (brt_bvh_blob_open(*mem, size, prim_limit, &opened, &err) != BRT_OK)
+        test_fail_at(__FILE__, __LINE__, "open: %s", err.message);
+    return opened;
+}
+
+/* Builds and compares rays_per_kind rays of every kind, for the built
+** BVH and its blob opened; stops at the first mismatch. */
 static void compare_scene(const tu_scene *s, const uint32_t *prim_ids,
                           size_t rays_per_kind, uint64_t seed, const char *what)
 {
-    brt_bvh *bvh = build_checked(s, prim_ids);
+    brt_bvh *bvh = build_checked(s, prim_ids), *opened = NULL;
+    void *mem = NULL;
     float lo[3], hi[3];
     uint64_t st = seed;
     char label[128];
     int kind;
     size_t n;
     if (!bvh) return;
+    opened = open_copy(bvh, BRT_NO_PRIM, &mem);
     tu_scene_bounds(s, lo, hi);
-    for (kind = 0; kind < TU_RAY_KINDS; kind++) {
+    for (kind = 0; kind < TU_RAY_KINDS && opened; kind++) {
         snprintf(label, sizeof label, "%s, %s", what, tu_kind_name[kind]);
         for (n = 0; n < rays_per_kind; n++) {
             brt_ray ray;
             tu_make_ray(s, lo, hi, kind, &st, &ray);
-            if (!compare_ray(s, prim_ids, bvh, &ray, label, n)) goto done;
+            if (!compare_ray(s, prim_ids, bvh, &ray, label, n) ||
+                !compare_walks(bvh, opened, &ray, label, n))
+                goto done;
         }
     }
 done:
+    brt_bvh_free(opened);
+    free(mem);
     brt_bvh_free(bvh);
+}
+
+/* The resident layout is all checked: brt_bvh_check rejects every single
+** flipped bit of it (boxes, children, counts, masks, padding, corners,
+** numbers, unused lanes), and accepts it again once the bit is back. */
+static void test_resident_check(void)
+{
+    uint64_t st = test_seed() ^ 47;
+    tu_scene s = {0};
+    brt_bvh *bvh;
+    brt_error err;
+    size_t bytes = 0;
+    int i;
+    tu_random_soup(&s, &st, 300, 0.1f);
+    bvh = build_checked(&s, NULL);
+    if (!bvh) { tu_scene_free(&s); return; }
+    for (i = 0; i < 2000 && !test_failed(); i++) {
+        const uint64_t at = brt_random_u64(&st);
+        bytes = brt_bvh_damage_resident(bvh, at);
+        EXPECT(brt_bvh_check(bvh, &err) == BRT_ECHECK, "flip %d (byte %zu of %zu) accepted", i,
+               bytes ? (size_t)(at % bytes) : 0, bytes);
+        brt_bvh_damage_resident(bvh, at);
+    }
+    EXPECT(bytes > 0, "the built BVH has no resident layout");
+    CHECK(brt_bvh_check(bvh, &err) == BRT_OK, "check after the flips: %s", err.message);
+    brt_bvh_free(bvh);
+    tu_scene_free(&s);
 }
 
 /* ===================================================================== */
@@ -897,6 +969,10 @@ static int float_cross_is_zero(const float p[2], const float q[2])
 ** the sign test's strict compares are for (an exact 0 counts as
 ** inside).  The test counts the float zeros it met, so that it fails if
 ** the generator stops making them. */
+/* Edge rays also traced through a BVH of their one triangle (a build
+** each, so fewer). */
+#define EDGE_BVH_RAYS 6000
+
 static void test_edge_rays(void)
 {
     uint64_t st = test_seed() ^ 53;
@@ -918,6 +994,18 @@ static void test_edge_rays(void)
         r.dir[axis] = (float)sign;
         want = exact_axis_hit((const float(*)[2])p);
         got = brt_intersect_triangle(&r, vert[0], vert[1], vert[2], &t, &u, &v);
+        if (n < EDGE_BVH_RAYS) {   /* the BVH's filter of four triangles at once too */
+            static const uint32_t corners[3] = {0, 1, 2};
+            brt_bvh *bvh = NULL;
+            brt_hit h;
+            brt_hit_clear(&h);
+            CHECK(brt_bvh_build(&vert[0][0], corners, 1, NULL, &bvh) == BRT_OK, "build");
+            brt_bvh_intersect(bvh, &r, &h);
+            EXPECT((h.prim != BRT_NO_PRIM) == want, "BVH: axis %d dir %+d, projected (%a %a) (%a %a) "
+                   "(%a %a): %s, exactly %s", axis, sign, p[0][0], p[0][1], p[1][0], p[1][1],
+                   p[2][0], p[2][1], h.prim != BRT_NO_PRIM ? "hit" : "miss", want ? "hit" : "miss");
+            brt_bvh_free(bvh);
+        }
         for (k = 0; k < 3; k++)
             if (float_cross_is_zero(p[k], p[(k + 1) % 3])) {
                 if (exact_cross_sign(p[k], p[(k + 1) % 3]) == 0) exact_zeros++;
@@ -1305,4 +1393,5 @@ void suite_bvh(void)
     test_run("bvh: empty", test_empty);
     test_run("bvh: blob round trip and corruption", test_blob);
     test_run("bvh: bounds and memory", test_bounds_and_memory);
+    test_run("bvh: resident layout checker rejects every flipped bit", test_resident_check);
 }
