@@ -53,18 +53,13 @@ static int mpi_available(void)
 static int mpi_run(int ranks, const char *env, const char *fmt, ...)
 {
     char args[2048], expanded[4096], cmd[8192];
-    const char *dir = test_tmpdir(), *p;
-    size_t n = 0;
+    const char *dir = test_tmpdir();
     int status;
     va_list ap;
     va_start(ap, fmt);
     vsnprintf(args, sizeof args, fmt, ap);
     va_end(ap);
-    for (p = args; *p && n + strlen(dir) + 1 < sizeof expanded; p++) {
-        if (*p == '@') { memcpy(expanded + n, dir, strlen(dir)); n += strlen(dir); }
-        else expanded[n++] = *p;
-    }
-    expanded[n] = 0;
+    tu_expand_scratch(args, expanded, sizeof expanded);
     snprintf(cmd, sizeof cmd,
              "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_btl=self,vader %s "
              "timeout %d mpirun --oversubscribe -np %d %s/mpi_trace %s < /dev/null > '%s/cli.out' 2> '%s/cli.err'",

@@ -328,21 +328,27 @@ int tu_spill(const char *path, const void *data, size_t size)
 /* Runs "$BRT_BUILD/ARGS" with '@' in ARGS standing for the scratch
 ** directory; stdout and stderr go to cli.out and cli.err there.  Returns
 ** the exit status, or -1 when the program died from a signal. */
+void tu_expand_scratch(const char *args, char *out, size_t size)
+{
+    const char *dir = test_tmpdir(), *p;
+    size_t n = 0;
+    for (p = args; *p && n + strlen(dir) + 1 < size; p++) {
+        if (*p == '@') { memcpy(out + n, dir, strlen(dir)); n += strlen(dir); }
+        else out[n++] = *p;
+    }
+    out[n] = 0;
+}
+
 int tu_run(const char *fmt, ...)
 {
     char args[2048], expanded[4096], cmd[8192];
-    const char *build = getenv("BRT_BUILD"), *dir = test_tmpdir(), *p;
-    size_t n = 0;
+    const char *build = getenv("BRT_BUILD"), *dir = test_tmpdir();
     int status;
     va_list ap;
     va_start(ap, fmt);
     vsnprintf(args, sizeof args, fmt, ap);
     va_end(ap);
-    for (p = args; *p && n + strlen(dir) + 1 < sizeof expanded; p++) {
-        if (*p == '@') { memcpy(expanded + n, dir, strlen(dir)); n += strlen(dir); }
-        else expanded[n++] = *p;
-    }
-    expanded[n] = 0;
+    tu_expand_scratch(args, expanded, sizeof expanded);
     snprintf(cmd, sizeof cmd, "%s/%s > '%s/cli.out' 2> '%s/cli.err'",
              build ? build : "build", expanded, dir, dir);
     status = system(cmd);

@@ -91,6 +91,8 @@ int tu_file_exists(const char *path);
 /* The whole file, NUL-terminated (malloc'd), or NULL; size may be NULL. */
 unsigned char *tu_slurp(const char *path, size_t *size);
 int tu_spill(const char *path, const void *data, size_t size);
+/* args with every '@' replaced by the scratch directory, into out. */
+void tu_expand_scratch(const char *args, char *out, size_t size);
 /* Runs "$BRT_BUILD/ARGS" (printf-formatted) with '@' in ARGS standing for
 ** the scratch directory; stdout and stderr go to cli.out and cli.err
 ** there.  Returns the exit status, or -1 when the program died. */
