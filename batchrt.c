@@ -3856,9 +3856,26 @@ static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
     return BRT_OK;
 }
 
+/* The tests' injected read fault (brt_test_read_fault): reads left before
+** it, or -1 (never: one compare per read outside the tests). */
+static long read_fault_after = -1;
+static int read_fault_errno;
+
+void brt_test_read_fault(long after, int error)
+{
+    read_fault_after = after;
+    read_fault_errno = error;
+}
+
+/* Every read of the library's own (a scene file's header, tables and
+** blobs, the spill file) when the caller gives no brt_read_fn. */
 static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user)
 {
     (void)user;
+    if (read_fault_after >= 0 && read_fault_after-- == 0) {
+        errno = read_fault_errno;
+        return -1;
+    }
     return (long)pread(fd, buf, size, (off_t)offset);
 }
 

@@ -1130,6 +1130,12 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
                                      brt_error *err);
 
+/* Injects one read fault: the library's own reads (pread_reader: a scene
+** file's header, tables and blobs, the spill file of a build) succeed
+** `after` more times, then one fails with errno `error`; after < 0 never.
+** Not for threads (one countdown for the process). */
+void brt_test_read_fault(long after, int error);
+
 #endif /* BRT_TESTING */
 
 #ifdef __cplusplus

@@ -197,6 +197,7 @@ int main(int argc, char **argv)
     suite_svdag();
     suite_batched();
     suite_exchange();
+    suite_faults();
     suite_mpi();
     suite_cli();
     suite_scenes();

@@ -58,6 +58,7 @@ void suite_bvh(void);
 void suite_svdag(void);
 void suite_batched(void);
 void suite_exchange(void);
+void suite_faults(void);
 void suite_mpi(void);
 void suite_cli(void);
 void suite_scenes(void);
