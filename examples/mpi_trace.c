@@ -493,33 +493,43 @@ static void gather_results(const share *s, brt_hit *hits)
 
 /* ---- statistics ----------------------------------------------------------------- */
 
-/* What each rank reports, in this order (one JSON object per rank and
-** their sums). */
-static const char *const stat_names[] = {
-    "rays_started", "rays_finished", "rays_sent", "rays_received", "messages_sent", "bytes_sent",
-    "batch_loads", "prototype_loads", "disk_bytes_read", "proxy_tests", "proxy_culled",
-    "queued_visits", "resident_visits", "peak_rss_bytes", "trace_microseconds"};
-#define STAT_COUNT (sizeof stat_names / sizeof stat_names[0])
+/* What each rank reports (one JSON object per rank and their sums), each
+** name beside its value; the names in that order are kept for the JSON. */
+#define STAT_COUNT 15
+static const char *stat_names[STAT_COUNT];
 
-static void stats_of(const brt_stats *st, const network *n, uint64_t *v)
+static void stats_of(const brt_stats *st, const network *n, uint64_t *values)
 {
-    uint64_t values[STAT_COUNT];
-    values[0] = st->rays;
-    values[1] = n->finished;
-    values[2] = n->rays_sent;
-    values[3] = n->rays_received;
-    values[4] = n->messages_sent;
-    values[5] = n->bytes_sent;
-    values[6] = st->batch_loads;
-    values[7] = st->prototype_loads;
-    values[8] = st->disk_bytes_read;
-    values[9] = st->proxy_tests;
-    values[10] = st->proxy_culled;
-    values[11] = st->queued_visits;
-    values[12] = st->resident_visits;
-    values[13] = brt_peak_rss_bytes();
-    values[14] = (uint64_t)(st->seconds * 1e6);
-    memcpy(v, values, sizeof values);
+    const struct { const char *name; uint64_t value; } figures[STAT_COUNT] = {
+        {"rays_started", st->rays},
+        {"rays_finished", n->finished},
+        {"rays_sent", n->rays_sent},
+        {"rays_received", n->rays_received},
+        {"messages_sent", n->messages_sent},
+        {"bytes_sent", n->bytes_sent},
+        {"batch_loads", st->batch_loads},
+        {"prototype_loads", st->prototype_loads},
+        {"disk_bytes_read", st->disk_bytes_read},
+        {"proxy_tests", st->proxy_tests},
+        {"proxy_culled", st->proxy_culled},
+        {"queued_visits", st->queued_visits},
+        {"resident_visits", st->resident_visits},
+        {"peak_rss_bytes", brt_peak_rss_bytes()},
+        {"trace_microseconds", (uint64_t)(st->seconds * 1e6)}};
+    size_t i;
+    for (i = 0; i < STAT_COUNT; i++) {
+        stat_names[i] = figures[i].name;
+        values[i] = figures[i].value;
+    }
+}
+
+/* The value of the figure called name in a set of values. */
+static uint64_t stat_named(const uint64_t *values, const char *name)
+{
+    size_t i;
+    for (i = 0; i < STAT_COUNT; i++)
+        if (strcmp(stat_names[i], name) == 0) return values[i];
+    return 0;
 }
 
 /* JSON of one set of values, into out (with room). */
@@ -563,9 +573,11 @@ static void stats_write(const options *o, const uint64_t *all, double seconds)
     free(json);
     if (o->verbose || isatty(2))
         fprintf(stderr, "mpi_trace: %d ranks, %llu rays, %llu sent in %llu messages (%llu bytes), "
-                "%llu loads, %.3f s\n", rank_count, (unsigned long long)sum[0],
-                (unsigned long long)sum[2], (unsigned long long)sum[4], (unsigned long long)sum[5],
-                (unsigned long long)sum[6], seconds);
+                "%llu loads, %.3f s\n", rank_count, (unsigned long long)stat_named(sum, "rays_started"),
+                (unsigned long long)stat_named(sum, "rays_sent"),
+                (unsigned long long)stat_named(sum, "messages_sent"),
+                (unsigned long long)stat_named(sum, "bytes_sent"),
+                (unsigned long long)stat_named(sum, "batch_loads"), seconds);
 }
 
 /* ---- the run ------------------------------------------------------------------- */

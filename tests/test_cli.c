@@ -811,16 +811,6 @@ static int garble_keeping_stamp(const char *path)
     return ok && utimensat(AT_FDCWD, path, times, 0) == 0;
 }
 
-static int same_file_bytes(const char *a, const char *b)
-{
-    size_t na = 0, nb = 0;
-    unsigned char *x = tu_slurp(a, &na), *y = tu_slurp(b, &nb);
-    int same = x && y && na == nb && memcmp(x, y, na) == 0;
-    free(x);
-    free(y);
-    return same;
-}
-
 /* Batched runs need the mesh only to build the scene file: once it
 ** exists and matches, trace --batched and render (camera, bounds,
 ** triangle count from the scene file) give the same bytes with the mesh
@@ -844,14 +834,14 @@ static void test_batched_needs_no_mesh(void)
     EXPECT(status == 0 && err && strstr(err, "(reused)"), "trace --batched on the garbled mesh: "
            "exit %d, stderr '%s'", status, err ? err : "");
     free(err);
-    EXPECT(same_file_bytes(tu_scratch("nomesh-direct.hits"), tu_scratch("nomesh-reused.hits")),
+    EXPECT(tu_same_file_bytes(tu_scratch("nomesh-direct.hits"), tu_scratch("nomesh-reused.hits")),
            "trace --batched from the scene file alone differs from --direct");
     status = tu_run("%s --out @/nomesh-reused.png", render);
     err = tu_last_stderr();
-    EXPECT(status == 0 && same_file_bytes(tu_scratch("nomesh-built.png"),
+    EXPECT(status == 0 && tu_same_file_bytes(tu_scratch("nomesh-built.png"),
                                           tu_scratch("nomesh-reused.png")),
            "render from the scene file alone: exit %d, stderr '%s', same image %d", status,
-           err ? err : "", same_file_bytes(tu_scratch("nomesh-built.png"), tu_scratch("nomesh-reused.png")));
+           err ? err : "", tu_same_file_bytes(tu_scratch("nomesh-built.png"), tu_scratch("nomesh-reused.png")));
     free(err);
     EXPECT(tu_run("trace @/nomesh.ply @/nomesh.rays @/nomesh-bad.hits") == 1,
            "trace --direct accepted the garbled mesh: the test proves nothing");
@@ -1050,7 +1040,7 @@ static void test_builtin_scenes_batched_equals_direct(void)
             CHECK(tu_run("trace @/bi-%s @/bi.rays @/bi-batched.hits --batched --batch-tris 400 "
                          "--res 32 --memory 40K --scene @/bi-%s.brs", files[i], name) == 0,
                   "trace --batched failed");
-            EXPECT(same_file_bytes(tu_scratch("bi-direct.hits"), tu_scratch("bi-batched.hits")),
+            EXPECT(tu_same_file_bytes(tu_scratch("bi-direct.hits"), tu_scratch("bi-batched.hits")),
                    "%s, %s rays: batched and direct hits differ", files[i], kinds[k]);
         }
     }

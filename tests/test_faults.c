@@ -27,26 +27,54 @@ static void plain_source(tu_scene *soup, brt_mesh *mesh)
     *mesh = tu_mesh_view(soup);
 }
 
-/* Opens path with a fault at every read in turn; returns the faults met. */
-static int open_with_faults(const char *path, const char *name)
+/* One operation under test: it reads through the library's own reader. */
+typedef struct operation {
+    const char *path;                   /* the file it opens or builds */
+    const brt_mesh *mesh;               /* a build: of this mesh, or */
+    const brt_scene_source *source;     /* of this source; neither: an open */
+} operation;
+
+static brt_result run_operation(const operation *op, brt_error *err)
 {
+    brt_scene_options opt;
+    brt_scene *scene = NULL;
+    brt_result r;
+    memset(&opt, 0, sizeof opt);
+    opt.batch_tris = 100;
+    opt.proxy_res = 16;
+    opt.threads = 1;                    /* one countdown: no reader beside it */
+    if (!op->mesh && !op->source) {
+        r = brt_scene_open(op->path, &scene, err);
+        if (r == BRT_OK) brt_scene_close(scene);
+        return r;
+    }
+    unlink(op->path);
+    return op->mesh ? brt_scene_build(op->mesh, &opt, 1, op->path, err)
+                    : brt_scene_build_source(op->source, &opt, 1, op->path, err);
+}
+
+/* Runs op with a fault at its n-th read for n = 0, 1, ... until it needs
+** no more reads; each fault must end it with BRT_EIO naming the file (a
+** build leaving no file); returns the faults met. */
+static int fault_every_read(const operation *op)
+{
+    const char *name = strrchr(op->path, '/') ? strrchr(op->path, '/') + 1 : op->path;
     int faults = 0;
     long n;
     for (n = 0; n < MAX_READS; n++) {
-        brt_scene *scene = NULL;
         brt_error err;
         brt_result r;
         err.message[0] = 0;
         brt_test_read_fault(n, EIO);
-        r = brt_scene_open(path, &scene, &err);
+        r = run_operation(op, &err);
         brt_test_read_fault(-1, 0);
-        if (r == BRT_OK) {
-            brt_scene_close(scene);
-            break;
-        }
+        if (r == BRT_OK) break;
         faults++;
         EXPECT(r == BRT_EIO && strstr(err.message, name) && strstr(err.message, "Input/output error"),
-               "open, fault at read %ld: %s, '%s'", n, brt_result_string(r), err.message);
+               "%s, fault at read %ld: %s, '%s'", name, n, brt_result_string(r), err.message);
+        if (op->mesh || op->source)
+            EXPECT(!tu_file_exists(op->path) && !tu_temporary_file_left(), "%s, fault at read %ld: a file left",
+                   name, n);
         if (test_failed()) break;
     }
     return faults;
@@ -57,73 +85,45 @@ static void test_open(void)
     tu_scene soup = {0};
     tu_instanced inst;
     brt_scene_source source;
-    brt_scene_options opt;
     brt_mesh mesh;
+    operation build = {NULL, NULL, NULL}, open = {NULL, NULL, NULL};
     brt_error err;
-    const char *plain = tu_scratch("faults-open.brs");
-    int faults;
     plain_source(&soup, &mesh);
-    memset(&opt, 0, sizeof opt);
-    opt.batch_tris = 100;
-    opt.proxy_res = 16;
-    CHECK(brt_scene_build(&mesh, &opt, 1, plain, &err) == BRT_OK, "%s", err.message);
-    faults = open_with_faults(plain, "faults-open.brs");
-    EXPECT(faults >= 4, "a plain scene's open met only %d faults", faults);
     memset(&inst, 0, sizeof inst);
     tu_instanced_squares(&inst);
     tu_instanced_source(&inst, &source);
-    plain = tu_scratch("faults-open4.brs");
-    CHECK(brt_scene_build_source(&source, &opt, 1, plain, &err) == BRT_OK, "%s", err.message);
-    faults = open_with_faults(plain, "faults-open4.brs");
-    EXPECT(faults >= 5, "an instanced scene's open met only %d faults", faults);
+    build.path = open.path = tu_scratch("faults-open.brs");
+    build.mesh = &mesh;
+    CHECK(run_operation(&build, &err) == BRT_OK, "%s", err.message);
+    EXPECT(fault_every_read(&open) >= 4, "a plain scene's open met fewer faults than its 4 reads");
+    build.path = open.path = tu_scratch("faults-open4.brs");
+    build.mesh = NULL;
+    build.source = &source;
+    CHECK(run_operation(&build, &err) == BRT_OK, "%s", err.message);
+    EXPECT(fault_every_read(&open) >= 5, "an instanced scene's open met fewer faults than its 5 reads");
     tu_instanced_free(&inst);
     tu_scene_free(&soup);
 }
 
-/* Builds with a fault at every read in turn (the spill file, and an
-** instanced build's instance file): each fails cleanly. */
-static int build_with_faults(const brt_mesh *mesh, const brt_scene_source *source, const char *path)
-{
-    brt_scene_options opt;
-    int faults = 0;
-    long n;
-    memset(&opt, 0, sizeof opt);
-    opt.batch_tris = 100;
-    opt.proxy_res = 16;
-    opt.threads = 1;
-    for (n = 0; n < MAX_READS; n++) {
-        brt_error err;
-        brt_result r;
-        err.message[0] = 0;
-        unlink(path);
-        brt_test_read_fault(n, EIO);
-        r = mesh ? brt_scene_build(mesh, &opt, 1, path, &err) : brt_scene_build_source(source, &opt, 1, path, &err);
-        brt_test_read_fault(-1, 0);
-        if (r == BRT_OK) break;
-        faults++;
-        EXPECT(r == BRT_EIO && strstr(err.message, path) && strstr(err.message, "Input/output error"),
-               "build, fault at read %ld: %s, '%s'", n, brt_result_string(r), err.message);
-        EXPECT(!tu_file_exists(path) && !tu_temporary_file_left(), "build, fault at read %ld: a file left", n);
-        if (test_failed()) break;
-    }
-    return faults;
-}
-
+/* Builds: the spill file, and an instanced build's instance file. */
 static void test_build(void)
 {
     tu_scene soup = {0};
     tu_instanced inst;
     brt_scene_source source;
     brt_mesh mesh;
-    int faults;
+    operation op = {NULL, NULL, NULL};
     plain_source(&soup, &mesh);
-    faults = build_with_faults(&mesh, NULL, tu_scratch("faults-build.brs"));
-    EXPECT(faults >= 1, "a plain build met no fault (its spill file is read back)");
+    op.path = tu_scratch("faults-build.brs");
+    op.mesh = &mesh;
+    EXPECT(fault_every_read(&op) >= 1, "a plain build met no fault (its spill file is read back)");
     memset(&inst, 0, sizeof inst);
     tu_instanced_squares(&inst);
     tu_instanced_source(&inst, &source);
-    faults = build_with_faults(NULL, &source, tu_scratch("faults-build4.brs"));
-    EXPECT(faults >= 2, "an instanced build met only %d faults", faults);
+    op.path = tu_scratch("faults-build4.brs");
+    op.mesh = NULL;
+    op.source = &source;
+    EXPECT(fault_every_read(&op) >= 2, "an instanced build met fewer than 2 faults");
     tu_instanced_free(&inst);
     tu_scene_free(&soup);
 }

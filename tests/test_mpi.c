@@ -19,7 +19,6 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/wait.h>
 
 /* Seconds a run may take before it counts as a hang. */
 #define HANG_SECONDS 60
@@ -52,31 +51,15 @@ static int mpi_available(void)
 ** hung). */
 static int mpi_run(int ranks, const char *env, const char *fmt, ...)
 {
-    char args[2048], expanded[4096], cmd[8192];
-    const char *dir = test_tmpdir();
-    int status;
+    char args[2048], head[1024];
     va_list ap;
     va_start(ap, fmt);
     vsnprintf(args, sizeof args, fmt, ap);
     va_end(ap);
-    tu_expand_scratch(args, expanded, sizeof expanded);
-    snprintf(cmd, sizeof cmd,
+    snprintf(head, sizeof head,
              "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_btl=self,vader %s "
-             "timeout %d mpirun --oversubscribe -np %d %s/mpi_trace %s < /dev/null > '%s/cli.out' 2> '%s/cli.err'",
-             env, HANG_SECONDS, ranks, build_dir(), expanded, dir, dir);
-    status = system(cmd);
-    if (status == -1 || !WIFEXITED(status)) return -1;
-    return WEXITSTATUS(status);
-}
-
-static int same_bytes(const char *a, const char *b)
-{
-    size_t na, nb;
-    unsigned char *x = tu_slurp(a, &na), *y = tu_slurp(b, &nb);
-    int same = x && y && na == nb && memcmp(x, y, na) == 0;
-    free(x);
-    free(y);
-    return same;
+             "timeout %d mpirun --oversubscribe -np %d %s/mpi_trace ", env, HANG_SECONDS, ranks, build_dir());
+    return tu_shell(head, args, " < /dev/null");
 }
 
 /* A crown mesh and an instanced landscape, camera and bounce rays, and
@@ -129,7 +112,7 @@ static void test_equal_direct(void)
                               "--scene @/mpi-%d.brs %s %s --assign %s %s", meshes[m], m, kinds[k], m,
                               proxy, memory, assign, occlusion ? "--occlusion" : "") == 0,
                       "%d ranks, %s %s %s: failed: %s", ranks, meshes[m], proxy, memory, tu_last_stderr());
-                EXPECT(same_bytes(out, ref), "%d ranks, %s, %s rays, %s %s %s%s: differs from trace --direct",
+                EXPECT(tu_same_file_bytes(out, ref), "%d ranks, %s, %s rays, %s %s %s%s: differs from trace --direct",
                        ranks, meshes[m], kinds[k], proxy, memory, assign, occlusion ? ", occlusion" : "");
             }
 }
@@ -175,7 +158,7 @@ static void test_crossings_and_proxies(void)
                       "--scene @/corridor.brs --assign round-robin --stats @/mpi-cross.json %s",
                       proxies ? "" : "--no-proxy") == 0,
               "failed: %s", tu_last_stderr());
-        EXPECT(same_bytes(tu_scratch("mpi.out"), tu_scratch("corridor.direct")), "hits differ");
+        EXPECT(tu_same_file_bytes(tu_scratch("mpi.out"), tu_scratch("corridor.direct")), "hits differ");
         sent[proxies] = tu_json_file_number(stats, "rays_sent");
         bytes[proxies] = tu_json_file_number(stats, "bytes_sent");
         rays = tu_json_file_number(stats, "rays_started");

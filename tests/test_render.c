@@ -34,17 +34,6 @@
 
 /* ---- running build/render ---- */
 
-/* 1 when the two files exist and hold the same bytes. */
-static int same_bytes(const char *a, const char *b)
-{
-    size_t na = 0, nb = 0;
-    char *x = (char *)tu_slurp(a, &na), *y = (char *)tu_slurp(b, &nb);
-    int same = x && y && na == nb && memcmp(x, y, na) == 0;
-    free(x);
-    free(y);
-    return same;
-}
-
 /* ---- the tests ---- */
 
 static void test_help(void)
@@ -92,7 +81,7 @@ static void test_same_image_every_mode(void)
     for (i = 0; i < sizeof batched_settings / sizeof *batched_settings; i++) {
         CHECK(tu_run("render " SMALL " %s --scene @/small-%zu.brs --out @/batched.png --stats @/b.json",
                   batched_settings[i], i) == 0, "render %s failed", batched_settings[i]);
-        EXPECT(same_bytes(tu_scratch("direct.png"), tu_scratch("batched.png")),
+        EXPECT(tu_same_file_bytes(tu_scratch("direct.png"), tu_scratch("batched.png")),
                "'%s': the image differs from --direct", batched_settings[i]);
         EXPECT(tu_json_file_number(tu_scratch("b.json"), "rays") == rays,
                "'%s': %g rays traced, --direct traced %g", batched_settings[i],
@@ -120,7 +109,7 @@ static void test_nee_same_image_every_mode(void)
         for (i = 0; i < sizeof settings / sizeof *settings; i++) {
             CHECK(tu_run("render " SMALL " %s %s --scene @/nee.brs --out @/nee.png --stats @/nee.json",
                          estimator[e], settings[i]) == 0, "render %s %s failed", estimator[e], settings[i]);
-            EXPECT(same_bytes(tu_scratch("nee-direct.png"), tu_scratch("nee.png")),
+            EXPECT(tu_same_file_bytes(tu_scratch("nee-direct.png"), tu_scratch("nee.png")),
                    "'%s %s': the image differs from --direct", estimator[e], settings[i]);
             EXPECT(tu_json_file_number(tu_scratch("nee.json"), "shadow_rays") == shadow &&
                    tu_json_file_number(tu_scratch("nee.json"), "shadow_occluded") == occluded,
@@ -195,7 +184,7 @@ static void test_same_image_mesh_file(void)
           "render --direct on a PLY failed");
     CHECK(tu_run("render @/crown.ply %s --batch-tris 200 --memory 20%% --scene @/crown.brs "
               "--out @/crown-batched.png", camera) == 0, "render on a PLY failed");
-    EXPECT(same_bytes(tu_scratch("crown-direct.png"), tu_scratch("crown-batched.png")),
+    EXPECT(tu_same_file_bytes(tu_scratch("crown-direct.png"), tu_scratch("crown-batched.png")),
            "crown.ply: batched and direct images differ");
 }
 
@@ -313,11 +302,11 @@ static void test_builtin_scenes_streamed(void)
               "render %s --direct failed", scenes[i]);
         CHECK(tu_run("render %s %s --scene @/bs-%s.brs --out @/bs-batched.png", scenes[i], args,
                      scenes[i]) == 0, "render %s failed", scenes[i]);
-        EXPECT(same_bytes(tu_scratch("bs-direct.png"), tu_scratch("bs-batched.png")),
+        EXPECT(tu_same_file_bytes(tu_scratch("bs-direct.png"), tu_scratch("bs-batched.png")),
                "%s: the streamed build's image differs from --direct", scenes[i]);
         CHECK(tu_run("render %s %s --scene @/bs-%s.brs --memory 10%% --out @/bs-batched.png",
                      scenes[i], args, scenes[i]) == 0, "render %s --memory 10%% failed", scenes[i]);
-        EXPECT(same_bytes(tu_scratch("bs-direct.png"), tu_scratch("bs-batched.png")),
+        EXPECT(tu_same_file_bytes(tu_scratch("bs-direct.png"), tu_scratch("bs-batched.png")),
                "%s at 10 %% memory: the image differs from --direct", scenes[i]);
     }
 }

@@ -339,21 +339,38 @@ void tu_expand_scratch(const char *args, char *out, size_t size)
     out[n] = 0;
 }
 
+int tu_shell(const char *head, const char *args, const char *tail)
+{
+    char expanded[4096], cmd[8192];
+    const char *dir = test_tmpdir();
+    int status;
+    tu_expand_scratch(args, expanded, sizeof expanded);
+    snprintf(cmd, sizeof cmd, "%s%s%s > '%s/cli.out' 2> '%s/cli.err'", head, expanded, tail, dir, dir);
+    status = system(cmd);
+    if (status == -1 || !WIFEXITED(status)) return -1;
+    return WEXITSTATUS(status);
+}
+
 int tu_run(const char *fmt, ...)
 {
-    char args[2048], expanded[4096], cmd[8192];
-    const char *build = getenv("BRT_BUILD"), *dir = test_tmpdir();
-    int status;
+    char args[2048], head[1024];
+    const char *build = getenv("BRT_BUILD");
     va_list ap;
     va_start(ap, fmt);
     vsnprintf(args, sizeof args, fmt, ap);
     va_end(ap);
-    tu_expand_scratch(args, expanded, sizeof expanded);
-    snprintf(cmd, sizeof cmd, "%s/%s > '%s/cli.out' 2> '%s/cli.err'",
-             build ? build : "build", expanded, dir, dir);
-    status = system(cmd);
-    if (status == -1 || !WIFEXITED(status)) return -1;
-    return WEXITSTATUS(status);
+    snprintf(head, sizeof head, "%s/", build ? build : "build");
+    return tu_shell(head, args, "");
+}
+
+int tu_same_file_bytes(const char *a, const char *b)
+{
+    size_t na = 0, nb = 0;
+    unsigned char *x = tu_slurp(a, &na), *y = tu_slurp(b, &nb);
+    int same = x && y && na == nb && memcmp(x, y, na) == 0;
+    free(x);
+    free(y);
+    return same;
 }
 
 char *tu_last_stdout(void) { return (char *)tu_slurp(tu_scratch("cli.out"), NULL); }

@@ -93,6 +93,12 @@ unsigned char *tu_slurp(const char *path, size_t *size);
 int tu_spill(const char *path, const void *data, size_t size);
 /* args with every '@' replaced by the scratch directory, into out. */
 void tu_expand_scratch(const char *args, char *out, size_t size);
+/* Runs the shell command HEAD ARGS TAIL, '@' in ARGS expanded, stdout and
+** stderr to cli.out and cli.err in the scratch directory; the exit status,
+** or -1 when the command died.  tu_run and the MPI tests' runner. */
+int tu_shell(const char *head, const char *args, const char *tail);
+/* 1 when both files exist and hold the same bytes. */
+int tu_same_file_bytes(const char *a, const char *b);
 /* Runs "$BRT_BUILD/ARGS" (printf-formatted) with '@' in ARGS standing for
 ** the scratch directory; stdout and stderr go to cli.out and cli.err
 ** there.  Returns the exit status, or -1 when the program died. */
