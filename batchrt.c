@@ -815,7 +815,9 @@ typedef struct cache_entry {
     void *data;                 /* page-aligned copy of the blob, or NULL */
     blob_view view;             /* into data */
     geometry geometry;          /* a batching point's, for intersect_ray */
-    uint64_t bytes;             /* what data holds (page-rounded) */
+    uint64_t bytes;             /* what data holds (page-rounded) and the
+                                ** resident layout decoded of it (decoded) */
+    uint64_t decoded;
     uint32_t pins;
     uint32_t lru_prev, lru_next;   /* unpinned resident entries; NO_ENTRY ends */
 } cache_entry;
@@ -848,6 +850,9 @@ typedef struct geometry_cache {
     const brt_bvh **prototypes; /* per prototype: its BVH while resident, else NULL */
     uint32_t working_set;       /* blobs the last fetch needed (cache_check) */
     uint64_t budget, held;
+    uint64_t all_bytes;         /* cache_bytes of every blob at once */
+    uint64_t decoded;           /* resident layouts held (layer 9) */
+    int decode;                 /* layer 9 on (not no_decode) */
     uint32_t lru_head, lru_tail;   /* least recently used first */
     brt_read_fn read_fn;
     void *read_user;
@@ -926,11 +931,13 @@ static uint64_t round_up_page(uint64_t n);
 **   8. forward, take_rays  other processes (brt_exchange): a ray stopping
 **                          at a point owned elsewhere is sent there, and
 **                          rays sent here are queued where they stopped
+**   9. cache_decode        in core: a point loaded is decoded to float
+**                          nodes when the budget holds it beside every blob
 ** paper_scheduler turns layers 1 and 2 off (what make figures measures as
 ** the paper's scheduler); exact_proxies turns 3 on; one thread turns 4
-** and 5 off; no_inner turns 7 off.  No layer changes a hit; 1-3 and 7
-** change which loads happen, 4-6 none: the threads: tests hold the
-** phases byte-equal to the plain loop.
+** and 5 off; no_inner turns 7 off; no_decode turns 9 off.  No layer
+** changes a hit; 1-3 and 7 change which loads happen, 4-6 and 9 none:
+** the threads: tests hold the phases byte-equal to the plain loop.
 **
 ** Rays in flight live in slots; a queue per batching point holds slot
 ** numbers; a min-heap of queue keys (key_heap) orders the non-empty
@@ -1825,8 +1832,9 @@ static void cache_evict(geometry_cache *c, uint32_t id)
     cache_note_prototype(c, id);
     blob_free(c->scene, id, e->data);
     c->held -= e->bytes;
+    c->decoded -= e->decoded;
     e->data = NULL;
-    e->bytes = 0;
+    e->bytes = e->decoded = 0;
 }
 
 static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budget,
@@ -1850,6 +1858,8 @@ static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budge
     c->read_fn = opt && opt->read_fn ? opt->read_fn : pread_reader;
     c->read_user = opt ? opt->read_user : NULL;
     c->drop_os_cache = opt && opt->drop_os_cache;
+    c->decode = !(opt && opt->no_decode);
+    for (i = 0; i < n; i++) c->all_bytes += cache_bytes(scene, i);
     c->stats = stats;
     return BRT_OK;
 }
@@ -2014,6 +2024,29 @@ static int cache_ahead_take(geometry_cache *c, uint32_t id)
     return ok;
 }
 
+/* Layer 9, decoded points in core: a BVH blob just loaded is decoded to
+** bvh.c's resident layout (brt_bvh_decode: float boxes and blocks of four
+** triangles, the same hits bit for bit) when the budget holds its bytes
+** beside every blob of the scene and the layouts decoded so far.  Why:
+** the quantized walk decodes every node it visits, several times the cost
+** of the box test (make bench-embree: batched with and without), while
+** the layout takes about three times a blob's bytes.  Decoding only into
+** room that every blob leaves free means nothing is ever evicted for it:
+** the loads are those of the quantized cache, and out of core, where
+** every byte holds blobs, no point is decoded.  Returns the bytes added;
+** out of memory, the point stays quantized (as exact, only slower). */
+static uint64_t cache_decode(geometry_cache *c, cache_entry *e)
+{
+    uint64_t bytes;
+    if (!c->decode || !e->view.bvh || c->budget < c->all_bytes) return 0;
+    bytes = brt_bvh_decoded_bytes(e->view.bvh);
+    if (bytes > c->budget - c->all_bytes - c->decoded || brt_bvh_decode(e->view.bvh) != BRT_OK)
+        return 0;
+    c->decoded += bytes;
+    c->stats->decoded_bytes += bytes;
+    return bytes;
+}
+
 /* Loads blob id into the cache (the caller has made room). */
 static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
 {
@@ -2035,8 +2068,9 @@ static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
     e->geometry.instances = e->view.set;
     e->geometry.prototypes = c->prototypes;
     cache_note_prototype(c, id);
-    e->bytes = bytes;
-    c->held += bytes;
+    e->decoded = cache_decode(c, e);                        /* layer 9 */
+    e->bytes = bytes + e->decoded;
+    c->held += e->bytes;
     if (id < c->scene->header.batch_count) c->stats->batch_loads++;
     else c->stats->prototype_loads++;
     if (bytes > c->budget) c->stats->oversized_loads++;
@@ -5997,7 +6031,7 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
         {"shadow_disk_bytes_read", s->shadow_disk_bytes_read},
         {"peak_rss_bytes", s->peak_rss_bytes},
         {"shadow_inner_stopped", s->shadow_inner_stopped},
-        {"prototype_loads", s->prototype_loads}};
+        {"prototype_loads", s->prototype_loads}, {"decoded_bytes", s->decoded_bytes}};
     const struct { const char *name; double value; } measures[] = {
         {"seconds", s->seconds}, {"load_seconds", s->load_seconds},
         {"build_seconds", s->build_seconds},

@@ -372,6 +372,9 @@ typedef struct brt_trace_options {
     const struct brt_exchange *exchange;   /* batching points owned by other
                              ** processes (below, "Beyond one process");
                              ** NULL: this process owns them all */
+    int no_decode;           /* keep every batching point quantized, as read
+                             ** (0: decode one when the budget has room for
+                             ** it beside every blob, layer 9) */
 } brt_trace_options;
 
 /* Ray kinds.  A ray of a stream is a closest-hit ray, or an occlusion ray
@@ -518,6 +521,9 @@ struct brt_stats {
     uint64_t prototype_loads;   /* loads of a prototype's blob (instanced
                                 ** scenes; counted in disk_bytes_read, not
                                 ** in batch_loads) */
+    uint64_t decoded_bytes;     /* resident layouts the cache made of BVH
+                                ** blobs it holds (layer 9; counted in
+                                ** cache_peak_bytes too) */
 };
 
 /* Writes the statistics as one JSON object (atomically). */
@@ -800,6 +806,15 @@ size_t brt_bvh_blob_size(const brt_bvh *bvh);
 void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
 brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
                              brt_bvh **out, brt_error *err);
+/* The resident layout (bvh.c) for a BVH opened from a blob: its quantized
+** boxes decoded once to floats and its leaves copied into blocks of four,
+** walked several times faster with the same hits, bit for bit.
+** brt_bvh_decoded_bytes says what brt_bvh_decode would allocate (0 when
+** the BVH has it already or is empty); brt_bvh_decode adds it (BRT_OK, or
+** BRT_ENOMEM and the BVH unchanged).  The geometry cache decodes a
+** batching point when the budget has room for it (batchrt.c, layer 9). */
+size_t brt_bvh_decoded_bytes(const brt_bvh *bvh);
+brt_result brt_bvh_decode(brt_bvh *bvh);
 
 /* Visits a BVH's boxes depth first, for voxelizing an instance without
 ** visiting every triangle: box(user, lo, hi) gets every slot's decoded box

@@ -53,8 +53,9 @@
 ** slot whose entry exceeds the closest t so far never loses a hit, and
 ** the hits are those of the float boxes, byte for byte.
 **
-** RESIDENT LAYOUT (a BVH built in memory: the direct mode's, and its
-** instance prototypes').  The same tree decoded once at build: node i
+** RESIDENT LAYOUT (a BVH built in memory -- the direct mode's and its
+** instance prototypes' -- and a blob the geometry cache decodes,
+** brt_bvh_decode).  The same tree decoded once: node i
 ** (struct fnode, 128 bytes) holds decode_boxes of qnode i -- the floats
 ** the quantized walk decodes at every visit, by the same decode_row, so
 ** each box contains exactly what the quantized box contains and pruning
@@ -67,12 +68,16 @@
 ** keeps run tri_intersect itself, so hits are bit for bit those of the
 ** quantized walk (brt_bvh_check compares the resident layout, byte for
 ** byte, with what the quantized nodes decode to).  WHY TWO LAYOUTS: the
-** blob stays quantized for its bytes on disk (blob bytes per triangle:
-** make bench-embree), and decoding it costs the walk several times the
-** box test itself at every node, which the resident walk does not pay
-** (callgrind on trace counts both; make bench-embree times them).  A blob
-** opened in place (brt_bvh_blob_open) keeps the quantized walk: a
-** batching point in the cache is charged its blob's bytes only.
+** blob stays quantized for its bytes on disk and in a cache that cannot
+** hold every point decoded (the resident layout takes about three times
+** the bytes: far fewer points would fit, and the method is there to
+** spare loads), while decoding at every visit costs the walk several
+** times the box test itself, which the resident walk does not pay.  So a
+** blob opened in place (brt_bvh_blob_open) keeps the quantized walk, and
+** the geometry cache decodes it only into room that every blob leaves
+** (batchrt.c, layer 9).  make bench-embree times the direct mode (always
+** resident) and the batched one with and without decoding, and prints
+** the blob bytes per triangle.
 **
 ** BUILD: binned SAH (Wald 2007, "On fast construction of SAH-based
 ** bounding volume hierarchies") into a binary tree, then collapsed into the
@@ -1793,7 +1798,7 @@ static fnode *resident_layout(const brt_bvh *bvh, uint32_t *block_count)
 /* Adds the resident layout to a quantized BVH; 0 when out of memory. */
 static int make_resident(brt_bvh *bvh)
 {
-    if (bvh->node_count == 0) return 1;
+    if (bvh->node_count == 0 || bvh->fnodes) return 1;
     bvh->fnodes = resident_layout(bvh, &bvh->block_count);
     bvh->blocks = bvh->fnodes ? (tri4 *)(void *)(bvh->fnodes + bvh->node_count) : NULL;
     return bvh->fnodes != NULL;
@@ -1803,6 +1808,17 @@ static size_t resident_bytes(const brt_bvh *bvh)
 {
     if (!bvh->fnodes) return 0;
     return (size_t)bvh->node_count * sizeof(fnode) + (size_t)bvh->block_count * sizeof(tri4);
+}
+
+size_t brt_bvh_decoded_bytes(const brt_bvh *bvh)
+{
+    if (bvh->node_count == 0 || bvh->fnodes) return 0;
+    return (size_t)bvh->node_count * sizeof(fnode) + (size_t)resident_block_count(bvh) * sizeof(tri4);
+}
+
+brt_result brt_bvh_decode(brt_bvh *bvh)
+{
+    return make_resident(bvh) ? BRT_OK : BRT_ENOMEM;
 }
 
 static int setup_refs(builder *b, const float *positions,
@@ -2247,6 +2263,7 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     behind its origin, passes the edge test (a line test) and is only
 **     rejected after hit_distance (its double plane and padded box); an
 **     exact cheaper rejection would need an error-bounded plane test.
-**     Not done: decoding batching points at load (resident points): the
-**     geometry cache would have to charge the resident bytes too.
+**   - Batching points decoded at load when everything fits (batchrt.c,
+**     layer 9, charged to the cache): the in-core batched walk no longer
+**     decodes nodes.
 */

@@ -53,6 +53,7 @@ typedef struct trace_options {
     uint64_t res;                    /* proxy resolution, a power of two */
     int no_proxy;                    /* batched without proxies */
     int no_inner;                    /* batched without inner proxies */
+    int no_decode;                   /* batched without decoded points (layer 9) */
     uint64_t memory;                 /* geometry-cache budget in bytes */
     int memory_given;                /* --memory was on the command line */
     const char *scene;               /* scene file of the batched mode */
@@ -84,6 +85,8 @@ static void usage(void)
            "  --res R           proxy voxel resolution, a power of two in 2..1024 (default 128)\n"
            "  --no-proxy        batched mode without voxel proxies\n"
            "  --no-inner        batched occlusion rays without inner proxies\n"
+           "  --no-decode       batched points stay quantized in memory (default: decoded\n"
+           "                    to float nodes when the memory holds them beside every blob)\n"
            "  --memory SIZE     geometry-cache budget, e.g. 512M (suffix K, M, G; default 1G)\n"
            "  --scene FILE      scene file for the batched mode (default: in $BRT_SCENE_DIR,\n"
            "                    $XDG_CACHE_HOME/batchrt or ~/.cache/batchrt)\n"
@@ -120,6 +123,7 @@ static void parse_options(int argc, char **argv, trace_options *o)
         else if (strcmp(a, "--batched") == 0) o->batched = 1;
         else if (strcmp(a, "--no-proxy") == 0) o->no_proxy = 1;
         else if (strcmp(a, "--no-inner") == 0) o->no_inner = 1;
+        else if (strcmp(a, "--no-decode") == 0) o->no_decode = 1;
         else if (strcmp(a, "--verbose") == 0) o->verbose = 1;
         else if (strcmp(a, "--occlusion") == 0) o->occlusion = 1;
         else if (strcmp(a, "--rebuild") == 0) o->rebuild = 1;
@@ -328,6 +332,7 @@ static void trace_batched(const ex_input *in, const trace_options *o, const brt_
     trace_opt.memory_limit = o->memory;
     trace_opt.no_proxy = o->no_proxy;
     trace_opt.no_inner = o->no_inner;
+    trace_opt.no_decode = o->no_decode;
     trace_opt.drop_os_cache = o->drop_os_cache;
     trace_opt.threads = o->threads;
     trace_opt.paper_scheduler = o->paper_scheduler;

@@ -54,7 +54,7 @@ static void test_layer2_boundary(void)
     CHECK(all.batch_loads == all.batching_points, "unlimited: %llu loads of %llu points; the rays must "
           "reach every point once", (unsigned long long)all.batch_loads,
           (unsigned long long)all.batching_points);
-    opt.memory_limit = all.cache_peak_bytes + all.proxy_bytes;
+    opt.memory_limit = all.cache_peak_bytes - all.decoded_bytes + all.proxy_bytes;
     CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &at, &err) == BRT_OK, "%s", err.message);
     opt.memory_limit--;
     CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &below, &err) == BRT_OK, "%s", err.message);
@@ -65,6 +65,49 @@ static void test_layer2_boundary(void)
     tu_scene_free(&s);
     free(rays);
     free(hits);
+}
+
+/* Layer 9: without a limit every batching point is decoded (the peak is
+** every blob and every layout); with no_decode none is, and the hits and
+** loads are the same; with a budget of every blob and nothing more, none
+** is either (a decoded point would leave a blob no room). */
+static void test_layer9_decoded_points(void)
+{
+    enum { COUNT = 4000 };
+    tu_scene s;
+    brt_scene *scene = layers_scene(&s, "layer9.brs");
+    brt_ray *rays = layers_rays(&s, COUNT);
+    brt_hit *hits = malloc(COUNT * sizeof *hits), *quantized = malloc(COUNT * sizeof *quantized);
+    brt_trace_options opt;
+    brt_stats decoded, plain, tight;
+    brt_error err;
+    CHECK(scene && rays && hits && quantized, "set-up failed");
+    memset(&opt, 0, sizeof opt);
+    opt.threads = 1;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &decoded, &err) == BRT_OK, "%s", err.message);
+    opt.no_decode = 1;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, quantized, &plain, &err) == BRT_OK, "%s", err.message);
+    opt.no_decode = 0;
+    opt.memory_limit = plain.cache_peak_bytes + plain.proxy_bytes;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &tight, &err) == BRT_OK, "%s", err.message);
+    EXPECT(decoded.decoded_bytes > 0 &&
+           decoded.cache_peak_bytes == plain.cache_peak_bytes + decoded.decoded_bytes,
+           "unlimited: %llu bytes decoded beside %llu of blobs, peak %llu",
+           (unsigned long long)decoded.decoded_bytes, (unsigned long long)plain.cache_peak_bytes,
+           (unsigned long long)decoded.cache_peak_bytes);
+    EXPECT(plain.decoded_bytes == 0 && tight.decoded_bytes == 0,
+           "decoded %llu bytes with no_decode, %llu with room for the blobs only",
+           (unsigned long long)plain.decoded_bytes, (unsigned long long)tight.decoded_bytes);
+    EXPECT(memcmp(hits, quantized, COUNT * sizeof *hits) == 0 &&
+           decoded.batch_loads == plain.batch_loads && tight.batch_loads == plain.batch_loads,
+           "decoded points changed the hits or the loads (%llu, %llu, %llu)",
+           (unsigned long long)decoded.batch_loads, (unsigned long long)plain.batch_loads,
+           (unsigned long long)tight.batch_loads);
+    brt_scene_close(scene);
+    tu_scene_free(&s);
+    free(rays);
+    free(hits);
+    free(quantized);
 }
 
 /* A ray source that claims more rays than it was given room for. */
@@ -160,6 +203,7 @@ static void test_interrupt_between_batches(void)
 void suite_layers(void)
 {
     test_run("layers: 2, proxies off exactly when the budget holds every blob", test_layer2_boundary);
+    test_run("layers: 9, points decoded only into room every blob leaves", test_layer9_decoded_points);
     test_run("layers: a ray source over its room is an error", test_source_contract);
     test_run("layers: an interrupt stops the trace between batches", test_interrupt_between_batches);
 }

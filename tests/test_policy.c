@@ -11,8 +11,10 @@
 ** box they enter before their closest hit and whose proxy they hit), an
 ** LRU cache of page-rounded blobs within the memory limit less the
 ** proxies' bytes, and batchrt's layers 1 (resident points intersected at
-** once, touching the LRU order) and 2 (no proxies when the budget holds
-** every blob) -- and compares the sequence of loads, read through
+** once, touching the LRU order), 2 (no proxies when the budget holds
+** every blob) and 9 (a point decoded at its load when the budget holds
+** its layout beside every blob and the layouts made so far) -- and
+** compares the sequence of loads, read through
 ** brt_trace_options.read_fn (one thread: no read-ahead), and the counts.
 **
 ** The scenes are made so that the model needs no proxy of its own: one
@@ -42,6 +44,9 @@
 #define NP 8            /* triangles, each its own batching point */
 #define NR 256          /* rays */
 #define MAX_LOADS 4096
+/* The resident layout of a one-triangle BVH (bvh.c): one node of 128
+** bytes and one block of four triangles of 160. */
+#define DECODED_BYTES (128 + 160)
 
 typedef struct point_info {     /* a batching point, from the scene file */
     float lo[3], hi[3], cell;
@@ -217,8 +222,8 @@ static void policy_scene_free(policy_scene *ps)
 typedef struct model {
     const policy_scene *ps;
     int paper, proxies;
-    uint64_t budget, held, peak;
-    int resident[NP];
+    uint64_t budget, held, peak, decoded;
+    int resident[NP], decode[NP];
     uint32_t lru[NP], lru_count;        /* least recently used first */
     uint32_t queue[NP][NR], queued[NP];
     double hit[NR];
@@ -301,12 +306,21 @@ static void fetch(model *m, uint32_t id)
         return;
     }
     while (m->lru_count > 0 && m->held + bytes > m->budget) {
-        m->resident[m->lru[0]] = 0;
-        m->held -= m->ps->pts[m->lru[0]].bytes;
-        lru_remove(m, m->lru[0]);
+        const uint32_t old = m->lru[0];
+        m->resident[old] = 0;
+        m->held -= m->ps->pts[old].bytes + (m->decode[old] ? DECODED_BYTES : 0);
+        m->decoded -= m->decode[old] ? DECODED_BYTES : 0;
+        m->decode[old] = 0;
+        lru_remove(m, old);
     }
     m->resident[id] = 1;
     m->held += bytes;
+    if (m->budget >= m->ps->all_bytes &&                /* layer 9 */
+        DECODED_BYTES <= m->budget - m->ps->all_bytes - m->decoded) {
+        m->decode[id] = 1;
+        m->decoded += DECODED_BYTES;
+        m->held += DECODED_BYTES;
+    }
     if (m->held > m->peak) m->peak = m->held;
     if (m->load_count < MAX_LOADS) m->loads[m->load_count] = id;
     m->load_count++;
@@ -385,19 +399,19 @@ static void print_loads(const char *who, const uint32_t *ids, uint32_t n)
 
 /* One setting: the library's loads and counts equal the model's, and its
 ** hits are the model's (a sanity check of the model's geometry). */
-static void compare_setting(const policy_scene *ps, int paper, int no_proxy, uint64_t half_pages,
+static void compare_setting(const policy_scene *ps, int paper, int no_proxy, uint64_t budget,
                             uint32_t in_flight)
 {
     static model m;
     static load_log log;
     static brt_hit hits[NR];
-    const uint64_t limit = half_pages ? half_pages * 2048 + (no_proxy ? 0 : ps->proxy_bytes) : 0;
+    const uint64_t limit = budget ? budget + (no_proxy ? 0 : ps->proxy_bytes) : 0;
     brt_stats stats;
     uint32_t i, first = 0;
     char what[160];
     snprintf(what, sizeof what, "%s scheduler%s, %g pages, %u in flight",
              paper ? "the paper's" : "batchrt's", no_proxy ? " without proxies" : "",
-             0.5 * (double)half_pages, (unsigned)in_flight);
+             (double)budget / 4096.0, (unsigned)in_flight);
     model_run(&m, ps, paper, no_proxy, limit, in_flight);
     if (!library_run(ps, paper, no_proxy, limit, in_flight, &log, &stats, hits)) return;
     for (i = 0; i < ps->ray_count; i++)
@@ -426,16 +440,19 @@ static void compare_setting(const policy_scene *ps, int paper, int no_proxy, uin
            (unsigned long long)m.queued_visits, (unsigned long long)m.resident_visits);
     EXPECT(stats.cache_peak_bytes == m.peak, "%s: cache peak %llu bytes, the model %llu", what,
            (unsigned long long)stats.cache_peak_bytes, (unsigned long long)m.peak);
+    EXPECT(stats.decoded_bytes == m.decoded, "%s: %llu bytes decoded, the model %llu", what,
+           (unsigned long long)stats.decoded_bytes, (unsigned long long)m.decoded);
 }
 
 /* The loads, evictions (through reloads) and counts of both schedulers,
 ** with and without proxies, at memory limits of 1 to 5 pages above the
-** proxies' bytes (2.5: not a whole number of blobs) and none, with few
-** and many rays in flight. */
+** proxies' bytes (2.5: not a whole number of blobs), every blob and room
+** for two decoded points and a byte less (two points decoded, then one),
+** and none, with few and many rays in flight. */
 static void test_policies_match_model(void)
 {
     static policy_scene ps;
-    static const uint64_t half_pages[] = {2, 4, 5, 6, 10, 0};
+    uint64_t budgets[8] = {2 * 2048, 4 * 2048, 5 * 2048, 6 * 2048, 10 * 2048, 0, 0, 0};
     static const uint32_t in_flight[] = {3, 16, NR};
     brt_stats stats;
     load_log log;
@@ -447,11 +464,13 @@ static void test_policies_match_model(void)
     /* The proxies' bytes, which the limit pays for first (the paper's Fig. 3). */
     if (library_run(&ps, 1, 0, 0, NR, &log, &stats, hits)) ps.proxy_bytes = stats.proxy_bytes;
     CHECK(ps.proxy_bytes > 0, "no proxy bytes reported");
+    budgets[5] = ps.all_bytes + 2 * DECODED_BYTES;     /* two points decoded */
+    budgets[6] = budgets[5] - 1;                        /* one */
     for (paper = 0; paper < 2; paper++)
         for (no_proxy = 0; no_proxy < 2; no_proxy++)
-            for (p = 0; p < sizeof half_pages / sizeof *half_pages; p++)
+            for (p = 0; p < sizeof budgets / sizeof *budgets; p++)
                 for (f = 0; f < sizeof in_flight / sizeof *in_flight && !test_failed(); f++)
-                    compare_setting(&ps, paper, no_proxy, half_pages[p], in_flight[f]);
+                    compare_setting(&ps, paper, no_proxy, budgets[p], in_flight[f]);
     policy_scene_free(&ps);
 }
 
