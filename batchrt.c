@@ -877,6 +877,7 @@ typedef struct geometry_cache {
 static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budget,
                              const brt_trace_options *opt, brt_stats *stats);
 static void cache_free(geometry_cache *c);
+static uint64_t all_cache_bytes(const brt_scene *scene);
 static brt_result cache_fetch(geometry_cache *c, uint32_t id, const geometry **g, brt_error *err);
 static const geometry *cache_peek(const geometry_cache *c, uint32_t id);
 static void cache_touch(geometry_cache *c, uint32_t id);
@@ -933,10 +934,12 @@ static uint64_t round_up_page(uint64_t n);
 **                          rays sent here are queued where they stopped
 **   9. cache_decode        in core: a point loaded is decoded to float
 **                          nodes when the budget holds it beside every blob
+**  10. rays_in_flight      in core: few rays in flight by default
 ** paper_scheduler turns layers 1 and 2 off (what make figures measures as
 ** the paper's scheduler); exact_proxies turns 3 on; one thread turns 4
 ** and 5 off; no_inner turns 7 off; no_decode turns 9 off.  No layer
-** changes a hit; 1-3 and 7 change which loads happen, 4-6 and 9 none:
+** changes a hit; 1-3 and 7 change which loads happen, 4-6, 9 and 10
+** none:
 ** the threads: tests hold the phases byte-equal to the plain loop.
 **
 ** Rays in flight live in slots; a queue per batching point holds slot
@@ -1477,6 +1480,23 @@ static int proxies_pay(const scheduler *s, uint64_t budget)
     return s->paper_scheduler || s->exchange || budget < all_blob_bytes(s->scene);
 }
 
+/* Layer 10, few rays in flight in core.  Rays in flight are there to
+** gather rays at a batching point before its load.  When the budget holds
+** every blob no point is ever loaded twice, so gathering spares no load,
+** while a million waiting rays of 80 bytes push each other and the BVHs
+** out of the processor's caches.  The default is then IN_CORE_RAYS (make
+** bench-embree's batched column; trace --rays-in-flight sets any number).
+** Not with an exchange (layer 8), whose messages the waiting rays fill. */
+#define IN_CORE_RAYS 4096u
+#define OUT_OF_CORE_RAYS (1u << 20)
+
+static uint32_t rays_in_flight(const brt_trace_options *opt, const brt_scene *scene, uint64_t budget)
+{
+    if (opt && opt->rays_in_flight) return opt->rays_in_flight;
+    if (!(opt && opt->exchange) && budget >= all_cache_bytes(scene)) return IN_CORE_RAYS;
+    return OUT_OF_CORE_RAYS;
+}
+
 /* capacity_hint: the number of rays there will be, when known (0: not),
 ** so that 20 rays do not get a million slots. */
 static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace_options *opt,
@@ -1495,13 +1515,13 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     s->follow = opt && opt->follow ? opt : NULL;
     s->interrupt = opt ? opt->interrupt : NULL;
     s->exchange = opt ? opt->exchange : NULL;
-    s->capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : (1u << 20);
-    if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
     /* With proxies on, they take their bytes from the same budget (the
     ** paper's Fig. 3 lowers the geometry limit by the proxies' memory). */
     stats->proxy_bytes = s->use_proxies ? brt_svdag_memory_bytes(scene->dag) : 0;
     if (budget != UINT64_MAX) budget = budget > stats->proxy_bytes ? budget - stats->proxy_bytes : 0;
     if (!proxies_pay(s, budget)) s->use_proxies = 0;            /* layer 2 */
+    s->capacity = rays_in_flight(opt, scene, budget);           /* layer 10 */
+    if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
     stats->memory_limit = opt ? opt->memory_limit : 0;
     stats->batching_points = n;
     stats->geometry_bytes = scene->header.geometry_bytes;
@@ -1808,6 +1828,16 @@ static uint64_t cache_bytes(const brt_scene *scene, uint32_t id)
     return bytes;
 }
 
+/* What the cache would hold with every blob in memory at once. */
+static uint64_t all_cache_bytes(const brt_scene *scene)
+{
+    const uint32_t n = scene->header.batch_count + scene->header.prototype_count;
+    uint64_t bytes = 0;
+    uint32_t i;
+    for (i = 0; i < n; i++) bytes += cache_bytes(scene, i);
+    return bytes;
+}
+
 static void view_free(blob_view *view)
 {
     brt_bvh_free(view->bvh);
@@ -1859,7 +1889,7 @@ static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budge
     c->read_user = opt ? opt->read_user : NULL;
     c->drop_os_cache = opt && opt->drop_os_cache;
     c->decode = !(opt && opt->no_decode);
-    for (i = 0; i < n; i++) c->all_bytes += cache_bytes(scene, i);
+    c->all_bytes = all_cache_bytes(scene);
     c->stats = stats;
     return BRT_OK;
 }
@@ -2059,16 +2089,17 @@ static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
         e->view = c->ahead_view;
         c->stats->disk_bytes_read += c->ahead_bytes;
         c->stats->load_seconds += c->ahead_seconds;
+        start = brt_seconds();
     } else {
         r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->view, err);
-        c->stats->load_seconds += brt_seconds() - start;
     }
     if (r != BRT_OK) return r;
+    e->decoded = cache_decode(c, e);                        /* layer 9 */
+    c->stats->load_seconds += brt_seconds() - start;
     e->geometry.triangles = e->view.bvh;
     e->geometry.instances = e->view.set;
     e->geometry.prototypes = c->prototypes;
     cache_note_prototype(c, id);
-    e->decoded = cache_decode(c, e);                        /* layer 9 */
     e->bytes = bytes + e->decoded;
     c->held += e->bytes;
     if (id < c->scene->header.batch_count) c->stats->batch_loads++;

@@ -352,7 +352,8 @@ typedef struct brt_trace_options {
                              ** exact test against the batching point's
                              ** triangles, all read at the start and not
                              ** counted: what a perfect proxy would cull */
-    uint32_t rays_in_flight; /* stream mode: 0 means 1 << 20 */
+    uint32_t rays_in_flight; /* 0: 4096 when the budget holds every blob
+                             ** (and no exchange), else 1 << 20 (layer 10) */
     brt_read_fn read_fn;     /* NULL: pread */
     void *read_user;
     unsigned threads;        /* threads intersecting and walking rays (0:
@@ -510,7 +511,7 @@ struct brt_stats {
                                 ** load for a mixed queue counts for neither) */
     double seconds;             /* tracing */
     double load_seconds;        /* of those, loading batching points (read,
-                                ** checksum, open), wall clock */
+                                ** checksum, open, decode), wall clock */
     double build_seconds;       /* BVH or scene build */
     double bvh_bytes_per_triangle;
     double mrays_per_second;

@@ -167,6 +167,84 @@ static void test_source_contract(void)
     free(rays);
 }
 
+/* A ray source that records the room of its first call (the rays in
+** flight) and then serves plainly. */
+typedef struct room_source {
+    const brt_ray *rays;
+    size_t count, next, first_room;
+} room_source;
+
+static size_t room_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+{
+    room_source *g = user;
+    size_t n = g->count - g->next < max ? g->count - g->next : max, i;
+    if (g->first_room == 0) g->first_room = max;
+    for (i = 0; i < n; i++) {
+        rays[i] = g->rays[g->next];
+        tags[i] = g->next++;
+    }
+    return n;
+}
+
+static void room_finished(void *user, const brt_ray *ray, const brt_hit *hit, const float normal[3],
+                          uint32_t visits, uint64_t tag)
+{
+    (void)user; (void)ray; (void)hit; (void)normal; (void)visits; (void)tag;
+}
+
+/* The rays in flight a stream gets at a budget (0: none), by default. */
+static size_t default_room(brt_scene *scene, const brt_ray *rays, size_t count, uint64_t limit)
+{
+    room_source g;
+    brt_ray_source source;
+    brt_trace_options opt;
+    brt_stats stats;
+    brt_error err;
+    memset(&g, 0, sizeof g);
+    g.rays = rays;
+    g.count = count;
+    source.next_rays = room_next;
+    source.finished = room_finished;
+    source.user = &g;
+    memset(&opt, 0, sizeof opt);
+    opt.memory_limit = limit;
+    opt.threads = 1;
+    if (brt_scene_trace_stream(scene, &opt, &source, &stats, &err) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "%s", err.message);
+        return 0;
+    }
+    return g.first_room;
+}
+
+/* Layer 10: by default 4096 rays in flight exactly when the budget after
+** the proxies holds every blob, 1 << 20 otherwise. */
+static void test_layer10_rays_in_flight(void)
+{
+    enum { COUNT = 5000 };
+    tu_scene s;
+    brt_scene *scene = layers_scene(&s, "layer10.brs");
+    brt_ray *rays = layers_rays(&s, COUNT);
+    brt_hit *hits = malloc(COUNT * sizeof *hits);
+    brt_trace_options opt;
+    brt_stats all;
+    brt_error err;
+    size_t in_core, at, below;
+    CHECK(scene && rays && hits, "set-up failed");
+    memset(&opt, 0, sizeof opt);
+    opt.no_decode = 1;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &all, &err) == BRT_OK, "%s", err.message);
+    in_core = default_room(scene, rays, COUNT, 0);
+    at = default_room(scene, rays, COUNT, all.cache_peak_bytes + all.proxy_bytes);
+    below = default_room(scene, rays, COUNT, all.cache_peak_bytes + all.proxy_bytes - 1);
+    EXPECT(in_core == 4096 && at == 4096 && below == (size_t)1 << 20,
+           "rays in flight %lu without a limit, %lu with room for every blob, %lu a byte less",
+           (unsigned long)in_core, (unsigned long)at, (unsigned long)below);
+    brt_scene_close(scene);
+    tu_scene_free(&s);
+    free(rays);
+    free(hits);
+}
+
 /* brt_trace_options.interrupt: a flag already set stops the trace before
 ** its first batch, with BRT_EINTR and rays left unfinished. */
 static void test_interrupt_between_batches(void)
@@ -204,6 +282,7 @@ void suite_layers(void)
 {
     test_run("layers: 2, proxies off exactly when the budget holds every blob", test_layer2_boundary);
     test_run("layers: 9, points decoded only into room every blob leaves", test_layer9_decoded_points);
+    test_run("layers: 10, few rays in flight exactly when every blob fits", test_layer10_rays_in_flight);
     test_run("layers: a ray source over its room is an error", test_source_contract);
     test_run("layers: an interrupt stops the trace between batches", test_interrupt_between_batches);
 }
