@@ -492,11 +492,11 @@ static void top_walk_start(top_walk *w)
 
 /* Pushes the children of node that the ray enters no later than tlimit
 ** and does not leave before the key's t, (a). */
-static void walk_expand(top_walk *w, const top_node *node, const brt_ray_prep *ray, float tlimit,
-                        walk_key key)
+static void walk_expand(top_walk *w, const top_node *node, const brt_box_lanes *ray, float tnear,
+                        float tlimit, walk_key key)
 {
     float entries[4], exits[4];
-    unsigned lanes = brt_box_span4(ray, node->box, ray->tnear, tlimit, entries, exits);
+    unsigned lanes = brt_box_span4(ray, node->box, tnear, tlimit, entries, exits);
     int lane;
     for (lane = 0; lane < 4; lane++) {
         if (node->child[lane] == TOP_EMPTY || !(lanes & (1u << lane))) continue;
@@ -510,8 +510,8 @@ static void walk_expand(top_walk *w, const top_node *node, const brt_ray_prep *r
 ** or 0 when there is none.  Invariants (make debug): what the heap hands
 ** out only grows (a box inside another is entered no sooner), so walk
 ** keys only grow, and a batching point handed out is entered by tlimit. */
-static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep *ray, float tlimit,
-                         walk_key *key)
+static int top_walk_next(top_walk *w, const top_node *nodes, const brt_box_lanes *ray, float tnear,
+                         float tlimit, walk_key *key)
 {
     const uint64_t stop = walk_key_of(tlimit, 0xFFFFFFFFu);   /* entry <= tlimit */
     uint64_t last = 0;
@@ -530,7 +530,7 @@ static int top_walk_next(top_walk *w, const top_node *nodes, const brt_ray_prep 
             key->id = id;
             return 1;
         }
-        walk_expand(w, &nodes[code], ray, tlimit, *key);
+        walk_expand(w, &nodes[code], ray, tnear, tlimit, *key);
     }
     return 0;
 }
@@ -625,11 +625,11 @@ typedef struct set_entry {
 
 /* Pushes the children of node the ray enters by tlimit, farthest first,
 ** so the nearest is popped next. */
-static int set_expand(const top_node *node, const brt_ray_prep *prep, float tnear, float tlimit,
+static int set_expand(const top_node *node, const brt_box_lanes *ray, float tnear, float tlimit,
                       set_entry *stack, int sp)
 {
     float entries[4], exits[4];
-    const unsigned lanes = brt_box_span4(prep, node->box, tnear, tlimit, entries, exits);
+    const unsigned lanes = brt_box_span4(ray, node->box, tnear, tlimit, entries, exits);
     int order[4], n = 0, i, j;
     for (i = 0; i < 4; i++) {
         if (node->child[i] == TOP_EMPTY || !(lanes & (1u << i))) continue;
@@ -652,6 +652,7 @@ static int set_trace(const geometry *g, const brt_ray *ray, brt_hit *hit, float 
     const instance_set *set = g->instances;
     set_entry stack[SET_STACK];
     brt_ray_prep prep;
+    brt_box_lanes lanes;
     int sp = 0;
     if (!set || set->node_count == 0) return 0;
     if (set->count == 1) {   /* one instance: its prototype's root box is the only test needed */
@@ -662,6 +663,7 @@ static int set_trace(const geometry *g, const brt_ray *ray, brt_hit *hit, float 
     }
     brt_ray_prepare_margin(ray, margin_of(&set->margin, ray), &prep);
     if (!prep.valid) return 0;
+    brt_box_lanes_of(&prep, &lanes);
     stack[sp].code = 0;
     stack[sp++].entry = ray->tnear;
     while (sp > 0) {
@@ -669,7 +671,7 @@ static int set_trace(const geometry *g, const brt_ray *ray, brt_hit *hit, float 
         const float tlimit = !any_hit && hit->t < ray->tfar ? hit->t : ray->tfar;
         if (e.entry > tlimit) continue;
         if (!(e.code & TOP_LEAF)) {
-            sp = set_expand(&set->nodes[e.code], &prep, ray->tnear, tlimit, stack, sp);
+            sp = set_expand(&set->nodes[e.code], &lanes, ray->tnear, tlimit, stack, sp);
             continue;
         } else {
             const uint32_t k = e.code & ~TOP_LEAF;
@@ -683,22 +685,40 @@ static int set_trace(const geometry *g, const brt_ray *ray, brt_hit *hit, float 
     return 0;
 }
 
+/* A ray prepared for the box tests, as the top-level walk holds it: a
+** batching point's BVH walks it without preparing it again (when it was
+** prepared without a margin, i.e. as the BVH would). */
+typedef struct prepared_ray {
+    brt_ray_prep prep;
+    brt_box_lanes lanes;
+} prepared_ray;
+
+/* A BVH's closest hit (and normal, unless NULL) or, with any, whether it
+** occludes: of the prepared ray p when there is one. */
+static int triangles_walk(const brt_bvh *bvh, const brt_ray *ray, const prepared_ray *p,
+                          brt_hit *hit, float normal[3], int any)
+{
+    if (p) return brt_bvh_walk_prepared(bvh, ray, &p->prep, &p->lanes, hit, normal, any);
+    if (any) return brt_bvh_occluded(bvh, ray);
+    brt_bvh_intersect_normal(bvh, ray, hit, normal);
+    return 0;
+}
+
 /* The record of brt_ray_source for one ray against geometry: the closest
 ** hit so far (and its normal, unless NULL), or for an occlusion ray t = 0,
 ** prim = 0 once anything is hit in [tnear, tfar].  Direct mode and the
-** scheduler share it, so both kinds give the same bytes in every mode. */
+** scheduler share it, so both kinds give the same bytes in every mode.
+** p: the ray already prepared (prepared_ray), or NULL. */
 static void intersect_ray(const geometry *g, const brt_ray *ray, uint64_t tag, brt_hit *hit,
-                          float normal[3])
+                          float normal[3], const prepared_ray *p)
 {
     if (tag & BRT_TAG_OCCLUSION) {
-        if ((g->triangles && brt_bvh_occluded(g->triangles, ray)) || set_trace(g, ray, hit, NULL, 1))
+        if ((g->triangles && triangles_walk(g->triangles, ray, p, NULL, NULL, 1)) ||
+            set_trace(g, ray, hit, NULL, 1))
             hit_mark_occluded(hit);
         return;
     }
-    if (g->triangles) {
-        if (normal) brt_bvh_intersect_normal(g->triangles, ray, hit, normal);
-        else brt_bvh_intersect(g->triangles, ray, hit);
-    }
+    if (g->triangles) triangles_walk(g->triangles, ray, p, hit, normal, 0);
     set_trace(g, ray, hit, normal, 0);
 }
 
@@ -1075,9 +1095,9 @@ static float walk_limit(const ray_slot *r)
 /* Intersects a ray with a batching point's triangles: the closest hit so
 ** far, or for an occlusion ray any hit in [tnear, tfar] (the record of
 ** brt_ray_source: t = 0, prim = 0 when occluded). */
-static void intersect_slot(const scheduler *s, const geometry *g, ray_slot *r)
+static void intersect_slot(const scheduler *s, const geometry *g, ray_slot *r, const prepared_ray *p)
 {
-    intersect_ray(g, &r->ray, r->tag, &r->hit, r->normal);
+    intersect_ray(g, &r->ray, r->tag, &r->hit, r->normal, p);
     follow_step(s, r, BRT_STEP_TRIANGLES, r->key.id, r->hit.t);
 }
 
@@ -1092,7 +1112,7 @@ static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, 
     brt_hit hit;
     segment.tfar = tlimit;
     brt_hit_clear(&hit);
-    intersect_ray(&s->exact[id], &segment, BRT_TAG_OCCLUSION, &hit, NULL);
+    intersect_ray(&s->exact[id], &segment, BRT_TAG_OCCLUSION, &hit, NULL, NULL);
     return hit.t == 0.0f;
 }
 
@@ -1148,7 +1168,7 @@ static void walker_used(walker *w, uint32_t id)
 ** would wait there until that point might be evicted and read again.
 ** make bench-render and make figures print the loads with and without it
 ** (--paper-scheduler).  Returns 0 when the point is not resident. */
-static int intersect_resident(const scheduler *s, walker *w, ray_slot *r)
+static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, const prepared_ray *p)
 {
     const geometry *resident = s->paper_scheduler ? NULL : cache_peek(&s->cache, r->key.id);
     if (!resident) return 0;
@@ -1156,7 +1176,7 @@ static int intersect_resident(const scheduler *s, walker *w, ray_slot *r)
     follow_step(s, r, BRT_STEP_RESIDENT, r->key.id, r->key.t);
     r->visits++;
     w->resident_visits++;
-    intersect_slot(s, resident, r);
+    intersect_slot(s, resident, r, p);
     return 1;
 }
 
@@ -1182,20 +1202,24 @@ static int inner_stops(const scheduler *s, ray_slot *r)
 ** walker w: threads walk different rays at once. */
 static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r)
 {
-    brt_ray_prep prep;
+    prepared_ray p;
+    /* Boxes grown by the margin of instances (0 without: bvh.c), and
+    ** without one the preparation serves the points' BVHs too. */
+    const float margin = margin_of(&s->scene->header.margin, &r->ray);
     float tlimit;
-    /* Boxes grown by the margin of instances (0 without: bvh.c) */
-    brt_ray_prepare_margin(&r->ray, margin_of(&s->scene->header.margin, &r->ray), &prep);
-    if (!prep.valid) return NO_ENTRY;
+    brt_ray_prepare_margin(&r->ray, margin, &p.prep);
+    if (!p.prep.valid) return NO_ENTRY;
+    brt_box_lanes_of(&p.prep, &p.lanes);
     tlimit = walk_limit(r);
     top_walk_start(&w->walk);
-    while (!found_occluder(r) && top_walk_next(&w->walk, s->scene->top, &prep, tlimit, &r->key)) {
+    while (!found_occluder(r) &&
+           top_walk_next(&w->walk, s->scene->top, &p.lanes, p.prep.tnear, tlimit, &r->key)) {
         follow_step(s, r, BRT_STEP_ENTER, r->key.id, r->key.t);
         if (inner_stops(s, r)) {                            /* layer 7 */
             w->inner_stopped++;
             break;
         }
-        if (intersect_resident(s, w, r)) {                  /* layer 1 */
+        if (intersect_resident(s, w, r, margin == 0.0f ? &p : NULL)) {   /* layer 1 */
             tlimit = walk_limit(r);
             continue;
         }
@@ -1338,7 +1362,7 @@ static brt_result run_rays(scheduler *s, const uint32_t *slots, uint32_t count, 
     uint32_t i;
     if (s->threads) return phases_run(s, slots, count, id, g);       /* layer 5 */
     if (id != NO_ENTRY) {
-        for (i = 0; i < count; i++) intersect_slot(s, g, &s->slots[slots[i]]);
+        for (i = 0; i < count; i++) intersect_slot(s, g, &s->slots[slots[i]], NULL);
         cache_release(&s->cache, id);
     }
     for (i = 0; i < count && r == BRT_OK; i++)
@@ -6614,7 +6638,7 @@ static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
     for (i = first; i < end; i++) {
         ray_slot *r = &s->slots[j->slots[i]];
         w->uses->stamp = (uint64_t)(i + 1) << 32;   /* ray i's uses come after ray i-1's */
-        if (j->g) intersect_slot(s, j->g, r);
+        if (j->g) intersect_slot(s, j->g, r, NULL);
         s->threads->outcome[i] = walk_on(s, w, r);
     }
 }
@@ -6751,7 +6775,7 @@ static void trace_chunk(void *ctx, unsigned thread, size_t first, size_t end)
         float *normal = j->normals ? j->normals + 3 * i : NULL;
         if (normal) normal[0] = normal[1] = normal[2] = 0.0f;
         brt_hit_clear(&j->hits[i]);
-        intersect_ray(&j->geometry, &j->rays[i], j->tags ? j->tags[i] : 0, &j->hits[i], normal);
+        intersect_ray(&j->geometry, &j->rays[i], j->tags ? j->tags[i] : 0, &j->hits[i], normal, NULL);
     }
 }
 
@@ -7004,7 +7028,7 @@ static geometry world_geometry(const brt_world *w)
 void brt_world_intersect(const brt_world *w, const brt_ray *ray, brt_hit *hit, float normal[3])
 {
     const geometry g = world_geometry(w);
-    intersect_ray(&g, ray, 0, hit, normal);
+    intersect_ray(&g, ray, 0, hit, normal, NULL);
 }
 
 int brt_world_occluded(const brt_world *w, const brt_ray *ray)
@@ -7012,7 +7036,7 @@ int brt_world_occluded(const brt_world *w, const brt_ray *ray)
     const geometry g = world_geometry(w);
     brt_hit hit;
     brt_hit_clear(&hit);
-    intersect_ray(&g, ray, BRT_TAG_OCCLUSION, &hit, NULL);
+    intersect_ray(&g, ray, BRT_TAG_OCCLUSION, &hit, NULL, NULL);
     return hit.t == 0.0f;
 }
 

@@ -743,11 +743,23 @@ void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep);
 ** plo/phi may be lo/hi themselves. */
 void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3]);
 
+/* A prepared ray's box-test constants in four lanes each, and the rows
+** of a [6][4] box that hold each axis's near and far planes (as indices
+** and byte offsets): what brt_box_span4 loads as vectors.  A walk that
+** tests many nodes sets them once (brt_box_lanes_of), not at each node. */
+typedef struct brt_box_lanes {
+    float org_near[3][4], org_far[3][4], inv[3][4];
+    int near_row[3], far_row[3];
+    size_t near_off[3], far_off[3];
+} brt_box_lanes;
+
+void brt_box_lanes_of(const brt_ray_prep *prep, brt_box_lanes *lanes);
+
 /* brt_box_span (section 7) on four padded boxes at once, laid out as rows of four
 ** lanes: box[0..2] the minimum x, y, z and box[3..5] the maximum x, y, z
 ** of lanes 0..3 (a 4-wide BVH node).  Bit i of the result is lane i's
 ** answer; entry[i] and exit[i] are bit for bit brt_box_span's. */
-unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4],
+unsigned brt_box_span4(const brt_box_lanes *lanes, const float box[6][4],
                        float tmin, float tmax, float entry[4], float exit[4]);
 
 typedef struct brt_bvh brt_bvh;   /* opaque; layout documented in bvh.c */
@@ -786,6 +798,14 @@ void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags
 
 /* Any hit in [tnear, tfar]: 1 if occluded. */
 int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
+
+/* brt_bvh_intersect_normal, or with any != 0 brt_bvh_occluded (1 when
+** occluded; hit and normal unused), of a ray already prepared:
+** brt_ray_prepare of this very ray (no margin) and brt_box_lanes_of it.
+** For walks that meet many BVHs with one ray: the top-level walk hands
+** its preparation to each batching point it intersects at once. */
+int brt_bvh_walk_prepared(const brt_bvh *bvh, const brt_ray *ray, const brt_ray_prep *prep,
+                          const brt_box_lanes *lanes, brt_hit *hit, float normal[3], int any);
 
 uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
 /* The number reported for each stored triangle, in storage order

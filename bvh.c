@@ -205,18 +205,6 @@ struct brt_bvh {
 /* Conservative ray/box test of four slots at once                       */
 /* ===================================================================== */
 
-/* The per-ray constants of the box test: brt_ray_prep's 1/dir and padded
-** origins repeated in four lanes (so box_test4 loads them as vectors
-** instead of broadcasting nine scalars at every node), and, for the node
-** layout, the row of box[] that holds each axis's near and far plane.
-** It holds no copy of the brt_ray_prep: the top-level walk would pay for
-** the copy at every node. */
-typedef struct box_ray {
-    float org_near[3][4], org_far[3][4], inv[3][4];
-    int near_row[3];
-    int far_row[3];
-    size_t near_off[3], far_off[3];   /* the same rows' byte offsets in a [6][4] box */
-} box_ray;
 
 static float max_abs3(const float p[3])
 {
@@ -242,10 +230,10 @@ void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
     prep->valid = brt_ray_valid(ray);
 }
 
-/* The four-lane copy of an already prepared ray.  Inlined: as a call it
-** would cost the top-level walk (one brt_box_span4 per node) a call at
-** every node (callgrind on a batched trace counts it). */
-static inline ALWAYS_INLINE void box_ray_from_prep(const brt_ray_prep *prep, box_ray *b)
+/* The four-lane copy of an already prepared ray (brt_box_lanes), once per
+** walk: broadcasting the nine scalars at every node would cost each visit
+** (callgrind on a batched trace counts it). */
+static inline ALWAYS_INLINE void box_lanes_of(const brt_ray_prep *prep, brt_box_lanes *b)
 {
     int a, i;
     for (a = 0; a < 3; a++) {
@@ -264,6 +252,11 @@ static inline ALWAYS_INLINE void box_ray_from_prep(const brt_ray_prep *prep, box
 /* The slab test of one box that is already padded: entry and exit of the
 ** segment [tl, th] (NaN from a zero direction on a slab plane never
 ** narrows it).  box_test4 below is the same arithmetic on four boxes. */
+void brt_box_lanes_of(const brt_ray_prep *prep, brt_box_lanes *lanes)
+{
+    box_lanes_of(prep, lanes);
+}
+
 static inline int slab_span(const brt_ray_prep *r, const float lo[3], const float hi[3],
                             float tl, float th, float *entry, float *exit)
 {
@@ -441,7 +434,7 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
 /* ---- four slots at once ---- */
 
 /* Entry and exit distance of four boxes given by their near planes nr
-** and far planes fr (per axis, four lanes: the rows box_ray's near_row
+** and far planes fr (per axis, four lanes: the rows brt_box_lanes' near_row
 ** and far_row pick); returns a mask of lanes whose interval meets
 ** [tnear, tfar] (inclusive).  NaN never narrows.  Each lane is slab_span's
 ** arithmetic in slab_span's order, so every caller -- the triangle BVHs
@@ -452,7 +445,7 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
 ** straight to lo and hi, which might alias the inputs, the loop stayed
 ** scalar in brt_box_span4 (callgrind on build/bench_bvh counts a node's
 ** instructions). */
-static inline ALWAYS_INLINE unsigned box_span4(const box_ray *b, const float *const nr[3],
+static inline ALWAYS_INLINE unsigned box_span4(const brt_box_lanes *b, const float *const nr[3],
                                                const float *const fr[3], float tnear, float tfar,
                                                float lo[4], float hi[4])
 {
@@ -537,7 +530,7 @@ static inline ALWAYS_INLINE void decode_boxes(const qnode *n, float box[6][4])
 ** decoded, picked by their 32-bit words: indexing the decoded floats
 ** instead made the compiler store all 24 to the stack and load them back.
 ** Empty slots are masked out by the caller. */
-static inline unsigned box_test4(const box_ray *b, const qnode *n,
+static inline unsigned box_test4(const brt_box_lanes *b, const qnode *n,
                                  float tnear, float tfar, float lo[4])
 {
     float nr[3][4], fr[3][4], hi[4];
@@ -554,7 +547,7 @@ static inline unsigned box_test4(const box_ray *b, const qnode *n,
 /* box_span4 of four boxes already decoded (rows as decode_boxes gives
 ** them: min x, y, z, max x, y, z), read in place: the top level's boxes
 ** and the resident nodes. */
-static inline ALWAYS_INLINE unsigned box_rows4(const box_ray *b, const float box[6][4],
+static inline ALWAYS_INLINE unsigned box_rows4(const brt_box_lanes *b, const float box[6][4],
                                                float tnear, float tfar, float lo[4], float hi[4])
 {
     const char *const rows = (const char *)box;
@@ -567,12 +560,10 @@ static inline ALWAYS_INLINE unsigned box_rows4(const box_ray *b, const float box
     return box_span4(b, near, far, tnear, tfar, lo, hi);
 }
 
-unsigned brt_box_span4(const brt_ray_prep *prep, const float box[6][4], float tmin,
+unsigned brt_box_span4(const brt_box_lanes *lanes, const float box[6][4], float tmin,
                        float tmax, float entry[4], float exit[4])
 {
-    box_ray b;
-    box_ray_from_prep(prep, &b);
-    return box_rows4(&b, box, tmin, tmax, entry, exit);
+    return box_rows4(lanes, box, tmin, tmax, entry, exit);
 }
 
 /* The mask of non-empty slots. */
@@ -701,9 +692,9 @@ typedef struct block_ray {
 } block_ray;
 
 typedef struct walk {
-    box_ray br;
+    const brt_box_lanes *br;
     block_ray kr;
-    brt_ray_prep prep;
+    const brt_ray_prep *prep;
     tri_ray tr;
     float tnear, tfar;
     uint32_t inst;
@@ -738,14 +729,14 @@ static inline void walk_leaf(walk *w)
     w->tri_ready = 1;
 }
 
-/* Sets a walk up; 0 when the ray cannot hit anything (invalid, or an
-** empty segment). */
-static int walk_begin(walk *w, const brt_ray *ray, uint32_t inst, brt_hit *hit,
-                      float normal[3], int any)
+/* Sets a walk of the prepared ray up; 0 when it cannot hit anything
+** (invalid, or an empty segment). */
+static int walk_begin(walk *w, const brt_ray *ray, const brt_ray_prep *prep,
+                      const brt_box_lanes *lanes, uint32_t inst, brt_hit *hit, float normal[3], int any)
 {
-    brt_ray_prepare(ray, &w->prep);   /* checks the ray too: prep.valid */
-    if (!w->prep.valid) return 0;
-    box_ray_from_prep(&w->prep, &w->br);
+    if (!prep->valid) return 0;
+    w->prep = prep;
+    w->br = lanes;
     w->tnear = ray->tnear;
     w->tfar = ray->tfar;
     if (!any && hit->t < w->tfar) w->tfar = hit->t;
@@ -774,7 +765,7 @@ static inline int walk_prunes(const walk *w, float lo)
 static inline ALWAYS_INLINE int walk_triangle(walk *w, const float *const p[3], uint32_t prim)
 {
     float t, u, v;
-    if (!tri_intersect(&w->tr, &w->prep, p[0], p[1], p[2], w->tnear, w->tfar, &t, &u, &v))
+    if (!tri_intersect(&w->tr, w->prep, p[0], p[1], p[2], w->tnear, w->tfar, &t, &u, &v))
         return 0;
     if (w->any) return 1;
     if (brt_hit_is_closer(t, w->inst, prim, w->hit)) {
@@ -795,15 +786,16 @@ static inline ALWAYS_INLINE int walk_triangle(walk *w, const float *const p[3], 
 ** slots are masked out.  The tree is checked acyclic with depth <=
 ** MAX_DEPTH at build/open time, so each node is entered at most once and
 ** the stack (3 entries per level) never overflows. */
-static int traverse_quantized(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst,
-                              brt_hit *hit, float normal[3], int any)
+static int traverse_quantized(const brt_bvh *bvh, const brt_ray *ray, const brt_ray_prep *prep,
+                              const brt_box_lanes *lanes, uint32_t inst, brt_hit *hit,
+                              float normal[3], int any)
 {
     stack_entry stack[STACK_SIZE], cur;
     walk w;
     float lo[4];
     int sp = 0;
 
-    if (!walk_begin(&w, ray, inst, hit, normal, any)) return 0;
+    if (!walk_begin(&w, ray, prep, lanes, inst, hit, normal, any)) return 0;
     cur.child = 0;
     cur.count = 0;
     cur.vbase = 0;
@@ -812,7 +804,7 @@ static int traverse_quantized(const brt_bvh *bvh, const brt_ray *ray, uint32_t i
         uint32_t k;
         while (cur.count == 0) {
             const qnode *n = &bvh->nodes[cur.child];
-            const unsigned mask = box_test4(&w.br, n, w.tnear, w.tfar, lo) & slot_valid(n);
+            const unsigned mask = box_test4(w.br, n, w.tnear, w.tfar, lo) & slot_valid(n);
             if (mask == 0) goto pop;
             prefetch_slots(bvh, n, mask);
             sp = next_child(n, mask, lo, stack, sp, &cur);
@@ -946,22 +938,23 @@ static int resident_leaf(const brt_bvh *bvh, walk *w, uint32_t first, uint32_t c
 
 /* traverse_quantized's walk over the resident layout: the same slots,
 ** boxes and triangles, so the same hits (the tie rule is total). */
-static int traverse_resident(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst,
-                             brt_hit *hit, float normal[3], int any)
+static int traverse_resident(const brt_bvh *bvh, const brt_ray *ray, const brt_ray_prep *prep,
+                             const brt_box_lanes *lanes, uint32_t inst, brt_hit *hit,
+                             float normal[3], int any)
 {
     resident_entry stack[STACK_SIZE], cur;
     walk w;
     float lo[4], hi[4];
     int sp = 0;
 
-    if (!walk_begin(&w, ray, inst, hit, normal, any)) return 0;
+    if (!walk_begin(&w, ray, prep, lanes, inst, hit, normal, any)) return 0;
     cur.child = 0;
     cur.count = 0;
     cur.lo = ray->tnear;
     for (;;) {
         while (cur.count == 0) {
             const fnode *n = &bvh->fnodes[cur.child];
-            const unsigned mask = box_rows4(&w.br, (const float (*)[4])n->box, w.tnear, w.tfar,
+            const unsigned mask = box_rows4(w.br, (const float (*)[4])n->box, w.tnear, w.tfar,
                                             lo, hi) & n->valid;
             unsigned order[4];
             int k, j;
@@ -982,13 +975,32 @@ static int traverse_resident(const brt_bvh *bvh, const brt_ray *ray, uint32_t in
     }
 }
 
-/* The walk of either layout: the resident one when the BVH has it. */
+/* The walk of either layout for a prepared ray: the resident one when
+** the BVH has it. */
+static int traverse_prepared(const brt_bvh *bvh, const brt_ray *ray, const brt_ray_prep *prep,
+                             const brt_box_lanes *lanes, uint32_t inst, brt_hit *hit,
+                             float normal[3], int any)
+{
+    if (bvh->node_count == 0) return 0;
+    if (bvh->fnodes) return traverse_resident(bvh, ray, prep, lanes, inst, hit, normal, any);
+    return traverse_quantized(bvh, ray, prep, lanes, inst, hit, normal, any);
+}
+
 static int traverse(const brt_bvh *bvh, const brt_ray *ray, uint32_t inst, brt_hit *hit,
                     float normal[3], int any)
 {
+    brt_ray_prep prep;
+    brt_box_lanes lanes;
     if (bvh->node_count == 0) return 0;
-    if (bvh->fnodes) return traverse_resident(bvh, ray, inst, hit, normal, any);
-    return traverse_quantized(bvh, ray, inst, hit, normal, any);
+    brt_ray_prepare(ray, &prep);   /* checks the ray too: prep.valid */
+    box_lanes_of(&prep, &lanes);
+    return traverse_prepared(bvh, ray, &prep, &lanes, inst, hit, normal, any);
+}
+
+int brt_bvh_walk_prepared(const brt_bvh *bvh, const brt_ray *ray, const brt_ray_prep *prep,
+                          const brt_box_lanes *lanes, brt_hit *hit, float normal[3], int any)
+{
+    return traverse_prepared(bvh, ray, prep, lanes, BRT_NO_INST, hit, normal, any);
 }
 
 void brt_bvh_intersect(const brt_bvh *bvh, const brt_ray *ray, brt_hit *hit)
@@ -1737,7 +1749,8 @@ static brt_bvh *bvh_from_emitter(const emitter *e)
 /* ---- the resident layout, decoded from the quantized one ---- */
 
 /* Writes node i of the resident layout and the blocks of its leaves from
-** block *next on (advanced past them) into zeroed memory.  The boxes are
+** block *next on (advanced past them), every byte (unused slots and
+** lanes 0), so that the memory is written once.  The boxes are
 ** decode_boxes' floats, so every box test sees the planes the quantized
 ** walk decodes, bit for bit; the corners are the stored vertices' bits. */
 static void resident_node(const brt_bvh *bvh, uint32_t i, fnode *f, tri4 *blocks,
@@ -1748,11 +1761,14 @@ static void resident_node(const brt_bvh *bvh, uint32_t i, fnode *f, tri4 *blocks
     int j, a;
     decode_boxes(n, f->box);
     f->valid = slot_valid(n);
+    f->zero[0] = f->zero[1] = 0;
     for (s = 0; s < 4; s++) {
         f->count[s] = n->count[s];
+        f->child[s] = 0;
         if (!(f->valid >> s & 1u)) continue;
         if (n->count[s] == 0) { f->child[s] = slot_target(n, s); continue; }
         f->child[s] = *next;
+        memset(&blocks[*next], 0, leaf_blocks(n->count[s]) * sizeof(tri4));
         for (k = 0; k < n->count[s]; k++) {
             const uint32_t t = slot_target(n, s) + k;
             tri4 *b = &blocks[*next + k / 4];
@@ -1777,8 +1793,8 @@ static uint32_t resident_block_count(const brt_bvh *bvh)
     return blocks;
 }
 
-/* The resident layout of a quantized BVH, in one 64-byte aligned,
-** zeroed allocation (nodes, then blocks); NULL when out of memory. */
+/* The resident layout of a quantized BVH, in one 64-byte aligned
+** allocation (nodes, then blocks); NULL when out of memory. */
 static fnode *resident_layout(const brt_bvh *bvh, uint32_t *block_count)
 {
     const uint32_t blocks = resident_block_count(bvh);
@@ -1787,7 +1803,6 @@ static fnode *resident_layout(const brt_bvh *bvh, uint32_t *block_count)
     fnode *f;
     uint32_t i, next = 0;
     if (posix_memalign(&m, 64, bytes) != 0) return NULL;
-    memset(m, 0, bytes);
     f = m;
     for (i = 0; i < bvh->node_count; i++)
         resident_node(bvh, i, &f[i], (tri4 *)(void *)(f + bvh->node_count), &next);

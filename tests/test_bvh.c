@@ -462,6 +462,7 @@ static void test_box_span4(void)
         float box[6][4], entry4[4], exit4[4];
         brt_ray ray;
         brt_ray_prep prep;
+        brt_box_lanes lanes;
         float tmin = brt_random_u64(&st) % 2 ? 0.0f : brt_random_float(&st);
         float tmax = brt_random_u64(&st) % 2 ? INFINITY : tmin + 10.0f * brt_random_float(&st);
         unsigned mask;
@@ -489,7 +490,8 @@ static void test_box_span4(void)
                 box[3 + a][lane] = hi[a];
             }
         }
-        mask = brt_box_span4(&prep, (const float (*)[4])box, tmin, tmax, entry4, exit4);
+        brt_box_lanes_of(&prep, &lanes);
+        mask = brt_box_span4(&lanes, (const float (*)[4])box, tmin, tmax, entry4, exit4);
         for (lane = 0; lane < 4; lane++) {
             float lo[3], hi[3], entry, exit;
             int one;
