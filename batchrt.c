@@ -686,8 +686,12 @@ static int set_trace(const geometry *g, const brt_ray *ray, brt_hit *hit, float 
 }
 
 /* A ray prepared for the box tests, as the top-level walk holds it: a
-** batching point's BVH walks it without preparing it again (when it was
-** prepared without a margin, i.e. as the BVH would). */
+** batching point's BVH walks it without preparing it again, when it was
+** prepared without a margin, i.e. exactly as the BVH would.  (With the
+** margin of instances its boxes are grown: still conservative, but the
+** triangle clamp would use the grown box, and a t could round apart from
+** the direct mode's; make mutants cannot tell, so the rule is kept by
+** construction: walk_on passes NULL then.) */
 typedef struct prepared_ray {
     brt_ray_prep prep;
     brt_box_lanes lanes;

@@ -1181,6 +1181,67 @@ static int node_has_leaf(const unsigned char *node)
     return 0;
 }
 
+/* A blob decoded after opening (brt_bvh_decode: the geometry cache's
+** layer 9) passes the checker, reports its bytes, and answers every ray
+** as the blob walked in place; brt_bvh_walk_prepared answers as the plain
+** calls, closest hit (with the normal) and occlusion, on both layouts. */
+static void test_decoded_and_prepared(void)
+{
+    uint64_t st = test_seed() ^ 43;
+    tu_scene s = {0};
+    brt_bvh *bvh, *quantized = NULL, *decoded = NULL;
+    brt_error err;
+    unsigned char *blob;
+    size_t size, n, before, bytes;
+    float lo[3], hi[3];
+    tu_random_soup(&s, &st, 3000, 0.05f);
+    bvh = build_checked(&s, NULL);
+    if (!bvh) { tu_scene_free(&s); return; }
+    size = brt_bvh_blob_size(bvh);
+    blob = malloc(size);
+    brt_bvh_blob_write(bvh, blob);
+    CHECK(brt_bvh_blob_open(blob, size, s.tcount, &quantized, &err) == BRT_OK &&
+          brt_bvh_blob_open(blob, size, s.tcount, &decoded, &err) == BRT_OK, "open: %s", err.message);
+    before = brt_bvh_memory_bytes(decoded);
+    bytes = brt_bvh_decoded_bytes(decoded);
+    CHECK(brt_bvh_decode(decoded) == BRT_OK, "decode failed");
+    EXPECT(bytes > 0 && brt_bvh_memory_bytes(decoded) == before + bytes &&
+           brt_bvh_decoded_bytes(decoded) == 0,
+           "decoded %zu bytes, memory %zu -> %zu, again %zu", bytes, before,
+           brt_bvh_memory_bytes(decoded), brt_bvh_decoded_bytes(decoded));
+    EXPECT(brt_bvh_check(decoded, &err) == BRT_OK, "check decoded: %s", err.message);
+    tu_scene_bounds(&s, lo, hi);
+    for (n = 0; n < 3000 && !test_failed(); n++) {
+        const brt_bvh *const layouts[2] = {quantized, decoded};
+        brt_ray r;
+        brt_ray_prep prep;
+        brt_box_lanes lanes;
+        brt_hit plain, walked;
+        float pn[3] = {0, 0, 0}, wn[3] = {0, 0, 0};
+        int k;
+        tu_make_ray(&s, lo, hi, (int)(n % TU_RAY_KINDS), &st, &r);
+        brt_ray_prepare(&r, &prep);
+        brt_box_lanes_of(&prep, &lanes);
+        for (k = 0; k < 2; k++) {
+            brt_hit_clear(&plain);
+            brt_hit_clear(&walked);
+            brt_bvh_intersect_normal(layouts[0], &r, &plain, pn);
+            if (prep.valid) brt_bvh_walk_prepared(layouts[k], &r, &prep, &lanes, &walked, wn, 0);
+            EXPECT(memcmp(&plain, &walked, sizeof plain) == 0 && memcmp(pn, wn, sizeof pn) == 0,
+                   "ray %zu, %s layout: the prepared walk's hit differs", n, k ? "decoded" : "quantized");
+            EXPECT(brt_bvh_occluded(layouts[0], &r) ==
+                   (prep.valid && brt_bvh_walk_prepared(layouts[k], &r, &prep, &lanes, NULL, NULL, 1)),
+                   "ray %zu, %s layout: the prepared walk's occlusion differs", n,
+                   k ? "decoded" : "quantized");
+        }
+    }
+    brt_bvh_free(quantized);
+    brt_bvh_free(decoded);
+    brt_bvh_free(bvh);
+    free(blob);
+    tu_scene_free(&s);
+}
+
 static void test_blob(void)
 {
     uint64_t st = test_seed() ^ 41;
@@ -1394,6 +1455,7 @@ void suite_bvh(void)
     test_run("bvh: non-finite vertices rejected", test_nonfinite_vertices);
     test_run("bvh: empty", test_empty);
     test_run("bvh: blob round trip and corruption", test_blob);
+    test_run("bvh: a decoded blob and the prepared walk answer as the blob", test_decoded_and_prepared);
     test_run("bvh: bounds and memory", test_bounds_and_memory);
     test_run("bvh: resident layout checker rejects every flipped bit", test_resident_check);
 }
