@@ -1753,12 +1753,33 @@ static brt_bvh *bvh_from_emitter(const emitter *e)
 ** lanes 0), so that the memory is written once.  The boxes are
 ** decode_boxes' floats, so every box test sees the planes the quantized
 ** walk decodes, bit for bit; the corners are the stored vertices' bits. */
+/* Copies leaf slot s of node n into the blocks from first on: the
+** corners' bits as structures of arrays, the reported numbers, and 0 in
+** the lanes past the leaf's end. */
+static void resident_leaf_copy(const brt_bvh *bvh, const qnode *n, unsigned s, tri4 *first)
+{
+    const unsigned count = n->count[s];
+    const uint32_t t0 = slot_target(n, s);
+    unsigned k;
+    memset(first, 0, leaf_blocks(count) * sizeof(tri4));
+    for (k = 0; k < count; k++) {
+        tri4 *const b = first + k / 4;
+        const unsigned lane = k % 4;
+        const float *p[3];
+        int j, a;
+        triangle_corners(bvh, t0 + k, n->vertex_base, p);
+        for (j = 0; j < 3; j++)
+            for (a = 0; a < 3; a++) b->v[j][a][lane] = p[j][a];
+        b->prim[lane] = bvh->prim[t0 + k];
+    }
+}
+
 static void resident_node(const brt_bvh *bvh, uint32_t i, fnode *f, tri4 *blocks,
                           uint32_t *next)
 {
     const qnode *n = &bvh->nodes[i];
-    unsigned s, k;
-    int j, a;
+    uint32_t at = *next;
+    unsigned s;
     decode_boxes(n, f->box);
     f->valid = slot_valid(n);
     f->zero[0] = f->zero[1] = 0;
@@ -1767,19 +1788,11 @@ static void resident_node(const brt_bvh *bvh, uint32_t i, fnode *f, tri4 *blocks
         f->child[s] = 0;
         if (!(f->valid >> s & 1u)) continue;
         if (n->count[s] == 0) { f->child[s] = slot_target(n, s); continue; }
-        f->child[s] = *next;
-        memset(&blocks[*next], 0, leaf_blocks(n->count[s]) * sizeof(tri4));
-        for (k = 0; k < n->count[s]; k++) {
-            const uint32_t t = slot_target(n, s) + k;
-            tri4 *b = &blocks[*next + k / 4];
-            const float *p[3];
-            triangle_corners(bvh, t, n->vertex_base, p);
-            for (j = 0; j < 3; j++)
-                for (a = 0; a < 3; a++) b->v[j][a][k % 4] = p[j][a];
-            b->prim[k % 4] = bvh->prim[t];
-        }
-        *next += leaf_blocks(n->count[s]);
+        f->child[s] = at;
+        resident_leaf_copy(bvh, n, s, &blocks[at]);
+        at += leaf_blocks(n->count[s]);
     }
+    *next = at;
 }
 
 static uint32_t resident_block_count(const brt_bvh *bvh)
