@@ -237,7 +237,9 @@ bench-mpi: all mpi
 # embree_trace (default and --robust) on the same ray files (camera,
 # random, bounce; 1M each) of the shared dragon (871K triangles), the best
 # of EMBREE_REPEAT runs each (the machine may be shared), then their
-# agreement from build/hitdiff; then the BVH's bytes per triangle in
+# agreement from build/hitdiff.  The batched mode in core, with its
+# points decoded (layer 9, the default) and kept quantized (--no-decode).
+# Then the BVH's bytes per triangle in
 # memory and in the blobs (the batched run's geometry bytes: every point
 # loaded once), and its build time.  Figures only, never pass/fail.  trace
 # runs with --threads 1, as Embree does (its default, all cores, had
@@ -256,22 +258,25 @@ bench-embree: all embree
 	    sed -n 's/.*"mrays_per_second": *\([0-9.eE+-]*\).*/\1/p' $$out.json; \
 	  done | sort -g | tail -1; }; \
 	echo "$$m, $(EMBREE_RAYS) rays per kind, one thread, best of $(EMBREE_REPEAT) (cold: one trace run each), Mrays/s"; \
-	echo; echo "| rays | direct | batched | Embree | robust | direct / Embree | batched / Embree |"; \
-	echo "|---|---:|---:|---:|---:|---:|---:|"; \
+	echo; echo "| rays | direct | batched | quantized | Embree | robust | direct / Embree | batched / Embree |"; \
+	echo "|---|---:|---:|---:|---:|---:|---:|---:|"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
 	  ./$(BUILD)/raygen $$m $$d.rays --kind $$k --count $(EMBREE_RAYS) || exit 1; \
 	  b=$$(best $$d.brt ./$(BUILD)/trace $$m $$d.rays $$d.brt.hits --threads 1); \
 	  bb=$$(best $$d.bat ./$(BUILD)/trace $$m $$d.rays $$d.bat.hits --threads 1 --batched --scene $(EMBREE_BENCH)/scene.brs); \
-	  cmp -s $$d.brt.hits $$d.bat.hits || { echo "$$k: batched hits differ from direct"; exit 1; }; \
+	  bq=$$(best $$d.baq ./$(BUILD)/trace $$m $$d.rays $$d.baq.hits --threads 1 --batched --no-decode --scene $(EMBREE_BENCH)/scene.brs); \
+	  cmp -s $$d.brt.hits $$d.bat.hits && cmp -s $$d.brt.hits $$d.baq.hits || { echo "$$k: batched hits differ from direct"; exit 1; }; \
 	  e=$$(best $$d.emb ./$(BUILD)/embree_trace $$m $$d.rays $$d.emb.hits); \
 	  r=$$(best $$d.rob ./$(BUILD)/embree_trace $$m $$d.rays $$d.rob.hits --robust); \
-	  awk -v k=$$k -v b=$$b -v bb=$$bb -v e=$$e -v r=$$r 'BEGIN { \
-	    printf "| %s | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f |\n", k, b, bb, e, r, b / e, bb / e }'; \
+	  awk -v k=$$k -v b=$$b -v bb=$$bb -v bq=$$bq -v e=$$e -v r=$$r 'BEGIN { \
+	    printf "| %s | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f | %.2f |\n", k, b, bb, bq, e, r, b / e, bb / e }'; \
 	done; echo; \
 	sed -n 's/.*"bvh_bytes_per_triangle": *\([0-9.eE+-]*\).*/batchrt BVH bytes per triangle in memory (direct mode: quantized and resident layouts): \1/p; s/.*"build_seconds": *\([0-9.eE+-]*\).*/batchrt BVH build seconds (direct mode): \1/p' $(EMBREE_BENCH)/bounce.brt.json; \
 	tris=$$(awk '/^f /{ t += NF - 3 } END { print t }' $$m); \
 	sed -n 's/.*"geometry_bytes": *\([0-9]*\).*/\1/p' $(EMBREE_BENCH)/bounce.bat.json | \
 	  awk -v t=$$tris '{ printf "batchrt blob bytes per triangle on disk (batching points, %d triangles): %.2f\n", t, $$1 / t }'; \
+	sed -n 's/.*"decoded_bytes": *\([0-9]*\).*/\1/p' $(EMBREE_BENCH)/bounce.bat.json | \
+	  awk -v t=$$tris '{ printf "batchrt decoded bytes per triangle in memory (batched in core, layer 9): %.2f\n", $$1 / t }'; \
 	echo "warm (cached) figures: make bench (build/bench_bvh)"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
 	  for x in emb rob; do printf '%s vs %s: ' $$k $$x; \

@@ -50,6 +50,7 @@ typedef struct trace_options {
     const char *mesh, *rays, *hits;  /* the three positional arguments */
     int batched;                     /* --batched instead of --direct */
     uint64_t batch_tris;             /* triangles per batching point */
+    uint64_t rays_in_flight;         /* batched; 0: the library's default */
     uint64_t res;                    /* proxy resolution, a power of two */
     int no_proxy;                    /* batched without proxies */
     int no_inner;                    /* batched without inner proxies */
@@ -82,6 +83,8 @@ static void usage(void)
            "  --direct          one BVH over the whole mesh in memory (default)\n"
            "  --batched         batching points, proxies and geometry cache\n"
            "  --batch-tris N    triangles per batching point, N >= 1 (batched; default 100000)\n"
+           "  --rays-in-flight N  rays the batched mode works on at once (default: 4096 when\n"
+           "                    --memory holds every batching point, else 1048576)\n"
            "  --res R           proxy voxel resolution, a power of two in 2..1024 (default 128)\n"
            "  --no-proxy        batched mode without voxel proxies\n"
            "  --no-inner        batched occlusion rays without inner proxies\n"
@@ -133,6 +136,8 @@ static void parse_options(int argc, char **argv, trace_options *o)
             o->follow = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX >> 1);
             o->follow_given = 1;
         }
+        else if (strcmp(a, "--rays-in-flight") == 0)
+            o->rays_in_flight = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, 1u << 26);
         else if (strcmp(a, "--batch-tris") == 0)
             o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i),
                                          1, UINT32_MAX);
@@ -333,6 +338,7 @@ static void trace_batched(const ex_input *in, const trace_options *o, const brt_
     trace_opt.no_proxy = o->no_proxy;
     trace_opt.no_inner = o->no_inner;
     trace_opt.no_decode = o->no_decode;
+    trace_opt.rays_in_flight = (uint32_t)o->rays_in_flight;
     trace_opt.drop_os_cache = o->drop_os_cache;
     trace_opt.threads = o->threads;
     trace_opt.paper_scheduler = o->paper_scheduler;

@@ -657,6 +657,7 @@ static const bad_case bad_cases[] = {
     {"trace @/good.obj @/good.rays @/bad9.hits --memory 12X", "--memory", "bad9.hits"},
     {"trace @/good.obj @/good.rays @/bad10.hits --batch-tris 0", "--batch-tris", "bad10.hits"},
     {"trace @/good.obj @/good.rays @/bad11.hits --res", "--res", "bad11.hits"},
+    {"trace @/good.obj @/good.rays @/bad11.hits --batched --rays-in-flight 0", "--rays-in-flight", "bad11.hits"},
     {"trace @/good.obj @/good.rays", "HITS", NULL},
     {"trace @/good.obj @/good.rays @/no_such_dir/bad12.hits", "no_such_dir/bad12.hits", NULL},
     {"raygen @/missing.obj @/bad13.rays --kind camera", "missing.obj", "bad13.rays"},
