@@ -1172,6 +1172,12 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 ** Not for threads (one countdown for the process). */
 void brt_test_read_fault(long after, int error);
 
+/* brt_intersect_triangle with (on, the default) or without the early
+** rejection of triangles behind the segment (bvh.c, "behind the
+** segment"): the tests compare both on every ray.  The BVH walks always
+** reject early. */
+void brt_test_early_reject(int on);
+
 #endif /* BRT_TESTING */
 
 #ifdef __cplusplus

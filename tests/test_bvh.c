@@ -1242,6 +1242,82 @@ static void test_decoded_and_prepared(void)
     tu_scene_free(&s);
 }
 
+/* A point on triangle v (barycentric a, b), moved along its normal n by
+** off times its size, in float. */
+static void near_point(const float v[3][3], const double n[3], float a, float b, double off,
+                       float p[3])
+{
+    int k;
+    for (k = 0; k < 3; k++)
+        p[k] = (float)((1.0 - a - b) * v[0][k] + a * v[1][k] + b * v[2][k] + off * n[k]);
+}
+
+/* The early rejection of triangles behind the segment (bvh.c, "behind
+** the segment") never changes an answer: brt_intersect_triangle with it
+** on and off, bit for bit, on rays leaving points on, just off and just
+** behind random triangles (the bounce ray's case: its own triangle just
+** behind its origin), grazing and steep, with tnear 0 and a hair either
+** side, at scales from 1e-3 to 1e4 and offsets up to 1e4.  Rays from
+** points on the plane put t* within rounding of tnear = 0: a bound too
+** tight would drop their hits. */
+static void test_behind_segment(void)
+{
+    static const double offsets[] = {0.0, 1e-9, -1e-9, 1e-7, -1e-7, 1e-5, -1e-5, 1e-3, -1e-3};
+    uint64_t st = test_seed() ^ 47;
+    unsigned long cases = 0, hits = 0, near_hits = 0;
+    int i;
+    for (i = 0; i < 60000 && !test_failed(); i++) {
+        const double scale = pow(10.0, -3.0 + 7.0 * brt_random_float(&st));
+        const double shift = brt_random_u64(&st) % 2 ? 0.0 : scale * pow(10.0, 4.0 * brt_random_float(&st));
+        float v[3][3];
+        double e1[3], e2[3], n[3], len;
+        size_t o;
+        int k, j;
+        for (j = 0; j < 3; j++)
+            for (k = 0; k < 3; k++) v[j][k] = (float)(shift + scale * (2.0 * brt_random_float(&st) - 1.0));
+        for (k = 0; k < 3; k++) {
+            e1[k] = (double)v[1][k] - v[0][k];
+            e2[k] = (double)v[2][k] - v[0][k];
+        }
+        n[0] = e1[1] * e2[2] - e1[2] * e2[1];
+        n[1] = e1[2] * e2[0] - e1[0] * e2[2];
+        n[2] = e1[0] * e2[1] - e1[1] * e2[0];
+        len = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+        if (!(len > 0)) continue;
+        for (k = 0; k < 3; k++) n[k] *= scale / len;
+        for (o = 0; o < sizeof offsets / sizeof *offsets; o++) {
+            const float a = brt_random_float(&st), b = (1.0f - a) * brt_random_float(&st);
+            const double grazing = brt_random_u64(&st) % 4 == 0 ? 1e-6 : 1.0;
+            brt_ray r;
+            float t[2], u[2], vv[2];
+            int hit[2], side;
+            near_point((const float (*)[3])v, n, a, b, offsets[o], r.org);
+            for (k = 0; k < 3; k++)
+                r.dir[k] = (float)(grazing * (2.0 * brt_random_float(&st) - 1.0) * n[k] / scale +
+                                   (2.0 * brt_random_float(&st) - 1.0));
+            side = (int)(brt_random_u64(&st) % 3);
+            r.tnear = side == 0 ? 0.0f : (side == 1 ? 1e-7f : -1e-7f);
+            r.tfar = INFINITY;
+            for (k = 0; k < 2; k++) {
+                brt_test_early_reject(k == 0);
+                t[k] = u[k] = vv[k] = 0.0f;
+                hit[k] = brt_intersect_triangle(&r, v[0], v[1], v[2], &t[k], &u[k], &vv[k]);
+            }
+            cases++;
+            hits += (unsigned long)hit[1];
+            near_hits += (unsigned long)(hit[1] && fabsf(t[1] - r.tnear) <= 1e-4f * (float)scale);
+            EXPECT(hit[0] == hit[1] && memcmp(t, t + 1, sizeof *t) == 0 && memcmp(u, u + 1, sizeof *u) == 0 &&
+                   memcmp(vv, vv + 1, sizeof *vv) == 0,
+                   "triangle %d, offset %g: early rejection %d t %a, without %d t %a", i, offsets[o],
+                   hit[0], t[0], hit[1], t[1]);
+        }
+    }
+    brt_test_early_reject(1);
+    printf("  bvh: behind the segment: %lu rays, %lu hits, %lu of them at tnear within 1e-4 of the size\n",
+           cases, hits, near_hits);
+    EXPECT(near_hits > 1000, "only %lu hits at tnear: the cases miss the bound's edge", near_hits);
+}
+
 static void test_blob(void)
 {
     uint64_t st = test_seed() ^ 41;
@@ -1455,6 +1531,7 @@ void suite_bvh(void)
     test_run("bvh: non-finite vertices rejected", test_nonfinite_vertices);
     test_run("bvh: empty", test_empty);
     test_run("bvh: blob round trip and corruption", test_blob);
+    test_run("bvh: behind the segment, rejected early with the same answers", test_behind_segment);
     test_run("bvh: a decoded blob and the prepared walk answer as the blob", test_decoded_and_prepared);
     test_run("bvh: bounds and memory", test_bounds_and_memory);
     test_run("bvh: resident layout checker rejects every flipped bit", test_resident_check);
