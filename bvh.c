@@ -407,8 +407,10 @@ static inline int behind_segment(float ax, float ay, float bx, float by, float c
     const double dz = GAMMA(3) * max_z, dx = GAMMA(5) * (max_x + max_z);
     const double dy = GAMMA(5) * (max_y + max_z);
     const double de = 2.0 * (GAMMA(2) * max_x * max_y + dy * max_x + dx * max_y);
-    const double dt = 3.0 * (GAMMA(3) * max_e * max_z + de * max_z + dz * max_e) / fabs((double)det);
-    return (double)t_woop + 2.0 * dt < (double)tnear;
+    const double dt_det = 3.0 * (GAMMA(3) * max_e * max_z + de * max_z + dz * max_e);
+    /* t_woop + 2 dt < tnear with dt = dt_det / |det|, multiplied out: a
+    ** division would cost every candidate its latency. */
+    return ((double)t_woop - (double)tnear) * fabs((double)det) + 2.0 * dt_det < 0.0;
 }
 
 void brt_test_early_reject(int on) { early_reject = on; }
@@ -460,8 +462,9 @@ static inline ALWAYS_INLINE int tri_intersect(const tri_ray *r, const brt_ray_pr
     if (det == 0.0f) return 0;
     tt = eu * (r->sz * az) + ev * (r->sz * bz) + ew * (r->sz * cz);
     rcp = 1.0f / det;
-    if (early && behind_segment(ax, ay, bx, by, cx, cy, r->sz * az, r->sz * bz, r->sz * cz,
-                                eu, ev, ew, det, tt * rcp, tnear))
+    if (early && tt * rcp < tnear &&   /* most candidates are not behind: one compare */
+        behind_segment(ax, ay, bx, by, cx, cy, r->sz * az, r->sz * bz, r->sz * cz,
+                       eu, ev, ew, det, tt * rcp, tnear))
         return 0;
     if (!hit_distance(r, bp, p0, p1, p2, tt * rcp, &tt)) return 0;
     /* A hit has a finite t in the segment (NaN fails the compares too;
