@@ -962,9 +962,8 @@ static uint64_t round_up_page(uint64_t n);
 ** paper_scheduler turns layers 1 and 2 off (what make figures measures as
 ** the paper's scheduler); exact_proxies turns 3 on; one thread turns 4
 ** and 5 off; no_inner turns 7 off; no_decode turns 9 off.  No layer
-** changes a hit; 1-3 and 7 change which loads happen, 4-6, 9 and 10
-** none:
-** the threads: tests hold the phases byte-equal to the plain loop.
+** changes a hit; 1-3 and 7 change which loads happen, 4-6, 9 and 10 none
+** (the threads: tests hold the phases byte-equal to the plain loop).
 **
 ** Rays in flight live in slots; a queue per batching point holds slot
 ** numbers; a min-heap of queue keys (key_heap) orders the non-empty
@@ -1486,26 +1485,19 @@ static brt_result schedule(scheduler *s, brt_error *err)
     return r == BRT_OK ? cache_check(&s->cache, err) : r;
 }
 
-/* What the geometry cache would hold with every batching point in memory. */
-static uint64_t all_blob_bytes(const brt_scene *scene)
-{
-    uint64_t bytes = 0;
-    uint32_t i;
-    for (i = 0; i < scene->header.batch_count; i++) bytes += round_up_page(scene->batches[i].size);
-    return bytes;
-}
-
 /* Layer 2, proxies off when everything fits: proxies only spare loads.
 ** When the budget (what is left of it after the proxies) holds every
 ** blob nothing is ever evicted, so a load a proxy spares is only put off
 ** -- unless no ray ever needs that batching point -- while every test
 ** costs a cast.  So the default scheduler does not consult them then;
 ** the paper's (paper_scheduler) does, and so does a trace over several
-** processes (layer 8), where a proxy miss also spares a message.  render --compare without a limit
-** prints the run's time with and without them. */
+** processes (layer 8), where a proxy miss also spares a message.
+** render --compare without a limit prints the run's time with and
+** without them.  Every blob: the batching points' and the prototypes',
+** as the cache charges them (all_cache_bytes). */
 static int proxies_pay(const scheduler *s, uint64_t budget)
 {
-    return s->paper_scheduler || s->exchange || budget < all_blob_bytes(s->scene);
+    return s->paper_scheduler || s->exchange || budget < all_cache_bytes(s->scene);
 }
 
 /* Layer 10, few rays in flight in core.  Rays in flight are there to
@@ -2117,7 +2109,7 @@ static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
         e->view = c->ahead_view;
         c->stats->disk_bytes_read += c->ahead_bytes;
         c->stats->load_seconds += c->ahead_seconds;
-        start = brt_seconds();
+        start = brt_seconds();                  /* the decode is timed below */
     } else {
         r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->view, err);
     }
