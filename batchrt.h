@@ -829,7 +829,8 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
                              brt_bvh **out, brt_error *err);
 /* The resident layout (bvh.c) for a BVH opened from a blob: its quantized
 ** boxes decoded once to floats and its leaves copied into blocks of four,
-** walked several times faster with the same hits, bit for bit.
+** so no walk decodes a node again (make bench-embree times both); the
+** same hits, bit for bit.
 ** brt_bvh_decoded_bytes says what brt_bvh_decode would allocate (0 when
 ** the BVH has it already or is empty); brt_bvh_decode adds it (BRT_OK, or
 ** BRT_ENOMEM and the BVH unchanged).  The geometry cache decodes a

@@ -205,7 +205,6 @@ struct brt_bvh {
 /* Conservative ray/box test of four slots at once                       */
 /* ===================================================================== */
 
-
 static float max_abs3(const float p[3])
 {
     float m = fabsf(p[0]);
@@ -249,14 +248,14 @@ static inline ALWAYS_INLINE void box_lanes_of(const brt_ray_prep *prep, brt_box_
     }
 }
 
-/* The slab test of one box that is already padded: entry and exit of the
-** segment [tl, th] (NaN from a zero direction on a slab plane never
-** narrows it).  box_test4 below is the same arithmetic on four boxes. */
 void brt_box_lanes_of(const brt_ray_prep *prep, brt_box_lanes *lanes)
 {
     box_lanes_of(prep, lanes);
 }
 
+/* The slab test of one box that is already padded: entry and exit of the
+** segment [tl, th] (NaN from a zero direction on a slab plane never
+** narrows it).  box_test4 below is the same arithmetic on four boxes. */
 static inline int slab_span(const brt_ray_prep *r, const float lo[3], const float hi[3],
                             float tl, float th, float *entry, float *exit)
 {
