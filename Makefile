@@ -277,6 +277,7 @@ bench-embree: all embree
 	  awk -v t=$$tris '{ printf "batchrt blob bytes per triangle on disk (batching points, %d triangles): %.2f\n", t, $$1 / t }'; \
 	sed -n 's/.*"decoded_bytes": *\([0-9]*\).*/\1/p' $(EMBREE_BENCH)/bounce.bat.json | \
 	  awk -v t=$$tris '{ printf "batchrt decoded bytes per triangle in memory (batched in core, layer 9): %.2f\n", $$1 / t }'; \
+	sed -n 's/.*"load_seconds": *\([0-9.eE+-]*\).*/batchrt batched load seconds (read, check, decode every point; its last bounce run): \1/p' $(EMBREE_BENCH)/bounce.bat.json; \
 	echo "warm (cached) figures: make bench (build/bench_bvh)"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \
 	  for x in emb rob; do printf '%s vs %s: ' $$k $$x; \

@@ -901,7 +901,6 @@ typedef struct geometry_cache {
 static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budget,
                              const brt_trace_options *opt, brt_stats *stats);
 static void cache_free(geometry_cache *c);
-static uint64_t all_cache_bytes(const brt_scene *scene);
 static brt_result cache_fetch(geometry_cache *c, uint32_t id, const geometry **g, brt_error *err);
 static const geometry *cache_peek(const geometry_cache *c, uint32_t id);
 static void cache_touch(geometry_cache *c, uint32_t id);
@@ -1494,10 +1493,10 @@ static brt_result schedule(scheduler *s, brt_error *err)
 ** processes (layer 8), where a proxy miss also spares a message.
 ** render --compare without a limit prints the run's time with and
 ** without them.  Every blob: the batching points' and the prototypes',
-** as the cache charges them (all_cache_bytes). */
+** as the cache charges them (its all_bytes). */
 static int proxies_pay(const scheduler *s, uint64_t budget)
 {
-    return s->paper_scheduler || s->exchange || budget < all_cache_bytes(s->scene);
+    return s->paper_scheduler || s->exchange || budget < s->cache.all_bytes;
 }
 
 /* Layer 10, few rays in flight in core.  Rays in flight are there to
@@ -1510,10 +1509,10 @@ static int proxies_pay(const scheduler *s, uint64_t budget)
 #define IN_CORE_RAYS 4096u
 #define OUT_OF_CORE_RAYS (1u << 20)
 
-static uint32_t rays_in_flight(const brt_trace_options *opt, const brt_scene *scene, uint64_t budget)
+static uint32_t rays_in_flight(const brt_trace_options *opt, uint64_t budget, uint64_t every_blob)
 {
     if (opt && opt->rays_in_flight) return opt->rays_in_flight;
-    if (!(opt && opt->exchange) && budget >= all_cache_bytes(scene)) return IN_CORE_RAYS;
+    if (!(opt && opt->exchange) && budget >= every_blob) return IN_CORE_RAYS;
     return OUT_OF_CORE_RAYS;
 }
 
@@ -1539,8 +1538,9 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     ** paper's Fig. 3 lowers the geometry limit by the proxies' memory). */
     stats->proxy_bytes = s->use_proxies ? brt_svdag_memory_bytes(scene->dag) : 0;
     if (budget != UINT64_MAX) budget = budget > stats->proxy_bytes ? budget - stats->proxy_bytes : 0;
+    if (cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK) return BRT_ENOMEM;
     if (!proxies_pay(s, budget)) s->use_proxies = 0;            /* layer 2 */
-    s->capacity = rays_in_flight(opt, scene, budget);           /* layer 10 */
+    s->capacity = rays_in_flight(opt, budget, s->cache.all_bytes);   /* layer 10 */
     if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
     stats->memory_limit = opt ? opt->memory_limit : 0;
     stats->batching_points = n;
@@ -1558,7 +1558,6 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     if (!s->slots || !s->free_slots || !s->queues || !s->fullest.keys || !s->fullest.pos || !s->incoming ||
         !s->incoming_tags || !s->fresh || !s->walker.walk.keys ||
         (s->exchange && !(s->arrivals = malloc(ARRIVALS_PER_TAKE * sizeof *s->arrivals))) ||
-        cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK ||
         threads_init(s, opt ? opt->threads : 0) != BRT_OK)
         return BRT_ENOMEM;
     for (i = 0; i < n; i++) s->fullest.pos[i] = HEAP_ABSENT;

@@ -110,28 +110,45 @@ static void test_layer9_decoded_points(void)
     free(quantized);
 }
 
-/* A ray source that claims more rays than it was given room for. */
-typedef struct greedy_source {
+/* A ray source over an array that counts its finished rays and records
+** the room of its first call (the rays in flight); a greedy one claims
+** more rays than it was given room for. */
+typedef struct test_source {
     const brt_ray *rays;
-    size_t count, next, finished;
-} greedy_source;
+    size_t count, next, finished, first_room;
+    int greedy;
+} test_source;
 
-static size_t greedy_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+static size_t test_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
 {
-    greedy_source *g = user;
+    test_source *g = user;
     size_t n = g->count - g->next < max ? g->count - g->next : max, i;
+    if (g->first_room == 0) g->first_room = max;
     for (i = 0; i < n; i++) {
         rays[i] = g->rays[g->next];
         tags[i] = g->next++;
     }
-    return n == max && n > 0 ? n + 7 : n;   /* the lie, only when full */
+    return g->greedy && n == max && n > 0 ? n + 7 : n;   /* the lie, only when full */
 }
 
-static void greedy_finished(void *user, const brt_ray *ray, const brt_hit *hit, const float normal[3],
-                            uint32_t visits, uint64_t tag)
+static void test_finished(void *user, const brt_ray *ray, const brt_hit *hit, const float normal[3],
+                          uint32_t visits, uint64_t tag)
 {
     (void)ray; (void)hit; (void)normal; (void)visits; (void)tag;
-    ((greedy_source *)user)->finished++;
+    ((test_source *)user)->finished++;
+}
+
+static brt_ray_source test_source_over(test_source *g, const brt_ray *rays, size_t count, int greedy)
+{
+    brt_ray_source source;
+    memset(g, 0, sizeof *g);
+    g->rays = rays;
+    g->count = count;
+    g->greedy = greedy;
+    source.next_rays = test_next;
+    source.finished = test_finished;
+    source.user = g;
+    return source;
 }
 
 /* The source contract: more rays than room is an error of the trace, not
@@ -142,18 +159,13 @@ static void test_source_contract(void)
     tu_scene s;
     brt_scene *scene = layers_scene(&s, "source.brs");
     brt_ray *rays = layers_rays(&s, COUNT);
-    greedy_source g;
+    test_source g;
     brt_ray_source source;
     brt_trace_options opt;
     brt_error err;
     brt_result r;
     CHECK(scene && rays, "set-up failed");
-    memset(&g, 0, sizeof g);
-    g.rays = rays;
-    g.count = COUNT;
-    source.next_rays = greedy_next;
-    source.finished = greedy_finished;
-    source.user = &g;
+    source = test_source_over(&g, rays, COUNT, 1);
     memset(&opt, 0, sizeof opt);
     opt.rays_in_flight = 64;
     err.message[0] = 0;
@@ -167,45 +179,14 @@ static void test_source_contract(void)
     free(rays);
 }
 
-/* A ray source that records the room of its first call (the rays in
-** flight) and then serves plainly. */
-typedef struct room_source {
-    const brt_ray *rays;
-    size_t count, next, first_room;
-} room_source;
-
-static size_t room_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
-{
-    room_source *g = user;
-    size_t n = g->count - g->next < max ? g->count - g->next : max, i;
-    if (g->first_room == 0) g->first_room = max;
-    for (i = 0; i < n; i++) {
-        rays[i] = g->rays[g->next];
-        tags[i] = g->next++;
-    }
-    return n;
-}
-
-static void room_finished(void *user, const brt_ray *ray, const brt_hit *hit, const float normal[3],
-                          uint32_t visits, uint64_t tag)
-{
-    (void)user; (void)ray; (void)hit; (void)normal; (void)visits; (void)tag;
-}
-
 /* The rays in flight a stream gets at a budget (0: none), by default. */
 static size_t default_room(brt_scene *scene, const brt_ray *rays, size_t count, uint64_t limit)
 {
-    room_source g;
-    brt_ray_source source;
+    test_source g;
+    const brt_ray_source source = test_source_over(&g, rays, count, 0);
     brt_trace_options opt;
     brt_stats stats;
     brt_error err;
-    memset(&g, 0, sizeof g);
-    g.rays = rays;
-    g.count = count;
-    source.next_rays = room_next;
-    source.finished = room_finished;
-    source.user = &g;
     memset(&opt, 0, sizeof opt);
     opt.memory_limit = limit;
     opt.threads = 1;
