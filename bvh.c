@@ -84,13 +84,15 @@
 ** 4-wide tree by repeatedly opening the child of largest surface area (as
 ** Embree does).  16 bins per axis (fewer, one per triangle, in nodes of
 ** under 16): Wald reports 16 bins within a few percent of the full-sweep
-** SAH, and more bins cost build time.  Costs C_TRAV = 3, C_ISECT = 1: a
-** 4-wide quantized node test (decoding included) costs a few scalar
-** triangle tests, and a higher C_TRAV makes larger leaves, whose
-** triangles share more vertices, so the blob has fewer bytes per triangle
-** (build/bench_bvh prints them, and its speed; callgrind on it counts
-** both tests' instructions).  A leaf holds at most
-** MAX_LEAF = 8 triangles.  Below depth SAH_DEPTH the split is the SAH one;
+** SAH, and more bins cost build time.  Costs C_TRAV = 10, C_ISECT = 1,
+** and leaves of at most MAX_LEAF = 16 triangles: a node visit (its box
+** test, the ordering, the stack, and for the rays that wait on memory a
+** miss) costs many triangle tests now that the resident walk tests a
+** leaf four triangles at once (tri4_candidates), and the larger leaves
+** this makes spare nodes, bytes (their triangles share more vertices)
+** and visits.  make bench-embree measured lower costs and smaller leaves
+** slower on every ray kind, and larger leaves no faster on camera rays
+** (git log -- bvh.c has the runs).  Below depth SAH_DEPTH the split is the SAH one;
 ** deeper (pathological inputs only) the range is halved, so the binary
 ** depth is at most SAH_DEPTH + 32 = MAX_DEPTH and the 4-wide depth no
 ** more: the traversal stack of 3*MAX_DEPTH+1 entries never overflows.
@@ -146,8 +148,8 @@
 #endif
 
 #define BINS 16
-#define MAX_LEAF 8
-#define C_TRAV 3.0f
+#define MAX_LEAF 16
+#define C_TRAV 10.0f
 #define C_ISECT 1.0f
 #define SAH_DEPTH 64
 #define MAX_DEPTH (SAH_DEPTH + 32)
@@ -188,8 +190,9 @@ typedef struct tri4 {
 } tri4;
 
 typedef char fnode_is_two_cache_lines[sizeof(fnode) == 128 ? 1 : -1];
-/* prefetch_resident's steps: a leaf takes at most two blocks of 160 bytes. */
-typedef char tri4_is_160_bytes[sizeof(tri4) == 160 && MAX_LEAF <= 8 ? 1 : -1];
+/* prefetch_resident's lines: a block of 160 bytes starts at a multiple of
+** 32 (after 128-byte nodes, in a 64-byte aligned allocation). */
+typedef char tri4_is_160_bytes[sizeof(tri4) == 160 ? 1 : -1];
 
 struct brt_bvh {
     const qnode *nodes;   /* node_count, root first */
@@ -913,10 +916,10 @@ static inline ALWAYS_INLINE resident_entry resident_slot(const fnode *n, unsigne
 
 /* Starts fetching what the visits of the slots in mask read: both cache
 ** lines of a child node, every line of a leaf's blocks (as prefetch_slots,
-** for the resident layout): 64-byte steps over the 160 bytes of a block,
-** and of two for a leaf of more than four (MAX_LEAF: at most two).
-** Written out, not as a loop over the bytes: callgrind counted that loop
-** among the walk's largest costs. */
+** for the resident layout).  A block of 160 bytes starts at a multiple
+** of 32, so the lines at its start and 64 and 128 bytes on hold it all.
+** Written out per block, not as a loop over the bytes: callgrind counted
+** that loop among the walk's largest costs. */
 static inline ALWAYS_INLINE void prefetch_resident(const brt_bvh *bvh, const fnode *n,
                                                    unsigned mask)
 {
@@ -928,13 +931,12 @@ static inline ALWAYS_INLINE void prefetch_resident(const brt_bvh *bvh, const fno
             __builtin_prefetch(p);
             __builtin_prefetch(p + 64);
         } else {
-            const char *p = (const char *)&bvh->blocks[n->child[i]];
-            __builtin_prefetch(p);
-            __builtin_prefetch(p + 64);
-            __builtin_prefetch(p + 128);
-            if (n->count[i] > 4) {
-                __builtin_prefetch(p + 192);
-                __builtin_prefetch(p + 256);
+            const tri4 *b = &bvh->blocks[n->child[i]];
+            const tri4 *const end = b + leaf_blocks(n->count[i]);
+            for (; b < end; b++) {
+                __builtin_prefetch(b);
+                __builtin_prefetch((const char *)b + 64);
+                __builtin_prefetch((const char *)b + 128);
             }
         }
     }
@@ -2338,7 +2340,7 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **   - Build: binned SAH.  Walk: nearest child without a push, siblings
 **     consecutive in memory, prefetching hit children, the box test as
 **     vectors.  Not kept: 4 KB alignment, a page-grouped node order,
-**     MAX_LEAF 4 or 16, 32 bins.
+**     MAX_LEAF 4, 32 bins.
 **   - Quantized 64-byte nodes and shared vertices with 16-bit offsets
 **     (the BVH2 blob); decoding as vector rows; C_TRAV 3 for larger
 **     leaves.
@@ -2357,7 +2359,9 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     constants set at the first leaf (walk_leaf: camera and random rays
 **     mostly reach none or one).
 **     Two hit slots ordered by one compare, and the prefetches written
-**     out (callgrind on trace counts what each spares).
+**     out (callgrind on trace counts what each spares).  Leaves of up to
+**     16 triangles (C_TRAV 10): tested four at a time, large leaves cost
+**     less than the nodes they spare.
 **     Not kept: the leaf walk as a call (fewer instructions per node,
 **     more per leaf: no gain), the block and box constants broadcast per
 **     ray in separate loops, brt_box_pad inlined into hit_distance, the

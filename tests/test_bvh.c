@@ -1151,6 +1151,7 @@ static void test_empty(void)
 #define FIRST_TRI 52
 #define VERTEX_BASE 56
 #define COUNT 60
+#define MAX_LEAF 16   /* a leaf slot's count is 1..MAX_LEAF (bvh.c) */
 
 static void expect_eformat(const void *blob, size_t size, const char *what)
 {
@@ -1177,7 +1178,7 @@ static int node_has_leaf(const unsigned char *node)
 {
     int slot;
     for (slot = 0; slot < 4; slot++)
-        if (node[COUNT + slot] >= 1 && node[COUNT + slot] <= 8) return 1;
+        if (node[COUNT + slot] >= 1 && node[COUNT + slot] <= MAX_LEAF) return 1;
     return 0;
 }
 
@@ -1370,8 +1371,8 @@ static void test_blob(void)
     memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 3;
     put_u32(bad, HEADER_BYTES + FIRST_TRI, s.tcount - 1);
     expect_eformat(bad, size, "leaf range past the end");
-    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 9;
-    expect_eformat(bad, size, "a leaf of more than 8 triangles");
+    memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = MAX_LEAF + 1;
+    expect_eformat(bad, size, "a leaf of more than MAX_LEAF triangles");
     {   /* the vertex base of the first node with a leaf, past the vertices */
         size_t at = HEADER_BYTES;
         while (!node_has_leaf(blob + at)) at += NODE_BYTES;
@@ -1393,8 +1394,8 @@ static void test_blob(void)
         for (node = 0; node < nodes && !found; node++) {
             unsigned char *c = blob + HEADER_BYTES + NODE_BYTES * (size_t)node + COUNT;
             for (slot = 0; slot + 1 < 4 && !found; slot++) {
-                if ((slot > 0 && c[slot - 1] != 0) || c[slot] == 0 || c[slot] > 8 ||
-                    c[slot + 1] == 0 || c[slot + 1] > 8 || c[slot] + c[slot + 1] > 8 ||
+                if ((slot > 0 && c[slot - 1] != 0) || c[slot] == 0 || c[slot] > MAX_LEAF ||
+                    c[slot + 1] == 0 || c[slot + 1] > MAX_LEAF || c[slot] + c[slot + 1] > MAX_LEAF ||
                     get_u32(blob, HEADER_BYTES + NODE_BYTES * (size_t)node + FIRST_NODE) + slot >= nodes)
                     continue;
                 memcpy(bad, blob, size);
@@ -1414,7 +1415,7 @@ static void test_blob(void)
         for (node = 0; node < nodes && !found; node++) {
             unsigned char *c = blob + HEADER_BYTES + NODE_BYTES * (size_t)node + COUNT;
             for (slot = 0; slot + 1 < 4 && !found; slot++) {
-                if (c[slot] != 0 || c[slot + 1] == 0 || c[slot + 1] > 8) continue;
+                if (c[slot] != 0 || c[slot + 1] == 0 || c[slot + 1] > MAX_LEAF) continue;
                 memcpy(bad, blob, size);
                 bad[c - blob + slot] = c[slot + 1];
                 bad[c - blob + slot + 1] = 0;
