@@ -2361,7 +2361,8 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     Two hit slots ordered by one compare, and the prefetches written
 **     out (callgrind on trace counts what each spares).  Leaves of up to
 **     16 triangles (C_TRAV 10): tested four at a time, large leaves cost
-**     less than the nodes they spare.
+**     less than the nodes they spare.  Not kept: -O3 (GCC unrolls the walk
+**     into more instructions, callgrind counts them).
 **     Not kept: the leaf walk as a call (fewer instructions per node,
 **     more per leaf: no gain), the block and box constants broadcast per
 **     ray in separate loops, brt_box_pad inlined into hit_distance, the
