@@ -850,6 +850,107 @@ static inline ALWAYS_INLINE int walk_triangle(walk *w, const float *const p[3], 
     return 0;
 }
 
+/* ---- leaf blocks: four triangles at once ---- */
+
+/* The lanes of a block that may hold a hit: all but those with a
+** negative and a positive edge function, which tri_intersect rejects.
+** The edge functions are tri_intersect's arithmetic in its order
+** (-ffp-contract=off), so the same bits.  A third edge function of 0
+** changes nothing: tri_intersect then redoes all three in double, and
+** rounding is monotone (a float product or difference keeps the order
+** of the exact values), so a float edge function below or above 0 is so
+** in double too, and the signs still mix.  Each remaining lane then runs
+** tri_intersect itself, so the answers are its own.  Written lane-wise
+** with a select of constants, so GCC -O2 turns it into vector
+** instructions (callgrind on trace counts them). */
+static inline ALWAYS_INLINE const float *block_row(const tri4 *b, int corner, size_t off)
+{
+    return (const float *)(const void *)((const char *)b->v[corner] + off);
+}
+
+static inline ALWAYS_INLINE unsigned tri4_candidates(const block_ray *r, const tri4 *b)
+{
+    static const unsigned lane_bit[4] = {1u, 2u, 4u, 8u};
+    const float *const x0 = block_row(b, 0, r->offx), *const y0 = block_row(b, 0, r->offy);
+    const float *const z0 = block_row(b, 0, r->offz), *const x1 = block_row(b, 1, r->offx);
+    const float *const y1 = block_row(b, 1, r->offy), *const z1 = block_row(b, 1, r->offz);
+    const float *const x2 = block_row(b, 2, r->offx), *const y2 = block_row(b, 2, r->offy);
+    const float *const z2 = block_row(b, 2, r->offz);
+    unsigned bit[4];
+    int i;
+    for (i = 0; i < 4; i++) {
+        const float az = z0[i] - r->oz[i], bz = z1[i] - r->oz[i], cz = z2[i] - r->oz[i];
+        const float ax = (x0[i] - r->ox[i]) - r->sx[i] * az;
+        const float ay = (y0[i] - r->oy[i]) - r->sy[i] * az;
+        const float bx = (x1[i] - r->ox[i]) - r->sx[i] * bz;
+        const float by = (y1[i] - r->oy[i]) - r->sy[i] * bz;
+        const float cx = (x2[i] - r->ox[i]) - r->sx[i] * cz;
+        const float cy = (y2[i] - r->oy[i]) - r->sy[i] * cz;
+        const float eu = cx * by - cy * bx;
+        const float ev = ax * cy - ay * cx;
+        const float ew = bx * ay - by * ax;
+        const int neg = (eu < 0.0f) | (ev < 0.0f) | (ew < 0.0f);
+        const int pos = (eu > 0.0f) | (ev > 0.0f) | (ew > 0.0f);
+        bit[i] = (neg & pos) ? 0u : lane_bit[i];
+    }
+    return bit[0] | bit[1] | bit[2] | bit[3];
+}
+
+/* The first n (1..4) triangles of a block in a walk: the filter, then
+** tri_intersect on the lanes it keeps; 1 when an any-hit walk may stop. */
+static inline ALWAYS_INLINE int block_triangles(walk *w, const tri4 *b, unsigned n)
+{
+    unsigned m = tri4_candidates(&w->kr, b) & ((1u << n) - 1u);
+    for (; m != 0; m &= m - 1) {
+        const unsigned i = lowest_bit[m];
+        float c[3][3];
+        const float *const p[3] = {c[0], c[1], c[2]};
+        int k, a;
+        for (k = 0; k < 3; k++)
+            for (a = 0; a < 3; a++) c[k][a] = b->v[k][a][i];
+        if (walk_triangle(w, p, b->prim[i])) return 1;
+    }
+    return 0;
+}
+
+/* Block b filled with the n (1..4) triangles of a leaf from stored
+** triangle t0 on (node vertex_base vbase): the corners' bits, the
+** reported numbers, and every other byte 0, so that a block is written
+** once.  The decode (resident_leaf_copy) and the quantized walk's leaves
+** (quantized_leaf) fill blocks alike. */
+static void block_fill(const brt_bvh *bvh, uint32_t t0, unsigned n, uint32_t vbase, tri4 *b)
+{
+    unsigned lane;
+    memset(b, 0, sizeof *b);
+    for (lane = 0; lane < n; lane++) {
+        const float *p[3];
+        int j, a;
+        triangle_corners(bvh, t0 + lane, vbase, p);
+        for (j = 0; j < 3; j++)
+            for (a = 0; a < 3; a++) b->v[j][a][lane] = p[j][a];
+        b->prim[lane] = bvh->prim[t0 + lane];
+    }
+}
+
+/* The triangles of a quantized leaf (count of them from stored triangle
+** first), four at a time through a block on the stack, as the resident
+** walk tests them (the same candidates, the same answers); 1 when an
+** any-hit walk may stop.  Why a copy: the block filter rejects most
+** triangles for fewer instructions than their own tests. */
+static int quantized_leaf(const brt_bvh *bvh, walk *w, uint32_t first, uint32_t count,
+                          uint32_t vbase)
+{
+    uint32_t k;
+    walk_leaf(w);
+    for (k = 0; k < count; k += 4) {
+        const unsigned n = count - k < 4 ? count - k : 4;
+        tri4 b;
+        block_fill(bvh, first + k, n, vbase, &b);
+        if (block_triangles(w, &b, n)) return 1;
+    }
+    return 0;
+}
+
 /* Closest hit into *hit (and its triangle's normal into normal, unless
 ** NULL, whenever the hit changes), or (any != 0) returns 1 at the first
 ** hit: the walk over the quantized nodes (a blob read in place).  Empty
@@ -871,7 +972,6 @@ static int traverse_quantized(const brt_bvh *bvh, const brt_ray *ray, const brt_
     cur.vbase = 0;
     cur.lo = ray->tnear;
     for (;;) {
-        uint32_t k;
         while (cur.count == 0) {
             const qnode *n = &bvh->nodes[cur.child];
             const unsigned mask = box_test4(w.br, n, w.tnear, w.tfar, lo) & slot_valid(n);
@@ -879,12 +979,7 @@ static int traverse_quantized(const brt_bvh *bvh, const brt_ray *ray, const brt_
             prefetch_slots(bvh, n, mask);
             sp = next_child(n, mask, lo, stack, sp, &cur);
         }
-        walk_leaf(&w);
-        for (k = cur.child; k < cur.child + cur.count; k++) {
-            const float *p[3];
-            triangle_corners(bvh, k, cur.vbase, p);
-            if (walk_triangle(&w, p, bvh->prim[k])) return 1;
-        }
+        if (quantized_leaf(bvh, &w, cur.child, cur.count, cur.vbase)) return 1;
     pop:
         do {
             if (sp == 0) return 0;
@@ -945,70 +1040,15 @@ static inline ALWAYS_INLINE void prefetch_resident(const brt_bvh *bvh, const fno
 #endif
 }
 
-/* The lanes of a block that may hold a hit: all but those with a
-** negative and a positive edge function, which tri_intersect rejects.
-** The edge functions are tri_intersect's arithmetic in its order
-** (-ffp-contract=off), so the same bits.  A third edge function of 0
-** changes nothing: tri_intersect then redoes all three in double, and
-** rounding is monotone (a float product or difference keeps the order
-** of the exact values), so a float edge function below or above 0 is so
-** in double too, and the signs still mix.  Each remaining lane then runs
-** tri_intersect itself, so the answers are its own.  Written lane-wise
-** with a select of constants, so GCC -O2 turns it into vector
-** instructions (callgrind on trace counts them). */
-static inline ALWAYS_INLINE const float *block_row(const tri4 *b, int corner, size_t off)
-{
-    return (const float *)(const void *)((const char *)b->v[corner] + off);
-}
-
-static inline ALWAYS_INLINE unsigned tri4_candidates(const block_ray *r, const tri4 *b)
-{
-    static const unsigned lane_bit[4] = {1u, 2u, 4u, 8u};
-    const float *const x0 = block_row(b, 0, r->offx), *const y0 = block_row(b, 0, r->offy);
-    const float *const z0 = block_row(b, 0, r->offz), *const x1 = block_row(b, 1, r->offx);
-    const float *const y1 = block_row(b, 1, r->offy), *const z1 = block_row(b, 1, r->offz);
-    const float *const x2 = block_row(b, 2, r->offx), *const y2 = block_row(b, 2, r->offy);
-    const float *const z2 = block_row(b, 2, r->offz);
-    unsigned bit[4];
-    int i;
-    for (i = 0; i < 4; i++) {
-        const float az = z0[i] - r->oz[i], bz = z1[i] - r->oz[i], cz = z2[i] - r->oz[i];
-        const float ax = (x0[i] - r->ox[i]) - r->sx[i] * az;
-        const float ay = (y0[i] - r->oy[i]) - r->sy[i] * az;
-        const float bx = (x1[i] - r->ox[i]) - r->sx[i] * bz;
-        const float by = (y1[i] - r->oy[i]) - r->sy[i] * bz;
-        const float cx = (x2[i] - r->ox[i]) - r->sx[i] * cz;
-        const float cy = (y2[i] - r->oy[i]) - r->sy[i] * cz;
-        const float eu = cx * by - cy * bx;
-        const float ev = ax * cy - ay * cx;
-        const float ew = bx * ay - by * ax;
-        const int neg = (eu < 0.0f) | (ev < 0.0f) | (ew < 0.0f);
-        const int pos = (eu > 0.0f) | (ev > 0.0f) | (ew > 0.0f);
-        bit[i] = (neg & pos) ? 0u : lane_bit[i];
-    }
-    return bit[0] | bit[1] | bit[2] | bit[3];
-}
-
 /* The triangles of a resident leaf (count of them, from block first);
 ** 1 when an any-hit walk may stop. */
 static int resident_leaf(const brt_bvh *bvh, walk *w, uint32_t first, uint32_t count)
 {
     uint32_t j;
     walk_leaf(w);
-    for (j = 0; 4 * j < count; j++) {
-        const tri4 *b = &bvh->blocks[first + j];
-        const unsigned live = count - 4 * j >= 4 ? 15u : (1u << (count - 4 * j)) - 1u;
-        unsigned m = tri4_candidates(&w->kr, b) & live;
-        for (; m != 0; m &= m - 1) {
-            const unsigned i = lowest_bit[m];
-            float c[3][3];
-            const float *const p[3] = {c[0], c[1], c[2]};
-            int k, a;
-            for (k = 0; k < 3; k++)
-                for (a = 0; a < 3; a++) c[k][a] = b->v[k][a][i];
-            if (walk_triangle(w, p, b->prim[i])) return 1;
-        }
-    }
+    for (j = 0; 4 * j < count; j++)
+        if (block_triangles(w, &bvh->blocks[first + j], count - 4 * j < 4 ? count - 4 * j : 4))
+            return 1;
     return 0;
 }
 
@@ -1824,32 +1864,22 @@ static brt_bvh *bvh_from_emitter(const emitter *e)
 
 /* ---- the resident layout, decoded from the quantized one ---- */
 
-/* Writes node i of the resident layout and the blocks of its leaves from
-** block *next on (advanced past them), every byte (unused slots and
-** lanes 0), so that the memory is written once.  The boxes are
-** decode_boxes' floats, so every box test sees the planes the quantized
-** walk decodes, bit for bit; the corners are the stored vertices' bits. */
-/* Copies leaf slot s of node n into the blocks from first on: the
-** corners' bits as structures of arrays, the reported numbers, and 0 in
-** the lanes past the leaf's end. */
+/* Copies leaf slot s of node n into the blocks from first on
+** (block_fill, four triangles a block). */
 static void resident_leaf_copy(const brt_bvh *bvh, const qnode *n, unsigned s, tri4 *first)
 {
     const unsigned count = n->count[s];
     const uint32_t t0 = slot_target(n, s);
     unsigned k;
-    memset(first, 0, leaf_blocks(count) * sizeof(tri4));
-    for (k = 0; k < count; k++) {
-        tri4 *const b = first + k / 4;
-        const unsigned lane = k % 4;
-        const float *p[3];
-        int j, a;
-        triangle_corners(bvh, t0 + k, n->vertex_base, p);
-        for (j = 0; j < 3; j++)
-            for (a = 0; a < 3; a++) b->v[j][a][lane] = p[j][a];
-        b->prim[lane] = bvh->prim[t0 + k];
-    }
+    for (k = 0; k < count; k += 4)
+        block_fill(bvh, t0 + k, count - k < 4 ? count - k : 4, n->vertex_base, first + k / 4);
 }
 
+/* Writes node i of the resident layout and the blocks of its leaves from
+** block *next on (advanced past them), every byte (unused slots and
+** lanes 0), so that the memory is written once.  The boxes are
+** decode_boxes' floats, so every box test sees the planes the quantized
+** walk decodes, bit for bit; the corners are the stored vertices' bits. */
 static void resident_node(const brt_bvh *bvh, uint32_t i, fnode *f, tri4 *blocks,
                           uint32_t *next)
 {
@@ -2361,8 +2391,11 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     Two hit slots ordered by one compare, and the prefetches written
 **     out (callgrind on trace counts what each spares).  Leaves of up to
 **     16 triangles (C_TRAV 10): tested four at a time, large leaves cost
-**     less than the nodes they spare.  Not kept: -O3 (GCC unrolls the walk
-**     into more instructions, callgrind counts them).
+**     less than the nodes they spare; the quantized walk's leaves go
+**     through the same filter, in a block filled on the stack (tested one
+**     by one, its leaves of 16 were slower than those of 8).  Not kept:
+**     -O3 (GCC unrolls the walk into more instructions, callgrind counts
+**     them).
 **     Not kept: the leaf walk as a call (fewer instructions per node,
 **     more per leaf: no gain), the block and box constants broadcast per
 **     ray in separate loops, brt_box_pad inlined into hit_distance, the
