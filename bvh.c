@@ -896,6 +896,13 @@ static inline ALWAYS_INLINE unsigned tri4_candidates(const block_ray *r, const t
     return bit[0] | bit[1] | bit[2] | bit[3];
 }
 
+/* How many of a leaf's count triangles the block from its triangle k
+** holds: four, but fewer in the last. */
+static inline unsigned block_size(uint32_t count, uint32_t k)
+{
+    return count - k < 4 ? count - k : 4;
+}
+
 /* The first n (1..4) triangles of a block in a walk: the filter, then
 ** tri_intersect on the lanes it keeps; 1 when an any-hit walk may stop. */
 static inline ALWAYS_INLINE int block_triangles(walk *w, const tri4 *b, unsigned n)
@@ -943,7 +950,7 @@ static int quantized_leaf(const brt_bvh *bvh, walk *w, uint32_t first, uint32_t 
     uint32_t k;
     walk_leaf(w);
     for (k = 0; k < count; k += 4) {
-        const unsigned n = count - k < 4 ? count - k : 4;
+        const unsigned n = block_size(count, k);
         tri4 b;
         block_fill(bvh, first + k, n, vbase, &b);
         if (block_triangles(w, &b, n)) return 1;
@@ -1044,11 +1051,10 @@ static inline ALWAYS_INLINE void prefetch_resident(const brt_bvh *bvh, const fno
 ** 1 when an any-hit walk may stop. */
 static int resident_leaf(const brt_bvh *bvh, walk *w, uint32_t first, uint32_t count)
 {
-    uint32_t j;
+    uint32_t k;
     walk_leaf(w);
-    for (j = 0; 4 * j < count; j++)
-        if (block_triangles(w, &bvh->blocks[first + j], count - 4 * j < 4 ? count - 4 * j : 4))
-            return 1;
+    for (k = 0; k < count; k += 4)
+        if (block_triangles(w, &bvh->blocks[first + k / 4], block_size(count, k))) return 1;
     return 0;
 }
 
@@ -1872,7 +1878,7 @@ static void resident_leaf_copy(const brt_bvh *bvh, const qnode *n, unsigned s, t
     const uint32_t t0 = slot_target(n, s);
     unsigned k;
     for (k = 0; k < count; k += 4)
-        block_fill(bvh, t0 + k, count - k < 4 ? count - k : 4, n->vertex_base, first + k / 4);
+        block_fill(bvh, t0 + k, block_size(count, k), n->vertex_base, first + k / 4);
 }
 
 /* Writes node i of the resident layout and the blocks of its leaves from
@@ -2372,7 +2378,7 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     vectors.  Not kept: 4 KB alignment, a page-grouped node order,
 **     MAX_LEAF 4, 32 bins.
 **   - Quantized 64-byte nodes and shared vertices with 16-bit offsets
-**     (the BVH2 blob); decoding as vector rows; C_TRAV 3 for larger
+**     (the BVH2 blob); decoding as vector rows; a high C_TRAV for larger
 **     leaves.
 **   - brt_box_span4 vectorized, the near and far rows decoded from their
 **     words, decode_row's lane-3 fix-up, tri_intersect inlined.  Not
@@ -2393,10 +2399,9 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 **     16 triangles (C_TRAV 10): tested four at a time, large leaves cost
 **     less than the nodes they spare; the quantized walk's leaves go
 **     through the same filter, in a block filled on the stack (tested one
-**     by one, its leaves of 16 were slower than those of 8).  Not kept:
-**     -O3 (GCC unrolls the walk into more instructions, callgrind counts
-**     them).
-**     Not kept: the leaf walk as a call (fewer instructions per node,
+**     by one, its leaves of 16 were slower than those of 8).
+**     Not kept: -O3 (GCC unrolls the walk into more instructions,
+**     callgrind counts them), the leaf walk as a call (fewer instructions per node,
 **     more per leaf: no gain), the block and box constants broadcast per
 **     ray in separate loops, brt_box_pad inlined into hit_distance, the
 **     segment's ends kept in four lanes for box_span4 (each: callgrind
