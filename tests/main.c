@@ -6,7 +6,22 @@
 ** Environment: BRT_TEST_SEED=S replays random tests; BRT_SHARED=DIR points
 ** at the shared data (default ../shared, relative to the repository);
 ** TMPDIR is where the scratch folder goes (default /tmp); BRT_TEST_KEEP=1
-** keeps it (for a failure's files).
+** keeps it (for a failure's files); BRT_TEST_JOBS=N runs N tests at once
+** (default: one per online core; 1 runs them in this process, in order);
+** BRT_TEST_TIMES=1 lists every test's seconds, slowest first, before the
+** last line.
+**
+** IN PARALLEL the runner first collects the selected tests (every suite
+** calls test_run, which only records), then forks N workers.  They take
+** test numbers from one pipe, which the runner filled and closed: a read
+** of 4 bytes from a pipe is atomic, so no test runs twice and the workers
+** balance themselves.  Each worker has a scratch folder of its own
+** (wK inside the runner's), so tests that name their files alike cannot
+** meet.  A worker reports "started" and "ended" for each test on a second
+** pipe; a test that started and never ended took its worker down (a
+** crash), and is counted failed with the worker's signal.  The tests are
+** queued longest first (slow_first below: so that no long test starts
+** last and runs alone), then in suite order.
 **
 ** THE SCRATCH FOLDER IS REMOVED HOWEVER THE RUNNER ENDS: a failed test, a
 ** crash, SIGINT, SIGTERM, even SIGKILL.  Signal handlers cannot do that
@@ -28,6 +43,8 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
+#include <sys/wait.h>
+#include <time.h>
 #include <unistd.h>
 
 static int passed, failed, skipped;
@@ -35,7 +52,23 @@ static int current_failed, current_skipped;
 static const char *current_name = "";
 static char **filters;
 static int filter_count;
-static char tmpdir[512];
+static char tmpdir[512];        /* the runner's scratch folder */
+static char worker_dir[600];    /* a worker's own, inside it; "" when sequential */
+
+/* The selected tests, collected before any runs (run_parallel). */
+typedef struct { const char *name; test_fn fn; double seconds; } test_entry;
+static test_entry *tests;
+static int test_count, collecting;
+
+/* Name pieces of the slowest tests (BRT_TEST_TIMES=1 lists them), queued
+** first by run_parallel so that none of them starts last. */
+static const char *const slow_first[] = {
+    "cli: SIGINT and SIGTERM while tracing", "svdag: end to end, shared meshes", "render: same image in every mode",
+    "embree: instanced landscape", "render: shadow rays", "build: batched == direct, shared meshes",
+    "bvh: crown ==", "mpi: == trace --direct", "embree: hitdiff --mesh explains every disagreement, crown",
+    "bvh: fg_oahu ==", "mpi: a failed rank", "bvh: dragon ==", "svdag: grazing directions", "occlusion: batched ==",
+    "threads: trace and render outputs equal", NULL
+};
 
 static int selected(const char *name)
 {
@@ -46,16 +79,43 @@ static int selected(const char *name)
     return 0;
 }
 
-void test_run(const char *name, test_fn fn)
+static double now_seconds(void)
 {
-    if (!selected(name)) return;
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+/* Runs one test here; its outcome: 1 passed, 2 failed, 3 skipped. */
+static int run_one(const char *name, test_fn fn)
+{
     current_name = name;
     current_failed = current_skipped = 0;
     fn();
-    if (current_failed) failed++;
-    else if (current_skipped) skipped++;
-    else passed++;
     fflush(stdout);
+    return current_failed ? 2 : current_skipped ? 3 : 1;
+}
+
+static void count(int outcome)
+{
+    if (outcome == 1) passed++;
+    else if (outcome == 2) failed++;
+    else skipped++;
+}
+
+void test_run(const char *name, test_fn fn)
+{
+    if (!selected(name)) return;
+    if (collecting) {
+        test_entry *grown = realloc(tests, (size_t)(test_count + 1) * sizeof *tests);
+        if (!grown) { fprintf(stderr, "run_tests: out of memory\n"); exit(2); }
+        tests = grown;
+        tests[test_count].name = name;
+        tests[test_count].fn = fn;
+        tests[test_count++].seconds = -1;
+        return;
+    }
+    count(run_one(name, fn));
 }
 
 void test_fail_at(const char *file, int line, const char *fmt, ...)
@@ -90,7 +150,7 @@ uint64_t test_seed(void)
 
 const char *test_tmpdir(void)
 {
-    return tmpdir;
+    return worker_dir[0] ? worker_dir : tmpdir;
 }
 
 const char *test_shared_mesh(const char *name)
@@ -110,9 +170,12 @@ const char *test_shared_mesh(const char *name)
         return out;
     }
     /* Unpack once per run with the system's gzip: the library reads no gzip. */
-    snprintf(out, 1024, "%s/%.*s", test_tmpdir(), (int)(len - 3), name);
+    /* Into the runner's folder, shared by its workers: each writes its own
+    ** part file and renames it, so a reader sees a whole file or none. */
+    snprintf(out, 1024, "%s/%.*s", tmpdir, (int)(len - 3), name);
     if (stat(out, &st) == 0) return out;
-    snprintf(cmd, sizeof cmd, "gzip -dc '%s' > '%s.part' && mv '%s.part' '%s'", src, out, out, out);
+    snprintf(cmd, sizeof cmd, "gzip -dc '%s' > '%s.%ld' && mv '%s.%ld' '%s'", src, out, (long)getpid(), out,
+             (long)getpid(), out);
     if (system(cmd) != 0) return NULL;
     return out;
 }
@@ -184,14 +247,8 @@ static void runner_selfcheck(void)
     CHECK(0, "failed on purpose (BRT_TEST_SELFCHECK=%s)", mode);
 }
 
-int main(int argc, char **argv)
+static void run_suites(void)
 {
-    int keep = getenv("BRT_TEST_KEEP") != NULL;
-    filters = argv + 1;
-    filter_count = argc - 1;
-    setvbuf(stdout, NULL, _IOLBF, 0);
-    make_tmpdir(keep);
-    if (getenv("BRT_TEST_SELFCHECK")) test_run("runner: self-check", runner_selfcheck);
     suite_mesh();
     suite_bvh();
     suite_svdag();
@@ -218,6 +275,159 @@ int main(int argc, char **argv)
     suite_pbrt();
     suite_policy();
     suite_runner();
+}
+
+/* What a worker tells the runner: test number, 0 started / outcome, seconds. */
+typedef struct { int index, what; double seconds; } report;
+
+static void write_all(int fd, const void *data, size_t size)
+{
+    const char *p = data;
+    while (size > 0) {
+        ssize_t n = write(fd, p, size);
+        if (n < 0 && errno == EINTR) continue;
+        if (n <= 0) _exit(3);
+        p += n;
+        size -= (size_t)n;
+    }
+}
+
+/* A worker: takes test numbers from queue until it is empty, runs each in
+** its own scratch folder, reports on results. */
+static void worker(int id, int queue, int results)
+{
+    int index;
+    snprintf(worker_dir, sizeof worker_dir, "%s/w%d", tmpdir, id);
+    mkdir(worker_dir, 0700);
+    while (read(queue, &index, sizeof index) == (ssize_t)sizeof index) {
+        report r;
+        double start = now_seconds();
+        r.index = index;
+        r.what = 0;
+        r.seconds = 0;
+        write_all(results, &r, sizeof r);
+        r.what = run_one(tests[index].name, tests[index].fn);
+        r.seconds = now_seconds() - start;
+        write_all(results, &r, sizeof r);
+    }
+    _exit(0);
+}
+
+/* The queue's order: the tests slow_first names, in its order, then the rest. */
+static void queue_tests(int fd)
+{
+    char *queued = calloc((size_t)test_count, 1);
+    int i, k;
+    if (!queued) { fprintf(stderr, "run_tests: out of memory\n"); exit(2); }
+    for (k = 0; slow_first[k]; k++)
+        for (i = 0; i < test_count; i++)
+            if (!queued[i] && strstr(tests[i].name, slow_first[k])) {
+                queued[i] = 1;
+                write_all(fd, &i, sizeof i);
+            }
+    for (i = 0; i < test_count; i++)
+        if (!queued[i]) write_all(fd, &i, sizeof i);
+    free(queued);
+}
+
+/* Runs the collected tests in jobs workers (see the top of this file). */
+static void run_parallel(int jobs)
+{
+    int queue[2], results[2], w, *started_by = NULL, *outcome = NULL, i;
+    pid_t *pids = calloc((size_t)jobs, sizeof *pids);
+    report r;
+    if (!pids || pipe(queue) != 0 || pipe(results) != 0) {
+        fprintf(stderr, "run_tests: cannot make the workers' pipes\n");
+        exit(2);
+    }
+    /* Filled before any worker starts, and closed: a pipe holds 16384
+    ** test numbers at least, more than the suite has. */
+    queue_tests(queue[1]);
+    close(queue[1]);
+    fcntl(queue[0], F_SETFD, FD_CLOEXEC);
+    fcntl(results[1], F_SETFD, FD_CLOEXEC);
+    fflush(stdout);
+    for (w = 0; w < jobs; w++) {
+        pids[w] = fork();
+        if (pids[w] == 0) {
+            close(results[0]);
+            worker(w, queue[0], results[1]);
+        }
+    }
+    close(queue[0]);
+    close(results[1]);
+    started_by = calloc((size_t)test_count, sizeof *started_by);
+    outcome = calloc((size_t)test_count, sizeof *outcome);
+    if (!started_by || !outcome) { fprintf(stderr, "run_tests: out of memory\n"); exit(2); }
+    for (;;) {
+        ssize_t n = read(results[0], &r, sizeof r);
+        if (n < 0 && errno == EINTR) continue;
+        if (n != (ssize_t)sizeof r) break;
+        if (r.index < 0 || r.index >= test_count) continue;
+        if (r.what == 0) started_by[r.index] = 1;
+        else {
+            outcome[r.index] = r.what;
+            tests[r.index].seconds = r.seconds;
+        }
+    }
+    close(results[0]);
+    for (w = 0; w < jobs; w++) {
+        int status;
+        if (pids[w] <= 0 || waitpid(pids[w], &status, 0) != pids[w]) continue;
+        if (WIFSIGNALED(status))
+            printf("run_tests: worker %d died of signal %d\n", w, WTERMSIG(status));
+    }
+    for (i = 0; i < test_count; i++) {
+        if (outcome[i] == 0) {
+            printf("FAIL %s: %s\n", tests[i].name,
+                   started_by[i] ? "its worker died during the test (a crash)" : "never ran: every worker ended");
+            outcome[i] = 2;
+        }
+        count(outcome[i]);
+    }
+    free(started_by);
+    free(outcome);
+    free(pids);
+}
+
+static int slower(const void *a, const void *b)
+{
+    double x = ((const test_entry *)a)->seconds, y = ((const test_entry *)b)->seconds;
+    return x < y ? 1 : x > y ? -1 : 0;
+}
+
+static int job_count(void)
+{
+    const char *s = getenv("BRT_TEST_JOBS");
+    long n = s ? strtol(s, NULL, 10) : sysconf(_SC_NPROCESSORS_ONLN);
+    return n < 1 ? 1 : n > 64 ? 64 : (int)n;
+}
+
+int main(int argc, char **argv)
+{
+    int keep = getenv("BRT_TEST_KEEP") != NULL, jobs = job_count(), i;
+    filters = argv + 1;
+    filter_count = argc - 1;
+    setvbuf(stdout, NULL, _IOLBF, 0);
+    make_tmpdir(keep);
+    if (getenv("BRT_TEST_SELFCHECK")) test_run("runner: self-check", runner_selfcheck);
+    collecting = 1;
+    run_suites();
+    collecting = 0;
+    if (jobs > test_count) jobs = test_count;
+    if (jobs <= 1) {
+        for (i = 0; i < test_count; i++) {
+            double start = now_seconds();
+            count(run_one(tests[i].name, tests[i].fn));
+            tests[i].seconds = now_seconds() - start;
+        }
+    } else
+        run_parallel(jobs);
+    if (getenv("BRT_TEST_TIMES")) {
+        qsort(tests, (size_t)test_count, sizeof *tests, slower);
+        for (i = 0; i < test_count; i++) printf("%8.2f s  %s\n", tests[i].seconds, tests[i].name);
+    }
+    free(tests);
     if (!keep) remove_tmpdir();
     else printf("scratch files kept in %s\n", tmpdir);
     if (skipped) printf("(%d skipped, see SKIP lines above)\n", skipped);
