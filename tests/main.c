@@ -9,7 +9,8 @@
 ** keeps it (for a failure's files); BRT_TEST_JOBS=N runs N tests at once
 ** (default: one per online core; 1 runs them in this process, in order);
 ** BRT_TEST_TIMES=1 lists every test's seconds, slowest first, before the
-** last line.
+** last line; BRT_TEST_FAILFAST=1 starts no test after the first failure
+** (make mutants-sample: a mutant is killed by the first failure).
 **
 ** IN PARALLEL the runner first collects the selected tests (every suite
 ** calls test_run, which only records), then forks N workers.  They take
@@ -58,7 +59,7 @@ static char worker_dir[600];    /* a worker's own, inside it; "" when sequential
 /* The selected tests, collected before any runs (run_parallel). */
 typedef struct { const char *name; test_fn fn; double seconds; } test_entry;
 static test_entry *tests;
-static int test_count, collecting;
+static int test_count, collecting, failfast;
 
 /* Name pieces of the slowest tests (BRT_TEST_TIMES=1 lists them), queued
 ** first by run_parallel so that none of them starts last. */
@@ -249,6 +250,7 @@ static void runner_selfcheck(void)
 
 static void run_suites(void)
 {
+    if (getenv("BRT_TEST_SELFCHECK")) test_run("runner: self-check", runner_selfcheck);
     suite_mesh();
     suite_bvh();
     suite_svdag();
@@ -333,7 +335,7 @@ static void queue_tests(int fd)
 /* Runs the collected tests in jobs workers (see the top of this file). */
 static void run_parallel(int jobs)
 {
-    int queue[2], results[2], w, *started_by = NULL, *outcome = NULL, i;
+    int queue[2], results[2], w, *started_by = NULL, *outcome = NULL, i, stopped = 0;
     pid_t *pids = calloc((size_t)jobs, sizeof *pids);
     report r;
     if (!pids || pipe(queue) != 0 || pipe(results) != 0) {
@@ -345,6 +347,7 @@ static void run_parallel(int jobs)
     queue_tests(queue[1]);
     close(queue[1]);
     fcntl(queue[0], F_SETFD, FD_CLOEXEC);
+    if (failfast) fcntl(queue[0], F_SETFL, fcntl(queue[0], F_GETFL) | O_NONBLOCK);
     fcntl(results[1], F_SETFD, FD_CLOEXEC);
     fflush(stdout);
     for (w = 0; w < jobs; w++) {
@@ -354,7 +357,6 @@ static void run_parallel(int jobs)
             worker(w, queue[0], results[1]);
         }
     }
-    close(queue[0]);
     close(results[1]);
     started_by = calloc((size_t)test_count, sizeof *started_by);
     outcome = calloc((size_t)test_count, sizeof *outcome);
@@ -369,7 +371,12 @@ static void run_parallel(int jobs)
             outcome[r.index] = r.what;
             tests[r.index].seconds = r.seconds;
         }
+        /* Fail fast: the runner empties the queue itself, so the workers
+        ** end after the tests they are running. */
+        if (failfast && r.what == 2 && !stopped++)
+            while (read(queue[0], &i, sizeof i) == (ssize_t)sizeof i) continue;
     }
+    close(queue[0]);
     close(results[0]);
     for (w = 0; w < jobs; w++) {
         int status;
@@ -378,6 +385,7 @@ static void run_parallel(int jobs)
             printf("run_tests: worker %d died of signal %d\n", w, WTERMSIG(status));
     }
     for (i = 0; i < test_count; i++) {
+        if (outcome[i] == 0 && !started_by[i] && stopped) continue;   /* not run: failed fast */
         if (outcome[i] == 0) {
             printf("FAIL %s: %s\n", tests[i].name,
                    started_by[i] ? "its worker died during the test (a crash)" : "never ran: every worker ended");
@@ -408,15 +416,15 @@ int main(int argc, char **argv)
     int keep = getenv("BRT_TEST_KEEP") != NULL, jobs = job_count(), i;
     filters = argv + 1;
     filter_count = argc - 1;
+    failfast = getenv("BRT_TEST_FAILFAST") != NULL;
     setvbuf(stdout, NULL, _IOLBF, 0);
     make_tmpdir(keep);
-    if (getenv("BRT_TEST_SELFCHECK")) test_run("runner: self-check", runner_selfcheck);
     collecting = 1;
     run_suites();
     collecting = 0;
     if (jobs > test_count) jobs = test_count;
     if (jobs <= 1) {
-        for (i = 0; i < test_count; i++) {
+        for (i = 0; i < test_count && !(failfast && failed); i++) {
             double start = now_seconds();
             count(run_one(tests[i].name, tests[i].fn));
             tests[i].seconds = now_seconds() - start;

@@ -113,9 +113,53 @@ static void test_scratch_kept_in_tmpdir(void)
     EXPECT(system(cmd) == 0, "could not clean /tmp");
 }
 
+/* Runs the runner with the self-check in mode beside the sampling tests,
+** jobs workers and fail-fast or not; its last line into last (or "").
+** Returns its status. */
+static int run_mixed(const char *mode, const char *jobs, int fail_fast, char *last, size_t size)
+{
+    const char *build = getenv("BRT_BUILD");
+    char cmd[3000], out[1024];
+    int status;
+    FILE *f;
+    snprintf(out, sizeof out, "%s/runner-mixed.out", test_tmpdir());
+    snprintf(cmd, sizeof cmd,
+             "BRT_TEST_SELFCHECK=%s BRT_TEST_JOBS=%s %s TMPDIR='%s' %s/run_tests 'runner: self-check' sampling: "
+             "> '%s' 2>&1",
+             mode, jobs, fail_fast ? "BRT_TEST_FAILFAST=1" : "", test_tmpdir(), build ? build : "build", out);
+    status = system(cmd);
+    last[0] = 0;
+    f = fopen(out, "r");
+    if (f) {
+        char line[1024];
+        while (fgets(line, sizeof line, f)) snprintf(last, size, "%s", line);
+        fclose(f);
+    }
+    return status;
+}
+
+/* In parallel (two workers), a test that crashes is one FAIL line and
+** every other test still runs; with BRT_TEST_FAILFAST no test starts
+** after the first failure (one worker: the self-check is queued first). */
+static void test_parallel_outcomes(void)
+{
+    char last[1024], expected[64];
+    int status, sampling;
+    status = run_mixed("fail", "1", 0, last, sizeof last);
+    CHECK(sscanf(last, "%d passed, 1 failed", &sampling) == 1 && sampling > 1, "one worker: last line '%s'", last);
+    status = run_mixed("segv", "2", 0, last, sizeof last);
+    snprintf(expected, sizeof expected, "%d passed, 1 failed\n", sampling);
+    EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 1, "a crash in parallel: status %d", status);
+    EXPECT(strcmp(last, expected) == 0, "a crash in parallel: last line '%s', not '%s'", last, expected);
+    status = run_mixed("fail", "1", 1, last, sizeof last);
+    EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 1, "fail fast: status %d", status);
+    EXPECT(strcmp(last, "0 passed, 1 failed\n") == 0, "fail fast: last line '%s'", last);
+}
+
 void suite_runner(void)
 {
     test_run("runner: the scratch folder is removed on failure, crash, SIGINT and SIGTERM",
              test_scratch_removed);
     test_run("runner: the scratch folder goes to TMPDIR, kept with BRT_TEST_KEEP", test_scratch_kept_in_tmpdir);
+    test_run("runner: in parallel a crash is one FAIL and the rest run; fail fast stops", test_parallel_outcomes);
 }

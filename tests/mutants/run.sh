@@ -7,9 +7,17 @@
 # For each mutant the script copies the tree (sources and build/, so only
 # the mutated file is recompiled), applies the replacement, rebuilds with
 # make -j2 and runs build/run_tests with the mutant's test filters.  The
-# mutant must make them fail.  The table it prints says, for each mutant:
-#   killed    some test failed (the FAIL lines name which)
+# mutant must make them fail, FOR ITS MECHANISM: the entry's `expect`
+# names a piece of the failure message that the broken mechanism causes,
+# and some FAIL line must contain it.  A mutant that dies of a side
+# effect (a NaN that fails another check, a crash, a timeout) has not
+# shown that a test guards its mechanism.  The table it prints says, for
+# each mutant:
+#   killed    a selected test failed with the expected message (the FAIL
+#             lines name which; the first message is shown)
 #   SURVIVED  every selected test passed: the mechanism is unguarded
+#   WRONG     the tests failed, but not with the expected message, or by a
+#             crash or a timeout: the mutant or its expect needs a look
 #   ERROR     the original text is not in the file, or is there more than
 #             once (the list needs updating), or the mutant does not build
 # Usage: sh tests/mutants/run.sh [NAME-SUBSTRING...]   (no argument: all)
@@ -60,8 +68,8 @@ selected() {
     return 1
 }
 
-total=0; killed=0; survived=0; errors=0
-printf '| mutant | mechanism | killed? | by |\n|---|---|---|---|\n'
+total=0; killed=0; survived=0; errors=0; wrong=0
+printf '| mutant | mechanism | killed? | by | first failure |\n|---|---|---|---|---|\n'
 run_one() {
     total=$((total + 1))
     dir=$scratch/m
@@ -69,7 +77,7 @@ run_one() {
     n=$(FIND=$find REPL=$repl apply "$dir/$file" 2>/dev/null)
     if [ "$n" != 1 ]; then
         errors=$((errors + 1))
-        printf '| %s | %s | ERROR | original text found %s times in %s |\n' "$name" "$mech" "${n:-0}" "$file"
+        printf '| %s | %s | ERROR | original text found %s times in %s | |\n' "$name" "$mech" "${n:-0}" "$file"
         return
     fi
     # build/mpi_trace too when the pristine tree has it (make mpi): the MPI
@@ -77,7 +85,7 @@ run_one() {
     if ! make -C "$dir" --no-print-directory -j2 all build/run_tests \
             $([ -x "$root/build/mpi_trace" ] && echo build/mpi_trace) >"$dir/build.log" 2>&1; then
         errors=$((errors + 1))
-        printf '| %s | %s | ERROR | does not build |\n' "$name" "$mech"
+        printf '| %s | %s | ERROR | does not build | |\n' "$name" "$mech"
         return
     fi
     run=${MUTANTS_TESTS-$tests}
@@ -93,23 +101,30 @@ run_one() {
     status=$?
     by=$(awk '/^FAIL / { i = index($0, ": tests/"); if (i > 6) print substr($0, 6, i - 6) }' \
              "$dir/test.log" | sort -u | awk 'NR > 1 { printf ", " } { printf "%s", $0 }')
+    # The first FAIL line's message, without "FAIL name: file:line: " and
+    # the seed (a table cell: no | characters).
+    first=$(awk '/^FAIL / { i = index($0, ": tests/"); m = substr($0, i + 2); sub(/^[^ ]*: /, "", m);
+                sub(/ \(seed [0-9]*\)$/, "", m); gsub(/\|/, "/", m); print substr(m, 1, 120); exit }' "$dir/test.log")
     if [ "$status" -eq 0 ]; then
         survived=$((survived + 1))
-        printf '| %s | %s | SURVIVED | (ran: %s) |\n' "$name" "$mech" "${run:-all}"
+        printf '| %s | %s | SURVIVED | (ran: %s) | |\n' "$name" "$mech" "${run:-all}"
         return
     fi
-    killed=$((killed + 1))
-    if [ "$status" -eq 124 ]; then by="${by:+$by, }timeout after ${timeout_s}s"
+    verdict=yes
+    if [ "$status" -eq 124 ]; then by="${by:+$by, }timeout after ${timeout_s}s"; verdict=WRONG
     elif [ "$status" -gt 128 ]; then
-        by="${by:+$by, }crash (signal $((status - 128)))"
+        by="${by:+$by, }crash (signal $((status - 128)))"; verdict=WRONG
     fi
-    printf '| %s | %s | yes | %s |\n' "$name" "$mech" "${by:-exit status $status}"
+    if [ -n "$expect" ] && ! grep '^FAIL ' "$dir/test.log" | grep -F -q -- "$expect"; then verdict=WRONG; fi
+    if [ "$verdict" = yes ]; then killed=$((killed + 1)); else wrong=$((wrong + 1)); fi
+    printf '| %s | %s | %s | %s | %s |\n' "$name" "$mech" "$verdict" "${by:-exit status $status}" "$first"
 }
 
 # The list: blocks of "key: value" lines separated by blank lines; keys
 # name, file, mechanism, tests (run_tests filters separated by |), find,
-# replace.  Lines starting with # are comments.
-name=; file=; mech=; tests=; find=; repl=; have_repl=0
+# replace, expect (a piece of the failure message the mechanism causes).
+# Lines starting with # are comments.
+name=; file=; mech=; tests=; find=; repl=; have_repl=0; expect=
 flush() {
     if [ -n "$name" ] && selected "$@"; then
         if [ -z "$file" ] || [ -z "$find" ] || [ "$have_repl" = 0 ]; then
@@ -119,7 +134,7 @@ flush() {
             run_one
         fi
     fi
-    name=; file=; mech=; tests=; find=; repl=; have_repl=0
+    name=; file=; mech=; tests=; find=; repl=; have_repl=0; expect=
 }
 while IFS= read -r line || [ -n "$line" ]; do
     case $line in
@@ -136,11 +151,12 @@ while IFS= read -r line || [ -n "$line" ]; do
     tests) tests=$value ;;
     find) find=$value ;;
     replace) repl=$value; have_repl=1 ;;
+    expect) expect=$value ;;
     *) echo "mutants.txt: unknown key '$key'" >&2; exit 1 ;;
     esac
 done <"$list"
 flush "$@"
 
 echo
-echo "$total mutants: $killed killed, $survived survived, $errors errors"
-[ "$survived" -eq 0 ] && [ "$errors" -eq 0 ]
+echo "$total mutants: $killed killed, $survived survived, $wrong killed by the wrong failure, $errors errors"
+[ "$survived" -eq 0 ] && [ "$errors" -eq 0 ] && [ "$wrong" -eq 0 ]
