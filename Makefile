@@ -9,6 +9,7 @@
 #   make bench-threads  speed-ups at 1 and 2 threads (README, "Threads")
 #   make bench-pbrt   pbrt and OBJ reading speed on the same triangles
 #   make mutants      mutation testing of the suite (tests/mutants/)
+#   make mutants-sample [N=40] [SEED=1] [FILES=...]  mutants drawn at random
 #   make install      library, header and batchrt.pc under $(DESTDIR)$(PREFIX)
 #   make uninstall    removes them; make install-check: see INSTALL below
 #   make clean
@@ -108,6 +109,17 @@ test: all $(TEST_BIN) $(MPI_FOR_TESTS) $(if $(T),,install-check)
 # contain NAME.  Not part of "make test": it runs the suite once per mutant.
 mutants: all $(TEST_BIN)
 	sh tests/mutants/run.sh $(M)
+
+# Mutants nobody chose (tests/mutants/sample.sh): N mutation operators at
+# lines drawn at random (SEED) from FILES, each run against the whole
+# suite, stopping at its first failure; prints the kill rate and every
+# survivor's diff (README, Tests).  Slow: minutes per surviving mutant.
+N     ?= 40
+SEED  ?= 1
+FILES ?= batchrt.c bvh.c svdag.c
+.PHONY: mutants-sample
+mutants-sample: all $(TEST_BIN)
+	sh tests/mutants/sample.sh $(N) $(SEED) $(FILES)
 
 # The suite with the library's assert()ed invariants compiled in (BRT_DEBUG:
 # heap order, walk keys, cache pins and bytes, queued rays admitted by their

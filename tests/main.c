@@ -60,6 +60,9 @@ static char worker_dir[600];    /* a worker's own, inside it; "" when sequential
 typedef struct { const char *name; test_fn fn; double seconds; } test_entry;
 static test_entry *tests;
 static int test_count, collecting, failfast;
+/* Every test's name, whatever the filters (test_registered). */
+static const char **all_names;
+static int all_count, listing;
 
 /* Name pieces of the slowest tests (BRT_TEST_TIMES=1 lists them), queued
 ** first by run_parallel so that none of them starts last. */
@@ -106,6 +109,13 @@ static void count(int outcome)
 
 void test_run(const char *name, test_fn fn)
 {
+    if (listing) {
+        const char **grown = realloc(all_names, (size_t)(all_count + 1) * sizeof *all_names);
+        if (!grown) { fprintf(stderr, "run_tests: out of memory\n"); exit(2); }
+        all_names = grown;
+        all_names[all_count++] = name;
+        return;
+    }
     if (!selected(name)) return;
     if (collecting) {
         test_entry *grown = realloc(tests, (size_t)(test_count + 1) * sizeof *tests);
@@ -277,6 +287,19 @@ static void run_suites(void)
     suite_pbrt();
     suite_policy();
     suite_runner();
+}
+
+int test_registered(const char *name)
+{
+    int i;
+    if (!all_names) {
+        listing = 1;
+        run_suites();
+        listing = 0;
+    }
+    for (i = 0; i < all_count; i++)
+        if (strcmp(all_names[i], name) == 0) return 1;
+    return 0;
 }
 
 /* What a worker tells the runner: test number, 0 started / outcome, seconds. */

@@ -36,6 +36,9 @@ void test_skip(const char *fmt, ...)
 #endif
     ;
 
+/* Is a test of this exact name in the suite (filters aside)? */
+int test_registered(const char *name);
+
 int test_failed(void);          /* has the running test failed so far? */
 uint64_t test_seed(void);       /* BRT_TEST_SEED or a fixed default */
 

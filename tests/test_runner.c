@@ -156,10 +156,45 @@ static void test_parallel_outcomes(void)
     EXPECT(strcmp(last, "0 passed, 1 failed\n") == 0, "fail fast: last line '%s'", last);
 }
 
+/* tests/contract.md pairs each statement of the README with the tests
+** that fail when it turns false.  Every name it quotes (between
+** backquotes, in the last cell of a table row) must be a test of the
+** suite, and every statement must name one at least: a renamed or
+** removed test cannot leave a statement unguarded without this failing. */
+static void test_contract_names(void)
+{
+    FILE *f = fopen("tests/contract.md", "r");
+    char line[4096];
+    int rows = 0, names = 0, number = 0;
+    CHECK(f, "cannot open tests/contract.md (run from the repository's top)");
+    while (fgets(line, sizeof line, f)) {
+        char *cell = strrchr(line, '|'), *p;
+        int here = 0;
+        number++;
+        if (line[0] != '|' || strncmp(line, "|---", 4) == 0 || strncmp(line, "| statement", 11) == 0) continue;
+        *cell = 0;
+        cell = strrchr(line, '|');
+        rows++;
+        for (p = strchr(cell, '`'); p; p = strchr(p + 1, '`')) {
+            char *end = strchr(p + 1, '`');
+            if (!end) break;
+            *end = 0;
+            here++;
+            EXPECT(test_registered(p + 1), "tests/contract.md:%d: no test named '%s'", number, p + 1);
+            p = end;
+        }
+        EXPECT(here > 0, "tests/contract.md:%d: a statement that names no test", number);
+        names += here;
+    }
+    fclose(f);
+    EXPECT(rows >= 50 && names >= rows, "tests/contract.md: %d statements, %d test names", rows, names);
+}
+
 void suite_runner(void)
 {
     test_run("runner: the scratch folder is removed on failure, crash, SIGINT and SIGTERM",
              test_scratch_removed);
     test_run("runner: the scratch folder goes to TMPDIR, kept with BRT_TEST_KEEP", test_scratch_kept_in_tmpdir);
     test_run("runner: in parallel a crash is one FAIL and the rest run; fail fast stops", test_parallel_outcomes);
+    test_run("runner: every test tests/contract.md names exists", test_contract_names);
 }
