@@ -376,6 +376,57 @@ static void test_obj_no_triangles(void)
     expect_obj_failure("# only a comment\n\n", ": ", "no triangles");
 }
 
+/* An error's place is where the first mistake is, however far into the
+** file: past the readers' 1 MiB read buffer and the 65,536-triangle
+** chunks of the stream, with CRLF lines counted once, and with the same
+** mistake again later (the message names the first, not the last).  The
+** expected places are counted here, from the text written. */
+static void test_error_place_far_and_twice(void)
+{
+    static const char *const endings[] = {"\n", "\r\n"};
+    const unsigned long faces = 150000;         /* about 1.2 MB of faces */
+    buffer b = {0, 0, 0};
+    unsigned long i, e;
+    char where[64];
+    for (e = 0; e < 2 && !test_failed(); e++) {
+        const char *nl = endings[e];
+        b.size = 0;
+        put_text(&b, "v 0 0 0%sv 1 0 0%sv 0 1 0%s", nl, nl, nl);
+        for (i = 0; i < faces; i++) put_text(&b, "f 1 2 3%s", nl);
+        put_text(&b, "f 1 2 7%s", nl);                          /* line faces + 4 */
+        for (i = 0; i < 4; i++) put_text(&b, "f 3 2 1%s", nl);
+        put_text(&b, "f 1 2 9%s", nl);                          /* the same mistake again */
+        snprintf(where, sizeof where, ":%lu:", faces + 4);
+        expect_failure(0, (const char *)b.data, b.size, BRT_EPARSE, where, "vertex index 7 out of range");
+    }
+    /* Binary PLY: faces are counted as records of their element. */
+    b.size = 0;
+    put_text(&b, "ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n"
+                 "property float y\nproperty float z\nelement face %lu\n"
+                 "property list uchar int vertex_indices\nend_header\n", faces);
+    for (i = 0; i < 9; i++) {
+        float x = (i == 3 || i == 7) ? 1.0f : 0.0f;
+        put_bytes(&b, &x, 4);
+    }
+    for (i = 0; i < faces; i++) {
+        unsigned char n = 3;
+        int32_t v[3] = {0, 1, 2};
+        if (i == faces - 70 || i == faces - 3) v[2] = (int32_t)(i == faces - 70 ? 5 : 6);
+        put_bytes(&b, &n, 1);
+        put_bytes(&b, v, sizeof v);
+    }
+    snprintf(where, sizeof where, ": element face %lu:", faces - 70);
+    expect_failure(1, (const char *)b.data, b.size, BRT_EPARSE, where, "vertex index 5 out of range");
+    /* ASCII PLY: lines, the header's included. */
+    b.size = 0;
+    put_text(&b, "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                 "property float z\nelement face %lu\nproperty list uchar int vertex_indices\nend_header\n"
+                 "0 0 0\n1 0 0\n0 1 0\n", faces);
+    for (i = 0; i < faces; i++) put_text(&b, i == 70000 ? "3 0 1 8\n" : i == 70001 ? "3 0 1 9\n" : "3 0 1 2\n");
+    expect_failure(1, (const char *)b.data, b.size, BRT_EPARSE, ":70013:", "vertex index 8 out of range");
+    free(b.data);
+}
+
 /* A truncated file is a shorter file: every proper prefix of this OBJ
 ** (short of its final newline) fails with a located parse error. */
 static void test_obj_every_prefix(void)
@@ -1256,6 +1307,7 @@ void suite_mesh(void)
     test_run("mesh: obj face with fewer than 3 vertices", test_obj_short_face);
     test_run("mesh: obj no triangles", test_obj_no_triangles);
     test_run("mesh: obj every prefix", test_obj_every_prefix);
+    test_run("mesh: an error's place far into the file, and its first occurrence", test_error_place_far_and_twice);
     test_run("mesh: format by content", test_format_by_content);
     test_run("mesh: missing file", test_missing_file);
     test_run("mesh: ply all flavours equal obj", test_ply_all_flavours_match_obj);
