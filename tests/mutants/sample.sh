@@ -140,6 +140,7 @@ mutate() {
 }
 
 total=0; killed=0; survived=0; equiv=0; drawn=0
+: >"$scratch/results"
 printf '| # | file:line | original | mutant | result |\n|---:|---|---|---|---|\n'
 : >"$scratch/survivors"
 while IFS='	' read -r file ln; do
@@ -173,6 +174,7 @@ while IFS='	' read -r file ln; do
         survived=$((survived + 1)); result="SURVIVED"
         { echo "--- $file:$ln"; echo "-$orig"; echo "+$mut"; echo; } >>"$scratch/survivors"
     fi
+    printf '%s\t%s\n' "$file" "$result" >>"$scratch/results"
     printf '| %d | %s:%s | `%s` | `%s` | %s |\n' "$total" "$file" "$ln" "$(cell "$orig")" "$(cell "$mut")" "$(cell "$result")"
 done <"$scratch/order"
 
@@ -182,7 +184,16 @@ if [ -s "$scratch/survivors" ]; then
     echo "one line each: file <TAB> original line <TAB> mutant line <TAB> why):"
     echo; cat "$scratch/survivors"
 fi
-counted=$((total - equiv))
-awk -v k="$killed" -v c="$counted" -v t="$total" -v e="$equiv" -v s="$survived" 'BEGIN {
-    printf "%d mutants: %d killed, %d survived, %d equivalent; killed %.0f %% of the %d not equivalent\n",
-        t, k, s, e, c ? 100 * k / c : 0, c }'
+# The last table: per file, and all together.
+echo
+echo "Seed $seed, $total mutants drawn from $lines lines:"
+echo
+awk -F'\t' '
+    { if (!($1 in n)) order[++files] = $1; n[$1]++; r = $2 ~ /^killed/ ? "k" : $2 ~ /^equivalent/ ? "e" : "s"; c[$1, r]++; c["all", r]++ }
+    function row(name, t, k, s, e) {
+        printf "| %s | %d | %d | %d | %d | %s |\n", name, t, k, s, e, t - e ? sprintf("%.0f %%", 100 * k / (t - e)) : "-" }
+    END {
+        print "| file | mutants | killed | survived | equivalent | killed, of the not equivalent |"
+        print "|---|---:|---:|---:|---:|---:|"
+        for (i = 1; i <= files; i++) { x = order[i]; row(x, n[x], c[x, "k"], c[x, "s"], c[x, "e"]) }
+        row("all", NR, c["all", "k"], c["all", "s"], c["all", "e"]) }' "$scratch/results"
