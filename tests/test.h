@@ -82,5 +82,6 @@ void suite_reclaim(void);
 void suite_runner(void);
 void suite_pbrt(void);
 void suite_policy(void);
+void suite_thresholds(void);
 
 #endif
