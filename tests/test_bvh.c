@@ -1162,6 +1162,19 @@ static void expect_eformat(const void *blob, size_t size, const char *what)
     brt_bvh_free(b);
 }
 
+/* The same, and the message names the check that refused it (a forged
+** value must be refused by its own check, before anything reads through
+** it). */
+static void expect_eformat_saying(const void *blob, size_t size, const char *what, const char *piece)
+{
+    brt_bvh *b = NULL;
+    brt_error err;
+    brt_result r = brt_bvh_blob_open(blob, size, UINT32_MAX, &b, &err);
+    EXPECT(r == BRT_EFORMAT && strstr(err.message, piece), "%s: got %s (%s), expected a format error '%s'", what,
+           brt_result_string(r), r == BRT_OK ? "" : err.message, piece);
+    brt_bvh_free(b);
+}
+
 static void put_u32(unsigned char *p, size_t offset, uint32_t value)
 {
     memcpy(p + offset, &value, 4);
@@ -1370,7 +1383,7 @@ static void test_blob(void)
     expect_eformat(bad, size, "child pointing at the root (a cycle)");
     memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = 3;
     put_u32(bad, HEADER_BYTES + FIRST_TRI, s.tcount - 1);
-    expect_eformat(bad, size, "leaf range past the end");
+    expect_eformat_saying(bad, size, "leaf range past the end", "bad leaf range");
     memcpy(bad, blob, size); bad[HEADER_BYTES + COUNT] = MAX_LEAF + 1;
     expect_eformat(bad, size, "a leaf of more than MAX_LEAF triangles");
     {   /* the vertex base of the first node with a leaf, past the vertices */
