@@ -61,9 +61,17 @@ static const char *const prog = "mpi_trace";
 
 /* 4096 rays of 88 bytes: 352 KiB, long enough that a message's latency
 ** is small beside its transfer on a cluster network, short enough that a
-** busy rank's rays leave while it works. */
+** busy rank's rays leave while it works.  Results go to rank 0 in chunks
+** of 2^20 (32 MiB).  Both may be set on the compiler's command line: the
+** tests build a second binary (build/tests/mpi_trace_small) with chunks of
+** 1000 results, so that a test crosses the split with a few thousand
+** rays; make test-long runs the shipped value past 2^20. */
+#ifndef RAYS_PER_MESSAGE
 #define RAYS_PER_MESSAGE 4096
+#endif
+#ifndef RESULTS_PER_MESSAGE
 #define RESULTS_PER_MESSAGE (1 << 20)
+#endif
 
 enum { TAG_RAYS = 1, TAG_FINISHED, TAG_DONE, TAG_RESULTS };
 

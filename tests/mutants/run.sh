@@ -80,10 +80,13 @@ run_one() {
         printf '| %s | %s | ERROR | original text found %s times in %s | |\n' "$name" "$mech" "${n:-0}" "$file"
         return
     fi
-    # build/mpi_trace too when the pristine tree has it (make mpi): the MPI
+    # build/mpi_trace too when the pristine tree has it (make mpi), and its
+    # test build with small thresholds (build/tests/mpi_trace_small): the MPI
     # mutants are killed only where MPI runs (tests/test_mpi.c skips else).
     if ! make -C "$dir" --no-print-directory -j2 all build/run_tests \
-            $([ -x "$root/build/mpi_trace" ] && echo build/mpi_trace) >"$dir/build.log" 2>&1; then
+            $([ -x "$root/build/mpi_trace" ] && echo build/mpi_trace) \
+            $([ -x "$root/build/tests/mpi_trace_small" ] && echo build/tests/mpi_trace_small) \
+            >"$dir/build.log" 2>&1; then
         errors=$((errors + 1))
         printf '| %s | %s | ERROR | does not build | |\n' "$name" "$mech"
         return
