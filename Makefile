@@ -2,6 +2,7 @@
 #
 #   make              library build/libbatchrt.a and the programs in build/
 #   make test         build and run the test suite (last line: "N passed, N failed")
+#   make test-long    the tests too slow for "make test" (a real input past a split)
 #   make debug        the same with the library's assert()ed invariants (BRT_DEBUG)
 #   make sanitize     the test suite under AddressSanitizer + UBSan
 #   make tsan         the threaded tests (and layer 8's processes as threads) under ThreadSanitizer
@@ -196,14 +197,13 @@ $(BUILD)/mpi_trace: examples/mpi_trace.c $(EX_COMMON) $(LIB) batchrt.h $(wildcar
 	$(Q)$(MPICC) $(CFLAGS) -I. $$($(MPICC) --showme:incdirs 2>/dev/null | sed 's/[^ ]*/-isystem &/g') \
 	  examples/mpi_trace.c $(EX_COMMON) $(LIB) -o $@ $(LDLIBS)
 
-# ---- issue 38: the MPI tracer's thresholds under test ----------------------
-# $(BUILD)/tests/mpi_trace_small: mpi_trace gathering results in chunks of
+# The MPI tracer's thresholds under test.  $(BUILD)/tests/mpi_trace_small: mpi_trace gathering results in chunks of
 # MPI_SMALL_RESULTS instead of 2^20, so that tests/test_mpi.c crosses that
 # split with a few thousand rays (the shipped $(BUILD)/mpi_trace keeps
 # 2^20); built by "make mpi" and for "make test" when mpicc exists.
-# "make test-long": the tests too slow for "make test" (names starting
-# "mpi long:"; BRT_TEST_LONG=1, else they say SKIP): the shipped binary
-# past 2^20 results on one rank, held against trace --direct.
+# "make test-long": the tests too slow for "make test" (names holding
+# "long:"; BRT_TEST_LONG=1, else they say SKIP): the shipped binary past
+# 2^20 results on one rank, held against trace --direct.
 MPI_SMALL_RESULTS = 1000
 .PHONY: test-long
 test: $(patsubst %/mpi_trace,%/tests/mpi_trace_small,$(MPI_FOR_TESTS))
@@ -213,8 +213,7 @@ $(BUILD)/tests/mpi_trace_small: examples/mpi_trace.c $(EX_COMMON) $(LIB) batchrt
 	  $$($(MPICC) --showme:incdirs 2>/dev/null | sed 's/[^ ]*/-isystem &/g') \
 	  examples/mpi_trace.c $(EX_COMMON) $(LIB) -o $@ $(LDLIBS)
 test-long: all $(TEST_BIN) mpi
-	BRT_BUILD=$(BUILD) BRT_TEST_LONG=1 ./$(TEST_BIN) 'mpi long:'
-# ---- end of issue 38's block -------------------------------------------------
+	BRT_BUILD=$(BUILD) BRT_TEST_LONG=1 ./$(TEST_BIN) 'long:'
 
 # The network with and without proxies (README, "Beyond one machine"):
 # mpi_trace over the instanced landscape at 2, 4 and 8 ranks (on this
