@@ -212,7 +212,7 @@ $(BUILD)/tests/mpi_trace_small: examples/mpi_trace.c $(EX_COMMON) $(LIB) batchrt
 	$(Q)$(MPICC) $(CFLAGS) -DRESULTS_PER_MESSAGE=$(MPI_SMALL_RESULTS) -I. \
 	  $$($(MPICC) --showme:incdirs 2>/dev/null | sed 's/[^ ]*/-isystem &/g') \
 	  examples/mpi_trace.c $(EX_COMMON) $(LIB) -o $@ $(LDLIBS)
-test-long: all $(TEST_BIN) mpi
+test-long: all $(TEST_BIN) $(MPI_FOR_TESTS)
 	BRT_BUILD=$(BUILD) BRT_TEST_LONG=1 ./$(TEST_BIN) 'long:'
 
 # The network with and without proxies (README, "Beyond one machine"):
