@@ -290,6 +290,11 @@ static void run_suites(void)
     suite_runner();
 }
 
+int test_listing(void)
+{
+    return listing;
+}
+
 int test_registered(const char *name)
 {
     int i;

@@ -36,8 +36,11 @@ void test_skip(const char *fmt, ...)
 #endif
     ;
 
-/* Is a test of this exact name in the suite (filters aside)? */
+/* Is a test of this exact name in the suite (filters aside)?  While it
+** collects the names, test_listing() is 1: a suite that registers some
+** tests only where an optional program exists registers them all then. */
 int test_registered(const char *name);
+int test_listing(void);
 
 int test_failed(void);          /* has the running test failed so far? */
 uint64_t test_seed(void);       /* BRT_TEST_SEED or a fixed default */
