@@ -137,6 +137,19 @@ void ex_pbrt_counts(const ex_pbrt *scene, uint64_t *world_shapes,
 int ex_pbrt_camera(const ex_pbrt *scene, float eye[3], float target[3],
                    float up[3], float *fov_degrees, int *mirrored);
 
+/* The Film's resolution, pbrt-v4's 1280x720 for what the file leaves out
+** (returns 1 when the file has a Film directive, 0 when not). */
+int ex_pbrt_film(const ex_pbrt *scene, uint32_t *width, uint32_t *height);
+
+/* pbrt-v4's perspective camera over a width x height image, as pbrt
+** defines it (above): the ray through image point (sx, sy) in [0,1]^2,
+** raster order (sx right, sy down, (0,0) the top left corner of the
+** image), leaves eye along forward + (2 sx - 1) right + (1 - 2 sy) up
+** (examples/rays.h's ex_camera).  Returns 0 (outputs untouched) when the
+** file has no perspective camera. */
+int ex_pbrt_camera_frame(const ex_pbrt *scene, uint32_t width, uint32_t height, double eye[3],
+                         double forward[3], double right[3], double up[3]);
+
 /* What was read and skipped, in order of first appearance, e.g.
 ** "skipped: 120 MakeNamedMaterial, 6 AreaLightSource, 1 Shape \"sphere\"";
 ** "" when nothing was skipped.  Lives as long as the scene. */
