@@ -484,6 +484,100 @@ static void test_raygen_pixel_centres(void)
     free(rays);
 }
 
+/* ---- the reader's rules: nesting, alpha, the skip report ----------- */
+
+static ex_pbrt *open_text(const char *name, const char *text, brt_error *err)
+{
+    ex_pbrt *s = NULL;
+    if (!tu_spill(tu_scratch(name), text, strlen(text))) return NULL;
+    if (ex_pbrt_open(tu_scratch(name), &s, err) != BRT_OK) return NULL;
+    return s;
+}
+
+/* Each block closes with its own End, naming the line of the open one. */
+static void test_nesting(void)
+{
+    static const struct { const char *text, *message; } bad[] = {
+        {"AttributeBegin\nTransformBegin\nAttributeEnd\nTransformEnd\n",
+         "nest.pbrt:3: AttributeEnd while the TransformBegin at "},
+        {"TransformBegin\nAttributeEnd\n", "nest.pbrt:2: AttributeEnd while the TransformBegin at "},
+        {"AttributeBegin\nTransformEnd\n", "nest.pbrt:2: TransformEnd while the AttributeBegin at "},
+        {"WorldBegin\nTransformEnd\n", "nest.pbrt:2: TransformEnd without TransformBegin"},
+        {"WorldBegin\n\nTransformBegin\n", "nest.pbrt:3: TransformBegin never closed"},
+        {"ObjectBegin \"a\"\nTransformEnd\n", "nest.pbrt:2: TransformEnd while the ObjectBegin at "}};
+    size_t i;
+    brt_error err;
+    ex_pbrt *s;
+    for (i = 0; i < sizeof bad / sizeof *bad; i++) {
+        err.message[0] = 0;
+        s = open_text("nest.pbrt", bad[i].text, &err);
+        EXPECT(!s && strstr(err.message, bad[i].message), "case %zu: \"%s\", expected \"%s...\"", i,
+               s ? "(accepted)" : err.message, bad[i].message);
+        if (s) ex_pbrt_close(s);
+    }
+    s = open_text("nest.pbrt", "TransformBegin\nAttributeBegin\nAttributeEnd\nTransformEnd\nWorldBegin\n"
+                               "Shape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0]\nWorldEnd\n", &err);
+    CHECK(s, "well nested: %s", err.message);
+    EXPECT(strcmp(ex_pbrt_skipped(s), "skipped: 1 WorldEnd") == 0, "summary \"%s\"", ex_pbrt_skipped(s));
+    ex_pbrt_close(s);
+}
+
+#define TRI "Shape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0]"
+
+/* A constant alpha of 0 removes the shape (world or object), counted;
+** 1 keeps it silently; another constant or a texture keeps it, reported. */
+static void test_alpha(void)
+{
+    brt_error err;
+    uint64_t world;
+    uint32_t protos, inst;
+    ex_pbrt *s = open_text("alpha.pbrt",
+        "WorldBegin\n" TRI " \"float alpha\" 0\n" TRI " \"float alpha\" [ 0 ]\n" TRI " \"float alpha\" 1\n"
+        TRI " \"float alpha\" 0.5\n" TRI " \"texture alpha\" \"leaves\"\n" TRI "\n"
+        "ObjectBegin \"o\"\n" TRI " \"float alpha\" 0\n" TRI "\nObjectEnd\nObjectInstance \"o\"\n", &err);
+    CHECK(s, "%s", err.message);
+    ex_pbrt_counts(s, &world, &protos, &inst);
+    EXPECT(world == 4, "%llu world shapes kept, expected 4 (two of alpha 0 removed)", (unsigned long long)world);
+    EXPECT(strcmp(ex_pbrt_skipped(s), "skipped: 3 Shape removed by \"alpha\" 0, "
+                  "1 Shape parameter \"alpha\" (kept opaque), 1 Shape parameter \"texture alpha\" (kept opaque)") == 0,
+           "summary \"%s\"", ex_pbrt_skipped(s));
+    EXPECT(protos == 1 && inst == 1, "%u prototypes, %u instances", protos, inst);
+    ex_pbrt_close(s);
+}
+
+/* Every dropped parameter of a shape, the camera and the film, counted
+** by name, in one line on stderr and in --stats. */
+static void test_skip_report(void)
+{
+    static const char text[] =
+        "LookAt 0 0 5  0 0 0  0 1 0\nCamera \"perspective\" \"float lensradius\" 0.1 \"float fov\" 30\n"
+        "Film \"rgb\" \"string filename\" \"x.exr\" \"integer xresolution\" 8 \"integer yresolution\" 8\n"
+        "WorldBegin\n"
+        TRI " \"point2 uv\" [0 0 1 0 0 1] \"normal N\" [0 0 1 0 0 1 0 0 1]\n"
+        TRI " \"vector3 S\" [1 0 0 1 0 0 1 0 0] \"point2 uv\" [0 0 1 0 0 1] \"texture alpha\" \"t\"\n";
+    const char *want = "skipped: 1 Camera parameter \"lensradius\", 1 Film parameter \"filename\", "
+                       "2 Shape parameter \"uv\", 1 Shape parameter \"N\", 1 Shape parameter \"S\", "
+                       "1 Shape parameter \"texture alpha\" (kept opaque)";
+    char *json, *err_text;
+    brt_error err;
+    ex_pbrt *s = open_text("report.pbrt", text, &err);
+    CHECK(s, "%s", err.message);
+    EXPECT(strcmp(ex_pbrt_skipped(s), want) == 0, "summary\n  \"%s\"\nexpected\n  \"%s\"", ex_pbrt_skipped(s), want);
+    ex_pbrt_close(s);
+    CHECK(tu_run("raygen @/report.pbrt @/report.rays --kind camera") == 0, "raygen: %s", tu_last_stderr());
+    CHECK(tu_run("trace @/report.pbrt @/report.rays @/report.hits --stats @/report.json") == 0, "trace: %s",
+          tu_last_stderr());
+    err_text = tu_last_stderr();
+    /* the whole summary on one line: the line ends where the summary does */
+    EXPECT(err_text && strstr(err_text, want) && strchr(strstr(err_text, want), '\n') == strstr(err_text, want) + strlen(want),
+           "stderr: %s", err_text ? err_text : "(none)");
+    free(err_text);
+    json = (char *)tu_slurp(tu_scratch("report.json"), NULL);
+    EXPECT(json && strstr(json, "2 Shape parameter \\\"uv\\\", 1 Shape parameter \\\"N\\\""), "statistics: %s",
+           json ? json : "(none)");
+    free(json);
+}
+
 void suite_pbrt_camera(void)
 {
     test_run("pbrt camera: the model's facts (handedness, up, fov side)", test_model_facts);
@@ -491,4 +585,7 @@ void suite_pbrt_camera(void)
     test_run("pbrt camera: render lights the model's pixel", test_render_puts_it_there);
     test_run("pbrt camera: --width and --height override the film", test_render_size_override);
     test_run("pbrt camera: raygen's pixel centres in raster order", test_raygen_pixel_centres);
+    test_run("pbrt reader: blocks close with their own End; WorldEnd reported", test_nesting);
+    test_run("pbrt reader: alpha 0 removes a shape, others kept and reported", test_alpha);
+    test_run("pbrt reader: every dropped parameter named, in one line and --stats", test_skip_report);
 }
