@@ -1338,7 +1338,11 @@ int main(int argc, char **argv)
     open_input(&o, &in);
     if (in.file.pbrt) {   /* a pbrt file's image is its Film's unless given */
         uint32_t fw, fh;
-        ex_pbrt_film(in.file.pbrt, &fw, &fh);
+        float e[3], t[3], u[3], f;
+        /* pbrt's 1280x720 default when the file has a camera but no Film; a
+        ** file with neither (geometry alone) keeps render's default view */
+        int film = ex_pbrt_film(in.file.pbrt, &fw, &fh) || ex_pbrt_camera(in.file.pbrt, e, t, u, &f, NULL);
+        if (!film) fw = (uint32_t)o.width, fh = (uint32_t)o.height;
         if (!o.have_width) o.width = fw;
         if (!o.have_height) o.height = fh;
         if (o.width > 16384 || o.height > 16384)
