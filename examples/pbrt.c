@@ -656,13 +656,20 @@ struct ex_pbrt {
     char *summary;
     int has_camera, mirrored;
     float eye[3], target[3], up[3], fov;
+    double world_from_camera[12];   /* the inverse of the CTM at Camera */
+    double screen[4];       /* screenwindow x0 x1 y0 y1, when has_screen */
+    double frame;           /* frameaspectratio; 0: the image's */
+    int has_screen;
+    uint32_t film_width, film_height;
+    int has_film;
 };
 
 /* The graphics state pbrt pushes at AttributeBegin and ObjectBegin. */
 typedef struct gstate {
     double ctm[12];
     int start_active;       /* ActiveTransform: does the start time change? */
-    char kind;              /* what pushed it: 'a' AttributeBegin, 'o' ObjectBegin */
+    char kind;              /* what pushed it: 'a' AttributeBegin, 't' TransformBegin,
+                            ** 'o' ObjectBegin */
     uint32_t file, line;    /* where */
 } gstate;
 
@@ -851,7 +858,9 @@ static brt_result push_file(parser *p, const char *path, const token *where)
 /* What a directive wants from its parameter list (the rest is skipped). */
 typedef struct wanted {
     int shape_kind;         /* -1: not a triangle shape */
-    int camera;
+    int camera, film;
+    const char *report;     /* a directive that is read (its name): the
+                            ** parameters it does not use are counted as skipped */
     /* found */
     int has_p, has_i, has_filename;
     uint64_t p_offset, i_offset, p_line, i_line, p_count, i_count;
@@ -859,8 +868,18 @@ typedef struct wanted {
     uint32_t i_max;
     token i_token;          /* the largest index's token, for messages */
     double fov;
+    double screen[4], frame;   /* Camera: screenwindow, frameaspectratio */
+    int screen_n, has_frame;
+    token screen_at;
+    uint32_t xres, yres;    /* Film */
+    int alpha;              /* Shape: ALPHA_* */
     char filename[4096];
 } wanted;
+
+/* A shape's "alpha": pbrt-v4 never reports a hit where it is 0, and one
+** below 1 lets a hit through at random (a hash of the ray), which a
+** deterministic first hit cannot keep. */
+enum { ALPHA_ONE, ALPHA_ZERO, ALPHA_PARTIAL, ALPHA_TEXTURE };
 
 static int known_type(const char *type)
 {
@@ -972,6 +991,77 @@ static brt_result value_fov(parser *p, const token *t, wanted *w)
     return BRT_OK;
 }
 
+/* A positive finite number, for the parameters below. */
+static brt_result positive(parser *p, const token *t, const char *name, double *out)
+{
+    float f;
+    char b[40];
+    if (t->kind != TOK_WORD || scan_float(t->s, t->n, &f) != NUM_OK || !(f > 0))
+        return fail_at(p, t, BRT_EPARSE, "\"%s\": expected a positive number, got '%s'", name, shown(t, b, sizeof b));
+    *out = f;
+    return BRT_OK;
+}
+
+static brt_result value_frame(parser *p, const token *t, wanted *w)
+{
+    w->has_frame = 1;
+    return positive(p, t, "frameaspectratio", &w->frame);
+}
+
+/* screenwindow: four numbers, x0 x1 y0 y1 (counted; do_camera checks 4). */
+static brt_result value_screen(parser *p, const token *t, wanted *w)
+{
+    float f;
+    char b[40];
+    if (t->kind != TOK_WORD || scan_float(t->s, t->n, &f) != NUM_OK)
+        return fail_at(p, t, BRT_EPARSE, "\"screenwindow\": expected a number, got '%s'", shown(t, b, sizeof b));
+    if (w->screen_n == 0) w->screen_at = *t;
+    if (w->screen_n < 4) w->screen[w->screen_n] = f;
+    w->screen_n++;
+    return BRT_OK;
+}
+
+/* Film's xresolution and yresolution: whole pixels, at least 1. */
+static brt_result value_resolution(parser *p, const token *t, wanted *w, uint32_t *out, const char *name)
+{
+    uint32_t v;
+    char b[40];
+    if (t->kind != TOK_WORD || !scan_index(t->s, t->n, &v) || v < 1 || v > 0x7FFFFFFFu)
+        return fail_at(p, t, BRT_EPARSE, "\"%s\": expected a number of pixels, got '%s'", name, shown(t, b, sizeof b));
+    (void)w;
+    *out = v;
+    return BRT_OK;
+}
+
+static brt_result value_xres(parser *p, const token *t, wanted *w)
+{
+    return value_resolution(p, t, w, &w->xres, "xresolution");
+}
+
+static brt_result value_yres(parser *p, const token *t, wanted *w)
+{
+    return value_resolution(p, t, w, &w->yres, "yresolution");
+}
+
+static brt_result value_alpha(parser *p, const token *t, wanted *w)
+{
+    float f;
+    char b[40];
+    if (t->kind != TOK_WORD || scan_float(t->s, t->n, &f) != NUM_OK)
+        return fail_at(p, t, BRT_EPARSE, "\"alpha\": expected a number, got '%s'", shown(t, b, sizeof b));
+    /* pbrt-v4 (scene.cpp) makes no alpha test for 1 or more; a hit is
+    ** dropped where the value is 0 or less. */
+    w->alpha = f >= 1 ? ALPHA_ONE : f <= 0 ? ALPHA_ZERO : ALPHA_PARTIAL;
+    return BRT_OK;
+}
+
+static brt_result value_alpha_texture(parser *p, const token *t, wanted *w)
+{
+    (void)p; (void)t;
+    w->alpha = ALPHA_TEXTURE;
+    return BRT_OK;
+}
+
 static brt_result value_filename(parser *p, const token *t, wanted *w)
 {
     if (t->kind != TOK_STRING || !unescape(t, w->filename, sizeof w->filename))
@@ -984,7 +1074,20 @@ static brt_result value_filename(parser *p, const token *t, wanted *w)
 static value_fn wanted_fn(wanted *w, const char *type, const char *name)
 {
     int points = strcmp(type, "point3") == 0 || strcmp(type, "point") == 0;
-    if (w->camera) return strcmp(type, "float") == 0 && strcmp(name, "fov") == 0 ? value_fov : NULL;
+    int real = strcmp(type, "float") == 0, whole = strcmp(type, "integer") == 0;
+    if (w->camera) {
+        if (real && strcmp(name, "fov") == 0) return value_fov;
+        if (real && strcmp(name, "screenwindow") == 0) return value_screen;
+        if (real && strcmp(name, "frameaspectratio") == 0) return value_frame;
+        return NULL;
+    }
+    if (w->film) {
+        if (whole && strcmp(name, "xresolution") == 0) return value_xres;
+        if (whole && strcmp(name, "yresolution") == 0) return value_yres;
+        return NULL;
+    }
+    if (w->shape_kind >= 0 && strcmp(name, "alpha") == 0)
+        return real ? value_alpha : strcmp(type, "texture") == 0 ? value_alpha_texture : NULL;
     if (w->shape_kind == SHAPE_PLY)
         return strcmp(type, "string") == 0 && strcmp(name, "filename") == 0 ? value_filename : NULL;
     if (w->shape_kind < 0) return NULL;
@@ -1010,7 +1113,13 @@ static brt_result read_params(parser *p, wanted *w)
         fn = wanted_fn(w, type, name);
         if (fn == value_point) w->p_count = 0;      /* a repeated parameter: the last counts */
         if (fn == value_index) w->i_count = 0;
+        if (fn == value_screen) w->screen_n = 0;
         if ((r = read_value(p, name, fn, w, &first)) != BRT_OK) return r;
+        if (!fn && w->report) {   /* uv, N, S, lensradius, a Film's filename, ... */
+            char key[220];
+            snprintf(key, sizeof key, "%s parameter \"%s\"", w->report, name);
+            if ((r = count_skipped(p, key)) != BRT_OK) return r;
+        }
         if (fn == value_point) {
             w->has_p = 1; w->p_offset = first.offset; w->p_line = first.line; w->p_file = first.file;
         } else if (fn == value_index) {
@@ -1134,17 +1243,25 @@ static brt_result push_state(parser *p, char kind, const token *d)
     return BRT_OK;
 }
 
+/* The directive that opens a block of kind 'a', 't' or 'o'. */
+static const char *block_begin(char kind)
+{
+    return kind == 'a' ? "AttributeBegin" : kind == 't' ? "TransformBegin" : "ObjectBegin";
+}
+
+/* Blocks close in the order they opened, each with its own End: pbrt-v4
+** reads TransformBegin/End as AttributeBegin/End, but a file that closes
+** one with the other's End is a mistake, refused here. */
 static brt_result pop_state(parser *p, char kind, const token *d)
 {
-    const char *what = kind == 'a' ? "AttributeEnd" : "ObjectEnd";
+    const char *what = kind == 'a' ? "AttributeEnd" : kind == 't' ? "TransformEnd" : "ObjectEnd";
     gstate *top;
     if (p->stack_count == 0)
-        return fail_at(p, d, BRT_EPARSE, "%s without %s", what, kind == 'a' ? "AttributeBegin" : "ObjectBegin");
+        return fail_at(p, d, BRT_EPARSE, "%s without %s", what, block_begin(kind));
     top = &p->stack[p->stack_count - 1];
     if (top->kind != kind)
-        return fail_at(p, d, BRT_EPARSE, "%s while the %s at %s:%lu is open", what,
-                       top->kind == 'a' ? "AttributeBegin" : "ObjectBegin", p->scene->files[top->file],
-                       (unsigned long)top->line);
+        return fail_at(p, d, BRT_EPARSE, "%s while the %s at %s:%lu is open", what, block_begin(top->kind),
+                       p->scene->files[top->file], (unsigned long)top->line);
     p->g = *top;
     p->stack_count--;
     return BRT_OK;
@@ -1308,6 +1425,7 @@ static brt_result do_shape(parser *p, const token *d)
     w.shape_kind = strcmp(name, "trianglemesh") == 0 ? SHAPE_TRIANGLES
                  : strcmp(name, "bilinearmesh") == 0 ? SHAPE_BILINEAR
                  : strcmp(name, "plymesh") == 0 ? SHAPE_PLY : -1;
+    w.report = w.shape_kind >= 0 ? "Shape" : NULL;
     if ((r = read_params(p, &w)) != BRT_OK) return r;
     if (w.shape_kind < 0) {
         snprintf(key, sizeof key, "Shape \"%.80s\"", name);
@@ -1323,7 +1441,11 @@ static brt_result do_shape(parser *p, const token *d)
         if ((file = add_file(p, path)) < 0) return BRT_ENOMEM;
         w.p_file = (uint32_t)file;
     } else if ((r = check_mesh(p, d, &w, name)) != BRT_OK) return r;
-    return add_shape(p, d, &w);
+    /* Checked as any shape is, then dropped: pbrt-v4 never hits it. */
+    if (w.alpha == ALPHA_ZERO) return count_skipped(p, "Shape removed by \"alpha\" 0");
+    if (w.alpha == ALPHA_PARTIAL) r = count_skipped(p, "Shape parameter \"alpha\" (kept opaque)");
+    if (w.alpha == ALPHA_TEXTURE) r = count_skipped(p, "Shape parameter \"texture alpha\" (kept opaque)");
+    return r != BRT_OK ? r : add_shape(p, d, &w);
 }
 
 static brt_result do_camera(parser *p, const token *d)
@@ -1339,8 +1461,14 @@ static brt_result do_camera(parser *p, const token *d)
     memset(&w, 0, sizeof w);
     w.shape_kind = -1;
     w.camera = strcmp(name, "perspective") == 0;
+    w.report = w.camera ? "Camera" : NULL;
     w.fov = 90;   /* pbrt's default */
     if ((r = read_params(p, &w)) != BRT_OK) return r;
+    if (w.screen_n != 0 && w.screen_n != 4)
+        return fail_at(p, &w.screen_at, BRT_EPARSE, "\"screenwindow\": %d numbers, expected 4 (x0 x1 y0 y1)",
+                       w.screen_n);
+    if (w.screen_n == 4 && !(w.screen[0] != w.screen[1] && w.screen[2] != w.screen[3]))
+        return fail_at(p, &w.screen_at, BRT_EPARSE, "\"screenwindow\": an empty window");
     if (!xf_invert(p->g.ctm, w2c)) return fail_at(p, d, BRT_EPARSE, "Camera: singular transform (determinant 0)");
     if ((r = set_named(p, "camera", w2c)) != BRT_OK) return r;
     if (!w.camera) {
@@ -1357,6 +1485,10 @@ static brt_result do_camera(parser *p, const token *d)
     normalize(up);
     s->has_camera = 1;
     s->fov = (float)w.fov;
+    memcpy(s->world_from_camera, w2c, sizeof w2c);
+    s->has_screen = w.screen_n == 4;
+    memcpy(s->screen, w.screen, sizeof s->screen);
+    s->frame = w.has_frame ? w.frame : 0;
     for (k = 0; k < 3; k++) {
         s->eye[k] = (float)w2c[4 * k + 3];
         s->target[k] = (float)(w2c[4 * k + 3] + dir[k]);
@@ -1367,6 +1499,28 @@ static brt_result do_camera(parser *p, const token *d)
     /* Mirrored when camera +x (pbrt's image right) opposes forward x up. */
     s->mirrored = right[0] * (dir[1] * up[2] - dir[2] * up[1]) + right[1] * (dir[2] * up[0] - dir[0] * up[2])
                 + right[2] * (dir[0] * up[1] - dir[1] * up[0]) < 0;
+    return BRT_OK;
+}
+
+/* Film: only its resolution is read (pbrt-v4's film.cpp defaults). */
+static brt_result do_film(parser *p, const token *d)
+{
+    char name[128];
+    token t;
+    wanted w;
+    brt_result r = expect_string(p, "Film", name, sizeof name, &t);
+    if (r != BRT_OK) return r;
+    memset(&w, 0, sizeof w);
+    w.shape_kind = -1;
+    w.film = 1;
+    w.report = "Film";
+    w.xres = 1280;
+    w.yres = 720;
+    if ((r = read_params(p, &w)) != BRT_OK) return r;
+    (void)d;
+    p->scene->has_film = 1;
+    p->scene->film_width = w.xres;
+    p->scene->film_height = w.yres;
     return BRT_OK;
 }
 
@@ -1434,15 +1588,18 @@ static brt_result skip_other(parser *p, const token *d, const char *key)
 static brt_result directive(parser *p, const token *d)
 {
     static const char *const with_params[] = {
-        "Film", "Sampler", "Integrator", "Accelerator", "PixelFilter", "LightSource",
+        "Sampler", "Integrator", "Accelerator", "PixelFilter", "LightSource",
         "AreaLightSource", "Material", "MakeNamedMaterial", "MakeNamedMedium", "Attribute"};
     static const char *const others[] = {"MediumInterface", "Option", "ActiveTransform", "TransformTimes",
                                          "NamedMaterial", "ColorSpace", "ReverseOrientation"};
     char b[40];
     size_t i;
     if (token_is(d, "Shape")) return do_shape(p, d);
-    if (token_is(d, "AttributeBegin") || token_is(d, "TransformBegin")) return push_state(p, 'a', d);
-    if (token_is(d, "AttributeEnd") || token_is(d, "TransformEnd")) return pop_state(p, 'a', d);
+    if (token_is(d, "AttributeBegin")) return push_state(p, 'a', d);
+    if (token_is(d, "TransformBegin")) return push_state(p, 't', d);
+    if (token_is(d, "AttributeEnd")) return pop_state(p, 'a', d);
+    if (token_is(d, "TransformEnd")) return pop_state(p, 't', d);
+    if (token_is(d, "Film")) return do_film(p, d);
     if (token_is(d, "ObjectInstance")) return do_object_instance(p, d);
     if (token_is(d, "Translate") || token_is(d, "Scale") || token_is(d, "Rotate") || token_is(d, "LookAt"))
         return do_simple_transform(p, d);
@@ -1459,7 +1616,7 @@ static brt_result directive(parser *p, const token *d)
         p->g.start_active = 1;
         return set_named(p, "world", p->g.ctm);
     }
-    if (token_is(d, "WorldEnd")) return BRT_OK;   /* pbrt-v3's; nothing to do */
+    if (token_is(d, "WorldEnd")) return count_skipped(p, "WorldEnd");   /* pbrt-v3's */
     if (token_is(d, "Texture")) return skip_named_params(p, d, "Texture", 3);
     for (i = 0; i < sizeof with_params / sizeof *with_params; i++)
         if (token_is(d, with_params[i])) return skip_named_params(p, d, with_params[i], 1);
@@ -1478,7 +1635,7 @@ static brt_result finish(parser *p)
     if (p->stack_count > 0) {
         const gstate *top = &p->stack[p->stack_count - 1];
         return brt_fail(p->err, BRT_EPARSE, "%s:%lu: %s never closed", s->files[top->file],
-                        (unsigned long)top->line, top->kind == 'a' ? "AttributeBegin" : "ObjectBegin");
+                        (unsigned long)top->line, block_begin(top->kind));
     }
     for (i = 0; i < s->object_count; i++)
         if (!s->objects[i].defined)
@@ -1907,6 +2064,44 @@ int ex_pbrt_camera(const ex_pbrt *scene, float eye[3], float target[3], float up
     memcpy(up, scene->up, sizeof scene->up);
     *fov_degrees = scene->fov;
     if (mirrored) *mirrored = scene->mirrored;
+    return 1;
+}
+
+int ex_pbrt_film(const ex_pbrt *scene, uint32_t *width, uint32_t *height)
+{
+    *width = scene->has_film ? scene->film_width : 1280;   /* pbrt-v4's defaults */
+    *height = scene->has_film ? scene->film_height : 720;
+    return scene->has_film;
+}
+
+/* pbrt-v4's PerspectiveCamera: raster (x right, y down, over the image)
+** maps linearly onto the screen window, screen (x, y) is the camera-space
+** direction (x tan(fov/2), y tan(fov/2), 1) (Perspective's divide by z
+** and scale by 1/tan(fov/2), undone), and world-from-camera carries it
+** out.  Written as forward + X right + Y up for X = 2 sx - 1 and
+** Y = 1 - 2 sy, every term is linear in (sx, sy), so the three vectors
+** are the camera-space ones put through world-from-camera's linear part. */
+int ex_pbrt_camera_frame(const ex_pbrt *scene, uint32_t width, uint32_t height, double eye[3],
+                         double forward[3], double right[3], double up[3])
+{
+    const double *m = scene->world_from_camera;
+    double sw[4], t, frame, f[3], r[3], u[3];
+    int k;
+    if (!scene->has_camera || width == 0 || height == 0) return 0;
+    frame = scene->frame > 0 ? scene->frame : (double)width / (double)height;
+    if (scene->has_screen) memcpy(sw, scene->screen, sizeof sw);
+    else if (frame > 1) { sw[0] = -frame; sw[1] = frame; sw[2] = -1; sw[3] = 1; }   /* fov spans y */
+    else { sw[0] = -1; sw[1] = 1; sw[2] = -1 / frame; sw[3] = 1 / frame; }           /* fov spans x */
+    t = tan(scene->fov * (PI / 360));
+    f[0] = t * 0.5 * (sw[0] + sw[1]); f[1] = t * 0.5 * (sw[2] + sw[3]); f[2] = 1;
+    r[0] = t * 0.5 * (sw[1] - sw[0]); r[1] = 0; r[2] = 0;
+    u[0] = 0; u[1] = t * 0.5 * (sw[3] - sw[2]); u[2] = 0;
+    for (k = 0; k < 3; k++) {
+        eye[k] = m[4 * k + 3];
+        forward[k] = m[4 * k] * f[0] + m[4 * k + 1] * f[1] + m[4 * k + 2] * f[2];
+        right[k] = m[4 * k] * r[0];
+        up[k] = m[4 * k + 1] * u[1];
+    }
     return 1;
 }
 

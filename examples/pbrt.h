@@ -45,9 +45,14 @@
 **   Identity Translate Scale Rotate LookAt Transform ConcatTransform
 **   CoordinateSystem CoordSysTransform ("camera" too) ActiveTransform
 **   AttributeBegin/End TransformBegin/End ObjectBegin/End ObjectInstance
-**   Include Import (read as Include) WorldBegin Camera "perspective".
+**   Include Import (read as Include) WorldBegin Camera "perspective"
+**   ("fov", "screenwindow", "frameaspectratio"), Film ("xresolution",
+**   "yresolution"), a shape's constant "float alpha".
 **   Every other directive and shape is read (its parameters consumed) and
-**   skipped, and counted in ex_pbrt_skipped's summary.
+**   skipped, and counted in ex_pbrt_skipped's summary; so is every
+**   parameter a read directive does not use ("Shape parameter \"uv\"",
+**   N, S, "Camera parameter \"lensradius\"", a Film's filename, ...), and
+**   WorldEnd (pbrt-v3's).
 **
 ** SEMANTICS (pbrt-v4's)
 **   - The current transform (CTM) is post-multiplied: Translate makes
@@ -74,25 +79,38 @@
 **     end), never one that is not defined at all.
 **   - Relative paths (Include, Import, plymesh) resolve against the folder
 **     of the main scene file, as pbrt does, not the including file's.
-**   - Camera "perspective": the CTM at Camera is camera-from-world (pbrt's
-**     camera looks down +z, +y up, and the image's right is camera +x).
-**     ex_pbrt_camera gives eye, target = eye + the unit view direction,
-**     up = the unit world image of camera +y, and pbrt's "fov" (default
-**     90), which spans the SHORTER image axis (examples/rays.h's camera
-**     spans the longer: 2 atan(tan(fov/2) * long/short)).
-**     Handedness: examples/rays.h's camera has right = forward x up.  A
-**     file whose CTM makes camera +x that vector (files from right-handed
-**     tools start "Scale -1 1 1" before LookAt for this) gives pbrt's
-**     picture; otherwise (*mirrored = 1; a bare LookAt does this) pbrt's
-**     picture is the mirror image of what eye/target/up show.
-**   - Materials, lights, normals, uv, ReverseOrientation and alpha are
-**     ignored: they do not change which triangle a ray hits first.
+**   - Camera "perspective": the CTM at Camera is camera-from-world, kept
+**     whole (pbrt's camera looks down +z, +y up, the image's right is
+**     camera +x): handedness, LookAt's up vector and any transform after
+**     LookAt are the file's.  A bare LookAt is left-handed: with "LookAt
+**     0 0 10  0 0 0  0 1 0" world +x is on the image's LEFT; files from
+**     right-handed tools start "Scale -1 1 1".  ex_pbrt_camera_frame is
+**     pbrt-v4's PerspectiveCamera: the screen window spans [-1,1] on the
+**     shorter side of the frame (frameaspectratio, default the image's
+**     width / height) and [-frame, frame] on the longer, unless
+**     "screenwindow" gives x0 x1 y0 y1; "fov" (default 90) spans [-1,1];
+**     raster y points down.  ex_pbrt_camera is the same camera as eye,
+**     target, up and fov (*mirrored: pbrt's image is the mirror of the
+**     right-handed view eye/target/up describe, as for a bare LookAt).
+**   - Film: "xresolution" and "yresolution" (default 1280 and 720) are
+**     the image size render and raygen use (ex_pbrt_film).
+**   - "alpha": pbrt-v4 never reports a hit where alpha is 0, so a shape
+**     whose constant "float alpha" is 0 is left out of the scene (counted
+**     as "Shape removed by \"alpha\" 0").  Alpha 1 is opaque.  Between, pbrt
+**     lets hits through at random, and a "texture alpha" depends on the
+**     hit: both keep the shape opaque here and are reported as skipped.
+**   - Blocks: AttributeBegin, TransformBegin and ObjectBegin each close
+**     with their own End, innermost first (pbrt-v4 reads TransformBegin/End
+**     as AttributeBegin/End; a file that mixes them is refused here).
+**   - Materials, lights, normals, uv and ReverseOrientation are ignored:
+**     they do not change which triangle a ray hits first.
 **
 ** ERRORS.  BRT_EPARSE (or BRT_EIO for files that cannot be read, BRT_ENOMEM)
 ** with one line naming the file and line, e.g.
 ** "scene.pbrt:12: ObjectInstance of unknown object \"tree\"": unknown
-** directive or parameter type, unbalanced AttributeEnd/ObjectEnd (or an
-** AttributeBegin never closed), nested ObjectBegin, ObjectInstance inside
+** directive or parameter type, an End that does not close the innermost
+** open block with its own kind (or a block never closed), a screenwindow
+** of other than 4 numbers, a fov outside (0, 180), nested ObjectBegin, ObjectInstance inside
 ** ObjectBegin, an Include cycle, a missing file, P not a multiple of 3,
 ** indices not a multiple of 3 (4 for bilinearmesh) or out of range, a
 ** non-finite number, a non-affine matrix, a singular transform at a shape,
@@ -136,6 +154,19 @@ void ex_pbrt_counts(const ex_pbrt *scene, uint64_t *world_shapes,
 ** above. */
 int ex_pbrt_camera(const ex_pbrt *scene, float eye[3], float target[3],
                    float up[3], float *fov_degrees, int *mirrored);
+
+/* The Film's resolution, pbrt-v4's 1280x720 for what the file leaves out
+** (returns 1 when the file has a Film directive, 0 when not). */
+int ex_pbrt_film(const ex_pbrt *scene, uint32_t *width, uint32_t *height);
+
+/* pbrt-v4's perspective camera over a width x height image, as pbrt
+** defines it (above): the ray through image point (sx, sy) in [0,1]^2,
+** raster order (sx right, sy down, (0,0) the top left corner of the
+** image), leaves eye along forward + (2 sx - 1) right + (1 - 2 sy) up
+** (examples/rays.h's ex_camera).  Returns 0 (outputs untouched) when the
+** file has no perspective camera. */
+int ex_pbrt_camera_frame(const ex_pbrt *scene, uint32_t width, uint32_t height, double eye[3],
+                         double forward[3], double right[3], double up[3]);
 
 /* What was read and skipped, in order of first appearance, e.g.
 ** "skipped: 120 MakeNamedMaterial, 6 AreaLightSource, 1 Shape \"sphere\"";

@@ -8,6 +8,10 @@
 **         above (+y), just far enough back that the whole box is in view;
 **         one ray per pixel of a near-square grid, jittered inside the
 **         pixel.  Coherent rays, like primary rays of a renderer.
+**         A .pbrt file with a perspective Camera: that camera at its
+**         Film's resolution (examples/pbrt.h), one ray through each pixel
+**         centre in raster order (row by row from the top, each row left
+**         to right); --count, default every pixel, takes the first N.
 ** random  origins uniform in the bounding box grown on every side by 5 % of
 **         its longest side, directions uniform on the sphere.  The
 **         incoherent extreme.
@@ -41,7 +45,9 @@ static void usage(void)
            "Writes N test rays for MESH (OBJ, PLY or a pbrt-v4 .pbrt scene) as 32-byte records.\n"
            "\n"
            "  --kind camera   pinhole camera, fov 45 degrees, looking at the bounding-box\n"
-           "                  centre from +z and a little above, jittered pixel grid\n"
+           "                  centre from +z and a little above, jittered pixel grid;\n"
+           "                  a .pbrt file's camera: its Film's pixel centres in raster\n"
+           "                  order (rows from the top, left to right), --count the first N\n"
            "  --kind random   origins uniform in the bounding box grown on every side by\n"
            "                  5 %% of its longest side, directions uniform on the sphere\n"
            "  --kind bounce   from camera-ray hit points, cosine-weighted directions\n"
@@ -78,6 +84,7 @@ int main(int argc, char **argv)
 {
     const char *mesh_path = NULL, *out_path = NULL, *kind_text = NULL;
     uint64_t count = 1000000, seed = 1, rng;
+    int have_count = 0;
     enum ray_kind kind;
     brt_mesh mesh;
     brt_world *world = NULL;
@@ -94,7 +101,7 @@ int main(int argc, char **argv)
         const char *a = argv[i];
         if (strcmp(a, "--kind") == 0) kind_text = ex_option_value(prog, argc, argv, &i);
         else if (strcmp(a, "--count") == 0)
-            count = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, UINT32_MAX);
+            count = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, UINT32_MAX), have_count = 1;
         else if (strcmp(a, "--seed") == 0)
             seed = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX);
         else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
@@ -117,6 +124,28 @@ int main(int argc, char **argv)
     } else {
         ex_check(prog, brt_mesh_load(mesh_path, &mesh, &err), &err);
         brt_mesh_bounds(&mesh, bmin, bmax);
+    }
+    if (kind == KIND_CAMERA && input.pbrt) {   /* the file's camera, pixel centres */
+        uint32_t w, h;
+        ex_pbrt_film(input.pbrt, &w, &h);
+        if (ex_pbrt_camera_frame(input.pbrt, w, h, cam.eye, cam.forward, cam.right, cam.up)) {
+            uint64_t pixels = (uint64_t)w * h, p;
+            if (!have_count) count = pixels;
+            if (count > pixels || count > UINT32_MAX)
+                ex_die(prog, "%s: --count %llu: the Film has %llu pixels", mesh_path,
+                       (unsigned long long)count, (unsigned long long)pixels);
+            cam.width = w;
+            cam.height = h;
+            if (!(rays = malloc((size_t)count * sizeof *rays)))
+                ex_die(prog, "out of memory for %llu rays", (unsigned long long)count);
+            for (p = 0; p < count; p++)
+                ex_camera_ray(&cam, ((double)(p % w) + 0.5) / w, ((double)(p / w) + 0.5) / h, &rays[p]);
+            ex_check(prog, brt_rays_write(out_path, rays, (size_t)count, &err), &err);
+            free(rays);
+            brt_world_free(world);
+            ex_input_close(&input);
+            return 0;
+        }
     }
     rays = malloc((size_t)count * sizeof *rays);
     if (!rays) ex_die(prog, "out of memory for %llu rays", (unsigned long long)count);

@@ -125,6 +125,7 @@ typedef struct options {
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
     int no_inner;
     int no_proxy, paper_scheduler, exact_proxy, direct, compare, have_camera, drop_os_cache;
+    int have_width, have_height;   /* given: a pbrt file's Film does not set them */
     int no_nee, have_sun, grey;
     float eye[3], target[3], fov;
     float sun[3];                 /* --sun: toward the sun (any length) */
@@ -145,8 +146,8 @@ static void usage(void)
            "                       (the instanced scenes: about 6 million instanced per unit)\n"
            "  --seed N             seed of a built-in scene (default 1)\n"
            "  --spp N              samples per pixel (default 8)\n"
-           "  --width W            image width (default 320)\n"
-           "  --height H           image height (default 180)\n"
+           "  --width W            image width (default 320; a pbrt file: its Film's)\n"
+           "  --height H           image height (default 180; a pbrt file: its Film's)\n"
            "  --camera E:T:F       eye ex,ey,ez : target tx,ty,tz : field of view in degrees\n"
            "  --sun X,Y,Z          direction toward the sun, y up (default: one per built-in\n"
            "                       scene; 0.48,0.62,0.62 for mesh files)\n"
@@ -273,8 +274,8 @@ static void parse_options(int argc, char **argv, options *o)
         if (is_option(a, "--scale")) o->scale = ex_parse_double(prog, a, VALUE, 0.001, EX_SCENE_MAX_SCALE);
         else if (is_option(a, "--seed")) o->seed = ex_parse_u64(prog, a, VALUE, 0, UINT64_MAX);
         else if (is_option(a, "--spp")) o->spp = ex_parse_u64(prog, a, VALUE, 1, MAX_SPP);
-        else if (is_option(a, "--width")) o->width = ex_parse_u64(prog, a, VALUE, 1, 16384);
-        else if (is_option(a, "--height")) o->height = ex_parse_u64(prog, a, VALUE, 1, 16384);
+        else if (is_option(a, "--width")) o->width = ex_parse_u64(prog, a, VALUE, 1, 16384), o->have_width = 1;
+        else if (is_option(a, "--height")) o->height = ex_parse_u64(prog, a, VALUE, 1, 16384), o->have_height = 1;
         else if (is_option(a, "--camera")) parse_camera(VALUE, o);
         else if (is_option(a, "--sun")) parse_sun(VALUE, o);
         else if (is_option(a, "--sun-radius")) o->sun_radius = ex_parse_double(prog, a, VALUE, 0.01, 45);
@@ -780,21 +781,23 @@ static void make_sun(const options *o, sun_light *sun)
 static void make_job(const options *o, const render_input *in, const float bmin[3],
                      const float bmax[3], render_job *job)
 {
-    float eye[3], target[3], up[3], fov;
+    float eye[3], target[3], fov;
+    ex_camera *cam = &job->camera;
     if (o->have_camera) {
         memcpy(eye, o->eye, sizeof eye);
         memcpy(target, o->target, sizeof target);
         fov = o->fov;
-    } else if (in->file.pbrt && ex_pbrt_camera(in->file.pbrt, eye, target, up, &fov, NULL)) {
-        /* pbrt's fov spans the shorter image side, ours the longer (rays.h);
-        ** the view's up is taken as y (ex_camera_look). */
-        const double ratio = o->width >= o->height ? (double)o->width / (double)o->height
-                                                   : (double)o->height / (double)o->width;
-        fov = (float)(360.0 / PI * atan(tan(fov * PI / 360.0) * ratio));
+        ex_camera_look(cam, eye, target, fov, (uint32_t)o->width, (uint32_t)o->height);
+    } else if (in->file.pbrt && ex_pbrt_camera_frame(in->file.pbrt, (uint32_t)o->width, (uint32_t)o->height,
+                                                     cam->eye, cam->forward, cam->right, cam->up)) {
+        /* pbrt-v4's camera as it defines it: handedness, up vector, fov
+        ** across the shorter side, screen window (examples/pbrt.h). */
+        cam->width = (uint32_t)o->width;
+        cam->height = (uint32_t)o->height;
     } else {
         ex_scene_camera(o->input, bmin, bmax, eye, target, &fov);
+        ex_camera_look(cam, eye, target, fov, (uint32_t)o->width, (uint32_t)o->height);
     }
-    ex_camera_look(&job->camera, eye, target, fov, (uint32_t)o->width, (uint32_t)o->height);
     job->spp = (uint32_t)o->spp;
     job->diagonal = ex_box_diagonal(bmin, bmax);
     job->paths_in_flight = (uint32_t)o->rays_in_flight;
@@ -1333,6 +1336,19 @@ int main(int argc, char **argv)
     memset(&job, 0, sizeof job);
     memset(&topt, 0, sizeof topt);
     open_input(&o, &in);
+    if (in.file.pbrt) {   /* a pbrt file's image is its Film's unless given */
+        uint32_t fw, fh;
+        float e[3], t[3], u[3], f;
+        /* pbrt's 1280x720 default when the file has a camera but no Film; a
+        ** file with neither (geometry alone) keeps render's default view */
+        int film = ex_pbrt_film(in.file.pbrt, &fw, &fh) || ex_pbrt_camera(in.file.pbrt, e, t, u, &f, NULL);
+        if (!film) fw = (uint32_t)o.width, fh = (uint32_t)o.height;
+        if (!o.have_width) o.width = fw;
+        if (!o.have_height) o.height = fh;
+        if (o.width > 16384 || o.height > 16384)
+            ex_die(prog, "%s: Film of %llux%llu pixels, beyond 16384 a side: give --width and --height",
+                   o.input, (unsigned long long)o.width, (unsigned long long)o.height);
+    }
     topt.no_proxy = o.no_proxy;
     topt.no_inner = o.no_inner;
     topt.paper_scheduler = o.paper_scheduler;

@@ -285,6 +285,7 @@ static void run_suites(void)
     suite_sampling();
     suite_reclaim();
     suite_pbrt();
+    suite_pbrt_camera();
     suite_policy();
     suite_thresholds();
     suite_runner();

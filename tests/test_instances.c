@@ -730,8 +730,8 @@ static void test_proxy_culls_are_exact(void)
 static int write_pbrt_scene(void)
 {
     static const char text[] =
-        "# a small instanced scene\n"
-        "LookAt 0 5 -20  0 0 0  0 1 0\n"
+        "# a small instanced scene; Scale -1 1 1: pbrt's image is then --camera's (rays.h)\n"
+        "Scale -1 1 1 LookAt 0 5 -20  0 0 0  0 1 0\n"
         "Camera \"perspective\" \"float fov\" 45\n"
         "WorldBegin\n"
         "LightSource \"distant\" \"point3 from\" [0 10 0]\n"

@@ -555,10 +555,11 @@ static void test_skipped(void)
         "Shape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0] \"float alpha\" 1 \"string emission\" \"x\"\n"
         "WorldEnd\n");
     tris t;
-    const char *want = "skipped: 1 Option, 1 ColorSpace, 1 Film, 1 Sampler, 1 Integrator, 1 PixelFilter, "
+    const char *want = "skipped: 1 Option, 1 ColorSpace, 1 Film parameter \"filename\", 1 Sampler, 1 Integrator, 1 PixelFilter, "
                        "1 Accelerator, 1 TransformTimes, 1 Texture, 1 MakeNamedMaterial, 1 NamedMaterial, "
                        "1 Material, 1 MakeNamedMedium, 2 MediumInterface, 1 Attribute, 2 AreaLightSource, "
-                       "1 ReverseOrientation, 2 Shape \"sphere\", 1 LightSource, 1 Shape \"disk\"";
+                       "1 ReverseOrientation, 2 Shape \"sphere\", 1 LightSource, 1 Shape \"disk\", "
+                       "1 Shape parameter \"emission\", 1 WorldEnd";
     if (!s) return;
     EXPECT(strcmp(ex_pbrt_skipped(s), want) == 0, "summary\n  \"%s\"\nexpected\n  \"%s\"", ex_pbrt_skipped(s), want);
     if (world(s, &t)) EXPECT(t.n == 1, "the mesh after skipped directives: %u triangles", (unsigned)t.n);
