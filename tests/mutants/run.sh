@@ -18,6 +18,7 @@
 #   SURVIVED  every selected test passed: the mechanism is unguarded
 #   WRONG     the tests failed, but not with the expected message, or by a
 #             crash or a timeout: the mutant or its expect needs a look
+#             (`expect: crash` is for a guard of memory safety alone)
 #   ERROR     the original text is not in the file, or is there more than
 #             once (the list needs updating), or the mutant does not build
 # Usage: sh tests/mutants/run.sh [NAME-SUBSTRING...]   (no argument: all)
@@ -114,11 +115,18 @@ run_one() {
         return
     fi
     verdict=yes
+    crashed=0
+    grep -q '^FAIL .*(a crash)$' "$dir/test.log" && crashed=1
     if [ "$status" -eq 124 ]; then by="${by:+$by, }timeout after ${timeout_s}s"; verdict=WRONG
     elif [ "$status" -gt 128 ]; then
-        by="${by:+$by, }crash (signal $((status - 128)))"; verdict=WRONG
+        by="${by:+$by, }crash (signal $((status - 128)))"; crashed=1
     fi
-    if [ -n "$expect" ] && ! grep '^FAIL ' "$dir/test.log" | grep -F -q -- "$expect"; then verdict=WRONG; fi
+    # "expect: crash" is for a guard of memory safety, whose absence can
+    # only show as a crash; any other mutant that crashes died of a side
+    # effect.
+    if [ "$expect" = crash ]; then [ "$crashed" = 1 ] || verdict=WRONG
+    elif [ "$crashed" = 1 ]; then verdict=WRONG
+    elif [ -n "$expect" ] && ! grep '^FAIL ' "$dir/test.log" | grep -F -q -- "$expect"; then verdict=WRONG; fi
     if [ "$verdict" = yes ]; then killed=$((killed + 1)); else wrong=$((wrong + 1)); fi
     printf '| %s | %s | %s | %s | %s |\n' "$name" "$mech" "$verdict" "${by:-exit status $status}" "$first"
 }
