@@ -10,11 +10,27 @@
 **     (8 MiB, batchrt.c): one batching point of a larger blob;
 **   - a PLY header holds at most 16 elements of 64 properties each
 **     (PLY_MAX_ELEMENTS, PLY_MAX_PROPERTIES): 16 and 64 are read, 17 and
-**     65 refused with the header's line.
+**     65 refused with the header's line;
+**   - the built-in instanced scenes stream instances in chunks of
+**     EX_INSTANCE_CHUNK (4096): every instance of a scene of several
+**     chunks is the one its number makes, and no two are alike;
+**   - a PNG's pixels go in stored deflate blocks of at most 65535 bytes
+**     (the 16-bit LEN of RFC 1951): images just under, at and past one
+**     block decode (tests/util.c's decoder, written apart);
+**   - trace --direct reads rays in slices of 2^18: a file of 2^18 + 3
+**     rays gets the brute-force answer for every ray, hits and occlusion;
+**   - proxy resolutions are the powers of two 2..1024: 1024 is read,
+**     2048, 1 and 3 refused;
+**   - hitdiff's --t-rel is a largest difference, inclusive: identical
+**     files agree at --t-rel 0.
 */
 #include "test.h"
 #include "util.h"
+#include "examples/common.h"
+#include "examples/scenes.h"
 
+#include <math.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -127,8 +143,213 @@ static void test_ply_header_limits(void)
     }
 }
 
+/* ---- instances in chunks ---- */
+
+typedef struct instance_log {
+    const ex_instanced_scene *scene;
+    uint32_t next, wrong;
+    brt_instance *all;
+} instance_log;
+
+static brt_result log_instances(void *user, const brt_instance *instances, uint32_t count, uint32_t first,
+                                brt_error *err)
+{
+    instance_log *log = user;
+    uint32_t i;
+    (void)err;
+    for (i = 0; i < count; i++) {
+        brt_instance want;
+        ex_instanced_instance(log->scene, first + i, &want);
+        log->wrong += first + i != log->next + i || memcmp(&want, &instances[i], sizeof want) != 0;
+        log->all[first + i < log->next + count ? first + i : 0] = instances[i];
+    }
+    log->next += count;
+    return BRT_OK;
+}
+
+static int by_transform(const void *a, const void *b)
+{
+    return memcmp(((const brt_instance *)a)->xform, ((const brt_instance *)b)->xform,
+                  sizeof ((const brt_instance *)a)->xform);
+}
+
+static void test_instances_past_one_chunk(void)
+{
+    ex_instanced_scene *s = NULL;
+    brt_scene_source src;
+    brt_error err;
+    instance_log log;
+    double scale = 1;
+    uint32_t total = 0, i, same = 0;
+    /* The smallest scale (in steps of 1) of more than two chunks and a part. */
+    while (scale < 64) {
+        uint64_t unique, instanced;
+        ex_instanced_counts("landscape", scale, &unique, &instanced, &total);
+        if (total > 2 * EX_INSTANCE_CHUNK + 1) break;
+        scale += 1;
+    }
+    CHECK(total > 2 * EX_INSTANCE_CHUNK + 1, "no landscape of more than %d instances", 2 * EX_INSTANCE_CHUNK);
+    CHECK(ex_instanced_open("landscape", scale, test_seed(), &s, &err) == BRT_OK, "%s", err.message);
+    memset(&log, 0, sizeof log);
+    log.scene = s;
+    log.all = calloc(total, sizeof *log.all);
+    CHECK(log.all, "out of memory");
+    ex_instanced_source(s, &src);
+    EXPECT(src.instances(src.user, log_instances, &log, &err) == BRT_OK, "%s", err.message);
+    EXPECT(log.next == total && log.wrong == 0, "%u of %u instances streamed, %u not the one of their number",
+           log.next, total, log.wrong);
+    qsort(log.all, total, sizeof *log.all, by_transform);
+    for (i = 1; i < total; i++) same += by_transform(&log.all[i - 1], &log.all[i]) == 0;
+    EXPECT(same == 0, "%u instances placed as another one", same);
+    free(log.all);
+    ex_instanced_close(s);
+}
+
+/* ---- PNG blocks ---- */
+
+static void test_png_blocks(void)
+{
+    /* raw bytes = height * (1 + 3 width): 65532, 65535, 65536, and three blocks */
+    static const int sizes[][2] = {{1, 16383}, {28, 771}, {1, 16384}, {100, 700}};
+    size_t k;
+    for (k = 0; k < sizeof sizes / sizeof *sizes; k++) {
+        int w = sizes[k][0], h = sizes[k][1], dw = 0, dh = 0;
+        size_t n = (size_t)w * (size_t)h * 3, i, size = 0;
+        unsigned char *rgb = malloc(n), *png = NULL, *back;
+        CHECK(rgb, "out of memory");
+        for (i = 0; i < n; i++) rgb[i] = (unsigned char)(i * 7 + i / 251);
+        CHECK(ex_png_encode_rgb(w, h, rgb, &png, &size) == BRT_OK, "encode %dx%d", w, h);
+        back = tu_png_decode(png, size, &dw, &dh);
+        EXPECT(back && dw == w && dh == h && memcmp(back, rgb, n) == 0, "%dx%d (%d raw bytes) does not decode to itself",
+               w, h, h * (1 + 3 * w));
+        free(back);
+        free(png);
+        free(rgb);
+    }
+}
+
+/* ---- trace --direct in slices ---- */
+
+static void test_direct_slices(void)
+{
+    const size_t count = ((size_t)1 << 18) + 3;
+    static const float v[3][3] = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
+    brt_ray *rays = malloc(count * sizeof *rays);
+    unsigned char *out = NULL, *occ = NULL;
+    uint64_t st = test_seed() + 218;
+    size_t i, size = 0, occ_size = 0, wrong = 0, wrong_occ = 0;
+    FILE *f;
+    CHECK(rays, "out of memory");
+    for (i = 0; i < count; i++) {
+        brt_ray *r = &rays[i];
+        /* rays down onto the plane z = 0 over [-0.5, 1.5]^2: about a third hit */
+        r->org[0] = tu_rnd(&st, -0.5f, 1.5f);
+        r->org[1] = tu_rnd(&st, -0.5f, 1.5f);
+        r->org[2] = 1;
+        r->dir[0] = r->dir[1] = 0;
+        r->dir[2] = -1;
+        r->tnear = 0;
+        r->tfar = INFINITY;
+    }
+    f = fopen(tu_scratch("tri.obj"), "w");
+    CHECK(f, "cannot write tri.obj");
+    fprintf(f, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    fclose(f);
+    EXPECT(tu_spill(tu_scratch("slices.rays"), rays, count * sizeof *rays), "cannot write the rays");
+    EXPECT(tu_run("trace @/tri.obj @/slices.rays @/slices.hits --direct") == 0, "trace: %s", tu_last_stderr());
+    EXPECT(tu_run("trace @/tri.obj @/slices.rays @/slices.occ --direct --occlusion") == 0, "trace: %s",
+           tu_last_stderr());
+    out = tu_slurp(tu_scratch("slices.hits"), &size);
+    occ = tu_slurp(tu_scratch("slices.occ"), &occ_size);
+    if (!out || size != count * 16 || !occ || occ_size != count) {
+        EXPECT(0, "hit file of %zu bytes, occlusion file of %zu, for %zu rays", size, occ_size, count);
+        goto done;
+    }
+    for (i = 0; i < count; i++) {
+        brt_hit want, got;
+        float t, u, w;
+        brt_hit_clear(&want);
+        if (brt_intersect_triangle(&rays[i], v[0], v[1], v[2], &t, &u, &w)) {
+            want.t = t;
+            want.prim = 0;
+            want.u = u;
+            want.v = w;
+        }
+        memcpy(&got.t, out + 16 * i, 4);         /* the 16-byte record: t, prim, u, v */
+        memcpy(&got.prim, out + 16 * i + 4, 4);
+        memcpy(&got.u, out + 16 * i + 8, 4);
+        memcpy(&got.v, out + 16 * i + 12, 4);
+        wrong += memcmp(&want.t, &got.t, 4) != 0 || want.prim != got.prim || memcmp(&want.u, &got.u, 4) != 0 ||
+                 memcmp(&want.v, &got.v, 4) != 0;
+        wrong_occ += occ[i] != (want.prim == 0);
+    }
+    EXPECT(wrong == 0 && wrong_occ == 0, "%zu hits and %zu occlusion bytes of %zu rays differ from brute force", wrong,
+           wrong_occ, count);
+done:
+    free(out);
+    free(occ);
+    free(rays);
+}
+
+/* ---- proxy resolutions ---- */
+
+static void test_resolution_bounds(void)
+{
+    static const struct { int res, ok; } cases[] = {{1024, 1}, {2048, 0}, {1, 0}, {3, 0}, {2, 1}};
+    FILE *f = fopen(tu_scratch("res.obj"), "w");
+    size_t i;
+    CHECK(f, "cannot write res.obj");
+    fprintf(f, "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n");
+    fclose(f);
+    for (i = 0; i < sizeof cases / sizeof *cases; i++) {
+        int status = tu_run("voxelize @/res.obj --res %d --stats @/res.json", cases[i].res);
+        double voxels = status == 0 ? tu_json_file_number(tu_scratch("res.json"), "voxels") : 0;
+        if (cases[i].ok)
+            EXPECT(status == 0 && voxels >= cases[i].res, "voxelize --res %d: status %d (%s), %g voxels", cases[i].res,
+                   status, tu_last_stderr(), voxels);
+        else
+            EXPECT(status == 1 && strstr(tu_last_stderr(), "res"), "voxelize --res %d: status %d, '%s'", cases[i].res,
+                   status, tu_last_stderr());
+    }
+    {   /* the batched mode too: one ray down onto the first triangle */
+        brt_ray ray = {{0.25f, 0.25f, 1}, {0, 0, -1}, 0, INFINITY};
+        unsigned char *hit;
+        size_t size = 0;
+        float t = 0;
+        CHECK(tu_spill(tu_scratch("res.rays"), &ray, sizeof ray), "cannot write res.rays");
+        EXPECT(tu_run("trace @/res.obj @/res.rays @/res.hits --batched --res 1024 --scene @/res.brs") == 0,
+               "trace --batched --res 1024: %s", tu_last_stderr());
+        hit = tu_slurp(tu_scratch("res.hits"), &size);
+        if (hit && size == 16) memcpy(&t, hit, 4);
+        EXPECT(t == 1.0f, "trace --batched --res 1024: t %g, want 1", t);
+        free(hit);
+    }
+}
+
+/* ---- hitdiff's tolerance ---- */
+
+static void test_hitdiff_tolerance_inclusive(void)
+{
+    float hits[3][4];       /* 16-byte records: t, prim (bits), u, v */
+    size_t i;
+    for (i = 0; i < 3; i++) {
+        uint32_t prim = (uint32_t)i;
+        hits[i][0] = 1.5f + (float)i;
+        memcpy(&hits[i][1], &prim, 4);
+        hits[i][2] = hits[i][3] = 0.25f;
+    }
+    CHECK(tu_spill(tu_scratch("same.hits"), hits, sizeof hits), "cannot write");
+    EXPECT(tu_run("hitdiff @/same.hits @/same.hits --t-rel 0 --max-disagree 0") == 0,
+           "identical files at --t-rel 0: status not 0: %s%s", tu_last_stdout(), tu_last_stderr());
+}
+
 void suite_thresholds(void)
 {
     test_run("thresholds: a blob larger than one cache read (8 MiB) == direct", test_blob_past_one_read);
     test_run("thresholds: PLY headers of 16 elements and 64 properties, one past each", test_ply_header_limits);
+    test_run("thresholds: instanced scenes stream past one chunk of 4096 instances", test_instances_past_one_chunk);
+    test_run("thresholds: PNG pixels under, at and past one stored block (65535 bytes)", test_png_blocks);
+    test_run("thresholds: trace --direct past its slice of 2^18 rays == brute force", test_direct_slices);
+    test_run("thresholds: proxy resolution 1024 read, 2048, 1 and 3 refused", test_resolution_bounds);
+    test_run("thresholds: hitdiff --t-rel is inclusive: identical files agree at 0", test_hitdiff_tolerance_inclusive);
 }
