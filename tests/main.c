@@ -273,6 +273,7 @@ static void run_suites(void)
     suite_sampling();
     suite_reclaim();
     suite_pbrt();
+    suite_pbrt_state();
     suite_policy();
     suite_runner();
 }

@@ -78,6 +78,7 @@ void suite_sampling(void);
 void suite_reclaim(void);
 void suite_runner(void);
 void suite_pbrt(void);
+void suite_pbrt_state(void);
 void suite_policy(void);
 
 #endif
