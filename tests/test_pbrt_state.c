@@ -415,6 +415,10 @@ static const error_case error_cases[] = {
      "cannot close the importer's AttributeBegin",
      "WorldBegin\nAttributeBegin\nImport \"e_inc/impend.pbrt\"\nAttributeEnd\n", "e_inc/impend.pbrt",
      "\nAttributeEnd\n", BRT_EPARSE, "e_inc/impend.pbrt:2: AttributeEnd without AttributeBegin"},
+    {"e_imp_inc_end.pbrt", "an Include inside an Import belongs to the Import: its AttributeEnd cannot close "
+     "the importer's AttributeBegin either",
+     "WorldBegin\nAttributeBegin\nImport \"e_inc/impinc.pbrt\"\nAttributeEnd\n", "e_inc/impinc.pbrt",
+     "Include \"e_inc/impinc_end.pbrt\"\n", BRT_EPARSE, "e_inc/impinc_end.pbrt:2: AttributeEnd without AttributeBegin"},
     /* documented limits: exactly at them and one step past */
     {"e_tri_noidx.pbrt", "trianglemesh: only exactly 3 points may go without indices (6 may not)",
      "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0 0 0 1 1 0 1 0 1 1]\n", NULL, NULL,
@@ -447,6 +451,7 @@ static void test_error_table(void)
     for (i = 0; i < sizeof error_cases / sizeof *error_cases; i++) {
         const error_case *k = &error_cases[i];
         if (k->inc_name) put(k->inc_name, k->inc_text);
+        put("e_inc/impinc_end.pbrt", "\nAttributeEnd\n");
         expect_error(k->name, k->text, k->result, k->want);
         if (test_failed()) { test_fail_at(__FILE__, __LINE__, "(%s: %s)", k->name, k->why); return; }
     }
@@ -633,6 +638,31 @@ static void test_shape_variants(void)
     } else EXPECT(0, "v/main.pbrt: %s", err.message);
 }
 
+/* pbrt.h: "The streams report errors the same way": a point that
+** overflows the float range through its shape's transform is refused
+** when streamed, naming the Shape directive's own file and line -- in an
+** included file, and not the line of its "P" when that is another one. */
+static void test_stream_error_place(void)
+{
+    ex_pbrt *s;
+    brt_error err;
+    brt_scene_source src;
+    tris t;
+    brt_result r;
+    put("se/inc.pbrt", "\n\nScale 1e30 1e30 1e30\nShape \"trianglemesh\"\n\"point3 P\" [0 0 0 1e30 0 0 0 1 0]\n");
+    if (ex_pbrt_open(put("se/main.pbrt", "WorldBegin\n" TRI "Include \"inc.pbrt\"\n"), &s, &err) != BRT_OK) {
+        EXPECT(0, "se/main.pbrt: %s", err.message);
+        return;
+    }
+    memset(&t, 0, sizeof t);
+    ex_pbrt_source(s, &src);
+    r = src.world.run(src.world.user, collect, &t, &err);
+    EXPECT(r == BRT_EPARSE && strstr(err.message, "se/inc.pbrt:4: Shape: a point is not finite in float"),
+           "stream: %s (%s)", brt_result_string(r), r == BRT_OK ? "streamed" : err.message);
+    free(t.c);
+    ex_pbrt_close(s);
+}
+
 void suite_pbrt_state(void)
 {
     test_run("pbrt state: the graphics-state table (blocks, WorldBegin, coordinate systems, ActiveTransform, "
@@ -641,4 +671,5 @@ void suite_pbrt_state(void)
     test_run("pbrt state: 65,535 .. 70,000 instances across the chunk seam", test_instance_chunks);
     test_run("pbrt state: 65,535, 65,536, 65,537 triangles per chunk (world and prototype)", test_triangle_chunks);
     test_run("pbrt state: bilinearmesh patches, plymesh in an object and in an Import", test_shape_variants);
+    test_run("pbrt state: a stream error names the Shape's file and line", test_stream_error_place);
 }
