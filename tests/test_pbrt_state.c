@@ -197,6 +197,11 @@ static const state_case state_cases[] = {
      "CTM = Rotate 90 about y, then T(0,0,5): world from camera = T(0,0,-5) R^-1",
      "Rotate 90 0 1 0\nTranslate 0 0 5\nCamera \"perspective\"\nWorldBegin\nCoordSysTransform \"camera\"\n" TRI,
      NULL, NULL, 1, {{0, 0, -5, 0, 0, -4, 0, 1, -5}}},
+    {"coord_ortho.pbrt", "scene.cpp Camera: any camera, not only \"perspective\", names \"camera\"",
+     "Translate 0 0 5\nCamera \"orthographic\"\nWorldBegin\nCoordSysTransform \"camera\"\n" TRI, NULL, NULL,
+     1, {AT(0, 0, -5)}},
+    {"no_world.pbrt", "pbrt.h: a file without WorldBegin (a geometry file opened on its own) is all world, "
+     "under its CTM", "Translate 1 0 0\n" TRI, NULL, NULL, 1, {AT(1, 0, 0)}},
     {"coord_global.pbrt", "scene.cpp: namedCoordinateSystems is the builder's, not the graphics state's: a "
      "name defined inside a block outlives AttributeEnd",
      "WorldBegin\nAttributeBegin\nTranslate 3 0 0\nCoordinateSystem \"a\"\nAttributeEnd\nTranslate 0 9 0\n"
@@ -291,6 +296,9 @@ static const state_case state_cases[] = {
     {"inc_attr.pbrt", "an Include inside a block: AttributeEnd undoes the included Translate",
      "WorldBegin\nAttributeBegin\nInclude \"inc_attr_t.pbrt\"\nAttributeEnd\n" TRI,
      "inc_attr_t.pbrt", "Translate 1 0 0\n", 1, {AT(0, 0, 0)}},
+    {"inc_twice.pbrt", "the same file included twice is no cycle: read twice, textually (two Translates)",
+     "WorldBegin\nInclude \"inc_twice_t.pbrt\"\nInclude \"inc_twice_t.pbrt\"\n", "inc_twice_t.pbrt",
+     "Translate 1 0 0\n" TRI, 2, {AT(1, 0, 0), AT(2, 0, 0)}},
     {"imp_inherit.pbrt", "scene.cpp CopyForImport: the imported file starts with the importer's graphics state",
      "WorldBegin\nTranslate 2 0 0\nImport \"imp_inherit_t.pbrt\"\n", "imp_inherit_t.pbrt", TRI,
      1, {AT(2, 0, 0)}},
@@ -385,6 +393,12 @@ static const error_case error_cases[] = {
     {"e_open_inc.pbrt", "an AttributeBegin never closed is named where it is, in the included file",
      "WorldBegin\nInclude \"e_inc/open.pbrt\"\n" TRI, "e_inc/open.pbrt", "\nAttributeBegin\n", BRT_EPARSE,
      "e_inc/open.pbrt:2: AttributeBegin never closed"},
+    {"e_obj_open.pbrt", "an ObjectBegin never closed is named as one",
+     "WorldBegin\nAttributeBegin\nAttributeEnd\nObjectBegin \"a\"\n" TRI, NULL, NULL, BRT_EPARSE,
+     "e_obj_open.pbrt:4: ObjectBegin never closed"},
+    {"e_nested_inc.pbrt", "an Include inside an Include: after the inner one returns, lines are the outer "
+     "included file's", "WorldBegin\nInclude \"e_inc/outer.pbrt\"\n", "e_inc/outer.pbrt",
+     "\nInclude \"e_inc/blank4.pbrt\"\n\nFrob\n", BRT_EPARSE, "e_inc/outer.pbrt:4: unknown directive 'Frob'"},
     {"e_open_inner.pbrt", "of nested blocks never closed, the innermost is named",
      "WorldBegin\nAttributeBegin\nAttributeBegin\nAttributeEnd\nAttributeBegin\n", NULL, NULL, BRT_EPARSE,
      "e_open_inner.pbrt:5: AttributeBegin never closed"},
@@ -420,6 +434,9 @@ static const error_case error_cases[] = {
      "WorldBegin\nAttributeBegin\nImport \"e_inc/impinc.pbrt\"\nAttributeEnd\n", "e_inc/impinc.pbrt",
      "Include \"e_inc/impinc_end.pbrt\"\n", BRT_EPARSE, "e_inc/impinc_end.pbrt:2: AttributeEnd without AttributeBegin"},
     /* documented limits: exactly at them and one step past */
+    {"e_vector_p.pbrt", "fileformat-v4: P is a \"point3\" parameter; a \"vector3 P\" is not the positions",
+     "WorldBegin\nShape \"trianglemesh\" \"vector3 P\" [0 0 0 1 0 0 0 1 0]\n", NULL, NULL, BRT_EPARSE,
+     "e_vector_p.pbrt:2: Shape \"trianglemesh\" without \"point3 P\""},
     {"e_tri_noidx.pbrt", "trianglemesh: only exactly 3 points may go without indices (6 may not)",
      "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0 0 0 1 1 0 1 0 1 1]\n", NULL, NULL,
      BRT_EPARSE, "e_tri_noidx.pbrt:2: Shape \"trianglemesh\": \"indices\" missing"},
@@ -452,6 +469,7 @@ static void test_error_table(void)
         const error_case *k = &error_cases[i];
         if (k->inc_name) put(k->inc_name, k->inc_text);
         put("e_inc/impinc_end.pbrt", "\nAttributeEnd\n");
+        put("e_inc/blank4.pbrt", "\n\n\n\nTranslate 0 0 1\n");
         expect_error(k->name, k->text, k->result, k->want);
         if (test_failed()) { test_fail_at(__FILE__, __LINE__, "(%s: %s)", k->name, k->why); return; }
     }
