@@ -296,6 +296,12 @@ static const state_case state_cases[] = {
     {"inc_attr.pbrt", "an Include inside a block: AttributeEnd undoes the included Translate",
      "WorldBegin\nAttributeBegin\nInclude \"inc_attr_t.pbrt\"\nAttributeEnd\n" TRI,
      "inc_attr_t.pbrt", "Translate 1 0 0\n", 1, {AT(0, 0, 0)}},
+    {"obj_include.pbrt", "an Include inside ObjectBegin: its shapes are the object's, its Translate ends "
+     "at ObjectEnd", "WorldBegin\nObjectBegin \"a\"\nInclude \"obj_include_t.pbrt\"\nObjectEnd\n" TRI
+     "ObjectInstance \"a\"\n", "obj_include_t.pbrt", "Translate 0 1 0\n" TRI, 2, {AT(0, 0, 0), AT(0, 1, 0)}},
+    {"obj_import.pbrt", "scene.cpp CopyForImport: an Import inside ObjectBegin adds to the object being defined",
+     "WorldBegin\nObjectBegin \"a\"\nImport \"obj_import_t.pbrt\"\n" TRI "ObjectEnd\nTranslate 5 0 0\n"
+     "ObjectInstance \"a\"\n", "obj_import_t.pbrt", "Translate 0 1 0\n" TRI, 2, {AT(5, 1, 0), AT(5, 0, 0)}},
     {"inc_twice.pbrt", "the same file included twice is no cycle: read twice, textually (two Translates)",
      "WorldBegin\nInclude \"inc_twice_t.pbrt\"\nInclude \"inc_twice_t.pbrt\"\n", "inc_twice_t.pbrt",
      "Translate 1 0 0\n" TRI, 2, {AT(1, 0, 0), AT(2, 0, 0)}},
@@ -433,6 +439,9 @@ static const error_case error_cases[] = {
      "the importer's AttributeBegin either",
      "WorldBegin\nAttributeBegin\nImport \"e_inc/impinc.pbrt\"\nAttributeEnd\n", "e_inc/impinc.pbrt",
      "Include \"e_inc/impinc_end.pbrt\"\n", BRT_EPARSE, "e_inc/impinc_end.pbrt:2: AttributeEnd without AttributeBegin"},
+    {"e_objend_imp.pbrt", "scene.cpp ObjectEnd: \"ObjectEnd called inside Import for instance definition\" "
+     "is an error", "WorldBegin\nObjectBegin \"a\"\nImport \"e_inc/objend.pbrt\"\nObjectEnd\n", "e_inc/objend.pbrt",
+     "\nObjectEnd\n", BRT_EPARSE, "e_inc/objend.pbrt:2: ObjectEnd without ObjectBegin"},
     /* documented limits: exactly at them and one step past */
     {"e_vector_p.pbrt", "fileformat-v4: P is a \"point3\" parameter; a \"vector3 P\" is not the positions",
      "WorldBegin\nShape \"trianglemesh\" \"vector3 P\" [0 0 0 1 0 0 0 1 0]\n", NULL, NULL, BRT_EPARSE,
