@@ -673,9 +673,18 @@ typedef struct gstate {
     uint32_t file, line;    /* where */
 } gstate;
 
+/* Per open file: an Import's graphics state to restore at its end, and
+** the stack depth its blocks start at (AttributeEnd may not go below it). */
+typedef struct file_frame {
+    int import;
+    gstate g;
+    size_t base;
+} file_frame;
+
 typedef struct parser {
     ex_pbrt *scene;
     reader files[MAX_DEPTH];
+    file_frame frames[MAX_DEPTH];
     int depth;
     token peek;
     int peeked;
@@ -715,17 +724,45 @@ static brt_result fail_at(parser *p, const token *t, brt_result r, const char *f
     return brt_fail(p->err, r, "%s:%llu: %s", p->scene->files[t->file], (unsigned long long)t->line, text);
 }
 
+/* The directive that opens a block of kind 'a', 't' or 'o'. */
+static const char *block_begin(char kind)
+{
+    return kind == 'a' ? "AttributeBegin" : kind == 't' ? "TransformBegin" : "ObjectBegin";
+}
+
+static brt_result never_closed(parser *p, const gstate *top)
+{
+    return brt_fail(p->err, BRT_EPARSE, "%s:%lu: %s never closed", p->scene->files[top->file],
+                    (unsigned long)top->line, block_begin(top->kind));
+}
+
 /* The next token of the file tree: the end of an included file returns
-** to the file that included it. */
+** to the file that included it (an Include is textual).  The end of an
+** imported file is a TOK_EOF, left for parse (end_import): no directive
+** goes on past it into the importing file. */
 static brt_result next(parser *p, token *t)
 {
     brt_result r;
     if (p->peeked) { *t = p->peek; p->peeked = 0; return BRT_OK; }
     for (;;) {
         r = next_token(&p->files[p->depth - 1], t, p->err);
-        if (r != BRT_OK || t->kind != TOK_EOF || p->depth == 1) return r;
+        if (r != BRT_OK || t->kind != TOK_EOF || p->depth == 1 || p->frames[p->depth - 1].import) return r;
         reader_close(&p->files[--p->depth]);
     }
+}
+
+/* The end of an imported file restores the graphics state of its Import:
+** pbrt-v4 parses an Import with a copy of the builder (scene.cpp
+** CopyForImport) and merges back only what it defined (MergeImported), so
+** its transforms and ActiveTransform do not reach the importing file; a
+** block it opened and did not close is an error there too. */
+static brt_result end_import(parser *p)
+{
+    const file_frame *f = &p->frames[p->depth - 1];
+    if (p->stack_count > f->base) return never_closed(p, &p->stack[p->stack_count - 1]);
+    p->g = f->g;
+    reader_close(&p->files[--p->depth]);
+    return BRT_OK;
 }
 
 static void unget(parser *p, const token *t)
@@ -827,8 +864,9 @@ static int resolve(const parser *p, const char *name, char *out, size_t size)
     return n >= 0 && (size_t)n < size;
 }
 
-/* Starts reading an included file; where is the Include's token. */
-static brt_result push_file(parser *p, const char *path, const token *where)
+/* Starts reading an included (import: imported) file; where is the
+** directive's token. */
+static brt_result push_file(parser *p, const char *path, const token *where, int import)
 {
     reader *r;
     long file;
@@ -849,6 +887,9 @@ static brt_result push_file(parser *p, const char *path, const token *where)
             reader_close(r);
             return fail_at(p, where, BRT_EPARSE, "Include cycle: \"%s\" is already being read", path);
         }
+    p->frames[p->depth].import = import;
+    p->frames[p->depth].g = p->g;
+    p->frames[p->depth].base = import ? p->stack_count : p->frames[p->depth - 1].base;
     p->depth++;
     return BRT_OK;
 }
@@ -1243,12 +1284,6 @@ static brt_result push_state(parser *p, char kind, const token *d)
     return BRT_OK;
 }
 
-/* The directive that opens a block of kind 'a', 't' or 'o'. */
-static const char *block_begin(char kind)
-{
-    return kind == 'a' ? "AttributeBegin" : kind == 't' ? "TransformBegin" : "ObjectBegin";
-}
-
 /* Blocks close in the order they opened, each with its own End: pbrt-v4
 ** reads TransformBegin/End as AttributeBegin/End, but a file that closes
 ** one with the other's End is a mistake, refused here. */
@@ -1256,7 +1291,7 @@ static brt_result pop_state(parser *p, char kind, const token *d)
 {
     const char *what = kind == 'a' ? "AttributeEnd" : kind == 't' ? "TransformEnd" : "ObjectEnd";
     gstate *top;
-    if (p->stack_count == 0)
+    if (p->stack_count == p->frames[p->depth - 1].base)   /* an Import's blocks are its own */
         return fail_at(p, d, BRT_EPARSE, "%s without %s", what, block_begin(kind));
     top = &p->stack[p->stack_count - 1];
     if (top->kind != kind)
@@ -1531,7 +1566,7 @@ static brt_result do_include(parser *p, const token *d)
     brt_result r = expect_string(p, token_is(d, "Include") ? "Include" : "Import", name, sizeof name, &t);
     if (r != BRT_OK) return r;
     if (!resolve(p, name, path, sizeof path)) return fail_at(p, &t, BRT_EPARSE, "file name too long");
-    return push_file(p, path, d);
+    return push_file(p, path, d, token_is(d, "Import"));
 }
 
 /* Directives whose arguments are a type name and a parameter list, all
@@ -1632,11 +1667,7 @@ static brt_result finish(parser *p)
 {
     ex_pbrt *s = p->scene;
     size_t i, len = 0;
-    if (p->stack_count > 0) {
-        const gstate *top = &p->stack[p->stack_count - 1];
-        return brt_fail(p->err, BRT_EPARSE, "%s:%lu: %s never closed", s->files[top->file],
-                        (unsigned long)top->line, block_begin(top->kind));
-    }
+    if (p->stack_count > 0) return never_closed(p, &p->stack[p->stack_count - 1]);
     for (i = 0; i < s->object_count; i++)
         if (!s->objects[i].defined)
             return brt_fail(p->err, BRT_EPARSE, "%s:%lu: ObjectInstance of unknown object \"%s\"",
@@ -1676,7 +1707,11 @@ static brt_result parse(parser *p, const char *path)
     p->depth = 1;
     for (;;) {
         if ((r = next(p, &t)) != BRT_OK) return r;
-        if (t.kind == TOK_EOF) return finish(p);
+        if (t.kind == TOK_EOF && p->depth == 1) return finish(p);
+        if (t.kind == TOK_EOF) {
+            if ((r = end_import(p)) != BRT_OK) return r;
+            continue;
+        }
         if ((r = directive(p, &t)) != BRT_OK) return r;
     }
 }

@@ -45,7 +45,7 @@
 **   Identity Translate Scale Rotate LookAt Transform ConcatTransform
 **   CoordinateSystem CoordSysTransform ("camera" too) ActiveTransform
 **   AttributeBegin/End TransformBegin/End ObjectBegin/End ObjectInstance
-**   Include Import (read as Include) WorldBegin Camera "perspective"
+**   Include Import WorldBegin Camera "perspective"
 **   ("fov", "screenwindow", "frameaspectratio"), Film ("xresolution",
 **   "yresolution"), a shape's constant "float alpha".
 **   Every other directive and shape is read (its parameters consumed) and
@@ -77,6 +77,13 @@
 **     world space is CTM(ObjectInstance) * CTM(shape).  ObjectInstance may
 **     name an object defined further on (pbrt-v4 resolves names at the
 **     end), never one that is not defined at all.
+**   - Include is textual: the graphics state goes into the included file
+**     and comes back changed.  Import starts with the importer's state,
+**     and at its end the state is restored (pbrt-v4 parses it with a copy
+**     of the builder): its transforms stay in it; a block it opens must
+**     close in it, and it cannot close the importer's.  What it defines
+**     (shapes, objects, instances) is kept, in file order.  Named
+**     coordinate systems are one table for all files.
 **   - Relative paths (Include, Import, plymesh) resolve against the folder
 **     of the main scene file, as pbrt does, not the including file's.
 **   - Camera "perspective": the CTM at Camera is camera-from-world, kept
