@@ -385,7 +385,7 @@ static void test_tie_carries_normal(void)
         tu_instanced s;
         brt_scene_source src;
         brt_world *w = NULL;
-        brt_bvh *proto = NULL;
+        brt_bvh *proto[2] = {NULL, NULL};
         brt_instance_frame frame[2];
         brt_scene *scene;
         brt_error err;
@@ -394,14 +394,24 @@ static void test_tie_carries_normal(void)
         brt_trace_options opt;
         uint32_t i, k;
         memset(&s, 0, sizeof s);
-        s.proto_count = 1;
-        tu_add_vertex(&s.protos[0], -1, -1, 0);
-        tu_add_vertex(&s.protos[0], 1, -1, 0);
-        tu_add_vertex(&s.protos[0], 0, 1, 0);
+        s.proto_count = 2;      /* 0: a triangle far off, then the symmetric one (prim 1); 1: that one alone */
+        tu_add_vertex(&s.protos[0], 50, 50, 50);
+        tu_add_vertex(&s.protos[0], 51, 50, 50);
+        tu_add_vertex(&s.protos[0], 50, 51, 50);
         tu_add_triangle(&s.protos[0], 0, 1, 2);
+        for (k = 0; k < 2; k++) {
+            const uint32_t b = s.protos[k].vcount;
+            tu_add_vertex(&s.protos[k], -1, -1, 0);
+            tu_add_vertex(&s.protos[k], 1, -1, 0);
+            tu_add_vertex(&s.protos[k], 0, 1, 0);
+            tu_add_triangle(&s.protos[k], b, b + 1, b + 2);
+        }
+        /* instance 0 wins by its number with prim 1 over instance 1's prim 0 */
         tu_add_instance(&s, 0, order ? turn : ident);
-        tu_add_instance(&s, 0, order ? ident : turn);
-        CHECK(brt_bvh_build(s.protos[0].pos, s.protos[0].idx, 1, NULL, &proto) == BRT_OK, "prototype BVH");
+        tu_add_instance(&s, 1, order ? ident : turn);
+        for (k = 0; k < 2; k++)
+            CHECK(brt_bvh_build(s.protos[k].pos, s.protos[k].idx, s.protos[k].tcount, NULL, &proto[k]) == BRT_OK,
+                  "prototype BVH");
         for (k = 0; k < 2; k++)
             CHECK(brt_instance_frame_init(&s.instances[k], k, &frame[k], &err) == BRT_OK, "%s", err.message);
         tu_instanced_source(&s, &src);
@@ -412,20 +422,20 @@ static void test_tie_carries_normal(void)
             int first;
             brt_hit_clear(&want);
             tu_instanced_brute(&s, &rays[i], &want);
-            CHECK(want.inst == 0 && want.prim == 0, "ray %u: brute force names inst %u", (unsigned)i,
-                  (unsigned)want.inst);
+            CHECK(want.inst == 0 && want.prim == 1, "ray %u: brute force names inst %u prim %u (README: the "
+                  "lowest (inst, prim) wins: inst 0 prim 1)", (unsigned)i, (unsigned)want.inst, (unsigned)want.prim);
             for (first = 0; first < 2; first++) {       /* instance 1 tested first, then 0 first */
                 brt_hit_clear(&h);
                 memset(n, 0, sizeof n);
-                brt_instance_intersect(proto, &frame[!first], !first, &rays[i], &h, n);
-                brt_instance_intersect(proto, &frame[first], first, &rays[i], &h, n);
-                EXPECT(memcmp(&h, &want, sizeof h) == 0 && normal_is_of(&s, 0, 0, n),
+                brt_instance_intersect(proto[!first], &frame[!first], !first, &rays[i], &h, n);
+                brt_instance_intersect(proto[first], &frame[first], first, &rays[i], &h, n);
+                EXPECT(memcmp(&h, &want, sizeof h) == 0 && normal_is_of(&s, 0, 1, n),
                        "order %d ray %u, instance %d first: hit inst %u t %g, normal (%g %g %g) not instance "
                        "0's", order, (unsigned)i, !first, (unsigned)h.inst, h.t, n[0], n[1], n[2]);
             }
             brt_hit_clear(&h);
             brt_world_intersect(w, &rays[i], &h, n);
-            EXPECT(memcmp(&h, &want, sizeof h) == 0 && normal_is_of(&s, 0, 0, n),
+            EXPECT(memcmp(&h, &want, sizeof h) == 0 && normal_is_of(&s, 0, 1, n),
                    "order %d ray %u, world: inst %u, normal (%g %g %g) not instance 0's", order, (unsigned)i,
                    (unsigned)h.inst, n[0], n[1], n[2]);
         }
@@ -442,12 +452,13 @@ static void test_tie_carries_normal(void)
         opt.memory_limit = order ? 0 : 1;   /* in core, and every load oversized */
         EXPECT(brt_scene_trace_stream(scene, &opt, &source, NULL, &err) == BRT_OK, "%s", err.message);
         for (i = 0; i < 4; i++)
-            EXPECT(sink.hits[i].inst == 0 && normal_is_of(&s, 0, 0, sink.normals[i]),
+            EXPECT(sink.hits[i].inst == 0 && sink.hits[i].prim == 1 && normal_is_of(&s, 0, 1, sink.normals[i]),
                    "order %d ray %u, batched: inst %u, normal (%g %g %g) not instance 0's", order, (unsigned)i,
                    (unsigned)sink.hits[i].inst, sink.normals[i][0], sink.normals[i][1], sink.normals[i][2]);
         brt_scene_close(scene);
         brt_world_free(w);
-        brt_bvh_free(proto);
+        brt_bvh_free(proto[0]);
+        brt_bvh_free(proto[1]);
         tu_instanced_free(&s);
     }
 }

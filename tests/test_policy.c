@@ -652,6 +652,29 @@ static void test_proxy_segment_to_closest_hit(void)
                (unsigned long long)st.visits, (unsigned long long)st.queued_visits,
                (unsigned long long)st.resident_visits, N);
     }
+    /* The budget exactly A's pages: no load is oversized; a byte less, A's
+    ** is (README: "a blob larger than the whole budget, held alone").  And
+    ** the statistics file says the closed counts, field by field. */
+    opt.paper_scheduler = 0;
+    opt.read_fn = NULL;
+    for (i = 0; i < 2; i++) {
+        static const char *const fields[] = {"rays", "batching_points", "batch_loads", "disk_bytes_read",
+                                             "cache_peak_bytes", "memory_limit", "proxy_tests", "proxy_culled",
+                                             "visits", "queued_visits", "resident_visits", "oversized_loads",
+                                             "shadow_rays", "shadow_batch_loads", "prototype_loads"};
+        double want[15];
+        size_t k;
+        opt.memory_limit = unlimited.proxy_bytes + a_size - i;
+        CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &st, &err) == BRT_OK, "%s", err.message);
+        CHECK(brt_stats_write_json(tu_scratch("segment.json"), &st, &err) == BRT_OK, "%s", err.message);
+        want[0] = N; want[1] = 2; want[2] = 1; want[3] = (double)a_size; want[4] = (double)a_size;
+        want[5] = (double)opt.memory_limit; want[6] = 2 * N; want[7] = N; want[8] = N; want[9] = N;
+        want[10] = 0; want[11] = i; want[12] = 0; want[13] = 0; want[14] = 0;
+        for (k = 0; k < 15; k++)
+            EXPECT(tu_json_file_number(tu_scratch("segment.json"), fields[k]) == want[k],
+                   "budget %s A's pages: \"%s\" is %.0f, want %.0f", i ? "a byte under" : "exactly",
+                   fields[k], tu_json_file_number(tu_scratch("segment.json"), fields[k]), want[k]);
+    }
     brt_scene_close(scene);
     tu_scene_free(&s);
 }
