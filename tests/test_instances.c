@@ -381,7 +381,7 @@ static void test_tie_carries_normal(void)
     float turn[12] = {-1, 0, 0, 0, 0, 1, 0, 0, 0, 0, -1, 0}, ident[12];
     int order;
     identity(ident);
-    for (order = 0; order < 2; order++) {
+    for (order = 0; order < 4; order++) {      /* bit 0: which instance turns; bit 1: one prototype */
         tu_instanced s;
         brt_scene_source src;
         brt_world *w = NULL;
@@ -407,8 +407,8 @@ static void test_tie_carries_normal(void)
             tu_add_triangle(&s.protos[k], b, b + 1, b + 2);
         }
         /* instance 0 wins by its number with prim 1 over instance 1's prim 0 */
-        tu_add_instance(&s, 0, order ? turn : ident);
-        tu_add_instance(&s, 1, order ? ident : turn);
+        tu_add_instance(&s, 0, order & 1 ? turn : ident);
+        tu_add_instance(&s, order >> 1 ? 0 : 1, order & 1 ? ident : turn);   /* same prim 1, or prim 0 */
         for (k = 0; k < 2; k++)
             CHECK(brt_bvh_build(s.protos[k].pos, s.protos[k].idx, s.protos[k].tcount, NULL, &proto[k]) == BRT_OK,
                   "prototype BVH");
@@ -427,8 +427,8 @@ static void test_tie_carries_normal(void)
             for (first = 0; first < 2; first++) {       /* instance 1 tested first, then 0 first */
                 brt_hit_clear(&h);
                 memset(n, 0, sizeof n);
-                brt_instance_intersect(proto[!first], &frame[!first], !first, &rays[i], &h, n);
-                brt_instance_intersect(proto[first], &frame[first], first, &rays[i], &h, n);
+                brt_instance_intersect(proto[s.instances[!first].prototype], &frame[!first], !first, &rays[i], &h, n);
+                brt_instance_intersect(proto[s.instances[first].prototype], &frame[first], first, &rays[i], &h, n);
                 EXPECT(memcmp(&h, &want, sizeof h) == 0 && normal_is_of(&s, 0, 1, n),
                        "order %d ray %u, instance %d first: hit inst %u t %g, normal (%g %g %g) not instance "
                        "0's", order, (unsigned)i, !first, (unsigned)h.inst, h.t, n[0], n[1], n[2]);
@@ -449,7 +449,7 @@ static void test_tie_carries_normal(void)
         source.user = &sink;
         memset(&opt, 0, sizeof opt);
         opt.threads = 1;
-        opt.memory_limit = order ? 0 : 1;   /* in core, and every load oversized */
+        opt.memory_limit = order & 1 ? 0 : 1;   /* in core, and every load oversized */
         EXPECT(brt_scene_trace_stream(scene, &opt, &source, NULL, &err) == BRT_OK, "%s", err.message);
         for (i = 0; i < 4; i++)
             EXPECT(sink.hits[i].inst == 0 && sink.hits[i].prim == 1 && normal_is_of(&s, 0, 1, sink.normals[i]),

@@ -149,6 +149,11 @@ static void test_cache_at_the_limit(void)
            (unsigned long long)at.cache_peak_bytes, (unsigned long long)all.cache_peak_bytes,
            (unsigned long long)at.disk_bytes_read, (unsigned long long)all.disk_bytes_read,
            (unsigned long long)at.oversized_loads, (unsigned long long)at.memory_limit);
+    /* README, Statistics: visits = queued_visits + resident_visits (this
+    ** limit holds every blob, so layer 1 intersects rays at once too). */
+    EXPECT(at.resident_visits > 0 && at.visits == at.queued_visits + at.resident_visits,
+           "visits %llu, queued %llu, resident %llu", (unsigned long long)at.visits,
+           (unsigned long long)at.queued_visits, (unsigned long long)at.resident_visits);
     opt.memory_limit--;
     CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &below, &err) == BRT_OK, "%s", err.message);
     EXPECT(below.cache_peak_bytes + below.proxy_bytes <= below.memory_limit && below.oversized_loads == 0,
