@@ -938,6 +938,30 @@ static unsigned char *tone_map(const render_job *job, const uint64_t *sums)
 
 /* The linear image as a Portable Float Map: "PF", width, height, -1 (little
 ** endian), then float RGB rows from the bottom row up. */
+/* A run writes up to four files one after another (PNG, heat map, PFM,
+** statistics); when a later one fails, ex_check exits 1 and the earlier
+** ones must go too (README, "Errors": a failed program leaves no output
+** file).  Each file written is noted; at exit, unless main finished, the
+** regular ones are removed (never a device such as /dev/null). */
+static const char *written[16];
+static int written_count, render_finished;
+
+static void remove_written(void)
+{
+    struct stat st;
+    int i;
+    if (render_finished) return;
+    for (i = 0; i < written_count; i++)
+        if (stat(written[i], &st) == 0 && S_ISREG(st.st_mode)) unlink(written[i]);
+}
+
+static void note_written(const char *path)
+{
+    static char copies[16][4096];
+    if (written_count < 16 && snprintf(copies[written_count], sizeof copies[0], "%s", path) < (int)sizeof copies[0])
+        written[written_count] = copies[written_count], written_count++;
+}
+
 static void write_pfm(const char *path, const render_job *job, const uint64_t *sums)
 {
     size_t w = job->camera.width, h = job->camera.height, x, y, k, at;
@@ -958,6 +982,7 @@ static void write_pfm(const char *path, const render_job *job, const uint64_t *s
                 brt_put_le32(data + at, bits);
             }
     ex_check(prog, brt_write_file_atomic(path, data, at, &err), &err);
+    note_written(path);
     free(data);
 }
 
@@ -1062,6 +1087,7 @@ static void write_heatmap(const char *path, const render_job *job, const uint64_
         heat_colour((double)visits[i] / job->spp / max, rgb + 3 * i);
     draw_legend(rgb, width, height, max);
     ex_check(prog, ex_png_write_rgb(path, width, height, rgb, &err), &err);
+    note_written(path);
     free(rgb);
 }
 
@@ -1166,6 +1192,7 @@ static void write_stats(const char *path, const render_job *job, const run *x, i
              (unsigned long long)x->heat_visits, (unsigned long long)job->disk_speed, job->nee,
              job->sun_radius, job->sun.radiance[0], mean, se, rmse);
     ex_check(prog, ex_stats_write(path, &x->stats, extra, &err), &err);
+    note_written(path);
 }
 
 static void print_header(void)
@@ -1217,6 +1244,7 @@ static void write_image(const options *o, const render_job *job, run *x)
     }
     ex_check(prog, ex_png_write_rgb(o->out, (int)job->camera.width, (int)job->camera.height, rgb,
                                     &err), &err);
+    note_written(o->out);
     free(rgb);
 }
 
@@ -1331,6 +1359,7 @@ int main(int argc, char **argv)
     uint64_t triangles;
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
+    atexit(remove_written);
     parse_options(argc, argv, &o);
     interrupt = ex_catch_interrupts();
     memset(&job, 0, sizeof job);
@@ -1381,5 +1410,6 @@ int main(int argc, char **argv)
     if (scene) brt_scene_close(scene);
     free_direct(&direct);
     close_input(&in);
+    render_finished = 1;
     return 0;
 }

@@ -851,9 +851,53 @@ static void test_read_faults(void)
     fixture_free(&f);
 }
 
+/* README, "A reader's path" 1: batching points are "top-down median splits
+** ... at multiples of the batch size, so the points are full", and "none
+** over the limit": for --batch-tris N on M triangles (one bucket) that is
+** ceil(M / N) points, every one holding N triangles but at most one (M mod
+** N).  Read from the scene file's header and batch table (README layout:
+** the count at byte 32, a point's triangles at byte 48 of its 80), at N =
+** M (one point), M - 1 (two: M - 1 and 1), and sizes between. */
+static void test_points_are_full(void)
+{
+    static const uint32_t sizes[] = {300, 299, 1, 2, 7, 100, 150, 151, 1000};
+    const uint32_t m = 300;
+    tu_scene s;
+    uint64_t st = test_seed() + 4411;
+    size_t k;
+    memset(&s, 0, sizeof s);
+    tu_random_soup(&s, &st, m, 0.05f);
+    for (k = 0; k < sizeof sizes / sizeof sizes[0]; k++) {
+        const uint32_t n = sizes[k], want = (m + n - 1) / n;
+        brt_scene *scene = tu_build_scene(&s, n, 8, 1, tu_scratch("full.brs"));
+        unsigned char *f;
+        size_t size;
+        uint32_t j, points, partial = 0, total = 0;
+        if (!scene) break;
+        brt_scene_close(scene);
+        f = tu_slurp(tu_scratch("full.brs"), &size);
+        CHECK(f && size >= 256, "no scene file");
+        points = brt_get_le32(f + 32);
+        EXPECT(points == want, "--batch-tris %u on %u triangles: %u batching points, want %u", (unsigned)n,
+               (unsigned)m, (unsigned)points, (unsigned)want);
+        for (j = 0; j < points && brt_get_le64(f + 56) + 80u * (j + 1) <= size; j++) {
+            const uint32_t t = brt_get_le32(f + brt_get_le64(f + 56) + 80u * j + 48);
+            total += t;
+            EXPECT(t <= n, "--batch-tris %u: point %u holds %u triangles", (unsigned)n, (unsigned)j, (unsigned)t);
+            partial += t != n;
+        }
+        EXPECT(total == m && partial == (m % n != 0) && (m % n == 0 || partial == 1),
+               "--batch-tris %u: %u triangles in the points, %u not full (want %u)", (unsigned)n, (unsigned)total,
+               (unsigned)partial, (unsigned)(m % n != 0));
+        free(f);
+    }
+    tu_scene_free(&s);
+}
+
 void suite_batched(void)
 {
     test_run("batched: == direct, soups, batch sizes 1..100000", test_soup_batch_sizes);
+    test_run("batched: --batch-tris N on M triangles makes ceil(M/N) full points", test_points_are_full);
     test_run("batched: == direct, proxy resolutions 2..256", test_soup_resolutions);
     test_run("batched: == direct, scales 1e-3 and 1e5", test_soup_scales);
     test_run("batched: == direct, flat batching-point boxes", test_flat_boxes);

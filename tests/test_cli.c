@@ -1087,6 +1087,29 @@ static void test_minimal_batched(void)
     free(out);
 }
 
+/* README, "Errors": "Programs print that line, exit 1 and leave no output
+** file".  A secondary path: the first outputs written, the last one
+** (--stats into a folder that does not exist) fails: the hits, the PNG and
+** the heat map written before it must go too, and no temporary file stays. */
+static void test_late_failure_leaves_nothing(void)
+{
+    CHECK(tu_run("mkscene crown @/late.ply --scale 0.01") == 0, "mkscene failed");
+    CHECK(tu_run("raygen @/late.ply @/late.rays --kind random --count 200") == 0, "raygen failed");
+    EXPECT(tu_run("trace @/late.ply @/late.rays @/late.hits --stats @/no-such-dir/s.json") == 1,
+           "trace with an unwritable --stats did not exit 1");
+    EXPECT(!tu_file_exists(tu_scratch("late.hits")), "trace left its hits after the statistics failed");
+    EXPECT(tu_run("render @/late.ply --width 8 --height 6 --spp 1 --out @/late.png --heatmap @/late-heat.png "
+                  "--stats @/no-such-dir/s.json") == 1, "render with an unwritable --stats did not exit 1");
+    EXPECT(!tu_file_exists(tu_scratch("late.png")) && !tu_file_exists(tu_scratch("late-heat.png")),
+           "render left its image or heat map after the statistics failed (png %d, heat map %d)",
+           tu_file_exists(tu_scratch("late.png")), tu_file_exists(tu_scratch("late-heat.png")));
+    EXPECT(!tu_temporary_file_left(), "a temporary file was left");
+    EXPECT(tu_run("render @/late.ply --width 8 --height 6 --spp 1 --out @/late.png --heatmap @/late-heat.png "
+                  "--stats @/late.json") == 0 && tu_file_exists(tu_scratch("late.png")) &&
+           tu_file_exists(tu_scratch("late-heat.png")) && tu_file_exists(tu_scratch("late.json")),
+           "a good render did not keep its outputs");
+}
+
 void suite_cli(void)
 {
     test_run("cli: --help of every program", test_help);
@@ -1108,6 +1131,7 @@ void suite_cli(void)
     test_run("cli: --direct says when the mesh exceeds --memory", test_direct_notes_memory);
     test_run("cli: peak_rss_bytes in every program's statistics", test_peak_rss_in_statistics);
     test_run("cli: SIGINT and SIGTERM leave no temporary file", test_interrupts_leave_nothing);
+    test_run("cli: a failure after the first outputs leaves none", test_late_failure_leaves_nothing);
     test_run("cli: SIGINT and SIGTERM while tracing leave no output", test_interrupts_while_tracing);
     test_run("cli: trace --batched equals --direct on every built-in scene",
              test_builtin_scenes_batched_equals_direct);

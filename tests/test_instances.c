@@ -303,6 +303,166 @@ static void test_tie_break(void)
     tu_instanced_free(&s);
 }
 
+static brt_scene *build_instanced(const tu_instanced *s, uint32_t batch_tris, const char *name);
+
+/* The world normal of instance k's triangle prim: (v1-v0) x (v2-v0) of
+** the corners carried by its xform in double (not the library's cofactor). */
+static void world_normal_of(const tu_instanced *s, uint32_t k, uint32_t prim, double x[3])
+{
+    double c[3][3], e1[3], e2[3];
+    int a, j;
+    for (j = 0; j < 3; j++) {
+        const float *v = tu_vertex(&s->protos[s->instances[k].prototype], prim, j);
+        const float *m = s->instances[k].xform;
+        for (a = 0; a < 3; a++)
+            c[j][a] = (double)m[4 * a] * v[0] + (double)m[4 * a + 1] * v[1] + (double)m[4 * a + 2] * v[2] +
+                      m[4 * a + 3];
+    }
+    for (a = 0; a < 3; a++) { e1[a] = c[1][a] - c[0][a]; e2[a] = c[2][a] - c[0][a]; }
+    x[0] = e1[1] * e2[2] - e1[2] * e2[1];
+    x[1] = e1[2] * e2[0] - e1[0] * e2[2];
+    x[2] = e1[0] * e2[1] - e1[1] * e2[0];
+}
+
+/* Whether n points along instance k's triangle prim's world normal. */
+static int normal_is_of(const tu_instanced *s, uint32_t k, uint32_t prim, const float n[3])
+{
+    double x[3], dot = 0, nn = 0, xx = 0;
+    int a;
+    if (k >= s->instance_count) return 0;
+    world_normal_of(s, k, prim, x);
+    for (a = 0; a < 3; a++) { dot += x[a] * n[a]; nn += (double)n[a] * n[a]; xx += x[a] * x[a]; }
+    return xx > 0 && dot > 0.999 * sqrt(nn * xx);
+}
+
+typedef struct normal_sink {    /* the finished calls of a stream of rays */
+    const brt_ray *rays;
+    size_t count, next;
+    brt_hit hits[16];
+    float normals[16][3];
+} normal_sink;
+
+static size_t sink_next(void *user, brt_ray *rays, uint64_t *tags, size_t max)
+{
+    normal_sink *k = user;
+    size_t n = 0;
+    while (n < max && k->next < k->count) {
+        rays[n] = k->rays[k->next];
+        tags[n++] = k->next++;
+    }
+    return n;
+}
+
+static void sink_finished(void *user, const brt_ray *ray, const brt_hit *hit, const float normal[3],
+                          uint32_t visits, uint64_t tag)
+{
+    normal_sink *k = user;
+    (void)ray; (void)visits;
+    if (tag < 16) { k->hits[tag] = *hit; memcpy(k->normals[tag], normal, sizeof k->normals[tag]); }
+}
+
+/* README, "Hits": "among hits at the same smallest t the lowest (inst,
+** prim) wins", and the normal is the hit triangle's (brt_bvh_intersect_
+** normal: "whenever the hit changes, normal becomes the geometric normal
+** of the new hit's triangle").  One triangle symmetric about x = 0 under
+** two transforms that map it onto itself, the identity and a turn of 180
+** degrees about y (which flips its normal): every ray meets both at the
+** same t, and the tie goes to the lower instance with a different normal
+** and other (u, v).  The winner's normal must come with it whichever
+** instance is tested first: the instance function called in both orders,
+** the world (instances in either numbering) and the batched stream; each
+** checked against the corners carried by the xform in double. */
+static void test_tie_carries_normal(void)
+{
+    static const brt_ray rays[4] = {{{0.1f, -0.2f, 1}, {0, 0, -1}, 0, INFINITY},
+                                    {{-0.3f, 0.1f, -2}, {0, 0, 1}, 0, INFINITY},
+                                    {{0.05f, 0.4f, 3}, {0.01f, -0.02f, -1}, 0, INFINITY},
+                                    {{-0.2f, -0.5f, 1}, {0, 0, -0.5f}, 0, INFINITY}};
+    float turn[12] = {-1, 0, 0, 0, 0, 1, 0, 0, 0, 0, -1, 0}, ident[12];
+    int order;
+    identity(ident);
+    for (order = 0; order < 4; order++) {      /* bit 0: which instance turns; bit 1: one prototype */
+        tu_instanced s;
+        brt_scene_source src;
+        brt_world *w = NULL;
+        brt_bvh *proto[2] = {NULL, NULL};
+        brt_instance_frame frame[2];
+        brt_scene *scene;
+        brt_error err;
+        normal_sink sink;
+        brt_ray_source source;
+        brt_trace_options opt;
+        uint32_t i, k;
+        memset(&s, 0, sizeof s);
+        s.proto_count = 2;      /* 0: a triangle far off, then the symmetric one (prim 1); 1: that one alone */
+        tu_add_vertex(&s.protos[0], 50, 50, 50);
+        tu_add_vertex(&s.protos[0], 51, 50, 50);
+        tu_add_vertex(&s.protos[0], 50, 51, 50);
+        tu_add_triangle(&s.protos[0], 0, 1, 2);
+        for (k = 0; k < 2; k++) {
+            const uint32_t b = s.protos[k].vcount;
+            tu_add_vertex(&s.protos[k], -1, -1, 0);
+            tu_add_vertex(&s.protos[k], 1, -1, 0);
+            tu_add_vertex(&s.protos[k], 0, 1, 0);
+            tu_add_triangle(&s.protos[k], b, b + 1, b + 2);
+        }
+        /* instance 0 wins by its number with prim 1 over instance 1's prim 0 */
+        tu_add_instance(&s, 0, order & 1 ? turn : ident);
+        tu_add_instance(&s, order >> 1 ? 0 : 1, order & 1 ? ident : turn);   /* same prim 1, or prim 0 */
+        for (k = 0; k < 2; k++)
+            CHECK(brt_bvh_build(s.protos[k].pos, s.protos[k].idx, s.protos[k].tcount, NULL, &proto[k]) == BRT_OK,
+                  "prototype BVH");
+        for (k = 0; k < 2; k++)
+            CHECK(brt_instance_frame_init(&s.instances[k], k, &frame[k], &err) == BRT_OK, "%s", err.message);
+        tu_instanced_source(&s, &src);
+        CHECK(brt_world_build(&src, &w, &err) == BRT_OK, "%s", err.message);
+        for (i = 0; i < 4; i++) {
+            brt_hit h, want;
+            float n[3];
+            int first;
+            brt_hit_clear(&want);
+            tu_instanced_brute(&s, &rays[i], &want);
+            CHECK(want.inst == 0 && want.prim == 1, "ray %u: brute force names inst %u prim %u (README: the "
+                  "lowest (inst, prim) wins: inst 0 prim 1)", (unsigned)i, (unsigned)want.inst, (unsigned)want.prim);
+            for (first = 0; first < 2; first++) {       /* instance 1 tested first, then 0 first */
+                brt_hit_clear(&h);
+                memset(n, 0, sizeof n);
+                brt_instance_intersect(proto[s.instances[!first].prototype], &frame[!first], !first, &rays[i], &h, n);
+                brt_instance_intersect(proto[s.instances[first].prototype], &frame[first], first, &rays[i], &h, n);
+                EXPECT(memcmp(&h, &want, sizeof h) == 0 && normal_is_of(&s, 0, 1, n),
+                       "order %d ray %u, instance %d first: hit inst %u t %g, normal (%g %g %g) not instance "
+                       "0's", order, (unsigned)i, !first, (unsigned)h.inst, h.t, n[0], n[1], n[2]);
+            }
+            brt_hit_clear(&h);
+            brt_world_intersect(w, &rays[i], &h, n);
+            EXPECT(memcmp(&h, &want, sizeof h) == 0 && normal_is_of(&s, 0, 1, n),
+                   "order %d ray %u, world: inst %u, normal (%g %g %g) not instance 0's", order, (unsigned)i,
+                   (unsigned)h.inst, n[0], n[1], n[2]);
+        }
+        scene = build_instanced(&s, 1000, "tie-normal.brs");
+        CHECK(scene, "no scene");
+        memset(&sink, 0, sizeof sink);
+        sink.rays = rays;
+        sink.count = 4;
+        source.next_rays = sink_next;
+        source.finished = sink_finished;
+        source.user = &sink;
+        memset(&opt, 0, sizeof opt);
+        opt.threads = 1;
+        opt.memory_limit = order & 1 ? 0 : 1;   /* in core, and every load oversized */
+        EXPECT(brt_scene_trace_stream(scene, &opt, &source, NULL, &err) == BRT_OK, "%s", err.message);
+        for (i = 0; i < 4; i++)
+            EXPECT(sink.hits[i].inst == 0 && sink.hits[i].prim == 1 && normal_is_of(&s, 0, 1, sink.normals[i]),
+                   "order %d ray %u, batched: inst %u, normal (%g %g %g) not instance 0's", order, (unsigned)i,
+                   (unsigned)sink.hits[i].inst, sink.normals[i][0], sink.normals[i][1], sink.normals[i][2]);
+        brt_scene_close(scene);
+        brt_world_free(w);
+        brt_bvh_free(proto[0]);
+        brt_bvh_free(proto[1]);
+        tu_instanced_free(&s);
+    }
+}
+
 /* Each check of an instance at build, by its message. */
 static void test_bad_instances(void)
 {
@@ -1169,6 +1329,7 @@ void suite_instances(void)
     test_run("instances: world normals", test_world_normals);
     test_run("instances: the margin keeps far rays' hits", test_margin_keeps_far_rays);
     test_run("instances: tie-break (t, inst, prim)", test_tie_break);
+    test_run("instances: a tie won by the lower instance carries its normal", test_tie_carries_normal);
     test_run("instances: the object ray is rounded once", test_object_ray_rounded_once);
     test_run("instances: bad instances refused, naming the instance", test_bad_instances);
     test_run("instances: instanced hit files", test_hit_files);

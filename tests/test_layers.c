@@ -110,6 +110,62 @@ static void test_layer9_decoded_points(void)
     free(quantized);
 }
 
+/* README, "Memory" and "Statistics": a batched run holds its memory limit
+** (geometry cache and proxies); cache_peak_bytes <= memory_limit, a blob
+** larger than the whole budget is the only oversized load.  At the byte:
+** with the limit exactly every blob (page-rounded, as the cache holds
+** them: the unlimited run's peak, no decode) plus the proxies, nothing is
+** evicted: each point loaded once, the peak every blob, the bytes read
+** the unlimited run's, no oversized load.  One byte under, the peak stays
+** within the budget and no blob is oversized (each is far smaller).  The
+** reference is the unlimited run, whose loads equal the points (checked),
+** so its peak is the sum of every blob. */
+static void test_cache_at_the_limit(void)
+{
+    enum { COUNT = 4000 };
+    tu_scene s;
+    brt_scene *scene = layers_scene(&s, "atlimit.brs");
+    brt_ray *rays = layers_rays(&s, COUNT);
+    brt_hit *hits = malloc(COUNT * sizeof *hits);
+    brt_trace_options opt;
+    brt_stats all, at, below;
+    brt_error err;
+    CHECK(scene && rays && hits, "set-up failed");
+    memset(&opt, 0, sizeof opt);
+    opt.threads = 1;
+    opt.no_decode = 1;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &all, &err) == BRT_OK, "%s", err.message);
+    CHECK(all.batch_loads == all.batching_points && all.oversized_loads == 0 && all.memory_limit == 0,
+          "unlimited: %llu loads of %llu points, %llu oversized", (unsigned long long)all.batch_loads,
+          (unsigned long long)all.batching_points, (unsigned long long)all.oversized_loads);
+    opt.memory_limit = all.cache_peak_bytes + all.proxy_bytes;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &at, &err) == BRT_OK, "%s", err.message);
+    EXPECT(at.batch_loads == at.batching_points && at.cache_peak_bytes == all.cache_peak_bytes &&
+           at.disk_bytes_read == all.disk_bytes_read && at.oversized_loads == 0 &&
+           at.memory_limit == opt.memory_limit && at.cache_peak_bytes + at.proxy_bytes <= at.memory_limit,
+           "at the limit %llu: %llu loads of %llu points, peak %llu (every blob: %llu), %llu bytes read "
+           "(unlimited: %llu), %llu oversized, limit reported %llu", (unsigned long long)opt.memory_limit,
+           (unsigned long long)at.batch_loads, (unsigned long long)at.batching_points,
+           (unsigned long long)at.cache_peak_bytes, (unsigned long long)all.cache_peak_bytes,
+           (unsigned long long)at.disk_bytes_read, (unsigned long long)all.disk_bytes_read,
+           (unsigned long long)at.oversized_loads, (unsigned long long)at.memory_limit);
+    /* README, Statistics: visits = queued_visits + resident_visits (this
+    ** limit holds every blob, so layer 1 intersects rays at once too). */
+    EXPECT(at.resident_visits > 0 && at.visits == at.queued_visits + at.resident_visits,
+           "visits %llu, queued %llu, resident %llu", (unsigned long long)at.visits,
+           (unsigned long long)at.queued_visits, (unsigned long long)at.resident_visits);
+    opt.memory_limit--;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &below, &err) == BRT_OK, "%s", err.message);
+    EXPECT(below.cache_peak_bytes + below.proxy_bytes <= below.memory_limit && below.oversized_loads == 0,
+           "a byte under: peak %llu + proxies %llu over the limit %llu, or %llu oversized",
+           (unsigned long long)below.cache_peak_bytes, (unsigned long long)below.proxy_bytes,
+           (unsigned long long)below.memory_limit, (unsigned long long)below.oversized_loads);
+    brt_scene_close(scene);
+    tu_scene_free(&s);
+    free(rays);
+    free(hits);
+}
+
 /* A ray source over an array that counts its finished rays and records
 ** the room of its first call (the rays in flight); a greedy one claims
 ** more rays than it was given room for. */
@@ -262,6 +318,7 @@ static void test_interrupt_between_batches(void)
 void suite_layers(void)
 {
     test_run("layers: 2, proxies off exactly when the budget holds every blob", test_layer2_boundary);
+    test_run("layers: the cache at its limit, and a byte under", test_cache_at_the_limit);
     test_run("layers: 9, points decoded only into room every blob leaves", test_layer9_decoded_points);
     test_run("layers: 10, few rays in flight exactly when every blob fits", test_layer10_rays_in_flight);
     test_run("layers: a ray source over its room is an error", test_source_contract);

@@ -540,8 +540,148 @@ static void test_instance_gate(void)
     tu_instanced_free(&s);
 }
 
+/* ---- the proxy test's segment ends at the closest hit so far ------------ */
+
+typedef struct bytes_log {      /* every read: its offset and size */
+    uint64_t offsets[64], bytes;
+    uint32_t count;
+} bytes_log;
+
+static long bytes_read(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    bytes_log *log = user;
+    if (log->count < 64) log->offsets[log->count] = offset;
+    log->count++;
+    log->bytes += size;
+    return (long)pread(fd, buf, size, (off_t)offset);
+}
+
+/* README, "The scheduler": a ray's proxy is asked about [tnear, closest
+** hit so far] ("A ray is first cast against a small in-memory voxel proxy
+** ... only rays that hit the proxy cause a disk load"; walk_on, proxy_test).
+** Hits cannot show a proxy cast over the whole [tnear, tfar]: it only
+** loads more.  Two batching points of one triangle each, rays along +x
+** from x = -1 near the axis y = z = 0:
+**   A, the plane x = 1 + y/2 (box x in [0.5, 1.5]), crossed at x ~ 1;
+**   B, a triangle from a corner at x = 0.8, (y, z) = (2, 2), to an edge at
+**      x = 3.2, crossed at x ~ 2.84.
+** Every ray enters A first (t ~ 1.5), is queued there and hits it (t ~ 2);
+** it walks on into B's box (entered at t ~ 1.8, before that hit), where
+** B's triangle lies at least ~1.7 (9 cells of 16^3 over a box of 3) from
+** the ray up to the hit: the proxy misses over [tnear, t_A] and would hit
+** over [tnear, inf].  Closed counts for N rays, both schedulers, a limit
+** one byte under every blob (layer 2 keeps the proxies on): one load,
+** A's blob's bytes read, 2N proxy tests, N culled, N visits, all queued. */
+static void test_proxy_segment_to_closest_hit(void)
+{
+    enum { N = 25 };
+    static const float tri[2][3][3] = {
+        {{0.5f, -1, -1}, {0.5f, -1, 1}, {1.5f, 1, 0}},
+        {{0.8f, 2, 2}, {3.2f, -1, 0.3f}, {3.2f, 0.3f, -1}}};
+    tu_scene s;
+    brt_scene *scene;
+    brt_ray rays[N];
+    brt_hit hits[N];
+    brt_stats unlimited, st;
+    brt_trace_options opt;
+    brt_error err;
+    bytes_log log;
+    uint64_t a_offset = 0, a_size = 0, all_blobs = 0;
+    unsigned char *f;
+    size_t fsize;
+    uint32_t i, j;
+    int paper;
+    memset(&s, 0, sizeof s);
+    for (i = 0; i < 2; i++) {
+        uint32_t v[3];
+        for (j = 0; j < 3; j++) v[j] = tu_add_vertex(&s, tri[i][j][0], tri[i][j][1], tri[i][j][2]);
+        tu_add_triangle(&s, v[0], v[1], v[2]);
+    }
+    scene = tu_build_scene(&s, 1, 16, 1, tu_scratch("segment.brs"));
+    CHECK(scene, "no scene");
+    f = tu_slurp(tu_scratch("segment.brs"), &fsize);
+    CHECK(f && brt_get_le32(f + 32) == 2, "want two batching points of one triangle each");
+    for (j = 0; j < 2; j++) {          /* the batch table: box lo x at 0, blob offset 24, size 32 */
+        const unsigned char *e = f + brt_get_le64(f + 56) + 80u * j;
+        all_blobs += (brt_get_le64(e + 32) + 4095) / 4096 * 4096;
+        if (le_f32(e) < 0.6f) {       /* read whole pages, as the cache holds them */
+            a_offset = brt_get_le64(e + 24);
+            a_size = (brt_get_le64(e + 32) + 4095) / 4096 * 4096;
+        }
+    }
+    free(f);
+    CHECK(a_size > 0, "no batching point with A's box");
+    for (i = 0; i < N; i++) {
+        brt_hit want;
+        rays[i].org[0] = -1;
+        rays[i].org[1] = 0.02f * (float)(i % 5) - 0.04f;
+        rays[i].org[2] = 0.02f * (float)(i / 5) - 0.04f;
+        rays[i].dir[0] = 1;
+        rays[i].dir[1] = rays[i].dir[2] = 0;
+        rays[i].tnear = 0;
+        rays[i].tfar = INFINITY;
+        brt_hit_clear(&want);
+        tu_brute_force(&s, NULL, &rays[i], &want);
+        CHECK(want.prim == 0 && want.t > 1.9f && want.t < 2.1f, "ray %u: brute force says prim %u t %g",
+              (unsigned)i, (unsigned)want.prim, want.t);
+    }
+    memset(&opt, 0, sizeof opt);
+    opt.threads = 1;
+    CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &unlimited, &err) == BRT_OK, "%s", err.message);
+    for (paper = 0; paper < 2; paper++) {
+        memset(&log, 0, sizeof log);
+        opt.paper_scheduler = paper;
+        opt.memory_limit = unlimited.proxy_bytes + all_blobs - 1;
+        opt.read_fn = bytes_read;
+        opt.read_user = &log;
+        CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &st, &err) == BRT_OK, "%s", err.message);
+        for (i = 0; i < N; i++)
+            EXPECT(hits[i].prim == 0 && hits[i].t > 1.9f, "%s: ray %u: prim %u t %g",
+                   paper ? "paper's" : "batchrt's", (unsigned)i, (unsigned)hits[i].prim, hits[i].t);
+        EXPECT(log.count == 1 && log.offsets[0] == a_offset && log.bytes == a_size,
+               "%s scheduler: %u reads, %llu bytes (want A's blob alone: one read of %llu bytes); B's proxy "
+               "was cast beyond the closest hit", paper ? "paper's" : "batchrt's", (unsigned)log.count,
+               (unsigned long long)log.bytes, (unsigned long long)a_size);
+        EXPECT(st.batch_loads == 1 && st.disk_bytes_read == log.bytes && st.proxy_tests == 2 * N &&
+               st.proxy_culled == N && st.visits == N && st.queued_visits == N && st.resident_visits == 0,
+               "%s scheduler: loads %llu (want 1), disk bytes %llu (read %llu), proxy tests %llu (want %d), "
+               "culled %llu (want %d), visits %llu = %llu queued + %llu resident (want %d, all queued)",
+               paper ? "paper's" : "batchrt's", (unsigned long long)st.batch_loads,
+               (unsigned long long)st.disk_bytes_read, (unsigned long long)log.bytes,
+               (unsigned long long)st.proxy_tests, 2 * N, (unsigned long long)st.proxy_culled, N,
+               (unsigned long long)st.visits, (unsigned long long)st.queued_visits,
+               (unsigned long long)st.resident_visits, N);
+    }
+    /* The budget exactly A's pages: no load is oversized; a byte less, A's
+    ** is (README: "a blob larger than the whole budget, held alone").  And
+    ** the statistics file says the closed counts, field by field. */
+    opt.paper_scheduler = 0;
+    opt.read_fn = NULL;
+    for (i = 0; i < 2; i++) {
+        static const char *const fields[] = {"rays", "batching_points", "batch_loads", "disk_bytes_read",
+                                             "cache_peak_bytes", "memory_limit", "proxy_tests", "proxy_culled",
+                                             "visits", "queued_visits", "resident_visits", "oversized_loads",
+                                             "shadow_rays", "shadow_batch_loads", "prototype_loads"};
+        double want[15];
+        size_t k;
+        opt.memory_limit = unlimited.proxy_bytes + a_size - i;
+        CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &st, &err) == BRT_OK, "%s", err.message);
+        CHECK(brt_stats_write_json(tu_scratch("segment.json"), &st, &err) == BRT_OK, "%s", err.message);
+        want[0] = N; want[1] = 2; want[2] = 1; want[3] = (double)a_size; want[4] = (double)a_size;
+        want[5] = (double)opt.memory_limit; want[6] = 2 * N; want[7] = N; want[8] = N; want[9] = N;
+        want[10] = 0; want[11] = i; want[12] = 0; want[13] = 0; want[14] = 0;
+        for (k = 0; k < 15; k++)
+            EXPECT(tu_json_file_number(tu_scratch("segment.json"), fields[k]) == want[k],
+                   "budget %s A's pages: \"%s\" is %.0f, want %.0f", i ? "a byte under" : "exactly",
+                   fields[k], tu_json_file_number(tu_scratch("segment.json"), fields[k]), want[k]);
+    }
+    brt_scene_close(scene);
+    tu_scene_free(&s);
+}
+
 void suite_policy(void)
 {
     test_run("policy: loads and counts equal the model's", test_policies_match_model);
     test_run("policy: the gate of a point of instances", test_instance_gate);
+    test_run("policy: the proxy segment ends at the closest hit", test_proxy_segment_to_closest_hit);
 }
