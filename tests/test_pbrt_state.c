@@ -427,8 +427,8 @@ static const error_case error_cases[] = {
      "WorldBegin\nInclude \"e_inc/obj.pbrt\"\nAttributeEnd\n", "e_inc/obj.pbrt", "\n\nObjectBegin \"a\"\n",
      BRT_EPARSE, "e_mixed_inc.pbrt:3: AttributeEnd while the ObjectBegin at "},
     {"e_mixed_inc2.pbrt", "... and the ObjectBegin's place in that message is the included file's line",
-     "WorldBegin\nInclude \"e_inc/obj2.pbrt\"\nAttributeEnd\n", "e_inc/obj2.pbrt", "\n\nObjectBegin \"a\"\n",
-     BRT_EPARSE, "e_inc/obj2.pbrt:3 is open"},
+     "WorldBegin\nInclude \"e_inc/obj2.pbrt\"\nAttributeEnd\n", "e_inc/obj2.pbrt", "\n\n\nObjectBegin \"a\"\n",
+     BRT_EPARSE, "e_inc/obj2.pbrt:4 is open"},   /* line 4: not the AttributeEnd's line 3 */
     {"e_imp_open.pbrt", "pbrt-v4 MergeImported: an AttributeBegin not closed in an imported file is an error",
      "WorldBegin\nAttributeBegin\nImport \"e_inc/impopen.pbrt\"\nAttributeEnd\n", "e_inc/impopen.pbrt",
      "AttributeBegin\n", BRT_EPARSE, "e_inc/impopen.pbrt:1: AttributeBegin never closed"},

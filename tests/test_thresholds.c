@@ -22,7 +22,11 @@
 **   - proxy resolutions are the powers of two 2..1024: 1024 is read,
 **     2048, 1 and 3 refused;
 **   - hitdiff's --t-rel is a largest difference, inclusive: identical
-**     files agree at --t-rel 0.
+**     files agree at --t-rel 0;
+**   - an instance's transform may have a condition number of at most 1024
+**     (BRT_MAX_CONDITION), inclusive: diag(1, 1, 1024) and its mirror are
+**     taken, diag(1, 1, 1025) refused (the norms are exact here: row sums
+**     of a diagonal matrix and of its inverse, powers of two or not).
 */
 #include "test.h"
 #include "util.h"
@@ -343,6 +347,30 @@ static void test_hitdiff_tolerance_inclusive(void)
            "identical files at --t-rel 0: status not 0: %s%s", tu_last_stdout(), tu_last_stderr());
 }
 
+/* ---- the condition number's limit ---- */
+
+static void test_condition_limit(void)
+{
+    static const struct { float x, z; int ok; } cases[] = {{1, 1024, 1}, {-1, 1024, 1}, {1, 1025, 0}, {1, 1024.001f, 0}};
+    size_t i;
+    for (i = 0; i < sizeof cases / sizeof *cases; i++) {
+        brt_instance inst;
+        brt_instance_frame frame;
+        brt_error err;
+        brt_result r;
+        memset(&inst, 0, sizeof inst);
+        inst.xform[0] = cases[i].x;
+        inst.xform[5] = 1;
+        inst.xform[10] = cases[i].z;
+        r = brt_instance_frame_init(&inst, 7, &frame, &err);
+        if (cases[i].ok)
+            EXPECT(r == BRT_OK, "diag(%g, 1, %g): refused: %s", cases[i].x, cases[i].z, err.message);
+        else
+            EXPECT(r == BRT_EARG && strstr(err.message, "instance 7"), "diag(%g, 1, %g): %s", cases[i].x, cases[i].z,
+                   r == BRT_OK ? "accepted" : err.message);
+    }
+}
+
 void suite_thresholds(void)
 {
     test_run("thresholds: a blob larger than one cache read (8 MiB) == direct", test_blob_past_one_read);
@@ -352,4 +380,5 @@ void suite_thresholds(void)
     test_run("thresholds: trace --direct past its slice of 2^18 rays == brute force", test_direct_slices);
     test_run("thresholds: proxy resolution 1024 read, 2048, 1 and 3 refused", test_resolution_bounds);
     test_run("thresholds: hitdiff --t-rel is inclusive: identical files agree at 0", test_hitdiff_tolerance_inclusive);
+    test_run("thresholds: an instance's condition number 1024 taken, 1025 refused", test_condition_limit);
 }
