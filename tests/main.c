@@ -286,6 +286,7 @@ static void run_suites(void)
     suite_reclaim();
     suite_pbrt();
     suite_pbrt_camera();
+    suite_loopsubdiv();
     suite_policy();
     suite_thresholds();
     suite_runner();

@@ -85,6 +85,7 @@ void suite_reclaim(void);
 void suite_runner(void);
 void suite_pbrt(void);
 void suite_pbrt_camera(void);
+void suite_loopsubdiv(void);
 void suite_policy(void);
 void suite_thresholds(void);
 
