@@ -51,11 +51,11 @@ LIB_SRC  = batchrt.c bvh.c svdag.c
 LIB_OBJ  = $(LIB_SRC:%.c=$(BUILD)/%.o)
 LIB      = $(BUILD)/libbatchrt.a
 # Every examples/*.c is a program, except the shared helpers (input.c and
-# pbrt.c: mesh and pbrt-v4 input; common.c:
+# pbrt.c: mesh and pbrt-v4 input; loopsubdiv.c: pbrt-v4's loopsubdiv shape; common.c:
 # options, errors, PNG; plot.c: SVG plots; rays.c: camera, random and bounce rays; scenes.c:
 # the built-in procedural scenes) and the
 # optional Embree and MPI tracers (built by "make embree" and "make mpi" only).
-EX_SHARED = examples/common.c examples/input.c examples/pbrt.c examples/plot.c examples/rays.c examples/referee.c examples/scenes.c
+EX_SHARED = examples/common.c examples/input.c examples/loopsubdiv.c examples/pbrt.c examples/plot.c examples/rays.c examples/referee.c examples/scenes.c
 EX_COMMON = $(EX_SHARED:%.c=$(BUILD)/%.o)
 EX_SRC   = $(filter-out $(EX_SHARED) examples/embree_trace.c examples/mpi_trace.c, $(wildcard examples/*.c))
 PROGRAMS = $(EX_SRC:examples/%.c=$(BUILD)/%)
@@ -387,17 +387,17 @@ $(BUILD)/tests/fuzz/targets.o $(BUILD)/tests/fuzz/replay.o: tests/fuzz/targets.h
 $(BUILD)/tests/fuzz:
 	$(Q)mkdir -p $@
 
-$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/pbrt.o $(LIB)
+$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/pbrt.o $(BUILD)/examples/loopsubdiv.o $(LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 fuzz-replay: $(BUILD)/tests/fuzz/replay
 	$(Q)for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
 
-$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/pbrt.c examples/pbrt.h $(LIB_SRC) batchrt.h
+$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/pbrt.c examples/pbrt.h examples/loopsubdiv.c examples/loopsubdiv.h $(LIB_SRC) batchrt.h
 	$(SAY) FUZZ $@
 	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
-	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/pbrt.c tests/fuzz/targets.c $< -o $@ -lm
+	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/pbrt.c examples/loopsubdiv.c tests/fuzz/targets.c $< -o $@ -lm
 
 fuzz: $(FUZZ_BINS)
 	$(Q)for t in $(FUZZ_TARGETS); do $(call FUZZ_RUN,$(FUZZ_SECONDS)) || exit 1; done

@@ -2,8 +2,9 @@
 ** examples/pbrt.c -- the streaming pbrt-v4 scene reader of examples/pbrt.h
 ** (the manual is there).  Format: pbrt-v4's scene description
 ** (pbrt.org/fileformat-v4); semantics checked against pbrt-v4's
-** src/pbrt/parser.cpp (tokens, parameter lists) and src/pbrt/scene.cpp
-** (transforms, object instancing, the camera).
+** src/pbrt/parser.cpp (tokens, parameter lists), src/pbrt/scene.cpp
+** (transforms, object instancing, the camera) and src/pbrt/shapes.cpp
+** (loopsubdiv's parameters; its refinement is examples/loopsubdiv.c).
 **
 ** Two passes.  ex_pbrt_open (Part IV) tokenizes the file tree once,
 ** keeping the graphics state (a stack of transforms) and recording per
@@ -20,10 +21,12 @@
 **   Part VI   the public functions
 */
 #include "pbrt.h"
+#include "loopsubdiv.h"
 
 #include <errno.h>
 #include <fcntl.h>
 #include <float.h>
+#include <limits.h>
 #include <math.h>
 #include <stdarg.h>
 #include <stdio.h>
@@ -604,7 +607,7 @@ static int xf_look_at(const double v[9], double m[12])
 /* Part IV: pass 1, the structure                                        */
 /* ===================================================================== */
 
-enum { SHAPE_TRIANGLES, SHAPE_BILINEAR, SHAPE_PLY };
+enum { SHAPE_TRIANGLES, SHAPE_BILINEAR, SHAPE_PLY, SHAPE_LOOP };
 
 /* A triangle shape: where its numbers are and the transform baked in. */
 typedef struct shape {
@@ -619,6 +622,7 @@ typedef struct shape {
     uint32_t file;
     int kind;
     int identity;           /* xform is the identity: points pass unchanged */
+    int levels;             /* loopsubdiv: its "levels" */
 } shape;
 
 /* An object name: defined by ObjectBegin, used by ObjectInstance. */
@@ -914,6 +918,7 @@ typedef struct wanted {
     token screen_at;
     uint32_t xres, yres;    /* Film */
     int alpha;              /* Shape: ALPHA_* */
+    int levels;             /* loopsubdiv */
     char filename[4096];
 } wanted;
 
@@ -1103,6 +1108,33 @@ static brt_result value_alpha_texture(parser *p, const token *t, wanted *w)
     return BRT_OK;
 }
 
+/* loopsubdiv's "integer levels": any int (pbrt-v4 refines none for 0 or
+** less). */
+static brt_result value_levels(parser *p, const token *t, wanted *w)
+{
+    char text[40], *end;
+    long v;
+    char b[40];
+    if (t->kind != TOK_WORD || t->n >= sizeof text)
+        return fail_at(p, t, BRT_EPARSE, "\"levels\": expected an integer, got '%s'", shown(t, b, sizeof b));
+    memcpy(text, t->s, t->n);
+    text[t->n] = 0;
+    errno = 0;
+    v = strtol(text, &end, 10);
+    if (end == text || *end || errno || v < INT_MIN || v > INT_MAX)
+        return fail_at(p, t, BRT_EPARSE, "\"levels\": expected an integer, got '%s'", shown(t, b, sizeof b));
+    w->levels = (int)v;
+    return BRT_OK;
+}
+
+/* loopsubdiv's "string scheme": pbrt-v4 reads it and uses Loop's scheme
+** whatever it says, so it is neither used nor reported here. */
+static brt_result value_ignored(parser *p, const token *t, wanted *w)
+{
+    (void)p; (void)t; (void)w;
+    return BRT_OK;
+}
+
 static brt_result value_filename(parser *p, const token *t, wanted *w)
 {
     if (t->kind != TOK_STRING || !unescape(t, w->filename, sizeof w->filename))
@@ -1132,6 +1164,9 @@ static value_fn wanted_fn(wanted *w, const char *type, const char *name)
     if (w->shape_kind == SHAPE_PLY)
         return strcmp(type, "string") == 0 && strcmp(name, "filename") == 0 ? value_filename : NULL;
     if (w->shape_kind < 0) return NULL;
+    if (w->shape_kind == SHAPE_LOOP && whole && strcmp(name, "levels") == 0) return value_levels;
+    if (w->shape_kind == SHAPE_LOOP && strcmp(type, "string") == 0 && strcmp(name, "scheme") == 0)
+        return value_ignored;
     if (points && strcmp(name, "P") == 0) return value_point;
     if (strcmp(type, "integer") == 0 && strcmp(name, "indices") == 0) return value_index;
     return NULL;
@@ -1438,6 +1473,7 @@ static brt_result add_shape(parser *p, const token *d, const wanted *w)
     xf_identity(identity);
     sh->identity = memcmp(identity, sh->xform, sizeof identity) == 0;
     sh->kind = w->shape_kind;
+    sh->levels = w->levels;
     sh->p_offset = w->p_offset; sh->p_line = w->p_line; sh->p_count = w->p_count; sh->p_file = w->p_file;
     sh->i_offset = w->i_offset; sh->i_line = w->i_line; sh->i_count = w->i_count;
     sh->has_indices = w->has_i;
@@ -1459,8 +1495,10 @@ static brt_result do_shape(parser *p, const token *d)
     memset(&w, 0, sizeof w);
     w.shape_kind = strcmp(name, "trianglemesh") == 0 ? SHAPE_TRIANGLES
                  : strcmp(name, "bilinearmesh") == 0 ? SHAPE_BILINEAR
-                 : strcmp(name, "plymesh") == 0 ? SHAPE_PLY : -1;
+                 : strcmp(name, "plymesh") == 0 ? SHAPE_PLY
+                 : strcmp(name, "loopsubdiv") == 0 ? SHAPE_LOOP : -1;
     w.report = w.shape_kind >= 0 ? "Shape" : NULL;
+    w.levels = 3;           /* pbrt-v4's default */
     if ((r = read_params(p, &w)) != BRT_OK) return r;
     if (w.shape_kind < 0) {
         snprintf(key, sizeof key, "Shape \"%.80s\"", name);
@@ -1475,7 +1513,15 @@ static brt_result do_shape(parser *p, const token *d)
             return fail_at(p, d, BRT_EIO, "plymesh \"%s\": cannot read %s: %s", w.filename, path, strerror(errno));
         if ((file = add_file(p, path)) < 0) return BRT_ENOMEM;
         w.p_file = (uint32_t)file;
+    } else if (w.shape_kind == SHAPE_LOOP && (!w.has_i || w.i_count == 0)) {
+        /* pbrt-v4 stops here too: a loopsubdiv's indices are never implied */
+        return fail_at(p, d, BRT_EPARSE, "Shape \"loopsubdiv\" without \"integer indices\"");
     } else if ((r = check_mesh(p, d, &w, name)) != BRT_OK) return r;
+    /* Its vertices and triangles are numbered in 32 bits while refined. */
+    if (w.shape_kind == SHAPE_LOOP && (ex_loop_triangle_count(w.i_count / 3, w.levels) > EX_LOOP_MAX_TRIANGLES
+                                       || w.p_count / 3 > EX_LOOP_MAX_TRIANGLES))
+        return fail_at(p, d, BRT_EPARSE, "Shape \"loopsubdiv\": %llu faces at levels %d make more than 2^22 triangles",
+                       (unsigned long long)(w.i_count / 3), w.levels);
     /* Checked as any shape is, then dropped: pbrt-v4 never hits it. */
     if (w.alpha == ALPHA_ZERO) return count_skipped(p, "Shape removed by \"alpha\" 0");
     if (w.alpha == ALPHA_PARTIAL) r = count_skipped(p, "Shape parameter \"alpha\" (kept opaque)");
@@ -1761,6 +1807,8 @@ typedef struct run {
     size_t position_cap;
     uint32_t face[4];       /* the patch being read */
     int corners;            /* of it read so far */
+    uint32_t *indices;      /* a loopsubdiv's, held whole while refined */
+    size_t index_cap;
 } run;
 
 static brt_result run_changed(run *u, const shape *sh)
@@ -1849,8 +1897,10 @@ static brt_result number_position(run *u, const char *s, size_t n, const decimal
     float f;
     if (decimal_float(d, s, n, &f) != NUM_OK) return run_changed(u, sh);
     u->positions[i] = f;
-    /* xf_point gives an identity's points back bit for bit: skipped. */
-    if (i % 3 != 2 || sh->identity) return BRT_OK;
+    /* xf_point gives an identity's points back bit for bit: skipped.  A
+    ** loopsubdiv is refined in object space and its limit points
+    ** transformed after, as pbrt-v4's TriangleMesh does. */
+    if (i % 3 != 2 || sh->identity || sh->kind == SHAPE_LOOP) return BRT_OK;
     return transform_point(u->out.err, u->scene, sh, &u->positions[i - 2], &u->positions[i - 2]);
 }
 
@@ -1896,6 +1946,69 @@ static brt_result run_mesh(run *u, const shape *sh)
     if (!sh->has_indices) return emit_face(u, implicit, sh->kind == SHAPE_BILINEAR);
     u->corners = 0;
     return run_numbers(u, sh, sh->i_file, sh->i_offset, sh->i_line, sh->i_count, number_index);
+}
+
+/* A loopsubdiv's index, kept (range checked again: the file may change). */
+static brt_result number_loop_index(run *u, const char *s, size_t n, const decimal *d, uint64_t i,
+                                    const shape *sh)
+{
+    (void)s;
+    if (!decimal_index(d, n, &u->indices[i]) || u->indices[i] >= sh->p_count / 3) return run_changed(u, sh);
+    return BRT_OK;
+}
+
+/* A loopsubdiv's indices, whole, into u->indices. */
+static brt_result run_loop_indices(run *u, const shape *sh)
+{
+    if (sh->i_count > u->index_cap) {
+        uint32_t *bigger = realloc(u->indices, (size_t)sh->i_count * sizeof *bigger);
+        if (!bigger) return brt_fail(u->out.err, BRT_ENOMEM, "out of memory for %llu indices",
+                                     (unsigned long long)sh->i_count);
+        u->indices = bigger;
+        u->index_cap = (size_t)sh->i_count;
+    }
+    return run_numbers(u, sh, sh->i_file, sh->i_offset, sh->i_line, sh->i_count, number_loop_index);
+}
+
+/* A message of examples/loopsubdiv.c, at the shape's file and line. */
+static brt_result loop_failed(const ex_pbrt *scene, const shape *sh, brt_result r, brt_error *err)
+{
+    brt_error inner;
+    if (!err) return r;
+    inner = *err;
+    return brt_fail(err, r, "%s:%lu: Shape \"loopsubdiv\": %s", scene->files[sh->file], (unsigned long)sh->line,
+                    inner.message);
+}
+
+/* A loopsubdiv: the control mesh read whole (object space), refined as
+** pbrt-v4 refines it (examples/loopsubdiv.h), its limit points put
+** through the shape's transform, its triangles emitted in pbrt's order. */
+static brt_result run_loop(run *u, const shape *sh)
+{
+    ex_loop_mesh m;
+    uint32_t i;
+    size_t need = (size_t)sh->p_count;
+    brt_result r;
+    if (need > u->position_cap || !u->positions) {
+        float *bigger = realloc(u->positions, (need ? need : 1) * sizeof *bigger);
+        if (!bigger) return brt_fail(u->out.err, BRT_ENOMEM, "out of memory for %llu vertices",
+                                     (unsigned long long)(sh->p_count / 3));
+        u->positions = bigger;
+        u->position_cap = need;
+    }
+    r = run_numbers(u, sh, sh->p_file, sh->p_offset, sh->p_line, sh->p_count, number_position);
+    if (r != BRT_OK || (r = run_loop_indices(u, sh)) != BRT_OK) return r;
+    r = ex_loop_subdivide(u->positions, (uint32_t)(sh->p_count / 3), u->indices, (uint32_t)(sh->i_count / 3),
+                          sh->levels, &m, u->out.err);
+    if (r != BRT_OK) return loop_failed(u->scene, sh, r, u->out.err);
+    for (i = 0; i < m.vertex_count && r == BRT_OK && !sh->identity; i++)
+        r = transform_point(u->out.err, u->scene, sh, m.p + 3 * (size_t)i, m.p + 3 * (size_t)i);
+    for (i = 0; i < m.triangle_count && r == BRT_OK; i++) {
+        const uint32_t *t = m.indices + 3 * (size_t)i;
+        r = sink_add(&u->out, m.p + 3 * (size_t)t[0], m.p + 3 * (size_t)t[1], m.p + 3 * (size_t)t[2]);
+    }
+    ex_loop_free(&m);
+    return r;
 }
 
 /* A PLY mesh's chunks, transformed, into the run's sink. */
@@ -1986,13 +2099,40 @@ static brt_result run_shapes(const ex_pbrt *scene, size_t first, size_t count, u
     for (i = first; i < first + count && r == BRT_OK; i++) {
         const shape *sh = &scene->shapes[i];
         if (sh->object != owner) continue;
-        r = sh->kind == SHAPE_PLY ? run_ply(&u, sh) : run_mesh(&u, sh);
+        r = sh->kind == SHAPE_PLY ? run_ply(&u, sh) : sh->kind == SHAPE_LOOP ? run_loop(&u, sh) : run_mesh(&u, sh);
     }
     if (r == BRT_OK) r = sink_flush(&u.out);
     if (r != BRT_OK && err) printable(err->message);
     if (u.in.buf) reader_close(&u.in);
     free(u.positions);
+    free(u.indices);
     free(u.out.corners);
+    return r;
+}
+
+/* ex_pbrt_open's last check: each loopsubdiv's control mesh is one
+** pbrt-v4 can refine (examples/loopsubdiv.h), so that a bad one is
+** refused at its Shape's line before any stream runs.  Its indices are
+** read again and held while checked. */
+static brt_result check_loops(const ex_pbrt *scene, brt_error *err)
+{
+    run u;
+    size_t i;
+    brt_result r = BRT_OK;
+    memset(&u, 0, sizeof u);
+    u.in.fd = -1;
+    u.scene = scene;
+    u.out.err = err;
+    for (i = 0; i < scene->shape_count && r == BRT_OK; i++) {
+        const shape *sh = &scene->shapes[i];
+        if (sh->kind != SHAPE_LOOP) continue;
+        r = run_loop_indices(&u, sh);
+        if (r == BRT_OK && (r = ex_loop_check(u.indices, (uint32_t)(sh->i_count / 3), (uint32_t)(sh->p_count / 3),
+                                              err)) != BRT_OK)
+            r = loop_failed(scene, sh, r, err);
+    }
+    if (u.in.buf) reader_close(&u.in);
+    free(u.indices);
     return r;
 }
 
@@ -2043,6 +2183,7 @@ brt_result ex_pbrt_open(const char *path, ex_pbrt **out, brt_error *err)
     xf_identity(p.g.ctm);
     if (!(p.scene = calloc(1, sizeof *p.scene))) return brt_fail(err, BRT_ENOMEM, "out of memory");
     r = parse(&p, path);
+    if (r == BRT_OK) r = check_loops(p.scene, err);
     if (r != BRT_OK && err) printable(err->message);
     while (p.depth > 0) reader_close(&p.files[--p.depth]);
     for (i = 0; i < p.named_count; i++) free(p.named[i].name);

@@ -27,7 +27,10 @@
 ** instances, never with triangles: ex_pbrt_open holds a window of 1 MiB
 ** per open file, and a run one window, one shape's vertex positions (12
 ** bytes a vertex) and one chunk of 65536 triangles (tests/test_pbrt.c
-** checks the peak resident set against a 40 MB mesh).
+** checks the peak resident set against a 40 MB mesh).  A loopsubdiv is
+** the exception: it is held whole while refined, its control mesh and
+** two levels at once (examples/loopsubdiv.h), once at ex_pbrt_open (its
+** indices, to check them) and once per run.
 **
 ** WHAT IS READ
 **   Shape "trianglemesh"  "point3 P" and "integer indices" (indices may be
@@ -42,6 +45,16 @@
 **                         system's "gzip -dc" into a temporary file under
 **                         $TMPDIR (default /tmp), removed however the
 **                         read ends; without gzip it is an error.
+**   Shape "loopsubdiv"    "point3 P", "integer indices", "integer levels"
+**                         (default 3; 0 or less: none), refined as pbrt-v4
+**                         refines it when it loads a scene, in object space,
+**                         the limit points then transformed
+**                         (examples/loopsubdiv.h: Loop's rules, boundary
+**                         rules, the push to the limit surface, and the
+**                         order: control face i becomes the shape's
+**                         triangles i 4^levels .. (i+1) 4^levels - 1).
+**                         "string scheme" is read and ignored, as pbrt-v4
+**                         ignores it; pbrt-v3's "nlevels" is skipped.
 **   Identity Translate Scale Rotate LookAt Transform ConcatTransform
 **   CoordinateSystem CoordSysTransform ("camera" too) ActiveTransform
 **   AttributeBegin/End TransformBegin/End ObjectBegin/End ObjectInstance
@@ -120,6 +133,11 @@
 ** of other than 4 numbers, a fov outside (0, 180), nested ObjectBegin, ObjectInstance inside
 ** ObjectBegin, an Include cycle, a missing file, P not a multiple of 3,
 ** indices not a multiple of 3 (4 for bilinearmesh) or out of range, a
+** loopsubdiv without indices, a non-manifold one (an edge in more than two
+** faces, two faces running an edge the same way, a vertex in no face or
+** where separate fans of faces meet, a face repeating a vertex: where
+** pbrt-v4 crashes, loops or drops faces; examples/loopsubdiv.h) or one
+** refined past 2^22 triangles, a
 ** non-finite number, a non-affine matrix, a singular transform at a shape,
 ** an instance or the camera, an instance's transform or the camera's
 ** position beyond the float range.  (The condition-number limit of

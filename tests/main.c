@@ -287,6 +287,7 @@ static void run_suites(void)
     suite_pbrt();
     suite_pbrt_camera();
     suite_pbrt_state();
+    suite_loopsubdiv();
     suite_policy();
     suite_thresholds();
     suite_runner();

@@ -86,6 +86,7 @@ void suite_runner(void);
 void suite_pbrt(void);
 void suite_pbrt_camera(void);
 void suite_pbrt_state(void);
+void suite_loopsubdiv(void);
 void suite_policy(void);
 void suite_thresholds(void);
 
