@@ -158,20 +158,22 @@ static void test_parallel_outcomes(void)
 
 /* tests/contract.md pairs each statement of the README with the tests
 ** that fail when it turns false.  Every name it quotes (between
-** backquotes, in the last cell of a table row) must be a test of the
-** suite, and every statement must name one at least: a renamed or
+** backquotes, in the last cell of a row of a "| statement |" table) must
+** be a test of the suite, and every statement must name one at least: a renamed or
 ** removed test cannot leave a statement unguarded without this failing. */
 static void test_contract_names(void)
 {
     FILE *f = fopen("tests/contract.md", "r");
     char line[4096];
-    int rows = 0, names = 0, number = 0;
+    int rows = 0, names = 0, number = 0, in_statements = 0;
     CHECK(f, "cannot open tests/contract.md (run from the repository's top)");
     while (fgets(line, sizeof line, f)) {
         char *cell = strrchr(line, '|'), *p;
         int here = 0;
         number++;
-        if (line[0] != '|' || strncmp(line, "|---", 4) == 0 || strncmp(line, "| statement", 11) == 0) continue;
+        if (line[0] != '|') in_statements = 0;          /* a table ends at its first other line */
+        if (strncmp(line, "| statement", 11) == 0) in_statements = 1;
+        if (!in_statements || strncmp(line, "|---", 4) == 0 || strncmp(line, "| statement", 11) == 0) continue;
         *cell = 0;
         cell = strrchr(line, '|');
         rows++;
