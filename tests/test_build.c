@@ -654,7 +654,8 @@ static void test_misnumbered_chunks(void)
     snprintf(path, sizeof path, "%s/scene.brs", dir);
     r = brt_scene_build_stream(&source, &opt, 1, path, &err);
     EXPECT(r == BRT_EARG && strstr(err.message, "scene.brs: the triangle source numbered a chunk 0, "
-                                                "not 1000"), "%s: '%s'", brt_result_string(r), err.message);
+                                                "not 1000"), "misnumbered chunk: %s: '%s'", brt_result_string(r),
+           err.message);
     n = dir_entries(dir, left);
     EXPECT(n == 0, "%d files left, such as %s", n, left);
 }
@@ -711,7 +712,7 @@ static void test_interrupt(void)
         generator_source(&g, &source);
         r = brt_scene_build_stream(&source, &opt, 1, path, &err);
         n = dir_entries(dir, left);
-        EXPECT(r == BRT_EINTR && strstr(err.message, "interrupted"), "after %u chunks: %d %s",
+        EXPECT(r == BRT_EINTR && strstr(err.message, "interrupted"), "after %u chunks: not interrupted: result %d %s",
                after[i], (int)r, r ? err.message : "");
         EXPECT(n == 0, "after %u chunks: %d files left, such as %s", after[i], n, left);
     }

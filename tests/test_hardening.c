@@ -1419,7 +1419,8 @@ static void test_forged_node_nesting(void)
     EXPECT(open_forged(&base, "nodes.brs", NULL, &err) == BRT_OK, "unforged: %s", err.message);
     r = open_forged(&base, "node_nesting.brs", forge_node_nesting, &err);
     EXPECT(r == BRT_EFORMAT && strstr(err.message, "node_nesting.brs: top-level node 0: box does "
-                                      "not hold node"), "%s: %s", brt_result_string(r), err.message);
+                                      "not hold node"), "forged top-level nesting: %s: %s", brt_result_string(r),
+           err.message);
     free(base.file);
 }
 

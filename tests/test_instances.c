@@ -712,8 +712,8 @@ static void test_object_ray_rounded_once(void)
             }
             if (fabsl((long double)o.org[a] - exact) > 0x1p-24L * fabsl(exact) + 0x1p-50L * mag &&
                 bad++ < 3)
-                test_fail_at(__FILE__, __LINE__, "ray %d axis %d: %a, exact %La", i, a,
-                             o.org[a], exact);
+                test_fail_at(__FILE__, __LINE__, "ray %d axis %d: object origin %a not the exact %La rounded once",
+                             i, a, o.org[a], exact);
         }
     }
 }

@@ -59,6 +59,8 @@ static int mpi_run_program(const char *program, int ranks, const char *env, cons
     return tu_shell(head, args, " < /dev/null");
 }
 
+static int last_status;          /* mpi_run's last exit status */
+
 static int mpi_run(int ranks, const char *env, const char *fmt, ...)
 {
     va_list ap;
@@ -66,7 +68,15 @@ static int mpi_run(int ranks, const char *env, const char *fmt, ...)
     va_start(ap, fmt);
     status = mpi_run_program("mpi_trace", ranks, env, fmt, ap);
     va_end(ap);
+    last_status = status;
     return status;
+}
+
+/* How the last mpi_run failed: timeout's status 124 is a hang (a rank
+** that waits for rays or an end that never comes). */
+static const char *how_failed(void)
+{
+    return last_status == 124 ? "hung (ended by timeout)" : "failed";
 }
 
 /* The same with build/tests/mpi_trace_small (small thresholds). */
@@ -129,7 +139,7 @@ static void test_equal_direct(void)
                 CHECK(mpi_run(ranks, "", "%s @/mpi-%d-%s.rays @/mpi.out --batch-tris 2000 --res 32 "
                               "--scene @/mpi-%d.brs %s %s --assign %s %s", meshes[m], m, kinds[k], m,
                               proxy, memory, assign, occlusion ? "--occlusion" : "") == 0,
-                      "%d ranks, %s %s %s: failed: %s", ranks, meshes[m], proxy, memory, tu_last_stderr());
+                      "%d ranks, %s %s %s: %s: %s", ranks, meshes[m], proxy, memory, how_failed(), tu_last_stderr());
                 EXPECT(tu_same_file_bytes(out, ref), "%d ranks, %s, %s rays, %s %s %s%s: differs from trace --direct",
                        ranks, meshes[m], kinds[k], proxy, memory, assign, occlusion ? ", occlusion" : "");
             }
@@ -175,7 +185,7 @@ static void test_crossings_and_proxies(void)
         CHECK(mpi_run(4, "", "@/corridor.obj @/corridor.rays @/mpi.out --batch-tris 1 --res 32 "
                       "--scene @/corridor.brs --assign round-robin --stats @/mpi-cross.json %s",
                       proxies ? "" : "--no-proxy") == 0,
-              "failed: %s", tu_last_stderr());
+              "%s: %s", how_failed(), tu_last_stderr());
         EXPECT(tu_same_file_bytes(tu_scratch("mpi.out"), tu_scratch("corridor.direct")), "hits differ");
         sent[proxies] = tu_json_file_number(stats, "rays_sent");
         bytes[proxies] = tu_json_file_number(stats, "bytes_sent");
