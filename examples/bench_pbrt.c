@@ -64,6 +64,12 @@ int main(int argc, char **argv)
     tally t[2];
     long repeat = 5, i;
     int k;
+    if (ex_wants_help(argc, argv)) {
+        printf("usage: bench_pbrt MESH.obj SCENE.pbrt [--repeat N]\n"
+               "  opens and streams the same triangles as an OBJ and as a pbrt file, N times each\n"
+               "  (default 5), checks that both stream the same bits, and prints the seconds\n");
+        return 0;
+    }
     if (argc != 3 && !(argc == 5 && strcmp(argv[3], "--repeat") == 0 && (repeat = atol(argv[4])) > 0))
         ex_die(prog, "usage: bench_pbrt MESH.obj SCENE.pbrt [--repeat N]");
     paths[0] = argv[1];

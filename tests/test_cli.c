@@ -208,9 +208,28 @@ static int write_lumpy_mesh(tu_scene *m, const char *name)
 
 static void test_help(void)
 {
+    /* Every program make builds (the Makefile's PROGRAMS: examples/ but its
+    ** shared modules). */
     static const char *const programs[] = {"trace", "raygen", "hitdiff", "minimal", "minimal_batched",
-                                           "closed"};
+                                           "closed", "render", "mkscene", "figures", "voxelize",
+                                           "bench_bvh", "bench_svdag", "bench_batched", "bench_pbrt"};
     size_t i;
+    char *list;
+    /* ... every one: a file of examples/ with a main() is in the list
+    ** (the optional Embree and MPI tracers aside). */
+    CHECK(tu_shell("grep -l '^int main(' examples/*.c | sed 's|examples/||; s|[.]c$||' | "
+                   "grep -v '^embree_trace$' | grep -v '^mpi_trace$'", "", "") == 0, "cannot list examples/");
+    list = tu_last_stdout();
+    CHECK(list, "no list of programs");
+    {
+        char *name = strtok(list, "\n");
+        for (; name; name = strtok(NULL, "\n")) {
+            int known = 0;
+            for (i = 0; i < sizeof programs / sizeof *programs; i++) known |= strcmp(programs[i], name) == 0;
+            EXPECT(known, "program %s is not in the --help test's list", name);
+        }
+    }
+    free(list);
     for (i = 0; i < sizeof programs / sizeof *programs; i++) {
         char *out;
         int status = tu_run("%s --help", programs[i]);
