@@ -448,7 +448,7 @@ int main(int argc, char **argv)
     int keep = getenv("BRT_TEST_KEEP") != NULL, jobs = job_count(), i;
     filters = argv + 1;
     filter_count = argc - 1;
-    failfast = getenv("BRT_TEST_FAILFAST") != NULL;
+    failfast = getenv("BRT_TEST_FAILFAST") && *getenv("BRT_TEST_FAILFAST");
     setvbuf(stdout, NULL, _IOLBF, 0);
     make_tmpdir(keep);
     collecting = 1;

@@ -114,8 +114,9 @@ static void test_scratch_kept_in_tmpdir(void)
 }
 
 /* Runs the runner with the self-check in mode beside the sampling tests,
-** jobs workers and fail-fast or not; its last line into last (or "").
-** Returns its status. */
+** jobs workers and fail-fast or not (set either way: the suite itself
+** may run under BRT_TEST_FAILFAST, as make mutants-sample runs it); its
+** last line into last (or "").  Returns its status. */
 static int run_mixed(const char *mode, const char *jobs, int fail_fast, char *last, size_t size)
 {
     const char *build = getenv("BRT_BUILD");
@@ -124,9 +125,9 @@ static int run_mixed(const char *mode, const char *jobs, int fail_fast, char *la
     FILE *f;
     snprintf(out, sizeof out, "%s/runner-mixed.out", test_tmpdir());
     snprintf(cmd, sizeof cmd,
-             "BRT_TEST_SELFCHECK=%s BRT_TEST_JOBS=%s %s TMPDIR='%s' %s/run_tests 'runner: self-check' sampling: "
-             "> '%s' 2>&1",
-             mode, jobs, fail_fast ? "BRT_TEST_FAILFAST=1" : "", test_tmpdir(), build ? build : "build", out);
+             "BRT_TEST_SELFCHECK=%s BRT_TEST_JOBS=%s BRT_TEST_FAILFAST=%s TMPDIR='%s' %s/run_tests "
+             "'runner: self-check' sampling: > '%s' 2>&1",
+             mode, jobs, fail_fast ? "1" : "", test_tmpdir(), build ? build : "build", out);
     status = system(cmd);
     last[0] = 0;
     f = fopen(out, "r");
