@@ -79,8 +79,9 @@ static void test_layer9_decoded_points(void)
     brt_ray *rays = layers_rays(&s, COUNT);
     brt_hit *hits = malloc(COUNT * sizeof *hits), *quantized = malloc(COUNT * sizeof *quantized);
     brt_trace_options opt;
-    brt_stats decoded, plain, tight;
+    brt_stats decoded, plain, tight, half;
     brt_error err;
+    uint64_t room;
     CHECK(scene && rays && hits && quantized, "set-up failed");
     memset(&opt, 0, sizeof opt);
     opt.threads = 1;
@@ -103,6 +104,21 @@ static void test_layer9_decoded_points(void)
            "decoded points changed the hits or the loads (%llu, %llu, %llu)",
            (unsigned long long)decoded.batch_loads, (unsigned long long)plain.batch_loads,
            (unsigned long long)tight.batch_loads);
+    /* Room for half the decoded bytes beside every blob: the points share
+    ** that room (each is decoded only into what the points decoded before
+    ** it left), so the decoded bytes and the peak stay within the limit
+    ** and no blob is evicted for a decoded one. */
+    room = decoded.decoded_bytes / 2;
+    opt.memory_limit = plain.cache_peak_bytes + plain.proxy_bytes + room;
+    CHECK(brt_scene_trace(scene, &opt, rays, COUNT, hits, &half, &err) == BRT_OK, "%s", err.message);
+    EXPECT(half.decoded_bytes > 0 && half.decoded_bytes <= room &&
+               half.cache_peak_bytes + half.proxy_bytes <= opt.memory_limit && half.batch_loads == plain.batch_loads,
+           "room for %llu decoded bytes: %llu decoded, peak %llu + proxies %llu over the limit %llu?, loads %llu "
+           "(want %llu)", (unsigned long long)room, (unsigned long long)half.decoded_bytes,
+           (unsigned long long)half.cache_peak_bytes, (unsigned long long)half.proxy_bytes,
+           (unsigned long long)opt.memory_limit, (unsigned long long)half.batch_loads,
+           (unsigned long long)plain.batch_loads);
+    EXPECT(memcmp(hits, quantized, COUNT * sizeof *hits) == 0, "room for half the decoded bytes changed the hits");
     brt_scene_close(scene);
     tu_scene_free(&s);
     free(rays);

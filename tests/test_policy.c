@@ -540,6 +540,79 @@ static void test_instance_gate(void)
     tu_instanced_free(&s);
 }
 
+/* README, "Memory": a point of instances is charged its table in memory
+** too: per instance its frame (brt_instance_frame), three 32-bit numbers
+** and one top-level node of 112 bytes, beside the page-rounded blobs.
+** Rays down through the four squares load the point of instances and its
+** prototype, nothing else (decoding off): the cache's peak is those two
+** blobs' pages and four instances' tables, to the byte.  The blob sizes
+** come from the scene file's tables (README, "The scene file": version 4,
+** 104-byte batch entries, the prototype table in the fourth section). */
+static void test_instance_table_charged(void)
+{
+    tu_instanced s;
+    brt_scene_source source;
+    brt_scene_options sopt;
+    brt_scene *scene = NULL;
+    brt_trace_options opt;
+    brt_stats stats;
+    brt_error err;
+    brt_ray rays[4];
+    brt_hit hits[4];
+    unsigned char *f;
+    size_t fsize;
+    uint64_t want = 0, instances = 0;
+    uint32_t j, points, prototypes;
+    int k;
+    tu_instanced_squares(&s);
+    tu_instanced_source(&s, &source);
+    memset(&sopt, 0, sizeof sopt);
+    if (brt_scene_build_source(&source, &sopt, 1, tu_scratch("charge.brs"), &err) != BRT_OK ||
+        brt_scene_open(tu_scratch("charge.brs"), &scene, &err) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "charge.brs: %s", err.message);
+        tu_instanced_free(&s);
+        return;
+    }
+    f = tu_slurp(tu_scratch("charge.brs"), &fsize);
+    if (!f || fsize < 256 || brt_get_le32(f + 8) != 4) {
+        EXPECT(0, "charge.brs is not a scene file of version 4");
+        goto done;
+    }
+    points = brt_get_le32(f + 32);
+    prototypes = brt_get_le32(f + 44);
+    for (j = 0; j < points; j++) {
+        const unsigned char *e = f + brt_get_le64(f + 56) + 104u * j;
+        if (brt_get_le32(e + 80) == 0) continue;          /* the world's point: not reached */
+        instances += brt_get_le32(e + 80);
+        want += (brt_get_le64(e + 32) + 4095) / 4096 * 4096;
+    }
+    for (j = 0; j < prototypes; j++)
+        want += (brt_get_le64(f + brt_get_le64(f + 128) + 56u * j + 8) + 4095) / 4096 * 4096;
+    want += instances * (sizeof(brt_instance_frame) + 3 * 4 + 112);
+    for (k = 0; k < 4; k++) {
+        brt_ray r = {{0, 0.5f, 3}, {0, 0, -1}, 0, INFINITY};
+        r.org[0] = 0.5f + 2.0f * (float)k;
+        rays[k] = r;
+    }
+    memset(&opt, 0, sizeof opt);
+    opt.threads = 1;
+    opt.no_decode = 1;
+    if (brt_scene_trace(scene, &opt, rays, 4, hits, &stats, &err) != BRT_OK) {
+        EXPECT(0, "trace: %s", err.message);
+        goto done;
+    }
+    EXPECT(instances == 4 && prototypes == 1 && stats.batch_loads == 1 && stats.prototype_loads == 1,
+           "%llu instances, %u prototypes, %llu loads, %llu prototype loads (want 4, 1, 1, 1)",
+           (unsigned long long)instances, (unsigned)prototypes, (unsigned long long)stats.batch_loads,
+           (unsigned long long)stats.prototype_loads);
+    EXPECT(stats.cache_peak_bytes == want, "cache peak %llu bytes, want %llu: two blobs' pages and 4 instances' tables",
+           (unsigned long long)stats.cache_peak_bytes, (unsigned long long)want);
+done:
+    free(f);
+    brt_scene_close(scene);
+    tu_instanced_free(&s);
+}
+
 /* ---- the proxy test's segment ends at the closest hit so far ------------ */
 
 typedef struct bytes_log {      /* every read: its offset and size */
@@ -628,25 +701,30 @@ static void test_proxy_segment_to_closest_hit(void)
     memset(&opt, 0, sizeof opt);
     opt.threads = 1;
     CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &unlimited, &err) == BRT_OK, "%s", err.message);
-    for (paper = 0; paper < 2; paper++) {
+    /* paper 0 and 1: batchrt's and the paper's scheduler; 2: the paper's
+    ** with exact proxies (layer 3: the triangles answer the proxy test, up
+    ** to the closest hit too). */
+    for (paper = 0; paper < 3; paper++) {
         memset(&log, 0, sizeof log);
-        opt.paper_scheduler = paper;
+        opt.paper_scheduler = paper > 0;
+        opt.exact_proxies = paper == 2;
         opt.memory_limit = unlimited.proxy_bytes + all_blobs - 1;
         opt.read_fn = bytes_read;
         opt.read_user = &log;
         CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &st, &err) == BRT_OK, "%s", err.message);
         for (i = 0; i < N; i++)
             EXPECT(hits[i].prim == 0 && hits[i].t > 1.9f, "%s: ray %u: prim %u t %g",
-                   paper ? "paper's" : "batchrt's", (unsigned)i, (unsigned)hits[i].prim, hits[i].t);
-        EXPECT(log.count == 1 && log.offsets[0] == a_offset && log.bytes == a_size,
+                   paper == 2 ? "exact proxies" : paper ? "paper's" : "batchrt's", (unsigned)i, (unsigned)hits[i].prim, hits[i].t);
+        /* (exact proxies read triangles for their answers too: analysis, not loads) */
+        EXPECT(paper == 2 || (log.count == 1 && log.offsets[0] == a_offset && log.bytes == a_size),
                "%s scheduler: %u reads, %llu bytes (want A's blob alone: one read of %llu bytes); B's proxy "
-               "was cast beyond the closest hit", paper ? "paper's" : "batchrt's", (unsigned)log.count,
+               "was cast beyond the closest hit", paper == 2 ? "exact proxies" : paper ? "paper's" : "batchrt's", (unsigned)log.count,
                (unsigned long long)log.bytes, (unsigned long long)a_size);
-        EXPECT(st.batch_loads == 1 && st.disk_bytes_read == log.bytes && st.proxy_tests == 2 * N &&
+        EXPECT(st.batch_loads == 1 && st.disk_bytes_read == (paper == 2 ? a_size : log.bytes) && st.proxy_tests == 2 * N &&
                st.proxy_culled == N && st.visits == N && st.queued_visits == N && st.resident_visits == 0,
                "%s scheduler: loads %llu (want 1), disk bytes %llu (read %llu), proxy tests %llu (want %d), "
                "culled %llu (want %d), visits %llu = %llu queued + %llu resident (want %d, all queued)",
-               paper ? "paper's" : "batchrt's", (unsigned long long)st.batch_loads,
+               paper == 2 ? "exact proxies" : paper ? "paper's" : "batchrt's", (unsigned long long)st.batch_loads,
                (unsigned long long)st.disk_bytes_read, (unsigned long long)log.bytes,
                (unsigned long long)st.proxy_tests, 2 * N, (unsigned long long)st.proxy_culled, N,
                (unsigned long long)st.visits, (unsigned long long)st.queued_visits,
@@ -656,6 +734,7 @@ static void test_proxy_segment_to_closest_hit(void)
     ** is (README: "a blob larger than the whole budget, held alone").  And
     ** the statistics file says the closed counts, field by field. */
     opt.paper_scheduler = 0;
+    opt.exact_proxies = 0;
     opt.read_fn = NULL;
     for (i = 0; i < 2; i++) {
         static const char *const fields[] = {"rays", "batching_points", "batch_loads", "disk_bytes_read",
@@ -683,5 +762,6 @@ void suite_policy(void)
 {
     test_run("policy: loads and counts equal the model's", test_policies_match_model);
     test_run("policy: the gate of a point of instances", test_instance_gate);
+    test_run("policy: a point of instances is charged its table", test_instance_table_charged);
     test_run("policy: the proxy segment ends at the closest hit", test_proxy_segment_to_closest_hit);
 }

@@ -211,6 +211,7 @@ static void test_heatmap(void)
     EXPECT(rgb && w == 40 && h == 24 + 24, "heat.png does not decode to 40x48 pixels");
     for (i = 1; rgb && i < (size_t)40 * 24; i++) distinct += memcmp(rgb + 3 * i, rgb, 3) != 0;
     EXPECT(distinct > 0, "the heatmap is one flat colour");
+
     free(rgb);
     free(png);
     CHECK(tu_run("render " SMALL " --memory 20%% --no-proxy --scene @/heat.brs --heatmap @/heat0.png "
@@ -220,6 +221,25 @@ static void test_heatmap(void)
     EXPECT(without == tu_json_file_number(tu_scratch("heat0.json"), "visits") && culled > 0 &&
                with + culled == without,
            "visits: %g with proxies (%g culled), %g without", with, culled, without);
+    /* The colour scale's top is the 99.5th percentile of the pixels'
+    ** visits per sample: the pixels from sorted index floor(0.995 (n - 1))
+    ** up reach it, so at least n minus that index show the top colour (the
+    ** colour bar's right end, its row 4).  At 16 samples the top visits
+    ** seldom tie, so a scale at the maximum shows fewer. */
+    CHECK(tu_run("render landscape --scale 0.05 --batch-tris 300 --width 40 --height 24 --spp 16 --memory 20%% "
+                 "--scene @/heat.brs --heatmap @/heat16.png --out @/img.png") == 0, "render --spp 16 failed");
+    png = tu_slurp(tu_scratch("heat16.png"), &size);
+    rgb = png ? tu_png_decode(png, size, &w, &h) : NULL;
+    if (rgb && w == 40 && h == 48) {
+        size_t n = (size_t)40 * 24, top = 0, at_least = n - (size_t)(0.995 * (double)(n - 1));
+        const unsigned char *end = rgb + 3 * ((size_t)(24 + 4) * 40 + 39);
+        for (i = 0; i < n; i++) top += memcmp(rgb + 3 * i, end, 3) == 0;
+        EXPECT(top >= at_least, "%zu pixels at the colour scale's top, want at least %zu (the 99.5th percentile)",
+               top, at_least);
+    } else
+        EXPECT(0, "heat16.png does not decode to 40x48 pixels");
+    free(rgb);
+    free(png);
 }
 
 static void test_compare(void)
