@@ -448,6 +448,22 @@ static void test_render_size_override(void)
     rgb = render_png("size.pbrt", "--width 12", &w, &h);
     EXPECT(rgb && w == 12 && h == 30, "--width 12 on a 40x30 film: %dx%d", w, h);
     free(rgb);
+    /* The variants of the default size: a Camera and no Film is pbrt-v4's
+    ** 1280x720; a Film and no Camera is the Film's size. */
+    {
+        static const char camera_only[] = "LookAt 0 0 10  0 0 0  0 1 0\nCamera \"perspective\"\n"
+                                          "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0]\n";
+        static const char film_only[] = "Film \"rgb\" \"integer xresolution\" 24 \"integer yresolution\" 10\n"
+                                        "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0]\n";
+        CHECK(tu_spill(tu_scratch("camera-only.pbrt"), camera_only, sizeof camera_only - 1), "cannot write");
+        rgb = render_png("camera-only.pbrt", "", &w, &h);
+        EXPECT(rgb && w == 1280 && h == 720, "a Camera and no Film: %dx%d, want pbrt-v4's 1280x720", w, h);
+        free(rgb);
+        CHECK(tu_spill(tu_scratch("film-only.pbrt"), film_only, sizeof film_only - 1), "cannot write");
+        rgb = render_png("film-only.pbrt", "", &w, &h);
+        EXPECT(rgb && w == 24 && h == 10, "a Film of 24x10 and no Camera: %dx%d", w, h);
+        free(rgb);
+    }
 }
 
 /* raygen --kind camera on a pbrt file: one ray per pixel centre of the
