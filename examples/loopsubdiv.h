@@ -87,6 +87,6 @@ brt_result ex_loop_check(const uint32_t *indices, uint32_t face_count, uint32_t 
 brt_result ex_loop_subdivide(const float *p, uint32_t vertex_count, const uint32_t *indices,
                              uint32_t face_count, int levels, ex_loop_mesh *out, brt_error *err);
 
-void ex_loop_free(ex_loop_mesh *mesh);
+void ex_loop_free(ex_loop_mesh *mesh);   /* NULL: nothing, as free(NULL) */
 
 #endif

@@ -391,6 +391,7 @@ static void test_non_manifold(void)
 ** refinement (a file of a few bytes must not ask for gigabytes). */
 static void test_refinement_limit(void)
 {
+    ex_loop_free(NULL);         /* as free(NULL): nothing (loopsubdiv.h) */
     static const char *const shape = "Shape \"loopsubdiv\" \"point3 P\" [0 0 0 1 0 0 0 1 0";
     char text[512];
     ex_pbrt *scene = NULL;
