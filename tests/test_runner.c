@@ -193,6 +193,60 @@ static void test_contract_names(void)
     EXPECT(rows >= 50 && names >= rows, "tests/contract.md: %d statements, %d test names", rows, names);
 }
 
+/* The occurrences of needle in the file at path (-1: unreadable). */
+static int occurrences(const char *path, const char *needle)
+{
+    size_t size = 0;
+    char *text = (char *)tu_slurp(path, &size), *p;
+    int n = 0;
+    if (!text) return -1;
+    for (p = strstr(text, needle); p && *needle; p = strstr(p + 1, needle)) n++;
+    free(text);
+    return n;
+}
+
+/* tests/mutants/mutants.txt stays applicable as the code moves: each
+** entry's `find` occurs exactly once in its file (make mutants would say
+** ERROR, but it runs for an hour; this takes a moment), and each names the
+** failure it expects.  Values lose their leading blanks, as run.sh reads
+** them. */
+static void test_mutants_apply(void)
+{
+    FILE *f = fopen("tests/mutants/mutants.txt", "r");
+    char line[4096], file[512] = "", find[4096] = "", name[256] = "";
+    int entries = 0, have_expect = 0, number = 0, at = 0;
+    CHECK(f, "cannot open tests/mutants/mutants.txt (run from the repository's top)");
+    for (;;) {
+        int end = !fgets(line, sizeof line, f);
+        char *value;
+        if (!end) number++;
+        if (end || line[0] == '\n') {
+            if (name[0]) {
+                int n = occurrences(file, find);
+                entries++;
+                EXPECT(n == 1, "mutants.txt:%d: %s: its find occurs %d times in %s", at, name, n, file);
+                EXPECT(have_expect, "mutants.txt:%d: %s names no expected failure", at, name);
+            }
+            name[0] = file[0] = find[0] = 0;
+            have_expect = 0;
+            if (end) break;
+            continue;
+        }
+        if (line[0] == '#') continue;
+        line[strcspn(line, "\n")] = 0;
+        value = strchr(line, ':');
+        if (!value) continue;
+        *value++ = 0;
+        value += strspn(value, " \t");
+        if (strcmp(line, "name") == 0) { snprintf(name, sizeof name, "%s", value); at = number; }
+        else if (strcmp(line, "file") == 0) snprintf(file, sizeof file, "%s", value);
+        else if (strcmp(line, "find") == 0) snprintf(find, sizeof find, "%s", value);
+        else if (strcmp(line, "expect") == 0) have_expect = *value != 0;
+    }
+    fclose(f);
+    EXPECT(entries > 300, "only %d mutants in tests/mutants/mutants.txt", entries);
+}
+
 void suite_runner(void)
 {
     test_run("runner: the scratch folder is removed on failure, crash, SIGINT and SIGTERM",
@@ -200,4 +254,5 @@ void suite_runner(void)
     test_run("runner: the scratch folder goes to TMPDIR, kept with BRT_TEST_KEEP", test_scratch_kept_in_tmpdir);
     test_run("runner: in parallel a crash is one FAIL and the rest run; fail fast stops", test_parallel_outcomes);
     test_run("runner: every test tests/contract.md names exists", test_contract_names);
+    test_run("runner: every mutant of make mutants applies once and names its failure", test_mutants_apply);
 }
