@@ -81,19 +81,22 @@ run_one() {
         printf '| %s | %s | ERROR | original text found %s times in %s | |\n' "$name" "$mech" "${n:-0}" "$file"
         return
     fi
+    run=${MUTANTS_TESTS-$tests}
+    [ "${MUTANTS_ALL:-0}" = 1 ] && run=
     # build/mpi_trace too when the pristine tree has it (make mpi), and its
-    # test build with small thresholds (build/tests/mpi_trace_small): the MPI
+    # test build with small thresholds (build/tests/mpi_trace_small), when
+    # the selected tests may run them (all, or a filter naming mpi): the MPI
     # mutants are killed only where MPI runs (tests/test_mpi.c skips else).
+    mpi=
+    case $run in ''|*mpi*) mpi=1 ;; esac
     if ! make -C "$dir" --no-print-directory -j2 all build/run_tests \
-            $([ -x "$root/build/mpi_trace" ] && echo build/mpi_trace) \
-            $([ -x "$root/build/tests/mpi_trace_small" ] && echo build/tests/mpi_trace_small) \
+            $([ -n "$mpi" ] && [ -x "$root/build/mpi_trace" ] && echo build/mpi_trace) \
+            $([ -n "$mpi" ] && [ -x "$root/build/tests/mpi_trace_small" ] && echo build/tests/mpi_trace_small) \
             >"$dir/build.log" 2>&1; then
         errors=$((errors + 1))
         printf '| %s | %s | ERROR | does not build | |\n' "$name" "$mech"
         return
     fi
-    run=${MUTANTS_TESTS-$tests}
-    [ "${MUTANTS_ALL:-0}" = 1 ] && run=
     old_ifs=$IFS; IFS='|'; set -f; set -- $run; set +f; IFS=$old_ifs
     # (run by an inner shell, so its "Segmentation fault" note goes to the log)
     # Each mutant's run gets a scratch root of its own (TMPDIR), removed
