@@ -46,7 +46,7 @@
 ** are refused here: an index out of range, a face repeating a corner, an
 ** edge in more than two faces, an edge two faces run the same way, a
 ** vertex in no face, a vertex whose faces form more than one fan; and a
-** refinement beyond EX_LOOP_MAX_TRIANGLES (2^22) triangles.
+** refinement beyond EX_LOOP_MAX_TRIANGLES (2^20) triangles.
 **
 ** MEMORY.  The mesh is held whole while refined: the control mesh and at
 ** most two levels at once (the one read and the one made): 24 bytes a
@@ -67,12 +67,12 @@ typedef struct ex_loop_mesh {
     uint32_t vertex_count, triangle_count;
 } ex_loop_mesh;
 
-/* The most triangles a refinement may make: 2^22.  The mesh is held whole
+/* The most triangles a refinement may make: 2^20.  The mesh is held whole
 ** while refined (MEMORY above), so the bound keeps a shape of a few bytes
 ** ("levels" 20) from asking for gigabytes; it is far above what published
 ** scenes refine to, and a fuzzed file stays within the fuzzer's memory and
 ** time (make fuzz-smoke). */
-#define EX_LOOP_MAX_TRIANGLES (1u << 22)
+#define EX_LOOP_MAX_TRIANGLES (1u << 20)
 
 /* faces * 4^levels (faces for levels <= 0), UINT64_MAX past 2^63. */
 uint64_t ex_loop_triangle_count(uint64_t faces, int levels);

@@ -137,7 +137,7 @@
 ** faces, two faces running an edge the same way, a vertex in no face or
 ** where separate fans of faces meet, a face repeating a vertex: where
 ** pbrt-v4 crashes, loops or drops faces; examples/loopsubdiv.h) or one
-** refined past 2^22 triangles, a
+** refined past 2^20 triangles, a
 ** non-finite number, a non-affine matrix, a singular transform at a shape,
 ** an instance or the camera, an instance's transform or the camera's
 ** position beyond the float range.  (The condition-number limit of

@@ -385,30 +385,30 @@ static void test_non_manifold(void)
                  "bad.pbrt:1: \"levels\": expected an integer");
 }
 
-/* EX_LOOP_MAX_TRIANGLES (2^22) at the limit and past it: one face at
-** levels 11 makes exactly 2^22 triangles and opens; two faces at levels
-** 11, and one at 12, are refused at the Shape's line before any
+/* EX_LOOP_MAX_TRIANGLES (2^20) at the limit and past it: one face at
+** levels 10 makes exactly 2^20 triangles and opens; two faces at levels
+** 10, and one at 11, are refused at the Shape's line before any
 ** refinement (a file of a few bytes must not ask for gigabytes). */
 static void test_refinement_limit(void)
 {
-    ex_loop_free(NULL);         /* as free(NULL): nothing (loopsubdiv.h) */
     static const char *const shape = "Shape \"loopsubdiv\" \"point3 P\" [0 0 0 1 0 0 0 1 0";
     char text[512];
     ex_pbrt *scene = NULL;
     brt_error err;
     brt_result r;
-    EXPECT(ex_loop_triangle_count(1, 11) == EX_LOOP_MAX_TRIANGLES && EX_LOOP_MAX_TRIANGLES == 1u << 22,
-           "one face at levels 11 makes %llu triangles, the limit is %u",
-           (unsigned long long)ex_loop_triangle_count(1, 11), (unsigned)EX_LOOP_MAX_TRIANGLES);
-    snprintf(text, sizeof text, "WorldBegin\n%s] \"integer indices\" [0 1 2] \"integer levels\" 11\n", shape);
+    ex_loop_free(NULL);         /* as free(NULL): nothing (loopsubdiv.h) */
+    EXPECT(ex_loop_triangle_count(1, 10) == EX_LOOP_MAX_TRIANGLES && EX_LOOP_MAX_TRIANGLES == 1u << 20,
+           "one face at levels 10 makes %llu triangles, the limit is %u",
+           (unsigned long long)ex_loop_triangle_count(1, 10), (unsigned)EX_LOOP_MAX_TRIANGLES);
+    snprintf(text, sizeof text, "WorldBegin\n%s] \"integer indices\" [0 1 2] \"integer levels\" 10\n", shape);
     CHECK(tu_spill(tu_scratch("limit.pbrt"), text, strlen(text)), "cannot write limit.pbrt");
     r = ex_pbrt_open(tu_scratch("limit.pbrt"), &scene, &err);
-    EXPECT(r == BRT_OK, "one face at levels 11 (2^22 triangles) refused: %s", r == BRT_OK ? "" : err.message);
+    EXPECT(r == BRT_OK, "one face at levels 10 (2^20 triangles) refused: %s", r == BRT_OK ? "" : err.message);
     ex_pbrt_close(scene);
-    snprintf(text, sizeof text, "WorldBegin\n%s 1 1 0] \"integer indices\" [0 1 2 2 1 3] \"integer levels\" 11\n", shape);
-    opened_badly("two faces at levels 11", text, "bad.pbrt:2: Shape \"loopsubdiv\": 2 faces at levels 11 make more than 2^22");
-    snprintf(text, sizeof text, "WorldBegin\n%s] \"integer indices\" [0 1 2] \"integer levels\" 12\n", shape);
-    opened_badly("one face at levels 12", text, "bad.pbrt:2: Shape \"loopsubdiv\": 1 faces at levels 12 make more than 2^22");
+    snprintf(text, sizeof text, "WorldBegin\n%s 1 1 0] \"integer indices\" [0 1 2 2 1 3] \"integer levels\" 10\n", shape);
+    opened_badly("two faces at levels 10", text, "bad.pbrt:2: Shape \"loopsubdiv\": 2 faces at levels 10 make more than 2^20");
+    snprintf(text, sizeof text, "WorldBegin\n%s] \"integer indices\" [0 1 2] \"integer levels\" 11\n", shape);
+    opened_badly("one face at levels 11", text, "bad.pbrt:2: Shape \"loopsubdiv\": 1 faces at levels 11 make more than 2^20");
 }
 
 /* Triangles of pbrt file's world, as streamed. */
@@ -525,6 +525,6 @@ void suite_loopsubdiv(void)
     test_run("loopsubdiv: symmetry kept, limit points stay at the next level", test_closed_properties);
     test_run("loopsubdiv: open meshes' boundary rules == the reference; flat stays flat", test_open_meshes);
     test_run("loopsubdiv: non-manifold input refused at file:line", test_non_manifold);
-    test_run("loopsubdiv: 2^22 triangles after refining opens, more refused", test_refinement_limit);
+    test_run("loopsubdiv: 2^20 triangles after refining opens, more refused", test_refinement_limit);
     test_run("loopsubdiv: a pbrt loopsubdiv hits as the reference's trianglemesh", test_end_to_end);
 }
