@@ -59,7 +59,8 @@ static brt_result mesh_alloc(sd_mesh *m, uint64_t nv, uint64_t nf, brt_error *er
 {
     memset(m, 0, sizeof *m);
     if (nv > EX_LOOP_MAX_TRIANGLES || nf > EX_LOOP_MAX_TRIANGLES)
-        return brt_fail(err, BRT_EPARSE, "the refined mesh would have more than 2^20 vertices or triangles");
+        return brt_fail(err, BRT_EPARSE, "the refined mesh would have more than %lu vertices or triangles",
+                        (unsigned long)EX_LOOP_MAX_TRIANGLES);
     m->v = malloc((nv ? nv : 1) * sizeof *m->v);
     m->f = malloc((nf ? nf : 1) * sizeof *m->f);
     if (!m->v || !m->f) {
@@ -442,8 +443,8 @@ brt_result ex_loop_subdivide(const float *p, uint32_t vertex_count, const uint32
     brt_result r;
     memset(out, 0, sizeof *out);
     if (ex_loop_triangle_count(face_count, levels) > EX_LOOP_MAX_TRIANGLES)
-        return brt_fail(err, BRT_EPARSE, "%lu faces at levels %d make more than 2^20 triangles",
-                        (unsigned long)face_count, levels);
+        return brt_fail(err, BRT_EPARSE, "%lu faces at levels %d make more than %lu triangles",
+                        (unsigned long)face_count, levels, (unsigned long)EX_LOOP_MAX_TRIANGLES);
     if ((r = build_control(p, vertex_count, indices, face_count, &cur, err)) != BRT_OK) return r;
     for (level = 0; level < levels; level++) {
         r = refine(&cur, &nxt, &rg, err);

@@ -71,8 +71,10 @@ typedef struct ex_loop_mesh {
 ** while refined (MEMORY above), so the bound keeps a shape of a few bytes
 ** ("levels" 20) from asking for gigabytes; it is far above what published
 ** scenes refine to, and a fuzzed file stays within the fuzzer's memory and
-** time (make fuzz-smoke). */
+** time (make fuzz-smoke builds them with a smaller one). */
+#ifndef EX_LOOP_MAX_TRIANGLES
 #define EX_LOOP_MAX_TRIANGLES (1u << 20)
+#endif
 
 /* faces * 4^levels (faces for levels <= 0), UINT64_MAX past 2^63. */
 uint64_t ex_loop_triangle_count(uint64_t faces, int levels);

@@ -1520,8 +1520,8 @@ static brt_result do_shape(parser *p, const token *d)
     /* Its vertices and triangles are numbered in 32 bits while refined. */
     if (w.shape_kind == SHAPE_LOOP && (ex_loop_triangle_count(w.i_count / 3, w.levels) > EX_LOOP_MAX_TRIANGLES
                                        || w.p_count / 3 > EX_LOOP_MAX_TRIANGLES))
-        return fail_at(p, d, BRT_EPARSE, "Shape \"loopsubdiv\": %llu faces at levels %d make more than 2^20 triangles",
-                       (unsigned long long)(w.i_count / 3), w.levels);
+        return fail_at(p, d, BRT_EPARSE, "Shape \"loopsubdiv\": %llu faces at levels %d make more than %lu triangles",
+                       (unsigned long long)(w.i_count / 3), w.levels, (unsigned long)EX_LOOP_MAX_TRIANGLES);
     /* Checked as any shape is, then dropped: pbrt-v4 never hits it. */
     if (w.alpha == ALPHA_ZERO) return count_skipped(p, "Shape removed by \"alpha\" 0");
     if (w.alpha == ALPHA_PARTIAL) r = count_skipped(p, "Shape parameter \"alpha\" (kept opaque)");

@@ -406,9 +406,9 @@ static void test_refinement_limit(void)
     EXPECT(r == BRT_OK, "one face at levels 10 (2^20 triangles) refused: %s", r == BRT_OK ? "" : err.message);
     ex_pbrt_close(scene);
     snprintf(text, sizeof text, "WorldBegin\n%s 1 1 0] \"integer indices\" [0 1 2 2 1 3] \"integer levels\" 10\n", shape);
-    opened_badly("two faces at levels 10", text, "bad.pbrt:2: Shape \"loopsubdiv\": 2 faces at levels 10 make more than 2^20");
+    opened_badly("two faces at levels 10", text, "bad.pbrt:2: Shape \"loopsubdiv\": 2 faces at levels 10 make more than 1048576 triangles");
     snprintf(text, sizeof text, "WorldBegin\n%s] \"integer indices\" [0 1 2] \"integer levels\" 11\n", shape);
-    opened_badly("one face at levels 11", text, "bad.pbrt:2: Shape \"loopsubdiv\": 1 faces at levels 11 make more than 2^20");
+    opened_badly("one face at levels 11", text, "bad.pbrt:2: Shape \"loopsubdiv\": 1 faces at levels 11 make more than 1048576 triangles");
 }
 
 /* Triangles of pbrt file's world, as streamed. */
