@@ -585,6 +585,9 @@ static void test_instance_table_charged(void)
         if (brt_get_le32(e + 80) == 0) continue;          /* the world's point: not reached */
         instances += brt_get_le32(e + 80);
         want += (brt_get_le64(e + 32) + 4095) / 4096 * 4096;
+        /* its entry's instanced triangles: each instance's prototype's two */
+        EXPECT(brt_get_le64(e + 88) == 2u * brt_get_le32(e + 80), "point %u: %llu instanced triangles, want %u",
+               (unsigned)j, (unsigned long long)brt_get_le64(e + 88), 2u * brt_get_le32(e + 80));
     }
     for (j = 0; j < prototypes; j++)
         want += (brt_get_le64(f + brt_get_le64(f + 128) + 56u * j + 8) + 4095) / 4096 * 4096;
