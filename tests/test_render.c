@@ -365,6 +365,30 @@ static void test_reused_builtin_holds_no_mesh(void)
            tu_json_file_number(tu_scratch("l5.json"), "build_seconds"));
 }
 
+/* A built-in scene's file is reused only for the same recipe (README, "The
+** scene file": rebuilt when the settings differ): a render of another
+** scale or seed into the same --scene file builds it again and gets the
+** fresh file's scene, byte for byte the image of a render into a new file. */
+static void test_builtin_scene_rebuilt_for_its_recipe(void)
+{
+    static const char *const changes[] = {"--scale 0.06", "--seed 9"};
+    const char *args = "--width 24 --height 16 --spp 1 --batch-tris 300";
+    size_t i;
+    CHECK(tu_run("render landscape --scale 0.05 %s --scene @/recipe.brs --out @/recipe0.png", args) == 0,
+          "render landscape failed");
+    for (i = 0; i < 2; i++) {
+        CHECK(tu_run("render landscape --scale 0.05 %s %s --scene @/recipe.brs --out @/recipe1.png "
+                     "--stats @/recipe1.json", args, changes[i]) == 0, "render %s failed", changes[i]);
+        CHECK(tu_run("render landscape --scale 0.05 %s %s --scene @/fresh%d.brs --out @/fresh.png", args, changes[i],
+                     (int)i) == 0, "render %s into a new file failed", changes[i]);
+        EXPECT(tu_json_file_number(tu_scratch("recipe1.json"), "build_seconds") > 0,
+               "%s: the scene file of another recipe was reused", changes[i]);
+        EXPECT(tu_same_file_bytes(tu_scratch("recipe1.png"), tu_scratch("fresh.png")) &&
+                   !tu_same_file_bytes(tu_scratch("recipe1.png"), tu_scratch("recipe0.png")),
+               "%s: the image is not that of a fresh scene file", changes[i]);
+    }
+}
+
 /* ---- the plot writer ---- */
 
 /* The centre of the k-th circle of an SVG; 0 when there is none. */
@@ -694,6 +718,7 @@ void suite_render(void)
     test_run("render: bad options exit 1 and write nothing", test_bad_options);
     test_run("render: every built-in scene, streamed build == --direct", test_builtin_scenes_streamed);
     test_run("render: a reused built-in scene file holds no mesh", test_reused_builtin_holds_no_mesh);
+    test_run("render: a built-in scene's file is rebuilt for another scale or seed", test_builtin_scene_rebuilt_for_its_recipe);
     test_run("render: plot svg", test_plot_svg);
     test_run("render: bar chart svg", test_bar_svg);
     test_run("render: figures --only 4 (inner proxies' table)", test_figure4);
