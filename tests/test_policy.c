@@ -616,6 +616,47 @@ done:
     tu_instanced_free(&s);
 }
 
+/* The scene's margin (README, "Instances": boxes of instances grown by
+** 64 FLT_EPSILON k (|o - c| + R)) needs R to reach every instance's
+** translation from the centre c, on both sides: the header's reach (byte
+** 160, with c at 176) is at least the farthest translation's distance on
+** any axis.  The four squares with the world triangle moved to x = -100:
+** the centre lies left of the instances, so the largest translation is the
+** farthest. */
+static void test_margin_reaches_every_instance(void)
+{
+    tu_instanced s;
+    brt_scene_source source;
+    brt_scene_options sopt;
+    brt_error err;
+    unsigned char *f = NULL;
+    size_t fsize = 0;
+    uint32_t k;
+    double far = 0;
+    float reach = 0, centre[3];
+    int a;
+    tu_instanced_squares(&s);
+    for (k = 0; k < s.world.vcount; k++) s.world.pos[3 * k] -= 200;      /* x 100 -> -100 */
+    tu_instanced_source(&s, &source);
+    memset(&sopt, 0, sizeof sopt);
+    if (brt_scene_build_source(&source, &sopt, 1, tu_scratch("margin.brs"), &err) != BRT_OK) {
+        EXPECT(0, "margin.brs: %s", err.message);
+        tu_instanced_free(&s);
+        return;
+    }
+    f = tu_slurp(tu_scratch("margin.brs"), &fsize);
+    if (f && fsize >= 256 && brt_get_le32(f + 8) == 4) {
+        reach = le_f32(f + 160);
+        for (a = 0; a < 3; a++) centre[a] = le_f32(f + 176 + 4 * a);
+        for (k = 0; k < s.instance_count; k++)
+            for (a = 0; a < 3; a++) far = fmax(far, fabs((double)s.instances[k].xform[4 * a + 3] - centre[a]));
+        EXPECT(far > 50 && reach >= far, "reach %g, but an instance's translation lies %g from the centre", reach, far);
+    } else
+        EXPECT(0, "margin.brs is not a scene file of version 4");
+    free(f);
+    tu_instanced_free(&s);
+}
+
 /* ---- the proxy test's segment ends at the closest hit so far ------------ */
 
 typedef struct bytes_log {      /* every read: its offset and size */
@@ -766,5 +807,6 @@ void suite_policy(void)
     test_run("policy: loads and counts equal the model's", test_policies_match_model);
     test_run("policy: the gate of a point of instances", test_instance_gate);
     test_run("policy: a point of instances is charged its table", test_instance_table_charged);
+    test_run("policy: the margin reaches every instance's translation", test_margin_reaches_every_instance);
     test_run("policy: the proxy segment ends at the closest hit", test_proxy_segment_to_closest_hit);
 }
