@@ -59,6 +59,10 @@ static int run_selfcheck(const char *mode, const char *dir, int keep)
             dup2(null, 2);
         }
         setpgid(0, 0);          /* a group of its own, for the group's SIGINT */
+        /* As a terminal starts it: a shell's background job ignores SIGINT,
+        ** and that would be inherited through exec. */
+        signal(SIGINT, SIG_DFL);
+        signal(SIGTERM, SIG_DFL);
         setenv("TMPDIR", dir, 1);
         setenv("BRT_TEST_SELFCHECK", mode, 1);
         if (keep) setenv("BRT_TEST_KEEP", "1", 1);
