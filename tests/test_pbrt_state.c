@@ -691,6 +691,46 @@ static void test_stream_error_place(void)
     ex_pbrt_close(s);
 }
 
+/* The second pass reads each value where pass 1 found it, seeking back and
+** forth in a file far larger than its 1 MiB window: a trianglemesh of 2 MiB
+** of "P" whose "indices" follow to the end of the file (read first, they
+** take the reader to the end of the file, then it seeks back), twice over.
+** Every triangle must be the one its indices name. */
+static void test_values_read_back_and_forth(void)
+{
+    const uint32_t n = 70000;           /* points: about 2 MiB of text */
+    size_t cap = 64 * (size_t)n + 4096, used = 0;
+    char *text = malloc(cap);
+    ex_pbrt *s = NULL;
+    brt_scene_source src;
+    brt_error err;
+    tris t;
+    uint32_t k, round, bad = 0;
+    CHECK(text, "out of memory");
+    used += (size_t)snprintf(text + used, cap - used, "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [");
+    for (k = 0; k < n; k++) used += (size_t)snprintf(text + used, cap - used, " %u 0.5 %u", k, k % 7);
+    used += (size_t)snprintf(text + used, cap - used, " ]\n\"integer indices\" [");
+    for (k = 0; k + 2 < n; k += 3) used += (size_t)snprintf(text + used, cap - used, " %u %u %u", k + 2, k, k + 1);
+    snprintf(text + used, cap - used, " ]\n");
+    put("back_and_forth.pbrt", text);
+    free(text);
+    CHECK(ex_pbrt_open(tu_scratch("back_and_forth.pbrt"), &s, &err) == BRT_OK, "%s", err.message);
+    ex_pbrt_source(s, &src);
+    for (round = 0; round < 2; round++) {
+        memset(&t, 0, sizeof t);
+        EXPECT(src.world.run(src.world.user, collect, &t, &err) == BRT_OK, "run %u: %s", round, err.message);
+        EXPECT(t.n == n / 3, "run %u: %u triangles, want %u", round, (unsigned)t.n, (unsigned)(n / 3));
+        for (k = 0; k < t.n && k < n / 3; k++) {
+            const float *c = t.c + 9 * (size_t)k;   /* corners k+2, k, k+1 of triangle k/3: x = the point's number */
+            if ((c[0] != (float)(3 * k + 2) || c[3] != (float)(3 * k) || c[6] != (float)(3 * k + 1)) && bad++ < 3)
+                test_fail_at(__FILE__, __LINE__, "run %u: triangle %u has x %g %g %g", round, (unsigned)k, c[0], c[3],
+                             c[6]);
+        }
+        free(t.c);
+    }
+    ex_pbrt_close(s);
+}
+
 void suite_pbrt_state(void)
 {
     test_run("pbrt state: the graphics-state table (blocks, WorldBegin, coordinate systems, ActiveTransform, "
@@ -700,4 +740,5 @@ void suite_pbrt_state(void)
     test_run("pbrt state: 65,535, 65,536, 65,537 triangles per chunk (world and prototype)", test_triangle_chunks);
     test_run("pbrt state: bilinearmesh patches, plymesh in an object and in an Import", test_shape_variants);
     test_run("pbrt state: a stream error names the Shape's file and line", test_stream_error_place);
+    test_run("pbrt state: values read back and forth in a file past the window", test_values_read_back_and_forth);
 }
