@@ -967,7 +967,11 @@ static void check_interrupted(const char *const *argv, const char *dir, int sign
         sleep_ms(10);
         waited += 10;
     }
-    sleep_ms(50);   /* well into the writing */
+    /* Well into the writing, and past the program's start: a signal before
+    ** it installs its handlers ends it as the default action does (a
+    ** start slowed by the sanitizers, or by the other tests the runner
+    ** runs beside this one).  Each program here works for seconds. */
+    sleep_ms(300);
     EXPECT(waitpid(pid, &status, WNOHANG) == 0, "%s finished before the signal", argv[0]);
     kill(pid, signo);
     CHECK(waitpid(pid, &status, 0) == pid, "waitpid failed");
