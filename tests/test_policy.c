@@ -657,6 +657,62 @@ static void test_margin_reaches_every_instance(void)
     tu_instanced_free(&s);
 }
 
+/* The gate above, with the whole scene moved 10^4 along x: a point's
+** margin is taken about the centre of its own instances (not the origin),
+** so near rays keep their small margins and the gap rays are culled as
+** before; a margin about the origin would reach 10^4 and admit them all
+** untested. */
+static void test_instance_gate_far_from_origin(void)
+{
+    const float shift = 1e4f;
+    tu_instanced s;
+    brt_scene_source source;
+    brt_scene_options sopt;
+    brt_scene *scene = NULL;
+    brt_trace_options opt;
+    brt_stats stats;
+    brt_error err;
+    brt_ray rays[7];
+    brt_hit hits[7];
+    uint32_t k;
+    tu_instanced_squares(&s);
+    for (k = 0; k < s.world.vcount; k++) s.world.pos[3 * k] += shift;
+    for (k = 0; k < s.instance_count; k++) s.instances[k].xform[3] += shift;
+    tu_instanced_source(&s, &source);
+    memset(&sopt, 0, sizeof sopt);
+    sopt.proxy_res = 64;
+    if (brt_scene_build_source(&source, &sopt, 1, tu_scratch("gate-far.brs"), &err) != BRT_OK ||
+        brt_scene_open(tu_scratch("gate-far.brs"), &scene, &err) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "gate-far.brs: %s", err.message);
+        tu_instanced_free(&s);
+        return;
+    }
+    for (k = 0; k < 7; k++) {
+        brt_ray r = {{0, 0.5f, 3.0f}, {0, 0, -1}, 0, INFINITY};
+        r.org[0] = shift + 0.5f + (float)k;
+        rays[k] = r;
+    }
+    memset(&opt, 0, sizeof opt);
+    opt.paper_scheduler = 1;
+    opt.threads = 1;
+    if (brt_scene_trace(scene, &opt, rays, 7, hits, &stats, &err) == BRT_OK) {
+        for (k = 0; k < 7; k++) {
+            brt_hit want;
+            brt_hit_clear(&want);
+            tu_instanced_brute(&s, &rays[k], &want);
+            EXPECT(hits[k].prim == want.prim && hits[k].inst == want.inst, "ray %u: prim %u inst %u, brute force %u %u",
+                   (unsigned)k, (unsigned)hits[k].prim, (unsigned)hits[k].inst, (unsigned)want.prim,
+                   (unsigned)want.inst);
+        }
+        EXPECT(stats.proxy_tests == 7 && stats.proxy_culled == 3,
+               "moved 10^4: %llu proxy tests, %llu culled; expected 7 and 3 (the gap rays)",
+               (unsigned long long)stats.proxy_tests, (unsigned long long)stats.proxy_culled);
+    } else
+        EXPECT(0, "trace: %s", err.message);
+    brt_scene_close(scene);
+    tu_instanced_free(&s);
+}
+
 /* ---- the proxy test's segment ends at the closest hit so far ------------ */
 
 typedef struct bytes_log {      /* every read: its offset and size */
@@ -807,6 +863,7 @@ void suite_policy(void)
     test_run("policy: loads and counts equal the model's", test_policies_match_model);
     test_run("policy: the gate of a point of instances", test_instance_gate);
     test_run("policy: a point of instances is charged its table", test_instance_table_charged);
+    test_run("policy: the gate of a point of instances far from the origin", test_instance_gate_far_from_origin);
     test_run("policy: the margin reaches every instance's translation", test_margin_reaches_every_instance);
     test_run("policy: the proxy segment ends at the closest hit", test_proxy_segment_to_closest_hit);
 }
