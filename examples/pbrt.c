@@ -1927,13 +1927,10 @@ static brt_result number_index(run *u, const char *s, size_t n, const decimal *d
     return emit_face(u, u->face, bilinear);
 }
 
-/* A trianglemesh or bilinearmesh: positions first (they may come after
-** the indices in the file), then the indices, streamed. */
-static brt_result run_mesh(run *u, const shape *sh)
+/* A shape's positions into the run's buffer (grown to hold them). */
+static brt_result run_positions(run *u, const shape *sh)
 {
-    static const uint32_t implicit[4] = {0, 1, 2, 3};
     size_t need = (size_t)sh->p_count;
-    brt_result r;
     if (need > u->position_cap || !u->positions) {
         float *bigger = realloc(u->positions, (need ? need : 1) * sizeof *bigger);
         if (!bigger) return brt_fail(u->out.err, BRT_ENOMEM, "out of memory for %llu vertices",
@@ -1941,7 +1938,16 @@ static brt_result run_mesh(run *u, const shape *sh)
         u->positions = bigger;
         u->position_cap = need;
     }
-    r = run_numbers(u, sh, sh->p_file, sh->p_offset, sh->p_line, sh->p_count, number_position);
+    return run_numbers(u, sh, sh->p_file, sh->p_offset, sh->p_line, sh->p_count, number_position);
+}
+
+/* A trianglemesh or bilinearmesh: positions first (they may come after
+** the indices in the file), then the indices, streamed. */
+static brt_result run_mesh(run *u, const shape *sh)
+{
+    static const uint32_t implicit[4] = {0, 1, 2, 3};
+    brt_result r;
+    r = run_positions(u, sh);
     if (r != BRT_OK) return r;
     if (!sh->has_indices) return emit_face(u, implicit, sh->kind == SHAPE_BILINEAR);
     u->corners = 0;
@@ -1987,16 +1993,8 @@ static brt_result run_loop(run *u, const shape *sh)
 {
     ex_loop_mesh m;
     uint32_t i;
-    size_t need = (size_t)sh->p_count;
     brt_result r;
-    if (need > u->position_cap || !u->positions) {
-        float *bigger = realloc(u->positions, (need ? need : 1) * sizeof *bigger);
-        if (!bigger) return brt_fail(u->out.err, BRT_ENOMEM, "out of memory for %llu vertices",
-                                     (unsigned long long)(sh->p_count / 3));
-        u->positions = bigger;
-        u->position_cap = need;
-    }
-    r = run_numbers(u, sh, sh->p_file, sh->p_offset, sh->p_line, sh->p_count, number_position);
+    r = run_positions(u, sh);
     if (r != BRT_OK || (r = run_loop_indices(u, sh)) != BRT_OK) return r;
     r = ex_loop_subdivide(u->positions, (uint32_t)(sh->p_count / 3), u->indices, (uint32_t)(sh->i_count / 3),
                           sh->levels, &m, u->out.err);
