@@ -23,28 +23,11 @@
 
 /* ---- helpers --------------------------------------------------------- */
 
-/* Writes text to NAME in the scratch folder (folders made as needed);
-** returns the path (a few rotating buffers). */
-static const char *put(const char *name, const char *text)
-{
-    static char paths[8][512];
-    static int next;
-    char *out = paths[next++ % 8], *slash;
-    snprintf(out, 512, "%s", tu_scratch(name));
-    for (slash = strchr(out + strlen(test_tmpdir()) + 1, '/'); slash; slash = strchr(slash + 1, '/')) {
-        *slash = 0;
-        mkdir(out, 0700);
-        *slash = '/';
-    }
-    if (!tu_spill(out, text, strlen(text))) test_fail_at(__FILE__, __LINE__, "cannot write %s", out);
-    return out;
-}
-
 static ex_pbrt *open_text(const char *name, const char *text)
 {
     ex_pbrt *scene;
     brt_error err;
-    brt_result r = ex_pbrt_open(put(name, text), &scene, &err);
+    brt_result r = ex_pbrt_open(tu_put(name, text), &scene, &err);
     if (r != BRT_OK) {
         test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
         return NULL;
@@ -150,7 +133,7 @@ static void expect_error(const char *name, const char *text, brt_result r, const
 {
     ex_pbrt *scene = NULL;
     brt_error err;
-    brt_result got = ex_pbrt_open(put(name, text), &scene, &err);
+    brt_result got = ex_pbrt_open(tu_put(name, text), &scene, &err);
     EXPECT(got == r, "%s: result %s, expected %s (%s)", name, brt_result_string(got), brt_result_string(r),
            got == BRT_OK ? "opened" : err.message);
     EXPECT(got == BRT_OK || strstr(err.message, want), "%s: message \"%s\" lacks \"%s\"", name, err.message, want);
@@ -231,7 +214,7 @@ static void test_plymesh(void)
 {
     ex_pbrt *s;
     tris t;
-    put("plydir/quad.ply", small_ply);
+    tu_put("plydir/quad.ply", small_ply);
     s = open_text("plydir/ply.pbrt",
         "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0]\n"
         "Scale 2 2 2\nShape \"plymesh\" \"string filename\" \"quad.ply\"\n");
@@ -258,7 +241,7 @@ static void test_plymesh_gz(void)
     ex_pbrt *s;
     tris t;
     if (system("gzip --version > /dev/null 2>&1") != 0) { test_skip("no gzip on this system"); return; }
-    put("gz/quad.ply", small_ply);
+    tu_put("gz/quad.ply", small_ply);
     snprintf(cmd, sizeof cmd, "gzip -f '%s'", tu_scratch("gz/quad.ply"));
     CHECK(system(cmd) == 0, "gzip failed");
     snprintf(tmp, sizeof tmp, "%s", tu_scratch("gztmp"));
@@ -273,7 +256,7 @@ static void test_plymesh_gz(void)
     free(t.c);
     ex_pbrt_close(s);
     /* a file that is not gzip: an error, and the temporary file removed too */
-    put("gz/bad.ply.gz", "not gzip");
+    tu_put("gz/bad.ply.gz", "not gzip");
     s = open_text("gz/bad.pbrt", "WorldBegin\nShape \"plymesh\" \"string filename\" \"bad.ply.gz\"\n");
     if (s) {
         brt_scene_source src;
@@ -464,9 +447,9 @@ static void test_include_folder(void)
     ex_pbrt *s;
     tris t;
     /* paths in parts/a.pbrt are relative to the main file's folder, not parts/ */
-    put("inc/parts/a.pbrt", "Translate 1 0 0\nInclude \"parts/b.pbrt\"\n");
-    put("inc/parts/b.pbrt", tri_at_origin);
-    put("inc/parts/c.pbrt", "Shape \"trianglemesh\" \"point3 P\" [0 0 9 1 0 9 0 1 9]\n");
+    tu_put("inc/parts/a.pbrt", "Translate 1 0 0\nInclude \"parts/b.pbrt\"\n");
+    tu_put("inc/parts/b.pbrt", tri_at_origin);
+    tu_put("inc/parts/c.pbrt", "Shape \"trianglemesh\" \"point3 P\" [0 0 9 1 0 9 0 1 9]\n");
     s = open_text("inc/main.pbrt", "WorldBegin\nAttributeBegin\nInclude \"parts/a.pbrt\"\nAttributeEnd\n"
                                    "Import \"parts/c.pbrt\"\n");
     if (!s) return;
@@ -482,8 +465,8 @@ static void test_landscape_layout(void)
     ex_pbrt *s;
     tris t;
     float eye[3], target[3], up[3], fov;
-    put("landscape/geometry/rocks.ply", small_ply);
-    put("landscape/geometry/geometry.pbrt",
+    tu_put("landscape/geometry/rocks.ply", small_ply);
+    tu_put("landscape/geometry/geometry.pbrt",
         "ObjectBegin \"rock\"\nShape \"plymesh\" \"string filename\" \"geometry/rocks.ply\"\nObjectEnd\n"
         "AttributeBegin\nTranslate 3 0 0\nObjectInstance \"rock\"\nAttributeEnd\n"
         "Shape \"plymesh\" \"string filename\" [ \"geometry/rocks.ply\" ]\n");
@@ -607,7 +590,7 @@ static void test_same_hits_as_obj(void)
     }
     snprintf(pbrt + np, cap - np, "]\n");
     CHECK(np + 200 < cap && no + 200 < cap, "buffers too small");
-    put("hits.obj", obj);
+    tu_put("hits.obj", obj);
     s = open_text("hits.pbrt", pbrt);
     free(pbrt);
     free(obj);
@@ -675,7 +658,7 @@ static void test_chunks_and_reruns(void)
     free(t1.c);
     free(t2.c);
     /* the file shrinks under the reader: an I/O error, not a wrong triangle */
-    put("chunks.pbrt", "WorldBegin\n");
+    tu_put("chunks.pbrt", "WorldBegin\n");
     {
         brt_scene_source src;
         brt_error err;
@@ -777,8 +760,8 @@ static void test_instance_errors(void)
 
 static void test_include_errors(void)
 {
-    put("cycle/b.pbrt", "Include \"c.pbrt\"\n");
-    put("cycle/c.pbrt", "\nInclude \"b.pbrt\"\n");
+    tu_put("cycle/b.pbrt", "Include \"c.pbrt\"\n");
+    tu_put("cycle/c.pbrt", "\nInclude \"b.pbrt\"\n");
     expect_error("cycle/a.pbrt", "WorldBegin\nInclude \"b.pbrt\"\n", BRT_EPARSE, "c.pbrt:2: Include cycle");
     expect_error("e_noinc.pbrt", "WorldBegin\nInclude \"absent/x.pbrt\"\n", BRT_EIO,
                  "e_noinc.pbrt:2: cannot read included file");

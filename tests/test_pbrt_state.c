@@ -26,22 +26,6 @@
 
 /* ---- helpers --------------------------------------------------------- */
 
-/* Writes text to NAME in the scratch folder (folders made as needed). */
-static const char *put(const char *name, const char *text)
-{
-    static char paths[4][512];
-    static int next;
-    char *out = paths[next++ % 4], *slash;
-    snprintf(out, 512, "%s", tu_scratch(name));
-    for (slash = strchr(out + strlen(test_tmpdir()) + 1, '/'); slash; slash = strchr(slash + 1, '/')) {
-        *slash = 0;
-        mkdir(out, 0700);
-        *slash = '/';
-    }
-    if (!tu_spill(out, text, strlen(text))) test_fail_at(__FILE__, __LINE__, "cannot write %s", out);
-    return out;
-}
-
 /* Streamed triangles (or instances), with the chunks' numbering checked. */
 typedef struct tris { float *c; uint32_t n, chunks, max_chunk; size_t cap; int bad_first; } tris;
 
@@ -139,7 +123,7 @@ static void expect_error(const char *name, const char *text, brt_result r, const
 {
     ex_pbrt *scene = NULL;
     brt_error err;
-    brt_result got = ex_pbrt_open(put(name, text), &scene, &err);
+    brt_result got = ex_pbrt_open(tu_put(name, text), &scene, &err);
     EXPECT(got == r, "%s: result %s, expected %s (%s)", name, brt_result_string(got), brt_result_string(r),
            got == BRT_OK ? "opened" : err.message);
     EXPECT(got == BRT_OK || strstr(err.message, want), "%s: message \"%s\" lacks \"%s\"", name, err.message, want);
@@ -333,8 +317,8 @@ static void test_state_table(void)
         double *c = NULL;
         long n;
         int t, j, bad = 0;
-        if (k->inc_name) put(k->inc_name, k->inc_text);
-        if (ex_pbrt_open(put(k->name, k->text), &s, &err) != BRT_OK) {
+        if (k->inc_name) tu_put(k->inc_name, k->inc_text);
+        if (ex_pbrt_open(tu_put(k->name, k->text), &s, &err) != BRT_OK) {
             test_fail_at(__FILE__, __LINE__, "%s (%s): %s", k->name, k->rule, err.message);
             continue;
         }
@@ -477,9 +461,9 @@ static void test_error_table(void)
     size_t i;
     for (i = 0; i < sizeof error_cases / sizeof *error_cases; i++) {
         const error_case *k = &error_cases[i];
-        if (k->inc_name) put(k->inc_name, k->inc_text);
-        put("e_inc/impinc_end.pbrt", "\nAttributeEnd\n");
-        put("e_inc/blank4.pbrt", "\n\n\n\nTranslate 0 0 1\n");
+        if (k->inc_name) tu_put(k->inc_name, k->inc_text);
+        tu_put("e_inc/impinc_end.pbrt", "\nAttributeEnd\n");
+        tu_put("e_inc/blank4.pbrt", "\n\n\n\nTranslate 0 0 1\n");
         expect_error(k->name, k->text, k->result, k->want);
         if (test_failed()) { test_fail_at(__FILE__, __LINE__, "(%s: %s)", k->name, k->why); return; }
     }
@@ -521,7 +505,7 @@ static void test_instance_chunks(void)
         insts in;
         CHECK(text, "out of memory");
         snprintf(name, sizeof name, "inst_%u.pbrt", (unsigned)n);
-        put(name, text);
+        tu_put(name, text);
         free(text);
         if (ex_pbrt_open(tu_scratch(name), &s, &err) != BRT_OK) { EXPECT(0, "%s: %s", name, err.message); continue; }
         ex_pbrt_counts(s, NULL, NULL, &count);
@@ -589,7 +573,7 @@ static void test_triangle_chunks(void)
             brt_result r;
             CHECK(text, "out of memory");
             snprintf(name, sizeof name, "tris_%u_%d.pbrt", (unsigned)n, object);
-            put(name, text);
+            tu_put(name, text);
             free(text);
             if (ex_pbrt_open(tu_scratch(name), &s, &err) != BRT_OK) { EXPECT(0, "%s: %s", name, err.message); continue; }
             memset(&t, 0, sizeof t);
@@ -634,7 +618,7 @@ static void test_shape_variants(void)
     long n;
     int t, j;
     s = NULL;
-    if (ex_pbrt_open(put("v_bil.pbrt", "WorldBegin\nTranslate 10 0 0\nShape \"bilinearmesh\" \"point3 P\" "
+    if (ex_pbrt_open(tu_put("v_bil.pbrt", "WorldBegin\nTranslate 10 0 0\nShape \"bilinearmesh\" \"point3 P\" "
                          "[0 0 0 1 0 0 0 1 0 1 1 0] \"integer indices\" [0 1 2 3  3 1 2 0]\n"), &s, &err) == BRT_OK) {
         n = placed(s, &c);
         EXPECT(n == 4, "bilinearmesh of 2 patches: %ld triangles", n);
@@ -645,10 +629,10 @@ static void test_shape_variants(void)
         free(c);
         ex_pbrt_close(s);
     } else EXPECT(0, "v_bil.pbrt: %s", err.message);
-    put("v/geo/quad.ply", quad_ply);
-    put("v/geo/part.pbrt", "Translate 0 0 4\nShape \"plymesh\" \"string filename\" \"geo/quad.ply\"\n"
+    tu_put("v/geo/quad.ply", quad_ply);
+    tu_put("v/geo/part.pbrt", "Translate 0 0 4\nShape \"plymesh\" \"string filename\" \"geo/quad.ply\"\n"
                            "ObjectBegin \"q\"\nShape \"plymesh\" \"string filename\" \"geo/quad.ply\"\nObjectEnd\n");
-    if (ex_pbrt_open(put("v/main.pbrt", "WorldBegin\nImport \"geo/part.pbrt\"\nTranslate 5 0 0\nObjectInstance \"q\"\n"),
+    if (ex_pbrt_open(tu_put("v/main.pbrt", "WorldBegin\nImport \"geo/part.pbrt\"\nTranslate 5 0 0\nObjectInstance \"q\"\n"),
                      &s, &err) == BRT_OK) {
         /* world: the quad at z = 4; the instance: T(5,0,0) * T(0,0,4) */
         static const double want[4][3] = {{0, 0, 4}, {1, 1, 4}, {5, 0, 4}, {6, 1, 4}};   /* corners 0 and 1 of tri 0 and 2 */
@@ -677,8 +661,8 @@ static void test_stream_error_place(void)
     brt_scene_source src;
     tris t;
     brt_result r;
-    put("se/inc.pbrt", "\n\nScale 1e30 1e30 1e30\nShape \"trianglemesh\"\n\"point3 P\" [0 0 0 1e30 0 0 0 1 0]\n");
-    if (ex_pbrt_open(put("se/main.pbrt", "WorldBegin\n" TRI "Include \"inc.pbrt\"\n"), &s, &err) != BRT_OK) {
+    tu_put("se/inc.pbrt", "\n\nScale 1e30 1e30 1e30\nShape \"trianglemesh\"\n\"point3 P\" [0 0 0 1e30 0 0 0 1 0]\n");
+    if (ex_pbrt_open(tu_put("se/main.pbrt", "WorldBegin\n" TRI "Include \"inc.pbrt\"\n"), &s, &err) != BRT_OK) {
         EXPECT(0, "se/main.pbrt: %s", err.message);
         return;
     }
@@ -712,7 +696,7 @@ static void test_values_read_back_and_forth(void)
     used += (size_t)snprintf(text + used, cap - used, " ]\n\"integer indices\" [");
     for (k = 0; k + 2 < n; k += 3) used += (size_t)snprintf(text + used, cap - used, " %u %u %u", k + 2, k, k + 1);
     snprintf(text + used, cap - used, " ]\n");
-    put("back_and_forth.pbrt", text);
+    tu_put("back_and_forth.pbrt", text);
     free(text);
     CHECK(ex_pbrt_open(tu_scratch("back_and_forth.pbrt"), &s, &err) == BRT_OK, "%s", err.message);
     ex_pbrt_source(s, &src);

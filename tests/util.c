@@ -573,3 +573,18 @@ void tu_instanced_squares(tu_instanced *s)
         tu_add_instance(s, 0, xf);
     }
 }
+
+const char *tu_put(const char *name, const char *text)
+{
+    static char paths[8][512];
+    static int next;
+    char *out = paths[next++ % 8], *slash;
+    snprintf(out, 512, "%s", tu_scratch(name));
+    for (slash = strchr(out + strlen(test_tmpdir()) + 1, '/'); slash; slash = strchr(slash + 1, '/')) {
+        *slash = 0;
+        mkdir(out, 0700);
+        *slash = '/';
+    }
+    if (!tu_spill(out, text, strlen(text))) test_fail_at(__FILE__, __LINE__, "cannot write %s", out);
+    return out;
+}

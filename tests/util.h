@@ -81,6 +81,10 @@ double tu_json_file_number(const char *path, const char *name);
 
 /* NAME inside the scratch directory (a few rotating buffers). */
 const char *tu_scratch(const char *name);
+/* Writes text to NAME in the scratch directory, making its folders;
+** returns the path (a few rotating buffers).  A failure is a test
+** failure. */
+const char *tu_put(const char *name, const char *text);
 /* Whether this process's peak RSS means what a test of a memory bound
 ** needs: not under AddressSanitizer or ThreadSanitizer (shadow memory and
 ** quarantines of freed blocks stay resident) nor valgrind.  When it does
