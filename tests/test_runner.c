@@ -159,6 +159,33 @@ static void test_parallel_outcomes(void)
     status = run_mixed("fail", "1", 1, last, sizeof last);
     EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 1, "fail fast: status %d", status);
     EXPECT(strcmp(last, "0 passed, 1 failed\n") == 0, "fail fast: last line '%s'", last);
+    {   /* ... and in parallel: the other worker ends with its running test */
+        int passed = -1;
+        status = run_mixed("fail", "2", 1, last, sizeof last);
+        EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 1 && sscanf(last, "%d passed, 1 failed", &passed) == 1 &&
+                   passed <= 1,
+               "fail fast with two workers: last line '%s' (at most 1 of %d passed)", last, sampling);
+    }
+    {   /* BRT_TEST_TIMES=1 lists the seconds slowest first */
+        const char *build = getenv("BRT_BUILD");
+        char cmd[2048], line[1024], out[1024];
+        double previous = 1e300, seconds;
+        int listed = 0, ordered = 1;
+        FILE *f;
+        snprintf(out, sizeof out, "%s/runner-times.out", test_tmpdir());
+        snprintf(cmd, sizeof cmd, "BRT_TEST_TIMES=1 BRT_TEST_JOBS=1 BRT_TEST_FAILFAST= TMPDIR='%s' %s/run_tests sampling: "
+                 "> '%s' 2>&1", test_tmpdir(), build ? build : "build", out);
+        EXPECT(system(cmd) == 0, "BRT_TEST_TIMES=1 run failed");
+        f = fopen(out, "r");
+        while (f && fgets(line, sizeof line, f))
+            if (strstr(line, " s  sampling:") && sscanf(line, "%lf", &seconds) == 1) {
+                listed++;
+                ordered &= seconds <= previous;
+                previous = seconds;
+            }
+        if (f) fclose(f);
+        EXPECT(listed > 1 && ordered, "BRT_TEST_TIMES=1: %d tests listed, slowest first: %d", listed, ordered);
+    }
 }
 
 /* tests/contract.md pairs each statement of the README with the tests
