@@ -159,12 +159,13 @@ static void test_parallel_outcomes(void)
     status = run_mixed("fail", "1", 1, last, sizeof last);
     EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 1, "fail fast: status %d", status);
     EXPECT(strcmp(last, "0 passed, 1 failed\n") == 0, "fail fast: last line '%s'", last);
-    {   /* ... and in parallel: the other worker ends with its running test */
+    {   /* ... and in parallel: the other worker ends with its running test,
+        ** so not every sampling test runs (how many do depends on timing) */
         int passed = -1;
         status = run_mixed("fail", "2", 1, last, sizeof last);
         EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 1 && sscanf(last, "%d passed, 1 failed", &passed) == 1 &&
-                   passed <= 1,
-               "fail fast with two workers: last line '%s' (at most 1 of %d passed)", last, sampling);
+                   passed < sampling,
+               "fail fast with two workers: last line '%s' (fewer than all %d)", last, sampling);
     }
     {   /* BRT_TEST_TIMES=1 lists the seconds slowest first */
         const char *build = getenv("BRT_BUILD");
