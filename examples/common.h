@@ -21,7 +21,8 @@ void ex_die(const char *prog, const char *fmt, ...)
 #endif
     ;
 
-/* Dies with err's message (or the result's name) unless r is BRT_OK. */
+/* Dies with err's message (or the result's name) unless r is BRT_OK; as
+** ex_die_interrupted when an interrupt is pending. */
 void ex_check(const char *prog, brt_result r, const brt_error *err);
 
 /* Nonzero when any argument is --help or -h: programs then print their

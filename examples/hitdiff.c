@@ -315,7 +315,7 @@ static void referee_all(referee_run *run)
         fprintf(csv, run->occluded[0] ? "ray,class,a,b,verdict\n"
                      : "ray,class,a_t,a_prim,a_u,a_v,b_t,b_prim,b_u,b_v,verdict\n");
     }
-    for (i = 0; i < run->count; i++) {
+    for (i = 0; i < run->count && !ex_interrupted(); i++) {
         if (!referee_ray(run, i, &verdict)) continue;
         run->disagree++;
         run->classes[verdict.cls]++;
@@ -342,8 +342,11 @@ static void referee_all(referee_run *run)
         if (failed)
             r = brt_fail(&err, BRT_EIO, "%s: cannot write: %s", run->explain_path,
                          errno ? strerror(errno) : "write error");
-        ex_check(prog, brt_atomic_close(&file, r, &err), &err);
+        else if (ex_interrupted())
+            r = brt_fail(&err, BRT_EINTR, "%s: interrupted", run->explain_path);
+        ex_check(prog, brt_atomic_close(&file, r, &err), &err);   /* removes it unless r is BRT_OK */
     }
+    if (ex_interrupted()) ex_die_interrupted(prog);
 }
 
 static void print_referee_table(const referee_run *run)
@@ -384,6 +387,7 @@ static int referee_main(referee_run *run)
     brt_error err;
     memset(&mesh, 0, sizeof mesh);
     memset(&instanced, 0, sizeof instanced);
+    ex_catch_interrupts();   /* the referee polls it; a failed load reports it (ex_check) */
     ex_input_open(prog, run->mesh_path, &input);
     if (input.pbrt) {
         if (run->occluded[0])

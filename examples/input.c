@@ -41,9 +41,7 @@ brt_world *ex_input_world(const char *prog, const ex_input *in)
 {
     brt_world *world = NULL;
     brt_error err;
-    brt_result r = brt_world_build(&in->source, &world, &err);
-    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
-    ex_check(prog, r, &err);
+    ex_check(prog, brt_world_build(&in->source, &world, &err), &err);
     return world;
 }
 
@@ -55,7 +53,6 @@ brt_scene *ex_input_scene(const char *prog, const ex_input *in, const char *scen
     brt_result r = in->pbrt ? brt_scene_prepare_source(&in->source, in->stamp, scene_path, opt,
                                                        &scene, rebuilt, &err)
                             : brt_scene_prepare(in->path, scene_path, opt, &scene, rebuilt, &err);
-    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
     ex_check(prog, r, &err);
     return scene;
 }

@@ -112,6 +112,7 @@ int main(int argc, char **argv)
     if (!out_path) ex_die(prog, "expected MESH OUT.rays (see --help)");
     if (!kind_text) ex_die(prog, "--kind camera|random|bounce is required (see --help)");
     kind = parse_kind(kind_text);
+    ex_catch_interrupts();   /* polled before the write; a failed build reports it (ex_check) */
 
     /* The loader refuses a mesh without triangles, so the box is not empty;
     ** a pbrt scene is traced through its world (an empty one has no rays). */
@@ -140,7 +141,8 @@ int main(int argc, char **argv)
                 ex_die(prog, "out of memory for %llu rays", (unsigned long long)count);
             for (p = 0; p < count; p++)
                 ex_camera_ray(&cam, ((double)(p % w) + 0.5) / w, ((double)(p / w) + 0.5) / h, &rays[p]);
-            ex_check(prog, brt_rays_write(out_path, rays, (size_t)count, &err), &err);
+            if (ex_interrupted()) ex_die_interrupted(prog);
+    ex_check(prog, brt_rays_write(out_path, rays, (size_t)count, &err), &err);
             free(rays);
             brt_world_free(world);
             ex_input_close(&input);
@@ -162,6 +164,7 @@ int main(int argc, char **argv)
                    mesh_path, EX_MAX_CAMERA_ATTEMPTS);
     } else make_bounce_rays(mesh_path, &mesh, &cam, rays, (size_t)count, &rng);
 
+    if (ex_interrupted()) ex_die_interrupted(prog);
     ex_check(prog, brt_rays_write(out_path, rays, (size_t)count, &err), &err);
     free(rays);
     brt_mesh_free(&mesh);

@@ -720,9 +720,7 @@ static void load_direct(const options *o, const render_input *in, uint64_t limit
     double start = brt_seconds();
     memset(d, 0, sizeof *d);
     if (in->source) {
-        brt_result r = brt_world_build(in->source, &d->world, &err);
-        if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
-        ex_check(prog, r, &err);
+        ex_check(prog, brt_world_build(in->source, &d->world, &err), &err);
         brt_world_bounds(d->world, bmin, bmax);
         *triangles = brt_world_unique_triangles(d->world);
         d->build_seconds = brt_seconds() - start;
@@ -842,9 +840,7 @@ static brt_scene *prepare_scene(const brt_scene_source *source, uint64_t stamp,
     }
     *rebuilt = 1;
     ex_progress("building scene", 0, 1);
-    r = brt_scene_build_source(source, sopt, stamp, path, &err);
-    if (r != BRT_OK && ex_interrupted()) ex_die_interrupted(prog);
-    ex_check(prog, r, &err);
+    ex_check(prog, brt_scene_build_source(source, sopt, stamp, path, &err), &err);
     ex_progress("building scene", 1, 1);
     ex_progress_end();
     ex_check(prog, brt_scene_open(path, &scene, &err), &err);

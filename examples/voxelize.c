@@ -317,6 +317,7 @@ int main(int argc, char **argv)
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
+    ex_catch_interrupts();   /* polled between the phases; a failed load reports it (ex_check) */
     ex_input_load_mesh(prog, o.mesh, &mesh);   /* a pbrt file flattened */
     if (mesh.triangle_count == 0) ex_die(prog, "%s: the mesh has no triangles", o.mesh);
 
@@ -324,6 +325,7 @@ int main(int argc, char **argv)
     add_proxy(&mesh, mesh.indices, mesh.triangle_count, o.res, dag, &proxy, &alone);
     pool_figures(dag, &alone);
     octant_proxies(&mesh, o.res, &octants, &separate_bytes);
+    if (ex_interrupted()) ex_die_interrupted(prog);
 
     if (o.out) {
         unsigned char *rgb = render(&mesh, dag, &proxy, o.image);
@@ -340,6 +342,7 @@ int main(int argc, char **argv)
            (unsigned long)separate_bytes,
            separate_bytes ? 100.0 * (1.0 - (double)octants.dag_bytes / separate_bytes) : 0.0);
 
+    if (ex_interrupted()) ex_die_interrupted(prog);
     if (png) ex_check(prog, brt_write_file_atomic(o.out, png, png_size, &err), &err);
     if (json && brt_write_file_atomic(o.stats, json, json_size, &err) != BRT_OK) {
         if (png) unlink(o.out);   /* no partial output */

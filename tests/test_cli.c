@@ -940,15 +940,6 @@ static pid_t spawn(const char *const *argv, const char *err_name)
     return pid;
 }
 
-
-static void sleep_ms(long ms)
-{
-    struct timespec ts;
-    ts.tv_sec = ms / 1000;
-    ts.tv_nsec = (ms % 1000) * 1000000L;
-    nanosleep(&ts, NULL);
-}
-
 /* Runs a program in DIR, sends it signo once a file has appeared there
 ** (or after max_wait_ms), and checks: it was still running, it exits with
 ** 128 + signo and one line "PROG: interrupted by SIG...", and DIR then
@@ -964,14 +955,14 @@ static void check_interrupted(const char *const *argv, const char *dir, int sign
     pid = spawn(argv, "spawn.err");
     CHECK(pid > 0, "cannot start %s", argv[0]);
     while (waited < max_wait_ms && tu_dir_entries(dir, NULL, NULL, NULL, 0) == 0) {
-        sleep_ms(10);
+        tu_sleep_ms(10);
         waited += 10;
     }
     /* Well into the writing, and past the program's start: a signal before
     ** it installs its handlers ends it as the default action does (a
     ** start slowed by the sanitizers, or by the other tests the runner
     ** runs beside this one).  Each program here works for seconds. */
-    sleep_ms(300);
+    tu_sleep_ms(300);
     EXPECT(waitpid(pid, &status, WNOHANG) == 0, "%s finished before the signal", argv[0]);
     kill(pid, signo);
     CHECK(waitpid(pid, &status, 0) == pid, "waitpid failed");
@@ -1044,6 +1035,86 @@ static void test_interrupts_while_tracing(void)
           "could not make the trace's mesh, rays and scene file");
     check_interrupted(trace, tdir, SIGINT, 0, "scene.brs");
     check_interrupted(trace, tdir, SIGTERM, 0, "scene.brs");
+}
+
+/* Ctrl-C at a terminal signals the whole foreground process group: the
+** gzip that unpacks a pbrt scene's "*.ply.gz" dies of it too, and the
+** program's build fails.  Every program that reads pbrt-v4 must still say
+** "interrupted" and exit 130, not blame the file (ex_check), and leave
+** neither output nor unpacked copy.  A stand-in gzip on the PATH
+** announces itself and sleeps, so the signal always comes while it runs. */
+static void check_group_interrupted(const char *const *argv, const char *bin, const char *tmp,
+                                    const char *mark, const char *out)
+{
+    char path[1024], *err;
+    const char *build = getenv("BRT_BUILD");
+    long waited = 0;
+    int status = 0;
+    pid_t pid;
+    unlink(mark);
+    snprintf(path, sizeof path, "%s/%s", build ? build : "build", argv[0]);
+    pid = fork();
+    if (pid == 0) {
+        char search[4096];
+        int err_fd = open(tu_scratch("group.err"), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+        snprintf(search, sizeof search, "%s:%s", bin, getenv("PATH") ? getenv("PATH") : "/bin:/usr/bin");
+        if (setpgid(0, 0) != 0 || err_fd < 0 || dup2(err_fd, 2) < 0 || setenv("PATH", search, 1) != 0 ||
+            setenv("TMPDIR", tmp, 1) != 0 || setenv("BRT_TEST_MARK", mark, 1) != 0)
+            _exit(127);
+        execv(path, (char *const *)argv);
+        _exit(127);
+    }
+    CHECK(pid > 0, "cannot start %s", argv[0]);
+    setpgid(pid, pid);   /* either side may come first */
+    while (waited < 60000 && !tu_file_exists(mark) && waitpid(pid, &status, WNOHANG) == 0) {
+        tu_sleep_ms(10);
+        waited += 10;
+    }
+    EXPECT(tu_file_exists(mark), "%s never started gzip", argv[0]);
+    kill(-pid, SIGINT);
+    CHECK(waitpid(pid, &status, 0) == pid, "waitpid failed");
+    err = (char *)tu_slurp(tu_scratch("group.err"), NULL);
+    EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 130 && err && strstr(err, "interrupted by SIGINT") &&
+           strchr(err, '\n') == err + strlen(err) - 1,
+           "%s, Ctrl-C while gzip runs: status %#x, stderr '%s'", argv[0], (unsigned)status, err ? err : "(none)");
+    free(err);
+    EXPECT(tu_dir_entries(tmp, NULL, NULL, NULL, 0) == 0, "%s left its unpacked copy in $TMPDIR", argv[0]);
+    EXPECT(!out || !tu_file_exists(out), "%s wrote %s", argv[0], out);
+}
+
+static void test_ctrl_c_while_gzip_unpacks(void)
+{
+    char scene[600], rays[600], hits[600], out[600], brs[600], bin[512], tmp[512], mark[512];
+    const char *render[] = {"render", scene, "--direct", "--width", "8", "--height", "8", "--spp", "1",
+                            "--out", out, NULL};
+    const char *direct[] = {"trace", scene, rays, out, "--direct", NULL};
+    const char *batched[] = {"trace", scene, rays, out, "--batched", "--scene", brs, NULL};
+    const char *raygen[] = {"raygen", scene, out, "--kind", "random", NULL};
+    const char *voxelize[] = {"voxelize", scene, "--out", out, NULL};
+    const char *hitdiff[] = {"hitdiff", hits, hits, "--mesh", scene, "--rays", rays, "--explain", out, NULL};
+    snprintf(bin, sizeof bin, "%s", tu_put("gzip-bin/gzip", "#!/bin/sh\n: > \"$BRT_TEST_MARK\"\nexec sleep 30\n"));
+    CHECK(chmod(bin, 0755) == 0, "cannot make %s executable", bin);
+    *strrchr(bin, '/') = 0;
+    snprintf(tmp, sizeof tmp, "%s", tu_scratch("gzip-tmp"));
+    CHECK(mkdir(tmp, 0755) == 0, "cannot create %s", tmp);
+    snprintf(mark, sizeof mark, "%s", tu_scratch("gzip-started"));
+    tu_put("gzip-scene/mesh.ply.gz", "not unpacked: the stand-in gzip never reads it\n");
+    snprintf(scene, sizeof scene, "%s",
+             tu_put("gzip-scene/scene.pbrt", "WorldBegin\nShape \"plymesh\" \"string filename\" \"mesh.ply.gz\"\n"));
+    snprintf(rays, sizeof rays, "%s", tu_scratch("gzip.rays"));
+    snprintf(out, sizeof out, "%s", tu_scratch("gzip.out"));
+    snprintf(brs, sizeof brs, "%s", tu_scratch("gzip.brs"));
+    snprintf(hits, sizeof hits, "%s", tu_scratch("gzip.hits"));
+    CHECK(tu_run("mkscene crown @/gzip-crown.ply --scale 0.01") == 0 &&
+          tu_run("raygen @/gzip-crown.ply @/gzip.rays --kind random --count 100") == 0 &&
+          tu_run("trace @/gzip-crown.ply @/gzip.rays @/gzip.hits") == 0, "cannot make rays and hits");
+    check_group_interrupted(render, bin, tmp, mark, out);
+    check_group_interrupted(direct, bin, tmp, mark, out);
+    check_group_interrupted(batched, bin, tmp, mark, out);
+    EXPECT(!tu_file_exists(brs) && !tu_temporary_file_left(), "trace --batched left its scene file");
+    check_group_interrupted(raygen, bin, tmp, mark, out);
+    check_group_interrupted(voxelize, bin, tmp, mark, out);
+    check_group_interrupted(hitdiff, bin, tmp, mark, out);
 }
 
 /* trace --batched writes the bytes of --direct on every built-in scene,
@@ -1156,6 +1227,7 @@ void suite_cli(void)
     test_run("cli: SIGINT and SIGTERM leave no temporary file", test_interrupts_leave_nothing);
     test_run("cli: a failure after the first outputs leaves none", test_late_failure_leaves_nothing);
     test_run("cli: SIGINT and SIGTERM while tracing leave no output", test_interrupts_while_tracing);
+    test_run("cli: Ctrl-C while gzip unpacks a pbrt mesh says interrupted", test_ctrl_c_while_gzip_unpacks);
     test_run("cli: trace --batched equals --direct on every built-in scene",
              test_builtin_scenes_batched_equals_direct);
 }

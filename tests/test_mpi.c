@@ -15,10 +15,14 @@
 #include "util.h"
 
 #include <math.h>
+#include <signal.h>
 #include <stdarg.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 /* Seconds a run may take before it counts as a hang. */
 #define HANG_SECONDS 60
@@ -239,6 +243,57 @@ static void test_failures(void)
     status = mpi_run(3, "", "@/mpi-crown.obj @/mpi-0-bounce.rays @/mpi-fail.out --assign diagonal");
     EXPECT(status == 1 && !tu_file_exists(tu_scratch("mpi-fail.out")), "bad option: status %d", status);
     expect_one_line("a bad option", "--assign: expected runs or round-robin, got 'diagonal'");
+}
+
+/* README, "Errors": SIGINT stops a build and leaves nothing.  Ctrl-C at a
+** terminal signals mpirun's whole process group: the ranks, and mpirun,
+** which forwards SIGTERM.  Rank 0's scene build (of a mesh that takes about
+** a second) is interrupted as soon as its temporary file appears: it must
+** stop it (brt_scene_options.interrupt), leave no scene file, temporary or
+** whole, and no output, and the run must end with a failure, never hang.
+** (Not under timeout(1): mpirun would get the signal twice, and takes a
+** second Ctrl-C for "kill every rank now".) */
+static void test_interrupted_build(void)
+{
+    char command[2048], dir[512], left[256] = "";
+    long waited = 0;
+    int status = 0, entries;
+    pid_t pid;
+    if (!mpi_available()) return;
+    CHECK(tu_run("mkscene landscape @/mpi-int.ply --scale 10") == 0 &&
+          tu_run("raygen @/mpi-int.ply @/mpi-int.rays --kind random --count 1000") == 0, "cannot make the inputs");
+    snprintf(dir, sizeof dir, "%s", tu_scratch("mpi-int"));
+    CHECK(mkdir(dir, 0755) == 0, "cannot create %s", dir);
+    tu_expand_scratch("exec env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_btl=self,vader "
+                      "mpirun --oversubscribe -np 2 $BRT_BUILD/mpi_trace @/mpi-int.ply @/mpi-int.rays @/mpi-int.out "
+                      "--scene @/mpi-int/scene.brs < /dev/null > /dev/null 2>&1", command, sizeof command);
+    pid = fork();
+    if (pid == 0) {
+        setpgid(0, 0);
+        setenv("BRT_BUILD", build_dir(), 1);
+        execl("/bin/sh", "sh", "-c", command, (char *)NULL);
+        _exit(127);
+    }
+    CHECK(pid > 0, "cannot start mpirun");
+    setpgid(pid, pid);   /* either side may come first */
+    while (waited < HANG_SECONDS * 1000 && tu_dir_entries(dir, NULL, NULL, NULL, 0) == 0 &&
+           waitpid(pid, &status, WNOHANG) == 0) {
+        tu_sleep_ms(10);
+        waited += 10;
+    }
+    EXPECT(tu_dir_entries(dir, NULL, NULL, NULL, 0) > 0, "the build never began");
+    kill(-pid, SIGINT);
+    for (waited = 0; waited < HANG_SECONDS * 1000 && waitpid(pid, &status, WNOHANG) == 0; waited += 10)
+        tu_sleep_ms(10);
+    if (waited >= HANG_SECONDS * 1000) {
+        kill(-pid, SIGKILL);
+        waitpid(pid, &status, 0);
+        EXPECT(0, "the interrupted run hung");
+    }
+    EXPECT(WIFEXITED(status) && WEXITSTATUS(status) != 0, "the interrupted run: status %#x", (unsigned)status);
+    entries = tu_dir_entries(dir, NULL, NULL, left, sizeof left);
+    EXPECT(entries == 0, "the interrupted build left %d files, e.g. '%s'", entries, left);
+    EXPECT(!tu_file_exists(tu_scratch("mpi-int.out")), "the interrupted run wrote its output");
 }
 
 /* ==== issue 38: the contract's statements, each pinned ====================
@@ -656,6 +711,7 @@ void suite_mpi(void)
     test_run("mpi: == trace --direct at 1-4 ranks, proxies, memory, ownerships", test_equal_direct);
     test_run("mpi: rays crossing ranks many times; proxies cut the bytes sent", test_crossings_and_proxies);
     test_run("mpi: a failed rank ends the run, no output, no hang", test_failures);
+    test_run("mpi: Ctrl-C during the scene build leaves no file", test_interrupted_build);
     test_run("mpi: rays leave in messages of at most 4096 (at, one before, one past)", test_ray_messages);
     test_run("mpi: hits gathered in chunks across the split (small build)", test_result_chunks);
     test_run("mpi: statistics per rank: sums, shares, owners, loads, messages", test_statistics);

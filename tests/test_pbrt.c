@@ -171,6 +171,17 @@ static void test_trianglemesh(void)
     }
     free(t.c);
     ex_pbrt_close(s);
+    /* The first shape's indices before its P: the run reads P to the end
+    ** of the file, then seeks back before its window for the indices. */
+    if (!(s = open_text("mesh-back.pbrt", "WorldBegin\n"
+                        "Shape \"trianglemesh\" \"integer indices\" [2 1 0] \"point3 P\" [1 2 3 4 5 6 7 8 9]\n")))
+        return;
+    if (world(s, &t))
+        EXPECT(t.n == 1 && corner_is(&t, 0, 0, 7, 8, 9, 0) && corner_is(&t, 0, 1, 4, 5, 6, 0)
+               && corner_is(&t, 0, 2, 1, 2, 3, 0), "indices before P: %u triangles, not P[2], P[1], P[0]",
+               (unsigned)t.n);
+    free(t.c);
+    ex_pbrt_close(s);
 }
 
 static void test_three_points(void)
@@ -905,7 +916,7 @@ static void test_bounded_memory(void)
 
 void suite_pbrt(void)
 {
-    test_run("pbrt: trianglemesh: P and indices become world triangles in file order", test_trianglemesh);
+    test_run("pbrt: trianglemesh: P and indices become world triangles in file order, either first", test_trianglemesh);
     test_run("pbrt: trianglemesh of 3 points without indices", test_three_points);
     test_run("pbrt: bilinearmesh: (p00,p10,p11), (p00,p11,p01)", test_bilinear);
     test_run("pbrt: plymesh through brt_mesh_stream, transformed", test_plymesh);

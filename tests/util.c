@@ -10,6 +10,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <time.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
 
@@ -587,4 +588,12 @@ const char *tu_put(const char *name, const char *text)
     }
     if (!tu_spill(out, text, strlen(text))) test_fail_at(__FILE__, __LINE__, "cannot write %s", out);
     return out;
+}
+
+void tu_sleep_ms(long ms)
+{
+    struct timespec ts;
+    ts.tv_sec = ms / 1000;
+    ts.tv_nsec = (ms % 1000) * 1000000L;
+    nanosleep(&ts, NULL);
 }

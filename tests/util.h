@@ -92,6 +92,9 @@ const char *tu_put(const char *name, const char *text);
 int tu_rss_is_meaningful(void);
 
 int tu_file_exists(const char *path);
+
+/* Sleeps ms milliseconds (the programs run beside the test). */
+void tu_sleep_ms(long ms);
 /* The whole file, NUL-terminated (malloc'd), or NULL; size may be NULL. */
 unsigned char *tu_slurp(const char *path, size_t *size);
 int tu_spill(const char *path, const void *data, size_t size);
