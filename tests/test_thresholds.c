@@ -26,12 +26,16 @@
 **   - an instance's transform may have a condition number of at most 1024
 **     (BRT_MAX_CONDITION), inclusive: diag(1, 1, 1024) and its mirror are
 **     taken, diag(1, 1, 1025) refused (the norms are exact here: row sums
-**     of a diagonal matrix and of its inverse, powers of two or not).
+**     of a diagonal matrix and of its inverse, powers of two or not);
+**   - pbrt-v4 Includes nest at most 64 files deep, the main file counted
+**     (examples/pbrt.c, MAX_DEPTH): 64 are read, the Include of a 65th is
+**     refused at its line.
 */
 #include "test.h"
 #include "util.h"
 #include "examples/common.h"
 #include "examples/scenes.h"
+#include "examples/pbrt.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -371,6 +375,42 @@ static void test_condition_limit(void)
     }
 }
 
+/* A chain of pbrt files, the main one and depth - 1 Includes, the last
+** holding one triangle; the result of opening it. */
+static brt_result open_include_chain(int depth, brt_error *err)
+{
+    char name[64], text[128], main_path[600] = "";
+    ex_pbrt *scene = NULL;
+    brt_result r;
+    int i;
+    for (i = 0; i < depth; i++) {
+        snprintf(name, sizeof name, "chain%d/f%d.pbrt", depth, i);
+        if (i == depth - 1)
+            snprintf(text, sizeof text, "Shape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0]\n");
+        else snprintf(text, sizeof text, "%sInclude \"f%d.pbrt\"\n", i == 0 ? "WorldBegin\n" : "", i + 1);
+        if (i == 0) snprintf(main_path, sizeof main_path, "%s", tu_put(name, text));   /* tu_put's buffers rotate */
+        else tu_put(name, text);
+    }
+    r = ex_pbrt_open(main_path, &scene, err);
+    if (r == BRT_OK) {
+        uint64_t shapes = 0;
+        ex_pbrt_counts(scene, &shapes, NULL, NULL);
+        if (shapes != 1) r = brt_fail(err, BRT_EPARSE, "%llu shapes, expected 1", (unsigned long long)shapes);
+        ex_pbrt_close(scene);
+    }
+    return r;
+}
+
+static void test_include_depth(void)
+{
+    brt_error err;
+    brt_result r = open_include_chain(64, &err);
+    EXPECT(r == BRT_OK, "64 files deep: %s", err.message);
+    r = open_include_chain(65, &err);
+    EXPECT(r == BRT_EPARSE && strstr(err.message, "chain65/f63.pbrt:1: Includes nested more than 64 deep"),
+           "65 files deep: result %d, '%s'", r, r == BRT_OK ? "" : err.message);
+}
+
 void suite_thresholds(void)
 {
     test_run("thresholds: a blob larger than one cache read (8 MiB) == direct", test_blob_past_one_read);
@@ -381,4 +421,5 @@ void suite_thresholds(void)
     test_run("thresholds: proxy resolution 1024 read, 2048, 1 and 3 refused", test_resolution_bounds);
     test_run("thresholds: hitdiff --t-rel is inclusive: identical files agree at 0", test_hitdiff_tolerance_inclusive);
     test_run("thresholds: an instance's condition number 1024 taken, 1025 refused", test_condition_limit);
+    test_run("thresholds: pbrt Includes 64 files deep read, 65 refused", test_include_depth);
 }
