@@ -48,11 +48,10 @@
 ** it only beyond the Makefile's _POSIX_C_SOURCE=200809L, hence this file's
 ** one feature macro (nothing else here uses what it adds). */
 #define _DEFAULT_SOURCE
-/* The library defines the entry points for tests too (batchrt.h, 7). */
-#ifndef BRT_TESTING
-#define BRT_TESTING 1
-#endif
 #include "batchrt.h"
+/* The oracles and checkers the library holds for its tests; the hooks
+** only when compiled with BRT_TESTING (testing.h). */
+#include "testing.h"
 
 /* Invariants are assert()ed, compiled in by make debug (BRT_DEBUG) only:
 ** in the release build they cost nothing. */
@@ -3804,11 +3803,25 @@ static void builder_free(scene_builder *b)
     free(b->w.boxes);
 }
 
+#ifdef BRT_TESTING
+/* The tests' sizes of a build (testing.h: brt_test_build_sizes); 0: the
+** defaults. */
+static uint32_t test_spill_chunk, test_bucket_tris;
+
+void brt_test_build_sizes(uint32_t spill_chunk, uint32_t bucket_tris)
+{
+    test_spill_chunk = spill_chunk;
+    test_bucket_tris = bucket_tris;
+}
+#else
+enum { test_spill_chunk = 0, test_bucket_tris = 0 };   /* the defaults */
+#endif
+
 static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
                                const char *scene_path, brt_error *err)
 {
-    uint32_t cap = opt && opt->test_bucket_tris ? opt->test_bucket_tris
-                                                 : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
+    uint32_t cap = test_bucket_tris ? test_bucket_tris
+                                    : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
     char spill_path[4096];
     memset(b, 0, sizeof *b);
     b->spill_fd = b->w.fd = b->instance_fd = -1;
@@ -3825,7 +3838,7 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->instance_bucket = cap / 4 > 0 ? cap / 4 : 1;
     b->bucket_tris = cap / b->batch_tris * b->batch_tris;
     if (b->bucket_tris < b->batch_tris) b->bucket_tris = b->batch_tris;
-    b->chunk = opt && opt->test_spill_chunk ? opt->test_spill_chunk : SPILL_CHUNK;
+    b->chunk = test_spill_chunk ? test_spill_chunk : SPILL_CHUNK;
     if (is_special_file(scene_path))
         return brt_fail(err, BRT_EARG, "%s: not a regular file", scene_path);
     if (snprintf(spill_path, sizeof spill_path, "%s.spill.%ld", scene_path,
@@ -3940,8 +3953,9 @@ static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
     return BRT_OK;
 }
 
-/* The tests' injected read fault (brt_test_read_fault): reads left before
-** it, or -1 (never: one compare per read outside the tests). */
+#ifdef BRT_TESTING
+/* The tests' injected read fault (testing.h: brt_test_read_fault): reads
+** left before it, or -1 (never). */
 static long read_fault_after = -1;
 static int read_fault_errno;
 
@@ -3950,16 +3964,19 @@ void brt_test_read_fault(long after, int error)
     read_fault_after = after;
     read_fault_errno = error;
 }
+#endif
 
 /* Every read of the library's own (a scene file's header, tables and
 ** blobs, the spill file) when the caller gives no brt_read_fn. */
 static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user)
 {
     (void)user;
+#ifdef BRT_TESTING
     if (read_fault_after >= 0 && read_fault_after-- == 0) {
         errno = read_fault_errno;
         return -1;
     }
+#endif
     return (long)pread(fd, buf, size, (off_t)offset);
 }
 
@@ -6396,8 +6413,9 @@ brt_result brt_write_file_atomic(const char *path, const void *data,
 ** written per item (a hit, a ray's slot, a batching point's buffers) or
 ** summed per thread, so which thread took which chunk changes no byte.
 ** The pool lives as long as one trace or one build: the library keeps no
-** global state.  With one thread no thread is created and the job runs
-** in the caller, as the code read before threads.
+** global state (only the tests' copy has some: testing.h's hooks).  With
+** one thread no thread is created and the job runs in the caller, as the
+** code read before threads.
 */
 
 unsigned brt_threads_resolve(unsigned threads)

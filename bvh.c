@@ -127,11 +127,10 @@
 ** PERFORMANCE NOTES (what was tried) are at the end of the file; what
 ** each change measured is in its commit message (git log -- bvh.c).
 */
-/* The library defines the entry points for tests too (batchrt.h, 7). */
-#ifndef BRT_TESTING
-#define BRT_TESTING 1
-#endif
 #include "batchrt.h"
+/* The oracles and checkers the library holds for its tests; the hooks
+** only when compiled with BRT_TESTING (testing.h). */
+#include "testing.h"
 
 #include <float.h>
 #include <math.h>
@@ -390,7 +389,11 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
 ** rejection on and off; callgrind counts the instructions it spares). */
 #define GAMMA(n) ((n) * 0x1p-24 / (1.0 - (n) * 0x1p-24))
 
-static int early_reject = 1;   /* brt_test_early_reject (tests only) */
+#ifdef BRT_TESTING
+static int early_reject = 1;   /* testing.h: brt_test_early_reject */
+#else
+enum { early_reject = 1 };     /* a constant: the walks always reject early */
+#endif
 
 static double max_abs3f(float a, float b, float c)
 {
@@ -417,7 +420,9 @@ static inline int behind_segment(float ax, float ay, float bx, float by, float c
     return ((double)t_woop - (double)tnear) * fabs((double)det) + 2.0 * dt_det < 0.0;
 }
 
+#ifdef BRT_TESTING
 void brt_test_early_reject(int on) { early_reject = on; }
+#endif
 
 /* The watertight test proper (Woop et al., Fig. 4 with culling off).
 ** Forced inline: as a call, its eleven arguments are passed at every leaf

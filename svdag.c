@@ -53,11 +53,10 @@
 ** table is confirmed by comparing the whole node, since a hash is not
 ** equality.  A pool opened from a blob rebuilds them on its first add.
 */
-/* The library defines the entry points for tests too (batchrt.h, 7). */
-#ifndef BRT_TESTING
-#define BRT_TESTING 1
-#endif
 #include "batchrt.h"
+/* The oracles and checkers the library holds for its tests; the hooks
+** only when compiled with BRT_TESTING (testing.h). */
+#include "testing.h"
 
 #include <float.h>
 #include <math.h>
