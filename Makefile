@@ -18,6 +18,8 @@
 #
 # == SETTINGS =============================================================
 CC      ?= cc
+# -O2, not -O3: -O3 unrolls the BVH walk into more instructions (callgrind
+# on build/bench_bvh counts them).
 OPT     ?= -O2
 # The floating-point policy of batchrt.h: no FMA contraction, no fast-math,
 # so every traversal order computes the same bits.

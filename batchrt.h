@@ -619,9 +619,10 @@ typedef brt_result (*brt_instance_fn)(void *user, const brt_instance *instances,
 /* A scene as streams, like brt_triangle_source, run as often as a build
 ** needs: world triangles (world.run may be NULL: none), prototype_count
 ** prototypes whose triangles prototype() streams (numbered from 0 in its
-** order: the prim of a hit on an instance of it), and the instances.
-** Nested instances cannot be expressed.  brt_scene_source_of_mesh makes
-** the source of a plain mesh (no prototypes). */
+** order: the prim of a hit on an instance of it), and the instances
+** (instances may be NULL: none).  Nested instances cannot be expressed.
+** A plain mesh is a source of world triangles alone: world from
+** brt_mesh_memory_source, prototype_count 0, instances NULL. */
 struct brt_scene_source {
     brt_triangle_source world;
     uint32_t prototype_count;
