@@ -18,6 +18,8 @@
 #
 # == SETTINGS =============================================================
 CC      ?= cc
+# -O2, not -O3: -O3 unrolls the BVH walk into more instructions (callgrind
+# on build/bench_bvh counts them).
 OPT     ?= -O2
 # The floating-point policy of batchrt.h: no FMA contraction, no fast-math,
 # so every traversal order computes the same bits.
@@ -32,8 +34,9 @@ CFLAGS  ?=
 CFLAGS  += $(STD) $(WARN) $(OPT) -pthread $(XCFLAGS)
 LDLIBS  = -lm
 BUILD   ?= build
-# The tests and the fuzz targets see batchrt.h's section 7 (entry points for
-# tests only, as SQLite's SQLITE_TEST); the programs in examples/ do not.
+# The tests and the fuzz targets are compiled with the library's hooks
+# (testing.h, as SQLite's SQLITE_TEST), and link a copy of the library
+# compiled with them ($(TEST_LIB)); $(LIB) and the programs have none.
 TESTING = -DBRT_TESTING
 # "make V=1" shows the full command lines.
 V       ?= 0
@@ -62,11 +65,13 @@ PROGRAMS = $(EX_SRC:examples/%.c=$(BUILD)/%)
 TEST_SRC = $(wildcard tests/*.c)
 TEST_OBJ = $(TEST_SRC:%.c=$(BUILD)/%.o)
 TEST_BIN = $(BUILD)/run_tests
+TEST_LIB_OBJ = $(LIB_SRC:%.c=$(BUILD)/tests/core/%.o)
+TEST_LIB = $(BUILD)/tests/libbatchrt_testing.a
 
 .PHONY: all test debug sanitize tsan bench bench-batched clean mutants
 all: $(LIB) $(PROGRAMS)
 
-$(BUILD)/%.o: %.c batchrt.h | $(BUILD)/examples $(BUILD)/tests
+$(BUILD)/%.o: %.c batchrt.h testing.h | $(BUILD)/examples $(BUILD)/tests
 	$(SAY) CC $<
 	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
 
@@ -74,14 +79,24 @@ $(BUILD)/examples/%.o: examples/%.c batchrt.h $(wildcard examples/*.h) | $(BUILD
 	$(SAY) CC $<
 	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
 
-$(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) $(wildcard examples/*.h) batchrt.h | $(BUILD)/tests
+$(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) $(wildcard examples/*.h) batchrt.h testing.h | $(BUILD)/tests
 	$(SAY) CC $<
 	$(Q)$(CC) $(CFLAGS) $(TESTING) -I. -c $< -o $@
 
-$(BUILD)/examples $(BUILD)/tests:
+# The library again with its hooks (BRT_TESTING), for the test runner.
+$(BUILD)/tests/core/%.o: %.c batchrt.h testing.h | $(BUILD)/tests/core
+	$(SAY) CC "$< (BRT_TESTING)"
+	$(Q)$(CC) $(CFLAGS) $(TESTING) -I. -c $< -o $@
+
+$(BUILD)/examples $(BUILD)/tests $(BUILD)/tests/core:
 	$(Q)mkdir -p $@
 
 $(LIB): $(LIB_OBJ)
+	$(SAY) AR $@
+	$(Q)rm -f $@
+	$(Q)ar rcs $@ $^
+
+$(TEST_LIB): $(TEST_LIB_OBJ)
 	$(SAY) AR $@
 	$(Q)rm -f $@
 	$(Q)ar rcs $@ $^
@@ -90,7 +105,7 @@ $(BUILD)/%: $(BUILD)/examples/%.o $(EX_COMMON) $(LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
-$(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(LIB)
+$(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(TEST_LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
@@ -390,14 +405,14 @@ $(BUILD)/tests/fuzz/targets.o $(BUILD)/tests/fuzz/replay.o: tests/fuzz/targets.h
 $(BUILD)/tests/fuzz:
 	$(Q)mkdir -p $@
 
-$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/pbrt.o $(BUILD)/examples/loopsubdiv.o $(LIB)
+$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/pbrt.o $(BUILD)/examples/loopsubdiv.o $(TEST_LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 fuzz-replay: $(BUILD)/tests/fuzz/replay
 	$(Q)for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
 
-$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/pbrt.c examples/pbrt.h examples/loopsubdiv.c examples/loopsubdiv.h $(LIB_SRC) batchrt.h
+$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/pbrt.c examples/pbrt.h examples/loopsubdiv.c examples/loopsubdiv.h $(LIB_SRC) batchrt.h testing.h
 	$(SAY) FUZZ $@
 	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
 	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/pbrt.c examples/loopsubdiv.c tests/fuzz/targets.c $< -o $@ -lm

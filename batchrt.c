@@ -48,11 +48,10 @@
 ** it only beyond the Makefile's _POSIX_C_SOURCE=200809L, hence this file's
 ** one feature macro (nothing else here uses what it adds). */
 #define _DEFAULT_SOURCE
-/* The library defines the entry points for tests too (batchrt.h, 7). */
-#ifndef BRT_TESTING
-#define BRT_TESTING 1
-#endif
 #include "batchrt.h"
+/* The oracles and checkers the library holds for its tests; the hooks
+** only when compiled with BRT_TESTING (testing.h). */
+#include "testing.h"
 
 /* Invariants are assert()ed, compiled in by make debug (BRT_DEBUG) only:
 ** in the release build they cost nothing. */
@@ -346,8 +345,7 @@ static inline uint64_t heap_pop(key_heap *h)
 **      entered no later than it is left, so its key would be smaller,
 ** and the batching points at or before the key.  Why one walk and not a
 ** fresh descent from the root per batching point: a ray passing many
-** resident or culled points would repeat the descent at each; callgrind
-** over an in-core render (make bench-render) counts the difference.
+** resident or culled points would repeat the descent at each.
 */
 #define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
 #define TOP_LEAF 0x80000000u    /* child code of batching point (code & ~TOP_LEAF) */
@@ -545,8 +543,9 @@ static int top_walk_next(top_walk *w, const top_node *nodes, const brt_box_lanes
 ** depth first, nearest child first, and pruned by the closest hit so far.
 ** Its boxes are tested grown by the margin of bvh.c ("Instances"), so the
 ** rounding of the ray's transform never prunes a hit.  direct mode (a
-** brt_world) and batched mode intersect through the same two functions,
-** geometry_intersect and geometry_occluded, so they write the same bytes.
+** brt_world) and batched mode intersect through the same function,
+** intersect_ray (closest hit or, for an occlusion ray, any hit), so they
+** write the same bytes.
 */
 static void top_node_pad(top_node *n);
 static void hit_mark_occluded(brt_hit *hit);
@@ -946,7 +945,7 @@ static uint64_t round_up_page(uint64_t n);
 **   1. intersect_resident  geometry in memory: intersect at once, no queue
 **   2. proxies_pay         no proxy tests when the budget holds every blob
 **   3. exact_proxy_hit     analysis: the triangles themselves as the proxy
-**   4. read_ahead          threads: the next load read while a phase runs
+**   4. cache_read_ahead    threads: the next load read while a phase runs
 **   5. phases_run          threads: the loop's rays walked in parallel and
 **                          settled in order (Part II, "Threads")
 **   6. fetch_for           statistics: the loads only shadow rays asked for
@@ -968,12 +967,12 @@ static uint64_t round_up_page(uint64_t n);
 ** numbers; a min-heap of queue keys (key_heap) orders the non-empty
 ** queues, longest first, ties to the lowest id.
 **
-** Per-ray state while queued: the ray (32 bytes), its closest hit so far
-** (16) and that triangle's normal (12), its walk key (8), the number of
-** batching points it was queued at (4) and the caller's tag (8): 80 bytes.
-** The tag also says the ray's kind (BRT_TAG_OCCLUSION), so an occlusion
-** ray costs no byte more: it keeps an unused normal, and its hit record
-** turns from the miss record into "occluded" at its first hit.
+** Per-ray state while queued (ray_slot): the ray, its closest hit so far
+** and that triangle's normal, its walk key, the number of batching points
+** it was queued at and the caller's tag.  The tag also says the ray's
+** kind (BRT_TAG_OCCLUSION), so an occlusion ray costs no byte more: it
+** keeps an unused normal, and its hit record turns from the miss record
+** into "occluded" at its first hit.
 */
 typedef struct ray_slot {
     brt_ray ray;
@@ -1107,7 +1106,7 @@ static void intersect_slot(const scheduler *s, const geometry *g, ray_slot *r, c
 ** the batching point's triangles answer the proxy test exactly, every
 ** BVH read once at the start outside the cache and its counts
 ** (exact_load).  It gives the bound no voxel proxy can beat: make
-** bench-render prints both. */
+** figures prints both (Fig. 3: voxel proxies, exact ones in brackets). */
 static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
 {
     brt_ray segment = *ray;
@@ -1168,8 +1167,9 @@ static void walker_used(walker *w, uint32_t id)
 ** at about the cost of a proxy cast.  Why it matters: a bounce ray starts
 ** inside the batching point just processed, still in memory; queued, it
 ** would wait there until that point might be evicted and read again.
-** make bench-render and make figures print the loads with and without it
-** (--paper-scheduler).  Returns 0 when the point is not resident. */
+** make figures writes the loads and disk bytes with and without it
+** (fig3.csv: the paper's scheduler, --paper-scheduler, beside batchrt's).
+** Returns 0 when the point is not resident. */
 static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, const prepared_ray *p)
 {
     const geometry *resident = s->paper_scheduler ? NULL : cache_peek(&s->cache, r->key.id);
@@ -1185,7 +1185,8 @@ static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, const 
 /* Layer 7, inner proxies: the inner proxy test, first at every batching
 ** point an occlusion ray with tfar = +inf reaches: a hit settles the ray
 ** occluded (the record of intersect_slot) with no queue and no load.
-** make bench-inner prints how many rays it settles and the bytes spared. */
+** make bench-inner prints how many rays it settles and the disk bytes
+** read with and without it. */
 static int inner_stops(const scheduler *s, ray_slot *r)
 {
     if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
@@ -1502,9 +1503,10 @@ static int proxies_pay(const scheduler *s, uint64_t budget)
 /* Layer 10, few rays in flight in core.  Rays in flight are there to
 ** gather rays at a batching point before its load.  When the budget holds
 ** every blob no point is ever loaded twice, so gathering spares no load,
-** while a million waiting rays of 80 bytes push each other and the BVHs
-** out of the processor's caches.  The default is then IN_CORE_RAYS (make
-** bench-embree's batched column; trace --rays-in-flight sets any number).
+** while a million waiting rays (a ray_slot each) push each other and the
+** BVHs out of the processor's caches.  The default is then IN_CORE_RAYS
+** (make bench-embree's batched column runs with it; trace --batched
+** --rays-in-flight N --stats on the same rays times any other number).
 ** Not with an exchange (layer 8), whose messages the waiting rays fill. */
 #define IN_CORE_RAYS 4096u
 #define OUT_OF_CORE_RAYS (1u << 20)
@@ -2079,11 +2081,12 @@ static int cache_ahead_take(geometry_cache *c, uint32_t id)
 ** beside every blob of the scene and the layouts decoded so far.  Why:
 ** the quantized walk decodes every node it visits, several times the cost
 ** of the box test (make bench-embree: batched with and without), while
-** the layout takes about three times a blob's bytes.  Decoding only into
-** room that every blob leaves free means nothing is ever evicted for it:
-** the loads are those of the quantized cache, and out of core, where
-** every byte holds blobs, no point is decoded.  Returns the bytes added;
-** out of memory, the point stays quantized (as exact, only slower). */
+** the layout takes several times a blob's bytes (make bench-embree
+** prints both per triangle).  Decoding only into room that every blob
+** leaves free means nothing is ever evicted for it: the loads are those
+** of the quantized cache, and out of core, where every byte holds blobs,
+** no point is decoded.  Returns the bytes added; out of memory, the point
+** stays quantized (as exact, only slower). */
 static uint64_t cache_decode(geometry_cache *c, cache_entry *e)
 {
     uint64_t bytes;
@@ -2350,10 +2353,11 @@ static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); flo
 #define SECTION_TOP 1
 #define SECTION_DAG 2
 
-/* Inner proxies are stored at half the proxy resolution (at least 2), a
-** choice measured with make bench-inner: at full resolution their surface
-** nodes, unique like the outer proxy's, about double the pool, and the
-** geometry budget pays for it; at a quarter they stop too few rays. */
+/* Inner proxies are stored at half the proxy resolution (at least 2): at
+** full resolution their surface nodes, unique like the outer proxy's,
+** grow the pool that the geometry budget pays for; at a quarter they stop
+** too few rays.  make bench-inner prints both the pool's bytes and the
+** rays they settle. */
 static uint32_t inner_res(uint32_t proxy_res)
 {
     return proxy_res >= 4 ? proxy_res / 2 : 2;
@@ -3804,11 +3808,25 @@ static void builder_free(scene_builder *b)
     free(b->w.boxes);
 }
 
+#ifdef BRT_TESTING
+/* The tests' sizes of a build (testing.h: brt_test_build_sizes); 0: the
+** defaults. */
+static uint32_t test_spill_chunk, test_bucket_tris;
+
+void brt_test_build_sizes(uint32_t spill_chunk, uint32_t bucket_tris)
+{
+    test_spill_chunk = spill_chunk;
+    test_bucket_tris = bucket_tris;
+}
+#else
+enum { test_spill_chunk = 0, test_bucket_tris = 0 };   /* the defaults */
+#endif
+
 static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
                                const char *scene_path, brt_error *err)
 {
-    uint32_t cap = opt && opt->test_bucket_tris ? opt->test_bucket_tris
-                                                 : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
+    uint32_t cap = test_bucket_tris ? test_bucket_tris
+                                    : (uint32_t)(BUCKET_BYTES / sizeof(spill_record));
     char spill_path[4096];
     memset(b, 0, sizeof *b);
     b->spill_fd = b->w.fd = b->instance_fd = -1;
@@ -3825,7 +3843,7 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->instance_bucket = cap / 4 > 0 ? cap / 4 : 1;
     b->bucket_tris = cap / b->batch_tris * b->batch_tris;
     if (b->bucket_tris < b->batch_tris) b->bucket_tris = b->batch_tris;
-    b->chunk = opt && opt->test_spill_chunk ? opt->test_spill_chunk : SPILL_CHUNK;
+    b->chunk = test_spill_chunk ? test_spill_chunk : SPILL_CHUNK;
     if (is_special_file(scene_path))
         return brt_fail(err, BRT_EARG, "%s: not a regular file", scene_path);
     if (snprintf(spill_path, sizeof spill_path, "%s.spill.%ld", scene_path,
@@ -3940,8 +3958,9 @@ static brt_result read_fully(int fd, void *buf, size_t size, uint64_t offset,
     return BRT_OK;
 }
 
-/* The tests' injected read fault (brt_test_read_fault): reads left before
-** it, or -1 (never: one compare per read outside the tests). */
+#ifdef BRT_TESTING
+/* The tests' injected read fault (testing.h: brt_test_read_fault): reads
+** left before it, or -1 (never). */
 static long read_fault_after = -1;
 static int read_fault_errno;
 
@@ -3950,16 +3969,19 @@ void brt_test_read_fault(long after, int error)
     read_fault_after = after;
     read_fault_errno = error;
 }
+#endif
 
 /* Every read of the library's own (a scene file's header, tables and
 ** blobs, the spill file) when the caller gives no brt_read_fn. */
 static long pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user)
 {
     (void)user;
+#ifdef BRT_TESTING
     if (read_fault_after >= 0 && read_fault_after-- == 0) {
         errno = read_fault_errno;
         return -1;
     }
+#endif
     return (long)pread(fd, buf, size, (off_t)offset);
 }
 
@@ -6396,8 +6418,9 @@ brt_result brt_write_file_atomic(const char *path, const void *data,
 ** written per item (a hit, a ray's slot, a batching point's buffers) or
 ** summed per thread, so which thread took which chunk changes no byte.
 ** The pool lives as long as one trace or one build: the library keeps no
-** global state.  With one thread no thread is created and the job runs
-** in the caller, as the code read before threads.
+** global state (only the tests' copy has some: testing.h's hooks).  With
+** one thread no thread is created and the job runs in the caller, as the
+** code read before threads.
 */
 
 unsigned brt_threads_resolve(unsigned threads)
@@ -6574,12 +6597,14 @@ static void pool_run(pool *p, pool_job job, pool_commit commit, void *ctx, size_
 ** resident batching points (use_log), as if the rays had walked one after
 ** another.  So every decision -- which queue is fullest, what is evicted,
 ** the order of finished calls -- is the plain loop's; the threads: tests
-** hold the two byte-equal, and make bench-threads measures the speed-up.
+** hold the two byte-equal, and make bench-threads prints the wall
+** seconds at 1 and 2 threads.
 **
 ** Layer 4, read-ahead: while a phase runs, the cache's own thread reads
 ** the blob of the fullest queue left, the likely next load
 ** (cache_read_ahead).  It changes no count and no decision, only the wall
-** time; make bench-threads prints how many read-aheads were used.
+** time: make bench-threads's row "render 25%, --disk-speed 100M" (one
+** thread reads nothing ahead).
 */
 struct use_log {
     uint64_t stamp;             /* the current ray's place in its phase (high
@@ -6682,7 +6707,8 @@ static void uses_replay(scheduler *s)
 }
 
 #define PHASE_CHUNK 64   /* rays per chunk: many chunks per phase, each far
-                         ** longer than a take (make bench-threads) */
+                         ** longer than a take from the shared counter
+                         ** (make bench-threads times the phases) */
 
 /* Layer 5: run_rays in a phase (id: the batching point whose queue it is,
 ** pinned, or NO_ENTRY for new rays).  Released before the uses are

@@ -60,7 +60,7 @@
 **   4. Ray/triangle test, ray/box test and triangle BVH (bvh.c)
 **   5. Conservative voxel proxies: voxelizer, shared DAG, ray cast (svdag.c)
 **   6. Small utilities: numbers, files, threads, time (batchrt.c)
-**   7. For tests and fuzzers only: declared with BRT_TESTING defined
+**   (Oracles, checkers and hooks for the tests alone: testing.h, not installed.)
 **
 ** ERRORS
 **   Every fallible function returns a brt_result (BRT_OK is 0) and, when
@@ -197,17 +197,6 @@ typedef struct brt_scene_options {
     ** SIGINT/SIGTERM handler sets it) the build removes its temporary files
     ** and returns BRT_EINTR.  NULL: never interrupted. */
     const volatile sig_atomic_t *interrupt;
-    /* For tests only (0: the defaults).  test_spill_chunk: triangles per
-    ** write buffer of a bucket and per read of the build's temporary file
-    ** (default 16384); test_bucket_tris: the most triangles of one bucket
-    ** held in memory, rounded down to a multiple of batch_tris and at least
-    ** batch_tris (default 64 MiB of 40-byte records).  Small values run
-    ** the out-of-core paths of the build on small meshes.  Neither changes
-    ** what a scene file built from a mesh that fits one bucket holds.  (The
-    ** instance pass of an instanced scene takes buckets of a quarter of
-    ** test_bucket_tris instances, whatever batch_tris.) */
-    uint32_t test_spill_chunk;
-    uint32_t test_bucket_tris;
     /* Threads building batching points' BVHs and proxies (0: all cores);
     ** the file's bytes do not depend on it. */
     unsigned threads;
@@ -630,9 +619,10 @@ typedef brt_result (*brt_instance_fn)(void *user, const brt_instance *instances,
 /* A scene as streams, like brt_triangle_source, run as often as a build
 ** needs: world triangles (world.run may be NULL: none), prototype_count
 ** prototypes whose triangles prototype() streams (numbered from 0 in its
-** order: the prim of a hit on an instance of it), and the instances.
-** Nested instances cannot be expressed.  brt_scene_source_of_mesh makes
-** the source of a plain mesh (no prototypes). */
+** order: the prim of a hit on an instance of it), and the instances
+** (instances may be NULL: none).  Nested instances cannot be expressed.
+** A plain mesh is a source of world triangles alone: world from
+** brt_mesh_memory_source, prototype_count 0, instances NULL. */
 struct brt_scene_source {
     brt_triangle_source world;
     uint32_t prototype_count;
@@ -1097,89 +1087,6 @@ typedef struct brt_atomic_file {
 } brt_atomic_file;
 brt_result brt_atomic_open(brt_atomic_file *f, const char *path, brt_error *err);
 brt_result brt_atomic_close(brt_atomic_file *f, brt_result r, brt_error *err);
-
-/* ===================================================================== */
-/* 7. For tests and fuzzers only (BRT_TESTING)                           */
-/* ===================================================================== */
-/*
-** Oracles, structural checkers and entry points that only the tests and
-** the fuzz targets call, as SQLite fences its test interfaces: declared
-** when BRT_TESTING is defined (the Makefile defines it for tests/ and the
-** fuzz targets; the library's own sources define it to see their
-** prototypes).  The library always contains them.
-*/
-#ifdef BRT_TESTING
-
-/* brt_mesh_load's parsers on a memory buffer; name is used in messages. */
-brt_result brt_mesh_parse_obj(const char *name, const void *data, size_t size,
-                              brt_mesh *mesh, brt_error *err);
-brt_result brt_mesh_parse_ply(const char *name, const void *data, size_t size,
-                              brt_mesh *mesh, brt_error *err);
-
-/* The one-box form of brt_box_span4 (section 4), the tests' oracle for it:
-** 1 when the ray's segment [tmin, tmax] meets the closed box [lo, hi],
-** which must already be grown with brt_box_pad (so that a caller testing
-** one box many times grows it once), with the entry and exit distances. */
-int brt_box_span(const brt_ray_prep *prep, const float lo[3],
-                 const float hi[3], float tmin, float tmax, float *entry,
-                 float *exit);
-
-/* Bounds of the root's decoded boxes: the triangles' bounds grown by a
-** few ulps of their magnitude (bvh.c: the pad that makes box tests
-** conservative for the rounding of the triangle test), then rounded
-** outward to the root's 8-bit planes; +inf/-inf when empty. */
-void brt_bvh_bounds(const brt_bvh *bvh, float bmin[3], float bmax[3]);
-
-/* Structural checker: every triangle in exactly one leaf, indices in
-** range, slots ordered, and every triangle's grown box inside the decoded
-** (quantized) box of every slot on its path from the root -- what makes
-** pruning exact; a BVH built in memory also has its resident layout
-** compared, byte for byte, with the quantized nodes decoded (bvh.c).
-** BRT_ECHECK with a message naming the first violation. */
-brt_result brt_bvh_check(const brt_bvh *bvh, brt_error *err);
-
-/* The resident layout of a BVH built in memory (bvh.c) with one bit
-** flipped: bit at / size % 8 of byte at % size, where size (returned) is
-** the layout's bytes; 0 (nothing flipped) for a BVH without one.  For
-** the tests of brt_bvh_check. */
-size_t brt_bvh_damage_resident(brt_bvh *bvh, uint64_t at);
-
-/* Pool checker: child indices in range and pointing to earlier nodes,
-** masks consistent, no two identical nodes. */
-brt_result brt_svdag_check(const brt_svdag *dag, brt_error *err);
-
-/* Decodes a proxy back into a dense grid (allocated here). */
-brt_result brt_svdag_decode(const brt_svdag *dag, const brt_proxy *proxy,
-                            brt_grid *grid);
-
-/* brt_proxy_raycast written for reading: plain Laine-Karras (INITIALIZE,
-** PUSH, ADVANCE, POP, the paper's names), about 3x slower; same contract.
-** It answers hit or miss exactly as brt_proxy_raycast does, with the same
-** *t_entry (the same plane distances; tests check both). */
-int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
-                                const brt_ray *ray, float tnear, float tfar,
-                                float *t_entry);
-
-/* Partition checker: every triangle number below the scene's triangle
-** count is in exactly one batching point, and no batching point holds more
-** than batch_tris triangles (it reads every blob).  BRT_ECHECK with a
-** message naming the first violation. */
-brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
-                                     brt_error *err);
-
-/* Injects one read fault: the library's own reads (pread_reader: a scene
-** file's header, tables and blobs, the spill file of a build) succeed
-** `after` more times, then one fails with errno `error`; after < 0 never.
-** Not for threads (one countdown for the process). */
-void brt_test_read_fault(long after, int error);
-
-/* brt_intersect_triangle with (on, the default) or without the early
-** rejection of triangles behind the segment (bvh.c, "behind the
-** segment"): the tests compare both on every ray.  The BVH walks always
-** reject early. */
-void brt_test_early_reject(int on);
-
-#endif /* BRT_TESTING */
 
 #ifdef __cplusplus
 }

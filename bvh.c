@@ -69,9 +69,9 @@
 ** quantized walk (brt_bvh_check compares the resident layout, byte for
 ** byte, with what the quantized nodes decode to).  WHY TWO LAYOUTS: the
 ** blob stays quantized for its bytes on disk and in a cache that cannot
-** hold every point decoded (the resident layout takes about three times
-** the bytes: far fewer points would fit, and the method is there to
-** spare loads), while decoding at every visit costs the walk several
+** hold every point decoded (the resident layout takes several times the
+** bytes: far fewer points would fit, and the method is there to spare
+** loads), while decoding at every visit costs the walk several
 ** times the box test itself, which the resident walk does not pay.  So a
 ** blob opened in place (brt_bvh_blob_open) keeps the quantized walk, and
 ** the geometry cache decodes it only into room that every blob leaves
@@ -87,13 +87,12 @@
 ** SAH, and more bins cost build time.  Costs C_TRAV = 10, C_ISECT = 1,
 ** and leaves of at most MAX_LEAF = 16 triangles: a node visit (its box
 ** test, the ordering, the stack, and for the rays that wait on memory a
-** miss) costs many triangle tests now that the resident walk tests a
-** leaf four triangles at once (tri4_candidates), and the larger leaves
-** this makes spare nodes, bytes (their triangles share more vertices)
-** and visits.  make bench-embree measured lower costs and smaller leaves
-** slower on every ray kind, and larger leaves no faster on camera rays
-** (git log -- bvh.c has the runs).  Below depth SAH_DEPTH the split is the SAH one;
-** deeper (pathological inputs only) the range is halved, so the binary
+** miss) costs many triangle tests, since the walks test a leaf four
+** triangles at once (tri4_candidates), and the larger leaves this makes
+** spare nodes, bytes (their triangles share more vertices) and visits.
+** make bench-embree times the walk on camera, random and bounce rays, the
+** measure for any other choice.  Below depth SAH_DEPTH the split is the
+** SAH one; deeper (pathological inputs only) the range is halved, so the binary
 ** depth is at most SAH_DEPTH + 32 = MAX_DEPTH and the 4-wide depth no
 ** more: the traversal stack of 3*MAX_DEPTH+1 entries never overflows.
 ** Degenerate triangles are binned like any other and stay in the tree.
@@ -123,15 +122,11 @@
 **
 ** Rays with a NaN anywhere, an inf in the origin or direction, an all-zero
 ** direction, or tnear > tfar never hit (checked once per ray).
-**
-** PERFORMANCE NOTES (what was tried) are at the end of the file; what
-** each change measured is in its commit message (git log -- bvh.c).
 */
-/* The library defines the entry points for tests too (batchrt.h, 7). */
-#ifndef BRT_TESTING
-#define BRT_TESTING 1
-#endif
 #include "batchrt.h"
+/* The oracles and checkers the library holds for its tests; the hooks
+** only when compiled with BRT_TESTING (testing.h). */
+#include "testing.h"
 
 #include <float.h>
 #include <math.h>
@@ -236,7 +231,7 @@ void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep)
 
 /* The four-lane copy of an already prepared ray (brt_box_lanes), once per
 ** walk: broadcasting the nine scalars at every node would cost each visit
-** (callgrind on a batched trace counts it). */
+** (callgrind on build/trace --batched counts it). */
 static inline ALWAYS_INLINE void box_lanes_of(const brt_ray_prep *prep, brt_box_lanes *b)
 {
     int a, i;
@@ -387,10 +382,15 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
 ** The bound is evaluated in double, and a NaN or inf (a det of 0 or
 ** overflow) never rejects.  So the answers are unchanged, only sooner
 ** (tests: bvh: behind the segment compares every answer with the early
-** rejection on and off; callgrind counts the instructions it spares). */
+** rejection on and off; callgrind on build/trace over bounce rays counts
+** the instructions it spares). */
 #define GAMMA(n) ((n) * 0x1p-24 / (1.0 - (n) * 0x1p-24))
 
-static int early_reject = 1;   /* brt_test_early_reject (tests only) */
+#ifdef BRT_TESTING
+static int early_reject = 1;   /* testing.h: brt_test_early_reject */
+#else
+enum { early_reject = 1 };     /* a constant: the walks always reject early */
+#endif
 
 static double max_abs3f(float a, float b, float c)
 {
@@ -417,7 +417,9 @@ static inline int behind_segment(float ax, float ay, float bx, float by, float c
     return ((double)t_woop - (double)tnear) * fabs((double)det) + 2.0 * dt_det < 0.0;
 }
 
+#ifdef BRT_TESTING
 void brt_test_early_reject(int on) { early_reject = on; }
+#endif
 
 /* The watertight test proper (Woop et al., Fig. 4 with culling off).
 ** Forced inline: as a call, its eleven arguments are passed at every leaf
@@ -502,8 +504,8 @@ int brt_intersect_triangle(const brt_ray *ray, const float v0[3],
 ** here, the top level in batchrt.c -- gets the same bits for the same box.
 ** Written lane-wise with the mask bits as a select of constants, so that
 ** GCC -O2 turns the whole test into vector instructions (a per-lane shift
-** loop stayed scalar).  The distances go to local arrays first: written
-** straight to lo and hi, which might alias the inputs, the loop stayed
+** loop stays scalar).  The distances go to local arrays first: written
+** straight to lo and hi, which might alias the inputs, the loop stays
 ** scalar in brt_box_span4 (callgrind on build/bench_bvh counts a node's
 ** instructions). */
 static inline ALWAYS_INLINE unsigned box_span4(const brt_box_lanes *b, const float *const nr[3],
@@ -554,9 +556,9 @@ static inline float decode_plane(float org, float scale, unsigned q)
 ** and adding 2^32 there gives q * 2^24 back.  Every step is exact (at
 ** most 8 significant bits), and the power of two unit[i] brings each lane
 ** to the float of its byte: the same decode_plane arithmetic after it.
-** (A loop that extracted each byte by shifting stayed scalar, and
-** shifting lane 3 alone down by 8 bits first took more instructions than
-** this fix-up: callgrind on build/bench_bvh with the dragon counts them.) */
+** (A loop that extracts each byte by shifting stays scalar, and shifting
+** lane 3 alone down by 8 bits first takes more instructions than this
+** fix-up: callgrind on build/bench_bvh counts them.) */
 static inline ALWAYS_INLINE void decode_row(const qnode *n, int row, int a, float out[4])
 {
     static const uint32_t mask[4] = {0xFFu, 0xFF00u, 0xFF0000u, 0xFF000000u};
@@ -576,7 +578,7 @@ static inline ALWAYS_INLINE void decode_row(const qnode *n, int row, int a, floa
 
 /* The four slots' boxes as brt_box_span4 rows.  Row by row, four lanes
 ** each, so that GCC -O2 turns each row into a few vector instructions
-** (one loop over all 24 planes with row % 3 stayed scalar). */
+** (one loop over all 24 planes with row % 3 stays scalar). */
 static inline ALWAYS_INLINE void decode_boxes(const qnode *n, float box[6][4])
 {
     int a;
@@ -862,7 +864,7 @@ static inline ALWAYS_INLINE int walk_triangle(walk *w, const float *const p[3], 
 ** in double too, and the signs still mix.  Each remaining lane then runs
 ** tri_intersect itself, so the answers are its own.  Written lane-wise
 ** with a select of constants, so GCC -O2 turns it into vector
-** instructions (callgrind on trace counts them). */
+** instructions (callgrind on build/trace counts them). */
 static inline ALWAYS_INLINE const float *block_row(const tri4 *b, int corner, size_t off)
 {
     return (const float *)(const void *)((const char *)b->v[corner] + off);
@@ -1020,8 +1022,9 @@ static inline ALWAYS_INLINE resident_entry resident_slot(const fnode *n, unsigne
 ** lines of a child node, every line of a leaf's blocks (as prefetch_slots,
 ** for the resident layout).  A block of 160 bytes starts at a multiple
 ** of 32, so the lines at its start and 64 and 128 bytes on hold it all.
-** Written out per block, not as a loop over the bytes: callgrind counted
-** that loop among the walk's largest costs. */
+** Written out per block, not as a loop over the bytes, which would be
+** among the walk's largest costs (callgrind on build/bench_bvh counts
+** them). */
 static inline ALWAYS_INLINE void prefetch_resident(const brt_bvh *bvh, const fnode *n,
                                                    unsigned mask)
 {
@@ -2367,50 +2370,3 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
     return BRT_OK;
 }
 
-/*
-** PERFORMANCE NOTES: what was tried, kept or not.  What each change
-** measured is in its commit message (git log -- bvh.c); make bench
-** (build/bench_bvh: build time, bytes per triangle, speed) and make
-** bench-embree (against Embree, one thread) measure the current state,
-** and callgrind on either counts instructions.
-**   - Build: binned SAH.  Walk: nearest child without a push, siblings
-**     consecutive in memory, prefetching hit children, the box test as
-**     vectors.  Not kept: 4 KB alignment, a page-grouped node order,
-**     MAX_LEAF 4, 32 bins.
-**   - Quantized 64-byte nodes and shared vertices with 16-bit offsets
-**     (the BVH2 blob); decoding as vector rows; a high C_TRAV for larger
-**     leaves.
-**   - brt_box_span4 vectorized, the near and far rows decoded from their
-**     words, decode_row's lane-3 fix-up, tri_intersect inlined.  Not
-**     kept: slot_valid as one word, a xor-and-bias decode, huge pages
-**     (not POSIX).
-**   - Random and bounce rays wait on memory: the speed with the nodes
-**     already in cache (bench_bvh's "warm") is far above the cold one.
-**     Not done: 8-wide nodes (a new blob layout).
-**   - The resident layout (issue 30): the quantized nodes decoded once
-**     into float nodes, leaves as blocks of four triangles with a
-**     vectorized edge-function filter; per ray, the box rows and the
-**     blocks' axes as byte offsets; every line of a hit leaf's blocks
-**     prefetched, a lone hit child node not; the triangle test's per-ray
-**     constants set at the first leaf (walk_leaf: camera and random rays
-**     mostly reach none or one).
-**     Two hit slots ordered by one compare, and the prefetches written
-**     out (callgrind on trace counts what each spares).  Leaves of up to
-**     16 triangles (C_TRAV 10): tested four at a time, large leaves cost
-**     less than the nodes they spare; the quantized walk's leaves go
-**     through the same filter, in a block filled on the stack (tested one
-**     by one, its leaves of 16 were slower than those of 8).
-**     Not kept: -O3 (GCC unrolls the walk into more instructions,
-**     callgrind counts them), the leaf walk as a call (fewer instructions per node,
-**     more per leaf: no gain), the block and box constants broadcast per
-**     ray in separate loops, brt_box_pad inlined into hit_distance, the
-**     segment's ends kept in four lanes for box_span4 (each: callgrind
-**     counts no fewer instructions).
-**   - A bounce ray's own triangle, just behind its origin, passes the edge
-**     test (a line test): rejected early by Woop's t and its error bound
-**     (behind_segment) instead of after hit_distance's double plane and
-**     padded box.
-**   - Batching points decoded at load when everything fits (batchrt.c,
-**     layer 9, charged to the cache): the in-core batched walk no longer
-**     decodes nodes.
-*/

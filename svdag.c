@@ -53,11 +53,10 @@
 ** table is confirmed by comparing the whole node, since a hash is not
 ** equality.  A pool opened from a blob rebuilds them on its first add.
 */
-/* The library defines the entry points for tests too (batchrt.h, 7). */
-#ifndef BRT_TESTING
-#define BRT_TESTING 1
-#endif
 #include "batchrt.h"
+/* The oracles and checkers the library holds for its tests; the hooks
+** only when compiled with BRT_TESTING (testing.h). */
+#include "testing.h"
 
 #include <float.h>
 #include <math.h>
@@ -1491,12 +1490,11 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 ** start before the hit.  Before it descends into a node the walk tests the
 ** box of the node's set voxels (BOUNDS TEST).
 **
-** COST.  Each of these steps cut the instructions of a culled cast, as
-** build/bench_svdag --scene landscape (or island) measures it under
-** callgrind with --toggle-collect=cast_culled (its header says how); what
-** each step gave, and what was tried and dropped, is in its commit message
-** (git log -- svdag.c).  Every step answers bit for bit as the reference
-** cast on the tests' rays.
+** COST.  Each of these steps is there to cut the instructions of a
+** culled cast, which build/bench_svdag --scene landscape (or island)
+** measures under callgrind with --toggle-collect=cast_culled (its header
+** says how).  Every step answers bit for bit as the reference cast on the
+** tests' rays.
 */
 
 /* One scale of the parent stack: a node, its mirrored corner in voxels,

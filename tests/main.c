@@ -36,6 +36,7 @@
 ** The runner dies of its signal as it would have, exit status included.
 */
 #include "test.h"
+#include "testing.h"
 
 #include <errno.h>
 #include <fcntl.h>
@@ -90,11 +91,16 @@ static double now_seconds(void)
     return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
 }
 
-/* Runs one test here; its outcome: 1 passed, 2 failed, 3 skipped. */
+/* Runs one test here; its outcome: 1 passed, 2 failed, 3 skipped.  The
+** library's hooks (testing.h) start at their defaults, whatever the test
+** before it in this process set and left (a CHECK returns early). */
 static int run_one(const char *name, test_fn fn)
 {
     current_name = name;
     current_failed = current_skipped = 0;
+    brt_test_read_fault(-1, 0);
+    brt_test_early_reject(1);
+    brt_test_build_sizes(0, 0);
     fn();
     fflush(stdout);
     return current_failed ? 2 : current_skipped ? 3 : 1;

@@ -33,7 +33,9 @@
 
 /* ---- helpers ------------------------------------------------------------- */
 
-/* The build's knobs in one call; a zeroed struct is the default. */
+/* The build's knobs in one call: the options it returns (a zeroed struct
+** is the default) and, for every build that follows, the bucket and the
+** chunk (testing.h: brt_test_build_sizes; 0 is the default). */
 static brt_scene_options build_options(uint32_t batch_tris, uint32_t res, uint32_t bucket,
                                        uint32_t chunk)
 {
@@ -41,8 +43,7 @@ static brt_scene_options build_options(uint32_t batch_tris, uint32_t res, uint32
     memset(&opt, 0, sizeof opt);
     opt.batch_tris = batch_tris;
     opt.proxy_res = res;
-    opt.test_bucket_tris = bucket;
-    opt.test_spill_chunk = chunk;
+    brt_test_build_sizes(chunk, bucket);
     return opt;
 }
 
@@ -356,7 +357,7 @@ static void test_bucket_larger_than_chunk(void)
     tu_scene s;
     brt_mesh mesh;
     brt_triangle_source source;
-    brt_scene_options small, large;
+    brt_scene_options opt;
     brt_error err;
     unsigned char *a, *b;
     size_t na = 0, nb = 0;
@@ -364,16 +365,17 @@ static void test_bucket_larger_than_chunk(void)
     tu_random_soup(&s, &st, 5000, 0.02f);
     mesh = tu_mesh_view(&s);
     brt_mesh_memory_source(&mesh, &source);
-    small = build_options(100, 8, 900, 7);
-    large = build_options(100, 8, 900, 0);
-    CHECK(brt_scene_build_stream(&source, &small, 1, tu_scratch("chunk7.brs"), &err) == BRT_OK, "%s", err.message);
-    CHECK(brt_scene_build_stream(&source, &large, 1, tu_scratch("chunkd.brs"), &err) == BRT_OK, "%s", err.message);
+    opt = build_options(100, 8, 900, 7);
+    CHECK(brt_scene_build_stream(&source, &opt, 1, tu_scratch("chunk7.brs"), &err) == BRT_OK, "%s", err.message);
+    opt = build_options(100, 8, 900, 0);
+    CHECK(brt_scene_build_stream(&source, &opt, 1, tu_scratch("chunkd.brs"), &err) == BRT_OK, "%s", err.message);
     a = tu_slurp(tu_scratch("chunk7.brs"), &na);
     b = tu_slurp(tu_scratch("chunkd.brs"), &nb);
     EXPECT(a && b && na == nb && memcmp(a, b, na) == 0, "the chunk size changed the scene file");
     free(a);
     free(b);
-    build_and_compare(&s, &source, &small, 300, "chunks of 7");
+    opt = build_options(100, 8, 900, 7);
+    build_and_compare(&s, &source, &opt, 300, "chunks of 7");
     tu_scene_free(&s);
 }
 
@@ -385,7 +387,7 @@ static void test_one_bucket_and_checker(void)
     uint64_t st = test_seed() + 16;
     tu_scene s;
     brt_mesh mesh;
-    brt_scene_options opt = build_options(50, 8, 0, 0), big = build_options(50, 8, 4000, 0);
+    brt_scene_options opt;
     brt_scene *scene = NULL;
     brt_error err;
     unsigned char *a, *b, *c;
@@ -393,9 +395,11 @@ static void test_one_bucket_and_checker(void)
     memset(&s, 0, sizeof s);
     tu_random_soup(&s, &st, 2000, 0.02f);
     mesh = tu_mesh_view(&s);
+    opt = build_options(50, 8, 0, 0);
     CHECK(brt_scene_build(&mesh, &opt, 1, tu_scratch("one1.brs"), &err) == BRT_OK, "%s", err.message);
     CHECK(brt_scene_build(&mesh, &opt, 1, tu_scratch("one2.brs"), &err) == BRT_OK, "%s", err.message);
-    CHECK(brt_scene_build(&mesh, &big, 1, tu_scratch("one3.brs"), &err) == BRT_OK, "%s", err.message);
+    opt = build_options(50, 8, 4000, 0);
+    CHECK(brt_scene_build(&mesh, &opt, 1, tu_scratch("one3.brs"), &err) == BRT_OK, "%s", err.message);
     a = tu_slurp(tu_scratch("one1.brs"), &na);
     b = tu_slurp(tu_scratch("one2.brs"), &nb);
     c = tu_slurp(tu_scratch("one3.brs"), &nc);

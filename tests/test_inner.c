@@ -391,7 +391,7 @@ static void check_scene(const tu_scene *s, uint32_t batch_tris, uint32_t bucket_
     memset(&sopt, 0, sizeof sopt);
     sopt.batch_tris = batch_tris;
     sopt.proxy_res = 32;
-    sopt.test_bucket_tris = bucket_tris;
+    brt_test_build_sizes(0, bucket_tris);
     CHECK(brt_scene_build(&mesh, &sopt, 0, tu_scratch("inner.brs"), &err) == BRT_OK, "%s", err.message);
     CHECK(brt_scene_open(tu_scratch("inner.brs"), &scene, &err) == BRT_OK, "%s", err.message);
     for (k = 0; k < 4 && !test_failed(); k++) {

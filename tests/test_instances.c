@@ -1245,7 +1245,7 @@ static void test_identity_instance_is_the_mesh(void)
 }
 
 /* The instance pass out of core (batchrt.c, "instance points"): with
-** buckets of a few instances (test_bucket_tris), 3000 instances of three
+** buckets of a few instances (brt_test_build_sizes), 3000 instances of three
 ** prototypes scattered over a plane go through the spill file's Morton
 ** buckets; every instance lands in exactly one batching point (the
 ** partition checker), no point spans two buckets' worth, and batched ==
@@ -1273,8 +1273,7 @@ static void test_instance_buckets(void)
     memset(&so, 0, sizeof so);
     so.batch_tris = 100000;          /* points cut by the buckets alone */
     so.proxy_res = 16;
-    so.test_bucket_tris = 64;        /* instance buckets of 16 */
-    so.test_spill_chunk = 7;
+    brt_test_build_sizes(7, 64);     /* chunks of 7, instance buckets of 16 */
     memset(&opt, 0, sizeof opt);
     opt.memory_limit = 50000;
     points = expect_batched_equals_direct(&s, &so, &opt, rays, N, "buckets.brs", 100000);

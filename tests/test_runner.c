@@ -279,6 +279,46 @@ static void test_mutants_apply(void)
     EXPECT(entries > 300, "only %d mutants in tests/mutants/mutants.txt", entries);
 }
 
+/* 1 when the n bytes at b hold the text s. */
+static int bytes_hold(const unsigned char *b, size_t n, const char *s)
+{
+    size_t k = strlen(s), i;
+    for (i = 0; b && i + k <= n; i++)
+        if (memcmp(b + i, s, k) == 0) return 1;
+    return 0;
+}
+
+/* README, "Set up" (make install): the library's hooks (testing.h) are
+** compiled only into the copy this runner links ($BRT_BUILD/tests/
+** libbatchrt_testing.a, BRT_TESTING); the release library defines none of
+** them and holds no hook's variable, and the public header names none. */
+static void test_hooks_only_in_tests(void)
+{
+    static const char *const hooks[] = {"brt_test_read_fault", "brt_test_early_reject",
+                                        "brt_test_build_sizes"};
+    const char *build = getenv("BRT_BUILD") ? getenv("BRT_BUILD") : "build";
+    char lib[600], copy[600];
+    unsigned char *a, *b, *h;
+    size_t na = 0, nb = 0, nh = 0, i;
+    snprintf(lib, sizeof lib, "%s/libbatchrt.a", build);
+    snprintf(copy, sizeof copy, "%s/tests/libbatchrt_testing.a", build);
+    a = tu_slurp(lib, &na);
+    b = tu_slurp(copy, &nb);
+    h = tu_slurp("batchrt.h", &nh);
+    EXPECT(a && b && h, "cannot read %s, %s or batchrt.h", lib, copy);
+    for (i = 0; a && b && h && i < sizeof hooks / sizeof hooks[0]; i++) {
+        EXPECT(!bytes_hold(a, na, hooks[i]), "%s holds %s", lib, hooks[i]);
+        EXPECT(bytes_hold(b, nb, hooks[i]), "%s lacks %s", copy, hooks[i]);
+        EXPECT(!bytes_hold(h, nh, hooks[i]), "batchrt.h names %s", hooks[i]);
+    }
+    EXPECT(!a || !bytes_hold(a, na, "read_fault_after"), "%s holds the read fault's countdown", lib);
+    EXPECT(!h || (!bytes_hold(h, nh, "test_spill_chunk") && !bytes_hold(h, nh, "test_bucket_tris")),
+           "batchrt.h's brt_scene_options has a test field");
+    free(a);
+    free(b);
+    free(h);
+}
+
 void suite_runner(void)
 {
     test_run("runner: the scratch folder is removed on failure, crash, SIGINT and SIGTERM",
@@ -287,4 +327,5 @@ void suite_runner(void)
     test_run("runner: in parallel a crash is one FAIL and the rest run; fail fast stops", test_parallel_outcomes);
     test_run("runner: every test tests/contract.md names exists", test_contract_names);
     test_run("runner: every mutant of make mutants applies once and names its failure", test_mutants_apply);
+    test_run("runner: the hooks are in the runner's copy of the library alone", test_hooks_only_in_tests);
 }

@@ -330,7 +330,7 @@ static void test_scene_bytes(void)
             memset(&opt, 0, sizeof opt);
             opt.batch_tris = 50;
             opt.proxy_res = 16;
-            opt.test_bucket_tris = buckets[b];
+            brt_test_build_sizes(0, buckets[b]);
             opt.threads = thread_counts[run];
             CHECK(brt_scene_build(&mesh, &opt, 7, tu_scratch("bytes.brs"), &err) == BRT_OK,
                   "build: %s", err.message);

@@ -7,6 +7,7 @@
 #define BRT_TEST_UTIL_H
 
 #include "batchrt.h"
+#include "testing.h"
 
 typedef struct tu_scene {
     float *pos;

@@ -18,6 +18,7 @@
 #define BRT_FUZZ_TARGETS_H
 
 #include "batchrt.h"
+#include "testing.h"
 
 #include <stddef.h>
 #include <stdint.h>
