@@ -19,7 +19,10 @@
 **   ray queues and the scheduler           the paper's loop (schedule,
 **                                          process_batch, walk_on,
 **                                          proxy_test, settle), and
-**                                          batchrt's layers, each named
+**                                          batchrt's layers, each named;
+**                                          the same loop in one function,
+**                                          without layers
+**                                          (schedule_reference)
 **   the geometry cache                         pread, LRU (SQLite's pcache
 **                                          shape), and read-ahead
 ** PART II -- SUPPORT, NOT THE PAPER
@@ -913,6 +916,7 @@ static void view_free(blob_view *view);
 static brt_result instance_table_open(const brt_scene *s, uint32_t id, const unsigned char *data,
                                       uint64_t size, instance_set **out, brt_error *err);
 static void blob_free(const brt_scene *scene, uint32_t id, void *data);
+static uint64_t cache_bytes(const brt_scene *scene, uint32_t id);
 
 /* From Part II: reading the scene file, one ray through one BVH (the
 ** direct mode), page rounding. */
@@ -938,6 +942,8 @@ static uint64_t round_up_page(uint64_t n);
 **   settle         a stopped ray is queued there (enqueue); a ray whose
 **                  walk is over is finished and its slot takes a new ray
 ** Each disk read serves as many rays as it can: the fullest queue first.
+** schedule_reference (below, before trace_source) is the same loop with
+** no layer written as one function, for reading first.
 **
 ** batchrt's improvements are LAYERS on that loop: each is one named
 ** function that the loop calls, and each says why it is there and which
@@ -1119,23 +1125,29 @@ static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, 
 
 /* The paper's proxy question: may the ray hit batching point id's
 ** triangles in [tnear, tlimit]?  *t (when not NULL): where the proxy
-** cast met its first set voxel, or tnear for an exact proxy. */
+** cast met its first set voxel.  schedule_reference asks it too. */
 /* A point of instances' proxy is dilated by INSTANCE_DILATION of a voxel
 ** (instance points), which covers the rounding of the ray's transform
 ** while the ray's margin does not exceed it; a ray from farther away (a
 ** larger margin) is admitted untested. */
-static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit, float *t)
+static int proxy_cast(const brt_scene *scene, uint32_t id, const brt_ray *ray, float tlimit, float *t)
 {
-    const batch_entry *b = &s->scene->batches[id];
-    if (s->exact) {
-        if (t) *t = ray->tnear;
-        return exact_proxy_hit(s, id, ray, tlimit);
-    }
+    const batch_entry *b = &scene->batches[id];
     if (b->instances && !(margin_of(&b->margin, ray) <= INSTANCE_DILATION * b->proxy.cell)) {
         if (t) *t = ray->tnear;
         return 1;
     }
-    return brt_proxy_raycast(s->scene->dag, &b->proxy, ray, ray->tnear, tlimit, t);
+    return brt_proxy_raycast(scene->dag, &b->proxy, ray, ray->tnear, tlimit, t);
+}
+
+/* The same question, or layer 3's exact answer (*t: tnear then). */
+static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit, float *t)
+{
+    if (s->exact) {
+        if (t) *t = ray->tnear;
+        return exact_proxy_hit(s, id, ray, tlimit);
+    }
+    return proxy_cast(s->scene, id, ray, tlimit, t);
 }
 
 /* The paper's proxy test at the batching point where the walk stands: a
@@ -1382,6 +1394,21 @@ static brt_result settle_failure(brt_result r, brt_error *err)
     return brt_fail(err, r, "out of memory in the ray queues");
 }
 
+/* A new ray in slot r: the miss record, no visit yet, its walk to start
+** at the root; counted. */
+static void slot_start(ray_slot *r, const brt_ray *ray, uint64_t tag, brt_stats *stats)
+{
+    r->ray = *ray;
+    r->tag = tag;
+    brt_hit_clear(&r->hit);
+    r->normal[0] = r->normal[1] = r->normal[2] = 0.0f;
+    r->visits = 0;
+    r->key.t = -INFINITY;
+    r->key.id = TOP_EMPTY;
+    stats->rays++;
+    stats->shadow_rays += is_occlusion(r);
+}
+
 /* Takes the rays other processes sent (layer 8), then new rays from the
 ** source while there are free slots; each new ray walks from the root. */
 static brt_result refill(scheduler *s, brt_error *err)
@@ -1397,18 +1424,8 @@ static brt_result refill(scheduler *s, brt_error *err)
             return brt_fail(err, BRT_EARG, "ray source: next_rays returned %lu rays for room for %lu",
                             (unsigned long)n, (unsigned long)s->free_count);
         for (i = 0; i < n; i++) {
-            uint32_t slot = s->free_slots[--s->free_count];
-            ray_slot *r = &s->slots[slot];
-            s->fresh[i] = slot;
-            r->ray = s->incoming[i];
-            r->tag = s->incoming_tags[i];
-            brt_hit_clear(&r->hit);
-            r->normal[0] = r->normal[1] = r->normal[2] = 0.0f;
-            r->visits = 0;
-            r->key.t = -INFINITY;
-            r->key.id = TOP_EMPTY;
-            s->stats->rays++;
-            s->stats->shadow_rays += is_occlusion(r);
+            s->fresh[i] = s->free_slots[--s->free_count];
+            slot_start(&s->slots[s->fresh[i]], &s->incoming[i], s->incoming_tags[i], s->stats);
         }
         res = run_rays(s, s->fresh, (uint32_t)n, NO_ENTRY, NULL);
         if (res != BRT_OK) return settle_failure(res, err);
@@ -1619,6 +1636,212 @@ static brt_result exact_load(scheduler *s, brt_error *err)
     return r;
 }
 
+/* ---- the paper's loop, plain (schedule_reference) --------------------- */
+/*
+** The loop of this section with every layer off -- one thread,
+** paper_scheduler, no_inner, no_decode, no exchange -- as one function
+** to be read top to bottom, as pbrt-v4's BVHAggregate::Intersect reads:
+** rays walk the top-level BVH; at each batching point whose proxy admits
+** a ray (cast up to its closest hit so far) the ray is queued and stops;
+** when no ray can move, the fullest queue is served -- its blob (and a
+** point of instances' prototypes) pinned in the LRU geometry cache, its
+** rays intersected, the blobs released -- and each of its rays walks on
+** from where it stopped; until every ray has finished.  It shares only
+** the plain parts: the top-level walk, proxy_cast, blob_read,
+** intersect_ray, and geometry_cache as a table of blobs (not cache_fetch,
+** whose read-ahead and decoding are layers).  Why it is here: the layered
+** loop spreads the same decisions over a dozen functions with a hook
+** each; the "reference:" tests hold this one's loads, hits, finished
+** order and counts equal to the layered loop's with its layers off, so
+** each layer stays a named departure from it.  brt_trace_options.reference
+** runs it.  Its LRU order is each blob's last release (released[]), the
+** order the layered cache's list keeps.
+*/
+
+/* Pins blob id (a batching point's or a prototype's): when it is not
+** resident, evicts the least recently released unpinned blobs until it
+** fits the budget (or none is left: a blob larger than the budget is
+** then held alone), and loads it. */
+static brt_result reference_pin(geometry_cache *c, uint64_t *released, uint32_t id, brt_error *err)
+{
+    const uint32_t points = c->scene->header.batch_count;
+    const uint64_t bytes = cache_bytes(c->scene, id);
+    cache_entry *e = &c->entries[id];
+    brt_result r;
+    e->pins = 1;
+    while (!e->data && c->held + bytes > c->budget) {
+        uint32_t old = NO_ENTRY, k;
+        for (k = 0; k < c->entry_count; k++)
+            if (c->entries[k].data && c->entries[k].pins == 0 &&
+                (old == NO_ENTRY || released[k] < released[old]))
+                old = k;
+        if (old == NO_ENTRY) break;
+        c->held -= c->entries[old].bytes;
+        view_free(&c->entries[old].view);
+        blob_free(c->scene, old, c->entries[old].data);
+        c->entries[old].data = NULL;
+        if (old >= points) c->prototypes[old - points] = NULL;
+    }
+    if (e->data) return BRT_OK;
+    if ((r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->view, err)) != BRT_OK) return r;
+    e->geometry.triangles = e->view.bvh;
+    e->geometry.instances = e->view.set;
+    e->geometry.prototypes = c->prototypes;
+    if (id >= points) c->prototypes[id - points] = e->view.bvh;
+    e->bytes = bytes;
+    c->held += bytes;
+    if (id < points) c->stats->batch_loads++;
+    else c->stats->prototype_loads++;
+    c->stats->oversized_loads += bytes > c->budget;
+    if (c->stats->cache_peak_bytes < c->held) c->stats->cache_peak_bytes = c->held;
+    return BRT_OK;
+}
+
+/* The paper's loop (above).  Of the options it reads memory_limit,
+** no_proxy, rays_in_flight (0: OUT_OF_CORE_RAYS), read_fn, read_user and
+** drop_os_cache; the rest are layers and hooks. */
+static brt_result schedule_reference(brt_scene *scene, const brt_trace_options *opt,
+                                     const brt_ray_source *source, size_t capacity_hint,
+                                     brt_stats *stats, brt_error *err)
+{
+    const uint32_t points = scene->header.batch_count;
+    const int use_proxies = !(opt && opt->no_proxy);
+    uint32_t capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : OUT_OF_CORE_RAYS;
+    uint64_t budget = UINT64_MAX, clock = 0;
+    uint32_t free_count = 0, walking_count = 0, best, i, k;
+    geometry_cache c;                           /* the blobs: data, view, pins, bytes */
+    top_walk walk;
+    ray_slot *slots;
+    ray_queue *queues;
+    uint32_t *free_slots, *walking;
+    uint64_t *released, *tags;
+    brt_ray *incoming;
+    const instance_set *set;
+    size_t n;
+    brt_result r = BRT_OK;
+    if (capacity_hint > 0 && capacity_hint < capacity) capacity = (uint32_t)capacity_hint;
+    /* The proxies' bytes come out of the limit (the paper's Fig. 3). */
+    stats->proxy_bytes = use_proxies ? brt_svdag_memory_bytes(scene->dag) : 0;
+    if (opt && opt->memory_limit)
+        budget = opt->memory_limit > stats->proxy_bytes ? opt->memory_limit - stats->proxy_bytes : 0;
+    if (opt) stats->memory_limit = opt->memory_limit;
+    stats->batching_points = points;
+    stats->geometry_bytes = scene->header.geometry_bytes;
+    if (cache_init(&c, scene, budget, opt, stats) != BRT_OK)
+        return brt_fail(err, BRT_ENOMEM, "out of memory for the geometry cache");
+    slots = malloc((size_t)capacity * sizeof *slots);
+    free_slots = malloc((size_t)capacity * sizeof *free_slots);
+    walking = malloc((size_t)capacity * sizeof *walking);
+    incoming = malloc((size_t)capacity * sizeof *incoming);
+    tags = malloc((size_t)capacity * sizeof *tags);
+    queues = calloc(points, sizeof *queues);
+    released = calloc(c.entry_count, sizeof *released);
+    walk.keys = malloc(((size_t)points + scene->header.top_node_count) * sizeof *walk.keys);
+    walk.pos = NULL;                            /* a walk lowers no key in place */
+    if (!slots || !free_slots || !walking || !incoming || !tags || !queues || !released || !walk.keys)
+        r = brt_fail(err, BRT_ENOMEM, "out of memory for %u rays in flight", capacity);
+    else
+        for (free_count = 0; free_count < capacity; free_count++) free_slots[free_count] = free_count;
+    while (r == BRT_OK) {
+        /* Each ray of walking walks on from its key, past the batching
+        ** points whose proxies prove a miss, to the next one whose proxy
+        ** admits it before its closest hit: queued there; or it finishes. */
+        for (i = 0; i < walking_count; i++) {
+            ray_slot *ray = &slots[walking[i]];
+            const float tlimit = walk_limit(ray);
+            uint32_t stop = NO_ENTRY;
+            brt_ray_prep prep;
+            brt_box_lanes lanes;
+            brt_ray_prepare_margin(&ray->ray, margin_of(&scene->header.margin, &ray->ray), &prep);
+            if (prep.valid && !found_occluder(ray)) {
+                brt_box_lanes_of(&prep, &lanes);
+                top_walk_start(&walk);
+                while (stop == NO_ENTRY &&
+                       top_walk_next(&walk, scene->top, &lanes, prep.tnear, tlimit, &ray->key)) {
+                    if (use_proxies) {
+                        stats->proxy_tests++;
+                        if (!proxy_cast(scene, ray->key.id, &ray->ray, tlimit, NULL)) {
+                            stats->proxy_culled++;      /* a proven miss: no queue, no load */
+                            continue;
+                        }
+                    }
+                    stop = ray->key.id;
+                }
+            }
+            if (stop != NO_ENTRY) {
+                ray_queue *q = &queues[stop];
+                uint32_t *grown = brt_grow(q->slots, &q->capacity, (size_t)q->count + 1, sizeof *grown);
+                if (!grown) {
+                    r = brt_fail(err, BRT_ENOMEM, "out of memory in the ray queues");
+                    break;
+                }
+                q->slots = grown;
+                q->slots[q->count++] = walking[i];
+                ray->visits++;
+                stats->queued_visits++;
+            } else {
+                stats->shadow_occluded += found_occluder(ray);
+                source->finished(source->user, &ray->ray, &ray->hit, ray->normal, ray->visits, ray->tag);
+                free_slots[free_count++] = walking[i];
+            }
+        }
+        if (r != BRT_OK) break;
+        /* New rays into the free slots, while the source has some; each
+        ** walks from the root. */
+        n = free_count > 0 ? source->next_rays(source->user, incoming, tags, free_count) : 0;
+        if (n > free_count) {
+            r = brt_fail(err, BRT_EARG, "ray source: next_rays returned %lu rays for room for %lu",
+                         (unsigned long)n, (unsigned long)free_count);
+            break;
+        }
+        for (walking_count = 0; walking_count < n; walking_count++) {
+            walking[walking_count] = free_slots[--free_count];
+            slot_start(&slots[walking[walking_count]], &incoming[walking_count], tags[walking_count], stats);
+        }
+        if (walking_count > 0) continue;
+        /* No ray can move: serve the fullest queue (ties: the lowest id),
+        ** so that each load serves as many rays as it can. */
+        best = NO_ENTRY;
+        for (k = 0; k < points; k++)
+            if (queues[k].count > 0 && (best == NO_ENTRY || queues[k].count > queues[best].count)) best = k;
+        if (best == NO_ENTRY) break;                        /* every ray has finished */
+        /* Its blob and, for a point of instances, each prototype it uses
+        ** pinned in memory. */
+        r = reference_pin(&c, released, best, err);
+        set = c.entries[best].view.set;
+        for (k = 0; r == BRT_OK && set && k < set->use_count; k++)
+            r = reference_pin(&c, released, points + set->uses[k], err);
+        if (r != BRT_OK) break;
+        /* Its rays intersected there, the blobs released (now the most
+        ** recently used), and the rays walk on; none comes back to this
+        ** point (walk keys only grow). */
+        walking_count = queues[best].count;
+        memcpy(walking, queues[best].slots, (size_t)walking_count * sizeof *walking);
+        queues[best].count = 0;
+        for (i = 0; i < walking_count; i++) {
+            ray_slot *ray = &slots[walking[i]];
+            intersect_ray(&c.entries[best].geometry, &ray->ray, ray->tag, &ray->hit, ray->normal, NULL);
+        }
+        c.entries[best].pins = 0;
+        released[best] = ++clock;
+        for (k = 0; set && k < set->use_count; k++) {
+            c.entries[points + set->uses[k]].pins = 0;
+            released[points + set->uses[k]] = ++clock;
+        }
+    }
+    for (k = 0; queues && k < points; k++) free(queues[k].slots);
+    cache_free(&c);
+    free(slots);
+    free(free_slots);
+    free(walking);
+    free(incoming);
+    free(tags);
+    free(queues);
+    free(released);
+    free(walk.keys);
+    return r;
+}
+
 static brt_result trace_source(brt_scene *scene, const brt_trace_options *opt,
                                const brt_ray_source *source, size_t capacity_hint,
                                brt_stats *stats, brt_error *err)
@@ -1630,11 +1853,15 @@ static brt_result trace_source(brt_scene *scene, const brt_trace_options *opt,
     if (!stats) stats = &local;
     memset(stats, 0, sizeof *stats);
     if (opt && opt->drop_os_cache) posix_fadvise(scene->fd, 0, 0, POSIX_FADV_DONTNEED);
-    r = scheduler_init(&s, scene, opt, source, capacity_hint, stats);
-    if (r != BRT_OK) r = brt_fail(err, r, "out of memory for %u rays in flight", s.capacity);
-    else if (opt && opt->exact_proxies && s.use_proxies) r = exact_load(&s, err);
-    if (r == BRT_OK) r = schedule(&s, err);
-    scheduler_free(&s);
+    if (opt && opt->reference) {
+        r = schedule_reference(scene, opt, source, capacity_hint, stats, err);
+    } else {
+        r = scheduler_init(&s, scene, opt, source, capacity_hint, stats);
+        if (r != BRT_OK) r = brt_fail(err, r, "out of memory for %u rays in flight", s.capacity);
+        else if (opt && opt->exact_proxies && s.use_proxies) r = exact_load(&s, err);
+        if (r == BRT_OK) r = schedule(&s, err);
+        scheduler_free(&s);
+    }
     stats->visits = stats->queued_visits + stats->resident_visits;
     stats->seconds = brt_seconds() - start;
     if (stats->seconds > 0) stats->mrays_per_second = (double)stats->rays / stats->seconds * 1e-6;
@@ -1719,8 +1946,6 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
 }
 
 /* ---- owners of batching points (layer 8) ---- */
-
-static uint64_t cache_bytes(const brt_scene *scene, uint32_t id);
 
 /* What a load of point id reads: its blob (cache_bytes) and, for a point
 ** of instances, its triangles' share of the prototypes' bytes -- an

@@ -365,6 +365,11 @@ typedef struct brt_trace_options {
     int no_decode;           /* keep every batching point quantized, as read
                              ** (0: decode one when the budget has room for
                              ** it beside every blob, layer 9) */
+    int reference;           /* the paper's loop, one thread, no layers: for
+                             ** reading and for tests (schedule_reference);
+                             ** it reads memory_limit, no_proxy,
+                             ** rays_in_flight, read_fn, read_user and
+                             ** drop_os_cache, and no other option */
 } brt_trace_options;
 
 /* Ray kinds.  A ray of a stream is a closest-hit ray, or an occlusion ray

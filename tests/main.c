@@ -295,6 +295,7 @@ static void run_suites(void)
     suite_pbrt_state();
     suite_loopsubdiv();
     suite_policy();
+    suite_reference();
     suite_thresholds();
     suite_runner();
 }

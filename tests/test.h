@@ -88,6 +88,7 @@ void suite_pbrt_camera(void);
 void suite_pbrt_state(void);
 void suite_loopsubdiv(void);
 void suite_policy(void);
+void suite_reference(void);
 void suite_thresholds(void);
 
 #endif
