@@ -243,7 +243,20 @@ static void case_frame(cam_case *c)
     c->point[0] = -1.0; c->point[1] = 3.0; c->point[2] = 0;
 }
 
-enum { CASES = 7 };
+/* No axis in common: every term of the cross products counts. */
+static void case_oblique(cam_case *c)
+{
+    double e[3] = {3, 4, 7}, l[3] = {0.5, -1, 0.25}, u[3] = {0.2, 1, 0.3};
+    c->name = "an oblique LookAt";
+    c->header = "Scale -1 1 1\nLookAt 3 4 7  0.5 -1 0.25  0.2 1 0.3\nCamera \"perspective\" \"float fov\" 45\n"
+                "Film \"rgb\" \"integer xresolution\" 40 \"integer yresolution\" 30\n";
+    c->md.camera_from_world = m4_mul(m4_scale(-1, 1, 1), m4_look_at(e, l, u));
+    c->md.fov = 45;
+    model_film(&c->md, 40, 30, 0, NULL);
+    c->point[0] = 1.1; c->point[1] = -0.6; c->point[2] = 0.4;
+}
+
+enum { CASES = 8 };
 
 static void make_cases(cam_case *c)
 {
@@ -260,6 +273,7 @@ static void make_cases(cam_case *c)
     c[6].header = "Scale -1 1 1\nLookAt 10 0 0   0 0 0   0 0 1\nCamera \"perspective\" \"float fov\" 40\n"
                   "Film \"rgb\" \"integer xresolution\" 40 \"integer yresolution\" 30\n";
     model_film(&c[6].md, 40, 30, 0, NULL);
+    case_oblique(&c[7]);
 }
 
 static ex_pbrt *open_case(const cam_case *c, const char *name)
