@@ -245,6 +245,28 @@ static void test_failures(void)
     expect_one_line("a bad option", "--assign: expected runs or round-robin, got 'diagonal'");
 }
 
+/* Rank 0 prepares the scene file from the mesh with the options given
+** (README, "Beyond one machine"): the bytes trace --batched builds with the
+** same --res and --batch-tris, at two resolutions (a proxy resolution
+** dropped would give the default's file, and the same hits). */
+static void test_builds_trace_scene(void)
+{
+    const char *res[2] = {"16", "64"};
+    int i;
+    if (!mpi_available()) return;
+    CHECK(make_inputs(), "the inputs could not be made");
+    for (i = 0; i < 2; i++) {
+        CHECK(tu_run("trace @/mpi-crown.obj @/mpi-0-bounce.rays @/res-t.hits --batched --res %s --batch-tris 50 "
+                     "--scene @/res-t.brs", res[i]) == 0, "trace --batched failed");
+        EXPECT(mpi_run(1, "", "@/mpi-crown.obj @/mpi-0-bounce.rays @/res-m.hits --res %s --batch-tris 50 "
+                       "--scene @/res-m.brs", res[i]) == 0, "--res %s: mpi_trace %s", res[i], how_failed());
+        EXPECT(tu_same_file_bytes(tu_scratch("res-t.brs"), tu_scratch("res-m.brs")),
+               "--res %s: mpi_trace's scene file is not trace's", res[i]);
+        remove(tu_scratch("res-t.brs"));
+        remove(tu_scratch("res-m.brs"));
+    }
+}
+
 /* README, "Errors": SIGINT stops a build and leaves nothing.  Rank 0's
 ** scene build (of a mesh that takes about a second) is interrupted as soon
 ** as its temporary file appears: it must stop it
@@ -711,6 +733,7 @@ void suite_mpi(void)
     test_run("mpi: == trace --direct at 1-4 ranks, proxies, memory, ownerships", test_equal_direct);
     test_run("mpi: rays crossing ranks many times; proxies cut the bytes sent", test_crossings_and_proxies);
     test_run("mpi: a failed rank ends the run, no output, no hang", test_failures);
+    test_run("mpi: rank 0 builds the scene file trace --batched builds (--res, --batch-tris)", test_builds_trace_scene);
     test_run("mpi: SIGINT during rank 0's scene build leaves no file", test_interrupted_build);
     test_run("mpi: rays leave in messages of at most 4096 (at, one before, one past)", test_ray_messages);
     test_run("mpi: hits gathered in chunks across the split (small build)", test_result_chunks);
