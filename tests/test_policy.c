@@ -487,26 +487,35 @@ static void test_policies_match_model(void)
 ** the count is the number of gap rays.  From 10^5 units above, none is
 ** culled (admitted untested; the cast from there, grown for its
 ** rounding, would admit them too).  Every hit equals the brute force's. */
+/* Builds and opens the squares scene s at proxy resolution 64 as NAME;
+** 0 (the test failed) when it cannot, s freed then. */
+static int open_squares(tu_instanced *s, const char *name, brt_scene **scene)
+{
+    brt_scene_source source;
+    brt_scene_options sopt;
+    brt_error err;
+    tu_instanced_source(s, &source);
+    memset(&sopt, 0, sizeof sopt);
+    sopt.proxy_res = 64;
+    if (brt_scene_build_source(&source, &sopt, 1, tu_scratch(name), &err) != BRT_OK ||
+        brt_scene_open(tu_scratch(name), scene, &err) != BRT_OK) {
+        test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
+        tu_instanced_free(s);
+        return 0;
+    }
+    return 1;
+}
+
 static void test_instance_gate(void)
 {
     tu_instanced s;
-    brt_scene_source source;
-    brt_scene_options sopt;
     brt_scene *scene = NULL;
     brt_error err;
     brt_ray rays[7];
     brt_hit hits[7];
     int k, far;
     tu_instanced_squares(&s);
-    tu_instanced_source(&s, &source);
-    memset(&sopt, 0, sizeof sopt);
-    sopt.proxy_res = 64;
-    if (brt_scene_build_source(&source, &sopt, 1, tu_scratch("gate.brs"), &err) != BRT_OK ||
-        brt_scene_open(tu_scratch("gate.brs"), &scene, &err) != BRT_OK) {
-        test_fail_at(__FILE__, __LINE__, "gate.brs: %s", err.message);
-        tu_instanced_free(&s);
-        return;
-    }
+    if (!open_squares(&s, "gate.brs", &scene)) return;
     for (far = 0; far < 2 && !test_failed(); far++) {
         brt_trace_options opt;
         brt_stats stats;
@@ -666,8 +675,6 @@ static void test_instance_gate_far_from_origin(void)
 {
     const float shift = 1e4f;
     tu_instanced s;
-    brt_scene_source source;
-    brt_scene_options sopt;
     brt_scene *scene = NULL;
     brt_trace_options opt;
     brt_stats stats;
@@ -678,15 +685,7 @@ static void test_instance_gate_far_from_origin(void)
     tu_instanced_squares(&s);
     for (k = 0; k < s.world.vcount; k++) s.world.pos[3 * k] += shift;
     for (k = 0; k < s.instance_count; k++) s.instances[k].xform[3] += shift;
-    tu_instanced_source(&s, &source);
-    memset(&sopt, 0, sizeof sopt);
-    sopt.proxy_res = 64;
-    if (brt_scene_build_source(&source, &sopt, 1, tu_scratch("gate-far.brs"), &err) != BRT_OK ||
-        brt_scene_open(tu_scratch("gate-far.brs"), &scene, &err) != BRT_OK) {
-        test_fail_at(__FILE__, __LINE__, "gate-far.brs: %s", err.message);
-        tu_instanced_free(&s);
-        return;
-    }
+    if (!open_squares(&s, "gate-far.brs", &scene)) return;
     for (k = 0; k < 7; k++) {
         brt_ray r = {{0, 0.5f, 3.0f}, {0, 0, -1}, 0, INFINITY};
         r.org[0] = shift + 0.5f + (float)k;
