@@ -109,6 +109,14 @@ $(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(TEST_LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
+# The allocation-failure shim of the oom: tests (tests/oom/failalloc.c),
+# preloaded into the programs they run; it is empty but on glibc, and
+# those tests SKIP then.
+FAILALLOC = $(BUILD)/tests/failalloc.so
+$(FAILALLOC): tests/oom/failalloc.c | $(BUILD)/tests
+	$(SAY) CC "$< (shared)"
+	$(Q)$(CC) $(CFLAGS) -fPIC -shared $< -o $@
+
 # The tests run programs from $(BUILD) too (command-line contracts).  The
 # install check (below) comes first, so that the runner's line stays last,
 # and only without a filter T.  The MPI tracer is built for the tests when
@@ -116,7 +124,7 @@ $(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(TEST_LIB)
 # MPI's do not mix; those runs say SKIP).
 MPICC ?= mpicc
 MPI_FOR_TESTS = $(if $(filter build,$(BUILD)),$(if $(shell command -v $(MPICC) 2>/dev/null),$(BUILD)/mpi_trace))
-test: all $(TEST_BIN) $(MPI_FOR_TESTS) $(if $(T),,install-check)
+test: all $(TEST_BIN) $(FAILALLOC) $(MPI_FOR_TESTS) $(if $(T),,install-check)
 	BRT_BUILD=$(BUILD) ./$(TEST_BIN) $(T)
 
 # Mutation testing (tests/mutants/): each mutant in tests/mutants/mutants.txt

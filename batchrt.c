@@ -2120,9 +2120,11 @@ static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budge
     memset(c, 0, sizeof *c);
     c->entries = calloc(n, sizeof *c->entries);
     c->prototypes = calloc((size_t)scene->header.prototype_count + 1, sizeof *c->prototypes);
-    if (!c->entries || !c->prototypes) {
+    if (!c->entries || !c->prototypes) {   /* freed here; cache_free after it is harmless */
         free(c->entries);
         free(c->prototypes);
+        c->entries = NULL;
+        c->prototypes = NULL;
         return BRT_ENOMEM;
     }
     for (i = 0; i < n; i++) c->entries[i].lru_prev = c->entries[i].lru_next = NO_ENTRY;
@@ -4361,17 +4363,22 @@ static brt_result check_batches(const brt_scene *s, brt_error *err)
 
 /* The frame of a batching point's inner proxy, as the build made it: the
 ** grid brt_grid_init fits to its box at inner_res (res 0, which no check
-** passes, when the box is not valid: check_batch names that first). */
-static void inner_frame(batch_entry *b, uint32_t proxy_res)
+** passes, when the box is not valid: check_batch names that first).
+** brt_grid_init allocates the grid's bits too, so it can run out of
+** memory: that is reported as such, not as an invalid inner proxy. */
+static brt_result inner_frame(batch_entry *b, uint32_t proxy_res)
 {
     brt_grid g;
+    brt_result r;
     b->inner.res = 0;
-    if (!box_valid(b->lo, b->hi) || brt_grid_init(&g, b->lo, b->hi, inner_res(proxy_res)) != BRT_OK)
-        return;
+    if (!box_valid(b->lo, b->hi)) return BRT_OK;
+    r = brt_grid_init(&g, b->lo, b->hi, inner_res(proxy_res));
+    if (r != BRT_OK) return r == BRT_ENOMEM ? r : BRT_OK;
     b->inner.res = g.res;
     memcpy(b->inner.origin, g.origin, sizeof g.origin);
     b->inner.cell = g.cell;
     brt_grid_free(&g);
+    return BRT_OK;
 }
 
 static brt_result load_batches(brt_scene *s, brt_error *err)
@@ -4397,7 +4404,10 @@ static brt_result load_batches(brt_scene *s, brt_error *err)
             e->margin.condition = get_f32(p + 84);
             e->margin.reach = get_f32(p + 96);
         }
-        inner_frame(&s->batches[i], s->header.proxy_res);
+        if (inner_frame(&s->batches[i], s->header.proxy_res) != BRT_OK) {
+            free(table);
+            return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
+        }
     }
     free(table);
     return check_batches(s, err);
@@ -6313,7 +6323,7 @@ brt_result brt_hits_write_instanced(const char *path, const brt_hit *hits, size_
 
 /* One JSON object, one field per line.  Counters print as exact integers;
 ** JSON has no inf or NaN, so a non-finite measurement prints as null. */
-brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error *err)
+size_t brt_stats_format_json(const brt_stats *s, char text[BRT_STATS_JSON_BYTES])
 {
     const struct { const char *name; uint64_t value; } counters[] = {
         {"rays", s->rays}, {"batching_points", s->batching_points},
@@ -6336,23 +6346,28 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *s, brt_error 
         {"mrays_per_second", s->mrays_per_second}};
     const size_t n_counters = sizeof counters / sizeof counters[0];
     const size_t n_measures = sizeof measures / sizeof measures[0];
-    char text[2048];
     size_t used = 0, i;
-    used += (size_t)snprintf(text + used, sizeof text - used, "{\n");
+    used += (size_t)snprintf(text + used, BRT_STATS_JSON_BYTES - used, "{\n");
     for (i = 0; i < n_counters; i++)
-        used += (size_t)snprintf(text + used, sizeof text - used, "  \"%s\": %llu,\n",
+        used += (size_t)snprintf(text + used, BRT_STATS_JSON_BYTES - used, "  \"%s\": %llu,\n",
                                  counters[i].name, (unsigned long long)counters[i].value);
     for (i = 0; i < n_measures; i++) {
         const char *comma = i + 1 < n_measures ? "," : "";
         if (isfinite(measures[i].value))
-            used += (size_t)snprintf(text + used, sizeof text - used, "  \"%s\": %.17g%s\n",
+            used += (size_t)snprintf(text + used, BRT_STATS_JSON_BYTES - used, "  \"%s\": %.17g%s\n",
                                      measures[i].name, measures[i].value, comma);
         else
-            used += (size_t)snprintf(text + used, sizeof text - used, "  \"%s\": null%s\n",
+            used += (size_t)snprintf(text + used, BRT_STATS_JSON_BYTES - used, "  \"%s\": null%s\n",
                                      measures[i].name, comma);
     }
-    used += (size_t)snprintf(text + used, sizeof text - used, "}\n");
-    return brt_write_file_atomic(path, text, used, err);
+    used += (size_t)snprintf(text + used, BRT_STATS_JSON_BYTES - used, "}\n");
+    return used;
+}
+
+brt_result brt_stats_write_json(const char *path, const brt_stats *stats, brt_error *err)
+{
+    char text[BRT_STATS_JSON_BYTES];
+    return brt_write_file_atomic(path, text, brt_stats_format_json(stats, text), err);
 }
 
 /* ===================================================================== */

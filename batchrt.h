@@ -525,6 +525,11 @@ struct brt_stats {
 brt_result brt_stats_write_json(const char *path, const brt_stats *stats,
                                 brt_error *err);
 
+/* The same object as text, in a buffer of BRT_STATS_JSON_BYTES, ending
+** "\n}\n" (a program adds its own fields before it); returns its length. */
+#define BRT_STATS_JSON_BYTES 2048
+size_t brt_stats_format_json(const brt_stats *stats, char text[BRT_STATS_JSON_BYTES]);
+
 /* ===================================================================== */
 /* 2. Meshes and triangle streams (batchrt.c)                            */
 /* ===================================================================== */

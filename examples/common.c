@@ -422,22 +422,16 @@ double ex_cpu_seconds(void)
 brt_result ex_stats_write(const char *path, const brt_stats *stats, const char *extra,
                           brt_error *err)
 {
-    FILE *f;
-    long size = 0;
-    char *text = NULL;
-    brt_result r = brt_stats_write_json(path, stats, err);
-    if (r != BRT_OK || !extra || !*extra) return r;
-    f = fopen(path, "rb");
-    if (f && fseek(f, 0, SEEK_END) == 0 && (size = ftell(f)) >= 3)
-        text = malloc((size_t)size + strlen(extra) + 8);
-    if (!text || fseek(f, 0, SEEK_SET) != 0 || fread(text, 1, (size_t)size, f) != (size_t)size)
-        r = brt_fail(err, BRT_EIO, "%s: cannot read back: %s", path, strerror(errno));
-    if (f) fclose(f);
-    if (r == BRT_OK) {
-        /* The library's object ends "\n}\n": the fields go before it. */
-        sprintf(text + size - 3, ",\n%s\n}\n", extra);
-        r = brt_write_file_atomic(path, text, strlen(text), err);
-    }
+    char *text;
+    size_t used;
+    brt_result r;
+    if (!extra || !*extra) return brt_stats_write_json(path, stats, err);
+    if (!(text = malloc(BRT_STATS_JSON_BYTES + strlen(extra) + 8)))
+        return brt_fail(err, BRT_ENOMEM, "%s: out of memory", path);
+    used = brt_stats_format_json(stats, text);
+    /* The library's object ends "\n}\n": the fields go before it. */
+    sprintf(text + used - 3, ",\n%s\n}\n", extra);
+    r = brt_write_file_atomic(path, text, strlen(text), err);
     free(text);
     return r;
 }

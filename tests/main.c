@@ -297,6 +297,7 @@ static void run_suites(void)
     suite_policy();
     suite_reference();
     suite_thresholds();
+    suite_oom();
     suite_runner();
 }
 

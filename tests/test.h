@@ -90,5 +90,6 @@ void suite_loopsubdiv(void);
 void suite_policy(void);
 void suite_reference(void);
 void suite_thresholds(void);
+void suite_oom(void);
 
 #endif
