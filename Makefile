@@ -230,6 +230,9 @@ $(BUILD)/mpi_trace: examples/mpi_trace.c $(EX_COMMON) $(LIB) batchrt.h $(wildcar
 MPI_SMALL_RESULTS = 1000
 .PHONY: test-long
 test: $(patsubst %/mpi_trace,%/tests/mpi_trace_small,$(MPI_FOR_TESTS))
+# The mutants run the suite too: without these programs their oom: and
+# mpi: tests would say SKIP and every mutant of them would survive.
+mutants mutants-sample: $(FAILALLOC) $(MPI_FOR_TESTS) $(patsubst %/mpi_trace,%/tests/mpi_trace_small,$(MPI_FOR_TESTS))
 $(BUILD)/tests/mpi_trace_small: examples/mpi_trace.c $(EX_COMMON) $(LIB) batchrt.h $(wildcard examples/*.h) | $(BUILD)/tests
 	$(SAY) MPICC $@
 	$(Q)$(MPICC) $(CFLAGS) -DRESULTS_PER_MESSAGE=$(MPI_SMALL_RESULTS) -I. \

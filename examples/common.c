@@ -44,8 +44,10 @@ void ex_check(const char *prog, brt_result r, const brt_error *err)
 {
     if (r == BRT_OK) return;
     /* A failure while an interrupt is pending is the interrupt's doing: a
-    ** build that polled the flag, or a child (gzip) that got the same
-    ** Ctrl-C from the terminal, which signals the whole process group. */
+    ** build or trace that polled the flag (BRT_EINTR), or a child (gzip)
+    ** that got the same Ctrl-C from the terminal, which signals the whole
+    ** process group.  The one place programs turn either into 128 + the
+    ** signal. */
     if (ex_interrupted()) ex_die_interrupted(prog);
     ex_die(prog, "%s", err && err->message[0] ? err->message : brt_result_string(r));
 }

@@ -282,7 +282,6 @@ static void write_pbrt(const ex_scene_recipe *recipe, const char *out)
         file.fd = -1;
     }
     r = brt_atomic_close(&file, r, &err);
-    if (r == BRT_EINTR) ex_die_interrupted(prog);
     ex_check(prog, r, &err);
     printf("%s: %llu unique, %llu instanced triangles, %u instances\n", recipe->name,
            (unsigned long long)ex_instanced_unique(scene),
@@ -357,7 +356,6 @@ int main(int argc, char **argv)
     seconds = brt_seconds();
     r = write_scene(&recipe, &w, &vertices, &err);
     ex_progress_end();
-    if (r == BRT_EINTR) ex_die_interrupted(prog);
     ex_check(prog, r, &err);
     seconds = brt_seconds() - seconds;
     printf("%s: %llu triangles, %llu vertices, written in %.2f s, peak RSS %.1f MiB\n",

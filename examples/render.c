@@ -666,8 +666,7 @@ static void render_batched(brt_scene *scene, const brt_trace_options *topt, rend
     source.finished = finished;
     source.user = r;
     res = brt_scene_trace_stream(scene, topt, &source, stats, &err);
-    if (res == BRT_EINTR) ex_die_interrupted(prog);   /* between batches (topt->interrupt) */
-    ex_check(prog, res, &err);
+    ex_check(prog, res, &err);   /* BRT_EINTR between batches (topt->interrupt): the signal's exit */
 }
 
 /* ===================================================================== */

@@ -356,7 +356,6 @@ static void trace_batched(const ex_input *in, const trace_options *o, const brt_
         r = brt_scene_occluded(scene, &trace_opt, rays, count, occluded, stats, &err);
     else
         r = brt_scene_trace(scene, &trace_opt, rays, count, hits, stats, &err);
-    if (r == BRT_EINTR) ex_die_interrupted(prog);
     ex_check(prog, r, &err);
     ex_progress_end();
     stats->build_seconds = rebuilt ? brt_seconds() - start - stats->seconds : 0.0;

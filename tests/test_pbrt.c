@@ -184,6 +184,23 @@ static void test_trianglemesh(void)
     ex_pbrt_close(s);
 }
 
+/* A parameter given twice: the last counts (pbrt-v4's rule), P and
+** indices alike, in either order. */
+static void test_repeated_parameter(void)
+{
+    ex_pbrt *s = open_text("twice.pbrt", "WorldBegin\n"
+                           "Shape \"trianglemesh\" \"point3 P\" [9 9 9 9 9 9 9 9 9 9 9 9] \"integer indices\" [3 2 1]\n"
+                           "  \"point3 P\" [0 0 0 2 0 0 0 3 0] \"integer indices\" [0 1 2]\n");
+    tris t;
+    if (!s) return;
+    if (world(s, &t))
+        EXPECT(t.n == 1 && corner_is(&t, 0, 0, 0, 0, 0, 0) && corner_is(&t, 0, 1, 2, 0, 0, 0)
+               && corner_is(&t, 0, 2, 0, 3, 0, 0), "P and indices given twice: %u triangles, not the last P's (0,1,2)",
+               (unsigned)t.n);
+    free(t.c);
+    ex_pbrt_close(s);
+}
+
 static void test_three_points(void)
 {
     ex_pbrt *s = open_text("three.pbrt", "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 2 0 0 0 3 0]\n");
@@ -916,6 +933,7 @@ static void test_bounded_memory(void)
 
 void suite_pbrt(void)
 {
+    test_run("pbrt: a parameter given twice: the last counts (P, indices)", test_repeated_parameter);
     test_run("pbrt: trianglemesh: P and indices become world triangles in file order, either first", test_trianglemesh);
     test_run("pbrt: trianglemesh of 3 points without indices", test_three_points);
     test_run("pbrt: bilinearmesh: (p00,p10,p11), (p00,p11,p01)", test_bilinear);

@@ -256,7 +256,7 @@ static void case_oblique(cam_case *c)
     c->point[0] = 1.1; c->point[1] = -0.6; c->point[2] = 0.4;
 }
 
-enum { CASES = 8 };
+enum { CASES = 9 };
 
 static void make_cases(cam_case *c)
 {
@@ -274,6 +274,14 @@ static void make_cases(cam_case *c)
                   "Film \"rgb\" \"integer xresolution\" 40 \"integer yresolution\" 30\n";
     model_film(&c[6].md, 40, 30, 0, NULL);
     case_oblique(&c[7]);
+    /* a parameter given twice: the last counts (pbrt-v4's rule), for the
+    ** window as for P and indices */
+    case_window(&c[8]);
+    c[8].name = "a screenwindow given twice";
+    c[8].header = "Scale -1 1 1\nLookAt 0 0 10  0 0 0  0 1 0\n"
+                  "Camera \"perspective\" \"float fov\" 40 \"float screenwindow\" [-2 2 -2 2]\n"
+                  "  \"float screenwindow\" [-0.5 1 -1 0.25]\n"
+                  "Film \"rgb\" \"integer xresolution\" 40 \"integer yresolution\" 30\n";
 }
 
 static ex_pbrt *open_case(const cam_case *c, const char *name)
