@@ -831,6 +831,49 @@ static int garble_keeping_stamp(const char *path)
     return ok && utimensat(AT_FDCWD, path, times, 0) == 0;
 }
 
+/* The stamp that tells a stale scene file (brt_scene_source_stamp) sees
+** each of its parts alone: the modification time's nanoseconds and its
+** seconds, the size, and the inode (a file replaced by rename, same size
+** and times).  A part it missed would reuse an old scene file for a
+** changed mesh. */
+static void test_source_stamp_parts(void)
+{
+    const char *path = tu_put("stamp.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    struct timespec times[2];
+    uint64_t base, now;
+    brt_error err;
+    times[0].tv_sec = times[1].tv_sec = 1700000000;
+    times[0].tv_nsec = times[1].tv_nsec = 100000000;
+    CHECK(utimensat(AT_FDCWD, path, times, 0) == 0, "utimensat: %s", strerror(errno));
+    CHECK(brt_scene_source_stamp(path, &base, &err) == BRT_OK, "%s", err.message);
+    CHECK(brt_scene_source_stamp(path, &now, &err) == BRT_OK && now == base, "the same file, another stamp");
+    times[1].tv_nsec = 200000000;   /* the same second */
+    CHECK(utimensat(AT_FDCWD, path, times, 0) == 0, "utimensat: %s", strerror(errno));
+    CHECK(brt_scene_source_stamp(path, &now, &err) == BRT_OK, "%s", err.message);
+    EXPECT(now != base, "the stamp misses the modification time's nanoseconds");
+    times[1].tv_sec++;
+    times[1].tv_nsec = 100000000;   /* a second later, the same nanoseconds */
+    CHECK(utimensat(AT_FDCWD, path, times, 0) == 0, "utimensat: %s", strerror(errno));
+    CHECK(brt_scene_source_stamp(path, &now, &err) == BRT_OK, "%s", err.message);
+    EXPECT(now != base, "the stamp misses the modification time's seconds");
+    /* one byte more, the times put back */
+    tu_put("stamp.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n\n");
+    times[1].tv_sec--;
+    CHECK(utimensat(AT_FDCWD, path, times, 0) == 0, "utimensat: %s", strerror(errno));
+    CHECK(brt_scene_source_stamp(path, &now, &err) == BRT_OK, "%s", err.message);
+    EXPECT(now != base, "the stamp misses the size");
+    /* the same bytes and times in a new file renamed over it: a new inode */
+    tu_put("stamp.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    CHECK(utimensat(AT_FDCWD, path, times, 0) == 0, "utimensat: %s", strerror(errno));
+    CHECK(brt_scene_source_stamp(path, &now, &err) == BRT_OK && now == base, "size and times put back, but "
+          "another stamp");
+    tu_put("stamp-new.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    CHECK(utimensat(AT_FDCWD, tu_scratch("stamp-new.obj"), times, 0) == 0 &&
+          rename(tu_scratch("stamp-new.obj"), path) == 0, "cannot replace the file");
+    CHECK(brt_scene_source_stamp(path, &now, &err) == BRT_OK, "%s", err.message);
+    EXPECT(now != base, "the stamp misses the inode (a file replaced by rename)");
+}
+
 /* Batched runs need the mesh only to build the scene file: once it
 ** exists and matches, trace --batched and render (camera, bounds,
 ** triangle count from the scene file) give the same bytes with the mesh
@@ -1082,9 +1125,12 @@ static void check_group_interrupted(const char *const *argv, const char *bin, co
     EXPECT(!out || !tu_file_exists(out), "%s wrote %s", argv[0], out);
 }
 
-static void test_ctrl_c_while_gzip_unpacks(void)
+/* Every program that reads pbrt-v4, Ctrl-C'd while the gzip that GZIP
+** (a script) stands in for runs, on SCENE (a pbrt file whose mesh is
+** "*.ply.gz"); PREFIX names the runs' files apart. */
+static void interrupt_every_reader(const char *gzip, const char *scene, const char *prefix)
 {
-    char scene[600], rays[600], hits[600], out[600], brs[600], bin[512], tmp[512], mark[512];
+    char rays[600], hits[600], out[600], brs[600], bin[512], tmp[512], mark[512], name[64];
     const char *render[] = {"render", scene, "--direct", "--width", "8", "--height", "8", "--spp", "1",
                             "--out", out, NULL};
     const char *direct[] = {"trace", scene, rays, out, "--direct", NULL};
@@ -1092,22 +1138,19 @@ static void test_ctrl_c_while_gzip_unpacks(void)
     const char *raygen[] = {"raygen", scene, out, "--kind", "random", NULL};
     const char *voxelize[] = {"voxelize", scene, "--out", out, NULL};
     const char *hitdiff[] = {"hitdiff", hits, hits, "--mesh", scene, "--rays", rays, "--explain", out, NULL};
-    snprintf(bin, sizeof bin, "%s", tu_put("gzip-bin/gzip", "#!/bin/sh\n: > \"$BRT_TEST_MARK\"\nexec sleep 30\n"));
+    snprintf(name, sizeof name, "%s-bin/gzip", prefix);
+    snprintf(bin, sizeof bin, "%s", tu_put(name, gzip));
     CHECK(chmod(bin, 0755) == 0, "cannot make %s executable", bin);
     *strrchr(bin, '/') = 0;
-    snprintf(tmp, sizeof tmp, "%s", tu_scratch("gzip-tmp"));
+    snprintf(name, sizeof name, "%s-tmp", prefix);
+    snprintf(tmp, sizeof tmp, "%s", tu_scratch(name));
     CHECK(mkdir(tmp, 0755) == 0, "cannot create %s", tmp);
-    snprintf(mark, sizeof mark, "%s", tu_scratch("gzip-started"));
-    tu_put("gzip-scene/mesh.ply.gz", "not unpacked: the stand-in gzip never reads it\n");
-    snprintf(scene, sizeof scene, "%s",
-             tu_put("gzip-scene/scene.pbrt", "WorldBegin\nShape \"plymesh\" \"string filename\" \"mesh.ply.gz\"\n"));
+    snprintf(name, sizeof name, "%s-started", prefix);
+    snprintf(mark, sizeof mark, "%s", tu_scratch(name));
     snprintf(rays, sizeof rays, "%s", tu_scratch("gzip.rays"));
     snprintf(out, sizeof out, "%s", tu_scratch("gzip.out"));
     snprintf(brs, sizeof brs, "%s", tu_scratch("gzip.brs"));
     snprintf(hits, sizeof hits, "%s", tu_scratch("gzip.hits"));
-    CHECK(tu_run("mkscene crown @/gzip-crown.ply --scale 0.01") == 0 &&
-          tu_run("raygen @/gzip-crown.ply @/gzip.rays --kind random --count 100") == 0 &&
-          tu_run("trace @/gzip-crown.ply @/gzip.rays @/gzip.hits") == 0, "cannot make rays and hits");
     check_group_interrupted(render, bin, tmp, mark, out);
     check_group_interrupted(direct, bin, tmp, mark, out);
     check_group_interrupted(batched, bin, tmp, mark, out);
@@ -1115,6 +1158,43 @@ static void test_ctrl_c_while_gzip_unpacks(void)
     check_group_interrupted(raygen, bin, tmp, mark, out);
     check_group_interrupted(voxelize, bin, tmp, mark, out);
     check_group_interrupted(hitdiff, bin, tmp, mark, out);
+}
+
+static int make_gzip_rays_and_hits(void)
+{
+    return tu_run("mkscene crown @/gzip-crown.ply --scale 0.01") == 0 &&
+           tu_run("raygen @/gzip-crown.ply @/gzip.rays --kind random --count 100") == 0 &&
+           tu_run("trace @/gzip-crown.ply @/gzip.rays @/gzip.hits") == 0;
+}
+
+/* The stand-in gzip dies of the Ctrl-C: the load fails, and the failure
+** must be reported as the interrupt. */
+static void test_ctrl_c_while_gzip_unpacks(void)
+{
+    CHECK(make_gzip_rays_and_hits(), "cannot make rays and hits");
+    tu_put("gzip-scene/mesh.ply.gz", "not unpacked: the stand-in gzip never reads it\n");
+    interrupt_every_reader("#!/bin/sh\n: > \"$BRT_TEST_MARK\"\nexec sleep 30\n",
+                           tu_put("gzip-scene/scene.pbrt", "WorldBegin\nShape \"plymesh\" \"string filename\" "
+                                  "\"mesh.ply.gz\"\n"), "gzip");
+}
+
+/* The stand-in gzip ignores the Ctrl-C and unpacks the mesh: the load
+** succeeds with the interrupt pending, and the program's next poll (the
+** build, the trace, hitdiff's referee before its first ray) must stop it
+** and leave no output, not even a complete-looking one. */
+static void test_ctrl_c_while_deaf_gzip_unpacks(void)
+{
+    char gzip[1024], real[600] = "";
+    FILE *f = popen("command -v gzip", "r");
+    CHECK(f && fgets(real, sizeof real, f) && real[0] == '/', "no gzip on the PATH");
+    pclose(f);
+    real[strcspn(real, "\n")] = 0;
+    snprintf(gzip, sizeof gzip, "#!/bin/sh\ntrap '' INT\n: > \"$BRT_TEST_MARK\"\nsleep 1\nexec %s \"$@\"\n", real);
+    CHECK(make_gzip_rays_and_hits(), "cannot make rays and hits");
+    CHECK(mkdir(tu_scratch("deaf-scene"), 0755) == 0 &&
+          tu_shell("gzip -c ", "@/gzip-crown.ply > @/deaf-scene/mesh.ply.gz", "") == 0, "cannot gzip the mesh");
+    interrupt_every_reader(gzip, tu_put("deaf-scene/scene.pbrt", "WorldBegin\nShape \"plymesh\" \"string filename\" "
+                                        "\"mesh.ply.gz\"\n"), "deaf");
 }
 
 /* trace --batched writes the bytes of --direct on every built-in scene,
@@ -1197,6 +1277,15 @@ static void test_late_failure_leaves_nothing(void)
     EXPECT(!tu_file_exists(tu_scratch("late.png")) && !tu_file_exists(tu_scratch("late-heat.png")),
            "render left its image or heat map after the statistics failed (png %d, heat map %d)",
            tu_file_exists(tu_scratch("late.png")), tu_file_exists(tu_scratch("late-heat.png")));
+    /* --compare writes two heat maps from one buffer of names: both go */
+    EXPECT(tu_run("render @/late.ply --compare --memory 50%% --scene @/late.brs --width 8 --height 6 --spp 1 "
+                  "--out @/late.png --heatmap @/late-heat.png --stats @/no-such-dir/s.json") == 1,
+           "render --compare with an unwritable --stats did not exit 1");
+    EXPECT(!tu_file_exists(tu_scratch("late.png")) && !tu_file_exists(tu_scratch("late-heat-noproxy.png")) &&
+               !tu_file_exists(tu_scratch("late-heat-proxy.png")),
+           "render --compare left an output after the statistics failed (png %d, heat maps %d %d)",
+           tu_file_exists(tu_scratch("late.png")), tu_file_exists(tu_scratch("late-heat-noproxy.png")),
+           tu_file_exists(tu_scratch("late-heat-proxy.png")));
     EXPECT(!tu_temporary_file_left(), "a temporary file was left");
     EXPECT(tu_run("render @/late.ply --width 8 --height 6 --spp 1 --out @/late.png --heatmap @/late-heat.png "
                   "--stats @/late.json") == 0 && tu_file_exists(tu_scratch("late.png")) &&
@@ -1206,7 +1295,8 @@ static void test_late_failure_leaves_nothing(void)
 
 void suite_cli(void)
 {
-    test_run("cli: --help of every program", test_help);
+test_run("cli: the source stamp sees mtime (ns and s), size and inode alone", test_source_stamp_parts);
+        test_run("cli: --help of every program", test_help);
     test_run("cli: minimal runs", test_minimal);
     test_run("cli: minimal_batched equals the direct mode and removes its scene file",
              test_minimal_batched);
@@ -1228,6 +1318,7 @@ void suite_cli(void)
     test_run("cli: a failure after the first outputs leaves none", test_late_failure_leaves_nothing);
     test_run("cli: SIGINT and SIGTERM while tracing leave no output", test_interrupts_while_tracing);
     test_run("cli: Ctrl-C while gzip unpacks a pbrt mesh says interrupted", test_ctrl_c_while_gzip_unpacks);
+    test_run("cli: Ctrl-C while a gzip that ignores it unpacks: stopped after the load", test_ctrl_c_while_deaf_gzip_unpacks);
     test_run("cli: trace --batched equals --direct on every built-in scene",
              test_builtin_scenes_batched_equals_direct);
 }
