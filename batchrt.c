@@ -4369,10 +4369,8 @@ static brt_result check_batches(const brt_scene *s, brt_error *err)
 static brt_result inner_frame(batch_entry *b, uint32_t proxy_res)
 {
     brt_grid g;
-    brt_result r;
+    brt_result r = box_valid(b->lo, b->hi) ? brt_grid_init(&g, b->lo, b->hi, inner_res(proxy_res)) : BRT_EARG;
     b->inner.res = 0;
-    if (!box_valid(b->lo, b->hi)) return BRT_OK;
-    r = brt_grid_init(&g, b->lo, b->hi, inner_res(proxy_res));
     if (r != BRT_OK) return r == BRT_ENOMEM ? r : BRT_OK;
     b->inner.res = g.res;
     memcpy(b->inner.origin, g.origin, sizeof g.origin);
