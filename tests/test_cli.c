@@ -1197,6 +1197,84 @@ static void test_ctrl_c_while_deaf_gzip_unpacks(void)
                                         "\"mesh.ply.gz\"\n"), "deaf");
 }
 
+/* One run of hitdiff --explain into DIR/ex.csv, SIGINT as soon as its
+** temporary CSV appears (the referee loop has begun); the exit status
+** (-1: it ended before the signal could land). */
+static int hitdiff_interrupted_while_refereeing(const char *dir)
+{
+    char csv[700], hits_a[600], hits_b[600], mesh[600], rays[600], path[600];
+    const char *build = getenv("BRT_BUILD");
+    int status = 0, temporary = 0;
+    long waited = 0;
+    pid_t pid;
+    snprintf(csv, sizeof csv, "%s/ex.csv", dir);
+    snprintf(hits_a, sizeof hits_a, "%s", tu_scratch("hx-a.hits"));
+    snprintf(hits_b, sizeof hits_b, "%s", tu_scratch("hx-b.hits"));
+    snprintf(mesh, sizeof mesh, "%s", tu_scratch("hx.ply"));
+    snprintf(rays, sizeof rays, "%s", tu_scratch("hx.rays"));
+    snprintf(path, sizeof path, "%s/hitdiff", build ? build : "build");
+    pid = fork();
+    if (pid == 0) {
+        int null = open("/dev/null", O_WRONLY);
+        if (null >= 0) { dup2(null, 1); dup2(null, 2); }
+        execl(path, "hitdiff", hits_a, hits_b, "--mesh", mesh, "--rays", rays, "--explain", csv, (char *)NULL);
+        _exit(127);
+    }
+    if (pid < 0) return -2;
+    while (waited < 60000 && (tu_dir_entries(dir, ".tmp.", &temporary, NULL, 0), temporary == 0) &&
+           waitpid(pid, &status, WNOHANG) == 0) {
+        tu_sleep_ms(1);
+        waited++;
+    }
+    if (temporary == 0) {   /* it ended (or never began) before the referee's file */
+        waitpid(pid, &status, 0);
+        return -1;
+    }
+    kill(pid, SIGINT);
+    if (waitpid(pid, &status, 0) != pid || !WIFEXITED(status)) return -2;
+    return WEXITSTATUS(status) == 130 ? 130 : -1;
+}
+
+/* Ctrl-C while hitdiff referees: the CSV written so far is removed, not
+** renamed into place looking whole (exit 130).  The referee must be
+** caught in its loop: some 100,000 disagreeing rays (every hit's t
+** moved by 1 %) take it about a second; a run that ends first is
+** repeated, twice. */
+static void test_hitdiff_interrupted_explain(void)
+{
+    unsigned char *hits;
+    size_t size = 0, i;
+    char dir[600];
+    int status = -1, attempt;
+    CHECK(tu_run("mkscene crown @/hx.ply --scale 0.05") == 0 &&
+          tu_run("raygen @/hx.ply @/hx.rays --kind random --count 600000") == 0 &&
+          tu_run("trace @/hx.ply @/hx.rays @/hx-a.hits") == 0, "cannot make the mesh, rays and hits");
+    CHECK((hits = tu_slurp(tu_scratch("hx-a.hits"), &size)) != NULL, "cannot read the hits");
+    for (i = 0; i + 16 <= size; i += 16) {
+        float t;
+        memcpy(&t, hits + i, 4);
+        if (isfinite(t)) t *= 1.01f;
+        memcpy(hits + i, &t, 4);
+    }
+    CHECK(tu_spill(tu_scratch("hx-b.hits"), hits, size), "cannot write the moved hits");
+    free(hits);
+    snprintf(dir, sizeof dir, "%s", tu_scratch("hx-dir"));
+    CHECK(mkdir(dir, 0755) == 0, "cannot create %s", dir);
+    for (attempt = 0; attempt < 3 && status == -1; attempt++) {
+        char csv[700];
+        snprintf(csv, sizeof csv, "%s/ex.csv", dir);
+        unlink(csv);
+        status = hitdiff_interrupted_while_refereeing(dir);
+    }
+    if (status == -1) {
+        test_skip("hitdiff ended before the signal, three times: the machine is too fast for 600,000 rays");
+        return;
+    }
+    CHECK(status == 130, "hitdiff, interrupted while refereeing: not exit 130 (%d)", status);
+    EXPECT(tu_dir_entries(dir, NULL, NULL, NULL, 0) == 0, "hitdiff left its --explain CSV (or its temporary) "
+           "after the interrupt");
+}
+
 /* trace --batched writes the bytes of --direct on every built-in scene,
 ** from a scene file built as a stream from mkscene's file (PLY and OBJ). */
 static void test_builtin_scenes_batched_equals_direct(void)
@@ -1319,6 +1397,7 @@ test_run("cli: the source stamp sees mtime (ns and s), size and inode alone", te
     test_run("cli: SIGINT and SIGTERM while tracing leave no output", test_interrupts_while_tracing);
     test_run("cli: Ctrl-C while gzip unpacks a pbrt mesh says interrupted", test_ctrl_c_while_gzip_unpacks);
     test_run("cli: Ctrl-C while a gzip that ignores it unpacks: stopped after the load", test_ctrl_c_while_deaf_gzip_unpacks);
+    test_run("cli: hitdiff interrupted while refereeing leaves no --explain file", test_hitdiff_interrupted_explain);
     test_run("cli: trace --batched equals --direct on every built-in scene",
              test_builtin_scenes_batched_equals_direct);
 }

@@ -278,6 +278,10 @@ static const state_case state_cases[] = {
     {"inc_block.pbrt", "Include is textual: a block opened in the included file closes in the main file",
      "WorldBegin\nInclude \"inc_block_t.pbrt\"\n" TRI "AttributeEnd\n" TRI,
      "inc_block_t.pbrt", "AttributeBegin\nTranslate 1 0 0\n", 2, {AT(1, 0, 0), AT(0, 0, 0)}},
+    {"inc_close.pbrt", "Include is textual: a block opened in the main file closes in the included file "
+     "(an Import's could not: e_imp_end)",
+     "WorldBegin\nAttributeBegin\nTranslate 1 0 0\nInclude \"inc_close_t.pbrt\"\n" TRI,
+     "inc_close_t.pbrt", TRI "AttributeEnd\n", 2, {AT(1, 0, 0), AT(0, 0, 0)}},
     {"inc_attr.pbrt", "an Include inside a block: AttributeEnd undoes the included Translate",
      "WorldBegin\nAttributeBegin\nInclude \"inc_attr_t.pbrt\"\nAttributeEnd\n" TRI,
      "inc_attr_t.pbrt", "Translate 1 0 0\n", 1, {AT(0, 0, 0)}},
