@@ -547,7 +547,7 @@ bench-threads: all
 	counts() { grep -v 'seconds\|mrays\|peak_rss' $$1; }; \
 	m=$$d/dragon.obj; test -s $$m || gzip -dc ../shared/data/meshes/dragon.obj.gz > $$m; \
 	$$b/raygen $$m $$d/rays --kind bounce --count 1000000 --seed 1 > /dev/null; \
-	land="landscape --scale 10 --batch-tris 10000"; \
+	land="landscape --scale 10"; \
 	img="--width 320 --height 180 --spp 8"; \
 	$$b/render $$land --width 1 --height 1 --spp 1 --scene $$d/land.brs --out $$d/x.png > /dev/null; \
 	run() { name=$$1; field=$$2; shift 2; \
