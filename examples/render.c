@@ -262,10 +262,10 @@ static void parse_options(int argc, char **argv, options *o)
     o->spp = 8;
     o->width = 320;
     o->height = 180;
-    /* trace's default too: few large points.  Small ones made every phase
-    ** of the threaded scheduler small and the build long (make
-    ** bench-threads times the default: 10000 gave 2831 points for
-    ** landscape --scale 4, and two threads were slower than one). */
+    /* trace's default too: few large points.  Small ones make every phase
+    ** of the threaded scheduler small (its synchronisation then outweighs
+    ** the walks) and the build long; make bench-threads times the
+    ** default at 1 and 2 threads. */
     o->batch_tris = 100000;
     o->res = 128;
     o->rays_in_flight = 1u << 18;

@@ -184,33 +184,35 @@ static void test_trianglemesh(void)
     ex_pbrt_close(s);
 }
 
-/* A parameter given twice: the last counts (pbrt-v4's rule), P and
-** indices alike, in either order. */
-static void test_repeated_parameter(void)
+/* The file NAME holding TEXT streams one world triangle, (0,0,0) (2,0,0)
+** (0,3,0); WHAT names the case in the message. */
+static void expect_one_triangle(const char *name, const char *text, const char *what)
 {
-    ex_pbrt *s = open_text("twice.pbrt", "WorldBegin\n"
-                           "Shape \"trianglemesh\" \"point3 P\" [9 9 9 9 9 9 9 9 9 9 9 9] \"integer indices\" [3 2 1]\n"
-                           "  \"point3 P\" [0 0 0 2 0 0 0 3 0] \"integer indices\" [0 1 2]\n");
+    ex_pbrt *s = open_text(name, text);
     tris t;
     if (!s) return;
     if (world(s, &t))
         EXPECT(t.n == 1 && corner_is(&t, 0, 0, 0, 0, 0, 0) && corner_is(&t, 0, 1, 2, 0, 0, 0)
-               && corner_is(&t, 0, 2, 0, 3, 0, 0), "P and indices given twice: %u triangles, not the last P's (0,1,2)",
+               && corner_is(&t, 0, 2, 0, 3, 0, 0), "%s: %u triangles, not (0,0,0) (2,0,0) (0,3,0)", what,
                (unsigned)t.n);
     free(t.c);
     ex_pbrt_close(s);
 }
 
+/* A parameter given twice: the last counts (pbrt-v4's rule), P and
+** indices alike. */
+static void test_repeated_parameter(void)
+{
+    expect_one_triangle("twice.pbrt", "WorldBegin\n"
+                        "Shape \"trianglemesh\" \"point3 P\" [9 9 9 9 9 9 9 9 9 9 9 9] \"integer indices\" [3 2 1]\n"
+                        "  \"point3 P\" [0 0 0 2 0 0 0 3 0] \"integer indices\" [0 1 2]\n",
+                        "P and indices given twice");
+}
+
 static void test_three_points(void)
 {
-    ex_pbrt *s = open_text("three.pbrt", "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 2 0 0 0 3 0]\n");
-    tris t;
-    if (!s) return;
-    if (world(s, &t))
-        EXPECT(t.n == 1 && corner_is(&t, 0, 0, 0, 0, 0, 0) && corner_is(&t, 0, 1, 2, 0, 0, 0)
-               && corner_is(&t, 0, 2, 0, 3, 0, 0), "3 points without indices: %u triangles, not (0,1,2)", (unsigned)t.n);
-    free(t.c);
-    ex_pbrt_close(s);
+    expect_one_triangle("three.pbrt", "WorldBegin\nShape \"trianglemesh\" \"point3 P\" [0 0 0 2 0 0 0 3 0]\n",
+                        "3 points without indices");
 }
 
 static void test_bilinear(void)
