@@ -11,6 +11,7 @@
 */
 #include "test.h"
 #include "util.h"
+#include "../examples/common.h"
 #include "batchrt.h"
 
 #include <errno.h>
@@ -1255,6 +1256,12 @@ static void test_io_stats_json(void)
                                          "\"proxy_culled\": 10,",
                                          "\"queued_visits\": 11,",
                                          "\"oversized_loads\": 12,",
+                                         "\"visits\": 13,", "\"resident_visits\": 14,",
+                                         "\"shadow_rays\": 15,", "\"shadow_occluded\": 16,",
+                                         "\"shadow_batch_loads\": 17,", "\"shadow_disk_bytes_read\": 18,",
+                                         "\"peak_rss_bytes\": 19,", "\"shadow_inner_stopped\": 20,",
+                                         "\"prototype_loads\": 21,", "\"decoded_bytes\": 22,",
+                                         "\"load_seconds\": 0.125,",
                                          "\"seconds\": 1.5,",
                                          "\"build_seconds\": 0.25,",
                                          "\"bvh_bytes_per_triangle\": 40,",
@@ -1273,6 +1280,17 @@ static void test_io_stats_json(void)
     s.proxy_culled = 10;
     s.queued_visits = 11;
     s.oversized_loads = 12;
+    s.visits = 13;
+    s.resident_visits = 14;
+    s.shadow_rays = 15;
+    s.shadow_occluded = 16;
+    s.shadow_batch_loads = 17;
+    s.shadow_disk_bytes_read = 18;
+    s.peak_rss_bytes = 19;
+    s.shadow_inner_stopped = 20;
+    s.prototype_loads = 21;
+    s.decoded_bytes = 22;
+    s.load_seconds = 0.125;
     s.seconds = 1.5;
     s.build_seconds = 0.25;
     s.bvh_bytes_per_triangle = 40.0;
@@ -1288,6 +1306,32 @@ static void test_io_stats_json(void)
     EXPECT(text[0] == '{', "not an object: %s", text);
     for (i = 0; i < sizeof fields / sizeof fields[0]; i++)
         EXPECT(strstr(text, fields[i]), "'%s' missing in:\n%s", fields[i], text);
+    free(text);
+}
+
+/* A program's statistics (ex_stats_write) are the library's object with
+** its own fields added before the closing brace, byte for byte, and the
+** library's object alone when it has none. */
+static void test_program_stats_json(void)
+{
+    brt_stats s;
+    char lib[BRT_STATS_JSON_BYTES + 64], *text;
+    size_t used;
+    brt_error err;
+    const char *path = scratch_path("program.json");
+    memset(&s, 0, sizeof s);
+    s.rays = 3;
+    s.mrays_per_second = 0;   /* the shortest last value: one character */
+    used = brt_stats_format_json(&s, lib);
+    CHECK(used > 3 && strcmp(lib + used - 3, "\n}\n") == 0, "the library's object does not end \"\\n}\\n\"");
+    CHECK(ex_stats_write(path, &s, "", &err) == BRT_OK, "%s", err.message);
+    text = (char *)tu_slurp(path, NULL);
+    EXPECT(text && strcmp(text, lib) == 0, "no fields of its own, but not the library's object:\n%s", text ? text : "");
+    free(text);
+    CHECK(ex_stats_write(path, &s, "  \"spp\": 4", &err) == BRT_OK, "%s", err.message);
+    text = (char *)tu_slurp(path, NULL);
+    snprintf(lib + used - 3, sizeof lib - (used - 3), ",\n  \"spp\": 4\n}\n");
+    EXPECT(text && strcmp(text, lib) == 0, "the program's fields not spliced before the brace:\n%s", text ? text : "");
     free(text);
 }
 
@@ -1333,4 +1377,5 @@ void suite_mesh(void)
     test_run("io: one of each utility", test_io_utilities);
     test_run("io: atomic file", test_io_atomic_file);
     test_run("io: stats json", test_io_stats_json);
+    test_run("io: a program's stats: the library's object, its fields before the brace", test_program_stats_json);
 }

@@ -700,8 +700,28 @@ static void test_exact_open_sphere(void)
                     expect);
 }
 
+/* render cuts batching points of 100000 triangles by default, as trace:
+** on the crown at scale 0.3 (about 30 000 triangles) that is the
+** scene file --batch-tris 100000 makes, not the one of 10000. */
+static void test_default_point_size(void)
+{
+    const char *args = "crown --scale 0.3 --width 4 --height 4 --spp 1 --res 8";
+    double points, hundred_k, ten_k;
+    CHECK(tu_run("render %s --scene @/dp.brs --out @/dp.png --stats @/dp.json", args) == 0, "render: %s",
+          tu_last_stderr());
+    CHECK(tu_run("render %s --batch-tris 100000 --scene @/dp1.brs --out @/dp.png --stats @/dp1.json", args) == 0 &&
+          tu_run("render %s --batch-tris 10000 --scene @/dp2.brs --out @/dp.png --stats @/dp2.json", args) == 0,
+          "render: %s", tu_last_stderr());
+    points = tu_json_file_number(tu_scratch("dp.json"), "batching_points");
+    hundred_k = tu_json_file_number(tu_scratch("dp1.json"), "batching_points");
+    ten_k = tu_json_file_number(tu_scratch("dp2.json"), "batching_points");
+    CHECK(ten_k > hundred_k, "the scene is too small to tell the sizes apart (%g and %g points)", ten_k, hundred_k);
+    EXPECT(points == hundred_k, "default: %g batching points, --batch-tris 100000: %g", points, hundred_k);
+}
+
 void suite_render(void)
 {
+    test_run("render: batching points of 100000 triangles by default, as trace", test_default_point_size);
     test_run("render: help", test_help);
     test_run("render: same image in every mode", test_same_image_every_mode);
     test_run("render: same image from a mesh file", test_same_image_mesh_file);
