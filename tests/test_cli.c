@@ -1028,13 +1028,18 @@ static void check_interrupted(const char *const *argv, const char *dir, int sign
 static void test_interrupts_leave_nothing(void)
 {
     char mk_dir[512], mk_out[600], r_dir[512], r_scene[600], r_out[600];
-    const char *mkscene[] = {"mkscene", "landscape", mk_out, "--scale", "200", NULL};
+    const char *mkscene[] = {"mkscene", "landscape", mk_out, "--scale", "200", NULL};   /* then island, pbrt */
     const char *render[] = {"render", "landscape", "--scale", "10", "--res", "16", "--width", "320",
                             "--height", "200", "--spp", "64", "--scene", r_scene, "--out", r_out,
                             NULL};
     snprintf(mk_dir, sizeof mk_dir, "%s", tu_scratch("mkscene-interrupted"));
     snprintf(mk_out, sizeof mk_out, "%s/big.ply", mk_dir);
     check_interrupted(mkscene, mk_dir, SIGTERM, 10000, NULL);
+    /* the pbrt writer (the instanced scenes' own path) too: seconds of output */
+    snprintf(mk_out, sizeof mk_out, "%s/big.pbrt", mk_dir);
+    mkscene[1] = "island";
+    mkscene[4] = "20";
+    check_interrupted(mkscene, mk_dir, SIGINT, 10000, NULL);
     snprintf(r_dir, sizeof r_dir, "%s", tu_scratch("render-interrupted"));
     snprintf(r_scene, sizeof r_scene, "%s/scene.brs", r_dir);
     snprintf(r_out, sizeof r_out, "%s/image.png", r_dir);
