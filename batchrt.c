@@ -2142,12 +2142,12 @@ static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budge
     return BRT_OK;
 }
 
-static int cache_ahead_take(geometry_cache *c, uint32_t id);
+static void cache_ahead_drop(geometry_cache *c);
 
 static void cache_free(geometry_cache *c)
 {
     uint32_t i;
-    cache_ahead_take(c, NO_ENTRY);
+    cache_ahead_drop(c);
     for (i = 0; c->entries && i < c->entry_count; i++) {
         view_free(&c->entries[i].view);
         blob_free(c->scene, i, c->entries[i].data);
@@ -2256,12 +2256,16 @@ static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *byte
 ** next load: cache_read_ahead).  The schedule does not change: when the
 ** scheduler then asks for that blob, cache_load takes the buffer read
 ** ahead instead of reading (the same bytes, counted then, as a load of
-** the same size would be); when it asks for another, the buffer is
-** dropped uncounted.  So every count is the one-thread count, and only
-** the wall time differs.  The buffer is held beside the budget: one blob
-** more at most (README, "Threads").  read_fn is never called by two
-** threads at once: the read-ahead is joined before any other read.  (A
-** point of instances' prototypes are not read ahead.)
+** the same size would be).  When it asks for another blob first, the
+** buffer is kept for later: the guess is most often late, not wrong (a
+** point whose queue was fullest is served a few batches on), and reading
+** it again would spend the disk twice.  It is dropped uncounted when a
+** new guess replaces it.  So every count is the one-thread count, and
+** only the wall time differs.  The buffer, running or kept, is held
+** beside the budget: one blob more at most (README, "Threads").  read_fn
+** is never called by two threads at once: a running read-ahead is joined
+** before any other read.  (A point of instances' prototypes are not read
+** ahead.)
 */
 static void *ahead_main(void *arg)
 {
@@ -2272,34 +2276,52 @@ static void *ahead_main(void *arg)
     return NULL;
 }
 
-/* Starts reading blob id ahead, unless it is in memory or a read-ahead is
-** under way. */
+/* Waits for a running read-ahead; a failed one leaves no buffer (the
+** scheduler's own read will meet the failure, and report it). */
+static void cache_ahead_join(geometry_cache *c)
+{
+    if (!c->ahead_running) return;
+    pthread_join(c->ahead_thread, NULL);
+    c->ahead_running = 0;
+    if (c->ahead_result != BRT_OK) c->ahead_id = NO_ENTRY;   /* blob_read freed its buffer */
+}
+
+/* Drops the buffer read ahead, if any, uncounted. */
+static void cache_ahead_drop(geometry_cache *c)
+{
+    cache_ahead_join(c);
+    if (c->ahead_id == NO_ENTRY) return;
+    view_free(&c->ahead_view);
+    blob_free(c->scene, c->ahead_id, c->ahead_data);
+    c->ahead_id = NO_ENTRY;
+}
+
+/* Starts reading blob id ahead, unless it is in memory, already read
+** ahead, or a read-ahead is under way; a kept buffer of another blob is
+** dropped for it. */
 static void cache_read_ahead(geometry_cache *c, uint32_t id)
 {
-    if (!c->read_ahead || c->ahead_running || c->entries[id].data) return;
+    if (!c->read_ahead || id == NO_ENTRY || c->ahead_running || c->entries[id].data || c->ahead_id == id)
+        return;
+    cache_ahead_drop(c);
     c->ahead_id = id;
     c->ahead_bytes = 0;
     c->ahead_data = NULL;
     c->ahead_view.bvh = NULL;
     c->ahead_view.set = NULL;
     c->ahead_running = pthread_create(&c->ahead_thread, NULL, ahead_main, c) == 0;
+    if (!c->ahead_running) c->ahead_id = NO_ENTRY;
 }
 
-/* Waits for the read-ahead, if any: 1 when it read blob id without error
-** (its buffer and view are then the caller's), else 0 (dropped). */
+/* 1 when blob id was read ahead without error: its buffer and view are
+** then the caller's.  Else 0, with any running read-ahead joined, so
+** that the caller may read. */
 static int cache_ahead_take(geometry_cache *c, uint32_t id)
 {
-    int ok;
-    if (!c->ahead_running) return 0;
-    pthread_join(c->ahead_thread, NULL);
-    c->ahead_running = 0;
-    ok = c->ahead_id == id && c->ahead_result == BRT_OK;
-    if (!ok) {
-        view_free(&c->ahead_view);
-        blob_free(c->scene, c->ahead_id, c->ahead_data);
-    }
+    cache_ahead_join(c);
+    if (c->ahead_id != id) return 0;
     c->ahead_id = NO_ENTRY;
-    return ok;
+    return 1;
 }
 
 /* Layer 9, decoded points in core: a BVH blob just loaded is decoded to
@@ -6946,6 +6968,24 @@ static void uses_replay(scheduler *s)
     for (k = 0; k < n; k++) cache_touch(&s->cache, t->uses[k].id);
 }
 
+#define AHEAD_LOOK 15   /* heap slots searched for the next load: the top
+                         ** four levels hold the fullest queues (a guess
+                         ** costs no decision, so the search stays short) */
+
+/* Layer 4's guess of the next load: the fullest queue whose batching
+** point is not in memory, among the heap's first AHEAD_LOOK slots (a
+** resident point is served without a load, so the fullest queue alone
+** is often no load at all); NO_ENTRY when there is none. */
+static uint32_t next_load_guess(const scheduler *s)
+{
+    uint64_t best = UINT64_MAX;
+    uint32_t i;
+    for (i = 0; i < s->fullest.size && i < AHEAD_LOOK; i++)
+        if (s->fullest.keys[i] < best && !s->cache.entries[(uint32_t)s->fullest.keys[i]].data)
+            best = s->fullest.keys[i];
+    return best == UINT64_MAX ? NO_ENTRY : (uint32_t)best;
+}
+
 #define PHASE_CHUNK 64   /* rays per chunk: many chunks per phase, each far
                          ** longer than a take from the shared counter
                          ** (make bench-threads times the phases) */
@@ -6958,8 +6998,7 @@ static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count
 {
     phase_job j;
     unsigned i;
-    if (id != NO_ENTRY && s->fullest.size > 0)                          /* layer 4 */
-        cache_read_ahead(&s->cache, (uint32_t)s->fullest.keys[0]);
+    cache_read_ahead(&s->cache, next_load_guess(s));                    /* layer 4 */
     j.s = s;
     j.slots = slots;
     j.g = g;

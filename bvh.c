@@ -1316,6 +1316,7 @@ void brt_instance_bounds(const brt_instance *instance, const brt_instance_frame 
                          float lo[3], float hi[3], float *radius)
 {
     double far = 0.0;
+    float low[3] = {INFINITY, INFINITY, INFINITY}, high[3] = {-INFINITY, -INFINITY, -INFINITY};
     int corner, a;
     for (a = 0; a < 3; a++) { lo[a] = INFINITY; hi[a] = -INFINITY; }
     if (!(obj_lo[0] <= obj_hi[0])) { *radius = 0.0f; return; }   /* empty prototype */
@@ -1325,12 +1326,19 @@ void brt_instance_bounds(const brt_instance *instance, const brt_instance_frame 
         for (a = 0; a < 3; a++) {
             const float *r = instance->xform + 4 * a;
             const double rel = r[0] * p[0] + r[1] * p[1] + r[2] * p[2];
-            const double w = rel + r[3];
-            /* float(w) may round inwards: step outwards once more. */
-            const float down = nextafterf((float)w, -INFINITY), up = nextafterf((float)w, INFINITY);
-            if (down < lo[a]) lo[a] = down;
-            if (up > hi[a]) hi[a] = up;
+            const float w = (float)(rel + r[3]);
+            if (w < low[a]) low[a] = w;
+            if (w > high[a]) high[a] = w;
             if (fabs(rel) > far) far = fabs(rel);
+        }
+    }
+    /* float(w) may round inwards: step the extremes outwards once more.
+    ** nextafterf is monotone, so stepping the least and the greatest
+    ** corner is stepping every corner and keeping the extremes. */
+    for (a = 0; a < 3; a++) {
+        if (low[a] <= high[a]) {
+            lo[a] = nextafterf(low[a], -INFINITY);
+            hi[a] = nextafterf(high[a], INFINITY);
         }
     }
     /* A relative 2^-20 covers the rounding of the box outwards; the last
