@@ -39,6 +39,7 @@
 */
 #include "common.h"
 #include "input.h"
+#include "tracer.h"
 
 #include <embree3/rtcore.h>
 
@@ -51,11 +52,8 @@
 static const char *const prog = "embree_trace";
 
 typedef struct embree_options {
-    const char *mesh, *rays, *hits;  /* the three positional arguments */
+    ex_tracer_options t;             /* the options of every tracer (tracer.h) */
     int robust;                      /* RTC_SCENE_FLAG_ROBUST */
-    const char *stats;               /* --stats FILE.json, or NULL */
-    int verbose;                     /* summary line even when not a tty */
-    int occlusion;                   /* rtcOccluded1, one byte per ray */
 } embree_options;
 
 static void usage(void)
@@ -93,31 +91,29 @@ static int is_batched_option(const char *arg)
     return 0;
 }
 
+/* embree_trace's own options, beside every tracer's (ex_tracer_parse). */
+static int own_option(void *user, int argc, char **argv, int *i)
+{
+    embree_options *o = user;
+    const char *a = argv[*i];
+    (void)argc;
+    if (strcmp(a, "--direct") == 0) return 1;
+    if (strcmp(a, "--robust") == 0) {
+        o->robust = 1;
+        return 1;
+    }
+    if (is_batched_option(a))
+        ex_die(prog, "%s: not supported: Embree traces in memory (use build/trace for "
+               "the batched mode)", a);
+    return 0;
+}
+
 static void parse_options(int argc, char **argv, embree_options *o)
 {
-    const char **positional[3];
-    int i, npos = 0;
+    ex_tracer_command c = {prog, "MESH RAYS HITS", 0, 0, own_option, NULL};
     memset(o, 0, sizeof *o);
-    positional[0] = &o->mesh;
-    positional[1] = &o->rays;
-    positional[2] = &o->hits;
-    for (i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (strcmp(a, "--direct") == 0) continue;
-        else if (strcmp(a, "--robust") == 0) o->robust = 1;
-        else if (strcmp(a, "--verbose") == 0) o->verbose = 1;
-        else if (strcmp(a, "--occlusion") == 0) o->occlusion = 1;
-        else if (strcmp(a, "--stats") == 0) o->stats = ex_option_value(prog, argc, argv, &i);
-        else if (is_batched_option(a))
-            ex_die(prog, "%s: not supported: Embree traces in memory (use build/trace for "
-                   "the batched mode)", a);
-        else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
-        else if (npos < 3) *positional[npos++] = a;
-        else ex_die(prog, "unexpected argument '%s' (see --help)", a);
-    }
-    if (npos < 3)
-        ex_die(prog, "expected MESH RAYS HITS, got %d file name%s (see --help)",
-               npos, npos == 1 ? "" : "s");
+    c.user = o;
+    ex_tracer_parse(&c, argc, argv, &o->t);
 }
 
 /* Embree reports errors through a callback; every one is fatal here. */
@@ -380,24 +376,24 @@ int main(int argc, char **argv)
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
-    ex_check(prog, brt_rays_read(o.rays, &rays, &count, &err), &err);
-    check_rays(o.rays, rays, count);
-    if (o.occlusion) occluded = malloc(count ? count : 1);
+    ex_check(prog, brt_rays_read(o.t.rays, &rays, &count, &err), &err);
+    check_rays(o.t.rays, rays, count);
+    if (o.t.occlusion) occluded = malloc(count ? count : 1);
     else hits = malloc((count ? count : 1) * sizeof *hits);
-    if (!hits && !occluded) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
-    ex_input_open(prog, o.mesh, &input);
+    if (!hits && !occluded) ex_die(prog, "%s: out of memory for %lu hits", o.t.hits, (unsigned long)count);
+    ex_input_open(prog, o.t.input, &input);
 
     memset(&stats, 0, sizeof stats);
     stats.rays = count;
     trace_all(&o, &input, rays, count, hits, occluded, &stats);
     if (stats.seconds > 0) stats.mrays_per_second = (double)count / stats.seconds * 1e-6;
 
-    if (occluded) ex_check(prog, brt_write_file_atomic(o.hits, occluded, count, &err), &err);
-    else ex_check(prog, ex_input_write_hits(&input, o.hits, hits, count, &err), &err);
+    if (occluded) ex_check(prog, brt_write_file_atomic(o.t.hits, occluded, count, &err), &err);
+    else ex_check(prog, ex_input_write_hits(&input, o.t.hits, hits, count, &err), &err);
     ex_input_close(&input);
     stats.peak_rss_bytes = brt_peak_rss_bytes();
-    if (o.stats) ex_check(prog, brt_stats_write_json(o.stats, &stats, &err), &err);
-    if (o.verbose || isatty(2)) {
+    if (o.t.stats) ex_check(prog, brt_stats_write_json(o.t.stats, &stats, &err), &err);
+    if (o.t.verbose || isatty(2)) {
         for (i = 0; hits && i < count; i++) hit_count += hits[i].prim != BRT_NO_PRIM;
         hit_count += stats.shadow_occluded;
         fprintf(stderr, "embree_trace: %llu rays, %llu %s, build %.3f s, trace %.3f s, "

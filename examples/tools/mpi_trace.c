@@ -47,6 +47,7 @@
 
 #include "common.h"
 #include "input.h"
+#include "tracer.h"
 
 #include <errno.h>
 #include <fcntl.h>
@@ -78,10 +79,9 @@ enum { TAG_RAYS = 1, TAG_FINISHED, TAG_DONE, TAG_RESULTS };
 /* ---- options ------------------------------------------------------------ */
 
 typedef struct options {
-    const char *input, *rays, *hits, *scene, *stats;
-    uint64_t memory, batch_tris, res, net_speed, disk_speed, rays_in_flight;
-    int no_proxy, occlusion, round_robin, paper_scheduler, verbose;
-    unsigned threads;
+    ex_tracer_options t;             /* the options of every tracer (tracer.h) */
+    uint64_t net_speed, disk_speed;  /* --net-speed, --disk-speed: bytes a second; 0: unmodelled */
+    int round_robin;                 /* --assign round-robin */
 } options;
 
 static void usage(void)
@@ -115,54 +115,34 @@ static void usage(void)
            "Exit status 0 on success, 1 on bad input or a failed rank (no file is written).\n");
 }
 
+/* mpi_trace's own options, beside every tracer's (ex_tracer_parse). */
+static int own_option(void *user, int argc, char **argv, int *i)
+{
+    options *o = user;
+    const char *a = argv[*i];
+    if (strcmp(a, "--disk-speed") == 0)
+        o->disk_speed = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, i));
+    else if (strcmp(a, "--net-speed") == 0)
+        o->net_speed = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, i));
+    else if (strcmp(a, "--assign") == 0) {
+        const char *v = ex_option_value(prog, argc, argv, i);
+        if (strcmp(v, "runs") == 0) o->round_robin = 0;
+        else if (strcmp(v, "round-robin") == 0) o->round_robin = 1;
+        else ex_die(prog, "--assign: expected runs or round-robin, got '%s'", v);
+    }
+    else return 0;
+    return 1;
+}
+
 static void parse_options(int argc, char **argv, options *o)
 {
-    const char **positional[3];
-    int i, npos = 0;
+    ex_tracer_command c = {prog, "SCENE RAYS HITS", 1, (uint64_t)1 << 24, own_option, NULL};
     memset(o, 0, sizeof *o);
-    o->memory = (uint64_t)1 << 30;
-    o->batch_tris = 100000;
-    o->res = 128;
-    o->threads = 1;
-    o->rays_in_flight = (uint64_t)1 << 18;
-    positional[0] = &o->input;
-    positional[1] = &o->rays;
-    positional[2] = &o->hits;
-    for (i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (strcmp(a, "--occlusion") == 0) o->occlusion = 1;
-        else if (strcmp(a, "--no-proxy") == 0) o->no_proxy = 1;
-        else if (strcmp(a, "--paper-scheduler") == 0) o->paper_scheduler = 1;
-        else if (strcmp(a, "--verbose") == 0) o->verbose = 1;
-        else if (strcmp(a, "--memory") == 0)
-            o->memory = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
-        else if (strcmp(a, "--disk-speed") == 0)
-            o->disk_speed = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
-        else if (strcmp(a, "--net-speed") == 0)
-            o->net_speed = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
-        else if (strcmp(a, "--batch-tris") == 0)
-            o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, UINT32_MAX);
-        else if (strcmp(a, "--res") == 0)
-            o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
-        else if (strcmp(a, "--rays-in-flight") == 0)
-            o->rays_in_flight = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, (uint64_t)1 << 24);
-        else if (strcmp(a, "--threads") == 0)
-            o->threads = (unsigned)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 0,
-                                                BRT_MAX_THREADS);
-        else if (strcmp(a, "--assign") == 0) {
-            const char *v = ex_option_value(prog, argc, argv, &i);
-            if (strcmp(v, "runs") == 0) o->round_robin = 0;
-            else if (strcmp(v, "round-robin") == 0) o->round_robin = 1;
-            else ex_die(prog, "--assign: expected runs or round-robin, got '%s'", v);
-        }
-        else if (strcmp(a, "--scene") == 0) o->scene = ex_option_value(prog, argc, argv, &i);
-        else if (strcmp(a, "--stats") == 0) o->stats = ex_option_value(prog, argc, argv, &i);
-        else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
-        else if (npos < 3) *positional[npos++] = a;
-        else ex_die(prog, "unexpected argument '%s' (see --help)", a);
-    }
-    if (npos < 3)
-        ex_die(prog, "expected SCENE RAYS HITS, got %d file name%s (see --help)", npos, npos == 1 ? "" : "s");
+    ex_tracer_defaults(&o->t);
+    o->t.threads = 1;
+    o->t.rays_in_flight = (uint64_t)1 << 18;
+    c.user = o;
+    ex_tracer_parse(&c, argc, argv, &o->t);
 }
 
 /* ---- failures --------------------------------------------------------------- */
@@ -565,7 +545,7 @@ static void stats_write(const options *o, const uint64_t *all, double seconds)
     used = (size_t)snprintf(json, room,
                             "{\n  \"ranks\": %d,\n  \"proxies\": %d,\n  \"assign\": \"%s\",\n"
                             "  \"seconds\": %.6f,\n  \"total\": {\n",
-                            rank_count, !o->no_proxy, o->round_robin ? "round-robin" : "runs", seconds);
+                            rank_count, !o->t.no_proxy, o->round_robin ? "round-robin" : "runs", seconds);
     used += stats_object(sum, json + used, room - used, "    ");
     used += (size_t)snprintf(json + used, room - used, "  },\n  \"per_rank\": [\n");
     for (k = 0; k < rank_count; k++) {
@@ -574,12 +554,12 @@ static void stats_write(const options *o, const uint64_t *all, double seconds)
         used += (size_t)snprintf(json + used, room - used, "    }%s\n", k + 1 < rank_count ? "," : "");
     }
     used += (size_t)snprintf(json + used, room - used, "  ]\n}\n");
-    if (brt_write_file_atomic(o->stats, json, used, &err) != BRT_OK) {
-        unlink(o->hits);   /* a failed run leaves no output */
+    if (brt_write_file_atomic(o->t.stats, json, used, &err) != BRT_OK) {
+        unlink(o->t.hits);   /* a failed run leaves no output */
         ex_die(prog, "%s", err.message);
     }
     free(json);
-    if (o->verbose || isatty(2))
+    if (o->t.verbose || isatty(2))
         fprintf(stderr, "mpi_trace: %d ranks, %llu rays, %llu sent in %llu messages (%llu bytes), "
                 "%llu loads, %.3f s\n", rank_count, (unsigned long long)stat_named(sum, "rays_started"),
                 (unsigned long long)stat_named(sum, "rays_sent"),
@@ -594,24 +574,24 @@ static void stats_write(const options *o, const uint64_t *all, double seconds)
 ** builds or reuses for the mesh or pbrt file, as trace --batched does. */
 static const char *prepare_scene(const options *o, char *path, size_t size)
 {
-    size_t len = strlen(o->input);
-    if (len > 4 && strcmp(o->input + len - 4, ".brs") == 0) return o->input;
-    if (o->scene) snprintf(path, size, "%s", o->scene);
-    else ex_default_scene_path(prog, o->input, (uint32_t)o->batch_tris, (uint32_t)o->res, path, size);
+    size_t len = strlen(o->t.input);
+    const char *scene;
+    if (len > 4 && strcmp(o->t.input + len - 4, ".brs") == 0) return o->t.input;
+    scene = ex_tracer_scene_path(prog, &o->t, path, size);
     if (my_rank == 0) {
         brt_scene_options scene_opt;
         ex_input in;
         int rebuilt;
         memset(&scene_opt, 0, sizeof scene_opt);
-        scene_opt.batch_tris = (uint32_t)o->batch_tris;
-        scene_opt.proxy_res = (uint32_t)o->res;
+        scene_opt.batch_tris = (uint32_t)o->t.batch_tris;
+        scene_opt.proxy_res = (uint32_t)o->t.res;
         scene_opt.interrupt = ex_catch_interrupts();
-        ex_input_open(prog, o->input, &in);
-        brt_scene_close(ex_input_scene(prog, &in, path, &scene_opt, &rebuilt));
+        ex_input_open(prog, o->t.input, &in);
+        brt_scene_close(ex_input_scene(prog, &in, scene, &scene_opt, &rebuilt));
         ex_input_close(&in);
     }
     MPI_Barrier(MPI_COMM_WORLD);
-    return path;
+    return scene;
 }
 
 /* The scene, the rays and the owners, each rank's, agreed on. */
@@ -625,7 +605,7 @@ static brt_scene *open_everything(const options *o, brt_ray **rays, size_t *coun
     if (injected("open")) failure = "injected failure: the scene file does not open";
     else if (brt_scene_open(path, &scene, &err) != BRT_OK) failure = err.message;
     agree(failure);
-    if (brt_rays_read(o->rays, rays, count, &err) != BRT_OK) failure = err.message;
+    if (brt_rays_read(o->t.rays, rays, count, &err) != BRT_OK) failure = err.message;
     agree(failure);
     *owner = malloc(((size_t)brt_scene_batch_count(scene) + 1) * sizeof **owner);
     if (!*owner) failure = "out of memory for the owners";
@@ -639,17 +619,17 @@ static void write_output(const options *o, const brt_scene *scene, const brt_hit
 {
     brt_error err;
     brt_result r;
-    if (o->occlusion) {
+    if (o->t.occlusion) {
         uint8_t *bytes = malloc(count ? count : 1);
         size_t i;
         if (!bytes) ex_die(prog, "out of memory for %lu occlusion bytes", (unsigned long)count);
         for (i = 0; i < count; i++) bytes[i] = hits[i].prim != BRT_NO_PRIM;
-        r = brt_write_file_atomic(o->hits, bytes, count, &err);
+        r = brt_write_file_atomic(o->t.hits, bytes, count, &err);
         free(bytes);
     } else if (brt_scene_prototype_count(scene) > 0) {
-        r = brt_hits_write_instanced(o->hits, hits, count, &err);
+        r = brt_hits_write_instanced(o->t.hits, hits, count, &err);
     } else {
-        r = brt_hits_write(o->hits, hits, count, &err);
+        r = brt_hits_write(o->t.hits, hits, count, &err);
     }
     ex_check(prog, r, &err);
 }
@@ -695,18 +675,14 @@ int main(int argc, char **argv)
     sh.rays = rays;
     sh.next = count * (size_t)my_rank / (size_t)rank_count;
     sh.end = count * ((size_t)my_rank + 1) / (size_t)rank_count;
-    sh.occlusion = o.occlusion;
+    sh.occlusion = o.t.occlusion;
     sh.net = &net;
     exchange.foreign = foreign;
     exchange.send = net_send;
     exchange.receive = net_receive;
     exchange.user = &net;
     memset(&opt, 0, sizeof opt);
-    opt.memory_limit = o.memory;
-    opt.no_proxy = o.no_proxy;
-    opt.paper_scheduler = o.paper_scheduler;
-    opt.threads = o.threads;
-    opt.rays_in_flight = (uint32_t)o.rays_in_flight;
+    ex_tracer_trace_options(&o.t, &opt);
     opt.exchange = &exchange;
     opt.interrupt = ex_catch_interrupts();
     if (o.disk_speed) {
@@ -734,7 +710,7 @@ int main(int argc, char **argv)
     if (my_rank == 0) {
         if (ex_interrupted()) ex_die_interrupted(prog);
         write_output(&o, scene, hits, count);
-        if (o.stats) stats_write(&o, all, brt_seconds() - start);
+        if (o.t.stats) stats_write(&o, all, brt_seconds() - start);
     }
     brt_scene_close(scene);
     free(hits);

@@ -37,6 +37,7 @@
 */
 #include "common.h"
 #include "input.h"
+#include "tracer.h"
 
 #include <errno.h>
 #include <stdio.h>
@@ -47,24 +48,12 @@
 static const char *const prog = "trace";
 
 typedef struct trace_options {
-    const char *mesh, *rays, *hits;  /* the three positional arguments */
+    ex_tracer_options t;             /* the options of every tracer (tracer.h) */
     int batched;                     /* --batched instead of --direct */
-    uint64_t batch_tris;             /* triangles per batching point */
-    uint64_t rays_in_flight;         /* batched; 0: the library's default */
-    uint64_t res;                    /* proxy resolution, a power of two */
-    int no_proxy;                    /* batched without proxies */
     int no_inner;                    /* batched without inner proxies */
     int no_decode;                   /* batched without decoded points (layer 9) */
-    uint64_t memory;                 /* geometry-cache budget in bytes */
-    int memory_given;                /* --memory was on the command line */
-    const char *scene;               /* scene file of the batched mode */
     int rebuild;                     /* rebuild the scene file even if current */
     int drop_os_cache;               /* cold reads (brt_trace_options) */
-    const char *stats;               /* --stats FILE.json, or NULL */
-    int verbose;                     /* summary line even when not a tty */
-    int occlusion;                   /* --occlusion: one byte per ray */
-    unsigned threads;                /* --threads; 0: all cores */
-    int paper_scheduler;             /* --paper-scheduler (brt_trace_options) */
     int follow_given;                /* --follow N */
     uint64_t follow;                 /* the ray followed */
 } trace_options;
@@ -109,56 +98,32 @@ static void usage(void)
            "bad input (nothing is written then).\n");
 }
 
+/* trace's own options, beside every tracer's (ex_tracer_parse). */
+static int own_option(void *user, int argc, char **argv, int *i)
+{
+    trace_options *o = user;
+    const char *a = argv[*i];
+    if (strcmp(a, "--direct") == 0) o->batched = 0;
+    else if (strcmp(a, "--batched") == 0) o->batched = 1;
+    else if (strcmp(a, "--no-inner") == 0) o->no_inner = 1;
+    else if (strcmp(a, "--no-decode") == 0) o->no_decode = 1;
+    else if (strcmp(a, "--rebuild") == 0) o->rebuild = 1;
+    else if (strcmp(a, "--drop-os-cache") == 0) o->drop_os_cache = 1;
+    else if (strcmp(a, "--follow") == 0) {
+        o->follow = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, i), 0, UINT64_MAX >> 1);
+        o->follow_given = 1;
+    }
+    else return 0;
+    return 1;
+}
+
 static void parse_options(int argc, char **argv, trace_options *o)
 {
-    const char **positional[3];
-    int i, npos = 0;
+    ex_tracer_command c = {prog, "MESH RAYS HITS", 1, 1u << 26, own_option, NULL};
     memset(o, 0, sizeof *o);
-    o->batch_tris = 100000;
-    o->res = 128;
-    o->memory = (uint64_t)1 << 30;
-    positional[0] = &o->mesh;
-    positional[1] = &o->rays;
-    positional[2] = &o->hits;
-    for (i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (strcmp(a, "--direct") == 0) o->batched = 0;
-        else if (strcmp(a, "--batched") == 0) o->batched = 1;
-        else if (strcmp(a, "--no-proxy") == 0) o->no_proxy = 1;
-        else if (strcmp(a, "--no-inner") == 0) o->no_inner = 1;
-        else if (strcmp(a, "--no-decode") == 0) o->no_decode = 1;
-        else if (strcmp(a, "--verbose") == 0) o->verbose = 1;
-        else if (strcmp(a, "--occlusion") == 0) o->occlusion = 1;
-        else if (strcmp(a, "--rebuild") == 0) o->rebuild = 1;
-        else if (strcmp(a, "--drop-os-cache") == 0) o->drop_os_cache = 1;
-        else if (strcmp(a, "--paper-scheduler") == 0) o->paper_scheduler = 1;
-        else if (strcmp(a, "--follow") == 0) {
-            o->follow = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX >> 1);
-            o->follow_given = 1;
-        }
-        else if (strcmp(a, "--rays-in-flight") == 0)
-            o->rays_in_flight = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, 1u << 26);
-        else if (strcmp(a, "--batch-tris") == 0)
-            o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i),
-                                         1, UINT32_MAX);
-        else if (strcmp(a, "--res") == 0)
-            o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
-        else if (strcmp(a, "--memory") == 0) {
-            o->memory = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, &i));
-            o->memory_given = 1;
-        }
-        else if (strcmp(a, "--threads") == 0)
-            o->threads = (unsigned)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i),
-                                                0, BRT_MAX_THREADS);
-        else if (strcmp(a, "--scene") == 0) o->scene = ex_option_value(prog, argc, argv, &i);
-        else if (strcmp(a, "--stats") == 0) o->stats = ex_option_value(prog, argc, argv, &i);
-        else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
-        else if (npos < 3) *positional[npos++] = a;
-        else ex_die(prog, "unexpected argument '%s' (see --help)", a);
-    }
-    if (npos < 3)
-        ex_die(prog, "expected MESH RAYS HITS, got %d file name%s (see --help)",
-               npos, npos == 1 ? "" : "s");
+    ex_tracer_defaults(&o->t);
+    c.user = o;
+    ex_tracer_parse(&c, argc, argv, &o->t);
     if (o->follow_given && !o->batched)
         ex_die(prog, "--follow needs --batched (the direct mode has no batching points)");
 }
@@ -263,7 +228,7 @@ static void trace_direct(const ex_input *in, const trace_options *o, const brt_r
         d.world = world = ex_input_world(prog, in);
     } else {
         ex_check(prog, brt_mesh_load(in->path, &mesh, &err), &err);
-        ex_note_mesh_memory(prog, &mesh, o->memory_given ? o->memory : 0);
+        ex_note_mesh_memory(prog, &mesh, o->t.memory_given ? o->t.memory : 0);
         ex_check(prog, brt_bvh_build(mesh.positions, mesh.indices, mesh.triangle_count, NULL, &bvh),
                  NULL);
         if (mesh.triangle_count > 0)
@@ -289,7 +254,7 @@ static void trace_direct(const ex_input *in, const trace_options *o, const brt_r
         size_t n = count - i < SLICE ? count - i : SLICE, k;
         if (ex_interrupted()) ex_die_interrupted(prog);
         ex_progress("tracing", i, count);
-        direct_trace(&d, rays + i, tags, n, occluded ? scratch : hits + i, o->threads);
+        direct_trace(&d, rays + i, tags, n, occluded ? scratch : hits + i, o->t.threads);
         for (k = 0; occluded && k < n; k++) {
             occluded[i + k] = scratch[k].prim != BRT_NO_PRIM;
             stats->shadow_occluded += occluded[i + k];
@@ -315,37 +280,28 @@ static void trace_batched(const ex_input *in, const trace_options *o, const brt_
     brt_scene *scene;
     brt_error err;
     char default_path[4096];
-    const char *path = o->scene;
+    const char *path = ex_tracer_scene_path(prog, &o->t, default_path, sizeof default_path);
     double start = brt_seconds();
     brt_result r;
     int rebuilt;
     memset(&scene_opt, 0, sizeof scene_opt);
-    scene_opt.batch_tris = (uint32_t)o->batch_tris;
-    scene_opt.proxy_res = (uint32_t)o->res;
+    scene_opt.batch_tris = (uint32_t)o->t.batch_tris;
+    scene_opt.proxy_res = (uint32_t)o->t.res;
     scene_opt.interrupt = ex_catch_interrupts();
-    scene_opt.threads = o->threads;
-    if (!path) {
-        ex_default_scene_path(prog, o->mesh, scene_opt.batch_tris, scene_opt.proxy_res,
-                              default_path, sizeof default_path);
-        path = default_path;
-    }
+    scene_opt.threads = o->t.threads;
     if (o->rebuild && unlink(path) != 0 && errno != ENOENT)
         ex_die(prog, "%s: cannot remove: %s", path, strerror(errno));
     ex_progress("preparing scene", 0, 1);
     scene = ex_input_scene(prog, in, path, &scene_opt, &rebuilt);
     memset(&trace_opt, 0, sizeof trace_opt);
-    trace_opt.memory_limit = o->memory;
-    trace_opt.no_proxy = o->no_proxy;
+    ex_tracer_trace_options(&o->t, &trace_opt);
     trace_opt.no_inner = o->no_inner;
     trace_opt.no_decode = o->no_decode;
-    trace_opt.rays_in_flight = (uint32_t)o->rays_in_flight;
     trace_opt.drop_os_cache = o->drop_os_cache;
-    trace_opt.threads = o->threads;
-    trace_opt.paper_scheduler = o->paper_scheduler;
     trace_opt.interrupt = scene_opt.interrupt;
     if (o->follow_given) {
         if (o->follow >= count)
-            ex_die(prog, "%s: --follow %llu: the file holds %lu rays", o->rays,
+            ex_die(prog, "%s: --follow %llu: the file holds %lu rays", o->t.rays,
                    (unsigned long long)o->follow, (unsigned long)count);
         trace_opt.follow = follow_print;
         trace_opt.follow_tag = o->follow | (occluded ? BRT_TAG_OCCLUSION : 0);
@@ -362,8 +318,8 @@ static void trace_batched(const ex_input *in, const trace_options *o, const brt_
     if (stats->oversized_loads > 0)
         fprintf(stderr, "trace: note: %llu loads of a batching point larger than the memory "
                 "budget%s (each held alone)\n", (unsigned long long)stats->oversized_loads,
-                o->no_proxy ? "" : " left after the proxies");
-    if (o->verbose || isatty(2))
+                o->t.no_proxy ? "" : " left after the proxies");
+    if (o->t.verbose || isatty(2))
         fprintf(stderr, "trace: scene %s (%s), %llu batching points\n", path,
                 rebuilt ? "built" : "reused", (unsigned long long)stats->batching_points);
     brt_scene_close(scene);
@@ -409,13 +365,13 @@ int main(int argc, char **argv)
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
     ex_catch_interrupts();
-    ex_check(prog, brt_rays_read(o.rays, &rays, &count, &err), &err);
-    if (o.occlusion) occluded = malloc(count ? count : 1);
+    ex_check(prog, brt_rays_read(o.t.rays, &rays, &count, &err), &err);
+    if (o.t.occlusion) occluded = malloc(count ? count : 1);
     else hits = malloc((count ? count : 1) * sizeof *hits);
-    if (!hits && !occluded) ex_die(prog, "%s: out of memory for %lu hits", o.hits, (unsigned long)count);
+    if (!hits && !occluded) ex_die(prog, "%s: out of memory for %lu hits", o.t.hits, (unsigned long)count);
 
     memset(&stats, 0, sizeof stats);
-    ex_input_open(prog, o.mesh, &in);
+    ex_input_open(prog, o.t.input, &in);
     if (o.batched) {
         trace_batched(&in, &o, rays, count, hits, occluded, &stats);
     } else {
@@ -425,14 +381,14 @@ int main(int argc, char **argv)
     }
 
     if (ex_interrupted()) ex_die_interrupted(prog);
-    if (occluded) ex_check(prog, brt_write_file_atomic(o.hits, occluded, count, &err), &err);
-    else ex_check(prog, ex_input_write_hits(&in, o.hits, hits, count, &err), &err);
+    if (occluded) ex_check(prog, brt_write_file_atomic(o.t.hits, occluded, count, &err), &err);
+    else ex_check(prog, ex_input_write_hits(&in, o.t.hits, hits, count, &err), &err);
     /* A run that fails leaves no output at all: the hits go if the
     ** statistics cannot be written. */
     stats.peak_rss_bytes = brt_peak_rss_bytes();
-    if (o.stats) write_stats(&in, o.stats, o.hits, &stats);
+    if (o.t.stats) write_stats(&in, o.t.stats, o.t.hits, &stats);
     ex_input_close(&in);
-    if (o.verbose || isatty(2)) print_summary(hits, &stats);
+    if (o.t.verbose || isatty(2)) print_summary(hits, &stats);
     free(hits);
     free(occluded);
     free(rays);
