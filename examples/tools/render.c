@@ -57,7 +57,8 @@
 ** Batching points visited per sample in each pixel: the scheduler reports
 ** with each finished ray how many batching points it visited (queued at,
 ** or intersected at once because their geometry was in memory), and each
-** path adds its rays' counts to its pixel.
+** path adds its rays' counts to its pixel.  examples/lib/report.c draws
+** the map, and prints the table of --compare.
 **
 ** OUT OF CORE FROM END TO END
 ** The batched modes never hold the mesh.  The scene file is built from a
@@ -79,6 +80,7 @@
 */
 #include "input.h"
 #include "rays.h"
+#include "report.h"
 #include "scenes.h"
 
 #include <errno.h>
@@ -106,7 +108,6 @@ static const char *const prog = "render";
 #define SUN_RADIUS 3.0        /* degrees, default */
 #define SUN_RADIANCE 500.0    /* default: sun irradiance 4.3 at normal incidence */
 #define DIRECT_CHUNK 4096     /* rays per batch in --direct mode */
-#define LEGEND_ROWS 24        /* the heatmap's colour bar and its labels */
 #define PI 3.14159265358979323846
 #define EXPOSURE 0.3          /* a sunlit surface is about 2 */
 
@@ -323,6 +324,15 @@ static void parse_options(int argc, char **argv, options *o)
     check_output(o->stats);
     check_output(o->pfm);
 }
+
+/*
+** THE INTEGRATOR, from here to "The scene", read top to bottom:
+** deterministic random numbers, light and surfaces, the paths (the ray
+** source the scheduler pulls from, and what each finished ray does to its
+** path), and the two tracers that run them, batched and direct.  The rest
+** of the file opens the input, and writes the image, the heat map
+** (examples/lib/report.c draws it) and the statistics.
+*/
 
 /* ===================================================================== */
 /* Deterministic random numbers                                          */
@@ -673,6 +683,8 @@ static void render_batched(brt_scene *scene, const brt_trace_options *topt, rend
     ex_check(prog, res, &err);   /* BRT_EINTR between batches (topt->interrupt): the signal's exit */
 }
 
+/* ---- end of the integrator ---- */
+
 /* ===================================================================== */
 /* The scene                                                             */
 /* ===================================================================== */
@@ -1017,98 +1029,20 @@ static double rmse_against(const char *path, const render_job *job, const uint64
     return sqrt(sum / (3.0 * w * h));
 }
 
-/* A 5-stop approximation of the "inferno" colour map, for x in [0, 1]. */
-static void heat_colour(double x, unsigned char rgb[3])
-{
-    static const unsigned char stops[5][3] = {
-        {0, 0, 4}, {87, 16, 110}, {188, 55, 84}, {249, 142, 9}, {252, 255, 164}};
-    double f = fmin(fmax(x, 0.0), 1.0) * 4.0;
-    int i = f >= 4.0 ? 3 : (int)f, k;
-    f -= i;
-    for (k = 0; k < 3; k++)
-        rgb[k] = (unsigned char)(stops[i][k] + f * (stops[i + 1][k] - stops[i][k]) + 0.5);
-}
-
-/* Digits and the point in a 3x5 bitmap font, rows top first, 3 bits each. */
-static int glyph_bits(char c)
-{
-    static const int digits[10] = {075557, 026227, 071747, 071717, 055711,
-                                   074717, 074757, 071111, 075757, 075717};
-    return c == '.' ? 000002 : c >= '0' && c <= '9' ? digits[c - '0'] : 0;
-}
-
-/* Draws text with 2x2-pixel font dots, its left edge at x (clipped). */
-static void draw_text(unsigned char *rgb, int width, int height, int x, int y, const char *text)
-{
-    int row, col, dy, dx;
-    for (; *text; text++, x += 8) {
-        int bits = glyph_bits(*text);
-        for (row = 0; row < 5; row++)
-            for (col = 0; col < 3; col++) {
-                if (!(bits >> (3 * (4 - row) + (2 - col)) & 1)) continue;
-                for (dy = 0; dy < 2; dy++)
-                    for (dx = 0; dx < 2; dx++) {
-                        int px = x + 2 * col + dx, py = y + 2 * row + dy;
-                        if (px >= 0 && px < width && py >= 0 && py < height)
-                            memset(rgb + 3 * ((size_t)py * width + px), 255, 3);
-                    }
-            }
-    }
-}
-
-/* The colour bar under the map and its labels 0, max/2 and max. */
-static void draw_legend(unsigned char *rgb, int width, int height, double max)
-{
-    int top = height - LEGEND_ROWS, x, y, i;
-    char label[32];
-    for (y = top + 2; y < top + 10; y++)
-        for (x = 0; x < width; x++)
-            heat_colour(width > 1 ? (double)x / (width - 1) : 0, rgb + 3 * ((size_t)y * width + x));
-    for (i = 0; i <= 2; i++) {
-        int len;
-        snprintf(label, sizeof label, "%.1f", max * i / 2.0);
-        len = (int)strlen(label) * 8 - 2;
-        x = i == 0 ? 2 : i == 1 ? (width - len) / 2 : width - len - 2;
-        draw_text(rgb, width, height, x, top + 12, label);
-    }
-}
-
-/* The heatmap of visits per sample, with the colour bar below it. */
+/* The heat map of visits per sample (report.h), noted as written. */
 static void write_heatmap(const char *path, const render_job *job, const uint64_t *visits,
                           double max)
 {
-    int width = (int)job->camera.width, height = (int)job->camera.height + LEGEND_ROWS;
-    size_t i, pixels = (size_t)job->camera.width * job->camera.height;
-    unsigned char *rgb = calloc(3 * (size_t)width * height, 1);
     brt_error err;
-    if (!rgb) ex_die(prog, "out of memory for the heatmap");
-    for (i = 0; i < pixels; i++)
-        heat_colour((double)visits[i] / job->spp / max, rgb + 3 * i);
-    draw_legend(rgb, width, height, max);
-    ex_check(prog, ex_png_write_rgb(path, width, height, rgb, &err), &err);
+    ex_check(prog, ex_heatmap_write(prog, path, job->camera.width, job->camera.height, visits,
+                                    job->spp, max, &err), &err);
     note_written(path);
-    free(rgb);
 }
 
-static int compare_u64(const void *a, const void *b)
-{
-    uint64_t x = *(const uint64_t *)a, y = *(const uint64_t *)b;
-    return x < y ? -1 : x > y;
-}
-
-/* The top of the colour scale: the 99.5th percentile of the pixels'
-** visits per sample, so that a few extreme pixels (rays grazing many
-** boxes) do not darken the rest; pixels above it get the top colour. */
+/* The top of the heat map's colour scale (ex_heat_scale). */
 static double heat_scale(const render_job *job, const uint64_t *visits)
 {
-    size_t pixels = (size_t)job->camera.width * job->camera.height;
-    uint64_t *sorted = malloc(pixels * sizeof *sorted), top;
-    if (!sorted) ex_die(prog, "out of memory for the heatmap");
-    memcpy(sorted, visits, pixels * sizeof *sorted);
-    qsort(sorted, pixels, sizeof *sorted, compare_u64);
-    top = sorted[(size_t)(0.995 * (double)(pixels - 1))];
-    free(sorted);
-    return top > 0 ? (double)top / job->spp : 1.0;
+    return ex_heat_scale(prog, visits, (size_t)job->camera.width * job->camera.height, job->spp);
 }
 
 /* ===================================================================== */
@@ -1194,25 +1128,6 @@ static void write_stats(const char *path, const render_job *job, const run *x, i
     note_written(path);
 }
 
-static void print_header(void)
-{
-    printf("| %-22s | %10s | %7s | %10s | %8s | %8s | %8s | %8s | %9s |\n", "run", "disk MiB",
-           "loads", "visits/spp", "culled", "time s", "load s", "Mrays/s", "same image");
-    printf("|---|---:|---:|---:|---:|---:|---:|---:|---|\n");
-}
-
-static void print_row(const render_job *job, const run *x, const run *reference)
-{
-    const brt_stats *s = &x->stats;
-    size_t n = 3 * (size_t)job->camera.width * job->camera.height * sizeof *x->sums;
-    printf("| %-22s | %10.2f | %7llu | %10.2f | %7.1f%% | %8.2f | %8.2f | %8.3f | %9s |\n",
-           x->label, s->disk_bytes_read / 1048576.0, (unsigned long long)s->batch_loads,
-           visits_per_sample(job, s),
-           s->proxy_tests ? 100.0 * s->proxy_culled / s->proxy_tests : 0.0, s->seconds,
-           s->load_seconds, s->mrays_per_second,
-           memcmp(x->sums, reference->sums, n) == 0 ? "yes" : "NO");
-}
-
 /* "x.png" -> "x-suffix.png". */
 static void suffixed(const char *path, const char *suffix, char *out, size_t size)
 {
@@ -1273,6 +1188,7 @@ static void compare(const options *o, const render_input *in, const render_job *
 {
     run runs[3];
     brt_trace_options without = *topt, with = *topt;
+    size_t pixels = (size_t)job->camera.width * job->camera.height;
     char path[4096];
     double max;
     int i;
@@ -1293,16 +1209,11 @@ static void compare(const options *o, const render_input *in, const render_job *
     }
     run_batched(scene, job, &without, o->heatmap != NULL, &runs[1]);
     run_batched(scene, job, &with, o->heatmap != NULL, &runs[2]);
-    print_header();
-    for (i = 0; i < 3; i++) print_row(job, &runs[i], &runs[0]);
-    printf("proxies: disk bytes x%.2f, loads x%.2f, visits per sample x%.2f, time x%.2f\n",
-           (double)runs[2].stats.disk_bytes_read / fmax(1.0, (double)runs[1].stats.disk_bytes_read),
-           (double)runs[2].stats.batch_loads / fmax(1.0, (double)runs[1].stats.batch_loads),
-           (double)runs[2].stats.visits / fmax(1.0, (double)runs[1].stats.visits),
-           runs[2].stats.seconds / runs[1].stats.seconds);
-    if (runs[2].stats.proxy_tests == 0)
-        printf("(every batching point fits in memory, so the scheduler leaves the proxies\n"
-               " alone: they could only put loads off; --paper-scheduler consults them)\n");
+    ex_compare_header();
+    for (i = 0; i < 3; i++)
+        ex_compare_row(runs[i].label, &runs[i].stats, visits_per_sample(job, &runs[i].stats),
+                       memcmp(runs[i].sums, runs[0].sums, 3 * pixels * sizeof *runs[0].sums) == 0);
+    ex_compare_ratios(&runs[1].stats, &runs[2].stats);
     write_image(o, job, &runs[2]);
     if (o->heatmap) {
         /* One colour scale for both, so that they can be compared. */
