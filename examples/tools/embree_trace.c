@@ -110,9 +110,8 @@ static int own_option(void *user, int argc, char **argv, int *i)
 
 static void parse_options(int argc, char **argv, embree_options *o)
 {
-    ex_tracer_command c = {prog, "MESH RAYS HITS", 0, 0, own_option, NULL};
+    ex_tracer_command c = {prog, "MESH RAYS HITS", 0, 0, own_option, o};
     memset(o, 0, sizeof *o);
-    c.user = o;
     ex_tracer_parse(&c, argc, argv, &o->t);
 }
 

@@ -136,12 +136,11 @@ static int own_option(void *user, int argc, char **argv, int *i)
 
 static void parse_options(int argc, char **argv, options *o)
 {
-    ex_tracer_command c = {prog, "SCENE RAYS HITS", 1, (uint64_t)1 << 24, own_option, NULL};
+    ex_tracer_command c = {prog, "SCENE RAYS HITS", 1, (uint64_t)1 << 24, own_option, o};
     memset(o, 0, sizeof *o);
     ex_tracer_defaults(&o->t);
     o->t.threads = 1;
     o->t.rays_in_flight = (uint64_t)1 << 18;
-    c.user = o;
     ex_tracer_parse(&c, argc, argv, &o->t);
 }
 

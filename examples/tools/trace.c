@@ -119,10 +119,9 @@ static int own_option(void *user, int argc, char **argv, int *i)
 
 static void parse_options(int argc, char **argv, trace_options *o)
 {
-    ex_tracer_command c = {prog, "MESH RAYS HITS", 1, 1u << 26, own_option, NULL};
+    ex_tracer_command c = {prog, "MESH RAYS HITS", 1, 1u << 26, own_option, o};
     memset(o, 0, sizeof *o);
     ex_tracer_defaults(&o->t);
-    c.user = o;
     ex_tracer_parse(&c, argc, argv, &o->t);
     if (o->follow_given && !o->batched)
         ex_die(prog, "--follow needs --batched (the direct mode has no batching points)");
