@@ -53,15 +53,20 @@ endif
 LIB_SRC  = batchrt.c bvh.c svdag.c
 LIB_OBJ  = $(LIB_SRC:%.c=$(BUILD)/%.o)
 LIB      = $(BUILD)/libbatchrt.a
-# Every examples/*.c is a program, except the shared helpers (input.c and
-# pbrt.c: mesh and pbrt-v4 input; loopsubdiv.c: pbrt-v4's loopsubdiv shape; common.c:
-# options, errors, PNG; plot.c: SVG plots; rays.c: camera, random and bounce rays; scenes.c:
-# the built-in procedural scenes) and the
-# optional Embree and MPI tracers (built by "make embree" and "make mpi" only).
-EX_SHARED = examples/common.c examples/input.c examples/loopsubdiv.c examples/pbrt.c examples/plot.c examples/rays.c examples/referee.c examples/scenes.c
+# examples/ by kind: tutorials/ (the two APIs in a page each), tools/ (the
+# programs a user runs), bench/ (benchmarks) and lib/ (the support code they
+# share, not a program: options and errors, mesh and pbrt-v4 input, rays,
+# the built-in scenes, plots, the referee, render's reports).  Every .c of
+# the first three is a program, build/NAME, except the optional Embree and
+# MPI tracers (built by "make embree" and "make mpi" only).
+EX_KINDS  = tutorials tools bench
+EX_SHARED = $(wildcard examples/lib/*.c)
+EX_HDRS   = $(wildcard examples/lib/*.h)
+EX_INC    = -Iexamples/lib
 EX_COMMON = $(EX_SHARED:%.c=$(BUILD)/%.o)
-EX_SRC   = $(filter-out $(EX_SHARED) examples/embree_trace.c examples/mpi_trace.c, $(wildcard examples/*.c))
-PROGRAMS = $(EX_SRC:examples/%.c=$(BUILD)/%)
+EX_SRC   = $(filter-out examples/tools/embree_trace.c examples/tools/mpi_trace.c, \
+             $(foreach k,$(EX_KINDS),$(wildcard examples/$(k)/*.c)))
+PROGRAMS = $(patsubst %.c,$(BUILD)/%,$(notdir $(EX_SRC)))
 TEST_SRC = $(wildcard tests/*.c)
 TEST_OBJ = $(TEST_SRC:%.c=$(BUILD)/%.o)
 TEST_BIN = $(BUILD)/run_tests
@@ -75,11 +80,12 @@ $(BUILD)/%.o: %.c batchrt.h testing.h | $(BUILD)/examples $(BUILD)/tests
 	$(SAY) CC $<
 	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
 
-$(BUILD)/examples/%.o: examples/%.c batchrt.h $(wildcard examples/*.h) | $(BUILD)/examples
+$(BUILD)/examples/%.o: examples/%.c batchrt.h $(EX_HDRS)
 	$(SAY) CC $<
-	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
+	$(Q)mkdir -p $(@D)
+	$(Q)$(CC) $(CFLAGS) -I. $(EX_INC) -c $< -o $@
 
-$(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) $(wildcard examples/*.h) batchrt.h testing.h | $(BUILD)/tests
+$(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) $(EX_HDRS) batchrt.h testing.h | $(BUILD)/tests
 	$(SAY) CC $<
 	$(Q)$(CC) $(CFLAGS) $(TESTING) -I. -c $< -o $@
 
@@ -101,9 +107,14 @@ $(TEST_LIB): $(TEST_LIB_OBJ)
 	$(Q)rm -f $@
 	$(Q)ar rcs $@ $^
 
-$(BUILD)/%: $(BUILD)/examples/%.o $(EX_COMMON) $(LIB)
-	$(SAY) LINK $@
-	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
+# build/NAME from examples/KIND/NAME.c, one link rule per kind.
+define EX_LINK
+$$(patsubst examples/$(1)/%.c,$$(BUILD)/%,$$(filter examples/$(1)/%,$$(EX_SRC))): \
+  $$(BUILD)/%: $$(BUILD)/examples/$(1)/%.o $$(EX_COMMON) $$(LIB)
+	$$(SAY) LINK $$@
+	$$(Q)$$(CC) $$(CFLAGS) $$^ -o $$@ $$(LDLIBS)
+endef
+$(foreach k,$(EX_KINDS),$(eval $(call EX_LINK,$(k))))
 
 $(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(TEST_LIB)
 	$(SAY) LINK $@
@@ -201,7 +212,7 @@ embree: $(LIB) $(EX_COMMON)
 	  "install libembree-dev (Debian) to build $(BUILD)/embree_trace"; exit 1; }
 	@$(MAKE) --no-print-directory $(BUILD)/embree_trace
 
-$(BUILD)/embree_trace: $(BUILD)/examples/embree_trace.o $(EX_COMMON) $(LIB)
+$(BUILD)/embree_trace: $(BUILD)/examples/tools/embree_trace.o $(EX_COMMON) $(LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS) $(EMBREE_LIBS)
 
@@ -215,10 +226,10 @@ mpi: $(LIB) $(EX_COMMON)
 	  "install openmpi-bin and libopenmpi-dev (Debian) to build $(BUILD)/mpi_trace"; exit 1; }
 	@$(MAKE) --no-print-directory $(BUILD)/mpi_trace $(BUILD)/tests/mpi_trace_small
 
-$(BUILD)/mpi_trace: examples/mpi_trace.c $(EX_COMMON) $(LIB) batchrt.h $(wildcard examples/*.h)
+$(BUILD)/mpi_trace: examples/tools/mpi_trace.c $(EX_COMMON) $(LIB) batchrt.h $(EX_HDRS)
 	$(SAY) MPICC $@
-	$(Q)$(MPICC) $(CFLAGS) -I. $$($(MPICC) --showme:incdirs 2>/dev/null | sed 's/[^ ]*/-isystem &/g') \
-	  examples/mpi_trace.c $(EX_COMMON) $(LIB) -o $@ $(LDLIBS)
+	$(Q)$(MPICC) $(CFLAGS) -I. $(EX_INC) $$($(MPICC) --showme:incdirs 2>/dev/null | sed 's/[^ ]*/-isystem &/g') \
+	  examples/tools/mpi_trace.c $(EX_COMMON) $(LIB) -o $@ $(LDLIBS)
 
 # The MPI tracer's thresholds under test.  $(BUILD)/tests/mpi_trace_small: mpi_trace gathering results in chunks of
 # MPI_SMALL_RESULTS instead of 2^20, so that tests/test_mpi.c crosses that
@@ -233,11 +244,11 @@ test: $(patsubst %/mpi_trace,%/tests/mpi_trace_small,$(MPI_FOR_TESTS))
 # The mutants run the suite too: without these programs their oom: and
 # mpi: tests would say SKIP and every mutant of them would survive.
 mutants mutants-sample: $(FAILALLOC) $(MPI_FOR_TESTS) $(patsubst %/mpi_trace,%/tests/mpi_trace_small,$(MPI_FOR_TESTS))
-$(BUILD)/tests/mpi_trace_small: examples/mpi_trace.c $(EX_COMMON) $(LIB) batchrt.h $(wildcard examples/*.h) | $(BUILD)/tests
+$(BUILD)/tests/mpi_trace_small: examples/tools/mpi_trace.c $(EX_COMMON) $(LIB) batchrt.h $(EX_HDRS) | $(BUILD)/tests
 	$(SAY) MPICC $@
-	$(Q)$(MPICC) $(CFLAGS) -DRESULTS_PER_MESSAGE=$(MPI_SMALL_RESULTS) -I. \
+	$(Q)$(MPICC) $(CFLAGS) -DRESULTS_PER_MESSAGE=$(MPI_SMALL_RESULTS) -I. $(EX_INC) \
 	  $$($(MPICC) --showme:incdirs 2>/dev/null | sed 's/[^ ]*/-isystem &/g') \
-	  examples/mpi_trace.c $(EX_COMMON) $(LIB) -o $@ $(LDLIBS)
+	  examples/tools/mpi_trace.c $(EX_COMMON) $(LIB) -o $@ $(LDLIBS)
 test-long: all $(TEST_BIN) $(MPI_FOR_TESTS)
 	BRT_BUILD=$(BUILD) BRT_TEST_LONG=1 ./$(TEST_BIN) 'long:'
 
@@ -416,17 +427,17 @@ $(BUILD)/tests/fuzz/targets.o $(BUILD)/tests/fuzz/replay.o: tests/fuzz/targets.h
 $(BUILD)/tests/fuzz:
 	$(Q)mkdir -p $@
 
-$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/pbrt.o $(BUILD)/examples/loopsubdiv.o $(TEST_LIB)
+$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/lib/pbrt.o $(BUILD)/examples/lib/loopsubdiv.o $(TEST_LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 fuzz-replay: $(BUILD)/tests/fuzz/replay
 	$(Q)for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
 
-$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/pbrt.c examples/pbrt.h examples/loopsubdiv.c examples/loopsubdiv.h $(LIB_SRC) batchrt.h testing.h
+$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/lib/pbrt.c examples/lib/pbrt.h examples/lib/loopsubdiv.c examples/lib/loopsubdiv.h $(LIB_SRC) batchrt.h testing.h
 	$(SAY) FUZZ $@
 	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
-	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/pbrt.c examples/loopsubdiv.c tests/fuzz/targets.c $< -o $@ -lm
+	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/lib/pbrt.c examples/lib/loopsubdiv.c tests/fuzz/targets.c $< -o $@ -lm
 
 fuzz: $(FUZZ_BINS)
 	$(Q)for t in $(FUZZ_TARGETS); do $(call FUZZ_RUN,$(FUZZ_SECONDS)) || exit 1; done
@@ -659,7 +670,7 @@ bench-scale: all
 #                      DESTDIR (staging) never appears in batchrt.pc
 #   make uninstall     removes those three files (same PREFIX and DESTDIR)
 #   make install-check installs into $(BUILD)/install-check/prefix, builds
-#                      examples/minimal_batched.c from a copy beside it (so
+#                      examples/tutorials/minimal_batched.c from a copy beside it (so
 #                      no header of the tree can be found) with the flags of
 #                      "pkg-config --cflags --libs batchrt", runs it, requires
 #                      the output of $(BUILD)/minimal_batched, checks that
@@ -715,7 +726,7 @@ install-check: $(LIB) $(BUILD)/minimal_batched
 	else echo "install-check: no $(PKG_CONFIG); the flags are read from batchrt.pc with sed"; \
 	  eval "$$(sed -n 's/^\([a-z]*\)=\(.*\)$$/\1="\2"/p' "$$pc")"; \
 	  flags=$$(eval echo "$$(sed -n 's/^Cflags: //p; s/^Libs: //p' "$$pc" | tr '\n' ' ')"); fi; \
-	cp examples/minimal_batched.c "$$d/"; \
+	cp examples/tutorials/minimal_batched.c "$$d/"; \
 	$(CC) $(CFLAGS) "$$d/minimal_batched.c" $$flags -o "$$d/minimal_batched"; \
 	TMPDIR="$$d" "$$d/minimal_batched" > "$$d/installed.out"; \
 	TMPDIR="$$d" ./$(BUILD)/minimal_batched > "$$d/tree.out"; \

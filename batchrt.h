@@ -20,10 +20,10 @@
 **   and of instances, prototypes' BVHs stored and cached once, the ray
 **   carried into each instance it meets (bvh.c, "Instances"); brt_world
 **   is its direct mode.  Over several processes (MPI ranks:
-**   examples/mpi_trace.c), each owns some batching points, and a ray whose
+**   examples/tools/mpi_trace.c), each owns some batching points, and a ray whose
 **   walk stops at a point another owns travels there (brt_exchange).
 **
-** USAGE: THE BATCHED METHOD (examples/minimal_batched.c: a whole program)
+** USAGE: THE BATCHED METHOD (examples/tutorials/minimal_batched.c: a whole program)
 **
 **   brt_mesh mesh; brt_scene *scene; brt_stats stats; brt_error err;
 **   brt_trace_options opt = {0};             // zeroed: the defaults, proxies on
@@ -44,7 +44,7 @@
 ** when it is missing or stale; brt_scene_trace_stream keeps a constant
 ** number of rays in flight (a path tracer).
 **
-** USAGE: ONE BVH IN MEMORY (examples/minimal.c)
+** USAGE: ONE BVH IN MEMORY (examples/tutorials/minimal.c)
 **
 **   brt_bvh *bvh; brt_hit hit; brt_ray ray = {{0,0,5}, {0,0,-1}, 0, INFINITY};
 **   brt_bvh_build(mesh.positions, mesh.indices, mesh.triangle_count, NULL, &bvh);
@@ -422,7 +422,7 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
 
 /* ---- Beyond one process: batching points owned elsewhere ------------- */
 /*
-** Batched traversal spreads over processes (MPI ranks: examples/mpi_trace.c)
+** Batched traversal spreads over processes (MPI ranks: examples/tools/mpi_trace.c)
 ** as it spreads over time: each process owns some batching points, reads
 ** only their blobs, and holds the top-level BVH and every proxy.  When a
 ** ray's walk stops at a point another process owns -- after its proxy

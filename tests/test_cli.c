@@ -4,7 +4,7 @@
 ** system() on small meshes generated into the scratch directory, and their
 ** files are compared with independent oracles written here (a brute-force
 ** loop over brt_intersect_triangle for hits, geometry for rays, a
-** self-written PNG decoder for the PNG writer of examples/common.c).
+** self-written PNG decoder for the PNG writer of examples/lib/common.c).
 **
 ** Out of core from end to end (README, same title): batched runs work from the
 ** scene file alone (the mesh file replaced by garbage, its stamp kept),
@@ -15,7 +15,7 @@
 #include "test.h"
 #include "batchrt.h"
 #include "util.h"
-#include "../examples/common.h"
+#include "../examples/lib/common.h"
 
 #include <dirent.h>
 #include <math.h>
@@ -208,16 +208,16 @@ static int write_lumpy_mesh(tu_scene *m, const char *name)
 
 static void test_help(void)
 {
-    /* Every program make builds (the Makefile's PROGRAMS: examples/ but its
-    ** shared modules). */
+    /* Every program make builds (the Makefile's PROGRAMS: examples/tutorials,
+    ** tools and bench). */
     static const char *const programs[] = {"trace", "raygen", "hitdiff", "minimal", "minimal_batched",
                                            "closed", "render", "mkscene", "figures", "voxelize",
                                            "bench_bvh", "bench_svdag", "bench_batched", "bench_pbrt"};
     size_t i;
     char *list;
     /* ... every one: a file of examples/ with a main() is in the list
-    ** (the optional Embree and MPI tracers aside). */
-    CHECK(tu_shell("grep -l '^int main(' examples/*.c | sed 's|examples/||; s|[.]c$||' | "
+    ** (the optional Embree and MPI tracers aside), and none is in lib/. */
+    CHECK(tu_shell("grep -l '^int main(' examples/*/*.c | sed 's|^examples/lib/|lib:|; s|.*/||; s|[.]c$||' | "
                    "grep -v '^embree_trace$' | grep -v '^mpi_trace$'", "", "") == 0, "cannot list examples/");
     list = tu_last_stdout();
     CHECK(list, "no list of programs");
@@ -1304,7 +1304,7 @@ static void test_builtin_scenes_batched_equals_direct(void)
     }
 }
 
-/* examples/minimal_batched: its scene file (20 triangles in batching points
+/* examples/tutorials/minimal_batched: its scene file (20 triangles in batching points
 ** of 2) goes to $TMPDIR and is gone at exit; its batched hits equal the
 ** direct mode's (it compares them itself and exits 1 otherwise); proxies
 ** cull rays and batching points are loaded under its memory limit. */

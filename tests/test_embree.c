@@ -13,7 +13,7 @@
 **   - for raygen's rays, at least 99.99 % must have the same hit/miss and
 **     prim in batchrt and Embree;
 **   - every ray whose records differ must be explained by hitdiff's
-**     referee (examples/referee.c, exact predicates; tested on its own in
+**     referee (examples/lib/referee.c, exact predicates; tested on its own in
 **     tests/test_referee.c), or the test fails and prints the verdict;
 **   - build/hitdiff --mesh --rays, the user's tool, must come to the same
 **     count and exit 0 exactly when nothing is unexplained.
@@ -23,8 +23,8 @@
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
-#include "../examples/rays.h"
-#include "../examples/referee.h"
+#include "../examples/lib/rays.h"
+#include "../examples/lib/referee.h"
 
 #include <math.h>
 #include <stdarg.h>
@@ -106,7 +106,7 @@ typedef struct tally {
 } tally;
 
 /* Every ray of one Embree hit file against batchrt's, through the referee
-** (examples/referee.c); each unexplained ray fails the test with the
+** (examples/lib/referee.c); each unexplained ray fails the test with the
 ** referee's verdict (five at most).  The rays of raygen must also agree on
 ** hit/miss and prim for MIN_IDENTICAL of them; edge rays (make_edge_rays)
 ** aim at the disagreements, so for them only the referee counts. */
@@ -312,7 +312,7 @@ static void check_mesh(const char *mesh_path, const char *name)
 /* ===================================================================== */
 
 /* SHARED_RAYS_PER_KIND rays of each kind, kind after kind: camera, random
-** and bounce (examples/rays.c, as build/raygen makes them), then edge. */
+** and bounce (examples/lib/rays.c, as build/raygen makes them), then edge. */
 static int make_sample_rays(const brt_mesh *mesh, const brt_bvh *bvh, brt_ray *rays)
 {
     const size_t n = SHARED_RAYS_PER_KIND;

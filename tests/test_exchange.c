@@ -3,7 +3,7 @@
 ** processes (brt_exchange), without MPI.  Each "process" is a thread with
 ** its own open scene and geometry cache; an in-memory network of mailboxes
 ** carries the rays, and counts finished rays against the total, as
-** examples/mpi_trace.c does over MPI.  Hits and occlusion bytes are held
+** examples/tools/mpi_trace.c does over MPI.  Hits and occlusion bytes are held
 ** against the direct mode (one BVH over the whole mesh), byte for byte, at
 ** 1 to 4 processes, both ownerships, proxies on and off, several memory
 ** limits, one and two threads each; a stream that crosses between

@@ -12,7 +12,7 @@
 */
 #include "test.h"
 #include "util.h"
-#include "../examples/scenes.h"
+#include "../examples/lib/scenes.h"
 
 #include <math.h>
 #include <stdio.h>

@@ -1,6 +1,6 @@
 /*
 ** tests/test_instanced_scenes.c -- the instanced landscape and island
-** (examples/scenes.h, "Instanced scenes"): the same bytes from the same
+** (examples/lib/scenes.h, "Instanced scenes"): the same bytes from the same
 ** seed; counts that agree with what the streams deliver; chunks numbered
 ** 0, c0, c0 + c1, ...; every instance's prototype in range and its
 ** transform a rotation about y (or a small tilt) times a scale in the
@@ -13,7 +13,7 @@
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
-#include "../examples/scenes.h"
+#include "../examples/lib/scenes.h"
 
 #include <math.h>
 #include <stdio.h>

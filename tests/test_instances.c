@@ -8,7 +8,7 @@
 */
 #include "test.h"
 #include "util.h"
-#include "../examples/referee.h"
+#include "../examples/lib/referee.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -1136,7 +1136,7 @@ static void test_forged_instance_tables(void)
     free(hits);
 }
 
-/* The referee's transform class (examples/referee.h): a record within
+/* The referee's transform class (examples/lib/referee.h): a record within
 ** the rounding of the ray's transform is explained, a fabricated one is
 ** not.  One instance of a unit square, moved and rotated; a ray through
 ** its inside from fifty units away. */

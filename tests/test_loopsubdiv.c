@@ -1,6 +1,6 @@
 /*
-** tests/test_loopsubdiv.c -- pbrt-v4's Shape "loopsubdiv" (examples/
-** loopsubdiv.c and its reading in examples/pbrt.c) against a reference
+** tests/test_loopsubdiv.c -- pbrt-v4's Shape "loopsubdiv" (examples/lib/
+** loopsubdiv.c and its reading in examples/lib/pbrt.c) against a reference
 ** written apart here: Loop's rules (Loop 1987, with pbrt-v4's choices of
 ** beta and of the boundary rules) in double, over an explicit edge list
 ** searched linearly, slow and plain.  The reference states pbrt-v4's
@@ -17,8 +17,8 @@
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
-#include "../examples/loopsubdiv.h"
-#include "../examples/pbrt.h"
+#include "../examples/lib/loopsubdiv.h"
+#include "../examples/lib/pbrt.h"
 
 #include <float.h>
 #include <math.h>
@@ -323,7 +323,7 @@ static void test_open_meshes(void)
     }
 }
 
-/* The refusals (see examples/loopsubdiv.h), through the module and
+/* The refusals (see examples/lib/loopsubdiv.h), through the module and
 ** through the reader, at the Shape's file:line. */
 static void refused(const char *what, const char *indices, uint32_t nv, const char *want)
 {

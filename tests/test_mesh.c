@@ -11,7 +11,7 @@
 */
 #include "test.h"
 #include "util.h"
-#include "../examples/common.h"
+#include "../examples/lib/common.h"
 #include "batchrt.h"
 
 #include <errno.h>

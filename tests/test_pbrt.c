@@ -1,5 +1,5 @@
 /*
-** tests/test_pbrt.c -- the pbrt-v4 scene reader (examples/pbrt.c): each
+** tests/test_pbrt.c -- the pbrt-v4 scene reader (examples/lib/pbrt.c): each
 ** test writes small scene files into the scratch folder and checks the
 ** parsed data itself -- the streamed world triangles, prototypes and
 ** instances (a point through an instance's transform against pbrt's
@@ -11,7 +11,7 @@
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
-#include "../examples/pbrt.h"
+#include "../examples/lib/pbrt.h"
 
 #include <math.h>
 #include <stdlib.h>

@@ -13,7 +13,7 @@
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
-#include "../examples/pbrt.h"
+#include "../examples/lib/pbrt.h"
 
 #include <math.h>
 #include <stdlib.h>

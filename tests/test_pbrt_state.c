@@ -1,5 +1,5 @@
 /*
-** tests/test_pbrt_state.c -- the pbrt-v4 reader (examples/pbrt.c) against
+** tests/test_pbrt_state.c -- the pbrt-v4 reader (examples/lib/pbrt.c) against
 ** the contract, case by case (issue 38): pbrt-v4's graphics-state rules,
 ** where error messages point, the chunk thresholds, documented limits and
 ** the variants of each directive.
@@ -16,7 +16,7 @@
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
-#include "../examples/pbrt.h"
+#include "../examples/lib/pbrt.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -168,7 +168,7 @@ static const state_case state_cases[] = {
      NULL, NULL, 2, {AT(5, 0, 0), AT(0, 2, 0)}},
     /* pbrt-v4 would also let an AttributeEnd close a TransformBegin; batchrt
     ** refuses a block closed by the other kind's End (a mistake in the file:
-    ** examples/pbrt.h), which tests/test_pbrt_camera.c pins. */
+    ** examples/lib/pbrt.h), which tests/test_pbrt_camera.c pins. */
     /* WorldBegin, named coordinate systems */
     {"world_ctm.pbrt", "fileformat-v4 / scene.cpp WorldBegin: the CTM is reset to the identity (the camera's "
      "transforms do not move shapes)",

@@ -1,5 +1,5 @@
 /*
-** tests/test_referee.c -- the referee of hitdiff (examples/referee.c) on
+** tests/test_referee.c -- the referee of hitdiff (examples/lib/referee.c) on
 ** hand-made rays and records, and build/hitdiff --mesh from outside.
 **
 ** Every case is built so that its exact answer is known by construction
@@ -12,7 +12,7 @@
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
-#include "../examples/referee.h"
+#include "../examples/lib/referee.h"
 
 #include <float.h>
 #include <math.h>

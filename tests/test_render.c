@@ -1,6 +1,6 @@
 /*
-** tests/test_render.c -- the renderer (examples/render.c) checked from
-** outside, and the SVG plot writer (examples/plot.c) from inside.
+** tests/test_render.c -- the renderer (examples/tools/render.c) checked from
+** outside, and the SVG plot writer (examples/lib/plot.c) from inside.
 **
 ** The renderer's central promise is determinism (README, "Rendering"): --direct,
 ** batched with or without proxies, any memory limit and any number of
@@ -18,8 +18,8 @@
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
-#include "../examples/plot.h"
-#include "../examples/scenes.h"
+#include "../examples/lib/plot.h"
+#include "../examples/lib/scenes.h"
 
 #include <math.h>
 #include <stdarg.h>

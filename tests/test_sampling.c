@@ -1,5 +1,5 @@
 /*
-** tests/test_sampling.c -- the ray samplers of examples/rays.c against
+** tests/test_sampling.c -- the ray samplers of examples/lib/rays.c against
 ** closed-form moments.
 **
 ** raygen and render draw directions from three distributions, and every
@@ -19,7 +19,7 @@
 */
 #include "test.h"
 #include "util.h"
-#include "../examples/rays.h"
+#include "../examples/lib/rays.h"
 
 #include <math.h>
 #include <stdlib.h>

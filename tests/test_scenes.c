@@ -1,5 +1,5 @@
 /*
-** tests/test_scenes.c -- the built-in procedural scenes (examples/scenes.c)
+** tests/test_scenes.c -- the built-in procedural scenes (examples/lib/scenes.c)
 ** and build/mkscene: determinism from the seed (hashes of the arrays),
 ** size proportional to the scale, well-formed meshes (finite coordinates,
 ** indices in range, every vertex used, no zero-area triangles), the
@@ -19,7 +19,7 @@
 #include "test.h"
 #include "util.h"
 #include "batchrt.h"
-#include "../examples/scenes.h"
+#include "../examples/lib/scenes.h"
 
 #include <math.h>
 #include <stdlib.h>

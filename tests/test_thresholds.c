@@ -28,14 +28,14 @@
 **     taken, diag(1, 1, 1025) refused (the norms are exact here: row sums
 **     of a diagonal matrix and of its inverse, powers of two or not);
 **   - pbrt-v4 Includes nest at most 64 files deep, the main file counted
-**     (examples/pbrt.c, MAX_DEPTH): 64 are read, the Include of a 65th is
+**     (examples/lib/pbrt.c, MAX_DEPTH): 64 are read, the Include of a 65th is
 **     refused at its line.
 */
 #include "test.h"
 #include "util.h"
-#include "examples/common.h"
-#include "examples/scenes.h"
-#include "examples/pbrt.h"
+#include "examples/lib/common.h"
+#include "examples/lib/scenes.h"
+#include "examples/lib/pbrt.h"
 
 #include <math.h>
 #include <stdio.h>

@@ -126,7 +126,7 @@ int tu_temporary_file_left(void);
 int tu_dir_entries(const char *dir, const char *part, int *with_part, char *name, size_t size);
 
 /* Decodes an 8-bit RGB PNG made of stored deflate blocks and filter type
-** None (what examples/common.c writes), checking every CRC-32 and the
+** None (what examples/lib/common.c writes), checking every CRC-32 and the
 ** Adler-32 with definitions written independently of the writer: the
 ** pixels (malloc'd) and size, or NULL on any violation. */
 unsigned char *tu_png_decode(const unsigned char *png, size_t size, int *w, int *h);

@@ -1,7 +1,7 @@
 /*
 ** tests/fuzz/targets.c -- the fuzz targets declared in targets.h: OBJ and
 ** PLY from memory, scene files and ray files through temporary files, and
-** pbrt-v4 scene files (examples/pbrt.c) as a small file tree in a
+** pbrt-v4 scene files (examples/lib/pbrt.c) as a small file tree in a
 ** temporary folder.
 **
 ** Every target checks properties, not just survival.  The oracles are the
@@ -13,7 +13,7 @@
 ** the blobs, boxes and proxies behind it would never be reached.
 */
 #include "targets.h"
-#include "../../examples/pbrt.h"
+#include "../../examples/lib/pbrt.h"
 
 #include <dirent.h>
 #include <math.h>

@@ -1,7 +1,7 @@
 /*
 ** tests/fuzz/targets.h -- the five fuzz targets of batchrt: the OBJ reader,
 ** the PLY reader, the scene-file reader, the ray-file reader (README,
-** "Tests") and the pbrt-v4 reader of examples/pbrt.c.
+** "Tests") and the pbrt-v4 reader of examples/lib/pbrt.c.
 **
 ** One implementation (targets.c) serves three drivers: the libFuzzer entry
 ** points tests/fuzz/fuzz_NAME.c ("make fuzz", clang), the plain replay

@@ -89,7 +89,10 @@ run_one() {
     # mutants are killed only where MPI runs (tests/test_mpi.c skips else).
     mpi=
     case $run in ''|*mpi*) mpi=1 ;; esac
+    # build/embree_trace too when the pristine tree has it (make embree):
+    # it shares examples/lib with the other programs.
     if ! make -C "$dir" --no-print-directory -j2 all build/run_tests \
+            $([ -x "$root/build/embree_trace" ] && echo build/embree_trace) \
             $([ -n "$mpi" ] && [ -x "$root/build/mpi_trace" ] && echo build/mpi_trace) \
             $([ -n "$mpi" ] && [ -x "$root/build/tests/mpi_trace_small" ] && echo build/tests/mpi_trace_small) \
             >"$dir/build.log" 2>&1; then

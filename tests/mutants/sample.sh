@@ -19,7 +19,7 @@
 # behaviour, with the reason; they are drawn, shown and not counted.
 #
 # Usage: sh tests/mutants/sample.sh [N] [SEED] FILE...
-#   (make mutants-sample N=40 SEED=1 FILES="batchrt.c examples/pbrt.c")
+#   (make mutants-sample N=40 SEED=1 FILES="batchrt.c examples/lib/pbrt.c")
 # Prints one Markdown row per mutant, the survivors' diffs, and the kill
 # rate among the mutants that are not equivalent.  Environment:
 # MUTANTS_TIMEOUT seconds per suite run (default 900; a timeout kills).
