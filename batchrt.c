@@ -6450,7 +6450,7 @@ brt_result brt_parse_size(const char *text, uint64_t *bytes)
 ** Flood 2014; Stafford's "variant 13" of MurmurHash3's fmix64).  A
 ** bijection whose outputs for neighbouring inputs look independent: the
 ** generator below, the DAG's dedup tables (svdag.c) and the renderer's
-** counter-based samples (examples/render.c) all use it.  (brt_checksum64
+** counter-based samples (examples/tools/render.c) all use it.  (brt_checksum64
 ** and bvh.c's vertex_hash are not built on it: their steps are fixed by
 ** the scene files written.) */
 uint64_t brt_mix64(uint64_t z)
