@@ -30,7 +30,7 @@ WARN    = -Wall -Wextra -pedantic -Werror \
           -Wwrite-strings -Wundef -Wformat=2 -Wvla -Wcast-align \
           -Wold-style-definition -Wredundant-decls -Wnested-externs
 CFLAGS  ?=
-# -pthread: the pool of batchrt.c (README, "Threads"), compile and link.
+# -pthread: the pool of base.c (README, "Threads"), compile and link.
 CFLAGS  += $(STD) $(WARN) $(OPT) -pthread $(XCFLAGS)
 LDLIBS  = -lm
 BUILD   ?= build
@@ -50,7 +50,7 @@ Q   =
 SAY = @true
 endif
 
-LIB_SRC  = batchrt.c bvh.c svdag.c
+LIB_SRC  = batchrt.c mesh.c bvh.c svdag.c base.c
 LIB_OBJ  = $(LIB_SRC:%.c=$(BUILD)/%.o)
 LIB      = $(BUILD)/libbatchrt.a
 # examples/ by kind: tutorials/ (the two APIs in a page each), tools/ (the
@@ -76,7 +76,7 @@ TEST_LIB = $(BUILD)/tests/libbatchrt_testing.a
 .PHONY: all test debug sanitize tsan bench bench-batched clean mutants
 all: $(LIB) $(PROGRAMS)
 
-$(BUILD)/%.o: %.c batchrt.h testing.h | $(BUILD)/examples $(BUILD)/tests
+$(BUILD)/%.o: %.c batchrt.h internal.h testing.h | $(BUILD)/examples $(BUILD)/tests
 	$(SAY) CC $<
 	$(Q)$(CC) $(CFLAGS) -I. -c $< -o $@
 
@@ -85,12 +85,12 @@ $(BUILD)/examples/%.o: examples/%.c batchrt.h $(EX_HDRS)
 	$(Q)mkdir -p $(@D)
 	$(Q)$(CC) $(CFLAGS) -I. $(EX_INC) -c $< -o $@
 
-$(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) $(EX_HDRS) batchrt.h testing.h | $(BUILD)/tests
+$(BUILD)/tests/%.o: tests/%.c $(wildcard tests/*.h) $(EX_HDRS) batchrt.h internal.h testing.h | $(BUILD)/tests
 	$(SAY) CC $<
 	$(Q)$(CC) $(CFLAGS) $(TESTING) -I. -c $< -o $@
 
 # The library again with its hooks (BRT_TESTING), for the test runner.
-$(BUILD)/tests/core/%.o: %.c batchrt.h testing.h | $(BUILD)/tests/core
+$(BUILD)/tests/core/%.o: %.c batchrt.h internal.h testing.h | $(BUILD)/tests/core
 	$(SAY) CC "$< (BRT_TESTING)"
 	$(Q)$(CC) $(CFLAGS) $(TESTING) -I. -c $< -o $@
 
@@ -151,7 +151,7 @@ mutants: all $(TEST_BIN)
 # survivor's diff (README, Tests).  Slow: minutes per surviving mutant.
 N     ?= 40
 SEED  ?= 1
-FILES ?= batchrt.c bvh.c svdag.c
+FILES ?= $(LIB_SRC)
 .PHONY: mutants-sample
 mutants-sample: all $(TEST_BIN)
 	sh tests/mutants/sample.sh $(N) $(SEED) $(FILES)
@@ -434,7 +434,7 @@ $(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/tar
 fuzz-replay: $(BUILD)/tests/fuzz/replay
 	$(Q)for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
 
-$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/lib/pbrt.c examples/lib/pbrt.h examples/lib/loopsubdiv.c examples/lib/loopsubdiv.h $(LIB_SRC) batchrt.h testing.h
+$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/lib/pbrt.c examples/lib/pbrt.h examples/lib/loopsubdiv.c examples/lib/loopsubdiv.h $(LIB_SRC) batchrt.h internal.h testing.h
 	$(SAY) FUZZ $@
 	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
 	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/lib/pbrt.c examples/lib/loopsubdiv.c tests/fuzz/targets.c $< -o $@ -lm

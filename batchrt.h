@@ -98,7 +98,7 @@ extern "C" {
 #endif
 
 /* ===================================================================== */
-/* Results and errors                                                    */
+/* Results and errors (base.c)                                           */
 /* ===================================================================== */
 
 typedef enum brt_result {
@@ -129,7 +129,7 @@ brt_result brt_fail(brt_error *err, brt_result r, const char *fmt, ...)
     ;
 
 /* ===================================================================== */
-/* Rays and hits: the records every call takes (batchrt.c)               */
+/* Rays and hits: the records every call takes (base.c)                  */
 /* ===================================================================== */
 
 typedef struct brt_ray {
@@ -531,7 +531,7 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *stats,
 size_t brt_stats_format_json(const brt_stats *stats, char text[BRT_STATS_JSON_BYTES]);
 
 /* ===================================================================== */
-/* 2. Meshes and triangle streams (batchrt.c)                            */
+/* 2. Meshes (mesh.c), triangle streams and instanced scenes (batchrt.c) */
 /* ===================================================================== */
 
 /* An indexed triangle mesh.  Triangles are numbered from 0 in file order;
@@ -678,7 +678,7 @@ uint64_t brt_world_instanced_triangles(const brt_world *world);
 void brt_world_bounds(const brt_world *world, float bmin[3], float bmax[3]);
 
 /* ===================================================================== */
-/* 3. Ray and hit files (batchrt.c)                                      */
+/* 3. Ray and hit files (base.c)                                         */
 /* ===================================================================== */
 
 /* Little-endian files of records.  Ray files and the hit files of scenes
@@ -738,30 +738,6 @@ typedef struct brt_ray_prep {
 
 void brt_ray_prepare(const brt_ray *ray, brt_ray_prep *prep);
 
-/* Grows the box [lo, hi] as above (by 16 * FLT_EPSILON of its largest
-** |coordinate|, every bound rounded outwards by the same float ops);
-** plo/phi may be lo/hi themselves. */
-void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3]);
-
-/* A prepared ray's box-test constants in four lanes each, and the rows
-** of a [6][4] box that hold each axis's near and far planes (as indices
-** and byte offsets): what brt_box_span4 loads as vectors.  A walk that
-** tests many nodes sets them once (brt_box_lanes_of), not at each node. */
-typedef struct brt_box_lanes {
-    float org_near[3][4], org_far[3][4], inv[3][4];
-    int near_row[3], far_row[3];
-    size_t near_off[3], far_off[3];
-} brt_box_lanes;
-
-void brt_box_lanes_of(const brt_ray_prep *prep, brt_box_lanes *lanes);
-
-/* brt_box_span (section 7) on four padded boxes at once, laid out as rows of four
-** lanes: box[0..2] the minimum x, y, z and box[3..5] the maximum x, y, z
-** of lanes 0..3 (a 4-wide BVH node).  Bit i of the result is lane i's
-** answer; entry[i] and exit[i] are bit for bit brt_box_span's. */
-unsigned brt_box_span4(const brt_box_lanes *lanes, const float box[6][4],
-                       float tmin, float tmax, float entry[4], float exit[4]);
-
 typedef struct brt_bvh brt_bvh;   /* opaque; layout documented in bvh.c */
 
 /* Builds a BVH over tri_count triangles given by indices into positions.
@@ -799,55 +775,10 @@ void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags
 /* Any hit in [tnear, tfar]: 1 if occluded. */
 int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray);
 
-/* brt_bvh_intersect_normal, or with any != 0 brt_bvh_occluded (1 when
-** occluded; hit and normal unused), of a ray already prepared:
-** brt_ray_prepare of this very ray (no margin) and brt_box_lanes_of it.
-** For walks that meet many BVHs with one ray: the top-level walk hands
-** its preparation to each batching point it intersects at once. */
-int brt_bvh_walk_prepared(const brt_bvh *bvh, const brt_ray *ray, const brt_ray_prep *prep,
-                          const brt_box_lanes *lanes, brt_hit *hit, float normal[3], int any);
-
-uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
-/* The number reported for each stored triangle, in storage order
-** (brt_bvh_triangle_count of them; checkers read it). */
-const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh);
 /* The bytes the BVH holds: nodes, vertices, prim ids and corner indices
 ** (the blob less its 64-byte header), plus, for a BVH built in memory,
-** its resident layout (bvh.c); brt_bvh_blob_size is the blob's. */
+** its resident layout (bvh.c). */
 size_t brt_bvh_memory_bytes(const brt_bvh *bvh);
-/* A BVH as one relocatable blob (indices, no pointers, little-endian) for
-** the scene file.  brt_bvh_blob_open makes a BVH that refers to the blob's
-** memory (which must stay alive and be 16-byte aligned) after validating
-** its sizes, indices and slot order, its decoded boxes (ordered) and
-** vertices (finite), and that every triangle number it reports is below
-** prim_limit (a scene's triangle count; UINT32_MAX when there is none); a
-** corrupt blob is BRT_EFORMAT, never a crash or a wrong hit record later
-** (a big-endian host refuses blobs: they are read in place). */
-size_t brt_bvh_blob_size(const brt_bvh *bvh);
-void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
-brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
-                             brt_bvh **out, brt_error *err);
-/* The resident layout (bvh.c) for a BVH opened from a blob: its quantized
-** boxes decoded once to floats and its leaves copied into blocks of four,
-** so no walk decodes a node again (make bench-embree times both); the
-** same hits, bit for bit.
-** brt_bvh_decoded_bytes says what brt_bvh_decode would allocate (0 when
-** the BVH has it already or is empty); brt_bvh_decode adds it (BRT_OK, or
-** BRT_ENOMEM and the BVH unchanged).  The geometry cache decodes a
-** batching point when the budget has room for it (batchrt.c, layer 9). */
-size_t brt_bvh_decoded_bytes(const brt_bvh *bvh);
-brt_result brt_bvh_decode(brt_bvh *bvh);
-
-/* Visits a BVH's boxes depth first, for voxelizing an instance without
-** visiting every triangle: box(user, lo, hi) gets every slot's decoded box
-** (which holds its triangles' grown boxes, brt_bvh_check); when it returns
-** nonzero, an inner slot's children are visited, and triangle() gets each
-** triangle of a leaf slot. */
-typedef int (*brt_bvh_box_fn)(void *user, const float lo[3], const float hi[3]);
-typedef void (*brt_bvh_corner_fn)(void *user, const float *v0, const float *v1,
-                                  const float *v2);
-void brt_bvh_visit(const brt_bvh *bvh, brt_bvh_box_fn box, brt_bvh_corner_fn triangle,
-                   void *user);
 
 /* ---- Instances: one function carries a ray into a prototype ---------- */
 
@@ -871,15 +802,6 @@ brt_result brt_instance_frame_init(const brt_instance *instance, uint32_t inst,
 void brt_instance_ray(const brt_instance_frame *frame, const brt_ray *ray,
                       brt_ray *object_ray);
 
-/* The one instance intersection of every mode: brt_bvh_intersect_normal
-** of the prototype's BVH with the object ray, the hit naming inst (normal
-** may be NULL; it becomes the world normal). */
-void brt_instance_intersect(const brt_bvh *prototype,
-                            const brt_instance_frame *frame, uint32_t inst,
-                            const brt_ray *ray, brt_hit *hit, float normal[3]);
-int brt_instance_occluded(const brt_bvh *prototype,
-                          const brt_instance_frame *frame, const brt_ray *ray);
-
 /* An instance's world box: the 8 corners of the prototype's box
 ** (brt_bvh_bounds) through the transform in double, rounded outwards;
 ** and its radius, which the margin below needs: the largest distance
@@ -897,10 +819,6 @@ void brt_instance_bounds(const brt_instance *instance, const brt_instance_frame 
 ** unchanged. */
 float brt_instance_margin(float condition, float reach, const float center[3],
                           const brt_ray *ray);
-
-/* brt_ray_prepare with every box it tests grown by margin >= 0 on all
-** sides (the origin moved by margin more, which is the same). */
-void brt_ray_prepare_margin(const brt_ray *ray, float margin, brt_ray_prep *prep);
 
 /* ===================================================================== */
 /* 5. Voxel proxies: voxelizer, shared DAG, ray cast (svdag.c)           */
@@ -936,17 +854,6 @@ uint64_t brt_grid_count(const brt_grid *grid);   /* voxels set */
 brt_result brt_voxelize(brt_grid *grid, const float *positions,
                         const uint32_t *indices, uint32_t tri_count);
 
-/* Conservative voxelization of an instance (prototype under an object-to-
-** world xform, brt_instance's layout): marks every voxel whose closed box
-** grown by dilation (world units, >= 0) touches a transformed triangle,
-** descending the prototype's BVH (brt_bvh_visit) and marking the voxels of
-** a whole node box once it is at most one voxel wide, so the work grows
-** with the voxels the instance covers, not with its triangles.  The
-** transform is evaluated in double and is inside the voxelizer's bound
-** (svdag.c, "Instances"). */
-brt_result brt_voxelize_instance(brt_grid *grid, const brt_bvh *prototype,
-                                 const float xform[12], float dilation);
-
 typedef struct brt_svdag brt_svdag;  /* a node pool shared by many proxies */
 
 /* One proxy: a root in the shared pool plus the grid frame it came from. */
@@ -981,13 +888,6 @@ int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
                       const brt_ray *ray, float tnear, float tfar,
                       float *t_entry);
 
-/* Checks a proxy against a pool (e.g. one read from a scene file): res a
-** power of two in 2..1024, finite origin, finite positive cell, and root
-** an empty root or a node of the pool of the depth res needs.
-** BRT_ECHECK with a message. */
-brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
-                           brt_error *err);
-
 /* Nodes of the proxy's tree before deduplication (the SVO: interior nodes
 ** plus 4x4x4 leaves), counted through the DAG; 0 for an empty or invalid
 ** proxy or when memory runs out. */
@@ -1004,33 +904,11 @@ brt_result brt_solids_build(const float *corners, size_t stride, uint32_t tri_co
 uint32_t brt_solids_triangles(const brt_solids *solids);   /* in closed components */
 void brt_solids_free(brt_solids *solids);
 
-/* Into an allocated, empty grid: the voxels whose closed box lies inside a
-** closed component of solids (odd crossing parity), so that a ray from any
-** of them to infinity hits a triangle of solids. */
-brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids);
-
-/* 1 only when the ray, with tfar = +inf, certainly hits a triangle at
-** t >= tnear: it passes through the core of an inner voxel of the proxy
-** (a root from brt_voxelize_inner's grid, checked like an outer proxy).
-** 0 for any other ray, or when unsure: it may under-report, never
-** over-report. */
-int brt_inner_occludes(const brt_svdag *dag, const brt_proxy *inner,
-                       const brt_ray *ray);
-
 uint32_t brt_svdag_node_count(const brt_svdag *dag);
 size_t brt_svdag_memory_bytes(const brt_svdag *dag);
 
-/* The pool as one relocatable blob, for the scene file (little-endian,
-** layout in svdag.c).  brt_svdag_blob_open copies the blob (any alignment)
-** and runs brt_svdag_check: a corrupt blob is BRT_EFORMAT.  Proxies read
-** from the same file are then validated with brt_proxy_check. */
-size_t brt_svdag_blob_size(const brt_svdag *dag);
-void brt_svdag_blob_write(const brt_svdag *dag, void *dst);
-brt_result brt_svdag_blob_open(const void *blob, size_t size,
-                               brt_svdag **out, brt_error *err);
-
 /* ===================================================================== */
-/* 6. Small utilities: numbers, files, threads, time (batchrt.c)         */
+/* 6. Small utilities: numbers, files, threads, time (base.c)            */
 /* ===================================================================== */
 
 /* Parses a size such as "512", "64K", "512M", "2G" (powers of 1024).
@@ -1071,11 +949,9 @@ double brt_seconds(void);
 uint64_t brt_peak_rss_bytes(void);
 
 /* Threads (README, "Threads"): every option named threads means that many
-** POSIX threads, the caller's included; 0 means one per online core.  No
-** output byte and no count depends on it.  brt_threads_resolve returns
-** the number a request stands for (at least 1, at most BRT_MAX_THREADS). */
+** POSIX threads, the caller's included; 0 means one per online core, and
+** at most BRT_MAX_THREADS.  No output byte and no count depends on it. */
 #define BRT_MAX_THREADS 256u
-unsigned brt_threads_resolve(unsigned threads);
 
 /* Writes size bytes to path through "path.tmp.<pid>" and rename(), so a
 ** failure never leaves a half-written file under the final name.  A path

@@ -123,7 +123,7 @@
 ** Rays with a NaN anywhere, an inf in the origin or direction, an all-zero
 ** direction, or tnear > tfar never hit (checked once per ray).
 */
-#include "batchrt.h"
+#include "internal.h"
 /* The oracles and checkers the library holds for its tests; the hooks
 ** only when compiled with BRT_TESTING (testing.h). */
 #include "testing.h"

@@ -53,7 +53,7 @@
 ** table is confirmed by comparing the whole node, since a hash is not
 ** equality.  A pool opened from a blob rebuilds them on its first add.
 */
-#include "batchrt.h"
+#include "internal.h"
 /* The oracles and checkers the library holds for its tests; the hooks
 ** only when compiled with BRT_TESTING (testing.h). */
 #include "testing.h"

@@ -21,7 +21,7 @@
 #ifndef BRT_TESTING_H
 #define BRT_TESTING_H
 
-#include "batchrt.h"
+#include "internal.h"
 
 #ifdef __cplusplus
 extern "C" {

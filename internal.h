@@ -1,0 +1,199 @@
+/*
+** internal.h -- what the core files of batchrt share and no program may
+** use: the plumbing between batchrt.c, scene.c, mesh.c, base.c, bvh.c and
+** svdag.c.  Not installed (make install copies batchrt.h only), so a
+** declaration here can change with any release; batchrt.h is the manual
+** of the public API alone.
+**
+** The files stand in layers, each calling only the ones below it:
+**
+**     batchrt.c  the method: partition, top-level walk, scheduler, cache
+**     scene.c    the scene file: format, out-of-core build, open, checks
+**     mesh.c     OBJ and PLY input
+**        bvh.c   the triangle BVH          svdag.c  the voxel proxies
+**     base.c     rays and hits, errors, statistics, utilities, threads
+**
+** so bvh.c and svdag.c need nothing of batchrt.c (README, "Files").
+*/
+#ifndef BRT_INTERNAL_H
+#define BRT_INTERNAL_H
+
+#include "batchrt.h"
+#include <pthread.h>
+
+/* ---- the BVH and instances, for the scene file, the cache and the proxies (bvh.c) ---- */
+
+/* Grows the box [lo, hi] as above (by 16 * FLT_EPSILON of its largest
+** |coordinate|, every bound rounded outwards by the same float ops);
+** plo/phi may be lo/hi themselves. */
+void brt_box_pad(const float lo[3], const float hi[3], float plo[3], float phi[3]);
+
+/* A prepared ray's box-test constants in four lanes each, and the rows
+** of a [6][4] box that hold each axis's near and far planes (as indices
+** and byte offsets): what brt_box_span4 loads as vectors.  A walk that
+** tests many nodes sets them once (brt_box_lanes_of), not at each node. */
+typedef struct brt_box_lanes {
+    float org_near[3][4], org_far[3][4], inv[3][4];
+    int near_row[3], far_row[3];
+    size_t near_off[3], far_off[3];
+} brt_box_lanes;
+
+void brt_box_lanes_of(const brt_ray_prep *prep, brt_box_lanes *lanes);
+
+/* brt_box_span (section 7) on four padded boxes at once, laid out as rows of four
+** lanes: box[0..2] the minimum x, y, z and box[3..5] the maximum x, y, z
+** of lanes 0..3 (a 4-wide BVH node).  Bit i of the result is lane i's
+** answer; entry[i] and exit[i] are bit for bit brt_box_span's. */
+unsigned brt_box_span4(const brt_box_lanes *lanes, const float box[6][4],
+                       float tmin, float tmax, float entry[4], float exit[4]);
+
+/* brt_bvh_intersect_normal, or with any != 0 brt_bvh_occluded (1 when
+** occluded; hit and normal unused), of a ray already prepared:
+** brt_ray_prepare of this very ray (no margin) and brt_box_lanes_of it.
+** For walks that meet many BVHs with one ray: the top-level walk hands
+** its preparation to each batching point it intersects at once. */
+int brt_bvh_walk_prepared(const brt_bvh *bvh, const brt_ray *ray, const brt_ray_prep *prep,
+                          const brt_box_lanes *lanes, brt_hit *hit, float normal[3], int any);
+
+uint32_t brt_bvh_triangle_count(const brt_bvh *bvh);
+/* The number reported for each stored triangle, in storage order
+** (brt_bvh_triangle_count of them; checkers read it). */
+const uint32_t *brt_bvh_prim_ids(const brt_bvh *bvh);
+
+/* A BVH as one relocatable blob (indices, no pointers, little-endian) for
+** the scene file.  brt_bvh_blob_open makes a BVH that refers to the blob's
+** memory (which must stay alive and be 16-byte aligned) after validating
+** its sizes, indices and slot order, its decoded boxes (ordered) and
+** vertices (finite), and that every triangle number it reports is below
+** prim_limit (a scene's triangle count; UINT32_MAX when there is none); a
+** corrupt blob is BRT_EFORMAT, never a crash or a wrong hit record later
+** (a big-endian host refuses blobs: they are read in place). */
+size_t brt_bvh_blob_size(const brt_bvh *bvh);
+void brt_bvh_blob_write(const brt_bvh *bvh, void *dst);
+brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
+                             brt_bvh **out, brt_error *err);
+
+/* The resident layout (bvh.c) for a BVH opened from a blob: its quantized
+** boxes decoded once to floats and its leaves copied into blocks of four,
+** so no walk decodes a node again (make bench-embree times both); the
+** same hits, bit for bit.
+** brt_bvh_decoded_bytes says what brt_bvh_decode would allocate (0 when
+** the BVH has it already or is empty); brt_bvh_decode adds it (BRT_OK, or
+** BRT_ENOMEM and the BVH unchanged).  The geometry cache decodes a
+** batching point when the budget has room for it (batchrt.c, layer 9). */
+size_t brt_bvh_decoded_bytes(const brt_bvh *bvh);
+brt_result brt_bvh_decode(brt_bvh *bvh);
+
+/* Visits a BVH's boxes depth first, for voxelizing an instance without
+** visiting every triangle: box(user, lo, hi) gets every slot's decoded box
+** (which holds its triangles' grown boxes, brt_bvh_check); when it returns
+** nonzero, an inner slot's children are visited, and triangle() gets each
+** triangle of a leaf slot. */
+typedef int (*brt_bvh_box_fn)(void *user, const float lo[3], const float hi[3]);
+typedef void (*brt_bvh_corner_fn)(void *user, const float *v0, const float *v1,
+                                  const float *v2);
+void brt_bvh_visit(const brt_bvh *bvh, brt_bvh_box_fn box, brt_bvh_corner_fn triangle,
+                   void *user);
+
+/* The one instance intersection of every mode: brt_bvh_intersect_normal
+** of the prototype's BVH with the object ray, the hit naming inst (normal
+** may be NULL; it becomes the world normal). */
+void brt_instance_intersect(const brt_bvh *prototype,
+                            const brt_instance_frame *frame, uint32_t inst,
+                            const brt_ray *ray, brt_hit *hit, float normal[3]);
+int brt_instance_occluded(const brt_bvh *prototype,
+                          const brt_instance_frame *frame, const brt_ray *ray);
+
+/* brt_ray_prepare with every box it tests grown by margin >= 0 on all
+** sides (the origin moved by margin more, which is the same). */
+void brt_ray_prepare_margin(const brt_ray *ray, float margin, brt_ray_prep *prep);
+
+/* ---- proxies, for the scene build and the scheduler (svdag.c) ---- */
+
+/* Conservative voxelization of an instance (prototype under an object-to-
+** world xform, brt_instance's layout): marks every voxel whose closed box
+** grown by dilation (world units, >= 0) touches a transformed triangle,
+** descending the prototype's BVH (brt_bvh_visit) and marking the voxels of
+** a whole node box once it is at most one voxel wide, so the work grows
+** with the voxels the instance covers, not with its triangles.  The
+** transform is evaluated in double and is inside the voxelizer's bound
+** (svdag.c, "Instances"). */
+brt_result brt_voxelize_instance(brt_grid *grid, const brt_bvh *prototype,
+                                 const float xform[12], float dilation);
+
+/* Checks a proxy against a pool (e.g. one read from a scene file): res a
+** power of two in 2..1024, finite origin, finite positive cell, and root
+** an empty root or a node of the pool of the depth res needs.
+** BRT_ECHECK with a message. */
+brt_result brt_proxy_check(const brt_svdag *dag, const brt_proxy *proxy,
+                           brt_error *err);
+
+/* Into an allocated, empty grid: the voxels whose closed box lies inside a
+** closed component of solids (odd crossing parity), so that a ray from any
+** of them to infinity hits a triangle of solids. */
+brt_result brt_voxelize_inner(brt_grid *inner, const brt_solids *solids);
+
+/* 1 only when the ray, with tfar = +inf, certainly hits a triangle at
+** t >= tnear: it passes through the core of an inner voxel of the proxy
+** (a root from brt_voxelize_inner's grid, checked like an outer proxy).
+** 0 for any other ray, or when unsure: it may under-report, never
+** over-report. */
+int brt_inner_occludes(const brt_svdag *dag, const brt_proxy *inner,
+                       const brt_ray *ray);
+
+/* The pool as one relocatable blob, for the scene file (little-endian,
+** layout in svdag.c).  brt_svdag_blob_open copies the blob (any alignment)
+** and runs brt_svdag_check: a corrupt blob is BRT_EFORMAT.  Proxies read
+** from the same file are then validated with brt_proxy_check. */
+size_t brt_svdag_blob_size(const brt_svdag *dag);
+void brt_svdag_blob_write(const brt_svdag *dag, void *dst);
+brt_result brt_svdag_blob_open(const void *blob, size_t size,
+                               brt_svdag **out, brt_error *err);
+
+/* ---- threads (base.c) ---- */
+
+/* The number of threads an option's request stands for (batchrt.h,
+** BRT_MAX_THREADS): at least 1, at most BRT_MAX_THREADS. */
+unsigned brt_threads_resolve(unsigned threads);
+
+/* ---- the pool of threads (base.c) ---- */
+/* The scene build, the scheduler's phases and the direct mode's chunks run
+** their jobs on it: brt_pool_run hands [0, total) out in chunks to
+** job(ctx, thread, first, end), then commit(ctx, first, end), when not
+** NULL, sees the chunks in order. */
+typedef void (*brt_pool_job)(void *ctx, unsigned thread, size_t first, size_t end);
+typedef void (*brt_pool_commit)(void *ctx, size_t first, size_t end);
+
+typedef struct brt_pool {
+    pthread_mutex_t lock;
+    pthread_cond_t wake, idle, progress;
+    pthread_t *threads;
+    unsigned count;             /* threads that run jobs, the caller included */
+    unsigned long round;        /* incremented for each job */
+    unsigned busy;              /* threads still in the current job */
+    int quit;
+    brt_pool_job job;
+    void *ctx;
+    size_t next, total, chunk;  /* the split of the current job */
+    unsigned char *done;        /* per chunk of the job: finished */
+    size_t done_cap;
+} brt_pool;
+
+void brt_pool_init(brt_pool *p, unsigned threads);
+void brt_pool_run(brt_pool *p, brt_pool_job job, brt_pool_commit commit, void *ctx, size_t total,
+                  size_t chunk);
+void brt_pool_free(brt_pool *p);
+
+/* The largest vertex or triangle count: one below UINT32_MAX, which
+** marks "none" in the files. */
+#define MAX_COUNT 0xFFFFFFFEu
+
+/* ---- files (base.c) ---- */
+/* Writes all of data at offset, or at the file position when offset is
+** negative: 0, or -1 with errno set. */
+int brt_write_fully(int fd, const void *data, size_t size, int64_t offset);
+/* Nonzero when path exists and is not a regular file (a device, a pipe):
+** a rename over it would replace it. */
+int brt_is_special_file(const char *path);
+
+#endif
