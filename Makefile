@@ -50,7 +50,7 @@ Q   =
 SAY = @true
 endif
 
-LIB_SRC  = batchrt.c mesh.c bvh.c svdag.c base.c
+LIB_SRC  = batchrt.c scene.c world.c mesh.c bvh.c svdag.c base.c
 LIB_OBJ  = $(LIB_SRC:%.c=$(BUILD)/%.o)
 LIB      = $(BUILD)/libbatchrt.a
 # examples/ by kind: tutorials/ (the two APIs in a page each), tools/ (the

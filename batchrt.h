@@ -11,7 +11,7 @@
 **
 ** DATA FLOW
 **   mesh (OBJ/PLY) -> batching points -> scene file + proxies   batched mode
-**        (batchrt.c)                    (svdag.c: voxelize -> SVO -> shared DAG)
+**     (mesh.c)    (batchrt.c)  (scene.c; svdag.c: voxelize -> SVO -> shared DAG)
 **   rays -> top-level walk -> (geometry in memory: intersect at once)
 **        -> proxy test -> queues -> geometry cache -> hits
 **   mesh -> triangle BVH (bvh.c)                                direct mode
@@ -53,14 +53,17 @@
 **   brt_bvh_free(bvh);
 **
 ** CONTENTS
-**   Results and errors; rays and hits (the records every call takes)
-**   1. Batched traversal: scene files, tracing, statistics (batchrt.c)
-**   2. Meshes and triangle streams (batchrt.c)
-**   3. Ray and hit files (batchrt.c)
+**   Results and errors; rays and hits (the records every call takes: base.c)
+**   1. Batched traversal: scene files (scene.c), tracing (batchrt.c),
+**      statistics (base.c)
+**   2. Meshes (mesh.c), triangle streams, instanced scenes and the direct
+**      mode's world (world.c)
+**   3. Ray and hit files (base.c)
 **   4. Ray/triangle test, ray/box test and triangle BVH (bvh.c)
 **   5. Conservative voxel proxies: voxelizer, shared DAG, ray cast (svdag.c)
-**   6. Small utilities: numbers, files, threads, time (batchrt.c)
-**   (Oracles, checkers and hooks for the tests alone: testing.h, not installed.)
+**   6. Small utilities: numbers, files, threads, time (base.c)
+**   (Oracles, checkers and hooks for the tests alone: testing.h; what the
+**   core files share and no program may use: internal.h; neither installed.)
 **
 ** ERRORS
 **   Every fallible function returns a brt_result (BRT_OK is 0) and, when
@@ -176,7 +179,7 @@ typedef struct brt_triangle_source brt_triangle_source;
 typedef struct brt_scene_source brt_scene_source;
 
 /* ===================================================================== */
-/* 1. Batched traversal: scene files, tracing, statistics (batchrt.c)   */
+/* 1. Batched traversal: scene files, tracing, statistics               */
 /* ===================================================================== */
 /*
 ** A scene file holds a mesh split into batching points.  Each batching
@@ -233,7 +236,7 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
 ** that).  A source without prototypes builds brt_scene_build_stream's
 ** file of its world triangles, byte for byte.  Instances are checked as
 ** brt_world_build checks them.  The build spills the instances as it
-** spills triangles and cuts them a bucket at a time (batchrt.c, "instance
+** spills triangles and cuts them a bucket at a time (scene.c, "instance
 ** points"): it holds one bucket of instances and the prototypes' BVHs,
 ** never all the instances. */
 brt_result brt_scene_build_source(const brt_scene_source *source,
@@ -531,7 +534,7 @@ brt_result brt_stats_write_json(const char *path, const brt_stats *stats,
 size_t brt_stats_format_json(const brt_stats *stats, char text[BRT_STATS_JSON_BYTES]);
 
 /* ===================================================================== */
-/* 2. Meshes (mesh.c), triangle streams and instanced scenes (batchrt.c) */
+/* 2. Meshes (mesh.c), triangle streams and instanced scenes (world.c)  */
 /* ===================================================================== */
 
 /* An indexed triangle mesh.  Triangles are numbered from 0 in file order;

@@ -1549,8 +1549,8 @@ static split find_split(const builder *b, uint32_t begin, uint32_t end,
 
 /* Partitions [begin, end) by the split, computing the children's boxes
 ** on the way; returns the first right index. */
-static uint32_t partition(builder *b, uint32_t begin, uint32_t end,
-                          const binning *g, const split *s, aabb child[2][2])
+static uint32_t partition_refs(builder *b, uint32_t begin, uint32_t end,
+                               const binning *g, const split *s, aabb child[2][2])
 {
     uint32_t i = begin, j = end;
     aabb_empty(&child[0][0]); aabb_empty(&child[0][1]);
@@ -1591,7 +1591,7 @@ static uint32_t build_node(builder *b, uint32_t begin, uint32_t end,
         const float split_cost = area > 0.0f ? C_TRAV + C_ISECT * s.cost / area : INFINITY;
         if (count <= MAX_LEAF && (s.axis < 0 || C_ISECT * (float)count <= split_cost))
             return index;
-        if (s.axis >= 0) mid = partition(b, begin, end, &g, &s, child);
+        if (s.axis >= 0) mid = partition_refs(b, begin, end, &g, &s, child);
     }
     /* Equal centroids or too deep: halving keeps the depth bound. */
     if (mid == begin || mid == end) {

@@ -21,6 +21,193 @@
 #include "batchrt.h"
 #include <pthread.h>
 
+/* ===================================================================== */
+/* The scene in memory: the types batchrt.c, scene.c and world.c share   */
+/* ===================================================================== */
+/* Their design is told where they are used: batchrt.c, "the partition
+** into batching points", "the top-level BVH", "instances" and "the scene
+** in memory". */
+
+typedef struct batch_range {
+    uint32_t first, count;        /* into the triangle order */
+} batch_range;
+
+typedef struct partition {
+    uint32_t *order;              /* triangle ids, batching point by batching point
+                                  ** (the caller's array) */
+    batch_range *ranges;
+    uint32_t count;
+    size_t capacity;
+} partition;
+
+typedef uint64_t (*range_size_fn)(void *user, const uint32_t *ids, uint32_t n,
+                                  uint32_t *distinct, uint64_t *instanced);
+
+typedef struct size_limits {
+    uint32_t batch_tris;          /* distinct prototype triangles */
+    uint64_t batch_instanced;     /* instanced triangles; 0: none */
+} size_limits;
+
+#define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
+#define TOP_LEAF 0x80000000u    /* child code of batching point (code & ~TOP_LEAF) */
+#define TOP_NODE_BYTES 112
+
+typedef struct top_node {
+    float box[6][4];            /* child boxes: rows min x, y, z, max x, y, z; one lane
+                                ** per child (grown in memory; brt_box_span4's layout) */
+    uint32_t child[4];          /* node index (> own index), TOP_LEAF|id, TOP_EMPTY */
+} top_node;
+
+/* The margin of a box of instances (bvh.c, "Instances"), taken about the
+** box's centre, so that it is as small as the box's neighbourhood allows
+** wherever the box lies: the largest condition number of its instances,
+** and the largest |d - center| + radius (brt_instance_bounds). */
+typedef struct instance_margin {
+    float condition, reach;
+    float center[3];
+} instance_margin;
+
+typedef struct instance_set {
+    uint32_t count;
+    uint32_t *ids;                  /* the instances' numbers (hit.inst) */
+    uint32_t *prototypes;           /* their prototypes */
+    brt_instance_frame *frames;
+    top_node *nodes;                /* boxes grown by brt_top_node_pad */
+    uint32_t node_count;
+    instance_margin margin;         /* about the centre of all their boxes */
+    uint32_t *uses;                 /* batched mode: the distinct prototypes, */
+    uint32_t use_count;             /* ascending (what a load must make resident) */
+} instance_set;
+
+/* What a ray is intersected with: a batching point's geometry, or the
+** whole scene's (direct mode).  Either part may be absent (NULL). */
+typedef struct geometry {
+    const brt_bvh *triangles;
+    const instance_set *instances;
+    const brt_bvh *const *prototypes;   /* by prototype id */
+} geometry;
+
+/* A point of instances' proxy marks what lies within this share of a
+** voxel of its instances' triangles: the rounding of the ray's transform
+** it covers (proxy_admits, brt_voxelize_instance).  A small share keeps
+** the proxy tight; rays from farther away than it covers are admitted
+** untested. */
+#define INSTANCE_DILATION (1.0f / 64.0f)
+
+/* A median-split tree of four groups per node is at most about
+** log4(count) + 1 deep (17 for 2^32 instances); each level leaves at most
+** three siblings on the stack. */
+#define SET_STACK 64
+
+typedef struct batch_entry {
+    float lo[3], hi[3];
+    uint64_t offset, size, checksum;
+    uint32_t triangles;         /* world triangles; for a point of instances,
+                                ** its distinct prototypes' triangles */
+    brt_proxy proxy;
+    brt_proxy inner;            /* inner proxy; the file holds its root, its
+                                ** frame follows from the box (inner_frame) */
+    uint32_t instances;         /* 0: a point of world triangles (its blob a
+                                ** BVH); else a point of instances (its blob
+                                ** an instance table, "instance points") */
+    uint64_t instanced;         /* the triangles of its instances */
+    instance_margin margin;     /* its instances', about its box's centre */
+} batch_entry;
+
+/* A prototype of an instanced scene: its BVH blob, stored once and cached
+** once whichever batching points use it, and its object-space box. */
+typedef struct proto_entry {
+    uint64_t offset, size, checksum;
+    uint32_t triangles;
+    float lo[3], hi[3];         /* brt_bvh_bounds of its BVH */
+} proto_entry;
+
+typedef struct section {
+    uint64_t offset, size, checksum;
+} section;
+
+/* What the header says, unpacked. */
+typedef struct scene_header {
+    uint64_t stamp, geometry_bytes;
+    uint32_t batch_tris, proxy_res, batch_count, triangle_count, top_node_count;
+    section sections[4];        /* the fourth: prototypes (instanced files) */
+    /* Instanced scenes (version 4) only: */
+    uint32_t prototype_count, instance_count;
+    uint64_t instanced_triangles;
+    instance_margin margin;     /* of all instances: the walk's */
+    uint64_t batch_instanced;   /* brt_scene_options.batch_instanced */
+} scene_header;
+
+/* A blob opened: a BVH (a point of world triangles, or a prototype) or
+** an instance table (a point of instances), referring into the blob. */
+typedef struct blob_view {
+    brt_bvh *bvh;
+    instance_set *set;
+} blob_view;
+
+/* Where a blob lies: the blobs are the batching points' (ids 0 ..
+** batch_count - 1) and then the prototypes'. */
+typedef struct blob_place {
+    uint64_t offset, size, checksum;
+} blob_place;
+
+struct brt_scene {
+    char *path;
+    int fd;
+    scene_header header;
+    batch_entry *batches;
+    proto_entry *prototypes;    /* instanced scenes, else NULL */
+    blob_place *blobs;          /* batch_count + prototype_count */
+    top_node *top;
+    brt_svdag *dag;
+    void *dag_blob;             /* the pool refers to it */
+    uint64_t file_size;
+};
+
+#define SCENE_PAGE 4096u   /* blobs start at multiples of it (the scene file) */
+
+#define SCENE_PAGE 4096u   /* blobs start at multiples of it (the scene file) */
+
+struct prepared_ray;   /* batchrt.c: a ray prepared for the box test once */
+
+/* ---- batchrt.c: the partition, the top-level tree, instances and their intersection (the build, the world and the scheduler) ---- */
+brt_result brt_partition_split(partition *p, const float *centroids, uint32_t first, uint32_t count,
+                               uint32_t batch_tris);
+brt_result brt_partition_by_size(partition *p, const float *centres, uint32_t first, uint32_t count,
+                                 const size_limits *limits, range_size_fn size_of, void *user);
+brt_result brt_top_build(const float *boxes, uint32_t count, top_node **nodes,
+                         uint32_t *node_count);
+void brt_top_lane_clear(top_node *node, int lane);
+void brt_top_lane_grow(top_node *node, int lane, const float *box);
+void brt_margin_begin(instance_margin *m, const float lo[3], const float hi[3]);
+void brt_margin_add(instance_margin *m, const brt_instance_frame *f, float radius);
+brt_result brt_instance_admit(const brt_instance *in, uint32_t number, uint32_t prototypes,
+                              brt_instance_frame *frame, brt_error *err);
+brt_result brt_set_build_tree(instance_set *set, const float *boxes);
+void brt_set_fit_margin(instance_set *set, const float *boxes, const float *radii);
+void brt_set_free(instance_set *set);
+void brt_intersect_ray(const geometry *g, const brt_ray *ray, uint64_t tag, brt_hit *hit,
+                       float normal[3], const struct prepared_ray *p);
+void brt_trace_geometry(const geometry *g, const brt_ray *rays, const uint64_t *tags, size_t count,
+                        brt_hit *hits, float *normals, unsigned threads);
+
+/* ---- scene.c: the scene file's reads and the top-level nodes it stores ---- */
+brt_result brt_read_fully(int fd, void *buf, size_t size, uint64_t offset, brt_read_fn read_fn,
+                          void *user, uint64_t *bytes_read, const char *path, brt_error *err);
+long brt_pread_reader(int fd, void *buf, size_t size, uint64_t offset, void *user);
+uint64_t brt_round_up_page(uint64_t n);
+void brt_top_node_pad(top_node *n);
+brt_result brt_instance_table_open(const brt_scene *s, uint32_t id, const unsigned char *data,
+                                   uint64_t size, instance_set **out, brt_error *err);
+void brt_bounds_grow(float lo[3], float hi[3], const float p[3]);
+
+/* ---- world.c: a triangle stream gathered into a BVH (the world and the prototypes of a build) ---- */
+brt_result brt_stream_bvh(brt_result (*run)(const void *, uint32_t, brt_triangle_fn, void *,
+                          brt_error *), const void *user, uint32_t id, brt_bvh **out,
+                          uint32_t *count, float *lo, float *hi, brt_error *err);
+brt_result brt_run_prototype_stream(const void *user, uint32_t id, brt_triangle_fn emit,
+                                    void *emit_user, brt_error *err);
+
 /* ---- the BVH and instances, for the scene file, the cache and the proxies (bvh.c) ---- */
 
 /* Grows the box [lo, hi] as above (by 16 * FLT_EPSILON of its largest

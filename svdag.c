@@ -994,7 +994,7 @@ uint64_t brt_svdag_svo_nodes(const brt_svdag *dag, const brt_proxy *proxy)
 /* ===================================================================== */
 
 /*
-** Little-endian (brt_put_le32 and its kin, batchrt.c), no pointers:
+** Little-endian (brt_put_le32 and its kin, base.c), no pointers:
 **   0  "BRTSVDAG"   8  u32 version (1)   12  u32 word count
 **   16 u32 leaf count   20 u32 zero   24 leaves (u64 each)   then words (u32)
 ** The dedup index is not stored; it is rebuilt if proxies are added later.

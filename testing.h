@@ -94,7 +94,7 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 /* Hooks (only with BRT_TESTING)                                         */
 /* ===================================================================== */
 
-/* Injects one read fault: the library's own reads (pread_reader: a scene
+/* Injects one read fault: the library's own reads (brt_pread_reader: a scene
 ** file's header, tables and blobs, the spill file of a build) succeed
 ** `after` more times, then one fails with errno `error`; after < 0 never
 ** (the default). */

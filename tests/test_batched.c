@@ -732,7 +732,7 @@ static void expect_forged(const char *good, size_t at, uint32_t value, const cha
 }
 
 /* The offset of section s (0 batch table, 1 top level, 2 proxy pool) in
-** a scene file (header layout in batchrt.c), or 0. */
+** a scene file (header layout in scene.c), or 0. */
 static long section_offset(const char *path, int s)
 {
     size_t size = 0;

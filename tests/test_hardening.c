@@ -24,7 +24,7 @@
 **    one batching point, one ray in flight, no rays at all, a 1x1 image;
 **  - forged scene files (README, "The scene file"): valid checksums, one
 **    cross-reference broken per file, one file per line of the validators
-**    of batchrt.c's scene open and bvh.c's blob open, each refused naming
+**    of scene.c's scene open and bvh.c's blob open, each refused naming
 **    the part: every axis, every section's extent, blobs that share a
 **    page, a version-4 file's margins, prototypes and instance counts.
 ** Oracles: the direct mode and brute force over brt_intersect_triangle.
@@ -151,7 +151,7 @@ static void test_corpus_replay(void)
 
 /* The scene target repairs checksums before opening; an intact seed must
 ** come through unchanged and trace, or the fuzzer never gets past the
-** checksums (its copy of checksum64 would have drifted from batchrt.c). */
+** checksums (its copy of checksum64 would have drifted from base.c). */
 static void test_scene_seed(void)
 {
     const char *seed = "tests/corpus/scene/fixed.brs";
@@ -1134,7 +1134,7 @@ static void test_budget_below_one_batching_point(void)
 ** with exact proxies, which load every blob.  Each must be refused with
 ** BRT_EFORMAT and a message naming the file and the part.  The unbroken
 ** file goes the same way and must trace, so a refusal is the forgery's.
-** Offsets: batchrt.c's scene file (header fields at fixed offsets, 80-byte
+** Offsets: scene.c's scene file (header fields at fixed offsets, 80-byte
 ** batch entries, 112-byte top-level nodes) and bvh.c's blob (64-byte
 ** header, 128-byte nodes, 36 bytes a triangle, then 4-byte numbers).
 */

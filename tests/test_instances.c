@@ -1244,7 +1244,7 @@ static void test_identity_instance_is_the_mesh(void)
     tu_instanced_free(&inst_scene);
 }
 
-/* The instance pass out of core (batchrt.c, "instance points"): with
+/* The instance pass out of core (scene.c, "instance points"): with
 ** buckets of a few instances (brt_test_build_sizes), 3000 instances of three
 ** prototypes scattered over a plane go through the spill file's Morton
 ** buckets; every instance lands in exactly one batching point (the

@@ -1,6 +1,6 @@
 /*
 ** tests/test_reclaim.c -- temporary files of killed writers are reclaimed,
-** live ones never (batchrt.c, brt_atomic_open).
+** live ones never (base.c, brt_atomic_open).
 **
 ** A writer holds "path.tmp.<pid>" under an fcntl lock, which the system
 ** releases however the process dies; the next writer of path removes the

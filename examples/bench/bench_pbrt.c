@@ -1,6 +1,6 @@
 /*
 ** examples/bench/bench_pbrt.c -- reading speed of the pbrt-v4 reader
-** (examples/lib/pbrt.c) against the OBJ reader (batchrt.c) on the same
+** (examples/lib/pbrt.c) against the OBJ reader (mesh.c) on the same
 ** triangles, as a program pays it: the input opened (ex_input_open: for a
 ** .pbrt file, pass 1 over the whole file) and every triangle streamed once
 ** through the scene source, as a build's pass does.  Prints a Markdown

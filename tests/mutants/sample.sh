@@ -29,7 +29,7 @@ n_wanted=${1:-40}
 seed=${2:-1}
 shift 2 2>/dev/null || shift $#
 root=$(cd "$(dirname "$0")/../.." && pwd)
-[ $# -gt 0 ] || set -- batchrt.c mesh.c bvh.c svdag.c base.c
+[ $# -gt 0 ] || set -- batchrt.c scene.c world.c mesh.c bvh.c svdag.c base.c
 timeout_s=${MUTANTS_TIMEOUT:-900}
 shared=${BRT_SHARED:-$root/../shared}
 case $shared in /*) ;; *) shared=$root/$shared ;; esac
