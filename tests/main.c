@@ -298,6 +298,7 @@ static void run_suites(void)
     suite_reference();
     suite_thresholds();
     suite_oom();
+    suite_drift();
     suite_runner();
 }
 

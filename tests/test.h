@@ -91,5 +91,6 @@ void suite_policy(void);
 void suite_reference(void);
 void suite_thresholds(void);
 void suite_oom(void);
+void suite_drift(void);
 
 #endif

@@ -4,9 +4,10 @@
 # Each mutant in tests/mutants/mutants.txt removes or weakens one mechanism
 # the tests are meant to guard: a search-and-replace of one exact piece of
 # text in one file (no line numbers, so a mutant survives edits elsewhere).
-# For each mutant the script copies the tree (sources and build/, so only
-# the mutated file is recompiled), applies the replacement, rebuilds with
-# make -j2 and runs build/run_tests with the mutant's test filters.  The
+# For each mutant the script copies the tree (sources, README.md, which
+# the drift: tests read, and build/, so only the mutated file is
+# recompiled), applies the replacement, rebuilds with make -j2 and runs
+# build/run_tests with the mutant's test filters.  The
 # mutant must make them fail, FOR ITS MECHANISM: the entry's `expect`
 # names a piece of the failure message that the broken mechanism causes,
 # and some FAIL line must contain it.  A mutant that dies of a side
@@ -42,7 +43,7 @@ command -v timeout >/dev/null 2>&1 && limit="timeout $timeout_s"   # not POSIX: 
 make -C "$root" --no-print-directory -j2 all build/run_tests >"$scratch/base.log" 2>&1 || {
     cat "$scratch/base.log"; echo "mutants: the unmutated tree does not build"; exit 1; }
 mkdir "$scratch/base"
-(cd "$root" && cp -p Makefile ./*.c ./*.h "$scratch/base/" && cp -Rp examples tests "$scratch/base/") || exit 1
+(cd "$root" && cp -p Makefile README.md ./*.c ./*.h "$scratch/base/" && cp -Rp examples tests "$scratch/base/") || exit 1
 mkdir "$scratch/base/build"
 for f in "$root"/build/*; do
     case ${f##*/} in debug|sanitize|valgrind|fuzz|demo|fig|*.png|*.brs) continue ;; esac
