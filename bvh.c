@@ -637,8 +637,8 @@ static inline unsigned slot_valid(const qnode *n)
 }
 
 /* What non-empty slot i points to.  Inner slots come first, then leaves,
-** then empty ones (the build orders them so, blob_open insists), so inner
-** slot i is child first_node + i, and leaf slot i starts after the
+** then empty ones (the build orders them so, brt_bvh_blob_open insists),
+** so inner slot i is child first_node + i, and leaf slot i starts after the
 ** triangles of the slots below it (inner slots count 0): arithmetic, not
 ** a loop over the slots at every node. */
 static inline uint32_t slot_target(const qnode *n, unsigned i)
@@ -1163,8 +1163,8 @@ int brt_bvh_occluded(const brt_bvh *bvh, const brt_ray *ray)
 ** object-space hit at t' may lie outside the instance's world box W (the
 ** prototype's box B, grown by bvh.c's pads, through the transform in
 ** double, rounded outwards).  How far (infinity norms, u = 2^-24, k =
-** ||M|| ||M^-1|| <= BRT_MAX_CONDITION = 2^10, R = reach of brt_instance_
-** reach >= |d - c| + max |W - d|, about a centre c):
+** ||M|| ||M^-1|| <= BRT_MAX_CONDITION = 2^10, R = the reach of
+** brt_instance_margin, >= |d - c| + max |W - d|, about a centre c):
 ** (Distances from the origin may be taken from any centre c instead:
 ** |o - d| <= |o - c| + |d - c|, so a reach of |d - c| + the radius of
 ** brt_instance_bounds about c serves, and far from the world's origin a

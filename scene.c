@@ -1011,7 +1011,7 @@ typedef struct instance_build {
     brt_bvh **protos;               /* every prototype's BVH, for the proxies */
     proto_entry *entries;           /* the prototype table */
     uint32_t proto_count;
-    uint32_t *stamp, stamp_now;     /* range_size's marks, per prototype */
+    uint32_t *stamp, stamp_now;     /* instance_range_size's marks, per prototype */
     uint64_t instanced;             /* instanced triangles of the whole scene */
     float condition, radius;        /* the largest: the walk's margin (scene_margin) */
     double dlo[3], dhi[3];          /* the bounds of the translations */

@@ -20,9 +20,7 @@
 **    variable): every *.c and *.h of the top, examples/ and tests/ (this
 **    file aside: its lists name what does not exist) and the Makefile
 **    (its # comments removed).  ALLOWED lists the words that are not the
-**    tree's names, each with its reason; DRIFT_TODO the drift in files
-**    this change could not edit, for the lead to fix: each entry must
-**    still be drift, so the list can only shrink.
+**    tree's names, each with its reason.
 ** 2. Every program answers --help with exit 0 and a usage line: "cli:
 **    --help of every program" (tests/test_cli.c) holds it, for every
 **    program of examples/ (embree_trace and mpi_trace: their suites).
@@ -83,16 +81,6 @@ static const struct { const char *word, *reason; } ALLOWED[] = {
     {"nlevels", "a pbrt-v4 parameter the reader skips by not knowing it"},
     {"LICENSE", "a file of the repository"},
 };
-
-/* Drift in files this change could not edit (others were restructuring
-** them): each entry is still drift, or the test fails until it is
-** removed.  TEMPORARY: the lead empties it. */
-static const struct { const char *file, *word, *fix; } DRIFT_TODO[] = {
-    {"bvh.c", "blob_open", "brt_bvh_blob_open"},
-    {"bvh.c", "brt_instance_reach", "brt_instance_margin's reach (the name is broken over two lines)"},
-    {"batchrt.c", "range_size", "instance_range_size"},
-};
-#define DRIFT_TODO_COUNT (sizeof DRIFT_TODO / sizeof DRIFT_TODO[0])
 
 /* ===================================================================== */
 /* A set of words                                                        */
@@ -323,7 +311,6 @@ static const char *build_dir(void)
 
 typedef struct citations {
     word_set words;
-    int todo_seen[DRIFT_TODO_COUNT];
     int found;          /* citations checked */
 } citations;
 
@@ -339,15 +326,8 @@ static int allowed(const char *w, size_t n)
 ** needs a word it starts. */
 static void check_citation(citations *c, const char *file, int line, const char *w, size_t n, int wildcard)
 {
-    size_t i;
     c->found++;
     if (wildcard ? set_has_prefix(&c->words, w, n) : set_has(&c->words, w, n) || allowed(w, n)) return;
-    for (i = 0; i < DRIFT_TODO_COUNT; i++)
-        if (strcmp(DRIFT_TODO[i].file, file) == 0 && strlen(DRIFT_TODO[i].word) == n &&
-            strncmp(DRIFT_TODO[i].word, w, n) == 0) {
-            c->todo_seen[i] = 1;
-            return;
-        }
     test_fail_at(__FILE__, __LINE__, "%s:%d: `%.*s%s` names nothing in the tree (no function, macro, type, "
                  "field, option or string): rename it to the real name", file, line, (int)n, w,
                  wildcard ? "*" : "");
@@ -456,7 +436,6 @@ static void test_identifiers_exist(void)
 {
     citations c;
     char *prose = readme_prose();
-    size_t i;
     memset(&c, 0, sizeof c);
     CHECK(prose, "cannot read README.md (run from the repository's top)");
     CHECK(code_words(&c.words), "cannot read the tree's sources and Makefile");
@@ -464,9 +443,6 @@ static void test_identifiers_exist(void)
     each_source("examples", 1, check_source_notes, &c);
     each_span(prose, check_span, &c);
     EXPECT(c.found > 1000, "only %d citations found: the scanner is broken", c.found);
-    for (i = 0; i < DRIFT_TODO_COUNT; i++)
-        EXPECT(c.todo_seen[i], "DRIFT_TODO: %s `%s` is no longer drift there: remove it from the list",
-               DRIFT_TODO[i].file, DRIFT_TODO[i].word);
     set_free(&c.words);
     free(prose);
 }
