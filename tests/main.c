@@ -278,6 +278,7 @@ static void run_suites(void)
     suite_scenes();
     suite_instanced_scenes();
     suite_render();
+    suite_point_size();
     suite_referee();
     suite_embree();
     suite_hardening();

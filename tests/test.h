@@ -70,6 +70,7 @@ void suite_cli(void);
 void suite_scenes(void);
 void suite_instanced_scenes(void);
 void suite_render(void);
+void suite_point_size(void);
 void suite_referee(void);
 void suite_embree(void);
 void suite_hardening(void);

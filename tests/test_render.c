@@ -700,9 +700,11 @@ static void test_exact_open_sphere(void)
                     expect);
 }
 
-/* render cuts batching points of 100000 triangles by default, as trace:
-** on the crown at scale 0.3 (about 30 000 triangles) that is the
-** scene file --batch-tris 100000 makes, not the one of 10000. */
+/* render's default point size follows trace's rule (README, "The
+** default point size"): never below 100000 triangles, so on the crown at
+** scale 0.3 (about 30 000 triangles) the default makes the scene file
+** --batch-tris 100000 makes, not the one of 10000.  Above the floor:
+** tests/test_point_size.c. */
 static void test_default_point_size(void)
 {
     const char *args = "crown --scale 0.3 --width 4 --height 4 --spp 1 --res 8";
@@ -721,7 +723,7 @@ static void test_default_point_size(void)
 
 void suite_render(void)
 {
-    test_run("render: batching points of 100000 triangles by default, as trace", test_default_point_size);
+    test_run("render: default point size, the rule's floor of 100000 on a small scene", test_default_point_size);
     test_run("render: help", test_help);
     test_run("render: same image in every mode", test_same_image_every_mode);
     test_run("render: same image from a mesh file", test_same_image_mesh_file);

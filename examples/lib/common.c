@@ -24,6 +24,22 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+/* The default size of a batching point (ex_default_batch_tris).  Points
+** smaller than EX_MIN_POINT_TRIS never paid: more loads, more disk bytes
+** and small threaded phases (make bench-render, make bench-threads). */
+#define EX_MIN_POINT_TRIS 100000
+/* Without a memory limit every point is in memory anyway: a few large
+** points keep the threaded phases large (make bench-threads). */
+#define EX_FEW_POINTS 8
+/* With a limit, the cache holds this many points at once, so that a load
+** does not evict the point the next phase needs (make bench-render). */
+#define EX_CACHE_POINTS 4
+/* An upper estimate of a blob's bytes per triangle, for an absolute
+** limit's share of the geometry: the measured figure is make
+** bench-embree's "blob bytes per triangle"; upper, so that the cache holds
+** at least EX_CACHE_POINTS. */
+#define EX_BLOB_BYTES_PER_TRIANGLE 24
+
 /* ===================================================================== */
 /* Errors and options                                                    */
 /* ===================================================================== */
@@ -412,6 +428,26 @@ void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tr
     if (snprintf(path, size, "%s/%s-%08x-b%u-r%u.brs", dir, base, (unsigned)hash, (unsigned)batch_tris,
                  (unsigned)res) >= (int)size)
         ex_die(prog, "%s: scene path too long", dir);
+}
+
+uint64_t ex_default_batch_tris(uint64_t triangles, uint64_t memory_bytes, double memory_percent)
+{
+    uint64_t points = EX_FEW_POINTS, size, want = 0;
+    if (memory_percent > 0) {
+        /* ceil(EX_CACHE_POINTS / (P / 100)); P is at most a few 100000 */
+        double share_points = ceil(EX_CACHE_POINTS * 100.0 / memory_percent);
+        want = share_points >= 1e18 ? (uint64_t)1e18 : (uint64_t)share_points;
+    } else if (memory_bytes > 0) {
+        /* ceil(EX_CACHE_POINTS * T * bytes a triangle / limit), in integers;
+        ** a scene beyond 2^56 triangles is out of --batch-tris's range anyway */
+        uint64_t t = triangles < ((uint64_t)1 << 56) ? triangles : (uint64_t)1 << 56;
+        uint64_t geometry = t * EX_CACHE_POINTS * EX_BLOB_BYTES_PER_TRIANGLE;
+        want = geometry / memory_bytes + (geometry % memory_bytes != 0);
+    }
+    if (want > points) points = want;
+    size = triangles / points + (triangles % points != 0);
+    if (size < EX_MIN_POINT_TRIS) size = EX_MIN_POINT_TRIS;
+    return size > UINT32_MAX ? UINT32_MAX : size;
 }
 
 double ex_cpu_seconds(void)

@@ -28,6 +28,19 @@ int ex_input_is_pbrt(const char *path);
 void ex_input_open(const char *prog, const char *path, ex_input *in);
 void ex_input_close(ex_input *in);
 
+/* The triangles of a mesh file before it is read (for the default point
+** size, ex_default_batch_tris): an OBJ's faces counted in one scan of its
+** bytes, a polygon of n corners n - 2 triangles, as brt_mesh_load fans it
+** (no number is parsed: a fraction of the read's time, on every run);
+** a PLY's header alone, its face count, exact when the faces are
+** triangles and a lower bound when some have more corners (their lists are
+** not read).  0 when the file cannot be read (the build reports why). */
+uint64_t ex_mesh_file_triangles(const char *path);
+
+/* The input's unique triangles: a mesh file's (ex_mesh_file_triangles), a
+** pbrt file's world triangles plus every prototype's once (ex_pbrt_triangles). */
+uint64_t ex_input_triangles(const ex_input *in);
+
 /* Direct mode: the whole scene in memory (brt_world_build). */
 brt_world *ex_input_world(const char *prog, const ex_input *in);
 

@@ -22,6 +22,7 @@
 */
 #include "pbrt.h"
 #include "loopsubdiv.h"
+#include "input.h"
 
 #include <errno.h>
 #include <fcntl.h>
@@ -2227,6 +2228,27 @@ void ex_pbrt_counts(const ex_pbrt *scene, uint64_t *world_shapes, uint32_t *prot
     if (world_shapes) *world_shapes = scene->world_shapes;
     if (prototypes) *prototypes = scene->prototype_count;
     if (instances) *instances = (uint32_t)scene->instance_count;
+}
+
+uint64_t ex_pbrt_triangles(const ex_pbrt *scene)
+{
+    uint64_t total = 0;
+    size_t i;
+    for (i = 0; i < scene->shape_count; i++) {
+        const shape *sh = &scene->shapes[i];
+        const char *path = scene->files[sh->p_file];
+        size_t n;
+        switch (sh->kind) {
+        case SHAPE_TRIANGLES: total += sh->has_indices ? sh->i_count / 3 : 1; break;
+        case SHAPE_BILINEAR: total += sh->has_indices ? 2 * (sh->i_count / 4) : 2; break;
+        case SHAPE_LOOP: total += ex_loop_triangle_count(sh->i_count / 3, sh->levels); break;
+        case SHAPE_PLY:
+            n = strlen(path);
+            if (!(n > 3 && strcmp(path + n - 3, ".gz") == 0)) total += ex_mesh_file_triangles(path);
+            break;
+        }
+    }
+    return total;
 }
 
 int ex_pbrt_camera(const ex_pbrt *scene, float eye[3], float target[3], float up[3],

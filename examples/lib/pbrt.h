@@ -173,6 +173,14 @@ void ex_pbrt_source(const ex_pbrt *scene, brt_scene_source *source);
 void ex_pbrt_counts(const ex_pbrt *scene, uint64_t *world_shapes,
                     uint32_t *prototypes, uint32_t *instances);
 
+/* The scene's unique triangles, from the structure alone (for the default
+** point size): every shape once, world and prototypes, however many
+** instances use it; a trianglemesh's indices / 3, a bilinearmesh's two a
+** patch, a loopsubdiv's after refinement, a plymesh's its header's face
+** count (ex_mesh_file_triangles: a lower bound for polygons; 0 for a
+** gzipped one, whose header is not unpacked for this). */
+uint64_t ex_pbrt_triangles(const ex_pbrt *scene);
+
 /* The perspective camera, when the file has one (returns 1; 0 and the
 ** outputs untouched when not): eye, target, up, pbrt's fov in degrees
 ** across the shorter image axis, and *mirrored (may be NULL) as explained

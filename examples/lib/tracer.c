@@ -12,7 +12,6 @@
 void ex_tracer_defaults(ex_tracer_options *o)
 {
     memset(o, 0, sizeof *o);
-    o->batch_tris = 100000;
     o->res = 128;
     o->memory = (uint64_t)1 << 30;
 }
@@ -73,6 +72,11 @@ void ex_tracer_parse(const ex_tracer_command *c, int argc, char **argv, ex_trace
     if (npos < 3)
         ex_die(c->prog, "expected %s, got %d file name%s (see --help)", c->files, npos,
                npos == 1 ? "" : "s");
+}
+
+void ex_tracer_point_size(const ex_input *in, ex_tracer_options *o)
+{
+    if (o->batch_tris == 0) o->batch_tris = ex_default_batch_tris(ex_input_triangles(in), o->memory, 0);
 }
 
 const char *ex_tracer_scene_path(const char *prog, const ex_tracer_options *o, char *path,

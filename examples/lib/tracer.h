@@ -9,6 +9,7 @@
 #define BRT_EXAMPLES_TRACER_H
 
 #include "batchrt.h"
+#include "input.h"
 
 #include <stddef.h>
 #include <stdint.h>
@@ -19,7 +20,7 @@ typedef struct ex_tracer_options {
     const char *stats;               /* --stats FILE.json, or NULL */
     int verbose;                     /* --verbose: summary line even when not a tty */
     /* The batched settings (ex_tracer_command.batched): */
-    uint64_t batch_tris;             /* --batch-tris: triangles per batching point */
+    uint64_t batch_tris;             /* --batch-tris; 0: not given (ex_tracer_point_size) */
     uint64_t res;                    /* --res: proxy resolution, a power of two */
     uint64_t memory;                 /* --memory: geometry-cache budget in bytes */
     int memory_given;                /* --memory was on the command line */
@@ -43,13 +44,20 @@ typedef struct ex_tracer_command {
     void *user;
 } ex_tracer_command;
 
-/* Zeroes o, then the defaults: --batch-tris 100000, --res 128, --memory 1G. */
+/* Zeroes o, then the defaults: --res 128, --memory 1G (--batch-tris:
+** ex_tracer_point_size). */
 void ex_tracer_defaults(ex_tracer_options *o);
 
 /* Parses argv into o (which holds the defaults) and the program's own
 ** options; dies naming the problem, e.g. "trace: unknown option '--x' (see
 ** --help)" or "trace: expected MESH RAYS HITS, got 2 file names (see --help)". */
 void ex_tracer_parse(const ex_tracer_command *c, int argc, char **argv, ex_tracer_options *o);
+
+/* --batch-tris when not given: ex_default_batch_tris of the input's
+** unique triangles (ex_input_triangles) and --memory (its default too: a
+** limit).  Called before ex_tracer_scene_path, whose default file name
+** holds the size. */
+void ex_tracer_point_size(const ex_input *in, ex_tracer_options *o);
 
 /* The scene file of the batched mode: --scene, else the default path of
 ** the input and its settings (ex_default_scene_path), written to path. */

@@ -101,7 +101,9 @@ static void usage(void)
            "                    divided by SIZE per second, e.g. 1G (default: unmodelled)\n"
            "  --disk-speed SIZE model a slower disk: each read lasts at least its bytes\n"
            "                    divided by SIZE per second (as render's)\n"
-           "  --batch-tris N    triangles per batching point when building (default 100000)\n"
+           "  --batch-tris N    triangles per batching point when building (default as\n"
+           "                    trace's: the triangles / max(8, 4 / the --memory share\n"
+           "                    of the blobs), at least 100000)\n"
            "  --res R           proxy resolution when building, 2..1024 (default 128)\n"
            "  --scene FILE      the scene file to build from a mesh (default as trace's)\n"
            "  --paper-scheduler the paper's scheduler on every rank\n"
@@ -575,17 +577,27 @@ static const char *prepare_scene(const options *o, char *path, size_t size)
 {
     size_t len = strlen(o->t.input);
     const char *scene;
+    ex_tracer_options t = o->t;
+    ex_input in;
+    unsigned long long batch_tris;
     if (len > 4 && strcmp(o->t.input + len - 4, ".brs") == 0) return o->t.input;
-    scene = ex_tracer_scene_path(prog, &o->t, path, size);
+    /* The default point size from rank 0's count of the input (every rank
+    ** names the same scene file by it). */
+    if (my_rank == 0) {
+        ex_input_open(prog, o->t.input, &in);
+        ex_tracer_point_size(&in, &t);
+    }
+    batch_tris = t.batch_tris;
+    MPI_Bcast(&batch_tris, 1, MPI_UNSIGNED_LONG_LONG, 0, MPI_COMM_WORLD);
+    t.batch_tris = batch_tris;
+    scene = ex_tracer_scene_path(prog, &t, path, size);
     if (my_rank == 0) {
         brt_scene_options scene_opt;
-        ex_input in;
         int rebuilt;
         memset(&scene_opt, 0, sizeof scene_opt);
-        scene_opt.batch_tris = (uint32_t)o->t.batch_tris;
-        scene_opt.proxy_res = (uint32_t)o->t.res;
+        scene_opt.batch_tris = (uint32_t)t.batch_tris;
+        scene_opt.proxy_res = (uint32_t)t.res;
         scene_opt.interrupt = ex_catch_interrupts();
-        ex_input_open(prog, o->t.input, &in);
         brt_scene_close(ex_input_scene(prog, &in, scene, &scene_opt, &rebuilt));
         ex_input_close(&in);
     }

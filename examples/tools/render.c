@@ -160,8 +160,9 @@ static void usage(void)
            "                       (default: next-event estimation toward the sun)\n"
            "  --memory SIZE|P%%     geometry memory limit, e.g. 64M, or P %% of the geometry\n"
            "                       bytes (default: no limit); proxies count against it\n"
-           "  --batch-tris N       triangles per batching point (default 100000, as trace's; instanced:\n"
-           "                       those of the distinct prototypes it uses)\n"
+           "  --batch-tris N       triangles per batching point (instanced: those of the distinct\n"
+           "                       prototypes it uses); default: the unique triangles / max(8,\n"
+           "                       4 / the --memory share of the geometry), at least 100000\n"
            "  --batch-instanced N  instanced scenes: a batching point holds at most N\n"
            "                       instanced triangles (default: no such limit)\n"
            "  --res R              proxy resolution, a power of two (default 128)\n"
@@ -263,11 +264,8 @@ static void parse_options(int argc, char **argv, options *o)
     o->spp = 8;
     o->width = 320;
     o->height = 180;
-    /* trace's default too: few large points.  Small ones make every phase
-    ** of the threaded scheduler small (its synchronisation then outweighs
-    ** the walks) and the build long; make bench-threads times the
-    ** default at 1 and 2 threads. */
-    o->batch_tris = 100000;
+    /* 0: trace's rule, from the scene and the limit (point_size) */
+    o->batch_tris = 0;
     o->res = 128;
     o->rays_in_flight = 1u << 18;
     o->sun_radius = SUN_RADIUS;
@@ -716,6 +714,29 @@ static void open_input(const options *o, render_input *in)
         ex_input_open(prog, o->input, &in->file);
         if (in->file.pbrt) in->source = &in->file.source;
     }
+}
+
+/* The default --batch-tris (ex_default_batch_tris, trace's rule) from the
+** scene's unique triangles before any build: an instanced built-in
+** scene's from its open recipe, the crown's counted without its geometry
+** (ex_scene_count), a file's as trace counts it (ex_input_triangles). */
+static void point_size(options *o, const render_input *in)
+{
+    uint64_t triangles = 0, vertices;
+    brt_error err;
+    if (o->batch_tris) return;
+    if (in->instanced) {
+        triangles = ex_instanced_unique(in->instanced);
+    } else if (ex_scene_is_builtin(o->input)) {
+        ex_scene_recipe recipe;
+        recipe.name = o->input;
+        recipe.scale = o->scale;
+        recipe.seed = o->seed;
+        ex_check(prog, ex_scene_count(&recipe, &vertices, &triangles, &err), &err);
+    } else {
+        triangles = ex_input_triangles(&in->file);
+    }
+    o->batch_tris = ex_default_batch_tris(triangles, o->memory, o->memory_percent);
 }
 
 static void close_input(render_input *in)
@@ -1304,6 +1325,7 @@ int main(int argc, char **argv)
     if (o.direct) {
         load_direct(&o, &in, o.memory, &direct, bmin, bmax, &triangles);
     } else {
+        point_size(&o, &in);
         scene = open_scene(&o, &in, interrupt, &job.scene_seconds);
         brt_scene_bounds(scene, bmin, bmax);
         triangles = brt_scene_triangle_count(scene);

@@ -71,7 +71,9 @@ static void usage(void)
            "                    [tnear, tfar], else 0 (Embree's rtcOccluded1)\n"
            "  --direct          one BVH over the whole mesh in memory (default)\n"
            "  --batched         batching points, proxies and geometry cache\n"
-           "  --batch-tris N    triangles per batching point, N >= 1 (batched; default 100000)\n"
+           "  --batch-tris N    triangles per batching point, N >= 1 (batched; default: the\n"
+           "                    mesh's triangles / max(8, 4 / the --memory share of its\n"
+           "                    blobs), at least 100000; README, \"The default point size\")\n"
            "  --rays-in-flight N  rays the batched mode works on at once (default: 4096 when\n"
            "                    --memory holds every batching point, else 1048576)\n"
            "  --res R           proxy voxel resolution, a power of two in 2..1024 (default 128)\n"
@@ -319,8 +321,9 @@ static void trace_batched(const ex_input *in, const trace_options *o, const brt_
                 "budget%s (each held alone)\n", (unsigned long long)stats->oversized_loads,
                 o->t.no_proxy ? "" : " left after the proxies");
     if (o->t.verbose || isatty(2))
-        fprintf(stderr, "trace: scene %s (%s), %llu batching points\n", path,
-                rebuilt ? "built" : "reused", (unsigned long long)stats->batching_points);
+        fprintf(stderr, "trace: scene %s (%s), %llu batching points of <= %llu triangles\n", path,
+                rebuilt ? "built" : "reused", (unsigned long long)stats->batching_points,
+                (unsigned long long)o->t.batch_tris);
     brt_scene_close(scene);
 }
 
@@ -372,6 +375,7 @@ int main(int argc, char **argv)
     memset(&stats, 0, sizeof stats);
     ex_input_open(prog, o.t.input, &in);
     if (o.batched) {
+        ex_tracer_point_size(&in, &o.t);
         trace_batched(&in, &o, rays, count, hits, occluded, &stats);
     } else {
         stats.rays = count;
