@@ -1,19 +1,25 @@
 /*
 ** internal.h -- what the core files of batchrt share and no program may
-** use: the plumbing between batchrt.c, scene.c, mesh.c, base.c, bvh.c and
-** svdag.c.  Not installed (make install copies batchrt.h only), so a
-** declaration here can change with any release; batchrt.h is the manual
+** use.  Not installed (make install copies batchrt.h only), so a
+** declaration here may change with any release; batchrt.h is the manual
 ** of the public API alone.
 **
-** The files stand in layers, each calling only the ones below it:
+** The core files, from the top down; a file calls only its own row and
+** the rows below it:
 **
 **     batchrt.c  the method: partition, top-level walk, scheduler, cache
 **     scene.c    the scene file: format, out-of-core build, open, checks
+**     world.c    the direct mode's world: an instanced scene in memory
 **     mesh.c     OBJ and PLY input
-**        bvh.c   the triangle BVH          svdag.c  the voxel proxies
+**     svdag.c    the voxel proxies (an instance's through its BVH)
+**     bvh.c      the triangle test and the BVH
 **     base.c     rays and hits, errors, statistics, utilities, threads
 **
-** so bvh.c and svdag.c need nothing of batchrt.c (README, "Files").
+** The first three are one row: the build cuts points with the method's
+** partition, the scheduler reads blobs through the scene file's reads,
+** and the world and the build gather triangle streams alike.  None of
+** the rows below calls up, and base.c needs nothing ("runner: the core
+** files stand in layers" holds it, with nm).
 */
 #ifndef BRT_INTERNAL_H
 #define BRT_INTERNAL_H

@@ -319,6 +319,68 @@ static void test_hooks_only_in_tests(void)
     free(h);
 }
 
+/* The brt_ symbols object o defines (defined) or needs (!defined), by
+** nm; NULL when nm cannot run. */
+static char *nm_symbols(const char *build, const char *o, int defined)
+{
+    char cmd[700], line[256], *all = calloc(1, 1);
+    size_t n = 0;
+    FILE *f;
+    snprintf(cmd, sizeof cmd, "nm %s %s/%s.o 2>/dev/null", defined ? "--defined-only" : "-u", build, o);
+    if (!all || !(f = popen(cmd, "r"))) return all;
+    while (fgets(line, sizeof line, f)) {
+        char *name = strrchr(line, ' ');
+        char *grown;
+        if (!name || strncmp(name + 1, "brt_", 4) != 0) continue;
+        grown = realloc(all, n + strlen(name) + 1);
+        if (!grown) break;
+        all = grown;
+        strcpy(all + n, name);              /* " name\n": a line, its blank first */
+        n += strlen(name);
+    }
+    if (pclose(f) != 0) {
+        free(all);
+        return NULL;
+    }
+    return all;
+}
+
+/* internal.h, the layers: each core object needs brt_ symbols of its own
+** row and the rows below only (nm): bvh.o and svdag.o nothing of
+** batchrt.o, base.o nothing of any. */
+static void test_core_layers(void)
+{
+    static const char *const rows[][3] = {{"batchrt", "scene", "world"}, {"mesh"}, {"svdag"},
+                                          {"bvh"}, {"base"}};
+    const int nrows = (int)(sizeof rows / sizeof rows[0]);
+    const char *build = getenv("BRT_BUILD") ? getenv("BRT_BUILD") : "build";
+    int r, k, above, j, checked = 0;
+    for (r = 1; r < nrows; r++) {
+        for (k = 0; k < 3 && rows[r][k]; k++) {
+            char *needs = nm_symbols(build, rows[r][k], 0), *word, *end;
+            if (!needs) {
+                test_skip("nm cannot read %s/%s.o", build, rows[r][k]);
+                return;
+            }
+            for (above = 0; above < r; above++)
+                for (j = 0; j < 3 && rows[above][j]; j++) {
+                    char *defs = nm_symbols(build, rows[above][j], 1);
+                    CHECK(defs, "nm cannot read %s/%s.o", build, rows[above][j]);
+                    for (word = needs; (end = strchr(word, '\n')) != NULL; word = end + 1) {
+                        char need[300];
+                        snprintf(need, sizeof need, "%.*s", (int)(end + 1 - word), word);
+                        checked++;
+                        EXPECT(!strstr(defs, need), "%s.o needs%.*s of %s.o, a row above it",
+                               rows[r][k], (int)(end - word), word, rows[above][j]);
+                    }
+                    free(defs);
+                }
+            free(needs);
+        }
+    }
+    EXPECT(checked > 20, "only %d needs checked: nm's output was not read", checked);
+}
+
 void suite_runner(void)
 {
     test_run("runner: the scratch folder is removed on failure, crash, SIGINT and SIGTERM",
@@ -328,4 +390,5 @@ void suite_runner(void)
     test_run("runner: every test tests/contract.md names exists", test_contract_names);
     test_run("runner: every mutant of make mutants applies once and names its failure", test_mutants_apply);
     test_run("runner: the hooks are in the runner's copy of the library alone", test_hooks_only_in_tests);
+    test_run("runner: the core files stand in layers: none calls a row above (nm)", test_core_layers);
 }
