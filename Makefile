@@ -5,7 +5,7 @@
 #   make test-long    the tests too slow for "make test" (a real input past a split)
 #   make debug        the same with the library's assert()ed invariants (BRT_DEBUG)
 #   make sanitize     the test suite under AddressSanitizer + UBSan
-#   make tsan         the threaded tests (and layer 8's processes as threads) under ThreadSanitizer
+#   make tsan         the threaded tests (and layer 6's processes as threads) under ThreadSanitizer
 #   make bench        benchmarks (figures printed, never pass/fail)
 #   make bench-threads  speed-ups at 1 and 2 threads (README, "Threads")
 #   make bench-pbrt   pbrt and OBJ reading speed on the same triangles
@@ -306,7 +306,7 @@ bench-mpi: all mpi
 # random, bounce; 1M each) of the shared dragon (871K triangles), the best
 # of EMBREE_REPEAT runs each (the machine may be shared), then their
 # agreement from build/hitdiff.  The batched mode in core, with its
-# points decoded (layer 9, the default) and kept quantized (--no-decode).
+# points decoded (layer 8, the default) and kept quantized (--no-decode).
 # Then the BVH's bytes per triangle in
 # memory and in the blobs (the batched run's geometry bytes: every point
 # loaded once), and its build time.  Figures only, never pass/fail.  trace
@@ -344,7 +344,7 @@ bench-embree: all embree
 	sed -n 's/.*"geometry_bytes": *\([0-9]*\).*/\1/p' $(EMBREE_BENCH)/bounce.bat.json | \
 	  awk -v t=$$tris '{ printf "batchrt blob bytes per triangle on disk (batching points, %d triangles): %.2f\n", t, $$1 / t }'; \
 	sed -n 's/.*"decoded_bytes": *\([0-9]*\).*/\1/p' $(EMBREE_BENCH)/bounce.bat.json | \
-	  awk -v t=$$tris '{ printf "batchrt decoded bytes per triangle in memory (batched in core, layer 9): %.2f\n", $$1 / t }'; \
+	  awk -v t=$$tris '{ printf "batchrt decoded bytes per triangle in memory (batched in core, layer 8): %.2f\n", $$1 / t }'; \
 	sed -n 's/.*"load_seconds": *\([0-9.eE+-]*\).*/batchrt batched load seconds (read, check, decode every point; its last bounce run): \1/p' $(EMBREE_BENCH)/bounce.bat.json; \
 	echo "warm (cached) figures: make bench (build/bench_bvh)"; \
 	for k in camera random bounce; do d=$(EMBREE_BENCH)/$$k; \

@@ -30,7 +30,7 @@
 **   the partition checker                  every triangle and instance in
 **                                          exactly one batching point
 **   threads                                the scheduler's loop in phases
-**                                          (layers 4-5), and the direct
+**                                          (layers 9-10), and the direct
 **                                          mode's chunks
 ** Beside and below this file (internal.h draws the layers): scene.c, the
 ** scene file (format, out-of-core build, open, validation); world.c, the
@@ -743,8 +743,8 @@ typedef struct geometry_cache {
     uint32_t working_set;       /* blobs the last fetch needed (cache_check) */
     uint64_t budget, held;
     uint64_t all_bytes;         /* cache_bytes of every blob at once */
-    uint64_t decoded;           /* resident layouts held (layer 9) */
-    int decode;                 /* layer 9 on (not no_decode) */
+    uint64_t decoded;           /* resident layouts held (layer 8) */
+    int decode;                 /* layer 8 on (not no_decode) */
     uint32_t lru_head, lru_tail;   /* least recently used first */
     brt_read_fn read_fn;
     void *read_user;
@@ -819,7 +819,7 @@ static uint64_t cache_bytes(const brt_scene *scene, uint32_t id);
 **   9. cache_decode        in core: a point loaded is decoded to float
 **                          nodes when the budget holds it beside every blob
 **  10. rays_in_flight      in core: few rays in flight by default
-** paper_scheduler turns layers 1 and 2 off (what make figures measures as
+** paper_scheduler turns layers 1 and 4 off (what make figures measures as
 ** the paper's scheduler); exact_proxies turns 3 on; one thread turns 4
 ** and 5 off; no_inner turns 7 off; no_decode turns 9 off.  No layer
 ** changes a hit; 1-3 and 7 change which loads happen, 4-6, 9 and 10 none
@@ -851,7 +851,7 @@ typedef struct ray_queue {
     size_t capacity;
 } ray_queue;
 
-/* The threaded variant's state (layers 4 and 5) and its record of the
+/* The threaded variant's state (layers 9 and 10) and its record of the
 ** resident batching points a walk used: Part II, "Threads". */
 typedef struct phase_threads phase_threads;
 typedef struct use_log use_log;
@@ -881,7 +881,7 @@ typedef struct scheduler {
     ray_queue *queues;
     key_heap fullest;                       /* the non-empty queues (queue_key) */
     walker walker;                          /* the plain loop's walk */
-    phase_threads *threads;                 /* layers 4-5; NULL: one thread */
+    phase_threads *threads;                 /* layers 9-10; NULL: one thread */
     geometry *exact;                        /* exact_proxies: every point's, or NULL */
     blob_view *exact_views;                 /* every blob's, opened */
     void **exact_data;
@@ -892,8 +892,8 @@ typedef struct scheduler {
     const brt_trace_options *follow;        /* trace --follow: steps reported, or NULL */
     const volatile sig_atomic_t *interrupt; /* brt_trace_options.interrupt */
     uint64_t fetch_bytes;                   /* bytes the last fetch read (its step) */
-    const brt_exchange *exchange;           /* layer 8, or NULL */
-    brt_ray_state *arrivals;                /* rays received (layer 8) */
+    const brt_exchange *exchange;           /* layer 6, or NULL */
+    brt_ray_state *arrivals;                /* rays received (layer 6) */
 } scheduler;
 
 /* The threaded variant, Part II. */
@@ -940,6 +940,8 @@ static int found_occluder(const ray_slot *r)
     return is_occlusion(r) && r->hit.prim != BRT_NO_PRIM;
 }
 
+/* ---- a ray's walk: intersect at once, or the proxy test and a queue -- */
+
 /* The record of an occluded occlusion ray (brt_ray_source): t = 0,
 ** prim = 0, u = v = 0 kept from the miss record it starts as. */
 static void hit_mark_occluded(brt_hit *hit)
@@ -964,7 +966,7 @@ static void intersect_slot(const scheduler *s, const geometry *g, ray_slot *r, c
     follow_step(s, r, BRT_STEP_TRIANGLES, r->key.id, r->hit.t);
 }
 
-/* Layer 3, exact proxies (exact_proxies; analysis, not a way to trace):
+/* Layer 5, exact proxies (exact_proxies; analysis, not a way to trace):
 ** the batching point's triangles answer the proxy test exactly, every
 ** BVH read once at the start outside the cache and its counts
 ** (exact_load).  It gives the bound no voxel proxy can beat: make
@@ -996,7 +998,7 @@ static int proxy_cast(const brt_scene *scene, uint32_t id, const brt_ray *ray, f
     return brt_proxy_raycast(scene->dag, &b->proxy, ray, ray->tnear, tlimit, t);
 }
 
-/* The same question, or layer 3's exact answer (*t: tnear then). */
+/* The same question, or layer 5's exact answer (*t: tnear then). */
 static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit, float *t)
 {
     if (s->exact) {
@@ -1008,7 +1010,7 @@ static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, flo
 
 /* The paper's proxy test at the batching point where the walk stands: a
 ** miss culls the visit (no queue, no load).  With proxies off (no_proxy,
-** or layer 2) every batching point reached is queued, as in Pharr et al. */
+** or layer 1) every batching point reached is queued, as in Pharr et al. */
 static int proxy_test(const scheduler *s, walker *w, ray_slot *r, float tlimit)
 {
     float t = r->key.t;
@@ -1025,10 +1027,10 @@ static int proxy_test(const scheduler *s, walker *w, ray_slot *r, float tlimit)
 static void walker_used(walker *w, uint32_t id)
 {
     if (w->cache) cache_touch(w->cache, id);
-    else use_log_record(w->uses, id);                       /* layer 5 */
+    else use_log_record(w->uses, id);                       /* layer 10 */
 }
 
-/* Layer 1, intersecting at once in memory: at a batching point whose
+/* Layer 4, intersecting at once in memory: at a batching point whose
 ** geometry is resident (and unless paper_scheduler asks for the paper's
 ** plain scheduler) the ray needs no queue: it is intersected there at
 ** once and walks on.  Its proxy is not consulted: the BVH answers exactly
@@ -1050,7 +1052,7 @@ static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, const 
     return 1;
 }
 
-/* Layer 7, inner proxies: the inner proxy test, first at every batching
+/* Layer 3, inner proxies: the inner proxy test, first at every batching
 ** point an occlusion ray with tfar = +inf reaches: a hit settles the ray
 ** occluded (the record of intersect_slot) with no queue and no load.
 ** make bench-inner prints how many rays it settles and the disk bytes
@@ -1086,11 +1088,11 @@ static uint32_t walk_on(const scheduler *s, walker *w, ray_slot *r)
     while (!found_occluder(r) &&
            top_walk_next(&w->walk, s->scene->top, &p.lanes, p.prep.tnear, tlimit, &r->key)) {
         follow_step(s, r, BRT_STEP_ENTER, r->key.id, r->key.t);
-        if (inner_stops(s, r)) {                            /* layer 7 */
+        if (inner_stops(s, r)) {                            /* layer 3 */
             w->inner_stopped++;
             break;
         }
-        if (intersect_resident(s, w, r, margin == 0.0f ? &p : NULL)) {   /* layer 1 */
+        if (intersect_resident(s, w, r, margin == 0.0f ? &p : NULL)) {   /* layer 4 */
             tlimit = walk_limit(r);
             continue;
         }
@@ -1120,7 +1122,7 @@ static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
     return BRT_OK;
 }
 
-/* ---- layer 8: batching points owned by other processes ---- */
+/* ---- layer 6: batching points owned by other processes ---- */
 
 #define ARRIVALS_PER_TAKE 1024u   /* rays taken from the exchange per call */
 
@@ -1195,8 +1197,10 @@ static size_t take_rays(scheduler *s, int idle, brt_result *res, brt_error *err)
     return n;
 }
 
+/* ---- settling a ray, and the scheduler's loop ------------------------ */
+
 /* A ray whose walk stopped: queued at batching point id (or sent to the
-** process owning it: layer 8), or, when id is NO_ENTRY, finished (the
+** process owning it: layer 6), or, when id is NO_ENTRY, finished (the
 ** source hears of it; its slot is free). */
 static brt_result settle(scheduler *s, uint32_t slot, uint32_t id)
 {
@@ -1224,14 +1228,14 @@ static void walker_count(scheduler *s, walker *w)
 ** settled.
 ** Releasing the point before the walks makes its place in the LRU order
 ** come before the points the walks use (no ray of its queue enters it
-** again: walk keys only grow).  With threads, layer 5 does the same in
+** again: walk keys only grow).  With threads, layer 10 does the same in
 ** phases. */
 static brt_result run_rays(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
                            const geometry *g)
 {
     brt_result r = BRT_OK;
     uint32_t i;
-    if (s->threads) return phases_run(s, slots, count, id, g);       /* layer 5 */
+    if (s->threads) return phases_run(s, slots, count, id, g);       /* layer 10 */
     if (id != NO_ENTRY) {
         for (i = 0; i < count; i++) intersect_slot(s, g, &s->slots[slots[i]], NULL);
         cache_release(&s->cache, id);
@@ -1243,7 +1247,7 @@ static brt_result run_rays(scheduler *s, const uint32_t *slots, uint32_t count, 
 }
 
 /* Why settling rays failed: a full memory, or an exchange that could
-** not send (layer 8). */
+** not send (layer 6). */
 static brt_result settle_failure(brt_result r, brt_error *err)
 {
     if (r == BRT_EIO) return brt_fail(err, r, "ray exchange: a ray could not be sent");
@@ -1265,7 +1269,7 @@ static void slot_start(ray_slot *r, const brt_ray *ray, uint64_t tag, brt_stats 
     stats->shadow_rays += is_occlusion(r);
 }
 
-/* Takes the rays other processes sent (layer 8), then new rays from the
+/* Takes the rays other processes sent (layer 6), then new rays from the
 ** source while there are free slots; each new ray walks from the root. */
 static brt_result refill(scheduler *s, brt_error *err)
 {
@@ -1299,7 +1303,7 @@ static int only_occlusion(const scheduler *s, const ray_queue *q)
 }
 
 /* Fetches batching point id for its queue (cache_fetch: the paper's LRU
-** geometry cache), and, layer 6 (statistics only), books the load, if
+** geometry cache), and, layer 7 (statistics only), books the load, if
 ** there is one, as the shadow rays' when they alone asked for it. */
 static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const geometry **g,
                             brt_error *err)
@@ -1338,7 +1342,7 @@ static int interrupted(const scheduler *s)
 }
 
 /* Whether a queue waits.  When none does, other processes may still send
-** rays here: wait for them (layer 8; at once false without an exchange). */
+** rays here: wait for them (layer 6; at once false without an exchange). */
 static int queues_waiting(scheduler *s, brt_result *r, brt_error *err)
 {
     if (s->fullest.size == 0) take_rays(s, 1, r, err);
@@ -1358,13 +1362,13 @@ static brt_result schedule(scheduler *s, brt_error *err)
     return r == BRT_OK ? cache_check(&s->cache, err) : r;
 }
 
-/* Layer 2, proxies off when everything fits: proxies only spare loads.
+/* Layer 1, proxies off when everything fits: proxies only spare loads.
 ** When the budget (what is left of it after the proxies) holds every
 ** blob nothing is ever evicted, so a load a proxy spares is only put off
 ** -- unless no ray ever needs that batching point -- while every test
 ** costs a cast.  So the default scheduler does not consult them then;
 ** the paper's (paper_scheduler) does, and so does a trace over several
-** processes (layer 8), where a proxy miss also spares a message.
+** processes (layer 6), where a proxy miss also spares a message.
 ** render --compare without a limit prints the run's time with and
 ** without them.  Every blob: the batching points' and the prototypes',
 ** as the cache charges them (its all_bytes). */
@@ -1373,14 +1377,14 @@ static int proxies_pay(const scheduler *s, uint64_t budget)
     return s->paper_scheduler || s->exchange || budget < s->cache.all_bytes;
 }
 
-/* Layer 10, few rays in flight in core.  Rays in flight are there to
+/* Layer 2, few rays in flight in core.  Rays in flight are there to
 ** gather rays at a batching point before its load.  When the budget holds
 ** every blob no point is ever loaded twice, so gathering spares no load,
 ** while a million waiting rays (a ray_slot each) push each other and the
 ** BVHs out of the processor's caches.  The default is then IN_CORE_RAYS
 ** (make bench-embree's batched column runs with it; trace --batched
 ** --rays-in-flight N --stats on the same rays times any other number).
-** Not with an exchange (layer 8), whose messages the waiting rays fill. */
+** Not with an exchange (layer 6), whose messages the waiting rays fill. */
 #define IN_CORE_RAYS 4096u
 #define OUT_OF_CORE_RAYS (1u << 20)
 
@@ -1414,8 +1418,8 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
     stats->proxy_bytes = s->use_proxies ? brt_svdag_memory_bytes(scene->dag) : 0;
     if (budget != UINT64_MAX) budget = budget > stats->proxy_bytes ? budget - stats->proxy_bytes : 0;
     if (cache_init(&s->cache, scene, budget, opt, stats) != BRT_OK) return BRT_ENOMEM;
-    if (!proxies_pay(s, budget)) s->use_proxies = 0;            /* layer 2 */
-    s->capacity = rays_in_flight(opt, budget, s->cache.all_bytes);   /* layer 10 */
+    if (!proxies_pay(s, budget)) s->use_proxies = 0;            /* layer 1 */
+    s->capacity = rays_in_flight(opt, budget, s->cache.all_bytes);   /* layer 2 */
     if (capacity_hint > 0 && capacity_hint < s->capacity) s->capacity = (uint32_t)capacity_hint;
     stats->memory_limit = opt ? opt->memory_limit : 0;
     stats->batching_points = n;
@@ -1467,7 +1471,7 @@ static void scheduler_free(scheduler *s)
     free(s->exact_prototypes);
 }
 
-/* Layer 3's set-up (exact_proxies): every batching point's BVH, read
+/* Layer 5's set-up (exact_proxies): every batching point's BVH, read
 ** once, outside the cache and its statistics (exact_proxy_hit). */
 static brt_result exact_load(scheduler *s, brt_error *err)
 {
@@ -1801,7 +1805,7 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
     return trace_rays(scene, opt, rays, count, NULL, occluded, stats, err);
 }
 
-/* ---- owners of batching points (layer 8) ---- */
+/* ---- owners of batching points (layer 6) ---- */
 
 /* What a load of point id reads: its blob (cache_bytes) and, for a point
 ** of instances, its triangles' share of the prototypes' bytes -- an
@@ -2180,7 +2184,9 @@ static int cache_ahead_take(geometry_cache *c, uint32_t id)
     return 1;
 }
 
-/* Layer 9, decoded points in core: a BVH blob just loaded is decoded to
+/* ---- loading a blob (layer 8 decodes it), pinning, releasing -------- */
+
+/* Layer 8, decoded points in core: a BVH blob just loaded is decoded to
 ** bvh.c's resident layout (brt_bvh_decode: float boxes and blocks of four
 ** triangles, the same hits bit for bit) when the budget holds its bytes
 ** beside every blob of the scene and the layouts decoded so far.  Why:
@@ -2221,7 +2227,7 @@ static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
         r = blob_read(c, id, &c->stats->disk_bytes_read, &e->data, &e->view, err);
     }
     if (r != BRT_OK) return r;
-    e->decoded = cache_decode(c, e);                        /* layer 9 */
+    e->decoded = cache_decode(c, e);                        /* layer 8 */
     c->stats->load_seconds += brt_seconds() - start;
     e->geometry.triangles = e->view.bvh;
     e->geometry.instances = e->view.set;
@@ -2443,7 +2449,7 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
     return r;
 }
 
-/* ---- the scheduler's loop on threads: layers 4 and 5 ---------------- */
+/* ---- the scheduler's loop on threads: layers 9 and 10 ---------------- */
 /*
 ** The plain loop of Part I (run_rays) intersects a batch's rays, releases
 ** the batching point and walks each ray on and settles it, one after
@@ -2460,7 +2466,7 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
 ** hold the two byte-equal, and make bench-threads prints the wall
 ** seconds at 1 and 2 threads.
 **
-** Layer 4, read-ahead: while a phase runs, the cache's own thread reads
+** Layer 9, read-ahead: while a phase runs, the cache's own thread reads
 ** the blob of the fullest queue left, the likely next load
 ** (cache_read_ahead).  It changes no count and no decision, only the wall
 ** time: make bench-threads's row "render 25%, --disk-speed 100M" (one
@@ -2570,7 +2576,7 @@ static void uses_replay(scheduler *s)
                          ** four levels hold the fullest queues (a guess
                          ** costs no decision, so the search stays short) */
 
-/* Layer 4's guess of the next load: the fullest queue whose batching
+/* Layer 9's guess of the next load: the fullest queue whose batching
 ** point is not in memory, among the heap's first AHEAD_LOOK slots (a
 ** resident point is served without a load, so the fullest queue alone
 ** is often no load at all); NO_ENTRY when there is none. */
@@ -2588,7 +2594,7 @@ static uint32_t next_load_guess(const scheduler *s)
                          ** longer than a take from the shared counter
                          ** (make bench-threads times the phases) */
 
-/* Layer 5: run_rays in a phase (id: the batching point whose queue it is,
+/* Layer 10: run_rays in a phase (id: the batching point whose queue it is,
 ** pinned, or NO_ENTRY for new rays).  Released before the uses are
 ** replayed, as the plain loop releases it before the walks. */
 static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
@@ -2596,7 +2602,7 @@ static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count
 {
     phase_job j;
     unsigned i;
-    cache_read_ahead(&s->cache, next_load_guess(s));                    /* layer 4 */
+    cache_read_ahead(&s->cache, next_load_guess(s));                    /* layer 9 */
     j.s = s;
     j.slots = slots;
     j.g = g;

@@ -345,7 +345,7 @@ typedef struct brt_trace_options {
                              ** triangles, all read at the start and not
                              ** counted: what a perfect proxy would cull */
     uint32_t rays_in_flight; /* 0: 4096 when the budget holds every blob
-                             ** (and no exchange), else 1 << 20 (layer 10) */
+                             ** (and no exchange), else 1 << 20 (layer 2) */
     brt_read_fn read_fn;     /* NULL: pread */
     void *read_user;
     unsigned threads;        /* threads intersecting and walking rays (0:
@@ -367,7 +367,7 @@ typedef struct brt_trace_options {
                              ** NULL: this process owns them all */
     int no_decode;           /* keep every batching point quantized, as read
                              ** (0: decode one when the budget has room for
-                             ** it beside every blob, layer 9) */
+                             ** it beside every blob, layer 8) */
     int reference;           /* the paper's loop, one thread, no layers: for
                              ** reading and for tests (schedule_reference);
                              ** it reads memory_limit, no_proxy,
@@ -448,7 +448,7 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
 **            rays come, and return 0 only when every process is done.
 ** Whether everyone is done is the transport's to know: mpi_trace counts
 ** finished rays against the known total (README, "Beyond one machine").
-** With an exchange the proxies are always consulted (layer 2 does not turn
+** With an exchange the proxies are always consulted (layer 1 does not turn
 ** them off): a proxy miss spares a message even when every blob fits.
 */
 typedef struct brt_ray_state {
@@ -520,7 +520,7 @@ struct brt_stats {
                                 ** scenes; counted in disk_bytes_read, not
                                 ** in batch_loads) */
     uint64_t decoded_bytes;     /* resident layouts the cache made of BVH
-                                ** blobs it holds (layer 9; counted in
+                                ** blobs it holds (layer 8; counted in
                                 ** cache_peak_bytes too) */
 };
 

@@ -75,7 +75,7 @@
 ** times the box test itself, which the resident walk does not pay.  So a
 ** blob opened in place (brt_bvh_blob_open) keeps the quantized walk, and
 ** the geometry cache decodes it only into room that every blob leaves
-** (batchrt.c, layer 9).  make bench-embree times the direct mode (always
+** (batchrt.c, layer 8).  make bench-embree times the direct mode (always
 ** resident) and the batched one with and without decoding, and prints
 ** the blob bytes per triangle.
 **

@@ -273,7 +273,7 @@ brt_result brt_bvh_blob_open(const void *blob, size_t size, uint32_t prim_limit,
 ** brt_bvh_decoded_bytes says what brt_bvh_decode would allocate (0 when
 ** the BVH has it already or is empty); brt_bvh_decode adds it (BRT_OK, or
 ** BRT_ENOMEM and the BVH unchanged).  The geometry cache decodes a
-** batching point when the budget has room for it (batchrt.c, layer 9). */
+** batching point when the budget has room for it (batchrt.c, layer 8). */
 size_t brt_bvh_decoded_bytes(const brt_bvh *bvh);
 brt_result brt_bvh_decode(brt_bvh *bvh);
 

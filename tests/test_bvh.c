@@ -1196,7 +1196,7 @@ static int node_has_leaf(const unsigned char *node)
 }
 
 /* A blob decoded after opening (brt_bvh_decode: the geometry cache's
-** layer 9) passes the checker, reports its bytes, and answers every ray
+** layer 8) passes the checker, reports its bytes, and answers every ray
 ** as the blob walked in place; brt_bvh_walk_prepared answers as the plain
 ** calls, closest hit (with the normal) and occlusion, on both layouts. */
 static void test_decoded_and_prepared(void)

@@ -1,5 +1,5 @@
 /*
-** tests/test_exchange.c -- layer 8: batching points owned by several
+** tests/test_exchange.c -- layer 6: batching points owned by several
 ** processes (brt_exchange), without MPI.  Each "process" is a thread with
 ** its own open scene and geometry cache; an in-memory network of mailboxes
 ** carries the rays, and counts finished rays against the total, as
@@ -140,7 +140,7 @@ typedef struct run_setup {
     int round_robin, no_proxy, occlusion;
     uint64_t memory;
     uint32_t rays_in_flight;
-    unsigned threads;           /* per process (layer 5 with layer 8) */
+    unsigned threads;           /* per process (layer 10 with layer 6) */
     int corrupt, refuse;
 } run_setup;
 

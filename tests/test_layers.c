@@ -34,7 +34,7 @@ static brt_ray *layers_rays(const tu_scene *s, size_t count)
     return rays;
 }
 
-/* Layer 2: the default scheduler leaves the proxies alone exactly when
+/* Layer 1: the default scheduler leaves the proxies alone exactly when
 ** the budget after the proxies holds every blob (what the cache holds at
 ** its peak when nothing is evicted). */
 static void test_layer2_boundary(void)
@@ -67,7 +67,7 @@ static void test_layer2_boundary(void)
     free(hits);
 }
 
-/* Layer 9: without a limit every batching point is decoded (the peak is
+/* Layer 8: without a limit every batching point is decoded (the peak is
 ** every blob and every layout); with no_decode none is, and the hits and
 ** loads are the same; with a budget of every blob and nothing more, none
 ** is either (a decoded point would leave a blob no room). */
@@ -166,7 +166,7 @@ static void test_cache_at_the_limit(void)
            (unsigned long long)at.disk_bytes_read, (unsigned long long)all.disk_bytes_read,
            (unsigned long long)at.oversized_loads, (unsigned long long)at.memory_limit);
     /* README, Statistics: visits = queued_visits + resident_visits (this
-    ** limit holds every blob, so layer 1 intersects rays at once too). */
+    ** limit holds every blob, so layer 4 intersects rays at once too). */
     EXPECT(at.resident_visits > 0 && at.visits == at.queued_visits + at.resident_visits,
            "visits %llu, queued %llu, resident %llu", (unsigned long long)at.visits,
            (unsigned long long)at.queued_visits, (unsigned long long)at.resident_visits);
@@ -269,7 +269,7 @@ static size_t default_room(brt_scene *scene, const brt_ray *rays, size_t count, 
     return g.first_room;
 }
 
-/* Layer 10: by default 4096 rays in flight exactly when the budget after
+/* Layer 2: by default 4096 rays in flight exactly when the budget after
 ** the proxies holds every blob, 1 << 20 otherwise. */
 static void test_layer10_rays_in_flight(void)
 {
@@ -333,10 +333,10 @@ static void test_interrupt_between_batches(void)
 
 void suite_layers(void)
 {
-    test_run("layers: 2, proxies off exactly when the budget holds every blob", test_layer2_boundary);
+    test_run("layers: 1, proxies off exactly when the budget holds every blob", test_layer2_boundary);
     test_run("layers: the cache at its limit, and a byte under", test_cache_at_the_limit);
-    test_run("layers: 9, points decoded only into room every blob leaves", test_layer9_decoded_points);
-    test_run("layers: 10, few rays in flight exactly when every blob fits", test_layer10_rays_in_flight);
+    test_run("layers: 8, points decoded only into room every blob leaves", test_layer9_decoded_points);
+    test_run("layers: 2, few rays in flight exactly when every blob fits", test_layer10_rays_in_flight);
     test_run("layers: a ray source over its room is an error", test_source_contract);
     test_run("layers: an interrupt stops the trace between batches", test_interrupt_between_batches);
 }

@@ -10,7 +10,7 @@
 ** first, ties to the lowest id; rays queued at each batching point whose
 ** box they enter before their closest hit and whose proxy they hit), an
 ** LRU cache of page-rounded blobs within the memory limit less the
-** proxies' bytes, and batchrt's layers 1 (resident points intersected at
+** proxies' bytes, and batchrt's layers 4 (resident points intersected at
 ** once, touching the LRU order), 2 (no proxies when the budget holds
 ** every blob) and 9 (a point decoded at its load when the budget holds
 ** its layout beside every blob and the layouts made so far) -- and
@@ -264,7 +264,7 @@ static int walk(model *m, uint32_t ray)
         const uint32_t id = m->ps->by_tri[k];
         if (!v->inbox[id] || m->ps->pts[id].lo[0] + 1.0 > m->hit[ray]) continue;
         m->last[ray] = (int)k;
-        if (!m->paper && m->resident[id]) {            /* layer 1 */
+        if (!m->paper && m->resident[id]) {            /* layer 4 */
             lru_push(m, id);
             m->resident_visits++;
             meet(m, ray, id);
@@ -315,7 +315,7 @@ static void fetch(model *m, uint32_t id)
     }
     m->resident[id] = 1;
     m->held += bytes;
-    if (m->budget >= m->ps->all_bytes &&                /* layer 9 */
+    if (m->budget >= m->ps->all_bytes &&                /* layer 8 */
         DECODED_BYTES <= m->budget - m->ps->all_bytes - m->decoded) {
         m->decode[id] = 1;
         m->decoded += DECODED_BYTES;
@@ -335,7 +335,7 @@ static void model_run(model *m, const policy_scene *ps, int paper, int no_proxy,
     m->paper = paper;
     m->budget = limit ? limit : UINT64_MAX;
     if (limit && !no_proxy) m->budget = limit > ps->proxy_bytes ? limit - ps->proxy_bytes : 0;
-    m->proxies = !no_proxy && (paper || m->budget < ps->all_bytes);    /* layer 2 */
+    m->proxies = !no_proxy && (paper || m->budget < ps->all_bytes);    /* layer 1 */
     m->free_slots = in_flight;
     refill(m);
     for (;;) {
@@ -742,7 +742,7 @@ static long bytes_read(int fd, void *buf, size_t size, uint64_t offset, void *us
 ** B's triangle lies at least ~1.7 (9 cells of 16^3 over a box of 3) from
 ** the ray up to the hit: the proxy misses over [tnear, t_A] and would hit
 ** over [tnear, inf].  Closed counts for N rays, both schedulers, a limit
-** one byte under every blob (layer 2 keeps the proxies on): one load,
+** one byte under every blob (layer 1 keeps the proxies on): one load,
 ** A's blob's bytes read, 2N proxy tests, N culled, N visits, all queued. */
 static void test_proxy_segment_to_closest_hit(void)
 {
@@ -801,7 +801,7 @@ static void test_proxy_segment_to_closest_hit(void)
     opt.threads = 1;
     CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &unlimited, &err) == BRT_OK, "%s", err.message);
     /* paper 0 and 1: batchrt's and the paper's scheduler; 2: the paper's
-    ** with exact proxies (layer 3: the triangles answer the proxy test, up
+    ** with exact proxies (layer 5: the triangles answer the proxy test, up
     ** to the closest hit too). */
     for (paper = 0; paper < 3; paper++) {
         memset(&log, 0, sizeof log);

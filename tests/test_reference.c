@@ -150,7 +150,7 @@ static int trace_run(brt_scene *scene, const brt_trace_options *base, int refere
 }
 
 /* The counts of brt_stats that a schedule decides (not the times, and
-** not layer 6's shadow loads, which the reference leaves 0). */
+** not layer 7's shadow loads, which the reference leaves 0). */
 #define STAT(field) {#field, offsetof(brt_stats, field)}
 static const struct { const char *name; size_t at; } counts[] = {
     STAT(rays), STAT(batching_points), STAT(geometry_bytes), STAT(disk_bytes_read), STAT(batch_loads),
@@ -247,7 +247,7 @@ static void compare_settings(brt_scene *scene, const brt_ray *rays, uint32_t cou
                 brt_trace_options opt;
                 char what[160];
                 memset(&opt, 0, sizeof opt);
-                opt.paper_scheduler = 1;        /* layers 1 and 2 off */
+                opt.paper_scheduler = 1;        /* layers 1 and 4 off */
                 opt.threads = 1;                /* 4 and 5 */
                 opt.no_inner = 1;               /* 7 */
                 opt.no_decode = 1;              /* 9 */

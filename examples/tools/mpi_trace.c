@@ -6,7 +6,7 @@
 **
 **   mpirun -np 4 build/mpi_trace SCENE RAYS HITS [options]
 **
-** The method is the library's layer 8 (batchrt.h, "Beyond one process"):
+** The method is the library's layer 6 (batchrt.h, "Beyond one process"):
 ** each rank opens the scene file, so it holds the top-level BVH and every
 ** proxy, and owns the batching points brt_scene_assign gives it -- runs of
 ** the top-level leaf order balanced by bytes (--assign round-robin: the

@@ -51,7 +51,7 @@ typedef struct trace_options {
     ex_tracer_options t;             /* the options of every tracer (tracer.h) */
     int batched;                     /* --batched instead of --direct */
     int no_inner;                    /* batched without inner proxies */
-    int no_decode;                   /* batched without decoded points (layer 9) */
+    int no_decode;                   /* batched without decoded points (layer 8) */
     int rebuild;                     /* rebuild the scene file even if current */
     int drop_os_cache;               /* cold reads (brt_trace_options) */
     int follow_given;                /* --follow N */
