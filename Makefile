@@ -179,7 +179,7 @@ bench: all
 
 # Out of core: proxies on and off at 25 % of the geometry bytes (README, Benchmarks).
 bench-batched: all
-	./$(BUILD)/bench_batched landscape --scale 50
+	./$(BUILD)/bench_batched landscape --scale 0.8
 
 # Tokenizing speed of the pbrt reader (issue 29): build/bench_pbrt opens
 # and streams the same triangles as an OBJ and as a pbrt file with one
@@ -585,7 +585,7 @@ bench-threads: all
 # == END THREADS ==========================================================
 
 # == SCALE (out of core from end to end; not part of CI) ==================
-# bench-scale: an OBJ of SCALE_OBJ * 100K triangles written by mkscene and
+# bench-scale: an OBJ of the crown, SCALE_OBJ * 100K triangles, written by mkscene and
 # its scene file built by trace --batched (a mesh file: the build holds its
 # vertex positions), the instanced landscape at SCALE_LAND (285: the
 # paper's 26 M unique triangles, 5.9 G instanced) whose scene file render
@@ -622,9 +622,9 @@ bench-scale: all
 	  then return 0; else fail=1; return 1; fi; }; \
 	fail=0; df -h $$d | tail -1; \
 	head -c 32 /dev/zero > $$d/one.rays; \
-	echo "== mkscene landscape --scale $(SCALE_OBJ) big.obj"; \
-	$$b/mkscene landscape $$d/big.obj --scale $(SCALE_OBJ) | tee $$d/mkscene.txt; \
-	tris=$$(sed -n 's/^landscape: \([0-9]*\) triangles.*/\1/p' $$d/mkscene.txt); \
+	echo "== mkscene crown --scale $(SCALE_OBJ) big.obj"; \
+	$$b/mkscene crown $$d/big.obj --scale $(SCALE_OBJ) | tee $$d/mkscene.txt; \
+	tris=$$(sed -n 's/^crown: \([0-9]*\) triangles.*/\1/p' $$d/mkscene.txt); \
 	verts=$$(sed -n 's/.* \([0-9]*\) vertices.*/\1/p' $$d/mkscene.txt); \
 	echo "  file $$(stat -c %s $$d/big.obj) bytes"; \
 	echo "== trace big.obj --batched: the scene file from the OBJ"; rm -f $$d/obj.brs; \

@@ -1021,14 +1021,14 @@ static void check_interrupted(const char *const *argv, const char *dir, int sign
 }
 
 /* mkscene and render (while it builds the scene file) stop on SIGTERM
-** and SIGINT, remove their temporary files and write no output.  Scale
-** 200 would take mkscene seconds, and render's build of scale 10 about one:
+** and SIGINT, remove their temporary files and write no output.  The
+** landscape at scale 3 (25 M triangles baked) would take mkscene seconds, and render's build of scale 10 about one:
 ** the signal comes long before.  Should the build be done already, the
 ** render of 4 M paths that follows is not, and stops as well. */
 static void test_interrupts_leave_nothing(void)
 {
     char mk_dir[512], mk_out[600], r_dir[512], r_scene[600], r_out[600];
-    const char *mkscene[] = {"mkscene", "landscape", mk_out, "--scale", "200", NULL};   /* then island, pbrt */
+    const char *mkscene[] = {"mkscene", "landscape", mk_out, "--scale", "3", NULL};   /* then island, pbrt */
     const char *render[] = {"render", "landscape", "--scale", "10", "--res", "16", "--width", "320",
                             "--height", "200", "--spp", "64", "--scene", r_scene, "--out", r_out,
                             NULL};
@@ -1077,7 +1077,7 @@ static void test_interrupts_while_tracing(void)
     snprintf(mesh, sizeof mesh, "%s", tu_scratch("interrupt.ply"));
     snprintf(rays, sizeof rays, "%s", tu_scratch("interrupt.rays"));
     CHECK(mkdir(tdir, 0755) == 0, "cannot create %s", tdir);
-    CHECK(tu_run("mkscene landscape %s --scale 10", mesh) == 0 &&
+    CHECK(tu_run("mkscene landscape %s --scale 0.15625", mesh) == 0 &&
           tu_run("raygen %s %s --kind bounce --count 4000000", mesh, rays) == 0 &&
           tu_run("trace %s %s %s --batched --scene %s", mesh, rays, tout, tscene) == 0 && unlink(tout) == 0,
           "could not make the trace's mesh, rays and scene file");
@@ -1281,16 +1281,19 @@ static void test_hitdiff_interrupted_explain(void)
 }
 
 /* trace --batched writes the bytes of --direct on every built-in scene,
-** from a scene file built as a stream from mkscene's file (PLY and OBJ). */
+** from a scene file built as a stream from mkscene's file (PLY and OBJ),
+** each of 5 to 8 thousand triangles. */
 static void test_builtin_scenes_batched_equals_direct(void)
 {
     static const char *const files[] = {"crown.ply", "landscape.ply", "island.obj"};
+    static const char *const scales[] = {"0.05", "0.001", "0.002"};
     static const char *const kinds[] = {"camera", "bounce"};
     size_t i, k;
     for (i = 0; i < 3; i++) {
         char name[32];
         snprintf(name, sizeof name, "%.*s", (int)strcspn(files[i], "."), files[i]);
-        CHECK(tu_run("mkscene %s @/bi-%s --scale 0.05", name, files[i]) == 0, "mkscene %s failed", name);
+        CHECK(tu_run("mkscene %s @/bi-%s --scale %s", name, files[i], scales[i]) == 0,
+              "mkscene %s failed", name);
         for (k = 0; k < 2; k++) {
             CHECK(tu_run("raygen @/bi-%s @/bi.rays --kind %s --count 1500", files[i], kinds[k]) == 0,
                   "raygen failed");

@@ -421,11 +421,12 @@ static void check_shared_referee(const char *file)
 /* Tests                                                                 */
 /* ===================================================================== */
 
-static void check_builtin_scene(const char *name)
+/* scale: about 40 thousand triangles of the scene */
+static void check_builtin_scene(const char *name, const char *scale)
 {
     char path[512];
     scratch(path, "embree_scene.ply");
-    CHECK(run("mkscene %s '%s' --scale 0.4 --seed %llu", name, path,
+    CHECK(run("mkscene %s '%s' --scale %s --seed %llu", name, path, scale,
               (unsigned long long)test_seed()) == 0, "mkscene %s failed", name);
     check_mesh(path, name);
 }
@@ -485,9 +486,9 @@ static void check_instanced_scene(const char *name)
 static void test_instanced_landscape(void) { check_instanced_scene("landscape"); }
 static void test_instanced_island(void) { check_instanced_scene("island"); }
 
-static void test_crown(void) { check_builtin_scene("crown"); }
-static void test_landscape(void) { check_builtin_scene("landscape"); }
-static void test_island(void) { check_builtin_scene("island"); }
+static void test_crown(void) { check_builtin_scene("crown", "0.4"); }
+static void test_landscape(void) { check_builtin_scene("landscape", "0.006"); }
+static void test_island(void) { check_builtin_scene("island", "0.01"); }
 static void test_bunny(void) { check_shared_mesh("bunny.obj.gz"); }
 static void test_referee_bunny_tiny(void) { check_shared_referee("bunny_tiny.obj"); }
 static void test_referee_bunny(void) { check_shared_referee("bunny.obj.gz"); }

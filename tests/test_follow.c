@@ -150,7 +150,7 @@ static int join_files(const char *a, const char *b, const char *out)
 static int make_landscape(void)
 {
     if (tu_file_exists(tu_scratch("rays.rays"))) return 1;
-    return tu_run("mkscene landscape @/l.ply --scale 0.2") == 0 &&
+    return tu_run("mkscene landscape @/l.ply --scale 0.003") == 0 &&
            tu_run("raygen @/l.ply @/cam.rays --kind camera --count 24 --seed 3") == 0 &&
            tu_run("raygen @/l.ply @/bounce.rays --kind bounce --count 24 --seed 4") == 0 &&
            join_files("cam.rays", "bounce.rays", "rays.rays");

@@ -282,7 +282,7 @@ static void test_interrupted_build(void)
     int status = 0, entries;
     pid_t pid;
     if (!mpi_available()) return;
-    CHECK(tu_run("mkscene landscape @/mpi-int.ply --scale 10") == 0 &&
+    CHECK(tu_run("mkscene landscape @/mpi-int.ply --scale 0.15625") == 0 &&
           tu_run("raygen @/mpi-int.ply @/mpi-int.rays --kind random --count 1000") == 0, "cannot make the inputs");
     snprintf(dir, sizeof dir, "%s", tu_scratch("mpi-int"));
     CHECK(mkdir(dir, 0755) == 0, "cannot create %s", dir);

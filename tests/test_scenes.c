@@ -31,6 +31,11 @@
 
 static const char *const scene_list[SCENES] = {"crown", "landscape", "island"};
 
+/* Scale factors that give each scene about the crown's triangles: the
+** landscape and the island are baked from their instances (about 6.5 M
+** and 4 M triangles at scale 1), the crown about 100 thousand. */
+static const double per_scale[SCENES] = {1, 1.0 / 64, 1.0 / 40};
+
 static int generate(const char *name, double scale, uint64_t seed, brt_mesh *mesh)
 {
     brt_error err;
@@ -64,9 +69,9 @@ static void test_same_seed_same_bytes(void)
     int s;
     for (s = 0; s < SCENES; s++) {
         brt_mesh a, b, c;
-        if (!generate(scene_list[s], 0.3, seed, &a)) return;
-        if (!generate(scene_list[s], 0.3, seed, &b)) return;
-        if (!generate(scene_list[s], 0.3, seed + 1, &c)) return;
+        if (!generate(scene_list[s], 0.3 * per_scale[s], seed, &a)) return;
+        if (!generate(scene_list[s], 0.3 * per_scale[s], seed, &b)) return;
+        if (!generate(scene_list[s], 0.3 * per_scale[s], seed + 1, &c)) return;
         EXPECT(a.vertex_count == b.vertex_count && a.triangle_count == b.triangle_count
                && mesh_hash(&a) == mesh_hash(&b),
                "%s: seed %llu gave different meshes twice", scene_list[s], (unsigned long long)seed);
@@ -78,19 +83,28 @@ static void test_same_seed_same_bytes(void)
     }
 }
 
+/* And the landscape and the island are their instanced scenes baked:
+** as many triangles as those have instanced (ex_instanced_counts). */
 static void test_size_follows_scale(void)
 {
     int s;
     for (s = 0; s < SCENES; s++) {
         brt_mesh one, four;
         double ratio;
-        if (!generate(scene_list[s], 1, test_seed(), &one)) return;
-        if (!generate(scene_list[s], 4, test_seed(), &four)) return;
+        uint64_t unique, instanced;
+        uint32_t instances;
+        if (!generate(scene_list[s], per_scale[s], test_seed(), &one)) return;
+        if (!generate(scene_list[s], 4 * per_scale[s], test_seed(), &four)) return;
         ratio = (double)four.triangle_count / one.triangle_count;
         EXPECT(one.triangle_count >= 50000 && one.triangle_count <= 200000,
-               "%s: %lu triangles at scale 1", scene_list[s], (unsigned long)one.triangle_count);
-        EXPECT(ratio >= 4 / 1.5 && ratio <= 4 * 1.5, "%s: scale 4 has %.2f times the triangles",
-               scene_list[s], ratio);
+               "%s: %lu triangles at scale %g", scene_list[s], (unsigned long)one.triangle_count,
+               per_scale[s]);
+        EXPECT(ratio >= 4 / 1.5 && ratio <= 4 * 1.5, "%s: 4 times the scale has %.2f times the "
+               "triangles", scene_list[s], ratio);
+        ex_instanced_counts(scene_list[s], per_scale[s], &unique, &instanced, &instances);
+        EXPECT(s == 0 || instanced == one.triangle_count, "%s: %lu triangles baked, %llu "
+               "instanced", scene_list[s], (unsigned long)one.triangle_count,
+               (unsigned long long)instanced);
         brt_mesh_free(&one);
         brt_mesh_free(&four);
     }
@@ -148,7 +162,8 @@ static void test_well_formed(void)
     for (s = 0; s < SCENES; s++)
         for (k = 0; k < 3; k++) {
             brt_mesh m;
-            if (!generate(scene_list[s], scales[k], test_seed() + (uint64_t)k, &m)) return;
+            if (!generate(scene_list[s], scales[k] * per_scale[s], test_seed() + (uint64_t)k, &m))
+                return;
             check_well_formed(scene_list[s], &m);
             brt_mesh_free(&m);
         }
@@ -283,7 +298,7 @@ static void test_default_view_sees_the_scene(void)
         brt_ray ray, vertical;
         float lo[3], hi[3], target[3], fov;
         int outside = 0, covered, grounded;
-        if (!generate(scene_list[s], 0.2, test_seed(), &m)) return;
+        if (!generate(scene_list[s], 0.2 * per_scale[s], test_seed(), &m)) return;
         brt_mesh_bounds(&m, lo, hi);
         ex_scene_camera(scene_list[s], lo, hi, ray.org, target, &fov);
         for (k = 0; k < 3; k++) {
@@ -346,9 +361,9 @@ static void test_mkscene_files_read_back(void)
     check_file_equals_scene(out, "crown", 0.2, seed);
 
     snprintf(out, sizeof out, "%s/island.obj", test_tmpdir());
-    snprintf(args, sizeof args, "island '%s' --scale 0.05 --seed %llu", out, (unsigned long long)seed);
+    snprintf(args, sizeof args, "island '%s' --scale 0.002 --seed %llu", out, (unsigned long long)seed);
     CHECK(run_mkscene(args, err_path) == 0, "mkscene %s failed", args);
-    check_file_equals_scene(out, "island", 0.05, seed);
+    check_file_equals_scene(out, "island", 0.002, seed);
 
     snprintf(out, sizeof out, "%s/none.ply", test_tmpdir());
     snprintf(args, sizeof args, "teapot '%s'", out);
@@ -407,10 +422,9 @@ static int stream_matches_mesh(const corner_log *log, const brt_mesh *m)
     return 1;
 }
 
-/* Scale 2 gives the landscape a terrain grid of 40 thousand triangles
-** and the crown's band one of 60 thousand: several batches each, so the
-** band-by-band emission and the batch boundaries inside a surface are
-** exercised. */
+/* Scale 2 gives the crown's band a grid of 60 thousand triangles: several
+** batches, so the band-by-band emission and the batch boundaries inside a
+** surface are exercised; the baked scenes hand on an instance a chunk. */
 static void test_stream_equals_collector(void)
 {
     static const double scales[] = {0.05, 2};
@@ -423,7 +437,7 @@ static void test_stream_equals_collector(void)
             brt_error err;
             uint64_t vertices, triangles;
             recipe.name = scene_list[s];
-            recipe.scale = scales[k];
+            recipe.scale = scales[k] * per_scale[s];
             recipe.seed = test_seed();
             memset(&first, 0, sizeof first);
             memset(&again, 0, sizeof again);
@@ -462,7 +476,7 @@ static brt_result refuse_third_chunk(void *user, const float *corners, uint32_t 
 
 static void test_stream_stops_on_consumer_error(void)
 {
-    ex_scene_recipe recipe = {"landscape", 2, 1};
+    ex_scene_recipe recipe = {"landscape", 2.0 / 64, 1};
     brt_error err;
     int calls = 0;
     brt_result r = ex_scene_stream(&recipe, refuse_third_chunk, &calls, &err);
@@ -490,7 +504,7 @@ static void test_scene_file_has_mesh_bounds(void)
         float mesh_lo[3], mesh_hi[3], lo[3], hi[3];
         char path[512];
         recipe.name = scene_list[s];
-        recipe.scale = 0.05;
+        recipe.scale = 0.05 * per_scale[s];
         recipe.seed = test_seed();
         snprintf(path, sizeof path, "%s/%s-bounds.brs", test_tmpdir(), recipe.name);
         memset(&opt, 0, sizeof opt);
@@ -533,14 +547,14 @@ static void test_stamp_follows_recipe(void)
     EXPECT(ex_scene_stamp(&b) != stamp, "the seed does not change the stamp");
 }
 
-/* mkscene streams: at scale 10 (a million triangles, 27 MB as an indexed
-** mesh) its peak resident memory stays under a fifth of the mesh's bytes;
+/* mkscene streams: the landscape at scale 10/64 (a million triangles,
+** 40 MB as an indexed mesh) peaks under a fifth of the mesh's bytes;
 ** holding the mesh would take all of them. */
 static void test_mkscene_holds_no_mesh(void)
 {
     char cmd[2048], out[512], line[256] = {0}, *p;
     const char *build = getenv("BRT_BUILD");
-    ex_scene_recipe recipe = {"landscape", 10, 1};
+    ex_scene_recipe recipe = {"landscape", 10.0 / 64, 1};
     uint64_t vertices, triangles;
     double peak_mib = -1, mesh_mib;
     brt_error err;
@@ -548,7 +562,8 @@ static void test_mkscene_holds_no_mesh(void)
     CHECK(ex_scene_count(&recipe, &vertices, &triangles, &err) == BRT_OK, "%s", err.message);
     mesh_mib = 12.0 * (double)(vertices + triangles) / 1048576.0;
     snprintf(out, sizeof out, "%s/big.ply", test_tmpdir());
-    snprintf(cmd, sizeof cmd, "'%s/mkscene' landscape '%s' --scale 10", build ? build : "build", out);
+    snprintf(cmd, sizeof cmd, "'%s/mkscene' landscape '%s' --scale %.17g", build ? build : "build",
+             out, recipe.scale);
     f = popen(cmd, "r");
     CHECK(f != NULL, "cannot run %s", cmd);
     CHECK(fgets(line, sizeof line, f) != NULL, "no output from %s", cmd);
@@ -556,9 +571,9 @@ static void test_mkscene_holds_no_mesh(void)
     CHECK(pclose(f) == 0, "%s failed", cmd);
     if ((p = strstr(line, "peak RSS ")) != NULL) peak_mib = strtod(p + 9, NULL);
     if (tu_rss_is_meaningful())
-        EXPECT(peak_mib > 0 && peak_mib < mesh_mib / 5, "mkscene at scale 10: peak RSS %.1f MiB, "
+        EXPECT(peak_mib > 0 && peak_mib < mesh_mib / 5, "mkscene at scale 10/64: peak RSS %.1f MiB, "
                "the mesh holds %.1f MiB ('%s')", peak_mib, mesh_mib, line);
-    check_file_equals_scene(out, "landscape", 10, 1);
+    check_file_equals_scene(out, "landscape", recipe.scale, 1);
     remove(out);
 }
 
@@ -575,5 +590,5 @@ void suite_scenes(void)
     test_run("scenes_stream_stops_on_consumer_error", test_stream_stops_on_consumer_error);
     test_run("scenes_scene_file_has_mesh_bounds", test_scene_file_has_mesh_bounds);
     test_run("scenes_stamp_follows_recipe", test_stamp_follows_recipe);
-    test_run("scenes: mkscene holds no mesh (peak RSS at scale 10), same file", test_mkscene_holds_no_mesh);
+    test_run("scenes: mkscene holds no mesh (peak RSS at a million triangles), same file", test_mkscene_holds_no_mesh);
 }

@@ -6,8 +6,8 @@
 **   build/bench_batched [MESH | SCENE] [--scale S] [--rays N] [--limit P]
 **                       [--batch-tris N] [--res R] [--scene FILE]
 **
-** By default: the built-in landscape at scale 50 (about 5 million
-** triangles), 1M rays (half camera rays from the scene's default view, half
+** By default: the built-in landscape at scale 0.8 (baked from its
+** instances: about 5 million triangles), 1M rays (half camera rays from the scene's default view, half
 ** bounce rays from their hits), the memory limit at 25 % of the geometry
 ** bytes, the scene file's pages dropped from the OS cache before each
 ** out-of-core run so that the disk is read, not the OS page cache.
@@ -40,7 +40,7 @@ static void usage(void)
            "Out-of-core batched tracing with and without voxel proxies, against direct\n"
            "tracing in memory.  SCENE is a built-in scene (crown, landscape, island).\n"
            "\n"
-           "  --scale S        size of a built-in scene (default 50: about 5M triangles)\n"
+           "  --scale S        size of a built-in scene (default 0.8: about 5M triangles)\n"
            "  --rays N         rays, half camera and half bounce (default 1000000)\n"
            "  --limit P        memory limit in percent of the geometry bytes (default 25)\n"
            "  --batch-tris N   triangles per batching point (default 100000)\n"
@@ -54,7 +54,7 @@ static void parse_options(int argc, char **argv, options *o)
     int i;
     memset(o, 0, sizeof *o);
     o->input = "landscape";
-    o->scale = 50;
+    o->scale = 0.8;
     o->rays = 1000000;
     o->batch_tris = 100000;
     o->res = 128;

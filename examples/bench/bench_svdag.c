@@ -56,7 +56,7 @@ static void usage(void)
            "  --scene NAME  instead: the proxy tests of a render of a built-in scene\n"
            "              (batching points, proxies, camera and bounce rays as render's),\n"
            "              culled casts and hits apart (for callgrind, see the source)\n"
-           "  --scale S   scene scale (default 2: 200 000 triangles)\n"
+           "  --scale S   scene scale (default 2: the crown 200 000 triangles)\n"
            "  --batch-tris N  triangles per batching point (default 10000)\n"
            "  --help      this text\n");
 }

@@ -11,7 +11,7 @@
 ** indexed meshes, so a closed surface is closed by construction, whatever
 ** its shape: the crown's watertightness does not depend on floating point.
 ** A surface is placed by an affine transform (rotation, uniform scale,
-** translation); instances (trees, rocks, plants) are baked in world space.
+** translation).
 **
 ** OUTPUTS AND MEMORY
 ** The builders describe a scene surface by surface; emit_surface makes
@@ -26,12 +26,10 @@
 ** the same triangles in the same order, so they agree bit for bit.
 **
 ** SIZE
-** A scene gets a triangle budget of 100000 * scale, shared out between
-** its parts; a part turns its share into instance counts (landscape,
-** island: more instances as the scale grows, and a larger world so that
-** their density stays natural) or into finer grids (crown, terrain).
+** The crown gets a triangle budget of 100000 * scale, shared out between
+** its parts as finer grids; the landscape and the island: scenes.h.
 **
-** INSTANCED SCENES (the last sections)
+** ONE GENERATION: THE INSTANCED LANDSCAPE AND ISLAND (the last sections)
 ** The same builders make the instanced landscape and island part by
 ** part: the world (terrain, or sea and islands) and each prototype are a
 ** builder run of their own, counted (OUT_COUNT, with mark_material's part
@@ -39,7 +37,9 @@
 ** (OUT_TRIANGLES) on demand.  Instances are never built as geometry:
 ** instance i is a transform drawn from (seed, i), standing on the world's
 ** own triangles (grid_vertex recomputes the very floats emit_surface
-** makes, so the base point lies on the plane that is rendered).
+** makes, so the base point lies on the plane that is rendered).  As a
+** mesh they are baked (bake): the world part, then every instance's
+** prototype through the instance's matrix.
 */
 #include "scenes.h"
 #include "common.h"
@@ -97,21 +97,6 @@ static xform xform_along(const double axis[3], double roll, double scale,
     ex_cross3(y, x, side);
     for (k = 0; k < 3; k++) x[k] = x[k] * cos(roll) + side[k] * sin(roll);
     return xform_frame(x, y, scale, at);
-}
-
-/* outer after inner. */
-static xform xform_then(const xform *inner, const xform *outer)
-{
-    xform x;
-    int r, c;
-    for (r = 0; r < 3; r++) {
-        for (c = 0; c < 3; c++)
-            x.m[r][c] = outer->m[r][0] * inner->m[0][c] + outer->m[r][1] * inner->m[1][c]
-                      + outer->m[r][2] * inner->m[2][c];
-        x.t[r] = outer->m[r][0] * inner->t[0] + outer->m[r][1] * inner->t[1]
-               + outer->m[r][2] * inner->t[2] + outer->t[r];
-    }
-    return x;
 }
 
 static double clamp(double x, double lo, double hi)
@@ -605,7 +590,6 @@ static void card_point(const void *shape, double u, double v, double p[3])
     p[2] = c->bend * c->length * v * v;
 }
 
-static const grid leaf_grid = {3, 3, 0};      /* 8 triangles: a curled leaf */
 static const grid blade_grid = {2, 4, 0};     /* 6 triangles */
 static const grid frond_grid = {2, 6, 0};     /* 10 triangles */
 
@@ -736,7 +720,6 @@ static void island_point(const void *shape, double u, double v, double p[3])
 
 static const double up[3] = {0, 1, 0};
 static const xform world = {{{1, 0, 0}, {0, 1, 0}, {0, 0, 1}}, {0, 0, 0}};   /* identity */
-static const double origin[3] = {0, 0, 0};
 
 static lathe capped_lathe(double radius, double height, double taper, double bend)
 {
@@ -758,179 +741,6 @@ static lathe ellipsoid(double radius, double height)
     l.radius = radius;
     l.height = height;
     return l;
-}
-
-/* A card whose base is at a random point of the ellipsoid (centre c, radii
-** r), pointing anywhere: the foliage of trees and bushes. */
-static void emit_leaf(builder *b, uint64_t *rng, const double c[3], const double r[3],
-                      double size, const xform *place)
-{
-    double at[3], dir[3], s;
-    card leaf;
-    xform x;
-    int k;
-    do {
-        for (k = 0; k < 3; k++) dir[k] = rnd(rng, -1, 1);
-        s = dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2];
-    } while (s > 1 || s < 1e-4);
-    for (k = 0; k < 3; k++) at[k] = c[k] + r[k] * dir[k];
-    for (k = 0; k < 3; k++) dir[k] = rnd(rng, -1, 1);
-    dir[1] += 0.3;   /* leaves lean upwards rather than down */
-    if (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2] < 1e-4) dir[1] = 1;
-    leaf.width = 0.6 * size;
-    leaf.length = size;
-    leaf.taper = 0.5;
-    leaf.bend = 0.25;
-    x = xform_along(dir, rnd(rng, 0, 2 * PI), 1, at);
-    x = xform_then(&x, place);
-    emit_surface(b, &leaf_grid, card_point, &leaf, &x);
-}
-
-static const grid trunk_grid = {6, 4, SPHERE_LIKE};
-static const grid tier_grid = {10, 4, SPHERE_LIKE};
-#define CONIFER_TIERS 3
-#define BROADLEAF_BRANCHES 3
-#define BROADLEAF_LEAVES 16
-
-static uint64_t conifer_triangles(void)
-{
-    return grid_triangles(&trunk_grid) + CONIFER_TIERS * grid_triangles(&tier_grid);
-}
-
-static uint64_t broadleaf_triangles(void)
-{
-    return (1 + BROADLEAF_BRANCHES) * grid_triangles(&trunk_grid)
-         + BROADLEAF_LEAVES * grid_triangles(&leaf_grid);
-}
-
-/* A spruce of unit height: a trunk and stacked cones. */
-static void emit_conifer(builder *b, const xform *place)
-{
-    lathe trunk = capped_lathe(0.03, 0.35, 0.3, 0);
-    int k;
-    emit_surface(b, &trunk_grid, lathe_point, &trunk, place);
-    for (k = 0; k < CONIFER_TIERS; k++) {
-        double at[3] = {0, 0, 0};
-        lathe tier = capped_lathe(0.32 - 0.07 * k, 0.45, 0.9, 0);
-        xform x;
-        at[1] = 0.2 + 0.24 * k;
-        x = xform_along(up, 0.7 * k, 1, at);
-        x = xform_then(&x, place);
-        emit_surface(b, &tier_grid, lathe_point, &tier, &x);
-    }
-}
-
-/* A leafy tree of unit height: a trunk, branches, and a crown of leaves. */
-static void emit_broadleaf(builder *b, uint64_t *rng, const xform *place)
-{
-    static const double crown_radii[3] = {0.32, 0.22, 0.32};
-    double crown_centre[3] = {0, 0.68, 0};
-    lathe trunk = capped_lathe(0.04, 0.5, 0.3, 0);
-    lathe branch = capped_lathe(0.02, 0.3, 0.4, 0);
-    int k;
-    emit_surface(b, &trunk_grid, lathe_point, &trunk, place);
-    for (k = 0; k < BROADLEAF_BRANCHES; k++) {
-        double a = 2 * PI * k / BROADLEAF_BRANCHES + rnd(rng, 0, 1), dir[3], at[3] = {0, 0.45, 0};
-        xform x;
-        dir[0] = 0.7 * cos(a);
-        dir[1] = 1;
-        dir[2] = 0.7 * sin(a);
-        x = xform_along(dir, 0, 1, at);
-        x = xform_then(&x, place);
-        emit_surface(b, &trunk_grid, lathe_point, &branch, &x);
-    }
-    for (k = 0; k < BROADLEAF_LEAVES; k++)
-        emit_leaf(b, rng, crown_centre, crown_radii, 0.16, place);
-}
-
-static const grid rock_grid = {12, 7, SPHERE_LIKE};
-
-/* A boulder: a rough, squashed ellipsoid of the given radius. */
-static void emit_rock(builder *b, uint64_t *rng, double radius, const double at[3])
-{
-    lathe rock = ellipsoid(radius, radius * rnd(rng, 1.0, 1.8));
-    double axis[3];
-    xform x;
-    int k;
-    rock.rough = rnd(rng, 0.15, 0.3);
-    for (k = 0; k < 3; k++) {
-        random_up(rng, PI, rock.lobes[k]);
-        rock.lobes[k][3] = rnd(rng, 0, 2 * PI);
-    }
-    random_up(rng, 0.3, axis);
-    x = xform_along(axis, rnd(rng, 0, 2 * PI), 1, at);
-    emit_surface(b, &rock_grid, lathe_point, &rock, &x);
-}
-
-#define PALM_FRONDS 7
-#define BUSH_LEAVES 7
-#define TUFT_BLADES 6
-
-static uint64_t palm_triangles(void)
-{
-    return grid_triangles(&trunk_grid) + PALM_FRONDS * grid_triangles(&frond_grid);
-}
-
-/* A palm of unit height: a curved trunk and drooping fronds. */
-static void emit_palm(builder *b, uint64_t *rng, const xform *place)
-{
-    double bend = rnd(rng, 0.05, 0.2), top[3];
-    lathe trunk = capped_lathe(0.025, 1, 0.35, bend);
-    card frond;
-    int k;
-    emit_surface(b, &trunk_grid, lathe_point, &trunk, place);
-    top[0] = bend;
-    top[1] = 0.98;
-    top[2] = 0;
-    frond.width = 0.07;
-    frond.length = 0.4;
-    frond.taper = 0.9;
-    frond.bend = 0.5;
-    for (k = 0; k < PALM_FRONDS; k++) {
-        double a = 2 * PI * k / PALM_FRONDS + rnd(rng, 0, 0.5), dir[3];
-        xform x;
-        dir[0] = cos(a);
-        dir[1] = rnd(rng, 0.2, 0.8);
-        dir[2] = sin(a);
-        x = xform_along(dir, 0, 1, top);
-        x = xform_then(&x, place);
-        emit_surface(b, &frond_grid, card_point, &frond, &x);
-    }
-}
-
-/* A bush of unit height: a ball of leaves. */
-static void emit_bush(builder *b, uint64_t *rng, const xform *place)
-{
-    static const double radii[3] = {0.55, 0.4, 0.55}, centre[3] = {0, 0.5, 0};
-    int k;
-    for (k = 0; k < BUSH_LEAVES; k++) emit_leaf(b, rng, centre, radii, 0.5, place);
-}
-
-/* A grass tuft of unit height: blades fanning out from one point. */
-static void emit_tuft(builder *b, uint64_t *rng, const xform *place)
-{
-    int k;
-    for (k = 0; k < TUFT_BLADES; k++) {
-        double dir[3];
-        card blade;
-        xform x;
-        blade.width = 0.06;
-        blade.length = rnd(rng, 0.6, 1.0);
-        blade.taper = 0.7;
-        blade.bend = rnd(rng, 0.1, 0.5);
-        random_up(rng, 0.6, dir);
-        x = xform_along(dir, 0, 1, origin);
-        x = xform_then(&x, place);
-        emit_surface(b, &blade_grid, card_point, &blade, &x);
-    }
-}
-
-/* A random upright placement of an instance of the given height. */
-static xform upright(uint64_t *rng, double height, double max_tilt, const double at[3])
-{
-    double axis[3];
-    random_up(rng, max_tilt, axis);
-    return xform_along(axis, rnd(rng, 0, 2 * PI), height, at);
 }
 
 /* ===================================================================== */
@@ -1133,62 +943,7 @@ static void build_crown(builder *b, double scale, uint64_t seed)
 ** (groups of up to 6).
 */
 
-#define TREES_PER_FOREST 40
 #define LANDSCAPE_SIDE 600.0   /* metres at scale 1 */
-
-static uint64_t per_instance(double budget, uint64_t triangles_each)
-{
-    return (uint64_t)(budget / (double)triangles_each);
-}
-
-static void landscape_trees(builder *b, uint64_t *rng, const terrain *ground,
-                            double side, double budget)
-{
-    uint64_t trees = per_instance(budget, (conifer_triangles() + broadleaf_triangles()) / 2), i;
-    double centre[3] = {0, 0, 0}, conifer_share = 0, radius = 0;
-    for (i = 0; i < trees; i++) {
-        double at[3], a, r, height;
-        xform place;
-        if (i % TREES_PER_FOREST == 0) {   /* start the next forest */
-            centre[0] = rnd(rng, -0.45, 0.45) * side;
-            centre[2] = rnd(rng, -0.45, 0.45) * side;
-            conifer_share = rnd(rng, 0, 1);
-            radius = rnd(rng, 30, 80);
-        }
-        a = rnd(rng, 0, 2 * PI);
-        r = radius * sqrt(rnd(rng, 0, 1));
-        /* on the terrain: a forest at the edge is cut off there */
-        at[0] = clamp(centre[0] + r * cos(a), -0.49 * side, 0.49 * side);
-        at[2] = clamp(centre[2] + r * sin(a), -0.49 * side, 0.49 * side);
-        at[1] = terrain_height(ground, at[0], at[2]) - 0.3;
-        if (rnd(rng, 0, 1) < conifer_share) {
-            height = rnd(rng, 8, 22);
-            place = upright(rng, height, 0.05, at);
-            emit_conifer(b, &place);
-        } else {
-            height = rnd(rng, 6, 15);
-            place = upright(rng, height, 0.1, at);
-            emit_broadleaf(b, rng, &place);
-        }
-    }
-}
-
-static void landscape_rocks(builder *b, uint64_t *rng, const terrain *ground,
-                            double side, double budget)
-{
-    uint64_t rocks = per_instance(budget, grid_triangles(&rock_grid)), done = 0;
-    while (done < rocks) {
-        double cx = rnd(rng, -0.48, 0.48) * side, cz = rnd(rng, -0.48, 0.48) * side;
-        int group = 1 + (int)rnd(rng, 0, 6), k;
-        for (k = 0; k < group && done < rocks; k++, done++) {
-            double at[3], radius = rnd(rng, 0.4, 3);
-            at[0] = cx + rnd(rng, -8, 8);
-            at[2] = cz + rnd(rng, -8, 8);
-            at[1] = terrain_height(ground, at[0], at[2]) - 0.4 * radius;
-            emit_rock(b, rng, radius, at);
-        }
-    }
-}
 
 /*
 ** The terrain closed below (inner proxies, svdag.c): a skirt around the
@@ -1271,10 +1026,8 @@ static void landscape_terrain(uint64_t *rng, double side, terrain *ground, patch
     land->ground = ground;
 }
 
-/* The terrain grid g over land, then its skirt and floor (closed below);
-** returns the triangles of the floor's inner rings (the budget the
-** landscape takes them from). */
-static double emit_ground(builder *b, const patch *land, const grid *g)
+/* The terrain grid g over land, then its skirt and floor (closed below). */
+static void emit_ground(builder *b, const patch *land, const grid *g)
 {
     skirt below;
     grid around;
@@ -1289,7 +1042,6 @@ static double emit_ground(builder *b, const patch *land, const grid *g)
     around.rings = 2 + below.floor_rings;
     around.flags = WRAP_U | POLE_END;
     emit_surface(b, &around, skirt_point, &below, &world);
-    return 2.0 * around.segs * below.floor_rings;
 }
 
 /* A square terrain grid of about `triangles` triangles. */
@@ -1301,28 +1053,13 @@ static grid terrain_grid(double triangles)
     return g;
 }
 
-static void build_landscape(builder *b, double scale, uint64_t seed)
-{
-    double budget = TRIANGLES_PER_SCALE * scale, side = LANDSCAPE_SIDE * sqrt(scale), floor_tris;
-    uint64_t rng = seed;
-    terrain ground;
-    patch land;
-    grid g = terrain_grid(0.20 * budget);
-    landscape_terrain(&rng, side, &ground, &land);
-    floor_tris = emit_ground(b, &land, &g);
-    /* the floor's rings come out of the trees' share: the total stays put */
-    landscape_trees(b, &rng, &ground, side, 0.70 * budget - floor_tris);
-    landscape_rocks(b, &rng, &ground, side, 0.10 * budget);
-}
-
 /* ===================================================================== */
 /* The islands                                                           */
 /* ===================================================================== */
 /*
 ** 3 * sqrt(scale) islands (at least 3) of radius 60-110 m, in a sea of
-** two triangles; each island gets an equal budget: 20 % in its radial
-** terrain grid, 80 % in plants on dry land (palms 45 %, bushes 35 %,
-** grass tufts 20 %), so the vegetation gets denser as sqrt(scale).
+** two triangles; their radial grids share the world's budget
+** (island_setup), plants stand on dry land (island_base).
 */
 
 #define ISLAND_SPACING 320.0
@@ -1373,30 +1110,6 @@ static int dry_spot(uint64_t *rng, const island *s, double at[3])
     return 0;
 }
 
-static void island_plants(builder *b, uint64_t *rng, const island *s, double budget)
-{
-    uint64_t palms = per_instance(0.45 * budget, palm_triangles());
-    uint64_t bushes = per_instance(0.35 * budget, BUSH_LEAVES * grid_triangles(&leaf_grid));
-    uint64_t tufts = per_instance(0.20 * budget, TUFT_BLADES * grid_triangles(&blade_grid));
-    uint64_t total = palms + bushes + tufts, i;
-    for (i = 0; i < total; i++) {
-        double at[3];
-        xform place;
-        if (!dry_spot(rng, s, at)) continue;
-        at[1] -= 0.1;
-        if (i < palms) {
-            place = upright(rng, rnd(rng, 6, 12), 0.25, at);
-            emit_palm(b, rng, &place);
-        } else if (i < palms + bushes) {
-            place = upright(rng, rnd(rng, 1, 3), 0.2, at);
-            emit_bush(b, rng, &place);
-        } else {
-            place = upright(rng, rnd(rng, 0.3, 0.8), 0.2, at);
-            emit_tuft(b, rng, &place);
-        }
-    }
-}
-
 /* The grid of an island of about `triangles` triangles: a dome, then the
 ** underside's rings (sets the island's under_rings and v_rim). */
 static grid island_grid(island *s, double triangles)
@@ -1421,39 +1134,11 @@ static double island_half_side(uint32_t count)
     return 0.5 * ISLAND_SPACING * sqrt((double)count);
 }
 
-static void build_island(builder *b, double scale, uint64_t seed)
-{
-    double budget = TRIANGLES_PER_SCALE * scale;
-    uint32_t count = island_count(scale), i;
-    double half_side = island_half_side(count);
-    uint64_t rng = seed;
-    island *all;
-    all = malloc(count * sizeof *all);
-    if (!all) {
-        fail_out_of_memory(b);
-        return;
-    }
-    emit_sea(b, half_side + 150);
-    for (i = 0; i < count; i++) {
-        grid g;
-        place_island(&rng, all, i, half_side);
-        g = island_grid(&all[i], 0.2 * budget / count);
-        emit_surface(b, &g, island_point, &all[i], &world);
-        /* the underside's rings come out of the plants' share */
-        island_plants(b, &rng, &all[i],
-                      0.8 * budget / count - 2.0 * g.segs * all[i].under_rings);
-    }
-    free(all);
-}
-
 /* ===================================================================== */
 /* Public entry points                                                   */
 /* ===================================================================== */
 
-typedef void (*scene_builder)(builder *b, double scale, uint64_t seed);
-
 static const char *const scene_names[] = {"crown", "landscape", "island", NULL};
-static const scene_builder scene_builders[] = {build_crown, build_landscape, build_island};
 
 const char *const *ex_scene_names(void)
 {
@@ -1502,8 +1187,10 @@ static brt_result builder_finish(builder *b)
     return b->failed;
 }
 
-/* Checks the recipe, runs its scene's builder into the given output and
-** hands on what is left in the batches. */
+static brt_result bake(builder *b, const ex_scene_recipe *recipe);
+
+/* Checks the recipe, then makes its scene into the builder's output: the
+** crown with its builder, the landscape and the island baked (bake). */
 static brt_result run_builder(builder *b, const ex_scene_recipe *recipe)
 {
     int index = scene_index(recipe->name);
@@ -1513,8 +1200,8 @@ static brt_result run_builder(builder *b, const ex_scene_recipe *recipe)
     if (!(recipe->scale > 0 && recipe->scale <= EX_SCENE_MAX_SCALE))
         return brt_fail(b->err, BRT_EARG, "%s: scale %g outside (0, %g]", recipe->name,
                         recipe->scale, EX_SCENE_MAX_SCALE);
-    if (builder_start(b, recipe->name, recipe->scale))
-        scene_builders[index](b, recipe->scale, recipe->seed);
+    if (index > 0) return bake(b, recipe);
+    if (builder_start(b, recipe->name, recipe->scale)) build_crown(b, recipe->scale, recipe->seed);
     return builder_finish(b);
 }
 
@@ -1621,45 +1308,53 @@ static brt_result collect_triangles(void *user, const uint32_t *abc, uint32_t co
     return append(c, &c->indices, &c->triangle_cap, &c->triangle_count, abc, count, err);
 }
 
+/* A collector of exactly the given size (the arrays never grow) and its
+** sink; BRT_ENOMEM when the arrays cannot be allocated. */
+static brt_result collector_open(collector *c, uint64_t vertices, uint64_t triangles,
+                                 ex_mesh_sink *sink, brt_error *err)
+{
+    sink->vertices = collect_vertices;
+    sink->triangles = collect_triangles;
+    sink->user = c;
+    if (grow(&c->positions, &c->vertex_cap, vertices) && grow(&c->indices, &c->triangle_cap, triangles))
+        return BRT_OK;
+    out_of_memory(err, c->name, c->scale);
+    return BRT_ENOMEM;
+}
+
+/* The collected mesh when r is BRT_OK; else frees the arrays. */
+static brt_result collector_close(collector *c, brt_result r, brt_mesh *mesh)
+{
+    memset(mesh, 0, sizeof *mesh);
+    if (r != BRT_OK) {
+        free(c->positions);
+        free(c->indices);
+        return r;
+    }
+    mesh->positions = c->positions;
+    mesh->indices = c->indices;
+    mesh->vertex_count = c->vertex_count;
+    mesh->triangle_count = c->triangle_count;
+    return BRT_OK;
+}
+
 brt_result ex_scene_generate(const char *name, double scale, uint64_t seed,
                              brt_mesh *mesh, brt_error *err)
 {
     ex_scene_recipe recipe;
     ex_mesh_sink sink;
     collector c;
+    uint64_t vertices, triangles;
     brt_result r;
     memset(&c, 0, sizeof c);
-    memset(mesh, 0, sizeof *mesh);
     recipe.name = c.name = name;
     recipe.scale = c.scale = scale;
     recipe.seed = seed;
-    sink.vertices = collect_vertices;
-    sink.triangles = collect_triangles;
-    sink.user = &c;
-    /* Reserved for the budget: every scene stays near it and has fewer
-    ** than 1.25 vertices per triangle, so the arrays are rarely grown;
-    ** pages never written cost no memory. */
-    if (scale > 0 && scale <= EX_SCENE_MAX_SCALE
-        && (!grow(&c.positions, &c.vertex_cap, (uint64_t)(1.3 * TRIANGLES_PER_SCALE * scale) + 4096)
-            || !grow(&c.indices, &c.triangle_cap, (uint64_t)(1.05 * TRIANGLES_PER_SCALE * scale) + 4096))) {
-        out_of_memory(err, name, scale);
-        r = BRT_ENOMEM;
-    } else {
-        r = ex_scene_write(&recipe, &sink, err);
-    }
-    if (r != BRT_OK) {
-        free(c.positions);
-        free(c.indices);
-        return r;
-    }
-    /* Trim to size; a failed shrink leaves the larger block, still valid. */
-    mesh->positions = realloc(c.positions, 12 * (size_t)c.vertex_count);
-    mesh->indices = realloc(c.indices, 12 * (size_t)c.triangle_count);
-    if (!mesh->positions) mesh->positions = c.positions;
-    if (!mesh->indices) mesh->indices = c.indices;
-    mesh->vertex_count = c.vertex_count;
-    mesh->triangle_count = c.triangle_count;
-    return BRT_OK;
+    /* counted first (placements only), so the arrays are allocated once */
+    r = ex_scene_count(&recipe, &vertices, &triangles, err);
+    if (r == BRT_OK) r = collector_open(&c, vertices, triangles, &sink, err);
+    if (r == BRT_OK) r = ex_scene_write(&recipe, &sink, err);
+    return collector_close(&c, r, mesh);
 }
 
 /* ===================================================================== */
@@ -2099,8 +1794,9 @@ struct ex_instanced_scene {
     uint64_t seed;
     uint32_t first[MAX_PROTOS + 1];        /* prototype k's instances: first[k] .. first[k+1]-1 */
     uint64_t proto_triangles[MAX_PROTOS];
+    uint64_t proto_vertices[MAX_PROTOS];
     part_log proto_parts[MAX_PROTOS];
-    uint64_t world_triangles;
+    uint64_t world_triangles, world_vertices;
     part_log world_parts;
     /* the landscape */
     double side;
@@ -2319,22 +2015,38 @@ static void prototype_part(builder *b, const ex_instanced_scene *s, uint32_t id)
     d->make(b, &rng, s->detail, d->shape);
 }
 
-/* Runs one part into emit (out OUT_TRIANGLES) or counts it (OUT_COUNT),
-** logging its material parts when parts is not NULL. */
-static brt_result run_part(const ex_instanced_scene *s, enum output out, part_fn fn, uint32_t id,
-                           brt_triangle_fn emit, void *emit_user, part_log *parts,
-                           uint64_t *triangles, brt_error *err)
+/* Runs one part into b's output (b made by builder_init, its sink or emit
+** set; parts logged when b->parts is not NULL). */
+static brt_result run_part(const ex_instanced_scene *s, builder *b, part_fn fn, uint32_t id)
+{
+    if (builder_start(b, s->kind->name, s->scale)) fn(b, s, id);
+    return builder_finish(b);
+}
+
+/* Counts a part: its triangles, vertices and material parts. */
+static brt_result count_part(const ex_instanced_scene *s, part_fn fn, uint32_t id,
+                             part_log *parts, uint64_t *triangles, uint64_t *vertices,
+                             brt_error *err)
 {
     builder b;
     brt_result r;
-    builder_init(&b, out, err);
+    builder_init(&b, OUT_COUNT, err);
+    b.parts = parts;
+    r = run_part(s, &b, fn, id);
+    *triangles = b.triangles;
+    *vertices = b.vertices;
+    return r;
+}
+
+/* Streams a part's triangles to emit. */
+static brt_result stream_part(const ex_instanced_scene *s, part_fn fn, uint32_t id,
+                              brt_triangle_fn emit, void *emit_user, brt_error *err)
+{
+    builder b;
+    builder_init(&b, OUT_TRIANGLES, err);
     b.emit = emit;
     b.emit_user = emit_user;
-    b.parts = parts;
-    if (builder_start(&b, s->kind->name, s->scale)) fn(&b, s, id);
-    r = builder_finish(&b);
-    if (triangles) *triangles = b.triangles;
-    return r;
+    return run_part(s, &b, fn, id);
 }
 
 /* The number of groups of each kind: their members' instances / members. */
@@ -2364,11 +2076,11 @@ static brt_result instanced_place(ex_instanced_scene *s, brt_error *err)
         out_of_memory(err, s->kind->name, s->scale);
         return BRT_ENOMEM;
     }
-    r = run_part(s, OUT_COUNT, world_part, 0, NULL, NULL, &s->world_parts, &s->world_triangles,
-                 err);
+    r = count_part(s, world_part, 0, &s->world_parts, &s->world_triangles, &s->world_vertices,
+                   err);
     for (k = 0; k < s->kind->proto_count && r == BRT_OK; k++)
-        r = run_part(s, OUT_COUNT, prototype_part, k, NULL, NULL, &s->proto_parts[k],
-                     &s->proto_triangles[k], err);
+        r = count_part(s, prototype_part, k, &s->proto_parts[k], &s->proto_triangles[k],
+                       &s->proto_vertices[k], err);
     return r;
 }
 
@@ -2449,7 +2161,7 @@ void ex_instanced_instance(const ex_instanced_scene *s, uint32_t inst, brt_insta
 static brt_result source_world(const void *user, brt_triangle_fn emit, void *emit_user,
                                brt_error *err)
 {
-    return run_part(user, OUT_TRIANGLES, world_part, 0, emit, emit_user, NULL, NULL, err);
+    return stream_part(user, world_part, 0, emit, emit_user, err);
 }
 
 static brt_result source_prototype(const void *user, uint32_t id, brt_triangle_fn emit,
@@ -2459,7 +2171,7 @@ static brt_result source_prototype(const void *user, uint32_t id, brt_triangle_f
     if (id >= s->kind->proto_count)
         return brt_fail(err, BRT_EARG, "%s: no prototype %lu (%lu prototypes)", s->kind->name,
                         (unsigned long)id, (unsigned long)s->kind->proto_count);
-    return run_part(s, OUT_TRIANGLES, prototype_part, id, emit, emit_user, NULL, NULL, err);
+    return stream_part(s, prototype_part, id, emit, emit_user, err);
 }
 
 static brt_result source_instances(const void *user, brt_instance_fn emit, void *emit_user,
@@ -2548,6 +2260,114 @@ void ex_instanced_counts(const char *name, double scale, uint64_t *unique, uint6
     *instanced = ex_instanced_instanced(s);
     *instances = ex_instanced_instance_count(s);
     ex_instanced_close(s);
+}
+
+/* ---- baked: ex_scene_write, _count and _stream of the landscape and island ---- */
+
+/* Point p of object space through an instance's row-major 3x4 matrix m:
+** each coordinate summed in double and rounded to float once. */
+static void bake_point(const float m[12], const float p[3], float out[3])
+{
+    int r;
+    for (r = 0; r < 3; r++)
+        out[r] = (float)((double)m[4 * r] * p[0] + (double)m[4 * r + 1] * p[1]
+                         + (double)m[4 * r + 2] * p[2] + (double)m[4 * r + 3]);
+}
+
+/* Prototype id as an indexed mesh, in object space. */
+static brt_result bake_prototype(const ex_instanced_scene *s, uint32_t id, brt_mesh *mesh,
+                                 brt_error *err)
+{
+    builder b;
+    collector c;
+    brt_result r;
+    memset(&c, 0, sizeof c);
+    c.name = s->kind->name;
+    c.scale = s->scale;
+    builder_init(&b, OUT_INDEXED, err);
+    r = collector_open(&c, s->proto_vertices[id], s->proto_triangles[id], &b.sink, err);
+    if (r == BRT_OK) r = run_part(s, &b, prototype_part, id);
+    return collector_close(&c, r, mesh);
+}
+
+/* Instance inst of prototype mesh m to b's output: its vertices placed
+** into xyz, then index triples shifted past the vertices so far (into
+** tri), or corner triples (into tri). */
+static brt_result bake_instance(builder *b, const ex_instanced_scene *s, uint32_t inst,
+                                const brt_mesh *m, float *xyz, void *tri)
+{
+    brt_instance in;
+    brt_result r;
+    size_t i;
+    ex_instanced_instance(s, inst, &in);
+    for (i = 0; i < 3 * (size_t)m->vertex_count; i += 3)
+        bake_point(in.xform, m->positions + i, xyz + i);
+    if (b->out == OUT_INDEXED) {
+        for (i = 0; i < 3 * (size_t)m->triangle_count; i++)
+            ((uint32_t *)tri)[i] = m->indices[i] + (uint32_t)b->vertices;
+        r = b->sink.vertices(b->sink.user, xyz, m->vertex_count, b->err);
+        if (r == BRT_OK) r = b->sink.triangles(b->sink.user, tri, m->triangle_count, b->err);
+    } else {
+        for (i = 0; i < 3 * (size_t)m->triangle_count; i++)
+            memcpy((float *)tri + 3 * i, xyz + 3 * (size_t)m->indices[i], 12);
+        r = b->emit(b->emit_user, tri, m->triangle_count, (uint32_t)b->triangles, b->err);
+    }
+    b->vertices += m->vertex_count;
+    b->triangles += m->triangle_count;
+    return r;
+}
+
+/* Every instance of prototype id, in the instance stream's order. */
+static brt_result bake_instances(builder *b, const ex_instanced_scene *s, uint32_t id)
+{
+    brt_mesh m;
+    brt_result r = bake_prototype(s, id, &m, b->err);
+    float *xyz = r == BRT_OK ? malloc(12 * (size_t)m.vertex_count) : NULL;
+    void *tri = xyz ? malloc(36 * (size_t)m.triangle_count) : NULL;
+    uint32_t inst;
+    if (r == BRT_OK && !tri) {
+        out_of_memory(b->err, s->kind->name, s->scale);
+        r = BRT_ENOMEM;
+    }
+    for (inst = s->first[id]; inst < s->first[id + 1] && r == BRT_OK; inst++)
+        r = bake_instance(b, s, inst, &m, xyz, tri);
+    free(xyz);
+    free(tri);
+    brt_mesh_free(&m);
+    return r;
+}
+
+/* The baked scene's size into b (vertices, triangles); BRT_EARG when the
+** numbers pass 32 bits, as a builder's. */
+static brt_result bake_count(builder *b, const ex_instanced_scene *s)
+{
+    uint32_t k;
+    b->vertices = s->world_vertices;
+    b->triangles = ex_instanced_instanced(s);
+    for (k = 0; k < s->kind->proto_count; k++)
+        b->vertices += (uint64_t)(s->first[k + 1] - s->first[k]) * s->proto_vertices[k];
+    if (b->vertices <= UINT32_MAX && b->triangles <= UINT32_MAX) return BRT_OK;
+    return brt_fail(b->err, BRT_EARG, "%s: scale %g needs more than 2^32 - 1 vertices or "
+                    "triangles", s->kind->name, s->scale);
+}
+
+/* The instanced scene of the recipe as one mesh: the world part as it
+** streams, then each instance's prototype in world space (bake_point), in
+** the instance stream's order.  Holds one prototype and its placed copy. */
+static brt_result bake(builder *b, const ex_scene_recipe *recipe)
+{
+    ex_instanced_scene *s;
+    brt_result r = ex_instanced_open(recipe->name, recipe->scale, recipe->seed, &s, b->err);
+    uint32_t k;
+    if (r != BRT_OK) return r;
+    r = bake_count(b, s);
+    if (r == BRT_OK && b->out != OUT_COUNT) {
+        b->vertices = b->triangles = 0;
+        r = run_part(s, b, world_part, 0);
+        for (k = 0; k < s->kind->proto_count && r == BRT_OK; k++) r = bake_instances(b, s, k);
+    }
+    ex_instanced_close(s);
+    return r;
 }
 
 /* ---- colours ---- */

@@ -7,16 +7,18 @@
 **              scallops, arches, spikes, gems, pearls, an orb and a cross);
 **              every edge is shared by exactly two triangles of opposite
 **              orientation, normals point outwards.
-**   landscape  a terrain heightfield with forests of conifers and leafy
-**              trees and groups of rocks baked into world space: open
-**              geometry, much empty space inside the boxes of clusters.
-**   island     islands in a sea (the sea is two large triangles at y = 0;
-**              the islands' shores go below it) with dense vegetation:
-**              palms, bushes and grass tufts.
+**   landscape  a terrain heightfield with forests, meadows and groups of
+**              rocks; island: islands in a sea (two large triangles at
+**              y = 0; the shores go below it) with palms, bushes and
+**              grass.  One generation each: the instanced scenes below,
+**              which render draws; as a mesh (ex_scene_generate, _write,
+**              _stream) baked, every instance's prototype in world space.
 **
-** Scale 1 is about 100 thousand triangles; the count grows in proportion
-** to the scale (scale 500: about 50 million).  y is up; units are metres
-** for landscape and island, the crown is about 2.2 units wide.
+** The crown at scale 1 is about 100 thousand triangles, in proportion to
+** the scale (scale 500: about 50 million); the landscape and the island
+** baked have their instanced triangles (ex_instanced_counts: about 6.5 M
+** and 4 M at scale 1).  y is up; units are metres for landscape and
+** island, the crown is about 2.2 units wide.
 */
 #ifndef BRT_EXAMPLES_SCENES_H
 #define BRT_EXAMPLES_SCENES_H
@@ -28,7 +30,7 @@
 /* Changed whenever a generator changes its triangles: it is part of a
 ** built-in scene's stamp (ex_scene_stamp), so scene files made by an
 ** older generator are rebuilt, never reused. */
-#define EX_SCENE_GENERATOR_VERSION 3   /* 2: closed island land masses, closed terrain; 3: closing triangles local */
+#define EX_SCENE_GENERATOR_VERSION 4   /* 2: closed island land masses, closed terrain; 3: closing triangles local; 4: landscape and island baked from the instanced scenes */
 
 /* A built-in scene: name, scale and seed determine its triangles. */
 typedef struct ex_scene_recipe {
@@ -130,7 +132,7 @@ void ex_scene_camera(const char *name, const float bmin[3],
 ** SIZE.  With s the scale and d = max(1, s^(1/4)) the prototypes' detail
 ** (so instances grow as s, prototype detail more slowly):
 **   world triangles     W(s) ~ 92000 s (landscape: its terrain grid gets
-**                       55 % of the baked scenes' 100000 s budget, the
+**                       55 % of a budget of 100000 s, the
 **                       skirt and floor the rest) or ~ 82000 s (island:
 **                       the islands' grids share the 55 %);
 **   prototype k         P_k(d) ~ a_k + b_k d triangles: leaves, needles
@@ -149,7 +151,7 @@ void ex_scene_camera(const char *name, const float bmin[3],
 ** I about 28 G; Table 1: 143 M and 31 G).  Scale 1: about 100 thousand
 ** unique and a few million instanced triangles.  The landscape's
 ** instance density stays the same (its side grows as sqrt(s)); the
-** island's grows as sqrt(s) (3 sqrt(s) islands), as in the baked island.
+** island's grows as sqrt(s) (3 sqrt(s) islands).
 ** ex_instanced_counts gives the exact figures of any scale.
 **
 ** MEMORY.  An open scene holds the placements of its parts (the islands,
@@ -157,8 +159,8 @@ void ex_scene_camera(const char *name, const float bmin[3],
 ** or instances: instance i is made from (seed, i) alone (counter-based
 ** random numbers), so the instance stream holds one chunk of
 ** EX_INSTANCE_CHUNK instances, and ex_instanced_instance is O(1).  The
-** streams hold what the baked scenes' streams hold: one batch of
-** triangles and three rings of the current surface.
+** streams hold one batch of triangles and three rings of the current
+** surface; baked, one prototype and its placed copy besides.
 */
 
 #define EX_INSTANCE_SCALE_MIN 0.6

@@ -5,13 +5,17 @@
 **
 **   build/mkscene NAME OUT.ply|OUT.obj [--scale S] [--seed N]
 **
+** One name, one scene: the landscape and the island are render's
+** instanced scenes, in .ply and .obj baked (every instance's prototype
+** in world space, examples/lib/scenes.c), in .pbrt with their instances.
+**
 ** .ply: binary little-endian PLY (float x y z; uchar count, uint32
 ** indices), 12 bytes per vertex and 13 per triangle.  .obj: "v" and "f"
 ** lines; coordinates printed with 9 significant digits, which read back
 ** as the same floats.
 **
 ** A STREAM, NEVER THE MESH
-** Scale 2000 is 200 million triangles (5.6 GB of PLY), more than many
+** The crown at scale 2000 is 200 million triangles (5.6 GB of PLY), more than many
 ** machines hold, so the mesh is written as it is made (ex_scene_write),
 ** in three steps:
 **   1. count: ex_scene_count gives the totals the header needs, from the
@@ -57,12 +61,13 @@ static void usage(void)
            "Writes a built-in procedural scene as a mesh file.\n"
            "\n"
            "  NAME        crown      one closed, heavily subdivided ornate object\n"
-           "              landscape  terrain with forests and rocks (open geometry)\n"
-           "              island     islands with dense vegetation in a sea\n"
-           "  OUT         .ply: binary little-endian PLY; .obj: Wavefront OBJ; .pbrt: the\n"
-           "              instanced landscape or island as a pbrt-v4 file (objects and\n"
-           "              instances)\n"
-           "  --scale S   size: about 100000 * S triangles, S in 0.001..%g (default 1)\n"
+           "              landscape  terrain with forests and rocks (instanced, as render's)\n"
+           "              island     islands with dense vegetation in a sea (instanced)\n"
+           "  OUT         .ply: binary little-endian PLY; .obj: Wavefront OBJ (the landscape\n"
+           "              and island baked: every instance in world space); .pbrt: the\n"
+           "              landscape or island as a pbrt-v4 file (objects and instances)\n"
+           "  --scale S   S in 0.001..%g (default 1); triangles: the crown about 100000 * S,\n"
+           "              the landscape and island baked about 6.5 M and 4 M * S (S <= 1)\n"
            "  --seed N    random seed (default 1); the same seed gives the same bytes\n"
            "  --help      this text\n"
            "\n"
