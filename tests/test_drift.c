@@ -35,7 +35,7 @@
 **    variable it reads ($(VAR)).
 ** 4. The README's example outputs are what the commands print:
 **    - the commands of an indented block followed by a fenced block (the
-**      reader's path: trace --follow 61) run in a fresh folder, and the
+**      reader's path: trace --follow 31) run in a fresh folder, and the
 **      last one's standard output is the fenced block, line for line,
 **      nothing masked (the journey is deterministic: one thread);
 **    - the error example of "Programs" (`trace: mesh.obj:12: ...`) is

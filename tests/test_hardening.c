@@ -284,6 +284,8 @@ static const bad_run bad_runs[] = {
     {"mkscene crown @/no_such_dir/b39.ply --scale 0.001", 1,
      "mkscene: @/no_such_dir/b39.ply: cannot create: No such file or directory", NULL},
     {"mkscene crown @/b40.ply --seed", 1, "mkscene: --seed needs a value (see --help)", "b40.ply"},
+    {"mkscene landscape @/b40a.ply --scale 200", 1, "mkscene: landscape: scale 200 baked needs more "
+     "than 2^32 - 1 vertices or triangles (a .pbrt file keeps the instances)", "b40a.ply"},
     {"mkscene crown", 1, "mkscene: expected NAME and OUT.ply|OUT.obj (see --help)", NULL},
     {"render crown --scale 0.01 --spp 0 --out @/b41.png", 1,
      "render: --spp: expected an integer in 1..65536, got '0'", "b41.png"},

@@ -2338,7 +2338,8 @@ static brt_result bake_instances(builder *b, const ex_instanced_scene *s, uint32
 }
 
 /* The baked scene's size into b (vertices, triangles); BRT_EARG when the
-** numbers pass 32 bits, as a builder's. */
+** numbers pass 32 bits, as a builder's: the landscape above scale 100 or
+** so (mkscene's .pbrt writes it at any scale). */
 static brt_result bake_count(builder *b, const ex_instanced_scene *s)
 {
     uint32_t k;
@@ -2347,8 +2348,8 @@ static brt_result bake_count(builder *b, const ex_instanced_scene *s)
     for (k = 0; k < s->kind->proto_count; k++)
         b->vertices += (uint64_t)(s->first[k + 1] - s->first[k]) * s->proto_vertices[k];
     if (b->vertices <= UINT32_MAX && b->triangles <= UINT32_MAX) return BRT_OK;
-    return brt_fail(b->err, BRT_EARG, "%s: scale %g needs more than 2^32 - 1 vertices or "
-                    "triangles", s->kind->name, s->scale);
+    return brt_fail(b->err, BRT_EARG, "%s: scale %g baked needs more than 2^32 - 1 vertices or "
+                    "triangles (a .pbrt file keeps the instances)", s->kind->name, s->scale);
 }
 
 /* The instanced scene of the recipe as one mesh: the world part as it
