@@ -10,7 +10,8 @@
 **   build/closed MESH|SCENE [--scale S] [--seed N]
 **
 ** SCENE is a built-in scene name (crown, landscape, island: the meshes of
-** mkscene, the landscape and the island baked from their instances).  A pbrt file is flattened (ex_input_load_mesh).
+** mkscene, the landscape and the island baked from their instances).  A
+** pbrt file is flattened (ex_input_load_mesh).
 */
 #include "batchrt.h"
 #include "common.h"
