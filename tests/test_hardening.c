@@ -859,6 +859,56 @@ static void test_read_ahead_faults(void)
     bench_free(&b);
 }
 
+/* A reader that notes two calls at once: each call stays inside a while
+** (the read-ahead's longer), so that a read the scheduler makes while the
+** read-ahead still reads would be seen. */
+typedef struct overlap_reader {
+    pthread_mutex_t lock;
+    pthread_t caller;
+    int inside, overlaps;
+    long calls;
+} overlap_reader;
+
+static long overlap_read(int fd, void *buf, size_t size, uint64_t offset, void *user)
+{
+    overlap_reader *o = user;
+    long n;
+    pthread_mutex_lock(&o->lock);
+    o->overlaps += o->inside > 0;
+    o->inside++;
+    o->calls++;
+    pthread_mutex_unlock(&o->lock);
+    tu_sleep_ms(pthread_equal(pthread_self(), o->caller) ? 1 : 4);
+    n = (long)pread(fd, buf, size, (off_t)offset);
+    pthread_mutex_lock(&o->lock);
+    o->inside--;
+    pthread_mutex_unlock(&o->lock);
+    return n;
+}
+
+/* batchrt.h, brt_read_fn: never called by two threads at once -- a load
+** that is not the blob read ahead waits for the read-ahead first. */
+static void test_reads_one_at_a_time(void)
+{
+    bench b;
+    brt_trace_options opt;
+    brt_stats st;
+    overlap_reader o;
+    CHECK(fault_bench(&b), "cannot build the bench");
+    fault_options(&opt, NULL);
+    memset(&o, 0, sizeof o);
+    pthread_mutex_init(&o.lock, NULL);
+    o.caller = pthread_self();
+    opt.read_fn = overlap_read;
+    opt.read_user = &o;
+    opt.threads = 2;
+    if (trace_equals_direct(&b, &opt, &st, "two threads, a slow reader"))
+        EXPECT(o.overlaps == 0 && o.calls > 20, "%d of %ld reads began while another was under way",
+               o.overlaps, o.calls);
+    pthread_mutex_destroy(&o.lock);
+    bench_free(&b);
+}
+
 typedef struct write_job {
     const char *path;
     int which;          /* 0 hits, 1 rays, 2 statistics, 3 a scene */
@@ -1594,6 +1644,7 @@ void suite_hardening(void)
     test_run("hardening: file-size limit, no partial scene or ray file", test_write_faults);
     test_run("hardening: programs on a full disk leave nothing", test_full_disk_programs);
     test_run("hardening: a failed read-ahead is dropped and read again", test_read_ahead_faults);
+    test_run("hardening: the reader is never called by two threads at once", test_reads_one_at_a_time);
     test_run("hardening: a full device, a size limit, a directory as the target", test_write_last_steps);
     test_run("hardening: one triangle, every limit", test_single_triangle);
     test_run("hardening: a 1x1 render, direct == batched at its limits", test_one_pixel_render);

@@ -12,6 +12,7 @@
 #include "batchrt.h"
 #include "../examples/lib/common.h"
 #include "../examples/lib/input.h"
+#include "../examples/lib/tracer.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -75,28 +76,83 @@ static void test_rule_thresholds(void)
 ** fanned, comments, blanks, CRLF, a face at the end without a newline. */
 static void test_mesh_counts(void)
 {
-    static const char *const obj[] = {
-        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 3 4\n  f\t1 2 3 4 5 # five\n"
-        "# f 1 2 3\nvn 0 0 1\nf 1//1 2//1 3//1\r\nf -1 -2 -3",
-        "v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 3 #\n\n\nf 3 2 1",
+    static const struct { const char *name, *text; } files[] = {
+        {"count0.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 3 4\n  f\t1 2 3 4 5 # five\n"
+                       "# f 1 2 3\nvn 0 0 1\nf 1//1 2//1 3//1\r\nf -1 -2 -3"},
+        {"count1.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 3 #\n\n\nf 3 2 1"},
+        /* a comment straight after the last corner ends the line, not the corner */
+        {"count2.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3#g\nf 1 2 3 4#x\nf 4 3 2 1# y\n"},
+        {"count3.ply", "ply\nformat ascii 1.0\ncomment element face 99\nelement vertex 3\n"
+                       "property float x\nproperty float y\nproperty float z\nelement face 2\n"
+                       "property list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n1 1 0\n3 0 1 2\n3 2 1 0\n"},
+        /* a PLY written with CRLF line ends (the reader takes them) */
+        {"count4.ply", "ply\r\nformat ascii 1.0\r\nelement vertex 3\r\nproperty float x\r\n"
+                       "property float y\r\nproperty float z\r\nelement face 3\r\n"
+                       "property list uchar int vertex_indices\r\nend_header\r\n0 0 0\r\n1 0 0\r\n1 1 0\r\n"
+                       "3 0 1 2\r\n3 2 1 0\r\n3 0 2 1\r\n"},
     };
-    const char *ply = "ply\nformat ascii 1.0\ncomment element face 99\nelement vertex 3\n"
-                      "property float x\nproperty float y\nproperty float z\nelement face 2\n"
-                      "property list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n1 1 0\n3 0 1 2\n3 2 1 0\n";
     size_t i;
-    for (i = 0; i <= sizeof obj / sizeof obj[0]; i++) {
-        char name[32];
-        const char *path;
+    for (i = 0; i < sizeof files / sizeof files[0]; i++) {
+        const char *path = tu_put(files[i].name, files[i].text);
         brt_mesh mesh;
         brt_error err;
-        snprintf(name, sizeof name, "count%u.%s", (unsigned)i, i < 2 ? "obj" : "ply");
-        path = tu_put(name, i < 2 ? obj[i] : ply);
-        CHECK(brt_mesh_load(path, &mesh, &err) == BRT_OK, "%s: %s", name, err.message);
-        EXPECT(ex_mesh_file_triangles(path) == mesh.triangle_count, "%s: counted %llu triangles, loaded %u",
-               name, (unsigned long long)ex_mesh_file_triangles(path), mesh.triangle_count);
+        CHECK(brt_mesh_load(path, &mesh, &err) == BRT_OK, "%s: %s", files[i].name, err.message);
+        EXPECT(ex_mesh_file_triangles(path) == mesh.triangle_count && mesh.triangle_count > 0,
+               "%s: counted %llu triangles, loaded %u", files[i].name,
+               (unsigned long long)ex_mesh_file_triangles(path), mesh.triangle_count);
         brt_mesh_free(&mesh);
     }
     EXPECT(ex_mesh_file_triangles(tu_scratch("no-such.obj")) == 0, "a missing file counts 0");
+}
+
+/* A pbrt file's triangles counted before the build (ex_input_triangles)
+** are the unique triangles the build makes (brt_world_build): an indexed
+** bilinear mesh of two patches and one without indices (two triangles a
+** patch), a loop subdivision, and a prototype counted once for its two
+** instances. */
+static void test_pbrt_counts(void)
+{
+    const char *path = tu_put("pc.pbrt",
+        "WorldBegin\n"
+        "Shape \"bilinearmesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0 1 1 0 2 0 0 2 1 0] \"integer indices\" [0 1 2 3 1 4 3 5]\n"
+        "Shape \"bilinearmesh\" \"point3 P\" [0 0 1 1 0 1 0 1 1 1 1 1]\n"
+        "Shape \"loopsubdiv\" \"integer levels\" 1 \"point3 P\" [0 0 0 1 0 0 0 1 0 0 0 1] "
+        "\"integer indices\" [0 2 1 0 1 3 0 3 2 1 2 3]\n"
+        "ObjectBegin \"t\"\nShape \"trianglemesh\" \"point3 P\" [0 0 0 1 0 0 0 1 0] \"integer indices\" [0 1 2]\n"
+        "ObjectEnd\nObjectInstance \"t\"\nTranslate 3 0 0\nObjectInstance \"t\"\n");
+    ex_input in;
+    brt_world *world;
+    uint64_t counted, built;
+    ex_input_open("point size", path, &in);
+    counted = ex_input_triangles(&in);
+    world = ex_input_world("point size", &in);
+    built = brt_world_unique_triangles(world);
+    EXPECT(counted == built && built == 4 + 2 + 16 + 1, "pc.pbrt: counted %llu triangles, the build makes %llu",
+           (unsigned long long)counted, (unsigned long long)built);
+    brt_world_free(world);
+    ex_input_close(&in);
+}
+
+/* trace's default --memory 1G is a limit: a scene of more triangles than
+** twelve per byte of it asks for more than 8 points (a PLY header alone
+** says how many: the counter reads no more). */
+static void test_trace_default_limit(void)
+{
+    const uint64_t t = 200000000;
+    ex_tracer_options o;
+    ex_input in;
+    char header[256];
+    snprintf(header, sizeof header, "ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n"
+             "property float y\nproperty float z\nelement face %llu\nproperty list uchar int vertex_indices\n"
+             "end_header\n", (unsigned long long)t);
+    ex_input_open("point size", tu_put("big.ply", header), &in);
+    ex_tracer_defaults(&o);
+    ex_tracer_point_size(&in, &o);
+    EXPECT(o.batch_tris == model_size(t, (uint64_t)1 << 30, 0) && o.batch_tris < t / 8,
+           "%llu triangles under trace's default 1G: points of <= %llu, want %llu",
+           (unsigned long long)t, (unsigned long long)o.batch_tris,
+           (unsigned long long)model_size(t, (uint64_t)1 << 30, 0));
+    ex_input_close(&in);
 }
 
 /* "... batching points of <= N triangles" of trace --verbose. */
@@ -214,6 +270,8 @@ void suite_point_size(void)
 {
     test_run("point size: the rule at its thresholds", test_rule_thresholds);
     test_run("point size: a mesh's triangles counted before the build", test_mesh_counts);
+    test_run("point size: a pbrt file's triangles counted as the build makes them", test_pbrt_counts);
+    test_run("point size: trace's default 1G is a limit", test_trace_default_limit);
     test_run("point size: trace's default from the mesh, a pbrt file and --memory", test_trace_default);
     test_run("point size: render's default from the built-in scenes and --memory", test_render_default);
     test_run("point size: render --scene FILE rebuilt at another size, reused at the default", test_render_scene_reuse);

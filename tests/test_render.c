@@ -211,6 +211,16 @@ static void test_heatmap(void)
     EXPECT(rgb && w == 40 && h == 24 + 24, "heat.png does not decode to 40x48 pixels");
     for (i = 1; rgb && i < (size_t)40 * 24; i++) distinct += memcmp(rgb + 3 * i, rgb, 3) != 0;
     EXPECT(distinct > 0, "the heatmap is one flat colour");
+    /* The colour bar (rows 2..9 of the legend under the map) runs from the
+    ** scale's bottom colour at its left end to its top colour at its right
+    ** end: magma's ends, (0, 0, 4) and (252, 255, 164). */
+    if (rgb && w == 40 && h == 48) {
+        static const unsigned char bottom[3] = {0, 0, 4}, top[3] = {252, 255, 164};
+        const unsigned char *left = rgb + 3 * ((size_t)(24 + 5) * 40), *right = left + 3 * 39;
+        EXPECT(memcmp(left, bottom, 3) == 0 && memcmp(right, top, 3) == 0,
+               "colour bar ends (%d %d %d) .. (%d %d %d), want (0 0 4) .. (252 255 164)", left[0], left[1],
+               left[2], right[0], right[1], right[2]);
+    }
 
     free(rgb);
     free(png);

@@ -16,7 +16,7 @@
 #include <stdlib.h>
 #include <string.h>
 
-static const unsigned thread_counts[] = {1, 2, 7};
+static const unsigned thread_counts[] = {1, 2, 7, 0};   /* 0: one per online core */
 #define RUNS (sizeof thread_counts / sizeof thread_counts[0])
 
 /* A soup of n triangles and rays of every kind, with their reference hits
@@ -470,6 +470,6 @@ void suite_threads(void)
     test_run("threads: brt_bvh_trace == one ray after another, both kinds, 1/2/7 threads", test_bvh_trace);
     test_run("threads: batched counts and finished order equal at 1/2/7 threads", test_batched_counts);
     test_run("threads: scene files equal at 1/2/7 threads", test_scene_bytes);
-    test_run("threads: trace and render outputs equal at 1/2/7 threads", test_programs);
+    test_run("threads: trace and render outputs equal at 1/2/7 threads and --threads 0", test_programs);
     test_run("cache: peak RSS within the limit + fixed costs while reloading", test_cache_rss);
 }
