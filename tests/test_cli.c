@@ -206,6 +206,35 @@ static int write_lumpy_mesh(tu_scene *m, const char *name)
 /* Tests                                                                 */
 /* ===================================================================== */
 
+/* README, "Programs": an option renamed since is named by its new name in
+** one line -- every program that took --res (embree_trace when built) --
+** and an option no program ever had is still unknown. */
+static void test_renamed_options(void)
+{
+    static const char *const programs[] = {"trace", "render", "voxelize", "bench_svdag", "bench_batched",
+                                           "embree_trace"};
+    const char *build = getenv("BRT_BUILD") ? getenv("BRT_BUILD") : "build";
+    char embree[600], *err;
+    size_t i;
+    snprintf(embree, sizeof embree, "%s/embree_trace", build);
+    for (i = 0; i < sizeof programs / sizeof *programs; i++) {
+        char want[128];
+        int status;
+        if (strcmp(programs[i], "embree_trace") == 0 && !tu_file_exists(embree)) continue;
+        status = tu_run("%s --res 8 x.obj x.rays x.hits", programs[i]);
+        err = tu_last_stderr();
+        snprintf(want, sizeof want, "%s: --res is now --proxy-res (see --help)\n", programs[i]);
+        EXPECT(status == 1 && err && strcmp(err, want) == 0, "%s --res: exit %d, said '%s', want '%s'",
+               programs[i], status, err ? err : "", want);
+        free(err);
+    }
+    EXPECT(tu_run("trace x.obj x.rays x.hits --resolution 8") == 1, "trace --resolution accepted");
+    err = tu_last_stderr();
+    EXPECT(err && strcmp(err, "trace: unknown option '--resolution' (see --help)\n") == 0, "trace --resolution: %s",
+           err ? err : "");
+    free(err);
+}
+
 static void test_help(void)
 {
     /* Every program make builds (the Makefile's PROGRAMS: examples/tutorials,
@@ -520,8 +549,8 @@ static void test_trace_stats(void)
 static void test_trace_batched(void)
 {
     static const char *const settings[] = {
-        "--batch-tris 1 --res 2 --memory 1K", "--batch-tris 7 --res 16 --no-proxy",
-        "--batch-tris 1000 --res 256 --memory 64K", "--batch-tris 40 --res 64 --memory 20K"};
+        "--batch-tris 1 --proxy-res 2 --memory 1K", "--batch-tris 7 --proxy-res 16 --no-proxy",
+        "--batch-tris 1000 --proxy-res 256 --memory 64K", "--batch-tris 40 --proxy-res 64 --memory 20K"};
     tu_scene m = {0};
     unsigned char *direct, *batched;
     size_t i, n_direct = 0, n_batched = 0;
@@ -660,7 +689,7 @@ static void test_hitdiff(void)
 ** output file it must not leave behind ('@' is the scratch directory). */
 typedef struct bad_case {
     const char *args;
-    const char *words;   /* program prefix and the place, e.g. "trace: ... --res" */
+    const char *words;   /* program prefix and the place, e.g. "trace: ... --proxy-res" */
     const char *output;  /* NULL when the command names no output */
 } bad_case;
 
@@ -670,12 +699,12 @@ static const bad_case bad_cases[] = {
     {"trace @/good.obj @/odd.rays @/bad3.hits", "odd.rays", "bad3.hits"},
     {"trace @/good.obj @/missing.rays @/bad4.hits", "missing.rays", "bad4.hits"},
     {"trace @/good.obj @/good.rays @/bad5.hits --frobnicate", "--frobnicate", "bad5.hits"},
-    {"trace @/good.obj @/good.rays @/bad6.hits --res 3", "--res", "bad6.hits"},
-    {"trace @/good.obj @/good.rays @/bad7.hits --res 2048", "--res", "bad7.hits"},
+    {"trace @/good.obj @/good.rays @/bad6.hits --proxy-res 3", "--proxy-res", "bad6.hits"},
+    {"trace @/good.obj @/good.rays @/bad7.hits --proxy-res 2048", "--proxy-res", "bad7.hits"},
     {"trace @/good.obj @/good.rays @/bad8.hits --memory 0", "--memory", "bad8.hits"},
     {"trace @/good.obj @/good.rays @/bad9.hits --memory 12X", "--memory", "bad9.hits"},
     {"trace @/good.obj @/good.rays @/bad10.hits --batch-tris 0", "--batch-tris", "bad10.hits"},
-    {"trace @/good.obj @/good.rays @/bad11.hits --res", "--res", "bad11.hits"},
+    {"trace @/good.obj @/good.rays @/bad11.hits --proxy-res", "--proxy-res", "bad11.hits"},
     {"trace @/good.obj @/good.rays @/bad11.hits --batched --rays-in-flight 0", "--rays-in-flight", "bad11.hits"},
     {"trace @/good.obj @/good.rays", "HITS", NULL},
     {"trace @/good.obj @/good.rays @/no_such_dir/bad12.hits", "no_such_dir/bad12.hits", NULL},
@@ -940,7 +969,7 @@ static void test_peak_rss_in_statistics(void)
         {"trace @/rss.ply @/rss.rays @/rss.hits --stats @/rss-trace.json", "rss-trace.json"},
         {"trace @/rss.ply @/rss.rays @/rss.hits --batched --scene @/rss.brs --stats @/rss-tb.json",
          "rss-tb.json"},
-        {"voxelize @/rss.ply --res 16 --stats @/rss-vox.json", "rss-vox.json"},
+        {"voxelize @/rss.ply --proxy-res 16 --stats @/rss-vox.json", "rss-vox.json"},
         {"render crown --scale 0.01 --width 8 --height 8 --spp 1 --direct --out @/rss.png "
          "--stats @/rss-rd.json", "rss-rd.json"},
         {"render crown --scale 0.01 --width 8 --height 8 --spp 1 --scene @/rss-r.brs --out @/rss.png "
@@ -1029,7 +1058,7 @@ static void test_interrupts_leave_nothing(void)
 {
     char mk_dir[512], mk_out[600], r_dir[512], r_scene[600], r_out[600];
     const char *mkscene[] = {"mkscene", "landscape", mk_out, "--scale", "3", NULL};   /* then island, pbrt */
-    const char *render[] = {"render", "landscape", "--scale", "10", "--res", "16", "--width", "320",
+    const char *render[] = {"render", "landscape", "--scale", "10", "--proxy-res", "16", "--width", "320",
                             "--height", "200", "--spp", "64", "--scene", r_scene, "--out", r_out,
                             NULL};
     snprintf(mk_dir, sizeof mk_dir, "%s", tu_scratch("mkscene-interrupted"));
@@ -1055,7 +1084,7 @@ static void test_interrupts_leave_nothing(void)
 static void test_interrupts_while_tracing(void)
 {
     char dir[512], scene[600], out[600], tdir[512], tscene[600], tout[600], mesh[600], rays[600];
-    const char *render[] = {"render", "landscape", "--scale", "10", "--res", "16", "--width", "320",
+    const char *render[] = {"render", "landscape", "--scale", "10", "--proxy-res", "16", "--width", "320",
                             "--height", "200", "--spp", "64", "--memory", "10%", "--threads", "1",
                             "--scene", scene, "--out", out, NULL};
     const char *direct[] = {"render", "landscape", "--scale", "10", "--width", "320", "--height", "200",
@@ -1066,7 +1095,7 @@ static void test_interrupts_while_tracing(void)
     snprintf(scene, sizeof scene, "%s/scene.brs", dir);
     snprintf(out, sizeof out, "%s/out.png", dir);
     CHECK(mkdir(dir, 0755) == 0, "cannot create %s", dir);
-    CHECK(tu_run("render landscape --scale 10 --res 16 --width 8 --height 8 --spp 1 --scene %s --out %s",
+    CHECK(tu_run("render landscape --scale 10 --proxy-res 16 --width 8 --height 8 --spp 1 --scene %s --out %s",
                  scene, out) == 0 && unlink(out) == 0, "could not build the render's scene file");
     check_interrupted(render, dir, SIGINT, 0, "scene.brs");
     check_interrupted(render, dir, SIGTERM, 0, "scene.brs");
@@ -1299,7 +1328,7 @@ static void test_builtin_scenes_batched_equals_direct(void)
                   "raygen failed");
             CHECK(tu_run("trace @/bi-%s @/bi.rays @/bi-direct.hits", files[i]) == 0, "trace failed");
             CHECK(tu_run("trace @/bi-%s @/bi.rays @/bi-batched.hits --batched --batch-tris 400 "
-                         "--res 32 --memory 40K --scene @/bi-%s.brs", files[i], name) == 0,
+                         "--proxy-res 32 --memory 40K --scene @/bi-%s.brs", files[i], name) == 0,
                   "trace --batched failed");
             EXPECT(tu_same_file_bytes(tu_scratch("bi-direct.hits"), tu_scratch("bi-batched.hits")),
                    "%s, %s rays: batched and direct hits differ", files[i], kinds[k]);
@@ -1383,6 +1412,7 @@ void suite_cli(void)
 {
 test_run("cli: the source stamp sees mtime (ns and s), size and inode alone", test_source_stamp_parts);
         test_run("cli: --help of every program", test_help);
+        test_run("cli: a renamed option names its new name (--res is now --proxy-res)", test_renamed_options);
     test_run("cli: minimal runs", test_minimal);
     test_run("cli: minimal_batched equals the direct mode and removes its scene file",
              test_minimal_batched);

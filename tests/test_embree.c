@@ -253,7 +253,7 @@ static void check_kind(const char *mesh_path, const brt_mesh *mesh, const char *
     scratch(embree_path, "embree.hits");
     /* Small batching points, coarse proxies and a tiny cache: many loads. */
     snprintf(batched_options, sizeof batched_options,
-             "--batched --batch-tris 4000 --res 32 --memory 256K --scene '%s'",
+             "--batched --batch-tris 4000 --proxy-res 32 --memory 256K --scene '%s'",
              scratch(scene, "embree.brs"));
     if (edge_rays)
         CHECK(write_edge_rays(mesh, rays_path), "%s: cannot write %s", label, rays_path);

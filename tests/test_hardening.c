@@ -223,10 +223,10 @@ static const bad_run bad_runs[] = {
      "trace: @/version.brs: scene file version 2, this build reads versions 3 and 4 (delete the "
      "file to rebuild it)", "b16.hits"},
     /* option values */
-    {"trace @/tri.obj @/good.rays @/b17.hits --res 0", 1,
-     "trace: --res: expected an integer in 2..1024, got '0'", "b17.hits"},
-    {"trace @/tri.obj @/good.rays @/b18.hits --res -4", 1,
-     "trace: --res: expected an integer in 2..1024, got '-4'", "b18.hits"},
+    {"trace @/tri.obj @/good.rays @/b17.hits --proxy-res 0", 1,
+     "trace: --proxy-res: expected an integer in 2..1024, got '0'", "b17.hits"},
+    {"trace @/tri.obj @/good.rays @/b18.hits --proxy-res -4", 1,
+     "trace: --proxy-res: expected an integer in 2..1024, got '-4'", "b18.hits"},
     {"trace @/tri.obj @/good.rays @/b19.hits --memory -5", 1,
      "trace: --memory: expected a size above 0 such as 512M (suffix K, M or G), got '-5'",
      "b19.hits"},
@@ -252,12 +252,12 @@ static const bad_run bad_runs[] = {
      "hitdiff: --t-rel: expected a number in 0..2, got '-1'", NULL},
     {"hitdiff @/good.hits @/good.hits --max-disagree inf", 1,
      "hitdiff: --max-disagree: expected a number in 0..1, got 'inf'", NULL},
-    {"voxelize @/tri.obj --res 0", 1, "voxelize: --res: expected an integer in 2..1024, got '0'",
+    {"voxelize @/tri.obj --proxy-res 0", 1, "voxelize: --proxy-res: expected an integer in 2..1024, got '0'",
      NULL},
-    {"voxelize @/tri.obj --res -2", 1,
-     "voxelize: --res: expected an integer in 2..1024, got '-2'", NULL},
-    {"voxelize @/tri.obj --res 3 --out @/b28.png", 1,
-     "voxelize: --res: expected a power of two in 2..1024, got '3'", "b28.png"},
+    {"voxelize @/tri.obj --proxy-res -2", 1,
+     "voxelize: --proxy-res: expected an integer in 2..1024, got '-2'", NULL},
+    {"voxelize @/tri.obj --proxy-res 3 --out @/b28.png", 1,
+     "voxelize: --proxy-res: expected a power of two in 2..1024, got '3'", "b28.png"},
     {"voxelize @/tri.obj --size 0 --out @/b29.png", 1,
      "voxelize: --size: expected an integer in 16..4096, got '0'", "b29.png"},
     {"voxelize @/tri.obj --stats @/b30.json --out @/no_such_dir/b30.png", 1,
@@ -404,7 +404,7 @@ static void test_empty_ray_file(void)
 static void test_one_pixel_render(void)
 {
     static const char *const modes[] = {
-        "--direct", "--batch-tris 1 --res 2 --memory 1 --rays-in-flight 1 --scene @/px1.brs",
+        "--direct", "--batch-tris 1 --proxy-res 2 --memory 1 --rays-in-flight 1 --scene @/px1.brs",
         "--no-proxy --scene @/px2.brs"};
     char *first = NULL, *png = NULL;
     int i;
@@ -778,7 +778,7 @@ static const bad_run full_disk_runs[] = {
      "trace: @/f4.brs: cannot write: File too large", "f4.brs"},
     {"raygen @/tri.obj @/f5.rays --kind random --count 1000", 1,
      "raygen: @/f5.rays: cannot write: File too large", "f5.rays"},
-    {"voxelize @/tri.obj --res 4 --out @/f6.png", 1,
+    {"voxelize @/tri.obj --proxy-res 4 --out @/f6.png", 1,
      "voxelize: @/f6.png: cannot write: File too large", "f6.png"},
     {"render crown --scale 0.01 --width 64 --height 64 --spp 1 --direct --out @/f7.png", 1,
      "render: @/f7.png: cannot write: File too large", "f7.png"},

@@ -446,9 +446,9 @@ static void test_scene_balls(void)
 /* trace --occlusion: the same file direct, batched, inner on and off. */
 static void test_trace_files(void)
 {
-    static const char *const runs[] = {"--batched --batch-tris 192 --res 32",
-                                       "--batched --batch-tris 192 --res 32 --no-inner",
-                                       "--batched --batch-tris 192 --res 32 --memory 1"};
+    static const char *const runs[] = {"--batched --batch-tris 192 --proxy-res 32",
+                                       "--batched --batch-tris 192 --proxy-res 32 --no-inner",
+                                       "--batched --batch-tris 192 --proxy-res 32 --memory 1"};
     uint64_t st = test_seed();
     float c[3];
     tu_scene s;

@@ -958,7 +958,7 @@ static void test_trace_pbrt_instances(void)
                "statistics: %s", json ? json : "(none)");
         free(json);
     }
-    CHECK(tu_run("trace @/plants.pbrt @/plants.rays @/b.hits --batched --batch-tris 3 --res 16 "
+    CHECK(tu_run("trace @/plants.pbrt @/plants.rays @/b.hits --batched --batch-tris 3 --proxy-res 16 "
                  "--memory 8K --threads 2 --scene @/plants.brs") == 0, "batched: %s", tu_last_stderr());
     a = tu_slurp(tu_scratch("d.hits"), &na);
     b = tu_slurp(tu_scratch("b.hits"), &nb);
@@ -1317,7 +1317,7 @@ static void test_flattened_pbrt(void)
     out = tu_last_stdout();
     EXPECT(out && strstr(out, ": 17 triangles"), "closed says: %s", out ? out : "(nothing)");
     free(out);
-    EXPECT(tu_run("voxelize @/plants.pbrt --res 16") == 0, "voxelize: %s", tu_last_stderr());
+    EXPECT(tu_run("voxelize @/plants.pbrt --proxy-res 16") == 0, "voxelize: %s", tu_last_stderr());
 }
 
 void suite_instances(void)

@@ -187,13 +187,13 @@ static void test_trace_default(void)
     write_crown(&t);
     if (test_failed()) return;
     for (i = 0; i < 2; i++) {
-        CHECK(tu_run("trace @/%s @/ps.rays @/ps%d.hits --batched --res 8 --verbose --scene @/ps%d.brs", files[i], i, i) == 0,
+        CHECK(tu_run("trace @/%s @/ps.rays @/ps%d.hits --batched --proxy-res 8 --verbose --scene @/ps%d.brs", files[i], i, i) == 0,
               "trace %s: %s", files[i], tu_last_stderr());
         want = model_size(t, (uint64_t)1 << 30, 0);   /* trace's --memory 1G is a limit too */
         EXPECT(trace_size() == want && want > 100000, "trace %s, %llu triangles: points of <= %llu, want %llu",
                files[i], (unsigned long long)t, (unsigned long long)trace_size(), (unsigned long long)want);
     }
-    CHECK(tu_run("trace @/ps.ply @/ps.rays @/ps2.hits --batched --res 8 --verbose --memory 4M --scene @/ps2.brs") == 0,
+    CHECK(tu_run("trace @/ps.ply @/ps.rays @/ps2.hits --batched --proxy-res 8 --verbose --memory 4M --scene @/ps2.brs") == 0,
           "trace --memory 4M: %s", tu_last_stderr());
     want = model_size(t, 4u << 20, 0);
     EXPECT(trace_size() == want, "--memory 4M: points of <= %llu, want %llu", (unsigned long long)trace_size(),
@@ -202,7 +202,7 @@ static void test_trace_default(void)
     /* A pbrt file instancing the PLY twice: its triangles count once. */
     tu_put("ps.pbrt", "WorldBegin\nObjectBegin \"c\"\nShape \"plymesh\" \"string filename\" \"ps.ply\"\nObjectEnd\n"
                       "ObjectInstance \"c\"\nTranslate 5 0 0\nObjectInstance \"c\"\n");
-    CHECK(tu_run("trace @/ps.pbrt @/ps.rays @/ps3.hits --batched --res 8 --verbose --scene @/ps3.brs") == 0,
+    CHECK(tu_run("trace @/ps.pbrt @/ps.rays @/ps3.hits --batched --proxy-res 8 --verbose --scene @/ps3.brs") == 0,
           "trace ps.pbrt: %s", tu_last_stderr());
     want = model_size(t, (uint64_t)1 << 30, 0);
     EXPECT(trace_size() == want, "pbrt, one prototype of %llu triangles twice: points of <= %llu, want %llu",
@@ -222,7 +222,7 @@ static int render_line(const char *scene, unsigned long long *t, unsigned long l
 
 static void test_render_default(void)
 {
-    const char *img = "--width 4 --height 4 --spp 1 --res 8";
+    const char *img = "--width 4 --height 4 --spp 1 --proxy-res 8";
     unsigned long long t = 0, size = 0, t2 = 0, size2 = 0;
     uint64_t want;
     CHECK(tu_run("render crown --scale 8.5 %s --scene @/rc.brs --out @/rc.png --stats @/rc.json", img) == 0,
@@ -253,7 +253,7 @@ static void test_render_default(void)
 ** reused (build_seconds 0), the default included. */
 static void test_render_scene_reuse(void)
 {
-    const char *args = "crown --scale 0.3 --width 4 --height 4 --spp 1 --res 8 --scene @/ru.brs --out @/ru.png";
+    const char *args = "crown --scale 0.3 --width 4 --height 4 --spp 1 --proxy-res 8 --scene @/ru.brs --out @/ru.png";
     static const char *const runs[] = {"", "--batch-tris 100000", "--batch-tris 50000", ""};
     static const int rebuilt[] = {1, 0, 1, 1};
     int i;

@@ -58,7 +58,7 @@ static const char *const batched_settings[] = {
     "--memory 10%",                        /* out of core: reloads */
     "--memory 10% --no-proxy --rays-in-flight 7",
     "--memory 1K --rays-in-flight 1",      /* smaller than any batching point */
-    "--rays-in-flight 33 --res 16",
+    "--rays-in-flight 33 --proxy-res 16",
     "--memory 10% --paper-scheduler",       /* the paper's scheduler */
     "--paper-scheduler",                    /* ... which consults proxies in core too */
     "--memory 10% --disk-speed 1G",        /* reads through render's own reader */
@@ -291,7 +291,7 @@ static void test_disk_speed(void)
 static void test_bad_options(void)
 {
     static const char *const bad[] = {
-        "--spp 0", "--spp x", "--width -3", "--res 48", "--memory 0", "--memory 5%x",
+        "--spp 0", "--spp x", "--width -3", "--proxy-res 48", "--memory 0", "--memory 5%x",
         "--camera 1,2,3:1,2,3:40", "--camera 1,2:0,0,0:40", "--camera 0,0,1:0,0,0:180",
         "--bogus", "--direct --heatmap @/never-heat.png", "@/no-such-mesh.obj", "--scale 0",
         "--out", "--disk-speed 0", "--disk-speed fast", "--direct --disk-speed 100M",
@@ -352,7 +352,7 @@ static void test_reused_builtin_holds_no_mesh(void)
     /* --no-nee: no shadow rays, fewer loads (29, not 35), so that glibc's
     ** heap slack from blobs freed and read again (README, "Memory")
     ** stays out of a measure meant for the mesh. */
-    const char *args = "--width 16 --height 16 --spp 1 --res 16 --rays-in-flight 256 --memory 1M "
+    const char *args = "--width 16 --height 16 --spp 1 --proxy-res 16 --rays-in-flight 256 --memory 1M "
                        "--no-nee --batch-tris 10000";   /* blobs far below the 1M limit */
     uint64_t unique, instanced;
     uint32_t instances;
@@ -717,7 +717,7 @@ static void test_exact_open_sphere(void)
 ** tests/test_point_size.c. */
 static void test_default_point_size(void)
 {
-    const char *args = "crown --scale 0.3 --width 4 --height 4 --spp 1 --res 8";
+    const char *args = "crown --scale 0.3 --width 4 --height 4 --spp 1 --proxy-res 8";
     double points, hundred_k, ten_k;
     CHECK(tu_run("render %s --scene @/dp.brs --out @/dp.png --stats @/dp.json", args) == 0, "render: %s",
           tu_last_stderr());

@@ -1233,7 +1233,7 @@ static void test_voxelize_program(void)
     snprintf(path, sizeof path, "%s/svdag_tet.obj", dir);
     f = fopen(path, "wb");
     CHECK(f && fwrite(obj, 1, sizeof obj - 1, f) == sizeof obj - 1 && fclose(f) == 0, "write %s", path);
-    snprintf(cmd, sizeof cmd, "%s/voxelize %s --res 16 --stats %s/svdag_s.json --out %s/svdag_p.png "
+    snprintf(cmd, sizeof cmd, "%s/voxelize %s --proxy-res 16 --stats %s/svdag_s.json --out %s/svdag_p.png "
              "--size 32 > %s/svdag_out.txt 2>&1", build, path, dir, dir, dir);
     if (run_status(cmd) != 0) {
         test_skip("%s/voxelize did not run (not built?)", build);
@@ -1271,8 +1271,8 @@ static void test_voxelize_program(void)
     f = fopen(path, "rb");
     EXPECT(f == NULL, "bad mesh: stats written");
     if (f) fclose(f);
-    snprintf(cmd, sizeof cmd, "%s/voxelize %s/svdag_tet.obj --res 24 2>/dev/null >/dev/null", build, dir);
-    EXPECT(run_status(cmd) == 1, "--res 24 accepted");
+    snprintf(cmd, sizeof cmd, "%s/voxelize %s/svdag_tet.obj --proxy-res 24 2>/dev/null >/dev/null", build, dir);
+    EXPECT(run_status(cmd) == 1, "--proxy-res 24 accepted");
 }
 
 /* ===================================================================== */

@@ -310,13 +310,13 @@ static void test_resolution_bounds(void)
     fprintf(f, "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n");
     fclose(f);
     for (i = 0; i < sizeof cases / sizeof *cases; i++) {
-        int status = tu_run("voxelize @/res.obj --res %d --stats @/res.json", cases[i].res);
+        int status = tu_run("voxelize @/res.obj --proxy-res %d --stats @/res.json", cases[i].res);
         double voxels = status == 0 ? tu_json_file_number(tu_scratch("res.json"), "voxels") : 0;
         if (cases[i].ok)
-            EXPECT(status == 0 && voxels >= cases[i].res, "voxelize --res %d: status %d (%s), %g voxels", cases[i].res,
+            EXPECT(status == 0 && voxels >= cases[i].res, "voxelize --proxy-res %d: status %d (%s), %g voxels", cases[i].res,
                    status, tu_last_stderr(), voxels);
         else
-            EXPECT(status == 1 && strstr(tu_last_stderr(), "res"), "voxelize --res %d: status %d, '%s'", cases[i].res,
+            EXPECT(status == 1 && strstr(tu_last_stderr(), "res"), "voxelize --proxy-res %d: status %d, '%s'", cases[i].res,
                    status, tu_last_stderr());
     }
     {   /* the batched mode too: one ray down onto the first triangle */
@@ -325,11 +325,11 @@ static void test_resolution_bounds(void)
         size_t size = 0;
         float t = 0;
         CHECK(tu_spill(tu_scratch("res.rays"), &ray, sizeof ray), "cannot write res.rays");
-        EXPECT(tu_run("trace @/res.obj @/res.rays @/res.hits --batched --res 1024 --scene @/res.brs") == 0,
-               "trace --batched --res 1024: %s", tu_last_stderr());
+        EXPECT(tu_run("trace @/res.obj @/res.rays @/res.hits --batched --proxy-res 1024 --scene @/res.brs") == 0,
+               "trace --batched --proxy-res 1024: %s", tu_last_stderr());
         hit = tu_slurp(tu_scratch("res.hits"), &size);
         if (hit && size == 16) memcpy(&t, hit, 4);
-        EXPECT(t == 1.0f, "trace --batched --res 1024: t %g, want 1", t);
+        EXPECT(t == 1.0f, "trace --batched --proxy-res 1024: t %g, want 1", t);
         free(hit);
     }
 }

@@ -4,7 +4,7 @@
 ** what batching costs in core, and how fast preprocessing is.
 **
 **   build/bench_batched [MESH | SCENE] [--scale S] [--rays N] [--limit P]
-**                       [--batch-tris N] [--res R] [--scene FILE]
+**                       [--batch-tris N] [--proxy-res R] [--scene FILE]
 **
 ** By default: the built-in landscape at scale 0.8 (baked from its
 ** instances: about 5 million triangles), 1M rays (half camera rays from the scene's default view, half
@@ -44,7 +44,7 @@ static void usage(void)
            "  --rays N         rays, half camera and half bounce (default 1000000)\n"
            "  --limit P        memory limit in percent of the geometry bytes (default 25)\n"
            "  --batch-tris N   triangles per batching point (default 100000)\n"
-           "  --res R          proxy resolution (default 128)\n"
+           "  --proxy-res R    proxy resolution (default 128)\n"
            "  --scene FILE     where to write the scene file (default /tmp)\n"
            "  --help           this text\n");
 }
@@ -69,10 +69,10 @@ static void parse_options(int argc, char **argv, options *o)
             o->limit_percent = ex_parse_double(prog, a, ex_option_value(prog, argc, argv, &i), 0.1, 1000);
         else if (strcmp(a, "--batch-tris") == 0)
             o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, UINT32_MAX);
-        else if (strcmp(a, "--res") == 0)
+        else if (strcmp(a, "--proxy-res") == 0)
             o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
         else if (strcmp(a, "--scene") == 0) o->scene = ex_option_value(prog, argc, argv, &i);
-        else if (a[0] == '-') ex_die(prog, "unknown option '%s' (see --help)", a);
+        else if (a[0] == '-') ex_unknown_option(prog, a);
         else o->input = a;
     }
 }

@@ -176,7 +176,7 @@ int main(int argc, char **argv)
         } else if (!strcmp(argv[i], "--seed")) {
             seed = ex_parse_u64(prog, "--seed", ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX);
         } else if (argv[i][0] == '-') {
-            ex_die(prog, "unknown option %s (see --help)", argv[i]);
+            ex_unknown_option(prog, argv[i]);
         } else {
             path = argv[i];
         }

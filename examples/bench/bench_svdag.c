@@ -3,15 +3,15 @@
 ** after Molenaar and Eisemann 2020) cost and how fast they answer.
 ** Prints figures, never pass/fail.
 **
-** Usage: build/bench_svdag [MESH...] [--rays N] [--res R] [--seed S] [--no-table]
+** Usage: build/bench_svdag [MESH...] [--rays N] [--proxy-res R] [--seed S] [--no-table]
 **        build/bench_svdag --scene landscape|island|crown [--scale S] [--batch-tris N]
-**                          [--rays N] [--res R] [--seed S]
+**                          [--rays N] [--proxy-res R] [--seed S]
 **   MESH defaults to bunny_tiny, bunny and dragon from ../shared/data/meshes
 **   (the .gz ones unpacked with gzip into /tmp), whichever are present.
 ** For each mesh:
 **   - throughput on the same rays (half camera rays, half rays from a
 **     sphere around the mesh aimed into its box): the proxy ray cast at
-**     --res beside the BVH's closest hit, single thread, in CPU time (the
+**     --proxy-res beside the BVH's closest hit, single thread, in CPU time (the
 **     process's own, so that other jobs on a shared machine do not count),
 **     and how many BVH hits the proxy missed (must be 0) or added (false hits);
 **   - voxelization and DAG build time, and DAG bytes, at res 16..512
@@ -50,7 +50,7 @@ static void usage(void)
            "Without MESH: bunny_tiny, bunny, dragon from ../shared/data/meshes.\n"
            "\n"
            "  --rays N    rays per throughput run (default 1000000)\n"
-           "  --res R     proxy resolution of the throughput run (default 128)\n"
+           "  --proxy-res R  proxy resolution of the throughput run (default 128)\n"
            "  --seed S    ray generator seed (default 1)\n"
            "  --no-table  throughput only, no build/memory table\n"
            "  --scene NAME  instead: the proxy tests of a render of a built-in scene\n"
@@ -84,9 +84,9 @@ static void parse_options(int argc, char **argv, options *o)
             o->scale = ex_parse_double(prog, a, ex_option_value(prog, argc, argv, &i), 0.01, 100);
         else if (strcmp(a, "--batch-tris") == 0)
             o->batch_tris = (uint32_t)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, 100000000);
-        else if (strcmp(a, "--res") == 0)
+        else if (strcmp(a, "--proxy-res") == 0)
             o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
-        else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
+        else if (a[0] == '-' && a[1] != 0) ex_unknown_option(prog, a);
         else if (o->mesh_count < 16) o->meshes[o->mesh_count++] = a;
         else ex_die(prog, "too many meshes (at most 16)");
     }

@@ -56,6 +56,15 @@ void ex_die(const char *prog, const char *fmt, ...)
     exit(1);
 }
 
+void ex_unknown_option(const char *prog, const char *arg)
+{
+    static const char *const renamed[][2] = {{"--res", "--proxy-res"}};
+    size_t i;
+    for (i = 0; i < sizeof renamed / sizeof renamed[0]; i++)
+        if (strcmp(arg, renamed[i][0]) == 0) ex_die(prog, "%s is now %s (see --help)", arg, renamed[i][1]);
+    ex_die(prog, "unknown option '%s' (see --help)", arg);
+}
+
 void ex_check(const char *prog, brt_result r, const brt_error *err)
 {
     if (r == BRT_OK) return;

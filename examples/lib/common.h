@@ -21,6 +21,16 @@ void ex_die(const char *prog, const char *fmt, ...)
 #endif
     ;
 
+/* Dies on an option prog does not know (arg, starting with '-'): "prog:
+** unknown option 'arg' (see --help)", or for an option renamed since (one
+** vocabulary, README "Programs") the name it has now, e.g. "trace: --res
+** is now --proxy-res (see --help)". */
+void ex_unknown_option(const char *prog, const char *arg)
+#if defined(__GNUC__)
+    __attribute__((noreturn))
+#endif
+    ;
+
 /* Dies with err's message (or the result's name) unless r is BRT_OK; as
 ** ex_die_interrupted when an interrupt is pending. */
 void ex_check(const char *prog, brt_result r, const brt_error *err);
@@ -30,7 +40,7 @@ void ex_check(const char *prog, brt_result r, const brt_error *err);
 int ex_wants_help(int argc, char **argv);
 
 /* Option values with range checks; a bad value dies with a message naming
-** the option, e.g. "trace: --res: expected an integer in 2..1024, got 'x'". */
+** the option, e.g. "trace: --proxy-res: expected an integer in 2..1024, got 'x'". */
 uint64_t ex_parse_u64(const char *prog, const char *option, const char *text,
                       uint64_t min, uint64_t max);
 double ex_parse_double(const char *prog, const char *option, const char *text,

@@ -36,7 +36,7 @@ static int batched_option(const ex_tracer_command *c, int argc, char **argv, int
     else if (strcmp(a, "--paper-scheduler") == 0) o->paper_scheduler = 1;
     else if (strcmp(a, "--batch-tris") == 0)
         o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, i), 1, UINT32_MAX);
-    else if (strcmp(a, "--res") == 0)
+    else if (strcmp(a, "--proxy-res") == 0)
         o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, i));
     else if (strcmp(a, "--memory") == 0) {
         o->memory = ex_parse_size(prog, a, ex_option_value(prog, argc, argv, i));
@@ -65,7 +65,7 @@ void ex_tracer_parse(const ex_tracer_command *c, int argc, char **argv, ex_trace
         if (common_option(c->prog, argc, argv, &i, o)) continue;
         if (c->batched && batched_option(c, argc, argv, &i, o)) continue;
         if (c->own(c->user, argc, argv, &i)) continue;
-        if (a[0] == '-' && a[1] != 0) ex_die(c->prog, "unknown option '%s' (see --help)", a);
+        if (a[0] == '-' && a[1] != 0) ex_unknown_option(c->prog, a);
         if (npos == 3) ex_die(c->prog, "unexpected argument '%s' (see --help)", a);
         *positional[npos++] = a;
     }

@@ -21,7 +21,7 @@ typedef struct ex_tracer_options {
     int verbose;                     /* --verbose: summary line even when not a tty */
     /* The batched settings (ex_tracer_command.batched): */
     uint64_t batch_tris;             /* --batch-tris; 0: not given (ex_tracer_point_size) */
-    uint64_t res;                    /* --res: proxy resolution, a power of two */
+    uint64_t res;                    /* --proxy-res: proxy resolution, a power of two */
     uint64_t memory;                 /* --memory: geometry-cache budget in bytes */
     int memory_given;                /* --memory was on the command line */
     uint64_t rays_in_flight;         /* --rays-in-flight; 0: the library's default */
@@ -44,7 +44,7 @@ typedef struct ex_tracer_command {
     void *user;
 } ex_tracer_command;
 
-/* Zeroes o, then the defaults: --res 128, --memory 1G (--batch-tris:
+/* Zeroes o, then the defaults: --proxy-res 128, --memory 1G (--batch-tris:
 ** ex_tracer_point_size). */
 void ex_tracer_defaults(ex_tracer_options *o);
 

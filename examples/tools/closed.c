@@ -46,7 +46,7 @@ int main(int argc, char **argv)
         else if (strcmp(argv[i], "--seed") == 0)
             seed = ex_parse_u64(prog, "--seed", ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX);
         else
-            ex_die(prog, "unknown option '%s' (see --help)", argv[i]);
+            ex_unknown_option(prog, argv[i]);
     }
     r = ex_scene_generate(argv[1], scale, seed, &mesh, &err);
     if (r == BRT_EARG) ex_input_load_mesh(prog, argv[1], &mesh);   /* a pbrt file flattened */

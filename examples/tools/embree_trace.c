@@ -73,7 +73,7 @@ static void usage(void)
            "  --verbose         print the summary line even when stderr is not a terminal\n"
            "  --help            this text\n"
            "\n"
-           "build/trace's batched options (--batched, --batch-tris, --res, --no-proxy,\n"
+           "build/trace's batched options (--batched, --batch-tris, --proxy-res, --no-proxy,\n"
            "--memory, --scene, --rebuild, --drop-os-cache) are rejected: Embree traces\n"
            "in memory.  Exit status 0 on success, 1 on bad input (nothing is written).\n",
            RTC_VERSION_STRING);
@@ -83,7 +83,7 @@ static void usage(void)
 ** rejected by name so that a copied command line fails clearly. */
 static int is_batched_option(const char *arg)
 {
-    static const char *const names[] = {"--batched", "--batch-tris", "--res", "--no-proxy",
+    static const char *const names[] = {"--batched", "--batch-tris", "--proxy-res", "--no-proxy",
                                         "--memory", "--scene", "--rebuild", "--drop-os-cache"};
     size_t i;
     for (i = 0; i < sizeof names / sizeof names[0]; i++)

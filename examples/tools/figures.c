@@ -262,7 +262,7 @@ static void figure2(const settings *s)
         for (r = 0; r < RES_COUNT; r++) {
             double bytes, tests, culls;
             fprintf(stderr, " %g", resolutions[r]);
-            snprintf(extra, sizeof extra, "--res %g --no-nee --out '%s/run.png' --stats '%s'", resolutions[r], s->out,
+            snprintf(extra, sizeof extra, "--proxy-res %g --no-nee --out '%s/run.png' --stats '%s'", resolutions[r], s->out,
                      stats);
             run_render(s, scene_names[i], PAPER_SCHEDULER, extra);
             bytes = json_number(stats, "proxy_bytes");

@@ -479,7 +479,7 @@ int main(int argc, char **argv)
         else if (strcmp(arg, "--explain") == 0)
             run.explain_path = ex_option_value(prog, argc, argv, &i);
         else if (arg[0] == '-' && arg[1] != 0)
-            ex_die(prog, "unknown option '%s' (see --help)", arg);
+            ex_unknown_option(prog, arg);
         else if (!path_a) path_a = arg;
         else if (!path_b) path_b = arg;
         else ex_die(prog, "unexpected argument '%s' (see --help)", arg);

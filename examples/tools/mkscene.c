@@ -334,7 +334,7 @@ int main(int argc, char **argv)
             recipe.seed = ex_parse_u64(prog, "--seed", ex_option_value(prog, argc, argv, &i), 0,
                                        UINT64_MAX);
         else if (argv[i][0] == '-' && argv[i][1] != 0)
-            ex_die(prog, "unknown option '%s' (see --help)", argv[i]);
+            ex_unknown_option(prog, argv[i]);
         else if (!recipe.name) recipe.name = argv[i];
         else if (!out) out = argv[i];
         else ex_die(prog, "unexpected argument '%s' (see --help)", argv[i]);

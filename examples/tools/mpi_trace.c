@@ -104,7 +104,7 @@ static void usage(void)
            "  --batch-tris N    triangles per batching point when building (default as\n"
            "                    trace's: the triangles / max(8, 4 / the --memory share\n"
            "                    of the blobs), at least 100000)\n"
-           "  --res R           proxy resolution when building, 2..1024 (default 128)\n"
+           "  --proxy-res R     proxy resolution when building, 2..1024 (default 128)\n"
            "  --scene FILE      the scene file to build from a mesh (default as trace's)\n"
            "  --paper-scheduler the paper's scheduler on every rank\n"
            "  --threads N       threads per rank (default 1)\n"

@@ -104,7 +104,7 @@ int main(int argc, char **argv)
             count = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, UINT32_MAX), have_count = 1;
         else if (strcmp(a, "--seed") == 0)
             seed = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 0, UINT64_MAX);
-        else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
+        else if (a[0] == '-' && a[1] != 0) ex_unknown_option(prog, a);
         else if (!mesh_path) mesh_path = a;
         else if (!out_path) out_path = a;
         else ex_die(prog, "unexpected argument '%s' (see --help)", a);

@@ -165,7 +165,7 @@ static void usage(void)
            "                       4 / the --memory share of the geometry), at least 100000\n"
            "  --batch-instanced N  instanced scenes: a batching point holds at most N\n"
            "                       instanced triangles (default: no such limit)\n"
-           "  --res R              proxy resolution, a power of two (default 128)\n"
+           "  --proxy-res R        proxy resolution, a power of two (default 128)\n"
            "  --no-proxy           queue rays at every box they enter (Pharr et al.)\n"
            "  --no-inner           shadow rays do not consult the inner proxies\n"
            "  --paper-scheduler    queue rays at batching points in memory too (the paper's\n"
@@ -289,7 +289,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--batch-tris")) o->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
         else if (is_option(a, "--batch-instanced"))
             o->batch_instanced = ex_parse_u64(prog, a, VALUE, 1, UINT64_MAX);
-        else if (is_option(a, "--res")) o->res = ex_parse_resolution(prog, a, VALUE);
+        else if (is_option(a, "--proxy-res")) o->res = ex_parse_resolution(prog, a, VALUE);
         else if (is_option(a, "--rays-in-flight"))
             o->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
         else if (is_option(a, "--threads")) o->threads = ex_parse_u64(prog, a, VALUE, 0, BRT_MAX_THREADS);
@@ -309,7 +309,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--compare")) o->compare = 1;
         else if (is_option(a, "--drop-os-cache")) o->drop_os_cache = 1;
         else if (is_option(a, "--disk-speed")) o->disk_speed = ex_parse_size(prog, a, VALUE);
-        else if (a[0] == '-') ex_die(prog, "unknown option '%s' (see --help)", a);
+        else if (a[0] == '-') ex_unknown_option(prog, a);
         else o->input = a;
 #undef VALUE
     }

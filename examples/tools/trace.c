@@ -76,7 +76,7 @@ static void usage(void)
            "                    blobs), at least 100000; README, \"The default point size\")\n"
            "  --rays-in-flight N  rays the batched mode works on at once (default: 4096 when\n"
            "                    --memory holds every batching point, else 1048576)\n"
-           "  --res R           proxy voxel resolution, a power of two in 2..1024 (default 128)\n"
+           "  --proxy-res R     proxy voxel resolution, a power of two in 2..1024 (default 128)\n"
            "  --no-proxy        batched mode without voxel proxies\n"
            "  --no-inner        batched occlusion rays without inner proxies\n"
            "  --no-decode       batched points stay quantized in memory (default: decoded\n"

@@ -3,7 +3,7 @@
 ** contribution of Molenaar and Eisemann 2020) and show what it costs and
 ** what it looks like.
 **
-**   build/voxelize MESH [--res 128] [--stats S.json] [--out PROXY.png]
+**   build/voxelize MESH [--proxy-res 128] [--stats S.json] [--out PROXY.png]
 **
 ** Prints the voxels set, the nodes of the sparse voxel octree, the nodes
 ** and bytes of its DAG (Kampe et al. 2013), and the build time; then the
@@ -46,7 +46,7 @@ static void usage(void)
            "bounds, builds the sparse voxel DAG and prints voxels, SVO nodes, DAG nodes\n"
            "and bytes and the build time, alone and as 8 octant proxies sharing a pool.\n"
            "\n"
-           "  --res R        grid resolution, a power of two in 2..1024 (default 128)\n"
+           "  --proxy-res R  grid resolution, a power of two in 2..1024 (default 128)\n"
            "  --stats FILE   write the figures as JSON (triangles, resolution, voxels,\n"
            "                 svo_nodes, dag_nodes, dag_bytes, seconds, octant_*)\n"
            "  --out FILE     write a PNG: the proxy ray cast through the DAG (left) and\n"
@@ -65,13 +65,13 @@ static void parse_options(int argc, char **argv, options *o)
     o->image = 384;
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
-        if (strcmp(a, "--res") == 0)
+        if (strcmp(a, "--proxy-res") == 0)
             o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
         else if (strcmp(a, "--size") == 0)
             o->image = (uint32_t)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 16, 4096);
         else if (strcmp(a, "--stats") == 0) o->stats = ex_option_value(prog, argc, argv, &i);
         else if (strcmp(a, "--out") == 0) o->out = ex_option_value(prog, argc, argv, &i);
-        else if (a[0] == '-' && a[1] != 0) ex_die(prog, "unknown option '%s' (see --help)", a);
+        else if (a[0] == '-' && a[1] != 0) ex_unknown_option(prog, a);
         else if (!o->mesh) o->mesh = a;
         else ex_die(prog, "unexpected argument '%s' (see --help)", a);
     }
