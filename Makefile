@@ -427,17 +427,17 @@ $(BUILD)/tests/fuzz/targets.o $(BUILD)/tests/fuzz/replay.o: tests/fuzz/targets.h
 $(BUILD)/tests/fuzz:
 	$(Q)mkdir -p $@
 
-$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/lib/pbrt.o $(BUILD)/examples/lib/loopsubdiv.o $(TEST_LIB)
+$(BUILD)/tests/fuzz/replay: $(BUILD)/tests/fuzz/replay.o $(BUILD)/tests/fuzz/targets.o $(BUILD)/examples/lib/pbrt.o $(BUILD)/examples/lib/count.o $(BUILD)/examples/lib/loopsubdiv.o $(TEST_LIB)
 	$(SAY) LINK $@
 	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 fuzz-replay: $(BUILD)/tests/fuzz/replay
 	$(Q)for t in $(FUZZ_TARGETS); do ./$(BUILD)/tests/fuzz/replay $$t tests/corpus/$$t || exit 1; done
 
-$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/lib/pbrt.c examples/lib/pbrt.h examples/lib/loopsubdiv.c examples/lib/loopsubdiv.h $(LIB_SRC) batchrt.h internal.h testing.h
+$(BUILD)/fuzz/fuzz_%: tests/fuzz/fuzz_%.c tests/fuzz/targets.c tests/fuzz/targets.h examples/lib/pbrt.c examples/lib/pbrt.h examples/lib/count.c examples/lib/count.h examples/lib/loopsubdiv.c examples/lib/loopsubdiv.h $(LIB_SRC) batchrt.h internal.h testing.h
 	$(SAY) FUZZ $@
 	$(Q)mkdir -p $(BUILD)/fuzz/corpus/$*
-	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/lib/pbrt.c examples/lib/loopsubdiv.c tests/fuzz/targets.c $< -o $@ -lm
+	$(Q)$(FUZZ_CC) $(FUZZ_FLAGS) -pthread -I. $(LIB_SRC) examples/lib/pbrt.c examples/lib/count.c examples/lib/loopsubdiv.c tests/fuzz/targets.c $< -o $@ -lm
 
 fuzz: $(FUZZ_BINS)
 	$(Q)for t in $(FUZZ_TARGETS); do $(call FUZZ_RUN,$(FUZZ_SECONDS)) || exit 1; done

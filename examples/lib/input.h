@@ -10,6 +10,7 @@
 
 #include "batchrt.h"
 #include "pbrt.h"
+#include "count.h"
 
 typedef struct ex_input {
     const char *path;
@@ -27,15 +28,6 @@ int ex_input_is_pbrt(const char *path);
 ** file had that batchrt skips, on stderr. */
 void ex_input_open(const char *prog, const char *path, ex_input *in);
 void ex_input_close(ex_input *in);
-
-/* The triangles of a mesh file before it is read (for the default point
-** size, ex_default_batch_tris): an OBJ's faces counted in one scan of its
-** bytes, a polygon of n corners n - 2 triangles, as brt_mesh_load fans it
-** (no number is parsed: a fraction of the read's time, on every run);
-** a PLY's header alone, its face count, exact when the faces are
-** triangles and a lower bound when some have more corners (their lists are
-** not read).  0 when the file cannot be read (the build reports why). */
-uint64_t ex_mesh_file_triangles(const char *path);
 
 /* The input's unique triangles: a mesh file's (ex_mesh_file_triangles), a
 ** pbrt file's world triangles plus every prototype's once (ex_pbrt_triangles). */

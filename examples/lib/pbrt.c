@@ -22,7 +22,7 @@
 */
 #include "pbrt.h"
 #include "loopsubdiv.h"
-#include "input.h"
+#include "count.h"
 
 #include <errno.h>
 #include <fcntl.h>
