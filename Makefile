@@ -135,7 +135,10 @@ $(FAILALLOC): tests/oom/failalloc.c | $(BUILD)/tests
 # MPI's do not mix; those runs say SKIP).
 MPICC ?= mpicc
 MPI_FOR_TESTS = $(if $(filter build,$(BUILD)),$(if $(shell command -v $(MPICC) 2>/dev/null),$(BUILD)/mpi_trace))
-test: all $(TEST_BIN) $(FAILALLOC) $(MPI_FOR_TESTS) $(if $(T),,install-check)
+# The fuzz replay program is linked too, though the runner replays the
+# corpus itself: it links what the fuzz targets link, which only CI's fuzz
+# smoke would build otherwise.
+test: all $(TEST_BIN) $(FAILALLOC) $(MPI_FOR_TESTS) $(BUILD)/tests/fuzz/replay $(if $(T),,install-check)
 	BRT_BUILD=$(BUILD) ./$(TEST_BIN) $(T)
 
 # Mutation testing (tests/mutants/): each mutant in tests/mutants/mutants.txt
