@@ -487,7 +487,7 @@ demo: all
 	@echo "demo: the disk is modelled: every load reads the scene file cold (--drop-os-cache, the OS"
 	@echo "      cache is told to drop it) and lasts at least its bytes / 100 MiB/s (--disk-speed 100M,"
 	@echo "      about a hard disk; the rest of a faster read is slept)"
-	./$(BUILD)/render landscape --scale 2 --batch-tris 50000 --batch-instanced 2000000 --memory 60% \
+	./$(BUILD)/render landscape --scale 2 --point-tris 50000 --point-instanced 2000000 --memory 60% \
 	  --rays-in-flight 32768 --compare \
 	  $(DEMO_DISK) --out $(BUILD)/demo/landscape.png --heatmap $(BUILD)/demo/heatmap.png \
 	  --stats $(BUILD)/demo/stats.json
@@ -504,10 +504,10 @@ PAPER_SCALE ?= 20
 PAPER_INSTANCED ?= 20000000
 .PHONY: bench-paper
 bench-paper: all
-	./$(BUILD)/figures --paper --out $(BUILD)/paper --scale $(PAPER_SCALE) --batch-tris 200000 \
-	  --batch-instanced $(PAPER_INSTANCED)
+	./$(BUILD)/figures --paper --out $(BUILD)/paper --scale $(PAPER_SCALE) --point-tris 200000 \
+	  --point-instanced $(PAPER_INSTANCED)
 
-BENCH_RENDER = --scale 200 --batch-tris 100000 --batch-instanced 20000000 --spp 16 --width 640 \
+BENCH_RENDER = --scale 200 --point-tris 100000 --point-instanced 20000000 --spp 16 --width 640 \
   --height 360 --compare
 bench-render: all
 	for scene in landscape island; do \
@@ -522,7 +522,7 @@ bench-render: all
 # instances have no inner proxies), 25 % of the geometry bytes, next-event estimation,
 # outer proxies alone (--no-inner) against outer + inner; one JSON each in
 # $(BUILD)/inner, a Markdown table of the counts, and the two images compared.
-BENCH_INNER = --scale 10 --batch-tris 30000 --batch-instanced 2000000 --spp 4 --width 320 --height 180 --memory 25%
+BENCH_INNER = --scale 10 --point-tris 30000 --point-instanced 2000000 --spp 4 --width 320 --height 180 --memory 25%
 .PHONY: bench-inner
 bench-inner: all
 	@mkdir -p $(BUILD)/inner
@@ -535,9 +535,9 @@ bench-inner: all
 	      --out $(BUILD)/inner/$$scene-$$run.png --stats $$j > /dev/null 2>&1 || exit 1; \
 	    awk -v scene=$$scene -v run=$$run -F'[:,]' '{ gsub(/[ "]/, "", $$1); v[$$1] = $$2 } END { \
 	      printf "| %s | %s | %.1f | %d | %d | %s | %.0f |\n", scene, run == "outer" ? "outer" : "outer + inner", \
-	        v["disk_bytes_read"] / 1048576, v["batch_loads"], v["shadow_occluded"], \
-	        run == "outer" ? "-" : sprintf("%d (%.1f %%)", v["shadow_inner_stopped"], \
-	          100 * v["shadow_inner_stopped"] / v["shadow_occluded"]), v["proxy_bytes"] / 1000 }' $$j; \
+	        v["disk_bytes_read"] / 1048576, v["batch_loads"], v["occlusion_hits"], \
+	        run == "outer" ? "-" : sprintf("%d (%.1f %%)", v["occlusion_inner_stopped"], \
+	          100 * v["occlusion_inner_stopped"] / v["occlusion_hits"]), v["proxy_bytes"] / 1000 }' $$j; \
 	  done; \
 	  cmp $(BUILD)/inner/$$scene-outer.png $(BUILD)/inner/$$scene-inner.png || exit 1; \
 	done
@@ -631,7 +631,7 @@ bench-scale: all
 	verts=$$(sed -n 's/.* \([0-9]*\) vertices.*/\1/p' $$d/mkscene.txt); \
 	echo "  file $$(stat -c %s $$d/big.obj) bytes"; \
 	echo "== trace big.obj --batched: the scene file from the OBJ"; rm -f $$d/obj.brs; \
-	cpu $$d/obj.cpu $$b/trace $$d/big.obj $$d/one.rays $$d/one.hits --batched --batch-tris $(SCALE_BATCH) \
+	cpu $$d/obj.cpu $$b/trace $$d/big.obj $$d/one.rays $$d/one.hits --batched --point-tris $(SCALE_BATCH) \
 	  --scene $$d/obj.brs --stats $$d/obj.json; \
 	echo "  $$tris triangles, $$verts vertices: $$(speed $$tris $$(num $$d/obj.json build_seconds) $$d/obj.cpu),"\
 	  "scene file $$(stat -c %s $$d/obj.brs) bytes"; \
@@ -640,8 +640,8 @@ bench-scale: all
 	rm -f $$d/big.obj $$d/obj.brs; \
 	echo "== render landscape --scale $(SCALE_LAND): the scene file from the instanced scene's streams"; \
 	rm -f $$d/land.brs; \
-	cpu $$d/land.cpu $$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) \
-	  --batch-instanced $(SCALE_INSTANCED) --width 1 --height 1 \
+	cpu $$d/land.cpu $$b/render landscape --scale $(SCALE_LAND) --point-tris $(SCALE_BATCH) \
+	  --point-instanced $(SCALE_INSTANCED) --width 1 --height 1 \
 	  --spp 1 --scene $$d/land.brs \
 	  --out $$d/one.png --stats $$d/land-build.json | tee $$d/land.txt; \
 	tris=$$(sed -n 's/^landscape: \([0-9]*\) unique.*/\1/p' $$d/land.txt); \
@@ -653,8 +653,8 @@ bench-scale: all
 	  $$(awk -v dag=$$(num $$d/land-build.json proxy_bytes) -v i=$$inst -v p=$$proto \
 	    'BEGIN { printf "%.0f", 256 * 1048576 + dag + 64 * p }') || :; \
 	echo "== render landscape --scale $(SCALE_LAND) 640x360, 16 spp, --memory $(SCALE_MEMORY)"; \
-	render="$$b/render landscape --scale $(SCALE_LAND) --batch-tris $(SCALE_BATCH) \
-	  --batch-instanced $(SCALE_INSTANCED) --width 640 \
+	render="$$b/render landscape --scale $(SCALE_LAND) --point-tris $(SCALE_BATCH) \
+	  --point-instanced $(SCALE_INSTANCED) --width 640 \
 	  --height 360 --spp 16 --memory $(SCALE_MEMORY) --scene $$d/land.brs --out $$d/land.png"; \
 	$$render --stats $$d/render.json; \
 	j=$$d/render.json; \

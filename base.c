@@ -279,11 +279,11 @@ size_t brt_stats_format_json(const brt_stats *s, char text[BRT_STATS_JSON_BYTES]
         {"proxy_tests", s->proxy_tests}, {"proxy_culled", s->proxy_culled},
         {"visits", s->visits}, {"queued_visits", s->queued_visits},
         {"resident_visits", s->resident_visits},
-        {"oversized_loads", s->oversized_loads}, {"shadow_rays", s->shadow_rays},
-        {"shadow_occluded", s->shadow_occluded}, {"shadow_batch_loads", s->shadow_batch_loads},
-        {"shadow_disk_bytes_read", s->shadow_disk_bytes_read},
+        {"oversized_loads", s->oversized_loads}, {"occlusion_rays", s->occlusion_rays},
+        {"occlusion_hits", s->occlusion_hits}, {"occlusion_batch_loads", s->occlusion_batch_loads},
+        {"occlusion_disk_bytes_read", s->occlusion_disk_bytes_read},
         {"peak_rss_bytes", s->peak_rss_bytes},
-        {"shadow_inner_stopped", s->shadow_inner_stopped},
+        {"occlusion_inner_stopped", s->occlusion_inner_stopped},
         {"prototype_loads", s->prototype_loads}, {"decoded_bytes", s->decoded_bytes}};
     const struct { const char *name; double value; } measures[] = {
         {"seconds", s->seconds}, {"load_seconds", s->load_seconds},

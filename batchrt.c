@@ -153,21 +153,21 @@ static brt_result partition_push(partition *p, uint32_t first, uint32_t count)
 }
 
 /* Top-down: split on the longest axis of the centroid bounds until each part
-** holds at most batch_tris triangles.  The split point is a multiple of
-** batch_tris near the middle, so parts are full and there are few of them
-** (ceil(n / batch_tris) when the counts allow). */
+** holds at most point_tris triangles.  The split point is a multiple of
+** point_tris near the middle, so parts are full and there are few of them
+** (ceil(n / point_tris) when the counts allow). */
 brt_result brt_partition_split(partition *p, const float *centroids, uint32_t first,
-                                  uint32_t count, uint32_t batch_tris)
+                                  uint32_t count, uint32_t point_tris)
 {
     uint32_t parts, k;
     brt_result r;
-    if (count <= batch_tris) return partition_push(p, first, count);
-    parts = (uint32_t)(((uint64_t)count + batch_tris - 1) / batch_tris);
-    k = (uint32_t)(((uint64_t)parts / 2) * batch_tris);
+    if (count <= point_tris) return partition_push(p, first, count);
+    parts = (uint32_t)(((uint64_t)count + point_tris - 1) / point_tris);
+    k = (uint32_t)(((uint64_t)parts / 2) * point_tris);
     median_split(centroids, p->order + first, count, k);
     /* Both sides are smaller and k is near the middle: depth O(log n). */
-    r = brt_partition_split(p, centroids, first, k, batch_tris);
-    if (r == BRT_OK) r = brt_partition_split(p, centroids, first + k, count - k, batch_tris);
+    r = brt_partition_split(p, centroids, first, k, point_tris);
+    if (r == BRT_OK) r = brt_partition_split(p, centroids, first + k, count - k, point_tris);
     return r;
 }
 
@@ -175,11 +175,11 @@ brt_result brt_partition_split(partition *p, const float *centroids, uint32_t fi
 ** boxes, but a batching point's size is what its load reads: the
 ** triangles of the distinct prototypes it references, each counted once,
 ** as pandora counts them.  A range is split at its median while it is
-** larger than batch_tris and references more than one prototype: a
-** prototype larger than batch_tris then gets points of its own instances,
+** larger than point_tris and references more than one prototype: a
+** prototype larger than point_tris then gets points of its own instances,
 ** its blob shared by them all and cached once (splitting the prototype
 ** into pieces, as pandora does, would save no bytes: each piece would
-** still be read whole).  Optionally (brt_scene_options.batch_instanced)
+** still be read whole).  Optionally (brt_scene_options.point_instanced)
 ** a range is split too while its instances hold more triangles than that,
 ** which gives points of the paper's sizes (10-25 M instanced triangles)
 ** whatever the prototypes.  size_of(user, ids, n, &distinct, &instanced)
@@ -195,8 +195,8 @@ brt_result brt_partition_by_size(partition *p, const float *centres, uint32_t fi
     brt_result r;
     if (count <= 1) return partition_push(p, first, count);
     unique = size_of(user, p->order + first, count, &distinct, &instanced);
-    if ((unique <= limits->batch_tris || distinct <= 1) &&
-        (limits->batch_instanced == 0 || instanced <= limits->batch_instanced))
+    if ((unique <= limits->point_tris || distinct <= 1) &&
+        (limits->point_instanced == 0 || instanced <= limits->point_instanced))
         return partition_push(p, first, count);
     median_split(centres, p->order + first, count, k);
     r = brt_partition_by_size(p, centres, first, k, limits, size_of, user);
@@ -297,7 +297,7 @@ static inline uint64_t heap_pop(key_heap *h)
 ** a qnode holds 8-bit planes in a frame of its own and triangle leaves, in
 ** the blobs that the disk reads (its size is the bytes read); a top_node
 ** holds float boxes of batching points, stored as is in the scene file's
-** top-level section (TOP_NODE_BYTES) and checked at open against the batch
+** top-level section (TOP_NODE_BYTES) and checked at open against the point
 ** table (check_top: nested, ordered, finite).  One node type would change
 ** that section's bytes, which this consolidation keeps.  The two share the
 ** box test (brt_box_span4) and the median split; the top level has about
@@ -709,12 +709,12 @@ void brt_set_free(instance_set *set)
 /*
 ** What the scheduler works on.  An open scene (struct brt_scene) holds the
 ** scene file's small parts in memory -- per batching point its box, blob
-** place and proxies (batch_entry), the top-level nodes, the DAG pool --
+** place and proxies (point_entry), the top-level nodes, the DAG pool --
 ** and leaves the blobs on disk.  The geometry cache keeps some blobs
 ** resident (cache_entry per batching point).  The code that fills these
 ** structures is in scene.c (the scene file).
 */
-/* batch_entry, proto_entry, section, scene_header, blob_view: internal.h */
+/* point_entry, proto_entry, section, scene_header, blob_view: internal.h */
 
 /* One blob while a trace runs -- a batching point's or a prototype's --
 ** and the geometry cache's state for it (SQLite's pcache shape: fetch
@@ -990,7 +990,7 @@ static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, 
 ** larger margin) is admitted untested. */
 static int proxy_cast(const brt_scene *scene, uint32_t id, const brt_ray *ray, float tlimit, float *t)
 {
-    const batch_entry *b = &scene->batches[id];
+    const point_entry *b = &scene->points[id];
     if (b->instances && !(margin_of(&b->margin, ray) <= INSTANCE_DILATION * b->proxy.cell)) {
         if (t) *t = ray->tnear;
         return 1;
@@ -1060,7 +1060,7 @@ static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, const 
 static int inner_stops(const scheduler *s, ray_slot *r)
 {
     if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
-    if (!brt_inner_occludes(s->scene->dag, &s->scene->batches[r->key.id].inner, &r->ray)) return 0;
+    if (!brt_inner_occludes(s->scene->dag, &s->scene->points[r->key.id].inner, &r->ray)) return 0;
     hit_mark_occluded(&r->hit);
     follow_step(s, r, BRT_STEP_INNER, r->key.id, r->key.t);
     return 1;
@@ -1173,7 +1173,7 @@ static brt_result settle_failure(brt_result r, brt_error *err);
 ** how many came; 0 with idle means every process is done. */
 static size_t take_rays(scheduler *s, int idle, brt_result *res, brt_error *err)
 {
-    const uint32_t points = s->scene->header.batch_count;
+    const uint32_t points = s->scene->header.point_count;
     size_t max = s->free_count < ARRIVALS_PER_TAKE ? s->free_count : ARRIVALS_PER_TAKE, n, i;
     if (!s->exchange || max == 0) return 0;
     n = s->exchange->receive(s->exchange->user, s->arrivals, max, idle);
@@ -1206,7 +1206,7 @@ static brt_result settle(scheduler *s, uint32_t slot, uint32_t id)
 {
     ray_slot *r = &s->slots[slot];
     if (id != NO_ENTRY) return owned_elsewhere(s, id) ? forward(s, slot) : enqueue(s, id, slot);
-    s->stats->shadow_occluded += found_occluder(r);
+    s->stats->occlusion_hits += found_occluder(r);
     follow_step(s, r, BRT_STEP_FINISHED, NO_ENTRY, r->hit.t);
     s->source->finished(s->source->user, &r->ray, &r->hit, r->normal, r->visits, r->tag);
     s->free_slots[s->free_count++] = slot;
@@ -1219,7 +1219,7 @@ static void walker_count(scheduler *s, walker *w)
     s->stats->resident_visits += w->resident_visits;
     s->stats->proxy_tests += w->proxy_tests;
     s->stats->proxy_culled += w->proxy_culled;
-    s->stats->shadow_inner_stopped += w->inner_stopped;
+    s->stats->occlusion_inner_stopped += w->inner_stopped;
     w->resident_visits = w->proxy_tests = w->proxy_culled = w->inner_stopped = 0;
 }
 
@@ -1266,7 +1266,7 @@ static void slot_start(ray_slot *r, const brt_ray *ray, uint64_t tag, brt_stats 
     r->key.t = -INFINITY;
     r->key.id = TOP_EMPTY;
     stats->rays++;
-    stats->shadow_rays += is_occlusion(r);
+    stats->occlusion_rays += is_occlusion(r);
 }
 
 /* Takes the rays other processes sent (layer 6), then new rays from the
@@ -1304,7 +1304,7 @@ static int only_occlusion(const scheduler *s, const ray_queue *q)
 
 /* Fetches batching point id for its queue (cache_fetch: the paper's LRU
 ** geometry cache), and, layer 7 (statistics only), books the load, if
-** there is one, as the shadow rays' when they alone asked for it. */
+** there is one, as the occlusion rays' when they alone asked for it. */
 static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const geometry **g,
                             brt_error *err)
 {
@@ -1312,8 +1312,8 @@ static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const
     brt_result r = cache_fetch(&s->cache, id, g, err);
     s->fetch_bytes = s->stats->disk_bytes_read - bytes;
     if (r == BRT_OK && s->stats->batch_loads != loads && only_occlusion(s, q)) {
-        s->stats->shadow_batch_loads += s->stats->batch_loads - loads;
-        s->stats->shadow_disk_bytes_read += s->fetch_bytes;
+        s->stats->occlusion_batch_loads += s->stats->batch_loads - loads;
+        s->stats->occlusion_disk_bytes_read += s->fetch_bytes;
     }
     return r;
 }
@@ -1401,7 +1401,7 @@ static brt_result scheduler_init(scheduler *s, brt_scene *scene, const brt_trace
                                  const brt_ray_source *source, size_t capacity_hint,
                                  brt_stats *stats)
 {
-    uint32_t n = scene->header.batch_count, i;
+    uint32_t n = scene->header.point_count, i;
     uint64_t budget = opt && opt->memory_limit ? opt->memory_limit : UINT64_MAX;
     memset(s, 0, sizeof *s);
     s->scene = scene;
@@ -1449,7 +1449,7 @@ static void scheduler_free(scheduler *s)
 {
     uint32_t i;
     threads_free(s);
-    for (i = 0; s->queues && i < s->scene->header.batch_count; i++) free(s->queues[i].slots);
+    for (i = 0; s->queues && i < s->scene->header.point_count; i++) free(s->queues[i].slots);
     cache_free(&s->cache);
     free(s->slots);
     free(s->free_slots);
@@ -1475,7 +1475,7 @@ static void scheduler_free(scheduler *s)
 ** once, outside the cache and its statistics (exact_proxy_hit). */
 static brt_result exact_load(scheduler *s, brt_error *err)
 {
-    const uint32_t b = s->scene->header.batch_count, n = s->cache.entry_count;
+    const uint32_t b = s->scene->header.point_count, n = s->cache.entry_count;
     uint64_t uncounted = 0;
     uint32_t i;
     brt_result r = BRT_OK;
@@ -1524,7 +1524,7 @@ static brt_result exact_load(scheduler *s, brt_error *err)
 ** then held alone), and loads it. */
 static brt_result reference_pin(geometry_cache *c, uint64_t *released, uint32_t id, brt_error *err)
 {
-    const uint32_t points = c->scene->header.batch_count;
+    const uint32_t points = c->scene->header.point_count;
     const uint64_t bytes = cache_bytes(c->scene, id);
     cache_entry *e = &c->entries[id];
     brt_result r;
@@ -1564,7 +1564,7 @@ static brt_result schedule_reference(brt_scene *scene, const brt_trace_options *
                                      const brt_ray_source *source, size_t capacity_hint,
                                      brt_stats *stats, brt_error *err)
 {
-    const uint32_t points = scene->header.batch_count;
+    const uint32_t points = scene->header.point_count;
     const int use_proxies = !(opt && opt->no_proxy);
     uint32_t capacity = opt && opt->rays_in_flight ? opt->rays_in_flight : OUT_OF_CORE_RAYS;
     uint64_t budget = UINT64_MAX, clock = 0;
@@ -1640,7 +1640,7 @@ static brt_result schedule_reference(brt_scene *scene, const brt_trace_options *
                 ray->visits++;
                 stats->queued_visits++;
             } else {
-                stats->shadow_occluded += found_occluder(ray);
+                stats->occlusion_hits += found_occluder(ray);
                 source->finished(source->user, &ray->ray, &ray->hit, ray->normal, ray->visits, ray->tag);
                 free_slots[free_count++] = walking[i];
             }
@@ -1814,12 +1814,12 @@ static double point_weight(const brt_scene *s, uint32_t id)
 {
     double bytes = (double)cache_bytes(s, id), proto_bytes = 0.0, proto_tris = 0.0;
     uint32_t i;
-    if (!s->batches[id].instances) return bytes;
+    if (!s->points[id].instances) return bytes;
     for (i = 0; i < s->header.prototype_count; i++) {
         proto_bytes += (double)s->prototypes[i].size;
         proto_tris += (double)s->prototypes[i].triangles;
     }
-    return proto_tris > 0.0 ? bytes + (double)s->batches[id].triangles * proto_bytes / proto_tris : bytes;
+    return proto_tris > 0.0 ? bytes + (double)s->points[id].triangles * proto_bytes / proto_tris : bytes;
 }
 
 /* The batching points in the top-level BVH's leaf order (depth first,
@@ -1845,7 +1845,7 @@ static uint32_t top_leaf_order(const brt_scene *s, uint32_t *order, uint32_t *st
 brt_result brt_scene_assign(const brt_scene *scene, uint32_t processes, int round_robin,
                             uint32_t *owner, brt_error *err)
 {
-    const uint32_t points = scene->header.batch_count;
+    const uint32_t points = scene->header.point_count;
     uint32_t *order = malloc(((size_t)points + 1) * sizeof *order), n, k;
     uint32_t *stack = malloc(((size_t)points + scene->header.top_node_count + 1) * sizeof *stack);
     double total = 0.0, before = 0.0;
@@ -1928,8 +1928,8 @@ static void blob_free(const brt_scene *scene, uint32_t id, void *data)
 static uint64_t cache_bytes(const brt_scene *scene, uint32_t id)
 {
     uint64_t bytes = brt_round_up_page(scene->blobs[id].size);
-    if (id < scene->header.batch_count && scene->batches[id].instances)
-        bytes += (uint64_t)scene->batches[id].instances *
+    if (id < scene->header.point_count && scene->points[id].instances)
+        bytes += (uint64_t)scene->points[id].instances *
                  (sizeof(brt_instance_frame) + 3 * sizeof(uint32_t) + sizeof(top_node));
     return bytes;
 }
@@ -1937,7 +1937,7 @@ static uint64_t cache_bytes(const brt_scene *scene, uint32_t id)
 /* What the cache would hold with every blob in memory at once. */
 static uint64_t all_cache_bytes(const brt_scene *scene)
 {
-    const uint32_t n = scene->header.batch_count + scene->header.prototype_count;
+    const uint32_t n = scene->header.point_count + scene->header.prototype_count;
     uint64_t bytes = 0;
     uint32_t i;
     for (i = 0; i < n; i++) bytes += cache_bytes(scene, i);
@@ -1956,7 +1956,7 @@ static void view_free(blob_view *view)
 /* Entry id's blob is a prototype's: its BVH leaves or joins the table. */
 static void cache_note_prototype(geometry_cache *c, uint32_t id)
 {
-    const uint32_t b = c->scene->header.batch_count;
+    const uint32_t b = c->scene->header.point_count;
     if (id >= b) c->prototypes[id - b] = c->entries[id].view.bvh;
 }
 
@@ -1976,7 +1976,7 @@ static void cache_evict(geometry_cache *c, uint32_t id)
 static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budget,
                              const brt_trace_options *opt, brt_stats *stats)
 {
-    uint32_t i, n = scene->header.batch_count + scene->header.prototype_count;
+    uint32_t i, n = scene->header.point_count + scene->header.prototype_count;
     memset(c, 0, sizeof *c);
     c->entries = calloc(n, sizeof *c->entries);
     c->prototypes = calloc((size_t)scene->header.prototype_count + 1, sizeof *c->prototypes);
@@ -2048,18 +2048,18 @@ static brt_result cache_check(const geometry_cache *c, brt_error *err)
 /* Opens blob id, validated: a batching point's BVH by brt_bvh_blob_open
 ** against the scene's triangle count, holding as many triangles as its
 ** table entry says (the entries add up to the header's count,
-** check_batches); a point of instances' table by brt_instance_table_open; a
+** check_points); a point of instances' table by brt_instance_table_open; a
 ** prototype's BVH against its own triangle count. */
 static brt_result check_blob(const brt_scene *s, uint32_t id, const void *data, blob_view *view,
                              brt_error *err)
 {
-    const uint32_t b = s->header.batch_count;
-    const uint32_t expect = id < b ? s->batches[id].triangles : s->prototypes[id - b].triangles;
+    const uint32_t b = s->header.point_count;
+    const uint32_t expect = id < b ? s->points[id].triangles : s->prototypes[id - b].triangles;
     brt_error why;
     uint32_t held;
     view->bvh = NULL;
     view->set = NULL;
-    if (id < b && s->batches[id].instances)
+    if (id < b && s->points[id].instances)
         return brt_instance_table_open(s, id, data, s->blobs[id].size, &view->set, err);
     if (brt_bvh_blob_open(data, s->blobs[id].size, id < b ? s->header.triangle_count : expect,
                           &view->bvh, &why) != BRT_OK)
@@ -2099,8 +2099,8 @@ static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *byte
     if (c->drop_os_cache) posix_fadvise(c->scene->fd, (off_t)b->offset, (off_t)bytes, POSIX_FADV_DONTNEED);
     if (r == BRT_OK && brt_checksum64(*data, b->size) != b->checksum)
         r = brt_fail(err, BRT_EFORMAT, "%s: %s %u: checksum mismatch (corrupt file)", c->scene->path,
-                     id < c->scene->header.batch_count ? "batching point" : "prototype",
-                     id < c->scene->header.batch_count ? id : id - c->scene->header.batch_count);
+                     id < c->scene->header.point_count ? "batching point" : "prototype",
+                     id < c->scene->header.point_count ? id : id - c->scene->header.point_count);
     if (r == BRT_OK) r = check_blob(c->scene, id, *data, view, err);
     if (r != BRT_OK) {
         blob_free(c->scene, id, *data);
@@ -2235,7 +2235,7 @@ static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
     cache_note_prototype(c, id);
     e->bytes = bytes + e->decoded;
     c->held += e->bytes;
-    if (id < c->scene->header.batch_count) c->stats->batch_loads++;
+    if (id < c->scene->header.point_count) c->stats->batch_loads++;
     else c->stats->prototype_loads++;
     if (bytes > c->budget) c->stats->oversized_loads++;
     if (c->held > c->stats->cache_peak_bytes) c->stats->cache_peak_bytes = c->held;
@@ -2271,8 +2271,8 @@ static brt_result cache_fetch(geometry_cache *c, uint32_t id, const geometry **g
     set = c->entries[id].view.set;
     c->working_set = 1 + (set ? set->use_count : 0);
     for (k = 0; set && k < set->use_count; k++) {
-        if ((r = cache_pin(c, c->scene->header.batch_count + set->uses[k], err)) != BRT_OK) {
-            while (k-- > 0) cache_release_blob(c, c->scene->header.batch_count + set->uses[k]);
+        if ((r = cache_pin(c, c->scene->header.point_count + set->uses[k], err)) != BRT_OK) {
+            while (k-- > 0) cache_release_blob(c, c->scene->header.point_count + set->uses[k]);
             cache_release_blob(c, id);
             return r;
         }
@@ -2312,7 +2312,7 @@ static void for_point_blobs(geometry_cache *c, uint32_t id,
     const instance_set *set = c->entries[id].view.set;
     uint32_t k;
     fn(c, id);
-    for (k = 0; set && k < set->use_count; k++) fn(c, c->scene->header.batch_count + set->uses[k]);
+    for (k = 0; set && k < set->use_count; k++) fn(c, c->scene->header.point_count + set->uses[k]);
 }
 
 /* Batching point id, resident, counts as just used (its prototypes too). */
@@ -2363,9 +2363,9 @@ static brt_result check_triangles(const brt_scene *s, uint32_t id, const brt_bvh
 {
     const uint32_t *prims = brt_bvh_prim_ids(bvh);
     uint32_t k, n = brt_bvh_triangle_count(bvh);
-    if (n != s->batches[id].triangles)
+    if (n != s->points[id].triangles)
         return brt_fail(err, BRT_ECHECK, "%s: batching point %u: its BVH holds %u triangles, "
-                        "its table entry %u", s->path, id, n, s->batches[id].triangles);
+                        "its table entry %u", s->path, id, n, s->points[id].triangles);
     for (k = 0; k < n; k++) {
         if (prims[k] >= s->header.triangle_count)
             return brt_fail(err, BRT_ECHECK, "%s: batching point %u: triangle %u out of range "
@@ -2378,17 +2378,17 @@ static brt_result check_triangles(const brt_scene *s, uint32_t id, const brt_bvh
 }
 
 /* Marks the instances of a point of instances in seen_inst[]; its size,
-** the triangles of its distinct prototypes, may exceed batch_tris only
+** the triangles of its distinct prototypes, may exceed point_tris only
 ** when it uses one prototype. */
 static brt_result check_instances(const brt_scene *s, uint32_t id, const instance_set *set,
-                                  uint32_t batch_tris, unsigned char *seen_inst, brt_error *err)
+                                  uint32_t point_tris, unsigned char *seen_inst, brt_error *err)
 {
     uint64_t size = 0;
     uint32_t k;
     for (k = 0; k < set->use_count; k++) size += s->prototypes[set->uses[k]].triangles;
-    if (size > batch_tris && set->use_count > 1)
+    if (size > point_tris && set->use_count > 1)
         return brt_fail(err, BRT_ECHECK, "%s: batching point %u: %llu triangles of %u prototypes, "
-                        "more than %u", s->path, id, (unsigned long long)size, set->use_count, batch_tris);
+                        "more than %u", s->path, id, (unsigned long long)size, set->use_count, point_tris);
     for (k = 0; k < set->count; k++)
         if (!mark_once(seen_inst, set->ids[k]))
             return brt_fail(err, BRT_ECHECK, "%s: instance %u is in two batching points (again in %u)",
@@ -2397,7 +2397,7 @@ static brt_result check_instances(const brt_scene *s, uint32_t id, const instanc
 }
 
 /* Reads point id and marks what it holds. */
-static brt_result check_point(const geometry_cache *c, uint32_t id, uint32_t batch_tris,
+static brt_result check_point(const geometry_cache *c, uint32_t id, uint32_t point_tris,
                               unsigned char *seen, unsigned char *seen_inst, brt_error *err)
 {
     const brt_scene *s = c->scene;
@@ -2405,11 +2405,11 @@ static brt_result check_point(const geometry_cache *c, uint32_t id, uint32_t bat
     void *data = NULL;
     blob_view view;
     brt_result r;
-    if (!s->batches[id].instances && s->batches[id].triangles > batch_tris)
+    if (!s->points[id].instances && s->points[id].triangles > point_tris)
         return brt_fail(err, BRT_ECHECK, "%s: batching point %u holds %u triangles, more than %u",
-                        s->path, id, s->batches[id].triangles, batch_tris);
+                        s->path, id, s->points[id].triangles, point_tris);
     if ((r = blob_read(c, id, &bytes, &data, &view, err)) != BRT_OK) return r;
-    r = view.set ? check_instances(s, id, view.set, batch_tris, seen_inst, err)
+    r = view.set ? check_instances(s, id, view.set, point_tris, seen_inst, err)
                  : check_triangles(s, id, view.bvh, seen, err);
     view_free(&view);
     blob_free(s, id, data);
@@ -2425,7 +2425,7 @@ static int instance_may_be_absent(const brt_scene *s)
     return 0;
 }
 
-brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
+brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t point_tris,
                                      brt_error *err)
 {
     uint32_t n = scene->header.triangle_count, m = scene->header.instance_count, id, t;
@@ -2436,8 +2436,8 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris
     memset(&c, 0, sizeof c);
     c.scene = (brt_scene *)scene;   /* blob_read only reads through it */
     c.read_fn = brt_pread_reader;
-    for (id = 0; id < scene->header.batch_count && r == BRT_OK; id++)
-        r = check_point(&c, id, batch_tris, seen, seen_inst, err);
+    for (id = 0; id < scene->header.point_count && r == BRT_OK; id++)
+        r = check_point(&c, id, point_tris, seen, seen_inst, err);
     for (t = 0; t < n && r == BRT_OK; t++)
         if (!(seen[t >> 3] & (1u << (t & 7))))
             r = brt_fail(err, BRT_ECHECK, "%s: triangle %u is in no batching point", scene->path, t);
@@ -2619,7 +2619,7 @@ static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count
 ** NULL and the plain loop runs. */
 static brt_result threads_init(scheduler *s, unsigned threads)
 {
-    uint32_t n = s->scene->header.batch_count, i;
+    uint32_t n = s->scene->header.point_count, i;
     phase_threads *t;
     if (brt_threads_resolve(threads) < 2) return BRT_OK;
     t = s->threads = calloc(1, sizeof *t);

@@ -194,7 +194,7 @@ typedef struct brt_scene brt_scene;
 
 /* How a scene is built; a zeroed struct means the defaults. */
 typedef struct brt_scene_options {
-    uint32_t batch_tris;   /* max triangles per batching point (0: 100000) */
+    uint32_t point_tris;   /* max triangles per batching point (0: 100000) */
     uint32_t proxy_res;    /* proxy grid resolution, 2^k (0: 128) */
     /* Polled while building: once *interrupt is nonzero (a program's
     ** SIGINT/SIGTERM handler sets it) the build removes its temporary files
@@ -206,7 +206,7 @@ typedef struct brt_scene_options {
     /* Instanced scenes: a batching point of instances is also split while
     ** its instances hold more triangles than this (0: no such limit; the
     ** paper's points hold 10-25 M). */
-    uint64_t batch_instanced;
+    uint64_t point_instanced;
 } brt_scene_options;
 
 /* Builds the scene file for mesh at scene_path (written under a temporary
@@ -230,7 +230,7 @@ brt_result brt_scene_build_stream(const brt_triangle_source *source,
 
 /* The same for an instanced scene (brt_scene_source): batching points of
 ** world triangles as above, every prototype's BVH stored once, and
-** batching points of instances, each at most batch_tris triangles of
+** batching points of instances, each at most point_tris triangles of
 ** distinct prototypes (counted once however many instances use them;
 ** more only when a point's instances share one prototype larger than
 ** that).  A source without prototypes builds brt_scene_build_stream's
@@ -274,7 +274,7 @@ brt_result brt_scene_prepare_source(const brt_scene_source *source, uint64_t sou
                                     const char *scene_path, const brt_scene_options *opt,
                                     brt_scene **out, int *rebuilt, brt_error *err);
 
-uint32_t brt_scene_batch_count(const brt_scene *scene);
+uint32_t brt_scene_point_count(const brt_scene *scene);
 /* Prototypes of an instanced scene (0 for a plain one): its hit files
 ** name instances (brt_hits_write_instanced). */
 uint32_t brt_scene_prototype_count(const brt_scene *scene);
@@ -472,7 +472,7 @@ typedef struct brt_exchange {
 } brt_exchange;
 
 /* Which of `processes` processes owns each batching point (owner[id], for
-** brt_scene_batch_count ids): contiguous runs of the top-level BVH's leaf
+** brt_scene_point_count ids): contiguous runs of the top-level BVH's leaf
 ** order, so that neighbours in space share a process, balanced by the
 ** bytes each point's loads read (its blob and, for a point of instances,
 ** its share of the prototypes' bytes); or, with round_robin, the k-th
@@ -500,11 +500,11 @@ struct brt_stats {
     uint64_t queued_visits;     /* rays queued at a batching point */
     uint64_t resident_visits;   /* rays intersected at once: the geometry was in memory */
     uint64_t oversized_loads;   /* loads of a blob larger than the budget */
-    uint64_t shadow_rays;       /* occlusion rays traced (counted in rays too) */
-    uint64_t shadow_occluded;   /* of those, the ones that found a hit */
-    uint64_t shadow_batch_loads;     /* loads for a queue of occlusion rays only */
-    uint64_t shadow_disk_bytes_read; /* the bytes those loads read: what the
-                                ** shadow rays alone made the cache read (a
+    uint64_t occlusion_rays;    /* occlusion rays traced (counted in rays too) */
+    uint64_t occlusion_hits;    /* of those, the ones that found a hit */
+    uint64_t occlusion_batch_loads;     /* loads for a queue of occlusion rays only */
+    uint64_t occlusion_disk_bytes_read; /* the bytes those loads read: what the
+                                ** occlusion rays alone made the cache read (a
                                 ** load for a mixed queue counts for neither) */
     double seconds;             /* tracing */
     double load_seconds;        /* of those, loading batching points (read,
@@ -514,8 +514,8 @@ struct brt_stats {
     double mrays_per_second;
     uint64_t peak_rss_bytes;    /* the process's, when the stats were taken
                                 ** (programs set it: brt_peak_rss_bytes) */
-    uint64_t shadow_inner_stopped;   /* occlusion rays settled occluded by an
-                                ** inner proxy: no queue, no load */
+    uint64_t occlusion_inner_stopped;   /* occlusion rays settled occluded by
+                                ** an inner proxy: no queue, no load */
     uint64_t prototype_loads;   /* loads of a prototype's blob (instanced
                                 ** scenes; counted in disk_bytes_read, not
                                 ** in batch_loads) */

@@ -50,8 +50,8 @@ typedef uint64_t (*range_size_fn)(void *user, const uint32_t *ids, uint32_t n,
                                   uint32_t *distinct, uint64_t *instanced);
 
 typedef struct size_limits {
-    uint32_t batch_tris;          /* distinct prototype triangles */
-    uint64_t batch_instanced;     /* instanced triangles; 0: none */
+    uint32_t point_tris;          /* distinct prototype triangles */
+    uint64_t point_instanced;     /* instanced triangles; 0: none */
 } size_limits;
 
 #define TOP_EMPTY 0xFFFFFFFFu   /* an unused child slot: never entered */
@@ -105,7 +105,7 @@ typedef struct geometry {
 ** three siblings on the stack. */
 #define SET_STACK 64
 
-typedef struct batch_entry {
+typedef struct point_entry {
     float lo[3], hi[3];
     uint64_t offset, size, checksum;
     uint32_t triangles;         /* world triangles; for a point of instances,
@@ -118,7 +118,7 @@ typedef struct batch_entry {
                                 ** an instance table, "instance points") */
     uint64_t instanced;         /* the triangles of its instances */
     instance_margin margin;     /* its instances', about its box's centre */
-} batch_entry;
+} point_entry;
 
 /* A prototype of an instanced scene: its BVH blob, stored once and cached
 ** once whichever batching points use it, and its object-space box. */
@@ -135,13 +135,13 @@ typedef struct section {
 /* What the header says, unpacked. */
 typedef struct scene_header {
     uint64_t stamp, geometry_bytes;
-    uint32_t batch_tris, proxy_res, batch_count, triangle_count, top_node_count;
+    uint32_t point_tris, proxy_res, point_count, triangle_count, top_node_count;
     section sections[4];        /* the fourth: prototypes (instanced files) */
     /* Instanced scenes (version 4) only: */
     uint32_t prototype_count, instance_count;
     uint64_t instanced_triangles;
     instance_margin margin;     /* of all instances: the walk's */
-    uint64_t batch_instanced;   /* brt_scene_options.batch_instanced */
+    uint64_t point_instanced;   /* brt_scene_options.point_instanced */
 } scene_header;
 
 /* A blob opened: a BVH (a point of world triangles, or a prototype) or
@@ -152,7 +152,7 @@ typedef struct blob_view {
 } blob_view;
 
 /* Where a blob lies: the blobs are the batching points' (ids 0 ..
-** batch_count - 1) and then the prototypes'. */
+** point_count - 1) and then the prototypes'. */
 typedef struct blob_place {
     uint64_t offset, size, checksum;
 } blob_place;
@@ -161,9 +161,9 @@ struct brt_scene {
     char *path;
     int fd;
     scene_header header;
-    batch_entry *batches;
+    point_entry *points;
     proto_entry *prototypes;    /* instanced scenes, else NULL */
-    blob_place *blobs;          /* batch_count + prototype_count */
+    blob_place *blobs;          /* point_count + prototype_count */
     top_node *top;
     brt_svdag *dag;
     void *dag_blob;             /* the pool refers to it */
@@ -178,7 +178,7 @@ struct prepared_ray;   /* batchrt.c: a ray prepared for the box test once */
 
 /* ---- batchrt.c: the partition, the top-level tree, instances and their intersection (the build, the world and the scheduler) ---- */
 brt_result brt_partition_split(partition *p, const float *centroids, uint32_t first, uint32_t count,
-                               uint32_t batch_tris);
+                               uint32_t point_tris);
 brt_result brt_partition_by_size(partition *p, const float *centres, uint32_t first, uint32_t count,
                                  const size_limits *limits, range_size_fn size_of, void *user);
 brt_result brt_top_build(const float *boxes, uint32_t count, top_node **nodes,

@@ -67,15 +67,15 @@ static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); flo
 ** that a file of version 1 written on a big-endian host is named as such):
 **   header, 256 bytes:
 **     0 "BRTSCENE"  8 u32 version  12 u32 endianness mark 0x01020304
-**     16 u64 source stamp  24 u32 batch_tris  28 u32 proxy_res
+**     16 u64 source stamp  24 u32 point_tris  28 u32 proxy_res
 **     32 u32 batching points  36 u32 triangles  40 u32 top-level nodes
 **     44 u32 0  48 u64 geometry bytes (all blobs)
 **     56 three sections {u64 offset, u64 size, u64 checksum}:
-**        batch table, top-level nodes, DAG pool
+**        point table, top-level nodes, DAG pool
 **     248 u64 checksum of bytes 0..247
 **   blobs: one triangle BVH per batching point (brt_bvh_blob_write), each
 **     at a multiple of SCENE_PAGE, so the cache reads whole aligned pages
-**   batch table: BATCH_ENTRY_BYTES per batching point: f32 lo[3] hi[3],
+**   point table: POINT_ENTRY_BYTES per batching point: f32 lo[3] hi[3],
 **     u64 blob offset, u64 blob size, u64 blob checksum, u32 triangles,
 **     u32 proxy root, u32 proxy res, f32 proxy origin[3], f32 cell,
 **     u32 inner proxy root (version 3; its frame follows from the box)
@@ -88,8 +88,8 @@ static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); flo
 **     checksum}: the prototype table; 152 u32 instances; 156 f32 largest
 **     condition number; 160 f32 reach (instance_margin); 164 u32 0;
 **     168 u64 instanced triangles; 176 f32 the margin's centre[3];
-**     192 u64 batch_instanced (brt_scene_options)
-**   batch table entries of BATCH_ENTRY_BYTES_V4: the 80 bytes above, then
+**     192 u64 point_instanced (brt_scene_options)
+**   point table entries of POINT_ENTRY_BYTES_V4: the 80 bytes above, then
 **     u32 instances (0: a point of world triangles), f32 condition, u64
 **     instanced triangles, f32 reach, u32 0 (the margin of its instances,
 **     about its box's centre)
@@ -104,13 +104,13 @@ static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); flo
 #define SCENE_MAGIC "BRTSCENE"
 #define SCENE_VERSION 3u   /* 3: inner proxy roots (README "Inner proxies") */
 #define SCENE_VERSION_INSTANCED 4u
-#define BATCH_ENTRY_BYTES_V4 104
+#define POINT_ENTRY_BYTES_V4 104
 #define PROTO_ENTRY_BYTES 56
 #define SECTION_PROTOTYPES 3
 #define SCENE_ENDIAN_MARK 0x01020304u
 #define SCENE_HEADER_BYTES 256
-#define BATCH_ENTRY_BYTES 80
-#define SECTION_BATCHES 0
+#define POINT_ENTRY_BYTES 80
+#define SECTION_POINTS 0
 #define SECTION_TOP 1
 #define SECTION_DAG 2
 
@@ -129,10 +129,10 @@ uint64_t brt_round_up_page(uint64_t n)
     return (n + SCENE_PAGE - 1) / SCENE_PAGE * SCENE_PAGE;
 }
 
-static void batch_entry_pack(const batch_entry *b, unsigned char *p)
+static void batch_entry_pack(const point_entry *b, unsigned char *p)
 {
     int a;
-    memset(p, 0, BATCH_ENTRY_BYTES);
+    memset(p, 0, POINT_ENTRY_BYTES);
     for (a = 0; a < 3; a++) {
         put_f32(p + 4 * a, b->lo[a]);
         put_f32(p + 12 + 4 * a, b->hi[a]);
@@ -149,9 +149,9 @@ static void batch_entry_pack(const batch_entry *b, unsigned char *p)
 }
 
 /* The instanced table's entry: version 3's, then the instance fields. */
-static void batch_entry_pack_v4(const batch_entry *b, unsigned char *p)
+static void batch_entry_pack_v4(const point_entry *b, unsigned char *p)
 {
-    memset(p, 0, BATCH_ENTRY_BYTES_V4);
+    memset(p, 0, POINT_ENTRY_BYTES_V4);
     batch_entry_pack(b, p);
     brt_put_le32(p + 80, b->instances);
     put_f32(p + 84, b->margin.condition);
@@ -186,7 +186,7 @@ static void proto_entry_unpack(const unsigned char *p, proto_entry *e)
     }
 }
 
-static void batch_entry_unpack(const unsigned char *p, batch_entry *b)
+static void batch_entry_unpack(const unsigned char *p, point_entry *b)
 {
     int a;
     for (a = 0; a < 3; a++) {
@@ -256,9 +256,9 @@ static void header_pack(const scene_header *h, unsigned char *p)
     brt_put_le32(p + 8, header_instanced(h) ? SCENE_VERSION_INSTANCED : SCENE_VERSION);
     brt_put_le32(p + 12, SCENE_ENDIAN_MARK);
     brt_put_le64(p + 16, h->stamp);
-    brt_put_le32(p + 24, h->batch_tris);
+    brt_put_le32(p + 24, h->point_tris);
     brt_put_le32(p + 28, h->proxy_res);
-    brt_put_le32(p + 32, h->batch_count);
+    brt_put_le32(p + 32, h->point_count);
     brt_put_le32(p + 36, h->triangle_count);
     brt_put_le32(p + 40, h->top_node_count);
     brt_put_le64(p + 48, h->geometry_bytes);
@@ -278,7 +278,7 @@ static void header_pack(const scene_header *h, unsigned char *p)
         put_f32(p + 176, h->margin.center[0]);
         put_f32(p + 180, h->margin.center[1]);
         put_f32(p + 184, h->margin.center[2]);
-        brt_put_le64(p + 192, h->batch_instanced);
+        brt_put_le64(p + 192, h->point_instanced);
         brt_put_le64(p + 168, h->instanced_triangles);
     }
     brt_put_le64(p + 248, brt_checksum64(p, 248));
@@ -303,9 +303,9 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
     if (brt_get_le64(p + 248) != brt_checksum64(p, 248))
         return brt_fail(err, BRT_EFORMAT, "%s: header checksum mismatch (corrupt file)", path);
     h->stamp = brt_get_le64(p + 16);
-    h->batch_tris = brt_get_le32(p + 24);
+    h->point_tris = brt_get_le32(p + 24);
     h->proxy_res = brt_get_le32(p + 28);
-    h->batch_count = brt_get_le32(p + 32);
+    h->point_count = brt_get_le32(p + 32);
     h->triangle_count = brt_get_le32(p + 36);
     h->top_node_count = brt_get_le32(p + 40);
     h->geometry_bytes = brt_get_le64(p + 48);
@@ -318,7 +318,7 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
     h->prototype_count = h->instance_count = 0;
     h->instanced_triangles = 0;
     memset(&h->margin, 0, sizeof h->margin);
-    h->batch_instanced = 0;
+    h->point_instanced = 0;
     if (version == SCENE_VERSION_INSTANCED) {
         h->prototype_count = brt_get_le32(p + 44);
         h->sections[SECTION_PROTOTYPES].offset = brt_get_le64(p + 128);
@@ -330,7 +330,7 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
         h->margin.center[0] = get_f32(p + 176);
         h->margin.center[1] = get_f32(p + 180);
         h->margin.center[2] = get_f32(p + 184);
-        h->batch_instanced = brt_get_le64(p + 192);
+        h->point_instanced = brt_get_le64(p + 192);
         h->instanced_triangles = brt_get_le64(p + 168);
         if (h->prototype_count == 0)
             return brt_fail(err, BRT_EFORMAT, "%s: header: version 4 without prototypes", path);
@@ -373,12 +373,12 @@ static brt_result write_at(int fd, const void *data, size_t size, uint64_t offse
 **           is small enough or flat.  Records keep stream order in every
 **           region, so the number order of a bucket is its record order.
 **   build   a bucket is read whole and split in memory by the median
-**           splits above into batching points of at most batch_tris
+**           splits above into batching points of at most point_tris
 **           triangles; each gets its BVH blob, written at the next page of
 **           the scene file, its proxy in the shared DAG, and a table entry.
 **           A mesh that fits one bucket is partitioned exactly as a whole
 **           in-memory median split would (the same file as before).
-**   tables  the top-level BVH, the batch table and the DAG, then the header
+**   tables  the top-level BVH, the point table and the DAG, then the header
 **           (format unchanged).
 **
 ** Held in memory, whatever the triangle count: the histogram (8 MiB), one
@@ -420,10 +420,10 @@ typedef struct spill_out {
     uint32_t held, cap;
 } spill_out;
 
-static void scene_options_resolve(const brt_scene_options *opt, uint32_t *batch_tris,
+static void scene_options_resolve(const brt_scene_options *opt, uint32_t *point_tris,
                                   uint32_t *res)
 {
-    *batch_tris = opt && opt->batch_tris ? opt->batch_tris : 100000;
+    *point_tris = opt && opt->point_tris ? opt->point_tris : 100000;
     *res = opt && opt->proxy_res ? opt->proxy_res : 128;
 }
 
@@ -434,10 +434,10 @@ typedef struct scene_writer {
     uint64_t offset;            /* next free, page-aligned */
     uint32_t res;
     brt_svdag *dag;
-    batch_entry *batches;       /* the per-point tables, grown as points come */
+    point_entry *points;       /* the per-point tables, grown as points come */
     float *boxes;               /* 6 floats per batching point */
-    uint32_t batch_count;
-    size_t batch_cap;
+    uint32_t point_count;
+    size_t point_cap;
     uint64_t geometry_bytes;
 } scene_writer;
 
@@ -448,9 +448,9 @@ typedef struct scene_builder {
     int spill_fd;
     uint64_t spill_end;         /* records in the spill file */
     const volatile sig_atomic_t *interrupt;
-    uint32_t batch_tris, bucket_tris, chunk;
+    uint32_t point_tris, bucket_tris, chunk;
     uint32_t instance_bucket;   /* instances of one bucket of the instance pass */
-    uint64_t batch_instanced;   /* brt_scene_options.batch_instanced */
+    uint64_t point_instanced;   /* brt_scene_options.point_instanced */
     /* What a bucket that fits is made into: build_bucket (triangles), or
     ** instance_bucket (the instance pass, "instance points"). */
     brt_result (*leaf)(struct scene_builder *b, const bucket *bk, brt_error *err);
@@ -749,20 +749,20 @@ static brt_result process_bucket(scene_builder *b, const bucket *bk, brt_error *
 /* ---- batching points ---- */
 
 /* A new entry of the per-point tables. */
-static batch_entry *batch_append(scene_writer *w)
+static point_entry *point_append(scene_writer *w)
 {
-    if (w->batch_count == w->batch_cap) {
-        size_t need = (size_t)w->batch_count + 1, cap = w->batch_cap, box_cap = w->batch_cap;
-        batch_entry *batches = brt_grow(w->batches, &cap, need, sizeof *batches);
+    if (w->point_count == w->point_cap) {
+        size_t need = (size_t)w->point_count + 1, cap = w->point_cap, box_cap = w->point_cap;
+        point_entry *points = brt_grow(w->points, &cap, need, sizeof *points);
         float *boxes;
-        if (batches) w->batches = batches;
-        boxes = batches ? brt_grow(w->boxes, &box_cap, need, 6 * sizeof *boxes) : NULL;
+        if (points) w->points = points;
+        boxes = points ? brt_grow(w->boxes, &box_cap, need, 6 * sizeof *boxes) : NULL;
         if (!boxes || need > MAX_COUNT) return NULL;
         w->boxes = boxes;
-        w->batch_cap = cap;         /* box_cap too: both grew from batch_cap to need */
+        w->point_cap = cap;         /* box_cap too: both grew from point_cap to need */
     }
-    memset(&w->batches[w->batch_count], 0, sizeof *w->batches);
-    return &w->batches[w->batch_count++];
+    memset(&w->points[w->point_count], 0, sizeof *w->points);
+    return &w->points[w->point_count++];
 }
 
 /*
@@ -825,13 +825,13 @@ static void point_build(const scene_builder *b, point_work *pw)
 static brt_result point_write(scene_builder *b, point_work *pw, brt_error *err)
 {
     scene_writer *w = &b->w;
-    batch_entry *e;
+    point_entry *e;
     brt_result r = poll_interrupt(b, err);
     if (r != BRT_OK) return r;
     if (pw->bvh_result != BRT_OK)
         return brt_fail(err, pw->bvh_result, "%s: building a batching point's BVH: %s",
                         w->path, brt_result_string(pw->bvh_result));
-    if (!pw->blob || !(e = batch_append(w))) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
+    if (!pw->blob || !(e = point_append(w))) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
     memcpy(e->lo, pw->lo, sizeof e->lo);
     memcpy(e->hi, pw->hi, sizeof e->hi);
     e->triangles = pw->count;
@@ -841,8 +841,8 @@ static brt_result point_write(scene_builder *b, point_work *pw, brt_error *err)
     if ((r = write_at(w->fd, pw->blob, pw->size, e->offset, w->path, err)) != BRT_OK) return r;
     w->offset = brt_round_up_page(e->offset + e->size);
     w->geometry_bytes += e->size;
-    memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1), e->lo, 3 * sizeof(float));
-    memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1) + 3, e->hi, 3 * sizeof(float));
+    memcpy(w->boxes + 6 * (size_t)(w->point_count - 1), e->lo, 3 * sizeof(float));
+    memcpy(w->boxes + 6 * (size_t)(w->point_count - 1) + 3, e->hi, 3 * sizeof(float));
     r = pw->grid_result;
     if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->grid, &e->proxy);
     if (r == BRT_OK) r = brt_svdag_add(w->dag, &pw->inner, &e->inner);
@@ -895,7 +895,7 @@ static brt_result build_bucket(scene_builder *b, const bucket *bk, brt_error *er
     }
     b->points.count = 0;
     b->points.order = b->order;
-    if (brt_partition_split(&b->points, b->centroids, 0, bk->count, b->batch_tris) != BRT_OK ||
+    if (brt_partition_split(&b->points, b->centroids, 0, bk->count, b->point_tris) != BRT_OK ||
         brt_solids_build(b->records[0].v, sizeof *b->records / sizeof(float), bk->count,
                          &b->solids) != BRT_OK)
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
@@ -1219,7 +1219,7 @@ static brt_result instance_point_write(scene_builder *b, instance_build *ib, con
     uint64_t instanced;
     top_node *nodes = NULL;
     unsigned char *blob = NULL;
-    batch_entry *e = NULL;
+    point_entry *e = NULL;
     brt_grid grid;
     brt_result r = poll_interrupt(b, err);
     grid.bits = NULL;
@@ -1230,7 +1230,7 @@ static brt_result instance_point_write(scene_builder *b, instance_build *ib, con
     for (i = 0; boxes && i < n; i++) memcpy(boxes + 6 * (size_t)i, ib->boxes + 6 * (size_t)slots[i], 6 * sizeof *boxes);
     if (r == BRT_OK && (!boxes || !(uses = instance_point_uses(ib, &ip)) ||
                         brt_top_build(boxes, n, &nodes, &ip.m) != BRT_OK ||
-                        !(blob = malloc(instance_table_bytes(n, ip.m, ip.k))) || !(e = batch_append(w))))
+                        !(blob = malloc(instance_table_bytes(n, ip.m, ip.k))) || !(e = point_append(w))))
         r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
     if (r == BRT_OK) {
         ip.nodes = nodes;
@@ -1253,8 +1253,8 @@ static brt_result instance_point_write(scene_builder *b, instance_build *ib, con
     if (r == BRT_OK) {
         w->offset = brt_round_up_page(e->offset + e->size);
         w->geometry_bytes += e->size;
-        memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1), e->lo, 3 * sizeof(float));
-        memcpy(w->boxes + 6 * (size_t)(w->batch_count - 1) + 3, e->hi, 3 * sizeof(float));
+        memcpy(w->boxes + 6 * (size_t)(w->point_count - 1), e->lo, 3 * sizeof(float));
+        memcpy(w->boxes + 6 * (size_t)(w->point_count - 1) + 3, e->hi, 3 * sizeof(float));
         r = instance_point_proxy(ib, &ip, e->lo, e->hi, w->res, &grid);
         if (r == BRT_OK) r = brt_svdag_add(w->dag, &grid, &e->proxy);
         e->inner.root = BRT_EMPTY_ROOT;   /* no inner proxies for instances */
@@ -1279,8 +1279,8 @@ static brt_result instance_bucket(scene_builder *b, const bucket *bk, brt_error 
     brt_result r = instance_bucket_read(b, ib, bk, err);
     memset(&parts, 0, sizeof parts);
     if (r != BRT_OK) return r;
-    limits.batch_tris = b->batch_tris;
-    limits.batch_instanced = b->batch_instanced;
+    limits.point_tris = b->point_tris;
+    limits.point_instanced = b->point_instanced;
     if (!(parts.order = malloc((size_t)ib->count * sizeof *parts.order)))
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", b->w.path);
     for (i = 0; i < ib->count; i++) parts.order[i] = i;
@@ -1370,18 +1370,18 @@ static brt_result write_section(scene_writer *w, const void *data, size_t size, 
     return write_at(w->fd, data, size, s->offset, w->path, err);
 }
 
-/* The batch table, the top-level nodes and the DAG pool, (instanced:
+/* The point table, the top-level nodes and the DAG pool, (instanced:
 ** the prototype table,) then the header. */
 static brt_result write_tables(scene_writer *w, scene_header *h, const proto_entry *protos,
                                brt_error *err)
 {
-    const size_t entry_bytes = header_instanced(h) ? BATCH_ENTRY_BYTES_V4 : BATCH_ENTRY_BYTES;
+    const size_t entry_bytes = header_instanced(h) ? POINT_ENTRY_BYTES_V4 : POINT_ENTRY_BYTES;
     const size_t proto_bytes = (size_t)h->prototype_count * PROTO_ENTRY_BYTES;
-    size_t top_bytes, dag_bytes, table_bytes = (size_t)h->batch_count * entry_bytes;
+    size_t top_bytes, dag_bytes, table_bytes = (size_t)h->point_count * entry_bytes;
     top_node *nodes = NULL;
     unsigned char *buf, header[SCENE_HEADER_BYTES];
     uint32_t i;
-    brt_result r = brt_top_build(w->boxes, h->batch_count, &nodes, &h->top_node_count);
+    brt_result r = brt_top_build(w->boxes, h->point_count, &nodes, &h->top_node_count);
     if (r != BRT_OK) return brt_fail(err, r, "%s: out of memory", w->path);
     top_bytes = (size_t)h->top_node_count * TOP_NODE_BYTES;
     dag_bytes = brt_svdag_blob_size(w->dag);
@@ -1390,16 +1390,16 @@ static brt_result write_tables(scene_writer *w, scene_header *h, const proto_ent
         free(nodes);
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", w->path);
     }
-    for (i = 0; i < h->batch_count; i++) {
-        if (header_instanced(h)) batch_entry_pack_v4(&w->batches[i], buf + (size_t)i * entry_bytes);
-        else batch_entry_pack(&w->batches[i], buf + (size_t)i * entry_bytes);
+    for (i = 0; i < h->point_count; i++) {
+        if (header_instanced(h)) batch_entry_pack_v4(&w->points[i], buf + (size_t)i * entry_bytes);
+        else batch_entry_pack(&w->points[i], buf + (size_t)i * entry_bytes);
     }
     for (i = 0; i < h->prototype_count; i++)
         proto_entry_pack(&protos[i], buf + table_bytes + top_bytes + dag_bytes + (size_t)i * PROTO_ENTRY_BYTES);
     for (i = 0; i < h->top_node_count; i++) top_node_pack(&nodes[i], buf + table_bytes + (size_t)i * TOP_NODE_BYTES);
     brt_svdag_blob_write(w->dag, buf + table_bytes + top_bytes);
     free(nodes);
-    r = write_section(w, buf, table_bytes, &h->sections[SECTION_BATCHES], err);
+    r = write_section(w, buf, table_bytes, &h->sections[SECTION_POINTS], err);
     if (r == BRT_OK) r = write_section(w, buf + table_bytes, top_bytes, &h->sections[SECTION_TOP], err);
     if (r == BRT_OK) r = write_section(w, buf + table_bytes + top_bytes, dag_bytes, &h->sections[SECTION_DAG], err);
     if (r == BRT_OK && proto_bytes)
@@ -1420,7 +1420,7 @@ static brt_result write_tables(scene_writer *w, scene_header *h, const proto_ent
 static brt_result builder_arrays(scene_builder *b, brt_error *err)
 {
     size_t most = b->root.b.count < b->bucket_tris ? b->root.b.count : b->bucket_tris, i;
-    size_t point = most < b->batch_tris ? most : b->batch_tris;
+    size_t point = most < b->point_tris ? most : b->point_tris;
     uint32_t k;
     b->records = malloc(most * sizeof *b->records);
     b->centroids = malloc(3 * most * sizeof *b->centroids);
@@ -1473,7 +1473,7 @@ static brt_result build_passes(scene_builder *b, const brt_triangle_source *sour
     if (r != BRT_OK) return r;
     if (b->root.b.count == 0)
         return brt_fail(err, BRT_EARG, "%s: the mesh has no triangles", b->w.path);
-    h->batch_count = b->w.batch_count;
+    h->point_count = b->w.point_count;
     h->triangle_count = b->root.b.count;
     h->geometry_bytes = b->w.geometry_bytes;
     return write_tables(&b->w, h, NULL, err);
@@ -1490,7 +1490,7 @@ static void scene_margin(const scene_writer *w, const instance_build *ib, instan
     uint32_t i;
     int a;
     bounds_clear(lo, hi);
-    for (i = 0; i < w->batch_count; i++) {
+    for (i = 0; i < w->point_count; i++) {
         brt_bounds_grow(lo, hi, w->boxes + 6 * (size_t)i);
         brt_bounds_grow(lo, hi, w->boxes + 6 * (size_t)i + 3);
     }
@@ -1521,10 +1521,10 @@ static brt_result build_instanced_passes(scene_builder *b, const brt_scene_sourc
     if (r == BRT_OK && source->world.run) r = build_triangle_points(b, &source->world, err);
     if (r == BRT_OK) r = build_prototypes(b, source, &ib, err);
     if (r == BRT_OK) r = build_instance_points(b, source, &ib, err);
-    if (r == BRT_OK && b->w.batch_count == 0)
+    if (r == BRT_OK && b->w.point_count == 0)
         r = brt_fail(err, BRT_EARG, "%s: the scene has no triangles", b->w.path);
     if (r == BRT_OK) {
-        h->batch_count = b->w.batch_count;
+        h->point_count = b->w.point_count;
         h->triangle_count = b->root.b.count;
         h->geometry_bytes = b->w.geometry_bytes;
         h->prototype_count = ib.proto_count;
@@ -1556,7 +1556,7 @@ static void builder_free(scene_builder *b)
     free(b->work);
     brt_pool_free(&b->pool);
     brt_svdag_free(b->w.dag);
-    free(b->w.batches);
+    free(b->w.points);
     free(b->w.boxes);
 }
 
@@ -1585,16 +1585,16 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->leaf = build_bucket;
     b->w.path = scene_path;
     b->interrupt = opt ? opt->interrupt : NULL;
-    b->batch_instanced = opt ? opt->batch_instanced : 0;
+    b->point_instanced = opt ? opt->point_instanced : 0;
     brt_pool_init(&b->pool, opt ? opt->threads : 0);
-    scene_options_resolve(opt, &b->batch_tris, &b->w.res);
+    scene_options_resolve(opt, &b->point_tris, &b->w.res);
     if (!brt_proxy_res_valid(b->w.res))
         return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", b->w.res);
     /* A bucket of instances holds about four times the bytes of a spill
     ** record per instance, so it holds a quarter as many. */
     b->instance_bucket = cap / 4 > 0 ? cap / 4 : 1;
-    b->bucket_tris = cap / b->batch_tris * b->batch_tris;
-    if (b->bucket_tris < b->batch_tris) b->bucket_tris = b->batch_tris;
+    b->bucket_tris = cap / b->point_tris * b->point_tris;
+    if (b->bucket_tris < b->point_tris) b->bucket_tris = b->point_tris;
     b->chunk = test_spill_chunk ? test_spill_chunk : SPILL_CHUNK;
     if (brt_is_special_file(scene_path))
         return brt_fail(err, BRT_EARG, "%s: not a regular file", scene_path);
@@ -1627,10 +1627,10 @@ static brt_result build_scene_file(const brt_triangle_source *source,
     r = builder_init(&b, opt, scene_path, err);
     if (r == BRT_OK) r = brt_atomic_open(&file, scene_path, err);
     if (r == BRT_OK) b.w.fd = file.fd;
-    h.batch_tris = b.batch_tris;
+    h.point_tris = b.point_tris;
     h.proxy_res = b.w.res;
     h.stamp = source_stamp;
-    h.batch_instanced = instanced ? b.batch_instanced : 0;
+    h.point_instanced = instanced ? b.point_instanced : 0;
     if (r == BRT_OK)
         r = instanced ? build_instanced_passes(&b, instanced, &h, err) : build_passes(&b, source, &h, err);
     r = brt_atomic_close(&file, r, err);
@@ -1770,7 +1770,7 @@ static brt_result read_section(brt_scene *s, int which, const char *what, void *
 **   (read_section) each section lies inside the file and matches its sum
 **   brt_svdag_blob_open (svdag.c): the DAG pool, its child indices
 **   check_batch    one table entry: box, blob extent, proxy (proxy_valid)
-**   check_batches  the table against the header: triangles and bytes add up
+**   check_points  the table against the header: triangles and bytes add up
 **   check_top      the top level: a tree over every batching point, boxes
 **                  ordered, finite and nested
 ** and every blob load (blob_read) runs brt_bvh_blob_open (bvh.c: indices,
@@ -1801,14 +1801,14 @@ static int margin_valid(const instance_margin *m)
 static brt_result check_header(const brt_scene *s, brt_error *err)
 {
     const scene_header *h = &s->header;
-    if (h->batch_count == 0)
+    if (h->point_count == 0)
         return brt_fail(err, BRT_EFORMAT, "%s: header: no batching points", s->path);
-    if (h->top_node_count == 0 || h->top_node_count > h->batch_count)
+    if (h->top_node_count == 0 || h->top_node_count > h->point_count)
         return brt_fail(err, BRT_EFORMAT, "%s: header: %u top-level nodes for %u batching points",
-                        s->path, h->top_node_count, h->batch_count);
-    if (h->sections[SECTION_BATCHES].size !=
-        (uint64_t)h->batch_count * (header_instanced(h) ? BATCH_ENTRY_BYTES_V4 : BATCH_ENTRY_BYTES))
-        return brt_fail(err, BRT_EFORMAT, "%s: header: batch table has the wrong size", s->path);
+                        s->path, h->top_node_count, h->point_count);
+    if (h->sections[SECTION_POINTS].size !=
+        (uint64_t)h->point_count * (header_instanced(h) ? POINT_ENTRY_BYTES_V4 : POINT_ENTRY_BYTES))
+        return brt_fail(err, BRT_EFORMAT, "%s: header: point table has the wrong size", s->path);
     if (h->sections[SECTION_PROTOTYPES].size != (uint64_t)h->prototype_count * PROTO_ENTRY_BYTES)
         return brt_fail(err, BRT_EFORMAT, "%s: header: prototype table has the wrong size", s->path);
     if (header_instanced(h) && !margin_valid(&h->margin))
@@ -1842,9 +1842,9 @@ static int blob_inside(const brt_scene *s, uint64_t offset, uint64_t size)
            offset <= s->file_size - brt_round_up_page(size);
 }
 
-/* One batch table entry: its box, its blob inside the file (whole pages,
+/* One point table entry: its box, its blob inside the file (whole pages,
 ** as the cache reads them), its proxy. */
-static brt_result check_batch(const brt_scene *s, uint32_t i, const batch_entry *b, brt_error *err)
+static brt_result check_batch(const brt_scene *s, uint32_t i, const point_entry *b, brt_error *err)
 {
     if (!box_valid(b->lo, b->hi))
         return brt_fail(err, BRT_EFORMAT, "%s: batching point %u: box not finite or inverted",
@@ -1864,23 +1864,23 @@ static brt_result check_batch(const brt_scene *s, uint32_t i, const batch_entry 
 
 /* The table against the header: the entries' triangles and blob bytes
 ** add up to the header's counts. */
-static brt_result check_batches(const brt_scene *s, brt_error *err)
+static brt_result check_points(const brt_scene *s, brt_error *err)
 {
     uint64_t triangles = 0, bytes = 0;
     uint32_t i;
-    for (i = 0; i < s->header.batch_count; i++) {
-        brt_result r = check_batch(s, i, &s->batches[i], err);
+    for (i = 0; i < s->header.point_count; i++) {
+        brt_result r = check_batch(s, i, &s->points[i], err);
         if (r != BRT_OK) return r;
-        if (!s->batches[i].instances) triangles += s->batches[i].triangles;
-        bytes += s->batches[i].size;
+        if (!s->points[i].instances) triangles += s->points[i].triangles;
+        bytes += s->points[i].size;
     }
     for (i = 0; i < s->header.prototype_count; i++) bytes += s->prototypes[i].size;
     if (triangles != s->header.triangle_count)
-        return brt_fail(err, BRT_EFORMAT, "%s: batch table: batching points hold %llu triangles, "
+        return brt_fail(err, BRT_EFORMAT, "%s: point table: batching points hold %llu triangles, "
                         "header says %u", s->path, (unsigned long long)triangles,
                         s->header.triangle_count);
     if (bytes != s->header.geometry_bytes)
-        return brt_fail(err, BRT_EFORMAT, "%s: batch table: blobs hold %llu bytes, header says %llu",
+        return brt_fail(err, BRT_EFORMAT, "%s: point table: blobs hold %llu bytes, header says %llu",
                         s->path, (unsigned long long)bytes,
                         (unsigned long long)s->header.geometry_bytes);
     return BRT_OK;
@@ -1891,7 +1891,7 @@ static brt_result check_batches(const brt_scene *s, brt_error *err)
 ** passes, when the box is not valid: check_batch names that first).
 ** brt_grid_init allocates the grid's bits too, so it can run out of
 ** memory: that is reported as such, not as an invalid inner proxy. */
-static brt_result inner_frame(batch_entry *b, uint32_t proxy_res)
+static brt_result inner_frame(point_entry *b, uint32_t proxy_res)
 {
     brt_grid g;
     brt_result r = box_valid(b->lo, b->hi) ? brt_grid_init(&g, b->lo, b->hi, inner_res(proxy_res)) : BRT_EARG;
@@ -1904,36 +1904,36 @@ static brt_result inner_frame(batch_entry *b, uint32_t proxy_res)
     return BRT_OK;
 }
 
-static brt_result load_batches(brt_scene *s, brt_error *err)
+static brt_result load_points(brt_scene *s, brt_error *err)
 {
     unsigned char *table;
     uint32_t i;
-    brt_result r = read_section(s, SECTION_BATCHES, "batch table", (void **)&table, err);
+    brt_result r = read_section(s, SECTION_POINTS, "point table", (void **)&table, err);
     if (r != BRT_OK) return r;
-    s->batches = malloc(((size_t)s->header.batch_count + 1) * sizeof *s->batches);
-    if (!s->batches) {
+    s->points = malloc(((size_t)s->header.point_count + 1) * sizeof *s->points);
+    if (!s->points) {
         free(table);
         return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
     }
-    for (i = 0; i < s->header.batch_count; i++) {
-        const size_t bytes = header_instanced(&s->header) ? BATCH_ENTRY_BYTES_V4 : BATCH_ENTRY_BYTES;
+    for (i = 0; i < s->header.point_count; i++) {
+        const size_t bytes = header_instanced(&s->header) ? POINT_ENTRY_BYTES_V4 : POINT_ENTRY_BYTES;
         const unsigned char *p = table + (size_t)i * bytes;
-        batch_entry_unpack(p, &s->batches[i]);
+        batch_entry_unpack(p, &s->points[i]);
         if (header_instanced(&s->header)) {
-            batch_entry *e = &s->batches[i];
+            point_entry *e = &s->points[i];
             e->instances = brt_get_le32(p + 80);
             e->instanced = brt_get_le64(p + 88);
             brt_margin_begin(&e->margin, e->lo, e->hi);
             e->margin.condition = get_f32(p + 84);
             e->margin.reach = get_f32(p + 96);
         }
-        if (inner_frame(&s->batches[i], s->header.proxy_res) != BRT_OK) {
+        if (inner_frame(&s->points[i], s->header.proxy_res) != BRT_OK) {
             free(table);
             return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
         }
     }
     free(table);
-    return check_batches(s, err);
+    return check_points(s, err);
 }
 
 /* Lane `lane` of node n holds the box lo, hi (inclusive: the build's lane
@@ -1978,9 +1978,9 @@ static brt_result check_top_lane(const brt_scene *s, uint32_t i, int lane,
     }
     if (c & TOP_LEAF) {
         c &= ~TOP_LEAF;
-        if (c >= s->header.batch_count || seen[c]++)
+        if (c >= s->header.point_count || seen[c]++)
             return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: bad leaf", s->path, i);
-        if (!lane_holds(n, lane, s->batches[c].lo, s->batches[c].hi))
+        if (!lane_holds(n, lane, s->points[c].lo, s->points[c].hi))
             return brt_fail(err, BRT_EFORMAT, "%s: top-level node %u: box does not hold batching "
                             "point %u", s->path, i, c);
     } else if (c <= i || c >= s->header.top_node_count || has_parent[c]++) {
@@ -2004,7 +2004,7 @@ static brt_result check_top_lane(const brt_scene *s, uint32_t i, int lane,
 ** boxes, before brt_top_node_pad. */
 static brt_result check_top(brt_scene *s, brt_error *err)
 {
-    uint32_t n = s->header.top_node_count, count = s->header.batch_count, i;
+    uint32_t n = s->header.top_node_count, count = s->header.point_count, i;
     unsigned char *has_parent = calloc((size_t)n + 1, 1), *seen = calloc((size_t)count + 1, 1);
     brt_result r = BRT_OK;
     int lane;
@@ -2075,7 +2075,7 @@ static int blob_offset_order(const void *a, const void *b)
 ** blob_overlap). */
 static brt_result check_blobs_apart(const brt_scene *s, brt_error *err)
 {
-    const uint32_t n = s->header.batch_count + s->header.prototype_count;
+    const uint32_t n = s->header.point_count + s->header.prototype_count;
     blob_place *sorted = malloc((size_t)n * sizeof *sorted);
     uint64_t free_from = SCENE_PAGE;
     uint32_t i;
@@ -2097,14 +2097,14 @@ static brt_result check_blobs_apart(const brt_scene *s, brt_error *err)
 /* Where every blob lies: the batching points', then the prototypes'. */
 static brt_result place_blobs(brt_scene *s, brt_error *err)
 {
-    const uint32_t b = s->header.batch_count;
+    const uint32_t b = s->header.point_count;
     uint32_t i;
     s->blobs = malloc(((size_t)b + s->header.prototype_count) * sizeof *s->blobs);
     if (!s->blobs) return brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
     for (i = 0; i < b; i++) {
-        s->blobs[i].offset = s->batches[i].offset;
-        s->blobs[i].size = s->batches[i].size;
-        s->blobs[i].checksum = s->batches[i].checksum;
+        s->blobs[i].offset = s->points[i].offset;
+        s->blobs[i].size = s->points[i].size;
+        s->blobs[i].checksum = s->points[i].checksum;
     }
     for (i = 0; i < s->header.prototype_count; i++) {
         s->blobs[b + i].offset = s->prototypes[i].offset;
@@ -2148,7 +2148,7 @@ brt_result brt_scene_open(const char *scene_path, brt_scene **out, brt_error *er
     if (r == BRT_OK) r = check_header(s, err);
     if (r == BRT_OK) r = load_dag(s, err);
     if (r == BRT_OK) r = load_prototypes(s, err);
-    if (r == BRT_OK) r = load_batches(s, err);
+    if (r == BRT_OK) r = load_points(s, err);
     if (r == BRT_OK) r = load_top(s, err);
     if (r == BRT_OK) r = place_blobs(s, err);
     if (r != BRT_OK) {
@@ -2165,7 +2165,7 @@ void brt_scene_close(brt_scene *s)
     if (s->fd >= 0) close(s->fd);
     brt_svdag_free(s->dag);
     free(s->dag_blob);
-    free(s->batches);
+    free(s->points);
     free(s->prototypes);
     free(s->blobs);
     free(s->top);
@@ -2175,14 +2175,14 @@ void brt_scene_close(brt_scene *s)
 
 int brt_scene_matches(const brt_scene *s, uint64_t stamp, const brt_scene_options *opt)
 {
-    uint32_t batch_tris, res;
-    scene_options_resolve(opt, &batch_tris, &res);
-    return s->header.stamp == stamp && s->header.batch_tris == batch_tris &&
+    uint32_t point_tris, res;
+    scene_options_resolve(opt, &point_tris, &res);
+    return s->header.stamp == stamp && s->header.point_tris == point_tris &&
            s->header.proxy_res == res &&
-           s->header.batch_instanced == (opt && s->header.prototype_count ? opt->batch_instanced : 0);
+           s->header.point_instanced == (opt && s->header.prototype_count ? opt->point_instanced : 0);
 }
 
-uint32_t brt_scene_batch_count(const brt_scene *s) { return s->header.batch_count; }
+uint32_t brt_scene_point_count(const brt_scene *s) { return s->header.point_count; }
 uint32_t brt_scene_prototype_count(const brt_scene *s) { return s->header.prototype_count; }
 
 uint64_t brt_scene_unique_triangles(const brt_scene *s)
@@ -2209,10 +2209,10 @@ void brt_scene_bounds(const brt_scene *s, float bmin[3], float bmax[3])
         bmin[a] = INFINITY;
         bmax[a] = -INFINITY;
     }
-    for (i = 0; i < s->header.batch_count; i++)
+    for (i = 0; i < s->header.point_count; i++)
         for (a = 0; a < 3; a++) {
-            if (s->batches[i].lo[a] < bmin[a]) bmin[a] = s->batches[i].lo[a];
-            if (s->batches[i].hi[a] > bmax[a]) bmax[a] = s->batches[i].hi[a];
+            if (s->points[i].lo[a] < bmin[a]) bmin[a] = s->points[i].lo[a];
+            if (s->points[i].hi[a] > bmax[a]) bmax[a] = s->points[i].hi[a];
         }
 }
 
@@ -2310,8 +2310,8 @@ static brt_result table_records(const brt_scene *s, uint32_t id, const unsigned 
     /* The entry's margin gated the proxy before this load: it must cover
     ** the instances (a smaller one would have let rays through that the
     ** proxy's dilation does not cover). */
-    if (set->margin.condition > s->batches[id].margin.condition ||
-        set->margin.reach > s->batches[id].margin.reach)
+    if (set->margin.condition > s->points[id].margin.condition ||
+        set->margin.reach > s->points[id].margin.reach)
         return table_fail(s, id, err, "margin smaller than its instances'");
     return BRT_OK;
 }
@@ -2407,13 +2407,13 @@ brt_result brt_instance_table_open(const brt_scene *s, uint32_t id, const unsign
     n = brt_get_le32(data + 8);
     m = brt_get_le32(data + 12);
     k = brt_get_le32(data + 16);
-    if (n == 0 || m == 0 || m > n || k == 0 || k > n || n != s->batches[id].instances ||
+    if (n == 0 || m == 0 || m > n || k == 0 || k > n || n != s->points[id].instances ||
         size != instance_table_bytes(n, m, k))
         r = table_fail(s, id, err, "counts disagree with its size or its table entry");
     else if (table_alloc(set, n, m, k) != BRT_OK || !(marks = calloc((size_t)n + m, 1)) ||
              !(boxes = malloc(6 * (size_t)n * sizeof *boxes)))
         r = brt_fail(err, BRT_ENOMEM, "%s: out of memory", s->path);
-    brt_margin_begin(&set->margin, s->batches[id].lo, s->batches[id].hi);
+    brt_margin_begin(&set->margin, s->points[id].lo, s->points[id].hi);
     if (r == BRT_OK) r = table_uses(s, id, data + INSTANCE_TABLE_HEADER, set, err);
     data += INSTANCE_TABLE_HEADER + ((size_t)k * 4 + 7) / 8 * 8;
     if (r == BRT_OK) r = table_records(s, id, data, set, boxes, err);

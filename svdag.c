@@ -22,7 +22,7 @@
 **      reference bit for bit.
 **   4. Beyond the paper: inner proxies (its section 4.3, future work):
 **      brt_solids_build, brt_voxelize_inner, brt_inner_occludes -- voxels
-**      certainly inside closed geometry, which settle a shadow ray.
+**      certainly inside closed geometry, which settle an occlusion ray.
 **
 ** NODE LAYOUT (the pool; also the blob, see brt_svdag_blob_write)
 **   leaves[]  uint64 per leaf: a 4x4x4 block of voxels, bit x+4*(y+4*z).
@@ -1705,7 +1705,7 @@ int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
 /* Beyond the paper: inner proxies (its section 4.3)                       */
 /* ===================================================================== */
 /*
-** Voxels that prove a shadow ray occluded.  The paper names them as
+** Voxels that prove an occlusion ray occluded.  The paper names them as
 ** future work (section 4.3): a second voxelization whose set
 ** voxels lie certainly inside solid geometry, so that an occlusion ray
 ** with tfar = +inf that passes through one is occluded without a load.
@@ -1777,7 +1777,7 @@ int brt_proxy_raycast(const brt_svdag *dag, const brt_proxy *proxy,
 ** to few nodes, but their surfaces are as unique as the outer proxies',
 ** so at full resolution their surface nodes would add about as many
 ** unique nodes as the outer proxies hold (make bench-inner prints the
-** pool's bytes, proxy_bytes, beside the shadow rays they stop).
+** pool's bytes, proxy_bytes, beside the occlusion rays they stop).
 */
 
 #define INNER_MAX_COMPONENTS 1024u  /* parity decisions per grid */

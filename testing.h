@@ -84,9 +84,9 @@ int brt_proxy_raycast_reference(const brt_svdag *dag, const brt_proxy *proxy,
 
 /* Partition checker: every triangle number below the scene's triangle
 ** count is in exactly one batching point, and no batching point holds more
-** than batch_tris triangles (it reads every blob).  BRT_ECHECK with a
+** than point_tris triangles (it reads every blob).  BRT_ECHECK with a
 ** message naming the first violation. */
-brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t batch_tris,
+brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t point_tris,
                                      brt_error *err);
 
 #ifdef BRT_TESTING
@@ -109,12 +109,12 @@ void brt_test_early_reject(int on);
 /* The sizes of every later scene build (0: the defaults).  spill_chunk:
 ** triangles per write buffer of a bucket and per read of the build's
 ** temporary file (default 16384); bucket_tris: the most triangles of one
-** bucket held in memory, rounded down to a multiple of batch_tris and at
-** least batch_tris (default 64 MiB of 40-byte records).  Small values
+** bucket held in memory, rounded down to a multiple of point_tris and at
+** least point_tris (default 64 MiB of 40-byte records).  Small values
 ** run the out-of-core paths of the build on small meshes.  Neither
 ** changes what a scene file built from a mesh that fits one bucket
 ** holds.  (The instance pass of an instanced scene takes buckets of a
-** quarter of bucket_tris instances, whatever batch_tris.) */
+** quarter of bucket_tris instances, whatever point_tris.) */
 void brt_test_build_sizes(uint32_t spill_chunk, uint32_t bucket_tris);
 
 #endif /* BRT_TESTING */

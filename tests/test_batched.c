@@ -66,9 +66,9 @@ static void fixture_free(fixture *f)
     free(f->direct);
 }
 
-static brt_scene *build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, const char *path)
+static brt_scene *build_scene(const tu_scene *s, uint32_t point_tris, uint32_t res, const char *path)
 {
-    return tu_build_scene(s, batch_tris, res, 0, path);
+    return tu_build_scene(s, point_tris, res, 0, path);
 }
 
 /* Traces the fixture's rays in batched mode and compares every hit. */
@@ -125,9 +125,9 @@ static void check_visits(const brt_stats *stats, const brt_trace_options *opt,
 
 /* One scene, every memory limit, proxy setting and queueing policy; checks
 ** the budget and that proxies only ever remove work. */
-static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, const char *name)
+static void sweep_settings(const fixture *f, uint32_t point_tris, uint32_t res, const char *name)
 {
-    brt_scene *scene = build_scene(&f->scene, batch_tris, res, tu_scratch(name));
+    brt_scene *scene = build_scene(&f->scene, point_tris, res, tu_scratch(name));
     brt_trace_options opt;
     brt_stats all, none, stats, paper[2];   /* paper: the paper's scheduler, no limit */
     char what[200];
@@ -140,15 +140,15 @@ static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, 
     for (proxy = 0; proxy < 2; proxy++) {
         opt.no_proxy = !proxy;
         snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, proxies %s, all queued", name,
-                 batch_tris, res, proxy ? "on" : "off");
+                 point_tris, res, proxy ? "on" : "off");
         if (!trace_matches(f, scene, &opt, &paper[proxy], what)) goto done;
     }
     opt.paper_scheduler = 0;
     opt.no_proxy = 1;
-    snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, no proxy", name, batch_tris, res);
+    snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, no proxy", name, point_tris, res);
     if (!trace_matches(f, scene, &opt, &none, what)) goto done;
     opt.no_proxy = 0;
-    snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, proxies", name, batch_tris, res);
+    snprintf(what, sizeof what, "%s, batch %u, res %u, no limit, proxies", name, point_tris, res);
     if (!trace_matches(f, scene, &opt, &all, what)) goto done;
     /* Proxies only cull: never more visits, nor (with every blob kept)
     ** more loads.  (Under a tight limit the schedule changes, so loads are
@@ -163,7 +163,7 @@ static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, 
     EXPECT(paper[1].proxy_tests > 0, "%s: the paper's scheduler tested no proxy", what);
     EXPECT(all.proxy_tests >= all.proxy_culled, "%s: more culls than tests", what);
     EXPECT(none.proxy_tests == 0 && none.proxy_bytes == 0, "%s: --no-proxy ran proxy tests", what);
-    EXPECT(none.rays == f->count && all.batching_points == brt_scene_batch_count(scene),
+    EXPECT(none.rays == f->count && all.batching_points == brt_scene_point_count(scene),
            "%s: statistics count %llu rays", what, (unsigned long long)none.rays);
     limits[0] = 1;                                   /* less than one batching point */
     limits[1] = none.geometry_bytes / 2 + 1;          /* half */
@@ -176,7 +176,7 @@ static void sweep_settings(const fixture *f, uint32_t batch_tris, uint32_t res, 
             opt.no_proxy = !proxy;
             opt.paper_scheduler = setting >> 1;
             snprintf(what, sizeof what, "%s, batch %u, res %u, limit %llu, proxies %s%s", name,
-                     batch_tris, res, (unsigned long long)limits[l], proxy ? "on" : "off",
+                     point_tris, res, (unsigned long long)limits[l], proxy ? "on" : "off",
                      opt.paper_scheduler ? ", all queued" : "");
             if (!trace_matches(f, scene, &opt, &stats, what)) break;
             check_visits(&stats, &opt, paper, what);
@@ -388,7 +388,7 @@ static void test_flat_boxes(void)
 }
 
 /* A shared mesh loaded from disk. */
-static void compare_shared_mesh(const char *name, uint32_t batch_tris, size_t per_kind)
+static void compare_shared_mesh(const char *name, uint32_t point_tris, size_t per_kind)
 {
     const char *path = test_shared_mesh(name);
     brt_mesh mesh;
@@ -405,7 +405,7 @@ static void compare_shared_mesh(const char *name, uint32_t batch_tris, size_t pe
     f.scene.vcount = f.scene.vcap = mesh.vertex_count;
     f.scene.tcount = f.scene.tcap = mesh.triangle_count;
     CHECK(fixture_rays(&f, per_kind, test_seed()), "direct BVH build failed");
-    sweep_settings(&f, batch_tris, 64, name);
+    sweep_settings(&f, point_tris, 64, name);
     fixture_free(&f);
 }
 
@@ -629,14 +629,14 @@ static void write_obj(const tu_scene *s, const char *path)
     fclose(fp);
 }
 
-static int prepare(const char *mesh, const char *path, uint32_t batch_tris, int *rebuilt,
+static int prepare(const char *mesh, const char *path, uint32_t point_tris, int *rebuilt,
                    brt_error *err)
 {
     brt_scene_options opt;
     brt_scene *scene = NULL;
     brt_result r;
     memset(&opt, 0, sizeof opt);
-    opt.batch_tris = batch_tris;
+    opt.point_tris = point_tris;
     opt.proxy_res = 16;
     r = brt_scene_prepare(mesh, path, &opt, &scene, rebuilt, err);
     brt_scene_close(scene);
@@ -731,7 +731,7 @@ static void expect_forged(const char *good, size_t at, uint32_t value, const cha
            "a format error about '%s'", at, brt_result_string(r), err.message, words);
 }
 
-/* The offset of section s (0 batch table, 1 top level, 2 proxy pool) in
+/* The offset of section s (0 point table, 1 top level, 2 proxy pool) in
 ** a scene file (header layout in scene.c), or 0. */
 static long section_offset(const char *path, int s)
 {
@@ -778,9 +778,9 @@ static void test_scene_errors(void)
     expect_damaged(good, (long)info.st_size - 4096 - 1, 1, "outside the file");
     expect_damaged(good, 100, 1, "truncated");
     /* In each section, damage only its checksum sees: the low byte of a
-    ** box coordinate (batch table, top level), the pool's magic. */
+    ** box coordinate (point table, top level), the pool's magic. */
     CHECK(section_offset(good, 0) > 0, "no sections in %s", good);
-    expect_damaged(good, section_offset(good, 0), 0, "batch table checksum");
+    expect_damaged(good, section_offset(good, 0), 0, "point table checksum");
     expect_damaged(good, section_offset(good, 1), 0, "top-level BVH checksum");
     expect_damaged(good, section_offset(good, 2), 0, "proxy pool checksum");
     /* Checksums repaired: the first batch entry's proxy resolution (at
@@ -853,9 +853,9 @@ static void test_read_faults(void)
 
 /* README, "A reader's path" 1: batching points are "top-down median splits
 ** ... at multiples of the batch size, so the points are full", and "none
-** over the limit": for --batch-tris N on M triangles (one bucket) that is
+** over the limit": for --point-tris N on M triangles (one bucket) that is
 ** ceil(M / N) points, every one holding N triangles but at most one (M mod
-** N).  Read from the scene file's header and batch table (README layout:
+** N).  Read from the scene file's header and point table (README layout:
 ** the count at byte 32, a point's triangles at byte 48 of its 80), at N =
 ** M (one point), M - 1 (two: M - 1 and 1), and sizes between. */
 static void test_points_are_full(void)
@@ -878,16 +878,16 @@ static void test_points_are_full(void)
         f = tu_slurp(tu_scratch("full.brs"), &size);
         CHECK(f && size >= 256, "no scene file");
         points = brt_get_le32(f + 32);
-        EXPECT(points == want, "--batch-tris %u on %u triangles: %u batching points, want %u", (unsigned)n,
+        EXPECT(points == want, "--point-tris %u on %u triangles: %u batching points, want %u", (unsigned)n,
                (unsigned)m, (unsigned)points, (unsigned)want);
         for (j = 0; j < points && brt_get_le64(f + 56) + 80u * (j + 1) <= size; j++) {
             const uint32_t t = brt_get_le32(f + brt_get_le64(f + 56) + 80u * j + 48);
             total += t;
-            EXPECT(t <= n, "--batch-tris %u: point %u holds %u triangles", (unsigned)n, (unsigned)j, (unsigned)t);
+            EXPECT(t <= n, "--point-tris %u: point %u holds %u triangles", (unsigned)n, (unsigned)j, (unsigned)t);
             partial += t != n;
         }
         EXPECT(total == m && partial == (m % n != 0) && (m % n == 0 || partial == 1),
-               "--batch-tris %u: %u triangles in the points, %u not full (want %u)", (unsigned)n, (unsigned)total,
+               "--point-tris %u: %u triangles in the points, %u not full (want %u)", (unsigned)n, (unsigned)total,
                (unsigned)partial, (unsigned)(m % n != 0));
         free(f);
     }
@@ -897,7 +897,7 @@ static void test_points_are_full(void)
 void suite_batched(void)
 {
     test_run("batched: == direct, soups, batch sizes 1..100000", test_soup_batch_sizes);
-    test_run("batched: --batch-tris N on M triangles makes ceil(M/N) full points", test_points_are_full);
+    test_run("batched: --point-tris N on M triangles makes ceil(M/N) full points", test_points_are_full);
     test_run("batched: == direct, proxy resolutions 2..256", test_soup_resolutions);
     test_run("batched: == direct, scales 1e-3 and 1e5", test_soup_scales);
     test_run("batched: == direct, flat batching-point boxes", test_flat_boxes);

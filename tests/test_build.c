@@ -36,12 +36,12 @@
 /* The build's knobs in one call: the options it returns (a zeroed struct
 ** is the default) and, for every build that follows, the bucket and the
 ** chunk (testing.h: brt_test_build_sizes; 0 is the default). */
-static brt_scene_options build_options(uint32_t batch_tris, uint32_t res, uint32_t bucket,
+static brt_scene_options build_options(uint32_t point_tris, uint32_t res, uint32_t bucket,
                                        uint32_t chunk)
 {
     brt_scene_options opt;
     memset(&opt, 0, sizeof opt);
-    opt.batch_tris = batch_tris;
+    opt.point_tris = point_tris;
     opt.proxy_res = res;
     brt_test_build_sizes(chunk, bucket);
     return opt;
@@ -131,7 +131,7 @@ static void build_and_compare(const tu_scene *s, const brt_triangle_source *sour
     if (brt_scene_triangle_count(scene) != s->tcount)
         test_fail_at(__FILE__, __LINE__, "%s: %u triangles in the scene, %u in the mesh", what,
                      brt_scene_triangle_count(scene), s->tcount);
-    else if (brt_scene_check_partition(scene, opt->batch_tris, &err) != BRT_OK)
+    else if (brt_scene_check_partition(scene, opt->point_tris, &err) != BRT_OK)
         test_fail_at(__FILE__, __LINE__, "%s: %s", what, err.message);
     else
         hits_match(s, scene, per_kind, what);
@@ -141,11 +141,11 @@ static void build_and_compare(const tu_scene *s, const brt_triangle_source *sour
 /* The same over a mesh in memory, with a bucket of a few batching points
 ** and a chunk smaller than a bucket, so every mesh of more than a bucket
 ** is split, scattered through several buffer flushes, and built. */
-static void compare_memory(const tu_scene *s, uint32_t batch_tris, const char *what)
+static void compare_memory(const tu_scene *s, uint32_t point_tris, const char *what)
 {
     brt_mesh mesh = tu_mesh_view(s);
     brt_triangle_source source;
-    brt_scene_options opt = build_options(batch_tris, 16, 3 * batch_tris, batch_tris / 2 + 1);
+    brt_scene_options opt = build_options(point_tris, 16, 3 * point_tris, point_tris / 2 + 1);
     brt_mesh_memory_source(&mesh, &source);
     build_and_compare(s, &source, &opt, 300, what);
 }
@@ -381,7 +381,7 @@ static void test_bucket_larger_than_chunk(void)
 
 /* A mesh that fits one bucket gives the file of a whole in-memory median
 ** split, whatever the bucket size above it; the build is deterministic;
-** the checker refuses a smaller batch_tris. */
+** the checker refuses a smaller point_tris. */
 static void test_one_bucket_and_checker(void)
 {
     uint64_t st = test_seed() + 16;
@@ -409,8 +409,8 @@ static void test_one_bucket_and_checker(void)
     free(b);
     free(c);
     CHECK(brt_scene_open(tu_scratch("one1.brs"), &scene, &err) == BRT_OK, "%s", err.message);
-    EXPECT(brt_scene_batch_count(scene) == 40, "%u batching points, expected 40 full ones",
-           brt_scene_batch_count(scene));
+    EXPECT(brt_scene_point_count(scene) == 40, "%u batching points, expected 40 full ones",
+           brt_scene_point_count(scene));
     EXPECT(brt_scene_check_partition(scene, 50, &err) == BRT_OK, "%s", err.message);
     EXPECT(brt_scene_check_partition(scene, 49, &err) == BRT_ECHECK && strstr(err.message, "holds 50"),
            "the checker accepted 50 triangles under a limit of 49");
@@ -537,7 +537,7 @@ static brt_result open_with_blob_extent(const unsigned char *base, size_t size, 
     brt_result r;
     if (!f) return BRT_ENOMEM;
     memcpy(f, base, size);
-    entry = brt_get_le64(f + 56) + 80;              /* batch table entry 1 */
+    entry = brt_get_le64(f + 56) + 80;              /* point table entry 1 */
     brt_put_le64(f + entry + 24, offset);
     brt_put_le64(f + entry + 32, blob_size);
     fuzz_repair_scene_checksums(f, size);
@@ -610,7 +610,7 @@ static brt_result emit_clusters(const void *user, brt_triangle_fn emit, void *em
 /* Buckets of 1000 (smaller than the 4000 triangles, so the spill splits
 ** the stream by its centroids) and batching points of 100: a spatial split
 ** gives each cluster its own bucket, so every batching point's box (read
-** from the file's batch table) lies in one cluster, less than 2 wide in x;
+** from the file's point table) lies in one cluster, less than 2 wide in x;
 ** full buckets give exactly 40 points.  A split that fell back to stream
 ** order would mix the clusters in every point. */
 static void test_buckets_spatial_and_full(void)

@@ -212,22 +212,26 @@ static int write_lumpy_mesh(tu_scene *m, const char *name)
 static void test_renamed_options(void)
 {
     static const char *const programs[] = {"trace", "render", "voxelize", "bench_svdag", "bench_batched",
-                                           "embree_trace"};
+                                           "figures", "embree_trace"};
+    static const char *const renamed[][2] = {
+        {"--res", "--proxy-res"}, {"--batch-tris", "--point-tris"}, {"--batch-instanced", "--point-instanced"}};
     const char *build = getenv("BRT_BUILD") ? getenv("BRT_BUILD") : "build";
     char embree[600], *err;
-    size_t i;
+    size_t i, k;
     snprintf(embree, sizeof embree, "%s/embree_trace", build);
-    for (i = 0; i < sizeof programs / sizeof *programs; i++) {
-        char want[128];
-        int status;
-        if (strcmp(programs[i], "embree_trace") == 0 && !tu_file_exists(embree)) continue;
-        status = tu_run("%s --res 8 x.obj x.rays x.hits", programs[i]);
-        err = tu_last_stderr();
-        snprintf(want, sizeof want, "%s: --res is now --proxy-res (see --help)\n", programs[i]);
-        EXPECT(status == 1 && err && strcmp(err, want) == 0, "%s --res: exit %d, said '%s', want '%s'",
-               programs[i], status, err ? err : "", want);
-        free(err);
-    }
+    for (i = 0; i < sizeof programs / sizeof *programs; i++)
+        for (k = 0; k < sizeof renamed / sizeof *renamed; k++) {
+            char want[128];
+            int status;
+            if (strcmp(programs[i], "embree_trace") == 0 && !tu_file_exists(embree)) continue;
+            status = tu_run("%s %s 8 x.obj x.rays x.hits", programs[i], renamed[k][0]);
+            err = tu_last_stderr();
+            snprintf(want, sizeof want, "%s: %s is now %s (see --help)\n", programs[i], renamed[k][0],
+                     renamed[k][1]);
+            EXPECT(status == 1 && err && strcmp(err, want) == 0, "%s %s: exit %d, said '%s', want '%s'",
+                   programs[i], renamed[k][0], status, err ? err : "", want);
+            free(err);
+        }
     EXPECT(tu_run("trace x.obj x.rays x.hits --resolution 8") == 1, "trace --resolution accepted");
     err = tu_last_stderr();
     EXPECT(err && strcmp(err, "trace: unknown option '--resolution' (see --help)\n") == 0, "trace --resolution: %s",
@@ -549,8 +553,8 @@ static void test_trace_stats(void)
 static void test_trace_batched(void)
 {
     static const char *const settings[] = {
-        "--batch-tris 1 --proxy-res 2 --memory 1K", "--batch-tris 7 --proxy-res 16 --no-proxy",
-        "--batch-tris 1000 --proxy-res 256 --memory 64K", "--batch-tris 40 --proxy-res 64 --memory 20K"};
+        "--point-tris 1 --proxy-res 2 --memory 1K", "--point-tris 7 --proxy-res 16 --no-proxy",
+        "--point-tris 1000 --proxy-res 256 --memory 64K", "--point-tris 40 --proxy-res 64 --memory 20K"};
     tu_scene m = {0};
     unsigned char *direct, *batched;
     size_t i, n_direct = 0, n_batched = 0;
@@ -590,7 +594,7 @@ static void test_trace_batched(void)
     free(err);
     /* Without --scene the file goes to $BRT_SCENE_DIR. */
     setenv("BRT_SCENE_DIR", tu_scratch("scenes"), 1);
-    status = tu_run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --batch-tris 100");
+    status = tu_run("trace @/lumpy.obj @/batched.rays @/batched.hits --batched --point-tris 100");
     EXPECT(status == 0 && tu_file_exists(tu_scratch("scenes")), "default scene folder: exit %d", status);
     unsetenv("BRT_SCENE_DIR");
     free(direct);
@@ -703,7 +707,7 @@ static const bad_case bad_cases[] = {
     {"trace @/good.obj @/good.rays @/bad7.hits --proxy-res 2048", "--proxy-res", "bad7.hits"},
     {"trace @/good.obj @/good.rays @/bad8.hits --memory 0", "--memory", "bad8.hits"},
     {"trace @/good.obj @/good.rays @/bad9.hits --memory 12X", "--memory", "bad9.hits"},
-    {"trace @/good.obj @/good.rays @/bad10.hits --batch-tris 0", "--batch-tris", "bad10.hits"},
+    {"trace @/good.obj @/good.rays @/bad10.hits --point-tris 0", "--point-tris", "bad10.hits"},
     {"trace @/good.obj @/good.rays @/bad11.hits --proxy-res", "--proxy-res", "bad11.hits"},
     {"trace @/good.obj @/good.rays @/bad11.hits --batched --rays-in-flight 0", "--rays-in-flight", "bad11.hits"},
     {"trace @/good.obj @/good.rays", "HITS", NULL},
@@ -909,19 +913,19 @@ static void test_source_stamp_parts(void)
 ** file turned to garbage, which --direct then refuses. */
 static void test_batched_needs_no_mesh(void)
 {
-    const char *render = "render @/nomesh.ply --scene @/nomesh-r.brs --batch-tris 500 --width 24 "
+    const char *render = "render @/nomesh.ply --scene @/nomesh-r.brs --point-tris 500 --width 24 "
                          "--height 16 --spp 2";
     char *err;
     int status;
     CHECK(tu_run("mkscene crown @/nomesh.ply --scale 0.05") == 0, "mkscene failed");
     CHECK(tu_run("raygen @/nomesh.ply @/nomesh.rays --kind bounce --count 2000") == 0, "raygen failed");
     CHECK(tu_run("trace @/nomesh.ply @/nomesh.rays @/nomesh-direct.hits") == 0, "trace failed");
-    CHECK(tu_run("trace @/nomesh.ply @/nomesh.rays @/nomesh-built.hits --batched --batch-tris 500 "
+    CHECK(tu_run("trace @/nomesh.ply @/nomesh.rays @/nomesh-built.hits --batched --point-tris 500 "
                  "--scene @/nomesh.brs") == 0, "trace --batched failed");
     CHECK(tu_run("%s --out @/nomesh-built.png", render) == 0, "render failed");
     CHECK(garble_keeping_stamp(tu_scratch("nomesh.ply")), "cannot garble the mesh");
     status = tu_run("trace @/nomesh.ply @/nomesh.rays @/nomesh-reused.hits --batched "
-                    "--batch-tris 500 --scene @/nomesh.brs --verbose");
+                    "--point-tris 500 --scene @/nomesh.brs --verbose");
     err = tu_last_stderr();
     EXPECT(status == 0 && err && strstr(err, "(reused)"), "trace --batched on the garbled mesh: "
            "exit %d, stderr '%s'", status, err ? err : "");
@@ -1327,7 +1331,7 @@ static void test_builtin_scenes_batched_equals_direct(void)
             CHECK(tu_run("raygen @/bi-%s @/bi.rays --kind %s --count 1500", files[i], kinds[k]) == 0,
                   "raygen failed");
             CHECK(tu_run("trace @/bi-%s @/bi.rays @/bi-direct.hits", files[i]) == 0, "trace failed");
-            CHECK(tu_run("trace @/bi-%s @/bi.rays @/bi-batched.hits --batched --batch-tris 400 "
+            CHECK(tu_run("trace @/bi-%s @/bi.rays @/bi-batched.hits --batched --point-tris 400 "
                          "--proxy-res 32 --memory 40K --scene @/bi-%s.brs", files[i], name) == 0,
                   "trace --batched failed");
             EXPECT(tu_same_file_bytes(tu_scratch("bi-direct.hits"), tu_scratch("bi-batched.hits")),
@@ -1412,7 +1416,8 @@ void suite_cli(void)
 {
 test_run("cli: the source stamp sees mtime (ns and s), size and inode alone", test_source_stamp_parts);
         test_run("cli: --help of every program", test_help);
-        test_run("cli: a renamed option names its new name (--res is now --proxy-res)", test_renamed_options);
+        test_run("cli: a renamed option names its new name (--res, --batch-tris, --batch-instanced)",
+                 test_renamed_options);
     test_run("cli: minimal runs", test_minimal);
     test_run("cli: minimal_batched equals the direct mode and removes its scene file",
              test_minimal_batched);

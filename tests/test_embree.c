@@ -253,7 +253,7 @@ static void check_kind(const char *mesh_path, const brt_mesh *mesh, const char *
     scratch(embree_path, "embree.hits");
     /* Small batching points, coarse proxies and a tiny cache: many loads. */
     snprintf(batched_options, sizeof batched_options,
-             "--batched --batch-tris 4000 --proxy-res 32 --memory 256K --scene '%s'",
+             "--batched --point-tris 4000 --proxy-res 32 --memory 256K --scene '%s'",
              scratch(scene, "embree.brs"));
     if (edge_rays)
         CHECK(write_edge_rays(mesh, rays_path), "%s: cannot write %s", label, rays_path);
@@ -464,7 +464,7 @@ static void check_instanced_scene(const char *name)
         CHECK(run("raygen '%s' '%s' --kind %s --count 40000 --seed %d", scene, rays, kinds[k], k + 1)
               == 0, "raygen %s", kinds[k]);
         CHECK(run("trace '%s' '%s' '%s' --direct", scene, rays, d) == 0, "trace --direct");
-        CHECK(run("trace '%s' '%s' '%s' --batched --batch-tris 3000 --memory 300K --scene '%s' "
+        CHECK(run("trace '%s' '%s' '%s' --batched --point-tris 3000 --memory 300K --scene '%s' "
                   "--rebuild", scene, rays, b, brs) == 0, "trace --batched");
         CHECK(run("embree_trace '%s' '%s' '%s'", scene, rays, e) == 0, "embree_trace");
         hd = tu_slurp(d, &nd);

@@ -169,7 +169,7 @@ static brt_result run_processes(const char *path, const run_setup *setup, const 
         process *p = &procs[i];
         r = brt_scene_open(path, &p->scene, err);
         if (r != BRT_OK) break;
-        points = brt_scene_batch_count(p->scene);
+        points = brt_scene_point_count(p->scene);
         p->net = &net;
         p->rank = i;
         p->rays = rays;
@@ -228,9 +228,9 @@ typedef struct fixture {
     char path[4096];
 } fixture;
 
-/* A soup of triangles in batching points of batch_tris, rays of every
+/* A soup of triangles in batching points of point_tris, rays of every
 ** kind, and the direct mode's hits and occlusion bytes. */
-static int fixture_make(fixture *f, uint32_t triangles, float size, uint32_t batch_tris,
+static int fixture_make(fixture *f, uint32_t triangles, float size, uint32_t point_tris,
                         size_t per_kind, const char *name)
 {
     brt_scene *scene;
@@ -242,7 +242,7 @@ static int fixture_make(fixture *f, uint32_t triangles, float size, uint32_t bat
     memset(f, 0, sizeof *f);
     tu_random_soup(&f->scene, &st, triangles, size);
     snprintf(f->path, sizeof f->path, "%s", tu_scratch(name));
-    scene = tu_build_scene(&f->scene, batch_tris, 32, 1, f->path);
+    scene = tu_build_scene(&f->scene, point_tris, 32, 1, f->path);
     if (!scene) return 0;
     brt_scene_close(scene);
     tu_scene_bounds(&f->scene, lo, hi);
@@ -355,7 +355,7 @@ static void test_assign(void)
     uint32_t owner[4096], counts[MAX_PROCESSES], n, i, p;
     CHECK(fixture_make(&f, 3000, 0.04f, 25, 1, "assign.brs"), "fixture");
     CHECK(brt_scene_open(f.path, &scene, &err) == BRT_OK, "%s", err.message);
-    n = brt_scene_batch_count(scene);
+    n = brt_scene_point_count(scene);
     CHECK(n > 8 && n < 4096, "%u points", n);
     for (p = 1; p <= MAX_PROCESSES; p++) {
         uint32_t most = 0, least = n;

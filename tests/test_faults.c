@@ -40,7 +40,7 @@ static brt_result run_operation(const operation *op, brt_error *err)
     brt_scene *scene = NULL;
     brt_result r;
     memset(&opt, 0, sizeof opt);
-    opt.batch_tris = 100;
+    opt.point_tris = 100;
     opt.proxy_res = 16;
     opt.threads = 1;                    /* one countdown: no reader beside it */
     if (!op->mesh && !op->source) {

@@ -157,10 +157,10 @@ static int make_landscape(void)
 }
 
 static const char *const follow_settings[] = {
-    "--batch-tris 2000 --memory 200K --threads 1 --scene @/f.brs",
-    "--batch-tris 2000 --memory 200K --threads 2 --scene @/f.brs",
-    "--batch-tris 2000 --memory 200K --paper-scheduler --scene @/f.brs",
-    "--batch-tris 2000 --no-proxy --scene @/f.brs",
+    "--point-tris 2000 --memory 200K --threads 1 --scene @/f.brs",
+    "--point-tris 2000 --memory 200K --threads 2 --scene @/f.brs",
+    "--point-tris 2000 --memory 200K --paper-scheduler --scene @/f.brs",
+    "--point-tris 2000 --no-proxy --scene @/f.brs",
 };
 
 static void test_follow_closest(void)

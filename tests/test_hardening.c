@@ -236,10 +236,10 @@ static const bad_run bad_runs[] = {
     {"trace @/tri.obj @/good.rays @/b21.hits --memory 99999999999G", 1,
      "trace: --memory: expected a size above 0 such as 512M (suffix K, M or G), got "
      "'99999999999G'", "b21.hits"},
-    {"trace @/tri.obj @/good.rays @/b22.hits --batch-tris -1", 1,
-     "trace: --batch-tris: expected an integer in 1..4294967295, got '-1'", "b22.hits"},
-    {"trace @/tri.obj @/good.rays @/b23.hits --batch-tris 4294967296", 1,
-     "trace: --batch-tris: expected an integer in 1..4294967295, got '4294967296'", "b23.hits"},
+    {"trace @/tri.obj @/good.rays @/b22.hits --point-tris -1", 1,
+     "trace: --point-tris: expected an integer in 1..4294967295, got '-1'", "b22.hits"},
+    {"trace @/tri.obj @/good.rays @/b23.hits --point-tris 4294967296", 1,
+     "trace: --point-tris: expected an integer in 1..4294967295, got '4294967296'", "b23.hits"},
     {"trace @/tri.obj @/good.rays @/b24.hits --stats @/no_such_dir/b24.json", 1,
      "trace: @/no_such_dir/b24.json: cannot create: No such file or directory", "b24.hits"},
     {"raygen @/tri.obj @/b25.rays --kind random --count 4294967296", 1,
@@ -404,7 +404,7 @@ static void test_empty_ray_file(void)
 static void test_one_pixel_render(void)
 {
     static const char *const modes[] = {
-        "--direct", "--batch-tris 1 --proxy-res 2 --memory 1 --rays-in-flight 1 --scene @/px1.brs",
+        "--direct", "--point-tris 1 --proxy-res 2 --memory 1 --rays-in-flight 1 --scene @/px1.brs",
         "--no-proxy --scene @/px2.brs"};
     char *first = NULL, *png = NULL;
     int i;
@@ -466,10 +466,10 @@ static int bench_rays(bench *b, size_t per_kind, uint64_t seed)
     return 1;
 }
 
-static int bench_scene(bench *b, uint32_t batch_tris, uint32_t res, const char *name)
+static int bench_scene(bench *b, uint32_t point_tris, uint32_t res, const char *name)
 {
     brt_scene_close(b->scene);
-    b->scene = tu_build_scene(&b->mesh, batch_tris, res, 0, scratch(name));
+    b->scene = tu_build_scene(&b->mesh, point_tris, res, 0, scratch(name));
     return b->scene != NULL;
 }
 
@@ -712,7 +712,7 @@ static brt_result build_scene(void *arg)
     build_job *job = arg;
     brt_scene_options opt;
     memset(&opt, 0, sizeof opt);
-    opt.batch_tris = 50;
+    opt.point_tris = 50;
     opt.proxy_res = 8;
     return brt_scene_build(job->mesh, &opt, 1, job->path, &job->err);
 }
@@ -928,7 +928,7 @@ static brt_result write_one(void *arg)
     memset(rays, 0, sizeof rays);
     memset(&stats, 0, sizeof stats);
     memset(&opt, 0, sizeof opt);
-    opt.batch_tris = 50;
+    opt.point_tris = 50;
     opt.proxy_res = 8;
     switch (job->which) {
     case 0: return brt_hits_write(job->path, hits, 64, &job->err);
@@ -1253,7 +1253,7 @@ static void forge_header_nodes(forged *f)
     forge_u32(f, 40, 5);
     forge_u64(f, 88, 5 * 112);
 }
-/* header: the batch table, or the top level, one record longer than its count */
+/* header: the point table, or the top level, one record longer than its count */
 static void forge_header_table(forged *f) { forge_u64(f, 64, forged_u64(f, 64) + 80); }
 static void forge_header_top(forged *f) { forge_u64(f, 88, forged_u64(f, 88) + 112); }
 static void forge_batch_box(forged *f) { forge_f32(f, entry_at(f, 1), NAN); }
@@ -1308,7 +1308,7 @@ static void forge_endian(forged *f) { forge_u32(f, 12, 0x04030201u); }
 static void forge_v4_empty(forged *f) { forge_u32(f, 8, 4); }
 /* Sections (header 56 + 24 s: offset, size): the proxy pool's offset past
 ** the end, its size wrapping offset + size around 2^64, its size one byte
-** past the end; the batch table overlapping the end; the top level's
+** past the end; the point table overlapping the end; the top level's
 ** offset near 2^64.  (The table sizes themselves are check_header's.) */
 static void forge_pool_offset(forged *f) { forge_u64(f, 104, f->size + 4096); }
 static void forge_pool_wrap(forged *f) { forge_u64(f, 112, UINT64_MAX - forged_u64(f, 104) + 4097); }
@@ -1343,15 +1343,15 @@ typedef struct forgery {
 static const forgery forgeries[] = {
     {"header_points.brs", forge_header_points, "header: no batching points"},
     {"header_nodes.brs", forge_header_nodes, "header: 5 top-level nodes for 4 batching points"},
-    {"header_table.brs", forge_header_table, "header: batch table has the wrong size"},
+    {"header_table.brs", forge_header_table, "header: point table has the wrong size"},
     {"header_top.brs", forge_header_top, "header: top-level section has the wrong size"},
     {"batch_box.brs", forge_batch_box, "batching point 1: box not finite"},
     {"blob_extent.brs", forge_blob_extent, "batching point 1: blob outside the file"},
     {"proxy_root.brs", forge_proxy_root, "batching point 1: invalid proxy"},
     {"proxy_res.brs", forge_proxy_res, "batching point 0: invalid proxy"},
     {"inner_root.brs", forge_inner_root, "batching point 1: invalid inner proxy"},
-    {"triangle_sum.brs", forge_triangle_sum, "batch table: batching points hold 25 triangles"},
-    {"byte_sum.brs", forge_byte_sum, "batch table: blobs hold"},
+    {"triangle_sum.brs", forge_triangle_sum, "point table: batching points hold 25 triangles"},
+    {"byte_sum.brs", forge_byte_sum, "point table: blobs hold"},
     {"top_box.brs", forge_top_box, "top-level node 0: box not finite"},
     {"top_nesting.brs", forge_top_nesting, "top-level node 0: box does not hold batching point"},
     {"top_leaf.brs", forge_top_leaf, "top-level node 0: bad leaf"},
@@ -1372,7 +1372,7 @@ static const forgery forgeries[] = {
     {"pool_offset.brs", forge_pool_offset, "proxy pool lies outside the file"},
     {"pool_wrap.brs", forge_pool_wrap, "proxy pool lies outside the file"},
     {"pool_past.brs", forge_pool_past, "proxy pool lies outside the file"},
-    {"table_end.brs", forge_table_end, "batch table lies outside the file"},
+    {"table_end.brs", forge_table_end, "point table lies outside the file"},
     {"top_offset.brs", forge_top_offset, "top-level BVH lies outside the file"},
     {"blob_overlap.brs", forge_blob_overlap, "blob table: blobs overlap at byte 4096"},
     {"blob_header.brs", forge_blob_header, "blob table: blobs overlap at byte 0"},
@@ -1463,7 +1463,7 @@ static void test_forged_node_nesting(void)
     brt_result r;
     fuzz_fixed_mesh(&mesh);
     memset(&opt, 0, sizeof opt);
-    opt.batch_tris = 1;
+    opt.point_tris = 1;
     opt.proxy_res = 4;
     CHECK(brt_scene_build(&mesh, &opt, 0, scratch("nodes_base.brs"), &err) == BRT_OK, "%s", err.message);
     base.file = tu_slurp(scratch("nodes_base.brs"), &base.size);
@@ -1621,7 +1621,7 @@ static void test_extreme_scene_opens(void)
     brt_error err;
     float t, u, v;
     memset(&sopt, 0, sizeof sopt);
-    sopt.batch_tris = 1;   /* two batching points */
+    sopt.point_tris = 1;   /* two batching points */
     CHECK(brt_scene_build(&mesh, &sopt, 0, scratch("extreme.brs"), &err) == BRT_OK, "%s", err.message);
     CHECK(brt_scene_open(scratch("extreme.brs"), &scene, &err) == BRT_OK, "%s", err.message);
     memset(&opt, 0, sizeof opt);

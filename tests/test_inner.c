@@ -8,7 +8,7 @@
 ** that are almost closed (one triangle removed, a hole smaller than a
 ** voxel), nested shells, touching and overlapping solids, and solids cut
 ** by batching-point boundaries.  And the mechanism is on: closed solids
-** get inner voxels that stop rays (shadow_inner_stopped), open ones none.
+** get inner voxels that stop rays (occlusion_inner_stopped), open ones none.
 */
 #include "test.h"
 #include "util.h"
@@ -371,7 +371,7 @@ static void test_open_geometry_walls_nothing(void)
 ** stop rays when each ball lies in one bucket of the build (whether or not
 ** batching points cut it), and none when the buckets cut the balls (their
 ** components are open in each). */
-static void check_scene(const tu_scene *s, uint32_t batch_tris, uint32_t bucket_tris, int expect_stopped,
+static void check_scene(const tu_scene *s, uint32_t point_tris, uint32_t bucket_tris, int expect_stopped,
                         const char *what)
 {
     static const uint64_t limits[] = {0, 1};
@@ -389,7 +389,7 @@ static void check_scene(const tu_scene *s, uint32_t batch_tris, uint32_t bucket_
         exact[i] = (uint8_t)tu_brute_occluded(s, &rays[i]);
     }
     memset(&sopt, 0, sizeof sopt);
-    sopt.batch_tris = batch_tris;
+    sopt.point_tris = point_tris;
     sopt.proxy_res = 32;
     brt_test_build_sizes(0, bucket_tris);
     CHECK(brt_scene_build(&mesh, &sopt, 0, tu_scratch("inner.brs"), &err) == BRT_OK, "%s", err.message);
@@ -410,13 +410,13 @@ static void check_scene(const tu_scene *s, uint32_t batch_tris, uint32_t bucket_
                 break;
             }
         if (topt.no_inner || !expect_stopped)
-            EXPECT(stats.shadow_inner_stopped == 0, "%s, inner %s: %llu rays stopped", what,
-                   topt.no_inner ? "off" : "on", (unsigned long long)stats.shadow_inner_stopped);
+            EXPECT(stats.occlusion_inner_stopped == 0, "%s, inner %s: %llu rays stopped", what,
+                   topt.no_inner ? "off" : "on", (unsigned long long)stats.occlusion_inner_stopped);
         else
-            EXPECT(stats.shadow_inner_stopped > stats.shadow_occluded / 10,
+            EXPECT(stats.occlusion_inner_stopped > stats.occlusion_hits / 10,
                    "%s: inner proxies stopped %llu of %llu occluded rays", what,
-                   (unsigned long long)stats.shadow_inner_stopped,
-                   (unsigned long long)stats.shadow_occluded);
+                   (unsigned long long)stats.occlusion_inner_stopped,
+                   (unsigned long long)stats.occlusion_hits);
     }
     brt_scene_close(scene);
     free(rays);
@@ -446,9 +446,9 @@ static void test_scene_balls(void)
 /* trace --occlusion: the same file direct, batched, inner on and off. */
 static void test_trace_files(void)
 {
-    static const char *const runs[] = {"--batched --batch-tris 192 --proxy-res 32",
-                                       "--batched --batch-tris 192 --proxy-res 32 --no-inner",
-                                       "--batched --batch-tris 192 --proxy-res 32 --memory 1"};
+    static const char *const runs[] = {"--batched --point-tris 192 --proxy-res 32",
+                                       "--batched --point-tris 192 --proxy-res 32 --no-inner",
+                                       "--batched --point-tris 192 --proxy-res 32 --memory 1"};
     uint64_t st = test_seed();
     float c[3];
     tu_scene s;
@@ -496,9 +496,9 @@ static void test_trace_files(void)
         EXPECT(other && n_other == n_direct && memcmp(other, direct, n_direct) == 0,
                "trace --occlusion %s: not the bytes of --direct", runs[i]);
         json = (char *)tu_slurp(tu_scratch("inner.json"), NULL);
-        EXPECT(json && strstr(json, "\"shadow_inner_stopped\": ") != NULL &&
-               (strstr(json, "\"shadow_inner_stopped\": 0,") != NULL) == (i == 1),
-               "trace %s: shadow_inner_stopped in the JSON", runs[i]);
+        EXPECT(json && strstr(json, "\"occlusion_inner_stopped\": ") != NULL &&
+               (strstr(json, "\"occlusion_inner_stopped\": 0,") != NULL) == (i == 1),
+               "trace %s: occlusion_inner_stopped in the JSON", runs[i]);
         free(json);
         free(other);
     }
@@ -514,12 +514,12 @@ static void test_render_inner(void)
     size_t size[2], k;
     for (k = 0; k < 2; k++) {
         char *json;
-        CHECK(tu_run("render island --scale 0.2 --batch-tris 2000 --spp 2 --width 48 --height 27 "
+        CHECK(tu_run("render island --scale 0.2 --point-tris 2000 --spp 2 --width 48 --height 27 "
                      "--memory 25%% --scene @/inner-island.brs --out @/inner%zu.png --stats @/inner%zu.json %s",
                      k, k, runs[k]) == 0, "render %s failed", runs[k]);
         json = (char *)tu_slurp(tu_scratch(k ? "inner1.json" : "inner0.json"), NULL);
-        EXPECT(json && (strstr(json, "\"shadow_inner_stopped\": 0,") == NULL) == (k == 0),
-               "render %s: shadow_inner_stopped", runs[k]);
+        EXPECT(json && (strstr(json, "\"occlusion_inner_stopped\": 0,") == NULL) == (k == 0),
+               "render %s: occlusion_inner_stopped", runs[k]);
         free(json);
         png[k] = tu_slurp(tu_scratch(k ? "inner1.png" : "inner0.png"), &size[k]);
     }

@@ -303,7 +303,7 @@ static void test_tie_break(void)
     tu_instanced_free(&s);
 }
 
-static brt_scene *build_instanced(const tu_instanced *s, uint32_t batch_tris, const char *name);
+static brt_scene *build_instanced(const tu_instanced *s, uint32_t point_tris, const char *name);
 
 /* The world normal of instance k's triangle prim: (v1-v0) x (v2-v0) of
 ** the corners carried by its xform in double (not the library's cofactor). */
@@ -619,10 +619,10 @@ static void test_margin_keeps_far_rays(void)
 
 /* Builds s's scene file with so, traces rays through it with opt and
 ** expects brt_world's hits byte for byte; checks the partition when
-** batch_tris is given (0: not).  Returns the scene's batching points. */
+** point_tris is given (0: not).  Returns the scene's batching points. */
 static uint32_t expect_batched_equals_direct(const tu_instanced *s, const brt_scene_options *so,
                                              const brt_trace_options *opt, const brt_ray *rays,
-                                             size_t n, const char *name, uint32_t batch_tris)
+                                             size_t n, const char *name, uint32_t point_tris)
 {
     brt_scene_source src;
     brt_world *w = NULL;
@@ -636,8 +636,8 @@ static uint32_t expect_batched_equals_direct(const tu_instanced *s, const brt_sc
         brt_scene_open(tu_scratch(name), &scene, &err) != BRT_OK) {
         test_fail_at(__FILE__, __LINE__, "%s: %s", name, want && got ? err.message : "out of memory");
     } else {
-        points = brt_scene_batch_count(scene);
-        if (batch_tris && brt_scene_check_partition(scene, batch_tris, &err) != BRT_OK)
+        points = brt_scene_point_count(scene);
+        if (point_tris && brt_scene_check_partition(scene, point_tris, &err) != BRT_OK)
             test_fail_at(__FILE__, __LINE__, "%s: %s", name, err.message);
         brt_world_trace(w, rays, NULL, n, want, NULL, 1);
         if (brt_scene_trace(scene, opt, rays, n, got, NULL, &err) != BRT_OK)
@@ -666,8 +666,8 @@ static void test_batched_margin(void)
     brt_ray *rays = margin_case(&s, &st, N);
     CHECK(rays, "out of memory");
     memset(&so, 0, sizeof so);
-    so.batch_tris = 1000;
-    so.batch_instanced = 12;   /* one instance per point: its box is the cube's */
+    so.point_tris = 1000;
+    so.point_instanced = 12;   /* one instance per point: its box is the cube's */
     so.proxy_res = 512;
     memset(&opt, 0, sizeof opt);
     opt.paper_scheduler = 1;
@@ -723,14 +723,14 @@ static void test_object_ray_rounded_once(void)
 /* ===================================================================== */
 
 /* Builds and opens the scene file of an instanced scene. */
-static brt_scene *build_instanced(const tu_instanced *s, uint32_t batch_tris, const char *name)
+static brt_scene *build_instanced(const tu_instanced *s, uint32_t point_tris, const char *name)
 {
     brt_scene_source src;
     brt_scene_options opt;
     brt_scene *scene = NULL;
     brt_error err;
     memset(&opt, 0, sizeof opt);
-    opt.batch_tris = batch_tris;
+    opt.point_tris = point_tris;
     opt.proxy_res = 32;
     tu_instanced_source(s, &src);
     if (brt_scene_build_source(&src, &opt, 7, tu_scratch(name), &err) != BRT_OK ||
@@ -813,7 +813,7 @@ static void test_batched_equals_direct(void)
 
 /* A prototype's blob is read once however many points use it (no
 ** limit), prototype_loads counts it, and a point of instances holds at
-** most batch_tris triangles of distinct prototypes, unless it uses one. */
+** most point_tris triangles of distinct prototypes, unless it uses one. */
 static void test_prototypes_loaded_once(void)
 {
     enum { N = 3000 };
@@ -829,7 +829,7 @@ static void test_prototypes_loaded_once(void)
     rays = instanced_rays(&s, &st, N);
     scene = build_instanced(&s, 40, "once.brs");
     CHECK(scene && rays && hits, "set-up");
-    EXPECT(brt_scene_batch_count(scene) > 8, "only %u batching points", brt_scene_batch_count(scene));
+    EXPECT(brt_scene_point_count(scene) > 8, "only %u batching points", brt_scene_point_count(scene));
     memset(&opt, 0, sizeof opt);
     CHECK(brt_scene_trace(scene, &opt, rays, N, hits, &stats, &err) == BRT_OK, "%s", err.message);
     EXPECT(stats.prototype_loads == 3, "%llu prototype loads for 3 prototypes and no limit",
@@ -958,7 +958,7 @@ static void test_trace_pbrt_instances(void)
                "statistics: %s", json ? json : "(none)");
         free(json);
     }
-    CHECK(tu_run("trace @/plants.pbrt @/plants.rays @/b.hits --batched --batch-tris 3 --proxy-res 16 "
+    CHECK(tu_run("trace @/plants.pbrt @/plants.rays @/b.hits --batched --point-tris 3 --proxy-res 16 "
                  "--memory 8K --threads 2 --scene @/plants.brs") == 0, "batched: %s", tu_last_stderr());
     a = tu_slurp(tu_scratch("d.hits"), &na);
     b = tu_slurp(tu_scratch("b.hits"), &nb);
@@ -1271,7 +1271,7 @@ static void test_instance_buckets(void)
     rays = instanced_rays(&s, &st, N);
     CHECK(rays, "out of memory");
     memset(&so, 0, sizeof so);
-    so.batch_tris = 100000;          /* points cut by the buckets alone */
+    so.point_tris = 100000;          /* points cut by the buckets alone */
     so.proxy_res = 16;
     brt_test_build_sizes(7, 64);     /* chunks of 7, instance buckets of 16 */
     memset(&opt, 0, sizeof opt);

@@ -1257,9 +1257,9 @@ static void test_io_stats_json(void)
                                          "\"queued_visits\": 11,",
                                          "\"oversized_loads\": 12,",
                                          "\"visits\": 13,", "\"resident_visits\": 14,",
-                                         "\"shadow_rays\": 15,", "\"shadow_occluded\": 16,",
-                                         "\"shadow_batch_loads\": 17,", "\"shadow_disk_bytes_read\": 18,",
-                                         "\"peak_rss_bytes\": 19,", "\"shadow_inner_stopped\": 20,",
+                                         "\"occlusion_rays\": 15,", "\"occlusion_hits\": 16,",
+                                         "\"occlusion_batch_loads\": 17,", "\"occlusion_disk_bytes_read\": 18,",
+                                         "\"peak_rss_bytes\": 19,", "\"occlusion_inner_stopped\": 20,",
                                          "\"prototype_loads\": 21,", "\"decoded_bytes\": 22,",
                                          "\"load_seconds\": 0.125,",
                                          "\"seconds\": 1.5,",
@@ -1282,12 +1282,12 @@ static void test_io_stats_json(void)
     s.oversized_loads = 12;
     s.visits = 13;
     s.resident_visits = 14;
-    s.shadow_rays = 15;
-    s.shadow_occluded = 16;
-    s.shadow_batch_loads = 17;
-    s.shadow_disk_bytes_read = 18;
+    s.occlusion_rays = 15;
+    s.occlusion_hits = 16;
+    s.occlusion_batch_loads = 17;
+    s.occlusion_disk_bytes_read = 18;
     s.peak_rss_bytes = 19;
-    s.shadow_inner_stopped = 20;
+    s.occlusion_inner_stopped = 20;
     s.prototype_loads = 21;
     s.decoded_bytes = 22;
     s.load_seconds = 0.125;

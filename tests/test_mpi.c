@@ -140,7 +140,7 @@ static void test_equal_direct(void)
                 snprintf(out, sizeof out, "%s", tu_scratch("mpi.out"));
                 snprintf(ref, sizeof ref, "%s/mpi-%d-%s.%s", test_tmpdir(), m, kinds[k],
                          occlusion ? "occ" : "direct");
-                CHECK(mpi_run(ranks, "", "%s @/mpi-%d-%s.rays @/mpi.out --batch-tris 2000 --proxy-res 32 "
+                CHECK(mpi_run(ranks, "", "%s @/mpi-%d-%s.rays @/mpi.out --point-tris 2000 --proxy-res 32 "
                               "--scene @/mpi-%d.brs %s %s --assign %s %s", meshes[m], m, kinds[k], m,
                               proxy, memory, assign, occlusion ? "--occlusion" : "") == 0,
                       "%d ranks, %s %s %s: %s: %s", ranks, meshes[m], proxy, memory, how_failed(), tu_last_stderr());
@@ -186,7 +186,7 @@ static void test_crossings_and_proxies(void)
     CHECK(write_corridor(tu_scratch("corridor.obj"), tu_scratch("corridor.rays")), "corridor");
     CHECK(tu_run("trace @/corridor.obj @/corridor.rays @/corridor.direct") == 0, "trace --direct");
     for (proxies = 0; proxies < 2; proxies++) {
-        CHECK(mpi_run(4, "", "@/corridor.obj @/corridor.rays @/mpi.out --batch-tris 1 --proxy-res 32 "
+        CHECK(mpi_run(4, "", "@/corridor.obj @/corridor.rays @/mpi.out --point-tris 1 --proxy-res 32 "
                       "--scene @/corridor.brs --assign round-robin --stats @/mpi-cross.json %s",
                       proxies ? "" : "--no-proxy") == 0,
               "%s: %s", how_failed(), tu_last_stderr());
@@ -230,7 +230,7 @@ static void test_failures(void)
         char env[64];
         remove(tu_scratch("mpi-fail.out"));
         snprintf(env, sizeof env, "BRT_MPI_FAIL=1:%s", when[i]);
-        status = mpi_run(3, env, "@/mpi-crown.obj @/mpi-0-bounce.rays @/mpi-fail.out --batch-tris 50 "
+        status = mpi_run(3, env, "@/mpi-crown.obj @/mpi-0-bounce.rays @/mpi-fail.out --point-tris 50 "
                          "--proxy-res 32 --scene @/mpi-50.brs --assign round-robin --no-proxy");
         EXPECT(status != 0 && status != 124, "%s: exit status %d", when[i], status);
         EXPECT(!tu_file_exists(tu_scratch("mpi-fail.out")), "%s: an output file was left", when[i]);
@@ -247,7 +247,7 @@ static void test_failures(void)
 
 /* Rank 0 prepares the scene file from the mesh with the options given
 ** (README, "Beyond one machine"): the bytes trace --batched builds with the
-** same --proxy-res and --batch-tris, at two resolutions (a proxy resolution
+** same --proxy-res and --point-tris, at two resolutions (a proxy resolution
 ** dropped would give the default's file, and the same hits). */
 static void test_builds_trace_scene(void)
 {
@@ -256,9 +256,9 @@ static void test_builds_trace_scene(void)
     if (!mpi_available()) return;
     CHECK(make_inputs(), "the inputs could not be made");
     for (i = 0; i < 2; i++) {
-        CHECK(tu_run("trace @/mpi-crown.obj @/mpi-0-bounce.rays @/res-t.hits --batched --proxy-res %s --batch-tris 50 "
+        CHECK(tu_run("trace @/mpi-crown.obj @/mpi-0-bounce.rays @/res-t.hits --batched --proxy-res %s --point-tris 50 "
                      "--scene @/res-t.brs", res[i]) == 0, "trace --batched failed");
-        EXPECT(mpi_run(1, "", "@/mpi-crown.obj @/mpi-0-bounce.rays @/res-m.hits --proxy-res %s --batch-tris 50 "
+        EXPECT(mpi_run(1, "", "@/mpi-crown.obj @/mpi-0-bounce.rays @/res-m.hits --proxy-res %s --point-tris 50 "
                        "--scene @/res-m.brs", res[i]) == 0, "--proxy-res %s: mpi_trace %s", res[i], how_failed());
         EXPECT(tu_same_file_bytes(tu_scratch("res-t.brs"), tu_scratch("res-m.brs")),
                "--proxy-res %s: mpi_trace's scene file is not trace's", res[i]);
@@ -321,7 +321,7 @@ static void test_interrupted_build(void)
 /* ==== issue 38: the contract's statements, each pinned ====================
 ** The scene for the tests below: CLUSTERS squares of GRID x GRID unit
 ** quads (2 GRID^2 triangles each) in the plane z = 0, at x = 0, 100, 200,
-** 300, built with --batch-tris 2 GRID^2, so that each square is one
+** 300, built with --point-tris 2 GRID^2, so that each square is one
 ** batching point (checked against trace's own statistics) and the
 ** top-level leaf order runs along x (one way or the other).  A ray
 ** "at square c" starts above it and goes straight down: it enters no
@@ -393,7 +393,7 @@ static int make_squares(void)
     if (made >= 0) return made;
     made = 0;
     if (!write_squares(tu_scratch("sq.obj")) || !write_square_rays(tu_scratch("sq.rays"), plan, 1) ||
-        tu_run("trace @/sq.obj @/sq.rays @/sq.tmp --batched --batch-tris %d --proxy-res 16 --scene @/sq.brs "
+        tu_run("trace @/sq.obj @/sq.rays @/sq.tmp --batched --point-tris %d --proxy-res 16 --scene @/sq.brs "
                "--stats @/sq-build.json", 2 * GRID * GRID) != 0)
         return 0;
     points = tu_json_file_number(tu_scratch("sq-build.json"), "batching_points");
@@ -570,7 +570,7 @@ static void test_statistics(void)
     plan[1] = plan[7] = P;
     plan[3] = plan[5] = Q;
     CHECK(square_rays(plan, 4), "rays: %s", tu_last_stderr());
-    CHECK(tu_run("trace @/sq.obj @/sq.rays @/sq.one --batched --batch-tris %d --proxy-res 16 --scene @/sq.brs "
+    CHECK(tu_run("trace @/sq.obj @/sq.rays @/sq.one --batched --point-tris %d --proxy-res 16 --scene @/sq.brs "
                  "--stats @/sq-one.json", 2 * GRID * GRID) == 0,
           "trace --batched: %s", tu_last_stderr());
     one_disk = tu_json_file_number(tu_scratch("sq-one.json"), "disk_bytes_read");
@@ -733,7 +733,7 @@ void suite_mpi(void)
     test_run("mpi: == trace --direct at 1-4 ranks, proxies, memory, ownerships", test_equal_direct);
     test_run("mpi: rays crossing ranks many times; proxies cut the bytes sent", test_crossings_and_proxies);
     test_run("mpi: a failed rank ends the run, no output, no hang", test_failures);
-    test_run("mpi: rank 0 builds the scene file trace --batched builds (--proxy-res, --batch-tris)", test_builds_trace_scene);
+    test_run("mpi: rank 0 builds the scene file trace --batched builds (--proxy-res, --point-tris)", test_builds_trace_scene);
     test_run("mpi: SIGINT during rank 0's scene build leaves no file", test_interrupted_build);
     test_run("mpi: rays leave in messages of at most 4096 (at, one before, one past)", test_ray_messages);
     test_run("mpi: hits gathered in chunks across the split (small build)", test_result_chunks);

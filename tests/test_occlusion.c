@@ -9,7 +9,7 @@
 ** Then the batched traversal (brt_scene_occluded, and occlusion rays mixed
 ** with closest-hit rays in one stream) against the direct BVH byte for
 ** byte, over batch sizes, memory limits and proxies on and off; its
-** statistics (shadow_rays, shadow_occluded, the shadow-only loads); and
+** statistics (occlusion_rays, occlusion_hits, the shadow-only loads); and
 ** the files of build/trace --occlusion (direct == batched) and
 ** build/hitdiff --occlusion.
 */
@@ -173,18 +173,18 @@ static void test_shared_meshes_brute_force(void)
 
 /* ---- batched == direct ---------------------------------------------------- */
 
-static brt_scene *build_scene(const tu_scene *s, uint32_t batch_tris, const char *name)
+static brt_scene *build_scene(const tu_scene *s, uint32_t point_tris, const char *name)
 {
-    return tu_build_scene(s, batch_tris, 32, 0, tu_scratch(name));
+    return tu_build_scene(s, point_tris, 32, 0, tu_scratch(name));
 }
 
 /* brt_scene_occluded == brt_bvh_occluded for every ray, over memory limits
 ** (none, half the geometry, one byte), proxies off and on, and the paper's
 ** scheduler (every ray queued, proxies always consulted). */
 static void sweep(const tu_scene *s, const brt_ray *rays, const uint8_t *want, size_t count,
-                  uint32_t batch_tris, const char *what)
+                  uint32_t point_tris, const char *what)
 {
-    brt_scene *scene = build_scene(s, batch_tris, "occlusion.brs");
+    brt_scene *scene = build_scene(s, point_tris, "occlusion.brs");
     uint8_t *got = malloc(count ? count : 1);
     uint64_t limits[3] = {0, 0, 1}, occluded = 0;
     size_t i;
@@ -205,19 +205,19 @@ static void sweep(const tu_scene *s, const brt_ray *rays, const uint8_t *want, s
             if (l == 0) limits[1] = stats.geometry_bytes / 2 + 1;
             for (i = 0; i < count && !test_failed(); i++)
                 EXPECT(got[i] == want[i], "%s, batch %u, limit %llu, setting %d: ray %zu: batched "
-                       "%u, direct %u", what, batch_tris, (unsigned long long)limits[l], setting, i,
+                       "%u, direct %u", what, point_tris, (unsigned long long)limits[l], setting, i,
                        got[i], want[i]);
-            EXPECT(stats.rays == count && stats.shadow_rays == count &&
-                   stats.shadow_occluded == occluded,
+            EXPECT(stats.rays == count && stats.occlusion_rays == count &&
+                   stats.occlusion_hits == occluded,
                    "%s: statistics say %llu rays, %llu shadow rays, %llu occluded; expected %zu, "
                    "%zu, %llu", what, (unsigned long long)stats.rays,
-                   (unsigned long long)stats.shadow_rays, (unsigned long long)stats.shadow_occluded,
+                   (unsigned long long)stats.occlusion_rays, (unsigned long long)stats.occlusion_hits,
                    count, count, (unsigned long long)occluded);
             /* Only occlusion rays: every load is theirs. */
-            EXPECT(stats.shadow_batch_loads == stats.batch_loads &&
-                   stats.shadow_disk_bytes_read == stats.disk_bytes_read,
+            EXPECT(stats.occlusion_batch_loads == stats.batch_loads &&
+                   stats.occlusion_disk_bytes_read == stats.disk_bytes_read,
                    "%s: %llu of %llu loads booked to the shadow rays", what,
-                   (unsigned long long)stats.shadow_batch_loads,
+                   (unsigned long long)stats.occlusion_batch_loads,
                    (unsigned long long)stats.batch_loads);
         }
     free(got);
@@ -341,14 +341,14 @@ static void test_mixed_stream(void)
             occluded += (uint64_t)occ;
         }
         EXPECT(!m.bad_record, "setting %d: an occlusion record or tag not as documented", setting);
-        EXPECT(stats.rays == 2 * count && stats.shadow_rays == count &&
-               stats.shadow_occluded == occluded,
+        EXPECT(stats.rays == 2 * count && stats.occlusion_rays == count &&
+               stats.occlusion_hits == occluded,
                "setting %d: %llu rays, %llu shadow rays, %llu occluded; expected %zu, %zu, %llu",
-               setting, (unsigned long long)stats.rays, (unsigned long long)stats.shadow_rays,
-               (unsigned long long)stats.shadow_occluded, 2 * count, count,
+               setting, (unsigned long long)stats.rays, (unsigned long long)stats.occlusion_rays,
+               (unsigned long long)stats.occlusion_hits, 2 * count, count,
                (unsigned long long)occluded);
-        EXPECT(stats.shadow_batch_loads <= stats.batch_loads &&
-               stats.shadow_disk_bytes_read <= stats.disk_bytes_read,
+        EXPECT(stats.occlusion_batch_loads <= stats.batch_loads &&
+               stats.occlusion_disk_bytes_read <= stats.disk_bytes_read,
                "setting %d: more shadow loads than loads", setting);
         free(m.hits);
         free(m.occluded);
@@ -364,9 +364,9 @@ static void test_mixed_stream(void)
 static void test_trace_and_hitdiff(void)
 {
     static const char *const batched[] = {
-        "--batched --batch-tris 30 --scene @/t.brs",
-        "--batched --batch-tris 30 --scene @/t.brs --memory 1K",
-        "--batched --batch-tris 30 --scene @/t.brs --memory 1K --no-proxy"};
+        "--batched --point-tris 30 --scene @/t.brs",
+        "--batched --point-tris 30 --scene @/t.brs --memory 1K",
+        "--batched --point-tris 30 --scene @/t.brs --memory 1K --no-proxy"};
     unsigned char *direct, *other;
     char *out;
     size_t n_direct = 0, n_other = 0, n_rays = 0, i;
@@ -433,7 +433,7 @@ static void test_walk_stops_at_occluder(void)
     uint8_t occluded = 0;
     brt_error err;
     memset(&sopt, 0, sizeof sopt);
-    sopt.batch_tris = 1;
+    sopt.point_tris = 1;
     sopt.proxy_res = 4;
     CHECK(brt_scene_build(&mesh, &sopt, 0, tu_scratch("stop.brs"), &err) == BRT_OK, "%s", err.message);
     CHECK(brt_scene_open(tu_scratch("stop.brs"), &scene, &err) == BRT_OK, "%s", err.message);

@@ -135,13 +135,13 @@ static void test_direct(void)
 
 static void test_batched(void)
 {
-    sweep("trace @/oom.pbrt @/oom.rays @/oom.hits --batched --batch-tris 2 --proxy-res 8 --scene @/oom.brs "
+    sweep("trace @/oom.pbrt @/oom.rays @/oom.hits --batched --point-tris 2 --proxy-res 8 --scene @/oom.brs "
           "--threads 1 --stats @/oom.json", "oom.hits");
 }
 
 static void test_render(void)
 {
-    sweep("render @/oom.pbrt --spp 1 --threads 1 --batch-tris 2 --proxy-res 8 --scene @/oom.brs --out @/oom.png "
+    sweep("render @/oom.pbrt --spp 1 --threads 1 --point-tris 2 --proxy-res 8 --scene @/oom.brs --out @/oom.png "
           "--stats @/oom.json", "oom.png");
 }
 

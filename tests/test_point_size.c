@@ -1,7 +1,7 @@
 /*
 ** tests/test_point_size.c -- the default size of a batching point (issue
 ** 43; README, "The default point size"; examples/lib/common.c,
-** ex_default_batch_tris): the rule at its thresholds, from a table worked
+** ex_default_point_tris): the rule at its thresholds, from a table worked
 ** out by hand and from a model written here; the triangle counts the
 ** programs take before a build, against brt_mesh_load's; and trace and
 ** render choosing it from a mesh, a pbrt file, the built-in scenes and
@@ -52,12 +52,12 @@ static void test_rule_thresholds(void)
         {8000000, 19199999, 0, 195122, "absolute: a byte less, 41 points"},
         {871414, (uint64_t)1 << 30, 0, 108927, "absolute 1G on the dragon's count: 8 points"},
         {871414, 4u << 20, 0, 100000, "absolute 4M on the dragon's count: 20 points, floor"},
-        {(uint64_t)8 * 0xFFFFFFFFu + 8, 0, 0, 0xFFFFFFFFu, "capped at --batch-tris's maximum"},
+        {(uint64_t)8 * 0xFFFFFFFFu + 8, 0, 0, 0xFFFFFFFFu, "capped at --point-tris's maximum"},
         {(uint64_t)1 << 40, 0, 0, 0xFFFFFFFFu, "capped far beyond it"},
     };
     size_t i;
     for (i = 0; i < sizeof c / sizeof c[0]; i++) {
-        uint64_t got = ex_default_batch_tris(c[i].t, c[i].bytes, c[i].percent);
+        uint64_t got = ex_default_point_tris(c[i].t, c[i].bytes, c[i].percent);
         EXPECT(got == c[i].want, "%s: T %llu, --memory %llu B / %g %%: %llu, want %llu", c[i].why,
                (unsigned long long)c[i].t, (unsigned long long)c[i].bytes, c[i].percent,
                (unsigned long long)got, (unsigned long long)c[i].want);
@@ -66,7 +66,7 @@ static void test_rule_thresholds(void)
     for (i = 0; i < 2000; i++) {
         uint64_t t = 1000 + (uint64_t)i * 7919 * 13, bytes = i % 3 == 1 ? (uint64_t)(i + 1) * 65537 : 0;
         double percent = i % 3 == 2 ? 0.5 + (double)(i % 97) : 0;
-        uint64_t got = ex_default_batch_tris(t, bytes, percent), want = model_size(t, bytes, percent);
+        uint64_t got = ex_default_point_tris(t, bytes, percent), want = model_size(t, bytes, percent);
         EXPECT(got == want, "T %llu, %llu B, %g %%: %llu, model %llu", (unsigned long long)t,
                (unsigned long long)bytes, percent, (unsigned long long)got, (unsigned long long)want);
     }
@@ -148,9 +148,9 @@ static void test_trace_default_limit(void)
     ex_input_open("point size", tu_put("big.ply", header), &in);
     ex_tracer_defaults(&o);
     ex_tracer_point_size(&in, &o);
-    EXPECT(o.batch_tris == model_size(t, (uint64_t)1 << 30, 0) && o.batch_tris < t / 8,
+    EXPECT(o.point_tris == model_size(t, (uint64_t)1 << 30, 0) && o.point_tris < t / 8,
            "%llu triangles under trace's default 1G: points of <= %llu, want %llu",
-           (unsigned long long)t, (unsigned long long)o.batch_tris,
+           (unsigned long long)t, (unsigned long long)o.point_tris,
            (unsigned long long)model_size(t, (uint64_t)1 << 30, 0));
     ex_input_close(&in);
 }
@@ -254,7 +254,7 @@ static void test_render_default(void)
 static void test_render_scene_reuse(void)
 {
     const char *args = "crown --scale 0.3 --width 4 --height 4 --spp 1 --proxy-res 8 --scene @/ru.brs --out @/ru.png";
-    static const char *const runs[] = {"", "--batch-tris 100000", "--batch-tris 50000", ""};
+    static const char *const runs[] = {"", "--point-tris 100000", "--point-tris 50000", ""};
     static const int rebuilt[] = {1, 0, 1, 1};
     int i;
     for (i = 0; i < 4; i++) {

@@ -120,7 +120,7 @@ static float le_f32(const unsigned char *p)
 }
 
 /* The batching points' boxes, cells and blobs from the scene file
-** (README's layout: the batch table at the header's first section,
+** (README's layout: the point table at the header's first section,
 ** 80-byte entries); each point is matched to its triangle by its box's
 ** lowest x, 2.5 times the triangle's number. */
 static int read_points(policy_scene *ps, const char *path)
@@ -773,7 +773,7 @@ static void test_proxy_segment_to_closest_hit(void)
     CHECK(scene, "no scene");
     f = tu_slurp(tu_scratch("segment.brs"), &fsize);
     CHECK(f && brt_get_le32(f + 32) == 2, "want two batching points of one triangle each");
-    for (j = 0; j < 2; j++) {          /* the batch table: box lo x at 0, blob offset 24, size 32 */
+    for (j = 0; j < 2; j++) {          /* the point table: box lo x at 0, blob offset 24, size 32 */
         const unsigned char *e = f + brt_get_le64(f + 56) + 80u * j;
         all_blobs += (brt_get_le64(e + 32) + 4095) / 4096 * 4096;
         if (le_f32(e) < 0.6f) {       /* read whole pages, as the cache holds them */
@@ -839,7 +839,7 @@ static void test_proxy_segment_to_closest_hit(void)
         static const char *const fields[] = {"rays", "batching_points", "batch_loads", "disk_bytes_read",
                                              "cache_peak_bytes", "memory_limit", "proxy_tests", "proxy_culled",
                                              "visits", "queued_visits", "resident_visits", "oversized_loads",
-                                             "shadow_rays", "shadow_batch_loads", "prototype_loads"};
+                                             "occlusion_rays", "occlusion_batch_loads", "prototype_loads"};
         double want[15];
         size_t k;
         opt.memory_limit = unlimited.proxy_bytes + a_size - i;

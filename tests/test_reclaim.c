@@ -46,7 +46,7 @@ static brt_result build_into(const char *path, brt_error *err)
     tu_random_soup(&s, &st, 3000, 0.05f);
     mesh = tu_mesh_view(&s);
     memset(&opt, 0, sizeof opt);
-    opt.batch_tris = 500;
+    opt.point_tris = 500;
     opt.proxy_res = 16;
     opt.threads = 1;
     r = brt_scene_build(&mesh, &opt, 1, path, err);
@@ -275,9 +275,9 @@ static void test_programs_reclaim_only_their_own(void)
 {
     static const struct { const char *args; const char *outs[3]; } runs[] = {
         {"trace @/rp/m.obj @/rp/r.rays @/rp/hits.out --stats @/rp/s.json", {"hits.out", "s.json", NULL}},
-        {"trace @/rp/m.obj @/rp/r.rays @/rp/b.hits --batched --batch-tris 100 --scene @/rp/sc.brs",
+        {"trace @/rp/m.obj @/rp/r.rays @/rp/b.hits --batched --point-tris 100 --scene @/rp/sc.brs",
          {"sc.brs", "b.hits", NULL}},
-        {"render @/rp/m.obj --width 8 --height 6 --spp 1 --batch-tris 100 --scene @/rp/rsc.brs --out @/rp/img.png "
+        {"render @/rp/m.obj --width 8 --height 6 --spp 1 --point-tris 100 --scene @/rp/rsc.brs --out @/rp/img.png "
          "--heatmap @/rp/heat.png --stats @/rp/rs.json", {"img.png", "heat.png", "rs.json"}},
         {"mkscene crown @/rp/crown.ply --scale 0.01", {"crown.ply", NULL, NULL}}};
     const char *dir = fresh_dir("rp");

@@ -155,8 +155,8 @@ static int trace_run(brt_scene *scene, const brt_trace_options *base, int refere
 static const struct { const char *name; size_t at; } counts[] = {
     STAT(rays), STAT(batching_points), STAT(geometry_bytes), STAT(disk_bytes_read), STAT(batch_loads),
     STAT(cache_peak_bytes), STAT(memory_limit), STAT(proxy_bytes), STAT(proxy_tests), STAT(proxy_culled),
-    STAT(visits), STAT(queued_visits), STAT(resident_visits), STAT(oversized_loads), STAT(shadow_rays),
-    STAT(shadow_occluded), STAT(shadow_inner_stopped), STAT(prototype_loads), STAT(decoded_bytes)};
+    STAT(visits), STAT(queued_visits), STAT(resident_visits), STAT(oversized_loads), STAT(occlusion_rays),
+    STAT(occlusion_hits), STAT(occlusion_inner_stopped), STAT(prototype_loads), STAT(decoded_bytes)};
 
 static uint64_t count_of(const brt_stats *s, size_t k)
 {
@@ -220,7 +220,7 @@ static void compare(brt_scene *scene, const brt_trace_options *opt, const brt_ra
         }
         saw->reloads += ref.reads.count - distinct;
         saw->culled += ref.stats.proxy_culled;
-        saw->occluded += ref.stats.shadow_occluded;
+        saw->occluded += ref.stats.occlusion_hits;
         saw->prototype_loads += ref.stats.prototype_loads;
         saw->oversized += ref.stats.oversized_loads;
     }
@@ -357,9 +357,9 @@ static void test_instances(void)
     }
     tu_instanced_source(&s, &source);
     memset(&sopt, 0, sizeof sopt);
-    sopt.batch_tris = 100;
+    sopt.point_tris = 100;
     sopt.proxy_res = 16;
-    sopt.batch_instanced = 600;
+    sopt.point_instanced = 600;
     sopt.threads = 1;
     if (brt_scene_build_source(&source, &sopt, 1, tu_scratch("reference-inst.brs"), &err) != BRT_OK ||
         brt_scene_open(tu_scratch("reference-inst.brs"), &scene, &err) != BRT_OK) {

@@ -30,7 +30,7 @@
 
 /* The small scene of these tests: about 5000 triangles in ~17 batching
 ** points, a tiny image, a few samples. */
-#define SMALL "landscape --scale 0.05 --batch-tris 300 --width 40 --height 24 --spp 3"
+#define SMALL "landscape --scale 0.05 --point-tris 300 --width 40 --height 24 --spp 3"
 
 /* ---- running build/render ---- */
 
@@ -102,8 +102,8 @@ static void test_nee_same_image_every_mode(void)
     for (e = 0; e < 2 && !test_failed(); e++) {
         CHECK(tu_run("render " SMALL " %s --direct --out @/nee-direct.png --stats @/nee-direct.json",
                      estimator[e]) == 0, "render --direct %s failed", estimator[e]);
-        shadow = tu_json_file_number(tu_scratch("nee-direct.json"), "shadow_rays");
-        occluded = tu_json_file_number(tu_scratch("nee-direct.json"), "shadow_occluded");
+        shadow = tu_json_file_number(tu_scratch("nee-direct.json"), "occlusion_rays");
+        occluded = tu_json_file_number(tu_scratch("nee-direct.json"), "occlusion_hits");
         CHECK(e == 1 ? shadow == 0 : shadow > 1000 && occluded > 0 && occluded < shadow,
               "'%s': %g shadow rays, %g occluded", estimator[e], shadow, occluded);
         for (i = 0; i < sizeof settings / sizeof *settings; i++) {
@@ -111,11 +111,11 @@ static void test_nee_same_image_every_mode(void)
                          estimator[e], settings[i]) == 0, "render %s %s failed", estimator[e], settings[i]);
             EXPECT(tu_same_file_bytes(tu_scratch("nee-direct.png"), tu_scratch("nee.png")),
                    "'%s %s': the image differs from --direct", estimator[e], settings[i]);
-            EXPECT(tu_json_file_number(tu_scratch("nee.json"), "shadow_rays") == shadow &&
-                   tu_json_file_number(tu_scratch("nee.json"), "shadow_occluded") == occluded,
+            EXPECT(tu_json_file_number(tu_scratch("nee.json"), "occlusion_rays") == shadow &&
+                   tu_json_file_number(tu_scratch("nee.json"), "occlusion_hits") == occluded,
                    "'%s %s': %g shadow rays, %g occluded; --direct %g, %g", estimator[e], settings[i],
-                   tu_json_file_number(tu_scratch("nee.json"), "shadow_rays"),
-                   tu_json_file_number(tu_scratch("nee.json"), "shadow_occluded"), shadow, occluded);
+                   tu_json_file_number(tu_scratch("nee.json"), "occlusion_rays"),
+                   tu_json_file_number(tu_scratch("nee.json"), "occlusion_hits"), shadow, occluded);
         }
     }
 }
@@ -135,7 +135,7 @@ static void test_nee_same_image_every_mode(void)
 ** a sun counted twice, or left out of either estimator, fails. */
 static void test_nee_converges_to_no_nee(void)
 {
-    const char *scene = "landscape --scale 0.05 --batch-tris 300 --width 24 --height 16 "
+    const char *scene = "landscape --scale 0.05 --point-tris 300 --width 24 --height 16 "
                         "--sun-radius 8 --scene @/mean.brs";
     double mean[3], se[3], bound;
     const char *const runs[3] = {"--spp 32", "--spp 512 --no-nee", "--spp 32 --sun-radiance 0"};
@@ -182,7 +182,7 @@ static void test_same_image_mesh_file(void)
     CHECK(tu_run("mkscene crown @/crown.ply --scale 0.05") == 0, "mkscene failed");
     CHECK(tu_run("render @/crown.ply %s --direct --out @/crown-direct.png", camera) == 0,
           "render --direct on a PLY failed");
-    CHECK(tu_run("render @/crown.ply %s --batch-tris 200 --memory 20%% --scene @/crown.brs "
+    CHECK(tu_run("render @/crown.ply %s --point-tris 200 --memory 20%% --scene @/crown.brs "
               "--out @/crown-batched.png", camera) == 0, "render on a PLY failed");
     EXPECT(tu_same_file_bytes(tu_scratch("crown-direct.png"), tu_scratch("crown-batched.png")),
            "crown.ply: batched and direct images differ");
@@ -236,7 +236,7 @@ static void test_heatmap(void)
     ** up reach it, so at least n minus that index show the top colour (the
     ** colour bar's right end, its row 4).  At 16 samples the top visits
     ** seldom tie, so a scale at the maximum shows fewer. */
-    CHECK(tu_run("render landscape --scale 0.05 --batch-tris 300 --width 40 --height 24 --spp 16 --memory 20%% "
+    CHECK(tu_run("render landscape --scale 0.05 --point-tris 300 --width 40 --height 24 --spp 16 --memory 20%% "
                  "--scene @/heat.brs --heatmap @/heat16.png --out @/img.png") == 0, "render --spp 16 failed");
     png = tu_slurp(tu_scratch("heat16.png"), &size);
     rgb = png ? tu_png_decode(png, size, &w, &h) : NULL;
@@ -327,7 +327,7 @@ static void test_builtin_scenes_streamed(void)
     static const char *const scenes[] = {"crown", "landscape", "island"};
     size_t i;
     for (i = 0; i < 3; i++) {
-        const char *args = "--scale 0.05 --batch-tris 400 --width 32 --height 20 --spp 2";
+        const char *args = "--scale 0.05 --point-tris 400 --width 32 --height 20 --spp 2";
         CHECK(tu_run("render %s %s --direct --out @/bs-direct.png", scenes[i], args) == 0,
               "render %s --direct failed", scenes[i]);
         CHECK(tu_run("render %s %s --scene @/bs-%s.brs --out @/bs-batched.png", scenes[i], args,
@@ -353,7 +353,7 @@ static void test_reused_builtin_holds_no_mesh(void)
     ** heap slack from blobs freed and read again (README, "Memory")
     ** stays out of a measure meant for the mesh. */
     const char *args = "--width 16 --height 16 --spp 1 --proxy-res 16 --rays-in-flight 256 --memory 1M "
-                       "--no-nee --batch-tris 10000";   /* blobs far below the 1M limit */
+                       "--no-nee --point-tris 10000";   /* blobs far below the 1M limit */
     uint64_t unique, instanced;
     uint32_t instances;
     double base, peak, mesh_bytes;
@@ -382,7 +382,7 @@ static void test_reused_builtin_holds_no_mesh(void)
 static void test_builtin_scene_rebuilt_for_its_recipe(void)
 {
     static const char *const changes[] = {"--scale 0.06", "--seed 9"};
-    const char *args = "--width 24 --height 16 --spp 1 --batch-tris 300";
+    const char *args = "--width 24 --height 16 --spp 1 --point-tris 300";
     size_t i;
     CHECK(tu_run("render landscape --scale 0.05 %s --scene @/recipe.brs --out @/recipe0.png", args) == 0,
           "render landscape failed");
@@ -497,7 +497,7 @@ static void test_bar_svg(void)
 /* One row of fig4.csv. */
 typedef struct fig4_row {
     char scene[32], scheduler[32], proxies[32];
-    double bytes, loads, shadow_rays, occluded, stopped, share, shadow_bytes, proxy_bytes;
+    double bytes, loads, occlusion_rays, occluded, stopped, share, shadow_bytes, proxy_bytes;
 } fig4_row;
 
 /* `figures --only 4` on a tiny scene: fig4.csv holds, per scene and
@@ -510,20 +510,20 @@ typedef struct fig4_row {
 static void test_figure4(void)
 {
     static const char *const scenes[] = {"landscape", "island"}, *const schedulers[] = {"paper", "batchrt"};
-    static const char header[] = "scene,scheduler,proxies,disk_bytes_read,batch_loads,shadow_rays,"
-                                 "shadow_occluded,shadow_inner_stopped,stopped_share,shadow_disk_bytes_read,"
+    static const char header[] = "scene,scheduler,proxies,disk_bytes_read,batch_loads,occlusion_rays,"
+                                 "occlusion_hits,occlusion_inner_stopped,stopped_share,occlusion_disk_bytes_read,"
                                  "proxy_bytes\n";
     fig4_row rows[8];
     char *csv, *line, *svg;
     int n = 0, k;
-    CHECK(tu_run("figures --only 4 --out @/fig --scale 0.05 --batch-tris 400 --width 16 --height 10 --spp 1 "
+    CHECK(tu_run("figures --only 4 --out @/fig --scale 0.05 --point-tris 400 --width 16 --height 10 --spp 1 "
                  "--rays-in-flight 256") == 0, "figures --only 4 failed");
     csv = (char *)tu_slurp(tu_scratch("fig/fig4.csv"), NULL);
     CHECK(csv && strncmp(csv, header, strlen(header)) == 0, "fig4.csv missing or its header wrong");
     for (line = strchr(csv, '\n'); line && line[1] && n < 8; line = strchr(line + 1, '\n')) {
         fig4_row *r = &rows[n++];
         CHECK(sscanf(line + 1, "%31[^,],%31[^,],%31[^,],%lf,%lf,%lf,%lf,%lf,%lf,%lf,%lf", r->scene,
-                     r->scheduler, r->proxies, &r->bytes, &r->loads, &r->shadow_rays, &r->occluded, &r->stopped,
+                     r->scheduler, r->proxies, &r->bytes, &r->loads, &r->occlusion_rays, &r->occluded, &r->stopped,
                      &r->share, &r->shadow_bytes, &r->proxy_bytes) == 11, "fig4.csv row %d unreadable", n);
     }
     EXPECT(n == 8 && (!line || !line[1]), "fig4.csv: %d rows, expected 8", n);
@@ -534,13 +534,13 @@ static void test_figure4(void)
                strcmp(o->proxies, "outer") == 0 && strcmp(i->proxies, "outer+inner") == 0,
                "fig4.csv rows %d-%d: %s %s %s / %s %s %s", k, k + 1, o->scene, o->scheduler, o->proxies,
                i->scene, i->scheduler, i->proxies);
-        EXPECT(o->stopped == 0 && o->share == 0 && o->shadow_rays > 0 && i->shadow_rays == o->shadow_rays &&
+        EXPECT(o->stopped == 0 && o->share == 0 && o->occlusion_rays > 0 && i->occlusion_rays == o->occlusion_rays &&
                i->occluded == o->occluded && i->stopped <= i->occluded && o->bytes > 0 && i->bytes > 0 &&
                o->shadow_bytes <= o->bytes && i->shadow_bytes <= i->bytes &&
                o->proxy_bytes == i->proxy_bytes &&
                fabs(i->share - (i->occluded > 0 ? i->stopped / i->occluded : 0)) < 6e-5,
                "%s %s: shadow rays %g/%g, occluded %g/%g, stopped %g/%g, share %g", o->scene, o->scheduler,
-               o->shadow_rays, i->shadow_rays, o->occluded, i->occluded, o->stopped, i->stopped, i->share);
+               o->occlusion_rays, i->occlusion_rays, o->occluded, i->occluded, o->stopped, i->stopped, i->share);
     }
     svg = (char *)tu_slurp(tu_scratch("fig/fig4.svg"), NULL);
     EXPECT(svg && strstr(svg, "<rect class=\"bar\"") && strstr(svg, "Fig. 4"), "fig4.svg missing or has no bars");
@@ -713,7 +713,7 @@ static void test_exact_open_sphere(void)
 /* render's default point size follows trace's rule (README, "The
 ** default point size"): never below 100000 triangles, so on the crown at
 ** scale 0.3 (about 30 000 triangles) the default makes the scene file
-** --batch-tris 100000 makes, not the one of 10000.  Above the floor:
+** --point-tris 100000 makes, not the one of 10000.  Above the floor:
 ** tests/test_point_size.c. */
 static void test_default_point_size(void)
 {
@@ -721,14 +721,14 @@ static void test_default_point_size(void)
     double points, hundred_k, ten_k;
     CHECK(tu_run("render %s --scene @/dp.brs --out @/dp.png --stats @/dp.json", args) == 0, "render: %s",
           tu_last_stderr());
-    CHECK(tu_run("render %s --batch-tris 100000 --scene @/dp1.brs --out @/dp.png --stats @/dp1.json", args) == 0 &&
-          tu_run("render %s --batch-tris 10000 --scene @/dp2.brs --out @/dp.png --stats @/dp2.json", args) == 0,
+    CHECK(tu_run("render %s --point-tris 100000 --scene @/dp1.brs --out @/dp.png --stats @/dp1.json", args) == 0 &&
+          tu_run("render %s --point-tris 10000 --scene @/dp2.brs --out @/dp.png --stats @/dp2.json", args) == 0,
           "render: %s", tu_last_stderr());
     points = tu_json_file_number(tu_scratch("dp.json"), "batching_points");
     hundred_k = tu_json_file_number(tu_scratch("dp1.json"), "batching_points");
     ten_k = tu_json_file_number(tu_scratch("dp2.json"), "batching_points");
     CHECK(ten_k > hundred_k, "the scene is too small to tell the sizes apart (%g and %g points)", ten_k, hundred_k);
-    EXPECT(points == hundred_k, "default: %g batching points, --batch-tris 100000: %g", points, hundred_k);
+    EXPECT(points == hundred_k, "default: %g batching points, --point-tris 100000: %g", points, hundred_k);
 }
 
 void suite_render(void)

@@ -508,7 +508,7 @@ static void test_scene_file_has_mesh_bounds(void)
         recipe.seed = test_seed();
         snprintf(path, sizeof path, "%s/%s-bounds.brs", test_tmpdir(), recipe.name);
         memset(&opt, 0, sizeof opt);
-        opt.batch_tris = 700;
+        opt.point_tris = 700;
         opt.proxy_res = 8;
         ex_scene_source(&recipe, &source);
         CHECK(brt_scene_build_stream(&source, &opt, ex_scene_stamp(&recipe), path, &err) == BRT_OK

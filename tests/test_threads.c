@@ -116,9 +116,9 @@ static void test_bvh_trace(void)
 
 /* ---- batched tracing ----------------------------------------------------- */
 
-static brt_scene *soup_scene(const soup *s, uint32_t batch_tris, unsigned threads, const char *name)
+static brt_scene *soup_scene(const soup *s, uint32_t point_tris, unsigned threads, const char *name)
 {
-    return tu_build_scene(&s->scene, batch_tris, 32, threads, tu_scratch(name));
+    return tu_build_scene(&s->scene, point_tris, 32, threads, tu_scratch(name));
 }
 
 /* Every count of the statistics (times vary; nothing else may). */
@@ -328,7 +328,7 @@ static void test_scene_bytes(void)
             unsigned char *bytes;
             size_t size;
             memset(&opt, 0, sizeof opt);
-            opt.batch_tris = 50;
+            opt.point_tris = 50;
             opt.proxy_res = 16;
             brt_test_build_sizes(0, buckets[b]);
             opt.threads = thread_counts[run];
@@ -420,9 +420,9 @@ static void test_programs(void)
     CHECK(tu_run("raygen %s @/t.rays --kind bounce --count 20000 --seed 5", mesh) == 0, "raygen");
     same_outputs(trace, "--direct --stats @/t.json", trace_files, 2);
     /* --rebuild: each run builds the scene file with its threads too. */
-    same_outputs(trace, "--batched --batch-tris 100 --memory 40K --scene @/t.brs --rebuild "
+    same_outputs(trace, "--batched --point-tris 100 --memory 40K --scene @/t.brs --rebuild "
                  "--stats @/t.json", trace_files, 2);
-    same_outputs("render landscape --scale 0.2 --batch-tris 500 --memory 25% --spp 2 --width 48 "
+    same_outputs("render landscape --scale 0.2 --point-tris 500 --memory 25% --spp 2 --width 48 "
                  "--height 32 --rays-in-flight 700", "--scene @/r.brs --out @/r.png "
                  "--heatmap @/heat.png --stats @/r.json", render_files, 3);
     same_outputs("render landscape --scale 0.2 --spp 2 --width 48 --height 32 --direct",
@@ -446,9 +446,9 @@ static void test_cache_rss(void)
     const char *p;
     double bound;
     if (!tu_rss_is_meaningful()) return;
-    CHECK(tu_run("render crown --scale 6 --batch-tris 40000 --width 1 --height 1 --spp 1 "
+    CHECK(tu_run("render crown --scale 6 --point-tris 40000 --width 1 --height 1 --spp 1 "
                  "--scene @/rss.brs --out @/rss.png") == 0, "build: %s", tu_last_stderr());
-    CHECK(tu_run("render crown --scale 6 --batch-tris 40000 --width 240 --height 135 --spp 4 "
+    CHECK(tu_run("render crown --scale 6 --point-tris 40000 --width 240 --height 135 --spp 4 "
                  "--memory 3M --rays-in-flight 1024 --scene @/rss.brs --out @/rss.png "
                  "--stats @/rss.json") == 0, "render: %s", tu_last_stderr());
     CHECK((json = (char *)slurp_scratch("rss.json", NULL)) != NULL, "stats");

@@ -380,7 +380,7 @@ char *tu_last_stderr(void) { return (char *)tu_slurp(tu_scratch("cli.err"), NULL
 
 /* Nonzero when the scratch directory holds a "*.tmp.*" file, the trace an
 ** interrupted atomic write would leave. */
-brt_scene *tu_build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, unsigned threads,
+brt_scene *tu_build_scene(const tu_scene *s, uint32_t point_tris, uint32_t res, unsigned threads,
                           const char *path)
 {
     brt_scene_options opt;
@@ -388,7 +388,7 @@ brt_scene *tu_build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, 
     brt_scene *scene = NULL;
     brt_error err;
     memset(&opt, 0, sizeof opt);   /* fields added later mean defaults */
-    opt.batch_tris = batch_tris;
+    opt.point_tris = point_tris;
     opt.proxy_res = res;
     opt.threads = threads;
     if (brt_scene_build(&mesh, &opt, 1, path, &err) != BRT_OK || brt_scene_open(path, &scene, &err) != BRT_OK)

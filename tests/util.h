@@ -70,7 +70,7 @@ void tu_instanced_squares(tu_instanced *s);
 
 /* Builds a scene file of s at path (brt_scene_build, source stamp 1) and
 ** opens it; a failure is a test failure, and NULL. */
-brt_scene *tu_build_scene(const tu_scene *s, uint32_t batch_tris, uint32_t res, unsigned threads,
+brt_scene *tu_build_scene(const tu_scene *s, uint32_t point_tris, uint32_t res, unsigned threads,
                           const char *path);
 
 /* A number of a statistics JSON text ("name": value), NaN when absent; and

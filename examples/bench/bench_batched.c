@@ -4,7 +4,7 @@
 ** what batching costs in core, and how fast preprocessing is.
 **
 **   build/bench_batched [MESH | SCENE] [--scale S] [--rays N] [--limit P]
-**                       [--batch-tris N] [--proxy-res R] [--scene FILE]
+**                       [--point-tris N] [--proxy-res R] [--scene FILE]
 **
 ** By default: the built-in landscape at scale 0.8 (baked from its
 ** instances: about 5 million triangles), 1M rays (half camera rays from the scene's default view, half
@@ -29,7 +29,7 @@ static const char *const prog = "bench_batched";
 typedef struct options {
     const char *input;          /* mesh file or built-in scene name */
     double scale;
-    uint64_t rays, batch_tris, res;
+    uint64_t rays, point_tris, res;
     double limit_percent;
     const char *scene;
 } options;
@@ -43,7 +43,7 @@ static void usage(void)
            "  --scale S        size of a built-in scene (default 0.8: about 5M triangles)\n"
            "  --rays N         rays, half camera and half bounce (default 1000000)\n"
            "  --limit P        memory limit in percent of the geometry bytes (default 25)\n"
-           "  --batch-tris N   triangles per batching point (default 100000)\n"
+           "  --point-tris N   triangles per batching point (default 100000)\n"
            "  --proxy-res R    proxy resolution (default 128)\n"
            "  --scene FILE     where to write the scene file (default /tmp)\n"
            "  --help           this text\n");
@@ -56,7 +56,7 @@ static void parse_options(int argc, char **argv, options *o)
     o->input = "landscape";
     o->scale = 0.8;
     o->rays = 1000000;
-    o->batch_tris = 100000;
+    o->point_tris = 100000;
     o->res = 128;
     o->limit_percent = 25;
     for (i = 1; i < argc; i++) {
@@ -67,8 +67,8 @@ static void parse_options(int argc, char **argv, options *o)
             o->rays = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 2, UINT32_MAX);
         else if (strcmp(a, "--limit") == 0)
             o->limit_percent = ex_parse_double(prog, a, ex_option_value(prog, argc, argv, &i), 0.1, 1000);
-        else if (strcmp(a, "--batch-tris") == 0)
-            o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, UINT32_MAX);
+        else if (strcmp(a, "--point-tris") == 0)
+            o->point_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, UINT32_MAX);
         else if (strcmp(a, "--proxy-res") == 0)
             o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
         else if (strcmp(a, "--scene") == 0) o->scene = ex_option_value(prog, argc, argv, &i);
@@ -182,7 +182,7 @@ int main(int argc, char **argv)
         o.scene = default_scene;
     }
     memset(&scene_opt, 0, sizeof scene_opt);
-    scene_opt.batch_tris = (uint32_t)o.batch_tris;
+    scene_opt.point_tris = (uint32_t)o.point_tris;
     scene_opt.proxy_res = (uint32_t)o.res;
     start = brt_seconds();
     ex_check(prog, brt_scene_build(&mesh, &scene_opt, 0, o.scene, &err), &err);
@@ -190,7 +190,7 @@ int main(int argc, char **argv)
     ex_check(prog, brt_scene_open(o.scene, &scene, &err), &err);
 
     printf("%s: %u triangles, %u batching points of <= %llu, proxies %llu^3\n", o.input,
-           mesh.triangle_count, brt_scene_batch_count(scene), (unsigned long long)o.batch_tris,
+           mesh.triangle_count, brt_scene_point_count(scene), (unsigned long long)o.point_tris,
            (unsigned long long)o.res);
     printf("preprocessing: %.2f s, %.2f M triangles/s (direct BVH build: %.2f s)\n", build_seconds,
            mesh.triangle_count / build_seconds * 1e-6, bvh_seconds);

@@ -4,7 +4,7 @@
 ** Prints figures, never pass/fail.
 **
 ** Usage: build/bench_svdag [MESH...] [--rays N] [--proxy-res R] [--seed S] [--no-table]
-**        build/bench_svdag --scene landscape|island|crown [--scale S] [--batch-tris N]
+**        build/bench_svdag --scene landscape|island|crown [--scale S] [--point-tris N]
 **                          [--rays N] [--proxy-res R] [--seed S]
 **   MESH defaults to bunny_tiny, bunny and dragon from ../shared/data/meshes
 **   (the .gz ones unpacked with gzip into /tmp), whichever are present.
@@ -36,7 +36,7 @@ typedef struct options {
     const char *meshes[16];
     int mesh_count;
     uint64_t rays, seed;
-    uint32_t res, batch_tris;
+    uint32_t res, point_tris;
     const char *scene;      /* --scene: the render's proxy tests instead */
     double scale;
     int no_table;
@@ -57,7 +57,7 @@ static void usage(void)
            "              (batching points, proxies, camera and bounce rays as render's),\n"
            "              culled casts and hits apart (for callgrind, see the source)\n"
            "  --scale S   scene scale (default 2: the crown 200 000 triangles)\n"
-           "  --batch-tris N  triangles per batching point (default 10000)\n"
+           "  --point-tris N  triangles per batching point (default 10000)\n"
            "  --help      this text\n");
 }
 
@@ -68,7 +68,7 @@ static void parse_options(int argc, char **argv, options *o)
     o->rays = 1000000;
     o->res = 128;
     o->seed = 1;
-    o->batch_tris = 10000;
+    o->point_tris = 10000;
     o->scale = 2;
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -82,8 +82,8 @@ static void parse_options(int argc, char **argv, options *o)
             if (!ex_scene_is_builtin(o->scene)) ex_die(prog, "--scene: '%s' is not a built-in scene", o->scene);
         } else if (strcmp(a, "--scale") == 0)
             o->scale = ex_parse_double(prog, a, ex_option_value(prog, argc, argv, &i), 0.01, 100);
-        else if (strcmp(a, "--batch-tris") == 0)
-            o->batch_tris = (uint32_t)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, 100000000);
+        else if (strcmp(a, "--point-tris") == 0)
+            o->point_tris = (uint32_t)ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, &i), 1, 100000000);
         else if (strcmp(a, "--proxy-res") == 0)
             o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, &i));
         else if (a[0] == '-' && a[1] != 0) ex_unknown_option(prog, a);
@@ -272,7 +272,7 @@ static void memory_table(const brt_mesh *mesh)
 /*
 ** --scene NAME: the built-in scene cut into batching points as
 ** brt_scene_build cuts it (halves of the centroids along the longest axis,
-** at a multiple of --batch-tris near the middle), one 128^3 proxy each in
+** at a multiple of --point-tris near the middle), one 128^3 proxy each in
 ** one shared DAG, and the render's rays: half camera rays from the scene's
 ** default view, half Lambert bounces from their hits.  Each ray is tested,
 ** as the render's scheduler tests it, against every batching point whose
@@ -285,15 +285,15 @@ static void memory_table(const brt_mesh *mesh)
 */
 typedef struct cast_task {
     brt_ray ray;            /* tnear / tfar: the tested segment */
-    uint32_t batch;
+    uint32_t point;
 } cast_task;
 
-typedef struct batches {
+typedef struct point_set {
     brt_svdag *dag;
     brt_proxy *proxies;
     float (*box)[6];
     uint32_t count;
-} batches;
+} point_set;
 
 static const float *sort_centroids;
 static int sort_axis;
@@ -307,7 +307,7 @@ static int by_centroid(const void *a, const void *b)
 
 /* One batching point: its triangles' proxy added to the shared DAG. */
 static void add_batch(const brt_mesh *mesh, const uint32_t *tris, uint32_t count,
-                      uint32_t res, batches *b)
+                      uint32_t res, point_set *b)
 {
     uint32_t *idx = malloc(3 * (size_t)count * sizeof *idx), t;
     float *bmin = b->box[b->count], *bmax = bmin + 3;
@@ -331,13 +331,13 @@ static void add_batch(const brt_mesh *mesh, const uint32_t *tris, uint32_t count
 }
 
 /* Splits tris[0..count) as brt_scene_build does, adding the parts. */
-static void split_batches(const brt_mesh *mesh, const float *centroids, uint32_t *tris,
-                          uint32_t count, uint32_t batch_tris, uint32_t res, batches *b)
+static void split_points(const brt_mesh *mesh, const float *centroids, uint32_t *tris,
+                          uint32_t count, uint32_t point_tris, uint32_t res, point_set *b)
 {
     float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
     uint32_t t, parts, k;
     int i;
-    if (count <= batch_tris) {
+    if (count <= point_tris) {
         add_batch(mesh, tris, count, res, b);
         return;
     }
@@ -351,15 +351,15 @@ static void split_batches(const brt_mesh *mesh, const float *centroids, uint32_t
         if (hi[i] - lo[i] > hi[sort_axis] - lo[sort_axis]) sort_axis = i;
     sort_centroids = centroids;
     qsort(tris, count, sizeof *tris, by_centroid);
-    parts = (count + batch_tris - 1) / batch_tris;
-    k = parts / 2 * batch_tris;
-    split_batches(mesh, centroids, tris, k, batch_tris, res, b);
-    split_batches(mesh, centroids, tris + k, count - k, batch_tris, res, b);
+    parts = (count + point_tris - 1) / point_tris;
+    k = parts / 2 * point_tris;
+    split_points(mesh, centroids, tris, k, point_tris, res, b);
+    split_points(mesh, centroids, tris + k, count - k, point_tris, res, b);
 }
 
-static void build_batches(const brt_mesh *mesh, uint32_t batch_tris, uint32_t res, batches *b)
+static void build_points(const brt_mesh *mesh, uint32_t point_tris, uint32_t res, point_set *b)
 {
-    uint32_t n = mesh->triangle_count, t, parts = (n + batch_tris - 1) / batch_tris;
+    uint32_t n = mesh->triangle_count, t, parts = (n + point_tris - 1) / point_tris;
     uint32_t *tris = malloc((size_t)n * sizeof *tris);
     float *centroids = malloc(3 * (size_t)n * sizeof *centroids);
     int i, k;
@@ -376,7 +376,7 @@ static void build_batches(const brt_mesh *mesh, uint32_t batch_tris, uint32_t re
     }
     b->count = 0;
     ex_check(prog, brt_svdag_create(&b->dag), NULL);
-    split_batches(mesh, centroids, tris, n, batch_tris, res, b);
+    split_points(mesh, centroids, tris, n, point_tris, res, b);
     free(tris);
     free(centroids);
 }
@@ -397,7 +397,7 @@ static int box_entered(const brt_ray *ray, const float box[6], float tfar)
 
 /* The render's proxy tests of the rays: a task per box entered before
 ** the closest hit, in *tasks (malloc'd); their number. */
-static size_t make_tasks(const brt_mesh *mesh, const batches *b, const brt_ray *rays,
+static size_t make_tasks(const brt_mesh *mesh, const point_set *b, const brt_ray *rays,
                          size_t count, cast_task **tasks)
 {
     brt_bvh *bvh;
@@ -415,7 +415,7 @@ static size_t make_tasks(const brt_mesh *mesh, const batches *b, const brt_ray *
             if (!out) break;
             out[n].ray = rays[i];
             out[n].ray.tfar = fminf(rays[i].tfar, hit.t);
-            out[n++].batch = k;
+            out[n++].point = k;
         }
     }
     if (!out) ex_die(prog, "out of memory for the proxy tests");
@@ -426,11 +426,11 @@ static size_t make_tasks(const brt_mesh *mesh, const batches *b, const brt_ray *
 
 /* The casts of one kind, alone in a function for callgrind's
 ** --toggle-collect; returns how many hit. */
-static size_t cast_all(const batches *b, const cast_task *t, size_t n)
+static size_t cast_all(const point_set *b, const cast_task *t, size_t n)
 {
     size_t i, hits = 0;
     for (i = 0; i < n; i++)
-        hits += (size_t)brt_proxy_raycast(b->dag, &b->proxies[t[i].batch], &t[i].ray,
+        hits += (size_t)brt_proxy_raycast(b->dag, &b->proxies[t[i].point], &t[i].ray,
                                           t[i].ray.tnear, t[i].ray.tfar, NULL);
     return hits;
 }
@@ -442,22 +442,22 @@ static size_t cast_all(const batches *b, const cast_task *t, size_t n)
 #endif
 
 /* (The two bodies differ so that the compiler does not fold them into one.) */
-static NOINLINE size_t cast_culled(const batches *b, const cast_task *t, size_t n)
+static NOINLINE size_t cast_culled(const point_set *b, const cast_task *t, size_t n)
 {
     return n - cast_all(b, t, n);
 }
 
-static NOINLINE size_t cast_hits(const batches *b, const cast_task *t, size_t n)
+static NOINLINE size_t cast_hits(const point_set *b, const cast_task *t, size_t n)
 {
     return cast_all(b, t, n);
 }
 
 /* Puts the culled tasks first; returns their number. */
-static size_t split_by_answer(const batches *b, cast_task *t, size_t n)
+static size_t split_by_answer(const point_set *b, cast_task *t, size_t n)
 {
     size_t i, culled = 0;
     for (i = 0; i < n; i++)
-        if (!brt_proxy_raycast(b->dag, &b->proxies[t[i].batch], &t[i].ray, t[i].ray.tnear,
+        if (!brt_proxy_raycast(b->dag, &b->proxies[t[i].point], &t[i].ray, t[i].ray.tnear,
                                t[i].ray.tfar, NULL)) {
             cast_task swap = t[culled];
             t[culled++] = t[i];
@@ -470,7 +470,7 @@ static void scene_mode(const options *o)
 {
     brt_mesh mesh;
     brt_error err;
-    batches b;
+    point_set b;
     ex_camera cam;
     cast_task *tasks;
     brt_ray *rays = malloc(o->rays * sizeof *rays);
@@ -488,7 +488,7 @@ static void scene_mode(const options *o)
     height = (uint32_t)ceil(sqrt(o->rays / 2 * 9.0 / 16));
     width = (uint32_t)(o->rays / 2 / height);
     ex_camera_look(&cam, eye, target, fov, width, height);
-    build_batches(&mesh, o->batch_tris, o->res, &b);
+    build_points(&mesh, o->point_tris, o->res, &b);
     ex_rays_camera(&cam, rays, o->rays / 2, &rng);
     {
         brt_bvh *bvh;
@@ -508,7 +508,7 @@ static void scene_mode(const options *o)
     if (hits != n - culled) ex_die(prog, "a hit cast missed on the second try");
     printf("\n== %s at scale %g: %u triangles in %u batching points of at most %u, "
            "proxies %u^3, DAG %lu bytes\n", o->scene, o->scale, mesh.triangle_count, b.count,
-           o->batch_tris, o->res, (unsigned long)brt_svdag_memory_bytes(b.dag));
+           o->point_tris, o->res, (unsigned long)brt_svdag_memory_bytes(b.dag));
     printf("rays %llu (half camera, half bounces), proxy tests %lu: culled %lu (%.1f%%), hit %lu\n",
            (unsigned long long)o->rays, (unsigned long)n, (unsigned long)culled,
            n ? 100.0 * culled / n : 0.0, (unsigned long)(n - culled));

@@ -24,7 +24,7 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
-/* The default size of a batching point (ex_default_batch_tris).  Points
+/* The default size of a batching point (ex_default_point_tris).  Points
 ** smaller than EX_MIN_POINT_TRIS never paid: more loads, more disk bytes
 ** and small threaded phases (make bench-render, make bench-threads). */
 #define EX_MIN_POINT_TRIS 100000
@@ -58,7 +58,8 @@ void ex_die(const char *prog, const char *fmt, ...)
 
 void ex_unknown_option(const char *prog, const char *arg)
 {
-    static const char *const renamed[][2] = {{"--res", "--proxy-res"}};
+    static const char *const renamed[][2] = {
+        {"--res", "--proxy-res"}, {"--batch-tris", "--point-tris"}, {"--batch-instanced", "--point-instanced"}};
     size_t i;
     for (i = 0; i < sizeof renamed / sizeof renamed[0]; i++)
         if (strcmp(arg, renamed[i][0]) == 0) ex_die(prog, "%s is now %s (see --help)", arg, renamed[i][1]);
@@ -424,7 +425,7 @@ void ex_scene_folder(const char *prog, char *dir, size_t size)
     if (make_folders(dir) != 0) ex_die(prog, "%s: cannot create the scene folder: %s", dir, strerror(errno));
 }
 
-void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tris,
+void ex_default_scene_path(const char *prog, const char *mesh, uint32_t point_tris,
                            uint32_t res, char *path, size_t size)
 {
     char dir[2048], absolute[PATH_MAX];
@@ -434,12 +435,12 @@ void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tr
     if (!realpath(mesh, absolute)) ex_die(prog, "%s: %s", mesh, strerror(errno));
     for (p = absolute; *p; p++) hash = (hash ^ (unsigned char)*p) * 16777619u;
     base = base ? base + 1 : mesh;
-    if (snprintf(path, size, "%s/%s-%08x-b%u-r%u.brs", dir, base, (unsigned)hash, (unsigned)batch_tris,
+    if (snprintf(path, size, "%s/%s-%08x-b%u-r%u.brs", dir, base, (unsigned)hash, (unsigned)point_tris,
                  (unsigned)res) >= (int)size)
         ex_die(prog, "%s: scene path too long", dir);
 }
 
-uint64_t ex_default_batch_tris(uint64_t triangles, uint64_t memory_bytes, double memory_percent)
+uint64_t ex_default_point_tris(uint64_t triangles, uint64_t memory_bytes, double memory_percent)
 {
     uint64_t points = EX_FEW_POINTS, size, want = 0;
     if (memory_percent > 0) {
@@ -448,7 +449,7 @@ uint64_t ex_default_batch_tris(uint64_t triangles, uint64_t memory_bytes, double
         want = share_points >= 1e18 ? (uint64_t)1e18 : (uint64_t)share_points;
     } else if (memory_bytes > 0) {
         /* ceil(EX_CACHE_POINTS * T * bytes a triangle / limit), in integers;
-        ** a scene beyond 2^56 triangles is out of --batch-tris's range anyway */
+        ** a scene beyond 2^56 triangles is out of --point-tris's range anyway */
         uint64_t t = triangles < ((uint64_t)1 << 56) ? triangles : (uint64_t)1 << 56;
         uint64_t geometry = t * EX_CACHE_POINTS * EX_BLOB_BYTES_PER_TRIANGLE;
         want = geometry / memory_bytes + (geometry % memory_bytes != 0);

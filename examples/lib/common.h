@@ -60,10 +60,10 @@ void ex_scene_folder(const char *prog, char *dir, size_t size);
 /* The default scene file of a mesh, in that folder: the mesh's base name,
 ** a hash of its absolute path and the settings, e.g.
 ** "bunny.obj-1f3a9c2e-b100000-r128.brs". */
-void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tris,
+void ex_default_scene_path(const char *prog, const char *mesh, uint32_t point_tris,
                            uint32_t res, char *path, size_t size);
 
-/* The default --batch-tris of trace, mpi_trace and render (README, "The
+/* The default --point-tris of trace, mpi_trace and render (README, "The
 ** default point size"): few large batching points, as the paper's.  The
 ** points asked for: EX_FEW_POINTS without a memory limit; with one, enough
 ** that the cache holds EX_CACHE_POINTS of them, ceil(EX_CACHE_POINTS / f),
@@ -71,10 +71,10 @@ void ex_default_scene_path(const char *prog, const char *mesh, uint32_t batch_tr
 ** it is given (> 0), else memory_bytes / (triangles *
 ** EX_BLOB_BYTES_PER_TRIANGLE) when memory_bytes > 0 -- and never fewer than
 ** EX_FEW_POINTS.  The size: ceil(triangles / points), at least
-** EX_MIN_POINT_TRIS, at most UINT32_MAX (--batch-tris's maximum).
+** EX_MIN_POINT_TRIS, at most UINT32_MAX (--point-tris's maximum).
 ** triangles: the scene's unique ones (a mesh's; an instanced scene's
 ** world triangles plus each prototype's once); 0 gives EX_MIN_POINT_TRIS. */
-uint64_t ex_default_batch_tris(uint64_t triangles, uint64_t memory_bytes, double memory_percent);
+uint64_t ex_default_point_tris(uint64_t triangles, uint64_t memory_bytes, double memory_percent);
 
 /* The bytes an indexed mesh holds in memory (positions and indices), and
 ** a note on stderr when they exceed a nonzero memory limit: a run that

@@ -1,6 +1,6 @@
 /*
 ** count.c -- the triangles of a mesh file counted before it is read, for
-** the default size of a batching point (ex_default_batch_tris): an OBJ in
+** the default size of a batching point (ex_default_point_tris): an OBJ in
 ** one scan of its bytes, a PLY from its header.  input.c and pbrt.c (a
 ** plymesh) use it; the fuzz targets link it with pbrt.c.
 */

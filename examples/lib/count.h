@@ -7,7 +7,7 @@
 #include <stdint.h>
 
 /* The triangles of a mesh file before it is read (for the default point
-** size, ex_default_batch_tris): an OBJ's faces counted in one scan of its
+** size, ex_default_point_tris): an OBJ's faces counted in one scan of its
 ** bytes, a polygon of n corners n - 2 triangles, as brt_mesh_load fans it
 ** (no number is parsed: a fraction of the read's time, on every run);
 ** a PLY's header alone, its face count, exact when the faces are

@@ -34,8 +34,8 @@ static int batched_option(const ex_tracer_command *c, int argc, char **argv, int
     const char *prog = c->prog, *a = argv[*i];
     if (strcmp(a, "--no-proxy") == 0) o->no_proxy = 1;
     else if (strcmp(a, "--paper-scheduler") == 0) o->paper_scheduler = 1;
-    else if (strcmp(a, "--batch-tris") == 0)
-        o->batch_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, i), 1, UINT32_MAX);
+    else if (strcmp(a, "--point-tris") == 0)
+        o->point_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, i), 1, UINT32_MAX);
     else if (strcmp(a, "--proxy-res") == 0)
         o->res = ex_parse_resolution(prog, a, ex_option_value(prog, argc, argv, i));
     else if (strcmp(a, "--memory") == 0) {
@@ -76,14 +76,14 @@ void ex_tracer_parse(const ex_tracer_command *c, int argc, char **argv, ex_trace
 
 void ex_tracer_point_size(const ex_input *in, ex_tracer_options *o)
 {
-    if (o->batch_tris == 0) o->batch_tris = ex_default_batch_tris(ex_input_triangles(in), o->memory, 0);
+    if (o->point_tris == 0) o->point_tris = ex_default_point_tris(ex_input_triangles(in), o->memory, 0);
 }
 
 const char *ex_tracer_scene_path(const char *prog, const ex_tracer_options *o, char *path,
                                  size_t size)
 {
     if (o->scene) return o->scene;
-    ex_default_scene_path(prog, o->input, (uint32_t)o->batch_tris, (uint32_t)o->res, path, size);
+    ex_default_scene_path(prog, o->input, (uint32_t)o->point_tris, (uint32_t)o->res, path, size);
     return path;
 }
 

@@ -20,7 +20,7 @@ typedef struct ex_tracer_options {
     const char *stats;               /* --stats FILE.json, or NULL */
     int verbose;                     /* --verbose: summary line even when not a tty */
     /* The batched settings (ex_tracer_command.batched): */
-    uint64_t batch_tris;             /* --batch-tris; 0: not given (ex_tracer_point_size) */
+    uint64_t point_tris;             /* --point-tris; 0: not given (ex_tracer_point_size) */
     uint64_t res;                    /* --proxy-res: proxy resolution, a power of two */
     uint64_t memory;                 /* --memory: geometry-cache budget in bytes */
     int memory_given;                /* --memory was on the command line */
@@ -44,7 +44,7 @@ typedef struct ex_tracer_command {
     void *user;
 } ex_tracer_command;
 
-/* Zeroes o, then the defaults: --proxy-res 128, --memory 1G (--batch-tris:
+/* Zeroes o, then the defaults: --proxy-res 128, --memory 1G (--point-tris:
 ** ex_tracer_point_size). */
 void ex_tracer_defaults(ex_tracer_options *o);
 
@@ -53,7 +53,7 @@ void ex_tracer_defaults(ex_tracer_options *o);
 ** --help)" or "trace: expected MESH RAYS HITS, got 2 file names (see --help)". */
 void ex_tracer_parse(const ex_tracer_command *c, int argc, char **argv, ex_tracer_options *o);
 
-/* --batch-tris when not given: ex_default_batch_tris of the input's
+/* --point-tris when not given: ex_default_point_tris of the input's
 ** unique triangles (ex_input_triangles) and --memory (its default too: a
 ** limit).  Called before ex_tracer_scene_path, whose default file name
 ** holds the size. */

@@ -73,7 +73,7 @@ static void usage(void)
            "  --verbose         print the summary line even when stderr is not a terminal\n"
            "  --help            this text\n"
            "\n"
-           "build/trace's batched options (--batched, --batch-tris, --proxy-res, --no-proxy,\n"
+           "build/trace's batched options (--batched, --point-tris, --proxy-res, --no-proxy,\n"
            "--memory, --scene, --rebuild, --drop-os-cache) are rejected: Embree traces\n"
            "in memory.  Exit status 0 on success, 1 on bad input (nothing is written).\n",
            RTC_VERSION_STRING);
@@ -83,7 +83,7 @@ static void usage(void)
 ** rejected by name so that a copied command line fails clearly. */
 static int is_batched_option(const char *arg)
 {
-    static const char *const names[] = {"--batched", "--batch-tris", "--proxy-res", "--no-proxy",
+    static const char *const names[] = {"--batched", "--point-tris", "--proxy-res", "--no-proxy",
                                         "--memory", "--scene", "--rebuild", "--drop-os-cache"};
     size_t i;
     for (i = 0; i < sizeof names / sizeof names[0]; i++)
@@ -350,10 +350,10 @@ static void trace_all(const embree_options *o, const ex_input *input, const brt_
     for (i = 0; i < count; i++) {
         /* Progress in slices of 64K rays keeps the clock out of the loop. */
         if ((i & 0xFFFF) == 0) ex_progress("tracing", i, count);
-        if (occluded) stats->shadow_occluded += occluded[i] = occluded_ray(scene, &rays[i]);
+        if (occluded) stats->occlusion_hits += occluded[i] = occluded_ray(scene, &rays[i]);
         else trace_ray(scene, &rays[i], &hits[i]);
     }
-    if (occluded) stats->shadow_rays = count;
+    if (occluded) stats->occlusion_rays = count;
     stats->seconds = brt_seconds() - start;
     ex_progress("tracing", count, count);
     ex_progress_end();
@@ -394,7 +394,7 @@ int main(int argc, char **argv)
     if (o.t.stats) ex_check(prog, brt_stats_write_json(o.t.stats, &stats, &err), &err);
     if (o.t.verbose || isatty(2)) {
         for (i = 0; hits && i < count; i++) hit_count += hits[i].prim != BRT_NO_PRIM;
-        hit_count += stats.shadow_occluded;
+        hit_count += stats.occlusion_hits;
         fprintf(stderr, "embree_trace: %llu rays, %llu %s, build %.3f s, trace %.3f s, "
                 "%.2f Mrays/s%s\n", (unsigned long long)count, (unsigned long long)hit_count,
                 hits ? "hits" : "occluded",

@@ -18,7 +18,7 @@
 **           share of occluded shadow rays that inner proxies stopped before
 **           any queue (fig4.csv, a bar chart).
 **
-**   build/figures [--out DIR] [--only N] [--scale S] [--batch-tris N]
+**   build/figures [--out DIR] [--only N] [--scale S] [--point-tris N]
 **                 [--spp N] [--width W] [--height H] [--rays-in-flight N]
 **                 [--threads N]
 **
@@ -65,8 +65,8 @@ typedef struct settings {
     int only;                 /* 1..FIGURE_COUNT: that figure alone; 0: all */
     int paper;                /* --paper: Fig. 3 alone, in the paper's regime */
     double scale;
-    uint64_t batch_tris, spp, width, height, rays_in_flight, threads;
-    uint64_t batch_instanced; /* render --batch-instanced; 0: not given */
+    uint64_t point_tris, spp, width, height, rays_in_flight, threads;
+    uint64_t point_instanced; /* render --point-instanced; 0: not given */
     char render[4096];        /* path of build/render */
 } settings;
 
@@ -81,13 +81,13 @@ static void usage(void)
            "  --out DIR            output folder (default figures)\n"
            "  --only N             figure N (1-4) alone (default: all four)\n"
            "  --scale S            scene size, about 100000*S triangles (default 4)\n"
-           "  --batch-tris N       triangles per batching point (default 30000)\n"
+           "  --point-tris N       triangles per batching point (default 30000)\n"
            "  --spp N              samples per pixel (default 4)\n"
            "  --width W            image width (default 160)\n"
            "  --height H           image height (default 90)\n"
            "  --rays-in-flight N   paths traced at once (default 16384)\n"
            "  --threads N          threads of each render (default 0: all cores)\n"
-           "  --batch-instanced N  instanced triangles per batching point (render's option;\n"
+           "  --point-instanced N  instanced triangles per batching point (render's option;\n"
            "                       default 2000000)\n"
            "  --paper              Fig. 3 alone in the paper's regime: the instanced landscape\n"
            "                       and island, limits 60-90 %% (make bench-paper)\n"
@@ -108,8 +108,8 @@ static void parse_options(int argc, char **argv, settings *s)
     memset(s, 0, sizeof *s);
     s->out = "figures";
     s->scale = 4;
-    s->batch_tris = 30000;
-    s->batch_instanced = 2000000;   /* the instanced scenes' points: see the README */
+    s->point_tris = 30000;
+    s->point_instanced = 2000000;   /* the instanced scenes' points: see the README */
     s->spp = 4;
     s->width = 160;
     s->height = 90;
@@ -120,16 +120,17 @@ static void parse_options(int argc, char **argv, settings *s)
         if (strcmp(a, "--out") == 0) s->out = VALUE;
         else if (strcmp(a, "--only") == 0) s->only = (int)ex_parse_u64(prog, a, VALUE, 1, FIGURE_COUNT);
         else if (strcmp(a, "--scale") == 0) s->scale = ex_parse_double(prog, a, VALUE, 0.001, EX_SCENE_MAX_SCALE);
-        else if (strcmp(a, "--batch-tris") == 0) s->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
+        else if (strcmp(a, "--point-tris") == 0) s->point_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
         else if (strcmp(a, "--spp") == 0) s->spp = ex_parse_u64(prog, a, VALUE, 1, 65536);
         else if (strcmp(a, "--width") == 0) s->width = ex_parse_u64(prog, a, VALUE, 1, 16384);
         else if (strcmp(a, "--height") == 0) s->height = ex_parse_u64(prog, a, VALUE, 1, 16384);
         else if (strcmp(a, "--rays-in-flight") == 0)
             s->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
         else if (strcmp(a, "--threads") == 0) s->threads = ex_parse_u64(prog, a, VALUE, 0, BRT_MAX_THREADS);
-        else if (strcmp(a, "--batch-instanced") == 0)
-            s->batch_instanced = ex_parse_u64(prog, a, VALUE, 1, UINT64_MAX);
+        else if (strcmp(a, "--point-instanced") == 0)
+            s->point_instanced = ex_parse_u64(prog, a, VALUE, 1, UINT64_MAX);
         else if (strcmp(a, "--paper") == 0) s->paper = s->only = 3;
+        else if (a[0] == '-') ex_unknown_option(prog, a);
         else ex_die(prog, "unknown argument '%s' (see --help)", a);
 #undef VALUE
     }
@@ -159,13 +160,13 @@ enum { PAPER_SCHEDULER, BATCHRT_SCHEDULER };
 static void run_render(const settings *s, const char *scene, int scheduler, const char *extra)
 {
     char command[32768], instanced[64] = "";
-    if (s->batch_instanced)
-        snprintf(instanced, sizeof instanced, "--batch-instanced %llu",
-                 (unsigned long long)s->batch_instanced);
+    if (s->point_instanced)
+        snprintf(instanced, sizeof instanced, "--point-instanced %llu",
+                 (unsigned long long)s->point_instanced);
     snprintf(command, sizeof command,
-             "'%s' %s --grey %s --scale %g --batch-tris %llu --spp %llu --width %llu --height %llu "
+             "'%s' %s --grey %s --scale %g --point-tris %llu --spp %llu --width %llu --height %llu "
              "--rays-in-flight %llu --threads %llu %s %s >>'%s' 2>&1",
-             s->render, scene, instanced, s->scale, (unsigned long long)s->batch_tris,
+             s->render, scene, instanced, s->scale, (unsigned long long)s->point_tris,
              (unsigned long long)s->spp, (unsigned long long)s->width,
              (unsigned long long)s->height, (unsigned long long)s->rays_in_flight,
              (unsigned long long)s->threads, scheduler == PAPER_SCHEDULER ? "--paper-scheduler" : "", extra,
@@ -188,6 +189,8 @@ static double json_number(const char *path, const char *name)
         if (p) found = sscanf(p + strlen(key), "%lf", &value) == 1;
     }
     fclose(f);
+    if (!found && strncmp(name, "occlusion_", 10) == 0)
+        ex_die(prog, "%s: no number \"%s\" (the statistics' shadow_* fields are now occlusion_*)", path, name);
     if (!found) ex_die(prog, "%s: no number \"%s\"", path, name);
     return value;
 }
@@ -451,15 +454,15 @@ static void figure4_run(const settings *s, FILE *csv, int i, int scheduler, int 
     snprintf(extra, sizeof extra, "--memory 25%% %s --out '%s/run.png' --stats '%s'",
              inner ? "" : "--no-inner", s->out, stats);
     run_render(s, fig4_scenes[i], scheduler, extra);
-    occluded = json_number(stats, "shadow_occluded");
-    inner_stopped = json_number(stats, "shadow_inner_stopped");
+    occluded = json_number(stats, "occlusion_hits");
+    inner_stopped = json_number(stats, "occlusion_inner_stopped");
     *mib = json_number(stats, "disk_bytes_read") / 1048576.0;
     *stopped = occluded > 0 ? 100.0 * inner_stopped / occluded : 0;
     fprintf(csv, "%s,%s,%s,%.0f,%.0f,%.0f,%.0f,%.0f,%.4f,%.0f,%.0f\n", fig4_scenes[i],
             scheduler_names[scheduler], inner ? "outer+inner" : "outer",
             json_number(stats, "disk_bytes_read"), json_number(stats, "batch_loads"),
-            json_number(stats, "shadow_rays"), occluded, inner_stopped, *stopped / 100.0,
-            json_number(stats, "shadow_disk_bytes_read"), json_number(stats, "proxy_bytes"));
+            json_number(stats, "occlusion_rays"), occluded, inner_stopped, *stopped / 100.0,
+            json_number(stats, "occlusion_disk_bytes_read"), json_number(stats, "proxy_bytes"));
     remove(stats);
 }
 
@@ -468,8 +471,8 @@ static void figure4(const settings *s)
     static const char *const groups[FIG4_GROUPS] = {
         "landscape, paper", "landscape, batchrt", "island, paper", "island, batchrt"};
     static const char *const bars[2] = {"outer proxies", "outer + inner"};
-    FILE *csv = open_csv(s, "fig4.csv", "scene,scheduler,proxies,disk_bytes_read,batch_loads,shadow_rays,"
-                                        "shadow_occluded,shadow_inner_stopped,stopped_share,shadow_disk_bytes_read,"
+    FILE *csv = open_csv(s, "fig4.csv", "scene,scheduler,proxies,disk_bytes_read,batch_loads,occlusion_rays,"
+                                        "occlusion_hits,occlusion_inner_stopped,stopped_share,occlusion_disk_bytes_read,"
                                         "proxy_bytes");
     double mib[2 * FIG4_GROUPS], stopped[2 * FIG4_GROUPS];
     static char rows[FIG4_GROUPS][160];

@@ -101,7 +101,7 @@ static void usage(void)
            "                    divided by SIZE per second, e.g. 1G (default: unmodelled)\n"
            "  --disk-speed SIZE model a slower disk: each read lasts at least its bytes\n"
            "                    divided by SIZE per second (as render's)\n"
-           "  --batch-tris N    triangles per batching point when building (default as\n"
+           "  --point-tris N    triangles per batching point when building (default as\n"
            "                    trace's: the triangles / max(8, 4 / the --memory share\n"
            "                    of the blobs), at least 100000)\n"
            "  --proxy-res R     proxy resolution when building, 2..1024 (default 128)\n"
@@ -579,7 +579,7 @@ static const char *prepare_scene(const options *o, char *path, size_t size)
     const char *scene;
     ex_tracer_options t = o->t;
     ex_input in;
-    unsigned long long batch_tris;
+    unsigned long long point_tris;
     if (len > 4 && strcmp(o->t.input + len - 4, ".brs") == 0) return o->t.input;
     /* The default point size from rank 0's count of the input (every rank
     ** names the same scene file by it). */
@@ -587,15 +587,15 @@ static const char *prepare_scene(const options *o, char *path, size_t size)
         ex_input_open(prog, o->t.input, &in);
         ex_tracer_point_size(&in, &t);
     }
-    batch_tris = t.batch_tris;
-    MPI_Bcast(&batch_tris, 1, MPI_UNSIGNED_LONG_LONG, 0, MPI_COMM_WORLD);
-    t.batch_tris = batch_tris;
+    point_tris = t.point_tris;
+    MPI_Bcast(&point_tris, 1, MPI_UNSIGNED_LONG_LONG, 0, MPI_COMM_WORLD);
+    t.point_tris = point_tris;
     scene = ex_tracer_scene_path(prog, &t, path, size);
     if (my_rank == 0) {
         brt_scene_options scene_opt;
         int rebuilt;
         memset(&scene_opt, 0, sizeof scene_opt);
-        scene_opt.batch_tris = (uint32_t)t.batch_tris;
+        scene_opt.point_tris = (uint32_t)t.point_tris;
         scene_opt.proxy_res = (uint32_t)t.res;
         scene_opt.interrupt = ex_catch_interrupts();
         brt_scene_close(ex_input_scene(prog, &in, scene, &scene_opt, &rebuilt));
@@ -618,7 +618,7 @@ static brt_scene *open_everything(const options *o, brt_ray **rays, size_t *coun
     agree(failure);
     if (brt_rays_read(o->t.rays, rays, count, &err) != BRT_OK) failure = err.message;
     agree(failure);
-    *owner = malloc(((size_t)brt_scene_batch_count(scene) + 1) * sizeof **owner);
+    *owner = malloc(((size_t)brt_scene_point_count(scene) + 1) * sizeof **owner);
     if (!*owner) failure = "out of memory for the owners";
     else if (brt_scene_assign(scene, (uint32_t)rank_count, o->round_robin, *owner, &err) != BRT_OK)
         failure = err.message;
@@ -678,9 +678,9 @@ int main(int argc, char **argv)
     ex_catch_interrupts();
     scene = open_everything(&o, &rays, &count, &owner);
 
-    foreign = malloc((size_t)brt_scene_batch_count(scene) + 1);
+    foreign = malloc((size_t)brt_scene_point_count(scene) + 1);
     if (!foreign) ex_die(prog, "rank %d: out of memory", my_rank);
-    for (k = 0; k < brt_scene_batch_count(scene); k++) foreign[k] = owner[k] != (uint32_t)my_rank;
+    for (k = 0; k < brt_scene_point_count(scene); k++) foreign[k] = owner[k] != (uint32_t)my_rank;
     network_init(&net, owner, count, o.net_speed);
     memset(&sh, 0, sizeof sh);
     sh.rays = rays;

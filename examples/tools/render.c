@@ -118,8 +118,8 @@ static const char *const prog = "render";
 typedef struct options {
     const char *input;            /* mesh file or built-in scene name */
     double scale;
-    uint64_t seed, spp, width, height, batch_tris, res, rays_in_flight;
-    uint64_t batch_instanced;     /* --batch-instanced; 0: no such limit */
+    uint64_t seed, spp, width, height, point_tris, res, rays_in_flight;
+    uint64_t point_instanced;     /* --point-instanced; 0: no such limit */
     uint64_t memory;              /* bytes; 0: no limit */
     uint64_t disk_speed;          /* --disk-speed, bytes per second; 0: the device's */
     uint64_t threads;             /* --threads; 0: all cores */
@@ -160,10 +160,10 @@ static void usage(void)
            "                       (default: next-event estimation toward the sun)\n"
            "  --memory SIZE|P%%     geometry memory limit, e.g. 64M, or P %% of the geometry\n"
            "                       bytes (default: no limit); proxies count against it\n"
-           "  --batch-tris N       triangles per batching point (instanced: those of the distinct\n"
+           "  --point-tris N       triangles per batching point (instanced: those of the distinct\n"
            "                       prototypes it uses); default: the unique triangles / max(8,\n"
            "                       4 / the --memory share of the geometry), at least 100000\n"
-           "  --batch-instanced N  instanced scenes: a batching point holds at most N\n"
+           "  --point-instanced N  instanced scenes: a batching point holds at most N\n"
            "                       instanced triangles (default: no such limit)\n"
            "  --proxy-res R        proxy resolution, a power of two (default 128)\n"
            "  --no-proxy           queue rays at every box they enter (Pharr et al.)\n"
@@ -265,7 +265,7 @@ static void parse_options(int argc, char **argv, options *o)
     o->width = 320;
     o->height = 180;
     /* 0: trace's rule, from the scene and the limit (point_size) */
-    o->batch_tris = 0;
+    o->point_tris = 0;
     o->res = 128;
     o->rays_in_flight = 1u << 18;
     o->sun_radius = SUN_RADIUS;
@@ -286,9 +286,9 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--no-nee")) o->no_nee = 1;
         else if (is_option(a, "--grey")) o->grey = 1;
         else if (is_option(a, "--memory")) parse_memory(VALUE, o);
-        else if (is_option(a, "--batch-tris")) o->batch_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
-        else if (is_option(a, "--batch-instanced"))
-            o->batch_instanced = ex_parse_u64(prog, a, VALUE, 1, UINT64_MAX);
+        else if (is_option(a, "--point-tris")) o->point_tris = ex_parse_u64(prog, a, VALUE, 1, UINT32_MAX);
+        else if (is_option(a, "--point-instanced"))
+            o->point_instanced = ex_parse_u64(prog, a, VALUE, 1, UINT64_MAX);
         else if (is_option(a, "--proxy-res")) o->res = ex_parse_resolution(prog, a, VALUE);
         else if (is_option(a, "--rays-in-flight"))
             o->rays_in_flight = ex_parse_u64(prog, a, VALUE, 1, 1u << 26);
@@ -659,8 +659,8 @@ static void render_direct(const direct_scene *d, renderer *r, brt_stats *stats)
         else brt_bvh_trace(d->bvh, rays, tags, n, hits, normals, r->job->threads);
         for (i = 0; i < n; i++) {
             int shadow = (tags[i] & BRT_TAG_OCCLUSION) != 0;
-            stats->shadow_rays += shadow;
-            stats->shadow_occluded += shadow && hits[i].prim != BRT_NO_PRIM;
+            stats->occlusion_rays += shadow;
+            stats->occlusion_hits += shadow && hits[i].prim != BRT_NO_PRIM;
             finished(r, &rays[i], &hits[i], normals + 3 * i, 0, tags[i]);
         }
         stats->rays += n;
@@ -716,7 +716,7 @@ static void open_input(const options *o, render_input *in)
     }
 }
 
-/* The default --batch-tris (ex_default_batch_tris, trace's rule) from the
+/* The default --point-tris (ex_default_point_tris, trace's rule) from the
 ** scene's unique triangles before any build: an instanced built-in
 ** scene's from its open recipe, the crown's counted without its geometry
 ** (ex_scene_count), a file's as trace counts it (ex_input_triangles). */
@@ -724,7 +724,7 @@ static void point_size(options *o, const render_input *in)
 {
     uint64_t triangles = 0, vertices;
     brt_error err;
-    if (o->batch_tris) return;
+    if (o->point_tris) return;
     if (in->instanced) {
         triangles = ex_instanced_unique(in->instanced);
     } else if (ex_scene_is_builtin(o->input)) {
@@ -736,7 +736,7 @@ static void point_size(options *o, const render_input *in)
     } else {
         triangles = ex_input_triangles(&in->file);
     }
-    o->batch_tris = ex_default_batch_tris(triangles, o->memory, o->memory_percent);
+    o->point_tris = ex_default_point_tris(triangles, o->memory, o->memory_percent);
 }
 
 static void close_input(render_input *in)
@@ -849,8 +849,8 @@ static void builtin_scene_path(const options *o, char *path, size_t size)
     char dir[4096];
     ex_scene_folder(prog, dir, sizeof dir);
     if (snprintf(path, size, "%s/%s-s%g-seed%llu-b%llu-i%llu-r%llu.brs", dir, o->input, o->scale,
-                 (unsigned long long)o->seed, (unsigned long long)o->batch_tris,
-                 (unsigned long long)o->batch_instanced, (unsigned long long)o->res) >= (int)size)
+                 (unsigned long long)o->seed, (unsigned long long)o->point_tris,
+                 (unsigned long long)o->point_instanced, (unsigned long long)o->res) >= (int)size)
         ex_die(prog, "%s: scene path too long", dir);
 }
 
@@ -899,14 +899,14 @@ static brt_scene *open_scene(const options *o, const render_input *in,
     uint64_t stamp;
     int builtin = ex_scene_is_builtin(o->input), rebuilt;
     memset(&sopt, 0, sizeof sopt);
-    sopt.batch_tris = (uint32_t)o->batch_tris;
+    sopt.point_tris = (uint32_t)o->point_tris;
     sopt.proxy_res = (uint32_t)o->res;
     sopt.interrupt = interrupt;
     sopt.threads = (unsigned)o->threads;
-    sopt.batch_instanced = o->batch_instanced;
+    sopt.point_instanced = o->point_instanced;
     if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
     else if (builtin) builtin_scene_path(o, path, sizeof path);
-    else ex_default_scene_path(prog, o->input, sopt.batch_tris, sopt.proxy_res, path, sizeof path);
+    else ex_default_scene_path(prog, o->input, sopt.point_tris, sopt.proxy_res, path, sizeof path);
     memset(&source, 0, sizeof source);
     if (builtin) {
         recipe.name = o->input;
@@ -1193,8 +1193,8 @@ static void describe(const options *o, uint64_t triangles, brt_scene *scene, uin
     else
         printf("%s: %llu triangles", o->input, (unsigned long long)triangles);
     if (scene) {
-        printf(", %u batching points of <= %llu, proxies %llu^3, ", brt_scene_batch_count(scene),
-               (unsigned long long)o->batch_tris, (unsigned long long)o->res);
+        printf(", %u batching points of <= %llu, proxies %llu^3, ", brt_scene_point_count(scene),
+               (unsigned long long)o->point_tris, (unsigned long long)o->res);
         if (limit) printf("memory limit %.1f MiB", limit / 1048576.0);
         else printf("no memory limit");
     }

@@ -71,7 +71,7 @@ static void usage(void)
            "                    [tnear, tfar], else 0 (Embree's rtcOccluded1)\n"
            "  --direct          one BVH over the whole mesh in memory (default)\n"
            "  --batched         batching points, proxies and geometry cache\n"
-           "  --batch-tris N    triangles per batching point, N >= 1 (batched; default: the\n"
+           "  --point-tris N    triangles per batching point, N >= 1 (batched; default: the\n"
            "                    mesh's triangles / max(8, 4 / the --memory share of its\n"
            "                    blobs), at least 100000; README, \"The default point size\")\n"
            "  --rays-in-flight N  rays the batched mode works on at once (default: 4096 when\n"
@@ -258,10 +258,10 @@ static void trace_direct(const ex_input *in, const trace_options *o, const brt_r
         direct_trace(&d, rays + i, tags, n, occluded ? scratch : hits + i, o->t.threads);
         for (k = 0; occluded && k < n; k++) {
             occluded[i + k] = scratch[k].prim != BRT_NO_PRIM;
-            stats->shadow_occluded += occluded[i + k];
+            stats->occlusion_hits += occluded[i + k];
         }
     }
-    if (occluded) stats->shadow_rays = count;
+    if (occluded) stats->occlusion_rays = count;
     stats->seconds = brt_seconds() - start;
     ex_progress("tracing", count, count);
     ex_progress_end();
@@ -286,7 +286,7 @@ static void trace_batched(const ex_input *in, const trace_options *o, const brt_
     brt_result r;
     int rebuilt;
     memset(&scene_opt, 0, sizeof scene_opt);
-    scene_opt.batch_tris = (uint32_t)o->t.batch_tris;
+    scene_opt.point_tris = (uint32_t)o->t.point_tris;
     scene_opt.proxy_res = (uint32_t)o->t.res;
     scene_opt.interrupt = ex_catch_interrupts();
     scene_opt.threads = o->t.threads;
@@ -323,7 +323,7 @@ static void trace_batched(const ex_input *in, const trace_options *o, const brt_
     if (o->t.verbose || isatty(2))
         fprintf(stderr, "trace: scene %s (%s), %llu batching points of <= %llu triangles\n", path,
                 rebuilt ? "built" : "reused", (unsigned long long)stats->batching_points,
-                (unsigned long long)o->t.batch_tris);
+                (unsigned long long)o->t.point_tris);
     brt_scene_close(scene);
 }
 
@@ -346,7 +346,7 @@ static void write_stats(const ex_input *in, const char *path, const char *hits_p
 
 static void print_summary(const brt_hit *hits, const brt_stats *stats)
 {
-    uint64_t i, hit_count = stats->shadow_occluded;
+    uint64_t i, hit_count = stats->occlusion_hits;
     for (i = 0; hits && i < stats->rays; i++) hit_count += hits[i].prim != BRT_NO_PRIM;
     fprintf(stderr, "trace: %llu rays, %llu %s, build %.3f s, trace %.3f s, %.2f Mrays/s\n",
             (unsigned long long)stats->rays, (unsigned long long)hit_count,

@@ -38,7 +38,7 @@ static brt_result trace_batched(const brt_mesh *mesh, const char *path, const br
     brt_trace_options trace = {0};
     brt_scene *scene;
     brt_result r;
-    build.batch_tris = 2;         /* ten batching points */
+    build.point_tris = 2;         /* ten batching points */
     build.proxy_res = 16;         /* a 16^3 voxel proxy each */
     trace.memory_limit = 16384;   /* the proxies and about three blobs of 4 KiB */
     r = brt_scene_build(mesh, &build, 0, path, err);

@@ -227,7 +227,7 @@ brt_result fuzz_fixed_scene_build(const char *path, brt_error *err)
     brt_mesh mesh;
     fuzz_fixed_mesh(&mesh);
     memset(&opt, 0, sizeof opt);   /* fields added later mean defaults */
-    opt.batch_tris = 8;   /* 4 batching points */
+    opt.point_tris = 8;   /* 4 batching points */
     opt.proxy_res = 4;
     return brt_scene_build(&mesh, &opt, 0, path, err);
 }
