@@ -609,9 +609,11 @@ SCALE_MEMORY ?= 1G
 SCALE_BATCH  ?= 100000
 SCALE_DIR    ?= /tmp/batchrt-bench-scale
 SCALE_KEEP   ?= 0
-.PHONY: bench-scale
-bench-scale: all
-	@set -e; d=$(SCALE_DIR); b=./$(BUILD); mkdir -p $$d; \
+# The shell functions of bench-scale and bench-island: num FILE FIELD (a
+# statistics number), mib BYTES, cpu OUT CMD... (user and system seconds of
+# CMD into OUT), speed TRIANGLES SECONDS CPUFILE, check WHAT PEAK BOUND (a
+# memory statement: prints it, sets fail=1 when it is violated).
+BENCH_SCALE_SH = \
 	num() { sed -n "s/.*\"$$2\": *\([0-9.eE+-]*\).*/\1/p" $$1; }; \
 	mib() { awk -v x=$$1 'BEGIN { printf "%.1f MiB", x / 1048576 }'; }; \
 	cpu() { out=$$1; shift; if [ -x /usr/bin/time ]; then /usr/bin/time -f "%U %S" -o $$out "$$@"; \
@@ -622,7 +624,10 @@ bench-scale: all
 	check() { if awk -v what="$$1" -v peak=$$2 -v bound=$$3 'BEGIN { \
 	  printf "  %s: peak RSS %.1f MiB <= bound %.1f MiB: %s\n", what, peak / 1048576, \
 	    bound / 1048576, peak <= bound ? "holds" : "VIOLATED"; exit peak > bound }'; \
-	  then return 0; else fail=1; return 1; fi; }; \
+	  then return 0; else fail=1; return 1; fi; };
+.PHONY: bench-scale
+bench-scale: all
+	@set -e; d=$(SCALE_DIR); b=./$(BUILD); mkdir -p $$d; $(BENCH_SCALE_SH) \
 	fail=0; df -h $$d | tail -1; \
 	head -c 32 /dev/zero > $$d/one.rays; \
 	echo "== mkscene crown --scale $(SCALE_OBJ) big.obj"; \
@@ -668,6 +673,59 @@ bench-scale: all
 	if [ "$(SCALE_KEEP)" != 1 ]; then rm -f $$d/land.brs; fi; \
 	exit $$fail
 # == END SCALE ============================================================
+
+# == ISLAND (the paper's largest scene; not part of CI; about an hour) ====
+# bench-island: the instanced island at ISLAND_SCALE (1900: about 156 M unique
+# and 31 G instanced triangles, the paper's Table 1: 143 M and 31 G), in
+# points of at most ISLAND_TRIS unique and ISLAND_INSTANCED instanced
+# triangles (about the paper's 1,984 points), its scene file built by render
+# straight from the streams; a render at ISLAND_MEMORY (320x180, 4 spp), each
+# step's time and peak RSS checked against the README's statements as in
+# bench-scale; then one point of Fig. 3 in bench-paper's regime (the
+# paper's scheduler, 60 %, 160x90, 4 spp, grey, no shadow rays): disk
+# bytes with proxies over without.  Files in ISLAND_DIR, removed at the end
+# unless SCALE_KEEP=1 (a kept scene file is reused).
+ISLAND_SCALE     ?= 1900
+ISLAND_TRIS      ?= 2000000
+ISLAND_INSTANCED ?= 16000000
+ISLAND_MEMORY    ?= 1G
+ISLAND_DIR       ?= /tmp/batchrt-bench-island
+.PHONY: bench-island
+bench-island: all
+	@set -e; d=$(ISLAND_DIR); b=./$(BUILD); mkdir -p $$d; $(BENCH_SCALE_SH) \
+	fail=0; df -h $$d | tail -1; \
+	scene="island --scale $(ISLAND_SCALE) --point-tris $(ISLAND_TRIS) \
+	  --point-instanced $(ISLAND_INSTANCED) --scene $$d/island.brs"; \
+	echo "== render $$scene: the scene file from the streams"; rm -f $$d/island.brs; \
+	cpu $$d/island.cpu $$b/render $$scene --width 1 --height 1 --spp 1 --out $$d/one.png \
+	  --stats $$d/build.json | tee $$d/island.txt; \
+	proto=$$(sed -n 's/.*(\([0-9]*\) in prototypes).*/\1/p' $$d/island.txt); \
+	tris=$$(sed -n 's/^island: \([0-9]*\) unique.*/\1/p' $$d/island.txt); \
+	echo "  $$tris unique triangles: $$(speed $$tris $$(num $$d/build.json build_seconds) $$d/island.cpu),"\
+	  "scene file $$(stat -c %s $$d/island.brs) bytes"; \
+	check "build from the generator" $$(num $$d/build.json peak_rss_bytes) \
+	  $$(awk -v dag=$$(num $$d/build.json proxy_bytes) -v p=$$proto \
+	    'BEGIN { printf "%.0f", 256 * 1048576 + dag + 64 * p }') || :; \
+	echo "== render $$scene 320x180, 4 spp, --memory $(ISLAND_MEMORY)"; \
+	$$b/render $$scene --width 320 --height 180 --spp 4 --memory $(ISLAND_MEMORY) --out $$d/island.png \
+	  --stats $$d/render.json; \
+	j=$$d/render.json; \
+	echo "  $$(awk -v s=$$(num $$j seconds) 'BEGIN { printf "%.1f", s }') s, read"\
+	  "$$(mib $$(num $$j disk_bytes_read)) in $$(num $$j batch_loads) loads, $$(num $$j batching_points)"\
+	  "batching points, DAG $$(mib $$(num $$j proxy_bytes))"; \
+	check "render" $$(num $$j peak_rss_bytes) $$(awk -v l=$$(num $$j memory_limit) \
+	  -v p=$$(num $$j paths_in_flight) -v n=$$(num $$j batching_points) \
+	  'BEGIN { printf "%.0f", l + 280 * p + 512 * n + 40 * 320 * 180 + 16 * 1048576 }') || :; \
+	for proxies in --no-proxy ""; do \
+	  $$b/render $$scene --paper-scheduler --grey --no-nee --width 160 --height 90 --spp 4 --memory 60% \
+	    $$proxies --out $$d/fig3.png --stats $$d/fig3$$proxies.json > /dev/null; \
+	done; \
+	awk -v n=$$(num $$d/fig3--no-proxy.json disk_bytes_read) -v p=$$(num $$d/fig3.json disk_bytes_read) \
+	  'BEGIN { printf "  Fig. 3 at 60 %%, the paper'"'"'s scheduler: %.1f GiB without proxies, %.1f GiB with: %.2f\n", \
+	    n / 1073741824, p / 1073741824, p / n }'; \
+	if [ "$(SCALE_KEEP)" != 1 ]; then rm -f $$d/island.brs; fi; \
+	exit $$fail
+# == END ISLAND ===========================================================
 
 # == INSTALL ==============================================================
 #   make install       $(LIB), batchrt.h and a pkg-config file batchrt.pc

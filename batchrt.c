@@ -36,7 +36,7 @@
 ** scene file (format, out-of-core build, open, validation); world.c, the
 ** direct mode's world; mesh.c, OBJ and PLY input; bvh.c; svdag.c; and
 ** base.c (rays and hits, statistics, errors, utilities, the pool).  The
-** data flow is drawn once, in batchrt.h's opening comment.
+** data flow is drawn once, in README.md ("The data flow").
 */
 /* MAP_ANONYMOUS (POSIX.1-2024) for the geometry cache's buffers: glibc shows
 ** it only beyond the Makefile's _POSIX_C_SOURCE=200809L, hence this file's
@@ -70,7 +70,7 @@
 /* ##################################################################### */
 /*
 ** Pharr et al. 1997 with the proxies of Molenaar and Eisemann 2020, in the
-** order of the data flow (drawn in batchrt.h): the partition into batching
+** order of the data flow (drawn in README.md): the partition into batching
 ** points, the top-level BVH and its walk, the scene in memory, the queues
 ** and the scheduler, the geometry cache.
 */

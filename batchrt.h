@@ -9,12 +9,13 @@
 ** in-memory voxel proxy of the cluster, and only rays that hit the proxy
 ** cause a disk load.  A proxy never misses a ray that hits real geometry.
 **
-** DATA FLOW
-**   mesh (OBJ/PLY) -> batching points -> scene file + proxies   batched mode
-**     (mesh.c)    (batchrt.c)  (scene.c; svdag.c: voxelize -> SVO -> shared DAG)
-**   rays -> top-level walk -> (geometry in memory: intersect at once)
-**        -> proxy test -> queues -> geometry cache -> hits
-**   mesh -> triangle BVH (bvh.c)                                direct mode
+** DATA FLOW (drawn once, in README.md, "The data flow")
+**   A mesh (mesh.c) is split into batching points (batchrt.c) and written
+**   as a scene file of BVH blobs and proxies (scene.c, bvh.c, svdag.c).
+**   Rays walk the top-level BVH; at a point in memory they are intersected
+**   at once, elsewhere a proxy test decides whether they queue there; the
+**   fullest queue is served from the geometry cache, and its rays walk on
+**   to their hits.  The direct mode is one triangle BVH (bvh.c).
 **   An instanced scene (brt_scene_source: world triangles, prototypes,
 **   instances) takes the same paths: batching points of world triangles
 **   and of instances, prototypes' BVHs stored and cached once, the ray

@@ -55,6 +55,7 @@
 #include "test.h"
 #include "util.h"
 
+#include <ctype.h>
 #include <dirent.h>
 #include <errno.h>
 #include <limits.h>
@@ -829,10 +830,122 @@ static void test_demo_output(void)
     free(got);
 }
 
+/* ---- 5. the reader's path and the data flow ---------------------------- */
+
+/* Whether text defines function name: a line that starts at column 0
+** (a return type), names "name(", and is not a declaration (no ';' before
+** the line's end). */
+static int defines(const char *text, const char *name)
+{
+    const size_t n = strlen(name);
+    const char *p;
+    for (p = text; (p = strstr(p, name)) != NULL; p += n) {
+        const char *line = p, *eol = strchr(p, '\n');
+        while (line > text && line[-1] != '\n') line--;
+        if (p[n] != '(' || (p > text && is_word_char(p[-1])) || !isalpha((unsigned char)line[0])) continue;
+        if (!memchr(line, ';', (size_t)((eol ? eol : p + strlen(p)) - line))) return 1;
+    }
+    return 0;
+}
+
+/* The README's "A reader's path: ten functions": ten rows | # | `name` |
+** `file` | ... |, numbered 1..10, each function defined in the file the
+** row names. */
+static void test_readers_path(void)
+{
+    char *readme = (char *)tu_slurp("README.md", NULL);
+    const char *p = readme ? strstr(readme, "## A reader's path: ten functions") : NULL;
+    int rows = 0;
+    EXPECT(p != NULL, "README.md: no section \"A reader's path: ten functions\"");
+    while (p && (p = strstr(p, "\n| ")) != NULL) {
+        char name[80], file[40];
+        int number;
+        char *source;
+        p++;
+        if (sscanf(p, "| %d | `%79[a-z0-9_]` | `%39[a-z.]` |", &number, name, file) != 3) {
+            if (rows > 0) break;           /* the table's end */
+            continue;                      /* its header */
+        }
+        rows++;
+        EXPECT(number == rows, "README.md:%d: the reader's path numbers row %d as %d", line_of(readme, p), rows,
+               number);
+        source = (char *)tu_slurp(file, NULL);
+        EXPECT(source && defines(source, name), "README.md:%d: the reader's path names %s in %s, which does not "
+               "define it", line_of(readme, p), name, file);
+        free(source);
+    }
+    EXPECT(rows == 10, "README.md: the reader's path has %d functions, not ten", rows);
+    free(readme);
+}
+
+/* Whether a line draws a flow: two arrows or more ("->", "-->" and the
+** box-drawing arrow; not C's p->field, whose arrow has a word either side). */
+static int draws_flow(const char *line, size_t n)
+{
+    int arrows = 0;
+    size_t i;
+    for (i = 0; i + 1 < n; i++) {
+        if (strncmp(line + i, "\xe2\x94\x80\xe2\x96\xba", 6) == 0 && i + 6 <= n) arrows++, i += 5;
+        else if (line[i] == '-' && line[i + 1] == '>' &&
+                 !(i > 0 && is_word_char(line[i - 1]) && i + 2 < n && is_word_char(line[i + 2])))
+            arrows++, i++;
+    }
+    return arrows >= 2;
+}
+
+/* The lines of path (README.md, or a C file's comments) that draw a flow,
+** outside README.md's "The data flow" section: each one an EXPECT
+** failure.  Returns how many lines inside it do. */
+static int check_drawings(const char *path)
+{
+    char *text = (char *)tu_slurp(path, NULL), *p = text, *notes = NULL;
+    const char *flow = text && strcmp(path, "README.md") == 0 ? strstr(text, "## The data flow\n") : NULL;
+    const char *flow_end = flow ? strstr(flow + 1, "\n## ") : NULL;
+    int inside = 0;
+    if (text && !flow) {                   /* a C file: its comments alone */
+        notes = malloc(strlen(text) + 1);
+        if (notes) split_c(text, notes);
+        free(text);
+        p = text = notes;
+    }
+    while (p && *p) {
+        const char *eol = strchr(p, '\n');
+        size_t n = eol ? (size_t)(eol - p) : strlen(p);
+        if (draws_flow(p, n)) {
+            int in_flow = flow && p > flow && (!flow_end || p < flow_end);
+            inside += in_flow;
+            EXPECT(in_flow, "%s:%d: a drawing of the data flow outside README.md's \"The data flow\": %.*s", path,
+                   line_of(text, p), (int)n, p);
+        }
+        p += n + (eol != NULL);
+    }
+    free(text);
+    return inside;
+}
+
+static void count_drawing(const char *path, void *user)
+{
+    *(int *)user += check_drawings(path);
+}
+
+/* The data flow is drawn once: in README.md's section of that name, and
+** in no comment of the core or of examples/. */
+static void test_data_flow_drawn_once(void)
+{
+    int inside = check_drawings("README.md");
+    EXPECT(inside >= 3, "README.md: \"The data flow\" draws %d lines of flow", inside);
+    inside = 0;
+    each_source(".", 0, count_drawing, &inside);
+    each_source("examples", 1, count_drawing, &inside);
+    EXPECT(inside == 0, "a source file claims README.md's drawing");
+}
+
 void suite_drift(void)
 {
     test_run("drift: every identifier a comment or the README names exists", test_identifiers_exist);
     test_run("drift: every option of a README command line is in its program's --help", test_options_exist);
     test_run("drift: the README's example outputs are what the commands print", test_example_outputs);
+    test_run("drift: the README's ten functions are defined where it says", test_readers_path);
+    test_run("drift: the data flow is drawn once, in the README", test_data_flow_drawn_once);
     test_run("drift long: make demo prints the README's table (make test-long)", test_demo_output);
 }
