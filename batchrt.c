@@ -4,8 +4,9 @@
 ** meets from the root of the top-level BVH to its hit, and nothing that is
 ** a file format, a BVH (bvh.c) or a voxel proxy (svdag.c).
 **
-** The file reads in two parts.  Part I is the method, in the order a ray
-** meets it; Part II is what the method needs to run but the paper does not
+** The file reads in three parts.  Part I is the method, in the order a ray
+** meets it; Part II is batchrt's layers on the method's loop, one section
+** each; Part III is what the method needs to run but the paper does not
 ** describe.  Each section opens with a comment on its design.
 **
 ** PART I -- THE METHOD
@@ -19,19 +20,24 @@
 **   the scene in memory                    the types the scheduler works on
 **   ray queues and the scheduler           the paper's loop (schedule,
 **                                          process_batch, walk_on,
-**                                          proxy_test, settle), and
-**                                          batchrt's layers, each named;
-**                                          the same loop in one function,
+**                                          proxy_test, settle), and the
+**                                          layers' hooks in it, declared
+**                                          in layer order
+**   the paper's loop, plain                the same loop in one function,
 **                                          without layers
 **                                          (schedule_reference)
 **   the geometry cache                     pread, LRU (SQLite's pcache
-**                                          shape), and read-ahead
-** PART II -- SUPPORT, NOT THE PAPER
+**                                          shape)
+** PART II -- BATCHRT'S LAYERS, in the order of the data flow
+**   layer 1 proxies_pay, 2 rays_in_flight (the set-up); 3 inner_stops,
+**   4 intersect_resident, 5 exact_proxy_hit (a ray's walk); 6 forward and
+**   take_rays, with the owners of batching points (other processes);
+**   7 fetch_for (the queue's load); 8 cache_decode (the cache's load);
+**   9 cache_read_ahead, 10 phases_run (threads)
+** PART III -- SUPPORT, NOT THE PAPER
 **   the partition checker                  every triangle and instance in
 **                                          exactly one batching point
-**   threads                                the scheduler's loop in phases
-**                                          (layers 9-10), and the direct
-**                                          mode's chunks
+**   direct tracing                         the direct mode's chunks of rays
 ** Beside and below this file (internal.h draws the layers): scene.c, the
 ** scene file (format, out-of-core build, open, validation); world.c, the
 ** direct mode's world; mesh.c, OBJ and PLY input; bvh.c; svdag.c; and
@@ -71,8 +77,10 @@
 /*
 ** Pharr et al. 1997 with the proxies of Molenaar and Eisemann 2020, in the
 ** order of the data flow (drawn in README.md): the partition into batching
-** points, the top-level BVH and its walk, the scene in memory, the queues
-** and the scheduler, the geometry cache.
+** points, the top-level BVH and its walk, instances, the scene in memory,
+** the queues and the scheduler's loop (and schedule_reference, the same
+** loop in one function), the geometry cache.  The loop calls batchrt's
+** layers (Part II) through hooks declared after the scheduler's types.
 */
 
 /* ---- median splits (the partition and the top-level build share them) -- */
@@ -763,8 +771,6 @@ typedef struct geometry_cache {
     brt_result ahead_result;
 } geometry_cache;
 
-
-
 /* The geometry cache's interface: its section follows the scheduler's. */
 static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budget,
                              const brt_trace_options *opt, brt_stats *stats);
@@ -774,7 +780,6 @@ static const geometry *cache_peek(const geometry_cache *c, uint32_t id);
 static void cache_touch(geometry_cache *c, uint32_t id);
 static void cache_release(geometry_cache *c, uint32_t id);
 static void cache_release_blob(geometry_cache *c, uint32_t id);
-static void cache_read_ahead(geometry_cache *c, uint32_t id);
 static brt_result cache_check(const geometry_cache *c, brt_error *err);
 static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *bytes_read, void **data,
                             blob_view *view, brt_error *err);
@@ -803,27 +808,31 @@ static uint64_t cache_bytes(const brt_scene *scene, uint32_t id);
 **
 ** batchrt's improvements are LAYERS on that loop: each is one named
 ** function that the loop calls, and each says why it is there and which
-** command measures it.
-**   1. intersect_resident  geometry in memory: intersect at once, no queue
-**   2. proxies_pay         no proxy tests when the budget holds every blob
-**   3. exact_proxy_hit     analysis: the triangles themselves as the proxy
-**   4. cache_read_ahead    threads: the next load read while a phase runs
-**   5. phases_run          threads: the loop's rays walked in parallel and
-**                          settled in order (Part II, "Threads")
-**   6. fetch_for           statistics: the loads only shadow rays asked for
-**   7. inner_stops         inner proxies: an occlusion ray settled occluded
+** command measures it.  They are numbered in the order of the data flow
+** (the set-up, a ray's walk, settling it, the loads, the threads), one
+** section each in Part II; their hooks are declared after these types.
+**   1. proxies_pay         no proxy tests when the budget holds every blob
+**   2. rays_in_flight      in core: few rays in flight by default
+**   3. inner_stops         inner proxies: an occlusion ray settled occluded
 **                          without a queue (the paper's future work)
-**   8. forward, take_rays  other processes (brt_exchange): a ray stopping
+**   4. intersect_resident  geometry in memory: intersect at once, no queue
+**   5. exact_proxy_hit     analysis: the triangles themselves as the proxy
+**   6. forward, take_rays  other processes (brt_exchange): a ray stopping
 **                          at a point owned elsewhere is sent there, and
 **                          rays sent here are queued where they stopped
-**   9. cache_decode        in core: a point loaded is decoded to float
+**   7. fetch_for           statistics: the loads only occlusion rays asked
+**                          for
+**   8. cache_decode        in core: a point loaded is decoded to float
 **                          nodes when the budget holds it beside every blob
-**  10. rays_in_flight      in core: few rays in flight by default
+**   9. cache_read_ahead    threads: the next load read while a phase runs
+**  10. phases_run          threads: the loop's rays walked in parallel and
+**                          settled in order
 ** paper_scheduler turns layers 1 and 4 off (what make figures measures as
-** the paper's scheduler); exact_proxies turns 3 on; one thread turns 4
-** and 5 off; no_inner turns 7 off; no_decode turns 9 off.  No layer
-** changes a hit; 1-3 and 7 change which loads happen, 4-6, 9 and 10 none
-** (the threads: tests hold the phases byte-equal to the plain loop).
+** the paper's scheduler); exact_proxies turns 5 on; one thread turns 9
+** and 10 off; no_inner turns 3 off; no_decode turns 8 off.  No layer
+** changes a hit; 1 and 3-5 change which loads happen, 2 and 7-10 none
+** (the threads: tests hold the phases byte-equal to the plain loop), and
+** 6 shares the loads among processes, each loading the points it owns.
 **
 ** Rays in flight live in slots; a queue per batching point holds slot
 ** numbers; a min-heap of queue keys (key_heap) orders the non-empty
@@ -851,8 +860,8 @@ typedef struct ray_queue {
     size_t capacity;
 } ray_queue;
 
-/* The threaded variant's state (layers 9 and 10) and its record of the
-** resident batching points a walk used: Part II, "Threads". */
+/* The threaded variant's state and its record of the resident batching
+** points a walk used: Part II, layer 10. */
 typedef struct phase_threads phase_threads;
 typedef struct use_log use_log;
 
@@ -896,11 +905,38 @@ typedef struct scheduler {
     brt_ray_state *arrivals;                /* rays received (layer 6) */
 } scheduler;
 
-/* The threaded variant, Part II. */
-static brt_result threads_init(scheduler *s, unsigned threads);
-static void threads_free(scheduler *s);
+/* Rays in flight unless the caller says (brt_trace_options.rays_in_flight)
+** or layer 2 takes fewer. */
+#define OUT_OF_CORE_RAYS (1u << 20)
+
+/* The layers' hooks, as the loop calls them (Part II), in layer order;
+** each is defined in its layer's section. */
+/* 1-2, the set-up (scheduler_init) */
+static int proxies_pay(const scheduler *s, uint64_t budget);
+static uint32_t rays_in_flight(const brt_trace_options *opt, uint64_t budget, uint64_t every_blob);
+/* 3-5, a ray's walk (walk_on, proxy_test, enqueue; trace_source reads 5's BVHs) */
+static int inner_stops(const scheduler *s, ray_slot *r);
+static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, const prepared_ray *p);
+static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit, float *t);
+static brt_result exact_load(scheduler *s, brt_error *err);
+/* 6, settling a ray and taking rays (settle, refill, queues_waiting) */
+#define ARRIVALS_PER_TAKE 1024u   /* rays taken from the exchange per call */
+static int owned_elsewhere(const scheduler *s, uint32_t id);
+static brt_result forward(scheduler *s, uint32_t slot);
+static size_t take_rays(scheduler *s, int idle, brt_result *res, brt_error *err);
+/* 7, a queue's load (process_batch) */
+static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const geometry **g,
+                            brt_error *err);
+/* 8-9, the cache's load (cache_load; cache_free drops a blob read ahead) */
+static uint64_t cache_decode(geometry_cache *c, cache_entry *e);
+static int cache_ahead_take(geometry_cache *c, uint32_t id);
+static void cache_ahead_drop(geometry_cache *c);
+/* 10, the threads (run_rays, scheduler_init, scheduler_free; walker_used
+** logs a walk's uses) */
 static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
                              const geometry *g);
+static brt_result threads_init(scheduler *s, unsigned threads);
+static void threads_free(scheduler *s);
 static void use_log_record(use_log *log, uint32_t id);
 
 /* ---- following one ray (trace --follow) ---- */
@@ -966,21 +1002,6 @@ static void intersect_slot(const scheduler *s, const geometry *g, ray_slot *r, c
     follow_step(s, r, BRT_STEP_TRIANGLES, r->key.id, r->hit.t);
 }
 
-/* Layer 5, exact proxies (exact_proxies; analysis, not a way to trace):
-** the batching point's triangles answer the proxy test exactly, every
-** BVH read once at the start outside the cache and its counts
-** (exact_load).  It gives the bound no voxel proxy can beat: make
-** figures prints both (Fig. 3: voxel proxies, exact ones in brackets). */
-static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
-{
-    brt_ray segment = *ray;
-    brt_hit hit;
-    segment.tfar = tlimit;
-    brt_hit_clear(&hit);
-    brt_intersect_ray(&s->exact[id], &segment, BRT_TAG_OCCLUSION, &hit, NULL, NULL);
-    return hit.t == 0.0f;
-}
-
 /* The paper's proxy question: may the ray hit batching point id's
 ** triangles in [tnear, tlimit]?  *t (when not NULL): where the proxy
 ** cast met its first set voxel.  schedule_reference asks it too. */
@@ -998,16 +1019,6 @@ static int proxy_cast(const brt_scene *scene, uint32_t id, const brt_ray *ray, f
     return brt_proxy_raycast(scene->dag, &b->proxy, ray, ray->tnear, tlimit, t);
 }
 
-/* The same question, or layer 5's exact answer (*t: tnear then). */
-static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit, float *t)
-{
-    if (s->exact) {
-        if (t) *t = ray->tnear;
-        return exact_proxy_hit(s, id, ray, tlimit);
-    }
-    return proxy_cast(s->scene, id, ray, tlimit, t);
-}
-
 /* The paper's proxy test at the batching point where the walk stands: a
 ** miss culls the visit (no queue, no load).  With proxies off (no_proxy,
 ** or layer 1) every batching point reached is queued, as in Pharr et al. */
@@ -1021,49 +1032,6 @@ static int proxy_test(const scheduler *s, walker *w, ray_slot *r, float tlimit)
     w->proxy_culled += !hit;
     follow_step(s, r, hit ? BRT_STEP_PROXY_HIT : BRT_STEP_PROXY_MISS, r->key.id, t);
     return hit;
-}
-
-/* A resident batching point was just used: the LRU order hears of it. */
-static void walker_used(walker *w, uint32_t id)
-{
-    if (w->cache) cache_touch(w->cache, id);
-    else use_log_record(w->uses, id);                       /* layer 10 */
-}
-
-/* Layer 4, intersecting at once in memory: at a batching point whose
-** geometry is resident (and unless paper_scheduler asks for the paper's
-** plain scheduler) the ray needs no queue: it is intersected there at
-** once and walks on.  Its proxy is not consulted: the BVH answers exactly
-** at about the cost of a proxy cast.  Why it matters: a bounce ray starts
-** inside the batching point just processed, still in memory; queued, it
-** would wait there until that point might be evicted and read again.
-** make figures writes the loads and disk bytes with and without it
-** (fig3.csv: the paper's scheduler, --paper-scheduler, beside batchrt's).
-** Returns 0 when the point is not resident. */
-static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, const prepared_ray *p)
-{
-    const geometry *resident = s->paper_scheduler ? NULL : cache_peek(&s->cache, r->key.id);
-    if (!resident) return 0;
-    walker_used(w, r->key.id);
-    follow_step(s, r, BRT_STEP_RESIDENT, r->key.id, r->key.t);
-    r->visits++;
-    w->resident_visits++;
-    intersect_slot(s, resident, r, p);
-    return 1;
-}
-
-/* Layer 3, inner proxies: the inner proxy test, first at every batching
-** point an occlusion ray with tfar = +inf reaches: a hit settles the ray
-** occluded (the record of intersect_slot) with no queue and no load.
-** make bench-inner prints how many rays it settles and the disk bytes
-** read with and without it. */
-static int inner_stops(const scheduler *s, ray_slot *r)
-{
-    if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
-    if (!brt_inner_occludes(s->scene->dag, &s->scene->points[r->key.id].inner, &r->ray)) return 0;
-    hit_mark_occluded(&r->hit);
-    follow_step(s, r, BRT_STEP_INNER, r->key.id, r->key.t);
-    return 1;
 }
 
 /* Continues a ray's top-level walk: stops at the next batching point it
@@ -1120,81 +1088,6 @@ static brt_result enqueue(scheduler *s, uint32_t id, uint32_t slot)
     s->stats->queued_visits++;
     follow_step(s, &s->slots[slot], BRT_STEP_QUEUED, id, s->slots[slot].key.t);
     return BRT_OK;
-}
-
-/* ---- layer 6: batching points owned by other processes ---- */
-
-#define ARRIVALS_PER_TAKE 1024u   /* rays taken from the exchange per call */
-
-static int owned_elsewhere(const scheduler *s, uint32_t id)
-{
-    return s->exchange && s->exchange->foreign[id];
-}
-
-/* A ray slot as it travels (brt_ray_state), and back: the whole of a
-** waiting ray's state, so its walk resumes where it stopped. */
-static void state_of_slot(const ray_slot *r, brt_ray_state *state)
-{
-    memset(state, 0, sizeof *state);
-    state->ray = r->ray;
-    state->hit = r->hit;
-    memcpy(state->normal, r->normal, sizeof state->normal);
-    state->key_t = r->key.t;
-    state->key_point = r->key.id;
-    state->visits = r->visits;
-    state->tag = r->tag;
-}
-
-static void slot_of_state(const brt_ray_state *state, ray_slot *r)
-{
-    r->ray = state->ray;
-    r->hit = state->hit;
-    memcpy(r->normal, state->normal, sizeof r->normal);
-    r->key.t = state->key_t;
-    r->key.id = state->key_point;
-    r->visits = state->visits;
-    r->tag = state->tag;
-}
-
-/* Sends slot's ray to the process owning the batching point where its
-** walk stopped (its key's); the slot is free again. */
-static brt_result forward(scheduler *s, uint32_t slot)
-{
-    brt_ray_state state;
-    state_of_slot(&s->slots[slot], &state);
-    s->free_slots[s->free_count++] = slot;
-    return s->exchange->send(s->exchange->user, &state) == 0 ? BRT_OK : BRT_EIO;
-}
-
-static brt_result settle_failure(brt_result r, brt_error *err);
-
-/* Queues rays sent here by other processes at the points they stopped at
-** (their proxies admitted them there): waits for them when idle.  Returns
-** how many came; 0 with idle means every process is done. */
-static size_t take_rays(scheduler *s, int idle, brt_result *res, brt_error *err)
-{
-    const uint32_t points = s->scene->header.point_count;
-    size_t max = s->free_count < ARRIVALS_PER_TAKE ? s->free_count : ARRIVALS_PER_TAKE, n, i;
-    if (!s->exchange || max == 0) return 0;
-    n = s->exchange->receive(s->exchange->user, s->arrivals, max, idle);
-    if (n > max) {
-        *res = brt_fail(err, BRT_EARG, "ray exchange: receive returned %lu rays for room for %lu",
-                        (unsigned long)n, (unsigned long)max);
-        return 0;
-    }
-    for (i = 0; i < n && *res == BRT_OK; i++) {
-        const brt_ray_state *a = &s->arrivals[i];
-        uint32_t slot;
-        if (a->key_point >= points || owned_elsewhere(s, a->key_point)) {
-            *res = brt_fail(err, BRT_EFORMAT, "ray exchange: a ray for batching point %lu, not owned here",
-                            (unsigned long)a->key_point);
-            return 0;
-        }
-        slot = s->free_slots[--s->free_count];
-        slot_of_state(a, &s->slots[slot]);
-        if ((*res = enqueue(s, a->key_point, slot)) != BRT_OK) *res = settle_failure(*res, err);
-    }
-    return n;
 }
 
 /* ---- settling a ray, and the scheduler's loop ------------------------ */
@@ -1293,31 +1186,6 @@ static brt_result refill(scheduler *s, brt_error *err)
     return BRT_OK;
 }
 
-/* Nonzero when every ray of the queue is an occlusion ray. */
-static int only_occlusion(const scheduler *s, const ray_queue *q)
-{
-    uint32_t i;
-    for (i = 0; i < q->count; i++)
-        if (!is_occlusion(&s->slots[q->slots[i]])) return 0;
-    return 1;
-}
-
-/* Fetches batching point id for its queue (cache_fetch: the paper's LRU
-** geometry cache), and, layer 7 (statistics only), books the load, if
-** there is one, as the occlusion rays' when they alone asked for it. */
-static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const geometry **g,
-                            brt_error *err)
-{
-    uint64_t loads = s->stats->batch_loads, bytes = s->stats->disk_bytes_read;
-    brt_result r = cache_fetch(&s->cache, id, g, err);
-    s->fetch_bytes = s->stats->disk_bytes_read - bytes;
-    if (r == BRT_OK && s->stats->batch_loads != loads && only_occlusion(s, q)) {
-        s->stats->occlusion_batch_loads += s->stats->batch_loads - loads;
-        s->stats->occlusion_disk_bytes_read += s->fetch_bytes;
-    }
-    return r;
-}
-
 /* Intersects every ray queued at batching point id, then moves each on. */
 static brt_result process_batch(scheduler *s, uint32_t id, brt_error *err)
 {
@@ -1360,39 +1228,6 @@ static brt_result schedule(scheduler *s, brt_error *err)
         if (r == BRT_OK) r = refill(s, err);
     }
     return r == BRT_OK ? cache_check(&s->cache, err) : r;
-}
-
-/* Layer 1, proxies off when everything fits: proxies only spare loads.
-** When the budget (what is left of it after the proxies) holds every
-** blob nothing is ever evicted, so a load a proxy spares is only put off
-** -- unless no ray ever needs that batching point -- while every test
-** costs a cast.  So the default scheduler does not consult them then;
-** the paper's (paper_scheduler) does, and so does a trace over several
-** processes (layer 6), where a proxy miss also spares a message.
-** render --compare without a limit prints the run's time with and
-** without them.  Every blob: the batching points' and the prototypes',
-** as the cache charges them (its all_bytes). */
-static int proxies_pay(const scheduler *s, uint64_t budget)
-{
-    return s->paper_scheduler || s->exchange || budget < s->cache.all_bytes;
-}
-
-/* Layer 2, few rays in flight in core.  Rays in flight are there to
-** gather rays at a batching point before its load.  When the budget holds
-** every blob no point is ever loaded twice, so gathering spares no load,
-** while a million waiting rays (a ray_slot each) push each other and the
-** BVHs out of the processor's caches.  The default is then IN_CORE_RAYS
-** (make bench-embree's batched column runs with it; trace --batched
-** --rays-in-flight N --stats on the same rays times any other number).
-** Not with an exchange (layer 6), whose messages the waiting rays fill. */
-#define IN_CORE_RAYS 4096u
-#define OUT_OF_CORE_RAYS (1u << 20)
-
-static uint32_t rays_in_flight(const brt_trace_options *opt, uint64_t budget, uint64_t every_blob)
-{
-    if (opt && opt->rays_in_flight) return opt->rays_in_flight;
-    if (!(opt && opt->exchange) && budget >= every_blob) return IN_CORE_RAYS;
-    return OUT_OF_CORE_RAYS;
 }
 
 /* capacity_hint: the number of rays there will be, when known (0: not),
@@ -1471,34 +1306,9 @@ static void scheduler_free(scheduler *s)
     free(s->exact_prototypes);
 }
 
-/* Layer 5's set-up (exact_proxies): every batching point's BVH, read
-** once, outside the cache and its statistics (exact_proxy_hit). */
-static brt_result exact_load(scheduler *s, brt_error *err)
-{
-    const uint32_t b = s->scene->header.point_count, n = s->cache.entry_count;
-    uint64_t uncounted = 0;
-    uint32_t i;
-    brt_result r = BRT_OK;
-    s->exact = calloc(b, sizeof *s->exact);
-    s->exact_views = calloc(n, sizeof *s->exact_views);
-    s->exact_data = calloc(n, sizeof *s->exact_data);
-    s->exact_prototypes = calloc((size_t)n - b + 1, sizeof *s->exact_prototypes);
-    if (!s->exact || !s->exact_views || !s->exact_data || !s->exact_prototypes)
-        return brt_fail(err, BRT_ENOMEM, "out of memory for the exact proxies");
-    for (i = 0; i < n && r == BRT_OK; i++)
-        r = blob_read(&s->cache, i, &uncounted, &s->exact_data[i], &s->exact_views[i], err);
-    for (i = b; i < n; i++) s->exact_prototypes[i - b] = s->exact_views[i].bvh;
-    for (i = 0; i < b; i++) {
-        s->exact[i].triangles = s->exact_views[i].bvh;
-        s->exact[i].instances = s->exact_views[i].set;
-        s->exact[i].prototypes = s->exact_prototypes;
-    }
-    return r;
-}
-
 /* ---- the paper's loop, plain (schedule_reference) --------------------- */
 /*
-** The loop of this section with every layer off -- one thread,
+** The scheduler's loop with every layer off -- one thread,
 ** paper_scheduler, no_inner, no_decode, no exchange -- as one function
 ** to be read top to bottom, as pbrt-v4's BVHAggregate::Intersect reads:
 ** rays walk the top-level BVH; at each batching point whose proxy admits
@@ -1805,73 +1615,6 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
     return trace_rays(scene, opt, rays, count, NULL, occluded, stats, err);
 }
 
-/* ---- owners of batching points (layer 6) ---- */
-
-/* What a load of point id reads: its blob (cache_bytes) and, for a point
-** of instances, its triangles' share of the prototypes' bytes -- an
-** estimate: which prototypes it uses is in its blob, on disk. */
-static double point_weight(const brt_scene *s, uint32_t id)
-{
-    double bytes = (double)cache_bytes(s, id), proto_bytes = 0.0, proto_tris = 0.0;
-    uint32_t i;
-    if (!s->points[id].instances) return bytes;
-    for (i = 0; i < s->header.prototype_count; i++) {
-        proto_bytes += (double)s->prototypes[i].size;
-        proto_tris += (double)s->prototypes[i].triangles;
-    }
-    return proto_tris > 0.0 ? bytes + (double)s->points[id].triangles * proto_bytes / proto_tris : bytes;
-}
-
-/* The batching points in the top-level BVH's leaf order (depth first,
-** lanes in order): neighbours in it are neighbours in space.  stack has
-** room for every node and point code. */
-static uint32_t top_leaf_order(const brt_scene *s, uint32_t *order, uint32_t *stack)
-{
-    uint32_t depth = 0, n = 0;
-    int lane;
-    if (s->header.top_node_count > 0) stack[depth++] = 0;
-    while (depth > 0) {
-        uint32_t code = stack[--depth];
-        if (code & TOP_LEAF) {
-            order[n++] = code & ~TOP_LEAF;
-            continue;
-        }
-        for (lane = 3; lane >= 0; lane--)           /* popped in lane order */
-            if (s->top[code].child[lane] != TOP_EMPTY) stack[depth++] = s->top[code].child[lane];
-    }
-    return n;
-}
-
-brt_result brt_scene_assign(const brt_scene *scene, uint32_t processes, int round_robin,
-                            uint32_t *owner, brt_error *err)
-{
-    const uint32_t points = scene->header.point_count;
-    uint32_t *order = malloc(((size_t)points + 1) * sizeof *order), n, k;
-    uint32_t *stack = malloc(((size_t)points + scene->header.top_node_count + 1) * sizeof *stack);
-    double total = 0.0, before = 0.0;
-    brt_result r = BRT_OK;
-    if (processes == 0) r = brt_fail(err, BRT_EARG, "%s: batching points for 0 processes", scene->path);
-    else if (!order || !stack)
-        r = brt_fail(err, BRT_ENOMEM, "out of memory for the owners of %lu batching points",
-                     (unsigned long)points);
-    else {
-        n = top_leaf_order(scene, order, stack);
-        assert(n == points);   /* check_top: every point is one leaf */
-        for (k = 0; k < n; k++) total += point_weight(scene, order[k]);
-        /* A run ends where the bytes before a point's middle pass the next
-        ** multiple of total / processes. */
-        for (k = 0; k < n; k++) {
-            double w = point_weight(scene, order[k]);
-            uint32_t run = total > 0.0 ? (uint32_t)((before + 0.5 * w) / total * processes) : 0;
-            owner[order[k]] = round_robin ? k % processes : (run < processes ? run : processes - 1);
-            before += w;
-        }
-    }
-    free(order);
-    free(stack);
-    return r;
-}
-
 /* ---- the geometry cache ---------------------------------------------------- */
 /*
 ** Blobs are read whole, with pread, into page-aligned buffers, in requests
@@ -2002,8 +1745,6 @@ static brt_result cache_init(geometry_cache *c, brt_scene *scene, uint64_t budge
     return BRT_OK;
 }
 
-static void cache_ahead_drop(geometry_cache *c);
-
 static void cache_free(geometry_cache *c)
 {
     uint32_t i;
@@ -2109,106 +1850,7 @@ static brt_result blob_read(const geometry_cache *c, uint32_t id, uint64_t *byte
     return r;
 }
 
-/* ---- read-ahead ---- */
-/*
-** While the threads intersect the rays of one batching point, a thread of
-** the cache's own reads the blob of the fullest queue left (the likely
-** next load: cache_read_ahead).  The schedule does not change: when the
-** scheduler then asks for that blob, cache_load takes the buffer read
-** ahead instead of reading (the same bytes, counted then, as a load of
-** the same size would be).  When it asks for another blob first, the
-** buffer is kept for later: the guess is most often late, not wrong (a
-** point whose queue was fullest is served a few batches on), and reading
-** it again would spend the disk twice.  It is dropped uncounted when a
-** new guess replaces it.  So every count is the one-thread count, and
-** only the wall time differs.  The buffer, running or kept, is held
-** beside the budget: one blob more at most (README, "Threads").  read_fn
-** is never called by two threads at once: a running read-ahead is joined
-** before any other read.  (A point of instances' prototypes are not read
-** ahead.)
-*/
-static void *ahead_main(void *arg)
-{
-    geometry_cache *c = arg;
-    double start = brt_seconds();
-    c->ahead_result = blob_read(c, c->ahead_id, &c->ahead_bytes, &c->ahead_data, &c->ahead_view, NULL);
-    c->ahead_seconds = brt_seconds() - start;
-    return NULL;
-}
-
-/* Waits for a running read-ahead; a failed one leaves no buffer (the
-** scheduler's own read will meet the failure, and report it). */
-static void cache_ahead_join(geometry_cache *c)
-{
-    if (!c->ahead_running) return;
-    pthread_join(c->ahead_thread, NULL);
-    c->ahead_running = 0;
-    if (c->ahead_result != BRT_OK) c->ahead_id = NO_ENTRY;   /* blob_read freed its buffer */
-}
-
-/* Drops the buffer read ahead, if any, uncounted. */
-static void cache_ahead_drop(geometry_cache *c)
-{
-    cache_ahead_join(c);
-    if (c->ahead_id == NO_ENTRY) return;
-    view_free(&c->ahead_view);
-    blob_free(c->scene, c->ahead_id, c->ahead_data);
-    c->ahead_id = NO_ENTRY;
-}
-
-/* Starts reading blob id ahead, unless it is in memory, already read
-** ahead, or a read-ahead is under way; a kept buffer of another blob is
-** dropped for it. */
-static void cache_read_ahead(geometry_cache *c, uint32_t id)
-{
-    if (!c->read_ahead || id == NO_ENTRY || c->ahead_running || c->entries[id].data || c->ahead_id == id)
-        return;
-    cache_ahead_drop(c);
-    c->ahead_id = id;
-    c->ahead_bytes = 0;
-    c->ahead_data = NULL;
-    c->ahead_view.bvh = NULL;
-    c->ahead_view.set = NULL;
-    c->ahead_running = pthread_create(&c->ahead_thread, NULL, ahead_main, c) == 0;
-    if (!c->ahead_running) c->ahead_id = NO_ENTRY;
-}
-
-/* 1 when blob id was read ahead without error: its buffer and view are
-** then the caller's.  Else 0, with any running read-ahead joined, so
-** that the caller may read. */
-static int cache_ahead_take(geometry_cache *c, uint32_t id)
-{
-    cache_ahead_join(c);
-    if (c->ahead_id != id) return 0;
-    c->ahead_id = NO_ENTRY;
-    return 1;
-}
-
 /* ---- loading a blob (layer 8 decodes it), pinning, releasing -------- */
-
-/* Layer 8, decoded points in core: a BVH blob just loaded is decoded to
-** bvh.c's resident layout (brt_bvh_decode: float boxes and blocks of four
-** triangles, the same hits bit for bit) when the budget holds its bytes
-** beside every blob of the scene and the layouts decoded so far.  Why:
-** the quantized walk decodes every node it visits, several times the cost
-** of the box test (make bench-embree: batched with and without), while
-** the layout takes several times a blob's bytes (make bench-embree
-** prints both per triangle).  Decoding only into room that every blob
-** leaves free means nothing is ever evicted for it: the loads are those
-** of the quantized cache, and out of core, where every byte holds blobs,
-** no point is decoded.  Returns the bytes added; out of memory, the point
-** stays quantized (as exact, only slower). */
-static uint64_t cache_decode(geometry_cache *c, cache_entry *e)
-{
-    uint64_t bytes;
-    if (!c->decode || !e->view.bvh || c->budget < c->all_bytes) return 0;
-    bytes = brt_bvh_decoded_bytes(e->view.bvh);
-    if (bytes > c->budget - c->all_bytes - c->decoded || brt_bvh_decode(e->view.bvh) != BRT_OK)
-        return 0;
-    c->decoded += bytes;
-    c->stats->decoded_bytes += bytes;
-    return bytes;
-}
 
 /* Loads blob id into the cache (the caller has made room). */
 static brt_result cache_load(geometry_cache *c, uint32_t id, brt_error *err)
@@ -2336,15 +1978,648 @@ static void cache_release(geometry_cache *c, uint32_t id)
 }
 
 /* ##################################################################### */
-/* PART II -- SUPPORT, NOT THE PAPER                                     */
+/* PART II -- BATCHRT'S LAYERS                                           */
 /* ##################################################################### */
 /*
-** What the method needs to run but the paper does not describe, and that
-** reaches into the scheduler or the cache: the partition checker (it reads
-** blobs as the cache does) and the scheduler's threads.  The scene file,
-** the direct mode's world, the mesh readers, ray and hit files,
-** statistics, utilities and the pool of threads have files of their own
-** (scene.c, world.c, mesh.c, base.c).
+** batchrt's departures from the paper's loop, each a named function that
+** the loop of Part I calls through its hooks (declared there in this
+** order) and none changing a hit: one section a layer, numbered in the
+** order of the data flow -- the set-up (1-2), a ray's walk (3-5),
+** settling it (6), a queue's load (7), the cache's load (8), the threads
+** (9-10) -- as in the README's table ("The scheduler, and where batchrt
+** departs from the paper"), which says what turns each off.  Each
+** section's first comment is the layer's design: why it is there and
+** which command measures it.
+*/
+
+/* ---- layer 1: proxies off when everything fits (proxies_pay) ---- */
+
+/* Layer 1, proxies off when everything fits: proxies only spare loads.
+** When the budget (what is left of it after the proxies) holds every
+** blob nothing is ever evicted, so a load a proxy spares is only put off
+** -- unless no ray ever needs that batching point -- while every test
+** costs a cast.  So the default scheduler does not consult them then;
+** the paper's (paper_scheduler) does, and so does a trace over several
+** processes (layer 6), where a proxy miss also spares a message.
+** render --compare without a limit prints the run's time with and
+** without them.  Every blob: the batching points' and the prototypes',
+** as the cache charges them (its all_bytes). */
+static int proxies_pay(const scheduler *s, uint64_t budget)
+{
+    return s->paper_scheduler || s->exchange || budget < s->cache.all_bytes;
+}
+
+/* ---- layer 2: few rays in flight in core (rays_in_flight) ---- */
+
+/* Layer 2, few rays in flight in core.  Rays in flight are there to
+** gather rays at a batching point before its load.  When the budget holds
+** every blob no point is ever loaded twice, so gathering spares no load,
+** while a million waiting rays (a ray_slot each) push each other and the
+** BVHs out of the processor's caches.  The default is then IN_CORE_RAYS
+** (make bench-embree's batched column runs with it; trace --batched
+** --rays-in-flight N --stats on the same rays times any other number).
+** Not with an exchange (layer 6), whose messages the waiting rays fill. */
+#define IN_CORE_RAYS 4096u
+
+static uint32_t rays_in_flight(const brt_trace_options *opt, uint64_t budget, uint64_t every_blob)
+{
+    if (opt && opt->rays_in_flight) return opt->rays_in_flight;
+    if (!(opt && opt->exchange) && budget >= every_blob) return IN_CORE_RAYS;
+    return OUT_OF_CORE_RAYS;
+}
+
+/* ---- layer 3: inner proxies (inner_stops) ---- */
+
+/* Layer 3, inner proxies: the inner proxy test, first at every batching
+** point an occlusion ray with tfar = +inf reaches: a hit settles the ray
+** occluded (the record of intersect_slot) with no queue and no load.
+** make bench-inner prints how many rays it settles and the disk bytes
+** read with and without it. */
+static int inner_stops(const scheduler *s, ray_slot *r)
+{
+    if (!s->use_inner || !is_occlusion(r)) return 0;   /* the cast refuses tfar < inf */
+    if (!brt_inner_occludes(s->scene->dag, &s->scene->points[r->key.id].inner, &r->ray)) return 0;
+    hit_mark_occluded(&r->hit);
+    follow_step(s, r, BRT_STEP_INNER, r->key.id, r->key.t);
+    return 1;
+}
+
+/* ---- layer 4: intersecting at once in memory (intersect_resident) ---- */
+
+/* A resident batching point was just used: the LRU order hears of it. */
+static void walker_used(walker *w, uint32_t id)
+{
+    if (w->cache) cache_touch(w->cache, id);
+    else use_log_record(w->uses, id);                       /* layer 10 */
+}
+
+/* Layer 4, intersecting at once in memory: at a batching point whose
+** geometry is resident (and unless paper_scheduler asks for the paper's
+** plain scheduler) the ray needs no queue: it is intersected there at
+** once and walks on.  Its proxy is not consulted: the BVH answers exactly
+** at about the cost of a proxy cast.  Why it matters: a bounce ray starts
+** inside the batching point just processed, still in memory; queued, it
+** would wait there until that point might be evicted and read again.
+** make figures writes the loads and disk bytes with and without it
+** (fig3.csv: the paper's scheduler, --paper-scheduler, beside batchrt's).
+** Returns 0 when the point is not resident. */
+static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, const prepared_ray *p)
+{
+    const geometry *resident = s->paper_scheduler ? NULL : cache_peek(&s->cache, r->key.id);
+    if (!resident) return 0;
+    walker_used(w, r->key.id);
+    follow_step(s, r, BRT_STEP_RESIDENT, r->key.id, r->key.t);
+    r->visits++;
+    w->resident_visits++;
+    intersect_slot(s, resident, r, p);
+    return 1;
+}
+
+/* ---- layer 5: exact proxies, for analysis (exact_proxy_hit) ---- */
+
+/* Layer 5, exact proxies (exact_proxies; analysis, not a way to trace):
+** the batching point's triangles answer the proxy test exactly, every
+** BVH read once at the start outside the cache and its counts
+** (exact_load).  It gives the bound no voxel proxy can beat: make
+** figures prints both (Fig. 3: voxel proxies, exact ones in brackets). */
+static int exact_proxy_hit(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit)
+{
+    brt_ray segment = *ray;
+    brt_hit hit;
+    segment.tfar = tlimit;
+    brt_hit_clear(&hit);
+    brt_intersect_ray(&s->exact[id], &segment, BRT_TAG_OCCLUSION, &hit, NULL, NULL);
+    return hit.t == 0.0f;
+}
+
+/* The paper's proxy question (proxy_cast), or layer 5's exact answer
+** (*t: tnear then). */
+static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit, float *t)
+{
+    if (s->exact) {
+        if (t) *t = ray->tnear;
+        return exact_proxy_hit(s, id, ray, tlimit);
+    }
+    return proxy_cast(s->scene, id, ray, tlimit, t);
+}
+
+/* Layer 5's set-up (exact_proxies): every batching point's BVH, read
+** once, outside the cache and its statistics (exact_proxy_hit). */
+static brt_result exact_load(scheduler *s, brt_error *err)
+{
+    const uint32_t b = s->scene->header.point_count, n = s->cache.entry_count;
+    uint64_t uncounted = 0;
+    uint32_t i;
+    brt_result r = BRT_OK;
+    s->exact = calloc(b, sizeof *s->exact);
+    s->exact_views = calloc(n, sizeof *s->exact_views);
+    s->exact_data = calloc(n, sizeof *s->exact_data);
+    s->exact_prototypes = calloc((size_t)n - b + 1, sizeof *s->exact_prototypes);
+    if (!s->exact || !s->exact_views || !s->exact_data || !s->exact_prototypes)
+        return brt_fail(err, BRT_ENOMEM, "out of memory for the exact proxies");
+    for (i = 0; i < n && r == BRT_OK; i++)
+        r = blob_read(&s->cache, i, &uncounted, &s->exact_data[i], &s->exact_views[i], err);
+    for (i = b; i < n; i++) s->exact_prototypes[i - b] = s->exact_views[i].bvh;
+    for (i = 0; i < b; i++) {
+        s->exact[i].triangles = s->exact_views[i].bvh;
+        s->exact[i].instances = s->exact_views[i].set;
+        s->exact[i].prototypes = s->exact_prototypes;
+    }
+    return r;
+}
+
+/* ---- layer 6: batching points owned by other processes (forward, take_rays) ---- */
+
+/* Layer 6, other processes (brt_trace_options.exchange; README, "Beyond
+** one machine"): each holds the top-level BVH and every proxy, and owns
+** the batching points brt_scene_assign gives it (below), whose blobs alone
+** it reads.  A walk that stops at a point owned elsewhere, after its proxy
+** admitted the ray, sends the ray there with its whole state (forward);
+** rays sent here are queued where they stopped (take_rays).  A proxy miss
+** spares a message as it spares a load, so the proxies are always
+** consulted (layer 1).  make bench-mpi prints the rays sent, messages and
+** loads per run, with proxies and without. */
+static int owned_elsewhere(const scheduler *s, uint32_t id)
+{
+    return s->exchange && s->exchange->foreign[id];
+}
+
+/* A ray slot as it travels (brt_ray_state), and back: the whole of a
+** waiting ray's state, so its walk resumes where it stopped. */
+static void state_of_slot(const ray_slot *r, brt_ray_state *state)
+{
+    memset(state, 0, sizeof *state);
+    state->ray = r->ray;
+    state->hit = r->hit;
+    memcpy(state->normal, r->normal, sizeof state->normal);
+    state->key_t = r->key.t;
+    state->key_point = r->key.id;
+    state->visits = r->visits;
+    state->tag = r->tag;
+}
+
+static void slot_of_state(const brt_ray_state *state, ray_slot *r)
+{
+    r->ray = state->ray;
+    r->hit = state->hit;
+    memcpy(r->normal, state->normal, sizeof r->normal);
+    r->key.t = state->key_t;
+    r->key.id = state->key_point;
+    r->visits = state->visits;
+    r->tag = state->tag;
+}
+
+/* Sends slot's ray to the process owning the batching point where its
+** walk stopped (its key's); the slot is free again. */
+static brt_result forward(scheduler *s, uint32_t slot)
+{
+    brt_ray_state state;
+    state_of_slot(&s->slots[slot], &state);
+    s->free_slots[s->free_count++] = slot;
+    return s->exchange->send(s->exchange->user, &state) == 0 ? BRT_OK : BRT_EIO;
+}
+
+/* Queues rays sent here by other processes at the points they stopped at
+** (their proxies admitted them there): waits for them when idle.  Returns
+** how many came; 0 with idle means every process is done. */
+static size_t take_rays(scheduler *s, int idle, brt_result *res, brt_error *err)
+{
+    const uint32_t points = s->scene->header.point_count;
+    size_t max = s->free_count < ARRIVALS_PER_TAKE ? s->free_count : ARRIVALS_PER_TAKE, n, i;
+    if (!s->exchange || max == 0) return 0;
+    n = s->exchange->receive(s->exchange->user, s->arrivals, max, idle);
+    if (n > max) {
+        *res = brt_fail(err, BRT_EARG, "ray exchange: receive returned %lu rays for room for %lu",
+                        (unsigned long)n, (unsigned long)max);
+        return 0;
+    }
+    for (i = 0; i < n && *res == BRT_OK; i++) {
+        const brt_ray_state *a = &s->arrivals[i];
+        uint32_t slot;
+        if (a->key_point >= points || owned_elsewhere(s, a->key_point)) {
+            *res = brt_fail(err, BRT_EFORMAT, "ray exchange: a ray for batching point %lu, not owned here",
+                            (unsigned long)a->key_point);
+            return 0;
+        }
+        slot = s->free_slots[--s->free_count];
+        slot_of_state(a, &s->slots[slot]);
+        if ((*res = enqueue(s, a->key_point, slot)) != BRT_OK) *res = settle_failure(*res, err);
+    }
+    return n;
+}
+
+/* The owners of batching points (brt_scene_assign): runs of the top-level
+** BVH's leaf order balanced by the bytes a load reads, or round robin. */
+
+/* What a load of point id reads: its blob (cache_bytes) and, for a point
+** of instances, its triangles' share of the prototypes' bytes -- an
+** estimate: which prototypes it uses is in its blob, on disk. */
+static double point_weight(const brt_scene *s, uint32_t id)
+{
+    double bytes = (double)cache_bytes(s, id), proto_bytes = 0.0, proto_tris = 0.0;
+    uint32_t i;
+    if (!s->points[id].instances) return bytes;
+    for (i = 0; i < s->header.prototype_count; i++) {
+        proto_bytes += (double)s->prototypes[i].size;
+        proto_tris += (double)s->prototypes[i].triangles;
+    }
+    return proto_tris > 0.0 ? bytes + (double)s->points[id].triangles * proto_bytes / proto_tris : bytes;
+}
+
+/* The batching points in the top-level BVH's leaf order (depth first,
+** lanes in order): neighbours in it are neighbours in space.  stack has
+** room for every node and point code. */
+static uint32_t top_leaf_order(const brt_scene *s, uint32_t *order, uint32_t *stack)
+{
+    uint32_t depth = 0, n = 0;
+    int lane;
+    if (s->header.top_node_count > 0) stack[depth++] = 0;
+    while (depth > 0) {
+        uint32_t code = stack[--depth];
+        if (code & TOP_LEAF) {
+            order[n++] = code & ~TOP_LEAF;
+            continue;
+        }
+        for (lane = 3; lane >= 0; lane--)           /* popped in lane order */
+            if (s->top[code].child[lane] != TOP_EMPTY) stack[depth++] = s->top[code].child[lane];
+    }
+    return n;
+}
+
+brt_result brt_scene_assign(const brt_scene *scene, uint32_t processes, int round_robin,
+                            uint32_t *owner, brt_error *err)
+{
+    const uint32_t points = scene->header.point_count;
+    uint32_t *order = malloc(((size_t)points + 1) * sizeof *order), n, k;
+    uint32_t *stack = malloc(((size_t)points + scene->header.top_node_count + 1) * sizeof *stack);
+    double total = 0.0, before = 0.0;
+    brt_result r = BRT_OK;
+    if (processes == 0) r = brt_fail(err, BRT_EARG, "%s: batching points for 0 processes", scene->path);
+    else if (!order || !stack)
+        r = brt_fail(err, BRT_ENOMEM, "out of memory for the owners of %lu batching points",
+                     (unsigned long)points);
+    else {
+        n = top_leaf_order(scene, order, stack);
+        assert(n == points);   /* check_top: every point is one leaf */
+        for (k = 0; k < n; k++) total += point_weight(scene, order[k]);
+        /* A run ends where the bytes before a point's middle pass the next
+        ** multiple of total / processes. */
+        for (k = 0; k < n; k++) {
+            double w = point_weight(scene, order[k]);
+            uint32_t run = total > 0.0 ? (uint32_t)((before + 0.5 * w) / total * processes) : 0;
+            owner[order[k]] = round_robin ? k % processes : (run < processes ? run : processes - 1);
+            before += w;
+        }
+    }
+    free(order);
+    free(stack);
+    return r;
+}
+
+/* ---- layer 7: the loads only occlusion rays asked for (fetch_for) ---- */
+
+/* Nonzero when every ray of the queue is an occlusion ray. */
+static int only_occlusion(const scheduler *s, const ray_queue *q)
+{
+    uint32_t i;
+    for (i = 0; i < q->count; i++)
+        if (!is_occlusion(&s->slots[q->slots[i]])) return 0;
+    return 1;
+}
+
+/* Fetches batching point id for its queue (cache_fetch: the paper's LRU
+** geometry cache), and, layer 7 (statistics only), books the load, if
+** there is one, as the occlusion rays' when they alone asked for it. */
+static brt_result fetch_for(scheduler *s, uint32_t id, const ray_queue *q, const geometry **g,
+                            brt_error *err)
+{
+    uint64_t loads = s->stats->batch_loads, bytes = s->stats->disk_bytes_read;
+    brt_result r = cache_fetch(&s->cache, id, g, err);
+    s->fetch_bytes = s->stats->disk_bytes_read - bytes;
+    if (r == BRT_OK && s->stats->batch_loads != loads && only_occlusion(s, q)) {
+        s->stats->occlusion_batch_loads += s->stats->batch_loads - loads;
+        s->stats->occlusion_disk_bytes_read += s->fetch_bytes;
+    }
+    return r;
+}
+
+/* ---- layer 8: decoded points in core (cache_decode) ---- */
+
+/* Layer 8, decoded points in core: a BVH blob just loaded is decoded to
+** bvh.c's resident layout (brt_bvh_decode: float boxes and blocks of four
+** triangles, the same hits bit for bit) when the budget holds its bytes
+** beside every blob of the scene and the layouts decoded so far.  Why:
+** the quantized walk decodes every node it visits, several times the cost
+** of the box test (make bench-embree: batched with and without), while
+** the layout takes several times a blob's bytes (make bench-embree
+** prints both per triangle).  Decoding only into room that every blob
+** leaves free means nothing is ever evicted for it: the loads are those
+** of the quantized cache, and out of core, where every byte holds blobs,
+** no point is decoded.  Returns the bytes added; out of memory, the point
+** stays quantized (as exact, only slower). */
+static uint64_t cache_decode(geometry_cache *c, cache_entry *e)
+{
+    uint64_t bytes;
+    if (!c->decode || !e->view.bvh || c->budget < c->all_bytes) return 0;
+    bytes = brt_bvh_decoded_bytes(e->view.bvh);
+    if (bytes > c->budget - c->all_bytes - c->decoded || brt_bvh_decode(e->view.bvh) != BRT_OK)
+        return 0;
+    c->decoded += bytes;
+    c->stats->decoded_bytes += bytes;
+    return bytes;
+}
+
+/* ---- layer 9: the next load read ahead (cache_read_ahead) ---- */
+/*
+** Layer 9, read-ahead: while the threads intersect the rays of one batching
+** point (a phase of layer 10), a thread of the cache's own reads the blob
+** of the fullest queue left (the likely next load: next_load_guess,
+** cache_read_ahead).  The schedule does not change: when the scheduler then
+** asks for that blob, cache_load takes the buffer read ahead instead of
+** reading (the same bytes, counted then, as a load of the same size would
+** be).  When it asks for another blob first, the buffer is kept for later:
+** the guess is most often late, not wrong (a point whose queue was fullest
+** is served a few batches on), and reading it again would spend the disk
+** twice.  It is dropped uncounted when a new guess replaces it.  So every
+** count is the one-thread count, and only the wall time differs.  The
+** buffer, running or kept, is held beside the budget: one blob more at most
+** (README, "Threads").  read_fn is never called by two threads at once: a
+** running read-ahead is joined before any other read.  (A point of
+** instances' prototypes are not read ahead.)  make bench-threads's row
+** "render 25%, --disk-speed 100M" measures it (one thread reads nothing
+** ahead).
+*/
+static void *ahead_main(void *arg)
+{
+    geometry_cache *c = arg;
+    double start = brt_seconds();
+    c->ahead_result = blob_read(c, c->ahead_id, &c->ahead_bytes, &c->ahead_data, &c->ahead_view, NULL);
+    c->ahead_seconds = brt_seconds() - start;
+    return NULL;
+}
+
+/* Waits for a running read-ahead; a failed one leaves no buffer (the
+** scheduler's own read will meet the failure, and report it). */
+static void cache_ahead_join(geometry_cache *c)
+{
+    if (!c->ahead_running) return;
+    pthread_join(c->ahead_thread, NULL);
+    c->ahead_running = 0;
+    if (c->ahead_result != BRT_OK) c->ahead_id = NO_ENTRY;   /* blob_read freed its buffer */
+}
+
+/* Drops the buffer read ahead, if any, uncounted. */
+static void cache_ahead_drop(geometry_cache *c)
+{
+    cache_ahead_join(c);
+    if (c->ahead_id == NO_ENTRY) return;
+    view_free(&c->ahead_view);
+    blob_free(c->scene, c->ahead_id, c->ahead_data);
+    c->ahead_id = NO_ENTRY;
+}
+
+/* Starts reading blob id ahead, unless it is in memory, already read
+** ahead, or a read-ahead is under way; a kept buffer of another blob is
+** dropped for it. */
+static void cache_read_ahead(geometry_cache *c, uint32_t id)
+{
+    if (!c->read_ahead || id == NO_ENTRY || c->ahead_running || c->entries[id].data || c->ahead_id == id)
+        return;
+    cache_ahead_drop(c);
+    c->ahead_id = id;
+    c->ahead_bytes = 0;
+    c->ahead_data = NULL;
+    c->ahead_view.bvh = NULL;
+    c->ahead_view.set = NULL;
+    c->ahead_running = pthread_create(&c->ahead_thread, NULL, ahead_main, c) == 0;
+    if (!c->ahead_running) c->ahead_id = NO_ENTRY;
+}
+
+/* 1 when blob id was read ahead without error: its buffer and view are
+** then the caller's.  Else 0, with any running read-ahead joined, so
+** that the caller may read. */
+static int cache_ahead_take(geometry_cache *c, uint32_t id)
+{
+    cache_ahead_join(c);
+    if (c->ahead_id != id) return 0;
+    c->ahead_id = NO_ENTRY;
+    return 1;
+}
+
+#define AHEAD_LOOK 15   /* heap slots searched for the next load: the top
+                         ** four levels hold the fullest queues (a guess
+                         ** costs no decision, so the search stays short) */
+
+/* Layer 9's guess of the next load: the fullest queue whose batching
+** point is not in memory, among the heap's first AHEAD_LOOK slots (a
+** resident point is served without a load, so the fullest queue alone
+** is often no load at all); NO_ENTRY when there is none. */
+static uint32_t next_load_guess(const scheduler *s)
+{
+    uint64_t best = UINT64_MAX;
+    uint32_t i;
+    for (i = 0; i < s->fullest.size && i < AHEAD_LOOK; i++)
+        if (s->fullest.keys[i] < best && !s->cache.entries[(uint32_t)s->fullest.keys[i]].data)
+            best = s->fullest.keys[i];
+    return best == UINT64_MAX ? NO_ENTRY : (uint32_t)best;
+}
+
+/* ---- layer 10: the scheduler's loop on threads (phases_run) ---- */
+/*
+** The plain loop of Part I (run_rays) intersects a batch's rays, releases
+** the batching point and walks each ray on and settles it, one after
+** another.  With more than one thread the same work runs in PHASES: a
+** phase is the list of rays that run_rays would loop over.  The rays are
+** split across the pool's threads; walk_on reads the shared state (top-
+** level BVH, proxies, resident BVHs) and writes only its ray's slot, its
+** outcome and its thread's walker.  The calling thread settles the rays
+** in list order as their chunks finish (phase_settle), and after the
+** phase the LRU order is updated from a log of the walks' uses of
+** resident batching points (use_log), as if the rays had walked one after
+** another.  So every decision -- which queue is fullest, what is evicted,
+** the order of finished calls -- is the plain loop's; the threads: tests
+** hold the two byte-equal, and make bench-threads prints the wall
+** seconds at 1 and 2 threads.
+*/
+struct use_log {
+    uint64_t stamp;             /* the current ray's place in its phase (high
+                                ** word) and its uses so far (low word) */
+    uint64_t *used_at;          /* per batching point: stamp of its last use; 0: none */
+    uint32_t *used, used_count; /* the points used, in first-use order */
+};
+
+/* A batching point used by a phase and the stamp of its last use. */
+typedef struct point_use {
+    uint64_t stamp;
+    uint32_t id;
+} point_use;
+
+struct phase_threads {
+    brt_pool pool;
+    walker *walkers;            /* one per thread of the pool */
+    use_log *logs;              /* one per walker */
+    uint32_t *outcome;          /* per ray of a phase: where its walk stopped */
+    point_use *uses;            /* a phase's uses, merged */
+};
+
+/* The walker of a thread records a use, stamped in walk order. */
+static void use_log_record(use_log *log, uint32_t id)
+{
+    if (log->used_at[id] == 0) log->used[log->used_count++] = id;
+    log->used_at[id] = log->stamp++;
+}
+
+static void use_log_free(use_log *log)
+{
+    free(log->used_at);
+    free(log->used);
+}
+
+/* A phase: the rays in slots[0..count), first intersected with bvh when
+** it is not NULL (the batching point whose queue they are). */
+typedef struct phase_job {
+    scheduler *s;
+    const uint32_t *slots;
+    const geometry *g;
+    brt_result result;          /* of the settling: BRT_ENOMEM from a queue */
+} phase_job;
+
+static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
+{
+    const phase_job *j = ctx;
+    scheduler *s = j->s;
+    walker *w = &s->threads->walkers[thread];
+    size_t i;
+    for (i = first; i < end; i++) {
+        ray_slot *r = &s->slots[j->slots[i]];
+        w->uses->stamp = (uint64_t)(i + 1) << 32;   /* ray i's uses come after ray i-1's */
+        if (j->g) intersect_slot(s, j->g, r, NULL);
+        s->threads->outcome[i] = walk_on(s, w, r);
+    }
+}
+
+/* Settles rays [first, end) of a phase, in order. */
+static void phase_settle(void *ctx, size_t first, size_t end)
+{
+    phase_job *j = ctx;
+    size_t i;
+    for (i = first; i < end && j->result == BRT_OK; i++)
+        j->result = settle(j->s, j->slots[i], j->s->threads->outcome[i]);
+}
+
+static int use_before(const void *a, const void *b)
+{
+    uint64_t x = ((const point_use *)a)->stamp, y = ((const point_use *)b)->stamp;
+    return (x > y) - (x < y);
+}
+
+/* The LRU order after a phase: each resident batching point it used moves
+** to the back in the order of its last use over all threads -- the order
+** the plain loop's touches leave. */
+static void uses_replay(scheduler *s)
+{
+    phase_threads *t = s->threads;
+    use_log *all = &t->logs[0];   /* thread 0's log gathers the others' */
+    uint32_t i, k, n;
+    for (i = 1; i < t->pool.count; i++) {
+        use_log *log = &t->logs[i];
+        for (k = 0; k < log->used_count; k++) {
+            uint32_t id = log->used[k];
+            if (all->used_at[id] == 0) all->used[all->used_count++] = id;
+            if (log->used_at[id] > all->used_at[id]) all->used_at[id] = log->used_at[id];
+            log->used_at[id] = 0;
+        }
+        log->used_count = 0;
+    }
+    for (n = 0; n < all->used_count; n++) {
+        t->uses[n].id = all->used[n];
+        t->uses[n].stamp = all->used_at[all->used[n]];
+        all->used_at[all->used[n]] = 0;
+    }
+    all->used_count = 0;
+    qsort(t->uses, n, sizeof *t->uses, use_before);
+    for (k = 0; k < n; k++) cache_touch(&s->cache, t->uses[k].id);
+}
+
+#define PHASE_CHUNK 64   /* rays per chunk: many chunks per phase, each far
+                         ** longer than a take from the shared counter
+                         ** (make bench-threads times the phases) */
+
+/* Layer 10: run_rays in a phase (id: the batching point whose queue it is,
+** pinned, or NO_ENTRY for new rays).  Released before the uses are
+** replayed, as the plain loop releases it before the walks. */
+static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
+                             const geometry *g)
+{
+    phase_job j;
+    unsigned i;
+    cache_read_ahead(&s->cache, next_load_guess(s));                    /* layer 9 */
+    j.s = s;
+    j.slots = slots;
+    j.g = g;
+    j.result = BRT_OK;
+    brt_pool_run(&s->threads->pool, phase_chunk, phase_settle, &j, count, PHASE_CHUNK);
+    if (id != NO_ENTRY) cache_release(&s->cache, id);
+    for (i = 0; i < s->threads->pool.count; i++) walker_count(s, &s->threads->walkers[i]);
+    uses_replay(s);
+    return j.result;
+}
+
+/* The pool and one walker and use log per thread, when there is more
+** than one thread (threads: 0 means all cores); else s->threads stays
+** NULL and the plain loop runs. */
+static brt_result threads_init(scheduler *s, unsigned threads)
+{
+    uint32_t n = s->scene->header.point_count, i;
+    phase_threads *t;
+    if (brt_threads_resolve(threads) < 2) return BRT_OK;
+    t = s->threads = calloc(1, sizeof *t);
+    if (!t) return BRT_ENOMEM;
+    brt_pool_init(&t->pool, threads);
+    t->walkers = calloc(t->pool.count, sizeof *t->walkers);
+    t->logs = calloc(t->pool.count, sizeof *t->logs);
+    t->outcome = malloc((size_t)s->capacity * sizeof *t->outcome);
+    t->uses = malloc((size_t)n * sizeof *t->uses);
+    if (!t->walkers || !t->logs || !t->outcome || !t->uses) return BRT_ENOMEM;
+    for (i = 0; i < t->pool.count; i++) {
+        walker *w = &t->walkers[i];
+        w->walk.keys = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.keys);
+        w->uses = &t->logs[i];
+        w->uses->used_at = calloc(n, sizeof *w->uses->used_at);
+        w->uses->used = malloc((size_t)n * sizeof *w->uses->used);
+        if (!w->walk.keys || !w->uses->used_at || !w->uses->used) return BRT_ENOMEM;
+    }
+    s->cache.read_ahead = t->pool.count > 1;
+    return BRT_OK;
+}
+
+static void threads_free(scheduler *s)
+{
+    phase_threads *t = s->threads;
+    uint32_t i;
+    if (!t) return;
+    for (i = 0; t->walkers && i < t->pool.count; i++) {
+        free(t->walkers[i].walk.keys);
+        if (t->logs) use_log_free(&t->logs[i]);
+    }
+    free(t->walkers);
+    free(t->logs);
+    free(t->outcome);
+    free(t->uses);
+    brt_pool_free(&t->pool);
+    free(t);
+    s->threads = NULL;
+}
+
+/* ##################################################################### */
+/* PART III -- SUPPORT, NOT THE PAPER                                    */
+/* ##################################################################### */
+/*
+** What the method needs to run but the paper does not describe: the
+** partition checker (it reads blobs as the cache does) and the direct
+** mode's chunks of rays.  The scene file, the direct mode's world, the
+** mesh readers, ray and hit files, statistics, utilities and the pool of
+** threads have files of their own (scene.c, world.c, mesh.c, base.c).
 */
 
 /* ---- the partition checker ------------------------------------------ */
@@ -2449,217 +2724,6 @@ brt_result brt_scene_check_partition(const brt_scene *scene, uint32_t point_tris
     return r;
 }
 
-/* ---- the scheduler's loop on threads: layers 9 and 10 ---------------- */
-/*
-** The plain loop of Part I (run_rays) intersects a batch's rays, releases
-** the batching point and walks each ray on and settles it, one after
-** another.  With more than one thread the same work runs in PHASES: a
-** phase is the list of rays that run_rays would loop over.  The rays are
-** split across the pool's threads; walk_on reads the shared state (top-
-** level BVH, proxies, resident BVHs) and writes only its ray's slot, its
-** outcome and its thread's walker.  The calling thread settles the rays
-** in list order as their chunks finish (phase_settle), and after the
-** phase the LRU order is updated from a log of the walks' uses of
-** resident batching points (use_log), as if the rays had walked one after
-** another.  So every decision -- which queue is fullest, what is evicted,
-** the order of finished calls -- is the plain loop's; the threads: tests
-** hold the two byte-equal, and make bench-threads prints the wall
-** seconds at 1 and 2 threads.
-**
-** Layer 9, read-ahead: while a phase runs, the cache's own thread reads
-** the blob of the fullest queue left, the likely next load
-** (cache_read_ahead).  It changes no count and no decision, only the wall
-** time: make bench-threads's row "render 25%, --disk-speed 100M" (one
-** thread reads nothing ahead).
-*/
-struct use_log {
-    uint64_t stamp;             /* the current ray's place in its phase (high
-                                ** word) and its uses so far (low word) */
-    uint64_t *used_at;          /* per batching point: stamp of its last use; 0: none */
-    uint32_t *used, used_count; /* the points used, in first-use order */
-};
-
-/* A batching point used by a phase and the stamp of its last use. */
-typedef struct point_use {
-    uint64_t stamp;
-    uint32_t id;
-} point_use;
-
-struct phase_threads {
-    brt_pool pool;
-    walker *walkers;            /* one per thread of the pool */
-    use_log *logs;              /* one per walker */
-    uint32_t *outcome;          /* per ray of a phase: where its walk stopped */
-    point_use *uses;            /* a phase's uses, merged */
-};
-
-/* The walker of a thread records a use, stamped in walk order. */
-static void use_log_record(use_log *log, uint32_t id)
-{
-    if (log->used_at[id] == 0) log->used[log->used_count++] = id;
-    log->used_at[id] = log->stamp++;
-}
-
-static void use_log_free(use_log *log)
-{
-    free(log->used_at);
-    free(log->used);
-}
-
-/* A phase: the rays in slots[0..count), first intersected with bvh when
-** it is not NULL (the batching point whose queue they are). */
-typedef struct phase_job {
-    scheduler *s;
-    const uint32_t *slots;
-    const geometry *g;
-    brt_result result;          /* of the settling: BRT_ENOMEM from a queue */
-} phase_job;
-
-static void phase_chunk(void *ctx, unsigned thread, size_t first, size_t end)
-{
-    const phase_job *j = ctx;
-    scheduler *s = j->s;
-    walker *w = &s->threads->walkers[thread];
-    size_t i;
-    for (i = first; i < end; i++) {
-        ray_slot *r = &s->slots[j->slots[i]];
-        w->uses->stamp = (uint64_t)(i + 1) << 32;   /* ray i's uses come after ray i-1's */
-        if (j->g) intersect_slot(s, j->g, r, NULL);
-        s->threads->outcome[i] = walk_on(s, w, r);
-    }
-}
-
-/* Settles rays [first, end) of a phase, in order. */
-static void phase_settle(void *ctx, size_t first, size_t end)
-{
-    phase_job *j = ctx;
-    size_t i;
-    for (i = first; i < end && j->result == BRT_OK; i++)
-        j->result = settle(j->s, j->slots[i], j->s->threads->outcome[i]);
-}
-
-static int use_before(const void *a, const void *b)
-{
-    uint64_t x = ((const point_use *)a)->stamp, y = ((const point_use *)b)->stamp;
-    return (x > y) - (x < y);
-}
-
-/* The LRU order after a phase: each resident batching point it used moves
-** to the back in the order of its last use over all threads -- the order
-** the plain loop's touches leave. */
-static void uses_replay(scheduler *s)
-{
-    phase_threads *t = s->threads;
-    use_log *all = &t->logs[0];   /* thread 0's log gathers the others' */
-    uint32_t i, k, n;
-    for (i = 1; i < t->pool.count; i++) {
-        use_log *log = &t->logs[i];
-        for (k = 0; k < log->used_count; k++) {
-            uint32_t id = log->used[k];
-            if (all->used_at[id] == 0) all->used[all->used_count++] = id;
-            if (log->used_at[id] > all->used_at[id]) all->used_at[id] = log->used_at[id];
-            log->used_at[id] = 0;
-        }
-        log->used_count = 0;
-    }
-    for (n = 0; n < all->used_count; n++) {
-        t->uses[n].id = all->used[n];
-        t->uses[n].stamp = all->used_at[all->used[n]];
-        all->used_at[all->used[n]] = 0;
-    }
-    all->used_count = 0;
-    qsort(t->uses, n, sizeof *t->uses, use_before);
-    for (k = 0; k < n; k++) cache_touch(&s->cache, t->uses[k].id);
-}
-
-#define AHEAD_LOOK 15   /* heap slots searched for the next load: the top
-                         ** four levels hold the fullest queues (a guess
-                         ** costs no decision, so the search stays short) */
-
-/* Layer 9's guess of the next load: the fullest queue whose batching
-** point is not in memory, among the heap's first AHEAD_LOOK slots (a
-** resident point is served without a load, so the fullest queue alone
-** is often no load at all); NO_ENTRY when there is none. */
-static uint32_t next_load_guess(const scheduler *s)
-{
-    uint64_t best = UINT64_MAX;
-    uint32_t i;
-    for (i = 0; i < s->fullest.size && i < AHEAD_LOOK; i++)
-        if (s->fullest.keys[i] < best && !s->cache.entries[(uint32_t)s->fullest.keys[i]].data)
-            best = s->fullest.keys[i];
-    return best == UINT64_MAX ? NO_ENTRY : (uint32_t)best;
-}
-
-#define PHASE_CHUNK 64   /* rays per chunk: many chunks per phase, each far
-                         ** longer than a take from the shared counter
-                         ** (make bench-threads times the phases) */
-
-/* Layer 10: run_rays in a phase (id: the batching point whose queue it is,
-** pinned, or NO_ENTRY for new rays).  Released before the uses are
-** replayed, as the plain loop releases it before the walks. */
-static brt_result phases_run(scheduler *s, const uint32_t *slots, uint32_t count, uint32_t id,
-                             const geometry *g)
-{
-    phase_job j;
-    unsigned i;
-    cache_read_ahead(&s->cache, next_load_guess(s));                    /* layer 9 */
-    j.s = s;
-    j.slots = slots;
-    j.g = g;
-    j.result = BRT_OK;
-    brt_pool_run(&s->threads->pool, phase_chunk, phase_settle, &j, count, PHASE_CHUNK);
-    if (id != NO_ENTRY) cache_release(&s->cache, id);
-    for (i = 0; i < s->threads->pool.count; i++) walker_count(s, &s->threads->walkers[i]);
-    uses_replay(s);
-    return j.result;
-}
-
-/* The pool and one walker and use log per thread, when there is more
-** than one thread (threads: 0 means all cores); else s->threads stays
-** NULL and the plain loop runs. */
-static brt_result threads_init(scheduler *s, unsigned threads)
-{
-    uint32_t n = s->scene->header.point_count, i;
-    phase_threads *t;
-    if (brt_threads_resolve(threads) < 2) return BRT_OK;
-    t = s->threads = calloc(1, sizeof *t);
-    if (!t) return BRT_ENOMEM;
-    brt_pool_init(&t->pool, threads);
-    t->walkers = calloc(t->pool.count, sizeof *t->walkers);
-    t->logs = calloc(t->pool.count, sizeof *t->logs);
-    t->outcome = malloc((size_t)s->capacity * sizeof *t->outcome);
-    t->uses = malloc((size_t)n * sizeof *t->uses);
-    if (!t->walkers || !t->logs || !t->outcome || !t->uses) return BRT_ENOMEM;
-    for (i = 0; i < t->pool.count; i++) {
-        walker *w = &t->walkers[i];
-        w->walk.keys = malloc(((size_t)n + s->scene->header.top_node_count) * sizeof *w->walk.keys);
-        w->uses = &t->logs[i];
-        w->uses->used_at = calloc(n, sizeof *w->uses->used_at);
-        w->uses->used = malloc((size_t)n * sizeof *w->uses->used);
-        if (!w->walk.keys || !w->uses->used_at || !w->uses->used) return BRT_ENOMEM;
-    }
-    s->cache.read_ahead = t->pool.count > 1;
-    return BRT_OK;
-}
-
-static void threads_free(scheduler *s)
-{
-    phase_threads *t = s->threads;
-    uint32_t i;
-    if (!t) return;
-    for (i = 0; t->walkers && i < t->pool.count; i++) {
-        free(t->walkers[i].walk.keys);
-        if (t->logs) use_log_free(&t->logs[i]);
-    }
-    free(t->walkers);
-    free(t->logs);
-    free(t->outcome);
-    free(t->uses);
-    brt_pool_free(&t->pool);
-    free(t);
-    s->threads = NULL;
-}
-
 /* ---- direct tracing: chunks of rays through geometry in memory ------ */
 
 typedef struct trace_job {
@@ -2709,4 +2773,3 @@ void brt_bvh_trace(const brt_bvh *bvh, const brt_ray *rays, const uint64_t *tags
     g.prototypes = NULL;
     brt_trace_geometry(&g, rays, tags, count, hits, normals, threads);
 }
-

@@ -6,7 +6,9 @@
 ** Every layer keeps the hits, so the byte-equality tests cannot see a
 ** layer that switches on at the wrong moment.  These tests pin each rule
 ** at its boundary instead, against numbers the library reports for
-** another reason (the cache's peak bytes, the proxies' bytes).
+** another reason (the cache's peak bytes, the proxies' bytes).  One test
+** holds where the layers are read: batchrt.c's Part II, a section each,
+** in the order of the README's table.
 */
 #include "test.h"
 #include "util.h"
@@ -331,6 +333,139 @@ static void test_interrupt_between_batches(void)
     free(hits);
 }
 
+/* ---- batchrt.c's layout: one section a layer, as the README numbers them ---- */
+
+#define LAYERS 10
+
+/* The line number of p in text. */
+static int line_at(const char *text, const char *p)
+{
+    int line = 1;
+    for (; text < p; text++) line += *text == '\n';
+    return line;
+}
+
+/* The first line of text, from p on, that starts with prefix; or NULL. */
+static const char *line_starting(const char *p, const char *prefix)
+{
+    size_t n = strlen(prefix);
+    for (; p && *p; p = strchr(p, '\n') ? strchr(p, '\n') + 1 : NULL)
+        if (strncmp(p, prefix, n) == 0) return p;
+    return NULL;
+}
+
+static int ident_char(char c)
+{
+    return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '_';
+}
+
+/* Where function name is DEFINED in text: the start of the line at column
+** 0 that names it before a '(' and whose declaration then reaches a '{'
+** before a ';' (a prototype reaches the ';'); NULL when nowhere. */
+static const char *definition_of(const char *text, const char *name)
+{
+    size_t n = strlen(name);
+    const char *line, *end, *q;
+    for (line = text; *line; line = *end ? end + 1 : end) {
+        end = strchr(line, '\n');
+        if (!end) end = line + strlen(line);
+        if (!ident_char(*line)) continue;   /* indented code, comments, #define, '}' */
+        for (q = line; q + n < end; q++)
+            if (strncmp(q, name, n) == 0 && q[n] == '(' && q > line && !ident_char(q[-1])) {
+                const char *stop = strpbrk(q, ";{");
+                if (stop && *stop == '{') return line;
+            }
+    }
+    return NULL;
+}
+
+/* The README's table of layers ("The scheduler, and where batchrt departs
+** from the paper"): row k's number must be k; fn[k] gets the first code
+** span of the row (malloc'd).  Returns the rows read. */
+static int readme_layers(const char *readme, char *fn[LAYERS + 1])
+{
+    const char *row = line_starting(readme, "| layer | what |");
+    int rows = 0;
+    for (row = row ? strchr(row, '\n') : NULL; row && row[1] == '|'; row = strchr(row + 1, '\n')) {
+        const char *span, *close;
+        long k;
+        if (strncmp(row + 1, "|---", 4) == 0) continue;
+        k = strtol(row + 3, NULL, 10);
+        span = strchr(row + 1, '`');
+        close = span ? strchr(span + 1, '`') : NULL;
+        if (k != rows + 1 || k > LAYERS || !close || close > strchr(row + 1, '\n')) return rows;
+        fn[k] = malloc((size_t)(close - span));
+        if (!fn[k]) return rows;
+        memcpy(fn[k], span + 1, (size_t)(close - span - 1));
+        fn[k][close - span - 1] = 0;
+        rows++;
+    }
+    return rows;
+}
+
+/* batchrt.c reads as the README numbers the layers: after its PART II
+** marker one section a layer, headed "---- layer N: ..." for N = 1 to 10
+** in that order, each the only heading with its number, and each layer's
+** function (the first code span of its row in the README's table)
+** defined in its own section, between its heading and the next heading
+** or part banner. */
+static void test_layer_sections(void)
+{
+    char *readme = (char *)tu_slurp("README.md", NULL), *code = (char *)tu_slurp("batchrt.c", NULL);
+    char *fn[LAYERS + 1] = {0};
+    const char *part2, *heading[LAYERS + 2] = {0}, *h;
+    int count[LAYERS + 1] = {0}, k, rows;
+    CHECK(readme && code, "cannot read README.md and batchrt.c (run from the repository's top)");
+    rows = readme_layers(readme, fn);
+    EXPECT(rows == LAYERS, "README.md: the table of layers has %d rows numbered 1, 2, ... with a "
+           "function each, not %d", rows, LAYERS);
+    part2 = line_starting(code, "/* PART II -- ");
+    EXPECT(part2, "batchrt.c: no line '/* PART II -- ...': the layers' part is gone");
+    for (h = line_starting(code, "/* ---- layer "); h; h = line_starting(h + 1, "/* ---- layer ")) {
+        char *after;
+        long n = strtol(h + strlen("/* ---- layer "), &after, 10);
+        if (n < 1 || n > LAYERS || *after != ':') {
+            test_fail_at(__FILE__, __LINE__, "batchrt.c:%d: a layer heading without a number 1-%d and ':'",
+                         line_at(code, h), LAYERS);
+            continue;
+        }
+        if (part2 && h < part2)
+            test_fail_at(__FILE__, __LINE__, "batchrt.c:%d: layer %ld's heading comes before PART II",
+                         line_at(code, h), n);
+        if (count[n]++ == 0) heading[n] = h;
+        else
+            test_fail_at(__FILE__, __LINE__, "batchrt.c:%d: layer %ld has a second heading (the first at "
+                         "line %d)", line_at(code, h), n, line_at(code, heading[n]));
+    }
+    for (k = 1; k <= LAYERS; k++) {
+        const char *next, *banner, *def;
+        if (!heading[k]) {
+            test_fail_at(__FILE__, __LINE__, "batchrt.c: no heading '/* ---- layer %d: ...'", k);
+            continue;
+        }
+        if (k > 1 && heading[k - 1] && heading[k] < heading[k - 1])
+            test_fail_at(__FILE__, __LINE__, "batchrt.c:%d: layer %d's heading comes before layer %d's "
+                         "(line %d)", line_at(code, heading[k]), k, k - 1, line_at(code, heading[k - 1]));
+        if (k > rows) continue;
+        /* The section: to the next heading of any kind, or the next part's banner. */
+        next = line_starting(heading[k] + 1, "/* ---- ");
+        banner = line_starting(heading[k] + 1, "/* ####");
+        if (!next || (banner && banner < next)) next = banner;
+        if (!next) next = code + strlen(code);
+        def = definition_of(code, fn[k]);
+        if (!def)
+            test_fail_at(__FILE__, __LINE__, "batchrt.c: %s (layer %d in the README's table) is defined "
+                         "nowhere", fn[k], k);
+        else if (def < heading[k] || def >= next)
+            test_fail_at(__FILE__, __LINE__, "batchrt.c:%d: %s (layer %d in the README's table) is not "
+                         "defined in layer %d's section (lines %d-%d)", line_at(code, def), fn[k], k, k,
+                         line_at(code, heading[k]), line_at(code, next) - 1);
+    }
+    for (k = 0; k <= LAYERS; k++) free(fn[k]);
+    free(readme);
+    free(code);
+}
+
 void suite_layers(void)
 {
     test_run("layers: 1, proxies off exactly when the budget holds every blob", test_layer2_boundary);
@@ -339,4 +474,5 @@ void suite_layers(void)
     test_run("layers: 2, few rays in flight exactly when every blob fits", test_layer10_rays_in_flight);
     test_run("layers: a ray source over its room is an error", test_source_contract);
     test_run("layers: an interrupt stops the trace between batches", test_interrupt_between_batches);
+    test_run("layers: batchrt.c holds one section a layer, in the README's order", test_layer_sections);
 }
