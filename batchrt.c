@@ -71,6 +71,25 @@
 #include <sys/mman.h>
 #include <sys/stat.h>
 
+/* TUNABLES: one line each on why; no answer depends on them, only time
+** and memory (the sections named say more, and which command measures). */
+#define OUT_OF_CORE_RAYS (1u << 20)  /* rays in flight out of core: many rays
+                                     ** gather at a point before its load */
+#define IN_CORE_RAYS 4096u           /* rays in flight in core (layer 2): no load
+                                     ** repeats, and few rays keep the caches */
+#define ARRIVALS_PER_TAKE 1024u      /* rays taken from the exchange per call
+                                     ** (layer 6): one buffer, bounded */
+#define CACHE_READ_CHUNK ((size_t)8 << 20)   /* bytes per pread of a blob: a
+                                     ** bounded request, large enough to stream */
+#define AHEAD_LOOK 15                /* heap slots searched for the next load
+                                     ** (layer 9): the top four levels hold the
+                                     ** fullest queues; a guess decides nothing */
+#define PHASE_CHUNK 64               /* rays per chunk of a phase (layer 10):
+                                     ** far longer than a take from the shared
+                                     ** counter (make bench-threads) */
+#define TRACE_CHUNK 1024             /* rays per chunk of the direct mode's
+                                     ** threads: far longer than a take of the lock */
+
 /* ##################################################################### */
 /* PART I -- THE METHOD: out-of-core batched traversal                   */
 /* ##################################################################### */
@@ -905,10 +924,6 @@ typedef struct scheduler {
     brt_ray_state *arrivals;                /* rays received (layer 6) */
 } scheduler;
 
-/* Rays in flight unless the caller says (brt_trace_options.rays_in_flight)
-** or layer 2 takes fewer. */
-#define OUT_OF_CORE_RAYS (1u << 20)
-
 /* The layers' hooks, as the loop calls them (Part II), in layer order;
 ** each is defined in its layer's section. */
 /* 1-2, the set-up (scheduler_init) */
@@ -920,7 +935,6 @@ static int intersect_resident(const scheduler *s, walker *w, ray_slot *r, const 
 static int proxy_admits(const scheduler *s, uint32_t id, const brt_ray *ray, float tlimit, float *t);
 static brt_result exact_load(scheduler *s, brt_error *err);
 /* 6, settling a ray and taking rays (settle, refill, queues_waiting) */
-#define ARRIVALS_PER_TAKE 1024u   /* rays taken from the exchange per call */
 static int owned_elsewhere(const scheduler *s, uint32_t id);
 static brt_result forward(scheduler *s, uint32_t slot);
 static size_t take_rays(scheduler *s, int idle, brt_result *res, brt_error *err);
@@ -1629,7 +1643,6 @@ brt_result brt_scene_occluded(brt_scene *scene, const brt_trace_options *opt,
 ** exceed the memory bound; with mappings the resident bytes follow what
 ** the cache holds (make bench-scale checks the bound).
 */
-#define CACHE_READ_CHUNK ((size_t)8 << 20)
 
 static void lru_unlink(geometry_cache *c, uint32_t id)
 {
@@ -2019,7 +2032,6 @@ static int proxies_pay(const scheduler *s, uint64_t budget)
 ** (make bench-embree's batched column runs with it; trace --batched
 ** --rays-in-flight N --stats on the same rays times any other number).
 ** Not with an exchange (layer 6), whose messages the waiting rays fill. */
-#define IN_CORE_RAYS 4096u
 
 static uint32_t rays_in_flight(const brt_trace_options *opt, uint64_t budget, uint64_t every_blob)
 {
@@ -2406,10 +2418,6 @@ static int cache_ahead_take(geometry_cache *c, uint32_t id)
     return 1;
 }
 
-#define AHEAD_LOOK 15   /* heap slots searched for the next load: the top
-                         ** four levels hold the fullest queues (a guess
-                         ** costs no decision, so the search stays short) */
-
 /* Layer 9's guess of the next load: the fullest queue whose batching
 ** point is not in memory, among the heap's first AHEAD_LOOK slots (a
 ** resident point is served without a load, so the fullest queue alone
@@ -2540,10 +2548,6 @@ static void uses_replay(scheduler *s)
     qsort(t->uses, n, sizeof *t->uses, use_before);
     for (k = 0; k < n; k++) cache_touch(&s->cache, t->uses[k].id);
 }
-
-#define PHASE_CHUNK 64   /* rays per chunk: many chunks per phase, each far
-                         ** longer than a take from the shared counter
-                         ** (make bench-threads times the phases) */
 
 /* Layer 10: run_rays in a phase (id: the batching point whose queue it is,
 ** pinned, or NO_ENTRY for new rays).  Released before the uses are
@@ -2746,8 +2750,6 @@ static void trace_chunk(void *ctx, unsigned thread, size_t first, size_t end)
         brt_intersect_ray(&j->geometry, &j->rays[i], j->tags ? j->tags[i] : 0, &j->hits[i], normal, NULL);
     }
 }
-
-#define TRACE_CHUNK 1024   /* rays per chunk: far longer than a take of the lock */
 
 void brt_trace_geometry(const geometry *g, const brt_ray *rays, const uint64_t *tags,
                            size_t count, brt_hit *hits, float *normals, unsigned threads)

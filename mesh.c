@@ -64,7 +64,10 @@
 **    exporters write, take exact fast paths (parse_float).
 */
 
-#define READ_CHUNK ((size_t)1 << 20)
+/* TUNABLES: no parsed byte depends on them. */
+#define READ_CHUNK ((size_t)1 << 20)   /* bytes per read(): large reads, small buffer */
+#define STREAM_CHUNK 65536u   /* triangles per chunk a stream emits: a consumer's
+                              ** call per chunk, 2.25 MiB of triangles */
 
 typedef struct reader {
     int fd;                     /* -1: the whole input is already in data */
@@ -214,8 +217,6 @@ static brt_result add_corner(parser *p, uint32_t vertex)
     p->polygon[p->polygon_count++] = vertex;
     return BRT_OK;
 }
-
-#define STREAM_CHUNK 65536u   /* triangles per emitted chunk (2.25 MiB) */
 
 /* Hands the chunk to the consumer; its triangles are the last numbered. */
 static brt_result flush_chunk(parser *p)

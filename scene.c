@@ -27,6 +27,18 @@
 #include <sys/mman.h>
 #include <sys/stat.h>
 
+/* TUNABLES of the out-of-core build ("Building a scene file out of core"
+** below): memory against passes over the spill file; no byte of the scene
+** file depends on them (make bench-scale measures the build). */
+#define CELL_BITS 7                      /* Morton cells per axis of a split: 2^21
+                                         ** cells, fine enough for one split level */
+#define BUCKET_BYTES ((size_t)64 << 20)  /* records of one bucket: the build's
+                                         ** largest buffer, under its 256 MiB */
+#define SCATTER_BYTES ((size_t)16 << 20) /* all write buffers of a split: large
+                                         ** writes, whatever the cells */
+#define SPILL_CHUNK 16384u               /* records per read and buffer: large
+                                         ** reads, small against a bucket */
+
 /* ===================================================================== */
 /* Scene files                                                           */
 /* ===================================================================== */
@@ -392,12 +404,8 @@ static brt_result write_at(int fd, const void *data, size_t size, uint64_t offse
 ** descriptor on success, on failure, on interrupt and if the process dies.
 ** The interrupt flag is polled once per chunk and per batching point.
 */
-#define CELL_BITS 7                                 /* per axis */
 #define CELL_COUNT (1u << (3 * CELL_BITS))          /* Morton cells of a split */
 #define NO_CHILD 0xFFFFFFFFu
-#define BUCKET_BYTES ((size_t)64 << 20)             /* records of one bucket */
-#define SCATTER_BYTES ((size_t)16 << 20)            /* all write buffers of a split */
-#define SPILL_CHUNK 16384u                          /* records per read and buffer */
 
 typedef struct spill_record {
     float v[9];                 /* the corners v0, v1, v2 */
