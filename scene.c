@@ -1188,7 +1188,7 @@ static brt_result instance_point_proxy(const instance_build *ib, const instance_
     for (i = 0; i < ip->n && r == BRT_OK; i++) {
         const brt_instance *in = &ib->items[ip->slots[i]];
         r = brt_voxelize_instance(grid, ib->protos[in->prototype], in->xform,
-                                  INSTANCE_DILATION * grid->cell);
+                                  INSTANCE_DILATION * grid->cell, INSTANCE_VOXELS_PRUNED);
     }
     return r;
 }
