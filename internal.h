@@ -142,6 +142,7 @@ typedef struct scene_header {
     uint64_t instanced_triangles;
     instance_margin margin;     /* of all instances: the walk's */
     uint64_t batch_instanced;   /* brt_scene_options.batch_instanced */
+    uint32_t instance_voxels;   /* INSTANCE_VOXELS_* of its proxies; 0: older */
 } scene_header;
 
 /* A blob opened: a BVH (a point of world triangles, or a prototype) or
@@ -304,9 +305,10 @@ void brt_ray_prepare_margin(const brt_ray *ray, float margin, brt_ray_prep *prep
 /* ---- proxies, for the scene build and the scheduler (svdag.c) ---- */
 
 /* How brt_voxelize_instance visits a prototype's BVH; both mark the same
-** voxels.  PRUNED skips every node whose voxels are set already (the
-** scene build); EVERY_TRIANGLE tests each triangle (the analysis of
-** brt_scene_options.exact_voxels, and the tests' model). */
+** voxels.  INSTANCE_VOXELS_PRUNED skips every node whose voxels are set
+** already (the scene build); INSTANCE_VOXELS_EVERY_TRIANGLE tests each
+** triangle (the analysis of brt_scene_options.exact_voxels, and the
+** tests' model).  Nonzero: a scene header stores it, 0 for older files. */
 enum { INSTANCE_VOXELS_PRUNED = 1, INSTANCE_VOXELS_EVERY_TRIANGLE = 2 };
 
 /* Conservative voxelization of an instance (prototype under an object-to-
