@@ -208,6 +208,11 @@ typedef struct brt_scene_options {
     ** its instances hold more triangles than this (0: no such limit; the
     ** paper's points hold 10-25 M). */
     uint64_t point_instanced;
+    /* Analysis only: each instance's proxy voxels found by testing every
+    ** one of its triangles, none pruned; the same voxels (svdag.c,
+    ** "Instances"), as slow as the instanced triangles (make bench-paper's
+    ** "exactly voxelized"). */
+    int exact_voxels;
 } brt_scene_options;
 
 /* Builds the scene file for mesh at scene_path (written under a temporary
@@ -257,7 +262,8 @@ brt_result brt_scene_open(const char *scene_path, brt_scene **out,
 void brt_scene_close(brt_scene *scene);
 
 /* Nonzero when an open scene was built from this stamp and these options
-** (so a caller can reuse it instead of rebuilding). */
+** (so a caller can reuse it instead of rebuilding); an instanced file whose
+** proxies an older build voxelized is stale. */
 int brt_scene_matches(const brt_scene *scene, uint64_t source_stamp,
                       const brt_scene_options *opt);
 

@@ -142,6 +142,7 @@ typedef struct scene_header {
     uint64_t instanced_triangles;
     instance_margin margin;     /* of all instances: the walk's */
     uint64_t point_instanced;   /* brt_scene_options.point_instanced */
+    uint32_t instance_voxels;   /* INSTANCE_VOXELS_* of its proxies; 0: older */
 } scene_header;
 
 /* A blob opened: a BVH (a point of world triangles, or a prototype) or
@@ -169,8 +170,6 @@ struct brt_scene {
     void *dag_blob;             /* the pool refers to it */
     uint64_t file_size;
 };
-
-#define SCENE_PAGE 4096u   /* blobs start at multiples of it (the scene file) */
 
 #define SCENE_PAGE 4096u   /* blobs start at multiples of it (the scene file) */
 
@@ -303,16 +302,21 @@ void brt_ray_prepare_margin(const brt_ray *ray, float margin, brt_ray_prep *prep
 
 /* ---- proxies, for the scene build and the scheduler (svdag.c) ---- */
 
+/* How brt_voxelize_instance visits a prototype's BVH; both mark the same
+** voxels.  INSTANCE_VOXELS_PRUNED skips every node whose voxels are set
+** already (the scene build); INSTANCE_VOXELS_EVERY_TRIANGLE tests each
+** triangle (the analysis of brt_scene_options.exact_voxels, and the
+** tests' model).  Nonzero: a scene header stores it, 0 for older files. */
+enum { INSTANCE_VOXELS_PRUNED = 1, INSTANCE_VOXELS_EVERY_TRIANGLE = 2 };
+
 /* Conservative voxelization of an instance (prototype under an object-to-
-** world xform, brt_instance's layout): marks every voxel whose closed box
-** grown by dilation (world units, >= 0) touches a transformed triangle,
-** descending the prototype's BVH (brt_bvh_visit) and marking the voxels of
-** a whole node box once it is at most one voxel wide, so the work grows
-** with the voxels the instance covers, not with its triangles.  The
-** transform is evaluated in double and is inside the voxelizer's bound
-** (svdag.c, "Instances"). */
+** world xform, brt_instance's layout): marks every voxel whose closed box,
+** grown by dilation (world units, >= 0) and by the voxelizer's bound on
+** rounding, touches a transformed triangle: the SAT of brt_voxelize on
+** each, the transform evaluated in double (svdag.c, "Instances").  mode:
+** INSTANCE_VOXELS_*. */
 brt_result brt_voxelize_instance(brt_grid *grid, const brt_bvh *prototype,
-                                 const float xform[12], float dilation);
+                                 const float xform[12], float dilation, int mode);
 
 /* Checks a proxy against a pool (e.g. one read from a scene file): res a
 ** power of two in 2..1024, finite origin, finite positive cell, and root

@@ -100,7 +100,9 @@ static float get_f32(const unsigned char *p) { uint32_t w = brt_get_le32(p); flo
 **     checksum}: the prototype table; 152 u32 instances; 156 f32 largest
 **     condition number; 160 f32 reach (instance_margin); 164 u32 0;
 **     168 u64 instanced triangles; 176 f32 the margin's centre[3];
-**     192 u64 point_instanced (brt_scene_options)
+**     192 u64 point_instanced (brt_scene_options); 200 u32 how the proxies
+**     were voxelized (INSTANCE_VOXELS_*; 0 in a file of an older build,
+**     which brt_scene_matches finds stale)
 **   point table entries of POINT_ENTRY_BYTES_V4: the 80 bytes above, then
 **     u32 instances (0: a point of world triangles), f32 condition, u64
 **     instanced triangles, f32 reach, u32 0 (the margin of its instances,
@@ -291,6 +293,7 @@ static void header_pack(const scene_header *h, unsigned char *p)
         put_f32(p + 180, h->margin.center[1]);
         put_f32(p + 184, h->margin.center[2]);
         brt_put_le64(p + 192, h->point_instanced);
+        brt_put_le32(p + 200, h->instance_voxels);
         brt_put_le64(p + 168, h->instanced_triangles);
     }
     brt_put_le64(p + 248, brt_checksum64(p, 248));
@@ -331,6 +334,7 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
     h->instanced_triangles = 0;
     memset(&h->margin, 0, sizeof h->margin);
     h->point_instanced = 0;
+    h->instance_voxels = 0;
     if (version == SCENE_VERSION_INSTANCED) {
         h->prototype_count = brt_get_le32(p + 44);
         h->sections[SECTION_PROTOTYPES].offset = brt_get_le64(p + 128);
@@ -343,6 +347,7 @@ static brt_result header_unpack(const char *path, const unsigned char *p, scene_
         h->margin.center[1] = get_f32(p + 180);
         h->margin.center[2] = get_f32(p + 184);
         h->point_instanced = brt_get_le64(p + 192);
+        h->instance_voxels = brt_get_le32(p + 200);
         h->instanced_triangles = brt_get_le64(p + 168);
         if (h->prototype_count == 0)
             return brt_fail(err, BRT_EFORMAT, "%s: header: version 4 without prototypes", path);
@@ -435,12 +440,19 @@ static void scene_options_resolve(const brt_scene_options *opt, uint32_t *point_
     *res = opt && opt->proxy_res ? opt->proxy_res : 128;
 }
 
+/* How the options voxelize instances (INSTANCE_VOXELS_*). */
+static int scene_options_instance_voxels(const brt_scene_options *opt)
+{
+    return opt && opt->exact_voxels ? INSTANCE_VOXELS_EVERY_TRIANGLE : INSTANCE_VOXELS_PRUNED;
+}
+
 /* Everything written while a scene file is built. */
 typedef struct scene_writer {
     const char *path;           /* final name, for messages */
     int fd;
     uint64_t offset;            /* next free, page-aligned */
     uint32_t res;
+    int instance_voxels;        /* INSTANCE_VOXELS_*: brt_scene_options.exact_voxels */
     brt_svdag *dag;
     point_entry *points;       /* the per-point tables, grown as points come */
     float *boxes;               /* 6 floats per batching point */
@@ -1175,13 +1187,15 @@ static void slots_margin(const instance_build *ib, const uint32_t *slots, uint32
 }
 
 /* The proxy of a point of instances: each instance voxelized through its
-** prototype's BVH, dilated by INSTANCE_DILATION of a voxel.  The grid
-** covers the point's box grown by a sixteenth of a voxel, more than the
-** dilation, so that what the dilation marks beyond the box is inside. */
+** prototype's BVH (w->instance_voxels), dilated by INSTANCE_DILATION of a
+** voxel.  The grid covers the point's box grown by a sixteenth of a voxel,
+** more than the dilation, so that what the dilation marks beyond the box
+** is inside. */
 static brt_result instance_point_proxy(const instance_build *ib, const instance_point *ip,
-                                       const float lo[3], const float hi[3], uint32_t res,
+                                       const float lo[3], const float hi[3], const scene_writer *w,
                                        brt_grid *grid)
 {
+    const uint32_t res = w->res;
     float glo[3], ghi[3], extent = 0.0f;
     uint32_t i;
     brt_result r;
@@ -1196,7 +1210,7 @@ static brt_result instance_point_proxy(const instance_build *ib, const instance_
     for (i = 0; i < ip->n && r == BRT_OK; i++) {
         const brt_instance *in = &ib->items[ip->slots[i]];
         r = brt_voxelize_instance(grid, ib->protos[in->prototype], in->xform,
-                                  INSTANCE_DILATION * grid->cell);
+                                  INSTANCE_DILATION * grid->cell, w->instance_voxels);
     }
     return r;
 }
@@ -1263,7 +1277,7 @@ static brt_result instance_point_write(scene_builder *b, instance_build *ib, con
         w->geometry_bytes += e->size;
         memcpy(w->boxes + 6 * (size_t)(w->point_count - 1), e->lo, 3 * sizeof(float));
         memcpy(w->boxes + 6 * (size_t)(w->point_count - 1) + 3, e->hi, 3 * sizeof(float));
-        r = instance_point_proxy(ib, &ip, e->lo, e->hi, w->res, &grid);
+        r = instance_point_proxy(ib, &ip, e->lo, e->hi, w, &grid);
         if (r == BRT_OK) r = brt_svdag_add(w->dag, &grid, &e->proxy);
         e->inner.root = BRT_EMPTY_ROOT;   /* no inner proxies for instances */
         if (r != BRT_OK) r = brt_fail(err, r, "%s: building a proxy: %s", w->path, brt_result_string(r));
@@ -1596,6 +1610,7 @@ static brt_result builder_init(scene_builder *b, const brt_scene_options *opt,
     b->point_instanced = opt ? opt->point_instanced : 0;
     brt_pool_init(&b->pool, opt ? opt->threads : 0);
     scene_options_resolve(opt, &b->point_tris, &b->w.res);
+    b->w.instance_voxels = scene_options_instance_voxels(opt);
     if (!brt_proxy_res_valid(b->w.res))
         return brt_fail(err, BRT_EARG, "proxy resolution %u is not a power of two in 2..1024", b->w.res);
     /* A bucket of instances holds about four times the bytes of a spill
@@ -1639,6 +1654,7 @@ static brt_result build_scene_file(const brt_triangle_source *source,
     h.proxy_res = b.w.res;
     h.stamp = source_stamp;
     h.point_instanced = instanced ? b.point_instanced : 0;
+    h.instance_voxels = instanced ? (uint32_t)b.w.instance_voxels : 0;
     if (r == BRT_OK)
         r = instanced ? build_instanced_passes(&b, instanced, &h, err) : build_passes(&b, source, &h, err);
     r = brt_atomic_close(&file, r, err);
@@ -2187,7 +2203,9 @@ int brt_scene_matches(const brt_scene *s, uint64_t stamp, const brt_scene_option
     scene_options_resolve(opt, &point_tris, &res);
     return s->header.stamp == stamp && s->header.point_tris == point_tris &&
            s->header.proxy_res == res &&
-           s->header.point_instanced == (opt && s->header.prototype_count ? opt->point_instanced : 0);
+           s->header.point_instanced == (opt && s->header.prototype_count ? opt->point_instanced : 0) &&
+           s->header.instance_voxels ==
+               (s->header.prototype_count ? (uint32_t)scene_options_instance_voxels(opt) : 0);
 }
 
 uint32_t brt_scene_point_count(const brt_scene *s) { return s->header.point_count; }

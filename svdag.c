@@ -310,6 +310,20 @@ static int box_touches_triangle(const sat_axis axes[10], double cx,
     return 1;
 }
 
+/* 1 when every voxel of the range [first, last] (per axis, inside the
+** grid) is set. */
+static int range_all_set(const brt_grid *grid, const uint32_t first[3], const uint32_t last[3])
+{
+    uint32_t x, y, z;
+    for (z = first[2]; z <= last[2]; z++)
+        for (y = first[1]; y <= last[1]; y++)
+            for (x = first[0]; x <= last[0]; x++) {
+                const size_t i = voxel_index(grid, x, y, z);
+                if (!((grid->bits[i >> 6] >> (i & 63)) & 1)) return 0;
+            }
+    return 1;
+}
+
 /* extra (voxel units, >= 0) dilates the voxels tested: instances' margin. */
 static void voxelize_triangle(brt_grid *grid, double q[3][3], double extra)
 {
@@ -327,6 +341,7 @@ static void voxelize_triangle(brt_grid *grid, double q[3][3], double extra)
         brt_grid_set(grid, first[0], first[1], first[2]);
         return;
     }
+    if (range_all_set(grid, first, last)) return;   /* nothing left to mark */
     triangle_axes(q, grow, axes);
     for (z = first[2]; z <= last[2]; z++)
         for (y = first[1]; y <= last[1]; y++)
@@ -372,61 +387,111 @@ brt_result brt_voxelize(brt_grid *grid, const float *positions,
 
 /* ---- Instances ---- */
 /*
-** An instance is voxelized in grid-local units, q = (M v + d - origin) /
-** cell, evaluated in double from the float vertices: an error of a few
-** 2^-52 L, far inside the 2^-44 (L + 1) grow of the rounding note above,
-** so the SAT stays conservative for the exactly transformed triangle.
+** An instance is voxelized in grid-local units, q = m v + t, where m =
+** M / cell and t = (d - origin) / cell are the transform (M, d) taken to
+** the grid once, in double.
+**
+** ROUNDING OF THE TRANSFORM.  Each of m and t is within 2^-52 of its exact
+** value, relatively, and q's three products and three sums add at most
+** five roundings: a computed q is within 2^-50 B of the exact one, where
+** B bounds |t| + |m| |v| (per row) over every vertex v.  The root's boxes
+** hold every vertex (brt_bvh_check), so B is taken once from them
+** (instance_reach); the SAT's own rounding is covered as for any triangle
+** (the note above), and the transform's by adding 2^-44 (B + 1) to the
+** grow, 64 times its bound.  A node box goes to the grid by its centre c
+** and half-size h: the box [m c + t - |m| h, m c + t + |m| h] holds the
+** exactly transformed box, and is computed within 2^-49 b, b = |t| +
+** |m| (|c| + h), that box's own bound; 2^-44 (b + 1) covers it.
 ** The dilation the caller asks for (the batched mode: a share of a voxel,
 ** which bounds the rounding of a ray's transform into object space for
 ** every ray the proxy is asked about, batchrt.c "proxy_admits") widens
-** every tested voxel by as much.  A BVH node's box holds its triangles, so
-** once its transformed box is at most one voxel wide, marking the voxels
-** that box (grown likewise) touches marks every voxel a triangle under it
-** could: a superset, and never more than 8 voxels.
+** every tested voxel, box or triangle, by as much.
+**
+** PRUNING (INSTANCE_VOXELS_PRUNED).  It marks what the SAT marks for every
+** transformed triangle (INSTANCE_VOXELS_EVERY_TRIANGLE, triangle by
+** triangle), visiting part of the prototype's BVH.  A node whose box
+** touches only voxels that are set already is left: its triangles could
+** add none.  A node whose box touches a single voxel lies inside that
+** voxel (its grow exceeds its rounding), and so does each of its
+** triangles, which the SAT marks: that voxel is marked without
+** descending.  Otherwise the visit descends, down to the triangles and
+** their SAT, which also skips a triangle whose voxels are all set.  So
+** nothing outside the SAT's voxels is marked, and the work follows the
+** boundary between set and unset voxels rather than the instanced
+** triangles.  make bench-paper prints both modes' effect on the bytes
+** read; the tests hold the two modes' grids and an exact model together
+** (tests/test_svdag.c, "instances").
 */
 typedef struct instance_voxelizer {
     brt_grid *grid;
-    const float *xform;
-    double extra;               /* the dilation in voxel units */
+    double m[3][3], t[3];       /* object space to grid units */
+    double box_extra;           /* a node box's grow beyond its rounding: the dilation */
+    double triangle_extra;      /* a triangle's: the dilation and the transform's rounding */
+    int every_triangle;         /* INSTANCE_VOXELS_EVERY_TRIANGLE: no pruning */
 } instance_voxelizer;
 
 static void to_grid(const instance_voxelizer *iv, const float *v, double q[3])
 {
     int a;
+    for (a = 0; a < 3; a++)
+        q[a] = iv->m[a][0] * v[0] + iv->m[a][1] * v[1] + iv->m[a][2] * v[2] + iv->t[a];
+}
+
+/* B of the rounding note: the largest |t| + |m| |v| over the box lo..hi. */
+static double instance_reach(const instance_voxelizer *iv, const float lo[3], const float hi[3])
+{
+    double reach = 0;
+    int a, j;
     for (a = 0; a < 3; a++) {
-        const float *r = iv->xform + 4 * a;
-        const double w = (double)r[0] * v[0] + (double)r[1] * v[1] + (double)r[2] * v[2] + r[3];
-        q[a] = (w - iv->grid->origin[a]) / iv->grid->cell;
+        double row = fabs(iv->t[a]);
+        for (j = 0; j < 3; j++) row += fabs(iv->m[a][j]) * max2(fabs(lo[j]), fabs(hi[j]));
+        reach = max2(reach, row);
     }
+    return reach;
+}
+
+/* The voxel range of a node box (0 when it misses the grid): its centre
+** and half-size taken to the grid, grown by 2^-44 (b + 1) and the
+** dilation (the rounding note above). */
+static int box_voxel_range(const instance_voxelizer *iv, const float lo[3], const float hi[3],
+                           uint32_t first[3], uint32_t last[3])
+{
+    double c[3], h[3], centre[3], half[3], b = 0, grow;
+    int a, j;
+    for (j = 0; j < 3; j++) {
+        c[j] = 0.5 * ((double)lo[j] + hi[j]);
+        h[j] = 0.5 * ((double)hi[j] - lo[j]);
+    }
+    for (a = 0; a < 3; a++) {
+        double row = fabs(iv->t[a]);
+        centre[a] = iv->t[a];
+        half[a] = 0;
+        for (j = 0; j < 3; j++) {
+            centre[a] += iv->m[a][j] * c[j];
+            half[a] += fabs(iv->m[a][j]) * h[j];
+            row += fabs(iv->m[a][j]) * fabs(c[j]);
+        }
+        b = max2(b, row + half[a]);
+    }
+    grow = 0x1p-44 * (b + 1) + iv->box_extra;
+    for (a = 0; a < 3; a++)
+        if (!voxel_range(centre[a] - half[a], centre[a] + half[a], grow, iv->grid->res, &first[a], &last[a]))
+            return 0;
+    return 1;
 }
 
 static int instance_box(void *user, const float lo[3], const float hi[3])
 {
     const instance_voxelizer *iv = user;
-    double blo[3] = {INFINITY, INFINITY, INFINITY}, bhi[3] = {-INFINITY, -INFINITY, -INFINITY};
-    double l = iv->grid->res, grow;
-    uint32_t first[3], last[3], x, y, z;
-    int corner, a;
-    for (corner = 0; corner < 8; corner++) {
-        const float v[3] = {(corner & 1) ? hi[0] : lo[0], (corner & 2) ? hi[1] : lo[1],
-                            (corner & 4) ? hi[2] : lo[2]};
-        double q[3];
-        to_grid(iv, v, q);
-        for (a = 0; a < 3; a++) {
-            blo[a] = min2(blo[a], q[a]);
-            bhi[a] = max2(bhi[a], q[a]);
-            l = max2(l, fabs(q[a]));
-        }
+    uint32_t first[3], last[3];
+    if (!box_voxel_range(iv, lo, hi, first, last)) return 0;
+    if (iv->every_triangle) return 1;
+    if (range_all_set(iv->grid, first, last)) return 0;
+    if (first[0] == last[0] && first[1] == last[1] && first[2] == last[2]) {
+        brt_grid_set(iv->grid, first[0], first[1], first[2]);
+        return 0;
     }
-    grow = 0x1p-44 * (l + 1) + iv->extra;
-    for (a = 0; a < 3; a++)
-        if (!voxel_range(blo[a], bhi[a], grow, iv->grid->res, &first[a], &last[a])) return 0;
-    for (a = 0; a < 3; a++)
-        if (bhi[a] - blo[a] > 1.0) return 1;   /* wider than a voxel: descend */
-    for (z = first[2]; z <= last[2]; z++)
-        for (y = first[1]; y <= last[1]; y++)
-            for (x = first[0]; x <= last[0]; x++) brt_grid_set(iv->grid, x, y, z);
-    return 0;
+    return 1;
 }
 
 static void instance_triangle(void *user, const float *v0, const float *v1, const float *v2)
@@ -436,20 +501,28 @@ static void instance_triangle(void *user, const float *v0, const float *v1, cons
     to_grid(iv, v0, q[0]);
     to_grid(iv, v1, q[1]);
     to_grid(iv, v2, q[2]);
-    voxelize_triangle(iv->grid, q, iv->extra);
+    voxelize_triangle(iv->grid, q, iv->triangle_extra);
 }
 
 brt_result brt_voxelize_instance(brt_grid *grid, const brt_bvh *prototype,
-                                 const float xform[12], float dilation)
+                                 const float xform[12], float dilation, int mode)
 {
     instance_voxelizer iv;
-    int i;
+    float lo[3], hi[3];
+    int a, j;
     if (!grid_frame_valid(grid) || !(dilation >= 0) || !isfinite(dilation)) return BRT_EARG;
-    for (i = 0; i < 12; i++)
-        if (!isfinite(xform[i])) return BRT_EARG;
+    for (a = 0; a < 12; a++)
+        if (!isfinite(xform[a])) return BRT_EARG;
+    brt_bvh_bounds(prototype, lo, hi);
+    if (!(lo[0] <= hi[0])) return BRT_OK;   /* no triangles */
     iv.grid = grid;
-    iv.xform = xform;
-    iv.extra = (double)dilation / grid->cell;
+    for (a = 0; a < 3; a++) {
+        for (j = 0; j < 3; j++) iv.m[a][j] = (double)xform[4 * a + j] / grid->cell;
+        iv.t[a] = ((double)xform[4 * a + 3] - grid->origin[a]) / grid->cell;
+    }
+    iv.box_extra = (double)dilation / grid->cell;
+    iv.triangle_extra = iv.box_extra + 0x1p-44 * (instance_reach(&iv, lo, hi) + 1);
+    iv.every_triangle = mode == INSTANCE_VOXELS_EVERY_TRIANGLE;
     brt_bvh_visit(prototype, instance_box, instance_triangle, &iv);
     return BRT_OK;
 }

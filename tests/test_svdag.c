@@ -1682,6 +1682,267 @@ static void test_inner_signed_zeros(void)
     }
 }
 
+/* ===================================================================== */
+/* Instances: brt_voxelize_instance against exact models                  */
+/* ===================================================================== */
+
+/* Transforms that take the quarter-cell lattice to itself exactly (integer
+** entries, lattice translations): sheared, mirrored, rotated by quarter
+** turns, at once; so that a transformed lattice triangle is exact and the
+** integer SAT (oracle_overlap) is the exact model of its voxels. */
+static const int lattice_xforms[][12] = {
+    {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0},                 /* identity */
+    {-1, 0, 0, 32, 0, 1, 0, 0, 0, 0, 1, 0},               /* mirrored in x */
+    {1, 1, 0, -8, 0, 1, 0, 2, 0, 0, 1, 0},                /* sheared x += y */
+    {0, 0, 1, 0, 1, 0, 0, 0, 0, -1, 0, 32},               /* a rotation, mirrored */
+    {1, 0, 1, -4, 0, -1, 1, 12, 1, 1, 0, -9},             /* sheared, det 2 */
+};
+
+/* A prototype of n lattice triangles (quarter cells) in a cluster, its
+** BVH, and its triangles in place. */
+static brt_bvh *lattice_prototype(uint64_t *rng, uint32_t n, int64_t (*tri)[3][3])
+{
+    float *pos = malloc(9 * (size_t)n * sizeof *pos);
+    uint32_t *idx = malloc(3 * (size_t)n * sizeof *idx), t;
+    brt_bvh *bvh = NULL;
+    int k, i;
+    if (pos && idx)
+        for (t = 0; t < n; t++) {
+            lattice_triangle(rng, 4, tri[t]);   /* a cluster of 4 cells */
+            for (k = 0; k < 3; k++)
+                for (i = 0; i < 3; i++) {
+                    pos[9 * t + 3 * k + i] = 0.25f * (float)tri[t][k][i];
+                    idx[3 * t + k] = 3 * t + k;
+                }
+        }
+    if (!pos || !idx || brt_bvh_build(pos, idx, n, NULL, &bvh) != BRT_OK) bvh = NULL;
+    free(pos);
+    free(idx);
+    return bvh;
+}
+
+/* The exact model of an instance: into model (cleared), every voxel the
+** integer SAT finds a transformed triangle touching (only the voxels
+** around its bounding box are asked). */
+static void lattice_instance_model(brt_grid *model, int64_t (*tri)[3][3], uint32_t n, const int m[12])
+{
+    uint32_t t;
+    int k, a;
+    grid_clear(model);
+    for (t = 0; t < n; t++) {
+        int64_t w[3][3], lo[3], hi[3], x, y, z;
+        for (k = 0; k < 3; k++)
+            for (a = 0; a < 3; a++)
+                w[k][a] = m[4 * a] * tri[t][k][0] + m[4 * a + 1] * tri[t][k][1] + m[4 * a + 2] * tri[t][k][2] +
+                          4 * (int64_t)m[4 * a + 3];
+        for (a = 0; a < 3; a++) {
+            int64_t l = w[0][a] < w[1][a] ? w[0][a] : w[1][a], h = w[0][a] > w[1][a] ? w[0][a] : w[1][a];
+            l = l < w[2][a] ? l : w[2][a];
+            h = h > w[2][a] ? h : w[2][a];
+            lo[a] = l / 4 - 2 > 0 ? l / 4 - 2 : 0;
+            hi[a] = h / 4 + 1 < (int64_t)model->res - 1 ? h / 4 + 1 : (int64_t)model->res - 1;
+        }
+        for (z = lo[2]; z <= hi[2]; z++)
+            for (y = lo[1]; y <= hi[1]; y++)
+                for (x = lo[0]; x <= hi[0]; x++)
+                    if (oracle_overlap(w, (uint32_t)x, (uint32_t)y, (uint32_t)z))
+                        brt_grid_set(model, (uint32_t)x, (uint32_t)y, (uint32_t)z);
+    }
+}
+
+/* 1 when every voxel set in a is set in b. */
+static int grid_within(const brt_grid *a, const brt_grid *b)
+{
+    size_t i, words = ((size_t)a->res * a->res * a->res + 63) / 64;
+    for (i = 0; i < words; i++)
+        if (a->bits[i] & ~b->bits[i]) return 0;
+    return 1;
+}
+
+/* Lattice prototypes under exact sheared, mirrored and rotated transforms,
+** with triangles on voxel faces, edges and corners (grazing): both modes
+** set every voxel the exact SAT marks, and the pruned one nothing the
+** every-triangle one does not. */
+static void test_instance_voxels_lattice(void)
+{
+    static const float origin[3] = {0, 0, 0};
+    const uint32_t n = 24;
+    uint64_t rng = test_seed() + 41, want = 0, got = 0, every = 0;
+    int64_t (*tri)[3][3] = malloc(n * sizeof *tri);
+    int round, x;
+    CHECK(tri != NULL, "out of memory");
+    for (round = 0; round < 60 && !test_failed(); round++) {
+        brt_bvh *bvh = lattice_prototype(&rng, n, tri);
+        brt_grid pruned, full, model;
+        if (!bvh) break;
+        grid_exact(&pruned, 32, origin, 1.0f);
+        grid_exact(&full, 32, origin, 1.0f);
+        grid_exact(&model, 32, origin, 1.0f);
+        for (x = 0; x < (int)(sizeof lattice_xforms / sizeof lattice_xforms[0]) && !test_failed(); x++) {
+            int m[12], i;
+            float xform[12];
+            memcpy(m, lattice_xforms[x], sizeof m);
+            for (i = 3; i < 12; i += 4) m[i] += 4 * (round % 3);
+            for (i = 0; i < 12; i++) xform[i] = (float)m[i];
+            grid_clear(&pruned);
+            grid_clear(&full);
+            CHECK(brt_voxelize_instance(&pruned, bvh, xform, 0.0f, INSTANCE_VOXELS_PRUNED) == BRT_OK, "pruned");
+            CHECK(brt_voxelize_instance(&full, bvh, xform, 0.0f, INSTANCE_VOXELS_EVERY_TRIANGLE) == BRT_OK,
+                  "every triangle");
+            lattice_instance_model(&model, tri, n, m);
+            EXPECT(grid_within(&model, &pruned) && grid_within(&model, &full),
+                   "round %d, transform (%d %d %d %d / %d %d %d %d / %d %d %d %d): a voxel of the exact model "
+                   "is not set (pruned: %d, every triangle: %d)", round, m[0], m[1], m[2], m[3], m[4], m[5],
+                   m[6], m[7], m[8], m[9], m[10], m[11], grid_within(&model, &pruned),
+                   grid_within(&model, &full));
+            EXPECT(grid_within(&pruned, &full), "transform %d: the pruned voxelization sets a voxel the "
+                   "every-triangle one does not (%llu against %llu)", x,
+                   (unsigned long long)brt_grid_count(&pruned), (unsigned long long)brt_grid_count(&full));
+            want += brt_grid_count(&model);
+            got += brt_grid_count(&pruned);
+            every += brt_grid_count(&full);
+        }
+        brt_grid_free(&model);
+        brt_grid_free(&pruned);
+        brt_grid_free(&full);
+        brt_bvh_free(bvh);
+    }
+    free(tri);
+    EXPECT(round == 60, "prototype build failed");
+    printf("  svdag: instances on the lattice: %llu voxels exact, %llu pruned, %llu every triangle\n",
+           (unsigned long long)want, (unsigned long long)got, (unsigned long long)every);
+}
+
+/* m = rotation (a unit axis, an angle) * shear (x += sh y) * diag(s), a
+** mirror when s has an odd count of negatives; t the translation. */
+static void rotated_xform(uint64_t *rng, float m[12], const float t[3])
+{
+    double axis[3], len = 0, angle = 6.283185307179586 * brt_random_float(rng), r[9], a[9], c, sn, k;
+    const double sh = rand_range(rng, -1.5f, 1.5f);
+    double sc[3];
+    int i, j;
+    for (i = 0; i < 3; i++) {
+        axis[i] = rand_range(rng, -1, 1);
+        len += axis[i] * axis[i];
+        sc[i] = rand_range(rng, 0.3f, 3.0f) * (rand_below(rng, 2) ? -1 : 1);
+    }
+    len = sqrt(len) + 1e-9;
+    for (i = 0; i < 3; i++) axis[i] /= len;
+    c = cos(angle); sn = sin(angle); k = 1 - c;
+    r[0] = c + axis[0] * axis[0] * k; r[1] = axis[0] * axis[1] * k - axis[2] * sn; r[2] = axis[0] * axis[2] * k + axis[1] * sn;
+    r[3] = axis[1] * axis[0] * k + axis[2] * sn; r[4] = c + axis[1] * axis[1] * k; r[5] = axis[1] * axis[2] * k - axis[0] * sn;
+    r[6] = axis[2] * axis[0] * k - axis[1] * sn; r[7] = axis[2] * axis[1] * k + axis[0] * sn; r[8] = c + axis[2] * axis[2] * k;
+    for (i = 0; i < 3; i++) {                      /* a = r * shear */
+        a[3 * i] = r[3 * i];
+        a[3 * i + 1] = r[3 * i] * sh + r[3 * i + 1];
+        a[3 * i + 2] = r[3 * i + 2];
+    }
+    for (i = 0; i < 3; i++) {
+        for (j = 0; j < 3; j++) m[4 * i + j] = (float)(a[3 * i + j] * sc[j]);
+        m[4 * i + 3] = t[i];
+    }
+}
+
+/* Every voxel whose closed box lies within tol voxels of the world point p
+** (double) is set. */
+static int voxels_near_point_set(const brt_grid *grid, const double p[3], double tol)
+{
+    double lo[3], hi[3];
+    uint32_t x, y, z;
+    int a;
+    for (a = 0; a < 3; a++) {
+        const double q = (p[a] - grid->origin[a]) / grid->cell;
+        lo[a] = floor(q - tol) > 0 ? floor(q - tol) : 0;
+        hi[a] = floor(q + tol) < grid->res - 1.0 ? floor(q + tol) : grid->res - 1.0;
+    }
+    for (z = (uint32_t)lo[2]; z <= (uint32_t)hi[2]; z++)
+        for (y = (uint32_t)lo[1]; y <= (uint32_t)hi[1]; y++)
+            for (x = (uint32_t)lo[0]; x <= (uint32_t)hi[0]; x++)
+                if (!brt_grid_get(grid, x, y, z)) return 0;
+    return 1;
+}
+
+/* Thin triangles (slivers, leaves) under random rotations, shears and
+** mirrors at the batched mode's dilation, on grids of voxels larger than
+** a leaf node and smaller: every voxel within a millionth
+** of a voxel of a point of a triangle (its corners, its edges' midpoints,
+** random points; computed in double) is set -- the dilation, far larger,
+** covers both roundings -- and the pruned grid lies within the
+** every-triangle one. */
+static void test_instance_voxels_rotated(void)
+{
+    const uint32_t n = 200;
+    uint64_t rng = test_seed() + 4141, points = 0;
+    float *pos = malloc(9 * (size_t)n * sizeof *pos);
+    uint32_t *idx = malloc(3 * (size_t)n * sizeof *idx), t;
+    int round, k, i;
+    CHECK(pos && idx, "out of memory");
+    for (round = 0; round < 40 && !test_failed(); round++) {
+        static const float lo[3] = {-8, -8, -8}, hi[3] = {8, 8, 8};
+        /* res 4: a few triangles inside one voxel (centred in it); 8 and
+        ** 32: leaf nodes within a voxel, and across several */
+        const uint32_t res = round % 3 == 0 ? 4 : round % 3 == 1 ? 8 : 32, count = res == 4 ? 3 : n;
+        const float spread = res == 4 ? 0.08f : 1.0f, edge = res == 4 ? 0.08f : 0.4f;
+        float at[3];
+        brt_bvh *bvh = NULL;
+        brt_grid pruned, full;
+        float m[12];
+        for (i = 0; i < 3; i++) at[i] = res == 4 ? (rand_below(&rng, 2) ? 2.0f : -2.0f) : rand_range(&rng, -2, 2);
+        for (t = 0; t < count; t++) {   /* leaves: a point, and two short thin edges from it */
+            const float base[3] = {rand_range(&rng, -spread, spread), rand_range(&rng, -spread, spread),
+                                   rand_range(&rng, -spread, spread)};
+            const float thin = round % 2 ? 1e-4f : 0.05f * edge;
+            for (k = 0; k < 3; k++)
+                for (i = 0; i < 3; i++)
+                    pos[9 * t + 3 * k + i] = base[i] + (k == 0 ? 0.0f : k == 1 ? rand_range(&rng, -edge, edge)
+                                                                               : rand_range(&rng, -thin, thin));
+            for (k = 0; k < 3; k++) idx[3 * t + k] = 3 * t + k;
+        }
+        CHECK(brt_bvh_build(pos, idx, count, NULL, &bvh) == BRT_OK, "bvh build");
+        rotated_xform(&rng, m, at);
+        CHECK(brt_grid_init(&pruned, lo, hi, res) == BRT_OK && brt_grid_init(&full, lo, hi, res) == BRT_OK, "grid");
+        CHECK(brt_voxelize_instance(&pruned, bvh, m, INSTANCE_DILATION * pruned.cell, INSTANCE_VOXELS_PRUNED) == BRT_OK,
+              "pruned");
+        CHECK(brt_voxelize_instance(&full, bvh, m, INSTANCE_DILATION * full.cell, INSTANCE_VOXELS_EVERY_TRIANGLE) ==
+                  BRT_OK, "every triangle");
+        for (t = 0; t < count && !test_failed(); t++) {
+            int s;
+            for (s = 0; s < 12; s++) {
+                static const double corners[6][3] = {{1, 0, 0}, {0, 1, 0}, {0, 0, 1}, {0.5, 0.5, 0}, {0, 0.5, 0.5}, {0.5, 0, 0.5}};
+                double b[3], p[3];
+                int a;
+                if (s < 6) memcpy(b, corners[s], sizeof b);
+                else {
+                    b[0] = brt_random_float(&rng);
+                    b[1] = (1 - b[0]) * brt_random_float(&rng);
+                    b[2] = 1 - b[0] - b[1];
+                }
+                for (a = 0; a < 3; a++) {
+                    double o[3];
+                    for (k = 0; k < 3; k++)
+                        o[k] = b[0] * pos[9 * t + k] + b[1] * pos[9 * t + 3 + k] + b[2] * pos[9 * t + 6 + k];
+                    p[a] = (double)m[4 * a] * o[0] + (double)m[4 * a + 1] * o[1] + (double)m[4 * a + 2] * o[2] +
+                           m[4 * a + 3];
+                }
+                points++;
+                EXPECT(voxels_near_point_set(&pruned, p, 1e-6) && voxels_near_point_set(&full, p, 1e-6),
+                       "round %d: triangle %u: a voxel at (%.17g %.17g %.17g) is not set (pruned %d, every "
+                       "triangle %d)", round, (unsigned)t, p[0], p[1], p[2], voxels_near_point_set(&pruned, p, 1e-6),
+                       voxels_near_point_set(&full, p, 1e-6));
+            }
+        }
+        EXPECT(grid_within(&pruned, &full), "round %d: the pruned voxelization sets a voxel the every-triangle "
+               "one does not (%llu against %llu)", round, (unsigned long long)brt_grid_count(&pruned),
+               (unsigned long long)brt_grid_count(&full));
+        brt_grid_free(&pruned);
+        brt_grid_free(&full);
+        brt_bvh_free(bvh);
+    }
+    free(pos);
+    free(idx);
+    printf("  svdag: instances rotated, sheared, mirrored: %llu points checked\n", (unsigned long long)points);
+}
+
 void suite_svdag(void)
 {
     test_run("svdag: grid frame covers the box", test_grid_frame);
@@ -1701,4 +1962,6 @@ void suite_svdag(void)
     test_run("svdag: grazing directions, far origins", test_grazing_directions);
     test_run("svdag: grazing directions, inner proxies", test_grazing_inner);
     test_run("svdag: inner proxies, signed zeros in the weld", test_inner_signed_zeros);
+    test_run("svdag: instances: lattice, sheared, mirrored, grazing", test_instance_voxels_lattice);
+    test_run("svdag: instances: rotated thin triangles", test_instance_voxels_rotated);
 }

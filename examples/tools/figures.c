@@ -8,7 +8,8 @@
 **   Fig. 2  proxy memory and effectiveness (share of top-level visits
 **           culled) against proxy resolution 16..512 (fig2.csv, SVG);
 **   Fig. 3  total disk bytes read against the memory limit, 10 %..100 % of
-**           the geometry bytes, without and with proxies, and with exact
+**           the geometry bytes, without and with proxies, with exactly
+**           voxelized proxies (render --exact-voxels) and with exact
 **           proxies (render --exact-proxy: the bound on what any
 **           conservative proxy can save) (fig3.csv, SVG);
 **   Fig. 4  (not in the paper: its section 4.3's future work, README "Inner
@@ -32,7 +33,7 @@
 ** (render --paper-scheduler: the paper's scheduler; by default render
 ** intersects rays at once at batching points in memory, which skips their
 ** proxies, so the figures would no longer measure what the proxies cull).
-** Fig. 3 is drawn for batchrt's own scheduler as well (three more lines), so
+** Fig. 3 is drawn for batchrt's own scheduler as well (four more lines), so
 ** the two can be compared.  Scene files are
 ** built once per resolution in the default scene folder and reused.
 ** Fig. 1 is a picture, rendered with the sun's shadow rays (next-event
@@ -317,15 +318,25 @@ static void figure2(const settings *s)
 
 /* ---- Fig. 3 ---- */
 
-/* The six runs at each limit: series 3 * scheduler + proxy kind. */
-#define PROXY_KINDS 3
+/* The eight runs at each limit: series 4 * scheduler + proxy kind.  The
+** exactly voxelized proxies (render --exact-voxels: every instanced
+** triangle tested, none pruned) against the proxies show what the
+** voxelization loses, the exact proxies against them what the resolution
+** does. */
+#define PROXY_KINDS 4
 #define FIG3_SERIES (2 * PROXY_KINDS)
-static const char *const proxy_kinds[PROXY_KINDS] = {"none", "voxels", "exact"};
-static const char *const proxy_options[PROXY_KINDS] = {"--no-proxy", "", "--exact-proxy"};
+static const char *const proxy_kinds[PROXY_KINDS] = {"none", "voxels", "exact-voxels", "exact"};
+static const char *const proxy_options[PROXY_KINDS] = {"--no-proxy", "", "--exact-voxels",
+                                                       "--exact-proxy"};
 
-/* Disk MiB at limit[l] %, per scheduler and proxy kind. */
+/* Disk MiB and the share of proxy tests culled at limit[l] %, per
+** scheduler and proxy kind. */
+typedef struct fig3_runs {
+    double disk[FIG3_SERIES][LIMIT_COUNT], culled[FIG3_SERIES][LIMIT_COUNT];
+} fig3_runs;
+
 static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIMIT_COUNT],
-                          double disk[FIG3_SERIES][LIMIT_COUNT])
+                          fig3_runs *runs)
 {
     static const char *const scheduler_names[2] = {"paper", "batchrt"};
     char extra[12288], stats[4096];
@@ -334,21 +345,24 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
     fprintf(stderr, "Fig. 3: %s, limit %%", scene_names[i]);
     for (l = 0; l < LIMIT_COUNT; l++) {
         limits[l] = 10.0 * (l + 1);
-        for (run = 0; run < FIG3_SERIES; run++) disk[run][l] = NAN;
+        for (run = 0; run < FIG3_SERIES; run++) runs->disk[run][l] = runs->culled[run][l] = NAN;
         if (s->paper && (l < 5 || l > 8)) continue;   /* the paper's 60..90 % */
         fprintf(stderr, " %g", limits[l]);
         for (run = 0; run < FIG3_SERIES; run++) {
             int kind = run % PROXY_KINDS;
+            double tests;
             scheduler = run / PROXY_KINDS;
             snprintf(extra, sizeof extra, "--memory %g%% %s --no-nee --out '%s/run.png' --stats '%s'",
                      limits[l], proxy_options[kind], s->out, stats);
             run_render(s, scene_names[i], scheduler, extra);
-            disk[run][l] = json_number(stats, "disk_bytes_read") / 1048576.0;
-            fprintf(csv, "%s,%s,%g,%s,%.0f,%.0f,%.0f,%.0f,%.4f\n", scene_names[i],
+            runs->disk[run][l] = json_number(stats, "disk_bytes_read") / 1048576.0;
+            tests = json_number(stats, "proxy_tests");
+            runs->culled[run][l] = tests > 0 ? 100.0 * json_number(stats, "proxy_culled") / tests : 0;
+            fprintf(csv, "%s,%s,%g,%s,%.0f,%.0f,%.0f,%.0f,%.0f,%.0f,%.4f\n", scene_names[i],
                     scheduler_names[scheduler], limits[l], proxy_kinds[kind],
                     json_number(stats, "disk_bytes_read"), json_number(stats, "batch_loads"),
                     json_number(stats, "geometry_bytes"), json_number(stats, "proxy_bytes"),
-                    json_number(stats, "seconds"));
+                    tests, json_number(stats, "proxy_culled"), json_number(stats, "seconds"));
         }
     }
     fprintf(stderr, "\n");
@@ -356,42 +370,51 @@ static void figure3_scene(const settings *s, FILE *csv, int i, double limits[LIM
     remove(out_path(s, "run.png"));
 }
 
-/* The paper's range, 60..90 %: voxel and (exact) proxies over none, for
-** each scheduler, with the paper's ratios (its Fig. 3). */
+/* The paper's range, 60..90 %: for each scheduler, the disk bytes of the
+** proxies, the exactly voxelized ones and the exact ones over none's, each
+** with the share of proxy tests it culled; the paper's ratios (its Fig. 3)
+** below. */
 static void figure3_table(const settings *s, const double limits[LIMIT_COUNT],
-                          double ratio[SCENE_COUNT][FIG3_SERIES][LIMIT_COUNT])
+                          double ratio[SCENE_COUNT][FIG3_SERIES][LIMIT_COUNT],
+                          double culled[SCENE_COUNT][FIG3_SERIES][LIMIT_COUNT])
 {
     const int first = s->paper ? 1 : 0;   /* --paper: the instanced scenes alone */
     static const char *const paper[SCENE_COUNT] = {"0.73-0.81", "0.60-0.77", "0.46-0.52"};
-    int scheduler, i, l;
-    printf("\nFig. 3, disk bytes with proxies / without, proxies paid out of the limit (in "
-           "brackets: exact proxies, the bound)\n\n| scheduler | limit |");
-    for (i = first; i < SCENE_COUNT; i++) printf(" %s |", scene_names[i]);
+    int scheduler, i, l, kind;
+    printf("\nFig. 3, disk bytes with proxies / without, proxies paid out of the limit, and the "
+           "share of proxy tests culled: the proxies, the exactly voxelized, the exact (the bound)"
+           "\n\n| scheduler | limit |");
+    for (i = first; i < SCENE_COUNT; i++)
+        printf(" %s | exactly voxelized | exact |", scene_names[i]);
     printf("\n|---|---:|");
-    for (i = first; i < SCENE_COUNT; i++) printf("---:|");
+    for (i = first; i < SCENE_COUNT; i++) printf("---:|---:|---:|");
     printf("\n");
     for (scheduler = 0; scheduler < 2; scheduler++)
         for (l = 5; l < 9; l++) {
             printf("| %s | %g %% |", scheduler ? "batchrt's" : "paper's", limits[l]);
             for (i = first; i < SCENE_COUNT; i++)
-                printf(" %.2f (%.2f) |", ratio[i][PROXY_KINDS * scheduler + 1][l],
-                       ratio[i][PROXY_KINDS * scheduler + 2][l]);
+                for (kind = 1; kind < PROXY_KINDS; kind++)
+                    printf(" %.2f, %.0f %% |", ratio[i][PROXY_KINDS * scheduler + kind][l],
+                           culled[i][PROXY_KINDS * scheduler + kind][l]);
             printf("\n");
         }
     printf("| the paper | 60-90 %% |");
-    for (i = first; i < SCENE_COUNT; i++) printf(" %s |", paper[i]);
+    for (i = first; i < SCENE_COUNT; i++) printf(" %s | | |", paper[i]);
     printf("\n");
 }
 
 static void figure3(const settings *s)
 {
     static const char *const labels[FIG3_SERIES] = {   /* scheduler: proxies */
-        "paper: no proxies", "paper: proxies", "paper: exact",
-        "batchrt: no proxies", "batchrt: proxies", "batchrt: exact"};
+        "paper: no proxies", "paper: proxies", "paper: exactly voxelized", "paper: exact",
+        "batchrt: no proxies", "batchrt: proxies", "batchrt: exactly voxelized", "batchrt: exact"};
     FILE *csv = open_csv(s, "fig3.csv", "scene,scheduler,limit_percent,proxies,disk_bytes_read,"
-                                        "batch_loads,geometry_bytes,proxy_bytes,seconds");
-    double limits[LIMIT_COUNT], disk[FIG3_SERIES][LIMIT_COUNT];
+                                        "batch_loads,geometry_bytes,proxy_bytes,proxy_tests,"
+                                        "proxy_culled,seconds");
+    double limits[LIMIT_COUNT];
+    static fig3_runs runs;
     static double ratio[SCENE_COUNT][FIG3_SERIES][LIMIT_COUNT];   /* over no proxies */
+    static double culled[SCENE_COUNT][FIG3_SERIES][LIMIT_COUNT];
     ex_plot_series series[FIG3_SERIES];
     ex_plot plot;
     char title[128], name[64];
@@ -400,22 +423,24 @@ static void figure3(const settings *s)
         if (s->paper && i == 0) {   /* the crown is not instanced: not the paper's regime */
             for (k = 0; k < FIG3_SERIES; k++) {
                 int l;
-                for (l = 0; l < LIMIT_COUNT; l++) ratio[i][k][l] = NAN;
+                for (l = 0; l < LIMIT_COUNT; l++) ratio[i][k][l] = culled[i][k][l] = NAN;
             }
             continue;
         }
-        figure3_scene(s, csv, i, limits, disk);
+        figure3_scene(s, csv, i, limits, &runs);
         for (k = 0; k < FIG3_SERIES; k++) {
             int l;
-            for (l = 0; l < LIMIT_COUNT; l++)
-                ratio[i][k][l] = disk[k][l] / disk[k - k % PROXY_KINDS][l];
+            for (l = 0; l < LIMIT_COUNT; l++) {
+                ratio[i][k][l] = runs.disk[k][l] / runs.disk[k - k % PROXY_KINDS][l];
+                culled[i][k][l] = runs.culled[k][l];
+            }
         }
         memset(series, 0, sizeof series);
         for (k = 0; k < FIG3_SERIES; k++) {
             series[k].label = labels[k];
             series[k].dashed = k % PROXY_KINDS == 0;
             series[k].x = limits;
-            series[k].y = disk[k];
+            series[k].y = runs.disk[k];
             series[k].count = LIMIT_COUNT;
         }
         memset(&plot, 0, sizeof plot);
@@ -430,7 +455,7 @@ static void figure3(const settings *s)
         if (!s->paper) write_plot(s, name, &plot);
     }
     close_csv(s, csv, "fig3.csv");
-    figure3_table(s, limits, ratio);
+    figure3_table(s, limits, ratio, culled);
 }
 
 /* ---- Fig. 4 ---- */

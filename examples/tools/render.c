@@ -126,6 +126,7 @@ typedef struct options {
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
     int no_inner;
     int no_proxy, paper_scheduler, exact_proxy, direct, compare, have_camera, drop_os_cache;
+    int exact_voxels;             /* --exact-voxels: brt_scene_options.exact_voxels */
     int have_width, have_height;   /* given: a pbrt file's Film does not set them */
     int no_nee, have_sun, grey;
     float eye[3], target[3], fov;
@@ -172,6 +173,8 @@ static void usage(void)
            "                       scheduler; default: intersect there at once)\n"
            "  --exact-proxy        analysis: a perfect proxy (an exact test against the\n"
            "                       triangles, all read first and not counted)\n"
+           "  --exact-voxels       analysis: instances' proxies built by testing every\n"
+           "                       triangle (slow; the same voxels; its own scene file)\n"
            "  --rays-in-flight N   paths traced at once (default 262144)\n"
            "  --threads N          threads (default 0: all cores); no byte changes\n"
            "  --drop-os-cache      cold reads: keep the scene file out of the OS cache, so\n"
@@ -304,6 +307,7 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--no-inner")) o->no_inner = 1;
         else if (is_option(a, "--paper-scheduler")) o->paper_scheduler = 1;
         else if (is_option(a, "--exact-proxy")) o->exact_proxy = 1;
+        else if (is_option(a, "--exact-voxels")) o->exact_voxels = 1;
         else if (is_option(a, "--direct")) o->direct = 1;
         else if (is_option(a, "--batched")) o->direct = 0;
         else if (is_option(a, "--compare")) o->compare = 1;
@@ -854,6 +858,16 @@ static void builtin_scene_path(const options *o, char *path, size_t size)
         ex_die(prog, "%s: scene path too long", dir);
 }
 
+/* A default scene path for --exact-voxels, NAME-exact-voxels.brs:
+** the analysis's proxies get their own file, so that runs with and without
+** it reuse theirs instead of rebuilding each other's. */
+static void exact_voxels_path(char *path, size_t size)
+{
+    const size_t n = strlen(path) - strlen(".brs");
+    if (snprintf(path + n, size - n, "-exact-voxels.brs") >= (int)(size - n))
+        ex_die(prog, "%s: scene path too long", path);
+}
+
 /* The scene file at path, opened when it was built from stamp with sopt
 ** (brt_scene_matches); otherwise built from source with
 ** brt_scene_build_source and opened.  A file there that does not open
@@ -904,9 +918,11 @@ static brt_scene *open_scene(const options *o, const render_input *in,
     sopt.interrupt = interrupt;
     sopt.threads = (unsigned)o->threads;
     sopt.point_instanced = o->point_instanced;
+    sopt.exact_voxels = o->exact_voxels;
     if (o->scene) snprintf(path, sizeof path, "%s", o->scene);
     else if (builtin) builtin_scene_path(o, path, sizeof path);
     else ex_default_scene_path(prog, o->input, sopt.point_tris, sopt.proxy_res, path, sizeof path);
+    if (!o->scene && o->exact_voxels) exact_voxels_path(path, sizeof path);
     memset(&source, 0, sizeof source);
     if (builtin) {
         recipe.name = o->input;
