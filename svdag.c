@@ -494,10 +494,30 @@ static int instance_box(void *user, const float lo[3], const float hi[3])
     return 1;
 }
 
+#ifdef BRT_TESTING
+static int test_counting;        /* testing.h: brt_test_count_instance_triangles */
+static uint64_t test_counted;
+
+void brt_test_count_instance_triangles(int on)
+{
+    test_counting = on;
+    test_counted = 0;
+}
+
+uint64_t brt_test_instance_triangles(void)
+{
+    return test_counted;
+}
+#define COUNT_INSTANCE_TRIANGLE() ((void)(test_counting && test_counted++))
+#else
+#define COUNT_INSTANCE_TRIANGLE() ((void)0)
+#endif
+
 static void instance_triangle(void *user, const float *v0, const float *v1, const float *v2)
 {
     const instance_voxelizer *iv = user;
     double q[3][3];
+    COUNT_INSTANCE_TRIANGLE();
     to_grid(iv, v0, q[0]);
     to_grid(iv, v1, q[1]);
     to_grid(iv, v2, q[2]);

@@ -117,6 +117,13 @@ void brt_test_early_reject(int on);
 ** quarter of bucket_tris instances, whatever point_tris.) */
 void brt_test_build_sizes(uint32_t spill_chunk, uint32_t bucket_tris);
 
+/* Counts, while on, the instanced triangles brt_voxelize_instance hands to
+** the triangle test (svdag.c, "Instances"): the work of the pruned
+** voxelization against every triangle.  Turning it on zeroes the count;
+** on from one thread only (the count is a plain integer). */
+void brt_test_count_instance_triangles(int on);
+uint64_t brt_test_instance_triangles(void);
+
 #endif /* BRT_TESTING */
 
 #ifdef __cplusplus

@@ -21,6 +21,8 @@
 #include "../examples/lib/plot.h"
 #include "../examples/lib/scenes.h"
 
+#include <dirent.h>
+#include <limits.h>
 #include <math.h>
 #include <stdarg.h>
 #include <stdlib.h>
@@ -731,10 +733,89 @@ static void test_default_point_size(void)
     EXPECT(points == hundred_k, "default: %g batching points, --point-tris 100000: %g", points, hundred_k);
 }
 
+/* make bench-island at a small scale (README, "Instances"): it exits 0,
+** both memory statements print "holds", and its Fig. 3 point is the two
+** runs' disk bytes, with proxies over without, as their statistics say. */
+static void test_bench_island_small(void)
+{
+    char args[PATH_MAX + 256], path[PATH_MAX], *out;
+    const char *fig3;
+    double with, without, shown = -1.0;
+    snprintf(args, sizeof args, "make -s bench-island BUILD='%s' ISLAND_SCALE=1 ISLAND_TRIS=20000 "
+             "ISLAND_INSTANCED=500000 ISLAND_MEMORY=16M ISLAND_DIR='@/island'",
+             getenv("BRT_BUILD") ? getenv("BRT_BUILD") : "build");
+    CHECK(tu_shell("", args, "") == 0, "make bench-island failed");
+    out = tu_last_stdout();
+    CHECK(out != NULL, "no output");
+    EXPECT(strstr(out, "build from the generator: peak RSS") && strstr(out, "render: peak RSS") &&
+           !strstr(out, "VIOLATED"), "the memory statements: %s", out);
+    fig3 = strstr(out, "Fig. 3 at 60 %, the paper's scheduler: ");
+    if (fig3) fig3 = strstr(fig3, "with: ");
+    EXPECT(fig3 && sscanf(fig3, "with: %lf", &shown) == 1, "no Fig. 3 point in: %s", out);
+    tu_expand_scratch("@/island/fig3.json", path, sizeof path);
+    with = tu_json_file_number(path, "disk_bytes_read");
+    tu_expand_scratch("@/island/fig3--no-proxy.json", path, sizeof path);
+    without = tu_json_file_number(path, "disk_bytes_read");
+    EXPECT(without > 0 && fabs(shown - with / without) <= 0.005, "Fig. 3 point %.2f, the runs read %.0f and %.0f "
+           "bytes (%.4f)", shown, with, without, with / without);
+    tu_expand_scratch("@/island/island.brs", path, sizeof path);
+    EXPECT(!tu_file_exists(path), "the scene file was kept without SCALE_KEEP=1");
+    free(out);
+}
+
+/* The voxelization a scene file's proxies were built with, from its
+** header (offset 200 of an instanced file); 0 when unreadable. */
+static uint32_t scene_voxelization(const char *path)
+{
+    size_t size = 0;
+    unsigned char *bytes = tu_slurp(path, &size);
+    uint32_t mode = bytes && size >= 256 ? brt_get_le32(bytes + 200) : 0;
+    free(bytes);
+    return mode;
+}
+
+/* render --exact-voxels (analysis): its proxies are the every-triangle
+** ones, so the image is the same bytes; the file --scene names is the one
+** built, and rebuilt whenever the voxelization asked for is not the
+** file's; without --scene the file has a name of its own. */
+static void test_exact_voxels_scene_files(void)
+{
+    static const char *const runs[3] = {"", " --exact-voxels", ""};
+    static const uint32_t want[3] = {INSTANCE_VOXELS_PRUNED, INSTANCE_VOXELS_EVERY_TRIANGLE, INSTANCE_VOXELS_PRUNED};
+    const char *scene = tu_scratch("v.brs");
+    char own[PATH_MAX];
+    DIR *dir;
+    struct dirent *e;
+    int i, found = 0;
+    for (i = 0; i < 3; i++) {
+        CHECK(tu_run("render landscape --scale 0.02 --spp 1 --width 16 --height 8 --scene @/v.brs --out @/v%d.png%s",
+                     i, runs[i]) == 0, "render%s failed", runs[i]);
+        EXPECT(scene_voxelization(scene) == want[i], "run %d%s: the scene file's voxelization is %u, want %u", i,
+               runs[i], (unsigned)scene_voxelization(scene), (unsigned)want[i]);
+    }
+    EXPECT(!tu_file_exists(tu_scratch("v-exact-voxels.brs")), "--exact-voxels renamed the file --scene names");
+    EXPECT(tu_same_file_bytes(tu_scratch("v0.png"), tu_scratch("v1.png")), "--exact-voxels changed the image");
+    setenv("BRT_SCENE_DIR", tu_scratch("own"), 1);
+    EXPECT(tu_run("render landscape --scale 0.02 --spp 1 --width 16 --height 8 --exact-voxels --out @/v3.png") == 0,
+           "render --exact-voxels without --scene failed");
+    unsetenv("BRT_SCENE_DIR");
+    snprintf(own, sizeof own, "%s", tu_scratch("own"));
+    for (dir = opendir(own); dir && (e = readdir(dir)) != NULL;) {
+        const size_t n = strlen(e->d_name);
+        found += n > 17 && strcmp(e->d_name + n - 17, "-exact-voxels.brs") == 0;
+    }
+    if (dir) closedir(dir);
+    EXPECT(found == 1, "%d scene files named *-exact-voxels.brs in $BRT_SCENE_DIR", found);
+}
+
 void suite_render(void)
 {
     test_run("render: default point size, the rule's floor of 100000 on a small scene", test_default_point_size);
     test_run("render: help", test_help);
+    test_run("render: --exact-voxels, the same image; its scene file rebuilt, or one of its own",
+             test_exact_voxels_scene_files);
+    test_run("render: make bench-island at a small scale, its Fig. 3 point and memory checks",
+             test_bench_island_small);
     test_run("render: same image in every mode", test_same_image_every_mode);
     test_run("render: same image from a mesh file", test_same_image_mesh_file);
     test_run("render: shadow rays, same image in every mode, with and without",

@@ -1864,14 +1864,15 @@ static int voxels_near_point_set(const brt_grid *grid, const double p[3], double
 
 /* Thin triangles (slivers, leaves) under random rotations, shears and
 ** mirrors at the batched mode's dilation, on grids of voxels larger than
-** a leaf node and smaller: every voxel within a millionth
-** of a voxel of a point of a triangle (its corners, its edges' midpoints,
-** random points; computed in double) is set -- the dilation, far larger,
-** covers both roundings -- and the pruned grid lies within the
-** every-triangle one. */
+** a leaf node and smaller: every voxel within 0.99 of the dilation (in
+** voxels, INSTANCE_DILATION) of a point of a triangle (its corners, its
+** edges' midpoints, random points; computed in double) is set -- the
+** dilation is kept, and the rounding bound covers what is left -- and the
+** pruned grid lies within the every-triangle one. */
 static void test_instance_voxels_rotated(void)
 {
     const uint32_t n = 200;
+    const double near = 0.99 * INSTANCE_DILATION;
     uint64_t rng = test_seed() + 4141, points = 0;
     float *pos = malloc(9 * (size_t)n * sizeof *pos);
     uint32_t *idx = malloc(3 * (size_t)n * sizeof *idx), t;
@@ -1925,10 +1926,10 @@ static void test_instance_voxels_rotated(void)
                            m[4 * a + 3];
                 }
                 points++;
-                EXPECT(voxels_near_point_set(&pruned, p, 1e-6) && voxels_near_point_set(&full, p, 1e-6),
-                       "round %d: triangle %u: a voxel at (%.17g %.17g %.17g) is not set (pruned %d, every "
-                       "triangle %d)", round, (unsigned)t, p[0], p[1], p[2], voxels_near_point_set(&pruned, p, 1e-6),
-                       voxels_near_point_set(&full, p, 1e-6));
+                EXPECT(voxels_near_point_set(&pruned, p, near) && voxels_near_point_set(&full, p, near),
+                       "round %d: triangle %u: a voxel within the dilation of (%.17g %.17g %.17g) is not set "
+                       "(pruned %d, every triangle %d)", round, (unsigned)t, p[0], p[1], p[2],
+                       voxels_near_point_set(&pruned, p, near), voxels_near_point_set(&full, p, near));
             }
         }
         EXPECT(grid_within(&pruned, &full), "round %d: the pruned voxelization sets a voxel the every-triangle "
@@ -1941,6 +1942,46 @@ static void test_instance_voxels_rotated(void)
     free(pos);
     free(idx);
     printf("  svdag: instances rotated, sheared, mirrored: %llu points checked\n", (unsigned long long)points);
+}
+
+/* The build's cost follows the voxels touched (issue 41): a prototype of n
+** triangles inside one voxel hands none to the triangle test when pruned
+** (its root box is one voxel: marked at once), every one when every
+** triangle is tested (the analysis); both set the same voxels. */
+static void test_instance_voxels_work(void)
+{
+    static const float lo[3] = {-8, -8, -8}, hi[3] = {8, 8, 8};
+    static const float at_one[12] = {1, 0, 0, 1, 0, 1, 0, 1, 0, 0, 1, 1};   /* into the voxel [0, 2)^3 */
+    const uint32_t n = 120;
+    uint64_t rng = test_seed() + 414141, tested[2];
+    float *pos = malloc(9 * (size_t)n * sizeof *pos);
+    uint32_t *idx = malloc(3 * (size_t)n * sizeof *idx), t;
+    brt_grid grids[2];
+    brt_bvh *bvh = NULL;
+    int mode;
+    CHECK(pos && idx, "out of memory");
+    for (t = 0; t < 9 * n; t++) pos[t] = rand_range(&rng, -0.2f, 0.2f);
+    for (t = 0; t < 3 * n; t++) idx[t] = t;
+    CHECK(brt_bvh_build(pos, idx, n, NULL, &bvh) == BRT_OK, "bvh build");
+    for (mode = 0; mode < 2; mode++) {
+        CHECK(brt_grid_init(&grids[mode], lo, hi, 8) == BRT_OK, "grid");
+        brt_test_count_instance_triangles(1);
+        CHECK(brt_voxelize_instance(&grids[mode], bvh, at_one, INSTANCE_DILATION * grids[mode].cell,
+                                    mode ? INSTANCE_VOXELS_EVERY_TRIANGLE : INSTANCE_VOXELS_PRUNED) == BRT_OK,
+              "voxelize");
+        tested[mode] = brt_test_instance_triangles();
+        brt_test_count_instance_triangles(0);
+    }
+    EXPECT(tested[0] == 0 && tested[1] == n, "triangles tested: %llu pruned, %llu every triangle; want 0 and %u",
+           (unsigned long long)tested[0], (unsigned long long)tested[1], (unsigned)n);
+    EXPECT(brt_grid_count(&grids[0]) == 1 && grid_within(&grids[0], &grids[1]) && grid_within(&grids[1], &grids[0]),
+           "voxels set: %llu pruned, %llu every triangle; want the same one",
+           (unsigned long long)brt_grid_count(&grids[0]), (unsigned long long)brt_grid_count(&grids[1]));
+    brt_grid_free(&grids[0]);
+    brt_grid_free(&grids[1]);
+    brt_bvh_free(bvh);
+    free(pos);
+    free(idx);
 }
 
 void suite_svdag(void)
@@ -1964,4 +2005,5 @@ void suite_svdag(void)
     test_run("svdag: inner proxies, signed zeros in the weld", test_inner_signed_zeros);
     test_run("svdag: instances: lattice, sheared, mirrored, grazing", test_instance_voxels_lattice);
     test_run("svdag: instances: rotated thin triangles", test_instance_voxels_rotated);
+    test_run("svdag: instances: pruned, a prototype in one voxel tests no triangle", test_instance_voxels_work);
 }
