@@ -940,6 +940,18 @@ static void test_data_flow_drawn_once(void)
     EXPECT(inside == 0, "a source file claims README.md's drawing");
 }
 
+/* The README holds the contract and the current figures in under 600
+** lines (the product's rule: no history). */
+static void test_readme_short(void)
+{
+    char *readme = (char *)tu_slurp("README.md", NULL), *p;
+    int lines = 0;
+    CHECK(readme != NULL, "README.md unreadable");
+    for (p = readme; *p; p++) lines += *p == '\n';
+    EXPECT(lines < 600, "README.md has %d lines, not under 600", lines);
+    free(readme);
+}
+
 void suite_drift(void)
 {
     test_run("drift: every identifier a comment or the README names exists", test_identifiers_exist);
@@ -947,5 +959,6 @@ void suite_drift(void)
     test_run("drift: the README's example outputs are what the commands print", test_example_outputs);
     test_run("drift: the README's ten functions are defined where it says", test_readers_path);
     test_run("drift: the data flow is drawn once, in the README", test_data_flow_drawn_once);
+    test_run("drift: the README is under 600 lines", test_readme_short);
     test_run("drift long: make demo prints the README's table (make test-long)", test_demo_output);
 }
