@@ -595,9 +595,8 @@ bench-threads: all
 # builds straight from its streams, then a render of that landscape at
 # 640x360, 16 spp, --memory SCALE_MEMORY.  Prints time, disk and peak RSS
 # of each step and checks the README's two statements ("Memory"): a build
-# peaks at no more than 256 MiB + 12 B per vertex of an indexed input + the
-# DAG (+ 64 B per prototype triangle: their BVHs, held while an instanced
-# scene is built); a render at no more than
+# peaks at no more than build_bound (below: 256 MiB, the vertices, the DAG,
+# the prototypes' BVHs and the points in the works); a render at no more than
 # its limit + 280 B per path in flight + 512 B per batching point + 40 B
 # per pixel + 16 MiB.  Exit status 1 when a statement fails.  The files
 # (the scene files and the OBJ) go to SCALE_DIR and
@@ -612,7 +611,12 @@ SCALE_KEEP   ?= 0
 # The shell functions of bench-scale and bench-island: num FILE FIELD (a
 # statistics number), mib BYTES, cpu OUT CMD... (user and system seconds of
 # CMD into OUT), speed TRIANGLES SECONDS CPUFILE, check WHAT PEAK BOUND (a
-# memory statement: prints it, sets fail=1 when it is violated).
+# memory statement: prints it, sets fail=1 when it is violated), and
+# build_bound DAG VERTICES PROTOTYPE_TRIANGLES POINT_TRIS READ: the README's
+# statement of a build (256 MiB, 12 B per vertex of an indexed input, the
+# DAG, 64 B per prototype triangle, 256 B per triangle of a point for each
+# build thread, one per core), plus READ, what the one-pixel render after
+# it read with no limit.
 BENCH_SCALE_SH = \
 	num() { sed -n "s/.*\"$$2\": *\([0-9.eE+-]*\).*/\1/p" $$1; }; \
 	mib() { awk -v x=$$1 'BEGIN { printf "%.1f MiB", x / 1048576 }'; }; \
@@ -624,7 +628,10 @@ BENCH_SCALE_SH = \
 	check() { if awk -v what="$$1" -v peak=$$2 -v bound=$$3 'BEGIN { \
 	  printf "  %s: peak RSS %.1f MiB <= bound %.1f MiB: %s\n", what, peak / 1048576, \
 	    bound / 1048576, peak <= bound ? "holds" : "VIOLATED"; exit peak > bound }'; \
-	  then return 0; else fail=1; return 1; fi; };
+	  then return 0; else fail=1; return 1; fi; }; \
+	build_bound() { awk -v dag=$$1 -v v=$$2 -v p=$$3 -v pt=$$4 -v read=$$5 \
+	  -v thr=$$(getconf _NPROCESSORS_ONLN) 'BEGIN { printf "%.0f", \
+	    256 * 1048576 + 12 * v + dag + 64 * p + thr * 256 * pt + read }'; };
 .PHONY: bench-scale
 bench-scale: all
 	@set -e; d=$(SCALE_DIR); b=./$(BUILD); mkdir -p $$d; $(BENCH_SCALE_SH) \
@@ -640,8 +647,8 @@ bench-scale: all
 	  --scene $$d/obj.brs --stats $$d/obj.json; \
 	echo "  $$tris triangles, $$verts vertices: $$(speed $$tris $$(num $$d/obj.json build_seconds) $$d/obj.cpu),"\
 	  "scene file $$(stat -c %s $$d/obj.brs) bytes"; \
-	check "build from the OBJ" $$(num $$d/obj.json peak_rss_bytes) $$(awk -v v=$$verts \
-	  -v dag=$$(num $$d/obj.json proxy_bytes) 'BEGIN { printf "%.0f", 256 * 1048576 + 12 * v + dag }') || :; \
+	check "build from the OBJ" $$(num $$d/obj.json peak_rss_bytes) $$(build_bound \
+	  $$(num $$d/obj.json proxy_bytes) $$verts 0 $(SCALE_BATCH) $$(num $$d/obj.json disk_bytes_read)) || :; \
 	rm -f $$d/big.obj $$d/obj.brs; \
 	echo "== render landscape --scale $(SCALE_LAND): the scene file from the instanced scene's streams"; \
 	rm -f $$d/land.brs; \
@@ -651,12 +658,11 @@ bench-scale: all
 	  --out $$d/one.png --stats $$d/land-build.json | tee $$d/land.txt; \
 	tris=$$(sed -n 's/^landscape: \([0-9]*\) unique.*/\1/p' $$d/land.txt); \
 	proto=$$(sed -n 's/.*(\([0-9]*\) in prototypes).*/\1/p' $$d/land.txt); \
-	inst=$$(sed -n 's/.* \([0-9]*\) instances.*/\1/p' $$d/land.txt); \
 	echo "  $$tris unique triangles: $$(speed $$tris $$(num $$d/land-build.json build_seconds) $$d/land.cpu),"\
 	  "scene file $$(stat -c %s $$d/land.brs) bytes"; \
-	check "build from the generator" $$(num $$d/land-build.json peak_rss_bytes) \
-	  $$(awk -v dag=$$(num $$d/land-build.json proxy_bytes) -v i=$$inst -v p=$$proto \
-	    'BEGIN { printf "%.0f", 256 * 1048576 + dag + 64 * p }') || :; \
+	check "build from the generator" $$(num $$d/land-build.json peak_rss_bytes) $$(build_bound \
+	  $$(num $$d/land-build.json proxy_bytes) 0 $$proto $(SCALE_BATCH) \
+	  $$(num $$d/land-build.json disk_bytes_read)) || :; \
 	echo "== render landscape --scale $(SCALE_LAND) 640x360, 16 spp, --memory $(SCALE_MEMORY)"; \
 	render="$$b/render landscape --scale $(SCALE_LAND) --point-tris $(SCALE_BATCH) \
 	  --point-instanced $(SCALE_INSTANCED) --width 640 \
@@ -703,9 +709,8 @@ bench-island: all
 	tris=$$(sed -n 's/^island: \([0-9]*\) unique.*/\1/p' $$d/island.txt); \
 	echo "  $$tris unique triangles: $$(speed $$tris $$(num $$d/build.json build_seconds) $$d/island.cpu),"\
 	  "scene file $$(stat -c %s $$d/island.brs) bytes"; \
-	check "build from the generator" $$(num $$d/build.json peak_rss_bytes) \
-	  $$(awk -v dag=$$(num $$d/build.json proxy_bytes) -v p=$$proto \
-	    'BEGIN { printf "%.0f", 256 * 1048576 + dag + 64 * p }') || :; \
+	check "build from the generator" $$(num $$d/build.json peak_rss_bytes) $$(build_bound \
+	  $$(num $$d/build.json proxy_bytes) 0 $$proto $(ISLAND_TRIS) $$(num $$d/build.json disk_bytes_read)) || :; \
 	echo "== render $$scene 320x180, 4 spp, --memory $(ISLAND_MEMORY)"; \
 	$$b/render $$scene --width 320 --height 180 --spp 4 --memory $(ISLAND_MEMORY) --out $$d/island.png \
 	  --stats $$d/render.json; \

@@ -724,11 +724,15 @@ void brt_set_fit_margin(instance_set *set, const float *boxes, const float *radi
 
 void brt_set_free(instance_set *set)
 {
-    free(set->uses);
-    free(set->ids);
-    free(set->prototypes);
-    free(set->frames);
-    free(set->nodes);
+    if (set->mapping) {
+        munmap(set->mapping, set->mapping_bytes);
+    } else {
+        free(set->uses);
+        free(set->ids);
+        free(set->prototypes);
+        free(set->frames);
+        free(set->nodes);
+    }
     memset(set, 0, sizeof *set);
 }
 

@@ -83,6 +83,9 @@ typedef struct instance_set {
     instance_margin margin;         /* about the centre of all their boxes */
     uint32_t *uses;                 /* batched mode: the distinct prototypes, */
     uint32_t use_count;             /* ascending (what a load must make resident) */
+    void *mapping;                  /* a loaded table's arrays: one anonymous */
+    size_t mapping_bytes;           /* mapping (brt_instance_table_open); NULL:
+                                    ** each array malloc'd (the direct mode) */
 } instance_set;
 
 /* What a ray is intersected with: a batching point's geometry, or the
