@@ -13,6 +13,9 @@
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
+#include <sys/resource.h>
+#include <sys/wait.h>
 
 static void identity(float m[12])
 {
@@ -1320,10 +1323,102 @@ static void test_flattened_pbrt(void)
     EXPECT(tu_run("voxelize @/plants.pbrt --proxy-res 16") == 0, "voxelize: %s", tu_last_stderr());
 }
 
+/* The virtual size of this process in pages (Linux's /proc/self/statm), or
+** 0 where there is none. */
+static unsigned long mapped_pages(void)
+{
+    unsigned long pages = 0;
+    FILE *f = fopen("/proc/self/statm", "r");
+    if (f && fscanf(f, "%lu", &pages) != 1) pages = 0;
+    if (f) fclose(f);
+    return pages;
+}
+
+/* In a child whose address space may not grow (RLIMIT_AS at its size,
+** after a heap block freed for the small allocations), opening point id's
+** table cannot map its arrays: out of memory, not a crash. */
+static void table_open_unmappable(const brt_scene *scene, uint32_t id, const unsigned char *data, uint64_t size)
+{
+    int status = 0;
+    pid_t child;
+    fflush(NULL);
+    child = fork();
+    CHECK(child >= 0, "fork");
+    if (child == 0) {
+        struct rlimit limit;
+        instance_set *set = NULL;
+        brt_error err;
+        brt_result r;
+        free(malloc(64 << 10));
+        getrlimit(RLIMIT_AS, &limit);
+        limit.rlim_cur = (rlim_t)mapped_pages() * (rlim_t)sysconf(_SC_PAGESIZE);
+        if (setrlimit(RLIMIT_AS, &limit) != 0) _exit(4);
+        r = brt_instance_table_open(scene, id, data, size, &set, &err);
+        _exit(r == BRT_ENOMEM ? 0 : r == BRT_OK ? 2 : 3);
+    }
+    CHECK(waitpid(child, &status, 0) == child, "waitpid");
+    EXPECT(WIFEXITED(status) && WEXITSTATUS(status) == 0, "a table that cannot be mapped: %s %d (want exit 0: "
+           "out of memory)", WIFEXITED(status) ? "exit" : "signal",
+           WIFEXITED(status) ? WEXITSTATUS(status) : WTERMSIG(status));
+}
+
+/* A loaded instance table (brt_instance_table_open, what the cache opens
+** at each load of a point of instances): its five arrays lie in its one
+** mapping without overlap and fill it exactly, and freeing it gives the
+** whole mapping back -- 300 loads and frees leave the process no larger;
+** one that cannot be mapped is out of memory (Linux: /proc/self/statm). */
+static void test_instance_table_mapping(void)
+{
+    const char *path = tu_scratch("tables.brs");
+    brt_scene *scene = NULL;
+    brt_error err;
+    uint32_t id, tested = 0;
+    CHECK(tu_run("render landscape --scale 0.3 --spp 1 --width 4 --height 4 --point-tris 100000 "
+                 "--point-instanced 400000 --scene @/tables.brs --out @/t.png") == 0, "render failed");
+    CHECK(brt_scene_open(path, &scene, &err) == BRT_OK, "%s", err.message);
+    for (id = 0; id < scene->header.point_count && tested < 3; id++) {
+        const blob_place *b = &scene->blobs[id];
+        unsigned char *data;
+        instance_set *set = NULL;
+        unsigned long before = 0;
+        int i;
+        if (!scene->points[id].instances) continue;
+        data = malloc((size_t)b->size);
+        CHECK(data && pread(scene->fd, data, (size_t)b->size, (off_t)b->offset) == (ssize_t)b->size, "read");
+        for (i = 0; i < 300 && !test_failed(); i++) {
+            CHECK(brt_instance_table_open(scene, id, data, b->size, &set, &err) == BRT_OK, "%s", err.message);
+            if (i == 0) {
+                const unsigned char *at = set->mapping, *end = at + set->mapping_bytes;
+                const size_t n = set->count, m = set->node_count, k = set->use_count;
+                EXPECT(set->mapping && (const unsigned char *)set->nodes == at &&
+                       (const unsigned char *)(set->nodes + m) <= (const unsigned char *)set->frames &&
+                       (const unsigned char *)(set->frames + n) <= (const unsigned char *)set->ids &&
+                       set->ids + n <= set->prototypes && set->prototypes + n <= set->uses &&
+                       (const unsigned char *)(set->uses + k) == end,
+                       "point %u: the arrays of %lu instances, %lu nodes and %lu uses do not tile its %lu-byte "
+                       "mapping", (unsigned)id, (unsigned long)n, (unsigned long)m, (unsigned long)k,
+                       (unsigned long)set->mapping_bytes);
+                before = mapped_pages();
+            }
+            brt_set_free(set);
+            free(set);
+        }
+        if (before)
+            EXPECT(mapped_pages() <= before + 16, "point %u: 300 loads grew the process by %lu pages", (unsigned)id,
+                   mapped_pages() - before);
+        if (before && tested == 0) table_open_unmappable(scene, id, data, b->size);
+        free(data);
+        tested++;
+    }
+    EXPECT(tested > 0, "no point of instances");
+    brt_scene_close(scene);
+}
+
 void suite_instances(void)
 {
     test_run("instances: direct equals brute force on adversarial transforms",
              test_direct_equals_brute_force);
+    test_run("instances: a loaded instance table tiles one mapping, freed whole", test_instance_table_mapping);
     test_run("instances: brt_world_trace at 1 and 7 threads", test_trace_threads);
     test_run("instances: world normals", test_world_normals);
     test_run("instances: the margin keeps far rays' hits", test_margin_keeps_far_rays);

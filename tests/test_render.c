@@ -808,6 +808,56 @@ static void test_exact_voxels_scene_files(void)
     EXPECT(found == 1, "%d scene files named *-exact-voxels.brs in $BRT_SCENE_DIR", found);
 }
 
+/* The bound make bench-scale prints after "WHAT: peak RSS X MiB <= bound",
+** in MiB, or -1. */
+static double printed_bound(const char *out, const char *what)
+{
+    const char *p = strstr(out, what);
+    double bound = -1.0;
+    if (p) p = strstr(p, "<= bound ");
+    if (p && sscanf(p, "<= bound %lf", &bound) != 1) bound = -1.0;
+    return bound;
+}
+
+/* make bench-scale at a small scale: its two build bounds are the README's
+** statement (256 MiB, 12 B per vertex of the OBJ, the DAG, 64 B per
+** prototype triangle, 256 B per triangle of a point per core, and what
+** the one-pixel render read), computed here from its statistics files. */
+static void test_bench_scale_small(void)
+{
+    char args[PATH_MAX + 256], path[PATH_MAX], *out, *mk;
+    const double mib = 1048576.0, cores = (double)brt_threads_resolve(0);   /* getconf _NPROCESSORS_ONLN */
+    unsigned long tris = 0, verts = 0, proto = 0;
+    double want, got;
+    snprintf(args, sizeof args, "make -s bench-scale BUILD='%s' SCALE_OBJ=0.2 SCALE_LAND=0.05 SCALE_BATCH=7000 "
+             "SCALE_INSTANCED=300000 SCALE_MEMORY=8M SCALE_DIR='@/scale'",
+             getenv("BRT_BUILD") ? getenv("BRT_BUILD") : "build");
+    CHECK(tu_shell("", args, "") == 0, "make bench-scale failed");
+    out = tu_last_stdout();
+    CHECK(out != NULL, "no output");
+    tu_expand_scratch("@/scale/mkscene.txt", path, sizeof path);
+    mk = (char *)tu_slurp(path, NULL);
+    CHECK(mk && sscanf(mk, "crown: %lu triangles, %lu vertices", &tris, &verts) == 2, "mkscene's line: %s",
+          mk ? mk : "(none)");
+    tu_expand_scratch("@/scale/obj.json", path, sizeof path);
+    want = (256 * mib + 12.0 * verts + tu_json_file_number(path, "proxy_bytes") + cores * 256 * 7000 +
+            tu_json_file_number(path, "disk_bytes_read")) / mib;
+    got = printed_bound(out, "build from the OBJ");
+    EXPECT(fabs(got - want) <= 0.06, "build from the OBJ: bound %.2f MiB, the README's %.2f", got, want);
+    tu_expand_scratch("@/scale/land.txt", path, sizeof path);
+    free(mk);
+    mk = (char *)tu_slurp(path, NULL);
+    CHECK(mk && strstr(mk, " in prototypes)") && sscanf(strchr(mk, '(') + 1, "%lu", &proto) == 1, "render's line");
+    tu_expand_scratch("@/scale/land-build.json", path, sizeof path);
+    want = (256 * mib + tu_json_file_number(path, "proxy_bytes") + 64.0 * proto + cores * 256 * 7000 +
+            tu_json_file_number(path, "disk_bytes_read")) / mib;
+    got = printed_bound(out, "build from the generator");
+    EXPECT(fabs(got - want) <= 0.06, "build from the generator: bound %.2f MiB, the README's %.2f", got, want);
+    EXPECT(!strstr(out, "VIOLATED"), "a memory statement failed: %s", out);
+    free(mk);
+    free(out);
+}
+
 void suite_render(void)
 {
     test_run("render: default point size, the rule's floor of 100000 on a small scene", test_default_point_size);
@@ -816,6 +866,7 @@ void suite_render(void)
              test_exact_voxels_scene_files);
     test_run("render: make bench-island at a small scale, its Fig. 3 point and memory checks",
              test_bench_island_small);
+    test_run("render: make bench-scale at a small scale: its build bounds are the README's", test_bench_scale_small);
     test_run("render: same image in every mode", test_same_image_every_mode);
     test_run("render: same image from a mesh file", test_same_image_mesh_file);
     test_run("render: shadow rays, same image in every mode, with and without",
