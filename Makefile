@@ -616,7 +616,11 @@ SCALE_KEEP   ?= 0
 # statement of a build (256 MiB, 12 B per vertex of an indexed input, the
 # DAG, 64 B per prototype triangle, 256 B per triangle of a point for each
 # build thread, one per core), plus READ, what the one-pixel render after
-# it read with no limit.
+# it read with no limit; largest_blob SCENE (the largest blob of a scene
+# file, from its point table) and render_bound JSON PIXELS SCENE: the
+# README's statement of a render (its limit, 280 B per path in flight, 512
+# B per point, 40 B per pixel, 16 MiB, and with threads the largest blob
+# read ahead and 1 MiB per thread, one per core).
 BENCH_SCALE_SH = \
 	num() { sed -n "s/.*\"$$2\": *\([0-9.eE+-]*\).*/\1/p" $$1; }; \
 	mib() { awk -v x=$$1 'BEGIN { printf "%.1f MiB", x / 1048576 }'; }; \
@@ -631,7 +635,16 @@ BENCH_SCALE_SH = \
 	  then return 0; else fail=1; return 1; fi; }; \
 	build_bound() { awk -v dag=$$1 -v v=$$2 -v p=$$3 -v pt=$$4 -v read=$$5 \
 	  -v thr=$$(getconf _NPROCESSORS_ONLN) 'BEGIN { printf "%.0f", \
-	    256 * 1048576 + 12 * v + dag + 64 * p + thr * 256 * pt + read }'; };
+	    256 * 1048576 + 12 * v + dag + 64 * p + thr * 256 * pt + read }'; }; \
+	largest_blob() { v=$$(od -An -t u4 -j 8 -N 4 $$1 | tr -d ' '); \
+	  n=$$(od -An -t u4 -j 32 -N 4 $$1 | tr -d ' '); at=$$(od -An -t u8 -j 56 -N 8 $$1 | tr -d ' '); \
+	  e=$$([ "$$v" = 4 ] && echo 104 || echo 80); \
+	  od -An -v -t u8 -w$$e -j $$at -N $$((n * e)) $$1 | awk 'BEGIN { m = 0 } $$5 > m { m = $$5 } END { print m }'; }; \
+	render_bound() { awk -v j="$$(cat $$1)" -v px=$$2 -v blob=$$(largest_blob $$3) \
+	  -v thr=$$(getconf _NPROCESSORS_ONLN) 'function num(f) { return match(j, "\"" f "\": [0-9.eE+-]+") ? \
+	    substr(j, RSTART + length(f) + 4, RLENGTH - length(f) - 4) + 0 : 0 } BEGIN { printf "%.0f", \
+	    num("memory_limit") + 280 * num("paths_in_flight") + 512 * num("batching_points") + 40 * px \
+	    + 16 * 1048576 + (thr > 1 ? blob + thr * 1048576 : 0) }'; };
 .PHONY: bench-scale
 bench-scale: all
 	@set -e; d=$(SCALE_DIR); b=./$(BUILD); mkdir -p $$d; $(BENCH_SCALE_SH) \
@@ -672,10 +685,7 @@ bench-scale: all
 	echo "  $$(awk -v s=$$(num $$j seconds) 'BEGIN { printf "%.1f", s }') s, read $$(mib $$(num $$j disk_bytes_read)) in $$(num $$j batch_loads) loads,"\
 	  "$$(num $$j batching_points) batching points, DAG $$(mib $$(num $$j proxy_bytes)),"\
 	  "$$(num $$j paths_in_flight) paths in flight"; \
-	bound=$$(awk -v l=$$(num $$j memory_limit) -v p=$$(num $$j paths_in_flight) \
-	  -v n=$$(num $$j batching_points) \
-	  'BEGIN { printf "%.0f", l + 280 * p + 512 * n + 40 * 640 * 360 + 16 * 1048576 }'); \
-	check "render" $$(num $$j peak_rss_bytes) $$bound || :; \
+	check "render" $$(num $$j peak_rss_bytes) $$(render_bound $$j $$((640 * 360)) $$d/land.brs) || :; \
 	if [ "$(SCALE_KEEP)" != 1 ]; then rm -f $$d/land.brs; fi; \
 	exit $$fail
 # == END SCALE ============================================================
@@ -690,7 +700,8 @@ bench-scale: all
 # bench-scale; then one point of Fig. 3 in bench-paper's regime (the
 # paper's scheduler, 60 %, 160x90, 4 spp, grey, no shadow rays): disk
 # bytes with proxies over without.  Files in ISLAND_DIR, removed at the end
-# unless SCALE_KEEP=1 (a kept scene file is reused).
+# unless SCALE_KEEP=1; with SCALE_KEEP=1 a kept scene file is reused, the
+# build and its check skipped.
 ISLAND_SCALE     ?= 1900
 ISLAND_TRIS      ?= 2000000
 ISLAND_INSTANCED ?= 16000000
@@ -702,6 +713,9 @@ bench-island: all
 	fail=0; df -h $$d | tail -1; \
 	scene="island --scale $(ISLAND_SCALE) --point-tris $(ISLAND_TRIS) \
 	  --point-instanced $(ISLAND_INSTANCED) --scene $$d/island.brs"; \
+	if [ "$(SCALE_KEEP)" = 1 ] && [ -f $$d/island.brs ]; then \
+	  echo "== $$d/island.brs kept by SCALE_KEEP=1: no build (render rebuilds a stale one)"; \
+	else \
 	echo "== render $$scene: the scene file from the streams"; rm -f $$d/island.brs; \
 	cpu $$d/island.cpu $$b/render $$scene --width 1 --height 1 --spp 1 --out $$d/one.png \
 	  --stats $$d/build.json | tee $$d/island.txt; \
@@ -711,6 +725,7 @@ bench-island: all
 	  "scene file $$(stat -c %s $$d/island.brs) bytes"; \
 	check "build from the generator" $$(num $$d/build.json peak_rss_bytes) $$(build_bound \
 	  $$(num $$d/build.json proxy_bytes) 0 $$proto $(ISLAND_TRIS) $$(num $$d/build.json disk_bytes_read)) || :; \
+	fi; \
 	echo "== render $$scene 320x180, 4 spp, --memory $(ISLAND_MEMORY)"; \
 	$$b/render $$scene --width 320 --height 180 --spp 4 --memory $(ISLAND_MEMORY) --out $$d/island.png \
 	  --stats $$d/render.json; \
@@ -718,9 +733,7 @@ bench-island: all
 	echo "  $$(awk -v s=$$(num $$j seconds) 'BEGIN { printf "%.1f", s }') s, read"\
 	  "$$(mib $$(num $$j disk_bytes_read)) in $$(num $$j batch_loads) loads, $$(num $$j batching_points)"\
 	  "batching points, DAG $$(mib $$(num $$j proxy_bytes))"; \
-	check "render" $$(num $$j peak_rss_bytes) $$(awk -v l=$$(num $$j memory_limit) \
-	  -v p=$$(num $$j paths_in_flight) -v n=$$(num $$j batching_points) \
-	  'BEGIN { printf "%.0f", l + 280 * p + 512 * n + 40 * 320 * 180 + 16 * 1048576 }') || :; \
+	check "render" $$(num $$j peak_rss_bytes) $$(render_bound $$j $$((320 * 180)) $$d/island.brs) || :; \
 	for proxies in --no-proxy ""; do \
 	  $$b/render $$scene --paper-scheduler --grey --no-nee --width 160 --height 90 --spp 4 --memory 60% \
 	    $$proxies --out $$d/fig3.png --stats $$d/fig3$$proxies.json > /dev/null; \

@@ -170,7 +170,6 @@ struct brt_scene {
     blob_place *blobs;          /* point_count + prototype_count */
     top_node *top;
     brt_svdag *dag;
-    void *dag_blob;             /* the pool refers to it */
     uint64_t file_size;
 };
 

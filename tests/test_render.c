@@ -733,33 +733,55 @@ static void test_default_point_size(void)
     EXPECT(points == hundred_k, "default: %g batching points, --point-tris 100000: %g", points, hundred_k);
 }
 
-/* make bench-island at a small scale (README, "Instances"): it exits 0,
-** both memory statements print "holds", and its Fig. 3 point is the two
-** runs' disk bytes, with proxies over without, as their statistics say. */
-static void test_bench_island_small(void)
+/* One make bench-island at a small scale (keep: SCALE_KEEP=1); its
+** standard output (malloc'd), and its Fig. 3 point in *shown, checked
+** against the two runs' statistics. */
+static char *bench_island_small(int keep, double *shown)
 {
     char args[PATH_MAX + 256], path[PATH_MAX], *out;
     const char *fig3;
-    double with, without, shown = -1.0;
+    double with, without;
+    *shown = -1.0;
     snprintf(args, sizeof args, "make -s bench-island BUILD='%s' ISLAND_SCALE=1 ISLAND_TRIS=20000 "
-             "ISLAND_INSTANCED=500000 ISLAND_MEMORY=16M ISLAND_DIR='@/island'",
-             getenv("BRT_BUILD") ? getenv("BRT_BUILD") : "build");
-    CHECK(tu_shell("", args, "") == 0, "make bench-island failed");
+             "ISLAND_INSTANCED=500000 ISLAND_MEMORY=16M ISLAND_DIR='@/island' SCALE_KEEP=%d",
+             getenv("BRT_BUILD") ? getenv("BRT_BUILD") : "build", keep);
+    if (tu_shell("", args, "") != 0) return NULL;
     out = tu_last_stdout();
-    CHECK(out != NULL, "no output");
-    EXPECT(strstr(out, "build from the generator: peak RSS") && strstr(out, "render: peak RSS") &&
-           !strstr(out, "VIOLATED"), "the memory statements: %s", out);
-    fig3 = strstr(out, "Fig. 3 at 60 %, the paper's scheduler: ");
+    fig3 = out ? strstr(out, "Fig. 3 at 60 %, the paper's scheduler: ") : NULL;
     if (fig3) fig3 = strstr(fig3, "with: ");
-    EXPECT(fig3 && sscanf(fig3, "with: %lf", &shown) == 1, "no Fig. 3 point in: %s", out);
+    EXPECT(fig3 && sscanf(fig3, "with: %lf", shown) == 1, "no Fig. 3 point in: %s", out ? out : "");
     tu_expand_scratch("@/island/fig3.json", path, sizeof path);
     with = tu_json_file_number(path, "disk_bytes_read");
     tu_expand_scratch("@/island/fig3--no-proxy.json", path, sizeof path);
     without = tu_json_file_number(path, "disk_bytes_read");
-    EXPECT(without > 0 && fabs(shown - with / without) <= 0.005, "Fig. 3 point %.2f, the runs read %.0f and %.0f "
-           "bytes (%.4f)", shown, with, without, with / without);
+    EXPECT(without > 0 && fabs(*shown - with / without) <= 0.005, "Fig. 3 point %.2f, the runs read %.0f and %.0f "
+           "bytes (%.4f)", *shown, with, without, with / without);
+    EXPECT(out && strstr(out, "render: peak RSS") && !strstr(out, "VIOLATED"), "the memory statements: %s",
+           out ? out : "");
+    return out;
+}
+
+/* make bench-island at a small scale (README, "Memory", "Benchmarks"): it
+** exits 0, the memory statements print "holds", and its Fig. 3 point is
+** the two runs' disk bytes, with proxies over without, as their statistics
+** say; the scene file is removed, or with SCALE_KEEP=1 kept and reused
+** (no build the second time) for the same point. */
+static void test_bench_island_small(void)
+{
+    char path[PATH_MAX], *out;
+    double first, kept, reused;
+    CHECK((out = bench_island_small(0, &first)) != NULL, "make bench-island failed");
+    EXPECT(strstr(out, "build from the generator: peak RSS") != NULL, "no build check: %s", out);
+    free(out);
     tu_expand_scratch("@/island/island.brs", path, sizeof path);
     EXPECT(!tu_file_exists(path), "the scene file was kept without SCALE_KEEP=1");
+    CHECK((out = bench_island_small(1, &kept)) != NULL, "make bench-island SCALE_KEEP=1 failed");
+    free(out);
+    EXPECT(tu_file_exists(path), "SCALE_KEEP=1 did not keep the scene file");
+    CHECK((out = bench_island_small(1, &reused)) != NULL, "make bench-island on a kept scene file failed");
+    EXPECT(strstr(out, "kept by SCALE_KEEP=1: no build") && !strstr(out, "build from the generator"),
+           "the kept scene file was not reused: %s", out);
+    EXPECT(first == kept && kept == reused, "Fig. 3 points %.2f, %.2f (kept), %.2f (reused)", first, kept, reused);
     free(out);
 }
 
@@ -864,7 +886,7 @@ void suite_render(void)
     test_run("render: help", test_help);
     test_run("render: --exact-voxels, the same image; its scene file rebuilt, or one of its own",
              test_exact_voxels_scene_files);
-    test_run("render: make bench-island at a small scale, its Fig. 3 point and memory checks",
+    test_run("render: make bench-island at a small scale, its Fig. 3 point and memory checks, kept and reused",
              test_bench_island_small);
     test_run("render: make bench-scale at a small scale: its build bounds are the README's", test_bench_scale_small);
     test_run("render: same image in every mode", test_same_image_every_mode);
