@@ -640,10 +640,9 @@ BENCH_SCALE_SH = \
 	  n=$$(od -An -t u4 -j 32 -N 4 $$1 | tr -d ' '); at=$$(od -An -t u8 -j 56 -N 8 $$1 | tr -d ' '); \
 	  e=$$([ "$$v" = 4 ] && echo 104 || echo 80); \
 	  od -An -v -t u8 -w$$e -j $$at -N $$((n * e)) $$1 | awk 'BEGIN { m = 0 } $$5 > m { m = $$5 } END { print m }'; }; \
-	render_bound() { awk -v j="$$(cat $$1)" -v px=$$2 -v blob=$$(largest_blob $$3) \
-	  -v thr=$$(getconf _NPROCESSORS_ONLN) 'function num(f) { return match(j, "\"" f "\": [0-9.eE+-]+") ? \
-	    substr(j, RSTART + length(f) + 4, RLENGTH - length(f) - 4) + 0 : 0 } BEGIN { printf "%.0f", \
-	    num("memory_limit") + 280 * num("paths_in_flight") + 512 * num("batching_points") + 40 * px \
+	render_bound() { awk -v l=$$(num $$1 memory_limit) -v p=$$(num $$1 paths_in_flight) \
+	  -v n=$$(num $$1 batching_points) -v px=$$2 -v blob=$$(largest_blob $$3) \
+	  -v thr=$$(getconf _NPROCESSORS_ONLN) 'BEGIN { printf "%.0f", l + 280 * p + 512 * n + 40 * px \
 	    + 16 * 1048576 + (thr > 1 ? blob + thr * 1048576 : 0) }'; };
 .PHONY: bench-scale
 bench-scale: all
