@@ -73,7 +73,8 @@ static void test_rule_thresholds(void)
 }
 
 /* The count before a build equals brt_mesh_load's: quads and pentagons
-** fanned, comments, blanks, CRLF, a face at the end without a newline. */
+** fanned, comments, blanks (runs of them too), CRLF, a face at the end
+** without a newline. */
 static void test_mesh_counts(void)
 {
     static const struct { const char *name, *text; } files[] = {
@@ -82,6 +83,8 @@ static void test_mesh_counts(void)
         {"count1.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 3 #\n\n\nf 3 2 1"},
         /* a comment straight after the last corner ends the line, not the corner */
         {"count2.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3#g\nf 1 2 3 4#x\nf 4 3 2 1# y\n"},
+        /* runs of blanks between corners and after the last are no corners */
+        {"count5.obj", "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1  2 3 \nf 1 2\t\t3 4  \t\nf  4 3 2\n"},
         {"count3.ply", "ply\nformat ascii 1.0\ncomment element face 99\nelement vertex 3\n"
                        "property float x\nproperty float y\nproperty float z\nelement face 2\n"
                        "property list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n1 1 0\n3 0 1 2\n3 2 1 0\n"},

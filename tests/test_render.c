@@ -761,6 +761,32 @@ static char *bench_island_small(int keep, double *shown)
     return out;
 }
 
+/* The render bound bench-island printed (out) is the README's statement,
+** recomputed from its statistics and its scene file: the limit, 280 B per
+** path, 512 B per point, 40 B per pixel, 16 MiB, and with threads the
+** largest point's blob read ahead and 1 MiB per thread. */
+static void island_render_bound(const char *out, const char *scene_path)
+{
+    char json[PATH_MAX];
+    const double mib = 1048576.0, cores = (double)brt_threads_resolve(0);
+    double largest = 0, want, got = -1;
+    brt_scene *scene = NULL;
+    brt_error err;
+    const char *at = strstr(out, "render: peak RSS");
+    uint32_t id;
+    CHECK(brt_scene_open(scene_path, &scene, &err) == BRT_OK, "%s", err.message);
+    for (id = 0; id < scene->header.point_count; id++)
+        if ((double)scene->blobs[id].size > largest) largest = (double)scene->blobs[id].size;
+    brt_scene_close(scene);
+    tu_expand_scratch("@/island/render.json", json, sizeof json);
+    want = (tu_json_file_number(json, "memory_limit") + 280 * tu_json_file_number(json, "paths_in_flight") +
+            512 * tu_json_file_number(json, "batching_points") + 40.0 * 320 * 180 + 16 * mib +
+            (cores > 1 ? largest + cores * mib : 0)) / mib;
+    if (at) at = strstr(at, "<= bound ");
+    EXPECT(at && sscanf(at, "<= bound %lf", &got) == 1 && fabs(got - want) <= 0.06,
+           "render: bound %.2f MiB, the README's %.2f", got, want);
+}
+
 /* make bench-island at a small scale (README, "Memory", "Benchmarks"): it
 ** exits 0, the memory statements print "holds", and its Fig. 3 point is
 ** the two runs' disk bytes, with proxies over without, as their statistics
@@ -777,8 +803,9 @@ static void test_bench_island_small(void)
     tu_expand_scratch("@/island/island.brs", path, sizeof path);
     EXPECT(!tu_file_exists(path), "the scene file was kept without SCALE_KEEP=1");
     CHECK((out = bench_island_small(1, &kept)) != NULL, "make bench-island SCALE_KEEP=1 failed");
-    free(out);
     EXPECT(tu_file_exists(path), "SCALE_KEEP=1 did not keep the scene file");
+    island_render_bound(out, path);
+    free(out);
     CHECK((out = bench_island_small(1, &reused)) != NULL, "make bench-island on a kept scene file failed");
     EXPECT(strstr(out, "kept by SCALE_KEEP=1: no build") && !strstr(out, "build from the generator"),
            "the kept scene file was not reused: %s", out);

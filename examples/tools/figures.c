@@ -190,8 +190,6 @@ static double json_number(const char *path, const char *name)
         if (p) found = sscanf(p + strlen(key), "%lf", &value) == 1;
     }
     fclose(f);
-    if (!found && strncmp(name, "occlusion_", 10) == 0)
-        ex_die(prog, "%s: no number \"%s\" (the statistics' shadow_* fields are now occlusion_*)", path, name);
     if (!found) ex_die(prog, "%s: no number \"%s\"", path, name);
     return value;
 }
