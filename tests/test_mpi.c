@@ -49,18 +49,35 @@ static int mpi_available(void)
     return 1;
 }
 
+/* Whether the last run's stderr shows Open MPI's launcher failing in itself
+** ("ORTE_ERROR_LOG: Out of resource" on a loaded machine) rather than any
+** line of our program: the run says nothing about mpi_trace. */
+static int launcher_failed(void)
+{
+    char *err = tu_last_stderr();
+    int failed = err && strstr(err, "ORTE_ERROR_LOG") && !strstr(err, "mpi_trace");
+    free(err);
+    return failed;
+}
+
 /* Runs "mpirun -np RANKS $BRT_BUILD/mpi_trace ARGS" ('@': the scratch
 ** folder) with env (NAME=VALUE words, or "") under a time limit; stdout
 ** and stderr to cli.out and cli.err.  Returns the exit status (124: it
-** hung). */
+** hung).  A run whose launcher failed in itself is run again, up to
+** twice, saying so. */
 static int mpi_run_program(const char *program, int ranks, const char *env, const char *fmt, va_list ap)
 {
     char args[2048], head[1024];
+    int status, attempt;
     vsnprintf(args, sizeof args, fmt, ap);
     snprintf(head, sizeof head,
              "env OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_btl=self,vader %s "
              "timeout %d mpirun --oversubscribe -np %d %s/%s ", env, HANG_SECONDS, ranks, build_dir(), program);
-    return tu_shell(head, args, " < /dev/null");
+    for (attempt = 0;; attempt++) {
+        status = tu_shell(head, args, " < /dev/null");
+        if (status == 0 || attempt == 2 || !launcher_failed()) return status;
+        printf("  mpi: mpirun failed in itself (ORTE_ERROR_LOG), run again: %s\n", args);
+    }
 }
 
 static int last_status;          /* mpi_run's last exit status */
