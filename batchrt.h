@@ -380,6 +380,16 @@ typedef struct brt_trace_options {
                              ** it reads memory_limit, no_proxy,
                              ** rays_in_flight, read_fn, read_user and
                              ** drop_os_cache, and no other option */
+    int no_clip;             /* a queued ray's walk in its batching point's
+                             ** BVH starts at tnear, not where its proxy
+                             ** was entered (layer 10) */
+    int no_order;            /* a batch's rays are intersected in queue
+                             ** order, not sorted by the voxel where they
+                             ** entered the proxy (layer 11) */
+    int proxies_in_core;     /* consult the proxies when the budget holds
+                             ** every blob too, also at a point in memory
+                             ** before its BVH (layers 1 and 4; README,
+                             ** "Proxies in core") */
 } brt_trace_options;
 
 /* Ray kinds.  A ray of a stream is a closest-hit ray, or an occlusion ray

@@ -34,6 +34,9 @@ static int batched_option(const ex_tracer_command *c, int argc, char **argv, int
     const char *prog = c->prog, *a = argv[*i];
     if (strcmp(a, "--no-proxy") == 0) o->no_proxy = 1;
     else if (strcmp(a, "--paper-scheduler") == 0) o->paper_scheduler = 1;
+    else if (strcmp(a, "--no-clip") == 0) o->no_clip = 1;
+    else if (strcmp(a, "--no-order") == 0) o->no_order = 1;
+    else if (strcmp(a, "--proxies-in-core") == 0) o->proxies_in_core = 1;
     else if (strcmp(a, "--point-tris") == 0)
         o->point_tris = ex_parse_u64(prog, a, ex_option_value(prog, argc, argv, i), 1, UINT32_MAX);
     else if (strcmp(a, "--proxy-res") == 0)
@@ -92,6 +95,9 @@ void ex_tracer_trace_options(const ex_tracer_options *o, brt_trace_options *t)
     t->memory_limit = o->memory;
     t->no_proxy = o->no_proxy;
     t->paper_scheduler = o->paper_scheduler;
+    t->no_clip = o->no_clip;
+    t->no_order = o->no_order;
+    t->proxies_in_core = o->proxies_in_core;
     t->threads = o->threads;
     t->rays_in_flight = (uint32_t)o->rays_in_flight;
 }

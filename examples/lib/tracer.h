@@ -27,6 +27,8 @@ typedef struct ex_tracer_options {
     uint64_t rays_in_flight;         /* --rays-in-flight; 0: the library's default */
     int no_proxy;                    /* --no-proxy: batched without voxel proxies */
     int paper_scheduler;             /* --paper-scheduler (brt_trace_options) */
+    int no_clip, no_order;           /* --no-clip, --no-order (layers 10, 11) */
+    int proxies_in_core;             /* --proxies-in-core (brt_trace_options) */
     const char *scene;               /* --scene FILE, or NULL: the default path */
     unsigned threads;                /* --threads; 0: all cores */
 } ex_tracer_options;

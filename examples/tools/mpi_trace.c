@@ -107,6 +107,8 @@ static void usage(void)
            "  --proxy-res R     proxy resolution when building, 2..1024 (default 128)\n"
            "  --scene FILE      the scene file to build from a mesh (default as trace's)\n"
            "  --paper-scheduler the paper's scheduler on every rank\n"
+           "  --no-clip, --no-order  as trace's: no proxy entry guides the bottom level\n"
+           "  --proxies-in-core as trace's\n"
            "  --threads N       threads per rank (default 1)\n"
            "  --rays-in-flight N  rays each rank works on at once (default 262144); more\n"
            "                    wait in its inbox\n"

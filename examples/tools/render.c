@@ -125,6 +125,7 @@ typedef struct options {
     uint64_t threads;             /* --threads; 0: all cores */
     double memory_percent;        /* > 0: the limit is this share of the geometry bytes */
     int no_inner;
+    int no_clip, no_order, proxies_in_core;   /* brt_trace_options' */
     int no_proxy, paper_scheduler, exact_proxy, direct, compare, have_camera, drop_os_cache;
     int exact_voxels;             /* --exact-voxels: brt_scene_options.exact_voxels */
     int have_width, have_height;   /* given: a pbrt file's Film does not set them */
@@ -171,7 +172,12 @@ static void usage(void)
            "  --no-inner           shadow rays do not consult the inner proxies\n"
            "  --paper-scheduler    queue rays at batching points in memory too (the paper's\n"
            "                       scheduler; default: intersect there at once)\n"
-           "  --exact-proxy        analysis: a perfect proxy (an exact test against the\n"
+           "  --no-clip            a queued ray's walk in its point starts at tnear (default:\n"
+           "                       where it entered the proxy); no byte changes\n"
+           "  --no-order           a batch's rays are intersected in queue order (default:\n"
+           "                       sorted by where they entered the proxy); the same\n"
+           "  --proxies-in-core    consult the proxies when --memory holds the scene too\n");
+    printf("  --exact-proxy        analysis: a perfect proxy (an exact test against the\n"
            "                       triangles, all read first and not counted)\n"
            "  --exact-voxels       analysis: instances' proxies built by testing every\n"
            "                       triangle (slow; the same voxels; its own scene file)\n"
@@ -306,6 +312,9 @@ static void parse_options(int argc, char **argv, options *o)
         else if (is_option(a, "--no-proxy")) o->no_proxy = 1;
         else if (is_option(a, "--no-inner")) o->no_inner = 1;
         else if (is_option(a, "--paper-scheduler")) o->paper_scheduler = 1;
+        else if (is_option(a, "--no-clip")) o->no_clip = 1;
+        else if (is_option(a, "--no-order")) o->no_order = 1;
+        else if (is_option(a, "--proxies-in-core")) o->proxies_in_core = 1;
         else if (is_option(a, "--exact-proxy")) o->exact_proxy = 1;
         else if (is_option(a, "--exact-voxels")) o->exact_voxels = 1;
         else if (is_option(a, "--direct")) o->direct = 1;
@@ -1328,6 +1337,9 @@ int main(int argc, char **argv)
     topt.no_proxy = o.no_proxy;
     topt.no_inner = o.no_inner;
     topt.paper_scheduler = o.paper_scheduler;
+    topt.no_clip = o.no_clip;
+    topt.no_order = o.no_order;
+    topt.proxies_in_core = o.proxies_in_core;
     topt.exact_proxies = o.exact_proxy;
     topt.rays_in_flight = (uint32_t)o.rays_in_flight;
     topt.threads = (unsigned)o.threads;
