@@ -1169,6 +1169,37 @@ static void walker_count(scheduler *s, walker *w)
     w->resident_visits = w->proxy_tests = w->proxy_culled = w->inner_stopped = 0;
 }
 
+/* The hooks of a batch's intersections (testing.h), compiled in with
+** BRT_TESTING only. */
+#ifdef BRT_TESTING
+static brt_test_batch_fn test_batch_fn;
+static void *test_batch_user;
+static uint64_t test_bottom_rays, test_bottom_nodes, test_nodes_before;
+static double test_bottom_seconds, test_seconds_before;
+void brt_test_on_batch_ray(brt_test_batch_fn fn, void *user)
+{
+    test_batch_fn = fn;
+    test_batch_user = user;
+}
+void brt_test_bottom_level(uint64_t *rays, uint64_t *nodes, double *seconds)
+{
+    *rays = test_bottom_rays;
+    *nodes = test_bottom_nodes;
+    *seconds = test_bottom_seconds;
+}
+#define TEST_BATCH_RAY(id, r, walked) \
+    do { if (test_batch_fn) test_batch_fn(test_batch_user, id, (r)->tag, walked, (r)->entry_voxel); } while (0)
+#define TEST_BOTTOM_BEGIN() \
+    do { test_nodes_before = brt_test_node_visits(); test_seconds_before = brt_seconds(); } while (0)
+#define TEST_BOTTOM_END(count) \
+    do { test_bottom_rays += (count); test_bottom_nodes += brt_test_node_visits() - test_nodes_before; \
+         test_bottom_seconds += brt_seconds() - test_seconds_before; } while (0)
+#else
+#define TEST_BATCH_RAY(id, r, walked) ((void)0)
+#define TEST_BOTTOM_BEGIN() ((void)0)
+#define TEST_BOTTOM_END(count) ((void)0)
+#endif
+
 /* The rays of slots[0..count): first intersected at batching point id
 ** (its geometry g; id is NO_ENTRY for new rays), then each walks on and is
 ** settled.
@@ -1185,11 +1216,15 @@ static brt_result run_rays(scheduler *s, const uint32_t *slots, uint32_t count, 
         return phases_run(s, slots, count, id, g, id != NO_ENTRY ? order_batch(s, slots, count) : NULL);
     if (id != NO_ENTRY) {
         const uint32_t *order = order_batch(s, slots, count);       /* layer 11 */
+        TEST_BOTTOM_BEGIN();
         for (i = 0; i < count; i++) {
             ray_slot *ray = &s->slots[order[i]];
             brt_ray clipped;
-            intersect_slot(s, g, ray, clip_to_entry(s, ray, &clipped), NULL);   /* layer 10 */
+            const brt_ray *walked = clip_to_entry(s, ray, &clipped);          /* layer 10 */
+            TEST_BATCH_RAY(id, ray, walked);
+            intersect_slot(s, g, ray, walked, NULL);
         }
+        TEST_BOTTOM_END(count);
         cache_release(&s->cache, id);
     }
     for (i = 0; i < count && r == BRT_OK; i++)

@@ -388,8 +388,11 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
 
 #ifdef BRT_TESTING
 static int early_reject = 1;   /* testing.h: brt_test_early_reject */
+static uint64_t node_visits;   /* testing.h: brt_test_node_visits */
+#define NODE_VISITED() (node_visits++)
 #else
 enum { early_reject = 1 };     /* a constant: the walks always reject early */
+#define NODE_VISITED() ((void)0)
 #endif
 
 static double max_abs3f(float a, float b, float c)
@@ -419,6 +422,7 @@ static inline int behind_segment(float ax, float ay, float bx, float by, float c
 
 #ifdef BRT_TESTING
 void brt_test_early_reject(int on) { early_reject = on; }
+uint64_t brt_test_node_visits(void) { return node_visits; }
 #endif
 
 /* The watertight test proper (Woop et al., Fig. 4 with culling off).
@@ -983,6 +987,7 @@ static int traverse_quantized(const brt_bvh *bvh, const brt_ray *ray, const brt_
     for (;;) {
         while (cur.count == 0) {
             const qnode *n = &bvh->nodes[cur.child];
+            NODE_VISITED();
             const unsigned mask = box_test4(w.br, n, w.tnear, w.tfar, lo) & slot_valid(n);
             if (mask == 0) goto pop;
             prefetch_slots(bvh, n, mask);
@@ -1079,6 +1084,7 @@ static int traverse_resident(const brt_bvh *bvh, const brt_ray *ray, const brt_r
     for (;;) {
         while (cur.count == 0) {
             const fnode *n = &bvh->fnodes[cur.child];
+            NODE_VISITED();
             const unsigned mask = box_rows4(w.br, (const float (*)[4])n->box, w.tnear, w.tfar,
                                             lo, hi) & n->valid;
             unsigned order[4];

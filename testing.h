@@ -124,6 +124,23 @@ void brt_test_build_sizes(uint32_t spill_chunk, uint32_t bucket_tris);
 void brt_test_count_instance_triangles(int on);
 uint64_t brt_test_instance_triangles(void);
 
+/* The BVH nodes every walk has visited so far (bvh.c; a plain integer:
+** read it from one thread's traces). */
+uint64_t brt_test_node_visits(void);
+
+/* Called, while set, for each ray a batch intersects (batchrt.c, layers
+** 10 and 11), in the order intersected, from the plain loop (one thread):
+** the batching point, the ray's tag, the ray as its BVH walk starts
+** (tnear clipped by layer 10) and its entry voxel's Morton code. */
+typedef void (*brt_test_batch_fn)(void *user, uint32_t point, uint64_t tag, const brt_ray *ray,
+                                  uint32_t entry_voxel);
+void brt_test_on_batch_ray(brt_test_batch_fn fn, void *user);
+
+/* The batches' intersections so far, in the plain loop (one thread):
+** rays, the BVH nodes their walks visited and their wall seconds (make
+** bench-order's bottom level). */
+void brt_test_bottom_level(uint64_t *rays, uint64_t *nodes, double *seconds);
+
 #endif /* BRT_TESTING */
 
 #ifdef __cplusplus
