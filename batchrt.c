@@ -884,8 +884,9 @@ typedef struct ray_slot {
     walk_key key;
     uint32_t visits;
     float entry_t;              /* the proxy cast's entry, rounded down
-                                ** (brt_proxy_raycast); ray.tnear when no
-                                ** proxy was asked where */
+                                ** (brt_proxy_raycast), kept by proxy_test
+                                ** when it admits the ray (layers 10-11 read
+                                ** it then alone); tnear for a ray received */
     uint32_t entry_voxel;       /* the Morton code of the voxel there */
     uint64_t tag;
 } ray_slot;
@@ -1076,8 +1077,6 @@ static int proxy_test(const scheduler *s, walker *w, ray_slot *r, float tlimit)
     const int keep = s->clip || s->order;
     float t = r->key.t;
     int hit;
-    r->entry_t = r->ray.tnear;          /* no entry known (yet) */
-    r->entry_voxel = 0;
     if (!s->use_proxies) return 1;
     w->proxy_tests++;
     hit = proxy_admits(s, r->key.id, &r->ray, tlimit, s->follow || keep ? &t : NULL);
@@ -1187,15 +1186,15 @@ void brt_test_bottom_level(uint64_t *rays, uint64_t *nodes, double *seconds)
     *nodes = test_bottom_nodes;
     *seconds = test_bottom_seconds;
 }
-#define TEST_BATCH_RAY(id, r, walked) \
-    do { if (test_batch_fn) test_batch_fn(test_batch_user, id, (r)->tag, walked, (r)->entry_voxel); } while (0)
+#define TEST_BATCH_RAY(id, place, r, walked) \
+    do { if (test_batch_fn) test_batch_fn(test_batch_user, id, place, (r)->tag, walked, (r)->entry_voxel); } while (0)
 #define TEST_BOTTOM_BEGIN() \
     do { test_nodes_before = brt_test_node_visits(); test_seconds_before = brt_seconds(); } while (0)
 #define TEST_BOTTOM_END(count) \
     do { test_bottom_rays += (count); test_bottom_nodes += brt_test_node_visits() - test_nodes_before; \
          test_bottom_seconds += brt_seconds() - test_seconds_before; } while (0)
 #else
-#define TEST_BATCH_RAY(id, r, walked) ((void)0)
+#define TEST_BATCH_RAY(id, place, r, walked) ((void)0)
 #define TEST_BOTTOM_BEGIN() ((void)0)
 #define TEST_BOTTOM_END(count) ((void)0)
 #endif
@@ -1221,7 +1220,7 @@ static brt_result run_rays(scheduler *s, const uint32_t *slots, uint32_t count, 
             ray_slot *ray = &s->slots[order[i]];
             brt_ray clipped;
             const brt_ray *walked = clip_to_entry(s, ray, &clipped);          /* layer 10 */
-            TEST_BATCH_RAY(id, ray, walked);
+            TEST_BATCH_RAY(id, i, ray, walked);
             intersect_slot(s, g, ray, walked, NULL);
         }
         TEST_BOTTOM_END(count);
@@ -1250,8 +1249,6 @@ static void slot_start(ray_slot *r, const brt_ray *ray, uint64_t tag, brt_stats 
     brt_hit_clear(&r->hit);
     r->normal[0] = r->normal[1] = r->normal[2] = 0.0f;
     r->visits = 0;
-    r->entry_t = ray->tnear;
-    r->entry_voxel = 0;
     r->key.t = -INFINITY;
     r->key.id = TOP_EMPTY;
     stats->rays++;
@@ -2564,8 +2561,9 @@ static uint32_t next_load_guess(const scheduler *s)
 ** the ray is admitted untested with entry_t = tnear, and nothing is
 ** clipped.  The set's instance boxes are grown by the margin as well, so
 ** each still holds its hits' world points and is left no earlier.
-** Exact proxies (layer 5) and rays no cast was asked for (proxies off, a
-** ray received from another process) keep entry_t = tnear.
+** Exact proxies (layer 5) answer entry_t = tnear, and so does a ray
+** received from another process (its entry does not travel); with the
+** proxies off no entry is known, and the clip is off.
 ** The tests: svdag's casts hold entry_t <= t_hit for grazing rays at
 ** every scale, and for instances sheared and mirrored; clip: the hits
 ** with the clip on and off, byte for byte.  make bench-order prints the

@@ -130,10 +130,11 @@ uint64_t brt_test_node_visits(void);
 
 /* Called, while set, for each ray a batch intersects (batchrt.c, layers
 ** 10 and 11), in the order intersected, from the plain loop (one thread):
-** the batching point, the ray's tag, the ray as its BVH walk starts
-** (tnear clipped by layer 10) and its entry voxel's Morton code. */
-typedef void (*brt_test_batch_fn)(void *user, uint32_t point, uint64_t tag, const brt_ray *ray,
-                                  uint32_t entry_voxel);
+** the batching point, the ray's place in that order (0 starts a batch),
+** its tag, the ray as its BVH walk starts (tnear clipped by layer 10) and
+** its entry voxel's Morton code. */
+typedef void (*brt_test_batch_fn)(void *user, uint32_t point, uint32_t place, uint64_t tag,
+                                  const brt_ray *ray, uint32_t entry_voxel);
 void brt_test_on_batch_ray(brt_test_batch_fn fn, void *user);
 
 /* The batches' intersections so far, in the plain loop (one thread):

@@ -297,6 +297,7 @@ static void run_suites(void)
     suite_loopsubdiv();
     suite_policy();
     suite_reference();
+    suite_entry();
     suite_thresholds();
     suite_oom();
     suite_drift();

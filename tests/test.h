@@ -78,6 +78,7 @@ void suite_build(void);
 void suite_occlusion(void);
 void suite_threads(void);
 void suite_inner(void);
+void suite_entry(void);
 void suite_follow(void);
 void suite_instances(void);
 void suite_layers(void);
