@@ -1984,6 +1984,374 @@ static void test_instance_voxels_work(void)
     free(idx);
 }
 
+/* ===================================================================== */
+/* Instances end to end: the proxy is entered no later than any hit       */
+/* ===================================================================== */
+
+/* A prototype of the entry test: its triangles in object space (9 floats
+** each), its BVH and the BVH's box. */
+typedef struct entry_proto {
+    float *pos;
+    uint32_t *idx;
+    uint32_t count;
+    brt_bvh *bvh;
+    float lo[3], hi[3];
+} entry_proto;
+
+/* kind 0: lattice triangles in a cluster of 4 cells (corners, faces,
+** slivers, degenerate ones; lattice_triangle); 1: leaves (a point and two
+** short edges from it, thin or very thin); 2: random triangles, some
+** large.  0 when out of memory or the BVH build fails. */
+static int entry_proto_make(uint64_t *rng, int kind, entry_proto *p)
+{
+    const uint32_t n = kind == 0 ? 24 : kind == 1 ? 40 : 12;
+    uint32_t t;
+    int k, i;
+    memset(p, 0, sizeof *p);
+    p->pos = malloc(9 * (size_t)n * sizeof *p->pos);
+    p->idx = malloc(3 * (size_t)n * sizeof *p->idx);
+    if (!p->pos || !p->idx) return 0;
+    p->count = n;
+    for (t = 0; t < n; t++) {
+        float *v = p->pos + 9 * (size_t)t;
+        if (kind == 0) {
+            int64_t q[3][3];
+            lattice_triangle(rng, 4, q);
+            for (k = 0; k < 3; k++)
+                for (i = 0; i < 3; i++) v[3 * k + i] = 0.25f * (float)q[k][i];
+        } else if (kind == 1) {
+            const float thin = rand_below(rng, 2) ? 1e-4f : 0.02f;
+            for (i = 0; i < 3; i++) {
+                v[i] = rand_range(rng, -1, 1);
+                v[3 + i] = v[i] + rand_range(rng, -0.4f, 0.4f);
+                v[6 + i] = v[i] + rand_range(rng, -thin, thin);
+            }
+        } else {
+            const float size = t % 3 ? 0.5f : 3.0f;
+            for (i = 0; i < 3; i++) {
+                v[i] = rand_range(rng, -2, 2);
+                v[3 + i] = v[i] + rand_range(rng, -size, size);
+                v[6 + i] = v[i] + rand_range(rng, -size, size);
+            }
+        }
+        for (k = 0; k < 3; k++) p->idx[3 * t + k] = 3 * t + (uint32_t)k;
+    }
+    if (brt_bvh_build(p->pos, p->idx, n, NULL, &p->bvh) != BRT_OK) return 0;
+    brt_bvh_bounds(p->bvh, p->lo, p->hi);
+    return 1;
+}
+
+static void entry_proto_free(entry_proto *p)
+{
+    brt_bvh_free(p->bvh);
+    free(p->pos);
+    free(p->idx);
+    memset(p, 0, sizeof *p);
+}
+
+/* The world point (double) of barycentric b on triangle t of a prototype
+** under xform, and the triangle's world edges e1, e2 (double). */
+static void entry_world_point(const entry_proto *p, uint32_t t, const float xform[12],
+                             const double b[3], double w[3], double e1[3], double e2[3])
+{
+    const float *v = p->pos + 9 * (size_t)t;
+    double c[3][3];
+    int k, a;
+    for (k = 0; k < 3; k++)
+        for (a = 0; a < 3; a++)
+            c[k][a] = (double)xform[4 * a] * v[3 * k] + (double)xform[4 * a + 1] * v[3 * k + 1] +
+                      (double)xform[4 * a + 2] * v[3 * k + 2] + xform[4 * a + 3];
+    for (a = 0; a < 3; a++) {
+        w[a] = b[0] * c[0][a] + b[1] * c[1][a] + b[2] * c[2][a];
+        e1[a] = c[1][a] - c[0][a];
+        e2[a] = c[2][a] - c[0][a];
+    }
+}
+
+/* The distance from p to the closed triangle a, b, c (double; the
+** closest point by regions, Ericson, Real-Time Collision Detection 5.1.5),
+** for failure messages. */
+static double point_triangle_distance(const double p[3], const double a[3], const double b[3],
+                                      const double c[3])
+{
+    double ab[3], ac[3], ap[3], bp[3], cp[3], q[3], d1 = 0, d2 = 0, d3 = 0, d4 = 0, d5 = 0, d6 = 0;
+    double va, vb, vc, v = 0, w = 0, dist = 0;
+    int i;
+    for (i = 0; i < 3; i++) {
+        ab[i] = b[i] - a[i]; ac[i] = c[i] - a[i];
+        ap[i] = p[i] - a[i]; bp[i] = p[i] - b[i]; cp[i] = p[i] - c[i];
+        d1 += ab[i] * ap[i]; d2 += ac[i] * ap[i]; d3 += ab[i] * bp[i];
+        d4 += ac[i] * bp[i]; d5 += ab[i] * cp[i]; d6 += ac[i] * cp[i];
+    }
+    vc = d1 * d4 - d3 * d2;
+    vb = d5 * d2 - d1 * d6;
+    va = d3 * d6 - d5 * d4;
+    if (d1 <= 0 && d2 <= 0) v = w = 0;                                     /* vertex a */
+    else if (d3 >= 0 && d4 <= d3) { v = 1; w = 0; }                        /* vertex b */
+    else if (d6 >= 0 && d5 <= d6) { v = 0; w = 1; }                        /* vertex c */
+    else if (vc <= 0 && d1 >= 0 && d3 <= 0) { v = d1 / (d1 - d3); w = 0; } /* edge ab */
+    else if (vb <= 0 && d2 >= 0 && d6 <= 0) { v = 0; w = d2 / (d2 - d6); } /* edge ac */
+    else if (va <= 0 && d4 - d3 >= 0 && d5 - d6 >= 0) {                    /* edge bc */
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        v = 1 - w;
+    } else if (va + vb + vc != 0) {                                         /* inside */
+        v = vb / (va + vb + vc);
+        w = vc / (va + vb + vc);
+    }
+    for (i = 0; i < 3; i++) {
+        q[i] = a[i] + v * ab[i] + w * ac[i] - p[i];
+        dist += q[i] * q[i];
+    }
+    return sqrt(dist);
+}
+
+/* The closest hit over every instance, brute force: each through
+** brt_instance_intersect, the one function of every mode. */
+static int entry_brute_hit(const entry_proto *protos, const brt_instance *inst,
+                           const brt_instance_frame *frames, uint32_t count, const brt_ray *ray,
+                           brt_hit *hit)
+{
+    uint32_t k;
+    brt_hit_clear(hit);
+    for (k = 0; k < count; k++)
+        brt_instance_intersect(protos[inst[k].prototype].bvh, &frames[k], k, ray, hit, NULL);
+    return hit->prim != BRT_NO_PRIM;
+}
+
+/* One ray at the instances, of one of eight kinds: random through the
+** box; aimed at a vertex, an edge's midpoint, an edge or the inside of a
+** world triangle from near or far; grazing (along an axis, the other
+** components of the direction zero, subnormal or tiny, the origin on the
+** point's coordinates or a float either side); a bounce (the origin on
+** the triangle or a hair in front of or behind it, tnear 0 or tiny); along
+** a direction in a triangle's plane (an edge's, or another), through a
+** point of it.  Sometimes the segment is cut around the brute-force hit,
+** as grazing_segment cuts it (the closest hit so far of a walk, tlimit). */
+static void entry_ray(uint64_t *rng, const entry_proto *protos, const brt_instance *inst,
+                      const brt_instance_frame *frames, uint32_t count, const float lo[3],
+                      const float hi[3], float extent, brt_ray *ray)
+{
+    const size_t nc = sizeof grazing_components / sizeof grazing_components[0];
+    const uint32_t k = rand_below(rng, count);
+    const entry_proto *p = &protos[inst[k].prototype];
+    const uint32_t t = rand_below(rng, p->count);
+    const int kind = (int)rand_below(rng, 8), spot = (int)rand_below(rng, 4);
+    double b[3], w[3], e1[3], e2[3], n[3], len;
+    brt_hit hit;
+    int a;
+    b[0] = brt_random_float(rng);
+    b[1] = (1 - b[0]) * brt_random_float(rng);
+    if (spot == 0) { b[0] = rand_below(rng, 2); b[1] = b[0] ? 0 : rand_below(rng, 2); }   /* a vertex */
+    if (spot == 1) { b[0] = 0.5; b[1] = rand_below(rng, 2) ? 0.5 : 0; }                   /* a midpoint */
+    if (spot == 2) b[1] = 1 - b[0];                                                      /* an edge */
+    b[2] = 1 - b[0] - b[1];
+    entry_world_point(p, t, inst[k].xform, b, w, e1, e2);
+    n[0] = e1[1] * e2[2] - e1[2] * e2[1];
+    n[1] = e1[2] * e2[0] - e1[0] * e2[2];
+    n[2] = e1[0] * e2[1] - e1[1] * e2[0];
+    len = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    ray->tnear = 0;
+    ray->tfar = INFINITY;
+    switch (kind) {
+    case 0:   /* random, from within the box grown by half */
+        for (a = 0; a < 3; a++) {
+            ray->org[a] = rand_range(rng, lo[a] - 0.5f * extent, hi[a] + 0.5f * extent);
+            ray->dir[a] = rand_range(rng, -1, 1);
+        }
+        break;
+    case 1:
+    case 2: { /* aimed, from near (a thousandth of the box) or from about it */
+        const float from = kind == 1 ? 1e-3f * extent : extent, scale = rand_range(rng, 0.1f, 10);
+        for (a = 0; a < 3; a++) {
+            ray->org[a] = (float)(w[a] + from * rand_range(rng, -1, 1));
+            ray->dir[a] = (float)((w[a] - ray->org[a]) * scale);
+        }
+        break;
+    }
+    case 3:
+    case 4: { /* grazing, along axis a */
+        static const float distances[] = {1.5f, 0.5f, 0.01f};
+        const int axis = (int)rand_below(rng, 3);
+        const float sign = rand_below(rng, 2) ? 1.0f : -1.0f;
+        for (a = 0; a < 3; a++) {
+            const unsigned step = rand_below(rng, 4);
+            const float v = (float)w[a];
+            ray->org[a] = step == 0 ? nextafterf(v, INFINITY) : step == 1 ? nextafterf(v, -INFINITY) : v;
+            ray->dir[a] = grazing_components[rand_below(rng, (uint32_t)nc)];
+        }
+        ray->org[axis] = (float)(w[axis] - sign * distances[rand_below(rng, 3)] * extent);
+        ray->dir[axis] = sign * (rand_below(rng, 2) ? 1.0f : 0.375f);
+        break;
+    }
+    case 5:
+    case 6: { /* a bounce: from the triangle, on it or a hair off either side */
+        static const double hairs[] = {0, 1e-7, -1e-7, 1e-4, -1e-4};
+        const double hair = len > 0 ? hairs[rand_below(rng, 5)] * extent / len : 0;
+        for (a = 0; a < 3; a++) {
+            ray->org[a] = (float)(w[a] + hair * n[a]);
+            ray->dir[a] = rand_range(rng, -1, 1);
+        }
+        if (kind == 6)   /* a zero, subnormal or tiny component */
+            ray->dir[rand_below(rng, 3)] = grazing_components[rand_below(rng, (uint32_t)nc)];
+        if (rand_below(rng, 2)) ray->tnear = 1e-6f * extent;
+        break;
+    }
+    default: { /* in the triangle's plane (to rounding): an edge's direction, or another */
+        const double *e = rand_below(rng, 2) ? e1 : e2;
+        const double back = rand_range(rng, 0.01f, 2);
+        for (a = 0; a < 3; a++) {
+            ray->dir[a] = (float)(rand_below(rng, 4) ? e[a] : e[a] + e1[a] + e2[a]);
+            ray->org[a] = (float)(w[a] - back * ray->dir[a]);
+        }
+        break;
+    }
+    }
+    if (rand_below(rng, 8) < 3 && entry_brute_hit(protos, inst, frames, count, ray, &hit)) {
+        const unsigned cut = rand_below(rng, 3);
+        if (cut == 0) ray->tnear = hit.t;                               /* [t, t] */
+        if (cut == 2) ray->tnear = ray->tnear + (hit.t - ray->tnear) * brt_random_float(rng);
+        if (cut <= 1) ray->tfar = hit.t;
+    }
+}
+
+/*
+** The clip's premise for instances: a batched ray's walk of a point of
+** instances may start where its proxy cast first entered a set voxel
+** (brt_proxy_raycast's t_entry) only if, for every hit that
+** brt_instance_intersect reports at t_hit in [tnear, tfar], the cast over
+** [tnear, tfar] returns 1 with t_entry <= t_hit (and the cull, which
+** casts over [tnear, tlimit], needs the 1).  The voxel tests above check points
+** against the voxels; this checks rays, the whole chain: the object ray's
+** rounding, the triangle test's t, the dilation, the frame and the cast.
+** Prototypes of lattice triangles, thin leaves and random ones, instanced
+** under rotations, shears, mirrors, scales (and lattice-exact transforms,
+** so that world triangles lie in axis planes), near the origin and 1e4
+** from it in cells of 0.1 to 3, and 1e4 from it in cells of 0.008 to 0.1
+** (10 to 100 float spacings there: the dilation is about one or less),
+** voxelized into one grid at res 16..128 as
+** instance_point_proxy does (the point's box grown by 1/16 of a voxel,
+** dilated by INSTANCE_DILATION of a voxel, pruned); rays of entry_ray.
+** Only the rays the batched mode casts count (proxy_cast: a ray whose
+** margin, brt_instance_margin over the point's margin as slots_margin
+** fits it, exceeds INSTANCE_DILATION of a voxel is admitted untested);
+** the others are counted, and must stay few.  The transforms' condition
+** numbers are bounded per resolution so that they do.
+*/
+static void test_instance_entry_before_hit(void)
+{
+    enum { ROUNDS = 48, RAYS = 6000, PROTOS = 3, MAX_INST = 10 };
+    uint64_t rng = test_seed() + 4242, cast = 0, hits = 0, skipped = 0, fails = 0;
+    int round;
+    for (round = 0; round < ROUNDS; round++) {
+        /* res 16, 32, 64, 128; near the origin, 1e4 from it, and 1e4 from
+        ** it scaled by 2^-6 */
+        const uint32_t res = 16u << (round % 4), count = 4 + rand_below(&rng, MAX_INST - 3);
+        const int place = round / 4 % 3;
+        const float scale = place == 2 ? 0x1p-6f : 1.0f, offset = place ? 1e4f : 0.0f;
+        const float cond_max = 768.0f / (float)res;
+        entry_proto protos[PROTOS];
+        brt_instance inst[MAX_INST];
+        brt_instance_frame frames[MAX_INST];
+        float boxes[MAX_INST][6], radii[MAX_INST], lo[3], hi[3], glo[3], ghi[3], extent = 0;
+        instance_margin margin;
+        brt_grid grid;
+        brt_svdag *dag = NULL;
+        brt_proxy proxy;
+        uint32_t i, n;
+        int a, ok = 1;
+        for (i = 0; i < PROTOS; i++) ok = entry_proto_make(&rng, (int)i, &protos[i]) && ok;
+        CHECK(ok, "round %d: out of memory or prototype BVH", round);
+        for (a = 0; a < 3; a++) { lo[a] = INFINITY; hi[a] = -INFINITY; }
+        for (i = 0; i < count; i++) {
+            float at[3];
+            int tries = 0, j;
+            for (a = 0; a < 3; a++) at[a] = offset + scale * rand_range(&rng, -6, 6);
+            inst[i].prototype = rand_below(&rng, PROTOS);
+            do {   /* a transform within the resolution's condition bound */
+                if (rand_below(&rng, 4) == 0) {   /* lattice-exact: world axis planes */
+                    const int *m = lattice_xforms[rand_below(&rng, sizeof lattice_xforms / sizeof lattice_xforms[0])];
+                    for (j = 0; j < 12; j++) inst[i].xform[j] = j % 4 == 3 ? (float)(int)at[j / 4] : scale * (float)m[j];
+                } else {
+                    rotated_xform(&rng, inst[i].xform, at);
+                    for (j = 0; j < 12; j++) if (j % 4 != 3) inst[i].xform[j] *= scale;
+                }
+                CHECK(++tries < 10000, "round %d: no transform within condition %g", round, cond_max);
+            } while (brt_instance_frame_init(&inst[i], i, &frames[i], NULL) != BRT_OK ||
+                     !(frames[i].condition <= cond_max));
+            brt_instance_bounds(&inst[i], &frames[i], protos[inst[i].prototype].lo, protos[inst[i].prototype].hi,
+                                boxes[i], boxes[i] + 3, &radii[i]);
+            for (a = 0; a < 3; a++) {
+                lo[a] = fminf(lo[a], boxes[i][a]);
+                hi[a] = fmaxf(hi[a], boxes[i][3 + a]);
+            }
+        }
+        /* the point's margin (slots_margin) and proxy (instance_point_proxy) */
+        brt_margin_begin(&margin, lo, hi);
+        for (i = 0; i < count; i++) brt_margin_add(&margin, &frames[i], radii[i]);
+        for (a = 0; a < 3; a++) extent = fmaxf(extent, hi[a] - lo[a]);
+        for (a = 0; a < 3; a++) {
+            glo[a] = lo[a] - extent / (16.0f * (float)res);
+            ghi[a] = hi[a] + extent / (16.0f * (float)res);
+        }
+        CHECK(brt_grid_init(&grid, glo, ghi, res) == BRT_OK, "round %d: grid", round);
+        for (i = 0; i < count; i++)
+            CHECK(brt_voxelize_instance(&grid, protos[inst[i].prototype].bvh, inst[i].xform,
+                                        INSTANCE_DILATION * grid.cell, INSTANCE_VOXELS_PRUNED) == BRT_OK,
+                  "round %d: voxelize instance %u", round, (unsigned)i);
+        CHECK(brt_svdag_create(&dag) == BRT_OK && brt_svdag_add(dag, &grid, &proxy) == BRT_OK,
+              "round %d: proxy", round);
+        for (n = 0; n < RAYS; n++) {
+            brt_ray ray;
+            brt_hit hit;
+            float t_entry = 0;
+            int got;
+            entry_ray(&rng, protos, inst, frames, count, lo, hi, extent, &ray);
+            if (!(brt_instance_margin(margin.condition, margin.reach, margin.center, &ray) <=
+                  INSTANCE_DILATION * proxy.cell)) {   /* admitted untested */
+                skipped++;
+                continue;
+            }
+            cast++;
+            got = brt_proxy_raycast(dag, &proxy, &ray, ray.tnear, ray.tfar, &t_entry);
+            if (!entry_brute_hit(protos, inst, frames, count, &ray, &hit)) continue;
+            hits++;
+            if (!(got && t_entry <= hit.t) && ++fails <= 5) {
+                /* where the hit lies: on its triangle (the proxy's fault), or
+                ** off it (the triangle test's t of a ray all but in the
+                ** triangle's plane, clamped into its box: hit_distance) */
+                static const double corner[3] = {1, 0, 0};
+                double v0[3], e1[3], e2[3], v1[3], v2[3], at[3];
+                entry_world_point(&protos[inst[hit.inst].prototype], hit.prim, inst[hit.inst].xform, corner,
+                                  v0, e1, e2);
+                for (a = 0; a < 3; a++) {
+                    v1[a] = v0[a] + e1[a];
+                    v2[a] = v0[a] + e2[a];
+                    at[a] = ray.org[a] + (double)hit.t * ray.dir[a];
+                }
+                test_fail_at(__FILE__, __LINE__,
+                             "round %d res %u (offset %g, scale %g): ray (%a %a %a) dir (%a %a %a) [%a %a] "
+                             "hits instance %u triangle %u at t %a, proxy %d t %a; the hit's world point "
+                             "lies %.3g voxels from the triangle (the dilation: %g)", round, res, offset,
+                             scale, ray.org[0], ray.org[1], ray.org[2], ray.dir[0], ray.dir[1], ray.dir[2],
+                             ray.tnear, ray.tfar, hit.inst, hit.prim, hit.t, got, t_entry,
+                             point_triangle_distance(at, v0, v1, v2) / proxy.cell, INSTANCE_DILATION);
+            }
+        }
+        brt_svdag_free(dag);
+        brt_grid_free(&grid);
+        for (i = 0; i < PROTOS; i++) entry_proto_free(&protos[i]);
+    }
+    EXPECT(fails <= 5, "%llu rays in all hit an instance before the proxy's entry (5 shown)",
+           (unsigned long long)fails);
+    /* the gate lets most rays through, and enough of them hit */
+    EXPECT(skipped * 4 < cast + skipped, "%llu of %llu rays admitted untested (margin)",
+           (unsigned long long)skipped, (unsigned long long)(cast + skipped));
+    EXPECT(hits * 4 > cast, "only %llu of %llu cast rays hit an instance", (unsigned long long)hits,
+           (unsigned long long)cast);
+    printf("  svdag: instances, entry before hit: %llu rays cast, %llu instance hits, %llu skipped (margin)\n",
+           (unsigned long long)cast, (unsigned long long)hits, (unsigned long long)skipped);
+}
+
 void suite_svdag(void)
 {
     test_run("svdag: grid frame covers the box", test_grid_frame);
@@ -2006,4 +2374,5 @@ void suite_svdag(void)
     test_run("svdag: instances: lattice, sheared, mirrored, grazing", test_instance_voxels_lattice);
     test_run("svdag: instances: rotated thin triangles", test_instance_voxels_rotated);
     test_run("svdag: instances: pruned, a prototype in one voxel tests no triangle", test_instance_voxels_work);
+    test_run("svdag: instances: the proxy is entered no later than any instance hit", test_instance_entry_before_hit);
 }
