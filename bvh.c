@@ -323,6 +323,39 @@ static void tri_ray_setup(const brt_ray *ray, tri_ray *r)
     memcpy(r->dir, ray->dir, sizeof r->dir);
 }
 
+/* The span of t in which the ray's point lies in the triangle's prism --
+** the three planes through its edges along its normal n, each moved out
+** by grow -- in double: [*lo, *hi], 0 when empty.  w = p0 - o, e1 = p1 -
+** p0, e2 = p2 - p0.  n x edge points into the triangle (n = e1 x e2). */
+static int prism_span(const double w[3], const double e1[3], const double e2[3], const double n[3],
+                      const float dir[3], double grow, double *lo, double *hi)
+{
+    double edge[3][3], from[3][3];
+    int i, a;
+    *lo = -INFINITY;
+    *hi = INFINITY;
+    for (a = 0; a < 3; a++) {
+        edge[0][a] = e1[a];
+        edge[1][a] = e2[a] - e1[a];
+        edge[2][a] = -e2[a];
+        from[0][a] = w[a];              /* each edge's first corner, less o */
+        from[1][a] = w[a] + e1[a];
+        from[2][a] = w[a] + e2[a];
+    }
+    for (i = 0; i < 3; i++) {
+        const double m[3] = {n[1] * edge[i][2] - n[2] * edge[i][1], n[2] * edge[i][0] - n[0] * edge[i][2],
+                             n[0] * edge[i][1] - n[1] * edge[i][0]};
+        /* inside: m . (o + t d - corner) >= -grow |m|, i.e. c + t b >= 0 */
+        const double c = -(m[0] * from[i][0] + m[1] * from[i][1] + m[2] * from[i][2]) +
+                         grow * sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+        const double b = m[0] * dir[0] + m[1] * dir[1] + m[2] * dir[2];
+        if (b > 0.0 && -c / b > *lo) *lo = -c / b;
+        else if (b < 0.0 && c / -b < *hi) *hi = c / -b;
+        else if (b == 0.0 && c < 0.0) return 0;
+    }
+    return *lo <= *hi;
+}
+
 /* The hit distance, once the ray is known to pass through the triangle:
 ** from the plane equation in double, since Woop's T/det loses accuracy for
 ** rays that graze the triangle (its weights are then tiny differences),
@@ -334,11 +367,24 @@ static void tri_ray_setup(const brt_ray *ray, tri_ray *r)
 ** interval, so the clamp only removes rounding.  Returns 0 for a
 ** degenerate triangle (cross product exactly 0 in double: it never hits)
 ** or an empty interval (the ray misses the box, so the "hit" was
-** rounding). */
+** rounding).
+** A ray all but in the triangle's plane is the exception: the plane gives
+** no distance then (0/0, or any t), the edge test's verdict is rounding's,
+** and the box clamp alone would put the hit anywhere in the box, voxels
+** away from the triangle, where no proxy covers it (test: svdag:
+** instances: the proxy is entered no later than any instance hit).  So the
+** interval is narrowed to the span in which the ray lies in the
+** triangle's prism grown by PAD_REL of the largest |coordinate| of the
+** corners and the origin (prism_span), when that span meets the box's:
+** the hit's point then lies within that grow of the triangle, which the
+** proxies' margin covers (svdag.c, "CONSERVATIVE IN FLOAT").  A ray that
+** crosses the plane inside the triangle has its true distance inside the
+** grown prism, so for it this changes nothing; and no hit becomes a miss
+** (watertightness is the edge test's). */
 static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p0,
                         const float *p1, const float *p2, float woop_t, float *t)
 {
-    double e1[3], e2[3], w[3], n[3], td;
+    double e1[3], e2[3], w[3], n[3], td, prism_lo, prism_hi, reach = 0;
     float lo[3], hi[3], plo[3], phi[3], entry, exit, tt;
     int a;
     for (a = 0; a < 3; a++) {
@@ -359,6 +405,16 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
     tt = isfinite(td) ? (float)td : woop_t;
     brt_box_pad(lo, hi, plo, phi);
     if (!slab_span(bp, plo, phi, -INFINITY, INFINITY, &entry, &exit)) return 0;
+    for (a = 0; a < 3; a++) {
+        reach = fmax(reach, fabs((double)r->org[a]));
+        reach = fmax(reach, fmax(fabs((double)lo[a]), fabs((double)hi[a])));
+    }
+    if (prism_span(w, e1, e2, n, r->dir, (double)PAD_REL * reach, &prism_lo, &prism_hi) &&
+        prism_lo <= exit && prism_hi >= entry) {
+        if (prism_lo > entry) entry = (float)prism_lo;
+        if (prism_hi < exit) exit = (float)prism_hi;
+        if (entry > exit) entry = exit;     /* the float rounding of a point-like span */
+    }
     *t = tt < entry ? entry : (tt > exit ? exit : tt);
     return 1;
 }
@@ -404,17 +460,26 @@ static double max_abs3f(float a, float b, float c)
 }
 
 /* 1 when the float hit distance t_woop, of Woop's values, certainly lies
-** more than its error bound below tnear (see above). */
+** more than its error bound below tnear (see above).  The gammas bound
+** relative errors, which hold while no float result is subnormal; each
+** bound therefore also carries the absolute error of gradual underflow
+** (at most 2^-150 per rounded operation, a few 2^-149 in all), and a
+** subnormal det, whose reciprocal loses its relative accuracy, or an
+** infinite t_woop (1/det overflowing: a ray of subnormal direction
+** components, given a finite tnear) never rejects (tests: the fuzz
+** corpus's crash-batched-differs-from-direct rays, clipped by layer 10 of
+** batchrt.c to a finite tnear). */
 static inline int behind_segment(float ax, float ay, float bx, float by, float cx, float cy,
                                  float zs0, float zs1, float zs2, float eu, float ev, float ew,
                                  float det, float t_woop, float tnear)
 {
     const double max_z = max_abs3f(zs0, zs1, zs2), max_x = max_abs3f(ax, bx, cx);
     const double max_y = max_abs3f(ay, by, cy), max_e = max_abs3f(eu, ev, ew);
-    const double dz = GAMMA(3) * max_z, dx = GAMMA(5) * (max_x + max_z);
-    const double dy = GAMMA(5) * (max_y + max_z);
-    const double de = 2.0 * (GAMMA(2) * max_x * max_y + dy * max_x + dx * max_y);
-    const double dt_det = 3.0 * (GAMMA(3) * max_e * max_z + de * max_z + dz * max_e);
+    const double dz = GAMMA(3) * max_z + 0x1p-149, dx = GAMMA(5) * (max_x + max_z) + 0x1p-148;
+    const double dy = GAMMA(5) * (max_y + max_z) + 0x1p-148;
+    const double de = 2.0 * (GAMMA(2) * max_x * max_y + dy * max_x + dx * max_y) + 0x1p-147;
+    const double dt_det = 3.0 * (GAMMA(3) * max_e * max_z + de * max_z + dz * max_e) + 0x1p-146;
+    if (!isfinite(t_woop) || !(fabsf(det) >= FLT_MIN)) return 0;
     /* t_woop + 2 dt < tnear with dt = dt_det / |det|, multiplied out: a
     ** division would cost every candidate its latency. */
     return ((double)t_woop - (double)tnear) * fabs((double)det) + 2.0 * dt_det < 0.0;

@@ -15,6 +15,7 @@
 #include "batchrt.h"
 #include "util.h"
 
+#include <float.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -429,14 +430,33 @@ static void test_grazing(void)
         EXPECT(brt_box_span(&prep, lo, hi, ray.tnear, ray.tfar, &entry, &exit) && entry <= hit.t &&
                hit.t <= exit, "grazing ray %u: t %a outside its triangle's box span [%a, %a]",
                i, hit.t, entry, exit);
-        /* Where the exact plane point lies in the triangle's box span (else
-        ** the float ray misses the exact triangle and the "hit" is
-        ** rounding, clamped to the box): a few float ulps of the distance,
-        ** whatever the tilt. */
-        EXPECT(ld_num / ld_den < entry || ld_num / ld_den > exit ||
-               fabsl(hit.t - ld_num / ld_den) <= 1e-6L * fabsl(ld_num / ld_den),
-               "grazing ray %u (tilt %g): t %.9g, plane distance %.9Lg", i, tilt, hit.t,
-               ld_num / ld_den);
+        /* Where the exact plane point lies on the triangle, t is its
+        ** distance to a few float ulps, whatever the tilt; elsewhere (the
+        ** float ray misses the exact triangle: the "hit" is rounding) t is
+        ** moved onto the triangle's prism (bvh.c, hit_distance), so the
+        ** hit's point lies within PAD_REL of the largest |coordinate| of
+        ** the triangle, grown by a few ulps of its distance -- what the
+        ** proxies cover. */
+        {
+            double at[3], c0[3], c1[3], c2[3], reach = 0, plane[3], dlen = 0;
+            const long double td = ld_num / ld_den;
+            for (a = 0; a < 3; a++) {
+                at[a] = ray.org[a] + (double)hit.t * ray.dir[a];
+                plane[a] = (double)(ray.org[a] + td * ray.dir[a]);
+                c0[a] = v0[a];
+                c1[a] = v1[a];
+                c2[a] = v2[a];
+                dlen += (double)ray.dir[a] * ray.dir[a];
+                reach = fmax(reach, fmax(fabs((double)ray.org[a]), fmax(fabs(c0[a]), fmax(fabs(c1[a]), fabs(c2[a])))));
+            }
+            EXPECT(tu_point_triangle_distance(plane, c0, c1, c2) > 1e-9 * reach ||
+                   fabsl(hit.t - td) <= 1e-6L * fabsl(td),
+                   "grazing ray %u (tilt %g): t %.9g, plane distance %.9Lg", i, tilt, hit.t, td);
+            EXPECT(tu_point_triangle_distance(at, c0, c1, c2) <= 2.0 * 16.0 * FLT_EPSILON * reach +
+                   4.0 * FLT_EPSILON * fabs((double)hit.t) * sqrt(dlen),
+                   "grazing ray %u (tilt %g): its hit point lies %g from the triangle (reach %g)", i, tilt,
+                   tu_point_triangle_distance(at, c0, c1, c2), reach);
+        }
     }
     EXPECT(hits > 1000, "only %u grazing rays hit their triangle", hits);
     brt_bvh_free(bvh);

@@ -335,7 +335,7 @@ static void test_interrupt_between_batches(void)
 
 /* ---- batchrt.c's layout: one section a layer, as the README numbers them ---- */
 
-#define LAYERS 10
+#define LAYERS 12
 
 /* The line number of p in text. */
 static int line_at(const char *text, const char *p)
@@ -404,7 +404,7 @@ static int readme_layers(const char *readme, char *fn[LAYERS + 1])
 }
 
 /* batchrt.c reads as the README numbers the layers: after its PART II
-** marker one section a layer, headed "---- layer N: ..." for N = 1 to 10
+** marker one section a layer, headed "---- layer N: ..." for N = 1 to LAYERS
 ** in that order, each the only heading with its number, and each layer's
 ** function (the first code span of its row in the README's table)
 ** defined in its own section, between its heading and the next heading

@@ -2068,43 +2068,6 @@ static void entry_world_point(const entry_proto *p, uint32_t t, const float xfor
     }
 }
 
-/* The distance from p to the closed triangle a, b, c (double; the
-** closest point by regions, Ericson, Real-Time Collision Detection 5.1.5),
-** for failure messages. */
-static double point_triangle_distance(const double p[3], const double a[3], const double b[3],
-                                      const double c[3])
-{
-    double ab[3], ac[3], ap[3], bp[3], cp[3], q[3], d1 = 0, d2 = 0, d3 = 0, d4 = 0, d5 = 0, d6 = 0;
-    double va, vb, vc, v = 0, w = 0, dist = 0;
-    int i;
-    for (i = 0; i < 3; i++) {
-        ab[i] = b[i] - a[i]; ac[i] = c[i] - a[i];
-        ap[i] = p[i] - a[i]; bp[i] = p[i] - b[i]; cp[i] = p[i] - c[i];
-        d1 += ab[i] * ap[i]; d2 += ac[i] * ap[i]; d3 += ab[i] * bp[i];
-        d4 += ac[i] * bp[i]; d5 += ab[i] * cp[i]; d6 += ac[i] * cp[i];
-    }
-    vc = d1 * d4 - d3 * d2;
-    vb = d5 * d2 - d1 * d6;
-    va = d3 * d6 - d5 * d4;
-    if (d1 <= 0 && d2 <= 0) v = w = 0;                                     /* vertex a */
-    else if (d3 >= 0 && d4 <= d3) { v = 1; w = 0; }                        /* vertex b */
-    else if (d6 >= 0 && d5 <= d6) { v = 0; w = 1; }                        /* vertex c */
-    else if (vc <= 0 && d1 >= 0 && d3 <= 0) { v = d1 / (d1 - d3); w = 0; } /* edge ab */
-    else if (vb <= 0 && d2 >= 0 && d6 <= 0) { v = 0; w = d2 / (d2 - d6); } /* edge ac */
-    else if (va <= 0 && d4 - d3 >= 0 && d5 - d6 >= 0) {                    /* edge bc */
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
-        v = 1 - w;
-    } else if (va + vb + vc != 0) {                                         /* inside */
-        v = vb / (va + vb + vc);
-        w = vc / (va + vb + vc);
-    }
-    for (i = 0; i < 3; i++) {
-        q[i] = a[i] + v * ab[i] + w * ac[i] - p[i];
-        dist += q[i] * q[i];
-    }
-    return sqrt(dist);
-}
-
 /* The closest hit over every instance, brute force: each through
 ** brt_instance_intersect, the one function of every mode. */
 static int entry_brute_hit(const entry_proto *protos, const brt_instance *inst,
@@ -2334,7 +2297,7 @@ static void test_instance_entry_before_hit(void)
                              "lies %.3g voxels from the triangle (the dilation: %g)", round, res, offset,
                              scale, ray.org[0], ray.org[1], ray.org[2], ray.dir[0], ray.dir[1], ray.dir[2],
                              ray.tnear, ray.tfar, hit.inst, hit.prim, hit.t, got, t_entry,
-                             point_triangle_distance(at, v0, v1, v2) / proxy.cell, INSTANCE_DILATION);
+                             tu_point_triangle_distance(at, v0, v1, v2) / proxy.cell, INSTANCE_DILATION);
             }
         }
         brt_svdag_free(dag);

@@ -45,6 +45,9 @@ void tu_brute_force(const tu_scene *s, const uint32_t *prim_ids, const brt_ray *
 ** (brt_intersect_triangle within the ray's [tnear, tfar]). */
 int tu_brute_occluded(const tu_scene *s, const brt_ray *ray);
 
+/* The distance from p to the triangle abc, in double. */
+double tu_point_triangle_distance(const double p[3], const double a[3], const double b[3], const double c[3]);
+
 /* An instanced scene in memory: world triangles, up to TU_MAX_PROTOS
 ** prototypes and instances of them, as a brt_scene_source (chunks of 5
 ** triangles and 7 instances), and its brute force: every world triangle
