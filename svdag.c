@@ -1230,14 +1230,17 @@ brt_result brt_svdag_blob_open(const void *blob, size_t size,
 **   hit point is off by some float ulps of the distance from the ray
 **   origin -- a few 2^-24 (P + 3) at most, still well inside g.
 ** - that test's t, though, is clamped into the triangle's box as the box
-**   test pads it (bvh.c, rules 2 and 3): the box grown by 2^-19 of its
-**   largest world |coordinate| and the origin moved by 2^-19 of its own.
-**   A ray the test calls a hit while it only grazes the triangle (all but
-**   in its plane, a shear that underflows to 0) gets the padded box's
-**   entry as t, up to 2^-19 (max |o_i| + max |box_i|) in space before the
-**   triangle; far from the world's origin that exceeds 2^-18 (P + 3).
-**   The term A covers it twice over: 2^-18 A (N cell) >= 2^-18 (max |o_i|
-**   + max |box_i|), since the triangle's box lies in the root cube.
+**   test pads it (bvh.c, rules 2 and 3), and into the span in which the
+**   ray lies in the triangle's prism grown by 2^-19 (max |o_i| + max
+**   |box_i|) (bvh.c, hit_distance).  A ray the test calls a hit while it
+**   only grazes the triangle (all but in its plane, where the plane gives
+**   no distance) so gets a point within that grow of the triangle, plus
+**   float ulps of its distance; far from the world's origin that exceeds
+**   2^-18 (P + 3).  The term A covers it twice over: 2^-18 A (N cell) >=
+**   2^-18 (max |o_i| + max |box_i|), since the triangle's box lies in the
+**   root cube.  (Before the prism, such a point could lie anywhere in the
+**   box, voxels off the triangle: svdag: instances: the proxy is entered
+**   no later than any instance hit found it.)
 ** The entry is rounded down to float and clamped to tnear.  Rays with a NaN
 ** or an infinity, zero directions, and a walk that hits the iteration cap
 ** all answer "hit at tnear", the conservative answer; tnear = tfar is a
