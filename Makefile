@@ -9,6 +9,8 @@
 #   make bench        benchmarks (figures printed, never pass/fail)
 #   make bench-threads  speed-ups at 1 and 2 threads (README, "Threads")
 #   make bench-pbrt   pbrt and OBJ reading speed on the same triangles
+#   make bench-order  the bottom level with the proxy entry's clip and order
+#                     (layers 10, 11), and proxies in core
 #   make mutants      mutation testing of the suite (tests/mutants/)
 #   make mutants-sample [N=40] [SEED=1] [FILES=...]  mutants drawn at random
 #   make install      library, header and batchrt.pc under $(DESTDIR)$(PREFIX)
@@ -107,14 +109,27 @@ $(TEST_LIB): $(TEST_LIB_OBJ)
 	$(Q)rm -f $@
 	$(Q)ar rcs $@ $^
 
-# build/NAME from examples/KIND/NAME.c, one link rule per kind.
+# build/NAME from examples/KIND/NAME.c, one link rule per kind (but
+# EX_TESTING's, below).
+EX_TESTING = $(BUILD)/bench_order
 define EX_LINK
-$$(patsubst examples/$(1)/%.c,$$(BUILD)/%,$$(filter examples/$(1)/%,$$(EX_SRC))): \
+$$(filter-out $$(EX_TESTING),$$(patsubst examples/$(1)/%.c,$$(BUILD)/%,$$(filter examples/$(1)/%,$$(EX_SRC)))): \
   $$(BUILD)/%: $$(BUILD)/examples/$(1)/%.o $$(EX_COMMON) $$(LIB)
 	$$(SAY) LINK $$@
 	$$(Q)$$(CC) $$(CFLAGS) $$^ -o $$@ $$(LDLIBS)
 endef
 $(foreach k,$(EX_KINDS),$(eval $(call EX_LINK,$(k))))
+
+# The one program that reads the library's counters (testing.h): build/
+# bench_order (make bench-order) counts BVH node visits and times the
+# batches' intersections through hooks that only $(TEST_LIB) holds, so it
+# is compiled with $(TESTING) and links that copy; every other program
+# links $(LIB), which has no hook.
+$(EX_TESTING:$(BUILD)/%=$(BUILD)/examples/bench/%.o): CFLAGS += $(TESTING)
+$(EX_TESTING:$(BUILD)/%=$(BUILD)/examples/bench/%.o): internal.h testing.h
+$(EX_TESTING): $(BUILD)/%: $(BUILD)/examples/bench/%.o $(EX_COMMON) $(TEST_LIB)
+	$(SAY) LINK $@
+	$(Q)$(CC) $(CFLAGS) $^ -o $@ $(LDLIBS)
 
 $(TEST_BIN): $(TEST_OBJ) $(EX_COMMON) $(TEST_LIB)
 	$(SAY) LINK $@
@@ -506,6 +521,26 @@ PAPER_INSTANCED ?= 20000000
 bench-paper: all
 	./$(BUILD)/figures --paper --out $(BUILD)/paper --scale $(PAPER_SCALE) --point-tris 200000 \
 	  --point-instanced $(PAPER_INSTANCED)
+
+# bench-order: the bottom level of the batched mode (build/bench_order,
+# linked with $(TEST_LIB) for its counters): the instanced landscape and
+# island at ORDER_SCALE and the mesh ORDER_MESH (gunzipped into
+# ORDER_BENCH; SKIP rows without it), ORDER_RAYS camera and ORDER_RAYS
+# diffuse rays each, one thread, in core (the paper's scheduler) and out
+# of core (30 % of the geometry bytes): BVH nodes per batched ray and the
+# batches' Mrays/s with layer 10's clip and layer 11's order off and on,
+# ORDER_REPEAT rounds; then proxies off against --proxies-in-core without
+# a limit.  Two Markdown tables; scene files built once in ORDER_BENCH.
+# Every run's hits are held byte-equal (exit 1 if not); figures only.
+ORDER_SCALE  ?= 80
+ORDER_RAYS   ?= 400000
+ORDER_REPEAT ?= 3
+ORDER_MESH   ?= ../shared/data/meshes/dragon.obj.gz
+ORDER_BENCH  ?= /tmp/batchrt-bench-order
+.PHONY: bench-order
+bench-order: all
+	./$(BUILD)/bench_order --scale $(ORDER_SCALE) --rays $(ORDER_RAYS) --repeat $(ORDER_REPEAT) \
+	  --mesh $(ORDER_MESH) --dir $(ORDER_BENCH)
 
 BENCH_RENDER = --scale 200 --point-tris 100000 --point-instanced 20000000 --spp 16 --width 640 \
   --height 360 --compare

@@ -245,7 +245,8 @@ static void test_help(void)
     ** tools and bench). */
     static const char *const programs[] = {"trace", "raygen", "hitdiff", "minimal", "minimal_batched",
                                            "closed", "render", "mkscene", "figures", "voxelize",
-                                           "bench_bvh", "bench_svdag", "bench_batched", "bench_pbrt"};
+                                           "bench_bvh", "bench_svdag", "bench_batched", "bench_pbrt",
+                                           "bench_order"};
     size_t i;
     char *list;
     /* ... every one: a file of examples/ with a main() is in the list
