@@ -370,13 +370,38 @@ static double ratio(double a, double b)
     return b > 0 ? a / b : 0.0;
 }
 
-/* Table 1, one row: the four uses in one regime, R rounds. */
-static void bottom_row(const options *o, bench_scene *b, int kind, int out_of_core)
+/* The hook counting the batch rays whose walk the clip started after
+** their tnear (testing.h: brt_test_on_batch_ray). */
+typedef struct clip_count {
+    const brt_ray *rays;        /* the traced rays, by tag */
+    uint64_t rays_seen, clipped;
+} clip_count;
+
+static void count_clipped(void *user, uint32_t point, uint32_t place, uint64_t tag, const brt_ray *ray,
+                          uint32_t entry_voxel)
 {
-    double best[USES] = {0, 0, 0, 0}, lo = 0, hi = 0, nodes[USES];
-    uint64_t batched[USES];
-    uint64_t r;
+    clip_count *c = user;
+    (void)point; (void)place; (void)entry_voxel;
+    c->rays_seen++;
+    c->clipped += ray->tnear > c->rays[tag & ~BRT_TAG_OCCLUSION].tnear;
+}
+
+/* One regime's measure: the four uses, R rounds. */
+typedef struct regime_result {
+    double nodes[USES];         /* BVH nodes per batched ray */
+    double best[USES];          /* the batches' Mrays/s, best of R */
+    double lo, hi;              /* both / neither over the rounds */
+    double clipped;             /* share of batched rays clipped (both uses) */
+} regime_result;
+
+static void regime_measure(const options *o, bench_scene *b, int kind, int out_of_core, regime_result *m)
+{
+    uint64_t batched[USES], r;
+    clip_count count;
     int u, i;
+    memset(m, 0, sizeof *m);
+    memset(&count, 0, sizeof count);
+    count.rays = b->rays[kind];
     for (r = 0; r <= o->repeat; r++) {
         double speed[USES];
         for (i = 0; i < USES; i++) {
@@ -392,38 +417,39 @@ static void bottom_row(const options *o, bench_scene *b, int kind, int out_of_co
             opt.no_clip = !(u & 1);
             opt.no_order = !(u & 2);
             snprintf(what, sizeof what, "%s, %s", out_of_core ? "out of core" : "in core", use_names[u]);
+            /* round 0: one run of both uses, untimed, to warm up and count the clipped rays */
+            brt_test_on_batch_ray(r == 0 ? count_clipped : NULL, &count);
             run(b, kind, &opt, what, &res);
-            if (r == 0) break;                       /* round 0: one run to warm up, untimed */
+            brt_test_on_batch_ray(NULL, NULL);
+            if (r == 0) break;
             speed[u] = ratio((double)res.bottom_rays, res.bottom_seconds) * 1e-6;
-            if (speed[u] > best[u]) best[u] = speed[u];
-            nodes[u] = ratio((double)res.bottom_nodes, (double)res.bottom_rays);
+            if (speed[u] > m->best[u]) m->best[u] = speed[u];
+            m->nodes[u] = ratio((double)res.bottom_nodes, (double)res.bottom_rays);
             batched[u] = res.bottom_rays;
         }
         if (r > 0) {
             const double q = ratio(speed[3], speed[0]);
-            if (r == 1 || q < lo) lo = q;
-            if (r == 1 || q > hi) hi = q;
+            if (r == 1 || q < m->lo) m->lo = q;
+            if (r == 1 || q > m->hi) m->hi = q;
         }
     }
+    m->clipped = ratio((double)count.clipped, (double)count.rays_seen);
     for (u = 1; u < USES; u++)
         if (batched[u] != batched[0])   /* layers 10 and 11 change no queue (batchrt.c) */
             fprintf(stderr, "%s: %s, %s rays: %llu batched rays with %s, %llu with neither\n", prog,
                     b->label, kind_names[kind], (unsigned long long)batched[u], use_names[u],
                     (unsigned long long)batched[0]);
-    printf("| %s | %s | %s | %llu | %.1f | %.1f | %.1f | %.1f | %.2f | %.2f | %.2f | %.2f | %.2f-%.2f |\n",
-           b->label, kind_names[kind], out_of_core ? "out of core" : "in core",
-           (unsigned long long)batched[0], nodes[0], nodes[1], nodes[2], nodes[3], best[0], best[1],
-           best[2], best[3], lo, hi);
-    fflush(stdout);
 }
 
-/* Table 2, one row: proxies off (layer 1) and proxies_in_core, R rounds. */
-static void in_core_row(const options *o, bench_scene *b, int kind)
+/* Proxies in core: off (layer 1) against proxies_in_core, no limit, the
+** default scheduler, R rounds: the best trace seconds of each, and the
+** share of proxy tests that culled. */
+static void in_core_measure(const options *o, bench_scene *b, int kind, double best[2], double *culled)
 {
-    double best[2] = {0, 0};
     run_result last[2];
     uint64_t r;
     int i;
+    best[0] = best[1] = 0;
     for (r = 0; r <= o->repeat; r++)
         for (i = 0; i < 2; i++) {
             const int on = r % 2 == 1 ? i : 1 - i;
@@ -434,10 +460,29 @@ static void in_core_row(const options *o, bench_scene *b, int kind)
             if (r == 0) break;                       /* round 0: one run to warm up, untimed */
             if (r == 1 || last[on].stats.seconds < best[on]) best[on] = last[on].stats.seconds;
         }
-    printf("| %s | %s | %.3f | %.3f | %.2f | %.1f | %.1f | %.1f %% |\n", b->label, kind_names[kind], best[0],
-           best[1], ratio(best[1], best[0]), ratio((double)last[0].nodes, (double)b->count),
-           ratio((double)last[1].nodes, (double)b->count),
-           100.0 * ratio((double)last[1].stats.proxy_culled, (double)last[1].stats.proxy_tests));
+    *culled = ratio((double)last[1].stats.proxy_culled, (double)last[1].stats.proxy_tests);
+}
+
+/* One regime's cells: nodes per ray neither and clip; Mrays/s of the
+** four uses; both/neither's range. */
+static void print_regime(const regime_result *m)
+{
+    printf(" %.1f, %.1f | %.2f, %.2f, %.2f, %.2f | %.2f-%.2f |", m->nodes[0], m->nodes[1], m->best[0], m->best[1],
+           m->best[2], m->best[3], m->lo, m->hi);
+}
+
+/* The table's row of a scene and ray kind. */
+static void scene_row(const options *o, bench_scene *b, int kind)
+{
+    regime_result out, in;
+    double seconds[2], culled;
+    regime_measure(o, b, kind, 1, &out);
+    regime_measure(o, b, kind, 0, &in);
+    in_core_measure(o, b, kind, seconds, &culled);
+    printf("| %s | %s | %.0f %% |", b->label, kind_names[kind], 100.0 * out.clipped);
+    print_regime(&out);
+    print_regime(&in);
+    printf(" %.2f (%.0f %%) |\n", ratio(seconds[1], seconds[0]), 100.0 * culled);
     fflush(stdout);
 }
 
@@ -447,7 +492,7 @@ int main(int argc, char **argv)
     options o;
     bench_scene scenes[SCENES];
     double start = brt_seconds();
-    int s, k, regime;
+    int s, k;
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
@@ -459,35 +504,20 @@ int main(int argc, char **argv)
         else load_mesh(&o, &scenes[s]);
     }
 
-    printf("Bottom level: %llu camera and %llu diffuse rays per scene, one thread; in core: no memory "
-           "limit, the paper's scheduler (every ray batched); out of core: %g %% of the geometry "
-           "bytes, the default scheduler; triangle-BVH nodes per batched ray, the batches' Mrays/s (best of "
-           "%llu) and their ratio both/neither (range over the rounds):\n\n",
-           (unsigned long long)o.rays, (unsigned long long)o.rays, o.limit_percent,
-           (unsigned long long)o.repeat);
-    printf("| scene | rays | regime | batched rays | nodes neither | nodes clip | nodes order | nodes both "
-           "| Mrays/s neither | Mrays/s clip | Mrays/s order | Mrays/s both | both/neither |\n");
-    printf("|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+    printf("%llu camera and %llu diffuse rays a scene, one thread; out of core at %g %% of the geometry "
+           "bytes, in core with every ray queued (--paper-scheduler); uses of the proxy entry: neither, "
+           "clip, order, both; Mrays/s of the batches, best of %llu; proxies in core: trace time with "
+           "--proxies-in-core over without, no limit (the share of proxy tests culled):\n\n",
+           (unsigned long long)o.rays, (unsigned long long)o.rays, o.limit_percent, (unsigned long long)o.repeat);
+    printf("| scene | rays | clipped | out of core: nodes/ray, neither, clip | Mrays/s, the four uses | both / "
+           "neither | in core: nodes/ray | Mrays/s | both / neither | proxies in core |\n");
+    printf("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n");
     for (s = 0; s < SCENES; s++) {
         if (!scenes[s].scene) {
-            printf("| %s | - | %s | | | | | | | | | | |\n", scenes[s].label, scenes[s].skip);
+            printf("| %s | - | %s | | | | | | | |\n", scenes[s].label, scenes[s].skip);
             continue;
         }
-        for (k = 0; k < KINDS; k++)
-            for (regime = 0; regime < 2; regime++) bottom_row(&o, &scenes[s], k, regime);
-    }
-
-    printf("\nProxies in core: the same rays, one thread, no memory limit, the default scheduler: "
-           "proxies off (layer 1) against --proxies-in-core; trace seconds (best of %llu), triangle-BVH "
-           "nodes per ray (every walk), the share of proxy tests that culled:\n\n", (unsigned long long)o.repeat);
-    printf("| scene | rays | seconds off | seconds on | on/off | nodes/ray off | nodes/ray on | culled |\n");
-    printf("|---|---|---:|---:|---:|---:|---:|---:|\n");
-    for (s = 0; s < SCENES; s++) {
-        if (!scenes[s].scene) {
-            printf("| %s | - | %s | | | | | |\n", scenes[s].label, scenes[s].skip);
-            continue;
-        }
-        for (k = 0; k < KINDS; k++) in_core_row(&o, &scenes[s], k);
+        for (k = 0; k < KINDS; k++) scene_row(&o, &scenes[s], k);
     }
     fprintf(stderr, "%s: %.0f s in all\n", prog, brt_seconds() - start);
 
