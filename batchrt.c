@@ -2100,10 +2100,15 @@ static void cache_release(geometry_cache *c, uint32_t id)
 ** -- unless no ray ever needs that batching point -- while every test
 ** costs a cast.  So the default scheduler does not consult them then;
 ** the paper's (paper_scheduler) does, and so does a trace over several
-** processes (layer 6), where a proxy miss also spares a message.
-** render --compare without a limit prints the run's time with and
-** without them.  Every blob: the batching points' and the prototypes',
-** as the cache charges them (its all_bytes). */
+** processes (layer 6), where a proxy miss also spares a message.  The
+** paper's open question -- would a proxy test pay in core, before each
+** intersection at a point in memory, culling some and clipping the rest
+** (layer 10)? -- is answered by make bench-order's last column
+** (proxies_in_core against this layer): on every scene and ray kind it
+** measures the casts cost more time than the BVH nodes they spare, so the
+** proxies stay off, and proxies_in_core is there to measure it again.
+** Every blob: the batching points' and the prototypes', as the cache
+** charges them (its all_bytes). */
 static int proxies_pay(const scheduler *s, uint64_t budget)
 {
     return s->paper_scheduler || s->exchange || s->proxies_in_core || budget < s->cache.all_bytes;
