@@ -1249,6 +1249,8 @@ static void slot_start(ray_slot *r, const brt_ray *ray, uint64_t tag, brt_stats 
     brt_hit_clear(&r->hit);
     r->normal[0] = r->normal[1] = r->normal[2] = 0.0f;
     r->visits = 0;
+    r->entry_t = ray->tnear;    /* no proxy entered yet: every field defined */
+    r->entry_voxel = 0;
     r->key.t = -INFINITY;
     r->key.id = TOP_EMPTY;
     stats->rays++;
@@ -2572,7 +2574,9 @@ static uint32_t next_load_guess(const scheduler *s)
 ** The tests: svdag's casts hold entry_t <= t_hit for grazing rays at
 ** every scale, and for instances sheared and mirrored; clip: the hits
 ** with the clip on and off, byte for byte.  make bench-order prints the
-** node visits per ray it spares. */
+** node visits per ray it spares -- or adds: boxes a clipped walk starts
+** inside all enter at its new tnear and are taken in slot order, not
+** nearest first. */
 static const brt_ray *clip_to_entry(const scheduler *s, const ray_slot *r, brt_ray *clipped)
 {
     if (!s->clip || !(r->entry_t > r->ray.tnear)) return &r->ray;

@@ -337,9 +337,10 @@ static void test_instanced(void)
 /* ---- the clip: fewer nodes, never more -------------------------------------- */
 
 /* The bottom level's BVH node visits with the clip and without, every ray
-** queued, one thread: the clip only raises tnear, and a box test with a
-** later tnear passes no box the earlier one fails, while the hits found on
-** the way are the same (none lies before the entry) -- so never more. */
+** queued, one thread, on a soup seen from everywhere: fewer in all.  (Not
+** fewer for every ray: boxes a clipped walk starts inside all enter at its
+** new tnear and are taken in slot order, not nearest first -- make
+** bench-order shows it on the island.) */
 static void test_fewer_nodes(void)
 {
     tu_scene s = {0};
@@ -520,6 +521,11 @@ static void test_order_model(void)
         tu_scene_free(&s);
         return;
     }
+    /* Half the rays' zero direction components negative: -0 is in the
+    ** octant of its sign bit (the same rays, the same hits). */
+    for (i = 0; i < f.count; i += 2)
+        for (k = 0; k < 3; k++)
+            if (f.rays[i].dir[k] == 0.0f) f.rays[i].dir[k] = -0.0f;
     for (k = 0; k < 3; k++)
         if (!logged_trace(&f, uses[k], &logs[k], &fin[k])) goto done;
     for (k = 1; k < 3; k++) {
@@ -567,7 +573,7 @@ void suite_entry(void)
     test_run("entry: clip and order change no byte: a soup, near and far from the origin", test_soup);
     test_run("entry: clip and order change no byte: walls in voxel planes, grazing rays", test_walls);
     test_run("entry: clip and order change no byte: instances sheared, mirrored", test_instanced);
-    test_run("entry: the clip visits fewer BVH nodes, never more", test_fewer_nodes);
+    test_run("entry: the clip visits fewer BVH nodes in all on a soup", test_fewer_nodes);
     test_run("entry: the order is the model's stable sort; walks and finished calls keep theirs",
              test_order_model);
 }
