@@ -49,6 +49,7 @@
 */
 #include "common.h"
 #include "count.h"
+#include "input.h"
 #include "rays.h"
 #include "scenes.h"
 #include "testing.h"
@@ -225,18 +226,6 @@ static int plain_mesh(const char *mesh, const char *dir, char *path, size_t size
     return 1;
 }
 
-/* The geometry bytes of a scene, from a trace of no rays (as render). */
-static uint64_t scene_geometry_bytes(brt_scene *scene)
-{
-    brt_trace_options topt;
-    brt_stats stats;
-    brt_error err;
-    memset(&topt, 0, sizeof topt);
-    topt.rays_in_flight = 1;
-    ex_check(prog, brt_scene_trace(scene, &topt, NULL, 0, NULL, &stats, &err), &err);
-    return stats.geometry_bytes;
-}
-
 /* Camera rays from the scene's view (a built-in's, or raygen's fit of a
 ** mesh) on a near-square grid, and bounce rays from their hits, traced
 ** in the world held in memory (raygen's rays of a pbrt file). */
@@ -291,7 +280,7 @@ static void open_scene(const options *o, bench_scene *b, const brt_scene_source 
          : snprintf(path, sizeof path, "%s/%s-b%u.brs", o->dir, b->label, sopt.point_tris)) >= (int)sizeof path)
         ex_die(prog, "%s: path too long", o->dir);
     ex_check(prog, brt_scene_prepare_source(source, stamp, path, &sopt, &b->scene, &rebuilt, &err), &err);
-    b->geometry_bytes = scene_geometry_bytes(b->scene);
+    b->geometry_bytes = ex_scene_geometry_bytes(prog, b->scene);
     fprintf(stderr, "%s: %s: %llu unique triangles, %u batching points, geometry %.1f MiB, "
             "scene file %s (%s, %.1f s)\n", prog, b->label, (unsigned long long)unique,
             brt_scene_point_count(b->scene), b->geometry_bytes / 1048576.0, path,

@@ -141,3 +141,14 @@ void ex_input_load_mesh(const char *prog, const char *path, brt_mesh *mesh)
     free(f.prototypes);
     ex_input_close(&in);
 }
+
+uint64_t ex_scene_geometry_bytes(const char *prog, brt_scene *scene)
+{
+    brt_trace_options topt;
+    brt_stats stats;
+    brt_error err;
+    memset(&topt, 0, sizeof topt);
+    topt.rays_in_flight = 1;
+    ex_check(prog, brt_scene_trace(scene, &topt, NULL, 0, NULL, &stats, &err), &err);
+    return stats.geometry_bytes;
+}

@@ -43,6 +43,11 @@ brt_world *ex_input_world(const char *prog, const ex_input *in);
 brt_scene *ex_input_scene(const char *prog, const ex_input *in, const char *scene_path,
                           const brt_scene_options *opt, int *rebuilt);
 
+/* The geometry bytes of an open scene (all blobs, as the statistics give
+** them), from a trace of no rays: a limit given as a share needs it before
+** the real trace. */
+uint64_t ex_scene_geometry_bytes(const char *prog, brt_scene *scene);
+
 /* The whole input as one mesh in memory, for the analysis programs
 ** (voxelize, closed): a mesh file as brt_mesh_load reads it; a pbrt file
 ** flattened: its world triangles, then each instance's prototype

@@ -956,19 +956,6 @@ static brt_scene *open_scene(const options *o, const render_input *in,
     return scene;
 }
 
-/* The geometry bytes of a scene, from a trace of no rays (the statistics
-** say it; a percentage limit needs it before the real trace). */
-static uint64_t scene_geometry_bytes(brt_scene *scene)
-{
-    brt_trace_options topt;
-    brt_stats stats;
-    brt_error err;
-    memset(&topt, 0, sizeof topt);
-    topt.rays_in_flight = 1;
-    ex_check(prog, brt_scene_trace(scene, &topt, NULL, 0, NULL, &stats, &err), &err);
-    return stats.geometry_bytes;
-}
-
 /* ===================================================================== */
 /* Images                                                                */
 /* ===================================================================== */
@@ -1358,7 +1345,7 @@ int main(int argc, char **argv)
         brt_scene_bounds(scene, bmin, bmax);
         triangles = brt_scene_triangle_count(scene);
         topt.memory_limit = o.memory_percent > 0
-            ? (uint64_t)(o.memory_percent / 100.0 * (double)scene_geometry_bytes(scene)) + 1
+            ? (uint64_t)(o.memory_percent / 100.0 * (double)ex_scene_geometry_bytes(prog, scene)) + 1
             : o.memory;
     }
     make_job(&o, &in, bmin, bmax, &job);
