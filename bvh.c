@@ -323,6 +323,14 @@ static void tri_ray_setup(const brt_ray *ray, tri_ray *r)
     memcpy(r->dir, ray->dir, sizeof r->dir);
 }
 
+/* Woop's values for one triangle: the sheared corners (x, y; z times
+** sz) and the edge functions. */
+typedef struct woop_values {
+    float ax, ay, bx, by, cx, cy, zs0, zs1, zs2, eu, ev, ew;
+} woop_values;
+
+static inline int edges_certain(const woop_values *wv);   /* below, with the error bounds */
+
 /* The span of t in which the ray's point lies in the triangle's prism --
 ** the three planes through its edges along its normal n, each moved out
 ** by grow -- in double: [*lo, *hi], 0 when empty.  w = p0 - o, e1 = p1 -
@@ -367,7 +375,8 @@ static int prism_span(const double w[3], const double e1[3], const double e2[3],
 ** interval, so the clamp only removes rounding.  Returns 0 for a
 ** degenerate triangle (cross product exactly 0 in double: it never hits)
 ** or an empty interval (the ray misses the box, so the "hit" was
-** rounding).
+** rounding), and at once when the box's interval misses [tnear, tfar]
+** (the clamped t could not lie in the segment: the same answer, sooner).
 ** A ray all but in the triangle's plane is the exception: the plane gives
 ** no distance then (0/0, or any t), the edge test's verdict is rounding's,
 ** and the box clamp alone would put the hit anywhere in the box, voxels
@@ -380,9 +389,13 @@ static int prism_span(const double w[3], const double e1[3], const double e2[3],
 ** proxies' margin covers (svdag.c, "CONSERVATIVE IN FLOAT").  A ray that
 ** crosses the plane inside the triangle has its true distance inside the
 ** grown prism, so for it this changes nothing; and no hit becomes a miss
-** (watertightness is the edge test's). */
+** (watertightness is the edge test's).  So the prism is skipped when the
+** edge functions' signs are certain (each beyond its error bound:
+** edges_certain), which makes the exact crossing an inner point:
+** most hits, at the cost of a few compares (make bench-embree times it). */
 static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p0,
-                        const float *p1, const float *p2, float woop_t, float *t)
+                        const float *p1, const float *p2, float woop_t, float tnear, float tfar,
+                        const woop_values *wv, float *t)
 {
     double e1[3], e2[3], w[3], n[3], td, prism_lo, prism_hi, reach = 0;
     float lo[3], hi[3], plo[3], phi[3], entry, exit, tt;
@@ -405,15 +418,18 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
     tt = isfinite(td) ? (float)td : woop_t;
     brt_box_pad(lo, hi, plo, phi);
     if (!slab_span(bp, plo, phi, -INFINITY, INFINITY, &entry, &exit)) return 0;
-    for (a = 0; a < 3; a++) {
-        reach = fmax(reach, fabs((double)r->org[a]));
-        reach = fmax(reach, fmax(fabs((double)lo[a]), fabs((double)hi[a])));
-    }
-    if (prism_span(w, e1, e2, n, r->dir, (double)PAD_REL * reach, &prism_lo, &prism_hi) &&
-        prism_lo <= exit && prism_hi >= entry) {
-        if (prism_lo > entry) entry = (float)prism_lo;
-        if (prism_hi < exit) exit = (float)prism_hi;
-        if (entry > exit) entry = exit;     /* the float rounding of a point-like span */
+    if (entry > tfar || exit < tnear) return 0;   /* t lies in [entry, exit]: no hit in the segment */
+    if (!edges_certain(wv)) {
+        for (a = 0; a < 3; a++) {
+            reach = fmax(reach, fabs((double)r->org[a]));
+            reach = fmax(reach, fmax(fabs((double)lo[a]), fabs((double)hi[a])));
+        }
+        if (prism_span(w, e1, e2, n, r->dir, (double)PAD_REL * reach, &prism_lo, &prism_hi) &&
+            prism_lo <= exit && prism_hi >= entry) {
+            if (prism_lo > entry) entry = (float)prism_lo;
+            if (prism_hi < exit) exit = (float)prism_hi;
+            if (entry > exit) entry = exit;     /* the float rounding of a point-like span */
+        }
     }
     *t = tt < entry ? entry : (tt > exit ? exit : tt);
     return 1;
@@ -459,6 +475,26 @@ static double max_abs3f(float a, float b, float c)
     return m;
 }
 
+/* The bound on the error of the float edge functions eu, ev, ew against
+** the exact ones (PBR 3.9.6's de, with gradual underflow's term). */
+static inline double edge_error(float ax, float ay, float bx, float by, float cx, float cy,
+                                float zs0, float zs1, float zs2)
+{
+    const double max_z = max_abs3f(zs0, zs1, zs2), max_x = max_abs3f(ax, bx, cx);
+    const double max_y = max_abs3f(ay, by, cy);
+    const double dx = GAMMA(5) * (max_x + max_z) + 0x1p-148, dy = GAMMA(5) * (max_y + max_z) + 0x1p-148;
+    return 2.0 * (GAMMA(2) * max_x * max_y + dy * max_x + dx * max_y) + 0x1p-147;
+}
+
+/* Whether the float edge functions' signs are the exact ones, each farther
+** from 0 than edge_error: the exact line then crosses the triangle inside
+** it, and hit_distance's prism cannot move t. */
+static inline int edges_certain(const woop_values *wv)
+{
+    const double de = edge_error(wv->ax, wv->ay, wv->bx, wv->by, wv->cx, wv->cy, wv->zs0, wv->zs1, wv->zs2);
+    return fabs((double)wv->eu) > de && fabs((double)wv->ev) > de && fabs((double)wv->ew) > de;
+}
+
 /* 1 when the float hit distance t_woop, of Woop's values, certainly lies
 ** more than its error bound below tnear (see above).  The gammas bound
 ** relative errors, which hold while no float result is subnormal; each
@@ -473,11 +509,9 @@ static inline int behind_segment(float ax, float ay, float bx, float by, float c
                                  float zs0, float zs1, float zs2, float eu, float ev, float ew,
                                  float det, float t_woop, float tnear)
 {
-    const double max_z = max_abs3f(zs0, zs1, zs2), max_x = max_abs3f(ax, bx, cx);
-    const double max_y = max_abs3f(ay, by, cy), max_e = max_abs3f(eu, ev, ew);
-    const double dz = GAMMA(3) * max_z + 0x1p-149, dx = GAMMA(5) * (max_x + max_z) + 0x1p-148;
-    const double dy = GAMMA(5) * (max_y + max_z) + 0x1p-148;
-    const double de = 2.0 * (GAMMA(2) * max_x * max_y + dy * max_x + dx * max_y) + 0x1p-147;
+    const double max_z = max_abs3f(zs0, zs1, zs2), max_e = max_abs3f(eu, ev, ew);
+    const double dz = GAMMA(3) * max_z + 0x1p-149;
+    const double de = edge_error(ax, ay, bx, by, cx, cy, zs0, zs1, zs2);
     const double dt_det = 3.0 * (GAMMA(3) * max_e * max_z + de * max_z + dz * max_e) + 0x1p-146;
     if (!isfinite(t_woop) || !(fabsf(det) >= FLT_MIN)) return 0;
     /* t_woop + 2 dt < tnear with dt = dt_det / |det|, multiplied out: a
@@ -541,7 +575,10 @@ static inline ALWAYS_INLINE int tri_intersect(const tri_ray *r, const brt_ray_pr
         behind_segment(ax, ay, bx, by, cx, cy, r->sz * az, r->sz * bz, r->sz * cz,
                        eu, ev, ew, det, tt * rcp, tnear))
         return 0;
-    if (!hit_distance(r, bp, p0, p1, p2, tt * rcp, &tt)) return 0;
+    {
+        const woop_values wv = {ax, ay, bx, by, cx, cy, r->sz * az, r->sz * bz, r->sz * cz, eu, ev, ew};
+        if (!hit_distance(r, bp, p0, p1, p2, tt * rcp, tnear, tfar, &wv, &tt)) return 0;
+    }
     /* A hit has a finite t in the segment (NaN fails the compares too;
     ** an infinite t is the plane equation overflowing float). */
     if (!(tt >= tnear && tt <= tfar) || isinf(tt)) return 0;
