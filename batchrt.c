@@ -2088,10 +2088,10 @@ static void cache_release(geometry_cache *c, uint32_t id)
 ** order) and none changing a hit: one section a layer, numbered in the
 ** order of the data flow -- the set-up (1-2), a ray's walk (3-5),
 ** settling it (6), a queue's load (7), the cache's load (8-9), a batch's
-** intersections (10-11), the threads (12) -- as in the README's table ("The scheduler, and where batchrt
-** departs from the paper"), which says what turns each off.  Each
-** section's first comment is the layer's design: why it is there and
-** which command measures it.
+** intersections (10-11), the threads (12) -- as in the README's table
+** ("The scheduler, and where batchrt departs from the paper"), which says
+** what turns each off.  Each section's first comment is the layer's
+** design: why it is there and which command measures it.
 */
 
 /* ---- layer 1: proxies off when everything fits (proxies_pay) ---- */
