@@ -1173,8 +1173,14 @@ static void walker_count(scheduler *s, walker *w)
 #ifdef BRT_TESTING
 static brt_test_batch_fn test_batch_fn;
 static void *test_batch_user;
+static int test_counting;      /* brt_test_count_bottom */
 static uint64_t test_bottom_rays, test_bottom_nodes, test_nodes_before;
 static double test_bottom_seconds, test_seconds_before;
+void brt_test_count_bottom(int on)
+{
+    test_counting = on != 0;
+    brt_test_count_nodes(on);
+}
 void brt_test_on_batch_ray(brt_test_batch_fn fn, void *user)
 {
     test_batch_fn = fn;
@@ -1189,10 +1195,12 @@ void brt_test_bottom_level(uint64_t *rays, uint64_t *nodes, double *seconds)
 #define TEST_BATCH_RAY(id, place, r, walked) \
     do { if (test_batch_fn) test_batch_fn(test_batch_user, id, place, (r)->tag, walked, (r)->entry_voxel); } while (0)
 #define TEST_BOTTOM_BEGIN() \
-    do { test_nodes_before = brt_test_node_visits(); test_seconds_before = brt_seconds(); } while (0)
+    do { if (test_counting) { test_nodes_before = brt_test_node_visits(); test_seconds_before = brt_seconds(); } \
+    } while (0)
 #define TEST_BOTTOM_END(count) \
-    do { test_bottom_rays += (count); test_bottom_nodes += brt_test_node_visits() - test_nodes_before; \
-         test_bottom_seconds += brt_seconds() - test_seconds_before; } while (0)
+    do { if (test_counting) { test_bottom_rays += (count); \
+             test_bottom_nodes += brt_test_node_visits() - test_nodes_before; \
+             test_bottom_seconds += brt_seconds() - test_seconds_before; } } while (0)
 #else
 #define TEST_BATCH_RAY(id, place, r, walked) ((void)0)
 #define TEST_BOTTOM_BEGIN() ((void)0)

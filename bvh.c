@@ -460,8 +460,9 @@ static int hit_distance(const tri_ray *r, const brt_ray_prep *bp, const float *p
 
 #ifdef BRT_TESTING
 static int early_reject = 1;   /* testing.h: brt_test_early_reject */
-static uint64_t node_visits;   /* testing.h: brt_test_node_visits */
-#define NODE_VISITED() (node_visits++)
+static uint64_t node_visits;   /* testing.h: brt_test_node_visits, while */
+static int counting_nodes;     /* counting_nodes (brt_test_count_bottom) */
+#define NODE_VISITED() do { if (counting_nodes) node_visits++; } while (0)
 #else
 enum { early_reject = 1 };     /* a constant: the walks always reject early */
 #define NODE_VISITED() ((void)0)
@@ -522,6 +523,7 @@ static inline int behind_segment(float ax, float ay, float bx, float by, float c
 #ifdef BRT_TESTING
 void brt_test_early_reject(int on) { early_reject = on; }
 uint64_t brt_test_node_visits(void) { return node_visits; }
+void brt_test_count_nodes(int on) { counting_nodes = on != 0; }
 #endif
 
 /* The watertight test proper (Woop et al., Fig. 4 with culling off).

@@ -124,8 +124,14 @@ void brt_test_build_sizes(uint32_t spill_chunk, uint32_t bucket_tris);
 void brt_test_count_instance_triangles(int on);
 uint64_t brt_test_instance_triangles(void);
 
-/* The BVH nodes every walk has visited so far (bvh.c; a plain integer:
-** read it from one thread's traces). */
+/* Turns on (off by default) the counting behind brt_test_node_visits and
+** brt_test_bottom_level: plain integers, so from one thread, with no other
+** trace running meanwhile (the tests run traces on several threads at
+** once).  brt_test_count_nodes: bvh.c's alone. */
+void brt_test_count_bottom(int on);
+void brt_test_count_nodes(int on);
+
+/* The BVH nodes every walk has visited while counting (bvh.c). */
 uint64_t brt_test_node_visits(void);
 
 /* Called, while set, for each ray a batch intersects (batchrt.c, layers
@@ -137,9 +143,9 @@ typedef void (*brt_test_batch_fn)(void *user, uint32_t point, uint32_t place, ui
                                   const brt_ray *ray, uint32_t entry_voxel);
 void brt_test_on_batch_ray(brt_test_batch_fn fn, void *user);
 
-/* The batches' intersections so far, in the plain loop (one thread):
-** rays, the BVH nodes their walks visited and their wall seconds (make
-** bench-order's bottom level). */
+/* The batches' intersections while counting, in the plain loop (one
+** thread): rays, the BVH nodes their walks visited and their wall seconds
+** (make bench-order's bottom level). */
 void brt_test_bottom_level(uint64_t *rays, uint64_t *nodes, double *seconds);
 
 #endif /* BRT_TESTING */

@@ -101,6 +101,8 @@ static int run_one(const char *name, test_fn fn)
     brt_test_read_fault(-1, 0);
     brt_test_early_reject(1);
     brt_test_build_sizes(0, 0);
+    brt_test_count_bottom(0);
+    brt_test_on_batch_ray(NULL, NULL);
     fn();
     fflush(stdout);
     return current_failed ? 2 : current_skipped ? 3 : 1;

@@ -356,6 +356,7 @@ static void test_fewer_nodes(void)
         tu_scene_free(&s);
         return;
     }
+    brt_test_count_bottom(1);
     for (clip = 0; clip < 2; clip++) {
         memset(&opt, 0, sizeof opt);
         opt.threads = 1;
@@ -367,6 +368,7 @@ static void test_fewer_nodes(void)
         rays[clip] -= r0;
         nodes[clip] -= n0;
     }
+    brt_test_count_bottom(0);
     EXPECT(rays[0] == rays[1] && rays[0] > 0, "batched rays %llu and %llu", (unsigned long long)rays[0],
            (unsigned long long)rays[1]);
     EXPECT(nodes[1] < nodes[0], "node visits with the clip %llu, without %llu", (unsigned long long)nodes[1],

@@ -485,6 +485,7 @@ int main(int argc, char **argv)
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
+    brt_test_count_bottom(1);               /* one thread, one trace at a time */
     make_dir(o.dir);
     memset(scenes, 0, sizeof scenes);
     for (s = 0; s < SCENES; s++) {
