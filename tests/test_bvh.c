@@ -1346,6 +1346,38 @@ static void test_behind_segment(void)
                    hit[0], t[0], hit[1], t[1]);
         }
     }
+    /* Directions of subnormal components (1/det may overflow), and
+    ** triangles so small that the sheared coordinates' products and det are
+    ** subnormal, with tnear a hair either side of the hit's t: the bound's
+    ** underflow terms and guards. */
+    for (i = 0; i < 60000 && !test_failed(); i++) {
+        float v[3][3], t[2], u[2], vv[2], t0 = 0, u0, v0;
+        brt_ray r;
+        int hit[2], j, k;
+        const int size = i % 2 ? 0 : -55 - (int)(brt_random_u64(&st) % 20);   /* or tiny triangles */
+        for (j = 0; j < 3; j++)
+            for (k = 0; k < 3; k++) v[j][k] = (float)ldexp(2.0 * brt_random_float(&st) - 1.0, size);
+        for (k = 0; k < 3; k++) {
+            r.org[k] = (float)ldexp(2.0 * brt_random_float(&st) - 1.0, size);
+            r.dir[k] = (float)ldexp(2.0 * brt_random_float(&st) - 1.0,
+                                    i % 4 == 1 ? 0 : -100 - (int)(brt_random_u64(&st) % 50));
+        }
+        if (brt_random_u64(&st) % 2) r.dir[brt_random_u64(&st) % 3] = 0.0f;
+        r.tnear = -INFINITY;
+        r.tfar = INFINITY;
+        brt_test_early_reject(0);
+        if (!brt_intersect_triangle(&r, v[0], v[1], v[2], &t0, &u0, &v0) || !isfinite(t0)) continue;
+        r.tnear = brt_random_u64(&st) % 2 ? nextafterf(t0, -INFINITY) : t0 * (1.0f + 0x1p-20f);
+        for (k = 0; k < 2; k++) {
+            brt_test_early_reject(k == 0);
+            t[k] = u[k] = vv[k] = 0.0f;
+            hit[k] = brt_intersect_triangle(&r, v[0], v[1], v[2], &t[k], &u[k], &vv[k]);
+        }
+        cases++;
+        EXPECT(hit[0] == hit[1] && memcmp(t, t + 1, sizeof *t) == 0,
+               "subnormal direction (%a %a %a), tnear %a: early rejection %d t %a, without %d t %a", r.dir[0],
+               r.dir[1], r.dir[2], r.tnear, hit[0], t[0], hit[1], t[1]);
+    }
     brt_test_early_reject(1);
     printf("  bvh: behind the segment: %lu rays, %lu hits, %lu of them at tnear within 1e-4 of the size\n",
            cases, hits, near_hits);

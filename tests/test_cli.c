@@ -1413,10 +1413,36 @@ static void test_late_failure_leaves_nothing(void)
            "a good render did not keep its outputs");
 }
 
+/* trace's options of layers 10 and 11 and of proxies in core reach the
+** trace (brt_trace_options): in core the proxies are asked only with
+** --proxies-in-core, whatever --no-clip and --no-order say, and every
+** setting writes the direct mode's bytes. */
+static void test_entry_options(void)
+{
+    static const char *const settings[5] = {"", "--no-clip", "--no-order", "--no-clip --no-order",
+                                            "--proxies-in-core"};
+    tu_scene m = {0};
+    int i;
+    CHECK(write_lumpy_mesh(&m, "lumpy.obj"), "cannot write the test mesh");
+    tu_scene_free(&m);
+    CHECK(tu_run("raygen @/lumpy.obj @/eo.rays --kind bounce --count 2000") == 0, "raygen");
+    CHECK(tu_run("trace @/lumpy.obj @/eo.rays @/eo.direct") == 0, "trace --direct");
+    for (i = 0; i < 5; i++) {
+        double tests;
+        CHECK(tu_run("trace @/lumpy.obj @/eo.rays @/eo.hits --batched --point-tris 200 --scene @/eo.brs "
+                     "--stats @/eo.json %s", settings[i]) == 0, "trace %s: %s", settings[i], tu_last_stderr());
+        EXPECT(tu_same_file_bytes(tu_scratch("eo.hits"), tu_scratch("eo.direct")), "%s: hits differ",
+               settings[i]);
+        tests = tu_json_file_number(tu_scratch("eo.json"), "proxy_tests");
+        EXPECT(i == 4 ? tests > 0 : tests == 0, "trace %s in core: %.0f proxy tests", settings[i], tests);
+    }
+}
+
 void suite_cli(void)
 {
 test_run("cli: the source stamp sees mtime (ns and s), size and inode alone", test_source_stamp_parts);
         test_run("cli: --help of every program", test_help);
+        test_run("cli: --no-clip, --no-order and --proxies-in-core reach the trace", test_entry_options);
         test_run("cli: a renamed option names its new name (--res, --batch-tris, --batch-instanced)",
                  test_renamed_options);
     test_run("cli: minimal runs", test_minimal);

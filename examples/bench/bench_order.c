@@ -485,7 +485,6 @@ int main(int argc, char **argv)
 
     if (ex_wants_help(argc, argv)) { usage(); return 0; }
     parse_options(argc, argv, &o);
-    brt_test_count_bottom(1);               /* one thread, one trace at a time */
     make_dir(o.dir);
     memset(scenes, 0, sizeof scenes);
     for (s = 0; s < SCENES; s++) {
@@ -493,6 +492,7 @@ int main(int argc, char **argv)
         if (s < 2) load_instanced(&o, &scenes[s]);
         else load_mesh(&o, &scenes[s]);
     }
+    brt_test_count_bottom(1);   /* from here one trace at a time, one thread (the rays are made) */
 
     printf("%llu camera and %llu diffuse rays a scene, one thread; out of core at %g %% of the geometry "
            "bytes, in core with every ray queued (--paper-scheduler); uses of the proxy entry: neither, "
